@@ -1,0 +1,149 @@
+"""The ``hmpc`` command line (Typer). Argument handling only; heavy imports inside commands."""
+
+from __future__ import annotations
+
+import json
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+app = typer.Typer(
+    name="hmpc", no_args_is_help=True, add_completion=False,
+    help="Layered nonlinear MPC of hybrid systems (Olkin & Ames, 2024): run, log, inspect.")
+
+EXIT_BAD_INPUT = 2
+
+
+def _err(lines: list[str]) -> None:
+    for line in lines:
+        typer.echo(f"error: {line}", err=True)
+
+
+@app.command()
+def run(
+    scenario: Annotated[Path, typer.Argument(help="scenario TOML file")],
+    out: Annotated[Optional[Path], typer.Option(
+        "--out", help="run directory (default results/<scenario>/<time>-seed<N>)")] = None,
+    set_: Annotated[Optional[list[str]], typer.Option(
+        "--set", help="override a setting: key.path=value (repeatable)")] = None,
+    seed: Annotated[Optional[int], typer.Option("--seed", help="override the seed")] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar")] = False,
+) -> None:
+    """Run the layered controller in closed loop and log everything to MCAP."""
+    from hmpc_cli.scenario import ScenarioError, load_scenario
+
+    try:
+        sc, toml_text = load_scenario(scenario, set_ or [], seed)
+    except ScenarioError as exc:
+        _err(exc.lines)
+        raise typer.Exit(EXIT_BAD_INPUT) from None
+    from hmpc_cli.loop import LayeredLoop
+
+    try:
+        loop = LayeredLoop(sc, recorder=None)
+    except ValueError as exc:
+        _err([f"{scenario}: {exc}"])
+        raise typer.Exit(EXIT_BAD_INPUT) from None
+    if out is None:
+        stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
+        out = Path("results") / sc.name / f"{stamp}-seed{sc.seed}"
+    if (out / "run.mcap").exists():
+        _err([f"{out}: already holds a run (choose another --out)"])
+        raise typer.Exit(EXIT_BAD_INPUT)
+    result = _execute(loop, sc, toml_text, out, quiet)
+    _print_summary(result, out)
+
+
+def _execute(loop, sc, toml_text: str, out: Path, quiet: bool):
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from hmpc_cli.recorder import Recorder
+
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "scenario.toml").write_text(toml_text, encoding="utf-8")
+    rec = Recorder(out / "run.mcap")
+    loop.rec = rec
+    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(),
+                        TextColumn("t = {task.fields[t]:.2f} s"), TimeElapsedColumn(),
+                        disable=quiet, transient=True)
+    interrupted = False
+    try:
+        rec.add_attachment("scenario.toml", toml_text.encode(), "application/toml")
+        with progress:
+            task = progress.add_task(sc.name, total=1.0, t=0.0)
+            dur = sc.sim.duration
+
+            def tick(i: int, n: int) -> None:
+                if i % 20 == 0 or i == n:
+                    progress.update(task, completed=i / n, t=i / n * dur)
+
+            loop.progress = tick
+            result = loop.run()
+    except KeyboardInterrupt:
+        interrupted = True
+        loop.res.reason = "interrupted"
+        result = loop.res
+    finally:
+        rec.close()
+    (out / "summary.json").write_text(json.dumps(_jsonable(result.__dict__), indent=2) + "\n")
+    if interrupted:
+        typer.echo(f"interrupted; partial log in {out / 'run.mcap'}", err=True)
+        raise typer.Exit(130)
+    return result
+
+
+def _jsonable(d: dict) -> dict:
+    def fix(v):
+        if isinstance(v, float) and v != v:
+            return None
+        if isinstance(v, dict):
+            return {k: fix(x) for k, x in v.items()}
+        if isinstance(v, list):
+            return [fix(x) for x in v]
+        return v
+
+    return fix(d)
+
+
+def _print_summary(r, out: Path) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    def ms(v: float) -> str:
+        return "-" if v != v else f"{1e3 * v:.1f} ms"
+
+    table = Table(title=f"{r.scenario} (seed {r.seed})", show_header=False)
+    table.add_row("result", "[green]success[/]" if r.success else f"[red]failed[/]: {r.reason}")
+    table.add_row("final distance to goal", f"{r.final_error:.4f}")
+    table.add_row("simulated time", f"{r.t_end:.3f} s")
+    table.add_row("contacts", f"{r.contacts} " + json.dumps(r.contacts_by_guard))
+    table.add_row("MPC solves", str(r.solves))
+    table.add_row("solve time median / p95 / max",
+                  f"{ms(r.solve_time_median)} / {ms(r.solve_time_p95)} / {ms(r.solve_time_max)}")
+    table.add_row("solver failures", f"{r.solver_failures} "
+                  + (json.dumps(r.failure_statuses) if r.failure_statuses else ""))
+    table.add_row("planner calls (rejected)", f"{r.planner_calls} ({r.planner_rejected})")
+    table.add_row("plan time median", ms(r.plan_time_median))
+    table.add_row("wall time", f"{r.wall_time:.2f} s")
+    table.add_row("log", str(out / "run.mcap"))
+    Console().print(table)
+
+
+@app.command()
+def schema() -> None:
+    """Print the scenario JSON Schema."""
+    from hmpc_cli.scenario import Scenario
+
+    typer.echo(json.dumps(Scenario.model_json_schema(), indent=2))
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Fixed-mode MPC layer."""

@@ -1,0 +1,345 @@
+"""Fixed-mode MPC (the paper's problems (12) and (14)) as one parametric NLP.
+
+Multiple shooting on a chain of ``L = N + S_max`` links (see :mod:`hmpc_cli.mpc.layout`).
+Link k maps node z_k to z_{k+1}:
+
+    z_{k+1} = sum_m a_km Phi_m(z_k, u_k) + sum_g b_kg R_g(z_k) + e_k z_k
+
+with Phi_m one RK4 (or Euler) interval of mode m, R_g the reset map of guard g and the
+one-hot link type (a, b, e) a *parameter*. Path rows of node k, with bounds chosen per
+solve (an inactive row gets infinite bounds):
+
+* one row per guard g: s_kg q_g(z_k) - kappa_kg. Guard-avoid (>= 0, s = +1, kappa from the
+  tube margin), guard-hit at the switching node (= 0), or off;
+* the virtual pass-through row: -q_G(Phi(z_k, u_k)) - kappa >= 0 at each guard node, i.e.
+  one more interval of the source flow with the virtual input u_k puts the whole tube
+  past the guard (problem (14));
+* the guard's activity-region rows at the switching node;
+* terminal-set rows at the last node.
+
+Inputs are bounded by the (tightened) box of each link's mode through the variable
+bounds; reset-link inputs are the virtual inputs. Built once per (system, horizon,
+S_max) and re-solved with parameters, bounds and a primal-dual warm start.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import casadi as ca
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from hmpc_cli.hybrid import HybridSystem
+from hmpc_cli.messages import Trajectory
+from hmpc_cli.mpc.layout import FLOW, RESET, ChainLayout, NodeSchedule
+
+INF = np.inf
+VIRTUAL_INPUT_WEIGHT = 1e-3
+
+
+class MPCSettings(BaseModel):
+    """Fixed-mode MPC settings."""
+
+    model_config = ConfigDict(extra="forbid")
+    rate_hz: int = Field(10, gt=0, description="MPC re-solve rate [Hz]")
+    nodes_per_second: int = Field(60, gt=0, description="NLP node rate: node step = 1/this")
+    horizon: float = Field(3.0, gt=0.0, description="receding horizon [s]")
+    max_switches: int = Field(10, ge=0, description="guard events the NLP chain can hold")
+    integrator: Literal["rk4", "euler"] = "rk4"
+    robust: bool = Field(True, description="virtual pass-through node (problem (14))")
+    tube_margin: float = Field(0.025, ge=0.0, description="tube radius diam T(dt) [state norm]")
+    input_margin: float = Field(0.0, ge=0.0, description="input-box tightening per side")
+    solver: Literal["ipopt", "fatrop", "sqpmethod"] = "ipopt"
+    solver_options: dict = Field(default_factory=dict, description="passed to the plugin")
+    max_iter: int = Field(200, gt=0)
+    warm_start: bool = True
+    resolve_on_impact: bool = True
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.nodes_per_second
+
+    @property
+    def n_intervals(self) -> int:
+        return int(round(self.horizon * self.nodes_per_second))
+
+    @property
+    def nodes_per_period(self) -> int:
+        return self.nodes_per_second // self.rate_hz
+
+
+class FixedModeNLP:
+    """The parametric fixed-mode NLP on a chain of N + S_max links (built once)."""
+
+    def __init__(self, system: HybridSystem, settings: MPCSettings) -> None:
+        self.system = system
+        self.s = settings
+        self.N = settings.n_intervals
+        self.L = self.N + settings.max_switches
+        self.dt = settings.dt
+        self.n, self.m = system.n_x, system.n_u
+        self.G, self.M = len(system.guards), len(system.modes)
+        self.R = max([g.region.size1_out(0) for g in system.guards if g.region is not None]
+                     or [0])
+        self.T = system.terminal_set.size1_out(0) if system.terminal_set is not None else 0
+        self.P = self.G + 1 + self.R
+        self._src = [system.mode_index(g.source) for g in system.guards]
+        self._build()
+
+    # ------------------------------------------------------------------ build
+    def _interval(self, mode: int, z, u):
+        f = self.system.modes[mode].flow
+        w = ca.DM.zeros(self.system.n_w)
+        h = self.dt
+        if self.s.integrator == "euler":
+            return z + h * f(z, u, w)
+        k1 = f(z, u, w)
+        k2 = f(z + h / 2 * k1, u, w)
+        k3 = f(z + h / 2 * k2, u, w)
+        k4 = f(z + h * k3, u, w)
+        return z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+    def _build(self) -> None:
+        n, m, L, G, M = self.n, self.m, self.L, self.G, self.M
+        sysm = self.system
+        Z = [ca.SX.sym(f"z{k}", n) for k in range(L + 1)]
+        U = [ca.SX.sym(f"u{k}", m) for k in range(L)]
+        pa = ca.SX.sym("a", L, M)
+        pb = ca.SX.sym("b", L, G)
+        pe = ca.SX.sym("e", L)
+        pw = ca.SX.sym("w", L)
+        pv = ca.SX.sym("v", L)
+        ps = ca.SX.sym("s", L + 1, G)
+        pk = ca.SX.sym("kappa", L + 1, G)
+        pbeta = ca.SX.sym("beta", L + 1, G)
+        pkv = ca.SX.sym("kappa_v", L + 1)
+        zs = ca.SX.sym("zs", n)
+
+        src = [sysm.mode_index(g.source) for g in sysm.guards]
+        q = [ca.Function(f"q_{g.name}", [zs], [g.q_expr(zs)]) for g in sysm.guards]
+        regions = []
+        for g in sysm.guards:
+            r = g.region(zs) if g.region is not None else ca.SX.zeros(0)
+            pad = ca.vertcat(r, ca.SX.zeros(self.R - r.size1()))
+            regions.append(ca.Function(f"r_{g.name}", [zs], [pad]))
+        stage = sysm.stage_cost
+        J = 0
+        g_rows = []
+
+        def path(k, z, u, flows):
+            rows = [ps[k, i] * q[i](z) - pk[k, i] for i in range(G)]
+            virt = 0
+            for i in range(G):
+                virt += pbeta[k, i] * (-q[i](flows[src[i]]))
+            rows.append(virt - pkv[k])
+            reg = ca.SX.zeros(self.R)
+            for i in range(G):
+                reg += pbeta[k, i] * regions[i](z)
+            rows.extend(ca.vertsplit(reg) if self.R else [])
+            return rows
+
+        for k in range(L):
+            flows = [self._interval(i, Z[k], U[k]) for i in range(M)]
+            nxt = pe[k] * Z[k]
+            for i in range(M):
+                nxt += pa[k, i] * flows[i]
+            for i, g in enumerate(sysm.guards):
+                nxt += pb[k, i] * g.reset(Z[k])
+            g_rows.append(Z[k + 1] - nxt)
+            g_rows.extend(path(k, Z[k], U[k], flows))
+            J += pw[k] * stage(Z[k], U[k]) + pv[k] * ca.sumsqr(U[k])
+        last_flows = [self._interval(i, Z[L], ca.DM.zeros(m)) for i in range(M)]
+        g_rows.extend(path(L, Z[L], ca.DM.zeros(m), last_flows))
+        if self.T:
+            g_rows.append(sysm.terminal_set(Z[L]))
+        w_vars = []
+        for k in range(L):
+            w_vars += [Z[k], U[k]]
+        w_vars.append(Z[L])
+        p = ca.vertcat(ca.vec(pa), ca.vec(pb), pe, pw, pv, ca.vec(ps), ca.vec(pk),
+                       ca.vec(pbeta), pkv)
+        self._p_shapes = [(L, M), (L, G), (L,), (L,), (L,), (L + 1, G), (L + 1, G),
+                          (L + 1, G), (L + 1,)]
+        nlp = {"x": ca.vertcat(*w_vars), "p": p, "f": J, "g": ca.vertcat(*g_rows)}
+        opts = {"expand": True}
+        plugin_opts = dict(self.s.solver_options)
+        plugin_opts.pop("ipopt_warm", None)
+        if self.s.solver == "ipopt":
+            ipopt = {"print_level": 0, "sb": "yes", "max_iter": self.s.max_iter,
+                     "tol": 1e-8, "constr_viol_tol": 1e-8, "mu_strategy": "adaptive"}
+            ipopt.update(plugin_opts.pop("ipopt", {}))
+            opts.update({"ipopt": ipopt, "print_time": False})
+        elif self.s.solver == "sqpmethod":
+            opts.update({"max_iter": self.s.max_iter, "print_time": False,
+                         "print_header": False, "print_iteration": False,
+                         "qpsol": "qrqp", "qpsol_options": {"print_iter": False,
+                                                             "print_header": False}})
+        else:
+            opts.update({"structure_detection": "auto", "print_time": False,
+                         "fatrop": {"print_level": 0, "max_iter": self.s.max_iter}})
+        opts.update(plugin_opts)
+        self.solver = ca.nlpsol("fixed_mode_mpc", self.s.solver, nlp, opts)
+        self._warm_solver = self.solver
+        if self.s.solver == "ipopt":
+            warm = dict(opts)
+            warm["ipopt"] = {**opts["ipopt"], "warm_start_init_point": "yes",
+                             "mu_init": 1e-6, "warm_start_bound_push": 1e-9,
+                             "warm_start_mult_bound_push": 1e-9,
+                             "warm_start_slack_bound_push": 1e-9}
+            warm["ipopt"].update(self.s.solver_options.get("ipopt_warm", {}))
+            warm.pop("ipopt_warm", None)
+            self._warm_solver = ca.nlpsol("fixed_mode_mpc_warm", "ipopt", nlp, warm)
+        self.nx_var = nlp["x"].size1()
+        self.ng = nlp["g"].size1()
+        self.np = p.size1()
+        self._g_fun = ca.Function("g", [nlp["x"], p], [nlp["g"]])
+        self.rows_per_link = n + self.P
+        stride = n + m
+        self.z_idx = np.array([[k * stride + i for i in range(n)] for k in range(L + 1)])
+        self.u_idx = np.array([[k * stride + n + i for i in range(m)] for k in range(L)])
+
+    # ------------------------------------------------------------ problem data
+    def _path_row(self, k: int) -> int:
+        """First path row of node k."""
+        return k * self.rows_per_link + (self.n if k < self.L else 0)
+
+    def problem_data(self, ns: NodeSchedule, lay: ChainLayout, x0: np.ndarray):
+        """Parameters and bounds of one solve: (p, lbx, ubx, lbg, ubg)."""
+        n, L, G = self.n, self.L, self.G
+        sysm, d = self.system, self.s.tube_margin
+        a = np.zeros((L, self.M))
+        b = np.zeros((L, G))
+        e = np.zeros(L)
+        wk = np.zeros(L)
+        vk = np.zeros(L)
+        sg = np.zeros((L + 1, G))
+        kap = np.zeros((L + 1, G))
+        beta = np.zeros((L + 1, G))
+        kv = np.zeros(L + 1)
+        lbx = np.full(self.nx_var, -INF)
+        ubx = np.full(self.nx_var, INF)
+        lbg = np.full(self.ng, -INF)
+        ubg = np.full(self.ng, INF)
+        lbx[self.z_idx[0]] = ubx[self.z_idx[0]] = x0
+        for k in range(L):
+            lbg[k * self.rows_per_link: k * self.rows_per_link + n] = 0.0
+            ubg[k * self.rows_per_link: k * self.rows_per_link + n] = 0.0
+            typ, mode = lay.link_type[k], lay.link_mode[k]
+            lo = hi = np.zeros(self.m)
+            if typ == FLOW:
+                a[k, mode], wk[k] = 1.0, self.dt
+                lo, hi = self._input_box(mode)
+            elif typ == RESET:
+                b[k, lay.link_guard[k]] = 1.0
+                if self.s.robust:
+                    vk[k] = VIRTUAL_INPUT_WEIGHT * self.dt
+                    lo, hi = self._input_box(mode)
+            else:
+                e[k] = 1.0
+            lbx[self.u_idx[k]], ubx[self.u_idx[k]] = lo, hi
+        for k in range(1, lay.last + 1):
+            j = int(lay.seg[k])
+            mode = ns.modes[j]
+            row = self._path_row(k)
+            entered_by = ns.guards[j - 1] if j > 0 else -1
+            is_guard_node = j < len(ns.guards) and lay.local[k] == ns.counts[j]
+            if lay.first_after_reset[k]:
+                continue
+            for gi in self.guards_of[mode]:
+                g = sysm.guards[gi]
+                if is_guard_node and gi == ns.guards[j]:
+                    sg[k, gi], kap[k, gi] = 1.0, 0.0
+                    lbg[row + gi] = ubg[row + gi] = 0.0
+                    continue
+                margin = 0.0 if gi == entered_by else d
+                sg[k, gi], kap[k, gi] = 1.0, g.kappa(margin, past=False)
+                lbg[row + gi] = 0.0
+            if is_guard_node:
+                gi = ns.guards[j]
+                g = sysm.guards[gi]
+                if self.s.robust:
+                    beta[k, gi], kv[k] = 1.0, g.kappa(d, past=True)
+                    lbg[row + G] = 0.0
+                else:
+                    beta[k, gi] = 1.0  # region rows only
+                dims = g.region.size1_out(0) if g.region is not None else 0
+                lbg[row + G + 1: row + G + 1 + dims] = 0.0
+        if self.T:
+            lbg[self.ng - self.T:] = 0.0
+        p = np.concatenate([a.ravel(order="F"), b.ravel(order="F"), e, wk, vk,
+                            sg.ravel(order="F"), kap.ravel(order="F"),
+                            beta.ravel(order="F"), kv])
+        return p, lbx, ubx, lbg, ubg
+
+    def _input_box(self, mode: int) -> tuple[np.ndarray, np.ndarray]:
+        md = self.system.modes[mode]
+        lo = np.array(md.u_lower) + self.s.input_margin
+        hi = np.array(md.u_upper) - self.s.input_margin
+        mid = 0.5 * (np.array(md.u_lower) + np.array(md.u_upper))
+        return np.minimum(lo, mid), np.maximum(hi, mid)
+
+    @property
+    def guards_of(self) -> list[list[int]]:
+        return [self.system.guards_of(i) for i in range(self.M)]
+
+    # ------------------------------------------------------------------ solve
+    def solve(self, w0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None):
+        """One solve. Returns (solution dict, status, iterations, success)."""
+        args = {"x0": w0, "p": p, "lbx": lbx, "ubx": ubx, "lbg": lbg, "ubg": ubg}
+        solver = self.solver
+        if lam_x0 is not None and lam_g0 is not None:
+            lam_g0 = np.where(np.isfinite(lbg) | np.isfinite(ubg), lam_g0, 0.0)
+            args.update(lam_x0=lam_x0, lam_g0=lam_g0)
+            solver = self._warm_solver
+        sol = solver(**args)
+        st = solver.stats()
+        status = str(st.get("return_status", st.get("success")))
+        iters = st.get("iter_count", st.get("iterations", {}).get("iter", [0])[-1]
+                       if isinstance(st.get("iterations"), dict) else 0)
+        return sol, status, int(iters), bool(st.get("success", False))
+
+    def violation(self, w, p, lbx, ubx, lbg, ubg) -> float:
+        """Largest constraint or bound violation at primal point w."""
+        g = np.asarray(self._g_fun(w, p)).ravel()
+        v = [np.max(np.maximum(lbg - g, 0.0), initial=0.0),
+             np.max(np.maximum(g - ubg, 0.0), initial=0.0),
+             np.max(np.maximum(lbx - w, 0.0), initial=0.0),
+             np.max(np.maximum(w - ubx, 0.0), initial=0.0)]
+        return float(max(v))
+
+    def constraints(self, w, p) -> np.ndarray:
+        """Constraint values g(w, p), shape (ng,)."""
+        return np.asarray(self._g_fun(w, p)).ravel()
+
+    # ------------------------------------------------------------- warm start
+    def remap_vectors(self, node_map, w, lam_x, lam_g):
+        """Re-indexes primal/dual vectors node by node (see :func:`layout.remap`)."""
+        L = self.L
+        link_map = np.minimum(node_map[:L], L - 1)
+        new_w = w.copy()
+        new_w[self.z_idx] = w[self.z_idx[node_map]]
+        new_w[self.u_idx] = w[self.u_idx[link_map]]
+        if lam_x is None or lam_g is None:
+            return new_w, None, None
+        new_lx = lam_x.copy()
+        new_lx[self.z_idx] = lam_x[self.z_idx[node_map]]
+        new_lx[self.u_idx] = lam_x[self.u_idx[link_map]]
+        rows = np.arange(self.rows_per_link)
+        new_lg = lam_g.copy()
+        new_lg[(np.arange(L)[:, None] * self.rows_per_link + rows).ravel()] = \
+            lam_g[(link_map[:, None] * self.rows_per_link + rows).ravel()]
+        return new_w, new_lx, new_lg
+
+    # ------------------------------------------------------------- trajectory
+    def trajectory(self, w: np.ndarray, ns: NodeSchedule, lay: ChainLayout) -> Trajectory:
+        """The planned hybrid trajectory (real nodes only; resets as node pairs)."""
+        k_last = lay.last
+        x = w[self.z_idx[: k_last + 1]]
+        u = w[self.u_idx[: max(k_last, 1)]]
+        u = np.vstack([u, u[-1:]])[: k_last + 1]
+        steps = np.where(lay.link_type[:k_last] == FLOW, self.dt, 0.0)
+        t = np.concatenate([[0.0], np.cumsum(steps)])
+        seg = lay.seg[: k_last + 1].copy()
+        mode = np.array([ns.modes[j] for j in seg])
+        return Trajectory(t, x, u, mode, seg, tuple(ns.guards))

@@ -1,0 +1,112 @@
+"""Numeric evaluation of CasADi SX functions, vectorised over a batch with NumPy.
+
+A system is written once as CasADi SX expressions. The NLP uses them symbolically; the
+simulator and the sampling planner evaluate the very same expression graph through the
+NumPy code generated here (one Python statement per SX instruction), which is exact to
+floating point and avoids CasADi's per-call conversion overhead for small batches.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import casadi as ca
+import numpy as np
+
+_BINARY = {
+    ca.OP_ADD: "({a} + {b})",
+    ca.OP_SUB: "({a} - {b})",
+    ca.OP_MUL: "({a} * {b})",
+    ca.OP_DIV: "({a} / {b})",
+    ca.OP_POW: "np.power({a}, {b})",
+    ca.OP_CONSTPOW: "np.power({a}, {b})",
+    ca.OP_FMIN: "np.minimum({a}, {b})",
+    ca.OP_FMAX: "np.maximum({a}, {b})",
+    ca.OP_ATAN2: "np.arctan2({a}, {b})",
+    ca.OP_HYPOT: "np.hypot({a}, {b})",
+    ca.OP_COPYSIGN: "np.copysign({a}, {b})",
+    ca.OP_FMOD: "np.fmod({a}, {b})",
+    ca.OP_LT: "(({a}) < ({b})) * 1.0",
+    ca.OP_LE: "(({a}) <= ({b})) * 1.0",
+    ca.OP_EQ: "(({a}) == ({b})) * 1.0",
+    ca.OP_NE: "(({a}) != ({b})) * 1.0",
+    ca.OP_AND: "np.logical_and({a}, {b}) * 1.0",
+    ca.OP_OR: "np.logical_or({a}, {b}) * 1.0",
+    ca.OP_IF_ELSE_ZERO: "np.where({a} != 0, {b}, 0.0)",
+}
+_UNARY = {
+    ca.OP_ASSIGN: "{a}",
+    ca.OP_NEG: "(-{a})",
+    ca.OP_SQ: "({a} * {a})",
+    ca.OP_TWICE: "(2.0 * {a})",
+    ca.OP_INV: "(1.0 / {a})",
+    ca.OP_SQRT: "np.sqrt({a})",
+    ca.OP_FABS: "np.abs({a})",
+    ca.OP_SIGN: "np.sign({a})",
+    ca.OP_FLOOR: "np.floor({a})",
+    ca.OP_CEIL: "np.ceil({a})",
+    ca.OP_NOT: "(({a}) == 0) * 1.0",
+    ca.OP_SIN: "np.sin({a})",
+    ca.OP_COS: "np.cos({a})",
+    ca.OP_TAN: "np.tan({a})",
+    ca.OP_ASIN: "np.arcsin({a})",
+    ca.OP_ACOS: "np.arccos({a})",
+    ca.OP_ATAN: "np.arctan({a})",
+    ca.OP_SINH: "np.sinh({a})",
+    ca.OP_COSH: "np.cosh({a})",
+    ca.OP_TANH: "np.tanh({a})",
+    ca.OP_EXP: "np.exp({a})",
+    ca.OP_LOG: "np.log({a})",
+    ca.OP_LOG1P: "np.log1p({a})",
+    ca.OP_EXPM1: "np.expm1({a})",
+}
+
+
+def compile_numpy(fun: ca.Function) -> Callable[..., list[np.ndarray]]:
+    """Generates a NumPy evaluator of an SX function.
+
+    Args:
+        fun: CasADi SX function with dense vector inputs and outputs.
+
+    Returns:
+        ``call(*args)`` where each arg has shape ``(..., n_in_i)`` (leading batch axes
+        broadcast); returns a list of arrays of shape ``(..., n_out_j)``.
+
+    Raises:
+        NotImplementedError: the function uses an operation with no NumPy mapping.
+    """
+    if not fun.is_a("SXFunction"):
+        fun = fun.expand()
+    n_out = [fun.size1_out(j) * fun.size2_out(j) for j in range(fun.n_out())]
+    out_nz = [fun.sparsity_out(j).find() for j in range(fun.n_out())]
+    body: list[str] = []
+    for k in range(fun.n_instructions()):
+        op = fun.instruction_id(k)
+        args = fun.instruction_input(k)
+        res = fun.instruction_output(k)
+        if op == ca.OP_INPUT:
+            body.append(f"w{res[0]} = a{args[0]}[..., {args[1]}]")
+        elif op == ca.OP_OUTPUT:
+            body.append(f"o{res[0]}[..., {out_nz[res[0]][res[1]]}] = w{args[0]}")
+        elif op == ca.OP_CONST:
+            body.append(f"w{res[0]} = {float(fun.instruction_constant(k))!r}")
+        elif op in _BINARY:
+            body.append(f"w{res[0]} = " + _BINARY[op].format(a=f"w{args[0]}", b=f"w{args[1]}"))
+        elif op in _UNARY:
+            body.append(f"w{res[0]} = " + _UNARY[op].format(a=f"w{args[0]}"))
+        else:
+            raise NotImplementedError(f"{fun.name()}: CasADi operation {op} has no NumPy mapping")
+    n_in = fun.n_in()
+    arg_names = ", ".join(f"a{i}" for i in range(n_in))
+    lines = [f"def _f({arg_names}):"]
+    lines += [f"    a{i} = np.asarray(a{i}, dtype=float)" for i in range(n_in)]
+    lines.append("    bshape = a0.shape[:-1]" if n_in else "    bshape = ()")
+    for i in range(1, n_in):
+        lines.append(f"    if a{i}.shape[:-1] != bshape:")
+        lines.append(f"        bshape = np.broadcast_shapes(bshape, a{i}.shape[:-1])")
+    lines += [f"    o{j} = np.zeros(bshape + ({n},))" for j, n in enumerate(n_out)]
+    lines += ["    " + s for s in body]
+    lines.append("    return [" + ", ".join(f"o{j}" for j in range(len(n_out))) + "]")
+    namespace: dict = {"np": np}
+    exec(compile("\n".join(lines), f"<numpy:{fun.name()}>", "exec"), namespace)  # noqa: S102
+    return namespace["_f"]

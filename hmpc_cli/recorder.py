@@ -1,0 +1,291 @@
+"""MCAP run logs: JSON messages (``jsonschema``/``json`` encodings), sim time as log time.
+
+Logs of killed runs stay readable: :func:`read_log` keeps every chunk that reached the disk.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import json
+import math
+import struct
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap.records import Attachment, Channel, Chunk, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.writer import CompressionType, Writer
+
+__all__ = ["Log", "LogMessage", "Recorder", "read_log", "to_json_bytes"]
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+_NS_PER_S = 1_000_000_000
+# Errors that mean "damaged or truncated file" while decoding MCAP records.
+_DAMAGE_ERRORS = (McapError, struct.error, ValueError, RuntimeError, KeyError, IndexError, EOFError)
+
+
+def _compression() -> CompressionType:
+    """Picks zstd if importable, else LZ4 if importable, else no compression."""
+    for module, kind in (("zstandard", CompressionType.ZSTD), ("lz4.frame", CompressionType.LZ4)):
+        try:
+            importlib.import_module(module)
+            return kind
+        except ImportError:
+            continue
+    return CompressionType.NONE
+
+
+def _library_id() -> str:
+    """Returns the MCAP header library string."""
+    try:
+        from . import __version__
+    except ImportError:
+        return "hmpc"
+    return f"hmpc {__version__}"
+
+
+def _to_ns(t: float) -> int:
+    """Converts simulated time in seconds to integer nanoseconds."""
+    t = float(t)
+    if not math.isfinite(t) or t < 0:
+        raise ValueError(f"log time must be a finite number >= 0 seconds, got {t!r}")
+    return round(t * _NS_PER_S)
+
+
+def _jsonable(obj: Any) -> Any:
+    """Recursively converts `obj` to plain JSON types; non-finite floats become None."""
+    if obj is None or isinstance(obj, (str, bool)):
+        return obj
+    if isinstance(obj, int):
+        return int(obj)
+    if isinstance(obj, float):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {(k if isinstance(k, str) else _jsonable(k)): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        if obj.dtype.kind == "f" and not np.isfinite(obj).all():
+            obj = np.where(np.isfinite(obj), obj.astype(object), None)
+        return obj.tolist() if obj.dtype.kind in "biuf" else _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):  # numpy scalars: bool_, integer, floating, ...
+        return _jsonable(obj.item())
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: _jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    raise TypeError(f"cannot encode object of type {type(obj).__name__} as JSON")
+
+
+def to_json_bytes(payload: Any) -> bytes:
+    """Encodes `payload` as compact UTF-8 JSON (numpy and dataclasses ok, NaN/inf -> null)."""
+    obj = _jsonable(payload)
+    return json.dumps(obj, separators=(",", ":"), allow_nan=False, ensure_ascii=False).encode()
+
+
+class Recorder:
+    """Writes one run's MCAP log: JSON messages on topics, sim time (s) as log time."""
+
+    def __init__(self, path: str | Path, *, flush_every: int = 200, chunk_size: int = 256 * 1024):
+        if flush_every < 1:
+            raise ValueError(f"flush_every must be >= 1, got {flush_every}")
+        self.path = Path(path)
+        self.flush_every = int(flush_every)
+        self._file = open(self.path, "wb")
+        try:
+            self._writer = Writer(self._file, chunk_size=chunk_size, compression=_compression())
+            self._writer.start(profile="", library=_library_id())
+            self._file.flush()  # header on disk: even a run killed at once leaves valid magic
+        except BaseException:
+            self._file.close()
+            raise
+        self._channels: dict[str, int] = {}  # topic -> channel id
+        self._schema_ids: dict[tuple[str, bytes], int] = {}  # (name, json) -> schema id
+        self._sequence: dict[str, int] = {}
+        self._unflushed, self._closed = 0, False
+
+    @property
+    def closed(self) -> bool:
+        """Whether close() has been called."""
+        return self._closed
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ValueError(f"recorder for {self.path} is closed")
+
+    def add_topic(self, topic: str, schema_name: str, schema: dict) -> None:
+        """Registers `topic` with a JSON schema; raises ValueError if already registered."""
+        self._check_open()
+        if topic in self._channels:
+            raise ValueError(f"topic {topic!r} is already registered")
+        data = json.dumps(schema, separators=(",", ":")).encode("utf-8")
+        key = (schema_name, data)
+        if key not in self._schema_ids:
+            self._schema_ids[key] = self._writer.register_schema(schema_name, "jsonschema", data)
+        self._channels[topic] = self._writer.register_channel(topic, "json", self._schema_ids[key])
+        self._sequence[topic] = 0
+
+    def write(self, topic: str, t: float, payload: dict) -> None:
+        """Writes one JSON message on `topic` at simulated time `t` (s, >= 0)."""
+        self._check_open()
+        if topic not in self._channels:
+            known = sorted(self._channels)
+            raise KeyError(f"unknown topic {topic!r}; call add_topic() first (registered: {known})")
+        ns, data = _to_ns(t), to_json_bytes(payload)
+        self._writer.add_message(self._channels[topic], ns, data, ns, self._sequence[topic])
+        self._sequence[topic] = (self._sequence[topic] + 1) & 0xFFFFFFFF
+        self._unflushed += 1
+        if self._unflushed >= self.flush_every:
+            self.flush()
+
+    def flush(self) -> None:
+        """Closes the current chunk and pushes everything written so far to the OS."""
+        self._check_open()
+        self._writer.flush()
+        self._unflushed = 0
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """Adds a named string-to-string metadata record."""
+        self._check_open()
+        for k, v in data.items():
+            if not isinstance(k, str) or not isinstance(v, str):
+                raise TypeError(f"metadata {name!r}: keys and values must be str, got {k!r}: {v!r}")
+        self._writer.add_metadata(name, dict(data))
+        self._file.flush()
+
+    def add_attachment(self, name: str, data: bytes, media_type: str, t: float = 0.0) -> None:
+        """Adds an attachment (e.g. a config file) with log time `t` seconds."""
+        self._check_open()
+        ns = _to_ns(t)
+        self._writer.add_attachment(ns, ns, name, media_type, bytes(data))
+        self._file.flush()
+
+    def close(self) -> None:
+        """Writes the summary and footer and closes the file; idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._writer.finish()
+        finally:
+            self._file.close()
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+
+@dataclasses.dataclass
+class LogMessage:
+    """One decoded message; `t` in seconds, `log_time_ns` the exact MCAP log time."""
+
+    topic: str
+    t: float
+    data: dict
+    log_time_ns: int = 0
+
+
+@dataclasses.dataclass
+class Log:
+    """Contents of a run log; `complete` is False for truncated files."""
+
+    messages: list[LogMessage]
+    metadata: dict[str, dict[str, str]]
+    attachments: dict[str, bytes]
+    schemas: dict[str, dict]
+    complete: bool
+
+    def topic(self, name: str) -> list[LogMessage]:
+        """Returns the messages on topic `name`, in file order."""
+        return [m for m in self.messages if m.topic == name]
+
+
+def _message(channel: Channel, msg: Message) -> LogMessage:
+    return LogMessage(channel.topic, msg.log_time / _NS_PER_S, json.loads(msg.data), msg.log_time)
+
+
+def _schema_dict(schema: Schema | None) -> dict:
+    return json.loads(schema.data) if schema is not None and schema.data else {}
+
+
+def _read_indexed(path: Path) -> Log:
+    """Reads a finished file through its summary section (SeekingReader)."""
+    with open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        summary = reader.get_summary()
+        schemas: dict[str, dict] = {}
+        if summary is not None:
+            for ch in summary.channels.values():
+                schemas[ch.topic] = _schema_dict(summary.schemas.get(ch.schema_id))
+        messages = []
+        for schema, channel, msg in reader.iter_messages(log_time_order=False):
+            schemas.setdefault(channel.topic, _schema_dict(schema))
+            messages.append(_message(channel, msg))
+        metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+        attachments = {a.name: a.data for a in reader.iter_attachments()}
+    return Log(messages, metadata, attachments, schemas, complete=True)
+
+
+def _read_stream(path: Path) -> Log:
+    """Reads records front to back, keeping every fully written chunk."""
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    log = Log([], {}, {}, {}, complete=False)
+
+    def handle(record: Any, out: list[LogMessage]) -> None:
+        if isinstance(record, Schema):
+            schemas[record.id] = record
+        elif isinstance(record, Channel):
+            channels[record.id] = record
+            log.schemas[record.topic] = _schema_dict(schemas.get(record.schema_id))
+        elif isinstance(record, Message):
+            out.append(_message(channels[record.channel_id], record))
+        elif isinstance(record, Metadata):
+            log.metadata[record.name] = dict(record.metadata)
+        elif isinstance(record, Attachment):
+            log.attachments[record.name] = record.data
+
+    saw_footer = False
+    with open(path, "rb") as f:
+        records = StreamReader(f, emit_chunks=True).records
+        while True:
+            try:
+                record = next(records)
+            except StopIteration:
+                break
+            except _DAMAGE_ERRORS:
+                return log  # truncated mid-record: keep what was complete
+            pending: list[LogMessage] = []
+            try:  # a chunk is kept only as a whole: CRC-checked, every message decoded
+                chunk = isinstance(record, Chunk)
+                for r in breakup_chunk(record, validate_crc=True) if chunk else [record]:
+                    handle(r, pending)
+            except _DAMAGE_ERRORS:
+                return log  # corrupt chunk: stop at the last good one
+            log.messages.extend(pending)
+            saw_footer = saw_footer or isinstance(record, Footer)
+    log.complete = saw_footer
+    return log
+
+
+def read_log(path: str | Path) -> Log:
+    """Reads a run log; truncated files yield the completed chunks with complete=False."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        head = f.read(8)
+        tail = b""
+        if f.seek(0, 2) >= 16:
+            f.seek(-8, 2)
+            tail = f.read(8)
+    if head != MCAP_MAGIC:
+        raise ValueError(f"{path} is not an MCAP file (bad magic {head!r})")
+    if tail == MCAP_MAGIC:
+        try:
+            return _read_indexed(path)
+        except (*_DAMAGE_ERRORS, OSError):
+            pass  # footer present but file damaged: fall back to a linear scan
+    return _read_stream(path)

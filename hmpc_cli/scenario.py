@@ -1,0 +1,196 @@
+"""Scenario files: pydantic v2 models in TOML, each layer owning its settings section.
+
+Unknown keys are rejected; rates are integers in Hz and must be commensurate (the MPC
+period a whole number of node steps and of simulator steps). :func:`load_scenario` turns
+every problem into :class:`ScenarioError` lines of the form ``file: key.path: reason``.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from hmpc_cli.lowlevel import LowLevelSettings
+from hmpc_cli.mpc.nlp import MPCSettings
+from hmpc_cli.planner.cem import CEMSettings
+from hmpc_cli.systems import BallParams
+
+
+class ScenarioError(Exception):
+    """Invalid scenario input; ``lines`` holds one message per problem."""
+
+    def __init__(self, lines: list[str]) -> None:
+        super().__init__("\n".join(lines))
+        self.lines = lines
+
+
+class SimSettings(BaseModel):
+    """Simulator settings."""
+
+    model_config = ConfigDict(extra="forbid")
+    rate_hz: int = Field(600, gt=0, description="fixed RK4 step rate [Hz]")
+    duration: float = Field(3.0, gt=0.0, description="simulated time [s]")
+    max_events_per_step: int = Field(10, ge=1, description="more is Zeno chattering")
+    event_time_tol: float = Field(1e-10, gt=0.0, description="event time bracket [s]")
+    divergence_bound: float = Field(1e6, gt=0.0, description="|x| beyond this is divergence")
+    log_rate_hz: int = Field(100, gt=0, description="state logging rate [Hz]")
+
+
+class DisturbanceSettings(BaseModel):
+    """Disturbance w(t) (added to the flow, eq. (1))."""
+
+    model_config = ConfigDict(extra="forbid")
+    kind: Literal["none", "box", "paper_fig3"] = "none"
+    magnitude: float = Field(10.0, ge=0.0, description="uniform box half-width per channel")
+    hold: float = Field(0.05, gt=0.0, description="hold period [s] (box)")
+    trial: int = Field(1, ge=1, le=10, description="paper_fig3 trial 1..10")
+
+
+class ReplanSettings(BaseModel):
+    """When the hybrid MPC (planner) runs again."""
+
+    model_config = ConfigDict(extra="forbid")
+    policy: Literal["once", "on_contact", "periodic"] = "once"
+    period: float = Field(0.5, gt=0.0, description="replanning period [s] (periodic)")
+    contact_guards: list[str] | None = Field(
+        None, description="guards that trigger on_contact (default: all not entering the "
+                          "final domain)")
+
+
+class Scenario(BaseModel):
+    """A complete experiment: system, simulator, disturbance and the three layers."""
+
+    model_config = ConfigDict(extra="forbid")
+    name: str = Field("scenario", pattern=r"^[A-Za-z0-9_.-]+$")
+    description: str = ""
+    seed: int = Field(0, ge=0)
+    system: BallParams = Field(default_factory=BallParams)
+    sim: SimSettings = Field(default_factory=SimSettings)
+    disturbance: DisturbanceSettings = Field(default_factory=DisturbanceSettings)
+    planner: CEMSettings = Field(default_factory=CEMSettings)
+    replanning: ReplanSettings = Field(default_factory=ReplanSettings)
+    mpc: MPCSettings = Field(default_factory=MPCSettings)
+    lowlevel: LowLevelSettings = Field(default_factory=LowLevelSettings)
+
+    @model_validator(mode="after")
+    def _rates(self) -> Scenario:
+        m, s = self.mpc, self.sim
+        if m.nodes_per_second % m.rate_hz:
+            raise ValueError(f"mpc.rate_hz = {m.rate_hz} must divide mpc.nodes_per_second = "
+                             f"{m.nodes_per_second} (the MPC period must be a whole number "
+                             "of node steps)")
+        if s.rate_hz % m.rate_hz:
+            raise ValueError(f"mpc.rate_hz = {m.rate_hz} must divide sim.rate_hz = "
+                             f"{s.rate_hz} (solves happen on simulator steps)")
+        if s.rate_hz % s.log_rate_hz:
+            raise ValueError(f"sim.log_rate_hz = {s.log_rate_hz} must divide sim.rate_hz")
+        if not _whole(s.duration * s.rate_hz):
+            raise ValueError("sim.duration must be a whole number of simulator steps")
+        if self.disturbance.kind == "box" and not _whole(self.disturbance.hold * s.rate_hz):
+            raise ValueError("disturbance.hold must be a whole number of simulator steps")
+        if self.replanning.policy == "periodic" and not _whole(self.replanning.period * s.rate_hz):
+            raise ValueError("replanning.period must be a whole number of simulator steps")
+        if m.horizon * m.nodes_per_second < 2 or not _whole(m.horizon * m.nodes_per_second):
+            raise ValueError("mpc.horizon must be a whole number (>= 2) of node steps")
+        return self
+
+
+def _whole(v: float) -> bool:
+    return abs(v - round(v)) < 1e-9 * max(1.0, abs(v))
+
+
+def apply_overrides(data: dict, overrides: list[str], source: str) -> dict:
+    """Applies ``key.path=value`` overrides (value parsed as TOML, else a string)."""
+    errors = []
+    for item in overrides:
+        key, sep, raw = item.partition("=")
+        if not sep or not key.strip():
+            errors.append(f"--set {item!r}: expected key.path=value")
+            continue
+        try:
+            value = tomllib.loads(f"v = {raw}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = raw
+        node = data
+        parts = key.strip().split(".")
+        for part in parts[:-1]:
+            nxt = node.setdefault(part, {})
+            if not isinstance(nxt, dict):
+                errors.append(f"--set {item!r}: {part} is not a table")
+                break
+            node = nxt
+        else:
+            node[parts[-1]] = value
+    if errors:
+        raise ScenarioError([f"{source}: {e}" for e in errors])
+    return data
+
+
+def format_errors(exc: ValidationError, source: str) -> list[str]:
+    """One ``file: key.path: reason`` line per pydantic error."""
+    lines = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"] if p not in ("function-after",)) or "(top)"
+        msg = err["msg"].removeprefix("Value error, ")
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key"
+        lines.append(f"{source}: {loc}: {msg}")
+    return lines
+
+
+def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None = None
+                  ) -> tuple[Scenario, str]:
+    """Reads, overrides and validates a scenario file.
+
+    Returns:
+        The scenario and the effective TOML text (after overrides).
+
+    Raises:
+        ScenarioError: missing file, TOML syntax error or invalid settings.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ScenarioError([f"{path}: file not found"])
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError([f"{path}: TOML syntax error: {exc}"]) from None
+    except UnicodeDecodeError:
+        raise ScenarioError([f"{path}: not a UTF-8 text file"]) from None
+    data = apply_overrides(data, list(overrides), str(path))
+    if seed is not None:
+        data["seed"] = seed
+    data.setdefault("name", path.stem)
+    try:
+        scenario = Scenario.model_validate(data)
+    except ValidationError as exc:
+        raise ScenarioError(format_errors(exc, str(path))) from None
+    return scenario, dump_toml(scenario.model_dump(mode="json", exclude_none=True))
+
+
+def dump_toml(data: dict) -> str:
+    """Minimal TOML writer for scenario dictionaries (tables, scalars, arrays)."""
+    import json
+
+    def value(v) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, (int, float)):
+            return repr(v)
+        if isinstance(v, str):
+            return json.dumps(v)
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        if isinstance(v, dict):
+            return "{" + ", ".join(f"{json.dumps(k)} = {value(x)}" for k, x in v.items()) + "}"
+        raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+    top = [f"{k} = {value(v)}" for k, v in data.items() if not isinstance(v, dict)]
+    out = "\n".join(top) + "\n"
+    for k, v in data.items():
+        if isinstance(v, dict):
+            out += f"\n[{k}]\n" + "".join(f"{kk} = {value(vv)}\n" for kk, vv in v.items())
+    return out

@@ -1,0 +1,24 @@
+"""System plug-ins: each turns validated parameters into a :class:`HybridSystem`.
+
+To add a system, write a pydantic ``Params`` model with a literal ``name`` field and a
+``build(params) -> HybridSystem`` function, and register both in :data:`REGISTRY`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from hmpc_cli.hybrid import HybridSystem
+from hmpc_cli.systems.ball import BallParams, build_ball
+
+REGISTRY: dict[str, tuple[type, Callable[..., HybridSystem]]] = {
+    "ball": (BallParams, build_ball),
+}
+
+SystemParams = BallParams
+
+
+def build_system(params: SystemParams) -> HybridSystem:
+    """Builds the system named by ``params.name``."""
+    _, build = REGISTRY[params.name]
+    return build(params)

@@ -1,0 +1,126 @@
+"""The paper's controlled bouncing ball (Sec. IV, Fig. 3), reference parameters by default.
+
+State x = (px, py, vx, vy) [m, m, m/s, m/s], input u = (ux, uy) [N], disturbance
+w = (wx, wy) [m/s^2] added to the accelerations (eq. (1)). Two domains: ``outside`` the
+circle (gravity, pushes only towards the walls: u in [-100, 0]^2) and ``inside`` (no
+gravity, u in [-100, 100]^2). Guards: floor (py - r = 0 falling, px in [0, 8], vy -> -vy),
+wall (px - r = 0 moving left, py in [0, 8], vx -> -vx) and the circle |p - c| = R, crossed
+inwards (outside -> inside) or outwards (inside -> outside), with identity reset.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import casadi as ca
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from hmpc_cli.hybrid import Guard, HybridSystem, Mode
+
+Pair = tuple[float, float]
+
+
+class BallParams(BaseModel):
+    """Parameters of the bouncing ball (SI units)."""
+
+    model_config = ConfigDict(extra="forbid")
+    name: Literal["ball"] = "ball"
+    radius: float = Field(0.1, ge=0.0, description="ball radius r [m]; shifts the wall guards")
+    mass: float = Field(1.0, gt=0.0, description="mass [kg]")
+    drag: float = Field(0.02, ge=0.0, description="drag gamma: acceleration -gamma |v|^2 v")
+    gravity: float = Field(9.81, ge=0.0, description="gravity outside the circle [m/s^2]")
+    circle_center: Pair = (3.0, 3.0)
+    circle_radius: float = Field(1.0, gt=0.0)
+    floor_extent: Pair = Field((0.0, 8.0), description="x range where the floor is active")
+    wall_extent: Pair = Field((0.0, 8.0), description="y range where the wall is active")
+    u_outside: Pair = Field((-100.0, 0.0), description="input bounds per axis outside")
+    u_inside: Pair = Field((-100.0, 100.0), description="input bounds per axis inside")
+    x0: tuple[float, float, float, float] = (1.0, 1.0, 0.0, 0.0)
+    goal: Pair = (3.0, 3.0)
+    q_position: float = Field(50.0, ge=0.0, description="stage cost weight on |p - goal|^2")
+    q_velocity: float = Field(0.001, ge=0.0, description="stage cost weight on |v|^2")
+    r_input: float = Field(0.001, ge=0.0, description="stage cost weight on |u|^2")
+    terminal_radius: float | None = Field(
+        None, gt=0.0, description="terminal set |p - goal| <= this (None: the final domain)")
+    success_radius: float = Field(1.0, gt=0.0, description="success: |p_end - goal| <= this")
+
+    @model_validator(mode="after")
+    def _check(self) -> BallParams:
+        for key in ("floor_extent", "wall_extent", "u_outside", "u_inside"):
+            lo, hi = getattr(self, key)
+            if not lo < hi:
+                raise ValueError(f"{key}: lower bound {lo} must be below upper bound {hi}")
+        return self
+
+
+def build_ball(p: BallParams) -> HybridSystem:
+    """Builds the ball's hybrid system from validated parameters."""
+    x = ca.SX.sym("x", 4)
+    u = ca.SX.sym("u", 2)
+    w = ca.SX.sym("w", 2)
+    pos, vel = x[0:2], x[2:4]
+    drag = -p.drag * ca.sumsqr(vel) * vel
+    acc_in = drag + u / p.mass + w
+    acc_out = acc_in - ca.vertcat(0.0, p.gravity)
+    outside = Mode("outside", ca.Function("f_outside", [x, u, w], [ca.vertcat(vel, acc_out)]),
+                   (p.u_outside[0],) * 2, (p.u_outside[1],) * 2)
+    inside = Mode("inside", ca.Function("f_inside", [x, u, w], [ca.vertcat(vel, acc_in)]),
+                  (p.u_inside[0],) * 2, (p.u_inside[1],) * 2)
+
+    c = ca.DM(p.circle_center)
+    rad = p.circle_radius
+    dist2 = ca.sumsqr(pos - c)
+
+    def fn(name: str, expr: ca.SX) -> ca.Function:
+        return ca.Function(name, [x], [expr])
+
+    floor = Guard(
+        "floor", "outside", "outside", fn("h_floor", x[1]), p.radius, -1,
+        reset=fn("R_floor", ca.vertcat(x[0], x[1], x[2], -x[3])),
+        region=fn("A_floor", ca.vertcat(x[0] - p.floor_extent[0], p.floor_extent[1] - x[0])),
+    )
+    wall = Guard(
+        "wall", "outside", "outside", fn("h_wall", x[0]), p.radius, -1,
+        reset=fn("R_wall", ca.vertcat(x[0], x[1], -x[2], x[3])),
+        region=fn("A_wall", ca.vertcat(x[1] - p.wall_extent[0], p.wall_extent[1] - x[1])),
+    )
+    identity = fn("R_circle", x)
+    circle_in = Guard(
+        "circle_in", "outside", "inside", fn("h_circle", ca.sqrt(dist2)), rad, -1,
+        reset=identity, nlp_gap=fn("q_circle_in", dist2 - rad**2),
+        margin=lambda d, past: rad**2 - (rad - d) ** 2 if past else (rad + d) ** 2 - rad**2,
+    )
+    circle_out = Guard(
+        "circle_out", "inside", "outside", fn("h_circle", ca.sqrt(dist2)), rad, +1,
+        reset=identity, nlp_gap=fn("q_circle_out", rad**2 - dist2),
+        margin=lambda d, past: (rad + d) ** 2 - rad**2 if past else rad**2 - (rad - d) ** 2,
+    )
+    goal = ca.DM(p.goal)
+    cost = (p.q_position * ca.sumsqr(pos - goal) + p.q_velocity * ca.sumsqr(vel)
+            + p.r_input * ca.sumsqr(u))
+    terminal = None
+    if p.terminal_radius is not None:
+        terminal = fn("E_ball", ca.vertcat(p.terminal_radius**2 - ca.sumsqr(pos - goal)))
+
+    def gain(kp: float, kd: float) -> np.ndarray:
+        return np.hstack([kp * np.eye(2), kd * np.eye(2)])
+
+    return HybridSystem(
+        name="ball",
+        state_names=("px", "py", "vx", "vy"),
+        input_names=("ux", "uy"),
+        disturbance_names=("wx", "wy"),
+        modes=(outside, inside),
+        guards=(floor, wall, circle_in, circle_out),
+        initial_mode="outside",
+        final_mode="inside",
+        x0=np.array(p.x0, dtype=float),
+        goal=np.array(p.goal, dtype=float),
+        goal_map=fn("goal_map", pos),
+        stage_cost=ca.Function("L_ball", [x, u], [cost]),
+        terminal_set=terminal,
+        success_radius=p.success_radius,
+        tracking_gain=gain,
+        params=p.model_dump(),
+    )
