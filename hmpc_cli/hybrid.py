@@ -188,6 +188,16 @@ class HybridSystem:
         return NumericSystem(self)
 
 
+def rk4_expr(mode: Mode, x, u, w, h):
+    """Symbolic RK4 step of length h with the input clipped to the mode's box."""
+    u = ca.fmin(ca.fmax(u, ca.DM(mode.u_lower)), ca.DM(mode.u_upper))
+    k1 = mode.flow(x, u, w)
+    k2 = mode.flow(x + h / 2 * k1, u, w)
+    k3 = mode.flow(x + h / 2 * k2, u, w)
+    k4 = mode.flow(x + h * k3, u, w)
+    return x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
 class NumericSystem:
     """Batched NumPy evaluators of a :class:`HybridSystem` (same SX graphs)."""
 
@@ -206,8 +216,34 @@ class NumericSystem:
                         for g in system.guards]
         self.resets = [compile_numpy(g.reset) for g in system.guards]
         self.target = np.array([system.mode_index(g.target) for g in system.guards])
+        self.source = np.array([system.mode_index(g.source) for g in system.guards])
         self.guards_of = [system.guards_of(i) for i in range(len(system.modes))]
         self._goal_map = compile_numpy(system.goal_map)
+        u = ca.SX.sym("u", system.n_u)
+        w = ca.SX.sym("w", system.n_w)
+        h = ca.SX.sym("h")
+        self.rk4 = []
+        for i, mode in enumerate(system.modes):
+            step = rk4_expr(mode, x, u, w, h)
+            self.rk4.append(compile_numpy(ca.Function(f"rk4_{mode.name}", [x, u, w, h],
+                                                      [step])))
+        self.mode_gaps = [
+            compile_numpy(ca.Function(f"gaps_{m.name}", [x], [ca.vertcat(
+                *[system.guards[g].gap_expr(x) for g in self.guards_of[i]], ca.SX(0, 1))]))
+            for i, m in enumerate(system.modes)]
+        self.gaps_along = []
+        for i, mode in enumerate(system.modes):
+            # gap along the RK4 sub-step and its rate dgap/dx . f(x_tau) (the exact
+            # d/dtau of the RK4 step differs by O(h^4): Newton still converges fast)
+            x_tau = rk4_expr(mode, x, u, w, h)
+            gaps = ca.vertcat(*[system.guards[g].gap_expr(x) for g in self.guards_of[i]],
+                              ca.SX(0, 1))
+            u_sat = ca.fmin(ca.fmax(u, ca.DM(mode.u_lower)), ca.DM(mode.u_upper))
+            rate = ca.jtimes(gaps, x, mode.flow(x, u_sat, w))
+            at_tau = ca.Function("at_tau", [x, u, w], [gaps, rate])
+            phi, dphi = at_tau(x_tau, u, w)
+            self.gaps_along.append(compile_numpy(ca.Function(
+                f"phi_{mode.name}", [x, u, w, h], [phi, dphi, x_tau])))
 
     def flow(self, mode: int, x: np.ndarray, u: np.ndarray, w: np.ndarray) -> np.ndarray:
         """dx/dt of mode ``mode`` for a batch, shapes (B, n), (B, m), (B, n_w) -> (B, n)."""

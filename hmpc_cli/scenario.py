@@ -77,24 +77,27 @@ class Scenario(BaseModel):
 
     @model_validator(mode="after")
     def _rates(self) -> Scenario:
-        m, s = self.mpc, self.sim
-        if m.nodes_per_second % m.rate_hz:
-            raise ValueError(f"mpc.rate_hz = {m.rate_hz} must divide mpc.nodes_per_second = "
-                             f"{m.nodes_per_second} (the MPC period must be a whole number "
-                             "of node steps)")
-        if s.rate_hz % m.rate_hz:
-            raise ValueError(f"mpc.rate_hz = {m.rate_hz} must divide sim.rate_hz = "
-                             f"{s.rate_hz} (solves happen on simulator steps)")
+        # One "key.path: reason" line per problem (format_errors splits them).
+        m, s, problems = self.mpc, self.sim, []
+        divides = [f"{k} = {v}" for k, v in (("mpc.nodes_per_second", m.nodes_per_second),
+                                             ("sim.rate_hz", s.rate_hz)) if v % m.rate_hz]
+        if divides:
+            problems.append(f"mpc.rate_hz: {m.rate_hz} must divide " + " and ".join(divides)
+                            + " (the MPC period must be a whole number of node steps and "
+                            "of simulator steps)")
         if s.rate_hz % s.log_rate_hz:
-            raise ValueError(f"sim.log_rate_hz = {s.log_rate_hz} must divide sim.rate_hz")
+            problems.append(f"sim.log_rate_hz: {s.log_rate_hz} must divide sim.rate_hz = "
+                            f"{s.rate_hz}")
         if not _whole(s.duration * s.rate_hz):
-            raise ValueError("sim.duration must be a whole number of simulator steps")
+            problems.append("sim.duration: must be a whole number of simulator steps")
         if self.disturbance.kind == "box" and not _whole(self.disturbance.hold * s.rate_hz):
-            raise ValueError("disturbance.hold must be a whole number of simulator steps")
+            problems.append("disturbance.hold: must be a whole number of simulator steps")
         if self.replanning.policy == "periodic" and not _whole(self.replanning.period * s.rate_hz):
-            raise ValueError("replanning.period must be a whole number of simulator steps")
+            problems.append("replanning.period: must be a whole number of simulator steps")
         if m.horizon * m.nodes_per_second < 2 or not _whole(m.horizon * m.nodes_per_second):
-            raise ValueError("mpc.horizon must be a whole number (>= 2) of node steps")
+            problems.append("mpc.horizon: must be a whole number (>= 2) of node steps")
+        if problems:
+            raise ValueError("\n".join(problems))
         return self
 
 
@@ -137,6 +140,9 @@ def format_errors(exc: ValidationError, source: str) -> list[str]:
         msg = err["msg"].removeprefix("Value error, ")
         if err["type"] == "extra_forbidden":
             msg = "unknown key"
+        if not err["loc"] and err["type"] == "value_error":  # Scenario._rates: own key paths
+            lines += [f"{source}: {m}" for m in msg.split("\n")]
+            continue
         lines.append(f"{source}: {loc}: {msg}")
     return lines
 
@@ -180,12 +186,12 @@ def dump_toml(data: dict) -> str:
             return "true" if v else "false"
         if isinstance(v, (int, float)):
             return repr(v)
-        if isinstance(v, str):
-            return json.dumps(v)
+        if isinstance(v, str):  # TOML basic string (no surrogate-pair \u escapes, DEL escaped)
+            return json.dumps(v, ensure_ascii=False).replace("\x7f", "\\u007f")
         if isinstance(v, (list, tuple)):
             return "[" + ", ".join(value(x) for x in v) + "]"
         if isinstance(v, dict):
-            return "{" + ", ".join(f"{json.dumps(k)} = {value(x)}" for k, x in v.items()) + "}"
+            return "{" + ", ".join(f"{value(str(k))} = {value(x)}" for k, x in v.items()) + "}"
         raise TypeError(f"cannot write {type(v).__name__} to TOML")
 
     top = [f"{k} = {value(v)}" for k, v in data.items() if not isinstance(v, dict)]

@@ -3,9 +3,9 @@
 One step integrates the flow of each sample's mode with RK4 over ``dt`` with the input
 and disturbance held. If a guard of that mode is crossed inside the step (its gap goes
 from > 0 to <= 0, and the crossing point lies in the guard's activity region), the first
-crossing time tau is located by Illinois root finding on the RK4 sub-step
-tau -> gap(RK4(x, tau)) to a bracket of ``time_tol`` seconds; the state past the guard is
-reset, the mode switched, and the rest of the step integrated in the new mode. A guard
+crossing time tau is located by root finding on the RK4 sub-step
+tau -> gap(RK4(x, tau)) to a bracket of ``time_tol`` seconds; the state at the bracket's
+near side is reset, the mode switched, and the rest of the step integrated in the new mode. A guard
 exactly at its level at the start of a sub-step does not fire (so a reset cannot re-trigger
 its own guard). More than ``max_events`` events in one step is Zeno chattering: an error.
 
@@ -69,27 +69,19 @@ class HybridSimulator:
         self.num = system.numeric
         self.max_events = max_events
         self.time_tol = time_tol
-        self._source = np.array([system.mode_index(g.source) for g in system.guards])
+
 
     def rk4(self, mode: np.ndarray, x: np.ndarray, u: np.ndarray, w: np.ndarray,
             h: np.ndarray) -> np.ndarray:
         """One RK4 step of length h (B,) per sample in its mode; inputs saturated."""
+        m0 = int(mode[0])
+        if (mode == m0).all():
+            return self.num.rk4[m0](x, u, w, h[:, None])[0]
         out = np.empty_like(x)
-        modes = np.unique(mode)
-        for m in modes:
-            sel = slice(None) if len(modes) == 1 else mode == m
-            out[sel] = self._rk4_mode(int(m), x[sel], u[sel], w[sel], h[sel])
+        for m in np.unique(mode):
+            sel = mode == m
+            out[sel] = self.num.rk4[int(m)](x[sel], u[sel], w[sel], h[sel, None])[0]
         return out
-
-    def _rk4_mode(self, m: int, x, u, w, h) -> np.ndarray:
-        f = self.num.flows[m]
-        u = np.clip(u, self.num.u_lower[m], self.num.u_upper[m])
-        hc = h[:, None]
-        k1 = f(x, u, w)[0]
-        k2 = f(x + 0.5 * hc * k1, u, w)[0]
-        k3 = f(x + 0.5 * hc * k2, u, w)[0]
-        k4 = f(x + hc * k3, u, w)[0]
-        return x + hc / 6.0 * (k1 + 2.0 * (k2 + k3) + k4)
 
     def step(self, x: np.ndarray, mode: np.ndarray, u: np.ndarray, w: np.ndarray,
              dt: float, record: bool = True, raise_zeno: bool = True) -> StepResult:
@@ -150,63 +142,78 @@ class HybridSimulator:
         return StepResult(x, mode, events, zeno)
 
     def _first_crossing(self, x, mode, u, w, h, x_end):
-        """Earliest active guard crossing per sample: (tau (B,), guard (B,) or -1, state)."""
+        """Earliest active guard crossing per sample: (tau (B,), guard (B,) or -1, state).
+
+        All guards of a mode are located together: for each sample, the root of the
+        smallest gap among the guards it crosses in this step. A crossing outside the
+        guard's activity region is dropped and the sample searched again without it.
+        """
         b = x.shape[0]
         tau = h.copy()
         guard = np.full(b, -1)
         x_hit = x_end.copy()
-        for g in range(len(self.system.guards)):
-            cand = np.nonzero(mode == self._source[g])[0]
-            if cand.size == 0:
+        single = bool((mode == mode[0]).all())
+        for m in ((int(mode[0]),) if single else np.unique(mode)):
+            guards = self.num.guards_of[m]
+            if not guards:
                 continue
-            g0 = self.num.gap(g, x[cand])
-            g1 = self.num.gap(g, x_end[cand])
+            cand = np.arange(b) if single else np.nonzero(mode == m)[0]
+            g0 = self.num.mode_gaps[m](x[cand])[0]
+            g1 = self.num.mode_gaps[m](x_end[cand])[0]
             cross = (g0 > 0.0) & (g1 <= 0.0)
-            if not cross.any():
-                continue
-            rows = cand[cross]
-            t_g, x_g = self._locate(g, x[rows], mode[rows], u[rows], w[rows], h[rows],
-                                    g0[cross], g1[cross], x_end[rows])
-            ok = self.num.active(g, x_g) & ((t_g < tau[rows]) | (guard[rows] < 0))
-            rows, t_g, x_g = rows[ok], t_g[ok], x_g[ok]
-            tau[rows] = t_g
-            guard[rows] = g
-            x_hit[rows] = x_g
+            while True:
+                rows = np.nonzero(cross.any(axis=1))[0]
+                if rows.size == 0:
+                    break
+                idx = cand[rows]
+                t_g, c_g, x_g = self._locate(m, x[idx], u[idx], w[idx], h[idx],
+                                             cross[rows], g0[rows], g1[rows])
+                g_idx = np.asarray(guards)[c_g]
+                active = np.ones(len(idx), dtype=bool)
+                for g in np.unique(g_idx):
+                    sel = g_idx == g
+                    active[sel] = self.num.active(int(g), x_g[sel])
+                tau[idx[active]] = t_g[active]
+                guard[idx[active]] = g_idx[active]
+                x_hit[idx[active]] = x_g[active]
+                cross[rows[active]] = False
+                cross[rows[~active], c_g[~active]] = False
         return tau, guard, x_hit
 
-    def _locate(self, g, x, mode, u, w, h, f_lo, f_hi, x_hi):
-        """Root of gap(RK4(x, tau)) on (0, h], bracketed to ``time_tol``.
+    def _locate(self, m, x, u, w, h, cross, f0, f1):
+        """First root of phi(tau) = min over crossing guards of gap(RK4(x, tau)) on (0, h].
 
-        Each iteration takes the regula-falsi estimate and evaluates a pair of points
-        straddling it (one batched call), half as far apart as the last two estimates,
-        so both ends of the bracket close in a few iterations. Returns the past side.
+        Safeguarded Newton on the exact RK4 sub-step (dphi/dtau by CasADi AD), biased by
+        a fraction of the tolerance so that, once converged, consecutive iterates land on
+        both sides of the root and close the bracket to ``time_tol``. Returns the
+        bracket's *before* side (time, guard column, state with every gap > 0), so the
+        reset state never starts past a guard and an immediate re-crossing is seen.
         """
+        tol = self.time_tol
+        phi_fn = self.num.gaps_along[m]
+        rows = np.arange(len(h))
         lo = np.zeros_like(h)
         hi = h.copy()
-        f_lo, f_hi, x_hi = f_lo.copy(), f_hi.copy(), x_hi.copy()
-        t_prev = h.copy()
-        tol = self.time_tol
-        xx, mm, uu, ww = (np.concatenate([a, a]) for a in (x, mode, u, w))
-        for _ in range(100):
-            done = (hi - lo <= tol) | (f_hi == 0.0)
-            if done.all():
+        x_lo = x.copy()
+        col = np.argmin(np.where(cross, 0.0, 1.0), axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(cross, h[:, None] * f0 / (f0 - f1), np.inf).min(axis=1)
+        t = np.where(np.isfinite(t) & (t > 0.0) & (t < h), t, 0.5 * h)
+        for _ in range(60):
+            phis, dphis, x_t = phi_fn(x, u, w, t[:, None])
+            phis = np.where(cross, phis, np.inf)
+            c = np.argmin(phis, axis=1)
+            phi, dphi = phis[rows, c], dphis[rows, c]
+            past = (phi <= 0.0) & (t < hi)
+            before = (phi > 0.0) & (t > lo)
+            hi = np.where(past, t, hi)
+            lo = np.where(before, t, lo)
+            col = np.where(past, c, col)
+            x_lo[before] = x_t[before]
+            if np.all(hi - lo <= tol):
                 break
-            width = hi - lo
-            t_est = hi - f_hi * width / (f_hi - f_lo)
-            t_est = np.where(np.isfinite(t_est), t_est, lo + 0.5 * width)
-            delta = np.clip(0.5 * np.abs(t_est - t_prev), 0.4 * tol, 0.25 * width)
-            t_prev = t_est
-            t_a = np.clip(t_est - delta, lo + 0.1 * tol, hi)
-            t_b = np.clip(t_est + delta, lo, hi - 0.1 * tol)
-            x_t = self.rk4(mm, xx, uu, ww, np.concatenate([t_a, t_b]))
-            f_t = self.num.gap(g, x_t)
-            n = len(h)
-            for t, f, xs in ((t_a, f_t[:n], x_t[:n]), (t_b, f_t[n:], x_t[n:])):
-                past = (f <= 0.0) & (t < hi) & ~done
-                before = (f > 0.0) & (t > lo) & ~done
-                hi = np.where(past, t, hi)
-                f_hi = np.where(past, f, f_hi)
-                x_hi[past] = xs[past]
-                lo = np.where(before, t, lo)
-                f_lo = np.where(before, f, f_lo)
-        return hi, x_hi
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t_new = t - phi / dphi + np.where(phi > 0.0, 0.4 * tol, -0.4 * tol)
+            bad = ~np.isfinite(t_new) | (t_new <= lo) | (t_new >= hi)
+            t = np.where(bad, 0.5 * (lo + hi), t_new)
+        return lo, col, x_lo

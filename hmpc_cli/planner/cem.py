@@ -69,12 +69,15 @@ class CrossEntropyPlanner:
         a = a[None, :, None]
         return (1.0 - a) * knots[:, k, :] + a * knots[:, k + 1, :]
 
-    def rollout_cost(self, x0: np.ndarray, mode0: int, knots: np.ndarray):
+    def rollout_cost(self, x0: np.ndarray, mode0: int, knots: np.ndarray,
+                     bound: float = np.inf):
         """Costs (B,) and final-domain flags (B,) of knot sequences (B, knots, m).
 
         The final domain is absorbing: a rollout that enters it stops there and accrues
         the stage cost of its entry state (zero input) for the rest of the horizon; one
-        that never enters pays ``UNREACHED_PENALTY`` on top of its cost.
+        that never enters pays ``UNREACHED_PENALTY`` on top of its cost. Costs only grow
+        along a rollout, so one whose running cost exceeds ``bound`` is stopped and
+        gets cost inf (exact pruning when only the best sample matters).
         """
         b = knots.shape[0]
         u = self._inputs(knots)
@@ -94,7 +97,7 @@ class CrossEntropyPlanner:
             res = self.sim.step(x[run], mode[run], u[run, k, :], w[run], self.dt,
                                 record=False, raise_zeno=False)
             x[run], mode[run] = res.x, res.mode
-            alive[run] &= ~res.zeno & np.all(np.isfinite(res.x), axis=1)
+            alive[run] &= ~res.zeno & np.all(np.isfinite(res.x), axis=1) & (cost[run] <= bound)
             reached[run] = (res.mode == self.final_mode) & alive[run]
             entered = run[reached[run]]
             if entered.size:
@@ -118,7 +121,8 @@ class CrossEntropyPlanner:
         for _ in range(s.iterations):
             noise = rng.standard_normal((s.samples, s.knots, m))
             samples = np.concatenate([mean[None], mean[None] + np.sqrt(var)[None] * noise])
-            cost, _ = self.rollout_cost(x0, mode0, samples)
+            bound = best_cost if s.elites == 1 else np.inf
+            cost, _ = self.rollout_cost(x0, mode0, samples, bound)
             order = np.argsort(cost, kind="stable")
             elite = samples[order[: s.elites]]
             if cost[order[0]] < best_cost:

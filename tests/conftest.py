@@ -1,0 +1,69 @@
+"""Shared fixtures: paths, the ``hmpc`` command line, and one full default run per session."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SCENARIOS = REPO / "scenarios"
+BALL = SCENARIOS / "ball.toml"
+
+
+def hmpc_command() -> list[str]:
+    """The installed ``hmpc`` console script next to this interpreter, else ``python -m``."""
+    script = Path(sys.executable).with_name("hmpc")
+    if script.is_file() and os.access(script, os.X_OK):
+        return [str(script)]
+    found = shutil.which("hmpc")
+    return [found] if found else [sys.executable, "-m", "hmpc_cli.cli"]
+
+
+def cli_env() -> dict[str, str]:
+    """A wide, colourless terminal so rich output is neither wrapped nor escaped."""
+    return {**os.environ, "COLUMNS": "200", "NO_COLOR": "1", "TERM": "dumb"}
+
+
+def _run_hmpc(args: list[str], cwd: Path, timeout: float = 120) -> subprocess.CompletedProcess:
+    """Runs ``hmpc ARGS`` in a fresh process and captures its output."""
+    return subprocess.run([*hmpc_command(), *args], cwd=cwd, env=cli_env(), capture_output=True,
+                          text=True, timeout=timeout)
+
+
+@pytest.fixture(scope="session")
+def run_hmpc():
+    """``run_hmpc(args, cwd)``: the real command line in a fresh process."""
+    return _run_hmpc
+
+
+@pytest.fixture(scope="session")
+def start_hmpc():
+    """``start_hmpc(args, cwd)``: like run_hmpc but returns the running Popen."""
+    def start(args: list[str], cwd: Path) -> subprocess.Popen:
+        return subprocess.Popen([*hmpc_command(), *args], cwd=cwd, env=cli_env(), text=True,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+    return start
+
+
+@dataclass
+class FullRun:
+    """The full default ball scenario, run once through the real command line."""
+
+    out: Path
+    proc: subprocess.CompletedProcess
+
+
+@pytest.fixture(scope="session")
+def full_run(tmp_path_factory: pytest.TempPathFactory) -> FullRun:
+    """``hmpc run scenarios/ball.toml --out DIR`` with nothing overridden (runs once)."""
+    base = tmp_path_factory.mktemp("full_run")
+    out = base / "run"
+    proc = _run_hmpc(["run", str(BALL), "--out", str(out), "--quiet"], cwd=base)
+    return FullRun(out, proc)

@@ -1,0 +1,395 @@
+"""Scenario files: loading, overrides, error reporting (direct and through ``hmpc run``)."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import tomllib
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from hmpc_cli.cli import app
+from hmpc_cli.recorder import read_log
+from hmpc_cli.scenario import Scenario, ScenarioError, dump_toml, load_scenario
+
+REPO = Path(__file__).resolve().parents[1]
+SCENARIOS = REPO / "scenarios"
+BALL = SCENARIOS / "ball.toml"
+
+# "error: <file>: <key.path>: <reason>" as printed by the CLI
+KEYED = re.compile(r"^error: (?P<file>[^:\s]+): (?P<key>[A-Za-z_][\w.]*): (?P<reason>\S.*)$")
+
+
+@pytest.fixture
+def work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A scratch directory holding a copy of ball.toml, made the current directory."""
+    shutil.copy(BALL, tmp_path / "ball.toml")
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+def _tree(root: Path) -> set[str]:
+    return {str(p.relative_to(root)) for p in root.rglob("*")}
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _with_lines(src: Path, dst: Path, **sections: str) -> Path:
+    """Copies ``src`` and appends ``line`` under each ``[section]`` (``_top`` = top level)."""
+    text = src.read_text(encoding="utf-8")
+    lines = text.splitlines()
+    for section, line in sections.items():
+        if section == "_top":
+            lines.insert(lines.index("name = \"ball\""), line)
+        else:
+            lines.insert(lines.index(f"[{section}]") + 1, line)
+    return _write(dst, "\n".join(lines) + "\n")
+
+
+def cli_bad(work: Path, args: list[str]) -> list[str]:
+    """Runs ``hmpc run ARGS`` in ``work`` expecting bad input; returns the stderr lines.
+
+    Checks exit code 2, no traceback, nothing on stdout and that neither the default
+    results directory nor any other file was created.
+    """
+    before = _tree(work)
+    res = CliRunner().invoke(app, ["run", *args])
+    assert res.exit_code == 2, res.output
+    assert isinstance(res.exception, SystemExit), repr(res.exception)
+    assert "Traceback" not in res.output
+    assert res.stdout == ""
+    assert _tree(work) == before, "bad input must not create any file or directory"
+    assert not (work / "results").exists()
+    lines = res.stderr.splitlines()
+    assert lines and all(line.startswith("error: ") for line in lines), lines
+    return lines
+
+
+def one_keyed(lines: list[str], file: str, key: str) -> str:
+    """Asserts exactly one ``error: file: key: reason`` line; returns the reason."""
+    assert len(lines) == 1, lines
+    m = KEYED.match(lines[0])
+    assert m, lines[0]
+    assert (m["file"], m["key"]) == (file, key), lines[0]
+    return m["reason"]
+
+
+def load_error(*args, **kwargs) -> list[str]:
+    with pytest.raises(ScenarioError) as info:
+        load_scenario(*args, **kwargs)
+    lines = info.value.lines
+    assert str(info.value) == "\n".join(lines)
+    assert all("\n" not in line for line in lines)
+    return lines
+
+
+# --------------------------------------------------------------- bad input, through the CLI
+def test_missing_file(work: Path) -> None:
+    lines = cli_bad(work, ["nope.toml"])
+    assert lines == ["error: nope.toml: file not found"]
+    assert load_error(work / "nope.toml") == [f"{work / 'nope.toml'}: file not found"]
+
+
+def test_missing_file_with_out_creates_nothing(work: Path) -> None:
+    out = work / "runs" / "x"
+    cli_bad(work, ["nope.toml", "--out", str(out)])
+    assert not out.exists() and not (work / "runs").exists()
+
+
+def test_directory_is_not_a_scenario(work: Path) -> None:
+    (work / "adir.toml").mkdir()
+    assert cli_bad(work, ["adir.toml"]) == ["error: adir.toml: file not found"]
+
+
+def test_toml_syntax_error(work: Path) -> None:
+    _write(work / "syn.toml", 'name = "ball"\n[mpc\nrate_hz = 10\n')
+    lines = cli_bad(work, ["syn.toml", "--out", str(work / "o")])
+    assert len(lines) == 1
+    assert lines[0].startswith("error: syn.toml: TOML syntax error: ")
+    assert "line 2" in lines[0]
+    assert not (work / "o").exists()
+
+
+def test_not_utf8(work: Path) -> None:
+    (work / "bin.toml").write_bytes(b'name = "\xff\xfe"\n')
+    assert cli_bad(work, ["bin.toml"]) == ["error: bin.toml: not a UTF-8 text file"]
+
+
+@pytest.mark.parametrize("via_file", [False, True], ids=["set", "file"])
+def test_wrong_type(work: Path, via_file: bool) -> None:
+    if via_file:
+        text = (work / "ball.toml").read_text()
+        assert "\nrate_hz = 10\n" in text
+        _write(work / "bad.toml", text.replace("\nrate_hz = 10\n", '\nrate_hz = "fast"\n'))
+        lines = cli_bad(work, ["bad.toml"])
+        file = "bad.toml"
+    else:
+        lines = cli_bad(work, ["ball.toml", "--set", 'mpc.rate_hz="fast"'])
+        file = "ball.toml"
+    reason = one_keyed(lines, file, "mpc.rate_hz")
+    assert "integer" in reason
+
+
+def test_wrong_type_unquoted_string(work: Path) -> None:
+    # an unparsable TOML value is taken as a string, then rejected by the model
+    reason = one_keyed(cli_bad(work, ["ball.toml", "--set", "sim.duration=long"]),
+                       "ball.toml", "sim.duration")
+    assert "number" in reason
+
+
+@pytest.mark.parametrize("key", ["foo", "mpc.foo", "system.spin", "sim.rate"])
+def test_unknown_key_via_set(work: Path, key: str) -> None:
+    reason = one_keyed(cli_bad(work, ["ball.toml", "--set", f"{key}=1"]), "ball.toml", key)
+    assert reason == "unknown key"
+
+
+def test_unknown_key_in_file(work: Path) -> None:
+    _with_lines(work / "ball.toml", work / "bad.toml", _top="colour = 3")
+    assert one_keyed(cli_bad(work, ["bad.toml"]), "bad.toml", "colour") == "unknown key"
+    _with_lines(work / "ball.toml", work / "bad2.toml", mpc="foo = 1")
+    assert one_keyed(cli_bad(work, ["bad2.toml"]), "bad2.toml", "mpc.foo") == "unknown key"
+
+
+def test_unknown_section(work: Path) -> None:
+    _write(work / "bad.toml", (work / "ball.toml").read_text() + "\n[rocket]\nthrust = 1\n")
+    assert one_keyed(cli_bad(work, ["bad.toml"]), "bad.toml", "rocket") == "unknown key"
+
+
+def test_unknown_system(work: Path) -> None:
+    reason = one_keyed(cli_bad(work, ["ball.toml", "--set", 'system.name="rocket"']),
+                       "ball.toml", "system.name")
+    assert "'ball'" in reason  # says what is allowed
+
+
+@pytest.mark.parametrize("key,value", [("sim.rate_hz", "0"), ("mpc.rate_hz", "-5"),
+                                       ("sim.log_rate_hz", "0"), ("mpc.nodes_per_second", "-60")])
+def test_non_positive_rate(work: Path, key: str, value: str) -> None:
+    reason = one_keyed(cli_bad(work, ["ball.toml", "--set", f"{key}={value}"]), "ball.toml", key)
+    assert "greater than 0" in reason
+
+
+@pytest.mark.parametrize("rate", [7, 100, 11])
+def test_non_commensurate_mpc_rate(work: Path, rate: int) -> None:
+    reason = one_keyed(cli_bad(work, ["ball.toml", "--set", f"mpc.rate_hz={rate}"]),
+                       "ball.toml", "mpc.rate_hz")
+    assert str(rate) in reason and "mpc.nodes_per_second = 60" in reason
+
+
+def test_non_commensurate_other_rates(work: Path) -> None:
+    reason = one_keyed(cli_bad(work, ["ball.toml", "--set", "sim.log_rate_hz=7"]),
+                       "ball.toml", "sim.log_rate_hz")
+    assert "sim.rate_hz = 600" in reason
+    reason = one_keyed(cli_bad(work, ["ball.toml", "--set", "sim.rate_hz=605",
+                                      "--set", "sim.log_rate_hz=5"]),
+                       "ball.toml", "mpc.rate_hz")
+    assert "sim.rate_hz = 605" in reason and "nodes_per_second" not in reason
+    one_keyed(cli_bad(work, ["ball.toml", "--set", "sim.duration=0.0001"]),
+              "ball.toml", "sim.duration")
+    one_keyed(cli_bad(work, ["ball.toml", "--set", "mpc.horizon=0.001"]),
+              "ball.toml", "mpc.horizon")
+
+
+@pytest.mark.parametrize("item", ["nokey", "=3", " =3", ""])
+def test_set_bad_syntax(work: Path, item: str) -> None:
+    lines = cli_bad(work, ["ball.toml", "--set", item])
+    assert lines == [f"error: ball.toml: --set {item!r}: expected key.path=value"]
+
+
+def test_set_through_a_scalar(work: Path) -> None:
+    lines = cli_bad(work, ["ball.toml", "--set", "mpc.rate_hz.x=1"])
+    assert lines == ["error: ball.toml: --set 'mpc.rate_hz.x=1': rate_hz is not a table"]
+
+
+def test_two_problems_two_lines(work: Path) -> None:
+    lines = cli_bad(work, ["ball.toml", "--set", "mpc.foo=1", "--set", 'sim.rate_hz="x"'])
+    assert len(lines) == 2, lines
+    found = {KEYED.match(line)["key"]: KEYED.match(line)["reason"] for line in lines}
+    assert found.keys() == {"mpc.foo", "sim.rate_hz"}
+    assert found["mpc.foo"] == "unknown key"
+
+
+def test_two_rate_problems_two_lines(work: Path) -> None:
+    lines = cli_bad(work, ["ball.toml", "--set", "mpc.rate_hz=7", "--set", "sim.log_rate_hz=7"])
+    assert [KEYED.match(line)["key"] for line in lines] == ["mpc.rate_hz", "sim.log_rate_hz"]
+
+
+def test_two_bad_sets_two_lines(work: Path) -> None:
+    lines = cli_bad(work, ["ball.toml", "--set", "a", "--set", "b"])
+    assert lines == ["error: ball.toml: --set 'a': expected key.path=value",
+                     "error: ball.toml: --set 'b': expected key.path=value"]
+
+
+def test_negative_seed(work: Path) -> None:
+    one_keyed(cli_bad(work, ["ball.toml", "--seed", "-1"]), "ball.toml", "seed")
+
+
+def test_bad_solver_options_no_traceback(work: Path) -> None:
+    # passes validation but CasADi refuses it while the loop is built
+    lines = cli_bad(work, ["ball.toml", "--set", "mpc.solver_options={bogus_option=1}"])
+    assert len(lines) == 1 and lines[0].startswith("error: ball.toml: mpc: ")
+    assert "bogus_option" in lines[0]
+
+
+def test_unknown_contact_guard(work: Path) -> None:
+    reason = one_keyed(cli_bad(work, ["ball.toml", "--set", 'replanning.contact_guards=["x"]']),
+                       "ball.toml", "replanning.contact_guards")
+    assert "'x'" in reason
+
+
+def test_bad_input_in_a_real_process(tmp_path: Path, run_hmpc) -> None:
+    _write(tmp_path / "bad.toml", 'name = "ball"\n[mpc]\nrate_hz = 7\nfoo = 1\n')
+    proc = run_hmpc(["run", "bad.toml", "--set", "sim.rate_hz=0"], cwd=tmp_path)
+    assert proc.returncode == 2
+    assert proc.stdout == ""
+    assert "Traceback" not in proc.stderr
+    assert sorted(proc.stderr.splitlines()) == [
+        "error: bad.toml: mpc.foo: unknown key",
+        "error: bad.toml: sim.rate_hz: Input should be greater than 0"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml"]
+
+
+# ------------------------------------------------------------------ load_scenario directly
+def test_load_errors_directly(tmp_path: Path) -> None:
+    path = _write(tmp_path / "s.toml", "[mpc]\nrate_hz = 7\n[sim]\nrate_hz = -1\n")
+    lines = load_error(path)
+    assert lines == [f"{path}: sim.rate_hz: Input should be greater than 0"]
+    lines = load_error(path, ["sim.rate_hz=600", "mpc.bar=2"])
+    assert lines == [f"{path}: mpc.bar: unknown key"]
+    lines = load_error(path, ["sim.rate_hz=600"])
+    assert len(lines) == 1 and lines[0].startswith(f"{path}: mpc.rate_hz: 7 must divide")
+    assert not any("(top)" in line for line in load_error(path, ["sim.rate_hz=601"]))
+
+
+def test_defaults_and_name_from_file(tmp_path: Path) -> None:
+    sc, text = load_scenario(_write(tmp_path / "empty_one.toml", ""))
+    assert sc == Scenario(name="empty_one")
+    assert tomllib.loads(text)["name"] == "empty_one"
+
+
+def test_overrides_take_effect() -> None:
+    base, _ = load_scenario(BALL)
+    sc, text = load_scenario(BALL, [
+        "mpc.max_iter=77",                 # int
+        "sim.duration=0.5",                # float
+        "system.drag=2.5e-2",              # float, exponent
+        'mpc.integrator="euler"',          # quoted string
+        "lowlevel.feedforward=zoh",        # bare word -> string
+        "mpc.warm_start=false",            # bool
+        "planner.adapt_covariance=true",   # bool
+        "system.goal=[2.5, 3]",            # array
+        "mpc.solver_options={print_level=0}",  # inline table
+        'disturbance.kind="box"',          # section present in the file
+        "mpc.rate_hz=5", "mpc.rate_hz=20",  # the last one wins
+    ])
+    assert (sc.mpc.max_iter, sc.sim.duration, sc.system.drag) == (77, 0.5, 0.025)
+    assert isinstance(sc.mpc.max_iter, int) and isinstance(sc.sim.duration, float)
+    assert (sc.mpc.integrator, sc.lowlevel.feedforward) == ("euler", "zoh")
+    assert sc.mpc.warm_start is False and base.mpc.warm_start is True
+    assert sc.planner.adapt_covariance is True and base.planner.adapt_covariance is False
+    assert sc.system.goal == (2.5, 3.0)
+    assert sc.mpc.solver_options == {"print_level": 0}
+    assert sc.disturbance.kind == "box" and sc.mpc.rate_hz == 20
+    # everything else untouched
+    assert sc.model_copy(update={
+        "mpc": base.mpc, "sim": base.sim, "system": base.system, "lowlevel": base.lowlevel,
+        "planner": base.planner, "disturbance": base.disturbance}) == base
+    # the effective TOML holds the overrides
+    data = tomllib.loads(text)
+    assert data["mpc"]["max_iter"] == 77 and data["mpc"]["warm_start"] is False
+    assert data["disturbance"]["kind"] == "box"
+
+
+def test_override_creates_missing_table(tmp_path: Path) -> None:
+    path = _write(tmp_path / "mini.toml", 'name = "mini"\n')
+    sc, _ = load_scenario(path, ["lowlevel.kp=3", "disturbance.magnitude=1.5"])
+    assert sc.lowlevel.kp == 3.0 and sc.disturbance.magnitude == 1.5
+
+
+def test_override_value_is_toml_not_string() -> None:
+    # 123 is a TOML integer, not the string "123": the str field rejects it
+    lines = load_error(BALL, ["description=123"])
+    assert lines == [f"{BALL}: description: Input should be a valid string"]
+    assert load_scenario(BALL, ['description="123"'])[0].description == "123"
+
+
+def test_seed_override() -> None:
+    assert load_scenario(BALL)[0].seed == 0
+    assert load_scenario(BALL, seed=42)[0].seed == 42
+    assert load_scenario(BALL, ["seed=5"])[0].seed == 5
+    assert load_scenario(BALL, ["seed=5"], seed=9)[0].seed == 9  # --seed wins
+    assert tomllib.loads(load_scenario(BALL, seed=42)[1])["seed"] == 42
+
+
+@pytest.mark.parametrize("overrides", [
+    [],
+    ['description="quote \\" backslash \\\\ tab \\t newline \\n del \\u007f smile \\U0001F600"',
+     "mpc.solver_options={\"ipopt.tol\"=1e-8, print_level=0, nested={a=[1, 2.5]}}",
+     "system.terminal_radius=0.05", 'replanning.contact_guards=["wall", "floor"]',
+     "sim.event_time_tol=1e-12", "sim.divergence_bound=1e300", "system.x0=[-0.0, 1, 2, 3]"],
+])
+def test_effective_toml_round_trips(tmp_path: Path, overrides: list[str]) -> None:
+    sc, text = load_scenario(BALL, overrides)
+    path = _write(tmp_path / "again.toml", text)
+    again, text2 = load_scenario(path)
+    assert again == sc
+    assert text2 == text
+    assert dump_toml(sc.model_dump(mode="json", exclude_none=True)) == text
+
+
+def test_cli_overrides_and_seed_reach_the_run(tmp_path: Path, run_hmpc) -> None:
+    out = tmp_path / "o"
+    proc = run_hmpc(["run", str(BALL), "--out", str(out), "-q", "--seed", "11",
+                     "--set", "sim.duration=0.06", "--set", "planner.iterations=1",
+                     "--set", "planner.samples=4", "--set", "mpc.warm_start=false",
+                     "--set", 'description="short"', "--set", "sim.log_rate_hz=50",
+                     "--set", "system.goal=[2.5, 3.5]"], cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    written, _ = load_scenario(out / "scenario.toml")
+    assert written.seed == 11 and written.sim.duration == 0.06
+    assert (written.planner.iterations, written.planner.samples) == (1, 4)
+    assert written.mpc.warm_start is False and written.description == "short"
+    assert written.system.goal == (2.5, 3.5)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["seed"] == 11 and summary["t_end"] == pytest.approx(0.06)
+    log = read_log(out / "run.mcap")
+    (info,) = log.topic("/run/info")
+    assert info.data["seed"] == 11
+    assert Scenario.model_validate(info.data["scenario"]) == written
+    assert len(log.topic("/sim/state")) == 0.06 * 50 + 1
+
+
+# --------------------------------------------------------------------- schema and bundle
+def test_schema_command() -> None:
+    res = CliRunner().invoke(app, ["schema"])
+    assert res.exit_code == 0, res.output
+    schema = json.loads(res.stdout)
+    assert schema == Scenario.model_json_schema()
+    props = schema["properties"]
+    for key in ("system", "sim", "mpc", "planner", "lowlevel", "disturbance", "replanning"):
+        assert key in props, key
+    assert schema.get("additionalProperties") is False
+    assert props["sim"]["$ref"].startswith("#/$defs/")
+    sim_def = schema["$defs"][props["sim"]["$ref"].rsplit("/", 1)[1]]
+    assert sim_def["properties"]["rate_hz"]["type"] == "integer"
+
+
+BUNDLED = sorted(SCENARIOS.glob("*.toml"))
+
+
+def test_bundle_is_not_empty() -> None:
+    assert BALL in BUNDLED
+
+
+@pytest.mark.parametrize("path", BUNDLED, ids=[p.name for p in BUNDLED])
+def test_bundled_scenario(path: Path, tmp_path: Path) -> None:
+    first = path.read_text(encoding="utf-8").splitlines()[0]
+    assert first.startswith("#:schema "), first
+    sc, text = load_scenario(path)
+    assert sc.name
+    assert load_scenario(_write(tmp_path / path.name, text))[0] == sc
