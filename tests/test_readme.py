@@ -1,0 +1,41 @@
+"""Every command the README shows is run here (install and pytest are run by CI)."""
+
+import os
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+RUN_BY_CI = {"pip install -e '.[test]'", "hmpc run scenarios/ball.toml"}
+
+
+def readme_commands() -> list[str]:
+    text = (ROOT / "README.md").read_text()
+    blocks = re.findall(r"```console\n(.*?)```", text, flags=re.S)
+    return [line[2:].strip() for b in blocks for line in b.splitlines() if line.startswith("$ ")]
+
+
+def test_readme_starts_with_the_two_commands():
+    cmds = readme_commands()
+    assert cmds[:2] == ["pip install -e '.[test]'", "hmpc run scenarios/ball.toml"]
+    assert "`pytest`" in (ROOT / "README.md").read_text().split("##")[0]
+
+
+@pytest.mark.parametrize("cmd", [c for c in readme_commands() if c not in RUN_BY_CI])
+def test_readme_command_runs(cmd, tmp_path):
+    for name in ("scenarios", "benchmarks"):
+        os.symlink(ROOT / name, tmp_path / name)
+    argv = shlex.split(cmd)
+    if argv[0] == "hmpc":
+        argv = [sys.executable, "-m", "hmpc_cli.cli"] + argv[1:]
+    elif argv[0] == "python":
+        argv[0] = sys.executable
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True, env=env,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.strip()
