@@ -98,7 +98,9 @@ class FixedModeMPC:
             ok = ok and np.all(np.isfinite(w))
             viol = nlp.violation(w, p, lbx, ubx, lbg, ubg) if np.all(np.isfinite(w)) else INF
         except RuntimeError as exc:  # CasADi raises on NaN evaluations
-            w, cost, status, iters, ok, viol = w0, np.nan, f"error: {exc}"[:200], 0, False, INF
+            lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+            status = "error: " + (lines[-1] if lines else type(exc).__name__)[:160]
+            w, cost, iters, ok, viol = w0, np.nan, 0, False, INF
         wall = time.perf_counter() - start
         stats = SolveStats(status, bool(ok), int(iters), wall, cost, float(viol))
         if ok:

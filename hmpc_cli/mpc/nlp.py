@@ -161,7 +161,8 @@ class FixedModeNLP:
                        ca.vec(pbeta), pkv)
         self._p_shapes = [(L, M), (L, G), (L,), (L,), (L,), (L + 1, G), (L + 1, G),
                           (L + 1, G), (L + 1,)]
-        nlp = {"x": ca.vertcat(*w_vars), "p": p, "f": J, "g": ca.vertcat(*g_rows)}
+        g_rows_flat = ca.vertcat(*g_rows)
+        nlp = {"x": ca.vertcat(*w_vars), "p": p, "f": J, "g": g_rows_flat}
         opts = {"expand": True}
         plugin_opts = dict(self.s.solver_options)
         plugin_opts.pop("ipopt_warm", None)
@@ -173,10 +174,14 @@ class FixedModeNLP:
         elif self.s.solver == "sqpmethod":
             opts.update({"max_iter": self.s.max_iter, "print_time": False,
                          "print_header": False, "print_iteration": False,
-                         "qpsol": "qrqp", "qpsol_options": {"print_iter": False,
-                                                             "print_header": False}})
+                         "qpsol": "qrqp",
+                         "qpsol_options": {"print_iter": False, "print_header": False,
+                                           "error_on_fail": False}})
         else:
+            rows = n + self.P
+            equality = [(r % rows) < n and r < L * rows for r in range(g_rows_flat.size1())]
             opts.update({"structure_detection": "auto", "print_time": False,
+                         "equality": equality,
                          "fatrop": {"print_level": 0, "max_iter": self.s.max_iter}})
         opts.update(plugin_opts)
         self.solver = ca.nlpsol("fixed_mode_mpc", self.s.solver, nlp, opts)

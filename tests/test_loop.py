@@ -1,0 +1,57 @@
+"""Closed loop faults: solver failures, divergence; the log always closes cleanly."""
+
+from pathlib import Path
+
+import numpy as np
+
+from hmpc_cli.loop import LayeredLoop
+from hmpc_cli.recorder import Recorder, read_log
+from hmpc_cli.scenario import load_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run(tmp_path, overrides):
+    sc, _ = load_scenario(ROOT / "scenarios" / "ball.toml", overrides)
+    rec = Recorder(tmp_path / "run.mcap")
+    try:
+        result = LayeredLoop(sc, rec).run()
+    finally:
+        rec.close()
+    return result, read_log(tmp_path / "run.mcap")
+
+
+def test_solver_failures_are_counted_logged_and_survived(tmp_path):
+    result, log = run(tmp_path, ["mpc.max_iter=2", "sim.duration=0.5"])
+    solves = log.topic("/mpc/solve")
+    failed = [m for m in solves if not m.data["success"]]
+    assert result.t_end == 0.5 and not result.diverged
+    assert result.solver_failures == len(failed) > 0
+    assert sum(result.failure_statuses.values()) == len(failed)
+    assert all(m.data["status"] for m in failed)
+    # the loop kept commanding inputs from the shifted previous plan
+    u = np.array([m.data["u"] for m in log.topic("/sim/state")])
+    assert np.any(u != 0.0)
+    assert log.complete
+
+
+def test_divergence_ends_the_run_cleanly(tmp_path):
+    result, log = run(tmp_path, ["sim.divergence_bound=3.0"])
+    assert result.diverged and not result.success
+    assert "diverged" in result.reason
+    assert result.t_end < 3.0
+    assert log.complete
+    summary = log.topic("/run/summary")
+    assert len(summary) == 1 and summary[0].data["diverged"] is True
+
+
+def test_replanning_on_contact_replans_at_wall_and_floor_only(tmp_path):
+    result, log = run(tmp_path, ["replanning.policy=\"on_contact\"", "sim.duration=1.0",
+                                 "planner.iterations=5"])
+    plans = log.topic("/planner/plan")
+    events = log.topic("/sim/event")
+    contacts = [e for e in events if e.data["guard_name"] in ("floor", "wall")]
+    assert len(plans) == 1 + len(contacts)
+    assert result.planner_calls == len(plans)
+    for p in plans[1:]:
+        assert p.data["reason"] == "contact"
