@@ -7,6 +7,7 @@ every problem into :class:`ScenarioError` lines of the form ``file: key.path: re
 
 from __future__ import annotations
 
+import re
 import tomllib
 from pathlib import Path
 from typing import Literal
@@ -169,7 +170,7 @@ def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None 
     data = apply_overrides(data, list(overrides), str(path))
     if seed is not None:
         data["seed"] = seed
-    data.setdefault("name", path.stem)
+    data.setdefault("name", re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem))
     try:
         scenario = Scenario.model_validate(data)
     except ValidationError as exc:

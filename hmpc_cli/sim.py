@@ -199,21 +199,24 @@ class HybridSimulator:
         with np.errstate(divide="ignore", invalid="ignore"):
             t = np.where(cross, h[:, None] * f0 / (f0 - f1), np.inf).min(axis=1)
         t = np.where(np.isfinite(t) & (t > 0.0) & (t < h), t, 0.5 * h)
+        one = bool((cross.sum(axis=1) == 1).all())  # common case: one guard per sample
         for _ in range(60):
             phis, dphis, x_t = phi_fn(x, u, w, t[:, None])
-            phis = np.where(cross, phis, np.inf)
-            c = np.argmin(phis, axis=1)
+            if one:
+                c = col
+            else:
+                c = np.argmin(np.where(cross, phis, np.inf), axis=1)
             phi, dphi = phis[rows, c], dphis[rows, c]
-            past = (phi <= 0.0) & (t < hi)
-            before = (phi > 0.0) & (t > lo)
-            hi = np.where(past, t, hi)
-            lo = np.where(before, t, lo)
-            col = np.where(past, c, col)
-            x_lo[before] = x_t[before]
-            if np.all(hi - lo <= tol):
+            past = phi <= 0.0
+            hi = np.where(past, np.minimum(t, hi), hi)
+            lo = np.where(past, lo, np.maximum(t, lo))
+            if not one:
+                col = np.where(past, c, col)
+            x_lo[~past] = x_t[~past]
+            if ((hi - lo) <= tol).all():
                 break
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t_new = t - phi / dphi + np.where(phi > 0.0, 0.4 * tol, -0.4 * tol)
-            bad = ~np.isfinite(t_new) | (t_new <= lo) | (t_new >= hi)
+            t_new = t - np.divide(phi, dphi, out=np.full_like(phi, np.nan), where=dphi != 0.0)
+            t_new += np.where(past, -0.4 * tol, 0.4 * tol)
+            bad = ~((t_new > lo) & (t_new < hi))
             t = np.where(bad, 0.5 * (lo + hi), t_new)
         return lo, col, x_lo

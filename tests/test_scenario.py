@@ -390,6 +390,7 @@ def test_bundle_is_not_empty() -> None:
 def test_bundled_scenario(path: Path, tmp_path: Path) -> None:
     first = path.read_text(encoding="utf-8").splitlines()[0]
     assert first.startswith("#:schema "), first
+    assert (path.parent / first.removeprefix("#:schema ").strip()).is_file(), first
     sc, text = load_scenario(path)
     assert sc.name
     assert load_scenario(_write(tmp_path / path.name, text))[0] == sc

@@ -13,7 +13,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.messages import ModeSchedule, PlannerResult, Trajectory
@@ -41,13 +41,19 @@ class CEMSettings(BaseModel):
     warm_start: bool = Field(False, description="start from the previous best, shifted")
     seed: int = Field(0, ge=0, description="base seed (the run seed is mixed in)")
 
+    @field_validator("elites")
+    @classmethod
+    def _elites(cls, v: int, info: ValidationInfo) -> int:
+        samples = info.data.get("samples")
+        if samples is not None and v > samples + 1:
+            raise ValueError(f"{v} elites exceed the {samples} samples + the mean")
+        return v
+
 
 class CrossEntropyPlanner:
     """Plans a mode schedule from a hybrid state by the cross-entropy method."""
 
     def __init__(self, system: HybridSystem, settings: CEMSettings, run_seed: int = 0):
-        if settings.elites > settings.samples + 1:
-            raise ValueError("planner.elites must not exceed planner.samples + 1")
         self.system = system
         self.s = settings
         self.sim = HybridSimulator(system)

@@ -14,7 +14,7 @@ from typing import Literal
 
 import casadi as ca
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from hmpc_cli.hybrid import Guard, HybridSystem, Mode
 
@@ -45,13 +45,12 @@ class BallParams(BaseModel):
         None, gt=0.0, description="terminal set |p - goal| <= this (None: the final domain)")
     success_radius: float = Field(1.0, gt=0.0, description="success: |p_end - goal| <= this")
 
-    @model_validator(mode="after")
-    def _check(self) -> BallParams:
-        for key in ("floor_extent", "wall_extent", "u_outside", "u_inside"):
-            lo, hi = getattr(self, key)
-            if not lo < hi:
-                raise ValueError(f"{key}: lower bound {lo} must be below upper bound {hi}")
-        return self
+    @field_validator("floor_extent", "wall_extent", "u_outside", "u_inside")
+    @classmethod
+    def _ordered(cls, v: Pair) -> Pair:
+        if not v[0] < v[1]:
+            raise ValueError(f"lower bound {v[0]} must be below upper bound {v[1]}")
+        return v
 
 
 def build_ball(p: BallParams) -> HybridSystem:

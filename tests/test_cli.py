@@ -1,0 +1,214 @@
+"""``hmpc run`` end to end: run directory, MCAP log contents, reproducibility, help."""
+
+from __future__ import annotations
+
+import json
+import math
+import platform
+from pathlib import Path
+
+import casadi
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import hmpc_cli
+from hmpc_cli.cli import app
+from hmpc_cli.recorder import Log, read_log
+from hmpc_cli.scenario import Scenario, load_scenario
+
+REPO = Path(__file__).resolve().parents[1]
+BALL = REPO / "scenarios" / "ball.toml"
+GOAL = (3.0, 3.0)
+
+
+# ------------------------------------------------------------------- the full default run
+@pytest.fixture(scope="module")
+def full(full_run):
+    assert full_run.proc.returncode == 0, full_run.proc.stderr
+    return full_run
+
+
+@pytest.fixture(scope="module")
+def summary(full) -> dict:
+    return json.loads((full.out / "summary.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def log(full) -> Log:
+    return read_log(full.out / "run.mcap")
+
+
+def test_run_writes_the_run_directory(full) -> None:
+    assert sorted(p.name for p in full.out.iterdir()) == ["run.mcap", "scenario.toml",
+                                                          "summary.json"]
+    assert "Traceback" not in full.proc.stderr
+    assert "success" in full.proc.stdout  # the summary table
+
+
+def test_summary_reports_success_at_the_goal(summary) -> None:
+    assert summary["success"] is True
+    assert summary["diverged"] is False and summary["reason"] == "success"
+    assert summary["scenario"] == "ball" and summary["seed"] == 0
+    assert summary["final_error"] < 0.1
+    assert summary["t_end"] == pytest.approx(3.0)
+    x_end = summary["x_end"]
+    assert math.hypot(x_end[0] - GOAL[0], x_end[1] - GOAL[1]) == pytest.approx(
+        summary["final_error"], abs=1e-9)
+    assert summary["solves"] > 0 and summary["planner_calls"] >= 1 and summary["contacts"] > 0
+    assert sum(summary["contacts_by_guard"].values()) == summary["contacts"]
+
+
+def test_written_scenario_reloads_equal(full) -> None:
+    written, _ = load_scenario(full.out / "scenario.toml")
+    original, text = load_scenario(BALL)
+    assert written == original
+    assert (full.out / "scenario.toml").read_text(encoding="utf-8") == text
+
+
+def test_log_is_complete(log) -> None:
+    assert log.complete
+    assert {m.topic for m in log.messages} >= {
+        "/run/info", "/sim/state", "/sim/event", "/mpc/solve", "/planner/plan", "/run/summary"}
+
+
+def test_run_info(log, full) -> None:
+    (info,) = log.topic("/run/info")
+    assert info.t == 0.0
+    d = info.data
+    assert d["seed"] == 0 and d["scenario_name"] == "ball"
+    v = d["versions"]
+    assert v["casadi"] == casadi.__version__
+    assert v["numpy"] == np.__version__
+    assert v["python"] == platform.python_version()
+    assert v["hmpc"] == hmpc_cli.__version__
+    written, _ = load_scenario(full.out / "scenario.toml")
+    assert Scenario.model_validate(d["scenario"]) == written
+    assert log.metadata["run"]["seed"] == "0"
+
+
+def test_solves_contacts_and_plans_match_summary(log, summary) -> None:
+    assert len(log.topic("/mpc/solve")) == summary["solves"]
+    assert len(log.topic("/planner/plan")) == summary["planner_calls"]
+    events = log.topic("/sim/event")
+    assert len(events) == summary["contacts"]
+    by_guard: dict[str, int] = {}
+    for ev in events:
+        for key in ("x_before", "x_after"):
+            x = ev.data[key]
+            assert len(x) == 4 and all(isinstance(v, float) and math.isfinite(v) for v in x)
+        xb, xa = ev.data["x_before"], ev.data["x_after"]
+        expected = {"floor": [xb[0], xb[1], xb[2], -xb[3]],  # the ball's reset maps
+                    "wall": [xb[0], xb[1], -xb[2], xb[3]]}.get(ev.data["guard_name"], xb)
+        assert xa == expected, ev.data
+        assert ev.data["t"] == pytest.approx(ev.t, abs=1e-9)
+        by_guard[ev.data["guard_name"]] = by_guard.get(ev.data["guard_name"], 0) + 1
+    assert by_guard == summary["contacts_by_guard"]
+    (last,) = log.topic("/run/summary")
+    assert last.data == summary | {"wall_time": last.data["wall_time"]}
+
+
+def test_state_at_the_log_rate(log) -> None:
+    sc, _ = load_scenario(BALL)
+    rate, n = sc.sim.log_rate_hz, round(sc.sim.duration * sc.sim.log_rate_hz)
+    states = log.topic("/sim/state")
+    assert len(states) == n + 1
+    for k, m in enumerate(states):
+        assert abs(m.log_time_ns - k * 1_000_000_000 // rate) <= 1, (k, m.log_time_ns)
+        assert m.data["t"] == pytest.approx(k / rate, abs=1e-12)
+        assert len(m.data["x"]) == 4
+    assert states[0].data["x"] == list(sc.system.x0)
+
+
+def test_log_times_non_decreasing_per_topic(log) -> None:
+    by_topic: dict[str, list[int]] = {}
+    for m in log.messages:
+        by_topic.setdefault(m.topic, []).append(m.log_time_ns)
+    assert len(by_topic) >= 6
+    for topic, times in by_topic.items():
+        assert all(a <= b for a, b in zip(times, times[1:])), topic
+
+
+def test_scenario_attachment(log, full) -> None:
+    assert log.attachments["scenario.toml"] == (full.out / "scenario.toml").read_bytes()
+
+
+# ---------------------------------------------------------------------- reproducibility
+SHORT = ["--set", "sim.duration=0.6", "-q"]
+
+
+@pytest.fixture(scope="module")
+def twin_logs(tmp_path_factory, start_hmpc) -> tuple[Log, Log]:
+    """Two short runs of the same scenario and seed, in two processes at once."""
+    base = tmp_path_factory.mktemp("twins")
+    procs = [start_hmpc(["run", str(BALL), "--out", str(base / name), *SHORT], cwd=base)
+             for name in ("a", "b")]
+    for p in procs:
+        _, err = p.communicate(timeout=120)
+        assert p.returncode == 0, err
+    return read_log(base / "a" / "run.mcap"), read_log(base / "b" / "run.mcap")
+
+
+def _data(log: Log, topic: str, key: str) -> list:
+    return [m.data[key] for m in log.topic(topic)]
+
+
+def test_runs_are_bit_for_bit_reproducible(twin_logs) -> None:
+    a, b = twin_logs
+    xs = _data(a, "/sim/state", "x")
+    assert len(xs) == 61
+    assert xs == _data(b, "/sim/state", "x")
+    ev_a = _data(a, "/sim/event", "t")
+    assert len(ev_a) > 0, "the short run should already hit a guard"
+    assert ev_a == _data(b, "/sim/event", "t")
+    assert [m.log_time_ns for m in a.topic("/sim/event")] == \
+        [m.log_time_ns for m in b.topic("/sim/event")]
+    assert _data(a, "/sim/event", "x_after") == _data(b, "/sim/event", "x_after")
+    plans = _data(a, "/mpc/solve", "x_plan")
+    assert len(plans) > 1
+    assert plans == _data(b, "/mpc/solve", "x_plan")
+    assert _data(a, "/mpc/solve", "u_plan") == _data(b, "/mpc/solve", "u_plan")
+    assert _data(a, "/planner/plan", "x_rollout") == _data(b, "/planner/plan", "x_rollout")
+    # ... while the wall clock differs: the comparison above is not of one file with itself
+    assert _data(a, "/mpc/solve", "wall_time") != _data(b, "/mpc/solve", "wall_time")
+
+
+def test_short_run_is_a_prefix_of_the_full_run(twin_logs, log) -> None:
+    short, _ = twin_logs
+    xs_short = _data(short, "/sim/state", "x")[:-1]  # the last one is the final state
+    assert xs_short == _data(log, "/sim/state", "x")[:len(xs_short)]
+    ev_short = _data(short, "/sim/event", "t")
+    assert ev_short == _data(log, "/sim/event", "t")[:len(ev_short)]
+
+
+# ------------------------------------------------------------------------ existing run
+def test_refuses_a_directory_holding_a_run(tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "old"
+    out.mkdir()
+    mcap = out / "run.mcap"
+    mcap.write_bytes(b"precious earlier run")
+    stat = mcap.stat()
+    res = CliRunner().invoke(app, ["run", str(BALL), "--out", str(out), "-q",
+                                   "--set", "sim.duration=0.1"])
+    assert res.exit_code == 2, res.output
+    assert isinstance(res.exception, SystemExit)
+    assert "Traceback" not in res.output
+    assert res.stderr.splitlines() == [f"error: {out}: already holds a run (choose another --out)"]
+    assert [p.name for p in out.iterdir()] == ["run.mcap"]
+    assert mcap.read_bytes() == b"precious earlier run"
+    assert mcap.stat().st_mtime_ns == stat.st_mtime_ns
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old"]
+
+
+# -------------------------------------------------------------------------------- help
+def test_help(run_hmpc, tmp_path: Path) -> None:
+    top = run_hmpc(["--help"], cwd=tmp_path)
+    assert top.returncode == 0, top.stderr
+    for word in ("Usage", "run", "schema", "--help"):
+        assert word in top.stdout, word
+    sub = run_hmpc(["run", "--help"], cwd=tmp_path)
+    assert sub.returncode == 0, sub.stderr
+    for word in ("SCENARIO", "--out", "--set", "--seed", "--quiet", "-q"):
+        assert word.lower() in sub.stdout.lower(), word
+    assert list(tmp_path.iterdir()) == []
