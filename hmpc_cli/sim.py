@@ -96,19 +96,29 @@ class HybridSimulator:
         Returns:
             The new states and modes, the events in time order per sample, Zeno flags.
         """
-        x = np.array(x, dtype=float)
+        x = np.asarray(x, dtype=float)
         mode = np.array(mode, dtype=int)
         u = np.asarray(u, dtype=float)
         w = np.asarray(w, dtype=float)
-        rem = np.full(x.shape[0], float(dt))
-        n_events = np.zeros(x.shape[0], dtype=int)
-        zeno = np.zeros(x.shape[0], dtype=bool)
+        b = x.shape[0]
+        rem = np.full(b, float(dt))
+        zeno = np.zeros(b, dtype=bool)
+        # first pass over the whole batch without copies; most steps end here
+        x_end = self.rk4(mode, x, u, w, rem)
+        tau, guard, x_hit = self._first_crossing(x, mode, u, w, rem, x_end)
+        if (guard < 0).all():
+            return StepResult(x_end, mode, [], zeno)
+        x = x.copy()
+        n_events = np.zeros(b, dtype=int)
         events: list[Event] = []
-        todo = np.arange(x.shape[0])
+        todo = np.arange(b)
+        first = True
         while todo.size:
-            xa, ma, ua, wa, ha = x[todo], mode[todo], u[todo], w[todo], rem[todo]
-            x_end = self.rk4(ma, xa, ua, wa, ha)
-            tau, guard, x_hit = self._first_crossing(xa, ma, ua, wa, ha, x_end)
+            if not first:
+                xa, ma, ua, wa, ha = x[todo], mode[todo], u[todo], w[todo], rem[todo]
+                x_end = self.rk4(ma, xa, ua, wa, ha)
+                tau, guard, x_hit = self._first_crossing(xa, ma, ua, wa, ha, x_end)
+            first = False
             hit = guard >= 0
             free = todo[~hit]
             x[free] = x_end[~hit]
