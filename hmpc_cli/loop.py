@@ -260,7 +260,7 @@ class LayeredLoop:
                 reason = "impact"
             elif since_solve >= per_solve:
                 reason = "period"
-            if reason:
+            if reason and i + 1 < n_steps:  # no solve at the very end of the run
                 shifted = 0
                 if self.has_schedule and reason != "replan" and not shifted_by_impact:
                     shifted = self.mpc.shift(int(round(since_solve * h / node_dt)))
