@@ -65,18 +65,12 @@ def run(
 def _execute(loop, sc, toml_text: str, out: Path, quiet: bool):
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from hmpc_cli.recorder import Recorder
+    from hmpc_cli.runner import execute_run
 
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "scenario.toml").write_text(toml_text, encoding="utf-8")
-    rec = Recorder(out / "run.mcap")
-    loop.rec = rec
     progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(),
                         TextColumn("t = {task.fields[t]:.2f} s"), TimeElapsedColumn(),
                         disable=quiet, transient=True)
-    interrupted = False
     try:
-        rec.add_attachment("scenario.toml", toml_text.encode(), "application/toml")
         with progress:
             task = progress.add_task(sc.name, total=1.0, t=0.0)
             dur = sc.sim.duration
@@ -85,32 +79,10 @@ def _execute(loop, sc, toml_text: str, out: Path, quiet: bool):
                 if i % 20 == 0 or i == n:
                     progress.update(task, completed=i / n, t=i / n * dur)
 
-            loop.progress = tick
-            result = loop.run()
+            return execute_run(loop, toml_text, out, tick)
     except KeyboardInterrupt:
-        interrupted = True
-        loop.res.reason = "interrupted"
-        result = loop.res
-    finally:
-        rec.close()
-    (out / "summary.json").write_text(json.dumps(_jsonable(result.__dict__), indent=2) + "\n")
-    if interrupted:
         typer.echo(f"interrupted; partial log in {out / 'run.mcap'}", err=True)
-        raise typer.Exit(130)
-    return result
-
-
-def _jsonable(d: dict) -> dict:
-    def fix(v):
-        if isinstance(v, float) and v != v:
-            return None
-        if isinstance(v, dict):
-            return {k: fix(x) for k, x in v.items()}
-        if isinstance(v, list):
-            return [fix(x) for x in v]
-        return v
-
-    return fix(d)
+        raise typer.Exit(130) from None
 
 
 def _print_summary(r, out: Path) -> None:
