@@ -95,17 +95,22 @@ class CrossEntropyPlanner:
         alive = np.ones(b, dtype=bool)
         reached = mode == self.final_mode
         for k in range(self.n_steps):
-            run = np.nonzero(alive & ~reached)[0]
-            if run.size == 0:
-                break
-            u_k = self.sim.num.saturate(mode[run], u[run, k, :])
+            todo = alive & ~reached
+            if todo.all():
+                run = slice(None)  # views, no copies
+            else:
+                run = np.nonzero(todo)[0]
+                if run.size == 0:
+                    break
+            u_run = u[run, k, :]
+            u_k = self.sim.num.saturate(mode[run], u_run)
             cost[run] += self.dt * self.cost_fn(x[run], u_k)[0][:, 0]
-            res = self.sim.step(x[run], mode[run], u[run, k, :], w[run], self.dt,
+            res = self.sim.step(x[run], mode[run], u_run, w[run], self.dt,
                                 record=False, raise_zeno=False)
             x[run], mode[run] = res.x, res.mode
-            alive[run] &= ~res.zeno & np.all(np.isfinite(res.x), axis=1) & (cost[run] <= bound)
+            alive[run] &= ~res.zeno & np.isfinite(res.x).all(axis=1) & (cost[run] <= bound)
             reached[run] = (res.mode == self.final_mode) & alive[run]
-            entered = run[reached[run]]
+            entered = np.arange(b)[run][reached[run]]
             if entered.size:
                 rest = self.n_steps - k - 1
                 cost[entered] += rest * self.dt * self.cost_fn(x[entered], u_zero[entered])[0][:, 0]
