@@ -252,15 +252,20 @@ class LayeredLoop:
             since_solve += 1
             if sc.replanning.policy == "periodic" and (i + 1) % per_replan == 0:
                 need_replan = True
+            if not self.has_schedule and since_solve >= per_solve:
+                need_replan = True  # no accepted schedule yet: retry every MPC period
             reason = ""
+            if i + 1 == n_steps:  # the run ends here: no more controller work
+                need_replan = False
             if need_replan:
-                self._replan(t, x, mode, "contact" if impact else "periodic")
+                why = "contact" if impact else ("periodic" if self.has_schedule else "retry")
+                self._replan(t, x, mode, why)
                 reason = "replan"
             elif impact and sc.mpc.resolve_on_impact:
                 reason = "impact"
             elif since_solve >= per_solve:
                 reason = "period"
-            if reason and i + 1 < n_steps:  # no solve at the very end of the run
+            if reason and i + 1 < n_steps:
                 shifted = 0
                 if self.has_schedule and reason != "replan" and not shifted_by_impact:
                     shifted = self.mpc.shift(int(round(since_solve * h / node_dt)))

@@ -46,8 +46,7 @@ def test_divergence_ends_the_run_cleanly(tmp_path):
 
 
 def test_replanning_on_contact_replans_at_wall_and_floor_only(tmp_path):
-    result, log = run(tmp_path, ["replanning.policy=\"on_contact\"", "sim.duration=1.0",
-                                 "planner.iterations=5"])
+    result, log = run(tmp_path, ["replanning.policy=\"on_contact\"", "sim.duration=1.0"])
     plans = log.topic("/planner/plan")
     events = log.topic("/sim/event")
     contacts = [e for e in events if e.data["guard_name"] in ("floor", "wall")]
@@ -55,3 +54,19 @@ def test_replanning_on_contact_replans_at_wall_and_floor_only(tmp_path):
     assert result.planner_calls == len(plans)
     for p in plans[1:]:
         assert p.data["reason"] == "contact"
+
+
+def test_rejected_plans_are_retried_every_period_and_logged(tmp_path):
+    # a planner that cannot reach the circle: one sample, zero mean, tiny variance
+    result, log = run(tmp_path, ["planner.iterations=1", "planner.samples=1",
+                                 "planner.init_mean=0.0", "planner.init_cov=1e-6",
+                                 "sim.duration=0.5"])
+    plans = log.topic("/planner/plan")
+    events = log.topic("/sim/event")
+    # t = 0, every MPC period (0.1 s) until the end, and after each contact
+    assert result.planner_calls == len(plans) == 1 + 4 + len(events)
+    assert result.planner_rejected == len(plans)
+    retry_times = sorted(round(p.t, 6) for p in plans if p.data["reason"] == "retry")
+    assert retry_times == [0.1, 0.2, 0.3, 0.4]
+    assert all(not p.data["accepted"] and "no schedule yet" in p.data["note"] for p in plans)
+    assert result.solves == 0 and not result.diverged
