@@ -117,6 +117,17 @@ def schema() -> None:
     typer.echo(json.dumps(Scenario.model_json_schema(), indent=2))
 
 
+def _register() -> None:
+    from hmpc_cli.cli_plot import plot_command
+    from hmpc_cli.cli_sweep import sweep_command
+
+    app.command("sweep")(sweep_command)
+    app.command("plot")(plot_command)
+
+
+_register()
+
+
 def main() -> None:
     """Console-script entry point."""
     app()

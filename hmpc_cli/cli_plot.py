@@ -1,0 +1,91 @@
+"""``hmpc plot``: the paper's figures from recorded runs (heavy imports inside the command)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+__all__ = ["plot_command"]
+
+EXIT_BAD_INPUT = 2
+
+
+def _fail(message: str) -> None:
+    """Prints one error line and exits with the bad-input code."""
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(EXIT_BAD_INPUT)
+
+
+def _print_counts(counts: dict, reference: dict) -> None:
+    """Prints the counts per panel; adds the paper's counts when the labels are the paper's."""
+    from rich.console import Console
+    from rich.table import Table
+
+    with_ref = any(label in reference for label in counts)
+    table = Table(title="Figure 3: stable runs per panel")
+    for col in ("panel", "runs", "stable", "failed") + (("paper",) if with_ref else ()):
+        table.add_column(col, justify="right" if col in ("runs", "stable", "paper") else "left")
+    for c in counts.values():
+        row = [c.label, str(c.runs), str(c.successes), ", ".join(c.failed) or "-"]
+        if with_ref:
+            ref = reference.get(c.label)
+            row.append(f"{ref[0]}/{ref[1]}" if ref else "-")
+        table.add_row(*row)
+    Console().print(table)
+
+
+def _fig3(table: Path, out: Optional[Path], formats: str, options: dict) -> None:
+    """Draws Figure 3, prints the counts and the written files."""
+    from hmpc_cli.figures.common import FigureInputError, parse_formats, resolve_table
+    from hmpc_cli.figures.fig3 import REFERENCE_COUNTS, fig3
+
+    out_dir = out if out is not None else resolve_table(table).parent
+    try:
+        counts = fig3(table, out_dir, formats, **options)
+    except FigureInputError as exc:
+        _fail(str(exc))
+    _print_counts(counts, REFERENCE_COUNTS)
+    names = [f"fig3.{f}" for f in parse_formats(formats)] + ["fig3_counts.csv"]
+    typer.echo(f"wrote {', '.join(names)} to {out_dir}")
+
+
+def plot_command(
+    figure: Annotated[str, typer.Argument(help="figure to draw: fig3")],
+    table: Annotated[Path, typer.Argument(
+        help="sweep table (results.csv, or the sweep directory holding it)")],
+    out: Annotated[Optional[Path], typer.Option(
+        "--out", help="output directory (default: the table's directory)")] = None,
+    formats: Annotated[str, typer.Option(
+        "--formats", help="comma-separated output formats: pdf,svg,png")] = "pdf,svg,png",
+    panel_axis: Annotated[str, typer.Option(
+        "--panel-axis", help="table column with one panel per value")] = "controller",
+    trace_axis: Annotated[str, typer.Option(
+        "--trace-axis", help="table column naming the trajectories of a panel")] = "disturbance",
+    nominal: Annotated[str, typer.Option(
+        "--nominal", help="trace-axis value of the undisturbed run (orange)")] = "nominal",
+    panels: Annotated[Optional[str], typer.Option(
+        "--panels", help='panels in order, e.g. "10 Hz fixed,20 Hz fixed" (default: all)')] = None,
+    width: Annotated[float, typer.Option("--width", help="figure width (in)")] = 7.16,
+    height: Annotated[float, typer.Option("--height", help="figure height (in)")] = 2.5,
+    view: Annotated[Optional[str], typer.Option(
+        "--view", help='axis limits "x0,x1,y0,y1" (default: from the data)')] = None,
+) -> None:
+    """Draw a paper figure from recorded runs (a sweep table and the logs it points to)."""
+    from hmpc_cli.figures import FIGURES
+
+    if figure not in FIGURES:
+        _fail(f"unknown figure {figure!r} (choose from {', '.join(FIGURES)})")
+    chosen = [p.strip() for p in panels.split(",") if p.strip()] if panels is not None else None
+    if chosen == []:
+        _fail("--panels is empty")
+    limits = None
+    if view is not None:
+        try:
+            limits = [float(v) for v in view.split(",")]
+        except ValueError:
+            _fail(f"--view must be four numbers x0,x1,y0,y1, got {view!r}")
+    options = {"panel_axis": panel_axis, "trace_axis": trace_axis, "nominal": nominal,
+               "panels": chosen, "width": width, "height": height, "view": limits}
+    _fig3(table, out, formats, options)

@@ -1,0 +1,163 @@
+"""``hmpc sweep``: argument handling and output; the work is in :mod:`hmpc_cli.sweep`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+EXIT_BAD_INPUT = 2
+EXIT_FAILED = 1
+EXIT_INTERRUPTED = 130
+
+
+def _err(lines: list[str]) -> None:
+    for line in lines:
+        typer.echo(f"error: {line}", err=True)
+
+
+def sweep_command(
+    sweep_file: Annotated[Path, typer.Argument(help="sweep TOML file")],
+    workers: Annotated[Optional[int], typer.Option(
+        "--workers", min=1, help="worker processes (default: all cores; 1 = in-process)")
+    ] = None,
+    out: Annotated[Optional[Path], typer.Option(
+        "--out", help="output directory (default results/sweeps/<name>)")] = None,
+    dask: Annotated[Optional[str], typer.Option(
+        "--dask", help="run on a Dask cluster: scheduler address, e.g. tcp://host:8786")
+    ] = None,
+    dry_run: Annotated[bool, typer.Option(
+        "--dry-run", help="validate and list the runs, run nothing")] = False,
+) -> None:
+    """Run a grid of scenario overrides x seeds in parallel; resumable; one results table."""
+    import os
+
+    from hmpc_cli.scenario import ScenarioError
+    from hmpc_cli.sweep import plan_sweep
+
+    try:
+        plan = plan_sweep(sweep_file)
+    except ScenarioError as exc:
+        _err(exc.lines)
+        raise typer.Exit(EXIT_BAD_INPUT) from None
+    if dry_run:
+        _list_runs(plan)
+        return
+    client = None
+    if dask is not None:
+        if workers is not None:
+            typer.echo("note: --workers is ignored with --dask", err=True)
+        try:
+            client = connect_dask(dask)
+        except ScenarioError as exc:
+            _err(exc.lines)
+            raise typer.Exit(EXIT_BAD_INPUT) from None
+    out = out if out is not None else Path("results") / "sweeps" / plan.spec.name
+    try:
+        outcome = _execute(plan, out, workers or os.cpu_count() or 1, client)
+    finally:
+        if client is not None:
+            client.close()
+    _print_cells(plan, out)
+    typer.echo(f"results: {out / 'results.csv'}")
+    if outcome.lost:
+        _err([f"worker failed, run not recorded (rerun to retry): {x}" for x in outcome.lost])
+    if outcome.interrupted:
+        typer.echo(f"interrupted: {outcome.done} of {outcome.total} runs done; run the same "
+                   "command again to resume", err=True)
+        raise typer.Exit(EXIT_INTERRUPTED)
+    if outcome.lost:
+        raise typer.Exit(EXIT_FAILED)
+
+
+def _list_runs(plan) -> None:
+    for run in plan.runs:
+        parts = [run.run_id, *(f"{a.name}={v}" for a, v in zip(plan.axes, run.cell))]
+        typer.echo("  ".join([*parts, f"seed={run.seed}"]))
+    typer.echo(f"{len(plan.runs)} runs, all valid (dry run: nothing started)")
+
+
+def _execute(plan, out: Path, workers: int, client):
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
+                               TimeElapsedColumn, TimeRemainingColumn)
+
+    from hmpc_cli.sweep import execute_sweep
+
+    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(),
+                        MofNCompleteColumn(), TextColumn("ok {task.fields[ok]}"),
+                        TimeElapsedColumn(), TimeRemainingColumn(), transient=True)
+    task = progress.add_task(plan.spec.name, total=len(plan.runs), ok=0)
+    state = {"ok": 0}
+
+    def on_start(total: int, skipped: int, ok: int) -> None:
+        todo = total - skipped
+        where = f"Dask {client.scheduler.address}" if client is not None else (
+            "in-process" if min(workers, todo) <= 1 else f"{min(workers, todo)} worker processes")
+        state["ok"] = ok
+        progress.update(task, completed=skipped, ok=ok)
+        typer.echo(f"{plan.spec.name}: {total} runs, {skipped} skipped (already done), "
+                   f"{total - skipped} to run ({where}) -> {out}")
+
+    def on_done(run, summary: dict) -> None:
+        state["ok"] += bool(summary.get("success"))
+        progress.update(task, advance=1, ok=state["ok"])
+
+    with progress:
+        return execute_sweep(plan, out, workers, client, on_start, on_done)
+
+
+def _print_cells(plan, out: Path) -> None:
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.table import Table
+
+    table = Table(title=f"{plan.spec.name}: success per grid cell (seeds pooled)")
+    for a in plan.axes:
+        table.add_column(a.name)
+    for name in ("runs", "successes", "success rate"):
+        table.add_column(name, justify="right")
+    total = [0, 0]
+    for cell, n, ok in cell_stats(plan, out):
+        total[0], total[1] = total[0] + n, total[1] + ok
+        rate = f"{100 * ok / n:.0f} %" if n else "-"
+        table.add_row(*map(escape, cell), str(n), str(ok), rate)
+    rate = f"{100 * total[1] / total[0]:.0f} %" if total[0] else "-"
+    table.add_section()
+    table.add_row(*(["all"] + [""] * (len(plan.axes) - 1) if plan.axes else []),
+                  str(total[0]), str(total[1]), rate)
+    Console().print(table)
+
+
+def cell_stats(plan, out: Path) -> list[tuple[tuple[str, ...], int, int]]:
+    """Per grid cell (all axes, seeds pooled): (cell, finished runs, successes)."""
+    from hmpc_cli.sweep import cell_text, finished
+
+    stats: dict[tuple[str, ...], list[int]] = {}
+    for run in plan.runs:
+        s = stats.setdefault(tuple(cell_text(v) for v in run.cell), [0, 0])
+        summary = finished(out.resolve(), run)
+        if summary is not None:
+            s[0] += 1
+            s[1] += bool(summary.get("success"))
+    return [(c, n, k) for c, (n, k) in stats.items()]
+
+
+def connect_dask(address: str, timeout: float = 5.0):
+    """A ``distributed.Client`` for ``address``.
+
+    Raises:
+        ScenarioError: distributed missing or the scheduler unreachable.
+    """
+    from hmpc_cli.scenario import ScenarioError
+
+    try:
+        from distributed import Client
+    except ImportError:
+        raise ScenarioError([f"--dask {address}: the 'distributed' package is not installed "
+                             "(pip install 'hmpc[dask]')"]) from None
+    try:
+        return Client(address, timeout=timeout)
+    except (OSError, TimeoutError, ValueError) as exc:
+        reason = " ".join(str(exc).split()) or type(exc).__name__
+        raise ScenarioError([f"--dask {address}: cannot connect: {reason}"]) from None

@@ -1,0 +1,8 @@
+"""Paper figures drawn from recorded runs (sweep tables and MCAP logs); never runs a controller."""
+
+from __future__ import annotations
+
+__all__ = ["FIGURES"]
+
+# Figure name -> what it shows (the drawing modules import matplotlib, so they load lazily).
+FIGURES: dict[str, str] = {"fig3": "bouncing ball under disturbances, one panel per controller"}

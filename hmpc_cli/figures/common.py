@@ -1,0 +1,210 @@
+"""Shared figure helpers: IEEE rc style, deterministic saving, sweep tables and run logs."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+__all__ = [
+    "COLUMN_WIDTH_IN", "FORMATS", "FigureInputError", "RunTrace", "TEXT_WIDTH_IN", "ieee_rc",
+    "load_trace", "parse_bool", "parse_formats", "read_table", "resolve_log", "resolve_table",
+    "save_figure",
+]
+
+TEXT_WIDTH_IN = 7.16  # IEEE two-column: full text width (in)
+COLUMN_WIDTH_IN = 3.5  # IEEE two-column: one column (in)
+FORMATS = ("pdf", "svg", "png")
+_TRUE = {"true", "1", "yes"}
+_FALSE = {"false", "0", "no"}
+# Fixed metadata per format: no dates, no version strings, so the bytes depend on the input only.
+_METADATA: dict[str, dict[str, Any]] = {
+    "pdf": {"Creator": "hmpc", "Producer": "hmpc", "CreationDate": None},
+    "svg": {"Creator": "hmpc", "Date": None},
+    "png": {"Software": "hmpc"},
+}
+
+
+class FigureInputError(ValueError):
+    """Bad figure input (table, columns, logs, options); the message is one line."""
+
+
+def ieee_rc(font_size: float = 8.0) -> dict[str, Any]:
+    """Returns rcParams for IEEE two-column figures: serif 8 pt, thin lines, embeddable fonts."""
+    return {
+        "font.family": "serif",
+        "font.serif": ["DejaVu Serif"],
+        "mathtext.fontset": "dejavuserif",
+        "font.size": font_size,
+        "axes.titlesize": font_size,
+        "axes.labelsize": font_size,
+        "xtick.labelsize": font_size,
+        "ytick.labelsize": font_size,
+        "legend.fontsize": font_size - 1,
+        "axes.linewidth": 0.6,
+        "lines.linewidth": 0.7,
+        "lines.markersize": 3.0,
+        "patch.linewidth": 0.6,
+        "xtick.major.width": 0.6,
+        "ytick.major.width": 0.6,
+        "xtick.minor.width": 0.4,
+        "ytick.minor.width": 0.4,
+        "xtick.major.size": 2.5,
+        "ytick.major.size": 2.5,
+        "xtick.direction": "in",
+        "ytick.direction": "in",
+        "axes.titlepad": 3.0,
+        "axes.labelpad": 2.0,
+        "legend.frameon": False,
+        "legend.handlelength": 1.6,
+        "legend.borderaxespad": 0.3,
+        "pdf.fonttype": 42,  # TrueType, not Type 3: accepted by IEEE PDF eXpress
+        "ps.fonttype": 42,
+        "svg.fonttype": "path",
+        "svg.hashsalt": "hmpc",  # fixed element ids in SVG output
+        "savefig.bbox": None,  # keep the exact figure size
+        "savefig.dpi": 300,
+        "figure.dpi": 100,
+    }
+
+
+def parse_formats(text: str | Iterable[str]) -> tuple[str, ...]:
+    """Parses "pdf,svg,png" (or a sequence) into distinct known formats, in the given order."""
+    items = text.split(",") if isinstance(text, str) else list(text)
+    out: list[str] = []
+    for item in (s.strip().lower().lstrip(".") for s in items):
+        if not item:
+            continue
+        if item not in FORMATS:
+            raise FigureInputError(f"unknown format {item!r} (choose from {', '.join(FORMATS)})")
+        if item not in out:
+            out.append(item)
+    if not out:
+        raise FigureInputError(f"no output format given (choose from {', '.join(FORMATS)})")
+    return tuple(out)
+
+
+def save_figure(fig: Any, out_dir: Path, stem: str, formats: Iterable[str],
+                dpi: int = 300) -> list[Path]:
+    """Saves `fig` as out_dir/stem.<fmt> with fixed metadata (same input, same bytes)."""
+    paths = []
+    for fmt in formats:
+        path = Path(out_dir) / f"{stem}.{fmt}"
+        tmp = path.with_name(f".{path.name}.tmp")
+        fig.savefig(tmp, format=fmt, dpi=dpi, metadata=_METADATA[fmt])
+        os.replace(tmp, path)  # never leave a half-written figure behind
+        paths.append(path)
+    return paths
+
+
+def resolve_table(path: str | Path) -> Path:
+    """The table itself, or results.csv when `path` is a sweep directory holding one."""
+    path = Path(path)
+    if path.is_dir() and (path / "results.csv").is_file():
+        return path / "results.csv"
+    return path
+
+
+def read_table(path: Path, required: Iterable[str]) -> list[dict[str, str]]:
+    """Reads a CSV table with a header; checks it exists, has rows and the `required` columns."""
+    path = Path(path)
+    if not path.is_file():
+        raise FigureInputError(f"{path}: no such table")
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            reader = csv.DictReader(f)
+            columns = list(reader.fieldnames or [])
+            rows = [dict(r) for r in reader]
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise FigureInputError(f"{path}: cannot read table ({exc})") from None
+    missing = [c for c in required if c not in columns]
+    if missing:
+        have = ", ".join(columns) if columns else "none"
+        raise FigureInputError(f"{path}: missing column(s) {', '.join(missing)} (has: {have})")
+    if not rows:
+        raise FigureInputError(f"{path}: table has no rows")
+    return rows
+
+
+def parse_bool(value: str | None, where: str) -> bool:
+    """Parses a table cell like True/False (also true/1/yes, false/0/no)."""
+    text = (value or "").strip().lower()
+    if text in _TRUE:
+        return True
+    if text in _FALSE:
+        return False
+    raise FigureInputError(f"{where}: expected True or False, got {value!r}")
+
+
+def resolve_log(table_path: Path, log: str | None, where: str) -> Path:
+    """Resolves a log path relative to the table's directory; checks that the file exists."""
+    text = (log or "").strip()
+    if not text:
+        raise FigureInputError(f"{where}: empty log path")
+    path = Path(text)
+    if not path.is_absolute():
+        path = Path(table_path).parent / path
+    if not path.is_file():
+        raise FigureInputError(f"{where}: log {path} does not exist")
+    return path
+
+
+@dataclass
+class RunTrace:
+    """Positions of one recorded run: `t` (s), `xy` (n x 2, NaN where not finite), run info."""
+
+    path: Path
+    t: np.ndarray
+    xy: np.ndarray
+    scenario: dict = field(default_factory=dict)
+    logged_success: bool | None = None  # the log's own /run/summary verdict, if any
+    complete: bool = True
+
+    @property
+    def system(self) -> dict:
+        """The scenario's system parameters (radius, guards, goal, ...)."""
+        return dict(self.scenario.get("system") or {})
+
+
+def _num(v: Any) -> float:
+    return float(v) if isinstance(v, (int, float)) and math.isfinite(v) else math.nan
+
+
+def load_trace(path: Path) -> RunTrace:
+    """Reads a run log's positions x[0:2] from /sim/state, with guard events spliced in.
+
+    The exact pre- and post-reset positions of /sim/event are inserted at the event times, so
+    drawn bounces touch the guard instead of cutting the corner between logged samples.
+    """
+    from hmpc_cli.recorder import read_log
+
+    try:
+        log = read_log(path)
+    except (OSError, ValueError) as exc:
+        raise FigureInputError(f"{path}: cannot read log ({exc})") from None
+    points: list[tuple[float, int, int, float, float]] = []  # (t, kind, seq, px, py)
+    for i, m in enumerate(log.topic("/sim/state")):
+        x = m.data.get("x") or []
+        if len(x) >= 2:
+            points.append((m.t, 1, i, _num(x[0]), _num(x[1])))
+    if not points:
+        raise FigureInputError(f"{path}: log has no /sim/state positions")
+    for i, m in enumerate(log.topic("/sim/event")):
+        for j, key in enumerate(("x_before", "x_after")):
+            x = m.data.get(key) or []
+            t = _num(m.data.get("t", m.t))
+            if len(x) >= 2 and math.isfinite(t):
+                points.append((t, 0, 2 * i + j, _num(x[0]), _num(x[1])))
+    points.sort(key=lambda p: (p[0], p[1], p[2]))
+    arr = np.array([(p[0], p[3], p[4]) for p in points], dtype=float)
+    infos = log.topic("/run/info")
+    scenario = dict(infos[0].data.get("scenario") or {}) if infos else {}
+    summaries = log.topic("/run/summary")
+    ok = summaries[-1].data.get("success") if summaries else None
+    return RunTrace(Path(path), arr[:, 0], arr[:, 1:3], scenario,
+                    ok if isinstance(ok, bool) else None, log.complete)

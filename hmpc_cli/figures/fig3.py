@@ -1,0 +1,283 @@
+"""Figure 3 of the paper: the bouncing ball under the same disturbances, one panel per controller.
+
+Drawn from a sweep table (results.csv) and the run logs it points to; never runs a controller.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from hmpc_cli.figures.common import (
+    TEXT_WIDTH_IN, FigureInputError, RunTrace, ieee_rc, load_trace, parse_bool, parse_formats,
+    read_table, resolve_log, resolve_table, save_figure)
+
+__all__ = ["REFERENCE_COUNTS", "PanelCounts", "fig3"]
+
+# The paper's Figure 3 outcome (stable runs / runs, 10 disturbed trials + nominal).
+REFERENCE_COUNTS: dict[str, tuple[int, int]] = {
+    "10 Hz fixed": (9, 11), "20 Hz fixed": (11, 11), "10 Hz replan": (11, 11)}
+
+TRACE_COLOR = "#4a6fa5"  # disturbed runs: muted blue
+NOMINAL_COLOR = "#ff7f0e"  # the paper's orange
+START_COLOR = "#e020e0"  # magenta
+FAIL_COLOR = "#d62728"  # red
+
+
+@dataclass
+class PanelCounts:
+    """Outcome of one panel: number of runs, stable runs, trace labels of the failed runs."""
+
+    label: str
+    runs: int = 0
+    successes: int = 0
+    failed: list[str] = field(default_factory=list)
+
+
+@dataclass
+class _Run:
+    trace_label: str
+    success: bool
+    nominal: bool
+    trace: RunTrace
+
+
+def _natural(text: str) -> list:
+    """Sort key that puts "trial 2" before "trial 10"."""
+    return [(0, int(t), "") if t.isdigit() else (1, 0, t) for t in re.split(r"(\d+)", text)]
+
+
+def _group(rows: list[dict[str, str]], panel_axis: str, panels: Sequence[str] | None,
+           table: Path) -> dict[str, list[tuple[int, dict[str, str]]]]:
+    """Groups rows (with their table line numbers) by panel, in order of first appearance.
+
+    Panels that are exactly the paper's Figure 3 controllers keep the paper's left-to-right
+    order (sweep tables list runs by run id, not by grid order).
+    """
+    groups: dict[str, list[tuple[int, dict[str, str]]]] = {}
+    for i, row in enumerate(rows):
+        groups.setdefault((row.get(panel_axis) or "").strip(), []).append((i + 2, row))
+    if panels is None:
+        if set(groups) <= set(REFERENCE_COUNTS):
+            return {p: groups[p] for p in REFERENCE_COUNTS if p in groups}
+        return groups
+    unknown = [p for p in panels if p not in groups]
+    if unknown:
+        have = ", ".join(repr(g) for g in groups)
+        raise FigureInputError(f"{table}: no {panel_axis} {', '.join(map(repr, unknown))} "
+                               f"(has: {have})")
+    if len(set(panels)) != len(panels):
+        raise FigureInputError(f"--panels lists a panel twice: {', '.join(panels)}")
+    return {p: groups[p] for p in panels}
+
+
+def _load_runs(table: Path, groups: dict, trace_axis: str,
+               nominal: str | None) -> dict[str, list[_Run]]:
+    """Loads every run of every panel (all checks happen here, before anything is written)."""
+    out: dict[str, list[_Run]] = {}
+    for label, rows in groups.items():
+        runs = []
+        for line, row in rows:
+            where = f"{table}:{line}"
+            ok = parse_bool(row.get("success"), f"{where}: success")
+            trace = load_trace(resolve_log(table, row.get("log"), where))
+            tl = (row.get(trace_axis) or "").strip()
+            runs.append(_Run(tl, ok, nominal is not None and tl == nominal, trace))
+        out[label] = runs
+    return out
+
+
+def _system(runs: list[_Run]) -> dict:
+    """The system parameters of the first run that logged its scenario."""
+    for r in runs:
+        if r.trace.system:
+            return r.trace.system
+    return {}
+
+
+def _geometry(system: dict) -> dict:
+    """Guard geometry with the ball defaults for anything the log does not say."""
+    g = {"radius": 0.1, "circle_center": (3.0, 3.0), "circle_radius": 1.0,
+         "floor_extent": (0.0, 8.0), "wall_extent": (0.0, 8.0), "goal": None}
+    g.update({k: system[k] for k in g if system.get(k) is not None})
+    if g["goal"] is None:
+        g["goal"] = g["circle_center"]
+    return g
+
+
+def _view(runs: dict[str, list[_Run]], geos: Iterable[dict]) -> tuple[tuple[float, float], ...]:
+    """Common (x, y) limits: every trajectory, circle, goal and the corner, plus a margin."""
+    xs, ys = [0.0], [0.0]
+    for geo in geos:
+        cx, cy = map(float, geo["circle_center"])
+        rad = float(geo["circle_radius"])
+        xs += [cx - rad, cx + rad, float(geo["goal"][0])]
+        ys += [cy - rad, cy + rad, float(geo["goal"][1])]
+    for rs in runs.values():
+        for r in rs:
+            xy = r.trace.xy[np.isfinite(r.trace.xy).all(axis=1)]
+            if len(xy):
+                xs += [float(xy[:, 0].min()), float(xy[:, 0].max())]
+                ys += [float(xy[:, 1].min()), float(xy[:, 1].max())]
+    span = max(max(xs) - min(xs), max(ys) - min(ys))
+    pad = 0.04 * span
+    return (min(xs) - pad, max(xs) + pad), (min(ys) - pad, max(ys) + pad)
+
+
+def _draw_guards(ax, geo: dict, view) -> None:
+    """Guard surfaces of the ball centre: y = r (floor), x = r (wall), and the circle."""
+    (x0, x1), (y0, y1) = view
+    r = float(geo["radius"])
+    kw = {"color": "black", "lw": 0.8, "zorder": 2, "solid_capstyle": "butt"}
+    fa, fb = max(float(geo["floor_extent"][0]), x0), min(float(geo["floor_extent"][1]), x1)
+    if fa < fb and y0 <= r <= y1:
+        ax.plot([fa, fb], [r, r], **kw)
+    wa, wb = max(float(geo["wall_extent"][0]), y0), min(float(geo["wall_extent"][1]), y1)
+    if wa < wb and x0 <= r <= x1:
+        ax.plot([r, r], [wa, wb], **kw)
+    th = np.linspace(0.0, 2.0 * math.pi, 361)
+    cx, cy = map(float, geo["circle_center"])
+    rad = float(geo["circle_radius"])
+    ax.plot(cx + rad * np.cos(th), cy + rad * np.sin(th), label="guards", **kw)
+
+
+def _end(xy: np.ndarray) -> np.ndarray | None:
+    """The last finite position of a trajectory."""
+    good = np.flatnonzero(np.isfinite(xy).all(axis=1))
+    return xy[good[-1]] if len(good) else None
+
+
+def _draw_panel(ax, label: str, runs: list[_Run], geo: dict, view) -> None:
+    """One panel: guards, trajectories, nominal on top, start/end/failed markers, goal, title."""
+    _draw_guards(ax, geo, view)
+    for r in runs:
+        if not r.nominal:
+            ax.plot(r.trace.xy[:, 0], r.trace.xy[:, 1], color=TRACE_COLOR, lw=0.6, alpha=0.85,
+                    zorder=3, label="disturbed")
+    for r in runs:
+        if r.nominal:
+            ax.plot(r.trace.xy[:, 0], r.trace.xy[:, 1], color=NOMINAL_COLOR, lw=1.1, zorder=4,
+                    label="nominal")
+    # End points outside a user-set view sit on its border, so no failure goes unseen.
+    lo, hi = np.array([view[0][0], view[1][0]]), np.array([view[0][1], view[1][1]])
+    ends = [(np.clip(e, lo, hi), r.success) for r in runs if (e := _end(r.trace.xy)) is not None]
+    mark = {"ls": "none", "marker": "o", "clip_on": False}
+    ok = np.array([e for e, s in ends])
+    if len(ok):
+        ax.plot(ok[:, 0], ok[:, 1], ms=2.0, mew=0, color="black", zorder=6, label="end point",
+                **mark)
+    bad = np.array([e for e, s in ends if not s])
+    if len(bad):
+        ax.plot(bad[:, 0], bad[:, 1], ms=6.5, mfc="none", mew=0.9, color=FAIL_COLOR, zorder=7,
+                label="unstable", **mark)
+    starts = {tuple(np.round(r.trace.xy[0], 9)) for r in runs if np.isfinite(r.trace.xy[0]).all()}
+    if starts:
+        s = np.array(sorted(starts))
+        ax.plot(s[:, 0], s[:, 1], ls="none", marker="o", ms=7.0, mew=0, color=START_COLOR,
+                zorder=8, label="start")
+    gx, gy = map(float, geo["goal"])
+    ax.plot([gx], [gy], ls="none", marker="+", ms=7.0, mew=0.8, color="black", zorder=9,
+            label="goal")
+    n_ok = sum(r.success for r in runs)
+    ax.set_title(f"{label}: {n_ok}/{len(runs)} stable")
+    ax.set_xlim(*view[0])
+    ax.set_ylim(*view[1])
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_xlabel(r"$x$ (m)")
+
+
+def _legend(fig, axes) -> None:
+    """One legend for the figure, right of the panels, one entry per kind of mark."""
+    seen: dict[str, object] = {}
+    for ax in axes:
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            seen.setdefault(lab, h)
+    order = ["guards", "nominal", "disturbed", "start", "end point", "unstable", "goal"]
+    labels = [k for k in order if k in seen]
+    fig.legend([seen[k] for k in labels], labels, loc="outside right center",
+               handlelength=1.8, labelspacing=0.7)
+
+
+def _figure(runs: dict[str, list[_Run]], width: float, height: float,
+            view: Sequence[float] | None):
+    """Builds the matplotlib Figure (no pyplot state); guards from each panel's own logs."""
+    from matplotlib.figure import Figure
+
+    geos = {label: _geometry(_system(rs)) for label, rs in runs.items()}
+    lims = _view(runs, geos.values()) if view is None else ((view[0], view[1]), (view[2], view[3]))
+    fig = Figure(figsize=(width, height), layout="constrained")
+    fig.get_layout_engine().set(w_pad=0.02, h_pad=0.02, wspace=0.02)
+    axes = fig.subplots(1, len(runs), sharex=True, sharey=True, squeeze=False)[0]
+    for ax, (label, rs) in zip(axes, runs.items()):
+        _draw_panel(ax, label, rs, geos[label], lims)
+    axes[0].set_ylabel(r"$y$ (m)")
+    _legend(fig, axes)
+    return fig
+
+
+def _write_counts(path: Path, counts: dict[str, PanelCounts]) -> None:
+    """Writes panel, runs, successes, failed (trace labels joined by ';')."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(["panel", "runs", "successes", "failed"])
+        for c in counts.values():
+            w.writerow([c.label, c.runs, c.successes, ";".join(c.failed)])
+    tmp.replace(path)
+
+
+def fig3(table_path: str | Path, out_dir: str | Path | None = None,
+         formats: str | Iterable[str] = ("pdf", "svg", "png"), *,
+         panel_axis: str = "controller", trace_axis: str = "disturbance",
+         nominal: str | None = "nominal", panels: Sequence[str] | None = None,
+         width: float = TEXT_WIDTH_IN, height: float = 2.5,
+         view: Sequence[float] | None = None, dpi: int = 300) -> dict[str, PanelCounts]:
+    """Draws Figure 3 from a sweep table into out_dir/fig3.<fmt> and out_dir/fig3_counts.csv.
+
+    `table_path` may also be a sweep directory holding results.csv; `out_dir` defaults to the
+    table's directory; sizes in inches; `view` = (x0, x1, y0, y1) overrides the limits taken
+    from the data. Returns the counts per panel label; raises FigureInputError on bad input,
+    before anything is written.
+    """
+    import matplotlib as mpl
+
+    table = resolve_table(table_path)
+    if not (0.5 <= width <= 20 and 0.5 <= height <= 20):
+        raise FigureInputError(f"figure size {width} x {height} in is out of range [0.5, 20]")
+    if view is not None:
+        try:
+            view = tuple(float(v) for v in view)
+        except (TypeError, ValueError):
+            view = ()
+        if len(view) != 4 or not all(map(math.isfinite, view)) or not (
+                view[0] < view[1] and view[2] < view[3]):
+            raise FigureInputError(f"view must be x0 < x1, y0 < y1 (4 finite numbers), got {view}")
+    fmts = parse_formats(formats)
+    rows = read_table(table, [panel_axis, trace_axis, "success", "log"])
+    groups = _group(rows, panel_axis, list(panels) if panels is not None else None, table)
+    runs = _load_runs(table, groups, trace_axis, nominal or None)
+    counts = {label: PanelCounts(label, len(rs), sum(r.success for r in rs),
+                                 sorted((r.trace_label for r in rs if not r.success),
+                                        key=_natural))
+              for label, rs in runs.items()}
+    out = Path(out_dir) if out_dir is not None else table.parent
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise FigureInputError(f"{out}: cannot create the output directory ({exc})") from None
+    with mpl.rc_context():
+        mpl.rcdefaults()  # nothing from the user's matplotlibrc leaks in; restored on exit
+        mpl.rcParams.update(ieee_rc())
+        fig = _figure(runs, width, height, view)
+        try:
+            save_figure(fig, out, "fig3", fmts, dpi=dpi)
+            _write_counts(out / "fig3_counts.csv", counts)
+        except OSError as exc:
+            raise FigureInputError(f"{out}: cannot write the figure ({exc})") from None
+    return counts

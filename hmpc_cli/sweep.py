@@ -1,0 +1,487 @@
+"""Parameter sweeps: one scenario x ``[set]`` overrides x ``[grid]`` axes x seeds.
+
+A sweep file (TOML) names a scenario, overrides applied to every run (``[set]``), grid
+axes (a scenario key with a list of values, or a name with a list of override tables,
+each with an optional ``label``) and seeds. Every run is validated before any starts;
+runs go to ``<out>/runs/<run_id>/`` (see :mod:`hmpc_cli.runner`), in-process, in spawned
+worker processes or on a Dask cluster, and ``<out>/results.csv`` is rebuilt from their
+``summary.json`` files. A run id hashes the run's sorted overrides and seed only.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import itertools
+import json
+import os
+import re
+import shutil
+import signal
+import threading
+import tomllib
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from hmpc_cli.scenario import Scenario, ScenarioError, format_errors, load_scenario
+
+TIMING = ("solve_time_median", "solve_time_p95", "solve_time_max", "plan_time_median",
+          "wall_time")
+METRICS = ("success", "final_error", "contacts", "solves", "solver_failures", "planner_calls",
+           "planner_rejected", "diverged", "reason", *TIMING)
+RESERVED = {"run_id", "seed", "log", *METRICS}
+INTERRUPTED = "interrupted"
+_KEY = re.compile(r"^[A-Za-z0-9_-]+(\.[A-Za-z0-9_-]+)*$")
+
+
+class SweepSpec(BaseModel):
+    """The sweep file as written (grid and [set] are checked after flattening)."""
+
+    model_config = ConfigDict(extra="forbid")
+    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$")
+    description: str = ""
+    scenario: str = Field(min_length=1, description="scenario file, relative to the sweep file")
+    seeds: list[int] = Field(default_factory=lambda: [0], description="list, or N for 0..N-1")
+    set_: dict[str, Any] = Field(default_factory=dict, alias="set")
+    grid: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator("seeds", mode="before")
+    @classmethod
+    def _seeds(cls, v: Any) -> list[int]:
+        if isinstance(v, int) and not isinstance(v, bool):
+            if v < 1:
+                raise ValueError(f"a seed count must be >= 1, got {v}")
+            return list(range(v))
+        if not isinstance(v, list) or not v:
+            raise ValueError("expected a non-empty list of seeds or a seed count")
+        if any(not isinstance(s, int) or isinstance(s, bool) or s < 0 for s in v):
+            raise ValueError("seeds must be integers >= 0")
+        if len(set(v)) != len(v):
+            raise ValueError("duplicate seeds")
+        return v
+
+
+@dataclass(frozen=True)
+class Axis:
+    """One grid axis: per entry a column value (label or value) and its overrides."""
+
+    name: str
+    table: bool
+    labels: tuple[Any, ...]
+    overrides: tuple[dict[str, Any], ...]
+
+
+@dataclass
+class Run:
+    """One run of the sweep."""
+
+    run_id: str
+    seed: int
+    cell: tuple[Any, ...]
+    overrides: dict[str, Any]
+    origin: dict[str, str]
+    toml: str = ""
+
+
+@dataclass
+class SweepPlan:
+    """A validated sweep: every run's effective scenario text is known."""
+
+    path: Path
+    text: str
+    spec: SweepSpec
+    scenario: Path
+    axes: list[Axis]
+    runs: list[Run]
+    keys: list[str] = field(default_factory=list)
+
+    @property
+    def columns(self) -> list[str]:
+        """results.csv columns, in order."""
+        return ["run_id", *(a.name for a in self.axes), "seed",
+                *(f"set.{k}" for k in self.keys), *METRICS, "log"]
+
+
+def toml_value(v: Any) -> str:
+    """A value as TOML text (what :func:`apply_overrides` parses back)."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v, ensure_ascii=False).replace("\x7f", "\\u007f")
+    if isinstance(v, list):
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{toml_value(str(k))} = {toml_value(x)}"
+                               for k, x in v.items()) + "}"
+    raise TypeError(f"unsupported value type {type(v).__name__}")
+
+
+def _flatten(data: dict, model: type[BaseModel] | None, prefix: str = "") -> dict:
+    """Dotted keys; descends into tables only where the scenario has a settings section."""
+    out = {}
+    for k, v in data.items():
+        sub = None
+        if model is not None and k in model.model_fields:
+            ann = model.model_fields[k].annotation
+            sub = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
+        if isinstance(v, dict) and sub is not None:
+            out.update(_flatten(v, sub, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _axes(spec: SweepSpec, src: str, errors: list[str]) -> list[Axis]:
+    axes = []
+    for name, values in _flatten(spec.grid, Scenario).items():
+        where = f"{src}: grid.{name}"
+        if name in RESERVED or name.startswith("set.") or name == "seed":
+            errors.append(f"{where}: reserved name (use another axis name; seeds via `seeds`)")
+            continue
+        if not isinstance(values, list):
+            errors.append(f"{where}: expected a list of values or of override tables")
+            continue
+        if not values:
+            errors.append(f"{where}: empty axis (no values)")
+            continue
+        kinds = {isinstance(v, dict) for v in values}
+        if len(kinds) > 1:
+            errors.append(f"{where}: mixes override tables and plain values")
+            continue
+        if kinds == {False}:
+            axes.append(Axis(name, False, tuple(values), tuple({name: v} for v in values)))
+            continue
+        labels, overrides = [], []
+        for i, entry in enumerate(values):
+            entry = dict(entry)
+            label = entry.pop("label", None)
+            if label is not None and not isinstance(label, str):
+                errors.append(f"{where}[{i}].label: must be a string")
+                label = None
+            ov = _flatten(entry, Scenario)
+            labels.append(label if label is not None else
+                          ", ".join(f"{k}={cell_text(v)}" for k, v in ov.items()) or "(base)")
+            overrides.append(ov)
+        dup = sorted({lb for lb in labels if labels.count(lb) > 1})
+        if dup:
+            errors.append(f"{where}: duplicate labels {dup}")
+        axes.append(Axis(name, True, tuple(labels), tuple(overrides)))
+    seen: dict[str, str] = {}
+    for ax in axes:
+        for k in sorted({k for ov in ax.overrides for k in ov}):
+            if k in seen:
+                errors.append(f"{src}: grid.{ax.name}: {k}: also set by axis {seen[k]}")
+            seen.setdefault(k, ax.name)
+    return axes
+
+
+def run_id(overrides: dict[str, Any], seed: int) -> str:
+    """Short stable hash of a run's sorted overrides and seed."""
+    blob = json.dumps({"overrides": overrides, "seed": seed}, sort_keys=True,
+                      separators=(",", ":"))
+    return hashlib.sha256(blob.encode()).hexdigest()[:10]
+
+
+def _rewrite(line: str, scenario: Path, src: str, run: Run) -> str:
+    """Attributes a scenario error on an overridden key to the sweep file."""
+    rest = line.removeprefix(f"{scenario}: ")
+    key, sep, reason = rest.partition(": ")
+    if rest == line or not sep or key not in run.overrides:
+        return line
+    value = "" if reason == "unknown key" else f"value {toml_value(run.overrides[key])} "
+    return f"{src}: {key}: {reason} ({value}from {run.origin[key]})"
+
+
+def plan_sweep(path: str | Path) -> SweepPlan:
+    """Reads a sweep file, expands it and validates every run's scenario.
+
+    Raises:
+        ScenarioError: one ``file: key.path: reason`` line per problem.
+    """
+    path, src = Path(path), str(path)
+    if not path.is_file():
+        raise ScenarioError([f"{src}: file not found"])
+    try:
+        text = path.read_text(encoding="utf-8")
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError([f"{src}: TOML syntax error: {exc}"]) from None
+    except UnicodeDecodeError:
+        raise ScenarioError([f"{src}: not a UTF-8 text file"]) from None
+    data.setdefault("name", re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem))
+    try:
+        spec = SweepSpec.model_validate(data)
+    except ValidationError as exc:
+        raise ScenarioError(format_errors(exc, src)) from None
+    errors: list[str] = []
+    scenario = path.parent / spec.scenario
+    if not scenario.is_file():
+        errors.append(f"{src}: scenario: file not found: {scenario}")
+    base = _flatten(spec.set_, Scenario)
+    axes = _axes(spec, src, errors)  # broken axes are left out; their runs still checked
+    bad_keys = _bad_keys(src, [(k, v, "set") for k, v in base.items()] + [
+        (k, v, f"grid.{a.name}") for a in axes for ov in a.overrides for k, v in ov.items()])
+    if bad_keys:
+        raise ScenarioError(list(dict.fromkeys(errors + bad_keys)))
+    runs, ids = [], {}
+    for combo in itertools.product(*(range(len(a.labels)) for a in axes)):
+        overrides, origin = dict(base), dict.fromkeys(base, "[set]")
+        for a, i in zip(axes, combo):
+            overrides.update(a.overrides[i])
+            where = f"grid.{a.name}" + (f"[{a.labels[i]!r}]" if a.table else "")
+            origin.update(dict.fromkeys(a.overrides[i], where))
+        cell = tuple(a.labels[i] for a, i in zip(axes, combo))
+        for seed in spec.seeds:
+            run = Run(run_id(overrides, seed), seed, cell, dict(sorted(overrides.items())),
+                      origin)
+            if run.run_id in ids:
+                errors.append(f"{src}: grid: cells {ids[run.run_id]} and {list(cell)} have "
+                              "identical overrides")
+                continue
+            ids[run.run_id] = list(cell)
+            runs.append(run)
+    for run in runs if scenario.is_file() else []:
+        try:
+            items = [f"{k}={toml_value(v)}" for k, v in run.overrides.items()]
+            _, run.toml = load_scenario(scenario, items, run.seed)
+        except ScenarioError as exc:
+            errors += [_rewrite(line, scenario, src, run) for line in exc.lines]
+    if errors:
+        raise ScenarioError(list(dict.fromkeys(errors)))
+    keys = sorted({k for r in runs for k in r.overrides})
+    return SweepPlan(path, text, spec, scenario, axes, runs, keys)
+
+
+def _bad_keys(src: str, items: list[tuple[str, Any, str]]) -> list[str]:
+    """Problems with override keys and values themselves (before any scenario)."""
+    out = []
+    for key, value, where in items:
+        if key == "seed":
+            out.append(f"{src}: {where}: seed: set the seeds with `seeds`")
+        elif not _KEY.match(key):
+            out.append(f"{src}: {where}: {key!r}: not a key path")
+        else:
+            try:
+                toml_value(value)
+            except TypeError as exc:
+                out.append(f"{src}: {where}: {key}: {exc}")
+    return out
+
+
+# ------------------------------------------------------------------------- one run
+_LOCK = threading.Lock()
+_STOP = None  # multiprocessing.Event in pool workers: set by the parent on Ctrl-C
+
+
+def _init_worker(stop) -> None:
+    """Pool worker start: Ctrl-C is the parent's business (it sets ``stop``)."""
+    global _STOP
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _STOP = stop
+
+
+def _check_stop(i: int, n: int) -> None:
+    if i % 10 == 0 and _STOP is not None and _STOP.is_set():
+        raise KeyboardInterrupt
+
+
+def run_one(toml_text: str, run_dir: str) -> dict:
+    """Runs one effective scenario into ``run_dir`` (replacing it); returns its summary.
+
+    An exception becomes a failed run: ``reason`` is the exception type and message and
+    ``error.txt`` holds the traceback. Runs in one process are serialized (IPOPT is not
+    thread-safe); NLPs are cached per process (:func:`hmpc_cli.runner.cached_mpc`).
+    """
+    from hmpc_cli.loop import LayeredLoop, RunResult
+    from hmpc_cli.runner import cached_mpc, execute_run, jsonable
+
+    out = Path(run_dir)
+    with _LOCK:
+        if out.exists():
+            shutil.rmtree(out)
+        loop, sc = None, None
+        try:
+            sc = Scenario.model_validate(tomllib.loads(toml_text))
+            loop = LayeredLoop(sc, None, mpc=cached_mpc(sc))
+            execute_run(loop, toml_text, out, _check_stop if _STOP is not None else None)
+        except Exception as exc:  # noqa: BLE001 - a failed run is a result
+            res = loop.res if loop is not None else RunResult(
+                sc.name if sc else "?", sc.seed if sc else -1)
+            res.success = False
+            res.reason = f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:500]
+            out.mkdir(parents=True, exist_ok=True)
+            (out / "scenario.toml").write_text(toml_text, encoding="utf-8")
+            (out / "error.txt").write_text(traceback.format_exc(), encoding="utf-8")
+            (out / "summary.json").write_text(json.dumps(jsonable(res.__dict__), indent=2)
+                                              + "\n")
+        return json.loads((out / "summary.json").read_text())
+
+
+def _pool_run(toml_text: str, run_dir: str) -> dict | None:
+    """:func:`run_one` in a pool worker; None when stopped by the parent."""
+    if _STOP is not None and _STOP.is_set():
+        return None
+    try:
+        return run_one(toml_text, run_dir)
+    except KeyboardInterrupt:
+        return None
+
+
+# ---------------------------------------------------------------------- the sweep
+def finished(out: Path, run: Run) -> dict | None:
+    """The run's summary if it finished with the same effective scenario, else None."""
+    d = out / "runs" / run.run_id
+    try:
+        summary = json.loads((d / "summary.json").read_text())
+        same = (d / "scenario.toml").read_text(encoding="utf-8") == run.toml
+    except (OSError, ValueError):
+        return None
+    if not isinstance(summary, dict) or summary.get("reason") == INTERRUPTED or not same:
+        return None
+    return summary
+
+
+@dataclass
+class Outcome:
+    """What :func:`execute_sweep` did."""
+
+    total: int
+    skipped: int = 0
+    ran: int = 0
+    done: int = 0
+    lost: list[str] = field(default_factory=list)
+    interrupted: bool = False
+
+
+def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
+                  on_start: Callable[[int, int, int], None] | None = None,
+                  on_done: Callable[[Run, dict], None] | None = None) -> Outcome:
+    """Runs every unfinished run (in-process, process pool or Dask ``client``).
+
+    ``on_start(total, skipped, successes_skipped)`` and ``on_done(run, summary)`` report
+    progress. Ctrl-C stops cleanly (``Outcome.interrupted``); results.csv is always
+    rewritten (``Outcome.done`` rows). ``lost`` lists runs whose worker failed (not
+    recorded, retried on resume).
+    """
+    out = out.resolve()
+    (out / "runs").mkdir(parents=True, exist_ok=True)
+    (out / "sweep.toml").write_text(plan.text, encoding="utf-8")
+    done = {r.run_id: finished(out, r) for r in plan.runs}
+    pending = [r for r in plan.runs if done[r.run_id] is None]
+    res = Outcome(len(plan.runs), skipped=len(plan.runs) - len(pending))
+    if on_start:
+        on_start(res.total, res.skipped, sum(bool(s and s.get("success")) for s in done.values()))
+
+    def record(run: Run, summary: dict | None) -> None:
+        if summary is not None and summary.get("reason") != INTERRUPTED:
+            res.ran += 1
+            if on_done:
+                on_done(run, summary)
+
+    try:
+        if client is not None:
+            _on_dask(client, pending, out, record, res)
+        elif workers <= 1 or len(pending) <= 1:
+            for run in pending:
+                record(run, run_one(run.toml, str(out / "runs" / run.run_id)))
+        else:
+            _on_pool(min(workers, len(pending)), pending, out, record, res)
+    except KeyboardInterrupt:
+        res.interrupted = True
+    finally:
+        res.done = write_results(plan, out)
+    return res
+
+
+def _on_pool(n: int, pending: list[Run], out: Path, record, res: Outcome) -> None:
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    ctx = multiprocessing.get_context("spawn")
+    stop = ctx.Event()
+    pool = ProcessPoolExecutor(n, mp_context=ctx, initializer=_init_worker, initargs=(stop,))
+    futures = {pool.submit(_pool_run, r.toml, str(out / "runs" / r.run_id)): r for r in pending}
+    try:
+        for fut in as_completed(futures):
+            _collect(fut, futures[fut], record, res)
+    except KeyboardInterrupt:
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            stop.set()
+            for fut in futures:
+                fut.cancel()
+            pool.shutdown(wait=True, cancel_futures=True)
+        finally:
+            signal.signal(signal.SIGINT, previous)
+        raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _on_dask(client, pending: list[Run], out: Path, record, res: Outcome) -> None:
+    from distributed import as_completed
+
+    futures = {client.submit(run_one, r.toml, str(out / "runs" / r.run_id), pure=False): r
+               for r in pending}
+    try:
+        for fut in as_completed(list(futures)):
+            _collect(fut, futures[fut], record, res)
+    except KeyboardInterrupt:
+        client.cancel(list(futures))
+        raise
+
+
+def _collect(fut, run: Run, record, res: Outcome) -> None:
+    try:
+        record(run, fut.result())
+    except Exception as exc:  # noqa: BLE001 - the worker (not the run) failed
+        res.lost.append(f"{run.run_id}: {type(exc).__name__}: {exc}")
+
+
+# ------------------------------------------------------------------------ results
+def cell_text(v: Any) -> str:
+    """A value as a results.csv cell."""
+    if v is None or (isinstance(v, float) and v != v):
+        return ""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float, str)):
+        return repr(v) if isinstance(v, float) else str(v)
+    return json.dumps(v, sort_keys=True)
+
+
+def result_rows(plan: SweepPlan, out: Path) -> list[dict[str, str]]:
+    """One row per finished run, sorted by run id (columns: :attr:`SweepPlan.columns`)."""
+    rows = []
+    for run in sorted(plan.runs, key=lambda r: r.run_id):
+        summary = finished(out, run)
+        if summary is None:
+            continue
+        row = {"run_id": run.run_id, "seed": str(run.seed)}
+        row |= {a.name: cell_text(v) for a, v in zip(plan.axes, run.cell)}
+        row |= {f"set.{k}": cell_text(run.overrides.get(k)) for k in plan.keys}
+        row |= {k: cell_text(summary.get(k)) for k in METRICS}
+        log = out / "runs" / run.run_id / "run.mcap"
+        row["log"] = log.relative_to(out).as_posix() if log.exists() else ""
+        rows.append({c: row[c] for c in plan.columns})
+    return rows
+
+
+def write_results(plan: SweepPlan, out: Path) -> int:
+    """Rewrites ``<out>/results.csv`` from the runs' summary.json files; returns its rows."""
+    buf, rows = io.StringIO(), result_rows(plan, out)
+    writer = csv.DictWriter(buf, plan.columns, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    tmp = out / "results.csv.tmp"
+    tmp.write_text(buf.getvalue(), encoding="utf-8")
+    os.replace(tmp, out / "results.csv")
+    return len(rows)

@@ -1,0 +1,230 @@
+"""``hmpc plot fig3``: Figure 3 drawn from short recorded runs; deterministic files, bad input."""
+
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from conftest import BALL, cli_env, hmpc_command
+from hmpc_cli.cli_plot import plot_command
+
+FAST = ["--set", "sim.duration=0.6", "--set", "planner.iterations=3", "-q"]
+RUNS = {"nom": [], "t1": ["--set", "disturbance.kind=\"paper_fig3\"", "--set",
+                          "disturbance.trial=1"],
+        "t2": ["--set", "disturbance.kind=\"paper_fig3\"", "--set", "disturbance.trial=2"]}
+COLUMNS = ["run_id", "controller", "disturbance", "seed", "success", "final_error", "contacts",
+           "solver_failures", "log"]
+# (controller, disturbance, success, run directory): panel A holds one failed run.
+ROWS = [("A", "trial 1", True, "t1"), ("A", "nominal", True, "nom"), ("A", "trial 2", False, "t2"),
+        ("B", "nominal", True, "nom"), ("B", "trial 1", True, "t1")]
+# A stand-alone app with only the plot command, run in a fresh process.
+APP = ("import sys, typer; from hmpc_cli.cli_plot import plot_command; app = typer.Typer(); "
+       "app.callback()(lambda: None); app.command('plot')(plot_command); "
+       "sys.argv[0] = 'hmpc'; app()")
+
+
+def make_app() -> typer.Typer:
+    app = typer.Typer()
+    app.callback()(lambda: None)  # keep "plot" a subcommand
+    app.command("plot")(plot_command)
+    return app
+
+
+def write_table(path: Path, rows, runs_rel: dict[str, str], columns=COLUMNS) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(columns)
+        for i, (ctrl, dist, ok, run) in enumerate(rows):
+            full = {"run_id": i, "controller": ctrl, "disturbance": dist, "seed": 0,
+                    "success": ok, "final_error": 0.1, "contacts": 1, "solver_failures": 0,
+                    "log": runs_rel[run]}
+            w.writerow([full[c] for c in columns])
+    return path
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> dict[str, Path]:
+    """Three short recorded ball runs (nominal, trials 1 and 2), made in parallel."""
+    base = tmp_path_factory.mktemp("plot_runs")
+    procs = {k: subprocess.Popen([*hmpc_command(), "run", str(BALL), "--out", str(base / k),
+                                  *FAST, *extra], cwd=base, env=cli_env(),
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for k, extra in RUNS.items()}
+    for k, p in procs.items():
+        out, err = p.communicate(timeout=120)
+        assert p.returncode == 0, f"run {k} failed: {err}"
+    return {k: base / k / "run.mcap" for k in RUNS}
+
+
+@pytest.fixture
+def table(runs, tmp_path) -> Path:
+    """results.csv with runs in two panels, logs relative to the table's directory."""
+    sweep = tmp_path / "sweep"
+    rel = {}
+    for k, log in runs.items():
+        (sweep / "runs" / k).mkdir(parents=True)
+        (sweep / "runs" / k / "run.mcap").write_bytes(log.read_bytes())
+        rel[k] = f"runs/{k}/run.mcap"
+    return write_table(sweep / "results.csv", ROWS, rel)
+
+
+def plot_proc(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", APP, "plot", *args], cwd=cwd, env=cli_env(),
+                          capture_output=True, text=True, timeout=120)
+
+
+def read_png(path: Path) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(path) as im:
+        assert im.format == "PNG"
+        return np.asarray(im.convert("RGB")).astype(int)
+
+
+def has_color(img: np.ndarray, hex_color: str, tol: int = 12) -> bool:
+    rgb = np.array([int(hex_color[i:i + 2], 16) for i in (1, 3, 5)])
+    return bool((np.abs(img - rgb).max(axis=2) <= tol).any())
+
+
+def test_fig3_writes_figures_and_counts_deterministically(table, tmp_path):
+    first = plot_proc(["fig3", str(table)], tmp_path)
+    assert first.returncode == 0, first.stderr
+    sweep = table.parent
+    for fmt in ("pdf", "svg", "png"):
+        assert (sweep / f"fig3.{fmt}").stat().st_size > 5000
+    assert (sweep / "fig3.pdf").read_bytes().startswith(b"%PDF")
+    assert b"<svg" in (sweep / "fig3.svg").read_bytes()[:2000]
+    with open(sweep / "fig3_counts.csv", newline="") as f:
+        counts = list(csv.reader(f))
+    assert counts == [["panel", "runs", "successes", "failed"], ["A", "3", "2", "trial 2"],
+                      ["B", "2", "2", ""]]
+    assert "A" in first.stdout and "paper" not in first.stdout  # no reference for A/B
+    # Same input, another process, another directory: the same bytes in every format.
+    again = plot_proc(["fig3", str(table), "--out", str(tmp_path / "again")], tmp_path)
+    assert again.returncode == 0, again.stderr
+    for name in ("fig3.pdf", "fig3.svg", "fig3.png", "fig3_counts.csv"):
+        assert (tmp_path / "again" / name).read_bytes() == (sweep / name).read_bytes(), name
+
+
+def test_png_size_and_marks(table, tmp_path):
+    from hmpc_cli.figures.fig3 import FAIL_COLOR, NOMINAL_COLOR, START_COLOR, fig3
+
+    fig3(table, tmp_path / "all", formats="png")
+    img = read_png(tmp_path / "all" / "fig3.png")
+    assert img.shape == (750, 2148, 3)  # 7.16 x 2.5 in at 300 dpi
+    assert (img < 50).all(axis=2).mean() > 0.002  # black guards, text, end points
+    for color in (NOMINAL_COLOR, START_COLOR, FAIL_COLOR):
+        assert has_color(img, color), color
+    fig3(table, tmp_path / "b", formats="png", panels=["B"], width=3.5, height=2.0)
+    img_b = read_png(tmp_path / "b" / "fig3.png")
+    assert img_b.shape == (600, 1050, 3)
+    assert not has_color(img_b, FAIL_COLOR)  # panel B has no failed run: no red circle
+
+
+def test_panel_order_reference_counts_and_sweep_dir(runs, tmp_path):
+    rel = {k: str(v) for k, v in runs.items()}  # absolute log paths are fine too
+    rows = [("10 Hz replan", "nominal", True, "nom"), ("10 Hz fixed", "trial 10", False, "t1"),
+            ("10 Hz fixed", "nominal", True, "nom"), ("10 Hz fixed", "trial 2", False, "t2")]
+    table = write_table(tmp_path / "s" / "results.csv", rows, rel)
+    app, env = make_app(), {"COLUMNS": "200", "NO_COLOR": "1"}
+    # A sweep directory works as the table; the paper's panels keep the paper's order.
+    res = CliRunner().invoke(app, ["plot", "fig3", str(tmp_path / "s"), "--formats", "png"],
+                             env=env)
+    assert res.exit_code == 0, res.output
+    assert "9/11" in res.stdout and "11/11" in res.stdout  # the paper's counts beside ours
+    assert sorted(p.name for p in table.parent.iterdir()) == [
+        "fig3.png", "fig3_counts.csv", "results.csv"]
+    lines = (table.parent / "fig3_counts.csv").read_text().splitlines()
+    assert lines[1:] == ["10 Hz fixed,3,1,trial 2;trial 10", "10 Hz replan,1,1,"]
+    res = CliRunner().invoke(app, ["plot", "fig3", str(table), "--formats", "png", "--panels",
+                                   "10 Hz replan,10 Hz fixed"], env=env)
+    assert res.exit_code == 0, res.output
+    lines = (table.parent / "fig3_counts.csv").read_text().splitlines()
+    assert [ln.split(",")[0] for ln in lines[1:]] == ["10 Hz replan", "10 Hz fixed"]
+
+
+def test_bounces_touch_the_guard(runs):
+    from hmpc_cli.figures.common import load_trace
+
+    tr = load_trace(runs["nom"])
+    r = tr.system["radius"]
+    assert tr.xy.shape[1] == 2 and np.all(np.diff(tr.t) >= 0)
+    assert tr.xy[:, 1].min() == pytest.approx(r, abs=1e-6)  # event points spliced in
+    assert tr.xy[0].tolist() == [1.0, 1.0]
+
+
+def test_rc_params_do_not_leak(table, tmp_path):
+    import matplotlib as mpl
+
+    from hmpc_cli.figures.fig3 import fig3
+
+    before = {k: v for k, v in mpl.rcParams.items() if k != "backend"}
+    fig3(table, tmp_path / "o", formats="svg")
+    after = {k: v for k, v in mpl.rcParams.items() if k != "backend"}
+    assert before == after
+
+
+def test_plot_module_is_light_and_uses_no_pyplot(table, tmp_path):
+    code = ("import sys; import hmpc_cli.cli_plot; assert 'matplotlib' not in sys.modules; "
+            "from hmpc_cli.figures.fig3 import fig3; "
+            f"fig3({str(table)!r}, {str(tmp_path / 'o')!r}, 'png'); "
+            "assert 'matplotlib.pyplot' not in sys.modules; print('ok')")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)
+    assert res.returncode == 0 and res.stdout.strip() == "ok", res.stderr
+
+
+def bad_cases(table: Path, tmp: Path) -> dict[str, list[str]]:
+    """Name -> plot arguments that must be refused."""
+    no_cols = tmp / "nocols.csv"
+    no_cols.write_text("run_id,controller,success\n0,A,True\n")
+    text = table.read_text()
+    missing_log = tmp / "missing_log" / "results.csv"
+    missing_log.parent.mkdir()
+    missing_log.write_text(text.replace("runs/t2/run.mcap", "runs/t9/run.mcap"))
+    bad_bool = tmp / "bad_bool" / "results.csv"
+    bad_bool.parent.mkdir()
+    bad_bool.write_text(text.replace("False", "maybe"))
+    not_mcap = tmp / "not_mcap" / "results.csv"
+    (not_mcap.parent / "runs").mkdir(parents=True)
+    (not_mcap.parent / "runs" / "x.mcap").write_text("hello")
+    not_mcap.write_text(text.replace("runs/t2/run.mcap", "runs/x.mcap"))
+    header_only = tmp / "empty.csv"
+    header_only.write_text(",".join(COLUMNS) + "\n")
+    return {
+        "missing table": ["fig3", str(tmp / "nope.csv")],
+        "missing columns": ["fig3", str(no_cols)],
+        "missing log": ["fig3", str(missing_log)],
+        "not an mcap log": ["fig3", str(not_mcap)],
+        "bad success": ["fig3", str(bad_bool)],
+        "no rows": ["fig3", str(header_only)],
+        "unknown figure": ["fig9", str(table)],
+        "unknown panel": ["fig3", str(table), "--panels", "A,Z"],
+        "unknown format": ["fig3", str(table), "--formats", "pdf,jpg"],
+        "bad view": ["fig3", str(table), "--view", "0,1,2"],
+        "unknown trace axis": ["fig3", str(table), "--trace-axis", "wind"],
+    }
+
+
+def test_bad_input_exits_2_and_writes_nothing(table, tmp_path):
+    app = make_app()
+    for name, args in bad_cases(table, tmp_path).items():
+        out = tmp_path / f"out_{name.replace(' ', '_')}"
+        before = sorted(p.name for p in table.parent.iterdir())
+        res = CliRunner().invoke(app, ["plot", *args, "--out", str(out)])
+        assert res.exit_code == 2, f"{name}: {res.output}"
+        err = res.stderr.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error: "), f"{name}: {res.stderr!r}"
+        assert not out.exists(), name
+        assert sorted(p.name for p in table.parent.iterdir()) == before, name
+    # Without --out the table's own directory stays untouched as well.
+    res = CliRunner().invoke(app, ["plot", "fig9", str(table)])
+    assert res.exit_code == 2 and not (table.parent / "fig3.png").exists()

@@ -1,0 +1,297 @@
+"""``hmpc sweep``: expansion, validation, 1 vs 2 workers vs Dask, failures, resume, Ctrl-C."""
+
+from __future__ import annotations
+
+import ast
+import csv
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import BALL, REPO, cli_env
+from hmpc_cli.cli_sweep import connect_dask
+from hmpc_cli.scenario import ScenarioError
+from hmpc_cli.sweep import TIMING, plan_sweep, run_id
+
+# ``hmpc`` with the sweep command registered (cli.py registers it the same way).
+REGISTER = ("from hmpc_cli.cli import app\n"
+            "from hmpc_cli.cli_sweep import sweep_command\n"
+            "if not any(c.name == 'sweep' for c in app.registered_commands):\n"
+            "    app.command('sweep')(sweep_command)\n"
+            "app()\n")
+TINY_SET = """
+[set]
+"sim.duration" = 0.3
+"mpc.horizon" = 1.0
+"planner.iterations" = 6
+"planner.samples" = 20
+"planner.knots" = 10
+"""
+TINY = """name = "tiny"
+scenario = "{scenario}"
+seeds = 2
+""" + TINY_SET + """
+[grid]
+"lowlevel.kp" = [0.0, 1.0]
+case = [
+  { label = "ok" },
+  { label = "diverge", "sim.divergence_bound" = 0.5 },
+  { label = "crash", "replanning.contact_guards" = ["nope"] },
+]
+"""
+
+
+def sweep(args: list[str], cwd: Path, timeout: float = 120, **kw) -> subprocess.CompletedProcess:
+    """``hmpc sweep ARGS`` in a fresh process."""
+    return subprocess.run([sys.executable, "-c", REGISTER, "sweep", *args], cwd=cwd,
+                          env=cli_env(), capture_output=True, text=True, timeout=timeout, **kw)
+
+
+def write_sweep(folder: Path, text: str, name: str = "sweep.toml") -> Path:
+    """A sweep file in ``folder`` whose scenario path is relative to it."""
+    path = folder / name
+    path.write_text(text.replace("{scenario}", os.path.relpath(BALL, folder)))
+    return path
+
+
+def table(out: Path, timing: bool = False) -> list[dict[str, str]]:
+    """results.csv rows (without the timing columns unless asked)."""
+    with open(out / "results.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    return rows if timing else [{k: v for k, v in r.items() if k not in TIMING} for r in rows]
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """The tiny sweep run once in-process (--workers 1): (folder, sweep file, out, proc)."""
+    base = tmp_path_factory.mktemp("sweep")
+    path = write_sweep(base, TINY)
+    out = base / "w1"
+    proc = sweep([str(path), "--workers", "1", "--out", str(out)], base)
+    assert proc.returncode == 0, proc.stderr
+    return base, path, out, proc
+
+
+def test_tiny_sweep_table_and_failures(tiny):
+    _, path, out, proc = tiny
+    rows = table(out, timing=True)
+    plan = plan_sweep(path)
+    assert len(rows) == len(plan.runs) == 12
+    assert [r["run_id"] for r in rows] == sorted(r.run_id for r in plan.runs)
+    assert list(rows[0]) == [
+        "run_id", "lowlevel.kp", "case", "seed", "set.lowlevel.kp", "set.mpc.horizon",
+        "set.planner.iterations", "set.planner.knots", "set.planner.samples",
+        "set.replanning.contact_guards", "set.sim.divergence_bound", "set.sim.duration",
+        "success", "final_error", "contacts", "solves", "solver_failures", "planner_calls",
+        "planner_rejected", "diverged", "reason", "solve_time_median", "solve_time_p95",
+        "solve_time_max", "plan_time_median", "wall_time", "log"]
+    by_case = {c: [r for r in rows if r["case"] == c] for c in ("ok", "diverge", "crash")}
+    assert all(len(v) == 4 for v in by_case.values())
+    assert {(r["lowlevel.kp"], r["seed"]) for r in by_case["ok"]} == {
+        ("0.0", "0"), ("0.0", "1"), ("1.0", "0"), ("1.0", "1")}
+    for r in by_case["crash"]:  # raised inside the run: recorded, the others went on
+        assert r["success"] == "false" and r["log"] == ""
+        assert r["reason"] == "ValueError: replanning.contact_guards: unknown guards ['nope']"
+        assert r["set.replanning.contact_guards"] == '["nope"]'
+        assert (out / "runs" / r["run_id"] / "error.txt").read_text().startswith("Traceback")
+    for r in by_case["diverge"]:
+        assert r["diverged"] == "true" and r["success"] == "false"
+        assert r["reason"].startswith("diverged") and r["set.sim.divergence_bound"] == "0.5"
+    for r in by_case["ok"]:
+        assert r["diverged"] == "false" and not r["reason"].startswith(("diverged", "Value"))
+        assert r["log"] == f"runs/{r['run_id']}/run.mcap" and (out / r["log"]).is_file()
+        assert float(r["wall_time"]) > 0 and r["set.sim.duration"] == "0.3"
+    summary = json.loads((out / "runs" / by_case["ok"][0]["run_id"] / "summary.json").read_text())
+    assert summary["seed"] == int(by_case["ok"][0]["seed"])
+    assert (out / "sweep.toml").read_text() == path.read_text()
+    assert "12 to run (in-process)" in proc.stdout
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("│")]
+    assert sum("100 %" in ln or "0 %" in ln for ln in lines) == 7  # 6 cells + all
+
+
+def test_two_workers_give_the_same_table(tiny):
+    base, path, out, _ = tiny
+    out2 = base / "w2"
+    proc = sweep([str(path), "--workers", "2", "--out", str(out2)], base)
+    assert proc.returncode == 0, proc.stderr
+    assert "(2 worker processes)" in proc.stdout
+    assert table(out2) == table(out)
+    assert table(out2, timing=True) != table(out, timing=True)  # timings are measured
+
+
+def test_resume_skips_finished_runs(tiny):
+    base, path, out, _ = tiny
+    out3 = base / "resume"
+    shutil.copytree(out, out3)
+    rows = table(out3)
+    gone, stopped = rows[3]["run_id"], rows[7]["run_id"]
+    shutil.rmtree(out3 / "runs" / gone)
+    s = out3 / "runs" / stopped / "summary.json"
+    s.write_text(json.dumps({**json.loads(s.read_text()), "reason": "interrupted"}))
+    (out3 / "results.csv").unlink()
+    kept = {p.parent.name: p.stat().st_mtime_ns for p in out3.glob("runs/*/summary.json")
+            if p.parent.name != stopped}
+    proc = sweep([str(path), "--workers", "1", "--out", str(out3)], base)
+    assert proc.returncode == 0, proc.stderr
+    assert "12 runs, 10 skipped (already done), 2 to run" in proc.stdout
+    now = {p.parent.name: p.stat().st_mtime_ns for p in out3.glob("runs/*/summary.json")}
+    assert {k for k in now if now[k] != kept.get(k)} == {gone, stopped}
+    assert table(out3) == table(out)
+
+
+def test_dask_matches_local(tiny):
+    import distributed  # in the `test` extra
+    base, path, out, _ = tiny
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        proc = sweep([str(path), "--dask", cluster.scheduler_address, "--out",
+                      str(base / "dask")], base)
+    assert proc.returncode == 0, proc.stderr
+    assert f"(Dask {cluster.scheduler_address})" in proc.stdout
+    assert table(base / "dask") == table(out)
+
+
+def test_dask_unreachable_exits_2_quickly(tmp_path):
+    path = write_sweep(tmp_path, TINY)
+    start = time.monotonic()
+    proc = sweep([str(path), "--dask", "tcp://127.0.0.1:1", "--out", "out"], tmp_path)
+    assert time.monotonic() - start < 20
+    assert proc.returncode == 2
+    assert "error: --dask tcp://127.0.0.1:1: cannot connect" in proc.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_dask_not_installed_is_a_clear_error(monkeypatch):
+    monkeypatch.setitem(sys.modules, "distributed", None)
+    with pytest.raises(ScenarioError) as exc:
+        connect_dask("tcp://127.0.0.1:8786")
+    assert exc.value.lines == ["--dask tcp://127.0.0.1:8786: the 'distributed' package is not "
+                               "installed (pip install 'hmpc[dask]')"]
+
+
+BAD = {
+    "unknown key": ('[grid]\n"mpc.rate_hzz" = [10, 20]\n',
+                    "sweep.toml: mpc.rate_hzz: unknown key (from grid.mpc.rate_hzz)"),
+    "bad value": ('[grid]\nc = [{ label = "a" }, { label = "b", "mpc.rate_hz" = 7 }]\n',
+                  "sweep.toml: mpc.rate_hz: 7 must divide mpc.nodes_per_second = 60 and "
+                  "sim.rate_hz = 600 (the MPC period must be a whole number of node steps and "
+                  "of simulator steps) (value 7 from grid.c['b'])"),
+    "bad type in [set]": ('[set]\n"planner.samples" = "many"\n',
+                          "sweep.toml: planner.samples: Input should be a valid integer, unable "
+                          "to parse string as an integer (value \"many\" from [set])"),
+    "empty axis": ('[grid]\n"mpc.rate_hz" = []\n',
+                   "sweep.toml: grid.mpc.rate_hz: empty axis (no values)"),
+    "missing scenario": ('scenario = "nope/ball.toml"\n',
+                         "sweep.toml: scenario: file not found: nope/ball.toml"),
+    "unknown sweep key": ('seed = 3\n', "sweep.toml: seed: unknown key"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD))
+def test_bad_sweep_exits_2_and_creates_nothing(tmp_path, case):
+    text, line = BAD[case]
+    head = 'name = "bad"\n' + ("" if "scenario =" in text else 'scenario = "{scenario}"\n')
+    write_sweep(tmp_path, head + text)
+    proc = sweep(["sweep.toml", "--out", "out"], tmp_path)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert proc.stderr.splitlines() == [f"error: {line}"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sweep.toml"]
+    assert not (tmp_path / "results").exists()
+
+
+def test_run_ids_are_stable_hashes_of_overrides_and_seed(tmp_path):
+    a = write_sweep(tmp_path, 'name = "a"\nscenario = "{scenario}"\nseeds = [1, 0]\n[set]\n'
+                    'sim.duration = 0.5\n[grid]\n"mpc.rate_hz" = [10, 20]\n'
+                    'd = [{ label = "x", "disturbance.kind" = "none" }]\n', "a.toml")
+    b = write_sweep(tmp_path, 'seeds = [0, 1]\nname = "b"\nscenario = "{scenario}"\n[grid]\n'
+                    'd = [{ "disturbance.kind" = "none", label = "y" }]\n'
+                    'mpc = { rate_hz = [20, 10] }\n[set]\n"sim.duration" = 0.5\n', "b.toml")
+    ra, rb = plan_sweep(a).runs, plan_sweep(b).runs
+    assert len(ra) == 4 and sorted(r.run_id for r in ra) == sorted(r.run_id for r in rb)
+    ov = {"disturbance.kind": "none", "mpc.rate_hz": 10, "sim.duration": 0.5}
+    assert ra[0].overrides == ov and ra[0].seed == 1 and ra[0].run_id == run_id(ov, 1)
+    assert len(run_id(ov, 1)) == 10 and run_id(ov, 1) != run_id(ov, 0)
+
+
+def test_fig3_expands_to_33_valid_runs(tmp_path):
+    proc = sweep([str(REPO / "sweeps" / "fig3.toml"), "--dry-run"], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    assert lines[-1] == "33 runs, all valid (dry run: nothing started)"
+    assert len(set(lines[:-1])) == 33 and not list(tmp_path.iterdir())
+    plan = plan_sweep(REPO / "sweeps" / "fig3.toml")
+    cells = {r.cell: r for r in plan.runs}
+    assert len(cells) == 33 and {r.seed for r in plan.runs} == {0}
+    assert cells[("10 Hz replan", "trial 7")].overrides == {
+        "disturbance.kind": "paper_fig3", "disturbance.trial": 7, "mpc.rate_hz": 10,
+        "replanning.policy": "on_contact"}
+    assert cells[("20 Hz fixed", "nominal")].overrides == {
+        "disturbance.kind": "none", "mpc.rate_hz": 20, "replanning.policy": "once"}
+    assert 'rate_hz = 20' in cells[("20 Hz fixed", "nominal")].toml
+    fast = plan_sweep(REPO / "sweeps" / "fig3_100hz.toml")
+    assert len(fast.runs) == 11 and all(r.overrides["mpc.nodes_per_second"] == 100
+                                        and r.overrides["mpc.rate_hz"] == 100
+                                        for r in fast.runs)
+
+
+def test_ctrl_c_stops_cleanly_and_resumes(tmp_path):
+    path = write_sweep(tmp_path, 'name = "stop"\nscenario = "{scenario}"\nseeds = 4\n'
+                       + TINY_SET.replace("0.3", "0.6"))
+    out = tmp_path / "out"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", REGISTER, "sweep", str(path), "--workers", "2", "--out",
+         str(out)], cwd=tmp_path, env=cli_env(), stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True, start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not list(out.glob("runs/*/summary.json")):
+            time.sleep(0.05)
+        os.killpg(proc.pid, signal.SIGINT)  # a terminal's Ctrl-C: the whole process group
+        _, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, stderr
+    assert "interrupted:" in stderr and "Traceback" not in stderr
+    assert _group_gone(proc.pid), "no worker process left behind"
+    done = len(table(out))
+    assert 1 <= done < 4
+    again = sweep([str(path), "--workers", "2", "--out", str(out)], tmp_path)
+    assert again.returncode == 0, again.stderr
+    assert f"4 runs, {done} skipped (already done), {4 - done} to run" in again.stdout
+    assert len(table(out)) == 4
+
+
+def _group_gone(pgid: int, wait: float = 10.0) -> bool:
+    deadline = time.monotonic() + wait
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(pgid, 0)
+        except ProcessLookupError:
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def test_cli_sweep_imports_stay_light():
+    tree = ast.parse((REPO / "hmpc_cli" / "cli_sweep.py").read_text())
+    top = [n for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))]
+    names = {a.name for n in top for a in n.names} | {n.module for n in top
+                                                       if isinstance(n, ast.ImportFrom)}
+    assert names <= {"__future__", "annotations", "pathlib", "Path", "typing", "Annotated",
+                     "Optional", "typer"}
+    assert not any("click" in ast.unparse(n) for n in ast.walk(tree)
+                   if isinstance(n, (ast.Import, ast.ImportFrom)))
+    code = ("import sys; import hmpc_cli.cli_sweep; print(sorted(m for m in ('casadi', 'numpy', "
+            "'hmpc_cli.sweep', 'hmpc_cli.loop', 'hmpc_cli.runner') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=REPO, check=True).stdout
+    assert out.strip() == "[]"
