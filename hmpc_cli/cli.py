@@ -119,10 +119,12 @@ def schema() -> None:
 
 def _register() -> None:
     from hmpc_cli.cli_plot import plot_command
+    from hmpc_cli.cli_report import report_command
     from hmpc_cli.cli_sweep import sweep_command
 
     app.command("sweep")(sweep_command)
     app.command("plot")(plot_command)
+    app.command("report")(report_command)
 
 
 _register()

@@ -51,16 +51,48 @@ def _fig3(table: Path, out: Optional[Path], formats: str, options: dict) -> None
     typer.echo(f"wrote {', '.join(names)} to {out_dir}")
 
 
+def _robustness(table: Path, out: Optional[Path], formats: str, options: dict) -> None:
+    """Draws the robustness curves, prints the cell table and the written files."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from hmpc_cli.figures.common import FigureInputError, parse_formats, resolve_table
+    from hmpc_cli.figures.robustness import robustness
+
+    out_dir = out if out is not None else resolve_table(table).parent
+    try:
+        data = robustness(table, out_dir, formats, **options)
+    except FigureInputError as exc:
+        _fail(str(exc))
+    t = Table(title="success rate per cell (Wilson 95 % interval)")
+    for col in (options["panel_axis"], options["series_axis"], options["x_axis"], "runs",
+                "success", "95 % interval"):
+        t.add_column(col, justify="right")
+    for c in data:
+        lo, hi = c.interval
+        t.add_row(c.panel, c.series, f"{c.x:g}", str(c.runs),
+                  f"{100 * c.rate:.0f} %", f"{100 * lo:.0f}-{100 * hi:.0f} %")
+    Console().print(t)
+    names = [f"robustness.{f}" for f in parse_formats(formats)] + ["robustness_table.csv"]
+    typer.echo(f"wrote {', '.join(names)} to {out_dir}")
+
+
 def plot_command(
-    figure: Annotated[str, typer.Argument(help="figure to draw: fig3")],
+    figure: Annotated[str, typer.Argument(help="figure to draw: fig3 or robustness")],
     table: Annotated[Path, typer.Argument(
         help="sweep table (results.csv, or the sweep directory holding it)")],
     out: Annotated[Optional[Path], typer.Option(
         "--out", help="output directory (default: the table's directory)")] = None,
     formats: Annotated[str, typer.Option(
         "--formats", help="comma-separated output formats: pdf,svg,png")] = "pdf,svg,png",
-    panel_axis: Annotated[str, typer.Option(
-        "--panel-axis", help="table column with one panel per value")] = "controller",
+    panel_axis: Annotated[Optional[str], typer.Option(
+        "--panel-axis", help="table column with one panel per value (fig3: controller, "
+        "robustness: disturbance.magnitude)")] = None,
+    x_axis: Annotated[str, typer.Option(
+        "--x-axis", help="robustness: numeric column on the x axis")] = "mpc.rate_hz",
+    series_axis: Annotated[str, typer.Option(
+        "--series-axis", help="robustness: column with one line per value")
+    ] = "replanning.policy",
     trace_axis: Annotated[str, typer.Option(
         "--trace-axis", help="table column naming the trajectories of a panel")] = "disturbance",
     nominal: Annotated[str, typer.Option(
@@ -68,7 +100,8 @@ def plot_command(
     panels: Annotated[Optional[str], typer.Option(
         "--panels", help='panels in order, e.g. "10 Hz fixed,20 Hz fixed" (default: all)')] = None,
     width: Annotated[float, typer.Option("--width", help="figure width (in)")] = 7.16,
-    height: Annotated[float, typer.Option("--height", help="figure height (in)")] = 2.5,
+    height: Annotated[Optional[float], typer.Option(
+        "--height", help="figure height (in; fig3 2.5, robustness 1.9)")] = None,
     view: Annotated[Optional[str], typer.Option(
         "--view", help='axis limits "x0,x1,y0,y1" (default: from the data)')] = None,
 ) -> None:
@@ -77,6 +110,11 @@ def plot_command(
 
     if figure not in FIGURES:
         _fail(f"unknown figure {figure!r} (choose from {', '.join(FIGURES)})")
+    if figure == "robustness":
+        _robustness(table, out, formats, {
+            "x_axis": x_axis, "series_axis": series_axis, "width": width,
+            "panel_axis": panel_axis or "disturbance.magnitude", "height": height or 1.9})
+        return
     chosen = [p.strip() for p in panels.split(",") if p.strip()] if panels is not None else None
     if chosen == []:
         _fail("--panels is empty")
@@ -86,6 +124,7 @@ def plot_command(
             limits = [float(v) for v in view.split(",")]
         except ValueError:
             _fail(f"--view must be four numbers x0,x1,y0,y1, got {view!r}")
-    options = {"panel_axis": panel_axis, "trace_axis": trace_axis, "nominal": nominal,
-               "panels": chosen, "width": width, "height": height, "view": limits}
+    options = {"panel_axis": panel_axis or "controller", "trace_axis": trace_axis,
+               "nominal": nominal, "panels": chosen, "width": width, "height": height or 2.5,
+               "view": limits}
     _fig3(table, out, formats, options)

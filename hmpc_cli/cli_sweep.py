@@ -29,15 +29,18 @@ def sweep_command(
     ] = None,
     dry_run: Annotated[bool, typer.Option(
         "--dry-run", help="validate and list the runs, run nothing")] = False,
+    seeds: Annotated[Optional[int], typer.Option(
+        "--seeds", help="run only the sweep's first N seeds (the rest resume later)")
+    ] = None,
 ) -> None:
     """Run a grid of scenario overrides x seeds in parallel; resumable; one results table."""
     import os
 
     from hmpc_cli.scenario import ScenarioError
-    from hmpc_cli.sweep import plan_sweep
+    from hmpc_cli.sweep import first_seeds, plan_sweep
 
     try:
-        plan = plan_sweep(sweep_file)
+        plan = first_seeds(plan_sweep(sweep_file), seeds)
     except ScenarioError as exc:
         _err(exc.lines)
         raise typer.Exit(EXIT_BAD_INPUT) from None

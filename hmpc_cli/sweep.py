@@ -11,6 +11,7 @@ worker processes or on a Dask cluster, and ``<out>/results.csv`` is rebuilt from
 from __future__ import annotations
 
 import csv
+import dataclasses
 import hashlib
 import io
 import itertools
@@ -258,6 +259,18 @@ def plan_sweep(path: str | Path) -> SweepPlan:
         raise ScenarioError(list(dict.fromkeys(errors)))
     keys = sorted({k for r in runs for k in r.overrides})
     return SweepPlan(path, text, spec, scenario, axes, runs, keys)
+
+
+def first_seeds(plan: SweepPlan, n: int | None) -> SweepPlan:
+    """The plan cut to its first ``n`` seeds (None: as is). Run ids ignore the seed list,
+    so the whole sweep later skips these runs. Raises ScenarioError unless 1 <= n <= seeds."""
+    seeds = plan.spec.seeds
+    if n is not None and not 1 <= n <= len(seeds):
+        raise ScenarioError([f"{plan.path}: --seeds {n}: the sweep has {len(seeds)} seed(s); "
+                             f"choose 1..{len(seeds)}"])
+    keep = set(seeds[:n]) if n is not None else None
+    return plan if keep is None else dataclasses.replace(
+        plan, runs=[r for r in plan.runs if r.seed in keep])
 
 
 def _bad_keys(src: str, items: list[tuple[str, Any, str]]) -> list[str]:

@@ -39,3 +39,5 @@ def test_readme_commands_run_in_order(tmp_path):
         assert proc.returncode == 0, (cmd, proc.stderr[-3000:])
         assert proc.stdout.strip(), cmd
     assert (tmp_path / "fig3" / "fig3.pdf").is_file()
+    page = (tmp_path / "results" / "README.md").read_text()
+    assert "| 10 Hz fixed |" in page and (tmp_path / "results" / "report" / "fig3.png").is_file()

@@ -1,0 +1,74 @@
+"""``hmpc report``: run the paper's sweeps (resumably), draw their figures, write the page."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130
+
+
+def report_command(
+    results: Annotated[Path, typer.Option(
+        "--results", help="results directory (page: <results>/README.md)")] = Path("results"),
+    fig3: Annotated[Optional[Path], typer.Option(
+        "--fig3", help="Figure 3 sweep file ('' to leave out)")] = Path("sweeps/fig3.toml"),
+    fig3_extra: Annotated[Optional[Path], typer.Option(
+        "--fig3-extra", help="extra Figure 3 panel sweep (100 Hz; '' to leave out)")
+    ] = Path("sweeps/fig3_100hz.toml"),
+    robustness: Annotated[Optional[Path], typer.Option(
+        "--robustness", help="robustness study sweep file ('' to leave out)")
+    ] = Path("sweeps/robustness.toml"),
+    run: Annotated[bool, typer.Option(
+        "--run/--no-run", help="run unfinished sweep runs first (finished ones are skipped)")
+    ] = True,
+    workers: Annotated[Optional[int], typer.Option(
+        "--workers", min=1, help="worker processes (default: all cores)")] = None,
+    seeds: Annotated[Optional[int], typer.Option(
+        "--seeds", help="robustness study: only its first N seeds (resume later with more)")
+    ] = None,
+) -> None:
+    """Regenerate the results page: Figure 3 beside the paper's counts, robustness curves."""
+    import os
+
+    from hmpc_cli.cli_sweep import _execute, _print_cells
+    from hmpc_cli.figures.common import FigureInputError
+    from hmpc_cli.report import ReportInputs, write_report
+    from hmpc_cli.scenario import ScenarioError
+    from hmpc_cli.sweep import first_seeds, plan_sweep
+
+    files = {"fig3": fig3, "fig3_extra": fig3_extra, "robustness": robustness}
+    plans = {}
+    for key, path in files.items():
+        if path is None or str(path) in ("", "."):
+            continue
+        try:
+            plans[key] = plan_sweep(path)
+            if key == "robustness":
+                plans[key] = first_seeds(plans[key], seeds)
+        except ScenarioError as exc:
+            for line in exc.lines:
+                typer.echo(f"error: {line}", err=True)
+            raise typer.Exit(EXIT_BAD_INPUT) from None
+    if not plans:
+        typer.echo("error: no sweep to report (all of --fig3, --fig3-extra, --robustness are "
+                   "empty)", err=True)
+        raise typer.Exit(EXIT_BAD_INPUT)
+    dirs = {k: results / "sweeps" / p.spec.name for k, p in plans.items()}
+    if run:
+        for key, plan in plans.items():
+            outcome = _execute(plan, dirs[key], workers or os.cpu_count() or 1, None)
+            _print_cells(plan, dirs[key])
+            if outcome.interrupted:
+                typer.echo("interrupted: run the same command again to resume", err=True)
+                raise typer.Exit(EXIT_INTERRUPTED)
+    inputs = ReportInputs(dirs.get("fig3"), dirs.get("fig3_extra"), dirs.get("robustness"))
+    try:
+        page = write_report(results, inputs, "hmpc report")
+    except FigureInputError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(EXIT_BAD_INPUT) from None
+    typer.echo(f"wrote {page} and {results / 'report'}/")

@@ -1,0 +1,183 @@
+"""The robustness study: success rate versus MPC rate, per replanning policy and disturbance size.
+
+Drawn from a sweep table (results.csv) only: every finished run is one Bernoulli trial
+(success by the scenario's criterion; a crashed or diverged run counts as a failure). Each
+cell (x value, series, panel) gets its success rate with a Wilson score interval.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+from hmpc_cli.figures.common import (
+    TEXT_WIDTH_IN, FigureInputError, ieee_rc, parse_bool, parse_formats, read_table,
+    resolve_table, save_figure)
+
+__all__ = ["Cell", "cells", "robustness", "wilson"]
+
+Z95 = 1.959963984540054  # standard normal 97.5 % quantile
+SERIES_STYLE = ({"color": "#1f4e8c", "marker": "o", "linestyle": "-"},
+                {"color": "#d2691e", "marker": "s", "linestyle": "--"},
+                {"color": "#2e8b57", "marker": "^", "linestyle": ":"},
+                {"color": "#7b3f99", "marker": "D", "linestyle": "-."})
+
+
+def wilson(k: int, n: int, z: float = Z95) -> tuple[float, float]:
+    """Wilson score interval (lo, hi) of a binomial proportion with k successes in n trials."""
+    if n <= 0:
+        return (0.0, 1.0)
+    p = k / n
+    denom = 1.0 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1.0 - p) / n + z * z / (4 * n * n)) / denom
+    lo = 0.0 if k == 0 else max(0.0, centre - half)  # exact ends (no round-off past p)
+    hi = 1.0 if k == n else min(1.0, centre + half)
+    return (lo, hi)
+
+
+@dataclass(frozen=True)
+class Cell:
+    """Success statistics of one (x, series, panel) cell over its seeds."""
+
+    panel: str
+    series: str
+    x: float
+    runs: int
+    successes: int
+
+    @property
+    def rate(self) -> float:
+        return self.successes / self.runs if self.runs else math.nan
+
+    @property
+    def interval(self) -> tuple[float, float]:
+        return wilson(self.successes, self.runs)
+
+
+def _number(text: str, where: str) -> float:
+    try:
+        v = float(text)
+    except (TypeError, ValueError):
+        raise FigureInputError(f"{where}: expected a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise FigureInputError(f"{where}: expected a finite number, got {text!r}")
+    return v
+
+
+def _order(values: list[str]) -> list[str]:
+    """Numeric order when every value is a number, else order of first appearance."""
+    try:
+        return sorted(values, key=float)
+    except ValueError:
+        return values
+
+
+def cells(table: str | Path, x_axis: str, series_axis: str, panel_axis: str) -> list[Cell]:
+    """Pools the table's runs into cells, ordered by panel, series, x."""
+    path = resolve_table(table)
+    rows = read_table(path, [x_axis, series_axis, panel_axis, "success"])
+    counts: dict[tuple[str, str, float], list[int]] = {}
+    panels: list[str] = []
+    series: list[str] = []
+    for i, row in enumerate(rows, start=2):
+        where = f"{path}:{i}"
+        x = _number(row[x_axis], f"{where}: column {x_axis}")
+        ok = parse_bool(row["success"], f"{where}: column success")
+        key = (row[panel_axis], row[series_axis], x)
+        panels += [key[0]] if key[0] not in panels else []
+        series += [key[1]] if key[1] not in series else []
+        c = counts.setdefault(key, [0, 0])
+        c[0] += 1
+        c[1] += ok
+    out = []
+    for p in _order(panels):
+        for s in series:
+            for x in sorted({k[2] for k in counts if k[0] == p and k[1] == s}):
+                n, k = counts[(p, s, x)]
+                out.append(Cell(p, s, x, n, k))
+    return out
+
+
+def _write_table(path: Path, data: list[Cell], names: tuple[str, str, str]) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow([*names, "runs", "successes", "success_rate", "wilson95_lo", "wilson95_hi"])
+        for c in data:
+            lo, hi = c.interval
+            w.writerow([c.panel, c.series, f"{c.x:g}", c.runs, c.successes,
+                        f"{c.rate:.4f}", f"{lo:.4f}", f"{hi:.4f}"])
+    tmp.replace(path)
+
+
+#: axis labels of the bundled study's columns (others: the key's last part)
+AXIS_LABELS = {"mpc.rate_hz": "MPC rate [Hz]", "replanning.policy": "replanning",
+               "disturbance.magnitude": "disturbance"}
+
+
+def _axis_label(axis: str) -> str:
+    return AXIS_LABELS.get(axis, axis.rsplit(".", 1)[-1].replace("_", " "))
+
+
+def _panel_title(axis: str, value: str) -> str:
+    if axis == "disturbance.magnitude":
+        return f"$|w_i| \\leq {float(value):g}$"
+    return f"{_axis_label(axis)} {value}"
+
+
+def robustness(table: str | Path, out_dir: str | Path | None = None,
+               formats: str | Sequence[str] = "pdf,svg,png", *,
+               x_axis: str = "mpc.rate_hz", series_axis: str = "replanning.policy",
+               panel_axis: str = "disturbance.magnitude", width: float = TEXT_WIDTH_IN,
+               height: float = 1.9) -> list[Cell]:
+    """Draws success rate vs ``x_axis`` (log scale) with Wilson 95 % intervals.
+
+    One panel per ``panel_axis`` value, one line per ``series_axis`` value. Writes
+    ``robustness.<fmt>`` and ``robustness_table.csv`` to ``out_dir`` (default: the
+    table's directory) and returns the cells.
+    """
+    fmts = parse_formats(formats)
+    data = cells(table, x_axis, series_axis, panel_axis)
+    out = Path(out_dir) if out_dir is not None else resolve_table(table).parent
+    out.mkdir(parents=True, exist_ok=True)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = list(dict.fromkeys(c.panel for c in data))
+    series = list(dict.fromkeys(c.series for c in data))
+    xs = sorted({c.x for c in data})
+    with plt.rc_context(ieee_rc()):
+        fig, axes = plt.subplots(1, len(panels), figsize=(width, height), sharey=True,
+                                 squeeze=False)
+        for ax, p in zip(axes[0], panels):
+            for j, s in enumerate(series):
+                sel = [c for c in data if c.panel == p and c.series == s]
+                lo = [c.rate - c.interval[0] for c in sel]
+                hi = [c.interval[1] - c.rate for c in sel]
+                style = SERIES_STYLE[j % len(SERIES_STYLE)]
+                dodge = 1.06 ** (j - (len(series) - 1) / 2)  # keep the bars apart (log x)
+                ax.errorbar([c.x * dodge for c in sel], [c.rate for c in sel], yerr=[lo, hi],
+                            capsize=1.5, elinewidth=0.6, markersize=2.5, label=s, **style)
+            n = sorted({c.runs for c in data if c.panel == p})
+            runs = f"{n[0]}" if len(n) == 1 else f"{n[0]}-{n[-1]}"
+            ax.set_title(f"{_panel_title(panel_axis, p)}  (n = {runs})")
+            ax.set_xscale("log")
+            ax.set_xticks(xs)
+            ax.set_xticklabels([f"{x:g}" for x in xs])
+            ax.minorticks_off()
+            ax.set_ylim(-0.03, 1.03)
+            ax.set_xlabel(_axis_label(x_axis))
+            ax.grid(True, linewidth=0.3, alpha=0.5)
+        axes[0][0].set_ylabel("success rate (Wilson 95 %)")
+        axes[0][-1].legend(loc="lower right", title=_axis_label(series_axis))
+        fig.tight_layout(pad=0.3, w_pad=0.4)
+        save_figure(fig, out, "robustness", fmts)
+        plt.close(fig)
+    _write_table(out / "robustness_table.csv", data, (panel_axis, series_axis, x_axis))
+    return data

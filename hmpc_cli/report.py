@@ -1,0 +1,163 @@
+"""The results page: Figure 3 with its counts beside the paper's, and the robustness study.
+
+Reads finished sweeps only (their results.csv and logs), draws the figures into
+``<results>/report/`` and writes ``<results>/README.md``. Running the sweeps is the
+caller's job (``hmpc report`` does it first, resumably).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from hmpc_cli.figures.common import FigureInputError, read_table, resolve_table
+
+__all__ = ["ReportInputs", "write_report"]
+
+#: the reference code's counts (README of the reference data): panel -> (stable, runs)
+REFERENCE = {"10 Hz fixed": "9/11", "20 Hz fixed": "11/11", "10 Hz replan": "11/11",
+             "100 Hz fixed": "4/11 (node-shifting artefact)"}
+
+
+@dataclass(frozen=True)
+class ReportInputs:
+    """Sweep directories feeding the page (None: that section is left out)."""
+
+    fig3: Path | None
+    fig3_extra: Path | None
+    robustness: Path | None
+
+
+def _rel(path: Path, base: Path) -> str:
+    try:
+        return path.resolve().relative_to(base.resolve()).as_posix()
+    except ValueError:
+        return path.resolve().as_posix()
+
+
+def _fig3_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]:
+    from hmpc_cli.figures.fig3 import fig3
+
+    counts = fig3(inputs.fig3, fig_dir, "pdf,svg,png")
+    extra = {}
+    if inputs.fig3_extra is not None:
+        extra = fig3(inputs.fig3_extra, fig_dir / "fig3_extra", "png")
+    lines = ["## Figure 3: the bouncing ball under the paper's 10 disturbances", "",
+             f"![Figure 3]({_rel(fig_dir / 'fig3.png', base)})", "",
+             f"PDF: [{_rel(fig_dir / 'fig3.pdf', base)}]({_rel(fig_dir / 'fig3.pdf', base)}). "
+             "Orange: the undisturbed run; red circles: failed end points (success = within 1 "
+             "of (3, 3) at t = 3 s).", "",
+             "| controller | stable (ours) | stable (paper / reference code) | failed trials |",
+             "| --- | --- | --- | --- |"]
+    for c in [*counts.values(), *extra.values()]:
+        lines.append(f"| {c.label} | {c.successes}/{c.runs} | {REFERENCE.get(c.label, '-')} | "
+                     f"{', '.join(c.failed) or '-'} |")
+    if extra:
+        lines += ["", f"The 100 Hz panel: [{_rel(fig_dir / 'fig3_extra' / 'fig3.png', base)}]"
+                  f"({_rel(fig_dir / 'fig3_extra' / 'fig3.png', base)})."]
+    return lines + [""]
+
+
+def _pivot(cells) -> list[str]:
+    xs = sorted({c.x for c in cells})
+    head = "| disturbance | policy | " + " | ".join(f"{x:g} Hz" for x in xs) + " |"
+    lines = [head, "| --- | --- | " + " | ".join("---" for _ in xs) + " |"]
+    rows: dict[tuple[str, str], dict[float, object]] = {}
+    for c in cells:
+        rows.setdefault((c.panel, c.series), {})[c.x] = c
+    for (panel, series), by_x in rows.items():
+        parts = []
+        for x in xs:
+            c = by_x.get(x)
+            if c is None:
+                parts.append("-")
+                continue
+            lo, hi = c.interval
+            parts.append(f"{c.successes}/{c.runs} ({100 * lo:.0f}-{100 * hi:.0f} %)")
+        lines.append(f"| ±{panel} | {series} | " + " | ".join(parts) + " |")
+    return lines
+
+
+def _findings(cells) -> list[str]:
+    """Plain statements computed from the cells (interval overlap = not resolved)."""
+    out = []
+    panels = list(dict.fromkeys(c.panel for c in cells))
+    series = list(dict.fromkeys(c.series for c in cells))
+    for p in panels:
+        for s in series:
+            sel = sorted((c for c in cells if c.panel == p and c.series == s), key=lambda c: c.x)
+            if len(sel) < 2:
+                continue
+            lo, hi = sel[0], sel[-1]
+            sep = lo.interval[1] < hi.interval[0] or hi.interval[1] < lo.interval[0]
+            verdict = ("higher than" if hi.rate > lo.rate else "lower than"
+                       if hi.rate < lo.rate else "the same as")
+            out.append(f"- ±{p}, {s}: {hi.x:g} Hz is {verdict} {lo.x:g} Hz "
+                       f"({100 * hi.rate:.0f} % vs {100 * lo.rate:.0f} %; "
+                       f"{'intervals separate' if sep else 'intervals overlap'}).")
+        if len(series) == 2:
+            a, b = series
+            diffs = []
+            for x in sorted({c.x for c in cells if c.panel == p}):
+                ca = [c for c in cells if c.panel == p and c.series == a and c.x == x]
+                cb = [c for c in cells if c.panel == p and c.series == b and c.x == x]
+                if ca and cb:
+                    diffs.append(cb[0].rate - ca[0].rate)
+            if diffs:
+                mean = sum(diffs) / len(diffs)
+                out.append(f"- ±{p}: {b} minus {a}, mean over rates: "
+                           f"{100 * mean:+.0f} percentage points.")
+    return out
+
+
+def _robustness_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]:
+    from hmpc_cli.figures.robustness import robustness
+
+    table = resolve_table(inputs.robustness)
+    rows = read_table(table, ["seed"])
+    cells = robustness(table, fig_dir, "pdf,svg,png")
+    seeds = len({r["seed"] for r in rows})
+    n = sorted({c.runs for c in cells})
+    lines = ["## Robustness study: success rate vs MPC rate", "",
+             f"![robustness]({_rel(fig_dir / 'robustness.png', base)})", "",
+             f"{len(rows)} finished runs, {seeds} seeds, {n[0]}"
+             f"{'' if len(n) == 1 else f'-{n[-1]}'} runs per cell; uniform box disturbance "
+             "per axis, held 0.05 s; Wilson 95 % intervals. Table: "
+             f"[{_rel(fig_dir / 'robustness_table.csv', base)}]"
+             f"({_rel(fig_dir / 'robustness_table.csv', base)}).", "", *_pivot(cells), "",
+             "Computed findings (a claim holds only where the intervals separate):", "",
+             *_findings(cells), ""]
+    return lines
+
+
+def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
+    """Draws the figures into ``results/report`` and writes ``results/README.md``.
+
+    Raises:
+        FigureInputError: a sweep table or log is missing or malformed.
+    """
+    results = Path(results)
+    fig_dir = results / "report"
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    lines = ["# hmpc results", "",
+             f"Generated by `{command}` from recorded runs (the sweeps' results.csv and MCAP "
+             "logs); regenerate with the same command. Run outputs live beside this page and "
+             "are not tracked by git, apart from this page and `report/`.", ""]
+    if inputs.fig3 is not None:
+        lines += _fig3_section(inputs, fig_dir, results)
+    if inputs.robustness is not None:
+        lines += _robustness_section(inputs, fig_dir, results)
+    if inputs.fig3 is None and inputs.robustness is None:
+        raise FigureInputError("nothing to report: no Figure 3 and no robustness sweep")
+    lines += ["## Layout", "",
+              "* `<scenario>/<UTC time>-seed<N>/`: one `hmpc run` (`run.mcap`, `summary.json`, "
+              "`scenario.toml`).",
+              "* `sweeps/<name>/`: one `hmpc sweep` (`runs/<run id>/`, `results.csv`).",
+              "* `report/`: the figures and tables of this page.", "",
+              "Open an MCAP log in Foxglove or Lichtblick, or read it in Python with "
+              "`hmpc_cli.recorder.read_log(path)`.", ""]
+    page = results / "README.md"
+    tmp = page.with_name(".README.md.tmp")
+    tmp.write_text("\n".join(lines), encoding="utf-8")
+    tmp.replace(page)
+    return page

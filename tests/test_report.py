@@ -1,0 +1,157 @@
+"""Robustness curves (Wilson intervals) and the results page (``hmpc report``)."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import pytest
+
+from conftest import BALL, REPO
+from hmpc_cli.figures.common import FigureInputError
+from hmpc_cli.figures.robustness import cells, robustness, wilson
+from hmpc_cli.report import ReportInputs, write_report
+
+COLUMNS = ["run_id", "seed", "mpc.rate_hz", "replanning.policy", "disturbance.magnitude",
+           "success", "log"]
+# (rate, policy, magnitude) -> successes out of 10 seeds
+TRUTH = {(5, "once", 10.0): 3, (50, "once", 10.0): 10, (5, "on_contact", 10.0): 7,
+         (50, "on_contact", 10.0): 10, (5, "once", 30.0): 0, (50, "once", 30.0): 2,
+         (5, "on_contact", 30.0): 1, (50, "on_contact", 30.0): 5}
+
+
+def write_study(path: Path, truth=TRUTH, seeds: int = 10) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(COLUMNS)
+        for i, ((rate, policy, mag), k) in enumerate(truth.items()):
+            for s in range(seeds):
+                w.writerow([f"{i}-{s}", s, rate, policy, mag, "true" if s < k else "false", ""])
+    return path
+
+
+@pytest.mark.parametrize("k,n,lo,hi", [(0, 10, 0.0, 0.2775), (5, 10, 0.2366, 0.7634),
+                                       (10, 10, 0.7225, 1.0), (1, 100, 0.0018, 0.0545)])
+def test_wilson_interval_known_values(k, n, lo, hi):
+    got = wilson(k, n)
+    assert got == pytest.approx((lo, hi), abs=1e-4)
+
+
+def test_wilson_interval_contains_the_estimate_and_shrinks_with_n():
+    for n in (1, 7, 50, 400):
+        for k in range(0, n + 1, max(1, n // 7)):
+            lo, hi = wilson(k, n)
+            assert 0.0 <= lo <= k / n <= hi <= 1.0
+    assert (lambda a, b: a[1] - a[0] > b[1] - b[0])(wilson(5, 10), wilson(50, 100))
+
+
+def test_cells_pool_seeds_per_rate_policy_and_magnitude(tmp_path):
+    data = cells(write_study(tmp_path / "results.csv"), "mpc.rate_hz", "replanning.policy",
+                 "disturbance.magnitude")
+    assert len(data) == len(TRUTH)
+    for c in data:
+        assert c.runs == 10
+        assert c.successes == TRUTH[(int(c.x), c.series, float(c.panel))]
+    # panels in numeric order, rates ascending within a series
+    assert [c.panel for c in data][:4] == ["10.0"] * 4
+    assert [c.x for c in data if c.panel == "10.0" and c.series == "once"] == [5.0, 50.0]
+
+
+def test_robustness_figure_is_deterministic_and_tabled(tmp_path):
+    table = write_study(tmp_path / "results.csv")
+    robustness(table, tmp_path / "a", "png,svg,pdf")
+    robustness(table, tmp_path / "b", "png,svg,pdf")
+    for name in ("robustness.png", "robustness.svg", "robustness.pdf", "robustness_table.csv"):
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
+    rows = list(csv.DictReader(open(tmp_path / "a" / "robustness_table.csv")))
+    row = next(r for r in rows if r["replanning.policy"] == "once" and r["mpc.rate_hz"] == "5"
+               and r["disturbance.magnitude"] == "10.0")
+    assert (row["runs"], row["successes"]) == ("10", "3")
+    assert float(row["wilson95_lo"]) == pytest.approx(wilson(3, 10)[0], abs=1e-4)
+
+
+def test_robustness_bad_tables_are_clear_errors(tmp_path):
+    with pytest.raises(FigureInputError, match="no such table"):
+        robustness(tmp_path / "missing.csv", tmp_path)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("run_id,success\n1,true\n")
+    with pytest.raises(FigureInputError, match="missing column"):
+        robustness(bad, tmp_path)
+    nonnum = tmp_path / "nonnum.csv"
+    nonnum.write_text(",".join(COLUMNS) + "\n1,0,fast,once,10.0,true,\n")
+    with pytest.raises(FigureInputError, match="expected a number"):
+        robustness(nonnum, tmp_path)
+    assert not (tmp_path / "robustness.png").exists()
+
+
+def test_report_page_tables_the_study(tmp_path):
+    write_study(tmp_path / "results" / "sweeps" / "robustness" / "results.csv")
+    page = write_report(tmp_path / "results",
+                        ReportInputs(None, None, tmp_path / "results" / "sweeps" / "robustness"),
+                        "hmpc report")
+    text = page.read_text()
+    assert "![robustness](report/robustness.png)" in text
+    assert (tmp_path / "results" / "report" / "robustness.png").is_file()
+    lo, hi = wilson(3, 10)
+    assert f"| ±10.0 | once | 3/10 ({100 * lo:.0f}-{100 * hi:.0f} %) |" in text
+    # 50 Hz beats 5 Hz with separate intervals only where the data say so
+    assert "±10.0, once: 50 Hz is higher than 5 Hz (100 % vs 30 %; intervals separate)" in text
+    assert "±30.0, once: 50 Hz is higher than 5 Hz (20 % vs 0 %; intervals overlap)" in text
+
+
+def test_report_command_runs_a_tiny_study_then_writes_the_page(tmp_path, run_hmpc):
+    sweep = tmp_path / "tiny_study.toml"
+    sweep.write_text(f"""name = "tiny_study"
+scenario = "{BALL.as_posix()}"
+seeds = 2
+[set]
+"disturbance.kind" = "box"
+"sim.duration" = 0.3
+"mpc.horizon" = 1.0
+"planner.iterations" = 4
+"planner.samples" = 10
+"planner.knots" = 10
+[grid]
+"mpc.rate_hz" = [10, 20]
+"replanning.policy" = ["once", "on_contact"]
+"disturbance.magnitude" = [5.0]
+""")
+    res = tmp_path / "results"
+    args = ["report", "--results", str(res), "--fig3", "", "--fig3-extra", "",
+            "--robustness", str(sweep), "--workers", "1"]
+    proc = run_hmpc(args, tmp_path, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    rows = list(csv.DictReader(open(res / "report" / "robustness_table.csv")))
+    assert len(rows) == 4 and all(r["runs"] == "2" for r in rows)
+    page = (res / "README.md").read_text()
+    assert "8 finished runs, 2 seeds" in page
+    # rerun: every run is skipped (resume), the page is rewritten identically
+    again = run_hmpc(args, tmp_path, timeout=600)
+    assert again.returncode == 0 and "8 skipped" in again.stdout
+    assert (res / "README.md").read_text() == page
+
+
+def test_report_without_results_is_a_clear_error(tmp_path, run_hmpc):
+    proc = run_hmpc(["report", "--no-run", "--results", str(tmp_path / "r"),
+                     "--fig3", str(REPO / "sweeps" / "fig3.toml"), "--fig3-extra", "",
+                     "--robustness", ""], tmp_path)
+    assert proc.returncode == 2
+    assert "error:" in proc.stderr and "Traceback" not in proc.stderr
+    bad = run_hmpc(["report", "--no-run", "--fig3", str(tmp_path / "nope.toml")], tmp_path)
+    assert bad.returncode == 2 and "nope.toml" in bad.stderr
+
+
+def test_first_seeds_is_a_resumable_prefix_of_the_study():
+    from hmpc_cli.scenario import ScenarioError
+    from hmpc_cli.sweep import first_seeds, plan_sweep
+
+    full = plan_sweep(REPO / "sweeps" / "robustness.toml")
+    assert len(full.runs) == 5 * 2 * 5 * 100
+    part = first_seeds(full, 3)
+    assert len(part.runs) == 5 * 2 * 5 * 3 and {r.seed for r in part.runs} == {0, 1, 2}
+    assert {r.run_id for r in part.runs} <= {r.run_id for r in full.runs}
+    assert first_seeds(full, None) is full
+    for bad in (0, 101):
+        with pytest.raises(ScenarioError, match="the sweep has 100 seed"):
+            first_seeds(full, bad)
