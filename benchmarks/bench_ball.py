@@ -47,6 +47,7 @@ def cem_plan_times(repeats: int) -> np.ndarray:
     sc, _ = load_scenario(SCENARIO)
     system = build_system(sc.system)
     planner = CrossEntropyPlanner(system, sc.planner)
+    print(f"CEM rollout backend: {planner.backend}")
     out = []
     for i in range(repeats):
         start = time.perf_counter()

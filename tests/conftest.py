@@ -12,6 +12,12 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+# compiled rollout kernels of this test session go to a private cache (inherited by the
+# ``hmpc`` subprocesses), never to the user's ~/.cache/hmpc
+if "HMPC_CACHE_DIR" not in os.environ:
+    import tempfile
+
+    os.environ["HMPC_CACHE_DIR"] = tempfile.mkdtemp(prefix="hmpc-test-cache-")
 SCENARIOS = REPO / "scenarios"
 BALL = SCENARIOS / "ball.toml"
 

@@ -6,11 +6,17 @@ exact event location as the plant, no disturbance, step ``1 / rollout_rate_hz``)
 keeps the elite. The domain/guard sequence and durations of the best rollout are the
 schedule. Reference parameters by default: 50 samples plus the current mean, 1 elite,
 15 iterations, initial mean -20, covariance 250 I never adapted.
+
+Rollouts and the best sample's recorded trajectory run in compiled C
+(:mod:`hmpc_cli.planner.rollout_c`, same guard logic, same numbers) when a C compiler is
+available, else with the NumPy simulator, which is also the reference.
 """
 
 from __future__ import annotations
 
 import time
+import warnings
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
@@ -18,6 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.messages import ModeSchedule, PlannerResult, Trajectory
 from hmpc_cli.numeric import compile_numpy
+from hmpc_cli.planner.rollout_c import CRollout, RolloutBuildError
 from hmpc_cli.sim import HybridSimulator
 
 UNREACHED_PENALTY = 1e4
@@ -40,6 +47,9 @@ class CEMSettings(BaseModel):
     rollout_rate_hz: int = Field(60, gt=0, description="rollout integration rate [Hz]")
     warm_start: bool = Field(False, description="start from the previous best, shifted")
     seed: int = Field(0, ge=0, description="base seed (the run seed is mixed in)")
+    rollout_backend: Literal["auto", "c", "numpy"] = Field(
+        "auto", description="rollout code: compiled C, NumPy, or auto (C if it builds, "
+                            "else NumPy with a warning)")
 
     @field_validator("elites")
     @classmethod
@@ -51,7 +61,14 @@ class CEMSettings(BaseModel):
 
 
 class CrossEntropyPlanner:
-    """Plans a mode schedule from a hybrid state by the cross-entropy method."""
+    """Plans a mode schedule from a hybrid state by the cross-entropy method.
+
+    Attributes:
+        backend: "c" or "numpy", the rollout implementation in use.
+
+    Raises:
+        RolloutBuildError: ``rollout_backend="c"`` and the C rollout cannot be built.
+    """
 
     def __init__(self, system: HybridSystem, settings: CEMSettings, run_seed: int = 0):
         self.system = system
@@ -63,21 +80,52 @@ class CrossEntropyPlanner:
         self.n_steps = int(round(settings.horizon * settings.rollout_rate_hz))
         self.t_knots = np.linspace(0.0, settings.horizon, settings.knots)
         self.t_steps = np.arange(self.n_steps) * self.dt
+        k = np.searchsorted(self.t_knots, self.t_steps, side="right") - 1
+        self._knot = np.clip(k, 0, len(self.t_knots) - 2)  # left knot of each step
+        k = self._knot
+        a = (self.t_steps - self.t_knots[k]) / (self.t_knots[k + 1] - self.t_knots[k])
+        self._weight = a[None, :, None]  # weight of the right knot
         self.run_seed = run_seed
         self._previous: np.ndarray | None = None
         self._previous_t = 0.0
+        self.backend, self._c = "numpy", None
+        if settings.rollout_backend != "numpy":
+            try:
+                self._c = CRollout(system, self.sim.max_events, self.sim.time_tol)
+                self.backend = "c"
+            except RolloutBuildError as e:
+                if settings.rollout_backend == "c":
+                    raise
+                first = (str(e).splitlines() or [""])[0]
+                warnings.warn(f"C rollouts unavailable, using NumPy: {first}", RuntimeWarning,
+                              stacklevel=2)
 
     def _inputs(self, knots: np.ndarray) -> np.ndarray:
         """Knot values (B, knots, m) -> step inputs (B, n_steps, m), linear interpolation."""
-        k = np.searchsorted(self.t_knots, self.t_steps, side="right") - 1
-        k = np.clip(k, 0, len(self.t_knots) - 2)
-        a = ((self.t_steps - self.t_knots[k]) / (self.t_knots[k + 1] - self.t_knots[k]))
-        a = a[None, :, None]
-        return (1.0 - a) * knots[:, k, :] + a * knots[:, k + 1, :]
+        k, a = self._knot, self._weight
+        knots = np.asarray(knots, dtype=float)
+        out = np.take(knots, k, axis=1)  # (1 - a) * left + a * right, in place
+        out *= 1.0 - a
+        right = np.take(knots, k + 1, axis=1)
+        right *= a
+        out += right
+        return out
 
     def rollout_cost(self, x0: np.ndarray, mode0: int, knots: np.ndarray,
                      bound: float = np.inf):
         """Costs (B,) and final-domain flags (B,) of knot sequences (B, knots, m).
+
+        Runs in C if ``backend == "c"``, else :meth:`rollout_cost_numpy`; both give the
+        same numbers bit for bit (the C kernel keeps NumPy's batch semantics).
+        """
+        if self._c is None:
+            return self.rollout_cost_numpy(x0, mode0, knots, bound)
+        return self._c.cost(np.asarray(x0, dtype=float), mode0, self._inputs(knots), self.dt,
+                            self.final_mode, bound, UNREACHED_PENALTY)
+
+    def rollout_cost_numpy(self, x0: np.ndarray, mode0: int, knots: np.ndarray,
+                           bound: float = np.inf):
+        """Costs (B,) and final-domain flags (B,) of knot sequences (B, knots, m), NumPy.
 
         The final domain is absorbing: a rollout that enters it stops there and accrues
         the stage cost of its entry state (zero input) for the rest of the horizon; one
@@ -151,31 +199,48 @@ class CrossEntropyPlanner:
     def trajectory(self, x0: np.ndarray, mode0: int, knots: np.ndarray) -> Trajectory:
         """The recorded rollout of one knot sequence (resets appear as two nodes)."""
         u = self._inputs(knots[None])[0]
-        x, mode = x0[None, :].astype(float), np.array([mode0])
-        w = np.zeros((1, self.system.n_w))
-        ts, xs, us, ms, segs, guards = [0.0], [x[0].copy()], [], [mode0], [0], []
-        for k in range(self.n_steps):
-            u_k = self.sim.num.saturate(mode, u[k][None])[0]
-            res = self.sim.step(x, mode, u[k][None], w, self.dt, raise_zeno=False)
-            for e in res.events:
-                guards.append(e.guard)
-                for state, mode_e in ((e.x_before, ms[-1]), (e.x_after, self.sim.num.target[e.guard])):
+        if self._c is not None:
+            steps = self._c.trajectory(x0, mode0, u, self.dt, self.final_mode)
+        else:
+            steps = self._steps_numpy(x0, mode0, u)
+        num = self.sim.num
+        ts, xs, us = [0.0], [np.asarray(x0, dtype=float).copy()], []
+        ms, segs, guards = [mode0], [0], []
+        mode = mode0
+        for k, (x, mode_next, events) in enumerate(steps):
+            u_k = num.saturate(np.array([mode]), u[k][None])[0]
+            for tau, g, before, after in events:
+                guards.append(g)
+                for state, mode_e in ((before, ms[-1]), (after, num.target[g])):
                     us.append(u_k)
-                    ts.append(k * self.dt + e.tau)
+                    ts.append(k * self.dt + tau)
                     xs.append(state)
                     ms.append(int(mode_e))
-                    segs.append(len(guards) - (state is e.x_before))
+                    segs.append(len(guards) - (state is before))
             us.append(u_k)
-            x, mode = res.x, res.mode
             ts.append((k + 1) * self.dt)
-            xs.append(x[0].copy())
-            ms.append(int(mode[0]))
+            xs.append(x)
+            ms.append(mode_next)
             segs.append(len(guards))
-            if res.zeno.any() or not np.all(np.isfinite(x)) or mode[0] == self.final_mode:
-                break
+            mode = mode_next
         us.append(us[-1])
         return Trajectory(np.array(ts), np.array(xs), np.array(us), np.array(ms),
                           np.array(segs), tuple(guards))
+
+    def _steps_numpy(self, x0: np.ndarray, mode0: int, u: np.ndarray) -> list[tuple]:
+        """Steps of one sample with inputs u (n_steps, m) until Zeno, a non-finite state or
+        the final mode: per step (x after, mode after, events (tau, guard, before, after))."""
+        x, mode = x0[None, :].astype(float), np.array([mode0])
+        w = np.zeros((1, self.system.n_w))
+        steps = []
+        for k in range(self.n_steps):
+            res = self.sim.step(x, mode, u[k][None], w, self.dt, raise_zeno=False)
+            x, mode = res.x, res.mode
+            steps.append((x[0].copy(), int(mode[0]),
+                          [(e.tau, e.guard, e.x_before, e.x_after) for e in res.events]))
+            if res.zeno.any() or not np.all(np.isfinite(x)) or mode[0] == self.final_mode:
+                break
+        return steps
 
 
 def schedule_from(traj: Trajectory) -> ModeSchedule:
