@@ -41,10 +41,10 @@ def run(
     except ScenarioError as exc:
         _err(exc.lines)
         raise typer.Exit(EXIT_BAD_INPUT) from None
-    from hmpc_cli.loop import LayeredLoop
+    from hmpc_cli.loop import make_loop
 
     try:
-        loop = LayeredLoop(sc, recorder=None)
+        loop = make_loop(sc, recorder=None)
     except ValueError as exc:
         _err([f"{scenario}: {exc}"])
         raise typer.Exit(EXIT_BAD_INPUT) from None

@@ -1,91 +1,48 @@
-"""Composition root: builds the layers from a scenario and runs the multi-rate loop.
+"""The ball's controller stack: CEM hybrid planner, fixed-mode MPC, node shifting.
 
-Every simulator step: low-level command from the current plan, one hybrid simulator step
-(events located exactly, resets applied, disturbance held). After the step: each guard
-event advances the schedule (node shifting on impact), may trigger the planner (policy
+After each simulator step (see :class:`hmpc_cli.loop_core.LoopCore`): each guard event
+advances the schedule (node shifting on impact), may trigger the planner (policy
 ``on_contact``) and a re-solve; every MPC period the elapsed nodes are shifted and the MPC
-re-solved. Simulated time pauses while controllers compute; their wall time is recorded.
+re-solved; policy ``periodic`` replans every ``replanning.period``.
 """
 
 from __future__ import annotations
 
-import platform
-import sys
-import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from hmpc_cli import __version__
-from hmpc_cli.disturbance import make_disturbance
-from hmpc_cli.logschema import TOPICS
-from hmpc_cli.lowlevel import LowLevelController
-from hmpc_cli.messages import Plan, PlannerResult
+from hmpc_cli.loop_core import LoopCore, RunResult, versions
+from hmpc_cli.messages import PlannerResult
 from hmpc_cli.mpc.controller import FixedModeMPC
 from hmpc_cli.mpc.layout import NodeSchedule
 from hmpc_cli.planner.cem import CrossEntropyPlanner
 from hmpc_cli.scenario import Scenario
-from hmpc_cli.sim import HybridSimulator, ZenoError
+from hmpc_cli.sim import Event
 from hmpc_cli.systems import build_system
 
-
-@dataclass
-class RunResult:
-    """Outcome of one closed-loop run (what summary.json holds)."""
-
-    scenario: str
-    seed: int
-    success: bool = False
-    final_error: float = float("nan")
-    t_end: float = 0.0
-    x_end: list = field(default_factory=list)
-    mode_end: str = ""
-    contacts: int = 0
-    contacts_by_guard: dict = field(default_factory=dict)
-    solves: int = 0
-    solver_failures: int = 0
-    failure_statuses: dict = field(default_factory=dict)
-    solve_time_median: float = float("nan")
-    solve_time_p95: float = float("nan")
-    solve_time_max: float = float("nan")
-    planner_calls: int = 0
-    planner_rejected: int = 0
-    plan_time_median: float = float("nan")
-    diverged: bool = False
-    reason: str = ""
-    wall_time: float = 0.0
+__all__ = ["LayeredLoop", "RunResult", "make_loop", "versions"]
 
 
-def versions() -> dict[str, str]:
-    """Versions of everything that can change a trajectory."""
-    import casadi
-    import mcap
-    import pydantic
+def make_loop(scenario: Scenario, recorder, mpc=None) -> LoopCore:
+    """The closed loop of the scenario's system (ball: :class:`LayeredLoop`, biped:
+    :class:`hmpc_cli.loop_walking.WalkingLoop`); ``mpc``: a prebuilt controller to reuse."""
+    if scenario.system.name == "biped":
+        from hmpc_cli.loop_walking import WalkingLoop
 
-    return {"hmpc": __version__, "python": sys.version.split()[0], "numpy": np.__version__,
-            "casadi": casadi.__version__, "pydantic": pydantic.__version__,
-            "mcap": getattr(mcap, "__version__", "?"), "platform": platform.platform()}
+        return WalkingLoop(scenario, recorder, mpc=mpc)
+    return LayeredLoop(scenario, recorder, mpc=mpc)
 
 
-class LayeredLoop:
-    """The three layers around the simulator, logging into a recorder."""
+class LayeredLoop(LoopCore):
+    """The three layers of the paper around the simulator, for mode-schedule systems."""
 
     def __init__(self, scenario: Scenario, recorder, progress: Callable | None = None,
                  mpc: FixedModeMPC | None = None) -> None:
-        sc = self.sc = scenario
-        self.system = build_system(sc.system)
-        self.sim = HybridSimulator(self.system, sc.sim.max_events_per_step,
-                                   sc.sim.event_time_tol)
+        sc = scenario
+        super().__init__(sc, recorder, build_system(sc.system), progress=progress)
         self.planner = CrossEntropyPlanner(self.system, sc.planner, run_seed=sc.seed)
         self.mpc = mpc or FixedModeMPC(self.system, sc.mpc)
-        self.lowlevel = LowLevelController(self.system, sc.lowlevel)
-        self.dist = make_disturbance(
-            sc.disturbance.kind, n_w=self.system.n_w, duration=sc.sim.duration,
-            magnitude=sc.disturbance.magnitude, hold=sc.disturbance.hold, seed=sc.seed,
-            trial=sc.disturbance.trial)
-        self.rec = recorder
-        self.progress = progress
         self.final_mode = self.system.mode_index(self.system.final_mode)
         names = sc.replanning.contact_guards
         if names is None:
@@ -96,25 +53,16 @@ class LayeredLoop:
             if unknown:
                 raise ValueError(f"replanning.contact_guards: unknown guards {sorted(unknown)}")
             self.contact_guards = {self.system.guard_index(n) for n in names}
-        self.res = RunResult(sc.name, sc.seed)
-        self.solve_times: list[float] = []
-        self.plan_times: list[float] = []
-        self.plan: Plan | None = None
         self.has_schedule = False
+        h = 1.0 / sc.sim.rate_hz
+        self._h = h
+        self._per_solve = sc.sim.rate_hz // sc.mpc.rate_hz
+        self._per_replan = int(round(sc.replanning.period * sc.sim.rate_hz))
+        self._since_solve = 0
+        self._step_state()
 
-    # -------------------------------------------------------------- logging
-    def _open_log(self) -> None:
-        for topic, (schema_name, schema) in TOPICS.items():
-            self.rec.add_topic(topic, schema_name, schema)
-        sysm = self.system
-        info = {"scenario_name": self.sc.name, "seed": self.sc.seed, "versions": versions(),
-                "scenario": self.sc.model_dump(mode="json"),
-                "state_names": list(sysm.state_names), "input_names": list(sysm.input_names),
-                "mode_names": [m.name for m in sysm.modes],
-                "guard_names": [g.name for g in sysm.guards]}
-        self.rec.write("/run/info", 0.0, info)
-        self.rec.add_metadata("run", {"scenario": self.sc.name, "seed": str(self.sc.seed),
-                                      **{f"version.{k}": v for k, v in versions().items()}})
+    def _step_state(self) -> None:
+        self._need_replan, self._impact, self._shifted_by_impact = False, False, False
 
     def _schedule_dict(self) -> dict | None:
         ns = self.mpc.node_schedule if self.has_schedule else None
@@ -154,19 +102,8 @@ class LayeredLoop:
         if not self.has_schedule:
             return
         plan = self.mpc.solve(t, x)
-        st = plan.stats
-        self.res.solves += 1
-        self.solve_times.append(st.wall_time)
-        if not st.success:
-            self.res.solver_failures += 1
-            self.res.failure_statuses[st.status] = self.res.failure_statuses.get(st.status, 0) + 1
-        self.plan = plan  # on failure: the shifted previous solution
-        self.rec.write("/mpc/solve", t, {
-            "t": t, "reason": reason, "status": st.status, "success": st.success,
-            "iterations": st.iterations, "wall_time": st.wall_time, "cost": st.cost,
-            "max_violation": st.max_violation, "shifted": shifted,
-            "schedule": self._schedule_dict(), "t_plan": plan.traj.t + t,
-            "x_plan": plan.traj.x, "u_plan": plan.traj.u, "seg_plan": plan.traj.seg})
+        self.record_solve(t, plan, reason, {"shifted": shifted,
+                                            "schedule": self._schedule_dict()})
 
     def _advance_schedule(self, guard: int, mode_after: int) -> tuple[bool, bool, bool]:
         """Updates the node schedule after a real event.
@@ -192,115 +129,49 @@ class LayeredLoop:
             return False, True, False
         return False, False, True
 
-    # ---------------------------------------------------------------- run
-    def run(self) -> RunResult:
-        """Runs the scenario to its duration (or divergence); always closes cleanly."""
-        sc, sysm = self.sc, self.system
-        start = time.perf_counter()
-        self._open_log()
-        h = 1.0 / sc.sim.rate_hz
-        n_steps = int(round(sc.sim.duration * sc.sim.rate_hz))
-        per_solve = sc.sim.rate_hz // sc.mpc.rate_hz
-        per_log = sc.sim.rate_hz // sc.sim.log_rate_hz
-        per_replan = int(round(sc.replanning.period * sc.sim.rate_hz))
-        node_dt = self.mpc.nlp.dt
-        x = np.array(sysm.x0, dtype=float)
-        mode = sysm.mode_index(sysm.initial_mode)
+    # ------------------------------------------------------------ hooks
+    def start(self, x: np.ndarray, mode: int) -> None:
         if mode == self.final_mode:
             self.mpc.set_schedule(NodeSchedule((mode,), (), (self.mpc.nlp.N,)))
             self.has_schedule = True
         else:
             self._replan(0.0, x, mode, "initial")
         self._solve(0.0, x, "initial", 0)
-        since_solve, last_w, t = 0, None, 0.0
-        for i in range(n_steps):
-            t = i * h
-            w = self.dist(t)
-            u, x_ref = self.lowlevel.command(t, x, self.plan)
-            u = sysm.numeric.saturate(np.array([mode]), u[None])[0]
-            if i % per_log == 0:
-                self.rec.write("/sim/state", t, {"t": t, "x": x, "mode": mode, "u": u,
-                                                 "x_ref": x_ref, "w": w})
-            if last_w is None or not np.array_equal(w, last_w):
-                self.rec.write("/disturbance", t, {"t": t, "w": w})
-                last_w = w
-            try:
-                step = self.sim.step(x[None], np.array([mode]), u[None], w[None], h)
-            except ZenoError as exc:
-                self._fail(t, f"zeno: {exc}")
-                break
-            x, mode = step.x[0], int(step.mode[0])
-            t = (i + 1) * h
-            need_replan, impact, shifted_by_impact = False, False, False
-            for ev in step.events:
-                g = sysm.guards[ev.guard]
-                scheduled, dropped, forced = self._advance_schedule(
-                    ev.guard, int(self.sim.num.target[ev.guard]))
-                shifted_by_impact |= dropped
-                self.res.contacts += 1
-                self.res.contacts_by_guard[g.name] = self.res.contacts_by_guard.get(g.name, 0) + 1
-                self.rec.write("/sim/event", i * h + ev.tau, {
-                    "t": i * h + ev.tau, "guard": ev.guard, "guard_name": g.name,
-                    "mode_before": g.source, "mode_after": g.target, "x_before": ev.x_before,
-                    "x_after": ev.x_after, "scheduled": scheduled})
-                impact = True
-                need_replan |= forced or (sc.replanning.policy == "on_contact"
-                                          and ev.guard in self.contact_guards)
-            if not np.all(np.isfinite(x)) or np.max(np.abs(x)) > sc.sim.divergence_bound:
-                self._fail(t, "diverged: non-finite or unbounded state")
-                break
-            since_solve += 1
-            if sc.replanning.policy == "periodic" and (i + 1) % per_replan == 0:
-                need_replan = True
-            if not self.has_schedule and since_solve >= per_solve:
-                need_replan = True  # no accepted schedule yet: retry every MPC period
-            reason = ""
-            if i + 1 == n_steps:  # the run ends here: no more controller work
-                need_replan = False
-            if need_replan:
-                why = "contact" if impact else ("periodic" if self.has_schedule else "retry")
-                self._replan(t, x, mode, why)
-                reason = "replan"
-            elif impact and sc.mpc.resolve_on_impact:
-                reason = "impact"
-            elif since_solve >= per_solve:
-                reason = "period"
-            if reason and i + 1 < n_steps:
-                shifted = 0
-                if self.has_schedule and reason != "replan" and not shifted_by_impact:
-                    shifted = self.mpc.shift(int(round(since_solve * h / node_dt)))
-                self._solve(t, x, reason, shifted)
-                since_solve = 0
-            if self.progress is not None:
-                self.progress(i + 1, n_steps)
-        self.res.t_end = t
-        self.rec.write("/sim/state", t, {"t": t, "x": x, "mode": mode,
-                                         "u": np.zeros(sysm.n_u), "x_ref": x, "w": self.dist(t)})
-        return self._finish(x, mode, start)
 
-    def _fail(self, t: float, reason: str) -> None:
-        self.res.diverged = True
-        self.res.reason = reason
-        self.res.t_end = t
+    def on_event(self, ev: Event) -> bool:
+        scheduled, dropped, forced = self._advance_schedule(
+            ev.guard, int(self.sim.num.target[ev.guard]))
+        self._shifted_by_impact |= dropped
+        self._impact = True
+        self._need_replan |= forced or (self.sc.replanning.policy == "on_contact"
+                                        and ev.guard in self.contact_guards)
+        return scheduled
 
-    def _finish(self, x: np.ndarray, mode: int, start: float) -> RunResult:
-        r, sysm = self.res, self.system
-        r.x_end = [float(v) for v in x]
-        r.mode_end = sysm.modes[mode].name
-        r.final_error = float(sysm.numeric.goal_error(x)) if np.all(np.isfinite(x)) else \
-            float("nan")
-        r.success = (not r.diverged and np.isfinite(r.final_error)
-                     and r.final_error <= sysm.success_radius)
-        if self.solve_times:
-            st = np.array(self.solve_times)
-            r.solve_time_median = float(np.median(st))
-            r.solve_time_p95 = float(np.percentile(st, 95))
-            r.solve_time_max = float(st.max())
-        if self.plan_times:
-            r.plan_time_median = float(np.median(self.plan_times))
-        r.wall_time = time.perf_counter() - start
-        if not r.reason:
-            r.reason = "success" if r.success else \
-                f"final error {r.final_error:.3f} > {sysm.success_radius}"
-        self.rec.write("/run/summary", r.t_end, r.__dict__)
-        return r
+    def after_step(self, i: int, t: float, x: np.ndarray, mode: int, events: list[Event],
+                   last: bool) -> None:
+        sc, h = self.sc, self._h
+        need_replan, impact = self._need_replan, self._impact
+        shifted_by_impact = self._shifted_by_impact
+        self._step_state()
+        self._since_solve += 1
+        if sc.replanning.policy == "periodic" and (i + 1) % self._per_replan == 0:
+            need_replan = True
+        if not self.has_schedule and self._since_solve >= self._per_solve:
+            need_replan = True  # no accepted schedule yet: retry every MPC period
+        if last:  # the run ends here: no more controller work
+            return
+        reason = ""
+        if need_replan:
+            why = "contact" if impact else ("periodic" if self.has_schedule else "retry")
+            self._replan(t, x, mode, why)
+            reason = "replan"
+        elif impact and sc.mpc.resolve_on_impact:
+            reason = "impact"
+        elif self._since_solve >= self._per_solve:
+            reason = "period"
+        if reason:
+            shifted = 0
+            if self.has_schedule and reason != "replan" and not shifted_by_impact:
+                shifted = self.mpc.shift(int(round(self._since_solve * h / self.mpc.nlp.dt)))
+            self._solve(t, x, reason, shifted)
+            self._since_solve = 0

@@ -10,7 +10,7 @@ import json
 from collections.abc import Callable
 from pathlib import Path
 
-from hmpc_cli.loop import LayeredLoop, RunResult
+from hmpc_cli.loop_core import LoopCore, RunResult
 from hmpc_cli.mpc.controller import FixedModeMPC
 from hmpc_cli.mpc.nlp import FixedModeNLP
 from hmpc_cli.recorder import Recorder
@@ -41,7 +41,7 @@ def jsonable(value):
     return value
 
 
-def execute_run(loop: LayeredLoop, toml_text: str, out: Path,
+def execute_run(loop: LoopCore, toml_text: str, out: Path,
                 progress: Callable[[int, int], None] | None = None) -> RunResult:
     """Runs ``loop`` into directory ``out``; the log is closed and the summary written
     even when the run is interrupted (KeyboardInterrupt propagates after that)."""

@@ -313,7 +313,7 @@ def run_one(toml_text: str, run_dir: str) -> dict:
     ``error.txt`` holds the traceback. Runs in one process are serialized (IPOPT is not
     thread-safe); NLPs are cached per process (:func:`hmpc_cli.runner.cached_mpc`).
     """
-    from hmpc_cli.loop import LayeredLoop, RunResult
+    from hmpc_cli.loop import RunResult, make_loop
     from hmpc_cli.runner import cached_mpc, execute_run, jsonable
 
     out = Path(run_dir)
@@ -323,7 +323,7 @@ def run_one(toml_text: str, run_dir: str) -> dict:
         loop, sc = None, None
         try:
             sc = Scenario.model_validate(tomllib.loads(toml_text))
-            loop = LayeredLoop(sc, None, mpc=cached_mpc(sc))
+            loop = make_loop(sc, None, mpc=cached_mpc(sc))
             execute_run(loop, toml_text, out, _check_stop if _STOP is not None else None)
         except Exception as exc:  # noqa: BLE001 - a failed run is a result
             res = loop.res if loop is not None else RunResult(
