@@ -1,0 +1,226 @@
+"""The biped's fixed-mode walking MPC in closed loop: candidates, shifting, warm starts.
+
+One :class:`WalkingNLP` (see :mod:`hmpc_cli.mpc.walking_nlp` for the formulation) is
+re-solved per target stair segment ("candidate"). Segment i (0-based, the i-th entry of
+:func:`~hmpc_cli.systems.biped.stair_edges`) is reached through guard ``stair_{i+1}``,
+guard index i of :func:`~hmpc_cli.systems.biped.build_biped`.
+
+Timing: ``elapsed`` is the time already spent in the current swing (since the last
+contact, or since the start of the run). Swing 0 keeps its N nodes and shrinks its node
+step to the remaining time (``WalkingNLP.dt0``); no node moves between swings.
+
+Warm starts, per candidate: after a re-solve in the same swing, the stored solution's
+swing 0 (primal, bound and constraint multipliers) is re-interpolated on the new swing-0
+time grid (multipliers of path rows and bounds scaled by the node-step ratio) and swing 1
+is kept as is; the warm IPOPT instance is used. After a contact (:meth:`on_impact`) the
+executed plan's swing 1 becomes every candidate's swing-0 guess and is repeated as the
+swing-1 guess; with ``impact_duals`` (default) its multipliers move the same way (the
+touchdown and reset rows keep theirs) and the warm IPOPT instance is used, else primal
+only with the cold instance. Without either: the current state held at every node, zero
+accelerations (cold).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from hmpc_cli.messages import ModeSchedule, Plan, SolveStats, Trajectory
+from hmpc_cli.mpc.walking_nlp import NX, ROWS, WalkingMPCSettings, WalkingNLP
+from hmpc_cli.systems.biped import BipedParams, stair_edges
+
+__all__ = ["WalkingMPC", "WalkingMPCSettings", "WalkingNLP"]
+
+
+@dataclass
+class _Memory:
+    """A stored solution: primal w, multipliers (None: primal only), swing 0's node 0
+    (x0[:10] = (q, qd) is used) and the elapsed swing time it was solved for [s]."""
+
+    w: np.ndarray
+    lam_x: np.ndarray | None
+    lam_g: np.ndarray | None
+    x0: np.ndarray
+    elapsed: float
+
+
+class WalkingMPC:
+    """Two-swing walking MPC over stair-segment candidates, re-solved with warm starts.
+
+    Usage: :meth:`solve` (every period, for the chosen segment, or for every candidate
+    at a contact), :meth:`on_impact` right after each contact, before solving again.
+    """
+
+    def __init__(self, params: BipedParams, settings: WalkingMPCSettings | None = None,
+                 nlp: WalkingNLP | None = None) -> None:
+        self.params = params
+        self.s = settings or WalkingMPCSettings()
+        self.nlp = nlp or WalkingNLP(params, self.s)
+        self.segments = stair_edges(params)
+        self._memory: dict[int, _Memory] = {}
+        self._template: _Memory | None = None
+
+    # ---------------------------------------------------------------- memory
+    def reset(self) -> None:
+        """Forgets every stored solution (next solves start cold)."""
+        self._memory.clear()
+        self._template = None
+
+    def on_impact(self, segment: int | None) -> None:
+        """A contact ended the swing whose plan targeted ``segment`` (None: unknown).
+
+        Every candidate of the new swing starts from that plan's swing 1.
+        """
+        old = self._memory.get(segment) if segment is not None else None
+        self._memory.clear()
+        self._template = None
+        if old is None:
+            return
+        nlp = self.nlp
+        w = self._repeat_swing1(old.w)
+        w[nlp.x_idx[1, 0]] = old.w[nlp.x_idx[1, 0]]
+        lam_x = lam_g = None
+        if self.s.impact_duals and old.lam_x is not None and old.lam_g is not None:
+            lam_x = self._repeat_swing1(old.lam_x)
+            lam_g = old.lam_g.copy()
+            n = nlp.N * ROWS
+            lam_g[:n] = old.lam_g[nlp.row(1, 0):nlp.row(1, 0) + n]
+            lam_g[nlp.lift_row] = 0.0
+        self._template = _Memory(w, lam_x, lam_g, old.w[nlp.x_idx[1, 0]], 0.0)
+
+    def _repeat_swing1(self, v: np.ndarray) -> np.ndarray:
+        """v with swing 1's node and interval entries copied onto both swings."""
+        nlp = self.nlp
+        out = v.copy()
+        for j in range(2):
+            out[nlp.x_idx[j, 1:]] = v[nlp.x_idx[1, 1:]]
+            out[nlp.a_idx[j]] = v[nlp.a_idx[1]]
+        return out
+
+    def _hold(self, x0: np.ndarray) -> np.ndarray:
+        w = np.zeros(self.nlp.nw)
+        for j in range(2):
+            for k in range(self.nlp.N + 1):
+                if self.nlp.x_idx[j, k, 0] >= 0:
+                    w[self.nlp.x_idx[j, k]] = x0[:NX]
+        return w
+
+    def _shifted(self, mem: _Memory, elapsed: float):
+        """mem re-interpolated on the swing-0 grid of ``elapsed`` (see module docstring)."""
+        nlp, N = self.nlp, self.nlp.N
+        t_old = mem.elapsed + np.arange(N + 1) * nlp.dt0(mem.elapsed)
+        t_new = elapsed + np.arange(N + 1) * nlp.dt0(elapsed)
+        ratio = nlp.dt0(elapsed) / nlp.dt0(mem.elapsed)
+
+        def interp(values: np.ndarray, t_from: np.ndarray, t_to: np.ndarray) -> np.ndarray:
+            return np.column_stack([np.interp(t_to, t_from, values[:, i])
+                                    for i in range(values.shape[1])])
+
+        w = mem.w.copy()
+        xs = np.vstack([mem.x0[:NX], mem.w[nlp.x_idx[0, 1:]]])
+        w[nlp.x_idx[0, 1:]] = interp(xs, t_old, t_new)[1:]
+        w[nlp.a_idx[0]] = interp(mem.w[nlp.a_idx[0]], t_old[:N], t_new[:N])
+        if mem.lam_x is None or mem.lam_g is None:
+            return w, None, None
+        lx = mem.lam_x.copy()
+        lxs = mem.lam_x[nlp.x_idx[0, 1:]]
+        lx[nlp.x_idx[0, 1:]] = ratio * interp(np.vstack([lxs[:1], lxs]), t_old, t_new)[1:]
+        lx[nlp.a_idx[0]] = interp(mem.lam_x[nlp.a_idx[0]], t_old[:N], t_new[:N])
+        lg = mem.lam_g.copy()
+        rows = np.arange(N * ROWS).reshape(N, ROWS)
+        block = interp(mem.lam_g[rows], t_old[:N], t_new[:N])
+        block[:, NX:] *= ratio
+        lg[rows] = block
+        return w, lx, lg
+
+    # ---------------------------------------------------------------- solve
+    def solve(self, t: float, x0: np.ndarray, segment: int, elapsed: float = 0.0) -> Plan:
+        """Plans two swings from x0, the first landing on stair segment ``segment``.
+
+        Args:
+            t: simulated time of x0 [s] (the plan's t0).
+            x0: state (q, qd, p_st), shape (12,).
+            segment: target segment index (0-based, = guard index of ``stair_{i+1}``).
+            elapsed: time already spent in the current swing [s].
+
+        Returns:
+            The plan; ``stats.success`` False on any solver failure or a segment too
+            short for the margin (never raises for those). ``extra``: segment, elapsed, warm ("primal-dual", "primal" or
+            "cold"), touchdown (x, y) and final_hip (x, y) in the world [m].
+
+        Raises:
+            IndexError: no such segment.
+        """
+        if not 0 <= segment < len(self.segments):
+            raise IndexError(f"segment {segment} outside 0..{len(self.segments) - 1}")
+        nlp = self.nlp
+        x0 = np.asarray(x0, dtype=float).reshape(-1)
+        p, lbx, ubx, lbg, ubg = nlp.problem_data(x0, self.segments[segment], elapsed)
+        lam_x = lam_g = None
+        mem = self._memory.get(segment) if self.s.warm_start else None
+        if mem is not None:
+            w0, lam_x, lam_g = self._shifted(mem, elapsed)
+            kind = "primal-dual" if lam_g is not None else "primal"
+        elif self.s.warm_start and self._template is not None:
+            w0, lam_x, lam_g = self._template.w.copy(), self._template.lam_x, \
+                self._template.lam_g
+            kind = "primal-dual" if lam_g is not None else "primal"
+        else:
+            w0, kind = self._hold(x0), "cold"
+        start = time.perf_counter()
+        try:
+            if not np.all(np.isfinite(x0)):
+                raise ValueError("non-finite initial state")
+            a, b, _ = self.segments[segment]
+            if b - a < 2 * self.s.segment_margin:
+                raise ValueError(f"segment {segment} ({b - a:g} m) is shorter than twice "
+                                 f"segment_margin ({self.s.segment_margin:g} m)")
+            sol, status, iters, ok = nlp.solve(w0, p, lbx, ubx, lbg, ubg, lam_x, lam_g)
+            w = np.asarray(sol["x"]).ravel()
+            finite = bool(np.all(np.isfinite(w)))
+            cost = float(sol["f"]) if finite else np.nan
+            viol = nlp.violation(w, p, lbx, ubx, lbg, ubg) if finite else np.inf
+            ok = ok and finite
+        except (RuntimeError, ValueError) as exc:  # CasADi raises on NaN evaluations
+            lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+            status = "error: " + (lines[-1] if lines else type(exc).__name__)[:160]
+            w, cost, iters, ok, viol, finite = w0, np.nan, 0, False, np.inf, False
+        wall = time.perf_counter() - start
+        if ok:
+            self._memory[segment] = _Memory(w, np.asarray(sol["lam_x"]).ravel(),
+                                            np.asarray(sol["lam_g"]).ravel(), x0, elapsed)
+        else:
+            self._memory.pop(segment, None)
+        stats = SolveStats(status, bool(ok), int(iters), wall, cost, float(viol))
+        traj = self.trajectory(w if finite else w0, p, segment)
+        remaining = nlp.N * nlp.dt0(elapsed)
+        model = nlp.model
+        td = np.asarray(model.swing_foot_world(traj.x[nlp.N])).ravel()
+        hip = np.asarray(model.hip_world(traj.x[-1])).ravel()
+        extra = {"segment": segment, "elapsed": float(elapsed), "warm": kind,
+                 "touchdown": tuple(float(v) for v in td),
+                 "final_hip": tuple(float(v) for v in hip)}
+        return Plan(t, traj, stats, ModeSchedule((0, 0), (segment,), (remaining,)), extra)
+
+    def solve_candidates(self, t: float, x0: np.ndarray, segments, elapsed: float = 0.0
+                         ) -> list[Plan]:
+        """:meth:`solve` for every segment in ``segments`` (in order)."""
+        return [self.solve(t, x0, i, elapsed) for i in segments]
+
+    # ------------------------------------------------------------- trajectory
+    def trajectory(self, w: np.ndarray, p: np.ndarray, segment: int) -> Trajectory:
+        """The plan at primal point w: 2 (N + 1) nodes, the touchdown as a node pair.
+
+        Times relative to t0; x rows (q, qd, p_st); u rows the inverse-dynamics torques
+        of the interval starting at each node (the last node of a swing repeats the
+        previous one); seg 0 up to the pre-impact node, 1 from the post-reset node.
+        """
+        nlp, N = self.nlp, self.nlp.N
+        xs, us = nlp.states_inputs(w, p)
+        dt0 = float(p[12])
+        t = np.r_[np.arange(N + 1) * dt0, N * dt0 + np.arange(N + 1) * self.s.dt]
+        u = np.vstack([us[:N], us[N - 1:N], us[N:], us[-1:]])
+        seg = np.r_[np.zeros(N + 1, dtype=int), np.ones(N + 1, dtype=int)]
+        return Trajectory(t, xs, u, np.zeros(2 * N + 2, dtype=int), seg, (segment,))

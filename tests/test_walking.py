@@ -1,0 +1,226 @@
+"""The biped's walking MPC (two swings, inverse dynamics) and the foothold candidates."""
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from hmpc_cli.lowlevel import LowLevelController, LowLevelSettings
+from hmpc_cli.messages import ModeSchedule, Plan, SolveStats, Trajectory
+from hmpc_cli.mpc.walking import WalkingMPC, WalkingMPCSettings
+from hmpc_cli.planner.footholds import FootholdSettings, candidates, choose
+from hmpc_cli.systems.biped import BipedParams, Stair, build_biped, stair_edges
+
+P = BipedParams()
+SEGMENT = 1  # the 1.0 m segment (guard stair_2)
+TOL = 1e-6
+
+
+def arr(v) -> np.ndarray:
+    return np.asarray(v, dtype=float).ravel()
+
+
+@pytest.fixture(scope="module")
+def mpc() -> WalkingMPC:
+    return WalkingMPC(P, WalkingMPCSettings())
+
+
+@pytest.fixture(scope="module")
+def plan(mpc) -> Plan:
+    return mpc.solve(0.0, build_biped(P).x0, SEGMENT, 0.0)
+
+
+def terrain_under(x: float) -> float:
+    """Highest true (unsmoothed) terrain height at x [m] (edges count both sides)."""
+    heights = [P.ground_height] if x <= 0.0 else []
+    heights += [h for a, b, h in stair_edges(P) if a <= x <= b]
+    return max(heights)
+
+
+# ------------------------------------------------------------ the fixed-mode plan
+
+
+def test_plan_from_the_reference_state_solves(plan, mpc):
+    st = plan.stats
+    assert st.success, st.status
+    assert st.max_violation <= TOL
+    assert np.isfinite(st.cost) and st.iterations > 0 and st.wall_time > 0.0
+    tr, n = plan.traj, mpc.nlp.N
+    assert tr.x.shape == (2 * n + 2, 12) and tr.u.shape == (2 * n + 2, 5)
+    assert tr.guards == (SEGMENT,) and plan.schedule.guards == (SEGMENT,)
+    assert list(tr.seg) == [0] * (n + 1) + [1] * (n + 1)
+    assert (tr.mode == 0).all()
+    assert tr.t[n] == tr.t[n + 1] == pytest.approx(WalkingMPCSettings().swing_time)
+    assert np.all(np.diff(tr.t) >= 0.0)
+    assert tr.x[0] == pytest.approx(build_biped(P).x0, abs=1e-12)
+
+
+def test_plan_satisfies_every_constraint_recomputed_from_the_trajectory(plan, mpc):
+    s, m, n = mpc.s, mpc.nlp.model, mpc.nlp.N
+    tr = plan.traj
+    umax = P.torque_limit - s.torque_margin
+    start, end, height = stair_edges(P)[SEGMENT]
+    for j in range(2):
+        rows = np.arange(n + 1) + j * (n + 1)
+        t, x, u = tr.t[rows], tr.x[rows], tr.u[rows]
+        for k in range(n):
+            dt = t[k + 1] - t[k]
+            q, qd, qn, qdn = x[k, :5], x[k, 5:10], x[k + 1, :5], x[k + 1, 5:10]
+            a = (qdn - qd) / dt
+            # semi-implicit Euler and the inverse-dynamics torque
+            assert np.abs(qn - q - dt * qdn).max() <= TOL
+            assert arr(m.inverse_dynamics(q, qd, a, 0)) == pytest.approx(u[k], abs=1e-5)
+            assert np.abs(u[k]).max() <= umax + TOL
+            assert (x[k + 1, 10:] == x[0, 10:]).all()  # stance foot fixed in a swing
+        for k in range(1, n + 1):
+            knee_y = np.asarray(m.points(x[k, :5]))[1, [1, 4]]  # stance, swing knee
+            assert knee_y.min() >= s.knee_clearance - TOL
+        for k in range(n + 1):
+            assert np.abs(x[k, 5:10]).max() <= P.rate_limit + TOL
+            assert P.stance_knee_range[0] - TOL <= x[k, 1] <= P.stance_knee_range[1] + TOL
+            assert P.torso_range[0] - TOL <= x[k, 2] <= P.torso_range[1] + TOL
+            if j == 0 and k == n:
+                continue
+            fx, fy = arr(m.swing_foot_world(x[k]))
+            assert fy >= terrain_under(fx) - TOL, (j, k, fx, fy)
+        apex = s.apex_node
+        fx, fy = arr(m.swing_foot_world(x[apex]))
+        assert fy >= terrain_under(fx) + s.apex_clearance - TOL
+    # touchdown: the virtual pass-through node, then the reset map
+    fx, fy = arr(m.swing_foot_world(tr.x[n]))
+    assert fy == pytest.approx(height - s.touchdown_depth, abs=TOL)
+    assert start + s.segment_margin - TOL <= fx <= end - s.segment_margin + TOL
+    assert tr.x[n + 1] == pytest.approx(arr(m.reset(tr.x[n])), abs=TOL)
+    assert plan.extra["touchdown"] == pytest.approx((fx, fy))
+    assert plan.extra["final_hip"] == pytest.approx(arr(m.hip_world(tr.x[-1])))
+    # the robot moves towards the goal
+    assert plan.extra["final_hip"][0] > arr(m.hip_world(tr.x[0]))[0] + 0.5
+
+
+def test_low_level_tracks_the_first_swing_only(plan, mpc):
+    ll = LowLevelController(build_biped(P), LowLevelSettings(kp=700.0, kd=10.0))
+    n = mpc.nlp.N
+    x_ref, u_ff = ll.reference(0.0, plan)
+    assert x_ref == pytest.approx(plan.traj.x[0]) and u_ff == pytest.approx(plan.traj.u[0])
+    x_ref, u_ff = ll.reference(plan.traj.t[-1], plan)
+    assert x_ref == pytest.approx(plan.traj.x[n])  # holds the pre-impact node
+
+
+def test_warm_resolve_after_a_shift_needs_fewer_iterations(plan, mpc):
+    k = 8
+    t, x = float(plan.traj.t[k]), plan.traj.x[k]
+    warm = mpc.solve(t, x, SEGMENT, elapsed=t)
+    cold = WalkingMPC(P, mpc.s, nlp=mpc.nlp).solve(t, x, SEGMENT, elapsed=t)
+    assert warm.stats.success and cold.stats.success
+    assert warm.extra["warm"] == "primal-dual" and cold.extra["warm"] == "cold"
+    assert warm.stats.iterations < cold.stats.iterations
+    assert warm.stats.cost == pytest.approx(cold.stats.cost, rel=1e-4)
+    assert warm.traj.t[mpc.nlp.N] == pytest.approx(mpc.s.swing_time - t)
+
+
+def test_next_swing_after_touchdown_starts_from_the_executed_plan(plan, mpc):
+    n = mpc.nlp.N
+    x_post = plan.traj.x[n + 1]
+    cold = WalkingMPC(P, mpc.s, nlp=mpc.nlp).solve(0.3, x_post, SEGMENT, 0.0)
+    mpc.solve(0.0, build_biped(P).x0, SEGMENT, 0.0)
+    mpc.on_impact(SEGMENT)
+    nxt = mpc.solve(0.3, x_post, SEGMENT, 0.0)
+    assert nxt.stats.success and cold.stats.success
+    assert nxt.extra["warm"] == "primal-dual"
+    assert nxt.stats.iterations < cold.stats.iterations
+    assert nxt.extra["touchdown"][0] > plan.extra["touchdown"][0] + 0.2
+    # liftoff: the new swing foot (old stance foot) accelerates upwards at once
+    m = mpc.nlp.model
+    x0 = nxt.traj.x[0]
+    qdd = arr(m.forward_dynamics(x0[:5], x0[5:10], nxt.traj.u[0], 0))
+    jdot_qd = (arr(m.swing_foot_velocity(x0[:5] + 1e-7 * x0[5:10], x0[5:10]))
+               - arr(m.swing_foot_velocity(x0[:5] - 1e-7 * x0[5:10], x0[5:10]))) / 2e-7
+    acc = np.asarray(m.swing_foot_jacobian(x0[:5])) @ qdd + jdot_qd
+    assert acc[1] >= mpc.s.liftoff_accel - 1e-3
+
+
+# ----------------------------------------------------------------- failures
+
+
+def test_failures_are_reported_not_raised():
+    mpc = WalkingMPC(P, WalkingMPCSettings(max_iter=1, segment_margin=0.11))
+    out = mpc.solve(0.0, build_biped(P).x0, 3, 0.0)  # the top stair, 1.6 m away
+    assert not out.stats.success
+    assert out.stats.status == "Maximum_Iterations_Exceeded"
+    assert out.stats.max_violation > 1e-3
+    assert out.traj.x.shape == (2 * mpc.nlp.N + 2, 12)
+    assert mpc._memory == {}  # nothing to warm-start from
+    short = mpc.solve(0.0, build_biped(P).x0, 2, 0.0)  # 0.2 m < 2 x 0.11 m
+    assert not short.stats.success and "shorter than twice" in short.stats.status
+
+
+def test_non_finite_state_fails_cleanly(mpc):
+    x = build_biped(P).x0.copy()
+    x[6] = np.nan
+    out = mpc.solve(0.0, x, SEGMENT, 0.0)
+    assert not out.stats.success and out.stats.status.startswith("error")
+    assert out.stats.max_violation == math.inf
+    with pytest.raises(IndexError):
+        mpc.solve(0.0, build_biped(P).x0, 7, 0.0)
+
+
+def test_settings_reject_unknown_keys_and_a_late_apex():
+    with pytest.raises(ValueError):
+        WalkingMPCSettings(apex_nodee=3)
+    with pytest.raises(ValueError, match="apex_node"):
+        WalkingMPCSettings(apex_node=25)
+
+
+def test_floor_is_the_inflated_terrain(mpc):
+    floor, m = mpc.nlp.floor, mpc.s.terrain_margin
+    assert floor(0.2) == pytest.approx(0.0, abs=1e-9)
+    assert floor(0.9) == pytest.approx(0.075, abs=1e-9)
+    assert floor(0.4 - m - 0.03) == pytest.approx(0.0, abs=1e-3)
+    assert floor(0.4 - m + 0.03) == pytest.approx(0.075, abs=1e-3)
+    assert floor(np.array([0.2, 0.9])) == pytest.approx([0.0, 0.075], abs=1e-9)
+
+
+# ---------------------------------------------------------------- footholds
+
+EDGES = stair_edges(P)  # Figure 4: [0, .4] h 0, [.4, 1.4] .075, [1.4, 1.6] .125, [1.6, 2.85] .175
+
+
+@pytest.mark.parametrize("x, expected", [
+    (0.0, [0, 1]),          # start: the ground segment and the 1.0 m segment
+    (0.716, [1]),           # first touchdown: segment 0 lies behind
+    (1.21, [1, 2, 3]),      # second touchdown: the 0.2 m segment may be skipped
+    (1.66, [3]),            # on the top segment
+    (2.7, [3]),             # near the end
+])
+def test_candidates_on_the_figure_4_course(x, expected):
+    assert candidates(x, EDGES) == expected
+
+
+def test_candidates_reference_rule_and_errors():
+    ref = FootholdSettings(ahead_only=False, include_current=False)
+    assert candidates(0.716, EDGES, ref) == [0, 1]
+    assert candidates(1.21, EDGES, ref) == [1, 2, 3]
+    long = stair_edges(BipedParams(stairs=[Stair(length=3.0, height=0.0),
+                                           Stair(length=1.0, height=0.1)]))
+    assert candidates(1.5, long) == [0]  # the segment under the foot
+    with pytest.raises(ValueError, match="no foothold candidate"):
+        candidates(1.5, long, FootholdSettings(include_current=False))
+    with pytest.raises(ValueError, match="stairs span"):
+        candidates(3.5, EDGES)
+
+
+def _fake(success: bool, hip_x: float, cost: float) -> Plan:
+    tr = Trajectory(np.zeros(1), np.zeros((1, 12)), np.zeros((1, 5)), np.zeros(1, int),
+                    np.zeros(1, int))
+    return Plan(0.0, tr, SolveStats("x", success, 1, 0.0, cost, 0.0),
+                ModeSchedule((0, 0), (0,), (0.3,)), {"final_hip": (hip_x, 0.7)})
+
+
+def test_choose_keeps_the_largest_final_hip_x_among_successes():
+    plans = [_fake(True, 1.0, 5.0), _fake(False, 3.0, 1.0), None, _fake(True, 1.5, 9.0)]
+    assert choose(plans) == 3
+    assert choose(plans, FootholdSettings(criterion="min_cost")) == 0
+    assert choose([_fake(False, 1.0, 1.0), None]) is None
+    assert choose([]) is None
+    assert choose([replace(plans[0]), plans[0]]) == 0  # ties keep the first
