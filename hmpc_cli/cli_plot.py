@@ -51,6 +51,30 @@ def _fig3(table: Path, out: Optional[Path], formats: str, options: dict) -> None
     typer.echo(f"wrote {', '.join(names)} to {out_dir}")
 
 
+def _fig4(log: Path, out: Optional[Path], formats: str, every: float, gif: bool,
+          width: float, height: float) -> None:
+    """Draws Figure 4 (and the GIF) from a biped run log."""
+    from hmpc_cli.figures.common import FigureInputError, parse_formats
+    from hmpc_cli.figures.fig4 import animate_walk, fig4, resolve_run_log
+
+    log = resolve_run_log(log)
+    out_dir = out if out is not None else log.parent
+    try:
+        walk = fig4(log, out_dir, formats, every=every, width=width, height=height)
+        if gif:
+            animate_walk(log, out_dir / "walk.gif")
+    except FigureInputError as exc:
+        _fail(str(exc))
+    for t, guard, fx, fy in walk.contacts:
+        typer.echo(f"contact t = {t:.3f} s  {guard:<8} foot ({fx:.3f}, {fy:.3f}) m")
+    verdict = {True: "success", False: "failed", None: "unfinished"}[walk.success]
+    why = f" ({walk.reason})" if walk.reason not in ("", verdict) else ""
+    typer.echo(f"{verdict}{why}; hip ends at ({walk.hip[-1, 0]:.3f}, "
+               f"{walk.hip[-1, 1]:.3f}) m")
+    names = [f"fig4.{f}" for f in parse_formats(formats)] + (["walk.gif"] if gif else [])
+    typer.echo(f"wrote {', '.join(names)} to {out_dir}")
+
+
 def _robustness(table: Path, out: Optional[Path], formats: str, options: dict) -> None:
     """Draws the robustness curves, prints the cell table and the written files."""
     from rich.console import Console
@@ -78,9 +102,10 @@ def _robustness(table: Path, out: Optional[Path], formats: str, options: dict) -
 
 
 def plot_command(
-    figure: Annotated[str, typer.Argument(help="figure to draw: fig3 or robustness")],
+    figure: Annotated[str, typer.Argument(help="figure to draw: fig3, robustness or fig4")],
     table: Annotated[Path, typer.Argument(
-        help="sweep table (results.csv, or the sweep directory holding it)")],
+        help="fig3, robustness: sweep table (results.csv, or the sweep directory holding "
+        "it); fig4: a biped run log (run.mcap, or the run directory holding it)")],
     out: Annotated[Optional[Path], typer.Option(
         "--out", help="output directory (default: the table's directory)")] = None,
     formats: Annotated[str, typer.Option(
@@ -104,12 +129,19 @@ def plot_command(
         "--height", help="figure height (in; fig3 2.5, robustness 1.9)")] = None,
     view: Annotated[Optional[str], typer.Option(
         "--view", help='axis limits "x0,x1,y0,y1" (default: from the data)')] = None,
+    every: Annotated[float, typer.Option(
+        "--every", help="fig4: time between stick-figure snapshots [s]")] = 0.1,
+    gif: Annotated[bool, typer.Option(
+        "--gif/--no-gif", help="fig4: also write the animation walk.gif")] = True,
 ) -> None:
     """Draw a paper figure from recorded runs (a sweep table and the logs it points to)."""
     from hmpc_cli.figures import FIGURES
 
     if figure not in FIGURES:
         _fail(f"unknown figure {figure!r} (choose from {', '.join(FIGURES)})")
+    if figure == "fig4":
+        _fig4(table, out, formats, every, gif, width, height or 4.2)
+        return
     if figure == "robustness":
         _robustness(table, out, formats, {
             "x_axis": x_axis, "series_axis": series_axis, "width": width,

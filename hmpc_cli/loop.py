@@ -138,7 +138,7 @@ class LayeredLoop(LoopCore):
             self._replan(0.0, x, mode, "initial")
         self._solve(0.0, x, "initial", 0)
 
-    def on_event(self, ev: Event) -> bool:
+    def on_event(self, ev: Event, t: float) -> bool:
         scheduled, dropped, forced = self._advance_schedule(
             ev.guard, int(self.sim.num.target[ev.guard]))
         self._shifted_by_impact |= dropped

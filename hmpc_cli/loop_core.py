@@ -99,9 +99,9 @@ class LoopCore:
     def start(self, x: np.ndarray, mode: int) -> None:
         """Called once at t = 0 before the first step (initial plan and solve)."""
 
-    def on_event(self, ev: Event) -> bool:
-        """Called for each guard event of a step, in time order, before it is logged;
-        returns whether it was the scheduled one."""
+    def on_event(self, ev: Event, t: float) -> bool:
+        """Called for each guard event (at time t [s]), in time order, before it is
+        logged; returns whether it was the scheduled one."""
         return False
 
     def after_step(self, i: int, t: float, x: np.ndarray, mode: int, events: list[Event],
@@ -136,15 +136,18 @@ class LoopCore:
         self.rec.add_metadata("run", {"scenario": self.sc.name, "seed": str(self.sc.seed),
                                       **{f"version.{k}": v for k, v in versions().items()}})
 
-    def record_solve(self, t: float, plan: Plan, reason: str, extra: dict) -> None:
-        """Counts one fixed-mode MPC solve, keeps its plan and logs it to /mpc/solve."""
+    def record_solve(self, t: float, plan: Plan, reason: str, extra: dict,
+                     adopt: bool = True) -> None:
+        """Counts one fixed-mode MPC solve, logs it to /mpc/solve and (``adopt``) makes
+        its plan the one the low level tracks."""
         st = plan.stats
         self.res.solves += 1
         self.solve_times.append(st.wall_time)
         if not st.success:
             self.res.solver_failures += 1
             self.res.failure_statuses[st.status] = self.res.failure_statuses.get(st.status, 0) + 1
-        self.plan = plan  # on failure: the shifted previous solution
+        if adopt:
+            self.plan = plan
         self.rec.write("/mpc/solve", t, {
             "t": t, "reason": reason, "status": st.status, "success": st.success,
             "iterations": st.iterations, "wall_time": st.wall_time, "cost": st.cost,
@@ -176,21 +179,11 @@ class LoopCore:
                 self.rec.write("/disturbance", t, {"t": t, "w": w})
                 last_w = w
             try:
-                step = self.sim.step(x[None], np.array([mode]), u[None], w[None], h)
+                x, mode, events = self._advance(i * h, h, x, mode, u, w)
             except ZenoError as exc:
                 self._fail(t, f"zeno: {exc}")
                 break
-            x, mode = step.x[0], int(step.mode[0])
             t = (i + 1) * h
-            for ev in step.events:
-                g = self.plant.guards[ev.guard]
-                scheduled = self.on_event(ev)
-                self.res.contacts += 1
-                self.res.contacts_by_guard[g.name] = self.res.contacts_by_guard.get(g.name, 0) + 1
-                self.rec.write("/sim/event", i * h + ev.tau, {
-                    "t": i * h + ev.tau, "guard": ev.guard, "guard_name": g.name,
-                    "mode_before": g.source, "mode_after": g.target, "x_before": ev.x_before,
-                    "x_after": ev.x_after, "scheduled": scheduled})
             if not np.all(np.isfinite(x)) or np.max(np.abs(x)) > sc.sim.divergence_bound:
                 self._fail(t, "diverged: non-finite or unbounded state")
                 break
@@ -198,13 +191,54 @@ class LoopCore:
             if why:
                 self._fail(t, why)
                 break
-            self.after_step(i, t, x, mode, step.events, i + 1 == n_steps)
+            self.after_step(i, t, x, mode, events, i + 1 == n_steps)
             if self.progress is not None:
                 self.progress(i + 1, n_steps)
         self.res.t_end = t
         self.rec.write("/sim/state", t, {"t": t, "x": x, "mode": mode,
                                          "u": np.zeros(sysm.n_u), "x_ref": x, "w": self.dist(t)})
         return self._finish(x, mode, start)
+
+    def _advance(self, t0: float, h: float, x: np.ndarray, mode: int, u: np.ndarray,
+                 w: np.ndarray) -> tuple[np.ndarray, int, list[Event]]:
+        """One simulator step of h seconds from time t0; handles and logs its events.
+
+        With ``sim.input_at_events = "recompute"`` the step stops at each reset, the
+        stack reacts (:meth:`on_event` at the event time) and the low level computes a
+        new input for the rest of the step.
+
+        Raises:
+            ZenoError: more than ``sim.max_events_per_step`` events in the step.
+        """
+        split = self.sc.sim.input_at_events == "recompute"
+        left, events = h, []
+        while True:
+            step = self.sim.step(x[None], np.array([mode]), u[None], w[None], left,
+                                 stop_at_event=split)
+            x, mode = step.x[0], int(step.mode[0])
+            for ev in step.events:
+                t_ev = t0 + (h - left) + ev.tau
+                self._event(ev, t_ev)
+                events.append(ev)
+            left = float(step.remaining[0])
+            if not split or left <= 0.0 or not step.events:
+                return x, mode, events
+            if len(events) > self.sc.sim.max_events_per_step:
+                raise ZenoError(f"more than {self.sc.sim.max_events_per_step} guard events "
+                                f"in one step of {h} s (Zeno chattering)")
+            t_now = t0 + h - left
+            u, _ = self.lowlevel.command(t_now, x, self.plan)
+            u = self.system.numeric.saturate(np.array([mode]), u[None])[0]
+
+    def _event(self, ev: Event, t_ev: float) -> None:
+        g = self.plant.guards[ev.guard]
+        scheduled = self.on_event(ev, t_ev)
+        self.res.contacts += 1
+        self.res.contacts_by_guard[g.name] = self.res.contacts_by_guard.get(g.name, 0) + 1
+        self.rec.write("/sim/event", t_ev, {
+            "t": t_ev, "guard": ev.guard, "guard_name": g.name, "mode_before": g.source,
+            "mode_after": g.target, "x_before": ev.x_before, "x_after": ev.x_after,
+            "scheduled": scheduled})
 
     def _fail(self, t: float, reason: str) -> None:
         self.res.diverged = True

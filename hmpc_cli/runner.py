@@ -13,17 +13,23 @@ from pathlib import Path
 from hmpc_cli.loop_core import LoopCore, RunResult
 from hmpc_cli.mpc.controller import FixedModeMPC
 from hmpc_cli.mpc.nlp import FixedModeNLP
+from hmpc_cli.mpc.walking import WalkingMPC, WalkingNLP
 from hmpc_cli.recorder import Recorder
 from hmpc_cli.scenario import Scenario
 from hmpc_cli.systems import build_system
 
-_NLP_CACHE: dict[str, FixedModeNLP] = {}
+_NLP_CACHE: dict[str, FixedModeNLP | WalkingNLP] = {}
 
 
-def cached_mpc(sc: Scenario) -> FixedModeMPC:
-    """A fixed-mode MPC whose NLP is built once per process per (system, MPC settings)."""
+def cached_mpc(sc: Scenario) -> FixedModeMPC | WalkingMPC:
+    """The scenario's fixed-mode MPC with its NLP built once per process per (system, MPC
+    settings); a fresh controller (no memory of earlier runs) around the cached NLP."""
     key = json.dumps([sc.system.model_dump(mode="json"), sc.mpc.model_dump(mode="json")],
                      sort_keys=True)
+    if sc.system.name == "biped":
+        if key not in _NLP_CACHE:
+            _NLP_CACHE[key] = WalkingNLP(sc.system, sc.mpc)
+        return WalkingMPC(sc.system, sc.mpc, _NLP_CACHE[key])
     system = build_system(sc.system)
     if key not in _NLP_CACHE:
         _NLP_CACHE[key] = FixedModeNLP(system, sc.mpc)

@@ -10,14 +10,24 @@ from __future__ import annotations
 import re
 import tomllib
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from hmpc_cli.lowlevel import LowLevelSettings
 from hmpc_cli.mpc.nlp import MPCSettings
+from hmpc_cli.mpc.walking_nlp import WalkingMPCSettings
 from hmpc_cli.planner.cem import CEMSettings
-from hmpc_cli.systems import BallParams
+from hmpc_cli.planner.footholds import FootholdSettings
+from hmpc_cli.systems import BallParams, BipedParams
+
+SystemSection = Annotated[BallParams | BipedParams, Field(discriminator="name")]
+PlannerSection = Annotated[CEMSettings | FootholdSettings, Field(discriminator="kind")]
+MPCSection = Annotated[MPCSettings | WalkingMPCSettings, Field(discriminator="kind")]
+#: per system: the planner and MPC kinds its controller stack uses (the section defaults)
+STACKS = {"ball": ("cem", "fixed_mode"), "biped": ("footholds", "walking")}
+_TAGS = {"system": set(STACKS), "planner": {"cem", "footholds"},
+         "mpc": {"fixed_mode", "walking"}}
 
 
 class ScenarioError(Exception):
@@ -38,6 +48,10 @@ class SimSettings(BaseModel):
     event_time_tol: float = Field(1e-10, gt=0.0, description="event time bracket [s]")
     divergence_bound: float = Field(1e6, gt=0.0, description="|x| beyond this is divergence")
     log_rate_hz: int = Field(100, gt=0, description="state logging rate [Hz]")
+    input_at_events: Literal["hold", "recompute"] = Field(
+        "hold", description="after a reset inside a step: hold the step's input (the "
+        "paper's ball) or let the controllers react at the event time and compute a new "
+        "input for the rest of the step (needed when a reset relabels the inputs: biped)")
 
 
 class DisturbanceSettings(BaseModel):
@@ -68,18 +82,60 @@ class Scenario(BaseModel):
     name: str = Field("scenario", pattern=r"^[A-Za-z0-9_.-]+$")
     description: str = ""
     seed: int = Field(0, ge=0)
-    system: BallParams = Field(default_factory=BallParams)
+    system: SystemSection = Field(default_factory=BallParams)
+    plant: dict[str, Any] = Field(
+        default_factory=dict, description="system parameters of the simulated plant that "
+        "differ from the controllers' model, e.g. mass_scale = 1.1 (the biped of Fig. 4)")
     sim: SimSettings = Field(default_factory=SimSettings)
     disturbance: DisturbanceSettings = Field(default_factory=DisturbanceSettings)
-    planner: CEMSettings = Field(default_factory=CEMSettings)
+    planner: PlannerSection = Field(default_factory=CEMSettings)
     replanning: ReplanSettings = Field(default_factory=ReplanSettings)
-    mpc: MPCSettings = Field(default_factory=MPCSettings)
+    mpc: MPCSection = Field(default_factory=MPCSettings)
     lowlevel: LowLevelSettings = Field(default_factory=LowLevelSettings)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _section_kinds(cls, data: Any) -> Any:
+        """Fills the system name (ball) and the planner/MPC kinds of that system's stack."""
+        if not isinstance(data, dict):
+            return data
+        data = dict(data)
+        system = data.get("system", {})
+        if isinstance(system, dict):
+            system = data["system"] = {"name": "ball", **system}
+            if not isinstance(system["name"], str) or system["name"] not in STACKS:
+                choices = ", ".join(repr(k) for k in STACKS)
+                raise ValueError(f"system.name: unknown system {system['name']!r} (choose "
+                                 f"from {choices})")
+            kinds = STACKS[system["name"]]
+            for key, kind in zip(("planner", "mpc"), kinds or ()):
+                section = data.get(key, {})
+                if isinstance(section, dict):
+                    data[key] = {"kind": kind, **section}
+        return data
+
+    def plant_params(self) -> BallParams | BipedParams:
+        """The simulated plant's parameters: the system's, updated by ``plant``."""
+        return type(self.system).model_validate({**self.system.model_dump(), **self.plant})
 
     @model_validator(mode="after")
     def _rates(self) -> Scenario:
         # One "key.path: reason" line per problem (format_errors splits them).
         m, s, problems = self.mpc, self.sim, []
+        problems += self._stack_problems()
+        if isinstance(m, WalkingMPCSettings):
+            if s.rate_hz % m.rate_hz:
+                problems.append(f"mpc.rate_hz: {m.rate_hz} must divide sim.rate_hz = "
+                                f"{s.rate_hz} (the MPC period must be a whole number of "
+                                "simulator steps)")
+            if s.rate_hz % s.log_rate_hz:
+                problems.append(f"sim.log_rate_hz: {s.log_rate_hz} must divide sim.rate_hz = "
+                                f"{s.rate_hz}")
+            if not _whole(s.duration * s.rate_hz):
+                problems.append("sim.duration: must be a whole number of simulator steps")
+            if problems:
+                raise ValueError("\n".join(problems))
+            return self
         divides = [f"{k} = {v}" for k, v in (("mpc.nodes_per_second", m.nodes_per_second),
                                              ("sim.rate_hz", s.rate_hz)) if v % m.rate_hz]
         if divides:
@@ -100,6 +156,33 @@ class Scenario(BaseModel):
         if problems:
             raise ValueError("\n".join(problems))
         return self
+
+
+    def _stack_problems(self) -> list[str]:
+        """The system, planner and MPC must belong to one controller stack; plant keys
+        must be valid system parameters."""
+        out = []
+        name = self.system.name
+        planner, mpc = STACKS[name]
+        if self.planner.kind != planner:
+            out.append(f"planner.kind: {self.planner.kind!r} does not fit system {name!r} "
+                       f"(use {planner!r})")
+        if self.mpc.kind != mpc:
+            out.append(f"mpc.kind: {self.mpc.kind!r} does not fit system {name!r} "
+                       f"(use {mpc!r})")
+        if name == "biped" and self.replanning.policy != "on_contact":
+            out.append(f"replanning.policy: the biped chooses its foothold at every contact; "
+                       f"use 'on_contact', not {self.replanning.policy!r}")
+        if self.plant:
+            try:
+                self.plant_params()
+            except ValidationError as exc:
+                for err in exc.errors():
+                    loc = ".".join(str(p) for p in err["loc"]) or "(plant)"
+                    msg = err["msg"].removeprefix("Value error, ")
+                    msg = "unknown key" if err["type"] == "extra_forbidden" else msg
+                    out.append(f"plant.{loc}: {msg}")
+        return out
 
 
 def _whole(v: float) -> bool:
@@ -137,7 +220,10 @@ def format_errors(exc: ValidationError, source: str) -> list[str]:
     """One ``file: key.path: reason`` line per pydantic error."""
     lines = []
     for err in exc.errors():
-        loc = ".".join(str(p) for p in err["loc"] if p not in ("function-after",)) or "(top)"
+        parts = [str(p) for p in err["loc"] if p not in ("function-after",)]
+        if len(parts) >= 2 and parts[1] in _TAGS.get(parts[0], ()):
+            del parts[1]  # the union member's tag (e.g. planner.cem.samples -> planner.samples)
+        loc = ".".join(parts) or "(top)"
         msg = err["msg"].removeprefix("Value error, ")
         if err["type"] == "extra_forbidden":
             msg = "unknown key"

@@ -47,12 +47,14 @@ class Event:
 
 @dataclass(frozen=True)
 class StepResult:
-    """Result of one batched step: states (B, n), modes (B,), events, Zeno flags (B,)."""
+    """Result of one batched step: states (B, n), modes (B,), events, Zeno flags (B,),
+    and the time not integrated (B,) [s] (nonzero only with ``stop_at_event``)."""
 
     x: np.ndarray
     mode: np.ndarray
     events: list[Event]
     zeno: np.ndarray
+    remaining: np.ndarray | None = None
 
 
 class HybridSimulator:
@@ -84,7 +86,8 @@ class HybridSimulator:
         return out
 
     def step(self, x: np.ndarray, mode: np.ndarray, u: np.ndarray, w: np.ndarray,
-             dt: float, record: bool = True, raise_zeno: bool = True) -> StepResult:
+             dt: float, record: bool = True, raise_zeno: bool = True,
+             stop_at_event: bool = False) -> StepResult:
         """Advances every sample by ``dt`` seconds.
 
         Args:
@@ -92,9 +95,14 @@ class HybridSimulator:
             w: disturbances (B, n_w), held. dt: step [s].
             record: collect :class:`Event` records (the planner switches this off).
             raise_zeno: raise :class:`ZenoError`; otherwise freeze and flag the sample.
+            stop_at_event: a sample stops right after its first reset (post-reset state)
+                and reports the time left in ``remaining``, so the caller can compute a
+                new input for the rest of the step (needed when a reset relabels the
+                inputs, as the biped's leg swap does).
 
         Returns:
-            The new states and modes, the events in time order per sample, Zeno flags.
+            The new states and modes, the events in time order per sample, Zeno flags,
+            the time left per sample.
         """
         x = np.asarray(x, dtype=float)
         mode = np.array(mode, dtype=int)
@@ -107,7 +115,7 @@ class HybridSimulator:
         x_end = self.rk4(mode, x, u, w, rem)
         tau, guard, x_hit = self._first_crossing(x, mode, u, w, rem, x_end)
         if (guard < 0).all():
-            return StepResult(x_end, mode, [], zeno)
+            return StepResult(x_end, mode, [], zeno, np.zeros(b))
         x = x.copy()
         n_events = np.zeros(b, dtype=int)
         events: list[Event] = []
@@ -147,9 +155,11 @@ class HybridSimulator:
                                     f"{np.nonzero(over)[0].tolist()}")
                 zeno |= over
                 rem[over] = 0.0
+            if stop_at_event:
+                break
             todo = idx[(rem[idx] > 0.0) & ~zeno[idx]]
         events.sort(key=lambda e: (e.sample, e.tau))
-        return StepResult(x, mode, events, zeno)
+        return StepResult(x, mode, events, zeno, rem)
 
     def _first_crossing(self, x, mode, u, w, h, x_end):
         """Earliest active guard crossing per sample: (tau (B,), guard (B,) or -1, state).

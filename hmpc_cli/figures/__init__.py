@@ -8,4 +8,5 @@ __all__ = ["FIGURES"]
 FIGURES: dict[str, str] = {
     "fig3": "bouncing ball under disturbances, one panel per controller",
     "robustness": "success rate vs MPC rate per replanning policy and disturbance size",
+    "fig4": "biped on the stairs: stick figures, hip x(t), y(t), torso force (+ GIF)",
 }

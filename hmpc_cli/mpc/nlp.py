@@ -42,6 +42,7 @@ class MPCSettings(BaseModel):
     """Fixed-mode MPC settings."""
 
     model_config = ConfigDict(extra="forbid")
+    kind: Literal["fixed_mode"] = Field("fixed_mode", description="mode-schedule MPC (ball)")
     rate_hz: int = Field(10, gt=0, description="MPC re-solve rate [Hz]")
     nodes_per_second: int = Field(60, gt=0, description="NLP node rate: node step = 1/this")
     horizon: float = Field(3.0, gt=0.0, description="receding horizon [s]")

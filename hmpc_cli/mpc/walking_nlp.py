@@ -43,6 +43,8 @@ Cost: sum_j sum_k dt_j [l(x_{k+1}) + r_torque |u_k|^2] with l = q_hip |hip - goa
 
 from __future__ import annotations
 
+from typing import Literal
+
 import casadi as ca
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -59,6 +61,7 @@ class WalkingMPCSettings(BaseModel):
     """Fixed-mode walking MPC settings (reference values)."""
 
     model_config = ConfigDict(extra="forbid")
+    kind: Literal["walking"] = Field("walking", description="two-swing walking MPC (biped)")
     rate_hz: int = Field(10, gt=0, description="re-solve rate [Hz] (also after contacts)")
     swing_time: float = Field(0.3, gt=0.0, description="duration of a swing [s]")
     nodes_per_swing: int = Field(25, ge=4, description="intervals per swing")

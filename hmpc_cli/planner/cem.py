@@ -34,7 +34,7 @@ class CEMSettings(BaseModel):
     """Cross-entropy planner settings."""
 
     model_config = ConfigDict(extra="forbid")
-    kind: str = Field("cem", pattern="^cem$")
+    kind: Literal["cem"] = Field("cem", description="cross-entropy method (ball)")
     horizon: float = Field(3.0, gt=0.0, description="planning horizon [s]")
     knots: int = Field(45, ge=2, description="input knots per channel over the horizon")
     samples: int = Field(50, ge=1, description="random samples per iteration (+ the mean)")

@@ -26,6 +26,7 @@ class FootholdSettings(BaseModel):
     """Candidate enumeration and selection settings."""
 
     model_config = ConfigDict(extra="forbid")
+    kind: Literal["footholds"] = Field("footholds", description="foothold candidates (biped)")
     reach: float = Field(0.45, gt=0.0, description="a segment is a candidate if one of "
                          "its ends lies within this of the stance foot [m]")
     include_current: bool = Field(True, description="the segment under the stance foot "

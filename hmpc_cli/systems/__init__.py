@@ -10,12 +10,14 @@ from collections.abc import Callable
 
 from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.systems.ball import BallParams, build_ball
+from hmpc_cli.systems.biped import BipedParams, build_biped
 
 REGISTRY: dict[str, tuple[type, Callable[..., HybridSystem]]] = {
     "ball": (BallParams, build_ball),
+    "biped": (BipedParams, build_biped),
 }
 
-SystemParams = BallParams
+SystemParams = BallParams | BipedParams
 
 
 def build_system(params: SystemParams) -> HybridSystem:

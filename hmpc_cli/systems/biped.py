@@ -125,7 +125,10 @@ class BipedParams(BaseModel):
     pose_weights: Five = Field((0.0, 1.0, 1.0, 1.0, 1.0),
                                description="stage cost weights on (q - q_nominal)^2")
     r_torque: float = Field(1e-4, ge=0.0, description="stage cost weight on |u|^2")
-    success_radius: float = Field(0.3, gt=0.0, description="success: |hip_end - goal| <= this")
+    success_radius: float = Field(0.3, gt=0.0, description="hip distance to the goal "
+                                  "reported as the final error [m]")
+    fall_hip_height: float = Field(0.35, ge=0.0, description="a fall: the hip less than "
+                                   "this above the terrain under it [m]")
 
     @model_validator(mode="after")
     def _consistent(self) -> BipedParams:

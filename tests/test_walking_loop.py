@@ -1,0 +1,160 @@
+"""The biped in closed loop (short horizons): footholds, contacts, falls, Figure 4, bad input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import REPO
+from hmpc_cli.figures.common import FigureInputError
+from hmpc_cli.figures.fig4 import fig4, load_walk
+from hmpc_cli.loop import make_loop
+from hmpc_cli.loop_walking import terrain_height
+from hmpc_cli.recorder import Recorder, read_log
+from hmpc_cli.scenario import load_scenario
+from hmpc_cli.systems.biped import BipedParams, make_biped_model
+
+STAIRS = REPO / "scenarios" / "biped_stairs.toml"
+
+
+@pytest.fixture(scope="module")
+def short_walk(tmp_path_factory) -> Path:
+    """0.7 s of the bundled scenario (two steps) through the real command line."""
+    import subprocess
+
+    from conftest import cli_env, hmpc_command
+
+    out = tmp_path_factory.mktemp("walk") / "run"
+    proc = subprocess.run([*hmpc_command(), "run", str(STAIRS), "--out", str(out), "-q",
+                           "--set", "sim.duration=0.7"], capture_output=True, text=True,
+                          env=cli_env(), timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return out
+
+
+def test_two_steps_land_on_the_long_segment_and_replan_at_each_contact(short_walk):
+    summary = json.loads((short_walk / "summary.json").read_text())
+    assert not summary["diverged"]
+    assert summary["contacts_by_guard"] == {"stair_2": 2}  # the 1.0 m segment, twice
+    assert summary["solver_failures"] == 0
+    assert summary["planner_calls"] == 3 and summary["planner_rejected"] == 0
+    # success needs the top segment: not reached after 0.7 s, and the reason says so
+    assert not summary["success"] and "top segment" in summary["reason"]
+    log = read_log(short_walk / "run.mcap")
+    plans = log.topic("/planner/plan")
+    assert [m.data["reason"] for m in plans] == ["initial", "contact", "contact"]
+    events = log.topic("/sim/event")
+    for plan, ev in zip(plans[1:], events):
+        assert plan.t == pytest.approx(ev.t, abs=1e-12)  # planned at the contact itself
+        segs = [c["segment"] for c in plan.data["candidates"]]
+        assert segs == sorted(segs) and 1 in segs  # the 1.0 m segment was a candidate
+    # periodic re-solves at 10 Hz between the contacts, all warm and successful
+    period = [m for m in log.topic("/mpc/solve") if m.data["reason"] == "period"]
+    assert len(period) >= 4 and all(m.data["success"] for m in period)
+
+
+def test_the_touchdowns_hit_the_guard_inside_the_segment(short_walk):
+    p = BipedParams()
+    model = make_biped_model(p.model_copy(update={"mass_scale": 1.1}))
+    for ev in read_log(short_walk / "run.mcap").topic("/sim/event"):
+        xb, xa = np.array(ev.data["x_before"]), np.array(ev.data["x_after"])
+        foot = np.asarray(model.swing_foot_world(xb)).ravel()
+        assert foot[1] == pytest.approx(0.075, abs=1e-8)  # on the guard (stair 2's level)
+        assert 0.4 < foot[0] < 1.4
+        np.testing.assert_allclose(xa[10:], foot, atol=1e-12)  # new stance foot: the touchdown
+        np.testing.assert_allclose(np.asarray(model.reset(xb)).ravel(), xa, atol=1e-9)
+
+
+def test_a_run_is_bit_for_bit_reproducible(tmp_path):
+    logs = []
+    for k in range(2):
+        sc, _ = load_scenario(STAIRS, ["sim.duration=0.35"])
+        rec = Recorder(tmp_path / f"{k}.mcap")
+        try:
+            make_loop(sc, rec).run()
+        finally:
+            rec.close()
+        logs.append(read_log(tmp_path / f"{k}.mcap"))
+    for topic in ("/sim/state", "/sim/event", "/disturbance"):
+        a = [m.data for m in logs[0].topic(topic)]
+        b = [m.data for m in logs[1].topic(topic)]
+        assert a == b and a, topic
+
+
+def test_a_fall_ends_the_run_cleanly_as_failed(tmp_path, run_hmpc):
+    out = tmp_path / "fall"
+    proc = run_hmpc(["run", str(STAIRS), "--out", str(out), "-q", "--set",
+                     "disturbance.magnitude=2000", "--set", "sim.duration=1.2"], tmp_path,
+                    timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert not summary["success"] and summary["reason"].startswith("fall:")
+    log = read_log(out / "run.mcap")
+    assert log.complete and log.topic("/run/summary")[-1].data["reason"] == summary["reason"]
+
+
+def test_no_candidate_keeps_the_previous_plan_and_is_logged(tmp_path):
+    sc, _ = load_scenario(STAIRS, ["sim.duration=0.4", "planner.reach=0.01",
+                                   "planner.include_current=false"])
+    rec = Recorder(tmp_path / "run.mcap")
+    try:
+        res = make_loop(sc, rec).run()
+    finally:
+        rec.close()
+    assert res.planner_rejected >= 1
+    notes = [m.data["note"] for m in read_log(tmp_path / "run.mcap").topic("/planner/plan")]
+    assert any("no foothold candidate within reach" in n and "previous plan kept" in n
+               for n in notes)
+
+
+def test_terrain_height_of_the_figure_4_course():
+    p = BipedParams()
+    xs = np.array([-0.3, 0.0, 0.2, 0.4, 0.9, 1.45, 1.6, 2.5, 3.5])
+    np.testing.assert_allclose(terrain_height(p, xs),
+                               [0, 0, 0, 0.075, 0.075, 0.125, 0.175, 0.175, 0.175])
+
+
+def test_figure_4_from_the_log_is_deterministic(short_walk, tmp_path):
+    a = fig4(short_walk / "run.mcap", tmp_path / "a", "png,svg,pdf")
+    fig4(short_walk, tmp_path / "b", "png,svg,pdf")  # the run directory works too
+    for name in ("fig4.png", "fig4.svg", "fig4.pdf"):
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
+    assert len(a.contacts) == 2 and a.contacts[0][1] == "stair_2"
+    hip0 = load_walk(short_walk / "run.mcap").hip[0]
+    np.testing.assert_allclose(hip0, [0.2334, 0.6815], atol=1e-3)
+
+
+def test_plot_fig4_command_writes_the_gif_and_rejects_a_ball_log(short_walk, tmp_path,
+                                                                  run_hmpc, full_run):
+    proc = run_hmpc(["plot", "fig4", str(short_walk), "--out", str(tmp_path / "f"),
+                     "--formats", "png"], tmp_path, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "contact t = 0.3" in proc.stdout
+    gif = (tmp_path / "f" / "walk.gif").read_bytes()
+    assert gif[:6] in (b"GIF89a", b"GIF87a") and len(gif) > 10_000
+    bad = run_hmpc(["plot", "fig4", str(full_run.out), "--out", str(tmp_path / "g")], tmp_path)
+    assert bad.returncode == 2 and "not a biped run" in bad.stderr
+    assert "Traceback" not in bad.stderr
+    with pytest.raises(FigureInputError, match="no such log"):
+        load_walk(tmp_path / "missing.mcap")
+
+
+@pytest.mark.parametrize("override,key", [
+    ('mpc.kind="fixed_mode"', "mpc.kind"),
+    ('replanning.policy="once"', "replanning.policy"),
+    ("plant.mass_scal=1.1", "plant.mass_scal"),
+    ("plant.mass_scale=-1", "plant.mass_scale"),
+    ("system.stairs=[{length = 0.4, height = 0.0}, {length = -1.0, height = 0.1}]",
+     "system.stairs.1.length"),
+    ("system.stance_foot0=[0.0, 0.2]", "system.stance_foot0"),
+])
+def test_bad_biped_scenarios_give_one_keyed_line(tmp_path, run_hmpc, override, key):
+    proc = run_hmpc(["run", str(STAIRS), "--out", str(tmp_path / "r"), "--set", override],
+                    tmp_path)
+    assert proc.returncode == 2
+    lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
+    assert len(lines) == 1 and f"biped_stairs.toml: {key}:" in lines[0], proc.stderr
+    assert not (tmp_path / "r").exists()
