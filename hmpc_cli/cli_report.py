@@ -22,6 +22,9 @@ def report_command(
     robustness: Annotated[Optional[Path], typer.Option(
         "--robustness", help="robustness study sweep file ('' to leave out)")
     ] = Path("sweeps/robustness.toml"),
+    biped: Annotated[Optional[Path], typer.Option(
+        "--biped", help="biped scenario for Figure 4 ('' to leave out)")
+    ] = Path("scenarios/biped_stairs.toml"),
     run: Annotated[bool, typer.Option(
         "--run/--no-run", help="run unfinished sweep runs first (finished ones are skipped)")
     ] = True,
@@ -53,9 +56,9 @@ def report_command(
             for line in exc.lines:
                 typer.echo(f"error: {line}", err=True)
             raise typer.Exit(EXIT_BAD_INPUT) from None
-    if not plans:
-        typer.echo("error: no sweep to report (all of --fig3, --fig3-extra, --robustness are "
-                   "empty)", err=True)
+    if not plans and (biped is None or str(biped) in ("", ".")):
+        typer.echo("error: nothing to report (--fig3, --fig3-extra, --robustness and --biped "
+                   "are all empty)", err=True)
         raise typer.Exit(EXIT_BAD_INPUT)
     dirs = {k: results / "sweeps" / p.spec.name for k, p in plans.items()}
     if run:
@@ -65,10 +68,39 @@ def report_command(
             if outcome.interrupted:
                 typer.echo("interrupted: run the same command again to resume", err=True)
                 raise typer.Exit(EXIT_INTERRUPTED)
-    inputs = ReportInputs(dirs.get("fig3"), dirs.get("fig3_extra"), dirs.get("robustness"))
+    biped_dir = _biped_run(biped, results, run)
+    inputs = ReportInputs(dirs.get("fig3"), dirs.get("fig3_extra"), dirs.get("robustness"),
+                          biped_dir)
     try:
         page = write_report(results, inputs, "hmpc report")
     except FigureInputError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(EXIT_BAD_INPUT) from None
     typer.echo(f"wrote {page} and {results / 'report'}/")
+
+
+def _biped_run(scenario: Optional[Path], results: Path, run: bool) -> Optional[Path]:
+    """Runs the biped scenario into results/<name>/report (unless done); its directory."""
+    if scenario is None or str(scenario) in ("", "."):
+        return None
+    from hmpc_cli.loop import make_loop
+    from hmpc_cli.runner import execute_run
+    from hmpc_cli.scenario import ScenarioError, load_scenario
+
+    try:
+        sc, toml_text = load_scenario(scenario)
+    except ScenarioError as exc:
+        for line in exc.lines:
+            typer.echo(f"error: {line}", err=True)
+        raise typer.Exit(EXIT_BAD_INPUT) from None
+    out = results / sc.name / "report"
+    done = (out / "summary.json").is_file() and (out / "scenario.toml").is_file() and (
+        (out / "scenario.toml").read_text(encoding="utf-8") == toml_text)
+    if run and not done:
+        if out.exists():
+            import shutil
+
+            shutil.rmtree(out)
+        typer.echo(f"{sc.name}: running -> {out}")
+        execute_run(make_loop(sc, None), toml_text, out)
+    return out

@@ -26,6 +26,7 @@ class ReportInputs:
     fig3: Path | None
     fig3_extra: Path | None
     robustness: Path | None
+    biped: Path | None = None  # a biped run directory (Figure 4)
 
 
 def _rel(path: Path, base: Path) -> str:
@@ -130,6 +131,37 @@ def _robustness_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list
     return lines
 
 
+def _biped_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]:
+    import json
+
+    from hmpc_cli.figures.fig4 import animate_walk, fig4
+
+    run = Path(inputs.biped)
+    walk = fig4(run, fig_dir, "pdf,png")
+    animate_walk(run, fig_dir / "walk.gif")
+    summary = json.loads((run / "summary.json").read_text()) if (
+        run / "summary.json").is_file() else {}
+    verdict = {True: "success", False: "failed", None: "unfinished"}[walk.success]
+    lines = ["## Figure 4: the five-link biped on the stairs", "",
+             f"![Figure 4]({_rel(fig_dir / 'fig4.png', base)})", "",
+             f"Animation: [{_rel(fig_dir / 'walk.gif', base)}]"
+             f"({_rel(fig_dir / 'walk.gif', base)}). Robot 1.1x heavier than the model, "
+             f"random torso force; outcome: {verdict}"
+             f"{f' ({walk.reason})' if walk.reason not in ('', verdict) else ''}; hip ends at "
+             f"({walk.hip[-1, 0]:.3f}, {walk.hip[-1, 1]:.3f}) m.", "",
+             "| contact | t [s] | segment | foot x [m] |", "| --- | --- | --- | --- |"]
+    for k, (t, guard, fx, _) in enumerate(walk.contacts, start=1):
+        lines.append(f"| {k} | {t:.3f} | {guard} | {fx:.3f} |")
+    if summary:
+        lines += ["", f"MPC re-solves: {summary.get('solves')} (median "
+                  f"{1e3 * (summary.get('solve_time_median') or 0):.0f} ms), solver failures "
+                  f"{summary.get('solver_failures')}; foothold planning steps: "
+                  f"{summary.get('planner_calls')} (median "
+                  f"{1e3 * (summary.get('plan_time_median') or 0):.0f} ms). Reference run: "
+                  "touchdowns at x = 0.789, 1.214 (1.0 m segment), 1.720 (top segment)."]
+    return lines + [""]
+
+
 def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
     """Draws the figures into ``results/report`` and writes ``results/README.md``.
 
@@ -147,8 +179,10 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
         lines += _fig3_section(inputs, fig_dir, results)
     if inputs.robustness is not None:
         lines += _robustness_section(inputs, fig_dir, results)
-    if inputs.fig3 is None and inputs.robustness is None:
-        raise FigureInputError("nothing to report: no Figure 3 and no robustness sweep")
+    if inputs.biped is not None:
+        lines += _biped_section(inputs, fig_dir, results)
+    if inputs.fig3 is None and inputs.robustness is None and inputs.biped is None:
+        raise FigureInputError("nothing to report: no Figure 3, robustness sweep or biped run")
     lines += ["## Layout", "",
               "* `<scenario>/<UTC time>-seed<N>/`: one `hmpc run` (`run.mcap`, `summary.json`, "
               "`scenario.toml`).",

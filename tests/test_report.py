@@ -118,7 +118,7 @@ seeds = 2
 "disturbance.magnitude" = [5.0]
 """)
     res = tmp_path / "results"
-    args = ["report", "--results", str(res), "--fig3", "", "--fig3-extra", "",
+    args = ["report", "--results", str(res), "--fig3", "", "--fig3-extra", "", "--biped", "",
             "--robustness", str(sweep), "--workers", "1"]
     proc = run_hmpc(args, tmp_path, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -135,7 +135,8 @@ seeds = 2
 def test_report_without_results_is_a_clear_error(tmp_path, run_hmpc):
     proc = run_hmpc(["report", "--no-run", "--results", str(tmp_path / "r"),
                      "--fig3", str(REPO / "sweeps" / "fig3.toml"), "--fig3-extra", "",
-                     "--robustness", ""], tmp_path)
+                     "--robustness", "", "--biped", ""], tmp_path)
+    assert "no such table" in proc.stderr
     assert proc.returncode == 2
     assert "error:" in proc.stderr and "Traceback" not in proc.stderr
     bad = run_hmpc(["report", "--no-run", "--fig3", str(tmp_path / "nope.toml")], tmp_path)

@@ -158,3 +158,13 @@ def test_bad_biped_scenarios_give_one_keyed_line(tmp_path, run_hmpc, override, k
     lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
     assert len(lines) == 1 and f"biped_stairs.toml: {key}:" in lines[0], proc.stderr
     assert not (tmp_path / "r").exists()
+
+
+def test_results_page_figure_4_section(short_walk, tmp_path):
+    from hmpc_cli.report import ReportInputs, write_report
+
+    page = write_report(tmp_path / "results", ReportInputs(None, None, None, short_walk),
+                        "hmpc report").read_text()
+    assert "## Figure 4" in page and "![Figure 4](report/fig4.png)" in page
+    assert "| 1 | 0.300 | stair_2 |" in page and "| 2 | " in page
+    assert (tmp_path / "results" / "report" / "walk.gif").is_file()
