@@ -121,27 +121,16 @@ class Scenario(BaseModel):
     @model_validator(mode="after")
     def _rates(self) -> Scenario:
         # One "key.path: reason" line per problem (format_errors splits them).
-        m, s, problems = self.mpc, self.sim, []
-        problems += self._stack_problems()
-        if isinstance(m, WalkingMPCSettings):
-            if s.rate_hz % m.rate_hz:
-                problems.append(f"mpc.rate_hz: {m.rate_hz} must divide sim.rate_hz = "
-                                f"{s.rate_hz} (the MPC period must be a whole number of "
-                                "simulator steps)")
-            if s.rate_hz % s.log_rate_hz:
-                problems.append(f"sim.log_rate_hz: {s.log_rate_hz} must divide sim.rate_hz = "
-                                f"{s.rate_hz}")
-            if not _whole(s.duration * s.rate_hz):
-                problems.append("sim.duration: must be a whole number of simulator steps")
-            if problems:
-                raise ValueError("\n".join(problems))
-            return self
-        divides = [f"{k} = {v}" for k, v in (("mpc.nodes_per_second", m.nodes_per_second),
-                                             ("sim.rate_hz", s.rate_hz)) if v % m.rate_hz]
+        m, s = self.mpc, self.sim
+        problems = self._stack_problems()
+        steps = (("sim.rate_hz", s.rate_hz),) if isinstance(m, WalkingMPCSettings) else (
+            ("mpc.nodes_per_second", m.nodes_per_second), ("sim.rate_hz", s.rate_hz))
+        divides = [f"{k} = {v}" for k, v in steps if v % m.rate_hz]
         if divides:
+            what = "simulator steps" if len(steps) == 1 else \
+                "node steps and of simulator steps"
             problems.append(f"mpc.rate_hz: {m.rate_hz} must divide " + " and ".join(divides)
-                            + " (the MPC period must be a whole number of node steps and "
-                            "of simulator steps)")
+                            + f" (the MPC period must be a whole number of {what})")
         if s.rate_hz % s.log_rate_hz:
             problems.append(f"sim.log_rate_hz: {s.log_rate_hz} must divide sim.rate_hz = "
                             f"{s.rate_hz}")
@@ -151,11 +140,13 @@ class Scenario(BaseModel):
             problems.append("disturbance.hold: must be a whole number of simulator steps")
         if self.replanning.policy == "periodic" and not _whole(self.replanning.period * s.rate_hz):
             problems.append("replanning.period: must be a whole number of simulator steps")
-        if m.horizon * m.nodes_per_second < 2 or not _whole(m.horizon * m.nodes_per_second):
+        if isinstance(m, MPCSettings) and (m.horizon * m.nodes_per_second < 2
+                                           or not _whole(m.horizon * m.nodes_per_second)):
             problems.append("mpc.horizon: must be a whole number (>= 2) of node steps")
         if problems:
             raise ValueError("\n".join(problems))
         return self
+
 
 
     def _stack_problems(self) -> list[str]:

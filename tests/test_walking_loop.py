@@ -144,6 +144,7 @@ def test_plot_fig4_command_writes_the_gif_and_rejects_a_ball_log(short_walk, tmp
 
 @pytest.mark.parametrize("override,key", [
     ('mpc.kind="fixed_mode"', "mpc.kind"),
+    ("mpc.rate_hz=7", "mpc.rate_hz"),
     ('replanning.policy="once"', "replanning.policy"),
     ("plant.mass_scal=1.1", "plant.mass_scal"),
     ("plant.mass_scale=-1", "plant.mass_scale"),
