@@ -10,19 +10,17 @@ worker processes or on a Dask cluster, and ``<out>/results.csv`` is rebuilt from
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import hashlib
-import io
 import itertools
 import json
-import os
 import re
 import shutil
 import signal
 import threading
 import tomllib
 import traceback
+import typing
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,13 +29,9 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from hmpc_cli.scenario import Scenario, ScenarioError, format_errors, load_scenario
+from hmpc_cli.sweep_table import INTERRUPTED, METRICS, TIMING, cell_text, finished, write_results  # noqa: F401
 
-TIMING = ("solve_time_median", "solve_time_p95", "solve_time_max", "plan_time_median",
-          "wall_time")
-METRICS = ("success", "final_error", "contacts", "solves", "solver_failures", "planner_calls",
-           "planner_rejected", "diverged", "reason", *TIMING)
 RESERVED = {"run_id", "seed", "log", *METRICS}
-INTERRUPTED = "interrupted"
 _KEY = re.compile(r"^[A-Za-z0-9_-]+(\.[A-Za-z0-9_-]+)*$")
 
 
@@ -125,16 +119,22 @@ def toml_value(v: Any) -> str:
     raise TypeError(f"unsupported value type {type(v).__name__}")
 
 
-def _flatten(data: dict, model: type[BaseModel] | None, prefix: str = "") -> dict:
+def _models(ann: Any) -> list[type[BaseModel]]:
+    """The settings models an annotation stands for (a model, or the members of a union)."""
+    if isinstance(ann, type) and issubclass(ann, BaseModel):
+        return [ann]
+    args = ann if isinstance(ann, list) else typing.get_args(ann)
+    return [m for a in args for m in _models(a)]
+
+
+def _flatten(data: dict, model: Any, prefix: str = "") -> dict:
     """Dotted keys; descends into tables only where the scenario has a settings section."""
     out = {}
+    models = _models(model)
     for k, v in data.items():
-        sub = None
-        if model is not None and k in model.model_fields:
-            ann = model.model_fields[k].annotation
-            sub = ann if isinstance(ann, type) and issubclass(ann, BaseModel) else None
-        if isinstance(v, dict) and sub is not None:
-            out.update(_flatten(v, sub, f"{prefix}{k}."))
+        subs = [m.model_fields[k].annotation for m in models if k in m.model_fields]
+        if isinstance(v, dict) and any(_models(a) for a in subs):
+            out.update(_flatten(v, subs, f"{prefix}{k}."))
         else:
             out[f"{prefix}{k}"] = v
     return out
@@ -266,8 +266,8 @@ def first_seeds(plan: SweepPlan, n: int | None) -> SweepPlan:
     so the whole sweep later skips these runs. Raises ScenarioError unless 1 <= n <= seeds."""
     seeds = plan.spec.seeds
     if n is not None and not 1 <= n <= len(seeds):
-        raise ScenarioError([f"{plan.path}: --seeds {n}: the sweep has {len(seeds)} seed(s); "
-                             f"choose 1..{len(seeds)}"])
+        raise ScenarioError([(f"{plan.path}: --seeds {n}: the sweep has {len(seeds)} "
+                              f"seed(s); choose 1..{len(seeds)}")])
     keep = set(seeds[:n]) if n is not None else None
     return plan if keep is None else dataclasses.replace(
         plan, runs=[r for r in plan.runs if r.seed in keep])
@@ -349,19 +349,6 @@ def _pool_run(toml_text: str, run_dir: str) -> dict | None:
 
 
 # ---------------------------------------------------------------------- the sweep
-def finished(out: Path, run: Run) -> dict | None:
-    """The run's summary if it finished with the same effective scenario, else None."""
-    d = out / "runs" / run.run_id
-    try:
-        summary = json.loads((d / "summary.json").read_text())
-        same = (d / "scenario.toml").read_text(encoding="utf-8") == run.toml
-    except (OSError, ValueError):
-        return None
-    if not isinstance(summary, dict) or summary.get("reason") == INTERRUPTED or not same:
-        return None
-    return summary
-
-
 @dataclass
 class Outcome:
     """What :func:`execute_sweep` did."""
@@ -457,44 +444,3 @@ def _collect(fut, run: Run, record, res: Outcome) -> None:
         record(run, fut.result())
     except Exception as exc:  # noqa: BLE001 - the worker (not the run) failed
         res.lost.append(f"{run.run_id}: {type(exc).__name__}: {exc}")
-
-
-# ------------------------------------------------------------------------ results
-def cell_text(v: Any) -> str:
-    """A value as a results.csv cell."""
-    if v is None or (isinstance(v, float) and v != v):
-        return ""
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float, str)):
-        return repr(v) if isinstance(v, float) else str(v)
-    return json.dumps(v, sort_keys=True)
-
-
-def result_rows(plan: SweepPlan, out: Path) -> list[dict[str, str]]:
-    """One row per finished run, sorted by run id (columns: :attr:`SweepPlan.columns`)."""
-    rows = []
-    for run in sorted(plan.runs, key=lambda r: r.run_id):
-        summary = finished(out, run)
-        if summary is None:
-            continue
-        row = {"run_id": run.run_id, "seed": str(run.seed)}
-        row |= {a.name: cell_text(v) for a, v in zip(plan.axes, run.cell)}
-        row |= {f"set.{k}": cell_text(run.overrides.get(k)) for k in plan.keys}
-        row |= {k: cell_text(summary.get(k)) for k in METRICS}
-        log = out / "runs" / run.run_id / "run.mcap"
-        row["log"] = log.relative_to(out).as_posix() if log.exists() else ""
-        rows.append({c: row[c] for c in plan.columns})
-    return rows
-
-
-def write_results(plan: SweepPlan, out: Path) -> int:
-    """Rewrites ``<out>/results.csv`` from the runs' summary.json files; returns its rows."""
-    buf, rows = io.StringIO(), result_rows(plan, out)
-    writer = csv.DictWriter(buf, plan.columns, lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    tmp = out / "results.csv.tmp"
-    tmp.write_text(buf.getvalue(), encoding="utf-8")
-    os.replace(tmp, out / "results.csv")
-    return len(rows)

@@ -1,0 +1,70 @@
+"""A sweep's results table: finished runs (their summary.json) -> ``<out>/results.csv``."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+TIMING = ("solve_time_median", "solve_time_p95", "solve_time_max", "plan_time_median",
+          "wall_time")
+METRICS = ("success", "final_error", "contacts", "solves", "solver_failures", "planner_calls",
+           "planner_rejected", "diverged", "reason", *TIMING)
+INTERRUPTED = "interrupted"
+
+
+def finished(out: Path, run) -> dict | None:
+    """The run's summary if it finished with the same effective scenario, else None."""
+    d = out / "runs" / run.run_id
+    try:
+        summary = json.loads((d / "summary.json").read_text())
+        same = (d / "scenario.toml").read_text(encoding="utf-8") == run.toml
+    except (OSError, ValueError):
+        return None
+    if not isinstance(summary, dict) or summary.get("reason") == INTERRUPTED or not same:
+        return None
+    return summary
+
+
+def cell_text(v: Any) -> str:
+    """A value as a results.csv cell."""
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return ""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float, str)):
+        return repr(v) if isinstance(v, float) else str(v)
+    return json.dumps(v, sort_keys=True)
+
+
+def result_rows(plan, out: Path) -> list[dict[str, str]]:
+    """One row per finished run, sorted by run id (columns: :attr:`SweepPlan.columns`)."""
+    rows = []
+    for run in sorted(plan.runs, key=lambda r: r.run_id):
+        summary = finished(out, run)
+        if summary is None:
+            continue
+        row = {"run_id": run.run_id, "seed": str(run.seed)}
+        row |= {a.name: cell_text(v) for a, v in zip(plan.axes, run.cell)}
+        row |= {f"set.{k}": cell_text(run.overrides.get(k)) for k in plan.keys}
+        row |= {k: cell_text(summary.get(k)) for k in METRICS}
+        log = out / "runs" / run.run_id / "run.mcap"
+        row["log"] = log.relative_to(out).as_posix() if log.exists() else ""
+        rows.append({c: row[c] for c in plan.columns})
+    return rows
+
+
+def write_results(plan, out: Path) -> int:
+    """Rewrites ``<out>/results.csv`` from the runs' summary.json files; returns its rows."""
+    buf, rows = io.StringIO(), result_rows(plan, out)
+    writer = csv.DictWriter(buf, plan.columns, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    tmp = out / "results.csv.tmp"
+    tmp.write_text(buf.getvalue(), encoding="utf-8")
+    os.replace(tmp, out / "results.csv")
+    return len(rows)
