@@ -169,3 +169,21 @@ def test_results_page_figure_4_section(short_walk, tmp_path):
     assert "## Figure 4" in page and "![Figure 4](report/fig4.png)" in page
     assert "| 1 | 0.300 | stair_2 |" in page and "| 2 | " in page
     assert (tmp_path / "results" / "report" / "walk.gif").is_file()
+
+
+def test_a_biped_sweep_reuses_one_nlp_per_worker(tmp_path):
+    from hmpc_cli import runner
+    from hmpc_cli.sweep import execute_sweep, plan_sweep
+
+    sweep = tmp_path / "biped.toml"
+    sweep.write_text(f'name = "biped_tiny"\nscenario = "{STAIRS.as_posix()}"\nseeds = 2\n'
+                     '[set]\n"sim.duration" = 0.35\n[grid]\n"disturbance.magnitude" = [0.0, 25.0]\n')
+    before = len(runner._NLP_CACHE)
+    outcome = execute_sweep(plan_sweep(sweep), tmp_path / "out", workers=1)
+    assert outcome.done == 4 and not outcome.lost
+    assert len(runner._NLP_CACHE) == before + 1  # one walking NLP served all four runs
+    import csv
+
+    rows = list(csv.DictReader(open(tmp_path / "out" / "results.csv")))
+    assert len(rows) == 4
+    assert all(r["contacts"] == "1" and r["diverged"] == "false" for r in rows)  # one step
