@@ -7,6 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
+EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 
@@ -61,10 +62,12 @@ def report_command(
                    "are all empty)", err=True)
         raise typer.Exit(EXIT_BAD_INPUT)
     dirs = {k: results / "sweeps" / p.spec.name for k, p in plans.items()}
+    lost: list[str] = []
     if run:
         for key, plan in plans.items():
             outcome = _execute(plan, dirs[key], workers or os.cpu_count() or 1, None)
             _print_cells(plan, dirs[key])
+            lost += [f"{plan.spec.name}: {x}" for x in outcome.lost]
             if outcome.interrupted:
                 typer.echo("interrupted: run the same command again to resume", err=True)
                 raise typer.Exit(EXIT_INTERRUPTED)
@@ -77,6 +80,11 @@ def report_command(
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(EXIT_BAD_INPUT) from None
     typer.echo(f"wrote {page} and {results / 'report'}/")
+    if lost:  # the page holds every finished run; these are missing from it
+        for line in lost:
+            typer.echo(f"error: worker failed, run not recorded (rerun to retry): {line}",
+                       err=True)
+        raise typer.Exit(EXIT_FAILED)
 
 
 def _biped_run(scenario: Optional[Path], results: Path, run: bool) -> Optional[Path]:
@@ -93,14 +101,21 @@ def _biped_run(scenario: Optional[Path], results: Path, run: bool) -> Optional[P
         for line in exc.lines:
             typer.echo(f"error: {line}", err=True)
         raise typer.Exit(EXIT_BAD_INPUT) from None
+    from hmpc_cli.sweep_table import finished_in
+
     out = results / sc.name / "report"
-    done = (out / "summary.json").is_file() and (out / "scenario.toml").is_file() and (
-        (out / "scenario.toml").read_text(encoding="utf-8") == toml_text)
-    if run and not done:
+    if run and finished_in(out, toml_text) is None:
         if out.exists():
             import shutil
 
             shutil.rmtree(out)
         typer.echo(f"{sc.name}: running -> {out}")
-        execute_run(make_loop(sc, None), toml_text, out)
+        try:
+            execute_run(make_loop(sc, None), toml_text, out)
+        except KeyboardInterrupt:
+            typer.echo("interrupted: run the same command again to resume", err=True)
+            raise typer.Exit(EXIT_INTERRUPTED) from None
+        except (ValueError, RuntimeError) as exc:
+            typer.echo(f"error: {scenario}: {' '.join(str(exc).split())[:300]}", err=True)
+            raise typer.Exit(EXIT_BAD_INPUT) from None
     return out

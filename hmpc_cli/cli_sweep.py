@@ -75,10 +75,10 @@ def sweep_command(
 
 
 def _list_runs(plan) -> None:
-    for run in plan.runs:
+    for run in plan.selected:
         parts = [run.run_id, *(f"{a.name}={v}" for a, v in zip(plan.axes, run.cell))]
         typer.echo("  ".join([*parts, f"seed={run.seed}"]))
-    typer.echo(f"{len(plan.runs)} runs, all valid (dry run: nothing started)")
+    typer.echo(f"{len(plan.selected)} runs, all valid (dry run: nothing started)")
 
 
 def _execute(plan, out: Path, workers: int, client):
@@ -90,7 +90,7 @@ def _execute(plan, out: Path, workers: int, client):
     progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(),
                         MofNCompleteColumn(), TextColumn("ok {task.fields[ok]}"),
                         TimeElapsedColumn(), TimeRemainingColumn(), transient=True)
-    task = progress.add_task(plan.spec.name, total=len(plan.runs), ok=0)
+    task = progress.add_task(plan.spec.name, total=len(plan.selected), ok=0)
     state = {"ok": 0}
 
     def on_start(total: int, skipped: int, ok: int) -> None:

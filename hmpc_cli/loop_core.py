@@ -26,6 +26,7 @@ from hmpc_cli.lowlevel import LowLevelController
 from hmpc_cli.messages import Plan
 from hmpc_cli.scenario import Scenario
 from hmpc_cli.sim import Event, HybridSimulator, ZenoError
+from hmpc_cli.systems import build_system
 
 
 @dataclass
@@ -72,7 +73,8 @@ class LoopCore:
     Args:
         scenario: the validated scenario.
         recorder: an open :class:`hmpc_cli.recorder.Recorder` (may be set later).
-        system: the controllers' model. plant: the simulated system (default: the model).
+        system: the controllers' model. plant: the simulated system (default: the model
+            updated by the scenario's ``[plant]`` keys).
         progress: ``progress(step, n_steps)`` after every simulator step.
     """
 
@@ -80,7 +82,9 @@ class LoopCore:
                  plant: HybridSystem | None = None, progress: Callable | None = None) -> None:
         sc = self.sc = scenario
         self.system = system
-        self.plant = plant or system
+        if plant is None:
+            plant = build_system(sc.plant_params()) if sc.plant else system
+        self.plant = plant
         self.sim = HybridSimulator(self.plant, sc.sim.max_events_per_step,
                                    sc.sim.event_time_tol)
         self.lowlevel = LowLevelController(self.system, sc.lowlevel)
@@ -94,6 +98,7 @@ class LoopCore:
         self.solve_times: list[float] = []
         self.plan_times: list[float] = []
         self.plan: Plan | None = None
+        self._stopped = False  # ended early (divergence, Zeno or a task failure)
 
     # --------------------------------------------------------- stack hooks
     def start(self, x: np.ndarray, mode: int) -> None:
@@ -189,7 +194,7 @@ class LoopCore:
                 break
             why = self.failure(x, mode)
             if why:
-                self._fail(t, why)
+                self._fail(t, why, diverged=False)
                 break
             self.after_step(i, t, x, mode, events, i + 1 == n_steps)
             if self.progress is not None:
@@ -216,6 +221,9 @@ class LoopCore:
             step = self.sim.step(x[None], np.array([mode]), u[None], w[None], left,
                                  stop_at_event=split)
             x, mode = step.x[0], int(step.mode[0])
+            if len(events) + len(step.events) > self.sc.sim.max_events_per_step:
+                raise ZenoError(f"more than {self.sc.sim.max_events_per_step} guard events "
+                                f"in one step of {h} s (Zeno chattering)")
             for ev in step.events:
                 t_ev = t0 + (h - left) + ev.tau
                 self._event(ev, t_ev)
@@ -223,9 +231,6 @@ class LoopCore:
             left = float(step.remaining[0])
             if not split or left <= 0.0 or not step.events:
                 return x, mode, events
-            if len(events) > self.sc.sim.max_events_per_step:
-                raise ZenoError(f"more than {self.sc.sim.max_events_per_step} guard events "
-                                f"in one step of {h} s (Zeno chattering)")
             t_now = t0 + h - left
             u, _ = self.lowlevel.command(t_now, x, self.plan)
             u = self.system.numeric.saturate(np.array([mode]), u[None])[0]
@@ -240,10 +245,13 @@ class LoopCore:
             "mode_after": g.target, "x_before": ev.x_before, "x_after": ev.x_after,
             "scheduled": scheduled})
 
-    def _fail(self, t: float, reason: str) -> None:
-        self.res.diverged = True
+    def _fail(self, t: float, reason: str, diverged: bool = True) -> None:
+        """Ends the run early as failed (``diverged``: numerically, else by the task's
+        failure test, e.g. a fall)."""
+        self.res.diverged = diverged
         self.res.reason = reason
         self.res.t_end = t
+        self._stopped = True
 
     def _finish(self, x: np.ndarray, mode: int, start: float) -> RunResult:
         r, sysm = self.res, self.system
@@ -251,7 +259,7 @@ class LoopCore:
         r.mode_end = sysm.modes[mode].name
         r.final_error = float(sysm.numeric.goal_error(x)) if np.all(np.isfinite(x)) else \
             float("nan")
-        r.success = not r.diverged and self.is_success(x, mode)
+        r.success = not self._stopped and self.is_success(x, mode)
         if self.solve_times:
             st = np.array(self.solve_times)
             r.solve_time_median = float(np.median(st))

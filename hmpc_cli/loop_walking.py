@@ -6,14 +6,16 @@ the walking MPC is solved for every candidate stair segment
 (:func:`hmpc_cli.planner.footholds.candidates`) and the best one is kept
 (:func:`~hmpc_cli.planner.footholds.choose`: the largest final hip x by default). A failed
 candidate is skipped and logged; if all fail, or none is within reach, the previous plan
-is kept. Fixed-mode MPC: every ``mpc.rate_hz`` period the chosen segment's NLP is
-re-solved from the measured state (time already spent in the swing as a parameter); a
-failed solve is logged and the previous plan kept. The simulated robot is the model
-updated by the scenario's ``[plant]`` keys (the paper: every mass and inertia x 1.1).
+is kept (a choice that found no plan is retried every MPC period). Fixed-mode MPC: every
+``mpc.rate_hz`` period the chosen segment's NLP is re-solved from the measured state (time
+already spent in the swing as a parameter); a failed solve is logged and the previous
+plan kept. The simulated robot is the model updated by the scenario's ``[plant]`` keys
+(the paper: every mass and inertia x 1.1).
 
-A fall ends the run as failed: the hip less than ``system.fall_hip_height`` above the
-terrain under it, or a knee, the hip or the torso top below the terrain. Success: no fall
-and the stance foot on the top segment at the end.
+A fall ends the run as failed (``diverged`` stays false): the hip less than
+``fall_hip_height`` above the terrain under it, or a knee, the hip or the torso top below
+the terrain, all judged on the plant's geometry and terrain. Success: no fall and the
+stance foot on the top segment at the end.
 """
 
 from __future__ import annotations
@@ -30,23 +32,14 @@ from hmpc_cli.numeric import compile_numpy
 from hmpc_cli.planner.footholds import candidates, choose
 from hmpc_cli.scenario import Scenario
 from hmpc_cli.sim import Event
-from hmpc_cli.systems.biped import POINT_NAMES, BipedParams, build_biped, stair_edges
+from hmpc_cli.systems.biped import (
+    POINT_NAMES, STANCE_X, BipedParams, build_biped, make_biped_model, stair_edges,
+    terrain_profile)
 
-__all__ = ["WalkingLoop", "terrain_height"]
+__all__ = ["WalkingLoop"]
 
 _BODY = [POINT_NAMES.index(n) for n in ("stance_knee", "hip", "torso_top", "swing_knee")]
 _HIP = POINT_NAMES.index("hip")
-
-
-def terrain_height(params: BipedParams, x: np.ndarray) -> np.ndarray:
-    """Height of the terrain under each x [m] (the higher side on a segment boundary;
-    the ground height before x = 0, the last segment's height past the end)."""
-    x = np.asarray(x, dtype=float)
-    out = np.where(x <= 0.0, params.ground_height, -np.inf)
-    for start, end, height in stair_edges(params):
-        out = np.where((x >= start) & (x <= end), np.maximum(out, height), out)
-    last_end, last_h = stair_edges(params)[-1][1:]
-    return np.where(x > last_end, last_h, out)
 
 
 class WalkingLoop(LoopCore):
@@ -57,28 +50,27 @@ class WalkingLoop(LoopCore):
         sc = scenario
         params: BipedParams = sc.system
         system = build_biped(params)
-        plant = build_biped(sc.plant_params()) if sc.plant else system
+        self.world: BipedParams = sc.plant_params()  # the simulated robot and its terrain
+        plant = build_biped(self.world) if sc.plant else system
         super().__init__(sc, recorder, system, plant, progress)
-        self.params = params
         self.mpc = mpc or WalkingMPC(params, sc.mpc)
         self.mpc.reset()
         self.footholds = sc.planner
         self.segments = stair_edges(params)
-        self._points = compile_numpy(self.mpc.nlp.model.points_world)
+        self._world_points = compile_numpy(make_biped_model(self.world).points_world) \
+            if sc.plant else compile_numpy(self.mpc.nlp.model.points_world)
         self._per_solve = sc.sim.rate_hz // sc.mpc.rate_hz
         self._since_solve = 0
         self.segment: int | None = None
+        self._chosen = False  # the last foothold choice found a plan
         self.swing_start = 0.0
-
-    def run_info(self) -> dict:
-        return {"stairs": [list(s) for s in self.segments], "plant": dict(self.sc.plant)}
 
     # ------------------------------------------------------- hybrid layer
     def _choose_foothold(self, t: float, x: np.ndarray, reason: str) -> None:
         """Solves every candidate segment from x at time t and keeps the best plan."""
         start = time.perf_counter()
         try:
-            cand = candidates(float(x[10]), self.segments, self.footholds)
+            cand = candidates(float(x[STANCE_X]), self.segments, self.footholds)
         except ValueError as exc:
             cand, plans, note = [], [], f"{exc}; previous plan kept"
         else:
@@ -105,6 +97,7 @@ class WalkingLoop(LoopCore):
             "iterations": int(sum(p.stats.iterations for p in plans)), "note": note,
             "schedule": chosen.schedule.to_dict(self.system) if chosen else None,
             "candidates": rows})
+        self._chosen = chosen is not None
         if chosen is not None:
             self.segment = cand[best]
             self.record_solve(t, chosen, reason, self._solve_extra(chosen))
@@ -121,7 +114,7 @@ class WalkingLoop(LoopCore):
 
     def on_event(self, ev: Event, t: float) -> bool:
         scheduled = self.segment is not None and ev.guard == self.segment
-        self.mpc.on_impact(self.segment)
+        self.mpc.on_impact(self.segment if self._chosen else None)
         self.swing_start = t
         self._since_solve = 0
         self._choose_foothold(t, ev.x_after, "contact")
@@ -130,30 +123,33 @@ class WalkingLoop(LoopCore):
     def after_step(self, i: int, t: float, x: np.ndarray, mode: int, events: list[Event],
                    last: bool) -> None:
         self._since_solve += 1
-        if last or self.segment is None or self._since_solve < self._per_solve:
+        if last or self._since_solve < self._per_solve:
             return
         self._since_solve = 0
+        if not self._chosen:  # no foothold plan for this swing yet: choose again
+            self._choose_foothold(t, x, "retry")
+            return
         plan = self.mpc.solve(t, x, self.segment, t - self.swing_start)
         self.record_solve(t, plan, "period", self._solve_extra(plan),
                           adopt=plan.stats.success)
 
     def failure(self, x: np.ndarray, mode: int) -> str:
-        pts = self._points(x[None])[0].reshape(len(POINT_NAMES), 2)
-        ground = terrain_height(self.params, pts[:, 0])
+        pts = self._world_points(x[None])[0].reshape(len(POINT_NAMES), 2)
+        ground = terrain_profile(self.world, pts[:, 0])
         hip_gap = pts[_HIP, 1] - ground[_HIP]
-        if hip_gap < self.params.fall_hip_height:
+        if hip_gap < self.world.fall_hip_height:
             return (f"fall: hip {hip_gap:.3f} m above the terrain (< "
-                    f"{self.params.fall_hip_height} m)")
+                    f"{self.world.fall_hip_height} m)")
         for k in _BODY:
             if pts[k, 1] < ground[k]:
                 return f"fall: {POINT_NAMES[k]} touched the ground at x = {pts[k, 0]:.3f} m"
         return ""
 
     def is_success(self, x: np.ndarray, mode: int) -> bool:
-        start, end, _ = self.segments[-1]
-        return bool(start <= x[10] <= end)
+        start, end, _ = stair_edges(self.world)[-1]
+        return bool(start <= x[STANCE_X] <= end)
 
     def failure_reason(self, x: np.ndarray, mode: int) -> str:
-        start, end, _ = self.segments[-1]
-        return (f"stance foot at x = {x[10]:.3f} m is not on the top segment "
+        start, end, _ = stair_edges(self.world)[-1]
+        return (f"stance foot at x = {x[STANCE_X]:.3f} m is not on the top segment "
                 f"[{start:g}, {end:g}]")

@@ -56,12 +56,12 @@ def execute_run(loop: LoopCore, toml_text: str, out: Path,
     rec = Recorder(out / "run.mcap")
     loop.rec = rec
     loop.progress = progress
+    result = None
     try:
         rec.add_attachment("scenario.toml", toml_text.encode(), "application/toml")
         result = loop.run()
     except KeyboardInterrupt:
         loop.res.reason = "interrupted"
-        result = None
         raise
     finally:
         rec.close()

@@ -26,6 +26,9 @@ PlannerSection = Annotated[CEMSettings | FootholdSettings, Field(discriminator="
 MPCSection = Annotated[MPCSettings | WalkingMPCSettings, Field(discriminator="kind")]
 #: per system: the planner and MPC kinds its controller stack uses (the section defaults)
 STACKS = {"ball": ("cem", "fixed_mode"), "biped": ("footholds", "walking")}
+#: per system: defaults of other sections' keys (section, key, value) its stack needs
+STACK_DEFAULTS = {"biped": (("sim", "input_at_events", "recompute"),
+                            ("replanning", "policy", "on_contact"))}
 _TAGS = {"system": set(STACKS), "planner": {"cem", "footholds"},
          "mpc": {"fixed_mode", "walking"}}
 
@@ -107,11 +110,12 @@ class Scenario(BaseModel):
                 choices = ", ".join(repr(k) for k in STACKS)
                 raise ValueError(f"system.name: unknown system {system['name']!r} (choose "
                                  f"from {choices})")
-            kinds = STACKS[system["name"]]
-            for key, kind in zip(("planner", "mpc"), kinds or ()):
+            defaults = [(key, "kind", kind) for key, kind in
+                        zip(("planner", "mpc"), STACKS[system["name"]])]
+            for key, name, value in defaults + list(STACK_DEFAULTS.get(system["name"], ())):
                 section = data.get(key, {})
                 if isinstance(section, dict):
-                    data[key] = {"kind": kind, **section}
+                    data[key] = {name: value, **section}
         return data
 
     def plant_params(self) -> BallParams | BipedParams:
@@ -147,8 +151,6 @@ class Scenario(BaseModel):
             raise ValueError("\n".join(problems))
         return self
 
-
-
     def _stack_problems(self) -> list[str]:
         """The system, planner and MPC must belong to one controller stack; plant keys
         must be valid system parameters."""
@@ -164,15 +166,18 @@ class Scenario(BaseModel):
         if name == "biped" and self.replanning.policy != "on_contact":
             out.append(f"replanning.policy: the biped chooses its foothold at every contact; "
                        f"use 'on_contact', not {self.replanning.policy!r}")
+        if name == "biped" and self.sim.input_at_events != "recompute":
+            out.append("sim.input_at_events: the biped's reset swaps the legs, so the torque "
+                       "held before it would act on the other leg; use 'recompute'")
         if self.plant:
             try:
                 self.plant_params()
             except ValidationError as exc:
                 for err in exc.errors():
-                    loc = ".".join(str(p) for p in err["loc"]) or "(plant)"
+                    loc = ".".join(["plant", *(str(p) for p in err["loc"])])
                     msg = err["msg"].removeprefix("Value error, ")
                     msg = "unknown key" if err["type"] == "extra_forbidden" else msg
-                    out.append(f"plant.{loc}: {msg}")
+                    out.append(f"{loc}: {msg}")
         return out
 
 

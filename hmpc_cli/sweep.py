@@ -95,6 +95,12 @@ class SweepPlan:
     axes: list[Axis]
     runs: list[Run]
     keys: list[str] = field(default_factory=list)
+    only_seeds: frozenset[int] | None = None  # run only these seeds (the table keeps all)
+
+    @property
+    def selected(self) -> list[Run]:
+        """The runs to execute: all, or those of ``only_seeds``."""
+        return [r for r in self.runs if self.only_seeds is None or r.seed in self.only_seeds]
 
     @property
     def columns(self) -> list[str]:
@@ -262,15 +268,14 @@ def plan_sweep(path: str | Path) -> SweepPlan:
 
 
 def first_seeds(plan: SweepPlan, n: int | None) -> SweepPlan:
-    """The plan cut to its first ``n`` seeds (None: as is). Run ids ignore the seed list,
-    so the whole sweep later skips these runs. Raises ScenarioError unless 1 <= n <= seeds."""
+    """The plan set to run only its first ``n`` seeds (None: all). Run ids ignore the seed
+    list, so the whole sweep later skips these runs; results.csv keeps every finished run.
+    Raises ScenarioError unless 1 <= n <= seeds."""
     seeds = plan.spec.seeds
     if n is not None and not 1 <= n <= len(seeds):
         raise ScenarioError([(f"{plan.path}: --seeds {n}: the sweep has {len(seeds)} "
                               f"seed(s); choose 1..{len(seeds)}")])
-    keep = set(seeds[:n]) if n is not None else None
-    return plan if keep is None else dataclasses.replace(
-        plan, runs=[r for r in plan.runs if r.seed in keep])
+    return plan if n is None else dataclasses.replace(plan, only_seeds=frozenset(seeds[:n]))
 
 
 def _bad_keys(src: str, items: list[tuple[str, Any, str]]) -> list[str]:
@@ -374,9 +379,10 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
     out = out.resolve()
     (out / "runs").mkdir(parents=True, exist_ok=True)
     (out / "sweep.toml").write_text(plan.text, encoding="utf-8")
-    done = {r.run_id: finished(out, r) for r in plan.runs}
-    pending = [r for r in plan.runs if done[r.run_id] is None]
-    res = Outcome(len(plan.runs), skipped=len(plan.runs) - len(pending))
+    selected = plan.selected
+    done = {r.run_id: finished(out, r) for r in selected}
+    pending = [r for r in selected if done[r.run_id] is None]
+    res = Outcome(len(selected), skipped=len(selected) - len(pending))
     if on_start:
         on_start(res.total, res.skipped, sum(bool(s and s.get("success")) for s in done.values()))
 

@@ -19,10 +19,15 @@ INTERRUPTED = "interrupted"
 
 def finished(out: Path, run) -> dict | None:
     """The run's summary if it finished with the same effective scenario, else None."""
-    d = out / "runs" / run.run_id
+    return finished_in(out / "runs" / run.run_id, run.toml)
+
+
+def finished_in(d: Path, toml_text: str) -> dict | None:
+    """The summary of the run in directory d if it finished (not interrupted) with the
+    effective scenario ``toml_text``, else None."""
     try:
         summary = json.loads((d / "summary.json").read_text())
-        same = (d / "scenario.toml").read_text(encoding="utf-8") == run.toml
+        same = (d / "scenario.toml").read_text(encoding="utf-8") == toml_text
     except (OSError, ValueError):
         return None
     if not isinstance(summary, dict) or summary.get("reason") == INTERRUPTED or not same:

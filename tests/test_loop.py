@@ -70,3 +70,16 @@ def test_rejected_plans_are_retried_every_period_and_logged(tmp_path):
     assert retry_times == [0.1, 0.2, 0.3, 0.4]
     assert all(not p.data["accepted"] and "no schedule yet" in p.data["note"] for p in plans)
     assert result.solves == 0 and not result.diverged
+
+
+def test_the_plant_differs_from_the_model_only_where_the_scenario_says(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    same, log_a = run(tmp_path / "a", ["sim.duration=0.4"])
+    heavy, log_b = run(tmp_path / "b", ["sim.duration=0.4", "plant.drag=0.2"])
+    xa = np.array([m.data["x"] for m in log_a.topic("/sim/state")])
+    xb = np.array([m.data["x"] for m in log_b.topic("/sim/state")])
+    assert np.array_equal(xa[0], xb[0]) and not np.allclose(xa[-1], xb[-1])
+    # the controllers keep the model: the first plans are identical
+    pa, pb = log_a.topic("/mpc/solve")[0].data, log_b.topic("/mpc/solve")[0].data
+    assert pa["x_plan"] == pb["x_plan"]

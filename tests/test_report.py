@@ -130,6 +130,10 @@ seeds = 2
     again = run_hmpc(args, tmp_path, timeout=600)
     assert again.returncode == 0 and "8 skipped" in again.stdout
     assert (res / "README.md").read_text() == page
+    # a seed prefix runs nothing new and the table keeps every finished run
+    prefix = run_hmpc(args + ["--seeds", "1"], tmp_path, timeout=600)
+    assert prefix.returncode == 0 and "4 skipped" in prefix.stdout
+    assert (res / "README.md").read_text() == page
 
 
 def test_report_without_results_is_a_clear_error(tmp_path, run_hmpc):
@@ -150,8 +154,8 @@ def test_first_seeds_is_a_resumable_prefix_of_the_study():
     full = plan_sweep(REPO / "sweeps" / "robustness.toml")
     assert len(full.runs) == 5 * 2 * 5 * 100
     part = first_seeds(full, 3)
-    assert len(part.runs) == 5 * 2 * 5 * 3 and {r.seed for r in part.runs} == {0, 1, 2}
-    assert {r.run_id for r in part.runs} <= {r.run_id for r in full.runs}
+    assert len(part.selected) == 5 * 2 * 5 * 3 and {r.seed for r in part.selected} == {0, 1, 2}
+    assert part.runs == full.runs  # the results table still covers every finished run
     assert first_seeds(full, None) is full
     for bad in (0, 101):
         with pytest.raises(ScenarioError, match="the sweep has 100 seed"):

@@ -12,10 +12,9 @@ from conftest import REPO
 from hmpc_cli.figures.common import FigureInputError
 from hmpc_cli.figures.fig4 import fig4, load_walk
 from hmpc_cli.loop import make_loop
-from hmpc_cli.loop_walking import terrain_height
 from hmpc_cli.recorder import Recorder, read_log
 from hmpc_cli.scenario import load_scenario
-from hmpc_cli.systems.biped import BipedParams, make_biped_model
+from hmpc_cli.systems.biped import BipedParams, make_biped_model, terrain_profile
 
 STAIRS = REPO / "scenarios" / "biped_stairs.toml"
 
@@ -92,6 +91,7 @@ def test_a_fall_ends_the_run_cleanly_as_failed(tmp_path, run_hmpc):
     assert proc.returncode == 0, proc.stderr[-2000:]
     summary = json.loads((out / "summary.json").read_text())
     assert not summary["success"] and summary["reason"].startswith("fall:")
+    assert not summary["diverged"]  # a task failure, not a numerical one
     log = read_log(out / "run.mcap")
     assert log.complete and log.topic("/run/summary")[-1].data["reason"] == summary["reason"]
 
@@ -113,7 +113,7 @@ def test_no_candidate_keeps_the_previous_plan_and_is_logged(tmp_path):
 def test_terrain_height_of_the_figure_4_course():
     p = BipedParams()
     xs = np.array([-0.3, 0.0, 0.2, 0.4, 0.9, 1.45, 1.6, 2.5, 3.5])
-    np.testing.assert_allclose(terrain_height(p, xs),
+    np.testing.assert_allclose(terrain_profile(p, xs),
                                [0, 0, 0, 0.075, 0.075, 0.125, 0.175, 0.175, 0.175])
 
 
@@ -184,6 +184,15 @@ def test_a_biped_sweep_reuses_one_nlp_per_worker(tmp_path):
     assert len(runner._NLP_CACHE) == before + 1  # one walking NLP served all four runs
     import csv
 
-    rows = list(csv.DictReader(open(tmp_path / "out" / "results.csv")))
+    with open(tmp_path / "out" / "results.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
     assert len(rows) == 4
     assert all(r["contacts"] == "1" and r["diverged"] == "false" for r in rows)  # one step
+
+
+def test_a_minimal_biped_scenario_gets_its_stack_defaults(tmp_path):
+    path = tmp_path / "mini.toml"
+    path.write_text('[system]\nname = "biped"\n')
+    sc, _ = load_scenario(path)
+    assert (sc.planner.kind, sc.mpc.kind) == ("footholds", "walking")
+    assert sc.sim.input_at_events == "recompute" and sc.replanning.policy == "on_contact"

@@ -80,7 +80,6 @@ class WalkingMPC:
             return
         nlp = self.nlp
         w = self._repeat_swing1(old.w)
-        w[nlp.x_idx[1, 0]] = old.w[nlp.x_idx[1, 0]]
         lam_x = lam_g = None
         if self.s.impact_duals and old.lam_x is not None and old.lam_g is not None:
             lam_x = self._repeat_swing1(old.lam_x)
@@ -147,8 +146,9 @@ class WalkingMPC:
 
         Returns:
             The plan; ``stats.success`` False on any solver failure or a segment too
-            short for the margin (never raises for those). ``extra``: segment, elapsed, warm ("primal-dual", "primal" or
-            "cold"), touchdown (x, y) and final_hip (x, y) in the world [m].
+            short for the margin (never raises for those). ``extra``: segment, elapsed,
+            warm ("primal-dual", "primal" or "cold"), touchdown (x, y) and final_hip
+            (x, y) in the world [m].
 
         Raises:
             IndexError: no such segment.

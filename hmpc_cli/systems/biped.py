@@ -69,6 +69,7 @@ Five = tuple[float, float, float, float, float]
 Pair = tuple[float, float]
 MODE = "single_support"
 N_Q = 5
+STANCE_X = 2 * N_Q  #: index of the stance-foot x in the state (the stance-foot y follows)
 #: names of the points returned by :attr:`BipedModel.points` (columns, in this order)
 POINT_NAMES = ("stance_foot", "stance_knee", "hip", "torso_top", "swing_knee", "swing_foot")
 
@@ -125,8 +126,9 @@ class BipedParams(BaseModel):
     pose_weights: Five = Field((0.0, 1.0, 1.0, 1.0, 1.0),
                                description="stage cost weights on (q - q_nominal)^2")
     r_torque: float = Field(1e-4, ge=0.0, description="stage cost weight on |u|^2")
-    success_radius: float = Field(0.3, gt=0.0, description="hip distance to the goal "
-                                  "reported as the final error [m]")
+    success_radius: float = Field(0.3, gt=0.0, description="unused by the walking "
+                                  "success test (no fall, ends on the top segment); the "
+                                  "final error is |hip - goal| [m]")
     fall_hip_height: float = Field(0.35, ge=0.0, description="a fall: the hip less than "
                                    "this above the terrain under it [m]")
 
@@ -204,6 +206,16 @@ def terrain_heights(p: BipedParams, x: float) -> list[float]:
     out = [p.ground_height] if x <= 0.0 else []
     out += [h for a, b, h in stair_edges(p) if a <= x <= b and h not in out]
     return out
+
+
+def terrain_profile(p: BipedParams, x) -> np.ndarray:
+    """Terrain height under each x [m] (vectorised): the higher side on a boundary, the
+    ground height for x <= 0, the last segment's height past the stairs' end."""
+    x, edges = np.asarray(x, dtype=float), stair_edges(p)
+    out = np.where(x <= 0.0, p.ground_height, -np.inf)
+    for a, b, h in edges:
+        out = np.where((x >= a) & (x <= b), np.maximum(out, h), out)
+    return np.where(x > edges[-1][1], edges[-1][2], out)
 
 
 def _geometry(p: BipedParams) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
