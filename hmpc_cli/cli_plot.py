@@ -62,7 +62,7 @@ def _fig4(log: Path, out: Optional[Path], formats: str, every: float, gif: bool,
     try:
         walk = fig4(log, out_dir, formats, every=every, width=width, height=height)
         if gif:
-            animate_walk(log, out_dir / "walk.gif")
+            animate_walk(walk, out_dir / "walk.gif")
     except FigureInputError as exc:
         _fail(str(exc))
     for t, guard, fx, fy in walk.contacts:

@@ -111,6 +111,17 @@ def _findings(cells) -> list[str]:
     return out
 
 
+def _sweep_set(path: Path) -> str:
+    """The sweep file's ``[set]`` overrides as text ("-" if none or unreadable)."""
+    import tomllib
+
+    try:
+        items = tomllib.loads(path.read_text(encoding="utf-8")).get("set", {})
+    except (OSError, ValueError):
+        return "-"
+    return ", ".join(f"`{k} = {v}`" for k, v in items.items()) or "-"
+
+
 def _robustness_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]:
     from hmpc_cli.figures.robustness import robustness
 
@@ -119,11 +130,12 @@ def _robustness_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list
     cells = robustness(table, fig_dir, "pdf,svg,png")
     seeds = len({r["seed"] for r in rows})
     n = sorted({c.runs for c in cells})
+    fixed = _sweep_set(table.parent / "sweep.toml")
     lines = ["## Robustness study: success rate vs MPC rate", "",
              f"![robustness]({_rel(fig_dir / 'robustness.png', base)})", "",
              f"{len(rows)} finished runs, {seeds} seeds, {n[0]}"
-             f"{'' if len(n) == 1 else f'-{n[-1]}'} runs per cell; uniform box disturbance "
-             "per axis, held 0.05 s; Wilson 95 % intervals. Table: "
+             f"{'' if len(n) == 1 else f'-{n[-1]}'} runs per cell; settings of every run: "
+             f"{fixed}; Wilson 95 % intervals. Table: "
              f"[{_rel(fig_dir / 'robustness_table.csv', base)}]"
              f"({_rel(fig_dir / 'robustness_table.csv', base)}).", "", *_pivot(cells), "",
              "Computed findings (a claim holds only where the intervals separate):", "",
@@ -138,15 +150,22 @@ def _biped_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]
 
     run = Path(inputs.biped)
     walk = fig4(run, fig_dir, "pdf,png")
-    animate_walk(run, fig_dir / "walk.gif")
+    animate_walk(walk, fig_dir / "walk.gif")
+    import tomllib
+
     summary = json.loads((run / "summary.json").read_text()) if (
         run / "summary.json").is_file() else {}
+    sc = tomllib.loads((run / "scenario.toml").read_text()) if (
+        run / "scenario.toml").is_file() else {}
+    d = sc.get("disturbance", {})
+    setup = (f"plant vs model: {sc.get('plant') or 'identical'}; torso force: "
+             + (f"{d.get('kind')} ±{d.get('magnitude')} N held {d.get('hold')} s"
+                if d.get("kind", "none") != "none" else "none"))
     verdict = {True: "success", False: "failed", None: "unfinished"}[walk.success]
     lines = ["## Figure 4: the five-link biped on the stairs", "",
              f"![Figure 4]({_rel(fig_dir / 'fig4.png', base)})", "",
              f"Animation: [{_rel(fig_dir / 'walk.gif', base)}]"
-             f"({_rel(fig_dir / 'walk.gif', base)}). Robot 1.1x heavier than the model, "
-             f"random torso force; outcome: {verdict}"
+             f"({_rel(fig_dir / 'walk.gif', base)}). {setup}; outcome: {verdict}"
              f"{f' ({walk.reason})' if walk.reason not in ('', verdict) else ''}; hip ends at "
              f"({walk.hip[-1, 0]:.3f}, {walk.hip[-1, 1]:.3f}) m.", "",
              "| contact | t [s] | segment | foot x [m] |", "| --- | --- | --- | --- |"]

@@ -2,19 +2,21 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
 __all__ = [
-    "COLUMN_WIDTH_IN", "FORMATS", "FigureInputError", "RunTrace", "TEXT_WIDTH_IN", "ieee_rc",
-    "load_trace", "parse_bool", "parse_formats", "read_table", "resolve_log", "resolve_table",
-    "save_figure",
+    "COLUMN_WIDTH_IN", "FORMATS", "FigureInputError", "RunTrace", "TEXT_WIDTH_IN",
+    "check_size", "figure_style", "ieee_rc", "load_trace", "parse_bool", "parse_formats",
+    "read_table", "resolve_log", "resolve_run_log", "resolve_table", "save_figure",
+    "write_csv",
 ]
 
 TEXT_WIDTH_IN = 7.16  # IEEE two-column: full text width (in)
@@ -71,6 +73,45 @@ def ieee_rc(font_size: float = 8.0) -> dict[str, Any]:
         "savefig.dpi": 300,
         "figure.dpi": 100,
     }
+
+
+@contextlib.contextmanager
+def figure_style():
+    """Matplotlib defaults + :func:`ieee_rc` for the block (the user's matplotlibrc does
+    not leak in; restored on exit); pyplot with the non-interactive Agg canvas."""
+    import matplotlib as mpl
+
+    with mpl.rc_context():
+        mpl.rcdefaults()
+        mpl.rcParams.update(ieee_rc())
+        mpl.rcParams["backend"] = "Agg"
+        yield
+
+
+def check_size(width: float, height: float) -> None:
+    """Raises FigureInputError unless both sizes lie in [0.5, 20] inches."""
+    if not (0.5 <= width <= 20 and 0.5 <= height <= 20):
+        raise FigureInputError(f"figure size {width} x {height} in is out of range [0.5, 20]")
+
+
+def write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence[Any]]) -> None:
+    """Writes a CSV table atomically (temporary file, then rename)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        with open(tmp, "w", newline="", encoding="utf-8") as f:
+            w = csv.writer(f, lineterminator="\n")
+            w.writerow(header)
+            w.writerows(rows)
+        tmp.replace(path)
+    except OSError as exc:
+        raise FigureInputError(f"{path}: cannot write ({exc})") from None
+
+
+def resolve_run_log(path: str | Path) -> Path:
+    """The log itself, or run.mcap when ``path`` is a run directory holding one."""
+    path = Path(path)
+    return path / "run.mcap" if path.is_dir() and (path / "run.mcap").is_file() else path
 
 
 def parse_formats(text: str | Iterable[str]) -> tuple[str, ...]:

@@ -5,7 +5,6 @@ Drawn from a sweep table (results.csv) and the run logs it points to; never runs
 
 from __future__ import annotations
 
-import csv
 import math
 import re
 from dataclasses import dataclass, field
@@ -15,8 +14,8 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from hmpc_cli.figures.common import (
-    TEXT_WIDTH_IN, FigureInputError, RunTrace, ieee_rc, load_trace, parse_bool, parse_formats,
-    read_table, resolve_log, resolve_table, save_figure)
+    TEXT_WIDTH_IN, FigureInputError, RunTrace, check_size, ieee_rc, load_trace, parse_bool,
+    parse_formats, read_table, resolve_log, resolve_table, save_figure, write_csv)
 
 __all__ = ["REFERENCE_COUNTS", "PanelCounts", "fig3"]
 
@@ -223,13 +222,8 @@ def _figure(runs: dict[str, list[_Run]], width: float, height: float,
 
 def _write_counts(path: Path, counts: dict[str, PanelCounts]) -> None:
     """Writes panel, runs, successes, failed (trace labels joined by ';')."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", newline="", encoding="utf-8") as f:
-        w = csv.writer(f, lineterminator="\n")
-        w.writerow(["panel", "runs", "successes", "failed"])
-        for c in counts.values():
-            w.writerow([c.label, c.runs, c.successes, ";".join(c.failed)])
-    tmp.replace(path)
+    write_csv(path, ["panel", "runs", "successes", "failed"],
+              ([c.label, c.runs, c.successes, ";".join(c.failed)] for c in counts.values()))
 
 
 def fig3(table_path: str | Path, out_dir: str | Path | None = None,
@@ -248,8 +242,7 @@ def fig3(table_path: str | Path, out_dir: str | Path | None = None,
     import matplotlib as mpl
 
     table = resolve_table(table_path)
-    if not (0.5 <= width <= 20 and 0.5 <= height <= 20):
-        raise FigureInputError(f"figure size {width} x {height} in is out of range [0.5, 20]")
+    check_size(width, height)
     if view is not None:
         try:
             view = tuple(float(v) for v in view)

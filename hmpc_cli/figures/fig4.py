@@ -16,7 +16,8 @@ from typing import Iterable
 import numpy as np
 
 from hmpc_cli.figures.common import (
-    TEXT_WIDTH_IN, FigureInputError, ieee_rc, parse_formats, save_figure)
+    TEXT_WIDTH_IN, FigureInputError, check_size, figure_style, parse_formats, resolve_run_log,
+    save_figure)
 
 __all__ = ["WalkLog", "animate_walk", "fig4", "load_walk", "resolve_run_log"]
 
@@ -41,12 +42,6 @@ class WalkLog:
     ground_height: float
     success: bool | None
     reason: str
-
-
-def resolve_run_log(path: str | Path) -> Path:
-    """The log itself, or run.mcap when ``path`` is a run directory holding one."""
-    path = Path(path)
-    return path / "run.mcap" if path.is_dir() and (path / "run.mcap").is_file() else path
 
 
 def load_walk(path: str | Path) -> WalkLog:
@@ -127,10 +122,19 @@ def _snapshots(walk: WalkLog, every: float) -> list[int]:
     return picks
 
 
-def fig4(log_path: str | Path, out_dir: str | Path | None = None,
+def _out_dir(out: Path) -> Path:
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise FigureInputError(f"{out}: cannot create the output directory ({exc})") from None
+    return out
+
+
+def fig4(log: str | Path | WalkLog, out_dir: str | Path | None = None,
          formats: str | Iterable[str] = ("pdf", "svg", "png"), *,
          every: float = 0.1, width: float = TEXT_WIDTH_IN, height: float = 4.2) -> WalkLog:
-    """Draws Figure 4 from a biped run log into out_dir/fig4.<fmt>; returns the parsed log.
+    """Draws Figure 4 from a biped run (log path, run directory or a loaded
+    :class:`WalkLog`) into out_dir/fig4.<fmt>; returns the parsed log.
 
     ``every``: time between stick-figure snapshots [s]; sizes in inches.
     """
@@ -139,13 +143,10 @@ def fig4(log_path: str | Path, out_dir: str | Path | None = None,
     if not every > 0.0:
         raise FigureInputError(f"snapshot interval must be > 0 s, got {every}")
     fmts = parse_formats(formats)
-    log_path = resolve_run_log(log_path)
-    walk = load_walk(log_path)
-    out = Path(out_dir) if out_dir is not None else Path(log_path).parent
-    out.mkdir(parents=True, exist_ok=True)
-    with mpl.rc_context():
-        mpl.rcdefaults()
-        mpl.rcParams.update(ieee_rc())
+    check_size(width, height)
+    walk = log if isinstance(log, WalkLog) else load_walk(resolve_run_log(log))
+    out = _out_dir(Path(out_dir) if out_dir is not None else walk.path.parent)
+    with figure_style():
         import matplotlib.pyplot as plt
 
         fig = plt.figure(figsize=(width, height))
@@ -183,26 +184,28 @@ def fig4(log_path: str | Path, out_dir: str | Path | None = None,
             a.set_xlim(t0, t1)
             a.set_xlabel("t [s]")
             a.set_ylabel(label)
-        save_figure(fig, out, "fig4", fmts)
-        plt.close(fig)
+        try:
+            save_figure(fig, out, "fig4", fmts)
+        except OSError as exc:
+            raise FigureInputError(f"{out}: cannot write the figure ({exc})") from None
+        finally:
+            plt.close(fig)
     return walk
 
 
-def animate_walk(log_path: str | Path, out_path: str | Path, fps: int = 25,
+def animate_walk(log: str | Path | WalkLog, out_path: str | Path, fps: int = 25,
                  speed: float = 1.0, width: float = 5.0, height: float = 2.6) -> Path:
-    """Writes a GIF of the walk (one frame per 1/fps s of simulated time / speed)."""
-    import matplotlib as mpl
-
+    """Writes a GIF of the walk: ``fps`` frames per second of playback, each advancing
+    ``speed / fps`` seconds of simulated time (speed 1: real time)."""
     if fps < 1 or not speed > 0.0:
         raise FigureInputError(f"need fps >= 1 and speed > 0, got {fps}, {speed}")
-    walk = load_walk(resolve_run_log(log_path))
+    check_size(width, height)
+    walk = log if isinstance(log, WalkLog) else load_walk(resolve_run_log(log))
     out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
+    _out_dir(out_path.parent)
     frames = np.arange(walk.t[0], walk.t[-1] + 1e-9, speed / fps)
     idx = np.minimum(np.searchsorted(walk.t, frames), len(walk.t) - 1)
-    with mpl.rc_context():
-        mpl.rcdefaults()
-        mpl.rcParams.update(ieee_rc())
+    with figure_style():
         import matplotlib.pyplot as plt
         from matplotlib.animation import FuncAnimation, PillowWriter
 
@@ -229,7 +232,12 @@ def animate_walk(log_path: str | Path, out_path: str | Path, fps: int = 25,
 
         anim = FuncAnimation(fig, draw, frames=len(frames), blit=True)
         tmp = out_path.with_name(f".{out_path.name}.tmp.gif")
-        anim.save(tmp, writer=PillowWriter(fps=fps))
-        plt.close(fig)
-    tmp.replace(out_path)
+        try:
+            anim.save(tmp, writer=PillowWriter(fps=fps))
+            tmp.replace(out_path)
+        except OSError as exc:
+            raise FigureInputError(f"{out_path}: cannot write the animation ({exc})") from None
+        finally:
+            plt.close(fig)
+            tmp.unlink(missing_ok=True)
     return out_path

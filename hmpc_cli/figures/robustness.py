@@ -7,15 +7,14 @@ cell (x value, series, panel) gets its success rate with a Wilson score interval
 
 from __future__ import annotations
 
-import csv
 import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
 from hmpc_cli.figures.common import (
-    TEXT_WIDTH_IN, FigureInputError, ieee_rc, parse_bool, parse_formats, read_table,
-    resolve_table, save_figure)
+    TEXT_WIDTH_IN, FigureInputError, check_size, figure_style, parse_bool, parse_formats,
+    read_table, resolve_table, save_figure, write_csv)
 
 __all__ = ["Cell", "cells", "robustness", "wilson"]
 
@@ -95,7 +94,7 @@ def cells(table: str | Path, x_axis: str, series_axis: str, panel_axis: str) -> 
         c[1] += ok
     out = []
     for p in _order(panels):
-        for s in series:
+        for s in _order(series):
             for x in sorted({k[2] for k in counts if k[0] == p and k[1] == s}):
                 n, k = counts[(p, s, x)]
                 out.append(Cell(p, s, x, n, k))
@@ -103,15 +102,10 @@ def cells(table: str | Path, x_axis: str, series_axis: str, panel_axis: str) -> 
 
 
 def _write_table(path: Path, data: list[Cell], names: tuple[str, str, str]) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", newline="", encoding="utf-8") as f:
-        w = csv.writer(f, lineterminator="\n")
-        w.writerow([*names, "runs", "successes", "success_rate", "wilson95_lo", "wilson95_hi"])
-        for c in data:
-            lo, hi = c.interval
-            w.writerow([c.panel, c.series, f"{c.x:g}", c.runs, c.successes,
-                        f"{c.rate:.4f}", f"{lo:.4f}", f"{hi:.4f}"])
-    tmp.replace(path)
+    write_csv(path, [*names, "runs", "successes", "success_rate", "wilson95_lo",
+                     "wilson95_hi"],
+              ([c.panel, c.series, f"{c.x:g}", c.runs, c.successes, f"{c.rate:.4f}",
+                f"{c.interval[0]:.4f}", f"{c.interval[1]:.4f}"] for c in data))
 
 
 #: axis labels of the bundled study's columns (others: the key's last part)
@@ -124,8 +118,11 @@ def _axis_label(axis: str) -> str:
 
 
 def _panel_title(axis: str, value: str) -> str:
-    if axis == "disturbance.magnitude":
-        return f"$|w_i| \\leq {float(value):g}$"
+    try:
+        if axis == "disturbance.magnitude":
+            return f"$|w_i| \\leq {float(value):g}$"
+    except ValueError:
+        pass
     return f"{_axis_label(axis)} {value}"
 
 
@@ -141,18 +138,19 @@ def robustness(table: str | Path, out_dir: str | Path | None = None,
     table's directory) and returns the cells.
     """
     fmts = parse_formats(formats)
+    check_size(width, height)
     data = cells(table, x_axis, series_axis, panel_axis)
     out = Path(out_dir) if out_dir is not None else resolve_table(table).parent
-    out.mkdir(parents=True, exist_ok=True)
-    import matplotlib
-
-    matplotlib.use("Agg")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise FigureInputError(f"{out}: cannot create the output directory ({exc})") from None
     import matplotlib.pyplot as plt
 
     panels = list(dict.fromkeys(c.panel for c in data))
     series = list(dict.fromkeys(c.series for c in data))
     xs = sorted({c.x for c in data})
-    with plt.rc_context(ieee_rc()):
+    with figure_style():
         fig, axes = plt.subplots(1, len(panels), figsize=(width, height), sharey=True,
                                  squeeze=False)
         for ax, p in zip(axes[0], panels):
@@ -177,7 +175,11 @@ def robustness(table: str | Path, out_dir: str | Path | None = None,
         axes[0][0].set_ylabel("success rate (Wilson 95 %)")
         axes[0][-1].legend(loc="lower right", title=_axis_label(series_axis))
         fig.tight_layout(pad=0.3, w_pad=0.4)
-        save_figure(fig, out, "robustness", fmts)
-        plt.close(fig)
+        try:
+            save_figure(fig, out, "robustness", fmts)
+        except OSError as exc:
+            raise FigureInputError(f"{out}: cannot write the figure ({exc})") from None
+        finally:
+            plt.close(fig)
     _write_table(out / "robustness_table.csv", data, (panel_axis, series_axis, x_axis))
     return data
