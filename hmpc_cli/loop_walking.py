@@ -12,6 +12,10 @@ already spent in the swing as a parameter); a failed solve is logged and the pre
 plan kept. The simulated robot is the model updated by the scenario's ``[plant]`` keys
 (the paper: every mass and inertia x 1.1).
 
+Counting: a foothold choice is one planner call (its wall time covers every candidate
+solve; the candidates' statuses are in /planner/plan); the chosen candidate's solve and
+every periodic re-solve are the MPC solves of the summary.
+
 A fall ends the run as failed (``diverged`` stays false): the hip less than
 ``fall_hip_height`` above the terrain under it, or a knee, the hip or the torso top below
 the terrain, all judged on the plant's geometry and terrain. Success: no fall and the

@@ -17,7 +17,10 @@ REPO = Path(__file__).resolve().parents[1]
 if "HMPC_CACHE_DIR" not in os.environ:
     import tempfile
 
+    import atexit
+
     os.environ["HMPC_CACHE_DIR"] = tempfile.mkdtemp(prefix="hmpc-test-cache-")
+    atexit.register(shutil.rmtree, os.environ["HMPC_CACHE_DIR"], ignore_errors=True)
 SCENARIOS = REPO / "scenarios"
 BALL = SCENARIOS / "ball.toml"
 
