@@ -77,16 +77,15 @@ class LayeredLoop(LoopCore):
         self.res.planner_calls += 1
         self.plan_times.append(result.wall_time)
         accepted, note = result.schedule is not None, ""
-        ns = None
         if accepted:
-            try:
+            try:  # a schedule the NLP chain cannot hold (too many switches) is rejected
                 ns = NodeSchedule.from_schedule(result.schedule, self.mpc.nlp.N, self.mpc.nlp.dt)
+                self.mpc.set_schedule(ns, result.trajectory)
             except ValueError as exc:
                 accepted, note = False, str(exc)
         else:
             note = "no rollout reached the final domain"
         if accepted:
-            self.mpc.set_schedule(ns, result.trajectory)
             self.has_schedule = True
         else:
             self.res.planner_rejected += 1

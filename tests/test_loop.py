@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from hmpc_cli.loop import LayeredLoop
 from hmpc_cli.recorder import Recorder, read_log
@@ -83,3 +84,13 @@ def test_the_plant_differs_from_the_model_only_where_the_scenario_says(tmp_path)
     # the controllers keep the model: the first plans are identical
     pa, pb = log_a.topic("/mpc/solve")[0].data, log_b.topic("/mpc/solve")[0].data
     assert pa["x_plan"] == pb["x_plan"]
+
+
+def test_a_schedule_the_nlp_cannot_hold_is_rejected_not_fatal(tmp_path):
+    # the nominal plan crosses 3 guards; an NLP chain for 1 switch cannot hold it
+    result, log = run(tmp_path, ["mpc.max_switches=1", "sim.duration=0.3"])
+    assert result.t_end == pytest.approx(0.3) and not result.diverged
+    assert result.planner_rejected == result.planner_calls >= 2
+    notes = [m.data["note"] for m in log.topic("/planner/plan")]
+    assert all("raise mpc.max_switches" in n and "no schedule yet" in n for n in notes)
+    assert not log.topic("/mpc/solve")  # nothing to solve without a schedule
