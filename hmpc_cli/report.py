@@ -111,15 +111,17 @@ def _findings(cells) -> list[str]:
     return out
 
 
-def _sweep_set(path: Path) -> str:
-    """The sweep file's ``[set]`` overrides as text ("-" if none or unreadable)."""
+def _sweep_spec(path: Path) -> tuple[str, int | None]:
+    """The sweep file's ``[set]`` overrides as text ("-" if none) and its seed count."""
     import tomllib
 
     try:
-        items = tomllib.loads(path.read_text(encoding="utf-8")).get("set", {})
+        spec = tomllib.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError):
-        return "-"
-    return ", ".join(f"`{k} = {v}`" for k, v in items.items()) or "-"
+        return "-", None
+    seeds = spec.get("seeds")
+    count = seeds if isinstance(seeds, int) else len(seeds) if isinstance(seeds, list) else None
+    return ", ".join(f"`{k} = {v}`" for k, v in spec.get("set", {}).items()) or "-", count
 
 
 def _robustness_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]:
@@ -130,10 +132,12 @@ def _robustness_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list
     cells = robustness(table, fig_dir, "pdf,svg,png")
     seeds = len({r["seed"] for r in rows})
     n = sorted({c.runs for c in cells})
-    fixed = _sweep_set(table.parent / "sweep.toml")
+    fixed, planned = _sweep_spec(table.parent / "sweep.toml")
+    partial = (f" (a prefix: {seeds} of the sweep's {planned} seeds; `hmpc report` runs "
+               "the rest, resuming)" if planned and seeds < planned else "")
     lines = ["## Robustness study: success rate vs MPC rate", "",
              f"![robustness]({_rel(fig_dir / 'robustness.png', base)})", "",
-             f"{len(rows)} finished runs, {seeds} seeds, {n[0]}"
+             f"{len(rows)} finished runs, {seeds} seeds{partial}, {n[0]}"
              f"{'' if len(n) == 1 else f'-{n[-1]}'} runs per cell; settings of every run: "
              f"{fixed}; Wilson 95 % intervals. Table: "
              f"[{_rel(fig_dir / 'robustness_table.csv', base)}]"
