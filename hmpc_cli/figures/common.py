@@ -131,15 +131,25 @@ def parse_formats(text: str | Iterable[str]) -> tuple[str, ...]:
 
 
 def save_figure(fig: Any, out_dir: Path, stem: str, formats: Iterable[str],
-                dpi: int = 300) -> list[Path]:
-    """Saves `fig` as out_dir/stem.<fmt> with fixed metadata (same input, same bytes)."""
+                dpi: int = 300, close: bool = True) -> list[Path]:
+    """Saves `fig` as out_dir/stem.<fmt> with fixed metadata (same input, same bytes);
+    closes a pyplot-managed figure (``close``) whatever happens. Raises FigureInputError
+    if it cannot write."""
     paths = []
-    for fmt in formats:
-        path = Path(out_dir) / f"{stem}.{fmt}"
-        tmp = path.with_name(f".{path.name}.tmp")
-        fig.savefig(tmp, format=fmt, dpi=dpi, metadata=_METADATA[fmt])
-        os.replace(tmp, path)  # never leave a half-written figure behind
-        paths.append(path)
+    try:
+        for fmt in formats:
+            path = Path(out_dir) / f"{stem}.{fmt}"
+            tmp = path.with_name(f".{path.name}.tmp")
+            fig.savefig(tmp, format=fmt, dpi=dpi, metadata=_METADATA[fmt])
+            os.replace(tmp, path)  # never leave a half-written figure behind
+            paths.append(path)
+    except OSError as exc:
+        raise FigureInputError(f"{out_dir}: cannot write the figure ({exc})") from None
+    finally:
+        if close and getattr(fig.canvas, "manager", None) is not None:
+            import matplotlib.pyplot as plt  # only pyplot figures have a manager
+
+            plt.close(fig)
     return paths
 
 

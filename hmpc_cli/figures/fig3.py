@@ -14,8 +14,8 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from hmpc_cli.figures.common import (
-    TEXT_WIDTH_IN, FigureInputError, RunTrace, check_size, ieee_rc, load_trace, parse_bool,
-    parse_formats, read_table, resolve_log, resolve_table, save_figure, write_csv)
+    TEXT_WIDTH_IN, FigureInputError, RunTrace, check_size, figure_style, load_trace,
+    parse_bool, parse_formats, read_table, resolve_log, resolve_table, save_figure, write_csv)
 
 __all__ = ["REFERENCE_COUNTS", "PanelCounts", "fig3"]
 
@@ -239,7 +239,6 @@ def fig3(table_path: str | Path, out_dir: str | Path | None = None,
     from the data. Returns the counts per panel label; raises FigureInputError on bad input,
     before anything is written.
     """
-    import matplotlib as mpl
 
     table = resolve_table(table_path)
     check_size(width, height)
@@ -264,13 +263,7 @@ def fig3(table_path: str | Path, out_dir: str | Path | None = None,
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise FigureInputError(f"{out}: cannot create the output directory ({exc})") from None
-    with mpl.rc_context():
-        mpl.rcdefaults()  # nothing from the user's matplotlibrc leaks in; restored on exit
-        mpl.rcParams.update(ieee_rc())
-        fig = _figure(runs, width, height, view)
-        try:
-            save_figure(fig, out, "fig3", fmts, dpi=dpi)
-            _write_counts(out / "fig3_counts.csv", counts)
-        except OSError as exc:
-            raise FigureInputError(f"{out}: cannot write the figure ({exc})") from None
+    with figure_style():  # nothing from the user's matplotlibrc leaks in
+        save_figure(_figure(runs, width, height, view), out, "fig3", fmts, dpi=dpi)
+    _write_counts(out / "fig3_counts.csv", counts)
     return counts

@@ -184,12 +184,7 @@ def fig4(log: str | Path | WalkLog, out_dir: str | Path | None = None,
             a.set_xlim(t0, t1)
             a.set_xlabel("t [s]")
             a.set_ylabel(label)
-        try:
-            save_figure(fig, out, "fig4", fmts)
-        except OSError as exc:
-            raise FigureInputError(f"{out}: cannot write the figure ({exc})") from None
-        finally:
-            plt.close(fig)
+        save_figure(fig, out, "fig4", fmts)
     return walk
 
 

@@ -175,11 +175,6 @@ def robustness(table: str | Path, out_dir: str | Path | None = None,
         axes[0][0].set_ylabel("success rate (Wilson 95 %)")
         axes[0][-1].legend(loc="lower right", title=_axis_label(series_axis))
         fig.tight_layout(pad=0.3, w_pad=0.4)
-        try:
-            save_figure(fig, out, "robustness", fmts)
-        except OSError as exc:
-            raise FigureInputError(f"{out}: cannot write the figure ({exc})") from None
-        finally:
-            plt.close(fig)
+        save_figure(fig, out, "robustness", fmts)
     _write_table(out / "robustness_table.csv", data, (panel_axis, series_axis, x_axis))
     return data
