@@ -102,6 +102,8 @@ def _print_summary(r, out: Path) -> None:
                   f"{ms(r.solve_time_median)} / {ms(r.solve_time_p95)} / {ms(r.solve_time_max)}")
     table.add_row("solver failures", f"{r.solver_failures} "
                   + (json.dumps(r.failure_statuses) if r.failure_statuses else ""))
+    table.add_row("softened solves (max slack)",
+                  f"{r.softened_solves}" + (f" ({r.max_slack:.3g})" if r.softened_solves else ""))
     table.add_row("planner calls (rejected)", f"{r.planner_calls} ({r.planner_rejected})")
     table.add_row("plan time median", ms(r.plan_time_median))
     table.add_row("wall time", f"{r.wall_time:.2f} s")

@@ -40,7 +40,7 @@ TOPICS: dict[str, tuple[str, dict]] = {
     "/disturbance": ("hmpc.Disturbance", _obj("Disturbance", t=NUM, w=VEC)),
     "/mpc/solve": ("hmpc.MpcSolve", _obj(
         "MpcSolve", t=NUM, reason=STR, status=STR, success=BOOL, iterations=INT,
-        wall_time=NUM, cost=NUM, max_violation=NUM, shifted=INT, schedule=SCHEDULE,
+        wall_time=NUM, cost=NUM, max_violation=NUM, slack=NUM, shifted=INT, schedule=SCHEDULE,
         t_plan=VEC, x_plan=MAT, u_plan=MAT, seg_plan={"type": "array", "items": INT})),
     "/planner/plan": ("hmpc.PlannerCall", _obj(
         "PlannerCall", t=NUM, reason=STR, accepted=BOOL, reached_final=BOOL, cost=NUM,

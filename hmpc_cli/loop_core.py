@@ -28,6 +28,8 @@ from hmpc_cli.scenario import Scenario
 from hmpc_cli.sim import Event, HybridSimulator, ZenoError
 from hmpc_cli.systems import build_system
 
+SOFTENED_TOL = 1e-6  # a solve whose hybrid-constraint slack exceeds this is "softened"
+
 
 @dataclass
 class RunResult:
@@ -45,6 +47,8 @@ class RunResult:
     solves: int = 0
     solver_failures: int = 0
     failure_statuses: dict = field(default_factory=dict)
+    softened_solves: int = 0
+    max_slack: float = 0.0
     solve_time_median: float = float("nan")
     solve_time_p95: float = float("nan")
     solve_time_max: float = float("nan")
@@ -151,12 +155,15 @@ class LoopCore:
         if not st.success:
             self.res.solver_failures += 1
             self.res.failure_statuses[st.status] = self.res.failure_statuses.get(st.status, 0) + 1
+        elif st.slack > SOFTENED_TOL:
+            self.res.softened_solves += 1
+            self.res.max_slack = max(self.res.max_slack, st.slack)
         if adopt:
             self.plan = plan
         self.rec.write("/mpc/solve", t, {
             "t": t, "reason": reason, "status": st.status, "success": st.success,
             "iterations": st.iterations, "wall_time": st.wall_time, "cost": st.cost,
-            "max_violation": st.max_violation, **extra, "t_plan": plan.traj.t + t,
+            "max_violation": st.max_violation, "slack": st.slack, **extra, "t_plan": plan.traj.t + t,
             "x_plan": plan.traj.x, "u_plan": plan.traj.u, "seg_plan": plan.traj.seg})
 
     # ---------------------------------------------------------------- run
@@ -175,7 +182,7 @@ class LoopCore:
         for i in range(n_steps):
             t = i * h
             w = self.dist(t)
-            u, x_ref = self.lowlevel.command(t, x, self.plan)
+            u, x_ref = self.lowlevel.command(t, x, self.plan, h)
             u = sysm.numeric.saturate(np.array([mode]), u[None])[0]
             if i % per_log == 0:
                 self.rec.write("/sim/state", t, {"t": t, "x": x, "mode": mode, "u": u,
@@ -232,7 +239,7 @@ class LoopCore:
             if not split or left <= 0.0 or not step.events:
                 return x, mode, events
             t_now = t0 + h - left
-            u, _ = self.lowlevel.command(t_now, x, self.plan)
+            u, _ = self.lowlevel.command(t_now, x, self.plan, left)
             u = self.system.numeric.saturate(np.array([mode]), u[None])[0]
 
     def _event(self, ev: Event, t_ev: float) -> None:

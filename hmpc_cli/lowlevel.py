@@ -1,10 +1,12 @@
 """Low-level controller: feed-forward of the MPC inputs plus PD on the tracking error.
 
-u(t) = u_ff(t) + K (x_ref(t) - x), K = system.tracking_gain(kp, kd). The feed-forward is the
-first-order hold (or zero-order hold) of the plan's inputs, the reference the linear
-interpolation of its states, both over the plan's current domain only: past its guard
-node the reference holds the guard node and its virtual input, until the loop re-solves
-after the impact. Evaluated every simulator step.
+u(t) = u_ff(t) + K (x_ref(t) - x), K = system.tracking_gain(kp, kd). The feed-forward
+interpolates the plan's inputs as the plan was computed with (``feedforward = "plan"``:
+the plan's ``input_hold``, first-order or zero-order hold) or as forced by the setting;
+the reference is the linear interpolation of the plan's states, both over the plan's
+current domain only: past its guard node the reference holds the guard node and its
+virtual input, until the loop re-solves after the impact. Evaluated every simulator step
+and held over it: the feed-forward is its mean over the step (same impulse as the plan).
 """
 
 from __future__ import annotations
@@ -24,7 +26,9 @@ class LowLevelSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
     kp: float = Field(0.0, ge=0.0, description="proportional gain")
     kd: float = Field(0.0, ge=0.0, description="derivative gain")
-    feedforward: Literal["foh", "zoh"] = "foh"
+    feedforward: Literal["plan", "foh", "zoh"] = Field(
+        "plan", description="input interpolation: as the plan was computed ('plan'), or "
+                            "forced first-order ('foh') or zero-order ('zoh') hold")
 
 
 class LowLevelController:
@@ -34,24 +38,55 @@ class LowLevelController:
         self.settings = settings
         self.K = np.asarray(system.tracking_gain(settings.kp, settings.kd), dtype=float)
 
-    def reference(self, t: float, plan: Plan) -> tuple[np.ndarray, np.ndarray]:
-        """(x_ref (n,), u_ff (m,)) of ``plan`` at simulated time t [s]."""
+    def reference(self, t: float, plan: Plan, span: float = 0.0
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """(x_ref (n,), u_ff (m,)) of ``plan``: x_ref at simulated time t [s], u_ff the
+        mean of the feed-forward over [t, t + span] (its value at t if span = 0). The
+        mean is the held input that gives the plant over a simulator step of ``span``
+        seconds the same impulse as the plan's interpolated input."""
         tr = plan.traj
         first = np.nonzero(tr.seg == tr.seg[0])[0]
         ts, xs, us = tr.t[first], tr.x[first], tr.u[first]
         tau = t - plan.t0
-        if tau >= ts[-1] or len(ts) == 1:
-            return xs[-1], us[-1]
-        k = max(int(np.searchsorted(ts, tau, side="right")) - 1, 0)
-        a = (tau - ts[k]) / (ts[k + 1] - ts[k])
-        x_ref = (1.0 - a) * xs[k] + a * xs[k + 1]
-        if self.settings.feedforward == "zoh":
-            return x_ref, us[k]
-        return x_ref, (1.0 - a) * us[k] + a * us[k + 1]
+        hold = self.settings.feedforward
+        zoh = (tr.input_hold if hold == "plan" else hold) == "zoh"
+        x_ref = _interp(ts, xs, tau, zoh=False)
+        if span <= 0.0:
+            return x_ref, _interp(ts, us, tau, zoh)
+        return x_ref, (_integral(ts, us, tau + span, zoh) - _integral(ts, us, tau, zoh)) / span
 
-    def command(self, t: float, x: np.ndarray, plan: Plan | None):
-        """Input (m,) and reference state (n,) at time t; zero input without a plan."""
+    def command(self, t: float, x: np.ndarray, plan: Plan | None, span: float = 0.0):
+        """Input (m,) held over [t, t + span] and reference state (n,) at time t; zero
+        input without a plan."""
         if plan is None:
             return np.zeros(self.K.shape[0]), np.full(self.K.shape[1], np.nan)
-        x_ref, u_ff = self.reference(t, plan)
+        x_ref, u_ff = self.reference(t, plan, span)
         return u_ff + self.K @ (x_ref - x), x_ref
+
+
+def _interp(ts: np.ndarray, vs: np.ndarray, tau: float, zoh: bool) -> np.ndarray:
+    """Value at tau of samples vs (K, d) at times ts (K,): linear or held from the left;
+    the first and last samples are held outside [ts[0], ts[-1]]."""
+    if tau >= ts[-1] or len(ts) == 1:
+        return vs[-1]
+    if tau <= ts[0]:
+        return vs[0]
+    k = int(np.searchsorted(ts, tau, side="right")) - 1
+    if zoh:
+        return vs[k]
+    a = (tau - ts[k]) / (ts[k + 1] - ts[k])
+    return (1.0 - a) * vs[k] + a * vs[k + 1]
+
+
+def _integral(ts: np.ndarray, vs: np.ndarray, tau: float, zoh: bool) -> np.ndarray:
+    """Integral from ts[0] to tau of the interpolated samples (constant outside)."""
+    if tau <= ts[0] or len(ts) == 1:
+        return (tau - ts[0]) * vs[0]
+    dt = np.diff(ts)[:, None]
+    pieces = dt * (vs[:-1] if zoh else 0.5 * (vs[:-1] + vs[1:]))
+    k = min(int(np.searchsorted(ts, tau, side="right")) - 1, len(ts) - 1)
+    done = pieces[:k].sum(axis=0)
+    if k == len(ts) - 1:
+        return done + (tau - ts[-1]) * vs[-1]
+    v_tau = _interp(ts, vs, tau, zoh)
+    return done + (tau - ts[k]) * (vs[k] if zoh else 0.5 * (vs[k] + v_tau))

@@ -44,9 +44,10 @@ class ModeSchedule:
 @dataclass(frozen=True)
 class Trajectory:
     """A sampled hybrid trajectory: node times t (K+1,), states x (K+1, n), inputs
-    u (K+1, m) applied from each node on, mode (K+1,), domain-segment index seg (K+1,)
-    and the guards crossed between segments. A reset appears as two nodes with the same
-    time (on the guard, then after the reset)."""
+    u (K+1, m) at each node, mode (K+1,), domain-segment index seg (K+1,), the guards
+    crossed between segments, and how the input runs between nodes: ``input_hold`` "zoh"
+    (u_k held) or "foh" (linear from u_k to u_k+1). A reset appears as two nodes with the
+    same time (on the guard, then after the reset)."""
 
     t: np.ndarray
     x: np.ndarray
@@ -54,6 +55,7 @@ class Trajectory:
     mode: np.ndarray
     seg: np.ndarray
     guards: tuple[int, ...] = ()
+    input_hold: str = "zoh"
 
 
 @dataclass(frozen=True)
@@ -80,7 +82,18 @@ class PlannerResult:
 
 @dataclass(frozen=True)
 class SolveStats:
-    """Statistics of one fixed-mode MPC solve."""
+    """Statistics of one fixed-mode MPC solve.
+
+    Attributes:
+        status: the solver's return status.
+        success: the solver converged to a finite point.
+        iterations: solver iterations.
+        wall_time: measured solve time [s].
+        cost: optimal cost (NaN if none).
+        max_violation: largest violation of the solved NLP's rows and bounds.
+        slack: largest relaxation of the hybrid (guard, virtual-node, region, terminal)
+            constraints by the soft-constraint slacks; 0 when they hold exactly.
+    """
 
     status: str
     success: bool
@@ -88,6 +101,7 @@ class SolveStats:
     wall_time: float
     cost: float
     max_violation: float
+    slack: float = 0.0
 
 
 @dataclass(frozen=True)

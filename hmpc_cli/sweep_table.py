@@ -12,8 +12,8 @@ from typing import Any
 
 TIMING = ("solve_time_median", "solve_time_p95", "solve_time_max", "plan_time_median",
           "wall_time")
-METRICS = ("success", "final_error", "contacts", "solves", "solver_failures", "planner_calls",
-           "planner_rejected", "diverged", "reason", *TIMING)
+METRICS = ("success", "final_error", "contacts", "solves", "solver_failures", "softened_solves",
+           "planner_calls", "planner_rejected", "diverged", "reason", *TIMING)
 INTERRUPTED = "interrupted"
 
 

@@ -12,7 +12,6 @@ from hmpc_cli.mpc.layout import ChainLayout, NodeSchedule, remap
 from hmpc_cli.mpc.nlp import INF, VIRTUAL_INPUT_WEIGHT, FixedModeNLP, MPCSettings
 
 
-
 class FixedModeMPC:
     """Fixed-mode MPC over a node schedule, re-solved with warm starts.
 
@@ -102,7 +101,8 @@ class FixedModeMPC:
             status = "error: " + (lines[-1] if lines else type(exc).__name__)[:160]
             w, cost, iters, ok, viol = w0, np.nan, 0, False, INF
         wall = time.perf_counter() - start
-        stats = SolveStats(status, bool(ok), int(iters), wall, cost, float(viol))
+        slack = float(np.max(w[nlp.s_idx], initial=0.0)) if ok else float("nan")
+        stats = SolveStats(status, bool(ok), int(iters), wall, cost, float(viol), slack)
         if ok:
             self._w = w
             self._lam_x = np.asarray(sol["lam_x"]).ravel()

@@ -6,16 +6,27 @@ Link k maps node z_k to z_{k+1}:
     z_{k+1} = sum_m a_km Phi_m(z_k, u_k) + sum_g b_kg R_g(z_k) + e_k z_k
 
 with Phi_m one RK4 (or Euler) interval of mode m, R_g the reset map of guard g and the
-one-hot link type (a, b, e) a *parameter*. Path rows of node k, with bounds chosen per
+one-hot link type (a, b, e) a *parameter*. With ``input_hold = "foh"`` the input of a flow
+interval goes linearly from u_k to u_{k+1} (the low level's first-order-hold feed-forward,
+so an undisturbed plant follows the plan); the last interval before a guard node ends at
+the virtual input, the horizon's last interval holds its input. Path rows of node k, with bounds chosen per
 solve (an inactive row gets infinite bounds):
 
-* one row per guard g: s_kg q_g(z_k) - kappa_kg. Guard-avoid (>= 0, s = +1, kappa from the
-  tube margin), guard-hit at the switching node (= 0), or off;
-* the virtual pass-through row: -q_G(Phi(z_k, u_k)) - kappa >= 0 at each guard node, i.e.
-  one more interval of the source flow with the virtual input u_k puts the whole tube
-  past the guard (problem (14));
-* the guard's activity-region rows at the switching node;
-* terminal-set rows at the last node.
+* one row per guard g: s_kg q_g(z_k) - kappa_kg + sigma_k. Guard-avoid (>= 0, s = +1,
+  kappa from the tube margin), guard-hit at the switching node (>= 0 here and
+  q_G(z_k) - sigma_k <= 0 in the next row: |q_G| <= sigma_k), or off;
+* the virtual pass-through row: -q_G(Phi(z_k, u_k)) - kappa + sigma_k >= 0 at each guard
+  node, i.e. one more interval of the source flow with the virtual input u_k puts the
+  whole tube past the guard (problem (14));
+* the guard's activity-region rows at the switching node (+ sigma_k >= 0);
+* terminal-set rows at the last node (+ sigma_L >= 0).
+
+sigma_k >= 0 is one slack per node with an exact L1 penalty ``soft_penalty * sum sigma_k``
+in the cost: whenever the hybrid constraints can be met, the solution meets them exactly
+(sigma = 0); when a disturbance has made them infeasible (the planned guard time can no
+longer be reached, say) the solve returns the least-relaxed plan instead of failing, and
+the relaxation max sigma_k is reported with every solve. ``soft_penalty = 0`` fixes
+sigma = 0: the hard constraints of the paper.
 
 Inputs are bounded by the (tightened) box of each link's mode through the variable
 bounds; reset-link inputs are the virtual inputs. Built once per (system, horizon,
@@ -32,7 +43,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.messages import Trajectory
-from hmpc_cli.mpc.layout import FLOW, RESET, ChainLayout, NodeSchedule
+from hmpc_cli.mpc.layout import FLOW, HOLD, RESET, ChainLayout, NodeSchedule
 
 INF = np.inf
 VIRTUAL_INPUT_WEIGHT = 1e-3
@@ -48,7 +59,13 @@ class MPCSettings(BaseModel):
     horizon: float = Field(3.0, gt=0.0, description="receding horizon [s]")
     max_switches: int = Field(10, ge=0, description="guard events the NLP chain can hold")
     integrator: Literal["rk4", "euler"] = "rk4"
+    input_hold: Literal["foh", "zoh"] = Field(
+        "foh", description="input between nodes: first-order hold (linear from u_k to "
+                           "u_k+1, as the low level feeds it forward) or zero-order hold")
     robust: bool = Field(True, description="virtual pass-through node (problem (14))")
+    soft_penalty: float = Field(
+        1e4, ge=0.0, description="L1 penalty on relaxing guard, virtual-node, region and "
+                                 "terminal rows (0: hard constraints, as in the paper)")
     tube_margin: float = Field(0.025, ge=0.0, description="tube radius diam T(dt) [state norm]")
     input_margin: float = Field(0.0, ge=0.0, description="input-box tightening per side")
     solver: Literal["ipopt", "fatrop", "sqpmethod"] = "ipopt"
@@ -84,21 +101,23 @@ class FixedModeNLP:
         self.R = max([g.region.size1_out(0) for g in system.guards if g.region is not None]
                      or [0])
         self.T = system.terminal_set.size1_out(0) if system.terminal_set is not None else 0
-        self.P = self.G + 1 + self.R
+        self.P = self.G + 2 + self.R  # guard rows, guard-hit upper side, virtual, region
         self._src = [system.mode_index(g.source) for g in system.guards]
         self._build()
 
     # ------------------------------------------------------------------ build
-    def _interval(self, mode: int, z, u):
+    def _interval(self, mode: int, z, u, u_end):
+        """One interval of ``mode`` from z with the input going linearly from u to u_end."""
         f = self.system.modes[mode].flow
         w = ca.DM.zeros(self.system.n_w)
         h = self.dt
         if self.s.integrator == "euler":
             return z + h * f(z, u, w)
+        u_mid = 0.5 * (u + u_end)
         k1 = f(z, u, w)
-        k2 = f(z + h / 2 * k1, u, w)
-        k3 = f(z + h / 2 * k2, u, w)
-        k4 = f(z + h * k3, u, w)
+        k2 = f(z + h / 2 * k1, u_mid, w)
+        k3 = f(z + h / 2 * k2, u_mid, w)
+        k4 = f(z + h * k3, u_end, w)
         return z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
     def _build(self) -> None:
@@ -106,15 +125,18 @@ class FixedModeNLP:
         sysm = self.system
         Z = [ca.SX.sym(f"z{k}", n) for k in range(L + 1)]
         U = [ca.SX.sym(f"u{k}", m) for k in range(L)]
+        Sg = [ca.SX.sym(f"sigma{k}") for k in range(L + 1)]
         pa = ca.SX.sym("a", L, M)
         pb = ca.SX.sym("b", L, G)
         pe = ca.SX.sym("e", L)
         pw = ca.SX.sym("w", L)
         pv = ca.SX.sym("v", L)
+        pf = ca.SX.sym("foh", L)  # 1: the interval's input ends at the next link's input
         ps = ca.SX.sym("s", L + 1, G)
         pk = ca.SX.sym("kappa", L + 1, G)
         pbeta = ca.SX.sym("beta", L + 1, G)
         pkv = ca.SX.sym("kappa_v", L + 1)
+        phit = ca.SX.sym("hit", L + 1, G)
         zs = ca.SX.sym("zs", n)
 
         src = [sysm.mode_index(g.source) for g in sysm.guards]
@@ -128,40 +150,43 @@ class FixedModeNLP:
         J = 0
         g_rows = []
 
-        def path(k, z, u, flows):
-            rows = [ps[k, i] * q[i](z) - pk[k, i] for i in range(G)]
+        def path(k, z, flows, sk):
+            qz = [q[i](z) for i in range(G)]
+            rows = [ps[k, i] * qz[i] - pk[k, i] + sk for i in range(G)]
+            rows.append(sum(phit[k, i] * qz[i] for i in range(G)) - sk)
             virt = 0
             for i in range(G):
                 virt += pbeta[k, i] * (-q[i](flows[src[i]]))
-            rows.append(virt - pkv[k])
+            rows.append(virt - pkv[k] + sk)
             reg = ca.SX.zeros(self.R)
             for i in range(G):
                 reg += pbeta[k, i] * regions[i](z)
-            rows.extend(ca.vertsplit(reg) if self.R else [])
+            rows.extend(ca.vertsplit(reg + sk) if self.R else [])
             return rows
 
         for k in range(L):
-            flows = [self._interval(i, Z[k], U[k]) for i in range(M)]
+            u_end = U[k] + pf[k] * (U[k + 1] - U[k]) if k + 1 < L else U[k]
+            flows = [self._interval(i, Z[k], U[k], u_end) for i in range(M)]
             nxt = pe[k] * Z[k]
             for i in range(M):
                 nxt += pa[k, i] * flows[i]
             for i, g in enumerate(sysm.guards):
                 nxt += pb[k, i] * g.reset(Z[k])
             g_rows.append(Z[k + 1] - nxt)
-            g_rows.extend(path(k, Z[k], U[k], flows))
+            g_rows.extend(path(k, Z[k], flows, Sg[k]))
             J += pw[k] * stage(Z[k], U[k]) + pv[k] * ca.sumsqr(U[k])
-        last_flows = [self._interval(i, Z[L], ca.DM.zeros(m)) for i in range(M)]
-        g_rows.extend(path(L, Z[L], ca.DM.zeros(m), last_flows))
+        last_flows = [self._interval(i, Z[L], ca.DM.zeros(m), ca.DM.zeros(m))
+                      for i in range(M)]
+        g_rows.extend(path(L, Z[L], last_flows, Sg[L]))
         if self.T:
-            g_rows.append(sysm.terminal_set(Z[L]))
+            g_rows.append(sysm.terminal_set(Z[L]) + Sg[L])
+        J += self.s.soft_penalty * ca.sum1(ca.vertcat(*Sg))
         w_vars = []
         for k in range(L):
-            w_vars += [Z[k], U[k]]
-        w_vars.append(Z[L])
-        p = ca.vertcat(ca.vec(pa), ca.vec(pb), pe, pw, pv, ca.vec(ps), ca.vec(pk),
-                       ca.vec(pbeta), pkv)
-        self._p_shapes = [(L, M), (L, G), (L,), (L,), (L,), (L + 1, G), (L + 1, G),
-                          (L + 1, G), (L + 1,)]
+            w_vars += [Z[k], U[k], Sg[k]]
+        w_vars += [Z[L], Sg[L]]
+        p = ca.vertcat(ca.vec(pa), ca.vec(pb), pe, pw, pv, pf, ca.vec(ps), ca.vec(pk),
+                       ca.vec(pbeta), pkv, ca.vec(phit))
         g_rows_flat = ca.vertcat(*g_rows)
         nlp = {"x": ca.vertcat(*w_vars), "p": p, "f": J, "g": g_rows_flat}
         opts = {"expand": True}
@@ -201,9 +226,10 @@ class FixedModeNLP:
         self.np = p.size1()
         self._g_fun = ca.Function("g", [nlp["x"], p], [nlp["g"]])
         self.rows_per_link = n + self.P
-        stride = n + m
+        stride = n + m + 1
         self.z_idx = np.array([[k * stride + i for i in range(n)] for k in range(L + 1)])
         self.u_idx = np.array([[k * stride + n + i for i in range(m)] for k in range(L)])
+        self.s_idx = np.array([k * stride + n + m for k in range(L)] + [L * stride + n])
 
     # ------------------------------------------------------------ problem data
     def _path_row(self, k: int) -> int:
@@ -219,12 +245,16 @@ class FixedModeNLP:
         e = np.zeros(L)
         wk = np.zeros(L)
         vk = np.zeros(L)
+        foh = np.zeros(L)
         sg = np.zeros((L + 1, G))
         kap = np.zeros((L + 1, G))
         beta = np.zeros((L + 1, G))
         kv = np.zeros(L + 1)
+        hit = np.zeros((L + 1, G))
         lbx = np.full(self.nx_var, -INF)
         ubx = np.full(self.nx_var, INF)
+        lbx[self.s_idx] = 0.0
+        ubx[self.s_idx] = INF if self.s.soft_penalty > 0.0 else 0.0
         lbg = np.full(self.ng, -INF)
         ubg = np.full(self.ng, INF)
         lbx[self.z_idx[0]] = ubx[self.z_idx[0]] = x0
@@ -236,6 +266,10 @@ class FixedModeNLP:
             if typ == FLOW:
                 a[k, mode], wk[k] = 1.0, self.dt
                 lo, hi = self._input_box(mode)
+                # first-order hold up to the next link's input (the virtual input before
+                # a guard node); the horizon's last interval holds its input
+                if self.s.input_hold == "foh" and k + 1 < L and lay.link_type[k + 1] != HOLD:
+                    foh[k] = 1.0
             elif typ == RESET:
                 b[k, lay.link_guard[k]] = 1.0
                 if self.s.robust:
@@ -254,9 +288,9 @@ class FixedModeNLP:
                 continue
             for gi in self.guards_of[mode]:
                 g = sysm.guards[gi]
-                if is_guard_node and gi == ns.guards[j]:
-                    sg[k, gi], kap[k, gi] = 1.0, 0.0
-                    lbg[row + gi] = ubg[row + gi] = 0.0
+                if is_guard_node and gi == ns.guards[j]:  # guard-hit: |q| <= sigma
+                    sg[k, gi], kap[k, gi], hit[k, gi] = 1.0, 0.0, 1.0
+                    lbg[row + gi] = ubg[row + G] = 0.0
                     continue
                 margin = 0.0 if gi == entered_by else d
                 sg[k, gi], kap[k, gi] = 1.0, g.kappa(margin, past=False)
@@ -266,16 +300,16 @@ class FixedModeNLP:
                 g = sysm.guards[gi]
                 if self.s.robust:
                     beta[k, gi], kv[k] = 1.0, g.kappa(d, past=True)
-                    lbg[row + G] = 0.0
+                    lbg[row + G + 1] = 0.0
                 else:
                     beta[k, gi] = 1.0  # region rows only
                 dims = g.region.size1_out(0) if g.region is not None else 0
-                lbg[row + G + 1: row + G + 1 + dims] = 0.0
+                lbg[row + G + 2: row + G + 2 + dims] = 0.0
         if self.T:
             lbg[self.ng - self.T:] = 0.0
-        p = np.concatenate([a.ravel(order="F"), b.ravel(order="F"), e, wk, vk,
+        p = np.concatenate([a.ravel(order="F"), b.ravel(order="F"), e, wk, vk, foh,
                             sg.ravel(order="F"), kap.ravel(order="F"),
-                            beta.ravel(order="F"), kv])
+                            beta.ravel(order="F"), kv, hit.ravel(order="F")])
         return p, lbx, ubx, lbg, ubg
 
     def _input_box(self, mode: int) -> tuple[np.ndarray, np.ndarray]:
@@ -326,11 +360,13 @@ class FixedModeNLP:
         new_w = w.copy()
         new_w[self.z_idx] = w[self.z_idx[node_map]]
         new_w[self.u_idx] = w[self.u_idx[link_map]]
+        new_w[self.s_idx] = w[self.s_idx[node_map]]
         if lam_x is None or lam_g is None:
             return new_w, None, None
         new_lx = lam_x.copy()
         new_lx[self.z_idx] = lam_x[self.z_idx[node_map]]
         new_lx[self.u_idx] = lam_x[self.u_idx[link_map]]
+        new_lx[self.s_idx] = lam_x[self.s_idx[node_map]]
         rows = np.arange(self.rows_per_link)
         new_lg = lam_g.copy()
         new_lg[(np.arange(L)[:, None] * self.rows_per_link + rows).ravel()] = \
@@ -348,4 +384,4 @@ class FixedModeNLP:
         t = np.concatenate([[0.0], np.cumsum(steps)])
         seg = lay.seg[: k_last + 1].copy()
         mode = np.array([ns.modes[j] for j in seg])
-        return Trajectory(t, x, u, mode, seg, tuple(ns.guards))
+        return Trajectory(t, x, u, mode, seg, tuple(ns.guards), self.s.input_hold)

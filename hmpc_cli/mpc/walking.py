@@ -223,4 +223,4 @@ class WalkingMPC:
         t = np.r_[np.arange(N + 1) * dt0, N * dt0 + np.arange(N + 1) * self.s.dt]
         u = np.vstack([us[:N], us[N - 1:N], us[N:], us[-1:]])
         seg = np.r_[np.zeros(N + 1, dtype=int), np.ones(N + 1, dtype=int)]
-        return Trajectory(t, xs, u, np.zeros(2 * N + 2, dtype=int), seg, (segment,))
+        return Trajectory(t, xs, u, np.zeros(2 * N + 2, dtype=int), seg, (segment,), "zoh")
