@@ -79,7 +79,7 @@ class LayeredLoop(LoopCore):
         accepted, note = result.schedule is not None, ""
         if accepted:
             try:  # a schedule the NLP chain cannot hold (too many switches) is rejected
-                ns = NodeSchedule.from_schedule(result.schedule, self.mpc.nlp.N, self.mpc.nlp.dt)
+                ns = NodeSchedule.from_schedule(result.schedule, self.mpc.N, self.mpc.dt)
                 self.mpc.set_schedule(ns, result.trajectory)
             except ValueError as exc:
                 accepted, note = False, str(exc)
@@ -124,14 +124,14 @@ class LayeredLoop(LoopCore):
         if ns.modes[0] == mode_after:
             return False, False, False  # unscheduled self-loop (e.g. an extra bounce)
         if mode_after == self.final_mode:
-            self.mpc.set_schedule(NodeSchedule((mode_after,), (), (self.mpc.nlp.N,)))
+            self.mpc.set_schedule(NodeSchedule((mode_after,), (), (self.mpc.N,)))
             return False, True, False
         return False, False, True
 
     # ------------------------------------------------------------ hooks
     def start(self, x: np.ndarray, mode: int) -> None:
         if mode == self.final_mode:
-            self.mpc.set_schedule(NodeSchedule((mode,), (), (self.mpc.nlp.N,)))
+            self.mpc.set_schedule(NodeSchedule((mode,), (), (self.mpc.N,)))
             self.has_schedule = True
         else:
             self._replan(0.0, x, mode, "initial")
@@ -171,6 +171,6 @@ class LayeredLoop(LoopCore):
         if reason:
             shifted = 0
             if self.has_schedule and reason != "replan" and not shifted_by_impact:
-                shifted = self.mpc.shift(int(round(self._since_solve * h / self.mpc.nlp.dt)))
+                shifted = self.mpc.shift(int(round(self._since_solve * h / self.mpc.dt)))
             self._solve(t, x, reason, shifted)
             self._since_solve = 0

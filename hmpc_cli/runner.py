@@ -12,13 +12,13 @@ from pathlib import Path
 
 from hmpc_cli.loop_core import LoopCore, RunResult
 from hmpc_cli.mpc.controller import FixedModeMPC
-from hmpc_cli.mpc.nlp import FixedModeNLP
+from hmpc_cli.mpc.nlp import FixedModeNLPs
 from hmpc_cli.mpc.walking import WalkingMPC, WalkingNLP
 from hmpc_cli.recorder import Recorder
 from hmpc_cli.scenario import Scenario
 from hmpc_cli.systems import build_system
 
-_NLP_CACHE: dict[str, FixedModeNLP | WalkingNLP] = {}
+_NLP_CACHE: dict[str, FixedModeNLPs | WalkingNLP] = {}
 
 
 def cached_mpc(sc: Scenario) -> FixedModeMPC | WalkingMPC:
@@ -32,7 +32,7 @@ def cached_mpc(sc: Scenario) -> FixedModeMPC | WalkingMPC:
         return WalkingMPC(sc.system, sc.mpc, _NLP_CACHE[key])
     system = build_system(sc.system)
     if key not in _NLP_CACHE:
-        _NLP_CACHE[key] = FixedModeNLP(system, sc.mpc)
+        _NLP_CACHE[key] = FixedModeNLPs(system, sc.mpc)
     return FixedModeMPC(system, sc.mpc, _NLP_CACHE[key])
 
 

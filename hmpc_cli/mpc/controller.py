@@ -9,7 +9,7 @@ import numpy as np
 from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.messages import Plan, SolveStats, Trajectory
 from hmpc_cli.mpc.layout import ChainLayout, NodeSchedule, remap
-from hmpc_cli.mpc.nlp import INF, VIRTUAL_INPUT_WEIGHT, FixedModeNLP, MPCSettings
+from hmpc_cli.mpc.nlp import INF, FixedModeNLP, FixedModeNLPs, MPCSettings
 
 
 class FixedModeMPC:
@@ -17,13 +17,16 @@ class FixedModeMPC:
 
     Usage: :meth:`set_schedule` (with an initial guess), then :meth:`solve` every period
     after :meth:`shift` (and after :meth:`on_impact` when the scheduled guard fires).
+    Each schedule is solved on the NLP that fits it (:class:`FixedModeNLPs`); ``nlp`` is
+    the one in use.
     """
 
     def __init__(self, system: HybridSystem, settings: MPCSettings,
-                 nlp: FixedModeNLP | None = None) -> None:
+                 nlps: FixedModeNLPs | None = None) -> None:
         self.system = system
         self.s = settings
-        self.nlp = nlp or FixedModeNLP(system, settings)
+        self.nlps = nlps or FixedModeNLPs(system, settings)
+        self.nlp: FixedModeNLP = self.nlps.switching
         self.node_schedule: NodeSchedule | None = None
         self.layout: ChainLayout | None = None
         self._w: np.ndarray | None = None
@@ -33,6 +36,7 @@ class FixedModeMPC:
     # ------------------------------------------------------------ schedule
     def set_schedule(self, ns: NodeSchedule, guess: Trajectory | None = None) -> None:
         """Installs a new node schedule; the initial guess comes from ``guess``."""
+        self.nlp = self.nlps.for_schedule(ns)
         layout = ChainLayout.build(ns, self.nlp.L)
         self.node_schedule, self.layout = ns, layout
         self._w = self._guess_from(guess, ns, layout) if guess is not None else None
@@ -49,11 +53,12 @@ class FixedModeMPC:
         self._relayout(self.node_schedule.on_impact(), dropped=1, offset0=0)
 
     def _relayout(self, ns: NodeSchedule, dropped: int, offset0: int) -> None:
-        old = self.layout
+        old, old_nlp = self.layout, self.nlp
+        self.nlp = self.nlps.for_schedule(ns)
         new = ChainLayout.build(ns, self.nlp.L)
         node_map = remap(old, new, dropped, offset0)
         self._w, self._lam_x, self._lam_g = self.nlp.remap_vectors(
-            node_map, self._w, self._lam_x, self._lam_g)
+            node_map, self._w, self._lam_x, self._lam_g, source=old_nlp)
         self.node_schedule, self.layout = ns, new
 
     def _guess_from(self, traj: Trajectory, ns: NodeSchedule, layout: ChainLayout):
@@ -119,6 +124,16 @@ class FixedModeMPC:
         """Max violations of the NLP at a primal point (for tests and checks)."""
         p, lbx, ubx, lbg, ubg = self.nlp.problem_data(self.node_schedule, self.layout, x0)
         return {"violation": self.nlp.violation(plan_w, p, lbx, ubx, lbg, ubg)}
+
+    @property
+    def N(self) -> int:
+        """Flow intervals over the horizon."""
+        return self.nlps.N
+
+    @property
+    def dt(self) -> float:
+        """Node step [s]."""
+        return self.nlps.dt
 
     @property
     def solution(self) -> np.ndarray:

@@ -73,6 +73,9 @@ class MPCSettings(BaseModel):
     max_iter: int = Field(200, gt=0)
     warm_start: bool = True
     resolve_on_impact: bool = True
+    final_domain_nlp: bool = Field(
+        True, description="solve schedules with no switch left on the final domain's own, "
+                          "smaller NLP (same problem, no switching rows)")
 
     @property
     def dt(self) -> float:
@@ -88,21 +91,43 @@ class MPCSettings(BaseModel):
 
 
 class FixedModeNLP:
-    """The parametric fixed-mode NLP on a chain of N + S_max links (built once)."""
+    """The parametric fixed-mode NLP on a chain of N + S links (built once).
 
-    def __init__(self, system: HybridSystem, settings: MPCSettings) -> None:
+    Args:
+        system: the hybrid system (the controllers' model).
+        settings: MPC settings.
+        switches: S, the guard events the chain holds (default ``settings.max_switches``).
+            With S = 0 the NLP is the final domain's plain MPC: only that mode's flow and
+            guard-avoid rows, no reset, virtual-node or region rows (a much smaller KKT
+            system for the solves after the last scheduled switch).
+    """
+
+    def __init__(self, system: HybridSystem, settings: MPCSettings,
+                 switches: int | None = None) -> None:
         self.system = system
         self.s = settings
+        self.S = settings.max_switches if switches is None else switches
         self.N = settings.n_intervals
-        self.L = self.N + settings.max_switches
+        self.L = self.N + self.S
         self.dt = settings.dt
         self.n, self.m = system.n_x, system.n_u
-        self.G, self.M = len(system.guards), len(system.modes)
+        self.G = len(system.guards)
+        final = system.mode_index(system.final_mode)
+        # modes with a flow in the chain, guards with rows (local column order)
+        self.modes_in = list(range(len(system.modes))) if self.S else [final]
+        self.row_guards = list(range(self.G)) if self.S else system.guards_of(final)
+        self._mcol = {mode: c for c, mode in enumerate(self.modes_in)}
+        self._gcol = {g: c for c, g in enumerate(self.row_guards)}
+        self.M, self.Gr = len(self.modes_in), len(self.row_guards)
         self.R = max([g.region.size1_out(0) for g in system.guards if g.region is not None]
-                     or [0])
+                     or [0]) if self.S else 0
         self.T = system.terminal_set.size1_out(0) if system.terminal_set is not None else 0
-        self.P = self.G + 2 + self.R  # guard rows, guard-hit upper side, virtual, region
-        self._src = [system.mode_index(g.source) for g in system.guards]
+        # rows per node: guard rows, then (if S > 0) guard-hit upper side, virtual, region
+        self.P = self.Gr + (2 + self.R if self.S else 0)
+        self._guards_of = [system.guards_of(i) for i in range(len(system.modes))]
+        # guard-avoid offsets: margin 0 for the guard just crossed, else the tube margin
+        self._kappa = [(g.kappa(0.0, past=False), g.kappa(settings.tube_margin, past=False))
+                       for g in system.guards]
         self._build()
 
     # ------------------------------------------------------------------ build
@@ -121,28 +146,29 @@ class FixedModeNLP:
         return z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
     def _build(self) -> None:
-        n, m, L, G, M = self.n, self.m, self.L, self.G, self.M
-        sysm = self.system
+        n, m, L, G, M, Gr = self.n, self.m, self.L, self.G, self.M, self.Gr
+        sysm, switching = self.system, self.S > 0
         Z = [ca.SX.sym(f"z{k}", n) for k in range(L + 1)]
         U = [ca.SX.sym(f"u{k}", m) for k in range(L)]
         Sg = [ca.SX.sym(f"sigma{k}") for k in range(L + 1)]
         pa = ca.SX.sym("a", L, M)
-        pb = ca.SX.sym("b", L, G)
+        pb = ca.SX.sym("b", L, G if switching else 0)
         pe = ca.SX.sym("e", L)
         pw = ca.SX.sym("w", L)
         pv = ca.SX.sym("v", L)
         pf = ca.SX.sym("foh", L)  # 1: the interval's input ends at the next link's input
-        ps = ca.SX.sym("s", L + 1, G)
-        pk = ca.SX.sym("kappa", L + 1, G)
-        pbeta = ca.SX.sym("beta", L + 1, G)
-        pkv = ca.SX.sym("kappa_v", L + 1)
-        phit = ca.SX.sym("hit", L + 1, G)
+        ps = ca.SX.sym("s", L + 1, Gr)
+        pk = ca.SX.sym("kappa", L + 1, Gr)
+        nsw = L + 1 if switching else 0
+        pbeta = ca.SX.sym("beta", nsw, G)
+        pkv = ca.SX.sym("kappa_v", nsw)
+        phit = ca.SX.sym("hit", nsw, G)
         zs = ca.SX.sym("zs", n)
 
-        src = [sysm.mode_index(g.source) for g in sysm.guards]
+        src = [self._mcol.get(sysm.mode_index(g.source), 0) for g in sysm.guards]
         q = [ca.Function(f"q_{g.name}", [zs], [g.q_expr(zs)]) for g in sysm.guards]
         regions = []
-        for g in sysm.guards:
+        for g in sysm.guards if switching else ():
             r = g.region(zs) if g.region is not None else ca.SX.zeros(0)
             pad = ca.vertcat(r, ca.SX.zeros(self.R - r.size1()))
             regions.append(ca.Function(f"r_{g.name}", [zs], [pad]))
@@ -151,8 +177,10 @@ class FixedModeNLP:
         g_rows = []
 
         def path(k, z, flows, sk):
-            qz = [q[i](z) for i in range(G)]
-            rows = [ps[k, i] * qz[i] - pk[k, i] + sk for i in range(G)]
+            qz = {i: q[i](z) for i in (range(G) if switching else self.row_guards)}
+            rows = [ps[k, c] * qz[i] - pk[k, c] + sk for c, i in enumerate(self.row_guards)]
+            if not switching:
+                return rows
             rows.append(sum(phit[k, i] * qz[i] for i in range(G)) - sk)
             virt = 0
             for i in range(G):
@@ -166,17 +194,17 @@ class FixedModeNLP:
 
         for k in range(L):
             u_end = U[k] + pf[k] * (U[k + 1] - U[k]) if k + 1 < L else U[k]
-            flows = [self._interval(i, Z[k], U[k], u_end) for i in range(M)]
+            flows = [self._interval(i, Z[k], U[k], u_end) for i in self.modes_in]
             nxt = pe[k] * Z[k]
-            for i in range(M):
-                nxt += pa[k, i] * flows[i]
-            for i, g in enumerate(sysm.guards):
+            for c in range(M):
+                nxt += pa[k, c] * flows[c]
+            for i, g in enumerate(sysm.guards if switching else ()):
                 nxt += pb[k, i] * g.reset(Z[k])
             g_rows.append(Z[k + 1] - nxt)
             g_rows.extend(path(k, Z[k], flows, Sg[k]))
             J += pw[k] * stage(Z[k], U[k]) + pv[k] * ca.sumsqr(U[k])
         last_flows = [self._interval(i, Z[L], ca.DM.zeros(m), ca.DM.zeros(m))
-                      for i in range(M)]
+                      for i in self.modes_in] if switching else []
         g_rows.extend(path(L, Z[L], last_flows, Sg[L]))
         if self.T:
             g_rows.append(sysm.terminal_set(Z[L]) + Sg[L])
@@ -238,19 +266,20 @@ class FixedModeNLP:
 
     def problem_data(self, ns: NodeSchedule, lay: ChainLayout, x0: np.ndarray):
         """Parameters and bounds of one solve: (p, lbx, ubx, lbg, ubg)."""
-        n, L, G = self.n, self.L, self.G
+        n, L, G, Gr = self.n, self.L, self.G, self.Gr
         sysm, d = self.system, self.s.tube_margin
+        nsw = L + 1 if self.S else 0
         a = np.zeros((L, self.M))
-        b = np.zeros((L, G))
+        b = np.zeros((L, G if self.S else 0))
         e = np.zeros(L)
         wk = np.zeros(L)
         vk = np.zeros(L)
         foh = np.zeros(L)
-        sg = np.zeros((L + 1, G))
-        kap = np.zeros((L + 1, G))
-        beta = np.zeros((L + 1, G))
-        kv = np.zeros(L + 1)
-        hit = np.zeros((L + 1, G))
+        sg = np.zeros((L + 1, Gr))
+        kap = np.zeros((L + 1, Gr))
+        beta = np.zeros((nsw, G))
+        kv = np.zeros(nsw)
+        hit = np.zeros((nsw, G))
         lbx = np.full(self.nx_var, -INF)
         ubx = np.full(self.nx_var, INF)
         lbx[self.s_idx] = 0.0
@@ -264,7 +293,7 @@ class FixedModeNLP:
             typ, mode = lay.link_type[k], lay.link_mode[k]
             lo = hi = np.zeros(self.m)
             if typ == FLOW:
-                a[k, mode], wk[k] = 1.0, self.dt
+                a[k, self._mcol[mode]], wk[k] = 1.0, self.dt
                 lo, hi = self._input_box(mode)
                 # first-order hold up to the next link's input (the virtual input before
                 # a guard node); the horizon's last interval holds its input
@@ -286,25 +315,25 @@ class FixedModeNLP:
             is_guard_node = j < len(ns.guards) and lay.local[k] == ns.counts[j]
             if lay.first_after_reset[k]:
                 continue
-            for gi in self.guards_of[mode]:
-                g = sysm.guards[gi]
+            for gi in self._guards_of[mode]:
+                c = self._gcol[gi]
                 if is_guard_node and gi == ns.guards[j]:  # guard-hit: |q| <= sigma
-                    sg[k, gi], kap[k, gi], hit[k, gi] = 1.0, 0.0, 1.0
-                    lbg[row + gi] = ubg[row + G] = 0.0
+                    sg[k, c], kap[k, c], hit[k, gi] = 1.0, 0.0, 1.0
+                    lbg[row + c] = ubg[row + Gr] = 0.0
                     continue
-                margin = 0.0 if gi == entered_by else d
-                sg[k, gi], kap[k, gi] = 1.0, g.kappa(margin, past=False)
-                lbg[row + gi] = 0.0
+                sg[k, c] = 1.0
+                kap[k, c] = self._kappa[gi][0 if gi == entered_by else 1]
+                lbg[row + c] = 0.0
             if is_guard_node:
                 gi = ns.guards[j]
                 g = sysm.guards[gi]
                 if self.s.robust:
                     beta[k, gi], kv[k] = 1.0, g.kappa(d, past=True)
-                    lbg[row + G + 1] = 0.0
+                    lbg[row + Gr + 1] = 0.0
                 else:
                     beta[k, gi] = 1.0  # region rows only
                 dims = g.region.size1_out(0) if g.region is not None else 0
-                lbg[row + G + 2: row + G + 2 + dims] = 0.0
+                lbg[row + Gr + 2: row + Gr + 2 + dims] = 0.0
         if self.T:
             lbg[self.ng - self.T:] = 0.0
         p = np.concatenate([a.ravel(order="F"), b.ravel(order="F"), e, wk, vk, foh,
@@ -313,15 +342,12 @@ class FixedModeNLP:
         return p, lbx, ubx, lbg, ubg
 
     def _input_box(self, mode: int) -> tuple[np.ndarray, np.ndarray]:
+        """The mode's input box shrunk by ``input_margin`` per side (never past its centre)."""
         md = self.system.modes[mode]
         lo = np.array(md.u_lower) + self.s.input_margin
         hi = np.array(md.u_upper) - self.s.input_margin
         mid = 0.5 * (np.array(md.u_lower) + np.array(md.u_upper))
         return np.minimum(lo, mid), np.maximum(hi, mid)
-
-    @property
-    def guards_of(self) -> list[list[int]]:
-        return [self.system.guards_of(i) for i in range(self.M)]
 
     # ------------------------------------------------------------------ solve
     def solve(self, w0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None):
@@ -353,15 +379,17 @@ class FixedModeNLP:
         return np.asarray(self._g_fun(w, p)).ravel()
 
     # ------------------------------------------------------------- warm start
-    def remap_vectors(self, node_map, w, lam_x, lam_g):
-        """Re-indexes primal/dual vectors node by node (see :func:`layout.remap`)."""
+    def remap_vectors(self, node_map, w, lam_x, lam_g, source: FixedModeNLP | None = None):
+        """Re-indexes primal/dual vectors of ``source`` (default: this NLP) node by node
+        onto this NLP (see :func:`layout.remap`); duals only within one NLP (None else)."""
+        src = source or self
         L = self.L
-        link_map = np.minimum(node_map[:L], L - 1)
-        new_w = w.copy()
-        new_w[self.z_idx] = w[self.z_idx[node_map]]
-        new_w[self.u_idx] = w[self.u_idx[link_map]]
-        new_w[self.s_idx] = w[self.s_idx[node_map]]
-        if lam_x is None or lam_g is None:
+        link_map = np.minimum(node_map[:L], src.L - 1)
+        new_w = np.zeros(self.nx_var) if src is not self else w.copy()
+        new_w[self.z_idx] = w[src.z_idx[node_map]]
+        new_w[self.u_idx] = w[src.u_idx[link_map]]
+        new_w[self.s_idx] = w[src.s_idx[node_map]]
+        if lam_x is None or lam_g is None or src is not self:
             return new_w, None, None
         new_lx = lam_x.copy()
         new_lx[self.z_idx] = lam_x[self.z_idx[node_map]]
@@ -385,3 +413,21 @@ class FixedModeNLP:
         seg = lay.seg[: k_last + 1].copy()
         mode = np.array([ns.modes[j] for j in seg])
         return Trajectory(t, x, u, mode, seg, tuple(ns.guards), self.s.input_hold)
+
+
+class FixedModeNLPs:
+    """The fixed-mode NLPs of one (system, settings), each built once: the switching chain
+    (S = ``max_switches``) and, with ``final_domain_nlp``, the final domain's (S = 0)."""
+
+    def __init__(self, system: HybridSystem, settings: MPCSettings) -> None:
+        self.switching = FixedModeNLP(system, settings)
+        self.final = FixedModeNLP(system, settings, switches=0) \
+            if settings.final_domain_nlp else None
+        self._final_mode = system.mode_index(system.final_mode)
+        self.N, self.dt = self.switching.N, self.switching.dt
+
+    def for_schedule(self, ns: NodeSchedule) -> FixedModeNLP:
+        """The NLP that solves node schedule ``ns``."""
+        if self.final is not None and ns.modes == (self._final_mode,):
+            return self.final
+        return self.switching

@@ -1,0 +1,124 @@
+"""The fixed-mode NLP's transcription against the plant, its soft constraints, and the
+final domain's own NLP."""
+
+import numpy as np
+import pytest
+
+from hmpc_cli.lowlevel import LowLevelController, LowLevelSettings
+from hmpc_cli.messages import Plan
+from hmpc_cli.mpc.controller import FixedModeMPC
+from hmpc_cli.mpc.layout import NodeSchedule
+from hmpc_cli.mpc.nlp import MPCSettings
+from hmpc_cli.planner.cem import CEMSettings, CrossEntropyPlanner
+from hmpc_cli.sim import HybridSimulator
+from hmpc_cli.systems.ball import BallParams, build_ball
+
+SIM_RATE = 600
+
+
+@pytest.fixture(scope="module")
+def ball():
+    return build_ball(BallParams())
+
+
+@pytest.fixture(scope="module")
+def planned(ball):
+    return CrossEntropyPlanner(ball, CEMSettings(horizon=1.5)).plan(0.0, ball.x0, 0)
+
+
+def _solve(ball, planned, **settings) -> tuple[FixedModeMPC, Plan]:
+    mpc = FixedModeMPC(ball, MPCSettings(horizon=1.5, max_switches=6, **settings))
+    ns = NodeSchedule.from_schedule(planned.schedule, mpc.N, mpc.dt)
+    mpc.set_schedule(ns, planned.trajectory)
+    plan = mpc.solve(0.0, ball.x0)
+    assert plan.stats.success, plan.stats.status
+    return mpc, plan
+
+
+def _plant_error(ball, plan: Plan, feedforward: str) -> float:
+    """Largest distance between the undisturbed plant, fed forward the plan's inputs by
+    the low level (no feedback), and the plan's nodes before its first guard node."""
+    sim = HybridSimulator(ball)
+    low = LowLevelController(ball, LowLevelSettings(feedforward=feedforward))
+    tr = plan.traj
+    guard_node = int(np.nonzero(tr.seg == 0)[0][-1])
+    steps = int(round(tr.t[guard_node] * SIM_RATE)) - 1  # stop just before the guard
+    h = 1.0 / SIM_RATE
+    x, mode, err = ball.x0.copy(), np.array([0]), 0.0
+    for i in range(steps):
+        u, _ = low.command(i * h, x, plan, h)
+        res = sim.step(x[None], mode, u[None], np.zeros((1, 2)), h)
+        x, mode = res.x[0], res.mode
+        t = (i + 1) * h
+        k = np.nonzero(np.isclose(tr.t[: guard_node], t, atol=1e-12))[0]
+        if k.size:
+            err = max(err, float(np.max(np.abs(x - tr.x[k[0]]))))
+    return err
+
+
+def test_undisturbed_plant_follows_the_first_order_hold_plan(ball, planned):
+    _, plan = _solve(ball, planned)
+    assert plan.traj.input_hold == "foh"
+    # what is left is RK4 at the node step (60 Hz) against RK4 at the simulator's 600 Hz
+    assert _plant_error(ball, plan, "plan") < 2e-4
+    # the same plan fed forward with a zero-order hold drifts away: the test can fail
+    assert _plant_error(ball, plan, "zoh") > 1e-2
+
+
+def test_zero_order_hold_transcription_matches_a_zoh_low_level(ball, planned):
+    _, plan = _solve(ball, planned, input_hold="zoh")
+    assert plan.traj.input_hold == "zoh"
+    assert _plant_error(ball, plan, "plan") < 2e-4
+
+
+def test_soft_constraints_change_nothing_when_the_hard_problem_is_feasible(ball, planned):
+    _, soft = _solve(ball, planned)
+    _, hard = _solve(ball, planned, soft_penalty=0.0)
+    assert soft.stats.slack < 1e-6 and hard.stats.slack == 0.0
+    # same optimum up to the solver's tolerance (and the barrier's ~1e-10 slacks x penalty)
+    np.testing.assert_allclose(soft.traj.x, hard.traj.x, atol=1e-3)
+    np.testing.assert_allclose(soft.stats.cost, hard.stats.cost, rtol=1e-3)
+
+
+def test_an_unreachable_guard_time_is_softened_not_failed(ball, planned):
+    # the wall 0.05 s after rest at (1, 1): 0.9 m away, unreachable with |u| <= 100
+    ns = NodeSchedule((0, 0, 1), (1, 2), (3, 40, 47))
+    results = {}
+    for penalty in (0.0, 1e4):
+        mpc = FixedModeMPC(ball, MPCSettings(horizon=1.5, max_switches=6,
+                                             soft_penalty=penalty, max_iter=300))
+        mpc.set_schedule(ns)
+        results[penalty] = mpc.solve(0.0, ball.x0).stats
+    assert not results[0.0].success
+    soft = results[1e4]
+    assert soft.success, soft.status
+    assert soft.slack > 0.1  # the wall node is far from the wall: reported, not hidden
+    assert soft.max_violation < 1e-6
+
+
+def test_final_domain_nlp_solves_the_same_problem(ball):
+    x0 = np.array([3.5, 3.2, 1.0, -0.5])
+    plans = []
+    for own in (True, False):
+        mpc = FixedModeMPC(ball, MPCSettings(horizon=1.5, max_switches=6,
+                                             final_domain_nlp=own))
+        mpc.set_schedule(NodeSchedule((1,), (), (mpc.N,)))
+        assert (mpc.nlp.S == 0) is own
+        plan = mpc.solve(0.0, x0)
+        assert plan.stats.success, plan.stats.status
+        plans.append(plan)
+    assert plans[0].traj.x.shape == plans[1].traj.x.shape
+    np.testing.assert_allclose(plans[0].traj.x, plans[1].traj.x, atol=1e-3)
+    np.testing.assert_allclose(plans[0].stats.cost, plans[1].stats.cost, rtol=1e-3)
+
+
+def test_switching_to_the_final_domain_nlp_keeps_the_plan_as_warm_start(ball, planned):
+    mpc, plan = _solve(ball, planned)
+    for _ in range(len(mpc.node_schedule.guards)):
+        mpc.on_impact()
+    assert mpc.nlp is mpc.nlps.final
+    # the primal guess carried over is the old plan's final-domain part
+    last = plan.traj.x[-1]
+    guess = mpc.solution[mpc.nlp.z_idx[0]]
+    assert np.all(np.isfinite(guess))
+    np.testing.assert_allclose(mpc.solution[mpc.nlp.z_idx[-1]], last, atol=1e-9)
