@@ -122,3 +122,11 @@ def test_switching_to_the_final_domain_nlp_keeps_the_plan_as_warm_start(ball, pl
     guess = mpc.solution[mpc.nlp.z_idx[0]]
     assert np.all(np.isfinite(guess))
     np.testing.assert_allclose(mpc.solution[mpc.nlp.z_idx[-1]], last, atol=1e-9)
+
+
+def test_fatrop_solves_the_zero_order_hold_problem_like_ipopt(ball, planned):
+    _, ipopt = _solve(ball, planned, input_hold="zoh")
+    _, fatrop = _solve(ball, planned, input_hold="zoh", solver="fatrop")
+    np.testing.assert_allclose(fatrop.traj.x, ipopt.traj.x, atol=1e-3)
+    with pytest.raises(ValueError, match="zoh"):
+        MPCSettings(solver="fatrop")

@@ -39,7 +39,7 @@ from typing import Literal
 
 import casadi as ca
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.messages import Trajectory
@@ -76,6 +76,14 @@ class MPCSettings(BaseModel):
     final_domain_nlp: bool = Field(
         True, description="solve schedules with no switch left on the final domain's own, "
                           "smaller NLP (same problem, no switching rows)")
+
+    @model_validator(mode="after")
+    def _stagewise_for_fatrop(self) -> MPCSettings:
+        if self.solver == "fatrop" and self.input_hold == "foh":
+            raise ValueError('solver "fatrop" needs stage-wise dynamics: set input_hold = '
+                             '"zoh" (a first-order hold couples each interval to the next '
+                             'input)')
+        return self
 
     @property
     def dt(self) -> float:
@@ -193,7 +201,8 @@ class FixedModeNLP:
             return rows
 
         for k in range(L):
-            u_end = U[k] + pf[k] * (U[k + 1] - U[k]) if k + 1 < L else U[k]
+            foh = self.s.input_hold == "foh" and k + 1 < L  # structural: zoh keeps stages
+            u_end = U[k] + pf[k] * (U[k + 1] - U[k]) if foh else U[k]
             flows = [self._interval(i, Z[k], U[k], u_end) for i in self.modes_in]
             nxt = pe[k] * Z[k]
             for c in range(M):
