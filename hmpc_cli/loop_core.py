@@ -163,7 +163,8 @@ class LoopCore:
         self.rec.write("/mpc/solve", t, {
             "t": t, "reason": reason, "status": st.status, "success": st.success,
             "iterations": st.iterations, "wall_time": st.wall_time, "cost": st.cost,
-            "max_violation": st.max_violation, "slack": st.slack, **extra, "t_plan": plan.traj.t + t,
+            "max_violation": st.max_violation, "slack": st.slack, **extra,
+            "t_plan": plan.traj.t + t,
             "x_plan": plan.traj.x, "u_plan": plan.traj.u, "seg_plan": plan.traj.seg})
 
     # ---------------------------------------------------------------- run

@@ -1,6 +1,6 @@
 """Fixed-mode MPC (the paper's problems (12) and (14)) as one parametric NLP.
 
-Multiple shooting on a chain of ``L = N + S_max`` links (see :mod:`hmpc_cli.mpc.layout`).
+Multiple shooting on a chain of ``L = N + S`` links (see :mod:`hmpc_cli.mpc.layout`).
 Link k maps node z_k to z_{k+1}:
 
     z_{k+1} = sum_m a_km Phi_m(z_k, u_k) + sum_g b_kg R_g(z_k) + e_k z_k
@@ -9,8 +9,9 @@ with Phi_m one RK4 (or Euler) interval of mode m, R_g the reset map of guard g a
 one-hot link type (a, b, e) a *parameter*. With ``input_hold = "foh"`` the input of a flow
 interval goes linearly from u_k to u_{k+1} (the low level's first-order-hold feed-forward,
 so an undisturbed plant follows the plan); the last interval before a guard node ends at
-the virtual input, the horizon's last interval holds its input. Path rows of node k, with bounds chosen per
-solve (an inactive row gets infinite bounds):
+the virtual input, the horizon's last interval holds its input.
+
+Path rows of node k, with bounds chosen per solve (an inactive row gets infinite bounds):
 
 * one row per guard g: s_kg q_g(z_k) - kappa_kg + sigma_k. Guard-avoid (>= 0, s = +1,
   kappa from the tube margin), guard-hit at the switching node (>= 0 here and
