@@ -41,11 +41,12 @@ def run(
     except ScenarioError as exc:
         _err(exc.lines)
         raise typer.Exit(EXIT_BAD_INPUT) from None
-    from hmpc_cli.loop import make_loop
+    from hmpc_cli.registry import PluginError
+    from hmpc_cli.runner import prepare
 
     try:
-        loop = make_loop(sc, recorder=None)
-    except ValueError as exc:
+        loop = prepare(sc)
+    except (PluginError, ValueError) as exc:
         _err([f"{scenario}: {exc}"])
         raise typer.Exit(EXIT_BAD_INPUT) from None
     except RuntimeError as exc:  # CasADi rejects the solver settings (options, plugin)
@@ -75,9 +76,10 @@ def _execute(loop, sc, toml_text: str, out: Path, quiet: bool):
             task = progress.add_task(sc.name, total=1.0, t=0.0)
             dur = sc.sim.duration
 
-            def tick(i: int, n: int) -> None:
+            def tick(i: int, n: int, note: str = "") -> None:
                 if i % 20 == 0 or i == n:
-                    progress.update(task, completed=i / n, t=i / n * dur)
+                    desc = f"{sc.name} [yellow]({note})[/]" if note else sc.name
+                    progress.update(task, completed=i / n, t=i / n * dur, description=desc)
 
             return execute_run(loop, toml_text, out, tick)
     except KeyboardInterrupt:
@@ -107,6 +109,8 @@ def _print_summary(r, out: Path) -> None:
     table.add_row("planner calls (rejected)", f"{r.planner_calls} ({r.planner_rejected})")
     table.add_row("plan time median", ms(r.plan_time_median))
     table.add_row("wall time", f"{r.wall_time:.2f} s")
+    for w in r.warnings:
+        table.add_row("[yellow]warning[/]", w)
     table.add_row("log", str(out / "run.mcap"))
     Console().print(table)
 
@@ -114,9 +118,9 @@ def _print_summary(r, out: Path) -> None:
 @app.command()
 def schema() -> None:
     """Print the scenario JSON Schema."""
-    from hmpc_cli.scenario import Scenario
+    from hmpc_cli.scenario import scenario_model
 
-    typer.echo(json.dumps(Scenario.model_json_schema(), indent=2))
+    typer.echo(json.dumps(scenario_model().model_json_schema(), indent=2))
 
 
 def _register() -> None:

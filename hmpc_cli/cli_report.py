@@ -91,7 +91,7 @@ def _biped_run(scenario: Optional[Path], results: Path, run: bool) -> Optional[P
     """Runs the biped scenario into results/<name>/report (unless done); its directory."""
     if scenario is None or str(scenario) in ("", "."):
         return None
-    from hmpc_cli.loop import make_loop
+    from hmpc_cli.runner import prepare
     from hmpc_cli.runner import execute_run
     from hmpc_cli.scenario import ScenarioError, load_scenario
 
@@ -111,7 +111,7 @@ def _biped_run(scenario: Optional[Path], results: Path, run: bool) -> Optional[P
             shutil.rmtree(out)
         typer.echo(f"{sc.name}: running -> {out}")
         try:
-            execute_run(make_loop(sc, None), toml_text, out)
+            execute_run(prepare(sc), toml_text, out)
         except KeyboardInterrupt:
             typer.echo("interrupted: run the same command again to resume", err=True)
             raise typer.Exit(EXIT_INTERRUPTED) from None

@@ -6,12 +6,14 @@ activity region, with exactly one reset map R_G into its target mode; the transi
 Gamma are the (source, target) pairs of the guards. Everything is written once in CasADi
 SX; :meth:`HybridSystem.numeric` compiles the same graphs for NumPy evaluation.
 
-The mode is carried explicitly next to the state, never guessed from x.
+The mode is carried explicitly next to the state, never guessed from x. A plug-in may
+also expose named outputs (feet, body points, inverse dynamics), a piecewise-flat terrain
+and drawing hints, derived once with the system, for controllers and figures that need them.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -97,6 +99,46 @@ class Guard:
 
 
 @dataclass(frozen=True)
+class Terrain:
+    """A piecewise-flat terrain in the (x, y) plane of a walking system [m].
+
+    Attributes:
+        ground: height for x <= 0.
+        segments: consecutive flat segments (start, end, height) from x = 0, ascending.
+    """
+
+    ground: float
+    segments: tuple[tuple[float, float, float], ...]
+
+    @property
+    def end(self) -> float:
+        """x where the last segment ends [m]."""
+        return self.segments[-1][1]
+
+    def heights(self, x: float) -> list[float]:
+        """Heights at x: one, two on a segment boundary, none beyond the end [m]."""
+        out = [self.ground] if x <= 0.0 else []
+        out += [h for a, b, h in self.segments if a <= x <= b and h not in out]
+        return out
+
+    def profile(self, x) -> np.ndarray:
+        """Height under each x (vectorised): the higher side on a boundary, the ground for
+        x <= 0, the last segment's height past the end [m]."""
+        x = np.asarray(x, dtype=float)
+        out = np.where(x <= 0.0, self.ground, -np.inf)
+        for a, b, h in self.segments:
+            out = np.where((x >= a) & (x <= b), np.maximum(out, h), out)
+        return np.where(x > self.end, self.segments[-1][2], out)
+
+    def segment_at(self, x: float) -> int | None:
+        """Index of the segment holding x (the first on a boundary), None if none."""
+        for i, (a, b, _) in enumerate(self.segments):
+            if a <= x <= b:
+                return i
+        return None
+
+
+@dataclass(frozen=True)
 class HybridSystem:
     """A hybrid control system with its control task.
 
@@ -114,9 +156,19 @@ class HybridSystem:
         goal_map: CasADi function x -> y, the quantity compared with ``goal``.
         stage_cost: CasADi function (x[n], u[m]) -> L (per second of horizon).
         terminal_set: CasADi function x -> r, terminal set {r >= 0}, or None.
-        success_radius: a run succeeds if |goal_map(x_end) - goal| <= this.
         tracking_gain: (kp, kd) -> K[m, n], gain of the low-level PD law u = u_ff + K e.
         params: the validated parameters the system was built from (for the log).
+        outputs: named CasADi functions the plug-in exposes to controllers and figures
+            (each documents its own signature), e.g. ``points_world`` x -> (2, P) body
+            points in the world [m], ``stance_foot`` x -> (2,), ``inverse_dynamics``.
+        point_names: names of the P columns of the ``points``/``points_world`` outputs.
+        skeleton: polylines through named points, for drawing the body.
+        terrain: the walking surface, if the system walks on one.
+        plane: two state names spanning the plane a figure draws trajectories in.
+        state_box: (lower, upper) bounds on x, shape (n,) each (inf: unbounded), that
+            every domain's states must satisfy (the MPC imposes them at every node).
+        guard_surfaces: per guard index, the flat contact surface (start, end, height)
+            it models [m] (contact-planning systems: the foothold candidates).
     """
 
     name: str
@@ -132,9 +184,15 @@ class HybridSystem:
     goal_map: ca.Function
     stage_cost: ca.Function
     terminal_set: ca.Function | None
-    success_radius: float
     tracking_gain: Callable[[float, float], np.ndarray]
     params: dict = field(default_factory=dict)
+    outputs: Mapping[str, ca.Function] = field(default_factory=dict)
+    point_names: tuple[str, ...] = ()
+    skeleton: tuple[tuple[str, ...], ...] = ()
+    terrain: Terrain | None = None
+    plane: tuple[str, str] | None = None
+    state_box: tuple[np.ndarray, np.ndarray] | None = None
+    guard_surfaces: Mapping[int, tuple[float, float, float]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         names = [m.name for m in self.modes]
@@ -151,6 +209,22 @@ class HybridSystem:
         for mode in (self.initial_mode, self.final_mode):
             if mode not in names:
                 raise ValueError(f"{self.name}: unknown mode {mode!r}")
+        for line in self.skeleton:
+            if not set(line) <= set(self.point_names):
+                raise ValueError(f"{self.name}: skeleton names unknown points {line}")
+        if self.plane is not None and not set(self.plane) <= set(self.state_names):
+            raise ValueError(f"{self.name}: plane {self.plane} names unknown states")
+
+    def output(self, name: str) -> ca.Function:
+        """The named output ``name``.
+
+        Raises:
+            KeyError: the plug-in does not expose it (the message lists what it has).
+        """
+        if name not in self.outputs:
+            raise KeyError(f"system {self.name!r} has no output {name!r} (it has "
+                           f"{sorted(self.outputs) or 'none'})")
+        return self.outputs[name]
 
     @property
     def n_x(self) -> int:
@@ -205,6 +279,7 @@ class NumericSystem:
         n = system.n_x
         x = ca.SX.sym("x", n)
         self.system = system
+        self._outputs: dict[str, Callable[..., list[np.ndarray]]] = {}
         self.flows = [compile_numpy(m.flow) for m in system.modes]
         self.u_lower = np.array([m.u_lower for m in system.modes], dtype=float)
         self.u_upper = np.array([m.u_upper for m in system.modes], dtype=float)
@@ -244,6 +319,12 @@ class NumericSystem:
             phi, dphi = at_tau(x_tau, u, w)
             self.gaps_along.append(compile_numpy(ca.Function(
                 f"phi_{mode.name}", [x, u, w, h], [phi, dphi, x_tau])))
+
+    def output(self, name: str) -> Callable[..., list[np.ndarray]]:
+        """The named output ``name`` compiled for NumPy (batched; compiled once)."""
+        if name not in self._outputs:
+            self._outputs[name] = compile_numpy(self.system.output(name))
+        return self._outputs[name]
 
     def flow(self, mode: int, x: np.ndarray, u: np.ndarray, w: np.ndarray) -> np.ndarray:
         """dx/dt of mode ``mode`` for a batch, shapes (B, n), (B, m), (B, n_w) -> (B, n)."""

@@ -1,176 +1,317 @@
-"""The ball's controller stack: CEM hybrid planner, fixed-mode MPC, node shifting.
+"""The closed loop: plant, stack (planner + fixed-mode MPC), task and run log, composed.
 
-After each simulator step (see :class:`hmpc_cli.loop_core.LoopCore`): each guard event
-advances the schedule (node shifting on impact), may trigger the planner (policy
-``on_contact``) and a re-solve; every MPC period the elapsed nodes are shifted and the MPC
-re-solved; policy ``periodic`` replans every ``replanning.period``.
+:func:`build` is the only code that reads a :class:`~hmpc_cli.scenario.Scenario`: the
+registry gives the system, its task and the planner and MPC plug-ins; each part gets its
+own settings. :class:`ClosedLoop` runs the multi-rate loop once for every system:
+
+* every simulator step: low-level command from the current plan, one plant step (events
+  located exactly, resets applied, disturbance held), logging;
+* at each guard event: the schedule advances by the paper's impact rule
+  (:meth:`~hmpc_cli.messages.ModeSchedule.after_event`), an off-schedule event forces a
+  replan, ``replanning.policy = "on_contact"`` replans at the contact guards;
+* the stack reacts after the step (or at the event time when the simulator stops at
+  events): replan if needed, else re-solve after an impact, else every MPC period.
+  Policy ``periodic`` replans every ``replanning.period``; while no schedule the MPC can
+  solve is held, the planner is retried every MPC period.
+
+Simulated time pauses while controllers compute; their wall time is recorded.
 """
 
 from __future__ import annotations
 
+import json
+import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from hmpc_cli.loop_core import LoopCore, RunResult, versions
-from hmpc_cli.messages import PlannerResult
-from hmpc_cli.mpc.controller import FixedModeMPC
-from hmpc_cli.mpc.layout import NodeSchedule
-from hmpc_cli.planner.cem import CrossEntropyPlanner
-from hmpc_cli.scenario import Scenario
-from hmpc_cli.sim import Event
-from hmpc_cli.systems import build_system
+from hmpc_cli.messages import OFF_SCHEDULE, SCHEDULED, GuardEvent, ModeSchedule, Plan
+from hmpc_cli.runlog import RunLog, RunResult, versions
+from hmpc_cli.stack import FixedModeMPC, Planner, Task
 
-__all__ = ["LayeredLoop", "RunResult", "make_loop", "versions"]
+__all__ = ["ClosedLoop", "RunResult", "StackTiming", "build", "versions"]
 
 
-def make_loop(scenario: Scenario, recorder, mpc=None) -> LoopCore:
-    """The closed loop of the scenario's system (ball: :class:`LayeredLoop`, biped:
-    :class:`hmpc_cli.loop_walking.WalkingLoop`); ``mpc``: a prebuilt controller to reuse."""
-    if scenario.system.name == "biped":
-        from hmpc_cli.loop_walking import WalkingLoop
+@dataclass(frozen=True)
+class StackTiming:
+    """When the stack works, in simulator steps.
 
-        return WalkingLoop(scenario, recorder, mpc=mpc)
-    return LayeredLoop(scenario, recorder, mpc=mpc)
+    Attributes:
+        per_solve: simulator steps per MPC period.
+        per_replan: steps per replanning period (policy ``periodic``), else None.
+        on_contact: guards whose events trigger a replan (policy ``on_contact``).
+        resolve_on_impact: re-solve right after a guard event.
+    """
+
+    per_solve: int
+    per_replan: int | None
+    on_contact: frozenset[int]
+    resolve_on_impact: bool
 
 
-class LayeredLoop(LoopCore):
-    """The three layers of the paper around the simulator, for mode-schedule systems."""
+@dataclass
+class _State:
+    """What the stack holds between steps."""
 
-    def __init__(self, scenario: Scenario, recorder, progress: Callable | None = None,
-                 mpc: FixedModeMPC | None = None) -> None:
-        sc = scenario
-        super().__init__(sc, recorder, build_system(sc.system), progress=progress)
-        self.planner = CrossEntropyPlanner(self.system, sc.planner, run_seed=sc.seed)
-        self.mpc = mpc or FixedModeMPC(self.system, sc.mpc)
-        self.final_mode = self.system.mode_index(self.system.final_mode)
-        names = sc.replanning.contact_guards
-        if names is None:
-            self.contact_guards = {i for i, g in enumerate(self.system.guards)
-                                   if g.target != self.system.final_mode}
-        else:
-            unknown = set(names) - {g.name for g in self.system.guards}
-            if unknown:
-                raise ValueError(f"replanning.contact_guards: unknown guards {sorted(unknown)}")
-            self.contact_guards = {self.system.guard_index(n) for n in names}
-        self.has_schedule = False
-        h = 1.0 / sc.sim.rate_hz
-        self._h = h
-        self._per_solve = sc.sim.rate_hz // sc.mpc.rate_hz
-        self._per_replan = int(round(sc.replanning.period * sc.sim.rate_hz))
-        self._since_solve = 0
-        self._step_state()
+    schedule: ModeSchedule | None = None
+    usable: bool = False  # the MPC can solve ``schedule``
+    guess: object = None
+    plan: Plan | None = None
+    events: list[GuardEvent] = field(default_factory=list)
+    since_solve: int = 0
+    need_replan: bool = False
+    impact: bool = False
+    accepted_plans: int = 0
+    last_note: str = ""
 
-    def _step_state(self) -> None:
-        self._need_replan, self._impact, self._shifted_by_impact = False, False, False
 
-    def _schedule_dict(self) -> dict | None:
-        ns = self.mpc.node_schedule if self.has_schedule else None
-        if ns is None:
-            return None
-        return {**ns.to_dict(), "mode_names": [self.system.modes[m].name for m in ns.modes],
-                "guard_names": [self.system.guards[g].name for g in ns.guards]}
+class ClosedLoop:
+    """The paper's three layers around the simulated plant, for every system.
 
-    # ------------------------------------------------------------- layers
-    def _replan(self, t: float, x: np.ndarray, mode: int, reason: str) -> None:
-        result: PlannerResult = self.planner.plan(t, x, mode)
-        self.res.planner_calls += 1
-        self.plan_times.append(result.wall_time)
-        accepted, note = result.schedule is not None, ""
-        if accepted:
-            try:  # a schedule the NLP chain cannot hold (too many switches) is rejected
-                ns = NodeSchedule.from_schedule(result.schedule, self.mpc.N, self.mpc.dt)
-                self.mpc.set_schedule(ns, result.trajectory)
-            except ValueError as exc:
-                accepted, note = False, str(exc)
-        else:
-            note = "no rollout reached the final domain"
-        if accepted:
-            self.has_schedule = True
-        else:
-            self.res.planner_rejected += 1
-            note += "; previous schedule kept" if self.has_schedule else "; no schedule yet"
-        sched = result.schedule.to_dict(self.system) if result.schedule is not None else None
-        tr = result.trajectory
-        self.rec.write("/planner/plan", t, {
-            "t": t, "reason": reason, "accepted": accepted, "reached_final": result.reached_final,
-            "cost": result.cost, "wall_time": result.wall_time, "iterations": result.iterations,
-            "note": note, "schedule": sched, "t_rollout": tr.t, "x_rollout": tr.x})
+    Args:
+        plant: simulator, disturbance and low level.
+        planner: the hybrid MPC.
+        mpc: the fixed-mode MPC.
+        timing: the stack's rates and triggers.
+        task: success and failure of the run.
+        log: the open run log (the caller opens and closes it).
+        duration: simulated time [s]; divergence_bound: |x| beyond this ends the run.
+        progress: ``progress(step, n_steps, note)`` after every simulator step.
+    """
 
-    def _solve(self, t: float, x: np.ndarray, reason: str, shifted: int) -> None:
-        if not self.has_schedule:
-            return
-        plan = self.mpc.solve(t, x)
-        self.record_solve(t, plan, reason, {"shifted": shifted,
-                                            "schedule": self._schedule_dict()})
+    def __init__(self, plant, planner: Planner, mpc: FixedModeMPC, timing: StackTiming,
+                 task: Task, log: RunLog, duration: float, divergence_bound: float,
+                 progress: Callable[[int, int, str], None] | None = None) -> None:
+        self.plant, self.planner, self.mpc, self.timing = plant, planner, mpc, timing
+        self.task, self.log, self.progress = task, log, progress
+        self.model = plant.model
+        self.final_mode = self.model.mode_index(self.model.final_mode)
+        self.n_steps = int(round(duration * plant.rate_hz))
+        self.divergence_bound = divergence_bound
+        self.st = _State()
+        self.res = log.result
 
-    def _advance_schedule(self, guard: int, mode_after: int) -> tuple[bool, bool, bool]:
-        """Updates the node schedule after a real event.
+    # ---------------------------------------------------------------- run
+    def run(self) -> RunResult:
+        """Runs to the end of the scenario (or a failure); the log is the caller's."""
+        start = time.perf_counter()
+        self.log.open(self.model)
+        x = np.array(self.model.x0, dtype=float)
+        mode = self.model.mode_index(self.model.initial_mode)
+        self._start(x, mode)
+        t, stopped = 0.0, False
+        for i in range(self.n_steps):
+            t = i * self.plant.h
+            u, x_ref = self.plant.command(t, x, mode, self.st.plan, self.plant.h)
+            x, mode, stopped = self._step(i, t, x, mode, u, x_ref)
+            t = (i + 1) * self.plant.h
+            if stopped:
+                break
+            self._after_step(i, t, x, mode, i + 1 == self.n_steps)
+            if self.progress is not None:
+                self.progress(i + 1, self.n_steps, self._note())
+        self.res.t_end = t
+        self.log.state(t, x, mode, np.zeros(self.model.n_u), x, self.plant.disturbance(t))
+        return self._finish(x, mode, stopped, start)
 
-        Returns:
-            (scheduled: the pending guard fired, dropped: domains were dropped,
-            need_replan: the schedule no longer matches the real mode).
-        """
-        if not self.has_schedule:
-            return False, False, mode_after != self.final_mode
-        ns = self.mpc.node_schedule
-        if ns.guards and ns.guards[0] == guard:
-            self.mpc.on_impact()
-            return True, True, False
-        if guard in ns.guards[1:]:
-            for _ in range(ns.guards.index(guard, 1) + 1):
-                self.mpc.on_impact()
-            return False, True, False
-        if ns.modes[0] == mode_after:
-            return False, False, False  # unscheduled self-loop (e.g. an extra bounce)
-        if mode_after == self.final_mode:
-            self.mpc.set_schedule(NodeSchedule((mode_after,), (), (self.mpc.N,)))
-            return False, True, False
-        return False, False, True
+    def _step(self, i: int, t: float, x: np.ndarray, mode: int, u: np.ndarray,
+              x_ref: np.ndarray) -> tuple[np.ndarray, int, bool]:
+        """One plant step with logging; returns (x, mode, stopped)."""
+        from hmpc_cli.sim import ZenoError
 
-    # ------------------------------------------------------------ hooks
-    def start(self, x: np.ndarray, mode: int) -> None:
-        if mode == self.final_mode:
-            self.mpc.set_schedule(NodeSchedule((mode,), (), (self.mpc.N,)))
-            self.has_schedule = True
+        w = self.plant.disturbance(t)
+        self.log.step(i, t, x, mode, u, x_ref, w)
+        try:
+            x, mode, _ = self.plant.step(t, x, mode, u, w, self._on_event,
+                                         lambda: self.st.plan)
+        except ZenoError as exc:
+            return x, mode, self._fail(t, f"zeno: {exc}")
+        t1 = t + self.plant.h
+        if not np.all(np.isfinite(x)) or np.max(np.abs(x)) > self.divergence_bound:
+            return x, mode, self._fail(t1, "diverged: non-finite or unbounded state")
+        why = self.task.failure(x, mode)
+        return x, mode, bool(why) and self._fail(t1, why, diverged=False)
+
+    def _note(self) -> str:
+        """The progress line's note: why the stack holds no schedule, if so."""
+        if self.st.usable or self.res.planner_calls == 0:
+            return ""
+        return f"no schedule: {self.st.last_note}" if self.st.last_note else "no schedule"
+
+    # --------------------------------------------------------------- stack
+    def _start(self, x: np.ndarray, mode: int) -> None:
+        final = ModeSchedule.final(mode, 0.0)
+        if mode == self.final_mode and not self.mpc.check(final):
+            self.st.schedule, self.st.usable = final, True
         else:
             self._replan(0.0, x, mode, "initial")
-        self._solve(0.0, x, "initial", 0)
+        self._solve(0.0, x, mode, "initial")
 
-    def on_event(self, ev: Event, t: float) -> bool:
-        scheduled, dropped, forced = self._advance_schedule(
-            ev.guard, int(self.sim.num.target[ev.guard]))
-        self._shifted_by_impact |= dropped
-        self._impact = True
-        self._need_replan |= forced or (self.sc.replanning.policy == "on_contact"
-                                        and ev.guard in self.contact_guards)
-        return scheduled
+    def _on_event(self, ev: GuardEvent) -> None:
+        """Schedule bookkeeping and contact triggers at a guard event (time ev.t)."""
+        st, tm = self.st, self.timing
+        st.events.append(ev)
+        scheduled = False
+        if st.schedule is None:
+            st.need_replan |= ev.mode_after != self.final_mode
+        else:
+            after, outcome = st.schedule.after_event(ev.guard, ev.mode_after)
+            scheduled = outcome == SCHEDULED
+            final = ModeSchedule.final(ev.mode_after, ev.t)
+            if outcome != OFF_SCHEDULE:
+                st.schedule = after
+            elif ev.mode_after == self.final_mode and not self.mpc.check(final):
+                st.schedule = final
+            else:
+                st.need_replan = True
+            st.usable = not self.mpc.check(st.schedule)
+        st.impact = True
+        st.need_replan |= ev.guard in tm.on_contact
+        self.log.event(ev, self.plant.system, scheduled)
+        if self.plant.recompute_at_events:  # react at the event time
+            self._react(ev.t, ev.x_after, ev.mode_after)
 
-    def after_step(self, i: int, t: float, x: np.ndarray, mode: int, events: list[Event],
-                   last: bool) -> None:
-        sc, h = self.sc, self._h
-        need_replan, impact = self._need_replan, self._impact
-        shifted_by_impact = self._shifted_by_impact
-        self._step_state()
-        self._since_solve += 1
-        if sc.replanning.policy == "periodic" and (i + 1) % self._per_replan == 0:
-            need_replan = True
-        if not self.has_schedule and self._since_solve >= self._per_solve:
-            need_replan = True  # no accepted schedule yet: retry every MPC period
+    def _after_step(self, i: int, t: float, x: np.ndarray, mode: int, last: bool) -> None:
+        st, tm = self.st, self.timing
+        st.since_solve += 1
+        if tm.per_replan is not None and (i + 1) % tm.per_replan == 0:
+            st.need_replan = True
+        if not st.usable and st.since_solve >= tm.per_solve:
+            st.need_replan = True  # no schedule the MPC can solve: retry every period
         if last:  # the run ends here: no more controller work
             return
-        reason = ""
+        if not self._react(t, x, mode) and st.since_solve >= tm.per_solve:
+            self._solve(t, x, mode, "period")
+            st.since_solve = 0
+
+    def _react(self, t: float, x: np.ndarray, mode: int) -> bool:
+        """Replans and/or re-solves after events or a replanning trigger; returns
+        whether the stack worked."""
+        st = self.st
+        need_replan, impact = st.need_replan, st.impact
+        st.need_replan = st.impact = False
         if need_replan:
-            why = "contact" if impact else ("periodic" if self.has_schedule else "retry")
+            why = "contact" if impact else ("periodic" if st.usable else "retry")
             self._replan(t, x, mode, why)
-            reason = "replan"
-        elif impact and sc.mpc.resolve_on_impact:
-            reason = "impact"
-        elif self._since_solve >= self._per_solve:
-            reason = "period"
-        if reason:
-            shifted = 0
-            if self.has_schedule and reason != "replan" and not shifted_by_impact:
-                shifted = self.mpc.shift(int(round(self._since_solve * h / self.mpc.dt)))
-            self._solve(t, x, reason, shifted)
-            self._since_solve = 0
+            self._solve(t, x, mode, "replan")
+        elif impact and self.timing.resolve_on_impact:
+            self._solve(t, x, mode, "impact")
+        else:
+            return False
+        st.since_solve = 0
+        return True
+
+    def _replan(self, t: float, x: np.ndarray, mode: int, reason: str) -> None:
+        st = self.st
+        result = self.planner.plan(
+            t, x, mode, lambda sched: self.mpc.solve(t, x, mode, sched, st.events))
+        self.res.planner_calls += 1
+        note = result.note
+        if result.schedule is not None:
+            note = self.mpc.check(result.schedule)
+        accepted = result.schedule is not None and not note
+        if accepted:
+            st.schedule, st.guess, st.usable = result.schedule, result.trajectory, True
+            st.accepted_plans += 1
+        else:
+            self.res.planner_rejected += 1
+            note += "; previous schedule kept" if st.usable else "; no schedule yet"
+        st.last_note = note
+        self.log.planner(t, reason, result, accepted, note, self.model)
+
+    def _solve(self, t: float, x: np.ndarray, mode: int, reason: str) -> None:
+        st = self.st
+        if not st.usable:
+            return
+        plan = self.mpc.solve(t, x, mode, st.schedule, st.events, st.guess)
+        st.events = []
+        self.log.solve(t, plan, reason, self.model)
+        if plan.adopt:
+            st.plan = plan
+
+    # ------------------------------------------------------------ the end
+    def _fail(self, t: float, reason: str, diverged: bool = True) -> bool:
+        """Ends the run early as failed (``diverged``: numerically, else by the task)."""
+        self.res.diverged, self.res.reason, self.res.t_end = diverged, reason, t
+        return True
+
+    def _finish(self, x: np.ndarray, mode: int, stopped: bool, start: float) -> RunResult:
+        r = self.res
+        verdict = self.task.verdict(x, mode)
+        r.x_end = [float(v) for v in x]
+        r.mode_end = self.model.modes[mode].name
+        r.final_error = verdict.error
+        r.success = not stopped and verdict.success
+        if not r.reason:
+            r.reason = verdict.reason
+        if r.planner_calls and not self.st.accepted_plans:
+            r.warnings.append(f"the planner never found a schedule ({r.planner_calls} "
+                              f"calls; last: {self.st.last_note})")
+        r.wall_time = time.perf_counter() - start
+        self.log.summary(r)
+        return r
+
+
+# ------------------------------------------------------------------ composition
+_PROBLEMS: dict[str, object] = {}
+
+
+def build(scenario, log: RunLog,
+          progress: Callable[[int, int, str], None] | None = None) -> ClosedLoop:
+    """Composes the closed loop of a validated scenario (the only reader of a Scenario).
+
+    The MPC's NLPs are built once per process per (system, MPC settings) and shared.
+
+    Raises:
+        hmpc_cli.registry.PluginError: a plug-in fails to build (message names it).
+        ValueError: settings that do not fit the built system (e.g. unknown guards).
+    """
+    from hmpc_cli.disturbance import make_disturbance
+    from hmpc_cli.lowlevel import LowLevelController
+    from hmpc_cli.plant import Plant
+    from hmpc_cli.registry import build_system, registry
+    from hmpc_cli.sim import HybridSimulator
+
+    sc, reg = scenario, registry()
+    spec = reg.system(sc.system.name)
+    model = build_system(sc.system)
+    world = sc.plant_params()
+    system = build_system(world) if sc.plant else model
+    s = sc.sim
+    dist = make_disturbance(sc.disturbance.kind, n_w=model.n_w, duration=s.duration,
+                            magnitude=sc.disturbance.magnitude, hold=sc.disturbance.hold,
+                            seed=sc.seed, trial=sc.disturbance.trial)
+    plant = Plant(model, system, HybridSimulator(system, s.max_events_per_step,
+                                                 s.event_time_tol),
+                  dist, LowLevelController(model, sc.lowlevel), s.rate_hz,
+                  s.input_at_events == "recompute", s.max_events_per_step)
+    mpc_spec = reg.mpc(sc.mpc.kind)
+    key = json.dumps([sc.system.model_dump(mode="json"), sc.mpc.model_dump(mode="json")],
+                     sort_keys=True)
+    if key not in _PROBLEMS:
+        _PROBLEMS[key] = mpc_spec.problem(model, sc.mpc)
+    mpc = mpc_spec.make(model, sc.mpc, _PROBLEMS[key])
+    planner = reg.planner(sc.planner.kind).make(model, sc.planner, sc.seed)
+    timing = _timing(sc, model)
+    log.set_info(sc.name, sc.seed, sc.model_dump(mode="json"), s.rate_hz // s.log_rate_hz)
+    return ClosedLoop(plant, planner, mpc, timing, spec.task(world, system), log,
+                      s.duration, s.divergence_bound, progress)
+
+
+def _timing(sc, model) -> StackTiming:
+    """The stack's timing from the scenario's rates and replanning policy."""
+    rp, final = sc.replanning, model.final_mode
+    if rp.contact_guards is None:  # every guard but those entering the final domain
+        contact = frozenset(i for i, g in enumerate(model.guards)
+                            if g.target != final or g.source == final)
+    else:
+        unknown = set(rp.contact_guards) - {g.name for g in model.guards}
+        if unknown:
+            raise ValueError(f"replanning.contact_guards: unknown guards {sorted(unknown)}")
+        contact = frozenset(model.guard_index(n) for n in rp.contact_guards)
+    if rp.policy != "on_contact":
+        contact = frozenset()
+    per_replan = int(round(rp.period * sc.sim.rate_hz)) if rp.policy == "periodic" else None
+    return StackTiming(sc.sim.rate_hz // sc.mpc.rate_hz, per_replan, contact,
+                       getattr(sc.mpc, "resolve_on_impact", True))

@@ -10,19 +10,26 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
+#: outcomes of :meth:`ModeSchedule.after_event`
+SCHEDULED, AHEAD, SELF_LOOP, OFF_SCHEDULE = "scheduled", "ahead", "self_loop", "off_schedule"
+
+
 @dataclass(frozen=True)
 class ModeSchedule:
     """A domain/guard sequence with the time spent in each non-final domain.
 
     Attributes:
-        modes: domain sequence D_0..D_S as mode indices (D_S is the final domain).
+        modes: domain sequence D_0..D_S as mode indices (D_S is the last domain).
         guards: guard sequence G_1..G_S (guard G_j leads from D_{j-1} to D_j).
         durations: planned time in D_0..D_{S-1} [s] (D_S takes the rest of the horizon).
+        t0: simulated time the schedule was planned at [s]; schedules derived from it by
+            events keep it, so a new plan is told apart from an advanced one.
     """
 
     modes: tuple[int, ...]
     guards: tuple[int, ...]
     durations: tuple[float, ...]
+    t0: float = 0.0
 
     def __post_init__(self) -> None:
         if len(self.modes) != len(self.guards) + 1 or len(self.durations) != len(self.guards):
@@ -30,11 +37,44 @@ class ModeSchedule:
 
     @property
     def n_switches(self) -> int:
+        """S, the number of scheduled guard events."""
         return len(self.guards)
 
+    def after_event(self, guard: int, mode_after: int) -> tuple[ModeSchedule, str]:
+        """The paper's impact rule at the domain level: the schedule after a real event.
+
+        Args:
+            guard: index of the guard that fired.
+            mode_after: the mode the plant is in after its reset.
+
+        Returns:
+            (schedule, outcome): ``SCHEDULED`` (the pending guard fired: its domain is
+            dropped), ``AHEAD`` (a later scheduled guard fired: every domain up to it is
+            dropped), ``SELF_LOOP`` (an unscheduled event that left the plant in the
+            schedule's current mode, e.g. an extra bounce: unchanged) or
+            ``OFF_SCHEDULE`` (the plant left the schedule: unchanged, replan).
+        """
+        if self.guards and self.guards[0] == guard:
+            return self.drop(1), SCHEDULED
+        if guard in self.guards[1:]:
+            return self.drop(self.guards.index(guard, 1) + 1), AHEAD
+        if self.modes[0] == mode_after:
+            return self, SELF_LOOP
+        return self, OFF_SCHEDULE
+
+    def drop(self, k: int) -> ModeSchedule:
+        """The schedule without its first ``k`` domains (and their guards)."""
+        return ModeSchedule(self.modes[k:], self.guards[k:], self.durations[k:], self.t0)
+
+    @classmethod
+    def final(cls, mode: int, t0: float = 0.0) -> ModeSchedule:
+        """The schedule that stays in domain ``mode`` (no switch)."""
+        return cls((mode,), (), (), t0)
+
     def to_dict(self, system=None) -> dict:
+        """JSON-ready dict; with ``system`` also the mode and guard names."""
         d = {"modes": list(self.modes), "guards": list(self.guards),
-             "durations": [float(v) for v in self.durations]}
+             "durations": [float(v) for v in self.durations], "t0": float(self.t0)}
         if system is not None:
             d["mode_names"] = [system.modes[m].name for m in self.modes]
             d["guard_names"] = [system.guards[g].name for g in self.guards]
@@ -59,25 +99,51 @@ class Trajectory:
 
 
 @dataclass(frozen=True)
+class GuardEvent:
+    """A guard event of the plant, as the controllers are told of it.
+
+    Attributes:
+        t: event time [s].
+        guard: index of the guard that fired.
+        mode_before: mode index before the reset.
+        mode_after: mode index after the reset.
+        x_before: state on the guard, shape (n,).
+        x_after: state after the reset, shape (n,).
+    """
+
+    t: float
+    guard: int
+    mode_before: int
+    mode_after: int
+    x_before: np.ndarray
+    x_after: np.ndarray
+
+
+@dataclass(frozen=True)
 class PlannerResult:
     """Output of a hybrid-MPC (planner) call.
 
     Attributes:
-        schedule: the domain/guard sequence with durations (None if no rollout reached
-            the final domain).
-        trajectory: the best rollout (an initial guess for the fixed-mode MPC).
-        cost: its cost.
-        reached_final: whether the best rollout reached the final domain.
+        schedule: the domain/guard sequence with durations (None: no schedule found,
+            ``note`` says why).
+        trajectory: the best rollout or plan (an initial guess for the fixed-mode MPC),
+            or None.
+        cost: its cost (NaN if none).
+        reached_final: whether the best candidate reached the final domain (or target).
         wall_time: measured computation time [s].
-        iterations: iterations run.
+        iterations: iterations run (sampling iterations, or solver iterations summed).
+        note: why no schedule was found ('' otherwise).
+        extra: planner-specific fields for the log (e.g. the ranked candidates).
     """
 
     schedule: ModeSchedule | None
-    trajectory: Trajectory
+    trajectory: Trajectory | None
     cost: float
     reached_final: bool
     wall_time: float
     iterations: int
+    note: str = ""
+    extra: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -113,6 +179,10 @@ class Plan:
         traj: planned trajectory (times relative to t0).
         stats: solver statistics.
         schedule: the schedule it was solved for.
+        extra: MPC-specific fields for the log (e.g. nodes shifted, warm start kind).
+        adopt: whether the low level should track this plan; a failed solve's plan
+            may still be a usable fallback (the shifted previous plan), else the low
+            level keeps the plan it has.
     """
 
     t0: float
@@ -120,3 +190,4 @@ class Plan:
     stats: SolveStats
     schedule: ModeSchedule
     extra: dict = field(default_factory=dict)
+    adopt: bool = True

@@ -1,7 +1,8 @@
 """One run on disk: ``<out>/{scenario.toml, run.mcap, summary.json}``.
 
-Shared by ``hmpc run`` and the sweep workers. The MPC's NLP can be passed in so a worker
-builds each NLP once and reuses it across runs with the same system and MPC settings.
+Shared by ``hmpc run``, ``hmpc report`` and the sweep workers. The loop is built first
+(:func:`prepare`: bad plug-ins and settings fail before anything is written); the MPC's
+NLPs are built once per process per (system, MPC settings) by :func:`hmpc_cli.loop.build`.
 """
 
 from __future__ import annotations
@@ -10,30 +11,22 @@ import json
 from collections.abc import Callable
 from pathlib import Path
 
-from hmpc_cli.loop_core import LoopCore, RunResult
-from hmpc_cli.mpc.controller import FixedModeMPC
-from hmpc_cli.mpc.nlp import FixedModeNLPs
-from hmpc_cli.mpc.walking import WalkingMPC, WalkingNLP
+from hmpc_cli.loop import ClosedLoop, RunResult, build
 from hmpc_cli.recorder import Recorder
-from hmpc_cli.scenario import Scenario
-from hmpc_cli.systems import build_system
+from hmpc_cli.runlog import RunLog
 
-_NLP_CACHE: dict[str, FixedModeNLPs | WalkingNLP] = {}
+__all__ = ["execute_run", "jsonable", "prepare", "run_scenario"]
 
 
-def cached_mpc(sc: Scenario) -> FixedModeMPC | WalkingMPC:
-    """The scenario's fixed-mode MPC with its NLP built once per process per (system, MPC
-    settings); a fresh controller (no memory of earlier runs) around the cached NLP."""
-    key = json.dumps([sc.system.model_dump(mode="json"), sc.mpc.model_dump(mode="json")],
-                     sort_keys=True)
-    if sc.system.name == "biped":
-        if key not in _NLP_CACHE:
-            _NLP_CACHE[key] = WalkingNLP(sc.system, sc.mpc)
-        return WalkingMPC(sc.system, sc.mpc, _NLP_CACHE[key])
-    system = build_system(sc.system)
-    if key not in _NLP_CACHE:
-        _NLP_CACHE[key] = FixedModeNLPs(system, sc.mpc)
-    return FixedModeMPC(system, sc.mpc, _NLP_CACHE[key])
+def prepare(scenario) -> ClosedLoop:
+    """The scenario's closed loop, with a run log not yet attached to a file.
+
+    Raises:
+        hmpc_cli.registry.PluginError: a plug-in fails to build.
+        ValueError: settings that do not fit the built system.
+        RuntimeError: CasADi rejects the solver settings.
+    """
+    return build(scenario, RunLog(None))
 
 
 def jsonable(value):
@@ -47,14 +40,14 @@ def jsonable(value):
     return value
 
 
-def execute_run(loop: LoopCore, toml_text: str, out: Path,
-                progress: Callable[[int, int], None] | None = None) -> RunResult:
+def execute_run(loop: ClosedLoop, toml_text: str, out: Path,
+                progress: Callable[[int, int, str], None] | None = None) -> RunResult:
     """Runs ``loop`` into directory ``out``; the log is closed and the summary written
     even when the run is interrupted (KeyboardInterrupt propagates after that)."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "scenario.toml").write_text(toml_text, encoding="utf-8")
     rec = Recorder(out / "run.mcap")
-    loop.rec = rec
+    loop.log.rec = rec
     loop.progress = progress
     result = None
     try:
@@ -68,3 +61,9 @@ def execute_run(loop: LoopCore, toml_text: str, out: Path,
         res = result if result is not None else loop.res
         (out / "summary.json").write_text(json.dumps(jsonable(res.__dict__), indent=2) + "\n")
     return result
+
+
+def run_scenario(scenario, toml_text: str, out: Path,
+                 progress: Callable[[int, int, str], None] | None = None) -> RunResult:
+    """:func:`prepare` then :func:`execute_run`."""
+    return execute_run(prepare(scenario), toml_text, out, progress)

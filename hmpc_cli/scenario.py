@@ -1,36 +1,31 @@
 """Scenario files: pydantic v2 models in TOML, each layer owning its settings section.
 
-Unknown keys are rejected; rates are integers in Hz and must be commensurate (the MPC
-period a whole number of node steps and of simulator steps). :func:`load_scenario` turns
+The ``system``, ``planner`` and ``mpc`` sections are unions over the registered plug-ins
+(:mod:`hmpc_cli.registry`), discriminated by ``system.name``, ``planner.kind`` and
+``mpc.kind``; the planner and MPC kinds and other settings default to what the system's
+plug-in names, and settings a plug-in requires are checked with the reason. Unknown keys
+are rejected; rates are integers in Hz and must be commensurate (the MPC period a whole
+number of simulator steps and of the MPC's node steps). :func:`load_scenario` turns
 every problem into :class:`ScenarioError` lines of the form ``file: key.path: reason``.
+The model class is assembled on first use: ``from hmpc_cli.scenario import Scenario``.
 """
 
 from __future__ import annotations
 
 import re
 import tomllib
+from functools import lru_cache
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel, ConfigDict, Field, ValidationError, create_model, model_validator)
 
 from hmpc_cli.lowlevel import LowLevelSettings
-from hmpc_cli.mpc.nlp import MPCSettings
-from hmpc_cli.mpc.walking_nlp import WalkingMPCSettings
-from hmpc_cli.planner.cem import CEMSettings
-from hmpc_cli.planner.footholds import FootholdSettings
-from hmpc_cli.systems import BallParams, BipedParams
+from hmpc_cli.registry import PluginError, Requirement, registry
 
-SystemSection = Annotated[BallParams | BipedParams, Field(discriminator="name")]
-PlannerSection = Annotated[CEMSettings | FootholdSettings, Field(discriminator="kind")]
-MPCSection = Annotated[MPCSettings | WalkingMPCSettings, Field(discriminator="kind")]
-#: per system: the planner and MPC kinds its controller stack uses (the section defaults)
-STACKS = {"ball": ("cem", "fixed_mode"), "biped": ("footholds", "walking")}
-#: per system: defaults of other sections' keys (section, key, value) its stack needs
-STACK_DEFAULTS = {"biped": (("sim", "input_at_events", "recompute"),
-                            ("replanning", "policy", "on_contact"))}
-_TAGS = {"system": set(STACKS), "planner": {"cem", "footholds"},
-         "mpc": {"fixed_mode", "walking"}}
+#: the system of a scenario that names none
+DEFAULT_SYSTEM = "ball"
 
 
 class ScenarioError(Exception):
@@ -74,61 +69,74 @@ class ReplanSettings(BaseModel):
     policy: Literal["once", "on_contact", "periodic"] = "once"
     period: float = Field(0.5, gt=0.0, description="replanning period [s] (periodic)")
     contact_guards: list[str] | None = Field(
-        None, description="guards that trigger on_contact (default: all not entering the "
-                          "final domain)")
+        None, description="guards that trigger on_contact (default: all but those "
+                          "entering the final domain from another domain)")
 
 
-class Scenario(BaseModel):
-    """A complete experiment: system, simulator, disturbance and the three layers."""
+class ScenarioBase(BaseModel):
+    """A complete experiment: system, simulator, disturbance and the three layers.
+
+    The ``system``, ``planner`` and ``mpc`` fields are added by :func:`scenario_model`.
+    """
 
     model_config = ConfigDict(extra="forbid")
     name: str = Field("scenario", pattern=r"^[A-Za-z0-9_.-]+$")
     description: str = ""
     seed: int = Field(0, ge=0)
-    system: SystemSection = Field(default_factory=BallParams)
     plant: dict[str, Any] = Field(
         default_factory=dict, description="system parameters of the simulated plant that "
         "differ from the controllers' model, e.g. mass_scale = 1.1 (the biped of Fig. 4)")
     sim: SimSettings = Field(default_factory=SimSettings)
     disturbance: DisturbanceSettings = Field(default_factory=DisturbanceSettings)
-    planner: PlannerSection = Field(default_factory=CEMSettings)
     replanning: ReplanSettings = Field(default_factory=ReplanSettings)
-    mpc: MPCSection = Field(default_factory=MPCSettings)
     lowlevel: LowLevelSettings = Field(default_factory=LowLevelSettings)
 
     @model_validator(mode="before")
     @classmethod
-    def _section_kinds(cls, data: Any) -> Any:
-        """Fills the system name (ball) and the planner/MPC kinds of that system's stack."""
+    def _plugin_defaults(cls, data: Any) -> Any:
+        """Fills the system name, the planner/MPC kinds and the settings the plug-ins
+        default or require (a value the scenario sets always wins)."""
         if not isinstance(data, dict):
             return data
         data = dict(data)
         system = data.get("system", {})
-        if isinstance(system, dict):
-            system = data["system"] = {"name": "ball", **system}
-            if not isinstance(system["name"], str) or system["name"] not in STACKS:
-                choices = ", ".join(repr(k) for k in STACKS)
-                raise ValueError(f"system.name: unknown system {system['name']!r} (choose "
-                                 f"from {choices})")
-            defaults = [(key, "kind", kind) for key, kind in
-                        zip(("planner", "mpc"), STACKS[system["name"]])]
-            for key, name, value in defaults + list(STACK_DEFAULTS.get(system["name"], ())):
-                section = data.get(key, {})
-                if isinstance(section, dict):
-                    data[key] = {name: value, **section}
+        if not isinstance(system, dict):
+            return data
+        system = data["system"] = {"name": DEFAULT_SYSTEM, **system}
+        reg = registry()
+        if not isinstance(system["name"], str) or system["name"] not in reg.systems:
+            raise ValueError(f"system.name: {_unknown(reg, system['name'])}")
+        spec = reg.system(system["name"])
+        for section, kind in (("planner", spec.planner), ("mpc", spec.mpc)):
+            sec = data.get(section, {})
+            if isinstance(sec, dict):
+                kind = sec.get("kind", kind)
+                data[section] = {"kind": kind, **spec.defaults.get(f"{section}.{kind}", {}),
+                                 **sec}
+        for key, values in spec.defaults.items():
+            if "." not in key and isinstance(data.get(key, {}), dict):
+                data[key] = {**values, **data.get(key, {})}
+        for req in _requirements(reg, data):
+            section, _, name = req.key.partition(".")
+            if isinstance(data.get(section, {}), dict):
+                data[section] = {name: req.value, **data.get(section, {})}
         return data
 
-    def plant_params(self) -> BallParams | BipedParams:
+    def plant_params(self) -> BaseModel:
         """The simulated plant's parameters: the system's, updated by ``plant``."""
         return type(self.system).model_validate({**self.system.model_dump(), **self.plant})
 
     @model_validator(mode="after")
-    def _rates(self) -> Scenario:
+    def _consistent(self) -> ScenarioBase:
         # One "key.path: reason" line per problem (format_errors splits them).
-        m, s = self.mpc, self.sim
-        problems = self._stack_problems()
-        steps = (("sim.rate_hz", s.rate_hz),) if isinstance(m, WalkingMPCSettings) else (
-            ("mpc.nodes_per_second", m.nodes_per_second), ("sim.rate_hz", s.rate_hz))
+        problems = self._stack_problems() + self._rate_problems()
+        if problems:
+            raise ValueError("\n".join(problems))
+        return self
+
+    def _rate_problems(self) -> list[str]:
+        m, s, problems = self.mpc, self.sim, []
+        steps = [*getattr(m, "period_steps", list)(), ("sim.rate_hz", s.rate_hz)]
         divides = [f"{k} = {v}" for k, v in steps if v % m.rate_hz]
         if divides:
             what = "simulator steps" if len(steps) == 1 else \
@@ -144,41 +152,99 @@ class Scenario(BaseModel):
             problems.append("disturbance.hold: must be a whole number of simulator steps")
         if self.replanning.policy == "periodic" and not _whole(self.replanning.period * s.rate_hz):
             problems.append("replanning.period: must be a whole number of simulator steps")
-        if isinstance(m, MPCSettings) and (m.horizon * m.nodes_per_second < 2
-                                           or not _whole(m.horizon * m.nodes_per_second)):
-            problems.append("mpc.horizon: must be a whole number (>= 2) of node steps")
-        if problems:
-            raise ValueError("\n".join(problems))
-        return self
+        return problems + list(getattr(m, "scenario_problems", list)())
 
     def _stack_problems(self) -> list[str]:
-        """The system, planner and MPC must belong to one controller stack; plant keys
-        must be valid system parameters."""
+        """The planner and MPC must fit the system (capabilities, required settings);
+        plant keys must be valid system parameters."""
+        reg = registry()
+        spec = reg.system(self.system.name)
         out = []
-        name = self.system.name
-        planner, mpc = STACKS[name]
-        if self.planner.kind != planner:
-            out.append(f"planner.kind: {self.planner.kind!r} does not fit system {name!r} "
-                       f"(use {planner!r})")
-        if self.mpc.kind != mpc:
-            out.append(f"mpc.kind: {self.mpc.kind!r} does not fit system {name!r} "
-                       f"(use {mpc!r})")
-        if name == "biped" and self.replanning.policy != "on_contact":
-            out.append(f"replanning.policy: the biped chooses its foothold at every contact; "
-                       f"use 'on_contact', not {self.replanning.policy!r}")
-        if name == "biped" and self.sim.input_at_events != "recompute":
-            out.append("sim.input_at_events: the biped's reset swaps the legs, so the torque "
-                       "held before it would act on the other leg; use 'recompute'")
+        for section in ("planner", "mpc"):
+            kind = getattr(self, section).kind
+            plug = reg.planner(kind) if section == "planner" else reg.mpc(kind)
+            missing = sorted(plug.needs - spec.provides)
+            if missing:
+                out.append(f"{section}.kind: {kind!r} does not fit system {spec.name!r}: it "
+                           f"needs {', '.join(missing)} (use {getattr(spec, section)!r})")
+        data = self.model_dump()
+        for req in _requirements(reg, data):
+            section, _, name = req.key.partition(".")
+            value = data.get(section, {}).get(name)
+            if value != req.value:
+                out.append(f"{req.key}: {req.why}; use {req.value!r}, not {value!r}")
         if self.plant:
-            try:
-                self.plant_params()
-            except ValidationError as exc:
-                for err in exc.errors():
-                    loc = ".".join(["plant", *(str(p) for p in err["loc"])])
-                    msg = err["msg"].removeprefix("Value error, ")
-                    msg = "unknown key" if err["type"] == "extra_forbidden" else msg
-                    out.append(f"{loc}: {msg}")
+            out += self._plant_problems()
         return out
+
+    def _plant_problems(self) -> list[str]:
+        out = []
+        try:
+            self.plant_params()
+        except ValidationError as exc:
+            for err in exc.errors():
+                loc = ".".join(["plant", *(str(p) for p in err["loc"])])
+                msg = err["msg"].removeprefix("Value error, ")
+                msg = "unknown key" if err["type"] == "extra_forbidden" else msg
+                out.append(f"{loc}: {msg}")
+        return out
+
+
+def _unknown(reg, name: Any) -> str:
+    """'unknown system ...' with the choices, or why that plug-in failed to load."""
+    if isinstance(name, str) and name in reg.failed["system"]:
+        return reg.failed["system"][name]
+    choices = ", ".join(repr(k) for k in sorted(reg.systems))
+    return f"unknown system {name!r} (choose from {choices})"
+
+
+def _requirements(reg, data: dict) -> list[Requirement]:
+    """Settings required by the scenario's system, planner and MPC plug-ins."""
+    out = list(reg.system(data["system"]["name"]).requires)
+    for section, table in (("planner", reg.planners), ("mpc", reg.mpcs)):
+        kind = (data.get(section) or {}).get("kind") if isinstance(data.get(section), dict) \
+            else None
+        if kind in table:
+            out += table[kind].requires
+    return out
+
+
+def _union(models: list[type[BaseModel]], tag: str) -> Any:
+    if len(models) == 1:
+        return models[0]
+    return Annotated[Union[tuple(models)], Field(discriminator=tag)]  # noqa: UP007
+
+
+@lru_cache(maxsize=1)
+def scenario_model() -> type[ScenarioBase]:
+    """The Scenario model with the registered plug-ins' sections (built once)."""
+    reg = registry()
+    default = reg.systems.get(DEFAULT_SYSTEM) or next(iter(reg.systems.values()))
+    planner = reg.planners[default.planner].settings
+    mpc = reg.mpcs[default.mpc].settings
+    model = create_model(
+        "Scenario", __base__=ScenarioBase, __module__=__name__,
+        system=(_union([s.params for s in reg.systems.values()], "name"),
+                Field(default_factory=default.params)),
+        planner=(_union([p.settings for p in reg.planners.values()], "kind"),
+                 Field(default_factory=planner)),
+        mpc=(_union([m.settings for m in reg.mpcs.values()], "kind"),
+             Field(default_factory=mpc)),
+    )
+    model.model_rebuild(_types_namespace=globals())
+    return model
+
+
+def _tags() -> dict[str, set[str]]:
+    """Union member tags pydantic puts in error locations, per section."""
+    reg = registry()
+    return {"system": set(reg.systems), "planner": set(reg.planners), "mpc": set(reg.mpcs)}
+
+
+def __getattr__(name: str) -> Any:
+    if name == "Scenario":
+        return scenario_model()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _whole(v: float) -> bool:
@@ -214,10 +280,10 @@ def apply_overrides(data: dict, overrides: list[str], source: str) -> dict:
 
 def format_errors(exc: ValidationError, source: str) -> list[str]:
     """One ``file: key.path: reason`` line per pydantic error."""
-    lines = []
+    lines, tags = [], _tags()
     for err in exc.errors():
         parts = [str(p) for p in err["loc"] if p not in ("function-after",)]
-        if len(parts) >= 2 and parts[1] in _TAGS.get(parts[0], ()):
+        if len(parts) >= 2 and parts[1] in tags.get(parts[0], ()):
             del parts[1]  # the union member's tag (e.g. planner.cem.samples -> planner.samples)
         loc = ".".join(parts) or "(top)"
         msg = err["msg"].removeprefix("Value error, ")
@@ -231,7 +297,7 @@ def format_errors(exc: ValidationError, source: str) -> list[str]:
 
 
 def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None = None
-                  ) -> tuple[Scenario, str]:
+                  ) -> tuple[ScenarioBase, str]:
     """Reads, overrides and validates a scenario file.
 
     Returns:
@@ -254,9 +320,11 @@ def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None 
         data["seed"] = seed
     data.setdefault("name", re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem))
     try:
-        scenario = Scenario.model_validate(data)
+        scenario = scenario_model().model_validate(data)
     except ValidationError as exc:
         raise ScenarioError(format_errors(exc, str(path))) from None
+    except PluginError as exc:
+        raise ScenarioError([f"{path}: {exc}"]) from None
     return scenario, dump_toml(scenario.model_dump(mode="json", exclude_none=True))
 
 

@@ -28,7 +28,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from hmpc_cli.scenario import Scenario, ScenarioError, format_errors, load_scenario
+from hmpc_cli.scenario import ScenarioError, format_errors, load_scenario, scenario_model
 from hmpc_cli.sweep_table import INTERRUPTED, METRICS, TIMING, cell_text, finished, write_results  # noqa: F401
 
 RESERVED = {"run_id", "seed", "log", *METRICS}
@@ -148,7 +148,7 @@ def _flatten(data: dict, model: Any, prefix: str = "") -> dict:
 
 def _axes(spec: SweepSpec, src: str, errors: list[str]) -> list[Axis]:
     axes = []
-    for name, values in _flatten(spec.grid, Scenario).items():
+    for name, values in _flatten(spec.grid, scenario_model()).items():
         where = f"{src}: grid.{name}"
         if name in RESERVED or name.startswith("set.") or name == "seed":
             errors.append(f"{where}: reserved name (use another axis name; seeds via `seeds`)")
@@ -173,7 +173,7 @@ def _axes(spec: SweepSpec, src: str, errors: list[str]) -> list[Axis]:
             if label is not None and not isinstance(label, str):
                 errors.append(f"{where}[{i}].label: must be a string")
                 label = None
-            ov = _flatten(entry, Scenario)
+            ov = _flatten(entry, scenario_model())
             labels.append(label if label is not None else
                           ", ".join(f"{k}={cell_text(v)}" for k, v in ov.items()) or "(base)")
             overrides.append(ov)
@@ -232,7 +232,7 @@ def plan_sweep(path: str | Path) -> SweepPlan:
     scenario = path.parent / spec.scenario
     if not scenario.is_file():
         errors.append(f"{src}: scenario: file not found: {scenario}")
-    base = _flatten(spec.set_, Scenario)
+    base = _flatten(spec.set_, scenario_model())
     axes = _axes(spec, src, errors)  # broken axes are left out; their runs still checked
     bad_keys = _bad_keys(src, [(k, v, "set") for k, v in base.items()] + [
         (k, v, f"grid.{a.name}") for a in axes for ov in a.overrides for k, v in ov.items()])
@@ -306,7 +306,7 @@ def _init_worker(stop) -> None:
     _STOP = stop
 
 
-def _check_stop(i: int, n: int) -> None:
+def _check_stop(i: int, n: int, note: str = "") -> None:
     if i % 10 == 0 and _STOP is not None and _STOP.is_set():
         raise KeyboardInterrupt
 
@@ -316,10 +316,10 @@ def run_one(toml_text: str, run_dir: str) -> dict:
 
     An exception becomes a failed run: ``reason`` is the exception type and message and
     ``error.txt`` holds the traceback. Runs in one process are serialized (IPOPT is not
-    thread-safe); NLPs are cached per process (:func:`hmpc_cli.runner.cached_mpc`).
+    thread-safe); NLPs are cached per process (:func:`hmpc_cli.loop.build`).
     """
-    from hmpc_cli.loop import RunResult, make_loop
-    from hmpc_cli.runner import cached_mpc, execute_run, jsonable
+    from hmpc_cli.loop import RunResult
+    from hmpc_cli.runner import execute_run, jsonable, prepare
 
     out = Path(run_dir)
     with _LOCK:
@@ -327,8 +327,8 @@ def run_one(toml_text: str, run_dir: str) -> dict:
             shutil.rmtree(out)
         loop, sc = None, None
         try:
-            sc = Scenario.model_validate(tomllib.loads(toml_text))
-            loop = make_loop(sc, None, mpc=cached_mpc(sc))
+            sc = scenario_model().model_validate(tomllib.loads(toml_text))
+            loop = prepare(sc)
             execute_run(loop, toml_text, out, _check_stop if _STOP is not None else None)
         except Exception as exc:  # noqa: BLE001 - a failed run is a result
             res = loop.res if loop is not None else RunResult(

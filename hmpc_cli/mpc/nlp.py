@@ -54,7 +54,8 @@ class MPCSettings(BaseModel):
     """Fixed-mode MPC settings."""
 
     model_config = ConfigDict(extra="forbid")
-    kind: Literal["fixed_mode"] = Field("fixed_mode", description="mode-schedule MPC (ball)")
+    kind: Literal["fixed_mode"] = Field("fixed_mode", description="mode-schedule MPC on "
+                                        "the chain transcription (any system)")
     rate_hz: int = Field(10, gt=0, description="MPC re-solve rate [Hz]")
     nodes_per_second: int = Field(60, gt=0, description="NLP node rate: node step = 1/this")
     horizon: float = Field(3.0, gt=0.0, description="receding horizon [s]")
@@ -86,8 +87,20 @@ class MPCSettings(BaseModel):
                              'input)')
         return self
 
+    def period_steps(self) -> list[tuple[str, int]]:
+        """Step rates the MPC period must be a whole number of (key path, rate [Hz])."""
+        return [("mpc.nodes_per_second", self.nodes_per_second)]
+
+    def scenario_problems(self) -> list[str]:
+        """``mpc.key: reason`` lines for settings that do not fit together."""
+        n = self.horizon * self.nodes_per_second
+        if n < 2 or abs(n - round(n)) > 1e-9 * max(1.0, n):
+            return ["mpc.horizon: must be a whole number (>= 2) of node steps"]
+        return []
+
     @property
     def dt(self) -> float:
+        """Node step [s]."""
         return 1.0 / self.nodes_per_second
 
     @property

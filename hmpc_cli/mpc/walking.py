@@ -1,9 +1,12 @@
 """The biped's fixed-mode walking MPC in closed loop: candidates, shifting, warm starts.
 
 One :class:`WalkingNLP` (see :mod:`hmpc_cli.mpc.walking_nlp` for the formulation) is
-re-solved per target stair segment ("candidate"). Segment i (0-based, the i-th entry of
-:func:`~hmpc_cli.systems.biped.stair_edges`) is reached through guard ``stair_{i+1}``,
-guard index i of :func:`~hmpc_cli.systems.biped.build_biped`.
+re-solved per target contact surface ("candidate"): the first guard of the schedule it
+is given, whose surface is ``HybridSystem.guard_surfaces[guard]``. Behind the stack
+contract (:meth:`WalkingMPC.solve`) every guard event ends the current swing (the swing
+clock restarts at the event time); a schedule with no guard left has no target and is
+rejected; a repeated solve of the same (t, x, target), e.g. the loop solving the schedule
+a foothold planner has just chosen by solving it, returns the stored plan.
 
 Timing: ``elapsed`` is the time already spent in the current swing (since the last
 contact, or since the start of the run). Swing 0 keeps its N nodes and shrinks its node
@@ -22,16 +25,20 @@ accelerations (cold).
 
 from __future__ import annotations
 
+import math
 import time
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hmpc_cli.messages import ModeSchedule, Plan, SolveStats, Trajectory
+from hmpc_cli.hybrid import HybridSystem
+from hmpc_cli.messages import GuardEvent, ModeSchedule, Plan, SolveStats, Trajectory
+from hmpc_cli.mpc.fixed_mode import rejected_plan
 from hmpc_cli.mpc.walking_nlp import NX, ROWS, WalkingMPCSettings, WalkingNLP
-from hmpc_cli.systems.biped import BipedParams, stair_edges
+from hmpc_cli.registry import MPCSpec
 
-__all__ = ["WalkingMPC", "WalkingMPCSettings", "WalkingNLP"]
+__all__ = ["MPC", "WalkingMPC", "WalkingMPCSettings", "WalkingNLP"]
 
 
 @dataclass
@@ -53,14 +60,54 @@ class WalkingMPC:
     at a contact), :meth:`on_impact` right after each contact, before solving again.
     """
 
-    def __init__(self, params: BipedParams, settings: WalkingMPCSettings | None = None,
+    def __init__(self, system: HybridSystem, settings: WalkingMPCSettings | None = None,
                  nlp: WalkingNLP | None = None) -> None:
-        self.params = params
+        self.system = system
         self.s = settings or WalkingMPCSettings()
-        self.nlp = nlp or WalkingNLP(params, self.s)
-        self.segments = stair_edges(params)
+        self.rate_hz = self.s.rate_hz
+        self.nlp = nlp or WalkingNLP(system, self.s)
+        self.segments = dict(system.guard_surfaces)
         self._memory: dict[int, _Memory] = {}
         self._template: _Memory | None = None
+        self._executing: int | None = None  # target of the last successful solve
+        self._swing_start = 0.0  # [s]
+        self._t_event = -math.inf  # the newest event applied [s]
+        self._recent: tuple[float, bytes, dict[int, Plan]] = (math.nan, b"", {})
+
+    # -------------------------------------------------------------- contract
+    def check(self, schedule: ModeSchedule) -> str:
+        """Why ``schedule`` cannot be solved ('' if it can): it needs a target guard
+        with a contact surface."""
+        if not schedule.guards:
+            return "no foothold target: the schedule has no guard left"
+        g = schedule.guards[0]
+        if g not in self.segments:
+            return f"guard {self.system.guards[g].name} has no contact surface"
+        return ""
+
+    def solve(self, t: float, x: np.ndarray, mode: int, schedule: ModeSchedule,
+              events: Sequence[GuardEvent] = (), guess: Trajectory | None = None) -> Plan:
+        """Plans two swings from x (12,) at time t [s], the first landing on the surface
+        of ``schedule.guards[0]`` (see the module docstring); ``guess`` is not used."""
+        for ev in events:
+            if ev.t > self._t_event:
+                self._t_event = ev.t
+                self.on_impact(self._executing)
+                self._swing_start = ev.t
+        reason = self.check(schedule)
+        if reason:
+            return rejected_plan(t, x, mode, schedule, reason)
+        target = schedule.guards[0]
+        key = np.asarray(x, dtype=float).tobytes()
+        if self._recent[0] != t or self._recent[1] != key:
+            self._recent = (t, key, {})
+        plan = self._recent[2].get(target)
+        if plan is None:
+            plan = self.solve_segment(t, x, target, t - self._swing_start)
+            self._recent[2][target] = plan
+        if plan.stats.success:
+            self._executing = target
+        return replace(plan, adopt=plan.stats.success)
 
     # ---------------------------------------------------------------- memory
     def reset(self) -> None:
@@ -135,13 +182,14 @@ class WalkingMPC:
         return w, lx, lg
 
     # ---------------------------------------------------------------- solve
-    def solve(self, t: float, x0: np.ndarray, segment: int, elapsed: float = 0.0) -> Plan:
-        """Plans two swings from x0, the first landing on stair segment ``segment``.
+    def solve_segment(self, t: float, x0: np.ndarray, segment: int, elapsed: float = 0.0
+                      ) -> Plan:
+        """Plans two swings from x0, the first landing on the surface of guard ``segment``.
 
         Args:
             t: simulated time of x0 [s] (the plan's t0).
             x0: state (q, qd, p_st), shape (12,).
-            segment: target segment index (0-based, = guard index of ``stair_{i+1}``).
+            segment: the target guard's index (it must have a contact surface).
             elapsed: time already spent in the current swing [s].
 
         Returns:
@@ -151,10 +199,11 @@ class WalkingMPC:
             (x, y) in the world [m].
 
         Raises:
-            IndexError: no such segment.
+            IndexError: no such surface.
         """
-        if not 0 <= segment < len(self.segments):
-            raise IndexError(f"segment {segment} outside 0..{len(self.segments) - 1}")
+        if segment not in self.segments:
+            raise IndexError(f"guard {segment} has no contact surface (surfaces: "
+                             f"{sorted(self.segments)})")
         nlp = self.nlp
         x0 = np.asarray(x0, dtype=float).reshape(-1)
         p, lbx, ubx, lbg, ubg = nlp.problem_data(x0, self.segments[segment], elapsed)
@@ -196,18 +245,12 @@ class WalkingMPC:
         stats = SolveStats(status, bool(ok), int(iters), wall, cost, float(viol))
         traj = self.trajectory(w if finite else w0, p, segment)
         remaining = nlp.N * nlp.dt0(elapsed)
-        model = nlp.model
-        td = np.asarray(model.swing_foot_world(traj.x[nlp.N])).ravel()
-        hip = np.asarray(model.hip_world(traj.x[-1])).ravel()
+        td = np.asarray(self.system.output("swing_foot_world")(traj.x[nlp.N])).ravel()
+        hip = np.asarray(self.system.output("hip_world")(traj.x[-1])).ravel()
         extra = {"segment": segment, "elapsed": float(elapsed), "warm": kind,
                  "touchdown": tuple(float(v) for v in td),
                  "final_hip": tuple(float(v) for v in hip)}
-        return Plan(t, traj, stats, ModeSchedule((0, 0), (segment,), (remaining,)), extra)
-
-    def solve_candidates(self, t: float, x0: np.ndarray, segments, elapsed: float = 0.0
-                         ) -> list[Plan]:
-        """:meth:`solve` for every segment in ``segments`` (in order)."""
-        return [self.solve(t, x0, i, elapsed) for i in segments]
+        return Plan(t, traj, stats, ModeSchedule((0, 0), (segment,), (remaining,), t), extra)
 
     # ------------------------------------------------------------- trajectory
     def trajectory(self, w: np.ndarray, p: np.ndarray, segment: int) -> Trajectory:
@@ -224,3 +267,14 @@ class WalkingMPC:
         u = np.vstack([us[:N], us[N - 1:N], us[N:], us[-1:]])
         seg = np.r_[np.zeros(N + 1, dtype=int), np.ones(N + 1, dtype=int)]
         return Trajectory(t, xs, u, np.zeros(2 * N + 2, dtype=int), seg, (segment,), "zoh")
+
+
+def _problem(system: HybridSystem, settings: WalkingMPCSettings) -> WalkingNLP:
+    return WalkingNLP(system, settings)
+
+
+MPC = MPCSpec(
+    kind="walking", settings=WalkingMPCSettings, problem=_problem, make=WalkingMPC,
+    needs=frozenset({"terrain", "guard_surfaces", "points", "swing_foot_world",
+                     "inverse_dynamics", "swing_foot_velocity", "swing_foot_jacobian",
+                     "contact_reset"}))

@@ -49,7 +49,7 @@ import casadi as ca
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from hmpc_cli.systems.biped import BipedParams, make_biped_model, stair_edges
+from hmpc_cli.hybrid import HybridSystem
 
 INF = np.inf
 NX = 10  # (q, qd) per node; p_st is a parameter (swing 0) or an expression (swing 1)
@@ -61,7 +61,8 @@ class WalkingMPCSettings(BaseModel):
     """Fixed-mode walking MPC settings (reference values)."""
 
     model_config = ConfigDict(extra="forbid")
-    kind: Literal["walking"] = Field("walking", description="two-swing walking MPC (biped)")
+    kind: Literal["walking"] = Field("walking", description="two-swing walking MPC "
+                                     "(walkers with a stance foot: the biped)")
     rate_hz: int = Field(10, gt=0, description="re-solve rate [Hz] (also after contacts)")
     swing_time: float = Field(0.3, gt=0.0, description="duration of a swing [s]")
     nodes_per_swing: int = Field(25, ge=4, description="intervals per swing")
@@ -135,11 +136,11 @@ class WalkingNLP:
         p: x0 (12), dt_0, h0, shifted edges (E), jumps (E), clearances c (2, N + 1).
     """
 
-    def __init__(self, params: BipedParams, settings: WalkingMPCSettings) -> None:
-        self.params, self.s = params, settings
-        self.model = make_biped_model(params)
+    def __init__(self, system: HybridSystem, settings: WalkingMPCSettings) -> None:
+        self.system, self.s = system, settings
+        self.model = _Outputs(system)
         self.N = settings.nodes_per_swing
-        self.E = len(params.stairs)
+        self.E = len(system.terrain.segments)
         self._build()
 
     # ------------------------------------------------------------------ build
@@ -167,7 +168,7 @@ class WalkingNLP:
 
     def _build(self) -> None:
         self._layout()
-        N, E, s, pr, mdl = self.N, self.E, self.s, self.params, self.model
+        N, E, s, mdl = self.N, self.E, self.s, self.model
         w = ca.SX.sym("w", self.nw)
         x0 = ca.SX.sym("x0", 12)
         dt0 = ca.SX.sym("dt0")
@@ -182,8 +183,6 @@ class WalkingNLP:
         floor = h0 + sum(jumps[i] * _smooth_step((fx - edges[i]) / s.terrain_smoothing)
                          for i in range(E))
         floor_fn = ca.Function("floor", [fx, h0, edges, jumps], [floor])
-        goal = ca.DM(pr.goal)
-        qnom, wpose = ca.DM(pr.q_nominal), ca.DM(pr.pose_weights)
         top_t, top_w = ca.DM(s.torso_top_target), ca.DM(s.torso_top_weights)
 
         def var_x(j, k):
@@ -191,12 +190,11 @@ class WalkingNLP:
                 return x0[:NX]
             return w[self.x_idx[j, k].tolist()]
 
-        def stage(xq, pst):
-            q = xq[:5]
-            pts = mdl.points(q)
-            hip = pts[:, 2] + pst
-            return (pr.q_hip * ca.sumsqr(hip - goal) + ca.dot(wpose, (q - qnom) ** 2)
-                    + ca.dot(top_w, (pts[:, 3] - top_t) ** 2))
+        def stage(xq, pst, u):
+            """The system's stage cost plus the torso-top posture term."""
+            pts = mdl.points(xq[:5])
+            return (self.system.stage_cost(ca.vertcat(xq, pst), u)
+                    + ca.dot(top_w, (pts[:, mdl.torso_top] - top_t) ** 2))
 
         g = []
         J = 0
@@ -214,11 +212,11 @@ class WalkingNLP:
                 q, qd, qn, qdn = xk[:5], xk[5:], xn[:5], xn[5:]
                 u = mdl.inverse_dynamics(q, qd, a, 0)
                 pts = mdl.points(qn)
-                foot = pts[:, 5] + pst
+                foot = pts[:, mdl.swing_foot] + pst
                 g += [qdn - qd - dt * a, qn - q - dt * qdn, u,
                       foot[1] - floor_fn(foot[0], h0, edges, jumps) - clear[j, k + 1],
-                      pts[1, 1], pts[1, 4]]
-                J += dt * (stage(xn, pst) + pr.r_torque * ca.sumsqr(u))
+                      pts[1, mdl.stance_knee], pts[1, mdl.swing_knee]]
+                J += dt * stage(xn, pst, u)
                 xs_out.append(ca.vertcat(xn, pst))
                 us_out.append(u)
             if j == 0:
@@ -267,14 +265,14 @@ class WalkingNLP:
 
     def terrain(self) -> tuple[float, np.ndarray, np.ndarray]:
         """(h0, inflated edges (E,), jumps (E,)) of the guard-avoid floor."""
-        pr, m = self.params, self.s.terrain_margin
-        h_prev, e, d = pr.ground_height, [], []
-        for start, _, h in stair_edges(pr):
+        terrain, m = self.system.terrain, self.s.terrain_margin
+        h_prev, e, d = terrain.ground, [], []
+        for start, _, h in terrain.segments:
             jump = h - h_prev
             e.append(start - np.sign(jump) * m)
             d.append(jump)
             h_prev = h
-        return pr.ground_height, np.array(e), np.array(d)
+        return terrain.ground, np.array(e), np.array(d)
 
     def floor(self, x: np.ndarray) -> np.ndarray:
         """The guard-avoid floor (inflated smooth terrain) at world x [m]."""
@@ -297,7 +295,7 @@ class WalkingNLP:
             segment: target (start, end, height) of swing 0's touchdown [m].
             elapsed: time already spent in the current swing [s].
         """
-        s, N, pr = self.s, self.N, self.params
+        s, N = self.s, self.N
         clear = np.zeros((2, N + 1))
         tau = self.swing_times(elapsed)
         foot0 = np.asarray(self.model.swing_foot_world(x0)).ravel()
@@ -311,17 +309,14 @@ class WalkingNLP:
         clear[1, ap1] = s.apex_clearance
         h0, e, d = self.terrain()
         p = np.concatenate([x0, [self.dt0(elapsed), h0], e, d, clear.ravel(order="F")])
-        lo_x = np.r_[-INF, pr.stance_knee_range[0], pr.torso_range[0], -INF, -INF,
-                     [-pr.rate_limit] * 5]
-        hi_x = np.r_[INF, pr.stance_knee_range[1], pr.torso_range[1], INF, INF,
-                     [pr.rate_limit] * 5]
+        lo_x, hi_x = (b[:NX] for b in self.system.state_box)
         lbx, ubx = np.full(self.nw, -INF), np.full(self.nw, INF)
         for j in range(2):
             for k in range(N + 1):
                 if self.x_idx[j, k, 0] >= 0:
                     lbx[self.x_idx[j, k]], ubx[self.x_idx[j, k]] = lo_x, hi_x
         lbg, ubg = np.full(self.ng, -INF), np.full(self.ng, INF)
-        umax = max(pr.torque_limit - s.torque_margin, 0.0)
+        umax = np.maximum(np.asarray(self.system.modes[0].u_upper) - s.torque_margin, 0.0)
         for j in range(2):
             for k in range(N):
                 r = self.row(j, k)
@@ -386,3 +381,20 @@ class WalkingNLP:
         st = solver.stats()
         return (sol, str(st.get("return_status", "?")), int(st.get("iter_count", 0)),
                 bool(st.get("success", False)))
+
+
+class _Outputs:
+    """The system outputs the transcription uses, with the joint-point columns by name."""
+
+    def __init__(self, system: HybridSystem) -> None:
+        names = system.point_names
+        self.points = system.output("points")
+        self.inverse_dynamics = system.output("inverse_dynamics")
+        self.swing_foot_world = system.output("swing_foot_world")
+        self.swing_foot_velocity = system.output("swing_foot_velocity")
+        self.swing_foot_jacobian = system.output("swing_foot_jacobian")
+        self.reset = system.output("contact_reset")
+        self.hip_world = system.output("hip_world")
+        self.stance_knee, self.hip = names.index("stance_knee"), names.index("hip")
+        self.torso_top, self.swing_knee = names.index("torso_top"), names.index("swing_knee")
+        self.swing_foot = names.index("swing_foot")

@@ -25,6 +25,7 @@ from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.messages import ModeSchedule, PlannerResult, Trajectory
 from hmpc_cli.numeric import compile_numpy
 from hmpc_cli.planner.rollout_c import CRollout, RolloutBuildError
+from hmpc_cli.registry import PlannerSpec
 from hmpc_cli.sim import HybridSimulator
 
 UNREACHED_PENALTY = 1e4
@@ -40,7 +41,8 @@ class CEMSettings(BaseModel):
     samples: int = Field(50, ge=1, description="random samples per iteration (+ the mean)")
     elites: int = Field(1, ge=1)
     iterations: int = Field(15, ge=1)
-    init_mean: float = Field(-20.0, description="initial mean of every knot")
+    init_mean: float = Field(0.0, description="initial mean of every knot (a system may "
+                             "set its own default)")
     init_cov: float = Field(250.0, gt=0.0, description="initial variance of every knot")
     adapt_covariance: bool = Field(False, description="refit the variance to the elites")
     min_cov: float = Field(1.0, gt=0.0, description="variance floor when adapting")
@@ -165,8 +167,12 @@ class CrossEntropyPlanner:
         cost = np.where(alive, cost, np.inf) + np.where(reached, 0.0, UNREACHED_PENALTY)
         return cost, reached
 
-    def plan(self, t: float, x0: np.ndarray, mode0: int) -> PlannerResult:
-        """Runs the CEM from state x0 in mode ``mode0`` at simulated time t [s]."""
+    def plan(self, t: float, x0: np.ndarray, mode0: int, solve=None) -> PlannerResult:
+        """Runs the CEM from state x0 in mode ``mode0`` at simulated time t [s].
+
+        ``solve`` (the stack contract's MPC callback) is not used: rollouts rank the
+        samples. A best rollout that never reaches the final domain gives no schedule.
+        """
         start = time.perf_counter()
         s, m = self.s, self.system.n_u
         rng = np.random.default_rng([s.seed, self.run_seed, int(round(t * 1e6))])
@@ -192,9 +198,10 @@ class CrossEntropyPlanner:
         self._previous, self._previous_t = best, t
         traj = self.trajectory(x0, mode0, best)
         reached = bool(traj.mode[-1] == self.final_mode)
-        schedule = schedule_from(traj) if reached else None
+        schedule = schedule_from(traj, t) if reached else None
+        note = "" if reached else "no rollout reached the final domain"
         return PlannerResult(schedule, traj, best_cost, reached,
-                             time.perf_counter() - start, s.iterations)
+                             time.perf_counter() - start, s.iterations, note)
 
     def trajectory(self, x0: np.ndarray, mode0: int, knots: np.ndarray) -> Trajectory:
         """The recorded rollout of one knot sequence (resets appear as two nodes)."""
@@ -243,10 +250,16 @@ class CrossEntropyPlanner:
         return steps
 
 
-def schedule_from(traj: Trajectory) -> ModeSchedule:
-    """The domain/guard sequence and per-domain durations of a recorded trajectory."""
+def schedule_from(traj: Trajectory, t0: float = 0.0) -> ModeSchedule:
+    """The domain/guard sequence and per-domain durations of a recorded trajectory
+    planned at simulated time t0 [s]."""
     n_seg = len(traj.guards) + 1
     starts = [float(traj.t[np.argmax(traj.seg == j)]) for j in range(n_seg)]
     modes = tuple(int(traj.mode[np.argmax(traj.seg == j)]) for j in range(n_seg))
     durations = tuple(starts[j + 1] - starts[j] for j in range(n_seg - 1))
-    return ModeSchedule(modes, tuple(int(g) for g in traj.guards), durations)
+    return ModeSchedule(modes, tuple(int(g) for g in traj.guards), durations, float(t0))
+
+
+PLANNER = PlannerSpec(
+    kind="cem", settings=CEMSettings,
+    make=lambda system, settings, seed: CrossEntropyPlanner(system, settings, run_seed=seed))

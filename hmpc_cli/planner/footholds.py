@@ -1,23 +1,28 @@
-"""The biped's hybrid planner: which stair segment the next swing lands on (Step 3).
+"""Hybrid MPC by foothold choice: which contact surface the next swing lands on.
 
-The hybrid problem of the walking example is a choice among few footholds: at the start
-and after each contact the fixed-mode walking MPC is solved once per candidate segment
-and the best solution is kept (the reference: the largest final hip x). This module
-holds the pure logic: candidate enumeration and selection. It never solves anything.
-
-Segments are the (start, end, height) triples of
-:func:`hmpc_cli.systems.biped.stair_edges`, indexed from 0 (segment i is guard
-``stair_{i+1}``).
+The hybrid problem of a walking system is a choice among few footholds: at the start and
+after each contact the fixed-mode MPC is solved once per candidate surface (through the
+``solve`` callback the loop hands the planner, so this module never imports an MPC) and
+the best solution is kept (the reference: the largest final hip x). A candidate is a
+guard with a contact surface (``HybridSystem.guard_surfaces``: (start, end, height) [m]);
+its schedule is one switch through that guard. Needs the system outputs ``stance_foot``
+(x -> (2,)) and, for ``max_hip_x``, ``hip_world``.
 """
 
 from __future__ import annotations
 
+import math
+import time
 from collections.abc import Sequence
 from typing import Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from hmpc_cli.messages import Plan
+from hmpc_cli.hybrid import HybridSystem
+from hmpc_cli.messages import ModeSchedule, Plan, PlannerResult
+from hmpc_cli.registry import PlannerSpec, Requirement
+from hmpc_cli.stack import SolveFn
 
 Segment = tuple[float, float, float]
 
@@ -26,7 +31,8 @@ class FootholdSettings(BaseModel):
     """Candidate enumeration and selection settings."""
 
     model_config = ConfigDict(extra="forbid")
-    kind: Literal["footholds"] = Field("footholds", description="foothold candidates (biped)")
+    kind: Literal["footholds"] = Field("footholds", description="foothold candidates "
+                                       "ranked by the fixed-mode MPC (walking systems)")
     reach: float = Field(0.45, gt=0.0, description="a segment is a candidate if one of "
                          "its ends lies within this of the stance foot [m]")
     include_current: bool = Field(True, description="the segment under the stance foot "
@@ -65,23 +71,88 @@ def candidates(stance_x: float, segments: Sequence[Segment],
     return out
 
 
-def choose(plans: Sequence[Plan | None], settings: FootholdSettings | None = None
-           ) -> int | None:
+def choose(plans: Sequence[Plan | None], settings: FootholdSettings | None = None,
+           hip_x=None) -> int | None:
     """Index of the best successful plan in ``plans``, or None if every one failed.
 
-    ``max_hip_x`` reads ``plan.extra["final_hip"][0]`` (the plan's last hip x in the
-    world [m]); ``min_cost`` reads ``plan.stats.cost``. Ties keep the first. None tells
-    the caller to keep its previous plan.
+    Args:
+        plans: candidate plans (None: not solved).
+        settings: the selection criterion.
+        hip_x: plan -> its last hip x in the world [m] (``max_hip_x``; default: the
+            plan's ``extra["final_hip"][0]``).
+
+    ``min_cost`` reads ``plan.stats.cost``. Ties keep the first. None tells the caller
+    to keep its previous plan.
     """
     s = settings or FootholdSettings()
+    hip_x = hip_x or (lambda plan: float(plan.extra["final_hip"][0]))
     best, best_score = None, None
     for i, plan in enumerate(plans):
         if plan is None or not plan.stats.success:
             continue
         if s.criterion == "max_hip_x":
-            score = float(plan.extra["final_hip"][0])
+            score = hip_x(plan)
         else:
             score = -float(plan.stats.cost)
         if best_score is None or score > best_score:
             best, best_score = i, score
     return best
+
+
+class FootholdPlanner:
+    """Ranks the contact surfaces within reach by the fixed-mode MPC's solutions.
+
+    Args:
+        system: the controllers' model (``guard_surfaces``, ``stance_foot``, ``hip_world``).
+        settings: candidate enumeration and selection.
+    """
+
+    def __init__(self, system: HybridSystem, settings: FootholdSettings) -> None:
+        self.system, self.s = system, settings
+        self.guards = sorted(system.guard_surfaces)
+        self.surfaces = [system.guard_surfaces[g] for g in self.guards]
+        self._stance = system.numeric.output("stance_foot")
+        self._hip = system.numeric.output("hip_world") \
+            if settings.criterion == "max_hip_x" else None
+
+    def _hip_x(self, plan: Plan) -> float:
+        return float(self._hip(plan.traj.x[-1])[0][0])
+
+    def plan(self, t: float, x: np.ndarray, mode: int, solve: SolveFn) -> PlannerResult:
+        """Solves every candidate from (t, x, mode) and keeps the best plan's schedule.
+
+        The result's schedule is the chosen plan's (one switch through the chosen guard,
+        planned at t); ``extra["candidates"]`` lists every candidate's solve.
+        """
+        start = time.perf_counter()
+        stance_x = float(self._stance(np.asarray(x, dtype=float))[0][0])
+        try:
+            cand = [self.guards[i] for i in candidates(stance_x, self.surfaces, self.s)]
+        except ValueError as exc:
+            return PlannerResult(None, None, math.nan, False, time.perf_counter() - start, 0,
+                                 str(exc), {"candidates": []})
+        plans = [solve(ModeSchedule((mode, mode), (g,), (math.nan,), t)) for g in cand]
+        best = choose(plans, self.s, self._hip_x)
+        rows = [{"segment": g, "guard_name": self.system.guards[g].name,
+                 "status": p.stats.status, "success": p.stats.success,
+                 "iterations": p.stats.iterations, "wall_time": p.stats.wall_time,
+                 "cost": p.stats.cost, **{k: list(v) for k, v in p.extra.items()
+                                          if k in ("final_hip", "touchdown")}}
+                for g, p in zip(cand, plans, strict=True)]
+        chosen = plans[best] if best is not None else None
+        iters = int(sum(p.stats.iterations for p in plans))
+        wall = time.perf_counter() - start
+        if chosen is None:
+            return PlannerResult(None, None, math.nan, False, wall, iters,
+                                 "every candidate failed", {"candidates": rows})
+        return PlannerResult(chosen.schedule, chosen.traj, chosen.stats.cost, True, wall,
+                             iters, "", {"candidates": rows})
+
+
+PLANNER = PlannerSpec(
+    kind="footholds", settings=FootholdSettings,
+    make=lambda system, settings, seed: FootholdPlanner(system, settings),
+    needs=frozenset({"guard_surfaces", "stance_foot", "hip_world"}),
+    requires=(Requirement("replanning.policy", "on_contact",
+                          "the foothold of every swing is chosen at its contact"),),
+)

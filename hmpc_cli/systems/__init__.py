@@ -1,26 +1,6 @@
-"""System plug-ins: each turns validated parameters into a :class:`HybridSystem`.
+"""System plug-ins bundled with hmpc: the ball (:mod:`.ball`) and the biped (:mod:`.biped`).
 
-To add a system, write a pydantic ``Params`` model with a literal ``name`` field and a
-``build(params) -> HybridSystem`` function, and register both in :data:`REGISTRY`.
+Each registers a :class:`hmpc_cli.registry.SystemSpec` through the ``hmpc.systems`` entry
+point group (see ``pyproject.toml``), exactly as a user's package does; nothing outside
+this package names them. See the README's plug-in guide.
 """
-
-from __future__ import annotations
-
-from collections.abc import Callable
-
-from hmpc_cli.hybrid import HybridSystem
-from hmpc_cli.systems.ball import BallParams, build_ball
-from hmpc_cli.systems.biped import BipedParams, build_biped
-
-REGISTRY: dict[str, tuple[type, Callable[..., HybridSystem]]] = {
-    "ball": (BallParams, build_ball),
-    "biped": (BipedParams, build_biped),
-}
-
-SystemParams = BallParams | BipedParams
-
-
-def build_system(params: SystemParams) -> HybridSystem:
-    """Builds the system named by ``params.name``."""
-    _, build = REGISTRY[params.name]
-    return build(params)

@@ -6,6 +6,10 @@ circle (gravity, pushes only towards the walls: u in [-100, 0]^2) and ``inside``
 gravity, u in [-100, 100]^2). Guards: floor (py - r = 0 falling, px in [0, 8], vy -> -vy),
 wall (px - r = 0 moving left, py in [0, 8], vx -> -vx) and the circle |p - c| = R, crossed
 inwards (outside -> inside) or outwards (inside -> outside), with identity reset.
+
+Task: reach the circle. The goal (also the stage cost's target) is the circle's centre
+and the success radius its radius unless ``goal`` / ``success_radius`` are set; the
+reference's criterion (within 1 of (3, 3) at t = 3 s) is the default geometry's.
 """
 
 from __future__ import annotations
@@ -17,6 +21,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from hmpc_cli.hybrid import Guard, HybridSystem, Mode
+from hmpc_cli.registry import SystemSpec
+from hmpc_cli.tasks import ReachGoal
 
 Pair = tuple[float, float]
 
@@ -37,13 +43,21 @@ class BallParams(BaseModel):
     u_outside: Pair = Field((-100.0, 0.0), description="input bounds per axis outside")
     u_inside: Pair = Field((-100.0, 100.0), description="input bounds per axis inside")
     x0: tuple[float, float, float, float] = (1.0, 1.0, 0.0, 0.0)
-    goal: Pair = (3.0, 3.0)
+    goal: Pair | None = Field(None, description="target position of the stage cost and "
+                              "the success test [m] (default: the circle's centre)")
     q_position: float = Field(50.0, ge=0.0, description="stage cost weight on |p - goal|^2")
     q_velocity: float = Field(0.001, ge=0.0, description="stage cost weight on |v|^2")
     r_input: float = Field(0.001, ge=0.0, description="stage cost weight on |u|^2")
     terminal_radius: float | None = Field(
         None, gt=0.0, description="terminal set |p - goal| <= this (None: the final domain)")
-    success_radius: float = Field(1.0, gt=0.0, description="success: |p_end - goal| <= this")
+    success_radius: float | None = Field(
+        None, gt=0.0, description="success: |p_end - goal| <= this [m] (default: the "
+                                  "circle's radius)")
+
+    @property
+    def target(self) -> Pair:
+        """The goal position [m]: ``goal``, else the circle's centre."""
+        return self.goal if self.goal is not None else self.circle_center
 
     @field_validator("floor_extent", "wall_extent", "u_outside", "u_inside")
     @classmethod
@@ -53,12 +67,9 @@ class BallParams(BaseModel):
         return v
 
 
-def build_ball(p: BallParams) -> HybridSystem:
-    """Builds the ball's hybrid system from validated parameters."""
-    x = ca.SX.sym("x", 4)
-    u = ca.SX.sym("u", 2)
-    w = ca.SX.sym("w", 2)
-    pos, vel = x[0:2], x[2:4]
+def _modes(p: BallParams, x: ca.SX, u: ca.SX, w: ca.SX) -> tuple[Mode, Mode]:
+    """The domains ``outside`` (gravity, pushes towards the walls) and ``inside``."""
+    vel = x[2:4]
     drag = -p.drag * ca.sumsqr(vel) * vel
     acc_in = drag + u / p.mass + w
     acc_out = acc_in - ca.vertcat(0.0, p.gravity)
@@ -66,14 +77,17 @@ def build_ball(p: BallParams) -> HybridSystem:
                    (p.u_outside[0],) * 2, (p.u_outside[1],) * 2)
     inside = Mode("inside", ca.Function("f_inside", [x, u, w], [ca.vertcat(vel, acc_in)]),
                   (p.u_inside[0],) * 2, (p.u_inside[1],) * 2)
+    return outside, inside
 
-    c = ca.DM(p.circle_center)
-    rad = p.circle_radius
-    dist2 = ca.sumsqr(pos - c)
+
+def _guards(p: BallParams, x: ca.SX) -> tuple[Guard, ...]:
+    """Floor, wall (bounces) and the circle crossed inwards and outwards."""
 
     def fn(name: str, expr: ca.SX) -> ca.Function:
         return ca.Function(name, [x], [expr])
 
+    dist2 = ca.sumsqr(x[0:2] - ca.DM(p.circle_center))
+    rad = p.circle_radius
     floor = Guard(
         "floor", "outside", "outside", fn("h_floor", x[1]), p.radius, -1,
         reset=fn("R_floor", ca.vertcat(x[0], x[1], x[2], -x[3])),
@@ -95,12 +109,21 @@ def build_ball(p: BallParams) -> HybridSystem:
         reset=identity, nlp_gap=fn("q_circle_out", rad**2 - dist2),
         margin=lambda d, past: (rad + d) ** 2 - rad**2 if past else rad**2 - (rad - d) ** 2,
     )
-    goal = ca.DM(p.goal)
+    return floor, wall, circle_in, circle_out
+
+
+def build_ball(p: BallParams) -> HybridSystem:
+    """Builds the ball's hybrid system from validated parameters."""
+    x = ca.SX.sym("x", 4)
+    u = ca.SX.sym("u", 2)
+    w = ca.SX.sym("w", 2)
+    pos, vel = x[0:2], x[2:4]
+    goal = ca.DM(p.target)
     cost = (p.q_position * ca.sumsqr(pos - goal) + p.q_velocity * ca.sumsqr(vel)
             + p.r_input * ca.sumsqr(u))
     terminal = None
     if p.terminal_radius is not None:
-        terminal = fn("E_ball", ca.vertcat(p.terminal_radius**2 - ca.sumsqr(pos - goal)))
+        terminal = ca.Function("E_ball", [x], [p.terminal_radius**2 - ca.sumsqr(pos - goal)])
 
     def gain(kp: float, kd: float) -> np.ndarray:
         return np.hstack([kp * np.eye(2), kd * np.eye(2)])
@@ -110,16 +133,29 @@ def build_ball(p: BallParams) -> HybridSystem:
         state_names=("px", "py", "vx", "vy"),
         input_names=("ux", "uy"),
         disturbance_names=("wx", "wy"),
-        modes=(outside, inside),
-        guards=(floor, wall, circle_in, circle_out),
+        modes=_modes(p, x, u, w),
+        guards=_guards(p, x),
         initial_mode="outside",
         final_mode="inside",
         x0=np.array(p.x0, dtype=float),
-        goal=np.array(p.goal, dtype=float),
-        goal_map=fn("goal_map", pos),
+        goal=np.array(p.target, dtype=float),
+        goal_map=ca.Function("goal_map", [x], [pos]),
         stage_cost=ca.Function("L_ball", [x, u], [cost]),
         terminal_set=terminal,
-        success_radius=p.success_radius,
         tracking_gain=gain,
         params=p.model_dump(),
+        plane=("px", "py"),
     )
+
+
+def ball_task(p: BallParams, system: HybridSystem) -> ReachGoal:
+    """Reach the goal (the circle's centre by default) within the success radius."""
+    radius = p.success_radius if p.success_radius is not None else p.circle_radius
+    return ReachGoal(system, radius)
+
+
+SYSTEM = SystemSpec(
+    name="ball", params=BallParams, build=build_ball, task=ball_task,
+    planner="cem", mpc="fixed_mode",
+    defaults={"planner.cem": {"init_mean": -20.0}},
+)

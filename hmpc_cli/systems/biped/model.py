@@ -54,168 +54,19 @@ angular momentum about the impact point is not (the pin takes an impulse too).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING
 
 import casadi as ca
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
-from pydantic_core import InitErrorDetails, PydanticCustomError
 
-from hmpc_cli.hybrid import Guard, HybridSystem, Mode
+if TYPE_CHECKING:
+    from hmpc_cli.systems.biped.params import BipedParams
 
-Five = tuple[float, float, float, float, float]
-Pair = tuple[float, float]
-MODE = "single_support"
 N_Q = 5
 STANCE_X = 2 * N_Q  #: index of the stance-foot x in the state (the stance-foot y follows)
 #: names of the points returned by :attr:`BipedModel.points` (columns, in this order)
 POINT_NAMES = ("stance_foot", "stance_knee", "hip", "torso_top", "swing_knee", "swing_foot")
-
-Q0: Five = (-0.78, 0.9, 0.0133, 0.51, -1.0951)
-
-
-class Stair(BaseModel):
-    """A flat segment of the course; segments follow each other from x = 0."""
-
-    model_config = ConfigDict(extra="forbid")
-    length: float = Field(gt=0.0, description="segment length along x [m]")
-    height: float = Field(description="segment height [m]")
-
-
-def _fig4_stairs() -> list[Stair]:
-    return [Stair(length=a, height=b)
-            for a, b in ((0.4, 0.0), (1.0, 0.075), (0.2, 0.125), (1.25, 0.175))]
-
-
-class BipedParams(BaseModel):
-    """Parameters of the five-link biped and its task (SI units, reference values)."""
-
-    model_config = ConfigDict(extra="forbid")
-    name: Literal["biped"] = "biped"
-    torso_length: float = Field(0.625, gt=0.0, description="hip to torso top [m]")
-    thigh_length: float = Field(0.4, gt=0.0, description="hip to knee [m]")
-    calf_length: float = Field(0.4, gt=0.0, description="knee to foot [m]")
-    torso_mass: float = Field(10.0, gt=0.0, description="[kg]")
-    thigh_mass: float = Field(3.0, gt=0.0, description="[kg]")
-    calf_mass: float = Field(1.0, gt=0.0, description="[kg]")
-    torso_inertia: float = Field(2.22, ge=0.0, description="about the CoM [kg m^2]")
-    thigh_inertia: float = Field(1.08, ge=0.0, description="about the CoM [kg m^2]")
-    calf_inertia: float = Field(0.93, ge=0.0, description="about the CoM [kg m^2]")
-    torso_com: float = Field(0.2, ge=0.0, description="CoM distance from the hip [m]")
-    thigh_com: float = Field(0.163, ge=0.0, description="CoM distance from the hip [m]")
-    calf_com: float = Field(0.128, ge=0.0, description="CoM distance from the knee [m]")
-    gravity: float = Field(9.81, ge=0.0, description="[m/s^2]")
-    mass_scale: float = Field(1.0, gt=0.0, description="factor on every mass and inertia "
-                                                       "(1.1: the paper's heavier robot)")
-    torque_limit: float = Field(3000.0, gt=0.0, description="|u_i| <= this [N m]")
-    rate_limit: float = Field(35.0, gt=0.0, description="|qdot_i| <= this [rad/s]")
-    stance_knee_range: Pair = Field((0.0, math.pi / 2), description="q2 bounds [rad]")
-    torso_range: Pair = Field((-math.pi / 2, math.pi / 2),
-                              description="q3 (torso relative to stance thigh) bounds [rad]")
-    q0: Five = Field(Q0, description="initial angles [rad]")
-    qdot0: Five = Field((0.0,) * 5, description="initial rates [rad/s]")
-    stance_foot0: Pair = Field((0.0, 0.0), description="initial stance foot [m]")
-    stairs: list[Stair] = Field(default_factory=_fig4_stairs, min_length=1,
-                                description="consecutive flat segments from x = 0")
-    ground_height: float = Field(0.0, description="terrain height for x <= 0 [m]")
-    goal: Pair = Field((2.0, 0.8), description="hip target in the world [m]")
-    q_hip: float = Field(10.0, ge=0.0, description="stage cost weight on |hip - goal|^2")
-    q_nominal: Five = Field(Q0, description="nominal pose of the stage cost [rad]")
-    pose_weights: Five = Field((0.0, 1.0, 1.0, 1.0, 1.0),
-                               description="stage cost weights on (q - q_nominal)^2")
-    r_torque: float = Field(1e-4, ge=0.0, description="stage cost weight on |u|^2")
-    success_radius: float = Field(0.3, gt=0.0, description="unused by the walking "
-                                  "success test (no fall, ends on the top segment); the "
-                                  "final error is |hip - goal| [m]")
-    fall_hip_height: float = Field(0.35, ge=0.0, description="a fall: the hip less than "
-                                   "this above the terrain under it [m]")
-
-    @model_validator(mode="after")
-    def _consistent(self) -> BipedParams:
-        problems: list[tuple[tuple, str, object]] = []
-        for key, (lo, hi) in (("stance_knee_range", self.stance_knee_range),
-                              ("torso_range", self.torso_range)):
-            if not lo < hi:
-                problems.append(((key,), f"lower bound {lo} must be below upper bound {hi}",
-                                 [lo, hi]))
-        for key, com, length in (("torso_com", self.torso_com, self.torso_length),
-                                 ("thigh_com", self.thigh_com, self.thigh_length),
-                                 ("calf_com", self.calf_com, self.calf_length)):
-            if com > length:
-                problems.append(((key,), f"{com} m lies beyond the link ({length} m)", com))
-        if not problems:
-            problems += self._initial_problems()
-        if problems:
-            raise ValidationError.from_exception_data("BipedParams", [
-                InitErrorDetails(type=PydanticCustomError("value_error", msg), loc=loc,
-                                 input=value) for loc, msg, value in problems])
-        return self
-
-    def _initial_problems(self) -> list[tuple[tuple, str, object]]:
-        out = []
-        q = self.q0
-        for i, key, (lo, hi) in ((1, "stance knee q2", self.stance_knee_range),
-                                 (2, "torso q3", self.torso_range)):
-            if not lo <= q[i] <= hi:
-                out.append((("q0",), f"{key} = {q[i]} outside [{lo}, {hi}]", list(q)))
-        if any(abs(v) > self.rate_limit for v in self.qdot0):
-            out.append((("qdot0",), f"a rate exceeds rate_limit = {self.rate_limit}",
-                        list(self.qdot0)))
-        fx, fy = self.stance_foot0
-        ground = terrain_heights(self, fx)
-        if not ground:
-            out.append((("stance_foot0",), f"x = {fx} lies beyond the stairs' end "
-                        f"{stairs_end(self)}", [fx, fy]))
-        elif min(abs(fy - h) for h in ground) > 1e-9:
-            out.append((("stance_foot0",), f"must be on the ground: y = {fy}, terrain height "
-                        f"{_fmt(ground)} at x = {fx}", [fx, fy]))
-        sx, sy = swing_foot_numeric(self, q)
-        sx, sy = sx + fx, sy + fy
-        ground = terrain_heights(self, sx)
-        if not ground:
-            out.append((("q0",), f"initial swing foot x = {sx:.4f} lies beyond the stairs' "
-                        f"end {stairs_end(self)}", list(q)))
-        elif sy < min(ground) - 1e-9:
-            out.append((("q0",), f"initial swing foot ({sx:.4f}, {sy:.4f}) is below the "
-                        f"terrain (height {_fmt(ground)})", list(q)))
-        return out
-
-
-def _fmt(heights: list[float]) -> str:
-    return " / ".join(f"{h:g}" for h in heights)
-
-
-def stair_edges(p: BipedParams) -> list[tuple[float, float, float]]:
-    """(start, end, height) of each stair segment, consecutive from x = 0 [m]."""
-    out, x = [], 0.0
-    for s in p.stairs:
-        out.append((x, x + s.length, s.height))
-        x += s.length
-    return out
-
-
-def stairs_end(p: BipedParams) -> float:
-    """x where the last segment ends [m]."""
-    return stair_edges(p)[-1][1]
-
-
-def terrain_heights(p: BipedParams, x: float) -> list[float]:
-    """Terrain heights at x: one, two on a segment boundary, none beyond the end."""
-    out = [p.ground_height] if x <= 0.0 else []
-    out += [h for a, b, h in stair_edges(p) if a <= x <= b and h not in out]
-    return out
-
-
-def terrain_profile(p: BipedParams, x) -> np.ndarray:
-    """Terrain height under each x [m] (vectorised): the higher side on a boundary, the
-    ground height for x <= 0, the last segment's height past the stairs' end."""
-    x, edges = np.asarray(x, dtype=float), stair_edges(p)
-    out = np.where(x <= 0.0, p.ground_height, -np.inf)
-    for a, b, h in edges:
-        out = np.where((x >= a) & (x <= b), np.maximum(out, h), out)
-    return np.where(x > edges[-1][1], edges[-1][2], out)
 
 
 def _geometry(p: BipedParams) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -366,11 +217,19 @@ def make_biped_model(p: BipedParams) -> BipedModel:
     """Derives the biped's dynamics, kinematics, impact and swap maps symbolically."""
     q = ca.SX.sym("q", N_Q)
     qd = ca.SX.sym("qd", N_Q)
+    t = _Terms(p, q, qd)
+    model = _joint_space(t, q, qd)
+    model.update(_state_space(p, t, model, q, qd))
+    lower, upper = state_box(p)
+    return BipedModel(**model, total_mass=float(_geometry(p)[2].sum()), state_lower=lower,
+                      state_upper=upper, u_max=p.torque_limit)
+
+
+def _joint_space(t: _Terms, q: ca.SX, qd: ca.SX) -> dict[str, ca.Function]:
+    """Functions of the joint coordinates: dynamics, kinematics and Jacobians."""
     qdd = ca.SX.sym("qdd", N_Q)
     u = ca.SX.sym("u", N_Q)
     w = ca.SX.sym("w", 1)
-    x = ca.SX.sym("x", 2 * N_Q + 2)
-    t = _Terms(p, q, qd)
     S, St, Sinv = ca.DM(t.S), ca.DM(t.S.T), ca.DM(t.Sinv)
     m_th = t.m_theta()
     cor_th, grav_th = t.coriolis_theta(), t.gravity_theta()
@@ -390,11 +249,7 @@ def make_biped_model(p: BipedParams) -> BipedModel:
     pts = ca.horzcat(*[t.point(t.d[i]) for i in range(len(POINT_NAMES))])
     coms = ca.horzcat(*[t.point(t.c[b]) for b in range(N_Q)])
     jf_th = t.jac_theta(foot_coeff)
-    kin = 0.5 * ca.dot(t.thd, ca.mtimes(m_th, t.thd))
-    pot_rel = p.gravity * sum(t.beta[k] * t.cos[k] for k in range(N_Q))
-    total_mass = float(_geometry(p)[2].sum())
-
-    model = dict(
+    return dict(
         mass_matrix=q_fn("M", m_q),
         bias=q_fn("bias", ca.mtimes(St, cor_th + grav_th), [qd], ["q", "qd"]),
         coriolis=q_fn("coriolis", ca.mtimes(St, cor_th), [qd], ["q", "qd"]),
@@ -412,6 +267,22 @@ def make_biped_model(p: BipedParams) -> BipedModel:
         swing_foot_velocity=q_fn("swing_foot_velocity", ca.mtimes(jf_th, t.thd), [qd],
                                  ["q", "qd"]),
     )
+
+
+def _state_space(p: BipedParams, t: _Terms, model: dict, q: ca.SX, qd: ca.SX
+                 ) -> dict[str, ca.Function]:
+    """Functions of the state x = (q, qd, p_st): flow, world points, energy, reset."""
+    u = ca.SX.sym("u", N_Q)
+    w = ca.SX.sym("w", 1)
+    x = ca.SX.sym("x", 2 * N_Q + 2)
+    Sinv = ca.DM(t.Sinv)
+    m_th = t.m_theta()
+    hip_coeff, foot_coeff = t.d[2], t.d[5]
+    pts = ca.horzcat(*[t.point(t.d[i]) for i in range(len(POINT_NAMES))])
+    jf_th = t.jac_theta(foot_coeff)
+    kin = 0.5 * ca.dot(t.thd, ca.mtimes(m_th, t.thd))
+    pot = (p.gravity * sum(t.beta[k] * t.cos[k] for k in range(N_Q))
+           + float(_geometry(p)[2].sum()) * p.gravity * x[2 * N_Q + 1])
     # state-level functions: substitute (q, qd) = x[0:5], x[5:10]
     xq, xv, pst = x[0:N_Q], x[N_Q:2 * N_Q], x[2 * N_Q:]
 
@@ -419,80 +290,36 @@ def make_biped_model(p: BipedParams) -> BipedModel:
         expr = ca.substitute(expr, ca.vertcat(q, qd), x[0:2 * N_Q])
         return ca.Function(name, [x], [expr], ["x"], [name])
 
+    out = {}
     flow = ca.vertcat(xv, model["forward_dynamics"](xq, xv, u, w), ca.SX.zeros(2))
-    model["flow"] = ca.Function("f_biped", [x, u, w], [flow], ["x", "u", "w"], ["xdot"])
-    model["points_world"] = x_fn("points_world", pts + ca.repmat(pst, 1, len(POINT_NAMES)))
-    model["hip_world"] = x_fn("hip_world", t.point(hip_coeff) + pst)
-    model["swing_foot_world"] = x_fn("swing_foot_world", t.point(foot_coeff) + pst)
-    model["kinetic"] = x_fn("kinetic", kin)
-    model["potential"] = x_fn("potential", pot_rel + total_mass * p.gravity * pst[1])
-    model["energy"] = x_fn("energy", kin + pot_rel + total_mass * p.gravity * pst[1])
+    out["flow"] = ca.Function("f_biped", [x, u, w], [flow], ["x", "u", "w"], ["xdot"])
+    out["points_world"] = x_fn("points_world", pts + ca.repmat(pst, 1, len(POINT_NAMES)))
+    out["hip_world"] = x_fn("hip_world", t.point(hip_coeff) + pst)
+    out["swing_foot_world"] = x_fn("swing_foot_world", t.point(foot_coeff) + pst)
+    out["kinetic"] = x_fn("kinetic", kin)
+    out["potential"] = x_fn("potential", pot)
+    out["energy"] = x_fn("energy", kin + pot)
     # plastic impact (coordinate-free, evaluated in theta): J M^-1 J^T is the same in q
     minv_jt = ca.solve(m_th, jf_th.T)                       # 5 x 2
     lam = -ca.solve(ca.mtimes(jf_th, minv_jt), ca.mtimes(jf_th, t.thd))
-    thd_plus = t.thd + ca.mtimes(minv_jt, lam)
-    qd_plus = ca.mtimes(Sinv, thd_plus)
-    model["impulse"] = x_fn("impulse", lam)
-    model["impact"] = x_fn("impact", ca.cse(ca.vertcat(q, qd_plus, pst)))
+    qd_plus = ca.mtimes(Sinv, t.thd + ca.mtimes(minv_jt, lam))
+    out["impulse"] = x_fn("impulse", lam)
+    out["impact"] = x_fn("impact", ca.cse(ca.vertcat(q, qd_plus, pst)))
     # leg swap: reverse the absolute angles and rates; new stance foot = old swing foot
     rev = ca.DM(t.Sinv @ np.eye(N_Q)[::-1] @ t.S)
     swapped = ca.vertcat(ca.mtimes(rev, q), ca.mtimes(rev, qd), pst + t.point(foot_coeff))
-    model["swap"] = x_fn("swap", swapped)
-    x_imp = model["impact"](x)
-    model["reset"] = ca.Function("R_biped", [x], [ca.cse(model["swap"](x_imp))], ["x"],
-                                 ["x_plus"])
-    inf = np.inf
-    lower = np.full(2 * N_Q + 2, -inf)
-    upper = np.full(2 * N_Q + 2, inf)
+    out["swap"] = x_fn("swap", swapped)
+    x_imp = out["impact"](x)
+    out["reset"] = ca.Function("R_biped", [x], [ca.cse(out["swap"](x_imp))], ["x"],
+                               ["x_plus"])
+    return out
+
+
+def state_box(p: BipedParams) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds (lower, upper) on x = (q, qd, p_st), shape (12,) each (inf: unbounded)."""
+    lower = np.full(2 * N_Q + 2, -np.inf)
+    upper = np.full(2 * N_Q + 2, np.inf)
     lower[1], upper[1] = p.stance_knee_range
     lower[2], upper[2] = p.torso_range
     lower[N_Q:2 * N_Q], upper[N_Q:2 * N_Q] = -p.rate_limit, p.rate_limit
-    return BipedModel(**model, total_mass=total_mass, state_lower=lower, state_upper=upper,
-                      u_max=p.torque_limit)
-
-
-def build_biped(p: BipedParams) -> HybridSystem:
-    """Builds the biped's hybrid system from validated parameters."""
-    model = make_biped_model(p)
-    x = ca.SX.sym("x", 2 * N_Q + 2)
-    u = ca.SX.sym("u", N_Q)
-    foot = model.swing_foot_world(x)
-    h = ca.Function("h_swing_foot_y", [x], [foot[1]])
-    mode = Mode(MODE, model.flow, (-p.torque_limit,) * N_Q, (p.torque_limit,) * N_Q)
-    guards = []
-    for i, (start, end, height) in enumerate(stair_edges(p), start=1):
-        region = ca.Function(f"A_stair_{i}", [x], [ca.vertcat(foot[0] - start, end - foot[0])])
-        guards.append(Guard(f"stair_{i}", MODE, MODE, h, height, -1, reset=model.reset,
-                            region=region))
-    guards.append(Guard("ground", MODE, MODE, h, p.ground_height, -1, reset=model.reset,
-                        region=ca.Function("A_ground", [x], [-foot[0]])))
-    goal = ca.DM(p.goal)
-    hip = model.hip_world(x)
-    pose_err = x[0:N_Q] - ca.DM(p.q_nominal)
-    cost = (p.q_hip * ca.sumsqr(hip - goal)
-            + ca.dot(ca.DM(p.pose_weights), pose_err**2) + p.r_torque * ca.sumsqr(u))
-
-    def gain(kp: float, kd: float) -> np.ndarray:
-        return np.hstack([kp * np.eye(N_Q), kd * np.eye(N_Q), np.zeros((N_Q, 2))])
-
-    x0 = np.array([*p.q0, *p.qdot0, *p.stance_foot0], dtype=float)
-    return HybridSystem(
-        name="biped",
-        state_names=(*(f"q{i}" for i in range(1, 6)), *(f"dq{i}" for i in range(1, 6)),
-                     "stance_x", "stance_y"),
-        input_names=("tau_ankle", "tau_stance_knee", "tau_stance_hip", "tau_swing_hip",
-                     "tau_swing_knee"),
-        disturbance_names=("force_x_torso",),
-        modes=(mode,),
-        guards=tuple(guards),
-        initial_mode=MODE,
-        final_mode=MODE,
-        x0=x0,
-        goal=np.array(p.goal, dtype=float),
-        goal_map=model.hip_world,
-        stage_cost=ca.Function("L_biped", [x, u], [cost]),
-        terminal_set=None,
-        success_radius=p.success_radius,
-        tracking_gain=gain,
-        params=p.model_dump(),
-    )
+    return lower, upper

@@ -1,0 +1,126 @@
+"""The paper's planar five-link, fully actuated biped on stairs (Sec. IV, Fig. 4).
+
+A plug-in in three parts: :mod:`.params` (validated parameters and the stairs),
+:mod:`.model` (Lagrangian dynamics, kinematics, impact and leg swap, derived once in
+CasADi), :mod:`.terrain` (the stairs as a terrain) and :mod:`.task` (falls, success).
+:func:`build_biped` assembles the :class:`~hmpc_cli.hybrid.HybridSystem` with the named
+outputs the walking MPC, the foothold planner and the figures use:
+
+* ``points`` q -> (2, 6) and ``points_world`` x -> (2, 6): the joint points
+  (``POINT_NAMES``) relative to the stance foot / in the world [m];
+* ``hip_world``, ``swing_foot_world``, ``stance_foot``: x -> (2,) [m];
+* ``inverse_dynamics`` (q, qd, qdd, w) -> u [N m]; ``swing_foot_velocity`` (q, qd) ->
+  (2,) [m/s]; ``swing_foot_jacobian`` q -> (2, 5) [m];
+* ``contact_reset`` x -> x+: the reset of every guard (plastic impact, leg swap).
+
+State x = (q[5], qd[5], p_st[2]), one mode ``single_support``, one guard per stair
+segment (``stair_1``..) plus ``ground``; each stair guard's contact surface is its
+segment (the foothold candidates).
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from hmpc_cli.hybrid import Guard, HybridSystem, Mode
+from hmpc_cli.registry import Requirement, SystemSpec
+from hmpc_cli.systems.biped.model import (
+    N_Q, POINT_NAMES, STANCE_X, BipedModel, make_biped_model, state_box)
+from hmpc_cli.systems.biped.params import BipedParams, Stair
+from hmpc_cli.systems.biped.task import ClimbStairs
+from hmpc_cli.systems.biped.terrain import stair_edges, stair_terrain
+
+__all__ = ["MODE", "N_Q", "POINT_NAMES", "STANCE_X", "SYSTEM", "BipedModel", "BipedParams",
+           "Stair", "build_biped", "make_biped_model", "stair_edges", "stair_terrain"]
+
+MODE = "single_support"
+#: polylines of the stick figure: stance leg, swing leg (from the hip), torso
+SKELETON = (("stance_foot", "stance_knee", "hip", "swing_knee", "swing_foot"),
+            ("hip", "torso_top"))
+
+
+def _guards(p: BipedParams, model: BipedModel, x: ca.SX) -> tuple[Guard, ...]:
+    """One guard per stair segment (the swing foot falls through its height over it)
+    and ``ground`` (x <= 0); every reset is the impact followed by the leg swap."""
+    foot = model.swing_foot_world(x)
+    h = ca.Function("h_swing_foot_y", [x], [foot[1]])
+    guards = []
+    for i, (start, end, height) in enumerate(stair_edges(p), start=1):
+        region = ca.Function(f"A_stair_{i}", [x], [ca.vertcat(foot[0] - start, end - foot[0])])
+        guards.append(Guard(f"stair_{i}", MODE, MODE, h, height, -1, reset=model.reset,
+                            region=region))
+    guards.append(Guard("ground", MODE, MODE, h, p.ground_height, -1, reset=model.reset,
+                        region=ca.Function("A_ground", [x], [-foot[0]])))
+    return tuple(guards)
+
+
+def _outputs(model: BipedModel, x: ca.SX) -> dict[str, ca.Function]:
+    """The named outputs (see the module docstring)."""
+    return {
+        "points": model.points, "points_world": model.points_world,
+        "hip_world": model.hip_world, "swing_foot_world": model.swing_foot_world,
+        "stance_foot": ca.Function("stance_foot", [x], [x[STANCE_X:STANCE_X + 2]]),
+        "inverse_dynamics": model.inverse_dynamics,
+        "swing_foot_velocity": model.swing_foot_velocity,
+        "swing_foot_jacobian": model.swing_foot_jacobian,
+        "contact_reset": model.reset,
+    }
+
+
+def build_biped(p: BipedParams) -> HybridSystem:
+    """Builds the biped's hybrid system from validated parameters."""
+    model = make_biped_model(p)
+    x = ca.SX.sym("x", 2 * N_Q + 2)
+    u = ca.SX.sym("u", N_Q)
+    hip = model.hip_world(x)
+    pose_err = x[0:N_Q] - ca.DM(p.q_nominal)
+    cost = (p.q_hip * ca.sumsqr(hip - ca.DM(p.goal))
+            + ca.dot(ca.DM(p.pose_weights), pose_err**2) + p.r_torque * ca.sumsqr(u))
+
+    def gain(kp: float, kd: float) -> np.ndarray:
+        return np.hstack([kp * np.eye(N_Q), kd * np.eye(N_Q), np.zeros((N_Q, 2))])
+
+    guards = _guards(p, model, x)
+    return HybridSystem(
+        name="biped",
+        state_names=(*(f"q{i}" for i in range(1, 6)), *(f"dq{i}" for i in range(1, 6)),
+                     "stance_x", "stance_y"),
+        input_names=("tau_ankle", "tau_stance_knee", "tau_stance_hip", "tau_swing_hip",
+                     "tau_swing_knee"),
+        disturbance_names=("force_x_torso",),
+        modes=(Mode(MODE, model.flow, (-p.torque_limit,) * N_Q, (p.torque_limit,) * N_Q),),
+        guards=guards,
+        initial_mode=MODE,
+        final_mode=MODE,
+        x0=np.array([*p.q0, *p.qdot0, *p.stance_foot0], dtype=float),
+        goal=np.array(p.goal, dtype=float),
+        goal_map=model.hip_world,
+        stage_cost=ca.Function("L_biped", [x, u], [cost]),
+        terminal_set=None,
+        tracking_gain=gain,
+        params=p.model_dump(),
+        outputs=_outputs(model, x),
+        point_names=POINT_NAMES,
+        skeleton=SKELETON,
+        terrain=stair_terrain(p),
+        state_box=state_box(p),
+        guard_surfaces={i: seg for i, seg in enumerate(stair_edges(p))},
+    )
+
+
+def climb_task(p: BipedParams, system: HybridSystem) -> ClimbStairs:
+    """The walking task on the simulated robot (``system``: the plant)."""
+    return ClimbStairs(system, p.fall_hip_height)
+
+
+SYSTEM = SystemSpec(
+    name="biped", params=BipedParams, build=build_biped, task=climb_task,
+    planner="footholds", mpc="walking",
+    provides=frozenset({"terrain", "guard_surfaces", *(
+        "points", "points_world", "hip_world", "swing_foot_world", "stance_foot",
+        "inverse_dynamics", "swing_foot_velocity", "swing_foot_jacobian", "contact_reset")}),
+    requires=(Requirement(
+        "sim.input_at_events", "recompute", "the biped's reset swaps the legs, so the torque "
+        "held before it would act on the other leg"),),
+)
