@@ -15,11 +15,11 @@ import time
 
 import numpy as np
 
-from hmpc_cli.loop import LayeredLoop
 from hmpc_cli.planner.cem import CrossEntropyPlanner
 from hmpc_cli.recorder import Recorder, read_log
+from hmpc_cli.registry import build_system
+from hmpc_cli.runner import prepare
 from hmpc_cli.scenario import load_scenario
-from hmpc_cli.systems import build_system
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 SCENARIO = os.path.join(HERE, "..", "scenarios", "ball.toml")
@@ -32,9 +32,10 @@ def closed_loop_solves(overrides: list[str], runs: int) -> dict[str, np.ndarray]
     for r in range(runs):
         sc, _ = load_scenario(SCENARIO, overrides + [f"disturbance.trial={r % 10 + 1}"])
         with tempfile.TemporaryDirectory() as tmp:
-            rec = Recorder(os.path.join(tmp, "run.mcap"))
+            loop = prepare(sc)
+            loop.log.rec = rec = Recorder(os.path.join(tmp, "run.mcap"))
             try:
-                LayeredLoop(sc, rec).run()
+                loop.run()
             finally:
                 rec.close()
             for m in read_log(os.path.join(tmp, "run.mcap")).topic("/mpc/solve"):
@@ -42,7 +43,7 @@ def closed_loop_solves(overrides: list[str], runs: int) -> dict[str, np.ndarray]
                 out["all"].append(t)
                 if m.data["reason"] == "period":
                     out["warm"].append(t)
-                out["final" if len(m.data["schedule"]["counts"]) == 1 else "switching"].append(t)
+                out["final" if len(m.data["counts"]) == 1 else "switching"].append(t)
     return {k: np.array(v) for k, v in out.items()}
 
 

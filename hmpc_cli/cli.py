@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import re
 import sys
 from datetime import datetime, timezone
 from pathlib import Path
@@ -49,10 +48,7 @@ def run(
     except (PluginError, ValueError) as exc:
         _err([f"{scenario}: {exc}"])
         raise typer.Exit(EXIT_BAD_INPUT) from None
-    except RuntimeError as exc:  # CasADi rejects the solver settings (options, plugin)
-        reason = re.sub(r"\S*\.[ch]pp:\d+:\s*", "", str(exc).split("\n\n")[0])
-        _err([f"{scenario}: mpc: solver setup failed: {' '.join(reason.split())}"])
-        raise typer.Exit(EXIT_BAD_INPUT) from None
+
     if out is None:
         stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
         out = Path("results") / sc.name / f"{stamp}-seed{sc.seed}"

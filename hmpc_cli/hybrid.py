@@ -166,7 +166,8 @@ class HybridSystem:
         terrain: the walking surface, if the system walks on one.
         plane: two state names spanning the plane a figure draws trajectories in.
         state_box: (lower, upper) bounds on x, shape (n,) each (inf: unbounded), that
-            every domain's states must satisfy (the MPC imposes them at every node).
+            every domain's states must satisfy (the walking MPC imposes them at every
+            node; the chain MPC does not read them).
         guard_surfaces: per guard index, the flat contact surface (start, end, height)
             it models [m] (contact-planning systems: the foothold candidates).
     """

@@ -270,7 +270,7 @@ def build(scenario, log: RunLog,
     from hmpc_cli.disturbance import make_disturbance
     from hmpc_cli.lowlevel import LowLevelController
     from hmpc_cli.plant import Plant
-    from hmpc_cli.registry import build_system, registry
+    from hmpc_cli.registry import build_system, plugin_call, registry
     from hmpc_cli.sim import HybridSimulator
 
     sc, reg = scenario, registry()
@@ -289,14 +289,18 @@ def build(scenario, log: RunLog,
     mpc_spec = reg.mpc(sc.mpc.kind)
     key = json.dumps([sc.system.model_dump(mode="json"), sc.mpc.model_dump(mode="json")],
                      sort_keys=True)
+    what = f"mpc: {sc.mpc.kind!r} failed to build for system {spec.name!r}"
     if key not in _PROBLEMS:
-        _PROBLEMS[key] = mpc_spec.problem(model, sc.mpc)
-    mpc = mpc_spec.make(model, sc.mpc, _PROBLEMS[key])
-    planner = reg.planner(sc.planner.kind).make(model, sc.planner, sc.seed)
-    timing = _timing(sc, model)
+        _PROBLEMS[key] = plugin_call(what, mpc_spec.problem, model, sc.mpc)
+    mpc = plugin_call(what, mpc_spec.make, model, sc.mpc, _PROBLEMS[key])
+    planner = plugin_call(f"planner: {sc.planner.kind!r} failed to build for system "
+                          f"{spec.name!r}", reg.planner(sc.planner.kind).make, model,
+                          sc.planner, sc.seed)
+    task = plugin_call(f"system: the task of {spec.name!r} failed to build", spec.task, world,
+                       system)
     log.set_info(sc.name, sc.seed, sc.model_dump(mode="json"), s.rate_hz // s.log_rate_hz)
-    return ClosedLoop(plant, planner, mpc, timing, spec.task(world, system), log,
-                      s.duration, s.divergence_bound, progress)
+    return ClosedLoop(plant, planner, mpc, _timing(sc, model), task, log, s.duration,
+                      s.divergence_bound, progress)
 
 
 def _timing(sc, model) -> StackTiming:

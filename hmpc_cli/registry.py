@@ -12,6 +12,7 @@ An entry point that fails to load is remembered with its reason: using it raises
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -147,17 +148,25 @@ class Registry:
 
 
 def _load(group: str, kind_field: str, spec_type: type) -> tuple[dict, dict]:
-    """Loads every entry point of ``group``; returns (specs by name, failures by name)."""
-    specs, failed = {}, {}
-    for ep in sorted(entry_points(group=group), key=lambda e: e.name):
+    """Loads every entry point of ``group``; returns (specs by name, failures by name).
+
+    A name registered by two different entry points is ambiguous: neither is used and
+    using the name reports both.
+    """
+    specs, failed, values = {}, {}, {}
+    for ep in sorted(entry_points(group=group), key=lambda e: (e.name, e.value)):
+        if ep.name in values and values[ep.name] != ep.value:
+            failed[ep.name] = (f"{kind_field} {ep.name!r} is registered twice in group "
+                               f"{group}: {values[ep.name]!r} and {ep.value!r}")
+            specs.pop(ep.name, None)
+            continue
+        values[ep.name] = ep.value
+        if ep.name in failed or ep.name in specs:
+            continue
         try:
-            spec = _load_one(ep, group, kind_field, spec_type)
+            specs[ep.name] = _load_one(ep, group, kind_field, spec_type)
         except PluginError as exc:
             failed[ep.name] = str(exc)
-            continue
-        if ep.name in specs:
-            continue  # the same distribution seen twice on sys.path: the first one wins
-        specs[ep.name] = spec
     return specs, failed
 
 
@@ -211,8 +220,31 @@ def build_system(params: BaseModel) -> Any:
 def _build_cached(model: type[BaseModel], params_json: str) -> Any:
     params = model.model_validate_json(params_json)
     spec = registry().system(params.name)
+    system = plugin_call(f"system: {spec.name!r} failed to build", spec.build, params)
+    missing = sorted(c for c in spec.provides - CAPABILITIES if c not in system.outputs)
+    missing += sorted(c for c in spec.provides & CAPABILITIES if not getattr(system, c))
+    if missing:
+        raise PluginError(f"system: {spec.name!r} declares that it provides "
+                          f"{', '.join(missing)}, but its HybridSystem has none")
+    return system
+
+
+#: capabilities that are HybridSystem fields rather than named outputs
+CAPABILITIES = frozenset({"terrain", "guard_surfaces", "state_box"})
+
+
+def plugin_call(what: str, fn: Callable[..., Any], *args: Any) -> Any:
+    """``fn(*args)``; any exception becomes a :class:`PluginError` 'what: Type: message'."""
     try:
-        return spec.build(params)
+        return fn(*args)
+    except PluginError:
+        raise
     except Exception as exc:  # noqa: BLE001 - a plug-in's failure, reported with its name
-        raise PluginError(f"system {spec.name!r} failed to build: {type(exc).__name__}: "
-                          f"{exc}") from None
+        raise PluginError(f"{what}: {type(exc).__name__}: {one_line(exc)}") from None
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception's message on one line (CasADi's source locations and its trailing
+    paragraphs left out)."""
+    text = re.sub(r"\S*\.[ch]pp:\d+:\s*", "", str(exc).split("\n\n")[0])
+    return " ".join(text.split())

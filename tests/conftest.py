@@ -76,3 +76,17 @@ def full_run(tmp_path_factory: pytest.TempPathFactory) -> FullRun:
     out = base / "run"
     proc = _run_hmpc(["run", str(BALL), "--out", str(out), "--quiet"], cwd=base)
     return FullRun(out, proc)
+
+
+def run_loop(scenario, path: Path):
+    """Runs a validated scenario's closed loop in this process into the log ``path``."""
+    from hmpc_cli.recorder import Recorder
+    from hmpc_cli.runner import prepare
+
+    loop = prepare(scenario)
+    rec = Recorder(path)
+    loop.log.rec = rec
+    try:
+        return loop.run()
+    finally:
+        rec.close()

@@ -8,8 +8,12 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "hmpc_cli"
-PEERS = {"planner", "mpc", "lowlevel", "recorder", "tube"}
+PEERS = {"planner", "mpc", "lowlevel", "recorder", "runlog", "tube"}
 BOTTOM = {"hybrid", "messages", "numeric"}
+#: rooms that must work for any registered system: they never import a system plug-in
+SYSTEM_AGNOSTIC = {"mpc", "planner", "figures", "loop", "plant", "runlog", "stack",
+                   "scenario", "runner", "sweep", "report", "lowlevel", "sim", "tasks"}
+SYSTEM_NAMES = {"ball", "biped"}
 
 
 def imports_of(path: Path) -> set[str]:
@@ -56,7 +60,33 @@ def test_help_does_not_import_heavy_modules():
 
 
 def test_bundled_schema_file_is_current():
-    from hmpc_cli.scenario import Scenario
+    from hmpc_cli.scenario import scenario_model
 
     bundled = json.loads((ROOT / "scenarios" / "scenario.schema.json").read_text())
-    assert bundled == Scenario.model_json_schema(), "regenerate: hmpc schema > scenarios/scenario.schema.json"
+    assert bundled == scenario_model().model_json_schema(), \
+        "regenerate: hmpc schema > scenarios/scenario.schema.json"
+
+
+def test_system_agnostic_rooms_import_no_system_plugin():
+    for path in PKG.rglob("*.py"):
+        if layer_of(path) in SYSTEM_AGNOSTIC:
+            assert "systems" not in imports_of(path), \
+                f"{path.relative_to(ROOT)} imports a system plug-in"
+
+
+def _compares_a_system_name(node: ast.AST) -> bool:
+    """``x == "ball"``, ``"biped" in ...``, ``match`` on a name: any comparison with a
+    bundled system's name as a string constant."""
+    if isinstance(node, ast.Compare):
+        parts = [node.left, *node.comparators]
+        return any(isinstance(p, ast.Constant) and p.value in SYSTEM_NAMES for p in parts)
+    return False
+
+
+def test_no_code_outside_systems_tests_a_system_name():
+    for path in PKG.rglob("*.py"):
+        if layer_of(path) == "systems":
+            continue
+        tree = ast.parse(path.read_text())
+        bad = [n.lineno for n in ast.walk(tree) if _compares_a_system_name(n)]
+        assert not bad, f"{path.relative_to(ROOT)}:{bad} compares with a system name"

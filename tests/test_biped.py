@@ -310,7 +310,7 @@ def test_guards_and_cost():
             x[10] = fx - arr(MODEL.swing_foot(x[:5])).ravel()[0]
             assert bool(np.all(arr(g.region(x)) >= 0)) == inside
     assert system.goal == pytest.approx([2.0, 0.8])
-    assert system.terminal_set is None and system.success_radius == 0.3
+    assert system.terminal_set is None
     assert system.initial_mode == system.final_mode == "single_support"
     cost_fn = system.stage_cost
     x = system.x0.copy()

@@ -5,8 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hmpc_cli.loop import LayeredLoop
-from hmpc_cli.recorder import Recorder, read_log
+from conftest import run_loop
+from hmpc_cli.recorder import read_log
 from hmpc_cli.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -14,11 +14,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def run(tmp_path, overrides):
     sc, _ = load_scenario(ROOT / "scenarios" / "ball.toml", overrides)
-    rec = Recorder(tmp_path / "run.mcap")
-    try:
-        result = LayeredLoop(sc, rec).run()
-    finally:
-        rec.close()
+    result = run_loop(sc, tmp_path / "run.mcap")
     return result, read_log(tmp_path / "run.mcap")
 
 

@@ -10,6 +10,8 @@ from hmpc_cli.mpc.nlp import MPCSettings
 from hmpc_cli.planner.cem import CEMSettings, CrossEntropyPlanner
 from hmpc_cli.systems.ball import BallParams, build_ball
 
+BALL_MEAN = -20.0  # the ball plug-in's CEM initial mean (its default)
+
 
 @pytest.fixture(scope="module")
 def ball():
@@ -18,7 +20,7 @@ def ball():
 
 @pytest.fixture(scope="module")
 def planned(ball):
-    planner = CrossEntropyPlanner(ball, CEMSettings(iterations=6))
+    planner = CrossEntropyPlanner(ball, CEMSettings(init_mean=BALL_MEAN, iterations=6))
     result = planner.plan(0.0, ball.x0, 0)
     assert result.reached_final
     return result

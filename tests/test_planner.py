@@ -5,10 +5,12 @@ import numpy as np
 from hmpc_cli.planner.cem import CEMSettings, CrossEntropyPlanner, schedule_from
 from hmpc_cli.systems.ball import BallParams, build_ball
 
+BALL_MEAN = -20.0  # the ball plug-in's CEM initial mean (its default)
+
 
 def _plan(seed, run_seed=0, t=0.0, iterations=4):
     ball = build_ball(BallParams())
-    planner = CrossEntropyPlanner(ball, CEMSettings(iterations=iterations, seed=seed), run_seed)
+    planner = CrossEntropyPlanner(ball, CEMSettings(init_mean=BALL_MEAN, iterations=iterations, seed=seed), run_seed)
     return ball, planner.plan(t, ball.x0, 0)
 
 
@@ -45,7 +47,7 @@ def test_schedule_matches_its_rollout():
 
 def test_rollout_cost_prefers_reaching_the_final_domain():
     ball = build_ball(BallParams())
-    planner = CrossEntropyPlanner(ball, CEMSettings())
+    planner = CrossEntropyPlanner(ball, CEMSettings(init_mean=BALL_MEAN))
     idle = np.zeros((1, 45, 2))  # no input: the ball just bounces on the floor
     cost, reached = planner.rollout_cost(ball.x0, 0, idle)
     assert not reached[0] and cost[0] > 1e4

@@ -14,6 +14,8 @@ from hmpc_cli.planner.rollout_c import CRollout, RolloutBuildError
 from hmpc_cli.sim import HybridSimulator
 from hmpc_cli.systems.ball import BallParams, build_ball
 
+BALL_MEAN = -20.0  # the ball plug-in's CEM initial mean (its default)
+
 R = 0.1
 HAVE_CC = any(shutil.which(c) for c in ((os.environ.get("CC") or "cc").split()[:1] + ["gcc"]))
 needs_cc = pytest.mark.skipif(not HAVE_CC, reason="no C compiler on this machine")
@@ -35,7 +37,7 @@ def cache(tmp_path_factory):
 
 def _planner(backend, params=None, **kw):
     ball = build_ball(params or BallParams())
-    return ball, CrossEntropyPlanner(ball, CEMSettings(rollout_backend=backend, **kw))
+    return ball, CrossEntropyPlanner(ball, CEMSettings(init_mean=BALL_MEAN, rollout_backend=backend, **kw))
 
 
 def _knots(rng, b):

@@ -10,9 +10,11 @@ from hmpc_cli.lowlevel import LowLevelController, LowLevelSettings
 from hmpc_cli.messages import ModeSchedule, Plan, SolveStats, Trajectory
 from hmpc_cli.mpc.walking import WalkingMPC, WalkingMPCSettings
 from hmpc_cli.planner.footholds import FootholdSettings, candidates, choose
-from hmpc_cli.systems.biped import BipedParams, Stair, build_biped, stair_edges
+from hmpc_cli.systems.biped import BipedParams, Stair, build_biped, make_biped_model, stair_edges
 
 P = BipedParams()
+SYS = build_biped(P)
+MODEL = make_biped_model(P)
 SEGMENT = 1  # the 1.0 m segment (guard stair_2)
 TOL = 1e-6
 
@@ -23,12 +25,12 @@ def arr(v) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def mpc() -> WalkingMPC:
-    return WalkingMPC(P, WalkingMPCSettings())
+    return WalkingMPC(SYS, WalkingMPCSettings())
 
 
 @pytest.fixture(scope="module")
 def plan(mpc) -> Plan:
-    return mpc.solve(0.0, build_biped(P).x0, SEGMENT, 0.0)
+    return mpc.solve_segment(0.0, build_biped(P).x0, SEGMENT, 0.0)
 
 
 def terrain_under(x: float) -> float:
@@ -57,7 +59,7 @@ def test_plan_from_the_reference_state_solves(plan, mpc):
 
 
 def test_plan_satisfies_every_constraint_recomputed_from_the_trajectory(plan, mpc):
-    s, m, n = mpc.s, mpc.nlp.model, mpc.nlp.N
+    s, m, n = mpc.s, MODEL, mpc.nlp.N
     tr = plan.traj
     umax = P.torque_limit - s.torque_margin
     start, end, height = stair_edges(P)[SEGMENT]
@@ -110,8 +112,8 @@ def test_low_level_tracks_the_first_swing_only(plan, mpc):
 def test_warm_resolve_after_a_shift_needs_fewer_iterations(plan, mpc):
     k = 8
     t, x = float(plan.traj.t[k]), plan.traj.x[k]
-    warm = mpc.solve(t, x, SEGMENT, elapsed=t)
-    cold = WalkingMPC(P, mpc.s, nlp=mpc.nlp).solve(t, x, SEGMENT, elapsed=t)
+    warm = mpc.solve_segment(t, x, SEGMENT, elapsed=t)
+    cold = WalkingMPC(SYS, mpc.s, nlp=mpc.nlp).solve_segment(t, x, SEGMENT, elapsed=t)
     assert warm.stats.success and cold.stats.success
     assert warm.extra["warm"] == "primal-dual" and cold.extra["warm"] == "cold"
     assert warm.stats.iterations < cold.stats.iterations
@@ -122,16 +124,16 @@ def test_warm_resolve_after_a_shift_needs_fewer_iterations(plan, mpc):
 def test_next_swing_after_touchdown_starts_from_the_executed_plan(plan, mpc):
     n = mpc.nlp.N
     x_post = plan.traj.x[n + 1]
-    cold = WalkingMPC(P, mpc.s, nlp=mpc.nlp).solve(0.3, x_post, SEGMENT, 0.0)
-    mpc.solve(0.0, build_biped(P).x0, SEGMENT, 0.0)
+    cold = WalkingMPC(SYS, mpc.s, nlp=mpc.nlp).solve_segment(0.3, x_post, SEGMENT, 0.0)
+    mpc.solve_segment(0.0, build_biped(P).x0, SEGMENT, 0.0)
     mpc.on_impact(SEGMENT)
-    nxt = mpc.solve(0.3, x_post, SEGMENT, 0.0)
+    nxt = mpc.solve_segment(0.3, x_post, SEGMENT, 0.0)
     assert nxt.stats.success and cold.stats.success
     assert nxt.extra["warm"] == "primal-dual"
     assert nxt.stats.iterations < cold.stats.iterations
     assert nxt.extra["touchdown"][0] > plan.extra["touchdown"][0] + 0.2
     # liftoff: the new swing foot (old stance foot) accelerates upwards at once
-    m = mpc.nlp.model
+    m = MODEL
     x0 = nxt.traj.x[0]
     qdd = arr(m.forward_dynamics(x0[:5], x0[5:10], nxt.traj.u[0], 0))
     jdot_qd = (arr(m.swing_foot_velocity(x0[:5] + 1e-7 * x0[5:10], x0[5:10]))
@@ -144,25 +146,25 @@ def test_next_swing_after_touchdown_starts_from_the_executed_plan(plan, mpc):
 
 
 def test_failures_are_reported_not_raised():
-    mpc = WalkingMPC(P, WalkingMPCSettings(max_iter=1, segment_margin=0.11))
-    out = mpc.solve(0.0, build_biped(P).x0, 3, 0.0)  # the top stair, 1.6 m away
+    mpc = WalkingMPC(SYS, WalkingMPCSettings(max_iter=1, segment_margin=0.11))
+    out = mpc.solve_segment(0.0, build_biped(P).x0, 3, 0.0)  # the top stair, 1.6 m away
     assert not out.stats.success
     assert out.stats.status == "Maximum_Iterations_Exceeded"
     assert out.stats.max_violation > 1e-3
     assert out.traj.x.shape == (2 * mpc.nlp.N + 2, 12)
     assert mpc._memory == {}  # nothing to warm-start from
-    short = mpc.solve(0.0, build_biped(P).x0, 2, 0.0)  # 0.2 m < 2 x 0.11 m
+    short = mpc.solve_segment(0.0, build_biped(P).x0, 2, 0.0)  # 0.2 m < 2 x 0.11 m
     assert not short.stats.success and "shorter than twice" in short.stats.status
 
 
 def test_non_finite_state_fails_cleanly(mpc):
     x = build_biped(P).x0.copy()
     x[6] = np.nan
-    out = mpc.solve(0.0, x, SEGMENT, 0.0)
+    out = mpc.solve_segment(0.0, x, SEGMENT, 0.0)
     assert not out.stats.success and out.stats.status.startswith("error")
     assert out.stats.max_violation == math.inf
     with pytest.raises(IndexError):
-        mpc.solve(0.0, build_biped(P).x0, 7, 0.0)
+        mpc.solve_segment(0.0, build_biped(P).x0, 7, 0.0)
 
 
 def test_settings_reject_unknown_keys_and_a_late_apex():

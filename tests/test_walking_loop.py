@@ -11,10 +11,10 @@ import pytest
 from conftest import REPO
 from hmpc_cli.figures.common import FigureInputError
 from hmpc_cli.figures.fig4 import fig4, load_walk
-from hmpc_cli.loop import make_loop
-from hmpc_cli.recorder import Recorder, read_log
+from conftest import run_loop
+from hmpc_cli.recorder import read_log
 from hmpc_cli.scenario import load_scenario
-from hmpc_cli.systems.biped import BipedParams, make_biped_model, terrain_profile
+from hmpc_cli.systems.biped import BipedParams, make_biped_model, stair_terrain
 
 STAIRS = REPO / "scenarios" / "biped_stairs.toml"
 
@@ -71,11 +71,7 @@ def test_a_run_is_bit_for_bit_reproducible(tmp_path):
     logs = []
     for k in range(2):
         sc, _ = load_scenario(STAIRS, ["sim.duration=0.35"])
-        rec = Recorder(tmp_path / f"{k}.mcap")
-        try:
-            make_loop(sc, rec).run()
-        finally:
-            rec.close()
+        run_loop(sc, tmp_path / f"{k}.mcap")
         logs.append(read_log(tmp_path / f"{k}.mcap"))
     for topic in ("/sim/state", "/sim/event", "/disturbance"):
         a = [m.data for m in logs[0].topic(topic)]
@@ -99,21 +95,17 @@ def test_a_fall_ends_the_run_cleanly_as_failed(tmp_path, run_hmpc):
 def test_no_candidate_keeps_the_previous_plan_and_is_logged(tmp_path):
     sc, _ = load_scenario(STAIRS, ["sim.duration=0.4", "planner.reach=0.01",
                                    "planner.include_current=false"])
-    rec = Recorder(tmp_path / "run.mcap")
-    try:
-        res = make_loop(sc, rec).run()
-    finally:
-        rec.close()
+    res = run_loop(sc, tmp_path / "run.mcap")
     assert res.planner_rejected >= 1
     notes = [m.data["note"] for m in read_log(tmp_path / "run.mcap").topic("/planner/plan")]
-    assert any("no foothold candidate within reach" in n and "previous plan kept" in n
-               for n in notes)
+    assert any("no foothold candidate within reach" in n and
+               ("previous schedule kept" in n or "no schedule yet" in n) for n in notes)
 
 
 def test_terrain_height_of_the_figure_4_course():
     p = BipedParams()
     xs = np.array([-0.3, 0.0, 0.2, 0.4, 0.9, 1.45, 1.6, 2.5, 3.5])
-    np.testing.assert_allclose(terrain_profile(p, xs),
+    np.testing.assert_allclose(stair_terrain(p).profile(xs),
                                [0, 0, 0, 0.075, 0.075, 0.125, 0.175, 0.175, 0.175])
 
 

@@ -1,6 +1,10 @@
 """Figure 3 of the paper: the bouncing ball under the same disturbances, one panel per controller.
 
 Drawn from a sweep table (results.csv) and the run logs it points to; never runs a controller.
+Each panel's guards are drawn as the zero level sets of the guards' gaps (inside their
+activity regions) of the system its logs name, rebuilt through the registry from the logged
+parameters, in the plane of that system's ``plane`` states: any registered system, with its
+own geometry.
 """
 
 from __future__ import annotations
@@ -92,58 +96,101 @@ def _load_runs(table: Path, groups: dict, trace_axis: str,
     return out
 
 
-def _system(runs: list[_Run]) -> dict:
-    """The system parameters of the first run that logged its scenario."""
+def _system(runs: list[_Run]):
+    """The controllers' model of the first run that logged its scenario (rebuilt through
+    the registry), or None."""
+    from hmpc_cli.figures.model import system_from_params
+
     for r in runs:
         if r.trace.system:
-            return r.trace.system
-    return {}
+            return system_from_params(r.trace.system, str(r.trace.path))
+    return None
 
 
-def _geometry(system: dict) -> dict:
-    """Guard geometry with the ball defaults for anything the log does not say."""
-    g = {"radius": 0.1, "circle_center": (3.0, 3.0), "circle_radius": 1.0,
-         "floor_extent": (0.0, 8.0), "wall_extent": (0.0, 8.0), "goal": None}
-    g.update({k: system[k] for k in g if system.get(k) is not None})
-    if g["goal"] is None:
-        g["goal"] = g["circle_center"]
-    return g
+def _plane(system) -> tuple[int, int]:
+    """Indices of the two states a trajectory is drawn in (default: the first two)."""
+    if system is None or system.plane is None:
+        return 0, 1
+    return tuple(system.state_names.index(n) for n in system.plane)
 
 
-def _view(runs: dict[str, list[_Run]], geos: Iterable[dict]) -> tuple[tuple[float, float], ...]:
-    """Common (x, y) limits: every trajectory, circle, goal and the corner, plus a margin."""
+def _goal(system) -> np.ndarray | None:
+    """The goal point if it lives in the drawing plane (two coordinates), else None."""
+    goal = None if system is None else np.asarray(system.goal, dtype=float).ravel()
+    return goal if goal is not None and goal.size == 2 else None
+
+
+def _guard_fields(system, box, n: int = 401):
+    """Each guard's signed gap on an n x n grid over ``box`` in the drawing plane (other
+    states at x0), NaN outside its activity region; guards with the same zero set as an
+    earlier one (e.g. a circle crossed both ways) are left out."""
+    (x0, x1), (y0, y1) = box
+    gx, gy = np.meshgrid(np.linspace(x0, x1, n), np.linspace(y0, y1, n))
+    states = np.tile(np.asarray(system.x0, dtype=float), (gx.size, 1))
+    i, j = _plane(system)
+    states[:, i], states[:, j] = gx.ravel(), gy.ravel()
+    fields, seen = [], []
+    for k in range(len(system.guards)):
+        gap = system.numeric.gap(k, states)
+        gap = np.where(system.numeric.active(k, states), gap, np.nan).reshape(gx.shape)
+        if any(np.allclose(np.abs(gap), s, equal_nan=True) for s in seen):
+            continue
+        seen.append(np.abs(gap))
+        fields.append(gap)
+    return gx, gy, fields
+
+
+def _view(runs: dict[str, list[_Run]], systems) -> tuple[tuple[float, float], ...]:
+    """Common (x, y) limits: every trajectory, goal, the origin and the guards nearby."""
     xs, ys = [0.0], [0.0]
-    for geo in geos:
-        cx, cy = map(float, geo["circle_center"])
-        rad = float(geo["circle_radius"])
-        xs += [cx - rad, cx + rad, float(geo["goal"][0])]
-        ys += [cy - rad, cy + rad, float(geo["goal"][1])]
+    for sysm in systems:
+        goal = _goal(sysm)
+        if goal is not None:
+            xs.append(float(goal[0]))
+            ys.append(float(goal[1]))
     for rs in runs.values():
         for r in rs:
             xy = r.trace.xy[np.isfinite(r.trace.xy).all(axis=1)]
             if len(xy):
                 xs += [float(xy[:, 0].min()), float(xy[:, 0].max())]
                 ys += [float(xy[:, 1].min()), float(xy[:, 1].max())]
+    span = max(max(xs) - min(xs), max(ys) - min(ys), 1e-6)
+    box = ((min(xs) - 0.3 * span, max(xs) + 0.3 * span),
+           (min(ys) - 0.3 * span, max(ys) + 0.3 * span))
+    for sysm in systems:  # closed guard curves near the data (a circle) are shown whole
+        if sysm is None:
+            continue
+        gx, gy, fields = _guard_fields(sysm, box, 161)
+        for gap in fields:
+            closed = _crossings(gap)
+            if closed.any() and not closed[0, :].any() and not closed[-1, :].any() \
+                    and not closed[:, 0].any() and not closed[:, -1].any():
+                xs += [float(gx[closed].min()), float(gx[closed].max())]
+                ys += [float(gy[closed].min()), float(gy[closed].max())]
     span = max(max(xs) - min(xs), max(ys) - min(ys))
     pad = 0.04 * span
     return (min(xs) - pad, max(xs) + pad), (min(ys) - pad, max(ys) + pad)
 
 
-def _draw_guards(ax, geo: dict, view) -> None:
-    """Guard surfaces of the ball centre: y = r (floor), x = r (wall), and the circle."""
-    (x0, x1), (y0, y1) = view
-    r = float(geo["radius"])
-    kw = {"color": "black", "lw": 0.8, "zorder": 2, "solid_capstyle": "butt"}
-    fa, fb = max(float(geo["floor_extent"][0]), x0), min(float(geo["floor_extent"][1]), x1)
-    if fa < fb and y0 <= r <= y1:
-        ax.plot([fa, fb], [r, r], **kw)
-    wa, wb = max(float(geo["wall_extent"][0]), y0), min(float(geo["wall_extent"][1]), y1)
-    if wa < wb and x0 <= r <= x1:
-        ax.plot([r, r], [wa, wb], **kw)
-    th = np.linspace(0.0, 2.0 * math.pi, 361)
-    cx, cy = map(float, geo["circle_center"])
-    rad = float(geo["circle_radius"])
-    ax.plot(cx + rad * np.cos(th), cy + rad * np.sin(th), label="guards", **kw)
+def _crossings(gap: np.ndarray) -> np.ndarray:
+    """Grid points next to a sign change of ``gap`` (its zero level set)."""
+    s = np.sign(np.nan_to_num(gap, nan=0.0))
+    out = np.zeros(gap.shape, dtype=bool)
+    out[:, 1:] |= s[:, 1:] * s[:, :-1] < 0
+    out[1:, :] |= s[1:, :] * s[:-1, :] < 0
+    return out
+
+
+def _draw_guards(ax, system, view) -> None:
+    """Every guard as the zero level set of its gap, inside its activity region."""
+    if system is None:
+        return
+    gx, gy, fields = _guard_fields(system, view)
+    for gap in fields:
+        if np.nanmin(gap, initial=np.inf) <= 0.0 <= np.nanmax(gap, initial=-np.inf):
+            ax.contour(gx, gy, np.ma.masked_invalid(gap), levels=[0.0], colors="black",
+                       linewidths=0.8, zorder=2)
+    ax.plot([], [], color="black", lw=0.8, label="guards")
 
 
 def _end(xy: np.ndarray) -> np.ndarray | None:
@@ -152,9 +199,9 @@ def _end(xy: np.ndarray) -> np.ndarray | None:
     return xy[good[-1]] if len(good) else None
 
 
-def _draw_panel(ax, label: str, runs: list[_Run], geo: dict, view) -> None:
+def _draw_panel(ax, label: str, runs: list[_Run], system, view) -> None:
     """One panel: guards, trajectories, nominal on top, start/end/failed markers, goal, title."""
-    _draw_guards(ax, geo, view)
+    _draw_guards(ax, system, view)
     for r in runs:
         if not r.nominal:
             ax.plot(r.trace.xy[:, 0], r.trace.xy[:, 1], color=TRACE_COLOR, lw=0.6, alpha=0.85,
@@ -180,9 +227,10 @@ def _draw_panel(ax, label: str, runs: list[_Run], geo: dict, view) -> None:
         s = np.array(sorted(starts))
         ax.plot(s[:, 0], s[:, 1], ls="none", marker="o", ms=7.0, mew=0, color=START_COLOR,
                 zorder=8, label="start")
-    gx, gy = map(float, geo["goal"])
-    ax.plot([gx], [gy], ls="none", marker="+", ms=7.0, mew=0.8, color="black", zorder=9,
-            label="goal")
+    goal = _goal(system)
+    if goal is not None:
+        ax.plot([goal[0]], [goal[1]], ls="none", marker="+", ms=7.0, mew=0.8, color="black",
+                zorder=9, label="goal")
     n_ok = sum(r.success for r in runs)
     ax.set_title(f"{label}: {n_ok}/{len(runs)} stable")
     ax.set_xlim(*view[0])
@@ -208,13 +256,14 @@ def _figure(runs: dict[str, list[_Run]], width: float, height: float,
     """Builds the matplotlib Figure (no pyplot state); guards from each panel's own logs."""
     from matplotlib.figure import Figure
 
-    geos = {label: _geometry(_system(rs)) for label, rs in runs.items()}
-    lims = _view(runs, geos.values()) if view is None else ((view[0], view[1]), (view[2], view[3]))
+    systems = {label: _system(rs) for label, rs in runs.items()}
+    lims = _view(runs, systems.values()) if view is None else \
+        ((view[0], view[1]), (view[2], view[3]))
     fig = Figure(figsize=(width, height), layout="constrained")
     fig.get_layout_engine().set(w_pad=0.02, h_pad=0.02, wspace=0.02)
     axes = fig.subplots(1, len(runs), sharex=True, sharey=True, squeeze=False)[0]
     for ax, (label, rs) in zip(axes, runs.items()):
-        _draw_panel(ax, label, rs, geos[label], lims)
+        _draw_panel(ax, label, rs, systems[label], lims)
     axes[0].set_ylabel(r"$y$ (m)")
     _legend(fig, axes)
     return fig

@@ -1,9 +1,12 @@
-"""Figure 4 of the paper: the five-link biped climbing the stairs, drawn from one run log.
+"""Figure 4 of the paper: a walking system climbing its terrain, drawn from one run log.
 
-Top: stick-figure snapshots over the stair profile (colour = time), touchdown points
-marked. Bottom: hip x(t), hip y(t) and the horizontal torso force F_x(t), contact times
-as dotted lines. Also a GIF animation of the walk. Reads the MCAP log only; the
-kinematics come from the system's own CasADi functions.
+Top: stick-figure snapshots over the terrain profile (colour = time), touchdown points
+marked. Bottom: hip x(t), hip y(t) and the first disturbance channel (the biped's
+horizontal torso force F_x(t)), contact times as dotted lines. Also a GIF animation of
+the walk. Reads the MCAP log only; the kinematics come from the logged system's own
+plug-in (rebuilt through the registry from the logged parameters): its ``points_world``
+output, ``point_names``, ``skeleton`` and ``terrain``. Any registered system that
+exposes these (and a ``hip`` and ``swing_foot`` point) can be drawn.
 """
 
 from __future__ import annotations
@@ -28,9 +31,10 @@ CONTACT_COLOR = "#d62728"
 
 @dataclass
 class WalkLog:
-    """A biped run: times t (K,), joint points (K, 6, 2) in the world [m], hip (K, 2),
-    contacts [(t, guard name, foot x, foot y)], force samples (t, F_x), stair edges
-    [(x0, x1, height)], ground height, logged success."""
+    """A walking run: times t (K,), body points (K, P, 2) in the world [m], hip (K, 2),
+    contacts [(t, guard name, foot x, foot y)], disturbance samples (t, w_0), terrain
+    segments [(x0, x1, height)], ground height, the skeleton as point-index polylines,
+    logged success."""
 
     path: Path
     t: np.ndarray
@@ -42,13 +46,18 @@ class WalkLog:
     ground_height: float
     success: bool | None
     reason: str
+    skeleton: list[list[int]]
 
 
 def load_walk(path: str | Path) -> WalkLog:
-    """Reads a biped run log (any complete chunks of a killed run are used)."""
-    from hmpc_cli.numeric import compile_numpy
+    """Reads a walking run's log (any complete chunks of a killed run are used).
+
+    Raises:
+        FigureInputError: no such log, unreadable, or its system has no body points
+            and terrain to draw.
+    """
+    from hmpc_cli.figures.model import system_from_log
     from hmpc_cli.recorder import read_log
-    from hmpc_cli.systems.biped import BipedParams, POINT_NAMES, make_biped_model, stair_edges
 
     path = Path(path)
     if not path.is_file():
@@ -57,41 +66,55 @@ def load_walk(path: str | Path) -> WalkLog:
         log = read_log(path)
     except (OSError, ValueError) as exc:
         raise FigureInputError(f"{path}: cannot read log ({exc})") from None
-    infos = log.topic("/run/info")
-    system = dict((infos[0].data.get("scenario") or {}).get("system") or {}) if infos else {}
-    if system.get("name") != "biped":
-        raise FigureInputError(f"{path}: not a biped run (system {system.get('name')!r})")
-    try:
-        params = BipedParams.model_validate(system)
-    except ValueError as exc:
-        raise FigureInputError(f"{path}: bad biped parameters in the log ({exc})") from None
+    system = system_from_log(path, log)
+    names = system.point_names
+    if "points_world" not in system.outputs or system.terrain is None or \
+            not {"hip", "swing_foot"} <= set(names):
+        raise FigureInputError(f"{path}: not a biped run (system {system.name!r} has no "
+                               "body points and terrain to draw)")
+    points_fn = system.numeric.output("points_world")
     states = [(m.t, m.data.get("x")) for m in log.topic("/sim/state")]
-    states = [(t, x) for t, x in states if x is not None and len(x) == 12
+    states = [(t, x) for t, x in states if x is not None and len(x) == system.n_x
               and all(v is not None and math.isfinite(v) for v in x)]
     if not states:
         raise FigureInputError(f"{path}: log has no finite /sim/state samples")
     t = np.array([s[0] for s in states])
-    x = np.array([s[1] for s in states], dtype=float)
-    points_fn = compile_numpy(make_biped_model(params).points_world)
-    points = points_fn(x)[0].reshape(len(t), len(POINT_NAMES), 2)
-    hip = points[:, POINT_NAMES.index("hip"), :]
-    foot = POINT_NAMES.index("swing_foot")
-    contacts = []
+    points = points_fn(np.array([s[1] for s in states], dtype=float))[0] \
+        .reshape(len(t), len(names), 2)
+    return WalkLog(path, t, points, points[:, names.index("hip"), :],
+                   _contacts(log, system, points_fn), _force(log), list(system.terrain.segments),
+                   system.terrain.ground, *_outcome(log),
+                   [[names.index(n) for n in line] for line in system.skeleton])
+
+
+def _contacts(log, system, points_fn) -> list[tuple[float, str, float, float]]:
+    """(t, guard name, swing foot x, y) of every logged guard event."""
+    foot = system.point_names.index("swing_foot")
+    out = []
     for m in log.topic("/sim/event"):
         xb = m.data.get("x_before")
-        if xb is None or len(xb) != 12:
+        if xb is None or len(xb) != system.n_x:
             continue
-        p = points_fn(np.array(xb, dtype=float)[None])[0].reshape(len(POINT_NAMES), 2)
-        contacts.append((float(m.data.get("t", m.t)), str(m.data.get("guard_name", "")),
-                         float(p[foot, 0]), float(p[foot, 1])))
+        p = points_fn(np.array(xb, dtype=float)[None])[0].reshape(-1, 2)
+        out.append((float(m.data.get("t", m.t)), str(m.data.get("guard_name", "")),
+                    float(p[foot, 0]), float(p[foot, 1])))
+    return out
+
+
+def _force(log) -> tuple[np.ndarray, np.ndarray]:
+    """The first disturbance channel's samples (t, w_0)."""
     dist = [(m.t, (m.data.get("w") or [0.0])[0]) for m in log.topic("/disturbance")]
     ft = np.array([d[0] for d in dist] or [0.0])
     fx = np.array([float(d[1]) if d[1] is not None else math.nan for d in dist] or [0.0])
+    return ft, fx
+
+
+def _outcome(log) -> tuple[bool | None, str]:
+    """The logged success (None if the run has no summary) and reason."""
     summaries = log.topic("/run/summary")
     ok = summaries[-1].data.get("success") if summaries else None
     reason = str(summaries[-1].data.get("reason", "")) if summaries else "no summary (killed?)"
-    return WalkLog(path, t, points, hip, contacts, (ft, fx), stair_edges(params),
-                   params.ground_height, ok if isinstance(ok, bool) else None, reason)
+    return ok if isinstance(ok, bool) else None, reason
 
 
 def _stairs_xy(walk: WalkLog, x_min: float) -> tuple[list[float], list[float]]:
@@ -104,11 +127,12 @@ def _stairs_xy(walk: WalkLog, x_min: float) -> tuple[list[float], list[float]]:
     return xs, ys
 
 
-def _draw_stick(ax, pts: np.ndarray, color, lw: float = 0.8) -> None:
-    """Stance leg foot->hip, torso hip->top, swing leg hip->foot (POINT_NAMES order)."""
-    chain = pts[[0, 1, 2, 4, 5]]
-    ax.plot(chain[:, 0], chain[:, 1], color=color, lw=lw, solid_capstyle="round")
-    ax.plot(pts[[2, 3], 0], pts[[2, 3], 1], color=color, lw=lw * 1.4, solid_capstyle="round")
+def _draw_stick(ax, pts: np.ndarray, skeleton: list[list[int]], color, lw: float = 0.8
+                ) -> None:
+    """The skeleton's polylines (the first is the legs, the others drawn thicker)."""
+    for j, line in enumerate(skeleton):
+        ax.plot(pts[line, 0], pts[line, 1], color=color, lw=lw * (1.0 if j == 0 else 1.4),
+                solid_capstyle="round")
 
 
 def _snapshots(walk: WalkLog, every: float) -> list[int]:
@@ -156,7 +180,7 @@ def fig4(log: str | Path | WalkLog, out_dir: str | Path | None = None,
         cmap = mpl.colormaps["viridis"]
         t0, t1 = walk.t[0], max(walk.t[-1], walk.t[0] + 1e-9)
         for k in _snapshots(walk, every):
-            _draw_stick(ax, walk.points[k], cmap(0.9 * (walk.t[k] - t0) / (t1 - t0)))
+            _draw_stick(ax, walk.points[k], walk.skeleton, cmap(0.9 * (walk.t[k] - t0) / (t1 - t0)))
         ax.plot(walk.hip[:, 0], walk.hip[:, 1], color="0.5", lw=0.5, ls="--", label="hip path")
         x_min = min(-0.2, float(walk.points[:, :, 0].min()) - 0.05)
         sx, sy = _stairs_xy(walk, x_min)
@@ -219,8 +243,10 @@ def animate_walk(log: str | Path | WalkLog, out_path: str | Path, fps: int = 25,
         def draw(i: int):
             k = idx[i]
             p = walk.points[k]
-            legs.set_data(p[[0, 1, 2, 4, 5], 0], p[[0, 1, 2, 4, 5], 1])
-            torso.set_data(p[[2, 3], 0], p[[2, 3], 1])
+            legs.set_data(p[walk.skeleton[0], 0], p[walk.skeleton[0], 1])
+            rest = [i for line in walk.skeleton[1:] for i in (*line, None)]
+            torso.set_data([np.nan if i is None else p[i, 0] for i in rest],
+                           [np.nan if i is None else p[i, 1] for i in rest])
             trail.set_data(walk.hip[: k + 1, 0], walk.hip[: k + 1, 1])
             label.set_text(f"t = {walk.t[k]:.2f} s")
             return legs, torso, trail, label

@@ -120,7 +120,10 @@ SYSTEM = SystemSpec(
     provides=frozenset({"terrain", "guard_surfaces", *(
         "points", "points_world", "hip_world", "swing_foot_world", "stance_foot",
         "inverse_dynamics", "swing_foot_velocity", "swing_foot_jacobian", "contact_reset")}),
-    requires=(Requirement(
-        "sim.input_at_events", "recompute", "the biped's reset swaps the legs, so the torque "
-        "held before it would act on the other leg"),),
+    requires=(
+        Requirement("sim.input_at_events", "recompute", "the biped's reset swaps the legs, "
+                    "so the torque held before it would act on the other leg"),
+        Requirement("mpc.kind", "walking", "the biped's swing needs the walking "
+                    "transcription (stance-foot state, touchdown node, leg-swap reset)"),
+    ),
 )
