@@ -1,0 +1,235 @@
+"""System plug-ins from outside the package, through the documented entry-point mechanism.
+
+``tests/plugins`` holds a distribution the way pip installs one: the module
+``hmpc_dock.py`` and ``hmpc_dock-0.1.dist-info/`` (``METADATA`` and ``entry_points.txt``,
+``[hmpc.systems] dock = hmpc_dock:SYSTEM``). importlib.metadata finds ``*.dist-info``
+directories on sys.path, so ``hmpc`` with ``PYTHONPATH=tests/plugins`` loads the dock
+exactly as it loads an installed package's system. Every run goes through the real
+command line in a fresh process (the registry is built once per process).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import subprocess
+from importlib.metadata import distributions
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import BALL, REPO, cli_env, hmpc_command
+from hmpc_cli.recorder import read_log
+
+PLUGINS = REPO / "tests" / "plugins"
+DOCK = PLUGINS / "dock.toml"
+
+
+def hmpc(args: list[str], *paths: Path, cwd: Path, timeout: float = 300
+         ) -> subprocess.CompletedProcess:
+    """``hmpc ARGS`` in a fresh process with ``paths`` in front of PYTHONPATH."""
+    env = cli_env()
+    env["PYTHONPATH"] = os.pathsep.join(
+        [str(p) for p in paths] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+    return subprocess.run([*hmpc_command(), *args], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def error_lines(proc: subprocess.CompletedProcess) -> list[str]:
+    return [line for line in proc.stderr.splitlines() if line.strip()]
+
+
+def write_dist(root: Path, name: str, entry_points: str, modules: dict[str, str]) -> Path:
+    """A distribution directory as pip leaves it: modules + NAME-0.1.dist-info."""
+    info = root / f"{name.replace('-', '_')}-0.1.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text(entry_points)
+    for module, text in modules.items():
+        (root / f"{module}.py").write_text(text)
+    return root
+
+
+def test_the_dock_distribution_is_an_ordinary_entry_point():
+    (dist,) = [d for d in distributions(path=[str(PLUGINS)])]
+    assert dist.metadata["Name"] == "hmpc-dock"
+    (ep,) = dist.entry_points.select(group="hmpc.systems")
+    assert (ep.name, ep.value) == ("dock", "hmpc_dock:SYSTEM")
+
+
+def test_dock_runs_through_the_cli(tmp_path):
+    out = tmp_path / "dock"
+    proc = hmpc(["run", str(DOCK), "--out", str(out), "-q"], PLUGINS, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["success"], s["reason"]
+    assert s["mode_end"] == "docked"
+    # it starts at p = 1 moving left at 4 m/s and brakes at 5 N at most: the bumper is
+    # unavoidable, then the dock's latch, then it stops at the goal
+    assert s["contacts_by_guard"] == {"bumper": 1, "dock": 1}
+    assert s["solver_failures"] == 0 and s["planner_rejected"] == 0
+    p, v = s["x_end"]
+    assert math.isclose(s["final_error"], math.hypot(p - 2.5, v), abs_tol=1e-12)
+    assert s["final_error"] <= 0.2
+
+    log = read_log(out / "run.mcap")
+    info = log.topic("/run/info")[0].data
+    assert info["system"] == "dock"
+    assert info["guard_names"] == ["dock", "bumper"]
+    assert info["mode_names"] == ["free", "docked"]
+    assert info["state_names"] == ["p", "v"]
+    assert info["scenario"]["system"]["name"] == "dock"
+    # the plug-in's planner defaults (SystemSpec.defaults["planner.cem"]) were applied
+    assert info["scenario"]["planner"]["kind"] == "cem"
+    assert info["scenario"]["planner"]["horizon"] == 2.0
+    assert info["scenario"]["planner"]["knots"] == 10
+    (plan,) = log.topic("/planner/plan")
+    assert plan.data["schedule"]["guard_names"] == ["bumper", "dock"]
+    events = [(m.data["guard_name"], m.data["scheduled"]) for m in log.topic("/sim/event")]
+    assert events == [("bumper", True), ("dock", True)]
+
+
+def test_schema_lists_the_plugin_only_when_it_is_installed(tmp_path):
+    proc = hmpc(["schema"], PLUGINS, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    schema = json.loads(proc.stdout)
+    mapping = schema["properties"]["system"]["discriminator"]["mapping"]
+    assert set(mapping) >= {"ball", "biped", "dock"}
+    dock = schema["$defs"][mapping["dock"].rsplit("/", 1)[1]]["properties"]
+    assert {"u_free", "u_docked", "damping", "dock_at", "catch", "restitution",
+            "success_radius"} <= set(dock)
+    assert dock["u_free"]["description"].startswith("input bound")
+
+    bare = hmpc(["schema"], cwd=tmp_path)
+    assert bare.returncode == 0, bare.stderr[-3000:]
+    assert "dock" not in json.loads(bare.stdout)["properties"]["system"]["discriminator"][
+        "mapping"]
+    run = hmpc(["run", str(DOCK), "--out", str(tmp_path / "none"), "-q"], cwd=tmp_path)
+    assert run.returncode == 2
+    assert error_lines(run) == [f"error: {DOCK}: system.name: unknown system 'dock' "
+                                "(choose from 'ball', 'biped')"]
+
+
+BROKEN = [
+    ("broken", "hmpc_broken:SYSTEM",
+     "failed to load: ImportError: hmpc_broken needs the missing package libcart"),
+    ("ghost", "hmpc_dock:NO_SUCH_SPEC",
+     "failed to load: AttributeError: module 'hmpc_dock' has no attribute 'NO_SUCH_SPEC'"),
+]
+
+
+@pytest.fixture
+def broken_dist(tmp_path) -> Path:
+    eps = "[hmpc.systems]\n" + "".join(f"{n} = {v}\n" for n, v, _ in BROKEN)
+    return write_dist(tmp_path / "site", "hmpc-broken", eps, {
+        "hmpc_broken": 'raise ImportError("hmpc_broken needs the missing package libcart")\n'})
+
+
+@pytest.mark.parametrize("name, value, reason", BROKEN, ids=[b[0] for b in BROKEN])
+def test_a_broken_plugin_is_one_error_line(tmp_path, broken_dist, name, value, reason):
+    scenario = tmp_path / f"{name}.toml"
+    scenario.write_text(f'[system]\nname = "{name}"\n')
+    out = tmp_path / "out"
+    proc = hmpc(["run", str(scenario), "--out", str(out), "-q"], broken_dist, PLUGINS,
+                cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr
+    assert error_lines(proc) == [
+        f"error: {scenario}: system.name: entry point {name!r} = {value!r} "
+        f"(group hmpc.systems) {reason}"]
+    assert not out.exists()
+
+
+def test_the_others_still_run_beside_a_broken_plugin(tmp_path, broken_dist):
+    out = tmp_path / "ball"
+    proc = hmpc(["run", str(BALL), "--set", "sim.duration=0.2", "--out", str(out), "-q"],
+                broken_dist, PLUGINS, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["t_end"] == pytest.approx(0.2) and s["solves"] >= 1 and s["solver_failures"] == 0
+    assert read_log(out / "run.mcap").topic("/run/info")[0].data["system"] == "ball"
+
+
+def test_a_planner_that_does_not_fit_names_planner_kind(tmp_path):
+    out = tmp_path / "out"
+    proc = hmpc(["run", str(DOCK), "--set", "planner.kind=footholds", "--out", str(out), "-q"],
+                PLUGINS, cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr
+    lines = error_lines(proc)
+    assert all(line.startswith(f"error: {DOCK}: ") for line in lines), lines
+    assert f"error: {DOCK}: planner.kind: 'footholds' does not fit system 'dock': it needs " \
+           "guard_surfaces, hip_world, stance_foot (use 'cem')" in lines
+    assert not out.exists()
+
+
+# ------------------------------------------------------------------ geometry of a system
+CENTRE, RADIUS = (4.0, 2.5), 0.8
+
+
+def circle_points(fig, centre, radius, tol) -> np.ndarray:
+    """Angles [rad] of the drawn points of every line or path (contours included) that lies
+    on the circle |p - centre| = radius within tol (whole artists/paths only)."""
+    c = np.asarray(centre, dtype=float)
+    angles = []
+    for ax in fig.axes:
+        polylines = [line.get_xydata() for line in ax.lines]
+        for coll in ax.collections:
+            to_data = coll.get_transform() - ax.transData
+            polylines += [to_data.transform(p.vertices) for p in coll.get_paths()]
+        for xy in polylines:
+            xy = np.asarray(xy, dtype=float)
+            xy = xy[np.isfinite(xy).all(axis=1)]
+            if len(xy) >= 8 and np.all(np.abs(np.linalg.norm(xy - c, axis=1) - radius) <= tol):
+                angles.append(np.arctan2(xy[:, 1] - c[1], xy[:, 0] - c[0]))
+    return np.concatenate(angles) if angles else np.zeros(0)
+
+
+def test_changed_ball_geometry_is_used_logged_and_drawn(tmp_path, monkeypatch):
+    sweep = tmp_path / "sweep"
+    out = sweep / "runs" / "geo"
+    proc = hmpc(["run", str(BALL), "--set", f"system.circle_center=[{CENTRE[0]}, {CENTRE[1]}]",
+                 "--set", f"system.circle_radius={RADIUS}", "--out", str(out), "-q"],
+                cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    s = json.loads((out / "summary.json").read_text())
+    # (a) the task judges the new circle: error to its centre, success within its radius
+    dist = math.hypot(s["x_end"][0] - CENTRE[0], s["x_end"][1] - CENTRE[1])
+    assert math.isclose(s["final_error"], dist, rel_tol=1e-9, abs_tol=1e-12)
+    assert s["success"] == (s["final_error"] <= RADIUS)
+    assert s["success"], s["reason"]
+    assert s["mode_end"] == "inside" and s["contacts_by_guard"].get("circle_in") == 1
+    # (b) the log's scenario holds the new geometry
+    info = read_log(out / "run.mcap").topic("/run/info")[0].data
+    assert info["scenario"]["system"]["circle_center"] == list(CENTRE)
+    assert info["scenario"]["system"]["circle_radius"] == RADIUS
+
+    # (c) Figure 3 from a sweep directory (what `hmpc plot fig3 SWEEP_DIR` reads) draws the
+    # new circle, not the default one; the figure is taken where it is saved
+    with open(sweep / "results.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["controller", "disturbance", "success", "log"])
+        w.writerow(["10 Hz fixed", "nominal", s["success"], "runs/geo/run.mcap"])
+    from matplotlib.figure import Figure
+
+    from hmpc_cli.figures.fig3 import fig3
+
+    saved = []
+    original = Figure.savefig
+
+    def savefig(self, *args, **kwargs):
+        saved.append(self)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", savefig)
+    fig3(sweep, tmp_path / "fig", formats=("png",), dpi=50)
+    assert (tmp_path / "fig" / "fig3.png").is_file()
+    assert saved
+    angles = circle_points(saved[0], CENTRE, RADIUS, tol=0.01)
+    covered = np.unique(np.floor((angles + np.pi) / (2 * np.pi) * 36).astype(int) % 36)
+    assert len(covered) == 36, f"the new circle is not drawn whole ({len(covered)}/36 sectors)"
+    assert circle_points(saved[0], (3.0, 3.0), 1.0, tol=0.01).size == 0, \
+        "the default circle is drawn"
