@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from importlib.metadata import EntryPoint
 
@@ -118,3 +119,29 @@ def test_ball_task_follows_the_circle_unless_the_scenario_sets_goal_and_radius()
     assert not nan.success and math.isnan(nan.error)
     set_p = BallParams(goal=(3.0, 3.5), success_radius=0.1)
     assert ball_task(set_p, build_ball(set_p)).goal.tolist() == [3.0, 3.5]
+
+
+def test_a_planner_that_never_finds_a_schedule_says_so(tmp_path, run_hmpc):
+    from conftest import BALL
+
+    out = tmp_path / "run"
+    proc = run_hmpc(["run", str(BALL), "--out", str(out), "--set", "planner.horizon=0.2",
+                     "--set", "sim.duration=0.5"], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert not summary["success"] and summary["planner_calls"] == summary["planner_rejected"]
+    assert summary["warnings"] == [
+        f"the planner never found a schedule ({summary['planner_calls']} calls; last: no "
+        "rollout reached the final domain; no schedule yet)"]
+    assert "never found a schedule" in proc.stdout
+
+
+def test_the_progress_line_says_when_no_schedule_is_held(tmp_path):
+    from conftest import BALL
+    from hmpc_cli.runner import execute_run, prepare
+    from hmpc_cli.scenario import load_scenario
+
+    sc, text = load_scenario(BALL, ["planner.horizon=0.2", "sim.duration=0.2"])
+    notes = []
+    execute_run(prepare(sc), text, tmp_path / "run", lambda i, n, note: notes.append(note))
+    assert notes and all(n.startswith("no schedule: no rollout reached") for n in notes)

@@ -226,3 +226,27 @@ def test_choose_keeps_the_largest_final_hip_x_among_successes():
     assert choose([_fake(False, 1.0, 1.0), None]) is None
     assert choose([]) is None
     assert choose([replace(plans[0]), plans[0]]) == 0  # ties keep the first
+
+
+def test_walking_mpc_behind_the_contract(mpc):
+    """A schedule without a target guard is rejected; the loop's solve of the schedule a
+    foothold planner has just chosen reuses that solve; an event restarts the swing."""
+    from hmpc_cli.messages import GuardEvent
+
+    walker = WalkingMPC(SYS, mpc.s, nlp=mpc.nlp)
+    x0 = SYS.x0
+    empty = ModeSchedule.final(0)
+    assert "no foothold target" in walker.check(empty)
+    rejected = walker.solve(0.0, x0, 0, empty)
+    assert not rejected.adopt and rejected.stats.status.startswith("schedule rejected")
+    sched = ModeSchedule((0, 0), (SEGMENT,), (math.nan,), 0.0)
+    first = walker.solve(0.0, x0, 0, sched)
+    assert first.stats.success and first.adopt
+    assert walker.solve(0.0, x0, 0, first.schedule).stats is first.stats  # not solved again
+    later = walker.solve(0.1, first.traj.x[8], 0, first.schedule)
+    assert later.extra["elapsed"] == pytest.approx(0.1)
+    ev = GuardEvent(0.25, SEGMENT, 0, 0, first.traj.x[25], first.traj.x[26])
+    after = walker.solve(0.25, ev.x_after, 0, sched, [ev])
+    assert after.extra["elapsed"] == 0.0 and after.extra["warm"] == "primal-dual"
+    again = walker.solve(0.35, ev.x_after, 0, sched, [ev])  # the event applies once
+    assert again.extra["elapsed"] == pytest.approx(0.1)
