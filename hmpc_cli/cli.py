@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import json
 import sys
-from datetime import datetime, timezone
+from datetime import datetime, UTC
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -25,11 +25,11 @@ def _err(lines: list[str]) -> None:
 @app.command()
 def run(
     scenario: Annotated[Path, typer.Argument(help="scenario TOML file")],
-    out: Annotated[Optional[Path], typer.Option(
+    out: Annotated[Path | None, typer.Option(
         "--out", help="run directory (default results/<scenario>/<time>-seed<N>)")] = None,
-    set_: Annotated[Optional[list[str]], typer.Option(
+    set_: Annotated[list[str] | None, typer.Option(
         "--set", help="override a setting: key.path=value (repeatable)")] = None,
-    seed: Annotated[Optional[int], typer.Option("--seed", help="override the seed")] = None,
+    seed: Annotated[int | None, typer.Option("--seed", help="override the seed")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar")] = False,
 ) -> None:
     """Run the layered controller in closed loop and log everything to MCAP."""
@@ -50,7 +50,7 @@ def run(
         raise typer.Exit(EXIT_BAD_INPUT) from None
 
     if out is None:
-        stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
+        stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
         out = Path("results") / sc.name / f"{stamp}-seed{sc.seed}"
     if (out / "run.mcap").exists():
         _err([f"{out}: already holds a run (choose another --out)"])

@@ -112,7 +112,7 @@ class Terrain:
 
     @property
     def end(self) -> float:
-        """x where the last segment ends [m]."""
+        """X where the last segment ends [m]."""
         return self.segments[-1][1]
 
     def heights(self, x: float) -> list[float]:
@@ -122,8 +122,11 @@ class Terrain:
         return out
 
     def profile(self, x) -> np.ndarray:
-        """Height under each x (vectorised): the higher side on a boundary, the ground for
-        x <= 0, the last segment's height past the end [m]."""
+        """Height under each x [m] (vectorised).
+
+        The higher side on a boundary, the ground for x <= 0, the last segment's height
+        past the end.
+        """
         x = np.asarray(x, dtype=float)
         out = np.where(x <= 0.0, self.ground, -np.inf)
         for a, b, h in self.segments:
@@ -229,14 +232,17 @@ class HybridSystem:
 
     @property
     def n_x(self) -> int:
+        """n, the state dimension."""
         return len(self.state_names)
 
     @property
     def n_u(self) -> int:
+        """m, the input dimension."""
         return len(self.input_names)
 
     @property
     def n_w(self) -> int:
+        """n_w, the disturbance dimension."""
         return len(self.disturbance_names)
 
     def mode_index(self, name: str) -> int:
@@ -299,7 +305,7 @@ class NumericSystem:
         w = ca.SX.sym("w", system.n_w)
         h = ca.SX.sym("h")
         self.rk4 = []
-        for i, mode in enumerate(system.modes):
+        for mode in system.modes:
             step = rk4_expr(mode, x, u, w, h)
             self.rk4.append(compile_numpy(ca.Function(f"rk4_{mode.name}", [x, u, w, h],
                                                       [step])))

@@ -186,8 +186,11 @@ class ClosedLoop:
             st.since_solve = 0
 
     def _react(self, t: float, x: np.ndarray, mode: int) -> bool:
-        """Replans and/or re-solves after events or a replanning trigger; returns
-        whether the stack worked."""
+        """Replans and/or re-solves after events or a replanning trigger.
+
+        Returns:
+            Whether the stack worked (the MPC period restarts then).
+        """
         st = self.st
         need_replan, impact = st.need_replan, st.impact
         st.need_replan = st.impact = False

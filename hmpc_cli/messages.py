@@ -83,11 +83,14 @@ class ModeSchedule:
 
 @dataclass(frozen=True)
 class Trajectory:
-    """A sampled hybrid trajectory: node times t (K+1,), states x (K+1, n), inputs
-    u (K+1, m) at each node, mode (K+1,), domain-segment index seg (K+1,), the guards
-    crossed between segments, and how the input runs between nodes: ``input_hold`` "zoh"
-    (u_k held) or "foh" (linear from u_k to u_k+1). A reset appears as two nodes with the
-    same time (on the guard, then after the reset)."""
+    """A sampled hybrid trajectory.
+
+    Node times t (K+1,), states x (K+1, n), inputs u (K+1, m) at each node, mode (K+1,),
+    domain-segment index seg (K+1,), the guards crossed between segments, and how the
+    input runs between nodes: ``input_hold`` "zoh" (u_k held) or "foh" (linear from u_k
+    to u_k+1). A reset appears as two nodes with the same time (on the guard, then after
+    the reset).
+    """
 
     t: np.ndarray
     x: np.ndarray

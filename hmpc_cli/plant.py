@@ -51,16 +51,22 @@ class Plant:
 
     def command(self, t: float, x: np.ndarray, mode: int, plan: Plan | None, span: float
                 ) -> tuple[np.ndarray, np.ndarray]:
-        """Low-level input (m,) held over [t, t + span], saturated to the mode's box, and
-        the reference state (n,) at t."""
+        """The low level's command at time t [s].
+
+        Returns:
+            The input (m,) held over [t, t + span], saturated to the mode's box, and the
+            reference state (n,) at t.
+        """
         u, x_ref = self.lowlevel.command(t, x, plan, span)
         return self.model.numeric.saturate(np.array([mode]), u[None])[0], x_ref
 
     def step(self, t0: float, x: np.ndarray, mode: int, u: np.ndarray, w: np.ndarray,
              on_event: Callable[[GuardEvent], None], plan: Callable[[], Plan | None]
              ) -> tuple[np.ndarray, int, list[GuardEvent]]:
-        """One simulator step from time t0 [s]; ``on_event`` is called for each event in
-        time order (before the input is recomputed), ``plan()`` gives the plan to track.
+        """One simulator step from time t0 [s].
+
+        ``on_event`` is called for each event in time order (before the input is
+        recomputed); ``plan()`` gives the plan to track.
 
         Raises:
             ZenoError: more than ``max_events`` events in the step.

@@ -244,7 +244,9 @@ def plugin_call(what: str, fn: Callable[..., Any], *args: Any) -> Any:
 
 
 def one_line(exc: BaseException) -> str:
-    """An exception's message on one line (CasADi's source locations and its trailing
-    paragraphs left out)."""
+    """An exception's message on one line.
+
+    CasADi's source locations and its trailing paragraphs are left out.
+    """
     text = re.sub(r"\S*\.[ch]pp:\d+:\s*", "", str(exc).split("\n\n")[0])
     return " ".join(text.split())

@@ -109,8 +109,10 @@ class RunLog:
 
     def step(self, i: int, t: float, x: np.ndarray, mode: int, u: np.ndarray,
              x_ref: np.ndarray, w: np.ndarray) -> None:
-        """Before simulator step i: /sim/state every ``per_state`` steps, /disturbance
-        whenever w changes."""
+        """Logs before simulator step i.
+
+        /sim/state every ``per_state`` steps, /disturbance whenever w changes.
+        """
         if i % self.per_state == 0:
             self.state(t, x, mode, u, x_ref, w)
         if self._last_w is None or not np.array_equal(w, self._last_w):

@@ -42,8 +42,11 @@ def jsonable(value):
 
 def execute_run(loop: ClosedLoop, toml_text: str, out: Path,
                 progress: Callable[[int, int, str], None] | None = None) -> RunResult:
-    """Runs ``loop`` into directory ``out``; the log is closed and the summary written
-    even when the run is interrupted (KeyboardInterrupt propagates after that)."""
+    """Runs ``loop`` into directory ``out``.
+
+    The log is closed and the summary written even when the run is interrupted
+    (KeyboardInterrupt propagates after that).
+    """
     out.mkdir(parents=True, exist_ok=True)
     (out / "scenario.toml").write_text(toml_text, encoding="utf-8")
     rec = Recorder(out / "run.mcap")

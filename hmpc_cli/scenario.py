@@ -94,8 +94,11 @@ class ScenarioBase(BaseModel):
     @model_validator(mode="before")
     @classmethod
     def _plugin_defaults(cls, data: Any) -> Any:
-        """Fills the system name, the planner/MPC kinds and the settings the plug-ins
-        default or require (a value the scenario sets always wins)."""
+        """Fills the system name, the planner/MPC kinds and the plug-ins' settings.
+
+        Defaults and required values of the plug-ins fill what the scenario leaves
+        out; a value the scenario sets always wins (a wrong one is reported later).
+        """
         if not isinstance(data, dict):
             return data
         data = dict(data)
@@ -155,8 +158,11 @@ class ScenarioBase(BaseModel):
         return problems + list(getattr(m, "scenario_problems", list)())
 
     def _stack_problems(self) -> list[str]:
-        """The planner and MPC must fit the system (capabilities, required settings);
-        plant keys must be valid system parameters."""
+        """Problems of the stack: planner and MPC that do not fit the system.
+
+        Capabilities and required settings are checked; plant keys must be valid
+        system parameters.
+        """
         reg = registry()
         spec = reg.system(self.system.name)
         out = []

@@ -164,16 +164,16 @@ def test_results_page_figure_4_section(short_walk, tmp_path):
 
 
 def test_a_biped_sweep_reuses_one_nlp_per_worker(tmp_path):
-    from hmpc_cli import runner
+    from hmpc_cli import loop
     from hmpc_cli.sweep import execute_sweep, plan_sweep
 
     sweep = tmp_path / "biped.toml"
     sweep.write_text(f'name = "biped_tiny"\nscenario = "{STAIRS.as_posix()}"\nseeds = 2\n'
                      '[set]\n"sim.duration" = 0.35\n[grid]\n"disturbance.magnitude" = [0.0, 25.0]\n')
-    before = len(runner._NLP_CACHE)
+    loop._PROBLEMS.clear()  # NLPs built by earlier tests in this process
     outcome = execute_sweep(plan_sweep(sweep), tmp_path / "out", workers=1)
     assert outcome.done == 4 and not outcome.lost
-    assert len(runner._NLP_CACHE) == before + 1  # one walking NLP served all four runs
+    assert len(loop._PROBLEMS) == 1  # one walking NLP served all four runs
     import csv
 
     with open(tmp_path / "out" / "results.csv", newline="") as f:

@@ -13,7 +13,7 @@ import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 
@@ -97,8 +97,10 @@ def _load_runs(table: Path, groups: dict, trace_axis: str,
 
 
 def _system(runs: list[_Run]):
-    """The controllers' model of the first run that logged its scenario (rebuilt through
-    the registry), or None."""
+    """The controllers' model of the first run that logged its scenario, or None.
+
+    It is rebuilt through the registry from the logged parameters.
+    """
     from hmpc_cli.figures.model import system_from_params
 
     for r in runs:
@@ -121,9 +123,11 @@ def _goal(system) -> np.ndarray | None:
 
 
 def _guard_fields(system, box, n: int = 401):
-    """Each guard's signed gap on an n x n grid over ``box`` in the drawing plane (other
-    states at x0), NaN outside its activity region; guards with the same zero set as an
-    earlier one (e.g. a circle crossed both ways) are left out."""
+    """Each guard's signed gap on an n x n grid over ``box`` in the drawing plane.
+
+    The other states are at x0; NaN outside the guard's activity region; guards with the
+    same zero set as an earlier one (e.g. a circle crossed both ways) are left out.
+    """
     (x0, x1), (y0, y1) = box
     gx, gy = np.meshgrid(np.linspace(x0, x1, n), np.linspace(y0, y1, n))
     states = np.tile(np.asarray(system.x0, dtype=float), (gx.size, 1))
@@ -243,7 +247,7 @@ def _legend(fig, axes) -> None:
     """One legend for the figure, right of the panels, one entry per kind of mark."""
     seen: dict[str, object] = {}
     for ax in axes:
-        for h, lab in zip(*ax.get_legend_handles_labels()):
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
             seen.setdefault(lab, h)
     order = ["guards", "nominal", "disturbed", "start", "end point", "unstable", "goal"]
     labels = [k for k in order if k in seen]
@@ -262,7 +266,7 @@ def _figure(runs: dict[str, list[_Run]], width: float, height: float,
     fig = Figure(figsize=(width, height), layout="constrained")
     fig.get_layout_engine().set(w_pad=0.02, h_pad=0.02, wspace=0.02)
     axes = fig.subplots(1, len(runs), sharex=True, sharey=True, squeeze=False)[0]
-    for ax, (label, rs) in zip(axes, runs.items()):
+    for ax, (label, rs) in zip(axes, runs.items(), strict=True):
         _draw_panel(ax, label, rs, systems[label], lims)
     axes[0].set_ylabel(r"$y$ (m)")
     _legend(fig, axes)
@@ -288,7 +292,6 @@ def fig3(table_path: str | Path, out_dir: str | Path | None = None,
     from the data. Returns the counts per panel label; raises FigureInputError on bad input,
     before anything is written.
     """
-
     table = resolve_table(table_path)
     check_size(width, height)
     if view is not None:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -31,10 +31,13 @@ CONTACT_COLOR = "#d62728"
 
 @dataclass
 class WalkLog:
-    """A walking run: times t (K,), body points (K, P, 2) in the world [m], hip (K, 2),
-    contacts [(t, guard name, foot x, foot y)], disturbance samples (t, w_0), terrain
-    segments [(x0, x1, height)], ground height, the skeleton as point-index polylines,
-    logged success."""
+    """A walking run read from its log.
+
+    Times t (K,), body points (K, P, 2) in the world [m], hip (K, 2), contacts
+    [(t, guard name, foot x, foot y)], disturbance samples (t, w_0), terrain segments
+    [(x0, x1, height)], ground height, the skeleton as point-index polylines, logged
+    success.
+    """
 
     path: Path
     t: np.ndarray
@@ -157,8 +160,9 @@ def _out_dir(out: Path) -> Path:
 def fig4(log: str | Path | WalkLog, out_dir: str | Path | None = None,
          formats: str | Iterable[str] = ("pdf", "svg", "png"), *,
          every: float = 0.1, width: float = TEXT_WIDTH_IN, height: float = 4.2) -> WalkLog:
-    """Draws Figure 4 from a biped run (log path, run directory or a loaded
-    :class:`WalkLog`) into out_dir/fig4.<fmt>; returns the parsed log.
+    """Draws Figure 4 from a walking run into out_dir/fig4.<fmt>; returns the parsed log.
+
+    ``log``: a log path, a run directory or a loaded :class:`WalkLog`.
 
     ``every``: time between stick-figure snapshots [s]; sizes in inches.
     """
@@ -214,8 +218,11 @@ def fig4(log: str | Path | WalkLog, out_dir: str | Path | None = None,
 
 def animate_walk(log: str | Path | WalkLog, out_path: str | Path, fps: int = 25,
                  speed: float = 1.0, width: float = 5.0, height: float = 2.6) -> Path:
-    """Writes a GIF of the walk: ``fps`` frames per second of playback, each advancing
-    ``speed / fps`` seconds of simulated time (speed 1: real time)."""
+    """Writes a GIF of the walk.
+
+    ``fps`` frames per second of playback, each advancing ``speed / fps`` seconds of
+    simulated time (speed 1: real time).
+    """
     if fps < 1 or not speed > 0.0:
         raise FigureInputError(f"need fps >= 1 and speed > 0, got {fps}, {speed}")
     check_size(width, height)

@@ -1,5 +1,6 @@
-"""The fixed-mode MPC behind the stack contract, on the chain transcription (kind
-``fixed_mode``): it owns its node schedule.
+"""The fixed-mode MPC behind the stack contract on the chain transcription.
+
+The MPC kind ``fixed_mode`` owns its node schedule.
 
 Given the latest :class:`~hmpc_cli.messages.ModeSchedule` and the guard events since its
 previous solve, it
@@ -103,8 +104,11 @@ class ChainMPC:
                        extra={"shifted": shifted, "counts": counts})
 
     def _apply(self, events: Sequence[GuardEvent]) -> bool:
-        """Applies the impact rule to the events newer than the last applied one;
-        returns whether a domain was dropped."""
+        """Applies the impact rule to the events newer than the last applied one.
+
+        Returns:
+            Whether a domain was dropped.
+        """
         dropped = False
         for ev in events:
             if ev.t <= self._t_event:

@@ -41,8 +41,11 @@ SKELETON = (("stance_foot", "stance_knee", "hip", "swing_knee", "swing_foot"),
 
 
 def _guards(p: BipedParams, model: BipedModel, x: ca.SX) -> tuple[Guard, ...]:
-    """One guard per stair segment (the swing foot falls through its height over it)
-    and ``ground`` (x <= 0); every reset is the impact followed by the leg swap."""
+    """One guard per stair segment and ``ground`` (x <= 0).
+
+    The swing foot falls through the segment's height over it; every reset is the
+    impact followed by the leg swap.
+    """
     foot = model.swing_foot_world(x)
     h = ca.Function("h_swing_foot_y", [x], [foot[1]])
     guards = []

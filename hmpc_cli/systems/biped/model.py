@@ -204,7 +204,7 @@ class _Terms:
                           sum(coeff[k] * self.cos[k] for k in range(N_Q) if coeff[k]))
 
     def jac_theta(self, coeff: np.ndarray) -> ca.SX:
-        """d point / d theta, 2 x 5 (columns coeff_k e'(theta_k), e' = (-cos, -sin))."""
+        """D point / d theta, 2 x 5 (columns coeff_k e'(theta_k), e' = (-cos, -sin))."""
         return ca.horzcat(*[coeff[k] * ca.vertcat(-self.cos[k], -self.sin[k])
                             for k in range(N_Q)])
 
