@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -15,23 +15,23 @@ EXIT_INTERRUPTED = 130
 def report_command(
     results: Annotated[Path, typer.Option(
         "--results", help="results directory (page: <results>/README.md)")] = Path("results"),
-    fig3: Annotated[Optional[Path], typer.Option(
+    fig3: Annotated[Path | None, typer.Option(
         "--fig3", help="Figure 3 sweep file ('' to leave out)")] = Path("sweeps/fig3.toml"),
-    fig3_extra: Annotated[Optional[Path], typer.Option(
+    fig3_extra: Annotated[Path | None, typer.Option(
         "--fig3-extra", help="extra Figure 3 panel sweep (100 Hz; '' to leave out)")
     ] = Path("sweeps/fig3_100hz.toml"),
-    robustness: Annotated[Optional[Path], typer.Option(
+    robustness: Annotated[Path | None, typer.Option(
         "--robustness", help="robustness study sweep file ('' to leave out)")
     ] = Path("sweeps/robustness.toml"),
-    biped: Annotated[Optional[Path], typer.Option(
+    biped: Annotated[Path | None, typer.Option(
         "--biped", help="biped scenario for Figure 4 ('' to leave out)")
     ] = Path("scenarios/biped_stairs.toml"),
     run: Annotated[bool, typer.Option(
         "--run/--no-run", help="run unfinished sweep runs first (finished ones are skipped)")
     ] = True,
-    workers: Annotated[Optional[int], typer.Option(
+    workers: Annotated[int | None, typer.Option(
         "--workers", min=1, help="worker processes (default: all cores)")] = None,
-    seeds: Annotated[Optional[int], typer.Option(
+    seeds: Annotated[int | None, typer.Option(
         "--seeds", help="robustness study: only its first N seeds (resume later with more)")
     ] = None,
 ) -> None:
@@ -87,7 +87,7 @@ def report_command(
         raise typer.Exit(EXIT_FAILED)
 
 
-def _biped_run(scenario: Optional[Path], results: Path, run: bool) -> Optional[Path]:
+def _biped_run(scenario: Path | None, results: Path, run: bool) -> Path | None:
     """Runs the biped scenario into results/<name>/report (unless done); its directory."""
     if scenario is None or str(scenario) in ("", "."):
         return None

@@ -330,7 +330,7 @@ def run_one(toml_text: str, run_dir: str) -> dict:
             sc = Scenario.model_validate(tomllib.loads(toml_text))
             loop = make_loop(sc, None, mpc=cached_mpc(sc))
             execute_run(loop, toml_text, out, _check_stop if _STOP is not None else None)
-        except Exception as exc:  # noqa: BLE001 - a failed run is a result
+        except Exception as exc:  # broad on purpose: a failed run is a result
             res = loop.res if loop is not None else RunResult(
                 sc.name if sc else "?", sc.seed if sc else -1)
             res.success = False
@@ -448,5 +448,5 @@ def _on_dask(client, pending: list[Run], out: Path, record, res: Outcome) -> Non
 def _collect(fut, run: Run, record, res: Outcome) -> None:
     try:
         record(run, fut.result())
-    except Exception as exc:  # noqa: BLE001 - the worker (not the run) failed
+    except Exception as exc:  # broad on purpose: the worker (not the run) failed
         res.lost.append(f"{run.run_id}: {type(exc).__name__}: {exc}")

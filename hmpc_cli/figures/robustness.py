@@ -8,9 +8,9 @@ cell (x value, series, panel) gets its success rate with a Wilson score interval
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 from hmpc_cli.figures.common import (
     TEXT_WIDTH_IN, FigureInputError, check_size, figure_style, parse_bool, parse_formats,
