@@ -47,8 +47,15 @@ class Event:
 
 @dataclass(frozen=True)
 class StepResult:
-    """Result of one batched step: states (B, n), modes (B,), events, Zeno flags (B,),
-    and the time not integrated (B,) [s] (nonzero only with ``stop_at_event``)."""
+    """Result of one batched step.
+
+    Attributes:
+        x: states (B, n) at the end of the step.
+        mode: modes (B,) at the end of the step.
+        events: guard events, in time order per sample (empty unless recorded).
+        zeno: Zeno flags (B,): samples frozen after too many events.
+        remaining: time not integrated (B,) [s] (nonzero only with ``stop_at_event``).
+    """
 
     x: np.ndarray
     mode: np.ndarray
@@ -91,8 +98,11 @@ class HybridSimulator:
         """Advances every sample by ``dt`` seconds.
 
         Args:
-            x: states (B, n). mode: mode indices (B,). u: inputs (B, m), held.
-            w: disturbances (B, n_w), held. dt: step [s].
+            x: states (B, n).
+            mode: mode indices (B,).
+            u: inputs (B, m), held over the step.
+            w: disturbances (B, n_w), held over the step.
+            dt: step [s].
             record: collect :class:`Event` records (the planner switches this off).
             raise_zeno: raise :class:`ZenoError`; otherwise freeze and flag the sample.
             stop_at_event: a sample stops right after its first reset (post-reset state)
@@ -103,6 +113,9 @@ class HybridSimulator:
         Returns:
             The new states and modes, the events in time order per sample, Zeno flags,
             the time left per sample.
+
+        Raises:
+            ZenoError: more than ``max_events`` events in the step (with ``raise_zeno``).
         """
         x = np.asarray(x, dtype=float)
         mode = np.array(mode, dtype=int)

@@ -268,9 +268,14 @@ def plan_sweep(path: str | Path) -> SweepPlan:
 
 
 def first_seeds(plan: SweepPlan, n: int | None) -> SweepPlan:
-    """The plan set to run only its first ``n`` seeds (None: all). Run ids ignore the seed
-    list, so the whole sweep later skips these runs; results.csv keeps every finished run.
-    Raises ScenarioError unless 1 <= n <= seeds."""
+    """The plan set to run only its first ``n`` seeds (None: all).
+
+    Run ids ignore the seed list, so the whole sweep later skips these runs; results.csv
+    keeps every finished run.
+
+    Raises:
+        ScenarioError: unless 1 <= n <= the sweep's number of seeds.
+    """
     seeds = plan.spec.seeds
     if n is not None and not 1 <= n <= len(seeds):
         raise ScenarioError([(f"{plan.path}: --seeds {n}: the sweep has {len(seeds)} "

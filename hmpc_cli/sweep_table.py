@@ -23,8 +23,11 @@ def finished(out: Path, run) -> dict | None:
 
 
 def finished_in(d: Path, toml_text: str) -> dict | None:
-    """The summary of the run in directory d if it finished (not interrupted) with the
-    effective scenario ``toml_text``, else None."""
+    """The summary of the run in directory ``d``, if it finished there; else None.
+
+    Finished means: summary.json holds a JSON object whose reason is not ``interrupted``,
+    and scenario.toml equals the effective scenario ``toml_text``.
+    """
     try:
         summary = json.loads((d / "summary.json").read_text())
         same = (d / "scenario.toml").read_text(encoding="utf-8") == toml_text

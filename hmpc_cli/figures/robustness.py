@@ -50,10 +50,12 @@ class Cell:
 
     @property
     def rate(self) -> float:
+        """Success rate successes / runs in [0, 1]; NaN for a cell without runs."""
         return self.successes / self.runs if self.runs else math.nan
 
     @property
     def interval(self) -> tuple[float, float]:
+        """95 % Wilson score interval (lo, hi) of the success rate; (0, 1) without runs."""
         return wilson(self.successes, self.runs)
 
 
