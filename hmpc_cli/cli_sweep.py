@@ -76,7 +76,8 @@ def sweep_command(
 
 def _list_runs(plan) -> None:
     for run in plan.selected:
-        parts = [run.run_id, *(f"{a.name}={v}" for a, v in zip(plan.axes, run.cell))]
+        cell = zip(plan.axes, run.cell, strict=True)  # one label per axis
+        parts = [run.run_id, *(f"{a.name}={v}" for a, v in cell)]
         typer.echo("  ".join([*parts, f"seed={run.seed}"]))
     typer.echo(f"{len(plan.selected)} runs, all valid (dry run: nothing started)")
 

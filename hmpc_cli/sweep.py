@@ -241,11 +241,11 @@ def plan_sweep(path: str | Path) -> SweepPlan:
     runs, ids = [], {}
     for combo in itertools.product(*(range(len(a.labels)) for a in axes)):
         overrides, origin = dict(base), dict.fromkeys(base, "[set]")
-        for a, i in zip(axes, combo):
+        for a, i in zip(axes, combo, strict=True):
             overrides.update(a.overrides[i])
             where = f"grid.{a.name}" + (f"[{a.labels[i]!r}]" if a.table else "")
             origin.update(dict.fromkeys(a.overrides[i], where))
-        cell = tuple(a.labels[i] for a, i in zip(axes, combo))
+        cell = tuple(a.labels[i] for a, i in zip(axes, combo, strict=True))
         for seed in spec.seeds:
             run = Run(run_id(overrides, seed), seed, cell, dict(sorted(overrides.items())),
                       origin)

@@ -57,7 +57,8 @@ def result_rows(plan, out: Path) -> list[dict[str, str]]:
         if summary is None:
             continue
         row = {"run_id": run.run_id, "seed": str(run.seed)}
-        row |= {a.name: cell_text(v) for a, v in zip(plan.axes, run.cell)}
+        cell = zip(plan.axes, run.cell, strict=True)  # one label per axis
+        row |= {a.name: cell_text(v) for a, v in cell}
         row |= {f"set.{k}": cell_text(run.overrides.get(k)) for k in plan.keys}
         row |= {k: cell_text(summary.get(k)) for k in METRICS}
         log = out / "runs" / run.run_id / "run.mcap"

@@ -155,7 +155,7 @@ def robustness(table: str | Path, out_dir: str | Path | None = None,
     with figure_style():
         fig, axes = plt.subplots(1, len(panels), figsize=(width, height), sharey=True,
                                  squeeze=False)
-        for ax, p in zip(axes[0], panels):
+        for ax, p in zip(axes[0], panels, strict=True):
             for j, s in enumerate(series):
                 sel = [c for c in data if c.panel == p and c.series == s]
                 lo = [c.rate - c.interval[0] for c in sel]
