@@ -59,4 +59,5 @@ def test_bundled_schema_file_is_current():
     from hmpc_cli.scenario import Scenario
 
     bundled = json.loads((ROOT / "scenarios" / "scenario.schema.json").read_text())
-    assert bundled == Scenario.model_json_schema(), "regenerate: hmpc schema > scenarios/scenario.schema.json"
+    assert bundled == Scenario.model_json_schema(), \
+        "regenerate: hmpc schema > scenarios/scenario.schema.json"
