@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -36,7 +36,7 @@ def _print_counts(counts: dict, reference: dict) -> None:
     Console().print(table)
 
 
-def _fig3(table: Path, out: Optional[Path], formats: str, options: dict) -> None:
+def _fig3(table: Path, out: Path | None, formats: str, options: dict) -> None:
     """Draws Figure 3, prints the counts and the written files."""
     from hmpc_cli.figures.common import FigureInputError, parse_formats, resolve_table
     from hmpc_cli.figures.fig3 import REFERENCE_COUNTS, fig3
@@ -51,7 +51,7 @@ def _fig3(table: Path, out: Optional[Path], formats: str, options: dict) -> None
     typer.echo(f"wrote {', '.join(names)} to {out_dir}")
 
 
-def _fig4(log: Path, out: Optional[Path], formats: str, every: float, gif: bool,
+def _fig4(log: Path, out: Path | None, formats: str, every: float, gif: bool,
           width: float, height: float) -> None:
     """Draws Figure 4 (and the GIF) from a biped run log."""
     from hmpc_cli.figures.common import FigureInputError, parse_formats
@@ -75,7 +75,7 @@ def _fig4(log: Path, out: Optional[Path], formats: str, every: float, gif: bool,
     typer.echo(f"wrote {', '.join(names)} to {out_dir}")
 
 
-def _robustness(table: Path, out: Optional[Path], formats: str, options: dict) -> None:
+def _robustness(table: Path, out: Path | None, formats: str, options: dict) -> None:
     """Draws the robustness curves, prints the cell table and the written files."""
     from rich.console import Console
     from rich.table import Table
@@ -106,11 +106,11 @@ def plot_command(
     table: Annotated[Path, typer.Argument(
         help="fig3, robustness: sweep table (results.csv, or the sweep directory holding "
         "it); fig4: a biped run log (run.mcap, or the run directory holding it)")],
-    out: Annotated[Optional[Path], typer.Option(
+    out: Annotated[Path | None, typer.Option(
         "--out", help="output directory (default: the table's directory)")] = None,
     formats: Annotated[str, typer.Option(
         "--formats", help="comma-separated output formats: pdf,svg,png")] = "pdf,svg,png",
-    panel_axis: Annotated[Optional[str], typer.Option(
+    panel_axis: Annotated[str | None, typer.Option(
         "--panel-axis", help="table column with one panel per value (fig3: controller, "
         "robustness: disturbance.magnitude)")] = None,
     x_axis: Annotated[str, typer.Option(
@@ -122,12 +122,12 @@ def plot_command(
         "--trace-axis", help="table column naming the trajectories of a panel")] = "disturbance",
     nominal: Annotated[str, typer.Option(
         "--nominal", help="trace-axis value of the undisturbed run (orange)")] = "nominal",
-    panels: Annotated[Optional[str], typer.Option(
+    panels: Annotated[str | None, typer.Option(
         "--panels", help='panels in order, e.g. "10 Hz fixed,20 Hz fixed" (default: all)')] = None,
     width: Annotated[float, typer.Option("--width", help="figure width (in)")] = 7.16,
-    height: Annotated[Optional[float], typer.Option(
+    height: Annotated[float | None, typer.Option(
         "--height", help="figure height (in; fig3 2.5, robustness 1.9)")] = None,
-    view: Annotated[Optional[str], typer.Option(
+    view: Annotated[str | None, typer.Option(
         "--view", help='axis limits "x0,x1,y0,y1" (default: from the data)')] = None,
     every: Annotated[float, typer.Option(
         "--every", help="fig4: time between stick-figure snapshots [s]")] = 0.1,

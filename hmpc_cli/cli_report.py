@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -15,63 +15,128 @@ EXIT_INTERRUPTED = 130
 def report_command(
     results: Annotated[Path, typer.Option(
         "--results", help="results directory (page: <results>/README.md)")] = Path("results"),
-    fig3: Annotated[Optional[Path], typer.Option(
+    fig3: Annotated[Path | None, typer.Option(
         "--fig3", help="Figure 3 sweep file ('' to leave out)")] = Path("sweeps/fig3.toml"),
-    fig3_extra: Annotated[Optional[Path], typer.Option(
+    fig3_extra: Annotated[Path | None, typer.Option(
         "--fig3-extra", help="extra Figure 3 panel sweep (100 Hz; '' to leave out)")
     ] = Path("sweeps/fig3_100hz.toml"),
-    robustness: Annotated[Optional[Path], typer.Option(
+    robustness: Annotated[Path | None, typer.Option(
         "--robustness", help="robustness study sweep file ('' to leave out)")
     ] = Path("sweeps/robustness.toml"),
-    biped: Annotated[Optional[Path], typer.Option(
+    biped: Annotated[Path | None, typer.Option(
         "--biped", help="biped scenario for Figure 4 ('' to leave out)")
     ] = Path("scenarios/biped_stairs.toml"),
     run: Annotated[bool, typer.Option(
         "--run/--no-run", help="run unfinished sweep runs first (finished ones are skipped)")
     ] = True,
-    workers: Annotated[Optional[int], typer.Option(
+    workers: Annotated[int | None, typer.Option(
         "--workers", min=1, help="worker processes (default: all cores)")] = None,
-    seeds: Annotated[Optional[int], typer.Option(
+    seeds: Annotated[int | None, typer.Option(
         "--seeds", help="robustness study: only its first N seeds (resume later with more)")
     ] = None,
 ) -> None:
     """Regenerate the results page: Figure 3 beside the paper's counts, robustness curves."""
-    import os
+    plans = _plan_sweeps({"fig3": fig3, "fig3_extra": fig3_extra, "robustness": robustness},
+                         seeds)
+    if not plans and _left_out(biped):
+        typer.echo("error: nothing to report (--fig3, --fig3-extra, --robustness and --biped "
+                   "are all empty)", err=True)
+        raise typer.Exit(EXIT_BAD_INPUT)
+    dirs = {k: results / "sweeps" / p.spec.name for k, p in plans.items()}
+    lost = _run_sweeps(plans, dirs, workers) if run else []
+    biped_dir = _biped_run(biped, results, run)
+    _write_page(results, dirs, biped_dir)
+    if lost:  # the page holds every finished run; these are missing from it
+        for line in lost:
+            typer.echo(f"error: worker failed, run not recorded (rerun to retry): {line}",
+                       err=True)
+        raise typer.Exit(EXIT_FAILED)
 
-    from hmpc_cli.cli_sweep import _execute, _print_cells
-    from hmpc_cli.figures.common import FigureInputError
-    from hmpc_cli.report import ReportInputs, write_report
+
+def _left_out(path: Path | None) -> bool:
+    """Whether an optional input is left out: no path, or '' (which typer turns into '.')."""
+    return path is None or str(path) in ("", ".")
+
+
+def _echo_errors(lines: list[str]) -> None:
+    """Prints one ``error: ...`` line per problem on stderr."""
+    for line in lines:
+        typer.echo(f"error: {line}", err=True)
+
+
+def _plan_sweeps(files: dict[str, Path | None], seeds: int | None) -> dict:
+    """Reads and validates the sweep files that are not left out.
+
+    Args:
+        files: sweep file per report part (``fig3``, ``fig3_extra``, ``robustness``).
+        seeds: the robustness study runs only its first ``seeds`` seeds (None: all).
+
+    Returns:
+        The :class:`~hmpc_cli.sweep.SweepPlan` per part given, in the order of ``files``.
+
+    Raises:
+        typer.Exit: a sweep file is invalid (exit code 2, its problems printed).
+    """
     from hmpc_cli.scenario import ScenarioError
     from hmpc_cli.sweep import first_seeds, plan_sweep
 
-    files = {"fig3": fig3, "fig3_extra": fig3_extra, "robustness": robustness}
     plans = {}
     for key, path in files.items():
-        if path is None or str(path) in ("", "."):
+        if _left_out(path):
             continue
         try:
             plans[key] = plan_sweep(path)
             if key == "robustness":
                 plans[key] = first_seeds(plans[key], seeds)
         except ScenarioError as exc:
-            for line in exc.lines:
-                typer.echo(f"error: {line}", err=True)
+            _echo_errors(exc.lines)
             raise typer.Exit(EXIT_BAD_INPUT) from None
-    if not plans and (biped is None or str(biped) in ("", ".")):
-        typer.echo("error: nothing to report (--fig3, --fig3-extra, --robustness and --biped "
-                   "are all empty)", err=True)
-        raise typer.Exit(EXIT_BAD_INPUT)
-    dirs = {k: results / "sweeps" / p.spec.name for k, p in plans.items()}
+    return plans
+
+
+def _run_sweeps(plans: dict, dirs: dict[str, Path], workers: int | None) -> list[str]:
+    """Runs each sweep's unfinished runs (finished ones are skipped), prints its cells.
+
+    Args:
+        plans: sweep plan per report part.
+        dirs: output directory per report part.
+        workers: worker processes (None: all cores).
+
+    Returns:
+        One line per run a worker lost: ``<sweep name>: <run id>: <reason>``.
+
+    Raises:
+        typer.Exit: interrupted (exit code 130; the same command resumes).
+    """
+    import os
+
+    from hmpc_cli.cli_sweep import _execute, _print_cells
+
     lost: list[str] = []
-    if run:
-        for key, plan in plans.items():
-            outcome = _execute(plan, dirs[key], workers or os.cpu_count() or 1, None)
-            _print_cells(plan, dirs[key])
-            lost += [f"{plan.spec.name}: {x}" for x in outcome.lost]
-            if outcome.interrupted:
-                typer.echo("interrupted: run the same command again to resume", err=True)
-                raise typer.Exit(EXIT_INTERRUPTED)
-    biped_dir = _biped_run(biped, results, run)
+    for key, plan in plans.items():
+        outcome = _execute(plan, dirs[key], workers or os.cpu_count() or 1, None)
+        _print_cells(plan, dirs[key])
+        lost += [f"{plan.spec.name}: {x}" for x in outcome.lost]
+        if outcome.interrupted:
+            typer.echo("interrupted: run the same command again to resume", err=True)
+            raise typer.Exit(EXIT_INTERRUPTED)
+    return lost
+
+
+def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None) -> None:
+    """Draws the figures from the finished runs and writes ``<results>/README.md``.
+
+    Args:
+        results: results directory.
+        dirs: sweep output directory per report part given.
+        biped_dir: run directory of the biped scenario (None: no Figure 4).
+
+    Raises:
+        typer.Exit: a figure's input is unusable (exit code 2).
+    """
+    from hmpc_cli.figures.common import FigureInputError
+    from hmpc_cli.report import ReportInputs, write_report
+
     inputs = ReportInputs(dirs.get("fig3"), dirs.get("fig3_extra"), dirs.get("robustness"),
                           biped_dir)
     try:
@@ -80,16 +145,11 @@ def report_command(
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(EXIT_BAD_INPUT) from None
     typer.echo(f"wrote {page} and {results / 'report'}/")
-    if lost:  # the page holds every finished run; these are missing from it
-        for line in lost:
-            typer.echo(f"error: worker failed, run not recorded (rerun to retry): {line}",
-                       err=True)
-        raise typer.Exit(EXIT_FAILED)
 
 
-def _biped_run(scenario: Optional[Path], results: Path, run: bool) -> Optional[Path]:
+def _biped_run(scenario: Path | None, results: Path, run: bool) -> Path | None:
     """Runs the biped scenario into results/<name>/report (unless done); its directory."""
-    if scenario is None or str(scenario) in ("", "."):
+    if _left_out(scenario):
         return None
     from hmpc_cli.runner import prepare
     from hmpc_cli.runner import execute_run
@@ -98,8 +158,7 @@ def _biped_run(scenario: Optional[Path], results: Path, run: bool) -> Optional[P
     try:
         sc, toml_text = load_scenario(scenario)
     except ScenarioError as exc:
-        for line in exc.lines:
-            typer.echo(f"error: {line}", err=True)
+        _echo_errors(exc.lines)
         raise typer.Exit(EXIT_BAD_INPUT) from None
     from hmpc_cli.sweep_table import finished_in
 

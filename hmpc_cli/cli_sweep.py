@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -19,17 +19,17 @@ def _err(lines: list[str]) -> None:
 
 def sweep_command(
     sweep_file: Annotated[Path, typer.Argument(help="sweep TOML file")],
-    workers: Annotated[Optional[int], typer.Option(
+    workers: Annotated[int | None, typer.Option(
         "--workers", min=1, help="worker processes (default: all cores; 1 = in-process)")
     ] = None,
-    out: Annotated[Optional[Path], typer.Option(
+    out: Annotated[Path | None, typer.Option(
         "--out", help="output directory (default results/sweeps/<name>)")] = None,
-    dask: Annotated[Optional[str], typer.Option(
+    dask: Annotated[str | None, typer.Option(
         "--dask", help="run on a Dask cluster: scheduler address, e.g. tcp://host:8786")
     ] = None,
     dry_run: Annotated[bool, typer.Option(
         "--dry-run", help="validate and list the runs, run nothing")] = False,
-    seeds: Annotated[Optional[int], typer.Option(
+    seeds: Annotated[int | None, typer.Option(
         "--seeds", help="run only the sweep's first N seeds (the rest resume later)")
     ] = None,
 ) -> None:
@@ -76,7 +76,8 @@ def sweep_command(
 
 def _list_runs(plan) -> None:
     for run in plan.selected:
-        parts = [run.run_id, *(f"{a.name}={v}" for a, v in zip(plan.axes, run.cell))]
+        cell = zip(plan.axes, run.cell, strict=True)  # one label per axis
+        parts = [run.run_id, *(f"{a.name}={v}" for a, v in cell)]
         typer.echo("  ".join([*parts, f"seed={run.seed}"]))
     typer.echo(f"{len(plan.selected)} runs, all valid (dry run: nothing started)")
 

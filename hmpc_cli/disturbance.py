@@ -25,6 +25,7 @@ class HeldDisturbance:
 
     @property
     def n_w(self) -> int:
+        """Number of disturbance channels."""
         return self.values.shape[1]
 
     def knot(self, t: float) -> int:

@@ -40,10 +40,21 @@ class LowLevelController:
 
     def reference(self, t: float, plan: Plan, span: float = 0.0
                   ) -> tuple[np.ndarray, np.ndarray]:
-        """(x_ref (n,), u_ff (m,)) of ``plan``: x_ref at simulated time t [s], u_ff the
-        mean of the feed-forward over [t, t + span] (its value at t if span = 0). The
-        mean is the held input that gives the plant over a simulator step of ``span``
-        seconds the same impulse as the plan's interpolated input."""
+        """Reference state and feed-forward input of ``plan`` at simulated time ``t``.
+
+        Both are taken from the plan's current domain only (see the module docstring).
+
+        Args:
+            t: simulated time [s].
+            plan: the plan to track.
+            span: length [s] of the simulator step the input is held over.
+
+        Returns:
+            ``(x_ref, u_ff)``: x_ref (n,) the plan's state at t (linear interpolation);
+            u_ff (m,) the mean of the feed-forward over [t, t + span] (its value at t if
+            span <= 0), the held input that gives the plant over the step the same impulse
+            as the plan's interpolated input.
+        """
         tr = plan.traj
         first = np.nonzero(tr.seg == tr.seg[0])[0]
         ts, xs, us = tr.t[first], tr.x[first], tr.u[first]
@@ -56,8 +67,18 @@ class LowLevelController:
         return x_ref, (_integral(ts, us, tau + span, zoh) - _integral(ts, us, tau, zoh)) / span
 
     def command(self, t: float, x: np.ndarray, plan: Plan | None, span: float = 0.0):
-        """Input (m,) held over [t, t + span] and reference state (n,) at time t; zero
-        input without a plan."""
+        """Input to hold over [t, t + span] and the reference state at t.
+
+        Args:
+            t: simulated time [s].
+            x: current state (n,).
+            plan: the plan to track, or None (no plan yet).
+            span: length [s] of the simulator step the input is held over.
+
+        Returns:
+            ``(u, x_ref)``: u (m,) = u_ff + K (x_ref - x) and x_ref (n,) from
+            :meth:`reference`; without a plan, u = 0 and x_ref is all NaN.
+        """
         if plan is None:
             return np.zeros(self.K.shape[0]), np.full(self.K.shape[1], np.nan)
         x_ref, u_ff = self.reference(t, plan, span)
@@ -65,8 +86,11 @@ class LowLevelController:
 
 
 def _interp(ts: np.ndarray, vs: np.ndarray, tau: float, zoh: bool) -> np.ndarray:
-    """Value at tau of samples vs (K, d) at times ts (K,): linear or held from the left;
-    the first and last samples are held outside [ts[0], ts[-1]]."""
+    """Value (d,) at tau of samples vs (K, d) taken at increasing times ts (K,).
+
+    Linear interpolation, or held from the left if ``zoh``; the first and last samples are
+    held outside [ts[0], ts[-1]].
+    """
     if tau >= ts[-1] or len(ts) == 1:
         return vs[-1]
     if tau <= ts[0]:

@@ -93,7 +93,7 @@ class Recorder:
             raise ValueError(f"flush_every must be >= 1, got {flush_every}")
         self.path = Path(path)
         self.flush_every = int(flush_every)
-        self._file = open(self.path, "wb")
+        self._file = open(self.path, "wb")  # noqa: SIM115 - open until close()
         try:
             self._writer = Writer(self._file, chunk_size=chunk_size, compression=_compression())
             self._writer.start(profile="", library=_library_id())

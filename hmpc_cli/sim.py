@@ -47,8 +47,15 @@ class Event:
 
 @dataclass(frozen=True)
 class StepResult:
-    """Result of one batched step: states (B, n), modes (B,), events, Zeno flags (B,),
-    and the time not integrated (B,) [s] (nonzero only with ``stop_at_event``)."""
+    """Result of one batched step.
+
+    Attributes:
+        x: states (B, n) at the end of the step.
+        mode: modes (B,) at the end of the step.
+        events: guard events, in time order per sample (empty unless recorded).
+        zeno: Zeno flags (B,): samples frozen after too many events.
+        remaining: time not integrated (B,) [s] (nonzero only with ``stop_at_event``).
+    """
 
     x: np.ndarray
     mode: np.ndarray
@@ -72,7 +79,6 @@ class HybridSimulator:
         self.max_events = max_events
         self.time_tol = time_tol
 
-
     def rk4(self, mode: np.ndarray, x: np.ndarray, u: np.ndarray, w: np.ndarray,
             h: np.ndarray) -> np.ndarray:
         """One RK4 step of length h (B,) per sample in its mode; inputs saturated."""
@@ -91,8 +97,11 @@ class HybridSimulator:
         """Advances every sample by ``dt`` seconds.
 
         Args:
-            x: states (B, n). mode: mode indices (B,). u: inputs (B, m), held.
-            w: disturbances (B, n_w), held. dt: step [s].
+            x: states (B, n).
+            mode: mode indices (B,).
+            u: inputs (B, m), held over the step.
+            w: disturbances (B, n_w), held over the step.
+            dt: step [s].
             record: collect :class:`Event` records (the planner switches this off).
             raise_zeno: raise :class:`ZenoError`; otherwise freeze and flag the sample.
             stop_at_event: a sample stops right after its first reset (post-reset state)
@@ -103,6 +112,9 @@ class HybridSimulator:
         Returns:
             The new states and modes, the events in time order per sample, Zeno flags,
             the time left per sample.
+
+        Raises:
+            ZenoError: more than ``max_events`` events in the step (with ``raise_zeno``).
         """
         x = np.asarray(x, dtype=float)
         mode = np.array(mode, dtype=int)
@@ -110,23 +122,31 @@ class HybridSimulator:
         w = np.asarray(w, dtype=float)
         b = x.shape[0]
         rem = np.full(b, float(dt))
-        zeno = np.zeros(b, dtype=bool)
         # first pass over the whole batch without copies; most steps end here
         x_end = self.rk4(mode, x, u, w, rem)
         tau, guard, x_hit = self._first_crossing(x, mode, u, w, rem, x_end)
         if (guard < 0).all():
-            return StepResult(x_end, mode, [], zeno, np.zeros(b))
-        x = x.copy()
+            return StepResult(x_end, mode, [], np.zeros(b, dtype=bool), np.zeros(b))
+        return self._step_through_events(
+            x.copy(), mode, u, w, dt, rem, (x_end, tau, guard, x_hit),
+            record=record, raise_zeno=raise_zeno, stop_at_event=stop_at_event)
+
+    def _step_through_events(self, x, mode, u, w, dt, rem, first_pass, *, record,
+                             raise_zeno, stop_at_event) -> StepResult:
+        """The rest of :meth:`step` once a sample crosses a guard: one event per pass.
+
+        ``x`` (the caller's copy), ``mode`` and ``rem`` (time left [s], (B,)) are updated
+        in place. ``first_pass`` is (x_end, tau, guard, x_hit) of the whole batch over the
+        full step; each later pass integrates the samples still running over their time
+        left. The other arguments are those of :meth:`step`.
+        """
+        x_end, tau, guard, x_hit = first_pass
+        b = x.shape[0]
+        zeno = np.zeros(b, dtype=bool)
         n_events = np.zeros(b, dtype=int)
         events: list[Event] = []
         todo = np.arange(b)
-        first = True
-        while todo.size:
-            if not first:
-                xa, ma, ua, wa, ha = x[todo], mode[todo], u[todo], w[todo], rem[todo]
-                x_end = self.rk4(ma, xa, ua, wa, ha)
-                tau, guard, x_hit = self._first_crossing(xa, ma, ua, wa, ha, x_end)
-            first = False
+        while True:
             hit = guard >= 0
             free = todo[~hit]
             x[free] = x_end[~hit]
@@ -134,32 +154,62 @@ class HybridSimulator:
             if not hit.any():
                 break
             idx = todo[hit]
-            for g in np.unique(guard[hit]):
-                sel = guard[hit] == g
-                rows = idx[sel]
-                before = x_hit[hit][sel]
-                after = self.num.reset(int(g), before)
-                x[rows] = after
-                mode[rows] = self.num.target[g]
-                if record:
-                    for j, r in enumerate(rows):
-                        events.append(Event(int(r), float(dt - rem[r] + tau[hit][sel][j]),
-                                            int(g), before[j].copy(), after[j].copy()))
+            self._reset(x, mode, idx, guard[hit], x_hit[hit],
+                        dt - rem[idx] + tau[hit] if record else None, events)
             rem[idx] -= tau[hit]
-            n_events[idx] += 1
-            over = n_events > self.max_events
-            if over.any():
-                if raise_zeno:
-                    raise ZenoError(f"more than {self.max_events} guard events in one step of "
-                                    f"{dt} s (Zeno chattering) for sample(s) "
-                                    f"{np.nonzero(over)[0].tolist()}")
-                zeno |= over
-                rem[over] = 0.0
+            self._count_events(idx, n_events, zeno, rem, dt, raise_zeno)
             if stop_at_event:
                 break
             todo = idx[(rem[idx] > 0.0) & ~zeno[idx]]
+            if not todo.size:
+                break
+            xa, ma, ua, wa, ha = x[todo], mode[todo], u[todo], w[todo], rem[todo]
+            x_end = self.rk4(ma, xa, ua, wa, ha)
+            tau, guard, x_hit = self._first_crossing(xa, ma, ua, wa, ha, x_end)
         events.sort(key=lambda e: (e.sample, e.tau))
         return StepResult(x, mode, events, zeno, rem)
+
+    def _reset(self, x, mode, idx, guard, x_hit, t_event, events: list[Event]) -> None:
+        """Applies the reset maps in place: sample idx[i] hit guard[i] in state x_hit[i].
+
+        Args:
+            x: states (B, n), rows ``idx`` overwritten with the post-reset states.
+            mode: modes (B,), rows ``idx`` set to the guards' target modes.
+            idx: batch indices (k,) of the samples that hit a guard.
+            guard: guard index per hit (k,).
+            x_hit: states on the guards before the reset (k, n).
+            t_event: event times from the start of the step (k,) [s], or None to record
+                no :class:`Event`.
+            events: the events so far; one is appended per hit unless ``t_event`` is None.
+        """
+        for g in np.unique(guard):
+            sel = guard == g
+            rows = idx[sel]
+            before = x_hit[sel]
+            after = self.num.reset(int(g), before)
+            x[rows] = after
+            mode[rows] = self.num.target[g]
+            if t_event is not None:
+                for j, r in enumerate(rows):
+                    events.append(Event(int(r), float(t_event[sel][j]), int(g),
+                                        before[j].copy(), after[j].copy()))
+
+    def _count_events(self, idx, n_events, zeno, rem, dt, raise_zeno) -> None:
+        """Counts one more event for samples ``idx``; handles those over ``max_events``.
+
+        ``n_events`` (B,) is incremented in place. A sample over the limit raises
+        :class:`ZenoError` if ``raise_zeno``, else it is flagged in ``zeno`` (B,) and
+        frozen (its time left ``rem`` set to 0).
+        """
+        n_events[idx] += 1
+        over = n_events > self.max_events
+        if over.any():
+            if raise_zeno:
+                raise ZenoError(f"more than {self.max_events} guard events in one step of "
+                                f"{dt} s (Zeno chattering) for sample(s) "
+                                f"{np.nonzero(over)[0].tolist()}")
+            zeno |= over
+            rem[over] = 0.0
 
     def _first_crossing(self, x, mode, u, w, h, x_end):
         """Earliest active guard crossing per sample: (tau (B,), guard (B,) or -1, state).
@@ -222,10 +272,7 @@ class HybridSimulator:
         one = bool((cross.sum(axis=1) == 1).all())  # common case: one guard per sample
         for _ in range(60):
             phis, dphis, x_t = phi_fn(x, u, w, t[:, None])
-            if one:
-                c = col
-            else:
-                c = np.argmin(np.where(cross, phis, np.inf), axis=1)
+            c = col if one else np.argmin(np.where(cross, phis, np.inf), axis=1)
             phi, dphi = phis[rows, c], dphis[rows, c]
             past = phi <= 0.0
             hi = np.where(past, np.minimum(t, hi), hi)

@@ -147,40 +147,17 @@ def _flatten(data: dict, model: Any, prefix: str = "") -> dict:
 
 
 def _axes(spec: SweepSpec, src: str, errors: list[str]) -> list[Axis]:
+    """The grid's axes in file order; problems go to ``errors``, broken axes are left out."""
     axes = []
     for name, values in _flatten(spec.grid, scenario_model()).items():
         where = f"{src}: grid.{name}"
-        if name in RESERVED or name.startswith("set.") or name == "seed":
-            errors.append(f"{where}: reserved name (use another axis name; seeds via `seeds`)")
-            continue
-        if not isinstance(values, list):
-            errors.append(f"{where}: expected a list of values or of override tables")
-            continue
-        if not values:
-            errors.append(f"{where}: empty axis (no values)")
-            continue
-        kinds = {isinstance(v, dict) for v in values}
-        if len(kinds) > 1:
-            errors.append(f"{where}: mixes override tables and plain values")
-            continue
-        if kinds == {False}:
+        problem = _axis_problem(name, values)
+        if problem is not None:
+            errors.append(f"{where}: {problem}")
+        elif isinstance(values[0], dict):
+            axes.append(_table_axis(name, values, where, errors))
+        else:
             axes.append(Axis(name, False, tuple(values), tuple({name: v} for v in values)))
-            continue
-        labels, overrides = [], []
-        for i, entry in enumerate(values):
-            entry = dict(entry)
-            label = entry.pop("label", None)
-            if label is not None and not isinstance(label, str):
-                errors.append(f"{where}[{i}].label: must be a string")
-                label = None
-            ov = _flatten(entry, scenario_model())
-            labels.append(label if label is not None else
-                          ", ".join(f"{k}={cell_text(v)}" for k, v in ov.items()) or "(base)")
-            overrides.append(ov)
-        dup = sorted({lb for lb in labels if labels.count(lb) > 1})
-        if dup:
-            errors.append(f"{where}: duplicate labels {dup}")
-        axes.append(Axis(name, True, tuple(labels), tuple(overrides)))
     seen: dict[str, str] = {}
     for ax in axes:
         for k in sorted({k for ov in ax.overrides for k in ov}):
@@ -188,6 +165,38 @@ def _axes(spec: SweepSpec, src: str, errors: list[str]) -> list[Axis]:
                 errors.append(f"{src}: grid.{ax.name}: {k}: also set by axis {seen[k]}")
             seen.setdefault(k, ax.name)
     return axes
+
+
+def _axis_problem(name: str, values: Any) -> str | None:
+    """Why grid entry ``name = values`` is not an axis, or None if it is one."""
+    if name in RESERVED or name.startswith("set.") or name == "seed":
+        return "reserved name (use another axis name; seeds via `seeds`)"
+    if not isinstance(values, list):
+        return "expected a list of values or of override tables"
+    if not values:
+        return "empty axis (no values)"
+    if len({isinstance(v, dict) for v in values}) > 1:
+        return "mixes override tables and plain values"
+    return None
+
+
+def _table_axis(name: str, tables: list[dict], where: str, errors: list[str]) -> Axis:
+    """An axis of override tables, each labelled by its ``label`` or by its overrides."""
+    labels, overrides = [], []
+    for i, entry in enumerate(tables):
+        entry = dict(entry)
+        label = entry.pop("label", None)
+        if label is not None and not isinstance(label, str):
+            errors.append(f"{where}[{i}].label: must be a string")
+            label = None
+        ov = _flatten(entry, scenario_model())
+        labels.append(label if label is not None else
+                      ", ".join(f"{k}={cell_text(v)}" for k, v in ov.items()) or "(base)")
+        overrides.append(ov)
+    dup = sorted({lb for lb in labels if labels.count(lb) > 1})
+    if dup:
+        errors.append(f"{where}: duplicate labels {dup}")
+    return Axis(name, True, tuple(labels), tuple(overrides))
 
 
 def run_id(overrides: dict[str, Any], seed: int) -> str:
@@ -214,20 +223,7 @@ def plan_sweep(path: str | Path) -> SweepPlan:
         ScenarioError: one ``file: key.path: reason`` line per problem.
     """
     path, src = Path(path), str(path)
-    if not path.is_file():
-        raise ScenarioError([f"{src}: file not found"])
-    try:
-        text = path.read_text(encoding="utf-8")
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError([f"{src}: TOML syntax error: {exc}"]) from None
-    except UnicodeDecodeError:
-        raise ScenarioError([f"{src}: not a UTF-8 text file"]) from None
-    data.setdefault("name", re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem))
-    try:
-        spec = SweepSpec.model_validate(data)
-    except ValidationError as exc:
-        raise ScenarioError(format_errors(exc, src)) from None
+    text, spec = _read_spec(path, src)
     errors: list[str] = []
     scenario = path.parent / spec.scenario
     if not scenario.is_file():
@@ -238,23 +234,7 @@ def plan_sweep(path: str | Path) -> SweepPlan:
         (k, v, f"grid.{a.name}") for a in axes for ov in a.overrides for k, v in ov.items()])
     if bad_keys:
         raise ScenarioError(list(dict.fromkeys(errors + bad_keys)))
-    runs, ids = [], {}
-    for combo in itertools.product(*(range(len(a.labels)) for a in axes)):
-        overrides, origin = dict(base), dict.fromkeys(base, "[set]")
-        for a, i in zip(axes, combo):
-            overrides.update(a.overrides[i])
-            where = f"grid.{a.name}" + (f"[{a.labels[i]!r}]" if a.table else "")
-            origin.update(dict.fromkeys(a.overrides[i], where))
-        cell = tuple(a.labels[i] for a, i in zip(axes, combo))
-        for seed in spec.seeds:
-            run = Run(run_id(overrides, seed), seed, cell, dict(sorted(overrides.items())),
-                      origin)
-            if run.run_id in ids:
-                errors.append(f"{src}: grid: cells {ids[run.run_id]} and {list(cell)} have "
-                              "identical overrides")
-                continue
-            ids[run.run_id] = list(cell)
-            runs.append(run)
+    runs = _expand(spec, base, axes, src, errors)
     for run in runs if scenario.is_file() else []:
         try:
             items = [f"{k}={toml_value(v)}" for k, v in run.overrides.items()]
@@ -267,10 +247,64 @@ def plan_sweep(path: str | Path) -> SweepPlan:
     return SweepPlan(path, text, spec, scenario, axes, runs, keys)
 
 
+def _read_spec(path: Path, src: str) -> tuple[str, SweepSpec]:
+    """The sweep file's text and validated spec (its name defaults to the file's stem).
+
+    Raises:
+        ScenarioError: the file is missing, not UTF-8 TOML, or not a valid sweep.
+    """
+    if not path.is_file():
+        raise ScenarioError([f"{src}: file not found"])
+    try:
+        text = path.read_text(encoding="utf-8")
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError([f"{src}: TOML syntax error: {exc}"]) from None
+    except UnicodeDecodeError:
+        raise ScenarioError([f"{src}: not a UTF-8 text file"]) from None
+    data.setdefault("name", re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem))
+    try:
+        return text, SweepSpec.model_validate(data)
+    except ValidationError as exc:
+        raise ScenarioError(format_errors(exc, src)) from None
+
+
+def _expand(spec: SweepSpec, base: dict[str, Any], axes: list[Axis], src: str,
+            errors: list[str]) -> list[Run]:
+    """Every grid cell x seed as a run: ``[set]`` overrides, then each axis's, in order.
+
+    A run identical to an earlier one (two cells with the same overrides) is left out and
+    reported in ``errors``.
+    """
+    runs, ids = [], {}
+    for combo in itertools.product(*(range(len(a.labels)) for a in axes)):
+        overrides, origin = dict(base), dict.fromkeys(base, "[set]")
+        for a, i in zip(axes, combo, strict=True):
+            overrides.update(a.overrides[i])
+            where = f"grid.{a.name}" + (f"[{a.labels[i]!r}]" if a.table else "")
+            origin.update(dict.fromkeys(a.overrides[i], where))
+        cell = tuple(a.labels[i] for a, i in zip(axes, combo, strict=True))
+        for seed in spec.seeds:
+            run = Run(run_id(overrides, seed), seed, cell, dict(sorted(overrides.items())),
+                      origin)
+            if run.run_id in ids:
+                errors.append(f"{src}: grid: cells {ids[run.run_id]} and {list(cell)} have "
+                              "identical overrides")
+                continue
+            ids[run.run_id] = list(cell)
+            runs.append(run)
+    return runs
+
+
 def first_seeds(plan: SweepPlan, n: int | None) -> SweepPlan:
-    """The plan set to run only its first ``n`` seeds (None: all). Run ids ignore the seed
-    list, so the whole sweep later skips these runs; results.csv keeps every finished run.
-    Raises ScenarioError unless 1 <= n <= seeds."""
+    """The plan set to run only its first ``n`` seeds (None: all).
+
+    Run ids ignore the seed list, so the whole sweep later skips these runs; results.csv
+    keeps every finished run.
+
+    Raises:
+        ScenarioError: unless 1 <= n <= the sweep's number of seeds.
+    """
     seeds = plan.spec.seeds
     if n is not None and not 1 <= n <= len(seeds):
         raise ScenarioError([(f"{plan.path}: --seeds {n}: the sweep has {len(seeds)} "
@@ -330,7 +364,7 @@ def run_one(toml_text: str, run_dir: str) -> dict:
             sc = scenario_model().model_validate(tomllib.loads(toml_text))
             loop = prepare(sc)
             execute_run(loop, toml_text, out, _check_stop if _STOP is not None else None)
-        except Exception as exc:  # noqa: BLE001 - a failed run is a result
+        except Exception as exc:  # broad on purpose: a failed run is a result
             res = loop.res if loop is not None else RunResult(
                 sc.name if sc else "?", sc.seed if sc else -1)
             res.success = False
@@ -448,5 +482,5 @@ def _on_dask(client, pending: list[Run], out: Path, record, res: Outcome) -> Non
 def _collect(fut, run: Run, record, res: Outcome) -> None:
     try:
         record(run, fut.result())
-    except Exception as exc:  # noqa: BLE001 - the worker (not the run) failed
+    except Exception as exc:  # broad on purpose: the worker (not the run) failed
         res.lost.append(f"{run.run_id}: {type(exc).__name__}: {exc}")

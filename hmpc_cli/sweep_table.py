@@ -23,8 +23,11 @@ def finished(out: Path, run) -> dict | None:
 
 
 def finished_in(d: Path, toml_text: str) -> dict | None:
-    """The summary of the run in directory d if it finished (not interrupted) with the
-    effective scenario ``toml_text``, else None."""
+    """The summary of the run in directory ``d``, if it finished there; else None.
+
+    Finished means: summary.json holds a JSON object whose reason is not ``interrupted``,
+    and scenario.toml equals the effective scenario ``toml_text``.
+    """
     try:
         summary = json.loads((d / "summary.json").read_text())
         same = (d / "scenario.toml").read_text(encoding="utf-8") == toml_text
@@ -54,7 +57,8 @@ def result_rows(plan, out: Path) -> list[dict[str, str]]:
         if summary is None:
             continue
         row = {"run_id": run.run_id, "seed": str(run.seed)}
-        row |= {a.name: cell_text(v) for a, v in zip(plan.axes, run.cell)}
+        cell = zip(plan.axes, run.cell, strict=True)  # one label per axis
+        row |= {a.name: cell_text(v) for a, v in cell}
         row |= {f"set.{k}": cell_text(run.overrides.get(k)) for k in plan.keys}
         row |= {k: cell_text(summary.get(k)) for k in METRICS}
         log = out / "runs" / run.run_id / "run.mcap"

@@ -126,7 +126,7 @@ def test_log_times_non_decreasing_per_topic(log) -> None:
         by_topic.setdefault(m.topic, []).append(m.log_time_ns)
     assert len(by_topic) >= 6
     for topic, times in by_topic.items():
-        assert all(a <= b for a, b in zip(times, times[1:])), topic
+        assert all(a <= b for a, b in zip(times, times[1:], strict=False)), topic
 
 
 def test_scenario_attachment(log, full) -> None:

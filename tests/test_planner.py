@@ -38,7 +38,7 @@ def test_schedule_matches_its_rollout():
     num = ball.numeric
     pairs = np.nonzero(np.diff(tr.seg) == 1)[0]
     assert len(pairs) == len(r.schedule.guards)
-    for k, g in zip(pairs, r.schedule.guards):
+    for k, g in zip(pairs, r.schedule.guards, strict=True):
         assert tr.t[k] == tr.t[k + 1]
         np.testing.assert_array_equal(num.reset(g, tr.x[k][None])[0], tr.x[k + 1])
         assert abs(num.gap(g, tr.x[k][None])[0]) < 1e-6

@@ -290,10 +290,9 @@ def test_close_is_idempotent(tmp_path: Path) -> None:
 
 def test_exit_on_exception_still_finishes_file(tmp_path: Path) -> None:
     path = tmp_path / "r.mcap"
-    with pytest.raises(RuntimeError):
-        with Recorder(path) as rec:
-            rec.add_topic("/a", "A", {"type": "object"})
-            rec.write("/a", 0.0, {"v": 1})
-            raise RuntimeError("boom")
+    with pytest.raises(RuntimeError), Recorder(path) as rec:
+        rec.add_topic("/a", "A", {"type": "object"})
+        rec.write("/a", 0.0, {"v": 1})
+        raise RuntimeError("boom")
     log = read_log(path)
     assert log.complete and [m.data for m in log.messages] == [{"v": 1}]

@@ -64,7 +64,8 @@ def test_robustness_figure_is_deterministic_and_tabled(tmp_path):
     robustness(table, tmp_path / "b", "png,svg,pdf")
     for name in ("robustness.png", "robustness.svg", "robustness.pdf", "robustness_table.csv"):
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
-    rows = list(csv.DictReader(open(tmp_path / "a" / "robustness_table.csv")))
+    with open(tmp_path / "a" / "robustness_table.csv") as f:
+        rows = list(csv.DictReader(f))
     row = next(r for r in rows if r["replanning.policy"] == "once" and r["mpc.rate_hz"] == "5"
                and r["disturbance.magnitude"] == "10.0")
     assert (row["runs"], row["successes"]) == ("10", "3")
@@ -122,7 +123,8 @@ seeds = 2
             "--robustness", str(sweep), "--workers", "1"]
     proc = run_hmpc(args, tmp_path, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    rows = list(csv.DictReader(open(res / "report" / "robustness_table.csv")))
+    with open(res / "report" / "robustness_table.csv") as f:
+        rows = list(csv.DictReader(f))
     assert len(rows) == 4 and all(r["runs"] == "2" for r in rows)
     page = (res / "README.md").read_text()
     assert "8 finished runs, 2 seeds" in page

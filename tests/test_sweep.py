@@ -90,8 +90,8 @@ def test_tiny_sweep_table_and_failures(tiny):
         "set.planner.iterations", "set.planner.knots", "set.planner.samples",
         "set.replanning.contact_guards", "set.sim.divergence_bound", "set.sim.duration",
         "success", "final_error", "contacts", "solves", "solver_failures", "softened_solves",
-        "planner_calls", "planner_rejected", "diverged", "reason", "solve_time_median", "solve_time_p95",
-        "solve_time_max", "plan_time_median", "wall_time", "log"]
+        "planner_calls", "planner_rejected", "diverged", "reason", "solve_time_median",
+        "solve_time_p95", "solve_time_max", "plan_time_median", "wall_time", "log"]
     by_case = {c: [r for r in rows if r["case"] == c] for c in ("ok", "diverge", "crash")}
     assert all(len(v) == 4 for v in by_case.values())
     assert {(r["lowlevel.kp"], r["seed"]) for r in by_case["ok"]} == {

@@ -46,7 +46,7 @@ def test_two_steps_land_on_the_long_segment_and_replan_at_each_contact(short_wal
     plans = log.topic("/planner/plan")
     assert [m.data["reason"] for m in plans] == ["initial", "contact", "contact"]
     events = log.topic("/sim/event")
-    for plan, ev in zip(plans[1:], events):
+    for plan, ev in zip(plans[1:], events, strict=True):  # a replan at each contact
         assert plan.t == pytest.approx(ev.t, abs=1e-12)  # planned at the contact itself
         segs = [c["segment"] for c in plan.data["candidates"]]
         assert segs == sorted(segs) and 1 in segs  # the 1.0 m segment was a candidate
@@ -169,7 +169,12 @@ def test_a_biped_sweep_reuses_one_nlp_per_worker(tmp_path):
 
     sweep = tmp_path / "biped.toml"
     sweep.write_text(f'name = "biped_tiny"\nscenario = "{STAIRS.as_posix()}"\nseeds = 2\n'
-                     '[set]\n"sim.duration" = 0.35\n[grid]\n"disturbance.magnitude" = [0.0, 25.0]\n')
+                     '[set]
+"sim.duration" = 0.35
+'
+                     '[grid]
+"disturbance.magnitude" = [0.0, 25.0]
+')
     loop._PROBLEMS.clear()  # NLPs built by earlier tests in this process
     outcome = execute_sweep(plan_sweep(sweep), tmp_path / "out", workers=1)
     assert outcome.done == 4 and not outcome.lost

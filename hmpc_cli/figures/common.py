@@ -6,9 +6,10 @@ import contextlib
 import csv
 import math
 import os
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -77,8 +78,11 @@ def ieee_rc(font_size: float = 8.0) -> dict[str, Any]:
 
 @contextlib.contextmanager
 def figure_style():
-    """Matplotlib defaults + :func:`ieee_rc` for the block (the user's matplotlibrc does
-    not leak in; restored on exit); pyplot with the non-interactive Agg canvas."""
+    """Context manager: Matplotlib defaults + :func:`ieee_rc` inside the block.
+
+    The user's matplotlibrc does not leak in and the previous settings are restored on
+    exit; pyplot uses the non-interactive Agg canvas.
+    """
     import matplotlib as mpl
 
     with mpl.rc_context():
@@ -132,9 +136,25 @@ def parse_formats(text: str | Iterable[str]) -> tuple[str, ...]:
 
 def save_figure(fig: Any, out_dir: Path, stem: str, formats: Iterable[str],
                 dpi: int = 300, close: bool = True) -> list[Path]:
-    """Saves `fig` as out_dir/stem.<fmt> with fixed metadata (same input, same bytes);
-    closes a pyplot-managed figure (``close``) whatever happens. Raises FigureInputError
-    if it cannot write."""
+    """Saves ``fig`` as out_dir/stem.<fmt> per format, with fixed metadata.
+
+    The same input gives the same bytes; each file is written to a temporary name and
+    renamed, so no half-written figure is left behind.
+
+    Args:
+        fig: a Matplotlib figure.
+        out_dir: existing output directory.
+        stem: file name without extension.
+        formats: output formats (see :func:`parse_formats`).
+        dpi: resolution of raster formats [dots per inch].
+        close: close a pyplot-managed figure afterwards, whatever happens.
+
+    Returns:
+        The written paths, in the order of ``formats``.
+
+    Raises:
+        FigureInputError: a file cannot be written.
+    """
     paths = []
     try:
         for fmt in formats:

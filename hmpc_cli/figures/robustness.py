@@ -8,9 +8,9 @@ cell (x value, series, panel) gets its success rate with a Wilson score interval
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 from hmpc_cli.figures.common import (
     TEXT_WIDTH_IN, FigureInputError, check_size, figure_style, parse_bool, parse_formats,
@@ -50,10 +50,12 @@ class Cell:
 
     @property
     def rate(self) -> float:
+        """Success rate successes / runs in [0, 1]; NaN for a cell without runs."""
         return self.successes / self.runs if self.runs else math.nan
 
     @property
     def interval(self) -> tuple[float, float]:
+        """95 % Wilson score interval (lo, hi) of the success rate; (0, 1) without runs."""
         return wilson(self.successes, self.runs)
 
 
@@ -153,7 +155,7 @@ def robustness(table: str | Path, out_dir: str | Path | None = None,
     with figure_style():
         fig, axes = plt.subplots(1, len(panels), figsize=(width, height), sharey=True,
                                  squeeze=False)
-        for ax, p in zip(axes[0], panels):
+        for ax, p in zip(axes[0], panels, strict=True):
             for j, s in enumerate(series):
                 sel = [c for c in data if c.panel == p and c.series == s]
                 lo = [c.rate - c.interval[0] for c in sel]

@@ -235,8 +235,20 @@ class CrossEntropyPlanner:
                           np.array(segs), tuple(guards))
 
     def _steps_numpy(self, x0: np.ndarray, mode0: int, u: np.ndarray) -> list[tuple]:
-        """Steps of one sample with inputs u (n_steps, m) until Zeno, a non-finite state or
-        the final mode: per step (x after, mode after, events (tau, guard, before, after))."""
+        """Steps one sample with the NumPy simulator (the reference for the C rollouts).
+
+        Stops after the step that ends in Zeno chattering, a non-finite state or the final
+        mode.
+
+        Args:
+            x0: initial state (n,).
+            mode0: initial mode index.
+            u: inputs (n_steps, m), one held over each step of ``self.dt`` seconds.
+
+        Returns:
+            Per step taken: (x after (n,), mode after, events as (tau [s] into the step,
+            guard, state before (n,), state after (n,)) in time order).
+        """
         x, mode = x0[None, :].astype(float), np.array([mode0])
         w = np.zeros((1, self.system.n_w))
         steps = []

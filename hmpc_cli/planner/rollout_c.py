@@ -308,8 +308,25 @@ class CRollout:
 
     def trajectory(self, x0: np.ndarray, mode0: int, u: np.ndarray, dt: float,
                    final_mode: int) -> list[tuple[np.ndarray, int, list[tuple]]]:
-        """Steps of one sample with inputs u (n_steps, m) until Zeno, a non-finite state or
-        the final mode: per step (x after, mode after, events (tau, guard, before, after))."""
+        """Steps one sample in C (the same steps as the NumPy simulator).
+
+        Stops after the step that ends in Zeno chattering, a non-finite state or
+        ``final_mode``.
+
+        Args:
+            x0: initial state (n,).
+            mode0: initial mode index.
+            u: inputs (n_steps, m), one held over each step.
+            dt: step [s].
+            final_mode: mode index that ends the rollout.
+
+        Returns:
+            Per step taken: (x after (n,), mode after, events as (tau [s] into the step,
+            guard, state before (n,), state after (n,)) in time order).
+
+        Raises:
+            ValueError: x0 or u has the wrong shape, or a mode index is out of range.
+        """
         x0 = np.ascontiguousarray(x0, dtype=float)
         u = np.ascontiguousarray(u, dtype=float)
         n_steps, n = u.shape[0], self.n_x
