@@ -179,7 +179,7 @@ def _load_one(ep: EntryPoint, group: str, kind_field: str, spec_type: type) -> A
     where = f"entry point {ep.name!r} = {ep.value!r} (group {group})"
     try:
         spec = ep.load()
-    except Exception as exc:  # noqa: BLE001 - any import failure is the plug-in's
+    except Exception as exc:
         raise PluginError(f"{where} failed to load: {type(exc).__name__}: {exc}") from None
     if not isinstance(spec, spec_type):
         raise PluginError(f"{where} is a {type(spec).__name__}, not a {spec_type.__name__}")
@@ -239,7 +239,7 @@ def plugin_call(what: str, fn: Callable[..., Any], *args: Any) -> Any:
         return fn(*args)
     except PluginError:
         raise
-    except Exception as exc:  # noqa: BLE001 - a plug-in's failure, reported with its name
+    except Exception as exc:
         raise PluginError(f"{what}: {type(exc).__name__}: {one_line(exc)}") from None
 
 

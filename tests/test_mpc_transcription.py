@@ -25,7 +25,8 @@ def ball():
 
 @pytest.fixture(scope="module")
 def planned(ball):
-    return CrossEntropyPlanner(ball, CEMSettings(init_mean=BALL_MEAN, horizon=1.5)).plan(0.0, ball.x0, 0)
+    planner = CrossEntropyPlanner(ball, CEMSettings(init_mean=BALL_MEAN, horizon=1.5))
+    return planner.plan(0.0, ball.x0, 0)
 
 
 def _solve(ball, planned, **settings) -> tuple[FixedModeMPC, Plan]:

@@ -10,7 +10,8 @@ BALL_MEAN = -20.0  # the ball plug-in's CEM initial mean (its default)
 
 def _plan(seed, run_seed=0, t=0.0, iterations=4):
     ball = build_ball(BallParams())
-    planner = CrossEntropyPlanner(ball, CEMSettings(init_mean=BALL_MEAN, iterations=iterations, seed=seed), run_seed)
+    settings = CEMSettings(init_mean=BALL_MEAN, iterations=iterations, seed=seed)
+    planner = CrossEntropyPlanner(ball, settings, run_seed)
     return ball, planner.plan(t, ball.x0, 0)
 
 

@@ -37,7 +37,8 @@ def cache(tmp_path_factory):
 
 def _planner(backend, params=None, **kw):
     ball = build_ball(params or BallParams())
-    return ball, CrossEntropyPlanner(ball, CEMSettings(init_mean=BALL_MEAN, rollout_backend=backend, **kw))
+    settings = CEMSettings(init_mean=BALL_MEAN, rollout_backend=backend, **kw)
+    return ball, CrossEntropyPlanner(ball, settings)
 
 
 def _knots(rng, b):

@@ -169,12 +169,8 @@ def test_a_biped_sweep_reuses_one_nlp_per_worker(tmp_path):
 
     sweep = tmp_path / "biped.toml"
     sweep.write_text(f'name = "biped_tiny"\nscenario = "{STAIRS.as_posix()}"\nseeds = 2\n'
-                     '[set]
-"sim.duration" = 0.35
-'
-                     '[grid]
-"disturbance.magnitude" = [0.0, 25.0]
-')
+                     '[set]\n"sim.duration" = 0.35\n'
+                     '[grid]\n"disturbance.magnitude" = [0.0, 25.0]\n')
     loop._PROBLEMS.clear()  # NLPs built by earlier tests in this process
     outcome = execute_sweep(plan_sweep(sweep), tmp_path / "out", workers=1)
     assert outcome.done == 4 and not outcome.lost

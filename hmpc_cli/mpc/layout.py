@@ -47,12 +47,15 @@ class NodeSchedule:
 
     @property
     def n_intervals(self) -> int:
+        """N, the flow intervals over the horizon."""
         return sum(self.counts)
 
     @classmethod
     def from_schedule(cls, schedule: ModeSchedule, n: int, dt: float) -> NodeSchedule:
-        """Rounds planned durations up to whole intervals (so a plan that needed all of
-        its time stays feasible); the final domain takes the rest.
+        """The node schedule of a mode schedule on ``n`` intervals of ``dt`` seconds.
+
+        Planned durations are rounded up to whole intervals (so a plan that needed all
+        of its time stays feasible); the final domain takes the rest.
 
         Raises:
             ValueError: the non-final domains do not fit in ``n - 1`` intervals.
@@ -85,6 +88,7 @@ class NodeSchedule:
         return NodeSchedule(self.modes[1:], self.guards[1:], counts)
 
     def to_dict(self) -> dict:
+        """JSON-ready dict of modes, guards and counts."""
         return {"modes": list(self.modes), "guards": list(self.guards),
                 "counts": list(self.counts)}
 
@@ -125,7 +129,7 @@ class ChainLayout:
         local = np.zeros(length + 1, dtype=int)
         first = np.zeros(length + 1, dtype=bool)
         k = 0
-        for j, (mode, count) in enumerate(zip(ns.modes, ns.counts)):
+        for j, (mode, count) in enumerate(zip(ns.modes, ns.counts, strict=True)):
             first[k] = j > 0
             for i in range(count + 1):
                 seg[k + i], local[k + i] = j, i

@@ -263,8 +263,10 @@ class CrossEntropyPlanner:
 
 
 def schedule_from(traj: Trajectory, t0: float = 0.0) -> ModeSchedule:
-    """The domain/guard sequence and per-domain durations of a recorded trajectory
-    planned at simulated time t0 [s]."""
+    """The domain/guard sequence and per-domain durations of a recorded trajectory.
+
+    The schedule is stamped as planned at simulated time t0 [s].
+    """
     n_seg = len(traj.guards) + 1
     starts = [float(traj.t[np.argmax(traj.seg == j)]) for j in range(n_seg)]
     modes = tuple(int(traj.mode[np.argmax(traj.seg == j)]) for j in range(n_seg))

@@ -90,10 +90,7 @@ def choose(plans: Sequence[Plan | None], settings: FootholdSettings | None = Non
     for i, plan in enumerate(plans):
         if plan is None or not plan.stats.success:
             continue
-        if s.criterion == "max_hip_x":
-            score = hip_x(plan)
-        else:
-            score = -float(plan.stats.cost)
+        score = hip_x(plan) if s.criterion == "max_hip_x" else -float(plan.stats.cost)
         if best_score is None or score > best_score:
             best, best_score = i, score
     return best
