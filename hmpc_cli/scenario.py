@@ -123,6 +123,9 @@ class ScenarioBase(BaseModel):
             section, _, name = req.key.partition(".")
             if isinstance(data.get(section, {}), dict):
                 data[section] = {name: req.value, **data.get(section, {})}
+        problems = _kind_problems(reg, spec, data)
+        if problems:  # before the sections' own keys are checked against the wrong kind
+            raise ValueError("\n".join(problems))
         return data
 
     def plant_params(self) -> BaseModel:
@@ -158,21 +161,9 @@ class ScenarioBase(BaseModel):
         return problems + list(getattr(m, "scenario_problems", list)())
 
     def _stack_problems(self) -> list[str]:
-        """Problems of the stack: planner and MPC that do not fit the system.
-
-        Capabilities and required settings are checked; plant keys must be valid
-        system parameters.
-        """
+        """Required settings of the plug-ins; plant keys must be valid system parameters."""
         reg = registry()
-        spec = reg.system(self.system.name)
         out = []
-        for section in ("planner", "mpc"):
-            kind = getattr(self, section).kind
-            plug = reg.planner(kind) if section == "planner" else reg.mpc(kind)
-            missing = sorted(plug.needs - spec.provides)
-            if missing:
-                out.append(f"{section}.kind: {kind!r} does not fit system {spec.name!r}: it "
-                           f"needs {', '.join(missing)} (use {getattr(spec, section)!r})")
         data = self.model_dump()
         for req in _requirements(reg, data):
             section, _, name = req.key.partition(".")
@@ -202,6 +193,25 @@ def _unknown(reg, name: Any) -> str:
         return reg.failed["system"][name]
     choices = ", ".join(repr(k) for k in sorted(reg.systems))
     return f"unknown system {name!r} (choose from {choices})"
+
+
+def _kind_problems(reg, spec, data: dict) -> list[str]:
+    """``planner.kind`` / ``mpc.kind`` lines: a kind the system cannot use (capabilities it
+    does not provide, or a kind the system or the other plug-in requires otherwise)."""
+    out = []
+    required = {r.key: r for r in _requirements(reg, data)}
+    for section, table in (("planner", reg.planners), ("mpc", reg.mpcs)):
+        kind = data[section].get("kind") if isinstance(data.get(section), dict) else None
+        if kind not in table:
+            continue  # an unknown kind is the union's error
+        req = required.get(f"{section}.kind")
+        missing = sorted(table[kind].needs - spec.provides)
+        if missing:
+            out.append(f"{section}.kind: {kind!r} does not fit system {spec.name!r}: it "
+                       f"needs {', '.join(missing)} (use {getattr(spec, section)!r})")
+        elif req is not None and req.value != kind:
+            out.append(f"{section}.kind: {req.why}; use {req.value!r}, not {kind!r}")
+    return out
 
 
 def _requirements(reg, data: dict) -> list[Requirement]:

@@ -394,3 +394,18 @@ def test_bundled_scenario(path: Path, tmp_path: Path) -> None:
     sc, text = load_scenario(path)
     assert sc.name
     assert load_scenario(_write(tmp_path / path.name, text))[0] == sc
+
+
+@pytest.mark.parametrize("system,override,expected", [
+    ("biped_stairs.toml", 'mpc.kind="fixed_mode"', "mpc.kind: the biped's swing needs the "
+     "walking transcription"),
+    ("biped_stairs.toml", 'planner.kind="cem"', "planner.kind: the biped's hybrid problem"),
+    ("ball.toml", 'mpc.kind="walking"', "mpc.kind: 'walking' does not fit system 'ball': it "
+     "needs contact_reset"),
+    ("ball.toml", 'planner.kind="footholds"', "planner.kind: 'footholds' does not fit system "
+     "'ball': it needs guard_surfaces, hip_world, stance_foot (use 'cem')"),
+])
+def test_a_kind_the_system_cannot_use_is_one_keyed_line(system, override, expected):
+    """Reported before the section's other keys are checked against the wrong kind."""
+    lines = load_error(SCENARIOS / system, [override])
+    assert len(lines) == 1 and f": {expected}" in lines[0], lines

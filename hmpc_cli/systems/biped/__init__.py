@@ -128,5 +128,7 @@ SYSTEM = SystemSpec(
                     "so the torque held before it would act on the other leg"),
         Requirement("mpc.kind", "walking", "the biped's swing needs the walking "
                     "transcription (stance-foot state, touchdown node, leg-swap reset)"),
+        Requirement("planner.kind", "footholds", "the biped's hybrid problem is the choice "
+                    "of the next foothold (its only mode is also its final domain)"),
     ),
 )
