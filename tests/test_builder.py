@@ -1,0 +1,177 @@
+"""The structured-NLP builder and the solver session."""
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from hmpc_cli.mpc.builder import NLPBuilder
+from hmpc_cli.mpc.solver import INTERRUPTED, SolverSession, WarmStart, plugin_options
+
+
+def _chain(L=3, n=2, m=1):
+    """x per stage k: z (n), u (m, k < L); p: a (L, 2), c (scalar); rows per stage."""
+    b = NLPBuilder()
+    a = b.parameter("a", (L, 2))
+    c = b.parameter("c")
+    z, u = [], []
+    for k in range(L + 1):
+        with b.stage(k):
+            z.append(b.variable("z", n))
+            if k < L:
+                u.append(b.variable("u", m))
+    for k in range(L):
+        with b.stage(k):
+            b.rows("dynamics", z[k + 1] - a[k, 0] * z[k] - a[k, 1] * u[k])
+            b.rows("box", z[k][0] - c, shape=())
+    b.rows("terminal", z[L])
+    return b.build(ca.sumsqr(ca.vertcat(*z)))
+
+
+def test_index_arrays_are_named_shaped_and_interleaved_per_stage():
+    nlp, lay = _chain()
+    assert lay.x.size == nlp["x"].size1() == 4 * 2 + 3
+    assert lay.x["z"].shape == (4, 2) and lay.x["u"].shape == (3, 1)
+    # stage-wise interleaving: z0 u0 z1 u1 z2 u2 z3
+    assert lay.x["z"].tolist() == [[0, 1], [3, 4], [6, 7], [9, 10]]
+    assert lay.x["u"].ravel().tolist() == [2, 5, 8]
+    assert lay.x.stages("u") == (0, 1, 2) and lay.x.at(1).tolist() == [3, 4, 5]
+    assert lay.g.names == ("dynamics", "box", "terminal")
+    assert lay.g["dynamics"].shape == (3, 2) and lay.g["box"].shape == (3,)
+    assert lay.g["box"].tolist() == [2, 5, 8] and lay.g["terminal"].tolist() == [9, 10]
+    # parameters: column-major matrix (as casadi.vec), scalar block
+    assert lay.p["a"].shape == (3, 2) and lay.p["a"][:, 0].tolist() == [0, 1, 2]
+    assert lay.p["c"].shape == () and int(lay.p["c"]) == 6
+    with pytest.raises(ValueError):
+        lay.x["z"][0, 0] = 5  # index arrays are read-only
+
+
+def test_pack_unpack_round_trip_matches_casadi_order():
+    nlp, lay = _chain()
+    values = {"a": np.arange(6.0).reshape(3, 2), "c": 7.5}
+    p = lay.p.pack(values)
+    assert p.tolist() == [0.0, 2.0, 4.0, 1.0, 3.0, 5.0, 7.5]  # vec(a), c
+    back = lay.p.unpack(p)
+    np.testing.assert_array_equal(back["a"], values["a"])
+    assert back["c"] == 7.5
+    par = lay.p.zeros()
+    assert par["a"].shape == (3, 2) and par["c"].shape == ()
+    with pytest.raises(KeyError):
+        lay.p.pack({"a": values["a"]})
+    w = np.arange(lay.x.size, dtype=float)
+    parts = lay.x.unpack(w)
+    np.testing.assert_array_equal(lay.x.pack(parts), w)
+    # the symbols sit where the layout says
+    f = ca.Function("f", [nlp["x"], nlp["p"]], [nlp["g"]])
+    g = np.asarray(f(w, p)).ravel()
+    z, u = parts["z"], parts["u"][:, 0]
+    np.testing.assert_allclose(g[lay.g["dynamics"][1]], z[2] - 2.0 * z[1] - 3.0 * u[1])
+    np.testing.assert_allclose(g[lay.g["box"]], z[:3, 0] - 7.5)
+
+
+def test_bounds_by_name():
+    _, lay = _chain()
+    bd = lay.bounds()
+    bd.lbg["dynamics"][:] = bd.ubg["dynamics"][:] = 0.0
+    bd.lbg["box"][1] = -1.0
+    bd.lbx["z"][0] = bd.ubx["z"][0] = [1.0, 2.0]
+    bd.ubx["u"][2, 0] = 4.0
+    lbx, ubx, lbg, ubg = bd.arrays()
+    assert lbx[[0, 1]].tolist() == [1.0, 2.0] and ubx[[0, 1]].tolist() == [1.0, 2.0]
+    assert ubx[8] == 4.0 and np.isinf(lbx[2:]).all() and np.isinf(ubx[2:8]).all()
+    assert lbg[lay.g["dynamics"]].tolist() == [[0.0, 0.0]] * 3
+    assert lbg[5] == -1.0 and np.isinf(lbg[[2, 8, 9, 10]]).all() and np.isinf(ubg[2])
+    assert bd.lbg["box"][1] == -1.0
+
+
+def test_staged_grid_and_registration_errors():
+    b = NLPBuilder()
+    for j in range(2):
+        for k in range(3):
+            if (j, k) != (0, 0):
+                with b.stage((j, k)):
+                    b.variable("x", 2)
+    _, lay = b.build(0)
+    grid = lay.x.grid("x")
+    assert grid.shape == (2, 3, 2) and grid[0, 0].tolist() == [-1, -1]
+    assert grid[1, 0].tolist() == [4, 5]
+    b = NLPBuilder()
+    with b.stage(0):
+        b.variable("x", 2)
+        with pytest.raises(ValueError, match="twice"):
+            b.variable("x", 2)
+    with b.stage(1), pytest.raises(ValueError, match="shape"):
+        b.variable("x", 3)
+    with pytest.raises(ValueError, match="twice"):
+        b.variable("x", 2)
+
+
+def _scalar_session(**kw):
+    b = NLPBuilder()
+    x = b.variable("x")
+    b.rows("lower", x, shape=())
+    nlp, lay = b.build((x - 1) ** 2)
+    return SolverSession("tiny", nlp, "ipopt", max_iter=50, **kw), lay
+
+
+def test_tiny_nlp_solved_by_the_session():
+    session, lay = _scalar_session(warm=WarmStart(1e-6, 1e-9))
+    bd = lay.bounds()
+    bd.lbg["lower"][()] = 2.0  # x >= 2 as a row
+    res = session.solve(np.zeros(1), np.zeros(0), *bd.arrays())
+    assert res.stats.success and res.stats.status == "Solve_Succeeded"
+    assert res.x[lay.x["x"]] == pytest.approx(2.0, abs=1e-7)
+    assert res.stats.cost == pytest.approx(1.0, abs=1e-6)
+    assert res.stats.max_violation <= 1e-8 and res.stats.iterations > 0
+    assert res.lam_g[lay.g["lower"]] == pytest.approx(-2.0, abs=1e-6)  # df/dx = 2
+    warm = session.solve(res.x, np.zeros(0), *bd.arrays(), res.lam_x, res.lam_g)
+    assert warm.stats.success and warm.x[0] == pytest.approx(2.0, abs=1e-7)
+    assert session.warm is not session.cold
+    # as a bound instead of a row; violation is measured on rows and bounds
+    bd = lay.bounds()
+    bd.lbx["x"][()] = 2.0
+    res = session.solve(np.zeros(1), np.zeros(0), *bd.arrays())
+    assert res.x[0] == pytest.approx(2.0, abs=1e-7)
+    assert session.violation(np.array([1.5]), np.zeros(0), *bd.arrays()) == 0.5
+
+
+def test_interrupt_inside_ipopt_is_re_raised_not_a_failed_solve():
+    session, lay = _scalar_session()
+
+    class Interrupted:  # CasADi's behaviour on Ctrl-C inside IPOPT: a status, no raise
+        def __init__(self, solver):
+            self.solver = solver
+
+        def __call__(self, **args):
+            return self.solver(**args)
+
+        def stats(self):
+            return {**self.solver.stats(), "return_status": INTERRUPTED, "success": False}
+
+    session.cold = Interrupted(session.cold)
+    with pytest.raises(KeyboardInterrupt):
+        session.solve(np.zeros(1), np.zeros(0), *lay.bounds().arrays())
+
+
+def test_solver_errors_become_failed_solves():
+    session, lay = _scalar_session()
+
+    def raising(**args):
+        raise RuntimeError("Error in Function::call\n  .../x.cpp:12: NaN detected for output f")
+
+    session.cold = raising
+    res = session.solve(np.array([3.0]), np.zeros(0), *lay.bounds().arrays())
+    assert not res.stats.success and res.stats.status == "error: .../x.cpp:12: NaN detected " \
+                                                         "for output f"
+    assert res.x.tolist() == [3.0] and res.lam_x is None and res.stats.max_violation == np.inf
+
+
+def test_plugin_options_table():
+    ipopt = plugin_options("ipopt", 50, 1e-6, 2.0, extra={"ipopt": {"tol": 1e-7},
+                                                          "ipopt_warm": {"mu_init": 1.0},
+                                                          "error_on_fail": False})
+    assert ipopt["ipopt"]["tol"] == 1e-7 and ipopt["ipopt"]["max_wall_time"] == 2.0
+    assert ipopt["error_on_fail"] is False and "ipopt_warm" not in ipopt
+    assert plugin_options("sqpmethod", 5)["qpsol"] == "qrqp"
+    assert plugin_options("fatrop", 5, equality=[True, False])["equality"] == [True, False]
+    with pytest.raises(ValueError):
+        plugin_options("snopt", 5)
