@@ -8,8 +8,9 @@ from hmpc_cli.mpc.builder import NLPBuilder
 from hmpc_cli.mpc.solver import INTERRUPTED, SolverSession, WarmStart, plugin_options
 
 
-def _chain(L=3, n=2, m=1):
-    """x per stage k: z (n), u (m, k < L); p: a (L, 2), c (scalar); rows per stage."""
+def _chain(links=3, n=2, m=1):
+    """Chain NLP: per stage k z (n), u (m, k < L); p: a (L, 2), c (scalar); rows."""
+    L = links
     b = NLPBuilder()
     a = b.parameter("a", (L, 2))
     c = b.parameter("c")
@@ -175,3 +176,48 @@ def test_plugin_options_table():
     assert plugin_options("fatrop", 5, equality=[True, False])["equality"] == [True, False]
     with pytest.raises(ValueError):
         plugin_options("snopt", 5)
+
+
+# ------------------------------------------------------------ fixed-mode NLP row groups
+
+
+def test_fixed_mode_row_groups_by_name_and_size():
+    from hmpc_cli.mpc.layout import ChainLayout, NodeSchedule
+    from hmpc_cli.mpc.nlp import FixedModeNLPs, MPCSettings
+    from hmpc_cli.systems.ball import BallParams, build_ball
+
+    ball = build_ball(BallParams(terminal_radius=0.5))
+    nlps = FixedModeNLPs(ball, MPCSettings(horizon=0.5, max_switches=2))
+    nlp, n, G = nlps.switching, ball.n_x, len(ball.guards)
+    L, g = nlp.L, nlp.layout.g
+    assert L == 30 + 2 and nlp.R == 2 and nlp.T == 1
+    assert g.names == ("dynamics", "guard_avoid", "guard_hit", "virtual_node", "region",
+                       "terminal")
+    sizes = {name: g[name].shape for name in g.names}
+    assert sizes == {"dynamics": (L, n), "guard_avoid": (L + 1, G), "guard_hit": (L + 1,),
+                     "virtual_node": (L + 1,), "region": (L + 1, 2), "terminal": (1,)}
+    # rows interleave per link: dynamics then node k's path rows; terminal last
+    per_link = n + G + 2 + 2
+    assert nlp.ng == L * per_link + per_link - n + 1
+    for k in (0, 1, L - 1):
+        assert g.at(k).tolist() == list(range(k * per_link, (k + 1) * per_link))
+    assert g["terminal"].tolist() == [nlp.ng - 1]
+    x = nlp.layout.x
+    assert x["z"].shape == (L + 1, n) and x["u"].shape == (L, 2) and x["sigma"].shape == (L + 1,)
+    assert x.at(1).tolist() == list(range(n + 2 + 1, 2 * (n + 2 + 1)))
+    # the final domain's NLP: no switching rows
+    final = nlps.final
+    assert final.layout.g.names == ("dynamics", "guard_avoid", "terminal")
+    inside = ball.guards_of(ball.mode_index(ball.final_mode))
+    assert final.S == 0 and final.layout.g["guard_avoid"].shape == (31, len(inside))
+    # problem data switches the rows of a guard node on by name
+    ns = NodeSchedule((0, 1), (1,), (5, 25))
+    lay = ChainLayout.build(ns, L)
+    p, lbx, ubx, lbg, ubg = nlp.problem_data(ns, lay, ball.x0)
+    assert np.all(lbg[g["dynamics"]] == 0.0) and np.all(ubg[g["dynamics"]] == 0.0)
+    assert ubg[g["guard_hit"][5]] == 0.0 and lbg[g["virtual_node"][5]] == 0.0
+    assert np.all(lbg[g["region"][5]] == 0.0) and lbg[g["guard_avoid"][5, 1]] == 0.0
+    assert np.isinf(ubg[g["guard_hit"]]).sum() == L and lbg[g["terminal"][0]] == 0.0
+    par = nlp.layout.p.unpack(p)
+    assert par["hit"][5, 1] == 1.0 and par["beta"][5, 1] == 1.0 and par["b"][5, 1] == 1.0
+    assert np.all(lbx[x["z"][0]] == ball.x0) and np.all(ubx[x["sigma"]] == np.inf)
