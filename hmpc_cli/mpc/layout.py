@@ -40,6 +40,7 @@ class NodeSchedule:
     counts: tuple[int, ...]
 
     def __post_init__(self) -> None:
+        """Checks the counts of modes, guards and intervals."""
         if len(self.modes) != len(self.guards) + 1 or len(self.counts) != len(self.modes):
             raise ValueError("NodeSchedule: need S guards and S + 1 modes and counts")
         if min(self.counts) < 1:
@@ -47,12 +48,14 @@ class NodeSchedule:
 
     @property
     def n_intervals(self) -> int:
+        """Flow intervals over the horizon, N."""
         return sum(self.counts)
 
     @classmethod
     def from_schedule(cls, schedule: ModeSchedule, n: int, dt: float) -> NodeSchedule:
-        """Rounds planned durations up to whole intervals (so a plan that needed all of
-        its time stays feasible); the final domain takes the rest.
+        """Rounds planned durations up to whole intervals; the final domain takes the rest.
+
+        Rounding up keeps a plan that needed all of its time feasible.
 
         Raises:
             ValueError: the non-final domains do not fit in ``n - 1`` intervals.
@@ -85,6 +88,7 @@ class NodeSchedule:
         return NodeSchedule(self.modes[1:], self.guards[1:], counts)
 
     def to_dict(self) -> dict:
+        """JSON-ready dict of the schedule."""
         return {"modes": list(self.modes), "guards": list(self.guards),
                 "counts": list(self.counts)}
 
@@ -125,7 +129,7 @@ class ChainLayout:
         local = np.zeros(length + 1, dtype=int)
         first = np.zeros(length + 1, dtype=bool)
         k = 0
-        for j, (mode, count) in enumerate(zip(ns.modes, ns.counts)):
+        for j, (mode, count) in enumerate(zip(ns.modes, ns.counts, strict=True)):
             first[k] = j > 0
             for i in range(count + 1):
                 seg[k + i], local[k + i] = j, i

@@ -102,7 +102,7 @@ class MPCSettings(BaseModel):
     @property
     def n_intervals(self) -> int:
         """Flow intervals over the horizon, N."""
-        return int(round(self.horizon * self.nodes_per_second))
+        return round(self.horizon * self.nodes_per_second)
 
     @property
     def nodes_per_period(self) -> int:
