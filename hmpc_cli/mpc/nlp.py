@@ -156,8 +156,9 @@ class FixedModeNLP:
         self.T = system.terminal_set.size1_out(0) if system.terminal_set is not None else 0
         self.guards_of = [system.guards_of(i) for i in range(len(system.modes))]
         # guard-avoid offsets: margin 0 for the guard just crossed, else the tube margin
-        self.avoid_offsets = [(g.kappa(0.0, past=False), g.kappa(settings.tube_margin, past=False))
-                       for g in system.guards]
+        self.avoid_offsets = [(g.kappa(0.0, past=False),
+                               g.kappa(settings.tube_margin, past=False))
+                              for g in system.guards]
         self._build()
 
     # ------------------------------------------------------------------ build
