@@ -221,3 +221,32 @@ def test_fixed_mode_row_groups_by_name_and_size():
     par = nlp.layout.p.unpack(p)
     assert par["hit"][5, 1] == 1.0 and par["beta"][5, 1] == 1.0 and par["b"][5, 1] == 1.0
     assert np.all(lbx[x["z"][0]] == ball.x0) and np.all(ubx[x["sigma"]] == np.inf)
+
+
+def test_walking_row_groups_by_name_and_size():
+    from hmpc_cli.mpc.walking_nlp import NX, WalkingMPCSettings, WalkingNLP
+    from hmpc_cli.systems.biped import BipedParams, build_biped
+
+    N = 6
+    nlp = WalkingNLP(BipedParams(), WalkingMPCSettings(nodes_per_swing=N, apex_node=3))
+    g, x = nlp.layout.g, nlp.layout.x
+    assert g.names == ("dynamics", "torque", "guard_avoid", "knees", "touchdown", "reset",
+                       "liftoff")
+    assert {name: g[name].shape for name in g.names} == {
+        "dynamics": (2 * N, NX), "torque": (2 * N, 5), "guard_avoid": (2 * N,),
+        "knees": (2 * N, 2), "touchdown": (2,), "reset": (NX,), "liftoff": ()}
+    # per interval 18 rows; swing 0's intervals, touchdown + reset, swing 1's, liftoff
+    assert nlp.interval_rows.shape == (2, N, 18)
+    assert nlp.interval_rows[0].ravel().tolist() == list(range(18 * N))
+    assert g["touchdown"].tolist() == [18 * N, 18 * N + 1] and nlp.row(1, 0) == 18 * N + 12
+    assert int(g["liftoff"]) == nlp.ng - 1 == 2 * 18 * N + 12
+    assert x["x"].shape == (2 * N + 1, NX) and x["a"].shape == (2 * N, 5)
+    assert nlp.x_idx[0, 0].tolist() == [-1] * NX and nlp.x_idx[1, 0].tolist() == \
+        list(range(15 * N, 15 * N + NX))
+    p, lbx, ubx, lbg, ubg = nlp.problem_data(build_biped(BipedParams()).x0, (1.0, 1.5, 0.1),
+                                             0.0)
+    assert float(p[nlp.layout.p["dt0"]]) == pytest.approx(nlp.s.dt)
+    assert lbg[g["touchdown"][0]] == pytest.approx(1.0 + nlp.s.segment_margin)
+    assert lbg[g["touchdown"][1]] == ubg[g["touchdown"][1]] == pytest.approx(0.095)
+    assert np.isinf(lbg[g["guard_avoid"][N - 1]]) and lbg[g["guard_avoid"][N]] == 0.0
+    assert lbg[g["liftoff"]] == nlp.s.liftoff_accel

@@ -10,7 +10,7 @@ shape. Matrix blocks are flattened column-major (as ``casadi.vec``).
 
 Example::
 
-    b = NLPBuilder()
+    b, z = NLPBuilder(), []
     a = b.parameter("a", (L, M))              # layout.p["a"]: shape (L, M)
     for k in range(L + 1):
         with b.stage(k):
