@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-import time
+from dataclasses import replace
 
 import numpy as np
 
 from hmpc_cli.hybrid import HybridSystem
-from hmpc_cli.messages import Plan, SolveStats, Trajectory
+from hmpc_cli.messages import Plan, Trajectory
 from hmpc_cli.mpc.layout import ChainLayout, NodeSchedule, remap
-from hmpc_cli.mpc.nlp import INF, FixedModeNLP, FixedModeNLPs, MPCSettings
+from hmpc_cli.mpc.nlp import FixedModeNLP, FixedModeNLPs, MPCSettings
 
 
 class FixedModeMPC:
@@ -92,28 +92,14 @@ class FixedModeMPC:
         w0 = self._w.copy()
         w0[nlp.z_idx[0]] = x0
         warm = self.s.warm_start and self._lam_g is not None
-        start = time.perf_counter()
-        try:
-            sol, status, iters, ok = nlp.solve(w0, p, lbx, ubx, lbg, ubg,
-                                               self._lam_x if warm else None,
-                                               self._lam_g if warm else None)
-            w = np.asarray(sol["x"]).ravel()
-            cost = float(sol["f"])
-            ok = ok and np.all(np.isfinite(w))
-            viol = nlp.violation(w, p, lbx, ubx, lbg, ubg) if np.all(np.isfinite(w)) else INF
-        except RuntimeError as exc:  # CasADi raises on NaN evaluations
-            lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
-            status = "error: " + (lines[-1] if lines else type(exc).__name__)[:160]
-            w, cost, iters, ok, viol = w0, np.nan, 0, False, INF
-        wall = time.perf_counter() - start
-        slack = float(np.max(w[nlp.s_idx], initial=0.0)) if ok else float("nan")
-        stats = SolveStats(status, bool(ok), int(iters), wall, cost, float(viol), slack)
+        res = nlp.solve(w0, p, lbx, ubx, lbg, ubg, self._lam_x if warm else None,
+                        self._lam_g if warm else None)
+        ok = res.stats.success
+        slack = float(np.max(res.x[nlp.s_idx], initial=0.0)) if ok else float("nan")
         if ok:
-            self._w = w
-            self._lam_x = np.asarray(sol["lam_x"]).ravel()
-            self._lam_g = np.asarray(sol["lam_g"]).ravel()
-        traj = nlp.trajectory(w if ok else self._w_with(x0), ns, lay)
-        return Plan(t, traj, stats, ns)
+            self._w, self._lam_x, self._lam_g = res.x, res.lam_x, res.lam_g
+        traj = nlp.trajectory(res.x if ok else self._w_with(x0), ns, lay)
+        return Plan(t, traj, replace(res.stats, slack=slack), ns)
 
     def _w_with(self, x0: np.ndarray) -> np.ndarray:
         w = self._w.copy()

@@ -11,16 +11,20 @@ interval goes linearly from u_k to u_{k+1} (the low level's first-order-hold fee
 so an undisturbed plant follows the plan); the last interval before a guard node ends at
 the virtual input, the horizon's last interval holds its input.
 
-Path rows of node k, with bounds chosen per solve (an inactive row gets infinite bounds):
+Path rows of node k, with bounds chosen per solve (an inactive row gets infinite bounds),
+by row group (the named blocks of :class:`FixedModeNLP`; link k's ``dynamics`` rows come
+first):
 
-* one row per guard g: s_kg q_g(z_k) - kappa_kg + sigma_k. Guard-avoid (>= 0, s = +1,
-  kappa from the tube margin), guard-hit at the switching node (>= 0 here and
-  q_G(z_k) - sigma_k <= 0 in the next row: |q_G| <= sigma_k), or off;
-* the virtual pass-through row: -q_G(Phi(z_k, u_k)) - kappa + sigma_k >= 0 at each guard
-  node, i.e. one more interval of the source flow with the virtual input u_k puts the
-  whole tube past the guard (problem (14));
-* the guard's activity-region rows at the switching node (+ sigma_k >= 0);
-* terminal-set rows at the last node (+ sigma_L >= 0).
+* ``guard_avoid``, one row per guard g: s_kg q_g(z_k) - kappa_kg + sigma_k. Guard-avoid
+  (>= 0, s = +1, kappa from the tube margin), the lower side of the guard-hit at the
+  switching node (>= 0 with kappa = 0), or off;
+* ``guard_hit``: q_G(z_k) - sigma_k <= 0 at the switching node (with the row above:
+  |q_G| <= sigma_k);
+* ``virtual_node``: -q_G(Phi(z_k, u_k)) - kappa + sigma_k >= 0 at each guard node, i.e.
+  one more interval of the source flow with the virtual input u_k puts the whole tube
+  past the guard (problem (14));
+* ``region``: the guard's activity-region rows at the switching node (+ sigma_k >= 0);
+* ``terminal``: terminal-set rows at the last node (+ sigma_L >= 0).
 
 sigma_k >= 0 is one slack per node with an exact L1 penalty ``soft_penalty * sum sigma_k``
 in the cost: whenever the hybrid constraints can be met, the solution meets them exactly
@@ -44,10 +48,14 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.messages import Trajectory
-from hmpc_cli.mpc.layout import FLOW, HOLD, RESET, ChainLayout, NodeSchedule
+from hmpc_cli.mpc.builder import Blocks, NLPBuilder
+from hmpc_cli.mpc.layout import FLOW, ChainLayout, NodeSchedule
+from hmpc_cli.mpc.nlp_data import INF, problem_data
+from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart
 
-INF = np.inf
-VIRTUAL_INPUT_WEIGHT = 1e-3
+__all__ = ["INF", "FixedModeNLP", "FixedModeNLPs", "MPCSettings"]
+
+WARM_START = WarmStart(mu_init=1e-6, bound_push=1e-9)  # the warm IPOPT instance
 
 
 class MPCSettings(BaseModel):
@@ -105,15 +113,28 @@ class MPCSettings(BaseModel):
 
     @property
     def n_intervals(self) -> int:
-        return int(round(self.horizon * self.nodes_per_second))
+        """Flow intervals over the horizon, N."""
+        return round(self.horizon * self.nodes_per_second)
 
     @property
     def nodes_per_period(self) -> int:
+        """Intervals elapsed per MPC period."""
         return self.nodes_per_second // self.rate_hz
 
 
 class FixedModeNLP:
     """The parametric fixed-mode NLP on a chain of N + S links (built once).
+
+    Named blocks (see :mod:`hmpc_cli.mpc.builder`; stage k = node k and link k), in the
+    order of the flat vectors:
+
+    * x, per stage k: ``z`` (n), ``u`` (m, links only), ``sigma`` (scalar slack);
+    * g, per stage k: ``dynamics`` (n, links only), ``guard_avoid`` (one row per guard
+      with rows), and with S > 0 ``guard_hit`` (scalar), ``virtual_node`` (scalar),
+      ``region`` (R, if any guard has a region); after the last stage ``terminal`` (T);
+    * p: ``a`` (L, M), ``b`` (L, G), ``e``, ``w``, ``v``, ``foh`` (L each), ``s``,
+      ``kappa`` (L + 1, Gr), ``beta`` (L + 1, G), ``kappa_v`` (L + 1), ``hit``
+      (L + 1, G) (the last three with no rows when S = 0).
 
     Args:
         system: the hybrid system (the controllers' model).
@@ -126,6 +147,7 @@ class FixedModeNLP:
 
     def __init__(self, system: HybridSystem, settings: MPCSettings,
                  switches: int | None = None) -> None:
+        """Builds the NLP and its solver session (see the class docstring)."""
         self.system = system
         self.s = settings
         self.S = settings.max_switches if switches is None else switches
@@ -138,18 +160,17 @@ class FixedModeNLP:
         # modes with a flow in the chain, guards with rows (local column order)
         self.modes_in = list(range(len(system.modes))) if self.S else [final]
         self.row_guards = list(range(self.G)) if self.S else system.guards_of(final)
-        self._mcol = {mode: c for c, mode in enumerate(self.modes_in)}
-        self._gcol = {g: c for c, g in enumerate(self.row_guards)}
+        self.mode_col = {mode: c for c, mode in enumerate(self.modes_in)}
+        self.guard_col = {g: c for c, g in enumerate(self.row_guards)}
         self.M, self.Gr = len(self.modes_in), len(self.row_guards)
         self.R = max([g.region.size1_out(0) for g in system.guards if g.region is not None]
                      or [0]) if self.S else 0
         self.T = system.terminal_set.size1_out(0) if system.terminal_set is not None else 0
-        # rows per node: guard rows, then (if S > 0) guard-hit upper side, virtual, region
-        self.P = self.Gr + (2 + self.R if self.S else 0)
-        self._guards_of = [system.guards_of(i) for i in range(len(system.modes))]
+        self.guards_of = [system.guards_of(i) for i in range(len(system.modes))]
         # guard-avoid offsets: margin 0 for the guard just crossed, else the tube margin
-        self._kappa = [(g.kappa(0.0, past=False), g.kappa(settings.tube_margin, past=False))
-                       for g in system.guards]
+        self.avoid_offsets = [(g.kappa(0.0, past=False),
+                               g.kappa(settings.tube_margin, past=False))
+                              for g in system.guards]
         self._build()
 
     # ------------------------------------------------------------------ build
@@ -168,203 +189,102 @@ class FixedModeNLP:
         return z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
     def _build(self) -> None:
-        n, m, L, G, M, Gr = self.n, self.m, self.L, self.G, self.M, self.Gr
-        sysm, switching = self.system, self.S > 0
-        Z = [ca.SX.sym(f"z{k}", n) for k in range(L + 1)]
-        U = [ca.SX.sym(f"u{k}", m) for k in range(L)]
-        Sg = [ca.SX.sym(f"sigma{k}") for k in range(L + 1)]
-        pa = ca.SX.sym("a", L, M)
-        pb = ca.SX.sym("b", L, G if switching else 0)
-        pe = ca.SX.sym("e", L)
-        pw = ca.SX.sym("w", L)
-        pv = ca.SX.sym("v", L)
-        pf = ca.SX.sym("foh", L)  # 1: the interval's input ends at the next link's input
-        ps = ca.SX.sym("s", L + 1, Gr)
-        pk = ca.SX.sym("kappa", L + 1, Gr)
-        nsw = L + 1 if switching else 0
-        pbeta = ca.SX.sym("beta", nsw, G)
-        pkv = ca.SX.sym("kappa_v", nsw)
-        phit = ca.SX.sym("hit", nsw, G)
-        zs = ca.SX.sym("zs", n)
+        b = NLPBuilder()
+        zs, us, sigmas = [], [], []
+        for k in range(self.L + 1):
+            with b.stage(k):
+                zs.append(b.variable("z", self.n))
+                if k < self.L:
+                    us.append(b.variable("u", self.m))
+                sigmas.append(b.variable("sigma"))
+        self._par = self._parameters(b)
+        self._guard_functions()
+        J = self._transcribe(b, zs, us, sigmas)
+        nlp, self.layout = b.build(J)
+        X, g = self.layout.x, self.layout.g
+        equality = None
+        if self.s.solver == "fatrop":
+            eq = np.zeros(g.size, dtype=bool)
+            eq[g["dynamics"]] = True
+            equality = eq.tolist()
+        self.session = SolverSession(
+            "fixed_mode_mpc", nlp, self.s.solver, max_iter=self.s.max_iter, tol=1e-8,
+            equality=equality, extra=self.s.solver_options, warm=WARM_START)
+        self.nx_var, self.ng, self.np = X.size, g.size, self.layout.p.size
+        self.z_idx, self.u_idx, self.s_idx = X["z"], X["u"], X["sigma"]
+        self.link_rows = np.stack([g.at(k) for k in range(self.L)])  # (L, rows per link)
 
-        src = [self._mcol.get(sysm.mode_index(g.source), 0) for g in sysm.guards]
-        q = [ca.Function(f"q_{g.name}", [zs], [g.q_expr(zs)]) for g in sysm.guards]
-        regions = []
-        for g in sysm.guards if switching else ():
+    def _parameters(self, b: NLPBuilder) -> dict:
+        """The parameter blocks (link types, weights, path-row signs and offsets)."""
+        L, G, Gr = self.L, self.G, self.Gr
+        nsw = L + 1 if self.S else 0
+        shapes = {"a": (L, self.M), "b": (L, G if self.S else 0), "e": L, "w": L, "v": L,
+                  "foh": L,  # 1: the interval's input ends at the next link's input
+                  "s": (L + 1, Gr), "kappa": (L + 1, Gr), "beta": (nsw, G),
+                  "kappa_v": nsw, "hit": (nsw, G)}
+        return {name: b.parameter(name, shape) for name, shape in shapes.items()}
+
+    def _guard_functions(self) -> None:
+        """Guard functions q_g, source-flow column of each guard, padded regions."""
+        sysm, zs = self.system, ca.SX.sym("zs", self.n)
+        self._src = [self.mode_col.get(sysm.mode_index(g.source), 0) for g in sysm.guards]
+        self._q = [ca.Function(f"q_{g.name}", [zs], [g.q_expr(zs)]) for g in sysm.guards]
+        self._regions = []
+        for g in sysm.guards if self.S else ():
             r = g.region(zs) if g.region is not None else ca.SX.zeros(0)
             pad = ca.vertcat(r, ca.SX.zeros(self.R - r.size1()))
-            regions.append(ca.Function(f"r_{g.name}", [zs], [pad]))
-        stage = sysm.stage_cost
-        J = 0
-        g_rows = []
+            self._regions.append(ca.Function(f"r_{g.name}", [zs], [pad]))
 
-        def path(k, z, flows, sk):
-            qz = {i: q[i](z) for i in (range(G) if switching else self.row_guards)}
-            rows = [ps[k, c] * qz[i] - pk[k, c] + sk for c, i in enumerate(self.row_guards)]
-            if not switching:
-                return rows
-            rows.append(sum(phit[k, i] * qz[i] for i in range(G)) - sk)
-            virt = 0
-            for i in range(G):
-                virt += pbeta[k, i] * (-q[i](flows[src[i]]))
-            rows.append(virt - pkv[k] + sk)
-            reg = ca.SX.zeros(self.R)
-            for i in range(G):
-                reg += pbeta[k, i] * regions[i](z)
-            rows.extend(ca.vertsplit(reg + sk) if self.R else [])
-            return rows
-
+    def _transcribe(self, b: NLPBuilder, zs: list, us: list, sigmas: list):
+        """Registers the rows stage by stage; returns the cost."""
+        L, m, P, sysm = self.L, self.m, self._par, self.system
+        switching, J = self.S > 0, 0
         for k in range(L):
             foh = self.s.input_hold == "foh" and k + 1 < L  # structural: zoh keeps stages
-            u_end = U[k] + pf[k] * (U[k + 1] - U[k]) if foh else U[k]
-            flows = [self._interval(i, Z[k], U[k], u_end) for i in self.modes_in]
-            nxt = pe[k] * Z[k]
-            for c in range(M):
-                nxt += pa[k, c] * flows[c]
+            u_end = us[k] + P["foh"][k] * (us[k + 1] - us[k]) if foh else us[k]
+            flows = [self._interval(i, zs[k], us[k], u_end) for i in self.modes_in]
+            nxt = P["e"][k] * zs[k]
+            for c in range(self.M):
+                nxt += P["a"][k, c] * flows[c]
             for i, g in enumerate(sysm.guards if switching else ()):
-                nxt += pb[k, i] * g.reset(Z[k])
-            g_rows.append(Z[k + 1] - nxt)
-            g_rows.extend(path(k, Z[k], flows, Sg[k]))
-            J += pw[k] * stage(Z[k], U[k]) + pv[k] * ca.sumsqr(U[k])
-        last_flows = [self._interval(i, Z[L], ca.DM.zeros(m), ca.DM.zeros(m))
+                nxt += P["b"][k, i] * g.reset(zs[k])
+            with b.stage(k):
+                b.rows("dynamics", zs[k + 1] - nxt)
+                self._path_rows(b, k, zs[k], flows, sigmas[k])
+            J += P["w"][k] * sysm.stage_cost(zs[k], us[k]) + P["v"][k] * ca.sumsqr(us[k])
+        last_flows = [self._interval(i, zs[L], ca.DM.zeros(m), ca.DM.zeros(m))
                       for i in self.modes_in] if switching else []
-        g_rows.extend(path(L, Z[L], last_flows, Sg[L]))
+        with b.stage(L):
+            self._path_rows(b, L, zs[L], last_flows, sigmas[L])
         if self.T:
-            g_rows.append(sysm.terminal_set(Z[L]) + Sg[L])
-        J += self.s.soft_penalty * ca.sum1(ca.vertcat(*Sg))
-        w_vars = []
-        for k in range(L):
-            w_vars += [Z[k], U[k], Sg[k]]
-        w_vars += [Z[L], Sg[L]]
-        p = ca.vertcat(ca.vec(pa), ca.vec(pb), pe, pw, pv, pf, ca.vec(ps), ca.vec(pk),
-                       ca.vec(pbeta), pkv, ca.vec(phit))
-        g_rows_flat = ca.vertcat(*g_rows)
-        nlp = {"x": ca.vertcat(*w_vars), "p": p, "f": J, "g": g_rows_flat}
-        opts = {"expand": True}
-        plugin_opts = dict(self.s.solver_options)
-        plugin_opts.pop("ipopt_warm", None)
-        if self.s.solver == "ipopt":
-            ipopt = {"print_level": 0, "sb": "yes", "max_iter": self.s.max_iter,
-                     "tol": 1e-8, "constr_viol_tol": 1e-8, "mu_strategy": "adaptive"}
-            ipopt.update(plugin_opts.pop("ipopt", {}))
-            opts.update({"ipopt": ipopt, "print_time": False})
-        elif self.s.solver == "sqpmethod":
-            opts.update({"max_iter": self.s.max_iter, "print_time": False,
-                         "print_header": False, "print_iteration": False,
-                         "qpsol": "qrqp",
-                         "qpsol_options": {"print_iter": False, "print_header": False,
-                                           "error_on_fail": False}})
-        else:
-            rows = n + self.P
-            equality = [(r % rows) < n and r < L * rows for r in range(g_rows_flat.size1())]
-            opts.update({"structure_detection": "auto", "print_time": False,
-                         "equality": equality,
-                         "fatrop": {"print_level": 0, "max_iter": self.s.max_iter}})
-        opts.update(plugin_opts)
-        self.solver = ca.nlpsol("fixed_mode_mpc", self.s.solver, nlp, opts)
-        self._warm_solver = self.solver
-        if self.s.solver == "ipopt":
-            warm = dict(opts)
-            warm["ipopt"] = {**opts["ipopt"], "warm_start_init_point": "yes",
-                             "mu_init": 1e-6, "warm_start_bound_push": 1e-9,
-                             "warm_start_mult_bound_push": 1e-9,
-                             "warm_start_slack_bound_push": 1e-9}
-            warm["ipopt"].update(self.s.solver_options.get("ipopt_warm", {}))
-            warm.pop("ipopt_warm", None)
-            self._warm_solver = ca.nlpsol("fixed_mode_mpc_warm", "ipopt", nlp, warm)
-        self.nx_var = nlp["x"].size1()
-        self.ng = nlp["g"].size1()
-        self.np = p.size1()
-        self._g_fun = ca.Function("g", [nlp["x"], p], [nlp["g"]])
-        self.rows_per_link = n + self.P
-        stride = n + m + 1
-        self.z_idx = np.array([[k * stride + i for i in range(n)] for k in range(L + 1)])
-        self.u_idx = np.array([[k * stride + n + i for i in range(m)] for k in range(L)])
-        self.s_idx = np.array([k * stride + n + m for k in range(L)] + [L * stride + n])
+            b.rows("terminal", sysm.terminal_set(zs[L]) + sigmas[L])
+        return J + self.s.soft_penalty * ca.sum1(ca.vertcat(*sigmas))
+
+    def _path_rows(self, b: NLPBuilder, k: int, z, flows: list, sk) -> None:
+        """Node k's guard-avoid, guard-hit, virtual-node and region rows."""
+        P, q, G, switching = self._par, self._q, self.G, self.S > 0
+        qz = {i: q[i](z) for i in (range(G) if switching else self.row_guards)}
+        b.rows("guard_avoid", [P["s"][k, c] * qz[i] - P["kappa"][k, c] + sk
+                               for c, i in enumerate(self.row_guards)])
+        if not switching:
+            return
+        b.rows("guard_hit", sum(P["hit"][k, i] * qz[i] for i in range(G)) - sk, shape=())
+        virt = 0
+        for i in range(G):
+            virt += P["beta"][k, i] * (-q[i](flows[self._src[i]]))
+        b.rows("virtual_node", virt - P["kappa_v"][k] + sk, shape=())
+        reg = ca.SX.zeros(self.R)
+        for i in range(G):
+            reg += P["beta"][k, i] * self._regions[i](z)
+        if self.R:
+            b.rows("region", reg + sk)
 
     # ------------------------------------------------------------ problem data
-    def _path_row(self, k: int) -> int:
-        """First path row of node k."""
-        return k * self.rows_per_link + (self.n if k < self.L else 0)
-
     def problem_data(self, ns: NodeSchedule, lay: ChainLayout, x0: np.ndarray):
         """Parameters and bounds of one solve: (p, lbx, ubx, lbg, ubg)."""
-        n, L, G, Gr = self.n, self.L, self.G, self.Gr
-        sysm, d = self.system, self.s.tube_margin
-        nsw = L + 1 if self.S else 0
-        a = np.zeros((L, self.M))
-        b = np.zeros((L, G if self.S else 0))
-        e = np.zeros(L)
-        wk = np.zeros(L)
-        vk = np.zeros(L)
-        foh = np.zeros(L)
-        sg = np.zeros((L + 1, Gr))
-        kap = np.zeros((L + 1, Gr))
-        beta = np.zeros((nsw, G))
-        kv = np.zeros(nsw)
-        hit = np.zeros((nsw, G))
-        lbx = np.full(self.nx_var, -INF)
-        ubx = np.full(self.nx_var, INF)
-        lbx[self.s_idx] = 0.0
-        ubx[self.s_idx] = INF if self.s.soft_penalty > 0.0 else 0.0
-        lbg = np.full(self.ng, -INF)
-        ubg = np.full(self.ng, INF)
-        lbx[self.z_idx[0]] = ubx[self.z_idx[0]] = x0
-        for k in range(L):
-            lbg[k * self.rows_per_link: k * self.rows_per_link + n] = 0.0
-            ubg[k * self.rows_per_link: k * self.rows_per_link + n] = 0.0
-            typ, mode = lay.link_type[k], lay.link_mode[k]
-            lo = hi = np.zeros(self.m)
-            if typ == FLOW:
-                a[k, self._mcol[mode]], wk[k] = 1.0, self.dt
-                lo, hi = self._input_box(mode)
-                # first-order hold up to the next link's input (the virtual input before
-                # a guard node); the horizon's last interval holds its input
-                if self.s.input_hold == "foh" and k + 1 < L and lay.link_type[k + 1] != HOLD:
-                    foh[k] = 1.0
-            elif typ == RESET:
-                b[k, lay.link_guard[k]] = 1.0
-                if self.s.robust:
-                    vk[k] = VIRTUAL_INPUT_WEIGHT * self.dt
-                    lo, hi = self._input_box(mode)
-            else:
-                e[k] = 1.0
-            lbx[self.u_idx[k]], ubx[self.u_idx[k]] = lo, hi
-        for k in range(1, lay.last + 1):
-            j = int(lay.seg[k])
-            mode = ns.modes[j]
-            row = self._path_row(k)
-            entered_by = ns.guards[j - 1] if j > 0 else -1
-            is_guard_node = j < len(ns.guards) and lay.local[k] == ns.counts[j]
-            if lay.first_after_reset[k]:
-                continue
-            for gi in self._guards_of[mode]:
-                c = self._gcol[gi]
-                if is_guard_node and gi == ns.guards[j]:  # guard-hit: |q| <= sigma
-                    sg[k, c], kap[k, c], hit[k, gi] = 1.0, 0.0, 1.0
-                    lbg[row + c] = ubg[row + Gr] = 0.0
-                    continue
-                sg[k, c] = 1.0
-                kap[k, c] = self._kappa[gi][0 if gi == entered_by else 1]
-                lbg[row + c] = 0.0
-            if is_guard_node:
-                gi = ns.guards[j]
-                g = sysm.guards[gi]
-                if self.s.robust:
-                    beta[k, gi], kv[k] = 1.0, g.kappa(d, past=True)
-                    lbg[row + Gr + 1] = 0.0
-                else:
-                    beta[k, gi] = 1.0  # region rows only
-                dims = g.region.size1_out(0) if g.region is not None else 0
-                lbg[row + Gr + 2: row + Gr + 2 + dims] = 0.0
-        if self.T:
-            lbg[self.ng - self.T:] = 0.0
-        p = np.concatenate([a.ravel(order="F"), b.ravel(order="F"), e, wk, vk, foh,
-                            sg.ravel(order="F"), kap.ravel(order="F"),
-                            beta.ravel(order="F"), kv, hit.ravel(order="F")])
-        return p, lbx, ubx, lbg, ubg
+        return problem_data(self, ns, lay, x0)
 
-    def _input_box(self, mode: int) -> tuple[np.ndarray, np.ndarray]:
+    def input_box(self, mode: int) -> tuple[np.ndarray, np.ndarray]:
         """The mode's input box shrunk by ``input_margin`` per side (never past its centre)."""
         md = self.system.modes[mode]
         lo = np.array(md.u_lower) + self.s.input_margin
@@ -373,55 +293,36 @@ class FixedModeNLP:
         return np.minimum(lo, mid), np.maximum(hi, mid)
 
     # ------------------------------------------------------------------ solve
-    def solve(self, w0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None):
-        """One solve. Returns (solution dict, status, iterations, success)."""
-        args = {"x0": w0, "p": p, "lbx": lbx, "ubx": ubx, "lbg": lbg, "ubg": ubg}
-        solver = self.solver
-        if lam_x0 is not None and lam_g0 is not None:
-            lam_g0 = np.where(np.isfinite(lbg) | np.isfinite(ubg), lam_g0, 0.0)
-            args.update(lam_x0=lam_x0, lam_g0=lam_g0)
-            solver = self._warm_solver
-        sol = solver(**args)
-        st = solver.stats()
-        status = str(st.get("return_status", st.get("success")))
-        iters = st.get("iter_count", st.get("iterations", {}).get("iter", [0])[-1]
-                       if isinstance(st.get("iterations"), dict) else 0)
-        return sol, status, int(iters), bool(st.get("success", False))
+    def solve(self, w0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None) -> SolveResult:
+        """One solve (see :meth:`SolverSession.solve`); never raises on solver failure."""
+        return self.session.solve(w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0)
 
     def violation(self, w, p, lbx, ubx, lbg, ubg) -> float:
         """Largest constraint or bound violation at primal point w."""
-        g = np.asarray(self._g_fun(w, p)).ravel()
-        v = [np.max(np.maximum(lbg - g, 0.0), initial=0.0),
-             np.max(np.maximum(g - ubg, 0.0), initial=0.0),
-             np.max(np.maximum(lbx - w, 0.0), initial=0.0),
-             np.max(np.maximum(w - ubx, 0.0), initial=0.0)]
-        return float(max(v))
+        return self.session.violation(w, p, lbx, ubx, lbg, ubg)
 
     def constraints(self, w, p) -> np.ndarray:
         """Constraint values g(w, p), shape (ng,)."""
-        return np.asarray(self._g_fun(w, p)).ravel()
+        return self.session.constraints(w, p)
 
     # ------------------------------------------------------------- warm start
     def remap_vectors(self, node_map, w, lam_x, lam_g, source: FixedModeNLP | None = None):
-        """Re-indexes primal/dual vectors of ``source`` (default: this NLP) node by node
-        onto this NLP (see :func:`layout.remap`); duals only within one NLP (None else)."""
+        """Re-indexes primal/dual vectors of ``source`` (default: this NLP) node by node.
+
+        See :func:`layout.remap` for ``node_map`` (shape (L + 1,)); a link takes the
+        entries of its start node's link (the source's last link past its end). Duals
+        only within one NLP (None else).
+        """
         src = source or self
-        L = self.L
-        link_map = np.minimum(node_map[:L], src.L - 1)
-        new_w = np.zeros(self.nx_var) if src is not self else w.copy()
-        new_w[self.z_idx] = w[src.z_idx[node_map]]
-        new_w[self.u_idx] = w[src.u_idx[link_map]]
-        new_w[self.s_idx] = w[src.s_idx[node_map]]
+        link_map = np.minimum(node_map[: self.L], src.L - 1)
+        maps = {"z": node_map, "u": link_map, "sigma": node_map}
+        new_w = w.copy() if src is self else np.zeros(self.nx_var)
+        _move(new_w, w, maps, self.layout.x, src.layout.x)
         if lam_x is None or lam_g is None or src is not self:
             return new_w, None, None
-        new_lx = lam_x.copy()
-        new_lx[self.z_idx] = lam_x[self.z_idx[node_map]]
-        new_lx[self.u_idx] = lam_x[self.u_idx[link_map]]
-        new_lx[self.s_idx] = lam_x[self.s_idx[node_map]]
-        rows = np.arange(self.rows_per_link)
+        new_lx = _move(lam_x.copy(), lam_x, maps, self.layout.x, self.layout.x)
         new_lg = lam_g.copy()
-        new_lg[(np.arange(L)[:, None] * self.rows_per_link + rows).ravel()] = \
-            lam_g[(link_map[:, None] * self.rows_per_link + rows).ravel()]
+        new_lg[self.link_rows] = lam_g[self.link_rows[link_map]]
         return new_w, new_lx, new_lg
 
     # ------------------------------------------------------------- trajectory
@@ -438,11 +339,22 @@ class FixedModeNLP:
         return Trajectory(t, x, u, mode, seg, tuple(ns.guards), self.s.input_hold)
 
 
+def _move(dst: np.ndarray, src: np.ndarray, maps: dict, to: Blocks, frm: Blocks):
+    """Sets stage i of each staged block ``name`` of dst to stage ``maps[name][i]`` of src."""
+    for name, stage_map in maps.items():
+        dst[to[name]] = src[frm[name][stage_map]]
+    return dst
+
+
 class FixedModeNLPs:
-    """The fixed-mode NLPs of one (system, settings), each built once: the switching chain
-    (S = ``max_switches``) and, with ``final_domain_nlp``, the final domain's (S = 0)."""
+    """The fixed-mode NLPs of one (system, settings), each built once.
+
+    The switching chain (S = ``max_switches``) and, with ``final_domain_nlp``, the final
+    domain's (S = 0).
+    """
 
     def __init__(self, system: HybridSystem, settings: MPCSettings) -> None:
+        """Builds the NLPs."""
         self.switching = FixedModeNLP(system, settings)
         self.final = FixedModeNLP(system, settings, switches=0) \
             if settings.final_domain_nlp else None

@@ -26,16 +26,16 @@ accelerations (cold).
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from hmpc_cli.hybrid import HybridSystem
-from hmpc_cli.messages import GuardEvent, ModeSchedule, Plan, SolveStats, Trajectory
+from hmpc_cli.messages import GuardEvent, ModeSchedule, Plan, Trajectory
 from hmpc_cli.mpc.fixed_mode import rejected_plan
-from hmpc_cli.mpc.walking_nlp import NX, ROWS, WalkingMPCSettings, WalkingNLP
+from hmpc_cli.mpc.solver import failed
+from hmpc_cli.mpc.walking_nlp import NX, WalkingMPCSettings, WalkingNLP
 from hmpc_cli.registry import MPCSpec
 
 __all__ = ["MPC", "WalkingMPC", "WalkingMPCSettings", "WalkingNLP"]
@@ -131,9 +131,8 @@ class WalkingMPC:
         if self.s.impact_duals and old.lam_x is not None and old.lam_g is not None:
             lam_x = self._repeat_swing1(old.lam_x)
             lam_g = old.lam_g.copy()
-            n = nlp.N * ROWS
-            lam_g[:n] = old.lam_g[nlp.row(1, 0):nlp.row(1, 0) + n]
-            lam_g[nlp.lift_row] = 0.0
+            lam_g[nlp.interval_rows[0]] = old.lam_g[nlp.interval_rows[1]]
+            lam_g[nlp.layout.g["liftoff"]] = 0.0
         self._template = _Memory(w, lam_x, lam_g, old.w[nlp.x_idx[1, 0]], 0.0)
 
     def _repeat_swing1(self, v: np.ndarray) -> np.ndarray:
@@ -147,10 +146,7 @@ class WalkingMPC:
 
     def _hold(self, x0: np.ndarray) -> np.ndarray:
         w = np.zeros(self.nlp.nw)
-        for j in range(2):
-            for k in range(self.nlp.N + 1):
-                if self.nlp.x_idx[j, k, 0] >= 0:
-                    w[self.nlp.x_idx[j, k]] = x0[:NX]
+        w[self.nlp.layout.x["x"]] = x0[:NX]
         return w
 
     def _shifted(self, mem: _Memory, elapsed: float):
@@ -175,9 +171,9 @@ class WalkingMPC:
         lx[nlp.x_idx[0, 1:]] = ratio * interp(np.vstack([lxs[:1], lxs]), t_old, t_new)[1:]
         lx[nlp.a_idx[0]] = interp(mem.lam_x[nlp.a_idx[0]], t_old[:N], t_new[:N])
         lg = mem.lam_g.copy()
-        rows = np.arange(N * ROWS).reshape(N, ROWS)
+        rows = nlp.interval_rows[0]
         block = interp(mem.lam_g[rows], t_old[:N], t_new[:N])
-        block[:, NX:] *= ratio
+        block[~np.isin(rows, nlp.layout.g["dynamics"])] *= ratio  # path rows
         lg[rows] = block
         return w, lx, lg
 
@@ -218,39 +214,28 @@ class WalkingMPC:
             kind = "primal-dual" if lam_g is not None else "primal"
         else:
             w0, kind = self._hold(x0), "cold"
-        start = time.perf_counter()
-        try:
-            if not np.all(np.isfinite(x0)):
-                raise ValueError("non-finite initial state")
-            a, b, _ = self.segments[segment]
-            if b - a < 2 * self.s.segment_margin:
-                raise ValueError(f"segment {segment} ({b - a:g} m) is shorter than twice "
-                                 f"segment_margin ({self.s.segment_margin:g} m)")
-            sol, status, iters, ok = nlp.solve(w0, p, lbx, ubx, lbg, ubg, lam_x, lam_g)
-            w = np.asarray(sol["x"]).ravel()
-            finite = bool(np.all(np.isfinite(w)))
-            cost = float(sol["f"]) if finite else np.nan
-            viol = nlp.violation(w, p, lbx, ubx, lbg, ubg) if finite else np.inf
-            ok = ok and finite
-        except (RuntimeError, ValueError) as exc:  # CasADi raises on NaN evaluations
-            lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
-            status = "error: " + (lines[-1] if lines else type(exc).__name__)[:160]
-            w, cost, iters, ok, viol, finite = w0, np.nan, 0, False, np.inf, False
-        wall = time.perf_counter() - start
-        if ok:
-            self._memory[segment] = _Memory(w, np.asarray(sol["lam_x"]).ravel(),
-                                            np.asarray(sol["lam_g"]).ravel(), x0, elapsed)
+        a, b, _ = self.segments[segment]
+        if not np.all(np.isfinite(x0)):
+            res = failed(w0, "non-finite initial state")
+        elif b - a < 2 * self.s.segment_margin:
+            res = failed(w0, f"segment {segment} ({b - a:g} m) is shorter than twice "
+                             f"segment_margin ({self.s.segment_margin:g} m)")
+        else:
+            res = nlp.solve(w0, p, lbx, ubx, lbg, ubg, lam_x, lam_g)
+        if res.stats.success:
+            self._memory[segment] = _Memory(res.x, res.lam_x, res.lam_g, x0, elapsed)
         else:
             self._memory.pop(segment, None)
-        stats = SolveStats(status, bool(ok), int(iters), wall, cost, float(viol))
-        traj = self.trajectory(w if finite else w0, p, segment)
+        finite = bool(np.all(np.isfinite(res.x)))
+        traj = self.trajectory(res.x if finite else w0, p, segment)
         remaining = nlp.N * nlp.dt0(elapsed)
         td = np.asarray(self.system.output("swing_foot_world")(traj.x[nlp.N])).ravel()
         hip = np.asarray(self.system.output("hip_world")(traj.x[-1])).ravel()
         extra = {"segment": segment, "elapsed": float(elapsed), "warm": kind,
                  "touchdown": tuple(float(v) for v in td),
                  "final_hip": tuple(float(v) for v in hip)}
-        return Plan(t, traj, stats, ModeSchedule((0, 0), (segment,), (remaining,), t), extra)
+        return Plan(t, traj, res.stats, ModeSchedule((0, 0), (segment,), (remaining,), t),
+                    extra)
 
     # ------------------------------------------------------------- trajectory
     def trajectory(self, w: np.ndarray, p: np.ndarray, segment: int) -> Trajectory:
@@ -262,7 +247,7 @@ class WalkingMPC:
         """
         nlp, N = self.nlp, self.nlp.N
         xs, us = nlp.states_inputs(w, p)
-        dt0 = float(p[12])
+        dt0 = float(p[nlp.layout.p["dt0"]])
         t = np.r_[np.arange(N + 1) * dt0, N * dt0 + np.arange(N + 1) * self.s.dt]
         u = np.vstack([us[:N], us[N - 1:N], us[N:], us[-1:]])
         seg = np.r_[np.zeros(N + 1, dtype=int), np.ones(N + 1, dtype=int)]

@@ -37,8 +37,15 @@ ground after an impact leaves it at once instead of re-touching.
 
 Cost: sum_j sum_k dt_j [l(x_{k+1}) + r_torque |u_k|^2] with l = q_hip |hip - goal|^2
 + sum pose_weights (q - q_nominal)^2 + sum torso_top_weights (top - torso_top_target)^2
-(hip in the world, torso top relative to the stance foot; weights from
-:class:`BipedParams` and the settings).
+(hip in the world, torso top relative to the stance foot): the system's own stage cost
+(``HybridSystem.stage_cost`` at (x_{k+1}, u_k)) plus the torso-top posture term of the
+settings.
+
+The transcription needs the system's named outputs ``points`` (with ``point_names``
+holding ``stance_knee``, ``torso_top``, ``swing_knee``, ``swing_foot``),
+``inverse_dynamics``, ``swing_foot_world``, ``swing_foot_velocity``,
+``swing_foot_jacobian`` and ``contact_reset``, its ``terrain`` and ``state_box``, and a
+state x = (q[5], qd[5], p_st[2]).
 """
 
 from __future__ import annotations
@@ -49,20 +56,20 @@ import casadi as ca
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from hmpc_cli.mpc.builder import Bounds, NLPBuilder
+from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart
 from hmpc_cli.hybrid import HybridSystem
 
 INF = np.inf
 NX = 10  # (q, qd) per node; p_st is a parameter (swing 0) or an expression (swing 1)
-ROWS = 18  # per interval: dynamics 10, torque 5, floor 1, knees 2
-TD_ROWS = 2 + NX  # touchdown x, y; reset
+WARM_START = WarmStart(mu_init=1e-4, bound_push=1e-6)  # the warm IPOPT instance
 
 
 class WalkingMPCSettings(BaseModel):
     """Fixed-mode walking MPC settings (reference values)."""
 
     model_config = ConfigDict(extra="forbid")
-    kind: Literal["walking"] = Field("walking", description="two-swing walking MPC "
-                                     "(walkers with a stance foot: the biped)")
+    kind: Literal["walking"] = Field("walking", description="two-swing walking MPC (biped)")
     rate_hz: int = Field(10, gt=0, description="re-solve rate [Hz] (also after contacts)")
     swing_time: float = Field(0.3, gt=0.0, description="duration of a swing [s]")
     nodes_per_swing: int = Field(25, ge=4, description="intervals per swing")
@@ -126,17 +133,22 @@ def _smooth_step(z):
 class WalkingNLP:
     """The parametric two-swing NLP (built once per parameters and settings).
 
-    Vector layouts (N = nodes_per_swing):
-        w: per swing j, per interval k: a_{j,k} (5) then (q, qd)_{j,k+1} (10); swing 1's
-           node 0 (10) precedes its first interval. ``x_idx[j, k]`` (10 indices, -1 for
-           the parameter node (0, 0)) and ``a_idx[j, k]`` index it.
-        g: per swing, per interval: ROWS rows (``row(j, k)`` = first row); after swing 0
-           the touchdown rows (x, y) then the reset rows (``td_row``); last the liftoff
-           acceleration row (``lift_row``).
-        p: x0 (12), dt_0, h0, shifted edges (E), jumps (E), clearances c (2, N + 1).
+    Named blocks (see :mod:`hmpc_cli.mpc.builder`; N = nodes_per_swing, stage (j, k) =
+    interval k of swing j for a and rows, node k of swing j for x), in flat order:
+        x: per swing j, per interval k: ``a`` (5) at (j, k), then ``x`` = (q, qd) (10) at
+           (j, k + 1); swing 1's node 0 (``x`` at (1, 0)) precedes its first interval.
+           ``x_idx[j, k]`` (10 indices, -1 for the parameter node (0, 0)) and
+           ``a_idx[j, k]`` index it.
+        g: per swing, per interval: ``dynamics`` (10), ``torque`` (5), ``guard_avoid``
+           (scalar), ``knees`` (2) (``interval_rows[j, k]``: all 18); after swing 0
+           ``touchdown`` (x, y: the segment and the guard) and ``reset`` (10); last
+           ``liftoff`` (scalar: the swing foot's vertical acceleration at node 0).
+        p: ``x0`` (10) and ``stance`` (2) = the state x0 (12), ``dt0``, ``h0``,
+           shifted ``edges`` (E), ``jumps`` (E), clearances ``clear`` (2, N + 1).
     """
 
     def __init__(self, system: HybridSystem, settings: WalkingMPCSettings) -> None:
+        """Builds the NLP and its solver session."""
         self.system, self.s = system, settings
         self.model = _Outputs(system)
         self.N = settings.nodes_per_swing
@@ -144,113 +156,87 @@ class WalkingNLP:
         self._build()
 
     # ------------------------------------------------------------------ build
-    def _layout(self) -> None:
-        N = self.N
-        self.x_idx = -np.ones((2, N + 1, NX), dtype=int)
-        self.a_idx = np.zeros((2, N, 5), dtype=int)
-        i = 0
-        for j in range(2):
-            if j == 1:
-                self.x_idx[1, 0] = np.arange(i, i + NX)
-                i += NX
-            for k in range(N):
-                self.a_idx[j, k] = np.arange(i, i + 5)
-                self.x_idx[j, k + 1] = np.arange(i + 5, i + 5 + NX)
-                i += 5 + NX
-        self.nw = i
-        self.td_row = N * ROWS
-        self.ng = 2 * N * ROWS + TD_ROWS + 1
-        self.lift_row = self.ng - 1
-
-    def row(self, j: int, k: int) -> int:
-        """First row of interval k of swing j."""
-        return j * (self.N * ROWS + TD_ROWS) + k * ROWS
-
     def _build(self) -> None:
-        self._layout()
-        N, E, s, mdl = self.N, self.E, self.s, self.model
-        w = ca.SX.sym("w", self.nw)
-        x0 = ca.SX.sym("x0", 12)
-        dt0 = ca.SX.sym("dt0")
-        h0 = ca.SX.sym("h0")
-        edges = ca.SX.sym("edges", E)
-        jumps = ca.SX.sym("jumps", E)
-        clear = ca.SX.sym("clear", 2, N + 1)
-        p = ca.vertcat(x0, dt0, h0, edges, jumps, ca.vec(clear))
-        self.n_par = p.size1()
-
-        fx = ca.SX.sym("fx")
-        floor = h0 + sum(jumps[i] * _smooth_step((fx - edges[i]) / s.terrain_smoothing)
-                         for i in range(E))
-        floor_fn = ca.Function("floor", [fx, h0, edges, jumps], [floor])
-        top_t, top_w = ca.DM(s.torso_top_target), ca.DM(s.torso_top_weights)
-
-        def var_x(j, k):
-            if j == 0 and k == 0:
-                return x0[:NX]
-            return w[self.x_idx[j, k].tolist()]
-
-        def stage(xq, pst, u):
-            """The system's stage cost plus the torso-top posture term."""
-            pts = mdl.points(xq[:5])
-            return (self.system.stage_cost(ca.vertcat(xq, pst), u)
-                    + ca.dot(top_w, (pts[:, mdl.torso_top] - top_t) ** 2))
-
-        g = []
-        J = 0
-        xs_out, us_out = [], []
-        pst = x0[10:12]
+        b, N, s = NLPBuilder(), self.N, self.s
+        xs, acc = {}, {}
         for j in range(2):
-            dt = dt0 if j == 0 else s.dt
             if j == 1:
-                xs_out.append(ca.vertcat(var_x(1, 0), pst))
-            else:
-                xs_out.append(x0)
+                with b.stage((1, 0)):
+                    xs[1, 0] = b.variable("x", NX)
             for k in range(N):
-                xk, xn = var_x(j, k), var_x(j, k + 1)
-                a = w[self.a_idx[j, k].tolist()]
+                with b.stage((j, k)):
+                    acc[j, k] = b.variable("a", 5)
+                with b.stage((j, k + 1)):
+                    xs[j, k + 1] = b.variable("x", NX)
+        shapes = {"x0": NX, "stance": 2, "dt0": (), "h0": (), "edges": self.E,
+                  "jumps": self.E, "clear": (2, N + 1)}
+        par = {name: b.parameter(name, shape) for name, shape in shapes.items()}
+        xs[0, 0] = par["x0"]
+        J, xs_out, us_out = self._transcribe(b, xs, acc, par)
+        nlp, self.layout = b.build(J)
+        self.session = SolverSession(
+            "walking_mpc", nlp, "ipopt", max_iter=s.max_iter, tol=s.tol,
+            max_wall_time=s.max_wall_time, extra=s.solver_options, warm=WARM_START)
+        self._traj_fun = ca.Function("traj", [nlp["x"], nlp["p"]],
+                                     [ca.horzcat(*xs_out).T, ca.horzcat(*us_out).T])
+        self._f_fun = ca.Function("f", [nlp["x"], nlp["p"]], [J])
+        X, g = self.layout.x, self.layout.g
+        self.nw, self.ng, self.n_par = X.size, g.size, self.layout.p.size
+        self.x_idx, self.a_idx = X.grid("x"), X.grid("a")
+        self.interval_rows = np.array([[g.at((j, k)) for k in range(N)] for j in range(2)])
+
+    def _transcribe(self, b: NLPBuilder, xs: dict, acc: dict, par: dict):
+        """Registers the rows; returns the cost and the plan's node states and torques."""
+        N, s, mdl = self.N, self.s, self.model
+        fx = ca.SX.sym("fx")
+        h0, edges, jumps = par["h0"], par["edges"], par["jumps"]
+        floor = h0 + sum(jumps[i] * _smooth_step((fx - edges[i]) / s.terrain_smoothing)
+                         for i in range(self.E))
+        floor_fn = ca.Function("floor", [fx, h0, edges, jumps], [floor])
+        J, pst = 0, par["stance"]
+        xs_out, us_out = [ca.vertcat(par["x0"], pst)], []
+        for j in range(2):
+            dt = par["dt0"] if j == 0 else s.dt
+            for k in range(N):
+                xk, xn, a = xs[j, k], xs[j, k + 1], acc[j, k]
                 q, qd, qn, qdn = xk[:5], xk[5:], xn[:5], xn[5:]
                 u = mdl.inverse_dynamics(q, qd, a, 0)
                 pts = mdl.points(qn)
                 foot = pts[:, mdl.swing_foot] + pst
-                g += [qdn - qd - dt * a, qn - q - dt * qdn, u,
-                      foot[1] - floor_fn(foot[0], h0, edges, jumps) - clear[j, k + 1],
-                      pts[1, mdl.stance_knee], pts[1, mdl.swing_knee]]
-                J += dt * stage(xn, pst, u)
+                with b.stage((j, k)):
+                    b.rows("dynamics", [qdn - qd - dt * a, qn - q - dt * qdn])
+                    b.rows("torque", u)
+                    b.rows("guard_avoid", foot[1] - floor_fn(foot[0], h0, edges, jumps)
+                           - par["clear"][j, k + 1], shape=())
+                    b.rows("knees", [pts[1, mdl.stance_knee], pts[1, mdl.swing_knee]])
+                J += dt * self._stage_cost(xn, pst, u)
                 xs_out.append(ca.vertcat(xn, pst))
                 us_out.append(u)
             if j == 0:
-                x_td = ca.vertcat(var_x(0, N), pst)
+                x_td = ca.vertcat(xs[0, N], pst)
                 foot = mdl.swing_foot_world(x_td)
                 x_plus = mdl.reset(x_td)
-                g += [foot[0], foot[1], var_x(1, 0) - x_plus[:NX]]
-                pst = x_plus[10:12]
-        q0, qd0 = x0[:5], x0[5:NX]
+                b.rows("touchdown", [foot[0], foot[1]])
+                b.rows("reset", xs[1, 0] - x_plus[:NX])
+                pst = x_plus[NX:]
+                xs_out.append(ca.vertcat(xs[1, 0], pst))
+        q0, qd0 = par["x0"][:5], par["x0"][5:]
         vel = mdl.swing_foot_velocity(q0, qd0)
-        acc = ca.jtimes(vel, q0, qd0) + ca.mtimes(mdl.swing_foot_jacobian(q0),
-                                                 w[self.a_idx[0, 0].tolist()])
-        g.append(acc[1])
-        g = ca.vertcat(*g)
-        assert g.size1() == self.ng
-        self._g_fun = ca.Function("g", [w, p], [g])
-        self._traj_fun = ca.Function("traj", [w, p], [ca.horzcat(*xs_out).T,
-                                                      ca.horzcat(*us_out).T])
-        self._f_fun = ca.Function("f", [w, p], [J])
-        nlp = {"x": w, "p": p, "f": J, "g": g}
-        ipopt = {"print_level": 0, "sb": "yes", "max_iter": s.max_iter, "tol": s.tol,
-                 "constr_viol_tol": 1e-8, "mu_strategy": "adaptive"}
-        if s.max_wall_time is not None:
-            ipopt["max_wall_time"] = s.max_wall_time
-        extra = dict(s.solver_options)
-        ipopt.update(extra.pop("ipopt", {}))
-        warm_extra = extra.pop("ipopt_warm", {})
-        opts = {"expand": True, "print_time": False, "ipopt": ipopt, **extra}
-        self.solver = ca.nlpsol("walking_mpc", "ipopt", nlp, opts)
-        warm = dict(opts)
-        warm["ipopt"] = {**ipopt, "warm_start_init_point": "yes", "mu_init": 1e-4,
-                         "warm_start_bound_push": 1e-6, "warm_start_mult_bound_push": 1e-6,
-                         "warm_start_slack_bound_push": 1e-6, **warm_extra}
-        self.warm_solver = ca.nlpsol("walking_mpc_warm", "ipopt", nlp, warm)
+        lift = ca.jtimes(vel, q0, qd0) + ca.mtimes(mdl.swing_foot_jacobian(q0), acc[0, 0])
+        b.rows("liftoff", lift[1], shape=())
+        return J, xs_out, us_out
+
+    def _stage_cost(self, xq, pst, u):
+        """The system's stage cost at (xq (10), pst (2), u) plus the torso-top term."""
+        s, mdl = self.s, self.model
+        pts = mdl.points(xq[:5])
+        top_t, top_w = ca.DM(s.torso_top_target), ca.DM(s.torso_top_weights)
+        return (self.system.stage_cost(ca.vertcat(xq, pst), u)
+                + ca.dot(top_w, (pts[:, mdl.torso_top] - top_t) ** 2))
+
+    def row(self, j: int, k: int) -> int:
+        """First row of interval k of swing j."""
+        return int(self.interval_rows[j, k, 0])
 
     # ------------------------------------------------------------ problem data
     def dt0(self, elapsed: float) -> float:
@@ -295,11 +281,30 @@ class WalkingNLP:
             segment: target (start, end, height) of swing 0's touchdown [m].
             elapsed: time already spent in the current swing [s].
         """
-        s, N = self.s, self.N
-        clear = np.zeros((2, N + 1))
+        s = self.s
+        clear = self._clearances(x0, elapsed)
+        h0, e, d = self.terrain()
+        p = self.layout.p.pack({"x0": x0[:NX], "stance": x0[NX:], "dt0": self.dt0(elapsed),
+                                "h0": h0, "edges": e, "jumps": d, "clear": clear})
+        bounds = self.layout.bounds()
+        self._interval_bounds(bounds, clear)
+        lbg, ubg = bounds.lbg, bounds.ubg
+        start, end, height = segment
+        lbg["touchdown"][0], ubg["touchdown"][0] = start + s.segment_margin, \
+            end - s.segment_margin
+        lbg["touchdown"][1] = ubg["touchdown"][1] = height - s.touchdown_depth
+        lbg["reset"][:] = ubg["reset"][:] = 0.0
+        if elapsed < s.liftoff_time:
+            lbg["liftoff"][()] = s.liftoff_accel
+        return (p, *bounds.arrays())
+
+    def _clearances(self, x0: np.ndarray, elapsed: float) -> np.ndarray:
+        """Guard-avoid clearances c of every node, shape (2, N + 1) [m]."""
+        s = self.s
+        clear = np.zeros((2, self.N + 1))
         tau = self.swing_times(elapsed)
         foot0 = np.asarray(self.model.swing_foot_world(x0)).ravel()
-        starts = (foot0, x0[10:12])  # swing 1 lifts the current stance foot
+        starts = (foot0, x0[NX:])  # swing 1 lifts the current stance foot
         for j in range(2):
             lift = tau[j] < s.liftoff_time - 1e-12
             clear[j, lift] = min(0.0, starts[j][1] - float(self.floor(starts[j][0])))
@@ -307,49 +312,36 @@ class WalkingNLP:
         if ap0 is not None:
             clear[0, ap0] = s.apex_clearance
         clear[1, ap1] = s.apex_clearance
-        h0, e, d = self.terrain()
-        p = np.concatenate([x0, [self.dt0(elapsed), h0], e, d, clear.ravel(order="F")])
-        lo_x, hi_x = (b[:NX] for b in self.system.state_box)
-        lbx, ubx = np.full(self.nw, -INF), np.full(self.nw, INF)
-        for j in range(2):
-            for k in range(N + 1):
-                if self.x_idx[j, k, 0] >= 0:
-                    lbx[self.x_idx[j, k]], ubx[self.x_idx[j, k]] = lo_x, hi_x
-        lbg, ubg = np.full(self.ng, -INF), np.full(self.ng, INF)
+        return clear
+
+    def _interval_bounds(self, bounds: Bounds, clear: np.ndarray) -> None:
+        """State boxes of the node variables and bounds of the interval rows."""
+        s, N = self.s, self.N
+        lower, upper = self.system.state_box
+        bounds.lbx["x"][:], bounds.ubx["x"][:] = lower[:NX], upper[:NX]
+        lbg, ubg = bounds.lbg, bounds.ubg
         umax = np.maximum(np.asarray(self.system.modes[0].u_upper) - s.torque_margin, 0.0)
-        for j in range(2):
-            for k in range(N):
-                r = self.row(j, k)
-                lbg[r:r + NX] = ubg[r:r + NX] = 0.0
-                lbg[r + 10:r + 15], ubg[r + 10:r + 15] = -umax, umax
-                if not (j == 0 and k == N - 1):  # the touchdown node has its own rows
-                    lbg[r + 15] = 0.0
-                if s.swing_height_cap is not None and not (j == 0 and k == N - 1):
-                    ubg[r + 15] = s.swing_height_cap - clear[j, k + 1]
-                lbg[r + 16:r + 18] = s.knee_clearance
+        lbg["dynamics"][:] = ubg["dynamics"][:] = 0.0
+        lbg["torque"][:], ubg["torque"][:] = -umax, umax
+        lbg["knees"][:] = s.knee_clearance
+        stages = self.layout.g.stages("guard_avoid")
+        j, k = np.array(stages).T
+        avoid = (j != 0) | (k != N - 1)  # swing 0's touchdown node has its own rows
+        lbg["guard_avoid"][avoid] = 0.0
+        if s.swing_height_cap is not None:
+            ubg["guard_avoid"][avoid] = s.swing_height_cap - clear[j[avoid], k[avoid] + 1]
         if s.swing2_end_clearance is not None:
-            r = self.row(1, N - 1) + 15
-            ubg[r] = min(s.swing2_end_clearance, ubg[r])
-        start, end, height = segment
-        r = self.td_row
-        lbg[r], ubg[r] = start + s.segment_margin, end - s.segment_margin
-        lbg[r + 1] = ubg[r + 1] = height - s.touchdown_depth
-        lbg[r + 2:r + TD_ROWS] = ubg[r + 2:r + TD_ROWS] = 0.0
-        if elapsed < s.liftoff_time:
-            lbg[self.lift_row] = s.liftoff_accel
-        return p, lbx, ubx, lbg, ubg
+            last = stages.index((1, N - 1))
+            ubg["guard_avoid"][last] = min(s.swing2_end_clearance, ubg["guard_avoid"][last])
 
     # ------------------------------------------------------------- evaluation
     def constraints(self, w: np.ndarray, p: np.ndarray) -> np.ndarray:
         """Constraint values g(w, p), shape (ng,)."""
-        return np.asarray(self._g_fun(w, p)).ravel()
+        return self.session.constraints(w, p)
 
     def violation(self, w, p, lbx, ubx, lbg, ubg) -> float:
         """Largest constraint or bound violation at primal point w."""
-        g = self.constraints(w, p)
-        v = [np.maximum(lbg - g, 0.0), np.maximum(g - ubg, 0.0),
-             np.maximum(lbx - w, 0.0), np.maximum(w - ubx, 0.0)]
-        return float(max(np.max(a, initial=0.0) for a in v))
+        return self.session.violation(w, p, lbx, ubx, lbg, ubg)
 
     def cost(self, w: np.ndarray, p: np.ndarray) -> float:
         """Objective value at w."""
@@ -364,23 +356,12 @@ class WalkingNLP:
         xs, us = self._traj_fun(w, p)
         return np.asarray(xs), np.asarray(us)
 
-    def solve(self, w0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None):
-        """One IPOPT solve: (solution dict, status, iterations, success).
+    def solve(self, w0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None) -> SolveResult:
+        """One IPOPT solve (see :meth:`SolverSession.solve`); never raises on failure.
 
-        With both multiplier guesses the warm instance runs (multipliers of unbounded
-        rows and variables zeroed), else the cold one.
+        With both multiplier guesses the warm instance runs, else the cold one.
         """
-        args = {"x0": w0, "p": p, "lbx": lbx, "ubx": ubx, "lbg": lbg, "ubg": ubg}
-        solver = self.solver
-        if lam_x0 is not None and lam_g0 is not None:
-            lam_g0 = np.where(np.isfinite(lbg) | np.isfinite(ubg), lam_g0, 0.0)
-            lam_x0 = np.where(np.isfinite(lbx) | np.isfinite(ubx), lam_x0, 0.0)
-            args.update(lam_x0=lam_x0, lam_g0=lam_g0)
-            solver = self.warm_solver
-        sol = solver(**args)
-        st = solver.stats()
-        return (sol, str(st.get("return_status", "?")), int(st.get("iter_count", 0)),
-                bool(st.get("success", False)))
+        return self.session.solve(w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0)
 
 
 class _Outputs:
@@ -394,7 +375,5 @@ class _Outputs:
         self.swing_foot_velocity = system.output("swing_foot_velocity")
         self.swing_foot_jacobian = system.output("swing_foot_jacobian")
         self.reset = system.output("contact_reset")
-        self.hip_world = system.output("hip_world")
-        self.stance_knee, self.hip = names.index("stance_knee"), names.index("hip")
-        self.torso_top, self.swing_knee = names.index("torso_top"), names.index("swing_knee")
-        self.swing_foot = names.index("swing_foot")
+        self.stance_knee, self.torso_top = names.index("stance_knee"), names.index("torso_top")
+        self.swing_knee, self.swing_foot = names.index("swing_knee"), names.index("swing_foot")

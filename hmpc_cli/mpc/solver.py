@@ -1,0 +1,191 @@
+"""One solver session of a parametric NLP: options, cold and warm instances, solves.
+
+Both MPC NLPs solve through a :class:`SolverSession`: it builds the plugin's options
+(:func:`plugin_options`), a cold instance and, for IPOPT, a warm-start instance
+(:class:`WarmStart`), and turns every solve into a :class:`SolveResult` with the
+:class:`~hmpc_cli.messages.SolveStats` of the closed loop. A solve never raises on a
+solver failure (CasADi's ``RuntimeError`` on NaN evaluations becomes a failed solve with
+status ``"error: ..."``); it does raise ``KeyboardInterrupt`` when the user interrupted
+IPOPT: CasADi catches the interrupt inside IPOPT's callbacks and returns the status
+``NonIpopt_Exception_Thrown``, which the session turns back into the interrupt.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from hmpc_cli.messages import SolveStats
+
+INTERRUPTED = "NonIpopt_Exception_Thrown"
+
+
+@dataclass(frozen=True)
+class WarmStart:
+    """Options of the warm IPOPT instance (primal-dual warm starts).
+
+    Attributes:
+        mu_init: initial barrier parameter.
+        bound_push: ``warm_start_{bound,mult_bound,slack_bound}_push``.
+    """
+
+    mu_init: float
+    bound_push: float
+
+
+@dataclass(frozen=True)
+class SolveResult:
+    """One solve.
+
+    Attributes:
+        x: primal point, shape (nx,) (the initial guess if the solver raised).
+        lam_x: bound multipliers, shape (nx,) (None if the solver raised).
+        lam_g: row multipliers, shape (ng,) (None if the solver raised).
+        stats: status, success, iterations, wall time, cost, max violation (slack 0).
+    """
+
+    x: np.ndarray
+    lam_x: np.ndarray | None
+    lam_g: np.ndarray | None
+    stats: SolveStats
+
+
+def failed(w0: np.ndarray, message: str, wall: float = 0.0) -> SolveResult:
+    """A failed solve at ``w0`` with status ``"error: "`` + the message's last line."""
+    lines = [ln.strip() for ln in message.splitlines() if ln.strip()]
+    status = "error: " + (lines[-1] if lines else "RuntimeError")[:160]
+    return SolveResult(w0, None, None, SolveStats(status, False, 0, wall, np.nan, np.inf))
+
+
+def plugin_options(plugin: str, max_iter: int, tol: float = 1e-8,
+                   max_wall_time: float | None = None, equality: list[bool] | None = None,
+                   extra: dict | None = None) -> dict:
+    """CasADi ``nlpsol`` options of the cold instance.
+
+    Args:
+        plugin: "ipopt", "sqpmethod" or "fatrop".
+        max_iter: iteration limit.
+        tol: IPOPT ``tol``.
+        max_wall_time: IPOPT ``max_wall_time`` [s] (None: none).
+        equality: fatrop: per row, True for equality rows, shape (ng,).
+        extra: user options: ``"ipopt"`` (IPOPT options), ``"ipopt_warm"`` (warm
+            instance only), the rest ``nlpsol`` options.
+    """
+    opts: dict = {"expand": True}
+    extra = dict(extra or {})
+    extra.pop("ipopt_warm", None)
+    if plugin == "ipopt":
+        ipopt = {"print_level": 0, "sb": "yes", "max_iter": max_iter, "tol": tol,
+                 "constr_viol_tol": 1e-8, "mu_strategy": "adaptive"}
+        if max_wall_time is not None:
+            ipopt["max_wall_time"] = max_wall_time
+        ipopt.update(extra.pop("ipopt", {}))
+        opts.update({"ipopt": ipopt, "print_time": False})
+    elif plugin == "sqpmethod":
+        opts.update({"max_iter": max_iter, "print_time": False, "print_header": False,
+                     "print_iteration": False, "qpsol": "qrqp",
+                     "qpsol_options": {"print_iter": False, "print_header": False,
+                                       "error_on_fail": False}})
+    elif plugin == "fatrop":
+        opts.update({"structure_detection": "auto", "print_time": False})
+        if equality is not None:
+            opts["equality"] = list(equality)
+        opts["fatrop"] = {"print_level": 0, "max_iter": max_iter}
+    else:
+        raise ValueError(f"unknown NLP solver plugin {plugin!r}")
+    opts.update(extra)
+    return opts
+
+
+def warm_options(cold: dict, warm: WarmStart, extra: dict | None = None) -> dict:
+    """Options of the warm IPOPT instance.
+
+    Returns:
+        ``cold`` with the warm-start IPOPT options and the user's ``extra["ipopt_warm"]``.
+    """
+    push = warm.bound_push
+    ipopt = {**cold["ipopt"], "warm_start_init_point": "yes", "mu_init": warm.mu_init,
+             "warm_start_bound_push": push, "warm_start_mult_bound_push": push,
+             "warm_start_slack_bound_push": push, **(extra or {}).get("ipopt_warm", {})}
+    return {**cold, "ipopt": ipopt}
+
+
+def _iterations(stats: dict) -> int:
+    if "iter_count" in stats:
+        return int(stats["iter_count"])
+    its = stats.get("iterations")
+    return int(its.get("iter", [0])[-1]) if isinstance(its, dict) else 0
+
+
+class SolverSession:
+    """The solver instances of one NLP and its solve, violation and constraint calls.
+
+    Args:
+        name: instance name (the warm one gets ``_warm`` appended).
+        nlp: ``{"x", "p", "f", "g"}`` (e.g. from :meth:`NLPBuilder.build`).
+        plugin: "ipopt", "sqpmethod" or "fatrop".
+        max_iter, tol, max_wall_time, equality, extra: see :func:`plugin_options`.
+        warm: warm IPOPT instance options (None, or another plugin: warm starts run on
+            the cold instance).
+    """
+
+    def __init__(self, name: str, nlp: dict, plugin: str = "ipopt", *, max_iter: int,
+                 tol: float = 1e-8, max_wall_time: float | None = None,
+                 equality: list[bool] | None = None, extra: dict | None = None,
+                 warm: WarmStart | None = None) -> None:
+        """Builds the cold and (IPOPT with ``warm``) the warm instance."""
+        self.options = plugin_options(plugin, max_iter, tol, max_wall_time, equality, extra)
+        self.cold = ca.nlpsol(name, plugin, nlp, self.options)
+        self.warm = self.cold
+        if plugin == "ipopt" and warm is not None:
+            self.warm = ca.nlpsol(f"{name}_warm", plugin, nlp,
+                                  warm_options(self.options, warm, extra))
+        self._g = ca.Function("g", [nlp["x"], nlp["p"]], [nlp["g"]])
+
+    def solve(self, w0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None) -> SolveResult:
+        """One solve from ``w0``; never raises on a solver failure.
+
+        With both multiplier guesses the warm instance runs (multipliers of rows and
+        variables without finite bounds zeroed), else the cold one.
+
+        Raises:
+            KeyboardInterrupt: the solve was interrupted (Ctrl-C inside IPOPT).
+        """
+        start = time.perf_counter()
+        args = {"x0": w0, "p": p, "lbx": lbx, "ubx": ubx, "lbg": lbg, "ubg": ubg}
+        solver = self.cold
+        if lam_x0 is not None and lam_g0 is not None:
+            args["lam_g0"] = np.where(np.isfinite(lbg) | np.isfinite(ubg), lam_g0, 0.0)
+            args["lam_x0"] = np.where(np.isfinite(lbx) | np.isfinite(ubx), lam_x0, 0.0)
+            solver = self.warm
+        try:
+            sol = solver(**args)
+        except RuntimeError as exc:  # CasADi raises on NaN evaluations
+            return failed(w0, str(exc), time.perf_counter() - start)
+        st = solver.stats()
+        status = str(st.get("return_status", st.get("success")))
+        if status == INTERRUPTED:
+            raise KeyboardInterrupt(f"solver interrupted ({status})")
+        w = np.asarray(sol["x"]).ravel()
+        finite = bool(np.all(np.isfinite(w)))
+        cost = float(sol["f"]) if finite else np.nan
+        viol = self.violation(w, p, lbx, ubx, lbg, ubg) if finite else np.inf
+        ok = bool(st.get("success", False)) and finite
+        stats = SolveStats(status, ok, _iterations(st), time.perf_counter() - start, cost,
+                           float(viol))
+        return SolveResult(w, np.asarray(sol["lam_x"]).ravel(),
+                           np.asarray(sol["lam_g"]).ravel(), stats)
+
+    def constraints(self, w, p) -> np.ndarray:
+        """Constraint values g(w, p), shape (ng,)."""
+        return np.asarray(self._g(w, p)).ravel()
+
+    def violation(self, w, p, lbx, ubx, lbg, ubg) -> float:
+        """Largest constraint or bound violation at primal point w (0 if none)."""
+        g = self.constraints(w, p)
+        v = [np.maximum(lbg - g, 0.0), np.maximum(g - ubg, 0.0),
+             np.maximum(lbx - w, 0.0), np.maximum(w - ubx, 0.0)]
+        return float(max(np.max(a, initial=0.0) for a in v))
