@@ -196,8 +196,11 @@ def _unknown(reg, name: Any) -> str:
 
 
 def _kind_problems(reg, spec, data: dict) -> list[str]:
-    """``planner.kind`` / ``mpc.kind`` lines: a kind the system cannot use (capabilities it
-    does not provide, or a kind the system or the other plug-in requires otherwise)."""
+    """``planner.kind`` / ``mpc.kind`` lines for a kind the system cannot use.
+
+    A kind needs capabilities the system does not provide, or the system or the other
+    plug-in requires another kind.
+    """
     out = []
     required = {r.key: r for r in _requirements(reg, data)}
     for section, table in (("planner", reg.planners), ("mpc", reg.mpcs)):

@@ -43,8 +43,11 @@ __all__ = ["MPC", "WalkingMPC", "WalkingMPCSettings", "WalkingNLP"]
 
 @dataclass
 class _Memory:
-    """A stored solution: primal w, multipliers (None: primal only), swing 0's node 0
-    (x0[:10] = (q, qd) is used) and the elapsed swing time it was solved for [s]."""
+    """A stored solution of one candidate.
+
+    Primal w, multipliers (None: primal only), swing 0's node 0 (x0[:10] = (q, qd) is
+    used) and the elapsed swing time it was solved for [s].
+    """
 
     w: np.ndarray
     lam_x: np.ndarray | None
@@ -76,8 +79,10 @@ class WalkingMPC:
 
     # -------------------------------------------------------------- contract
     def check(self, schedule: ModeSchedule) -> str:
-        """Why ``schedule`` cannot be solved ('' if it can): it needs a target guard
-        with a contact surface."""
+        """Why ``schedule`` cannot be solved ('' if it can).
+
+        It needs a target guard with a contact surface.
+        """
         if not schedule.guards:
             return "no foothold target: the schedule has no guard left"
         g = schedule.guards[0]
@@ -87,8 +92,11 @@ class WalkingMPC:
 
     def solve(self, t: float, x: np.ndarray, mode: int, schedule: ModeSchedule,
               events: Sequence[GuardEvent] = (), guess: Trajectory | None = None) -> Plan:
-        """Plans two swings from x (12,) at time t [s], the first landing on the surface
-        of ``schedule.guards[0]`` (see the module docstring); ``guess`` is not used."""
+        """Plans two swings from x (12,) at time t [s] (the stack contract).
+
+        The first swing lands on the surface of ``schedule.guards[0]`` (see the module
+        docstring); ``guess`` is not used.
+        """
         for ev in events:
             if ev.t > self._t_event:
                 self._t_event = ev.t
@@ -136,7 +144,7 @@ class WalkingMPC:
         self._template = _Memory(w, lam_x, lam_g, old.w[nlp.x_idx[1, 0]], 0.0)
 
     def _repeat_swing1(self, v: np.ndarray) -> np.ndarray:
-        """v with swing 1's node and interval entries copied onto both swings."""
+        """Copy of v with swing 1's node and interval entries on both swings."""
         nlp = self.nlp
         out = v.copy()
         for j in range(2):
@@ -150,7 +158,7 @@ class WalkingMPC:
         return w
 
     def _shifted(self, mem: _Memory, elapsed: float):
-        """mem re-interpolated on the swing-0 grid of ``elapsed`` (see module docstring)."""
+        """The memory re-interpolated on the swing-0 grid of ``elapsed`` (module docstring)."""
         nlp, N = self.nlp, self.nlp.N
         t_old = mem.elapsed + np.arange(N + 1) * nlp.dt0(mem.elapsed)
         t_new = elapsed + np.arange(N + 1) * nlp.dt0(elapsed)
