@@ -153,6 +153,51 @@ def test_the_others_still_run_beside_a_broken_plugin(tmp_path, broken_dist):
     assert read_log(out / "run.mcap").topic("/run/info")[0].data["system"] == "ball"
 
 
+FAULTY = """
+from hmpc_dock import SYSTEM, DockParams, build_dock
+from dataclasses import replace
+from typing import Literal
+
+
+class BadBuild(DockParams):
+    name: Literal["badbuild"] = "badbuild"
+
+
+class Liar(DockParams):
+    name: Literal["liar"] = "liar"
+
+
+def _fail(p):
+    raise ValueError("dock_at must lie inside the track")
+
+
+BAD_BUILD = replace(SYSTEM, name="badbuild", params=BadBuild, build=_fail)
+LIAR = replace(SYSTEM, name="liar", params=Liar,
+               build=lambda p: build_dock(DockParams(**{**p.model_dump(), "name": "dock"})),
+               provides=frozenset({"stance_foot"}))
+"""
+
+
+@pytest.mark.parametrize("name, reason", [
+    ("badbuild", "system: 'badbuild' failed to build: ValueError: dock_at must lie inside "
+                 "the track"),
+    ("liar", "system: 'liar' declares that it provides stance_foot, but its HybridSystem "
+             "has none"),
+])
+def test_a_plugin_that_fails_to_build_is_one_error_line(tmp_path, name, reason):
+    site = write_dist(tmp_path / "site", "hmpc-faulty",
+                      "[hmpc.systems]\nbadbuild = hmpc_faulty:BAD_BUILD\n"
+                      "liar = hmpc_faulty:LIAR\n", {"hmpc_faulty": FAULTY})
+    scenario = tmp_path / f"{name}.toml"
+    scenario.write_text(f'[system]\nname = "{name}"\n')
+    out = tmp_path / "out"
+    proc = hmpc(["run", str(scenario), "--out", str(out), "-q"], site, PLUGINS, cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr
+    assert error_lines(proc) == [f"error: {scenario}: {reason}"]
+    assert not out.exists()
+
+
 def test_a_planner_that_does_not_fit_names_planner_kind(tmp_path):
     out = tmp_path / "out"
     proc = hmpc(["run", str(DOCK), "--set", "planner.kind=footholds", "--out", str(out), "-q"],
