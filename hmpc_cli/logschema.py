@@ -16,7 +16,7 @@ SCHEDULE = {
         "guards": {"type": "array", "items": INT},
         "guard_names": {"type": "array", "items": STR},
         "durations": VEC,
-        "counts": {"type": "array", "items": INT},
+        "t0": NUM,
     },
 }
 
@@ -27,7 +27,7 @@ def _obj(title: str, **props) -> dict:
 
 TOPICS: dict[str, tuple[str, dict]] = {
     "/run/info": ("hmpc.RunInfo", _obj(
-        "RunInfo", scenario_name=STR, seed=INT, versions={"type": "object"},
+        "RunInfo", scenario_name=STR, seed=INT, system=STR, versions={"type": "object"},
         scenario={"type": "object"}, state_names={"type": "array", "items": STR},
         input_names={"type": "array", "items": STR},
         mode_names={"type": "array", "items": STR},
@@ -40,11 +40,15 @@ TOPICS: dict[str, tuple[str, dict]] = {
     "/disturbance": ("hmpc.Disturbance", _obj("Disturbance", t=NUM, w=VEC)),
     "/mpc/solve": ("hmpc.MpcSolve", _obj(
         "MpcSolve", t=NUM, reason=STR, status=STR, success=BOOL, iterations=INT,
-        wall_time=NUM, cost=NUM, max_violation=NUM, slack=NUM, shifted=INT, schedule=SCHEDULE,
+        wall_time=NUM, cost=NUM, max_violation=NUM, slack=NUM, adopted=BOOL, schedule=SCHEDULE,
+        shifted=INT, counts={"type": "array", "items": INT},  # chain MPC
+        segment=INT, elapsed=NUM, warm=STR, touchdown=VEC, final_hip=VEC,  # walking MPC
         t_plan=VEC, x_plan=MAT, u_plan=MAT, seg_plan={"type": "array", "items": INT})),
     "/planner/plan": ("hmpc.PlannerCall", _obj(
         "PlannerCall", t=NUM, reason=STR, accepted=BOOL, reached_final=BOOL, cost=NUM,
         wall_time=NUM, iterations=INT, note=STR, schedule=SCHEDULE, t_rollout=VEC,
-        x_rollout=MAT)),
+        x_rollout=MAT, candidates={"type": "array", "items": _obj(
+            "Candidate", segment=INT, guard_name=STR, status=STR, success=BOOL,
+            iterations=INT, wall_time=NUM, cost=NUM, final_hip=VEC, touchdown=VEC)})),
     "/run/summary": ("hmpc.Summary", _obj("Summary")),
 }
