@@ -224,11 +224,14 @@ def test_fixed_mode_row_groups_by_name_and_size():
 
 
 def test_walking_row_groups_by_name_and_size():
-    from hmpc_cli.mpc.walking_nlp import NX, WalkingMPCSettings, WalkingNLP
+    from hmpc_cli.mpc.walking_nlp import WalkingMPCSettings, WalkingNLP
     from hmpc_cli.systems.biped import BipedParams, build_biped
 
     N = 6
-    nlp = WalkingNLP(build_biped(BipedParams()), WalkingMPCSettings(nodes_per_swing=N, apex_node=3))
+    nlp = WalkingNLP(build_biped(BipedParams()),
+                     WalkingMPCSettings(nodes_per_swing=N, apex_node=3))
+    NX = nlp.nx
+    assert (nlp.nq, NX) == (5, 10)  # the biped's five joints: (q, qd) per node
     g, x = nlp.layout.g, nlp.layout.x
     assert g.names == ("dynamics", "torque", "guard_avoid", "knees", "touchdown", "reset",
                        "liftoff")

@@ -35,7 +35,7 @@ from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.messages import GuardEvent, ModeSchedule, Plan, Trajectory
 from hmpc_cli.mpc.fixed_mode import rejected_plan
 from hmpc_cli.mpc.solver import failed
-from hmpc_cli.mpc.walking_nlp import NX, WalkingMPCSettings, WalkingNLP
+from hmpc_cli.mpc.walking_nlp import WalkingMPCSettings, WalkingNLP
 from hmpc_cli.registry import MPCSpec
 
 __all__ = ["MPC", "WalkingMPC", "WalkingMPCSettings", "WalkingNLP"]
@@ -45,7 +45,7 @@ __all__ = ["MPC", "WalkingMPC", "WalkingMPCSettings", "WalkingNLP"]
 class _Memory:
     """A stored solution of one candidate.
 
-    Primal w, multipliers (None: primal only), swing 0's node 0 (x0[:10] = (q, qd) is
+    Primal w, multipliers (None: primal only), swing 0's node 0 (its (q, qd) part is
     used) and the elapsed swing time it was solved for [s].
     """
 
@@ -154,7 +154,7 @@ class WalkingMPC:
 
     def _hold(self, x0: np.ndarray) -> np.ndarray:
         w = np.zeros(self.nlp.nw)
-        w[self.nlp.layout.x["x"]] = x0[:NX]
+        w[self.nlp.layout.x["x"]] = x0[:self.nlp.nx]
         return w
 
     def _shifted(self, mem: _Memory, elapsed: float):
@@ -169,7 +169,7 @@ class WalkingMPC:
                                     for i in range(values.shape[1])])
 
         w = mem.w.copy()
-        xs = np.vstack([mem.x0[:NX], mem.w[nlp.x_idx[0, 1:]]])
+        xs = np.vstack([mem.x0[:nlp.nx], mem.w[nlp.x_idx[0, 1:]]])
         w[nlp.x_idx[0, 1:]] = interp(xs, t_old, t_new)[1:]
         w[nlp.a_idx[0]] = interp(mem.w[nlp.a_idx[0]], t_old[:N], t_new[:N])
         if mem.lam_x is None or mem.lam_g is None:

@@ -45,7 +45,7 @@ The transcription needs the system's named outputs ``points`` (with ``point_name
 holding ``stance_knee``, ``torso_top``, ``swing_knee``, ``swing_foot``),
 ``inverse_dynamics``, ``swing_foot_world``, ``swing_foot_velocity``,
 ``swing_foot_jacobian`` and ``contact_reset``, its ``terrain`` and ``state_box``, and a
-state x = (q[5], qd[5], p_st[2]).
+state x = (q[n_q], qd[n_q], p_st[2]) (n_q from ``inverse_dynamics``; the biped's is 5).
 """
 
 from __future__ import annotations
@@ -61,7 +61,6 @@ from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart
 from hmpc_cli.hybrid import HybridSystem
 
 INF = np.inf
-NX = 10  # (q, qd) per node; p_st is a parameter (swing 0) or an expression (swing 1)
 WARM_START = WarmStart(mu_init=1e-4, bound_push=1e-6)  # the warm IPOPT instance
 
 
@@ -151,6 +150,11 @@ class WalkingNLP:
         """Builds the NLP and its solver session."""
         self.system, self.s = system, settings
         self.model = _Outputs(system)
+        self.nq = self.model.inverse_dynamics.size1_in(0)
+        self.nx = 2 * self.nq  # (q, qd) per node; p_st is a parameter or an expression
+        if system.n_x != self.nx + 2:
+            raise ValueError(f"the walking MPC needs a state (q[{self.nq}], qd[{self.nq}], "
+                             f"p_st[2]); system {system.name!r} has {system.n_x} states")
         self.N = settings.nodes_per_swing
         self.E = len(system.terrain.segments)
         self._build()
@@ -162,13 +166,13 @@ class WalkingNLP:
         for j in range(2):
             if j == 1:
                 with b.stage((1, 0)):
-                    xs[1, 0] = b.variable("x", NX)
+                    xs[1, 0] = b.variable("x", self.nx)
             for k in range(N):
                 with b.stage((j, k)):
-                    acc[j, k] = b.variable("a", 5)
+                    acc[j, k] = b.variable("a", self.nq)
                 with b.stage((j, k + 1)):
-                    xs[j, k + 1] = b.variable("x", NX)
-        shapes = {"x0": NX, "stance": 2, "dt0": (), "h0": (), "edges": self.E,
+                    xs[j, k + 1] = b.variable("x", self.nx)
+        shapes = {"x0": self.nx, "stance": 2, "dt0": (), "h0": (), "edges": self.E,
                   "jumps": self.E, "clear": (2, N + 1)}
         par = {name: b.parameter(name, shape) for name, shape in shapes.items()}
         xs[0, 0] = par["x0"]
@@ -187,7 +191,7 @@ class WalkingNLP:
 
     def _transcribe(self, b: NLPBuilder, xs: dict, acc: dict, par: dict):
         """Registers the rows; returns the cost and the plan's node states and torques."""
-        N, s, mdl = self.N, self.s, self.model
+        N, s, mdl, nq = self.N, self.s, self.model, self.nq
         fx = ca.SX.sym("fx")
         h0, edges, jumps = par["h0"], par["edges"], par["jumps"]
         floor = h0 + sum(jumps[i] * _smooth_step((fx - edges[i]) / s.terrain_smoothing)
@@ -199,7 +203,7 @@ class WalkingNLP:
             dt = par["dt0"] if j == 0 else s.dt
             for k in range(N):
                 xk, xn, a = xs[j, k], xs[j, k + 1], acc[j, k]
-                q, qd, qn, qdn = xk[:5], xk[5:], xn[:5], xn[5:]
+                q, qd, qn, qdn = xk[:nq], xk[nq:], xn[:nq], xn[nq:]
                 u = mdl.inverse_dynamics(q, qd, a, 0)
                 pts = mdl.points(qn)
                 foot = pts[:, mdl.swing_foot] + pst
@@ -217,19 +221,19 @@ class WalkingNLP:
                 foot = mdl.swing_foot_world(x_td)
                 x_plus = mdl.reset(x_td)
                 b.rows("touchdown", [foot[0], foot[1]])
-                b.rows("reset", xs[1, 0] - x_plus[:NX])
-                pst = x_plus[NX:]
+                b.rows("reset", xs[1, 0] - x_plus[:self.nx])
+                pst = x_plus[self.nx:]
                 xs_out.append(ca.vertcat(xs[1, 0], pst))
-        q0, qd0 = par["x0"][:5], par["x0"][5:]
+        q0, qd0 = par["x0"][:nq], par["x0"][nq:]
         vel = mdl.swing_foot_velocity(q0, qd0)
         lift = ca.jtimes(vel, q0, qd0) + ca.mtimes(mdl.swing_foot_jacobian(q0), acc[0, 0])
         b.rows("liftoff", lift[1], shape=())
         return J, xs_out, us_out
 
     def _stage_cost(self, xq, pst, u):
-        """The system's stage cost at (xq (10), pst (2), u) plus the torso-top term."""
+        """The system's stage cost at (xq (nx), pst (2), u) plus the torso-top term."""
         s, mdl = self.s, self.model
-        pts = mdl.points(xq[:5])
+        pts = mdl.points(xq[:self.nq])
         top_t, top_w = ca.DM(s.torso_top_target), ca.DM(s.torso_top_weights)
         return (self.system.stage_cost(ca.vertcat(xq, pst), u)
                 + ca.dot(top_w, (pts[:, mdl.torso_top] - top_t) ** 2))
@@ -284,8 +288,9 @@ class WalkingNLP:
         s = self.s
         clear = self._clearances(x0, elapsed)
         h0, e, d = self.terrain()
-        p = self.layout.p.pack({"x0": x0[:NX], "stance": x0[NX:], "dt0": self.dt0(elapsed),
-                                "h0": h0, "edges": e, "jumps": d, "clear": clear})
+        p = self.layout.p.pack({"x0": x0[:self.nx], "stance": x0[self.nx:],
+                                "dt0": self.dt0(elapsed), "h0": h0, "edges": e, "jumps": d,
+                                "clear": clear})
         bounds = self.layout.bounds()
         self._interval_bounds(bounds, clear)
         lbg, ubg = bounds.lbg, bounds.ubg
@@ -304,7 +309,7 @@ class WalkingNLP:
         clear = np.zeros((2, self.N + 1))
         tau = self.swing_times(elapsed)
         foot0 = np.asarray(self.model.swing_foot_world(x0)).ravel()
-        starts = (foot0, x0[NX:])  # swing 1 lifts the current stance foot
+        starts = (foot0, x0[self.nx:])  # swing 1 lifts the current stance foot
         for j in range(2):
             lift = tau[j] < s.liftoff_time - 1e-12
             clear[j, lift] = min(0.0, starts[j][1] - float(self.floor(starts[j][0])))
@@ -318,7 +323,7 @@ class WalkingNLP:
         """State boxes of the node variables and bounds of the interval rows."""
         s, N = self.s, self.N
         lower, upper = self.system.state_box
-        bounds.lbx["x"][:], bounds.ubx["x"][:] = lower[:NX], upper[:NX]
+        bounds.lbx["x"][:], bounds.ubx["x"][:] = lower[:self.nx], upper[:self.nx]
         lbg, ubg = bounds.lbg, bounds.ubg
         umax = np.maximum(np.asarray(self.system.modes[0].u_upper) - s.torque_margin, 0.0)
         lbg["dynamics"][:] = ubg["dynamics"][:] = 0.0
@@ -348,7 +353,7 @@ class WalkingNLP:
         return float(self._f_fun(w, p))
 
     def states_inputs(self, w: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Node states (2 (N + 1), 12) and interval torques (2 N, 5) of a primal point.
+        """Node states (2 (N + 1), n) and interval torques (2 N, n_q) of a primal point.
 
         Rows: swing 0 nodes 0..N (pre-impact last), swing 1 nodes 0..N (post-reset first);
         p_st of swing 1 is the touchdown point.
