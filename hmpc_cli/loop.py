@@ -105,13 +105,15 @@ class ClosedLoop:
             t = i * self.plant.h
             u, x_ref = self.plant.command(t, x, mode, self.st.plan, self.plant.h)
             x, mode, stopped = self._step(i, t, x, mode, u, x_ref)
-            t = (i + 1) * self.plant.h
-            if stopped:
+            if stopped:  # the failure set the end time (the step's start for Zeno)
                 break
+            t = (i + 1) * self.plant.h
             self._after_step(i, t, x, mode, i + 1 == self.n_steps)
             if self.progress is not None:
                 self.progress(i + 1, self.n_steps, self._note())
-        self.res.t_end = t
+        if not stopped:
+            self.res.t_end = t
+        t = self.res.t_end
         self.log.state(t, x, mode, np.zeros(self.model.n_u), x, self.plant.disturbance(t))
         return self._finish(x, mode, stopped, start)
 
