@@ -204,7 +204,8 @@ def _sampled_max(system: HybridSystem, region: Region, which: int, quantity: str
         ulo, uhi = np.array(mode.u_lower, dtype=float), np.array(mode.u_upper, dtype=float)
 
         def norm(X, U, i=i, mode=mode):
-            J = jac(i, X, U)[which]
+            with np.errstate(all="ignore"):  # a non-finite Jacobian is reported below
+                J = jac(i, X, U)[which]
             bad = ~np.all(np.isfinite(J), axis=(1, 2))
             if np.any(bad):
                 raise TubeError(quantity, f"the Jacobian of mode {mode.name!r} is not finite "
