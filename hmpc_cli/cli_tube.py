@@ -179,8 +179,9 @@ def tube_command(
         "--out", help="output directory (default results/<scenario>/tube)")] = None,
     samples: Annotated[int, typer.Option(
         "--samples", min=1, help="uniform samples per estimated constant")] = 20000,
-    pad: Annotated[float, typer.Option(
-        "--pad", min=0.0, help="region padding factor (x the box's widths)")] = 1.0,
+    pad: Annotated[float | None, typer.Option(
+        "--pad", min=0.0, help="region padding per side, x each coordinate's width "
+        "(default 1; with --states 0.1)")] = None,
     states: Annotated[Path | None, typer.Option(
         "--states", help="a run log (run.mcap or its directory): the region spans the "
         "states it visited instead of x0 and the goal")] = None,

@@ -255,6 +255,24 @@ def test_cli_tube_disturbed_ball_warns_and_defaults_its_directory(tmp_path: Path
     assert (tmp_path / "results" / "ball_disturbed" / "tube" / "tube_margins.png").is_file()
 
 
+def test_cli_tube_region_from_a_run_log(tmp_path: Path):
+    from hmpc_cli.recorder import Recorder
+
+    states = [[1.0, 1.0, 0.0, 0.0], [2.0, 1.5, 3.0, -1.0], [3.0, 2.0, -2.0, 4.0]]
+    with Recorder(tmp_path / "run.mcap") as rec:
+        rec.add_topic("/sim/state", "state", {"type": "object"})
+        for i, x in enumerate(states):
+            rec.write("/sim/state", 0.1 * i, {"x": x})
+    proc = hmpc(["tube", str(SCENARIOS / "ball_disturbed.toml"), "--states", str(tmp_path),
+                 "--pad", "0", "--out", "out", "--samples", "1000", "--formats", "png"],
+                tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    region = json.loads((tmp_path / "out" / "tube.json").read_text())["region"]
+    assert region["lower"] == [1.0, 1.0, -2.0, -1.0] and region["upper"] == [3.0, 2.0, 3.0, 4.0]
+    bad = hmpc(["tube", str(BALL), "--states", str(tmp_path / "none.mcap")], tmp_path)
+    assert bad.returncode == 2 and bad.stderr.startswith("error: ")
+
+
 def test_cli_tube_bad_input(tmp_path: Path):
     proc = hmpc(["tube", str(BALL), "--set", "lowlevel.kp=-1", "--out", str(tmp_path)],
                 tmp_path)

@@ -83,14 +83,16 @@ class Region:
         return {"lower": self.lower.tolist(), "upper": self.upper.tolist(), "note": self.note}
 
 
-def region_from_scenario(system: HybridSystem, pad: float = 1.0,
+def region_from_scenario(system: HybridSystem, pad: float | None = None,
                          states: np.ndarray | None = None) -> Region:
     """The box to estimate the constants on.
 
     Spanned by ``states`` (K, n) (e.g. the states a run visited) if given, else by x0 and
-    the goal where the goal map picks state coordinates (a constant selection row), then
-    padded per coordinate by ``pad`` x max(its width, the largest width (1 if all zero))
-    and clipped to the system's finite state-box bounds.
+    the goal where the goal map picks state coordinates (a constant selection row). Each
+    coordinate is then padded on both sides by ``pad`` x its width (default 1, with
+    ``states`` 0.1); a coordinate of zero width by ``pad`` x the largest width (1 if all
+    are zero: e.g. velocities at rest in x0). Finally clipped to the system's finite
+    state-box bounds.
     """
     n = system.n_x
     if states is not None and len(states):
@@ -103,16 +105,18 @@ def region_from_scenario(system: HybridSystem, pad: float = 1.0,
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     if not len(pts):
         raise TubeError("region", "no finite state to span it")
+    if pad is None:
+        pad = 0.1 if states is not None and len(states) else 1.0
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     width = hi - lo
     scale = float(width.max()) or 1.0
-    grow = pad * np.maximum(width, scale)
+    grow = pad * np.where(width > 0, width, scale)
     lo, hi = lo - grow, hi + grow
     if system.state_box is not None:
         lo = np.maximum(lo, np.where(np.isfinite(system.state_box[0]), system.state_box[0], lo))
         hi = np.minimum(hi, np.where(np.isfinite(system.state_box[1]), system.state_box[1], hi))
-    return Region(lo, hi, f"box spanned by {how}, padded by {pad:g} x max(width, "
-                          f"{scale:g}), clipped to the state box")
+    return Region(lo, hi, f"box spanned by {how}, padded by {pad:g} x each width "
+                          f"({scale:g} where zero), clipped to the state box")
 
 
 def _goal_state(system: HybridSystem) -> np.ndarray | None:
