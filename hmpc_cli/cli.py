@@ -123,10 +123,12 @@ def _register() -> None:
     from hmpc_cli.cli_plot import plot_command
     from hmpc_cli.cli_report import report_command
     from hmpc_cli.cli_sweep import sweep_command
+    from hmpc_cli.cli_tube import tube_command
 
     app.command("sweep")(sweep_command)
     app.command("plot")(plot_command)
     app.command("report")(report_command)
+    app.command("tube")(tube_command)
 
 
 _register()

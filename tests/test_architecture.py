@@ -12,7 +12,7 @@ PEERS = {"planner", "mpc", "lowlevel", "recorder", "runlog", "tube"}
 BOTTOM = {"hybrid", "messages", "numeric"}
 #: rooms that must work for any registered system: they never import a system plug-in
 SYSTEM_AGNOSTIC = {"mpc", "planner", "figures", "loop", "plant", "runlog", "stack",
-                   "scenario", "runner", "sweep", "report", "lowlevel", "sim", "tasks"}
+                   "scenario", "runner", "sweep", "report", "lowlevel", "sim", "tasks", "tube"}
 SYSTEM_NAMES = {"ball", "biped"}
 
 

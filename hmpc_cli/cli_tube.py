@@ -1,0 +1,222 @@
+"""``hmpc tube``: the tracking-error tubes of a scenario (heavy imports inside the command).
+
+Reads the scenario, builds its system through the registry, runs
+:func:`hmpc_cli.tube.analyse` on plain values and prints, writes and draws the report.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+__all__ = ["tube_command"]
+
+EXIT_BAD_INPUT = 2
+#: MPC rates of the margin-vs-rate figure [Hz]
+PLOT_RATES = (1, 2, 3, 5, 7, 10, 15, 20, 30, 50, 70, 100, 150, 200)
+
+
+def _fail(lines: list[str]) -> None:
+    """Prints ``error:`` lines and exits with the bad-input code."""
+    for line in lines:
+        typer.echo(f"error: {line}", err=True)
+    raise typer.Exit(EXIT_BAD_INPUT)
+
+
+def _g(v: float | None) -> str:
+    """A number for the tables: 4 significant digits, inf, or '-' for None."""
+    if v is None:
+        return "-"
+    return str(float(v)) if not math.isfinite(v) else f"{v:.4g}"
+
+
+def _states_of(log: Path, n: int) -> object:
+    """The states a recorded run visited (K, n), from its /sim/state topic.
+
+    Raises:
+        ValueError: the log cannot be read or has no state of dimension n.
+    """
+    import numpy as np
+
+    from hmpc_cli.recorder import read_log
+    from hmpc_cli.figures.common import resolve_run_log
+
+    path = resolve_run_log(log)
+    try:
+        rows = [m.data.get("x") or [] for m in read_log(path).topic("/sim/state")]
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: cannot read the log ({exc})") from None
+    rows = [r for r in rows if len(r) == n]
+    if not rows:
+        raise ValueError(f"{path}: no /sim/state state of dimension {n}")
+    return np.array(rows, dtype=float)
+
+
+def _constants_table(report, sc_name: str):
+    """Rich table of the constants and the certificate."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    lx, dist, cert = report.lipschitz, report.disturbance, report.certificate
+    row = report.row(report.rate_hz)
+    t = Table(title=f"tube constants: {sc_name} ({report.system})", show_header=False)
+    t.add_row("region", escape(f"{report.region.note}; diameter {_g(report.region.diameter)}"))
+    t.add_row("L_x", f"{_g(lx.L_x)} 1/s  (max ||df/dx||_2, mode {lx.mode_x})")
+    t.add_row("L_u", f"{_g(lx.L_u)}  (max ||df/du||_2, mode {lx.mode_u})")
+    t.add_row("", escape(f"L_x, L_u: {lx.samples} samples each; {lx.note}"))
+    t.add_row("eta", f"{_g(dist.eta)}  ({escape(dist.note)})")
+    t.add_row("zeta", f"{_g(row.margins.zeta)} at {report.rate_hz:g} Hz  (min(||K|| "
+              f"diam T(dt), D_U): ||K|| = {_g(report.gain_norm)}, kp = {report.kp:g}, "
+              f"kd = {report.kd:g}, D_U = {_g(report.box_diameter)})")
+    if not cert.certified:
+        t.add_row("certificate", f"[red]none[/]: {escape(cert.reason)}")
+        return t
+    t.add_row("certificate", f"V = sqrt(e^T P e), A_cl = A - B K at x0 in mode {cert.mode} "
+              f"({len(cert.states)} error states)")
+    t.add_row("k1, k2, k3", f"{_g(cert.k1)}, {_g(cert.k2)}, {_g(cert.k3)}")
+    t.add_row("sigma(eta), gamma", f"{_g(cert.sigma)}, {_g(cert.gamma)} 1/s;  a(inf) = "
+              f"{_g(cert.a_inf)}")
+    t.add_row("check sigma/k1 <= eta", f"{'true' if cert.check else 'false'}: "
+              f"{cert.check_text}")
+    t.add_row("ROA (estimate)", f"{{V <= {_g(cert.roa_level)}}} ⊇ ball of radius "
+              f"{_g(cert.roa_radius)} ({cert.roa_samples} samples"
+              f"{', none violating up to the cap' if cert.roa_capped else ''})")
+    t.add_row("tau", f"{_g(cert.tau)} s")
+    return t
+
+
+def _diam_table(report):
+    """Rich table of diam T(dt) per MPC rate."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    t = Table(title=escape("diam T(dt) per MPC rate [state norm]"))
+    for col in ("MPC rate", escape("dt [s]"), "trivial", "ff-only", "Prop. 3", "diam T(dt)",
+                "bound", "zeta"):
+        t.add_column(col, justify="left" if col == "bound" else "right")
+    for r in report.rows:
+        mark = " *" if r.rate_hz == report.rate_hz else ""
+        t.add_row(f"{r.rate_hz:g} Hz{mark}", _g(r.dt), _g(r.trivial), _g(r.ff_only),
+                  _g(r.prop3), _g(r.diam), r.bound, _g(r.margins.zeta))
+    return t
+
+
+def _margin_table(report):
+    """Rich table of the implied margins per guard and mode, one column per rate."""
+    from rich.table import Table
+
+    t = Table(title="implied margins: guard-avoid / pass-through offsets (NLP row units), "
+                    "input margin per side")
+    t.add_column("constraint")
+    for r in report.rows:
+        t.add_column(f"{r.rate_hz:g} Hz", justify="right")
+    first = report.rows[0].margins
+    for i, g in enumerate(first.guards):
+        t.add_row(f"guard {g.guard}", *[
+            f"{_g(r.margins.guards[i].avoid)} / {_g(r.margins.guards[i].pass_through)}"
+            + ("" if r.margins.guards[i].monotone else " !") for r in report.rows])
+    for i, m in enumerate(first.inputs):
+        t.add_row(f"inputs {m.mode}", *[
+            _g(max(r.margins.inputs[i].per_side, default=0.0))
+            + (" (capped)" if r.margins.inputs[i].capped else "") for r in report.rows])
+    return t
+
+
+def _print(report, sc_name: str) -> None:
+    """Prints the three tables, then the notes and warnings."""
+    from rich.console import Console
+    from rich.markup import escape
+
+    con = Console()
+    con.print(_constants_table(report, sc_name))
+    con.print(_diam_table(report))
+    con.print(_margin_table(report))
+    con.print("* the scenario's MPC rate; ! the guard's margin formula does not hold at "
+              "that radius. L_x, L_u, eta and the ROA are sampled estimates, not "
+              "certificates; the margins are not applied to the MPC.")
+    for line in report.notes:
+        con.print(f"note: {escape(line)}")
+    for line in report.warnings:
+        con.print(f"[bold yellow]warning[/]: {escape(line)}")
+
+
+def _write(report, system, out: Path, formats: str, title: str) -> list[str]:
+    """Writes tube.json and the figures into ``out``; returns the file names."""
+    import numpy as np
+
+    from hmpc_cli.figures.common import parse_formats
+    from hmpc_cli.figures.tube import draw_diameters, draw_margins
+    from hmpc_cli.tube import diameter_curves
+
+    fmts = parse_formats(formats)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "tube.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
+    periods = [r.dt for r in report.rows]
+    t = np.linspace(0.0, max(periods), 401)[1:]
+    cert = report.certificate
+    draw_diameters(out, t, diameter_curves(report, t), cert.tau if cert.certified else None,
+                   periods, title, fmts)
+    rows = [report.row_at(system, r) for r in PLOT_RATES]
+    guards = {g.guard: np.array([r.margins.guards[i].avoid if r.margins.guards[i].monotone
+                                 else np.nan for r in rows])  # invalid formula: not drawn
+              for i, g in enumerate(rows[0].margins.guards)}
+    inputs = {m.mode: np.array([max(r.margins.inputs[i].per_side, default=0.0) for r in rows])
+              for i, m in enumerate(rows[0].margins.inputs)}
+    draw_margins(out, np.array(PLOT_RATES, dtype=float), guards, inputs, report.rate_hz,
+                 title, fmts)
+    return ["tube.json"] + [f"{s}.{f}" for s in ("tube_diameter", "tube_margins") for f in fmts]
+
+
+def tube_command(
+    scenario: Annotated[Path, typer.Argument(help="scenario TOML file")],
+    set_: Annotated[list[str] | None, typer.Option(
+        "--set", help="override a setting: key.path=value (repeatable)")] = None,
+    out: Annotated[Path | None, typer.Option(
+        "--out", help="output directory (default results/<scenario>/tube)")] = None,
+    samples: Annotated[int, typer.Option(
+        "--samples", min=1, help="uniform samples per estimated constant")] = 20000,
+    pad: Annotated[float | None, typer.Option(
+        "--pad", min=0.0, help="region padding per side, x each coordinate's width "
+        "(default 1; with --states 0.1)")] = None,
+    states: Annotated[Path | None, typer.Option(
+        "--states", help="a run log (run.mcap or its directory): the region spans the "
+        "states it visited instead of x0 and the goal")] = None,
+    formats: Annotated[str, typer.Option(
+        "--formats", help="comma-separated figure formats: pdf,svg,png")] = "pdf,png",
+) -> None:
+    """Tracking-error tubes of a scenario: L_x, L_u, eta, zeta, Prop. 3, diam T(dt), margins."""
+    from hmpc_cli.figures.common import FigureInputError, parse_formats
+    from hmpc_cli.registry import PluginError, build_system
+    from hmpc_cli.scenario import ScenarioError, load_scenario
+    from hmpc_cli.tube import TubeError, analyse, region_from_scenario
+
+    try:
+        sc, _ = load_scenario(scenario, set_ or [])
+        parse_formats(formats)
+    except ScenarioError as exc:
+        _fail(exc.lines)
+    except FigureInputError as exc:
+        _fail([f"--formats: {exc}"])
+    try:
+        system = build_system(sc.system)
+        visited = _states_of(states, system.n_x) if states is not None else None
+        region = region_from_scenario(system, pad, visited)
+        report = analyse(system, region=region, kind=sc.disturbance.kind,
+                         magnitude=sc.disturbance.magnitude, kp=sc.lowlevel.kp,
+                         kd=sc.lowlevel.kd, rate_hz=sc.mpc.rate_hz, samples=samples,
+                         seed=sc.seed)
+    except TubeError as exc:
+        _fail([f"{scenario}: tube: {exc.quantity}: {exc.reason} (no trivial tube)"])
+    except (PluginError, ValueError) as exc:
+        _fail([f"{scenario}: {exc}"])
+    _print(report, sc.name)
+    out = out if out is not None else Path("results") / sc.name / "tube"
+    try:
+        names = _write(report, system, out, formats, f"{sc.name}: tubes")
+    except (OSError, FigureInputError) as exc:
+        _fail([f"{out}: cannot write ({exc})"])
+    typer.echo(f"wrote {', '.join(names)} to {out}")

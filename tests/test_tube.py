@@ -1,0 +1,330 @@
+"""Tubes (Section III-B): every formula against a closed form, and ``hmpc tube`` end to end."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pytest
+
+from conftest import BALL, REPO, SCENARIOS, cli_env, hmpc_command
+from hmpc_cli.hybrid import Guard, HybridSystem, Mode
+from hmpc_cli.tube import (
+    Margins, Region, TubeError, a_bound, analyse, eiss_constants, eta_bound,
+    feedforward_tube, lipschitz, low_level_share, margins, pd_certificate,
+    region_from_scenario, solve_lyapunov, trivial_tube, zeta_bound)
+
+BIPED = SCENARIOS / "biped_stairs.toml"
+RATES = ("5 Hz", "10 Hz", "20 Hz", "50 Hz", "100 Hz")
+
+
+def make_system(flow, n: int, m: int, n_w: int, u_box: float = 1.0, gain=None,
+                guard: bool = False, x0=None) -> HybridSystem:
+    """One mode with the given flow(x, u, w) (SX expressions), optionally one guard x1 = 1."""
+    x, u, w = ca.SX.sym("x", n), ca.SX.sym("u", m), ca.SX.sym("w", n_w)
+    mode = Mode("only", ca.Function("f", [x, u, w], [flow(x, u, w)]), (-u_box,) * m,
+                (u_box,) * m)
+    guards = (Guard("wall", "only", "only", ca.Function("h", [x], [x[0]]), 1.0, +1,
+                    reset=ca.Function("R", [x], [x])),) if guard else ()
+    return HybridSystem(
+        name="toy", state_names=tuple(f"x{i}" for i in range(n)),
+        input_names=tuple(f"u{i}" for i in range(m)),
+        disturbance_names=tuple(f"w{i}" for i in range(n_w)), modes=(mode,), guards=guards,
+        initial_mode="only", final_mode="only",
+        x0=np.zeros(n) if x0 is None else np.asarray(x0, float), goal=np.zeros(n),
+        goal_map=ca.Function("g", [x], [x]), stage_cost=ca.Function("L", [x, u], [ca.sumsqr(x)]),
+        terminal_set=None,
+        tracking_gain=gain or (lambda kp, kd: np.zeros((m, n))))
+
+
+def linear(A, B, Bw, **kw) -> HybridSystem:
+    A, B, Bw = (np.atleast_2d(np.asarray(v, float)) for v in (A, B, Bw))
+    return make_system(lambda x, u, w: ca.mtimes(ca.DM(A), x) + ca.mtimes(ca.DM(B), u)
+                       + ca.mtimes(ca.DM(Bw), w), A.shape[0], B.shape[1], Bw.shape[1], **kw)
+
+
+BOX = Region(-np.ones(2), np.ones(2))
+
+
+# ------------------------------------------------------------------ constants
+def test_linear_system_lipschitz_constants_are_the_matrix_norms():
+    A, B = np.array([[0.3, 2.0], [-1.0, 0.5]]), np.array([[1.0], [3.0]])
+    est = lipschitz(linear(A, B, np.eye(2)), BOX, samples=500)
+    assert est.L_x == pytest.approx(np.linalg.norm(A, 2), rel=1e-12)
+    assert est.L_u == pytest.approx(np.linalg.norm(B, 2), rel=1e-12)
+    assert "not a certificate" in est.note and est.samples >= 500
+
+
+def test_lipschitz_of_sin_2x_is_2_within_one_percent():
+    sys_ = make_system(lambda x, u, w: ca.vertcat(ca.sin(2 * x[0]), ca.sin(2 * x[1]) + u[0]),
+                       2, 1, 1)
+    est = lipschitz(sys_, Region([0.2, 0.3], [1.3, 2.5]), samples=2000, seed=3)
+    # |d sin(2 x)/dx| = |2 cos(2 x)| reaches 2 only at x = k pi / 2 (x2 = pi / 2 here)
+    assert 0.99 * 2 <= est.L_x <= 2 + 1e-12
+    assert abs(est.argmax_x[1] - math.pi / 2) < 0.05
+
+
+def test_eta_of_a_known_w_map():
+    Bw = np.array([[1.0, 0.0], [0.0, 3.0]])
+    d = eta_bound(linear(np.zeros((2, 2)), np.zeros((2, 1)), Bw), BOX, "box", 2.0, 200)
+    assert d.eta == pytest.approx(3.0 * 2.0 * math.sqrt(2.0), rel=1e-12)
+    assert d.gain == pytest.approx(3.0) and not d.zero
+
+
+def test_zero_disturbance_set_is_reported():
+    d = eta_bound(linear(np.eye(2), np.ones((2, 1)), np.eye(2)), BOX, "none", 10.0)
+    assert d.zero and d.eta == 0.0 and "zero disturbance set" in d.note
+    assert eta_bound(linear(np.eye(2), np.ones((2, 1)), np.eye(2)), BOX, "box", 0.0).zero
+
+
+def test_region_errors_and_non_finite_jacobian():
+    sys_ = linear(np.eye(2), np.ones((2, 1)), np.eye(2))
+    with pytest.raises(TubeError, match="empty") as exc:
+        lipschitz(sys_, Region([0.0, 1.0], [1.0, 0.0]))
+    assert exc.value.quantity == "region"
+    with pytest.raises(TubeError, match="degenerate"):
+        lipschitz(sys_, Region([0.0, 0.0], [0.0, 0.0]))
+    with pytest.raises(TubeError, match="non-finite"):
+        lipschitz(sys_, Region([0.0, -np.inf], [1.0, 1.0]))
+    root = make_system(lambda x, u, w: ca.vertcat(ca.sqrt(x[0]), x[1] + u[0]), 2, 1, 1)
+    with pytest.raises(TubeError, match="not finite") as exc:
+        lipschitz(root, BOX, samples=100)
+    assert exc.value.quantity == "L_x"
+
+
+def test_region_from_scenario_spans_x0_and_the_goal():
+    sys_ = linear(np.eye(2), np.ones((2, 1)), np.eye(2), x0=[1.0, 0.0])
+    reg = region_from_scenario(sys_, pad=0.5)  # goal 0 selected by the identity goal map
+    np.testing.assert_allclose(reg.lower, [-0.5, -0.5])
+    np.testing.assert_allclose(reg.upper, [1.5, 0.5])
+
+
+# ------------------------------------------------------------------ tubes
+def test_trivial_and_feedforward_tubes_closed_form():
+    t = np.array([0.0, 0.1, 0.5])
+    np.testing.assert_allclose(trivial_tube(t, 2.0, 3.0, 0.5, 4.0),
+                               (2.0 + 0.5 * 4.0) * t * np.exp(3.0 * t))
+    assert feedforward_tube(0.1, 2.0, 3.0) == pytest.approx(2.0 * 0.1 * math.exp(0.3))
+    assert trivial_tube(0.0, 2.0, 3.0, 0.5, 4.0) == 0.0
+
+
+def test_low_level_share_is_self_consistent():
+    eta, lx, lu, k, box, t = 1.0, 2.0, 0.5, 3.0, 100.0, 0.1
+    r, zeta = low_level_share(t, eta, lx, lu, k, box)
+    assert zeta == pytest.approx(k * r)
+    assert r == pytest.approx(trivial_tube(t, eta, lx, lu, zeta))
+    r_sat, z_sat = low_level_share(t, eta, lx, lu, k, box_diameter=0.01)  # the box bound is smaller
+    assert z_sat == 0.01 and r_sat == pytest.approx(trivial_tube(t, eta, lx, lu, 0.01))
+    assert low_level_share(t, eta, lx, lu, 0.0, box)[1] == 0.0
+
+
+def test_zeta_bound():
+    sys_ = linear(np.eye(2), np.eye(2), np.eye(2), u_box=2.0,
+                  gain=lambda kp, kd: np.diag([kp, kd]))
+    assert zeta_bound(sys_, 0.0, 0.0, 1.0) == 0.0
+    assert zeta_bound(sys_, 3.0, 1.0, 0.5) == pytest.approx(1.5)
+    assert zeta_bound(sys_, 300.0, 1.0, 0.5) == pytest.approx(4.0 * math.sqrt(2.0))
+
+
+# ------------------------------------------------------------------ certificate
+def test_lyapunov_solver_against_hand_solutions():
+    P = solve_lyapunov(np.array([[0.0, 1.0], [-2.0, -3.0]]), np.eye(2))
+    np.testing.assert_allclose(P, [[1.25, 0.25], [0.25, 0.25]], atol=1e-12)
+    assert solve_lyapunov(np.array([[-4.0]]), np.eye(1))[0, 0] == pytest.approx(1 / 8)
+
+
+def test_eiss_bound_holds_on_random_errors_and_disturbances():
+    A = np.array([[0.0, 1.0], [-5.0, -1.5]])
+    Q = np.eye(2)
+    P = solve_lyapunov(A, Q)
+    k1, k2, k3 = eiss_constants(P, Q)
+    eta, rng = 0.7, np.random.default_rng(0)
+    e = rng.standard_normal((20000, 2)) * rng.uniform(0.01, 3.0, (20000, 1))
+    w = rng.standard_normal((20000, 2))
+    w *= eta * rng.uniform(0, 1, (20000, 1)) / np.linalg.norm(w, axis=1, keepdims=True)
+    v = np.sqrt(np.einsum("bi,ij,bj->b", e, P, e))
+    vdot = np.einsum("bi,ij,bj->b", e, P, e @ A.T + w) / v
+    norm = np.linalg.norm(e, axis=1)
+    assert np.all(k1 * norm <= v + 1e-12) and np.all(v <= k2 * norm + 1e-12)
+    assert np.all(vdot <= -k3 * norm + k2 * eta + 1e-12)
+
+
+def test_scalar_eiss_example_closed_form():
+    k, eta = 2.0, 0.3
+    sys_ = linear([[-k]], [[1.0]], [[1.0]], u_box=1e6)
+    cert = pd_certificate(sys_, 0.0, 0.0, eta, samples=500)
+    assert cert.certified and cert.check
+    assert cert.k1 == pytest.approx(cert.k2) and cert.gamma == pytest.approx(k)
+    t = np.linspace(0, 3, 7)
+    np.testing.assert_allclose(cert.a(t), eta / k * (1 - np.exp(-k * t)), rtol=1e-12)
+    assert cert.tau == math.inf and cert.roa_capped  # linear: the ROA is everything
+    np.testing.assert_allclose(a_bound(t, cert.sigma, cert.gamma, cert.k1), cert.a(t))
+
+
+def test_pd_double_integrator_is_certified_and_its_condition_fails():
+    sys_ = linear([[0.0, 1.0], [0.0, 0.0]], [[0.0], [1.0]], [[0.0], [1.0]], u_box=1e6,
+                  gain=lambda kp, kd: np.array([[kp, kd]]))
+    cert = pd_certificate(sys_, 4.0, 3.0, 0.5, samples=500)
+    assert cert.certified and cert.tau == math.inf
+    assert cert.k2 > cert.k1 and not cert.check  # sigma/k1 <= eta iff k1 = k2
+    assert "k2/k1" in cert.check_text
+    none = pd_certificate(sys_, 0.0, 0.0, 0.5)
+    assert not none.certified and "kp = kd = 0" in none.reason and none.k1 is None
+
+
+def test_saturation_limits_the_region_of_attraction():
+    # x' = x + u, u = -K e saturated at |u| <= 1: V decreases only for |e| < 1
+    sys_ = linear([[1.0]], [[1.0]], [[1.0]], u_box=1.0, gain=lambda kp, kd: np.array([[kp]]))
+    small = pd_certificate(sys_, 3.0, 0.0, 0.1, samples=2000, scale=1.0)
+    assert small.certified and small.a_inf == pytest.approx(0.05) and small.tau == math.inf
+    big = pd_certificate(sys_, 3.0, 0.0, 4.0, samples=2000)  # a(inf) = 2 > the ROA
+    assert big.roa_radius == pytest.approx(1.0, rel=0.02) and not big.roa_capped
+    assert big.tau == pytest.approx(math.log(2.0 / (2.0 - big.roa_radius)) / 2.0)
+    assert big.a(big.tau) == pytest.approx(big.roa_radius)
+
+
+def test_ball_default_scenario_has_no_certificate():
+    from hmpc_cli.registry import build_system
+    from hmpc_cli.scenario import load_scenario
+
+    sc, _ = load_scenario(BALL)
+    system = build_system(sc.system)
+    rep = analyse(system, region=region_from_scenario(system), kind=sc.disturbance.kind,
+                  magnitude=sc.disturbance.magnitude, kp=sc.lowlevel.kp, kd=sc.lowlevel.kd,
+                  rate_hz=sc.mpc.rate_hz, samples=500)
+    assert not rep.certificate.certified and "kp = kd = 0" in rep.certificate.reason
+    assert rep.disturbance.zero and all(r.diam == 0.0 for r in rep.rows)
+    assert [r.rate_hz for r in rep.rows] == [5.0, 10.0, 20.0, 50.0, 100.0]
+    json.dumps(rep.to_dict(), allow_nan=False)
+
+
+# ------------------------------------------------------------------ margins
+def test_margins_round_trip_and_values():
+    sys_ = linear(np.eye(2), np.eye(2), np.eye(2), u_box=2.0, guard=True)
+    m = margins(sys_, 0.3, zeta=0.5)
+    assert (m.guards[0].avoid, m.guards[0].pass_through) == (0.3, 0.3)  # a distance guard
+    assert m.inputs[0].per_side == (0.5, 0.5) and not m.inputs[0].capped
+    assert margins(sys_, 0.3, zeta=5.0).inputs[0].per_side == (2.0, 2.0)  # half the width
+    for mm in (m, margins(sys_, math.inf, zeta=5.0)):
+        text = json.dumps(mm.to_dict(), allow_nan=False)
+        assert Margins.from_dict(json.loads(text)) == mm
+
+
+def test_infeasible_initial_state_is_a_warning():
+    sys_ = linear(np.zeros((2, 2)), np.eye(2), np.eye(2), guard=True, x0=[0.5, 0.0])
+    rep = analyse(sys_, region=BOX, kind="box", magnitude=10.0, kp=0.0, kd=0.0, rate_hz=10,
+                  samples=200)
+    assert any("wall" in w and "infeasible at the initial state" in w for w in rep.warnings)
+    assert rep.row(10.0).diam == pytest.approx(10 * math.sqrt(2) * 0.1)
+
+
+# ------------------------------------------------------------------ command line
+def hmpc(args: list[str], cwd: Path, env: dict | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([*hmpc_command(), *args], cwd=cwd, env=env or cli_env(),
+                          capture_output=True, text=True, timeout=300)
+
+
+@pytest.mark.parametrize("scenario", [BALL, BIPED], ids=["ball", "biped"])
+def test_cli_tube(scenario: Path, tmp_path: Path):
+    out = tmp_path / "tube"
+    proc = hmpc(["tube", str(scenario), "--out", str(out), "--samples", "4000"], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    text = proc.stdout
+    for word in ("L_x", "L_u", "eta", "zeta", "not a certificate", *RATES):
+        assert word in text, word
+    data = json.loads((out / "tube.json").read_text())
+    assert [r["rate_hz"] for r in data["rows"]] == [5.0, 10.0, 20.0, 50.0, 100.0]
+    for name in ("tube_diameter.pdf", "tube_diameter.png", "tube_margins.png"):
+        assert (out / name).stat().st_size > 0, name
+    if scenario == BALL:  # disturbance.kind = "none"
+        assert "zero disturbance set" in text and "kp = kd = 0" in text
+    else:
+        assert data["certificate"]["certified"] and "k1, k2, k3" in text
+
+
+def test_cli_tube_disturbed_ball_warns_and_defaults_its_directory(tmp_path: Path):
+    proc = hmpc(["tube", str(SCENARIOS / "ball_disturbed.toml"), "--samples", "2000",
+                 "--formats", "png"], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "warning: at 10 Hz the tightened guard-avoid row of floor" in proc.stdout
+    assert (tmp_path / "results" / "ball_disturbed" / "tube" / "tube_margins.png").is_file()
+
+
+def test_cli_tube_region_from_a_run_log(tmp_path: Path):
+    from hmpc_cli.recorder import Recorder
+
+    states = [[1.0, 1.0, 0.0, 0.0], [2.0, 1.5, 3.0, -1.0], [3.0, 2.0, -2.0, 4.0]]
+    with Recorder(tmp_path / "run.mcap") as rec:
+        rec.add_topic("/sim/state", "state", {"type": "object"})
+        for i, x in enumerate(states):
+            rec.write("/sim/state", 0.1 * i, {"x": x})
+    proc = hmpc(["tube", str(SCENARIOS / "ball_disturbed.toml"), "--states", str(tmp_path),
+                 "--pad", "0", "--out", "out", "--samples", "1000", "--formats", "png"],
+                tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    region = json.loads((tmp_path / "out" / "tube.json").read_text())["region"]
+    assert region["lower"] == [1.0, 1.0, -2.0, -1.0] and region["upper"] == [3.0, 2.0, 3.0, 4.0]
+    bad = hmpc(["tube", str(BALL), "--states", str(tmp_path / "none.mcap")], tmp_path)
+    assert bad.returncode == 2 and bad.stderr.startswith("error: ")
+
+
+def test_cli_tube_bad_input(tmp_path: Path):
+    proc = hmpc(["tube", str(BALL), "--set", "lowlevel.kp=-1", "--out", str(tmp_path)],
+                tmp_path)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert proc.stderr.startswith(f"error: {BALL}: lowlevel.kp:")
+    proc = hmpc(["tube", str(tmp_path / "missing.toml")], tmp_path)
+    assert proc.returncode == 2 and "file not found" in proc.stderr
+
+
+def test_cli_tube_without_trivial_tube_exits_2(tmp_path: Path):
+    """A plug-in whose flow has no finite Jacobian on the region: one error line, exit 2."""
+    (tmp_path / "hmpc_root-0.1.dist-info").mkdir()
+    (tmp_path / "hmpc_root-0.1.dist-info" / "METADATA").write_text(
+        "Metadata-Version: 2.1\nName: hmpc-root\nVersion: 0.1\n")
+    (tmp_path / "hmpc_root-0.1.dist-info" / "entry_points.txt").write_text(
+        "[hmpc.systems]\nroot = hmpc_root:SYSTEM\n")
+    (tmp_path / "hmpc_root.py").write_text(ROOT_PLUGIN)
+    (tmp_path / "root.toml").write_text('[system]\nname = "root"\n[mpc]\nrate_hz = 10\n')
+    env = cli_env()
+    env["PYTHONPATH"] = os.pathsep.join([str(tmp_path), str(REPO)])
+    proc = hmpc(["tube", "root.toml", "--out", "out", "--samples", "200"], tmp_path, env)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert proc.stderr.startswith("error: root.toml: tube: L_x: the Jacobian")
+    assert "Traceback" not in proc.stderr
+
+
+ROOT_PLUGIN = '''
+from typing import Literal
+import casadi as ca
+import numpy as np
+from pydantic import BaseModel
+from hmpc_cli.hybrid import HybridSystem, Mode
+from hmpc_cli.registry import SystemSpec
+from hmpc_cli.tasks import ReachGoal
+
+
+class RootParams(BaseModel):
+    name: Literal["root"] = "root"
+
+
+def build(p):
+    x, u, w = ca.SX.sym("x", 2), ca.SX.sym("u", 1), ca.SX.sym("w", 1)
+    flow = ca.Function("f", [x, u, w], [ca.vertcat(ca.sqrt(x[0]), u[0] + w[0])])
+    return HybridSystem(
+        name="root", state_names=("a", "b"), input_names=("u",), disturbance_names=("w",),
+        modes=(Mode("m", flow, (-1.0,), (1.0,)),), guards=(), initial_mode="m",
+        final_mode="m", x0=np.array([0.0, 0.0]), goal=np.array([1.0, 0.0]),
+        goal_map=ca.Function("g", [x], [x]),
+        stage_cost=ca.Function("L", [x, u], [ca.sumsqr(x)]), terminal_set=None,
+        tracking_gain=lambda kp, kd: np.zeros((1, 2)))
+
+
+SYSTEM = SystemSpec(name="root", params=RootParams, build=build,
+                    task=lambda p, s: ReachGoal(s, 0.1), planner="cem", mpc="fixed_mode")
+'''
