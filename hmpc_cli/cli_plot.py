@@ -75,6 +75,30 @@ def _fig4(log: Path, out: Path | None, formats: str, every: float, gif: bool,
     typer.echo(f"wrote {', '.join(names)} to {out_dir}")
 
 
+def _fig2(log: Path, out: Path | None, formats: str, options: dict) -> None:
+    """Draws Figure 2 from a run log; prints the geometry's checks and the written files."""
+    from hmpc_cli.figures.common import FigureInputError, parse_formats, resolve_run_log
+    from hmpc_cli.figures.fig2 import fig2
+
+    out_dir = out if out is not None else resolve_run_log(log).parent
+    try:
+        geo = fig2(log, out_dir, formats, **options)
+    except FigureInputError as exc:
+        _fail(str(exc))
+    typer.echo(f"solve {geo.solve} at t = {geo.t:.3f} s crosses guard {geo.guard_name} "
+               f"({geo.source_mode} -> {geo.target_mode}); tube radius d = {geo.radius:.4g} "
+               f"({geo.radius_source})")
+    typer.echo(f"guard node gap {geo.guard_node_gap:.3g}; virtual node gap "
+               f"{geo.virtual_gap:.4g}; disc's nearest point gap {geo.disc_gap:.4g}: "
+               + ("past the guard" if geo.disc_past else "NOT entirely past the guard"))
+    typer.echo(f"NLP row q(x_v) <= -kappa(d): {geo.virtual_q:.4g} vs {-geo.kappa:.4g}: "
+               + ("holds" if geo.nlp_row >= -1e-6 else "violated")
+               + f"; |post-reset - R(guard node)| = "
+               f"{float(abs(geo.post_reset - geo.reset_of_guard_node).max()):.2g}")
+    names = [f"fig2.{f}" for f in parse_formats(formats)]
+    typer.echo(f"wrote {', '.join(names)} to {out_dir}")
+
+
 def _robustness(table: Path, out: Path | None, formats: str, options: dict) -> None:
     """Draws the robustness curves, prints the cell table and the written files."""
     from rich.console import Console
@@ -102,10 +126,11 @@ def _robustness(table: Path, out: Path | None, formats: str, options: dict) -> N
 
 
 def plot_command(
-    figure: Annotated[str, typer.Argument(help="figure to draw: fig3, robustness or fig4")],
+    figure: Annotated[str, typer.Argument(help="figure to draw: fig2, fig3, robustness or fig4")],
     table: Annotated[Path, typer.Argument(
         help="fig3, robustness: sweep table (results.csv, or the sweep directory holding "
-        "it); fig4: a biped run log (run.mcap, or the run directory holding it)")],
+        "it); fig2: a run log, fig4: a biped run log (run.mcap, or the run directory "
+        "holding it)")],
     out: Annotated[Path | None, typer.Option(
         "--out", help="output directory (default: the table's directory)")] = None,
     formats: Annotated[str, typer.Option(
@@ -133,12 +158,24 @@ def plot_command(
         "--every", help="fig4: time between stick-figure snapshots [s]")] = 0.1,
     gif: Annotated[bool, typer.Option(
         "--gif/--no-gif", help="fig4: also write the animation walk.gif")] = True,
+    solve: Annotated[int | None, typer.Option(
+        "--solve", help="fig2: draw the K-th logged MPC solve (from 1; default: the "
+        "first whose plan crosses a guard)")] = None,
+    radius: Annotated[float | None, typer.Option(
+        "--radius", help="fig2: tube radius d (default: the run's mpc.tube_margin)")] = None,
+    from_tube: Annotated[bool, typer.Option(
+        "--from-tube", help="fig2: d = diam T(dt) at the run's MPC rate (hmpc tube)")
+    ] = False,
 ) -> None:
     """Draw a paper figure from recorded runs (a sweep table and the logs it points to)."""
     from hmpc_cli.figures import FIGURES
 
     if figure not in FIGURES:
         _fail(f"unknown figure {figure!r} (choose from {', '.join(FIGURES)})")
+    if figure == "fig2":
+        _fig2(table, out, formats, {"solve": solve, "radius": radius, "from_tube": from_tube,
+                                    "width": width, "height": height or 2.8})
+        return
     if figure == "fig4":
         _fig4(table, out, formats, every, gif, width, height or 4.2)
         return

@@ -1,0 +1,139 @@
+"""``hmpc plot fig2``: the virtual pass-through node of a recorded ball plan; bad input."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from conftest import BALL
+from hmpc_cli.figures.common import FigureInputError
+from hmpc_cli.figures.fig2 import fig2, fig2_geometry
+from hmpc_cli.figures.model import system_from_params
+from hmpc_cli.logschema import TOPICS
+from hmpc_cli.recorder import Recorder, read_log
+from test_plot import make_app
+
+TOL = 1e-6  # the solver's tolerance (1e-8) with room for the logged rounding
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory, run_hmpc):
+    """A short nominal ball run through the real command line (its directory)."""
+    base = tmp_path_factory.mktemp("fig2_run")
+    proc = run_hmpc(["run", str(BALL), "--set", "sim.duration=0.3", "--out",
+                     str(base / "run"), "-q"], cwd=base)
+    assert proc.returncode == 0, proc.stderr
+    return base / "run"
+
+
+def rewrite(src, dst, edit):
+    """Copies a run log, passing each message's data through ``edit(topic, data)``."""
+    log = read_log(src)
+    with Recorder(dst) as rec:
+        for topic in dict.fromkeys(m.topic for m in log.messages):
+            rec.add_topic(topic, *TOPICS[topic])
+        for m in log.messages:
+            rec.write(m.topic, m.t, edit(m.topic, dict(m.data)))
+    return dst
+
+
+def test_cli_writes_the_figure_deterministically(run, run_hmpc, tmp_path):
+    first = run_hmpc(["plot", "fig2", str(run), "--out", str(tmp_path / "a")], cwd=tmp_path)
+    assert first.returncode == 0, first.stderr
+    assert "crosses guard" in first.stdout and "past the guard" in first.stdout
+    for fmt in ("pdf", "svg", "png"):
+        assert (tmp_path / "a" / f"fig2.{fmt}").stat().st_size > 5000
+    assert (tmp_path / "a" / "fig2.pdf").read_bytes().startswith(b"%PDF")
+    again = run_hmpc(["plot", "fig2", str(run / "run.mcap"), "--out", str(tmp_path / "b")],
+                     cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    for fmt in ("pdf", "svg", "png"):
+        name = f"fig2.{fmt}"
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
+
+
+def test_virtual_node_is_past_the_guard_by_the_tube(run):
+    log = read_log(run / "run.mcap")
+    system = system_from_params(log.topic("/run/info")[0].data["scenario"]["system"], "log")
+    solves = log.topic("/mpc/solve")
+    crossing = [i + 1 for i, m in enumerate(solves) if max(m.data["seg_plan"]) >= 1]
+    assert crossing and fig2_geometry(run).solve == crossing[0]
+    for k in crossing:
+        geo = fig2_geometry(run, solve=k)
+        g = system.guards[geo.guard]
+        assert geo.guard == solves[k - 1].data["schedule"]["guards"][0]
+        assert geo.radius == 0.025 and geo.slack <= TOL
+        # the guard node is on the guard, the post-reset node is its reset
+        assert abs(geo.guard_node_gap) < TOL
+        assert np.allclose(geo.post_reset, geo.reset_of_guard_node, rtol=0, atol=1e-9)
+        # the NLP's virtual-node row: q(x_v) <= -kappa(d, past=True)
+        assert geo.kappa == g.kappa(geo.radius, past=True)
+        assert geo.virtual_q <= -geo.kappa + TOL and geo.nlp_row >= -TOL
+        assert geo.virtual_gap < 0.0 and geo.disc_past
+        # x_v is one RK4 interval of the source flow (node step) with the virtual input
+        mode = system.mode_index(g.source)
+        xv = system.numeric.rk4[mode](geo.guard_node[None], geo.virtual_input[None],
+                                      np.zeros((1, system.n_w)), np.array([[geo.dt]]))[0]
+        assert np.allclose(geo.virtual_node, xv[0], rtol=0, atol=1e-9)
+        assert abs(geo.dt - 1 / 60) < 1e-9
+        xs = ca.SX.sym("x", system.n_x)
+        q = ca.Function("q", [xs], [g.q_expr(xs)])
+        assert abs(float(q(geo.virtual_node)) - geo.virtual_q) < 1e-12
+        # the disc's point nearest the guard has the largest gap over the disc
+        dist = np.linalg.norm(geo.disc_point - geo.virtual_node[list(geo.plane)])
+        assert abs(dist - geo.radius) < 1e-9
+        assert geo.disc_gap >= geo.virtual_gap
+
+
+def test_radius_options_and_the_verdict(run, tmp_path):
+    geo = fig2(run, tmp_path, "png", radius=0.3)
+    assert geo.radius == 0.3 and geo.radius_source == "given radius"
+    assert not geo.disc_past and geo.nlp_row < 0  # a tube this large does not pass
+    assert (tmp_path / "fig2.png").is_file() and not (tmp_path / "fig2.pdf").exists()
+    tube = fig2_geometry(run, from_tube=True)  # nominal: no disturbance, zero tube
+    assert tube.radius == 0.0 and tube.radius_source.startswith("diam T(dt) at 10 Hz")
+    assert tube.disc_gap == pytest.approx(tube.virtual_gap)
+
+
+def bad_cases(run, tmp_path) -> dict[str, list[str]]:
+    log = run / "run.mcap"
+
+    def no_crossing(topic, data):
+        if topic == "/mpc/solve":
+            data["seg_plan"] = [0] * len(data["seg_plan"])
+        return data
+
+    def no_plane(topic, data):
+        if topic == "/run/info":
+            data["scenario"] = {**data["scenario"], "system": {"name": "biped"}}
+        return data
+
+    flat = rewrite(log, tmp_path / "flat.mcap", no_crossing)
+    biped = rewrite(log, tmp_path / "biped.mcap", no_plane)
+    return {"no such log": [str(tmp_path / "missing")],
+            "no crossing": [str(flat)],
+            "no plane": [str(biped)],
+            "solve 0": [str(log), "--solve", "0"],
+            "solve too large": [str(log), "--solve", "99"],
+            "both radii": [str(log), "--radius", "0.1", "--from-tube"],
+            "negative radius": [str(log), "--radius", "-1"],
+            "bad format": [str(log), "--formats", "gif"]}
+
+
+def test_bad_input_exits_2_and_writes_nothing(run, tmp_path):
+    app = make_app()
+    before = sorted(p.name for p in run.iterdir())
+    for name, args in bad_cases(run, tmp_path).items():
+        out = tmp_path / f"out_{name.replace(' ', '_')}"
+        res = CliRunner().invoke(app, ["plot", "fig2", *args, "--out", str(out)])
+        assert res.exit_code == 2, f"{name}: {res.output}"
+        err = res.stderr.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error: "), f"{name}: {res.stderr!r}"
+        assert not out.exists(), name
+    assert sorted(p.name for p in run.iterdir()) == before
+    with pytest.raises(FigureInputError, match="no logged solve plans a guard crossing"):
+        fig2_geometry(tmp_path / "flat.mcap")
+    with pytest.raises(FigureInputError, match="no 2-D drawing plane"):
+        fig2_geometry(tmp_path / "biped.mcap")
