@@ -87,7 +87,7 @@ def _fig2(log: Path, out: Path | None, formats: str, options: dict) -> None:
         _fail(str(exc))
     typer.echo(f"solve {geo.solve} at t = {geo.t:.3f} s crosses guard {geo.guard_name} "
                f"({geo.source_mode} -> {geo.target_mode}); tube radius d = {geo.radius:.4g} "
-               f"({geo.radius_source})")
+               f"({geo.radius_source}); solve slack {geo.slack:.2g}")
     typer.echo(f"guard node gap {geo.guard_node_gap:.3g}; virtual node gap "
                f"{geo.virtual_gap:.4g}; disc's nearest point gap {geo.disc_gap:.4g}: "
                + ("past the guard" if geo.disc_past else "NOT entirely past the guard"))

@@ -137,3 +137,15 @@ def test_bad_input_exits_2_and_writes_nothing(run, tmp_path):
         fig2_geometry(tmp_path / "flat.mcap")
     with pytest.raises(FigureInputError, match="no 2-D drawing plane"):
         fig2_geometry(tmp_path / "biped.mcap")
+
+
+def test_title_says_what_went_wrong(run):
+    from dataclasses import replace
+
+    from hmpc_cli.figures.fig2 import _title
+
+    geo = fig2_geometry(run)
+    assert "lies entirely past the guard" in _title(geo) and "softened" not in _title(geo)
+    assert "NOT entirely past" in _title(replace(geo, disc_gap=0.01))
+    soft = _title(replace(geo, slack=0.008, guard_node_gap=0.008))
+    assert "softened solve (slack 0.008)" in soft and "gap is 0.008" in soft

@@ -48,6 +48,7 @@ GUARD_NODE_COLOR = "#d62728"  # red
 VIRTUAL_COLOR = "#ff7f0e"  # the paper's orange
 RESET_COLOR = "#2e8b57"  # green
 NEXT_NODES = 6  # planned nodes of the next domain drawn after the reset
+SOFT_TOL = 1e-6  # slack or guard-node gap above this: a softened solve, said in the title
 
 
 @dataclass(frozen=True)
@@ -392,8 +393,12 @@ def _title(geo: Fig2Geometry) -> str:
     """The figure's title: the verdict on the virtual node's disc, never hidden."""
     verdict = ("its tube disc lies entirely past the guard" if geo.disc_past else
                "its tube disc is NOT entirely past the guard")
-    return (f"solve {geo.solve} (t = {geo.t:.3f} s) crosses {geo.guard_name}: virtual node "
+    text = (f"solve {geo.solve} (t = {geo.t:.3f} s) crosses {geo.guard_name}: virtual node "
             f"gap {geo.virtual_gap:.4g}, disc's nearest point {geo.disc_gap:.4g}: {verdict}")
+    if geo.slack > SOFT_TOL or abs(geo.guard_node_gap) > SOFT_TOL:
+        text += (f"\nsoftened solve (slack {geo.slack:.2g}): the guard node's gap is "
+                 f"{geo.guard_node_gap:.2g}")
+    return text
 
 
 def _figure(system, geo: Fig2Geometry, width: float, height: float):
@@ -408,7 +413,7 @@ def _figure(system, geo: Fig2Geometry, width: float, height: float):
     zoom = _box(near, max(2.5 * d, 0.3 * span, 1e-3))
     every = np.vstack([pl(geo.nodes), near, pl(geo.next_nodes)])
     whole = _box(every, max(1.5 * d, 0.08 * float(np.ptp(every, axis=0).max()), 1e-3))
-    fig = Figure(figsize=(width, height), layout="constrained")
+    fig = Figure(figsize=(width, height), layout="compressed")  # fixed-aspect panels
     fig.get_layout_engine().set(w_pad=0.02, h_pad=0.02, wspace=0.04)
     ax_a, ax_b = fig.subplots(1, 2)
     _draw(ax_a, system, geo, whole, "the planned domain")
