@@ -159,8 +159,8 @@ def _view(runs: dict[str, list[_Run]], systems) -> tuple[tuple[float, float], ..
                 xs += [float(xy[:, 0].min()), float(xy[:, 0].max())]
                 ys += [float(xy[:, 1].min()), float(xy[:, 1].max())]
     span = max(max(xs) - min(xs), max(ys) - min(ys), 1e-6)
-    box = ((min(xs) - 0.3 * span, max(xs) + 0.3 * span),
-           (min(ys) - 0.3 * span, max(ys) + 0.3 * span))
+    box = ((min(xs) - 0.6 * span, max(xs) + 0.6 * span),
+           (min(ys) - 0.6 * span, max(ys) + 0.6 * span))
     for sysm in systems:  # closed guard curves near the data (a circle) are shown whole
         if sysm is None:
             continue
