@@ -157,3 +157,17 @@ def test_a_run_with_a_computed_margins_file(ball_file: Path, tmp_path: Path):
                               {"mode": "inside", "per_side": [0.0, 0.0]}]
     hand = _xs(tmp_path / "hand", "/run/info", "margins")[0]
     assert hand["source"] == "hand" and hand["guards"] == info["guards"]
+
+
+def test_a_sweep_checks_its_margins_files_before_any_run(ball_file: Path, tmp_path: Path):
+    from hmpc_cli.sweep import plan_sweep
+
+    sweep = tmp_path / "sweep.toml"
+    sweep.write_text(f'name = "m"\nscenario = "{BALL}"\n[grid]\nm = [\n'
+                     f'  {{ label = "file", "mpc.margins" = "{ball_file}" }},\n'
+                     '  { label = "hand", "mpc.margins" = "hand" },\n]\n')
+    runs = plan_sweep(sweep).runs
+    assert sorted(f'margins = "{ball_file}"' in r.toml for r in runs) == [False, True]
+    sweep.write_text(sweep.read_text().replace(str(ball_file), "missing.toml"))
+    with pytest.raises(ScenarioError, match=r"mpc\.margins: file not found: .*missing\.toml"):
+        plan_sweep(sweep)
