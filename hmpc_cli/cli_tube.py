@@ -137,7 +137,8 @@ def _print(report, sc_name: str) -> None:
     con.print(_margin_table(report))
     con.print("* the scenario's MPC rate; ! the guard's margin formula does not hold at "
               "that radius. L_x, L_u, eta and the ROA are sampled estimates, not "
-              "certificates; the margins are not applied to the MPC.")
+              "certificates; the MPC applies them only through a margins file (--write, "
+              "mpc.margins).")
     for line in report.notes:
         con.print(f"note: {escape(line)}")
     for line in report.warnings:
@@ -187,6 +188,9 @@ def tube_command(
         "states it visited instead of x0 and the goal")] = None,
     formats: Annotated[str, typer.Option(
         "--formats", help="comma-separated figure formats: pdf,svg,png")] = "pdf,png",
+    write: Annotated[Path | None, typer.Option(
+        "--write", help="also write a margins file (TOML) a scenario's mpc.margins can "
+        "name: the radius and margins per tabulated MPC rate")] = None,
 ) -> None:
     """Tracking-error tubes of a scenario: L_x, L_u, eta, zeta, Prop. 3, diam T(dt), margins."""
     from hmpc_cli.figures.common import FigureInputError, parse_formats
@@ -195,7 +199,7 @@ def tube_command(
     from hmpc_cli.tube import TubeError, analyse, region_from_scenario
 
     try:
-        sc, _ = load_scenario(scenario, set_ or [])
+        sc, _ = load_scenario(scenario, set_ or [], check_margins=False)
         parse_formats(formats)
     except ScenarioError as exc:
         _fail(exc.lines)
@@ -220,3 +224,19 @@ def tube_command(
     except (OSError, FigureInputError) as exc:
         _fail([f"{out}: cannot write ({exc})"])
     typer.echo(f"wrote {', '.join(names)} to {out}")
+    if write is not None:
+        _write_margins(report, sc, write, samples)
+
+
+def _write_margins(report, sc, path: Path, samples: int) -> None:
+    """Writes the margins file of ``report`` (``hmpc tube --write``)."""
+    from hmpc_cli.tube.margins_file import write_margins
+
+    try:
+        write_margins(path, report, scenario=sc.name, params=sc.system,
+                      kind=sc.disturbance.kind, magnitude=sc.disturbance.magnitude,
+                      samples=samples)
+    except OSError as exc:
+        _fail([f"{path}: cannot write ({exc})"])
+    typer.echo(f"wrote margins file {path} (rates "
+               f"{', '.join(f'{r.rate_hz:g}' for r in report.rows)} Hz)")

@@ -6,6 +6,7 @@ NUM = {"type": ["number", "null"]}
 VEC = {"type": "array", "items": NUM}
 MAT = {"type": "array", "items": VEC}
 INT = {"type": "integer"}
+FLOAT = {"type": "number"}
 STR = {"type": "string"}
 BOOL = {"type": "boolean"}
 SCHEDULE = {
@@ -31,7 +32,12 @@ TOPICS: dict[str, tuple[str, dict]] = {
         scenario={"type": "object"}, state_names={"type": "array", "items": STR},
         input_names={"type": "array", "items": STR},
         mode_names={"type": "array", "items": STR},
-        guard_names={"type": "array", "items": STR})),
+        guard_names={"type": "array", "items": STR},
+        margins=_obj("Margins", source=STR, radius=FLOAT, guards={
+            "type": "array", "items": _obj("GuardMargins", guard=STR, avoid=FLOAT,
+                                           pass_through=FLOAT)},
+            inputs={"type": "array", "items": _obj(
+                "InputMargins", mode=STR, per_side={"type": "array", "items": FLOAT})}))),
     "/sim/state": ("hmpc.State", _obj(
         "State", t=NUM, x=VEC, mode=INT, u=VEC, x_ref=VEC, w=VEC)),
     "/sim/event": ("hmpc.GuardEvent", _obj(

@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hmpc_cli.messages import OFF_SCHEDULE, SCHEDULED, GuardEvent, ModeSchedule, Plan
+from hmpc_cli.messages import (
+    OFF_SCHEDULE, SCHEDULED, ConstraintMargins, GuardEvent, ModeSchedule, Plan)
 from hmpc_cli.runlog import RunLog, RunResult, versions
 from hmpc_cli.stack import FixedModeMPC, Planner, Task
 
@@ -266,11 +267,13 @@ def build(scenario, log: RunLog,
           progress: Callable[[int, int, str], None] | None = None) -> ClosedLoop:
     """Composes the closed loop of a validated scenario (the only reader of a Scenario).
 
-    The MPC's NLPs are built once per process per (system, MPC settings) and shared.
+    The MPC's NLPs are built once per process per (system, MPC settings, margins) and
+    shared.
 
     Raises:
         hmpc_cli.registry.PluginError: a plug-in fails to build (message names it).
-        ValueError: settings that do not fit the built system (e.g. unknown guards).
+        ValueError: settings that do not fit the built system (e.g. unknown guards, a
+            margins file that does not fit: ``mpc.margins: ...``).
     """
     from hmpc_cli.disturbance import make_disturbance
     from hmpc_cli.lowlevel import LowLevelController
@@ -291,21 +294,52 @@ def build(scenario, log: RunLog,
                                                  s.event_time_tol),
                   dist, LowLevelController(model, sc.lowlevel), s.rate_hz,
                   s.input_at_events == "recompute", s.max_events_per_step)
-    mpc_spec = reg.mpc(sc.mpc.kind)
-    key = json.dumps([sc.system.model_dump(mode="json"), sc.mpc.model_dump(mode="json")],
-                     sort_keys=True)
-    what = f"mpc: {sc.mpc.kind!r} failed to build for system {spec.name!r}"
-    if key not in _PROBLEMS:
-        _PROBLEMS[key] = plugin_call(what, mpc_spec.problem, model, sc.mpc)
-    mpc = plugin_call(what, mpc_spec.make, model, sc.mpc, _PROBLEMS[key])
+    margins = _margins(sc, model)
+    mpc = _mpc(sc, model, margins)
     planner = plugin_call(f"planner: {sc.planner.kind!r} failed to build for system "
                           f"{spec.name!r}", reg.planner(sc.planner.kind).make, model,
                           sc.planner, sc.seed)
     task = plugin_call(f"system: the task of {spec.name!r} failed to build", spec.task, world,
                        system)
-    log.set_info(sc.name, sc.seed, sc.model_dump(mode="json"), s.rate_hz // s.log_rate_hz)
+    log.set_info(sc.name, sc.seed, sc.model_dump(mode="json"), s.rate_hz // s.log_rate_hz,
+                 margins.to_dict(model) if margins is not None else None)
     return ClosedLoop(plant, planner, mpc, _timing(sc, model), task, log, s.duration,
                       s.divergence_bound, progress)
+
+
+def _margins(sc, model) -> ConstraintMargins | None:
+    """The MPC's margins: hand-set, from the scenario's margins file, or None (no field).
+
+    Raises:
+        ValueError: ``mpc.margins: ...`` when the file does not fit the scenario.
+    """
+    source = getattr(sc.mpc, "margins", None)
+    if source is None:  # an MPC without margins settings (e.g. walking)
+        return None
+    if source == "hand":
+        return ConstraintMargins.hand(model, sc.mpc.tube_margin, sc.mpc.input_margin)
+    from hmpc_cli.tube.margins_file import constraint_margins
+
+    return constraint_margins(source, model, sc.system, sc.mpc.rate_hz)
+
+
+def _mpc(sc, model, margins: ConstraintMargins | None) -> FixedModeMPC:
+    """The MPC controller; its NLPs built once per process per (system, settings, margins).
+
+    A margins file's values go to the plug-in's ``problem`` as a third argument.
+    """
+    from hmpc_cli.registry import plugin_call, registry
+
+    reg = registry()
+    mpc_spec = reg.mpc(sc.mpc.kind)
+    from_file = margins is not None and margins.source != "hand"
+    key = json.dumps([sc.system.model_dump(mode="json"), sc.mpc.model_dump(mode="json"),
+                      margins.to_dict(model) if from_file else None], sort_keys=True)
+    what = f"mpc: {sc.mpc.kind!r} failed to build for system {sc.system.name!r}"
+    if key not in _PROBLEMS:
+        extra = (margins,) if from_file else ()
+        _PROBLEMS[key] = plugin_call(what, mpc_spec.problem, model, sc.mpc, *extra)
+    return plugin_call(what, mpc_spec.make, model, sc.mpc, _PROBLEMS[key])
 
 
 def _timing(sc, model) -> StackTiming:

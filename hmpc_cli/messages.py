@@ -194,3 +194,81 @@ class Plan:
     schedule: ModeSchedule
     extra: dict = field(default_factory=dict)
     adopt: bool = True
+
+
+@dataclass(frozen=True)
+class ConstraintMargins:
+    """The tightenings the fixed-mode MPC applies (problem (14)), in system order.
+
+    Built by hand from ``(tube_margin, input_margin)`` (:meth:`hand`) or from a margins
+    file (:meth:`by_name`); the NLP data code reads only this.
+
+    Attributes:
+        source: "hand", or the margins file's path.
+        radius: the tube radius d they come from [state norm].
+        avoid: per guard, the guard-avoid offset kappa(d, past=False) (NLP row units).
+        entered: per guard, the offset while the guard was just crossed (kappa(0, False):
+            the tube is not applied to the guard the state has just left through).
+        pass_through: per guard, the virtual-node offset kappa(d, past=True).
+        inputs: per mode, the input-box shrink per side, one value per input.
+    """
+
+    source: str
+    radius: float
+    avoid: tuple[float, ...]
+    entered: tuple[float, ...]
+    pass_through: tuple[float, ...]
+    inputs: tuple[tuple[float, ...], ...]
+
+    @classmethod
+    def hand(cls, system, tube_margin: float, input_margin: float) -> ConstraintMargins:
+        """The hand-set margins: ``Guard.kappa`` of the radius, one shrink for every input.
+
+        Args:
+            system: the :class:`~hmpc_cli.hybrid.HybridSystem`.
+            tube_margin: tube radius d [state norm].
+            input_margin: input-box shrink per side [input units].
+        """
+        gs = system.guards
+        return cls("hand", float(tube_margin),
+                   tuple(g.kappa(tube_margin, past=False) for g in gs),
+                   tuple(g.kappa(0.0, past=False) for g in gs),
+                   tuple(g.kappa(tube_margin, past=True) for g in gs),
+                   tuple((input_margin,) * system.n_u for _ in system.modes))
+
+    @classmethod
+    def by_name(cls, system, source: str, radius: float, guards: dict, inputs: dict
+                ) -> ConstraintMargins:
+        """Margins given by guard and mode name (a margins file's).
+
+        Args:
+            system: the :class:`~hmpc_cli.hybrid.HybridSystem`.
+            source: where they come from (the file's path).
+            radius: the tube radius d [state norm].
+            guards: guard name -> (avoid, pass_through) offsets (NLP row units).
+            inputs: mode name -> shrink per side, one value per input.
+
+        Raises:
+            ValueError: a guard or mode of the system is missing, or an input count is off.
+        """
+        missing = [g.name for g in system.guards if g.name not in guards]
+        missing += [m.name for m in system.modes if m.name not in inputs]
+        if missing:
+            raise ValueError(f"no margins for {', '.join(missing)}")
+        bad = [m.name for m in system.modes if len(inputs[m.name]) != system.n_u]
+        if bad:
+            raise ValueError(f"modes {', '.join(bad)}: expected {system.n_u} input margins")
+        return cls(source, float(radius),
+                   tuple(float(guards[g.name][0]) for g in system.guards),
+                   tuple(g.kappa(0.0, past=False) for g in system.guards),
+                   tuple(float(guards[g.name][1]) for g in system.guards),
+                   tuple(tuple(float(v) for v in inputs[m.name]) for m in system.modes))
+
+    def to_dict(self, system) -> dict:
+        """The /run/info record: source, radius, offsets by guard, shrinks by mode."""
+        return {"source": self.source, "radius": self.radius,
+                "guards": [{"guard": g.name, "avoid": a, "pass_through": p}
+                           for g, a, p in zip(system.guards, self.avoid, self.pass_through,
+                                              strict=True)],
+                "inputs": [{"mode": m.name, "per_side": list(v)}
+                           for m, v in zip(system.modes, self.inputs, strict=True)]}

@@ -100,6 +100,8 @@ class MPCSpec:
         settings: pydantic model with fields ``kind: Literal[kind]`` and ``rate_hz``.
         problem: (system, settings) -> the built NLP(s): expensive, built once per
             process per (system, settings) and shared by the controllers made from it.
+            When ``settings.margins`` names a margins file, the loop passes its values as
+            a third argument (a :class:`~hmpc_cli.messages.ConstraintMargins`).
         make: (system, settings, problem) -> :class:`~hmpc_cli.stack.FixedModeMPC`.
         needs: system capabilities it uses.
         requires: settings it needs (and their defaults).

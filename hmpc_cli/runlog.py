@@ -81,10 +81,21 @@ class RunLog:
         self.plan_times: list[float] = []
         self._last_w: np.ndarray | None = None
 
-    def set_info(self, name: str, seed: int, scenario: dict, per_state: int) -> None:
-        """The run's identity for /run/info and the summary."""
+    def set_info(self, name: str, seed: int, scenario: dict, per_state: int,
+                 margins: dict | None = None) -> None:
+        """The run's identity for /run/info and the summary.
+
+        Args:
+            name: scenario name.
+            seed: run seed.
+            scenario: the validated scenario (JSON-ready).
+            per_state: simulator steps per /sim/state sample.
+            margins: the MPC's margins (source, radius, per guard, per mode), if it has any.
+        """
         self.result.scenario, self.result.seed = name, seed
         self.info = {"scenario_name": name, "seed": seed, "scenario": scenario}
+        if margins is not None:
+            self.info["margins"] = margins
         self.per_state = per_state
 
     def _write(self, topic: str, t: float, payload: dict) -> None:

@@ -315,9 +315,14 @@ def format_errors(exc: ValidationError, source: str) -> list[str]:
     return lines
 
 
-def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None = None
-                  ) -> tuple[ScenarioBase, str]:
+def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None = None,
+                  check_margins: bool = True) -> tuple[ScenarioBase, str]:
     """Reads, overrides and validates a scenario file.
+
+    A margins file (``mpc.margins``) is resolved against the scenario file's directory
+    (the effective TOML holds the absolute path, so a sweep worker or a rerun of the run
+    directory's copy finds it) and, with ``check_margins``, checked against the scenario
+    (its system, parameters and MPC rate; ``hmpc tube`` skips the check: it writes them).
 
     Returns:
         The scenario and the effective TOML text (after overrides).
@@ -344,7 +349,25 @@ def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None 
         raise ScenarioError(format_errors(exc, str(path))) from None
     except PluginError as exc:
         raise ScenarioError([f"{path}: {exc}"]) from None
+    problems = _resolve_margins(scenario, path, check_margins)
+    if problems:
+        raise ScenarioError([f"{path}: mpc.margins: {p}" for p in problems])
     return scenario, dump_toml(scenario.model_dump(mode="json", exclude_none=True))
+
+
+def _resolve_margins(scenario: ScenarioBase, path: Path, check: bool) -> list[str]:
+    """Makes ``mpc.margins`` absolute (relative: to the scenario's directory); its problems."""
+    margins = getattr(scenario.mpc, "margins", "hand")
+    if margins == "hand":
+        return []
+    file = Path(margins).expanduser()
+    file = (file if file.is_absolute() else path.parent / file).resolve()
+    scenario.mpc.margins = str(file)
+    if not check:
+        return []
+    from hmpc_cli.tube.margins_file import margins_problems
+
+    return margins_problems(file, scenario.system, scenario.mpc.rate_hz)
 
 
 def dump_toml(data: dict) -> str:

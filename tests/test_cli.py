@@ -85,6 +85,9 @@ def test_run_info(log, full) -> None:
     written, _ = load_scenario(full.out / "scenario.toml")
     assert Scenario.model_validate(d["scenario"]) == written
     assert log.metadata["run"]["seed"] == "0"
+    m = d["margins"]  # hand-set: tube_margin = 0.025 of the scenario
+    assert m["source"] == "hand" and m["radius"] == 0.025
+    assert [g["guard"] for g in m["guards"]] == d["guard_names"]
 
 
 def test_solves_contacts_and_plans_match_summary(log, summary) -> None:

@@ -26,7 +26,8 @@ import numpy as np
 
 from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.messages import (
-    AHEAD, SCHEDULED, GuardEvent, ModeSchedule, Plan, SolveStats, Trajectory)
+    AHEAD, SCHEDULED, ConstraintMargins, GuardEvent, ModeSchedule, Plan, SolveStats,
+    Trajectory)
 from hmpc_cli.mpc.controller import FixedModeMPC as ChainSolver
 from hmpc_cli.mpc.layout import ChainLayout, NodeSchedule
 from hmpc_cli.mpc.nlp import FixedModeNLPs, MPCSettings
@@ -125,8 +126,9 @@ class ChainMPC:
         return dropped
 
 
-def _problem(system: HybridSystem, settings: MPCSettings) -> FixedModeNLPs:
-    return FixedModeNLPs(system, settings)
+def _problem(system: HybridSystem, settings: MPCSettings,
+             margins: ConstraintMargins | None = None) -> FixedModeNLPs:
+    return FixedModeNLPs(system, settings, margins)
 
 
 MPC = MPCSpec(kind="fixed_mode", settings=MPCSettings, problem=_problem, make=ChainMPC)

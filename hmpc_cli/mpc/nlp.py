@@ -47,7 +47,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from hmpc_cli.hybrid import HybridSystem
-from hmpc_cli.messages import Trajectory
+from hmpc_cli.messages import ConstraintMargins, Trajectory
 from hmpc_cli.mpc.builder import Blocks, NLPBuilder
 from hmpc_cli.mpc.layout import FLOW, ChainLayout, NodeSchedule
 from hmpc_cli.mpc.nlp_data import INF, problem_data
@@ -76,8 +76,14 @@ class MPCSettings(BaseModel):
     soft_penalty: float = Field(
         1e4, ge=0.0, description="L1 penalty on relaxing guard, virtual-node, region and "
                                  "terminal rows (0: hard constraints, as in the paper)")
-    tube_margin: float = Field(0.025, ge=0.0, description="tube radius diam T(dt) [state norm]")
-    input_margin: float = Field(0.0, ge=0.0, description="input-box tightening per side")
+    tube_margin: float = Field(0.025, ge=0.0, description="tube radius diam T(dt) [state "
+                               "norm] (hand-set margins: mpc.margins = \"hand\")")
+    input_margin: float = Field(0.0, ge=0.0, description="input-box tightening per side "
+                                "(hand-set margins: mpc.margins = \"hand\")")
+    margins: Literal["hand"] | str = Field(
+        "hand", description='"hand": the margins of tube_margin and input_margin; else a '
+        "margins file of hmpc tube --write (relative to the scenario file's directory): its "
+        "guard-avoid, pass-through and input margins at mpc.rate_hz replace them")
     solver: Literal["ipopt", "fatrop", "sqpmethod"] = "ipopt"
     solver_options: dict = Field(default_factory=dict, description="passed to the plugin")
     max_iter: int = Field(200, gt=0)
@@ -143,10 +149,14 @@ class FixedModeNLP:
             With S = 0 the NLP is the final domain's plain MPC: only that mode's flow and
             guard-avoid rows, no reset, virtual-node or region rows (a much smaller KKT
             system for the solves after the last scheduled switch).
+        margins: the guard, virtual-node and input tightenings (parameters and bounds
+            only); default the hand-set ones of ``settings.tube_margin`` and
+            ``settings.input_margin``.
     """
 
     def __init__(self, system: HybridSystem, settings: MPCSettings,
-                 switches: int | None = None) -> None:
+                 switches: int | None = None,
+                 margins: ConstraintMargins | None = None) -> None:
         """Builds the NLP and its solver session (see the class docstring)."""
         self.system = system
         self.s = settings
@@ -167,10 +177,10 @@ class FixedModeNLP:
                      or [0]) if self.S else 0
         self.T = system.terminal_set.size1_out(0) if system.terminal_set is not None else 0
         self.guards_of = [system.guards_of(i) for i in range(len(system.modes))]
+        self.margins = margins or ConstraintMargins.hand(system, settings.tube_margin,
+                                                         settings.input_margin)
         # guard-avoid offsets: margin 0 for the guard just crossed, else the tube margin
-        self.avoid_offsets = [(g.kappa(0.0, past=False),
-                               g.kappa(settings.tube_margin, past=False))
-                              for g in system.guards]
+        self.avoid_offsets = list(zip(self.margins.entered, self.margins.avoid, strict=True))
         self._build()
 
     # ------------------------------------------------------------------ build
@@ -285,10 +295,10 @@ class FixedModeNLP:
         return problem_data(self, ns, lay, x0)
 
     def input_box(self, mode: int) -> tuple[np.ndarray, np.ndarray]:
-        """The mode's input box shrunk by ``input_margin`` per side (never past its centre)."""
-        md = self.system.modes[mode]
-        lo = np.array(md.u_lower) + self.s.input_margin
-        hi = np.array(md.u_upper) - self.s.input_margin
+        """The mode's input box shrunk by its input margins per side (never past its centre)."""
+        md, shrink = self.system.modes[mode], np.array(self.margins.inputs[mode])
+        lo = np.array(md.u_lower) + shrink
+        hi = np.array(md.u_upper) - shrink
         mid = 0.5 * (np.array(md.u_lower) + np.array(md.u_upper))
         return np.minimum(lo, mid), np.maximum(hi, mid)
 
@@ -353,10 +363,11 @@ class FixedModeNLPs:
     domain's (S = 0).
     """
 
-    def __init__(self, system: HybridSystem, settings: MPCSettings) -> None:
-        """Builds the NLPs."""
-        self.switching = FixedModeNLP(system, settings)
-        self.final = FixedModeNLP(system, settings, switches=0) \
+    def __init__(self, system: HybridSystem, settings: MPCSettings,
+                 margins: ConstraintMargins | None = None) -> None:
+        """Builds the NLPs (``margins``: see :class:`FixedModeNLP`)."""
+        self.switching = FixedModeNLP(system, settings, margins=margins)
+        self.final = FixedModeNLP(system, settings, switches=0, margins=margins) \
             if settings.final_domain_nlp else None
         self._final_mode = system.mode_index(system.final_mode)
         self.N, self.dt = self.switching.N, self.switching.dt

@@ -93,7 +93,7 @@ def _guard_node(nlp: FixedModeNLP, gi: int, k: int, par: dict, bounds: Bounds) -
     g = nlp.system.guards[gi]
     par["beta"][k, gi] = 1.0  # without the virtual node: region rows only
     if nlp.s.robust:
-        par["kappa_v"][k] = g.kappa(nlp.s.tube_margin, past=True)
+        par["kappa_v"][k] = nlp.margins.pass_through[gi]
         bounds.lbg["virtual_node"][k] = 0.0
     dims = g.region.size1_out(0) if g.region is not None else 0
     if dims:

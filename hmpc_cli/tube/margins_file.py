@@ -1,0 +1,250 @@
+"""Margins files: a tube report's radii and margins per MPC rate, as TOML a scenario names.
+
+``hmpc tube SCENARIO --write PATH`` writes one (:func:`write_margins`); a scenario's
+``mpc.margins = "PATH"`` reads it back (:func:`read_margins`, :class:`MarginsFile`) and
+:func:`margins_problems` checks that it was computed for the scenario's system, with the
+same parameters (:func:`params_hash`), and holds the scenario's MPC rate. Layout::
+
+    # header comment: what computed it
+    format = 1
+    system = "ball"
+    params_hash = "sha256:..."
+    ...
+    [rates.10]                  # one table per MPC rate [Hz]
+    dt = 0.1                    # [s]
+    radius = 0.0123             # diam T(dt) [state norm]
+    [rates.10.guards.floor]     # NLP row units
+    avoid = ...                 # guard-avoid offset kappa(d, past=False)
+    pass_through = ...          # virtual-node offset kappa(d, past=True)
+    [rates.10.inputs]
+    flight = [0.1, 0.1]         # input-box shrink per side, one per input
+
+Floats are written with ``repr`` (exact round trip); infinities as TOML ``inf``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import re
+import tomllib
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from hmpc_cli import __version__
+from hmpc_cli.messages import ConstraintMargins
+from hmpc_cli.tube.report import TubeReport, TubeRow
+
+__all__ = ["FORMAT", "GuardOffsets", "MarginsFile", "RateMargins", "constraint_margins",
+           "margins_problems",
+           "margins_text", "params_hash", "read_margins", "write_margins"]
+
+FORMAT = 1
+_BARE = re.compile(r"^[A-Za-z0-9_-]+$")
+
+
+class GuardOffsets(BaseModel):
+    """One guard's row offsets at a tube radius (NLP row units)."""
+
+    model_config = ConfigDict(extra="forbid")
+    avoid: float = Field(description="guard-avoid offset kappa(d, past=False)")
+    pass_through: float = Field(description="virtual-node offset kappa(d, past=True)")
+    formula_holds: bool = Field(True, description="kappa is monotone on [0, d]")
+
+
+class RateMargins(BaseModel):
+    """The tube and its margins at one MPC rate."""
+
+    model_config = ConfigDict(extra="forbid")
+    dt: float = Field(gt=0.0, description="MPC period [s]")
+    radius: float = Field(ge=0.0, description="tube radius diam T(dt) [state norm]")
+    bound: str = Field(description="the bound the radius is (prop3 or trivial)")
+    zeta: float = Field(ge=0.0, description="the low level's input share")
+    guards: dict[str, GuardOffsets] = Field(description="offsets by guard name")
+    inputs: dict[str, list[float]] = Field(description="shrink per side by mode name")
+
+
+class MarginsFile(BaseModel):
+    """A margins file read back (see the module docstring)."""
+
+    model_config = ConfigDict(extra="forbid")
+    format: int = FORMAT
+    hmpc_version: str
+    scenario: str
+    system: str
+    params_hash: str
+    rate_hz: float = Field(description="the MPC rate of the scenario it was computed for")
+    disturbance: dict[str, str | float]
+    lowlevel: dict[str, float]
+    region: dict[str, str | int]
+    rates: dict[str, RateMargins]
+
+    def at(self, rate_hz: float) -> RateMargins | None:
+        """The margins of MPC rate ``rate_hz`` [Hz], or None when the file has none."""
+        return next((v for k, v in self.rates.items() if _float(k) == float(rate_hz)), None)
+
+
+def _float(key: str) -> float:
+    try:
+        return float(key)
+    except ValueError:
+        return math.nan
+
+
+def params_hash(params: BaseModel) -> str:
+    """``sha256:<hex>`` of a system's parameters (their sorted JSON dump)."""
+    text = json.dumps(params.model_dump(mode="json"), sort_keys=True)
+    return "sha256:" + hashlib.sha256(text.encode()).hexdigest()
+
+
+def _key(k: str) -> str:
+    return k if _BARE.match(k) else json.dumps(k)
+
+
+def _val(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        return repr(float(v)) if math.isfinite(v) else ("nan" if v != v else
+                                                  ("inf" if v > 0 else "-inf"))
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_val(x) for x in v) + "]"
+    return json.dumps(str(v), ensure_ascii=False)
+
+
+def _rate_key(rate: float) -> str:
+    return str(int(rate)) if float(rate).is_integer() else json.dumps(f"{rate:g}")
+
+
+def _rate_tables(row: TubeRow) -> list[str]:
+    m, k = row.margins, _rate_key(row.rate_hz)
+    out = [f"\n[rates.{k}]", f"dt = {_val(row.dt)}  # [s]",
+           f"radius = {_val(row.diam)}  # diam T(dt) [state norm]",
+           f"bound = {_val(row.bound)}", f"zeta = {_val(m.zeta)}"]
+    for g in m.guards:
+        out += [f"\n[rates.{k}.guards.{_key(g.guard)}]", f"avoid = {_val(g.avoid)}",
+                f"pass_through = {_val(g.pass_through)}",
+                f"formula_holds = {_val(g.monotone)}"]
+    out.append(f"\n[rates.{k}.inputs]  # shrink per side, one per input")
+    out += [f"{_key(i.mode)} = {_val(list(i.per_side))}" for i in m.inputs]
+    return out
+
+
+def margins_text(report: TubeReport, *, scenario: str, params: BaseModel, kind: str,
+                 magnitude: float, samples: int) -> str:
+    """The margins file of a tube report (TOML text with a header comment).
+
+    Args:
+        report: the tube analysis (its rows: every tabulated rate).
+        scenario: the scenario's name.
+        params: the system's parameters (their hash identifies them).
+        kind: disturbance kind.
+        magnitude: the disturbance box's half-width per channel.
+        samples: uniform samples per estimated constant.
+    """
+    h = params_hash(params)
+    lines = [f"# hmpc margins file, written by hmpc {__version__} (hmpc tube --write)",
+             f"# scenario {scenario}: system {report.system} (parameters {h})",
+             f"# disturbance {kind}, magnitude {magnitude:g}; low level kp = {report.kp:g}, "
+             f"kd = {report.kd:g}",
+             f"# region: {report.region.note}; {samples} samples per estimated constant",
+             "# per MPC rate [Hz]: the tube radius d = diam T(dt) [state norm], per guard the",
+             "# guard-avoid offset kappa(d, past=False) and the pass-through offset",
+             "# kappa(d, past=True) (NLP row units), per mode the input-box shrink per side.",
+             "# Estimates (sampled L_x, L_u, eta), not certificates.",
+             f"format = {FORMAT}", f"hmpc_version = {_val(__version__)}",
+             f"scenario = {_val(scenario)}", f"system = {_val(report.system)}",
+             f"params_hash = {_val(h)}",
+             f"rate_hz = {_val(float(report.rate_hz))}  # the scenario's MPC rate",
+             "\n[disturbance]", f"kind = {_val(kind)}", f"magnitude = {_val(float(magnitude))}",
+             "\n[lowlevel]", f"kp = {_val(float(report.kp))}", f"kd = {_val(float(report.kd))}",
+             "\n[region]", f"note = {_val(report.region.note)}", f"samples = {int(samples)}"]
+    for row in report.rows:
+        lines += _rate_tables(row)
+    return "\n".join(lines) + "\n"
+
+
+def write_margins(path: Path, report: TubeReport, **meta) -> None:
+    """Writes :func:`margins_text` (keywords ``meta``) to ``path`` (raises OSError)."""
+    path = Path(path)
+    if path.parent != Path(""):
+        path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(margins_text(report, **meta), encoding="utf-8")
+
+
+def read_margins(path: Path) -> MarginsFile:
+    """Reads a margins file.
+
+    Raises:
+        ValueError: missing, not TOML, or not a margins file (the message says which).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"file not found: {path}")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        return MarginsFile.model_validate(data)
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not a TOML file ({exc})") from None
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(p) for p in err["loc"]) or "(top)"
+        raise ValueError(f"{path}: not a margins file ({loc}: {err['msg']})") from None
+
+
+def margins_problems(path: Path, system: BaseModel, rate_hz: float) -> list[str]:
+    """Why a margins file does not fit a scenario ([] if it does).
+
+    Args:
+        path: the margins file.
+        system: the scenario's system parameters (with its ``name``).
+        rate_hz: the scenario's MPC rate [Hz].
+    """
+    try:
+        mf = read_margins(path)
+    except ValueError as exc:
+        return [str(exc)]
+    name = getattr(system, "name", "?")
+    if mf.system != name:
+        return [f"{path} was computed for system {mf.system!r}, not {name!r}"]
+    if mf.params_hash != params_hash(system):
+        return [f"{path} was computed for other {name} parameters (hash {mf.params_hash}, "
+                f"the scenario's {params_hash(system)}): run hmpc tube --write again"]
+    row = mf.at(rate_hz)
+    if row is None:
+        rates = ", ".join(sorted(mf.rates, key=_float))
+        return [f"{path} has no margins for mpc.rate_hz = {rate_hz:g} (rates: {rates})"]
+    values = [row.radius, *[v for g in row.guards.values() for v in (g.avoid, g.pass_through)],
+              *[v for s in row.inputs.values() for v in s]]
+    if not all(math.isfinite(v) for v in values):
+        return [f"{path}: the tube at {rate_hz:g} Hz is not finite (no usable margins)"]
+    return []
+
+
+def constraint_margins(path: Path, system, params: BaseModel,
+                       rate_hz: float) -> ConstraintMargins:
+    """The MPC's margins from a margins file, at the scenario's MPC rate.
+
+    Args:
+        path: the margins file.
+        system: the built :class:`~hmpc_cli.hybrid.HybridSystem` (guard and mode order).
+        params: its parameters (checked against the file's hash).
+        rate_hz: the scenario's MPC rate [Hz].
+
+    Raises:
+        ValueError: ``mpc.margins: <reason>`` when the file does not fit.
+    """
+    problems = margins_problems(path, params, rate_hz)
+    if problems:
+        raise ValueError(f"mpc.margins: {problems[0]}")
+    row = read_margins(path).at(rate_hz)
+    try:
+        return ConstraintMargins.by_name(
+            system, str(path), row.radius,
+            {k: (g.avoid, g.pass_through) for k, g in row.guards.items()}, row.inputs)
+    except ValueError as exc:
+        raise ValueError(f"mpc.margins: {path}: {exc}") from None

@@ -1,0 +1,173 @@
+"""Margins files: ``hmpc tube --write``, ``mpc.margins`` in a scenario, the run log's record."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from conftest import BALL
+from hmpc_cli.cli import app
+from hmpc_cli.messages import ConstraintMargins
+from hmpc_cli.recorder import read_log
+from hmpc_cli.registry import build_system
+from hmpc_cli.scenario import ScenarioError, load_scenario
+from hmpc_cli.tube import analyse, region_from_scenario
+from hmpc_cli.tube.margins_file import (
+    constraint_margins, margins_text, params_hash, read_margins, write_margins)
+
+SHORT = ["--set", "sim.duration=0.6", "-q"]
+
+
+def _report(scenario: Path = BALL, magnitude: float = 10.0, kind: str = "box"):
+    sc, _ = load_scenario(scenario)
+    system = build_system(sc.system)
+    report = analyse(system, region=region_from_scenario(system, None), kind=kind,
+                     magnitude=magnitude, kp=1.0, kd=0.5, rate_hz=30, samples=300)
+    return sc, system, report
+
+
+def test_margins_file_round_trip(tmp_path: Path):
+    sc, system, report = _report()
+    path = tmp_path / "m.toml"
+    write_margins(path, report, scenario=sc.name, params=sc.system, kind="box",
+                  magnitude=10.0, samples=300)
+    text = path.read_text()
+    assert text.startswith("# hmpc margins file, written by hmpc ")
+    assert params_hash(sc.system) in text.splitlines()[1] and "[rates.30]" in text
+    mf = read_margins(path)
+    assert (mf.system, mf.scenario, mf.params_hash) == ("ball", "ball", params_hash(sc.system))
+    assert mf.rate_hz == 30.0 and mf.disturbance == {"kind": "box", "magnitude": 10.0}
+    assert sorted(float(k) for k in mf.rates) == [r.rate_hz for r in report.rows]
+    for row in report.rows:
+        got = mf.at(row.rate_hz)
+        assert got.radius == row.diam and got.dt == row.dt and got.zeta == row.margins.zeta
+        for g in row.margins.guards:  # floats round-trip exactly
+            assert (got.guards[g.guard].avoid, got.guards[g.guard].pass_through) == \
+                (g.avoid, g.pass_through)
+        for i in row.margins.inputs:
+            assert got.inputs[i.mode] == list(i.per_side)
+    assert mf.at(7) is None
+    # the MPC's value object, in system order
+    cm = constraint_margins(path, system, sc.system, 20)
+    row = report.row(20.0)
+    assert cm.source == str(path) and cm.radius == row.diam
+    assert cm.avoid == tuple(g.avoid for g in row.margins.guards)
+    assert cm.pass_through == tuple(g.pass_through for g in row.margins.guards)
+    assert cm.entered == tuple(g.kappa(0.0, past=False) for g in system.guards)
+    assert cm.inputs == tuple(i.per_side for i in row.margins.inputs)
+    assert margins_text(report, scenario=sc.name, params=sc.system, kind="box",
+                        magnitude=10.0, samples=300) == text
+
+
+def test_hand_margins_are_todays_numbers():
+    sc, _ = load_scenario(BALL)
+    system = build_system(sc.system)
+    hand = ConstraintMargins.hand(system, 0.025, 0.1)
+    assert hand.source == "hand" and hand.radius == 0.025
+    for i, g in enumerate(system.guards):
+        assert hand.avoid[i] == g.kappa(0.025, past=False)
+        assert hand.entered[i] == g.kappa(0.0, past=False)
+        assert hand.pass_through[i] == g.kappa(0.025, past=True)
+    assert hand.inputs == ((0.1, 0.1),) * len(system.modes)
+    lo = np.array(system.modes[0].u_lower) + 0.1
+    assert np.array_equal(lo, np.array(system.modes[0].u_lower) + np.array(hand.inputs[0]))
+    with pytest.raises(ValueError, match="no margins for floor"):
+        ConstraintMargins.by_name(system, "f", 0.0, {}, {})
+
+
+@pytest.fixture(scope="module")
+def ball_file(tmp_path_factory) -> Path:
+    """``hmpc tube scenarios/ball.toml --write F`` (no disturbance: every margin 0)."""
+    base = tmp_path_factory.mktemp("tube")
+    f = base / "sub" / "ball_margins.toml"
+    res = CliRunner().invoke(app, ["tube", str(BALL), "--write", str(f), "--out",
+                                   str(base / "tube"), "--samples", "500", "--formats", "png"])
+    assert res.exit_code == 0, res.output
+    assert f"wrote margins file {f}" in " ".join(res.output.split())
+    return f
+
+
+def _edit(src: Path, dst: Path, pattern: str, repl: str) -> Path:
+    text, n = re.subn(pattern, repl, src.read_text(), flags=re.M)
+    assert n, pattern
+    dst.write_text(text)
+    return dst
+
+
+@pytest.mark.parametrize("case", ["system", "params", "rate", "missing"])
+def test_a_margins_file_that_does_not_fit_exits_2(case: str, ball_file: Path, tmp_path: Path):
+    f = {"system": lambda: _edit(ball_file, tmp_path / "m.toml", r'^system = "ball"',
+                                 'system = "biped"'),
+         "params": lambda: _edit(ball_file, tmp_path / "m.toml", r'^params_hash = ".*"',
+                                 'params_hash = "sha256:0"'),
+         "rate": lambda: _edit(ball_file, tmp_path / "m.toml", r"^\[rates\.10", "[rates.11"),
+         "missing": lambda: tmp_path / "none.toml"}[case]()
+    out = tmp_path / "run"
+    res = CliRunner().invoke(app, ["run", str(BALL), "--out", str(out), "--set",
+                                   f'mpc.margins="{f}"', *SHORT])
+    assert res.exit_code == 2, res.output
+    assert f"error: {BALL}: mpc.margins: " in res.output
+    assert {"system": "system 'biped', not 'ball'", "params": "other ball parameters",
+            "rate": "no margins for mpc.rate_hz = 10", "missing": "file not found"}[case] \
+        in " ".join(res.output.split())
+    assert not out.exists()
+
+
+def test_other_parameters_do_not_fit(ball_file: Path):
+    with pytest.raises(ScenarioError, match=r"mpc\.margins: .*other ball parameters"):
+        load_scenario(BALL, ["system.radius=0.6", f'mpc.margins="{ball_file}"'])
+
+
+def test_margins_path_is_relative_to_the_scenario(ball_file: Path, tmp_path: Path):
+    sc, toml = load_scenario(BALL, ["mpc.margins=\"m.toml\""], check_margins=False)
+    assert sc.mpc.margins == str((BALL.parent / "m.toml").resolve())
+    assert f'margins = "{sc.mpc.margins}"' in toml
+    scen = tmp_path / "s.toml"
+    scen.write_text(BALL.read_text())
+    (tmp_path / "m.toml").write_text(ball_file.read_text())
+    sc, _ = load_scenario(scen, ["mpc.margins=\"m.toml\""])
+    assert sc.mpc.margins == str(tmp_path.resolve() / "m.toml")
+
+
+def _xs(path: Path, topic: str, key: str) -> list:
+    return [m.data[key] for m in read_log(path / "run.mcap").topic(topic)]
+
+
+def test_a_run_with_a_computed_margins_file(ball_file: Path, tmp_path: Path):
+    """All margins 0: the same trajectories as the hand-set tube_margin = 0."""
+    runs = {"file": [f'mpc.margins="{ball_file}"'], "hand": ["mpc.tube_margin=0"]}
+    for name, sets in runs.items():
+        args = [a for s in sets for a in ("--set", s)]
+        res = CliRunner().invoke(app, ["run", str(BALL), "--out", str(tmp_path / name),
+                                       *args, *SHORT])
+        assert res.exit_code == 0, res.output
+    for topic, key in (("/sim/state", "x"), ("/mpc/solve", "x_plan"),
+                       ("/mpc/solve", "u_plan"), ("/sim/event", "t")):
+        assert _xs(tmp_path / "file", topic, key) == _xs(tmp_path / "hand", topic, key)
+    info = _xs(tmp_path / "file", "/run/info", "margins")[0]
+    assert info["source"] == str(ball_file.resolve()) and info["radius"] == 0.0
+    assert [g["guard"] for g in info["guards"]] == ["floor", "wall", "circle_in",
+                                                    "circle_out"]
+    assert all(g["avoid"] == g["pass_through"] == 0.0 for g in info["guards"])
+    assert info["inputs"] == [{"mode": "outside", "per_side": [0.0, 0.0]},
+                              {"mode": "inside", "per_side": [0.0, 0.0]}]
+    hand = _xs(tmp_path / "hand", "/run/info", "margins")[0]
+    assert hand["source"] == "hand" and hand["guards"] == info["guards"]
+
+
+def test_a_sweep_checks_its_margins_files_before_any_run(ball_file: Path, tmp_path: Path):
+    from hmpc_cli.sweep import plan_sweep
+
+    sweep = tmp_path / "sweep.toml"
+    sweep.write_text(f'name = "m"\nscenario = "{BALL}"\n[grid]\nm = [\n'
+                     f'  {{ label = "file", "mpc.margins" = "{ball_file}" }},\n'
+                     '  { label = "hand", "mpc.margins" = "hand" },\n]\n')
+    runs = plan_sweep(sweep).runs
+    assert sorted(f'margins = "{ball_file}"' in r.toml for r in runs) == [False, True]
+    sweep.write_text(sweep.read_text().replace(str(ball_file), "missing.toml"))
+    with pytest.raises(ScenarioError, match=r"mpc\.margins: file not found: .*missing\.toml"):
+        plan_sweep(sweep)
