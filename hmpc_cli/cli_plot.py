@@ -173,27 +173,33 @@ def plot_command(
     if figure not in FIGURES:
         _fail(f"unknown figure {figure!r} (choose from {', '.join(FIGURES)})")
     if figure == "fig2":
-        _fig2(table, out, formats, {"solve": solve, "radius": radius, "from_tube": from_tube,
-                                    "width": width, "height": height or 2.8})
-        return
+        return _fig2(table, out, formats, {"solve": solve, "radius": radius, "width": width,
+                                           "from_tube": from_tube, "height": height or 2.8})
     if figure == "fig4":
-        _fig4(table, out, formats, every, gif, width, height or 4.2)
-        return
+        return _fig4(table, out, formats, every, gif, width, height or 4.2)
     if figure == "robustness":
-        _robustness(table, out, formats, {
+        return _robustness(table, out, formats, {
             "x_axis": x_axis, "series_axis": series_axis, "width": width,
             "panel_axis": panel_axis or "disturbance.magnitude", "height": height or 1.9})
-        return
+    _fig3(table, out, formats, {
+        "panel_axis": panel_axis or "controller", "trace_axis": trace_axis,
+        "nominal": nominal, "panels": _panels(panels), "width": width,
+        "height": height or 2.5, "view": _limits(view)})
+
+
+def _panels(panels: str | None) -> list[str] | None:
+    """The --panels list (None: all); an empty list is bad input (exit 2)."""
     chosen = [p.strip() for p in panels.split(",") if p.strip()] if panels is not None else None
     if chosen == []:
         _fail("--panels is empty")
-    limits = None
-    if view is not None:
-        try:
-            limits = [float(v) for v in view.split(",")]
-        except ValueError:
-            _fail(f"--view must be four numbers x0,x1,y0,y1, got {view!r}")
-    options = {"panel_axis": panel_axis or "controller", "trace_axis": trace_axis,
-               "nominal": nominal, "panels": chosen, "width": width, "height": height or 2.5,
-               "view": limits}
-    _fig3(table, out, formats, options)
+    return chosen
+
+
+def _limits(view: str | None) -> list[float] | None:
+    """The --view limits as numbers (None: from the data); bad input exits 2."""
+    if view is None:
+        return None
+    try:
+        return [float(v) for v in view.split(",")]
+    except ValueError:
+        _fail(f"--view must be four numbers x0,x1,y0,y1, got {view!r}")

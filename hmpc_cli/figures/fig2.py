@@ -246,6 +246,31 @@ def fig2_geometry(log_path: str | Path, *, solve: int | None = None,
     return _geometry(log_path, solve, radius, from_tube)[0]
 
 
+def _open(log_path: str | Path):
+    """(path, log, system, plane indices, logged scenario) of a run with a 2-D plane.
+
+    Raises:
+        FigureInputError: no such log, unreadable, or a system without a 2-D plane.
+    """
+    from hmpc_cli.figures.model import system_from_log
+    from hmpc_cli.recorder import read_log
+
+    path = resolve_run_log(log_path)
+    if not path.is_file():
+        raise FigureInputError(f"{path}: no such run log")
+    try:
+        log = read_log(path)
+    except (OSError, ValueError) as exc:
+        raise FigureInputError(f"{path}: cannot read log ({exc})") from None
+    system = system_from_log(path, log)
+    if system.plane is None or len(system.plane) != 2:
+        raise FigureInputError(f"{path}: system {system.name!r} has no 2-D drawing plane")
+    plane = tuple(system.state_names.index(s) for s in system.plane)
+    infos = log.topic("/run/info")
+    scenario = dict(infos[0].data.get("scenario") or {}) if infos else {}
+    return path, log, system, plane, scenario
+
+
 def _geometry(log_path: str | Path, solve: int | None, radius: float | None,
               from_tube: bool):
     """(geometry, system): what Figure 2 draws from a run log (see the module docstring).
@@ -263,22 +288,7 @@ def _geometry(log_path: str | Path, solve: int | None, radius: float | None,
     """
     import casadi as ca
 
-    from hmpc_cli.figures.model import system_from_log
-    from hmpc_cli.recorder import read_log
-
-    path = resolve_run_log(log_path)
-    if not path.is_file():
-        raise FigureInputError(f"{path}: no such run log")
-    try:
-        log = read_log(path)
-    except (OSError, ValueError) as exc:
-        raise FigureInputError(f"{path}: cannot read log ({exc})") from None
-    system = system_from_log(path, log)
-    if system.plane is None or len(system.plane) != 2:
-        raise FigureInputError(f"{path}: system {system.name!r} has no 2-D drawing plane")
-    plane = tuple(system.state_names.index(s) for s in system.plane)
-    infos = log.topic("/run/info")
-    scenario = dict(infos[0].data.get("scenario") or {}) if infos else {}
+    path, log, system, plane, scenario = _open(log_path)
     index, msg = _pick(log.topic("/mpc/solve"), solve, path)
     where, data = f"{path}: solve {index}", msg.data
     t = _array(data.get("t_plan"), f"{where}: t_plan", 1)
