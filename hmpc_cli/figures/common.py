@@ -134,6 +134,19 @@ def parse_formats(text: str | Iterable[str]) -> tuple[str, ...]:
     return tuple(out)
 
 
+def make_out_dir(out: Path) -> Path:
+    """Creates the output directory ``out`` (and parents); returns it.
+
+    Raises:
+        FigureInputError: it cannot be created.
+    """
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise FigureInputError(f"{out}: cannot create the output directory ({exc})") from None
+    return out
+
+
 def save_figure(fig: Any, out_dir: Path, stem: str, formats: Iterable[str],
                 dpi: int = 300, close: bool = True) -> list[Path]:
     """Saves ``fig`` as out_dir/stem.<fmt> per format, with fixed metadata.

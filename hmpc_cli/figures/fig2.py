@@ -38,8 +38,15 @@ from pathlib import Path
 import numpy as np
 
 from hmpc_cli.figures.common import (
-    TEXT_WIDTH_IN, FigureInputError, check_size, figure_style, parse_formats,
-    resolve_run_log, save_figure)
+    TEXT_WIDTH_IN,
+    FigureInputError,
+    check_size,
+    figure_style,
+    make_out_dir,
+    parse_formats,
+    resolve_run_log,
+    save_figure,
+)
 
 __all__ = ["Fig2Geometry", "fig2", "fig2_geometry"]
 
@@ -450,10 +457,7 @@ def fig2(log_path: str | Path, out_dir: str | Path | None = None,
     fmts = parse_formats(formats)
     geo, system = _geometry(log_path, solve, radius, from_tube)
     out = Path(out_dir) if out_dir is not None else geo.log.parent
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise FigureInputError(f"{out}: cannot create the output directory ({exc})") from None
+    make_out_dir(out)
     with figure_style():  # nothing from the user's matplotlibrc leaks in
         save_figure(_figure(system, geo, width, height), out, "fig2", fmts, dpi=dpi)
     return geo

@@ -11,15 +11,28 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from collections.abc import Iterable, Sequence
 
 import numpy as np
 
 from hmpc_cli.figures.common import (
-    TEXT_WIDTH_IN, FigureInputError, RunTrace, check_size, figure_style, load_trace,
-    parse_bool, parse_formats, read_table, resolve_log, resolve_table, save_figure, write_csv)
+    TEXT_WIDTH_IN,
+    FigureInputError,
+    RunTrace,
+    check_size,
+    figure_style,
+    load_trace,
+    make_out_dir,
+    parse_bool,
+    parse_formats,
+    read_table,
+    resolve_log,
+    resolve_table,
+    save_figure,
+    write_csv,
+)
 
 __all__ = ["REFERENCE_COUNTS", "PanelCounts", "fig3"]
 
@@ -311,10 +324,7 @@ def fig3(table_path: str | Path, out_dir: str | Path | None = None,
                                         key=_natural))
               for label, rs in runs.items()}
     out = Path(out_dir) if out_dir is not None else table.parent
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise FigureInputError(f"{out}: cannot create the output directory ({exc})") from None
+    make_out_dir(out)
     with figure_style():  # nothing from the user's matplotlibrc leaks in
         save_figure(_figure(runs, width, height, view), out, "fig3", fmts, dpi=dpi)
     _write_counts(out / "fig3_counts.csv", counts)

@@ -12,15 +12,22 @@ exposes these (and a ``hip`` and ``swing_foot`` point) can be drawn.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from collections.abc import Iterable
 
 import numpy as np
 
 from hmpc_cli.figures.common import (
-    TEXT_WIDTH_IN, FigureInputError, check_size, figure_style, parse_formats, resolve_run_log,
-    save_figure)
+    TEXT_WIDTH_IN,
+    FigureInputError,
+    check_size,
+    figure_style,
+    make_out_dir,
+    parse_formats,
+    resolve_run_log,
+    save_figure,
+)
 
 __all__ = ["WalkLog", "animate_walk", "fig4", "load_walk", "resolve_run_log"]
 
@@ -149,14 +156,6 @@ def _snapshots(walk: WalkLog, every: float) -> list[int]:
     return picks
 
 
-def _out_dir(out: Path) -> Path:
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise FigureInputError(f"{out}: cannot create the output directory ({exc})") from None
-    return out
-
-
 def fig4(log: str | Path | WalkLog, out_dir: str | Path | None = None,
          formats: str | Iterable[str] = ("pdf", "svg", "png"), *,
          every: float = 0.1, width: float = TEXT_WIDTH_IN, height: float = 4.2) -> WalkLog:
@@ -173,7 +172,7 @@ def fig4(log: str | Path | WalkLog, out_dir: str | Path | None = None,
     fmts = parse_formats(formats)
     check_size(width, height)
     walk = log if isinstance(log, WalkLog) else load_walk(resolve_run_log(log))
-    out = _out_dir(Path(out_dir) if out_dir is not None else walk.path.parent)
+    out = make_out_dir(Path(out_dir) if out_dir is not None else walk.path.parent)
     with figure_style():
         import matplotlib.pyplot as plt
 
@@ -228,7 +227,7 @@ def animate_walk(log: str | Path | WalkLog, out_path: str | Path, fps: int = 25,
     check_size(width, height)
     walk = log if isinstance(log, WalkLog) else load_walk(resolve_run_log(log))
     out_path = Path(out_path)
-    _out_dir(out_path.parent)
+    make_out_dir(out_path.parent)
     frames = np.arange(walk.t[0], walk.t[-1] + 1e-9, speed / fps)
     idx = np.minimum(np.searchsorted(walk.t, frames), len(walk.t) - 1)
     with figure_style():

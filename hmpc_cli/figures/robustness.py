@@ -13,8 +13,18 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from hmpc_cli.figures.common import (
-    TEXT_WIDTH_IN, FigureInputError, check_size, figure_style, parse_bool, parse_formats,
-    read_table, resolve_table, save_figure, write_csv)
+    TEXT_WIDTH_IN,
+    FigureInputError,
+    check_size,
+    figure_style,
+    make_out_dir,
+    parse_bool,
+    parse_formats,
+    read_table,
+    resolve_table,
+    save_figure,
+    write_csv,
+)
 
 __all__ = ["Cell", "cells", "robustness", "wilson"]
 
@@ -143,10 +153,7 @@ def robustness(table: str | Path, out_dir: str | Path | None = None,
     check_size(width, height)
     data = cells(table, x_axis, series_axis, panel_axis)
     out = Path(out_dir) if out_dir is not None else resolve_table(table).parent
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise FigureInputError(f"{out}: cannot create the output directory ({exc})") from None
+    make_out_dir(out)
     import matplotlib.pyplot as plt
 
     panels = list(dict.fromkeys(c.panel for c in data))
