@@ -191,6 +191,10 @@ def tube_command(
     write: Annotated[Path | None, typer.Option(
         "--write", help="also write a margins file (TOML) a scenario's mpc.margins can "
         "name: the radius and margins per tabulated MPC rate")] = None,
+    runs: Annotated[list[Path] | None, typer.Option(
+        "--runs", help="a run of this scenario's system (directory or run.mcap; "
+        "repeatable): its deviation from its plans against the tubes; without --states "
+        "the region spans the runs' states")] = None,
 ) -> None:
     """Tracking-error tubes of a scenario: L_x, L_u, eta, zeta, Prop. 3, diam T(dt), margins."""
     from hmpc_cli.figures.common import FigureInputError, parse_formats
@@ -207,7 +211,9 @@ def tube_command(
         _fail([f"--formats: {exc}"])
     try:
         system = build_system(sc.system)
-        visited = _states_of(states, system.n_x) if states is not None else None
+        observed = _read_runs(runs or [], sc.system)
+        visited = _states_of(states, system.n_x) if states is not None else (
+            _stack([r.x for r in observed]) if observed else None)
         region = region_from_scenario(system, pad, visited)
         report = analyse(system, region=region, kind=sc.disturbance.kind,
                          magnitude=sc.disturbance.magnitude, kp=sc.lowlevel.kp,
@@ -224,8 +230,81 @@ def tube_command(
     except (OSError, FigureInputError) as exc:
         _fail([f"{out}: cannot write ({exc})"])
     typer.echo(f"wrote {', '.join(names)} to {out}")
+    if observed:
+        _reality(report, observed, out, formats, f"{sc.name}: tube vs reality")
     if write is not None:
         _write_margins(report, sc, write, samples)
+
+
+def _stack(arrays: list) -> object:
+    """The rows of ``arrays`` stacked (sum K, n)."""
+    import numpy as np
+
+    return np.vstack(arrays)
+
+
+def _read_runs(runs: list[Path], params) -> list:
+    """The runs read by :func:`hmpc_cli.tube_reality.read_run`, each of ``params``' system.
+
+    Raises:
+        ValueError: a run cannot be read or is of another system.
+    """
+    from pydantic import ValidationError
+
+    from hmpc_cli.registry import PluginError, registry
+    from hmpc_cli.tube_reality import read_run
+
+    out = []
+    for path in runs:
+        run = read_run(path)
+        try:
+            logged = registry().system(run.system.get("name", "")).params.model_validate(
+                run.system)
+        except (PluginError, ValidationError):
+            logged = None
+        if logged != params:
+            raise ValueError(f"--runs {path}: not a run of this scenario's system "
+                             f"(logged {run.system.get('name', 'none')!s} with other "
+                             "parameters or none)")
+        out.append(run)
+    return out
+
+
+def _reality(report, runs: list, out: Path, formats: str, title: str) -> None:
+    """Prints the "tube vs reality" table and writes tube_reality.<fmt> into ``out``."""
+    import numpy as np
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.table import Table
+
+    from hmpc_cli.figures.common import FigureInputError, parse_formats
+    from hmpc_cli.figures.tube import draw_reality
+    from hmpc_cli.tube import diameter_curves
+    from hmpc_cli.tube_reality import reality
+
+    rep = reality(runs, lambda tau: diameter_curves(report, tau))
+    t = Table(title=escape(f"tube vs reality: {len(runs)} runs, {len(rep.periods)} periods "
+                           f"({rep.skipped} skipped: no sample at a node time; "
+                           f"{rep.unmatched} samples with no node in the plant's domain)"))
+    for col in ("bound", "periods", "inside", "median ratio", "worst ratio", "violations"):
+        t.add_column(col, justify="left" if col == "bound" else "right")
+    for c in rep.checks:
+        t.add_row(c.bound, str(c.periods), f"{c.fraction:.3f}", _g(c.median_ratio),
+                  _g(c.worst_ratio), str(len(c.violations)))
+    con = Console(width=120)
+    con.print(t)
+    for c in rep.checks:
+        for v in c.violations:
+            con.print(f"violation: {v.bound}: run {escape(v.run)} t = {v.t:.6g} s: observed "
+                      f"{v.observed:.4g} > predicted {v.predicted:.4g}")
+    tmax = max((float(p.tau.max()) for p in rep.periods), default=1.0)
+    grid = np.linspace(0.0, tmax, 201)[1:]
+    try:
+        paths = draw_reality(out, [(p.tau, p.dev) for p in rep.periods], grid,
+                             diameter_curves(report, grid), title, parse_formats(formats))
+    except (OSError, FigureInputError) as exc:
+        _fail([f"{out}: cannot write ({exc})"])
+    typer.echo(f"wrote {', '.join(p.name for p in paths)} to {out}")
 
 
 def _write_margins(report, sc, path: Path, samples: int) -> None:

@@ -14,7 +14,7 @@ import numpy as np
 
 from hmpc_cli.figures.common import COLUMN_WIDTH_IN, figure_style, save_figure
 
-__all__ = ["draw_diameters", "draw_margins"]
+__all__ = ["draw_diameters", "draw_margins", "draw_reality"]
 
 _STYLE = {"trivial": ("#1f4e8c", "-", "trivial (Prop. 2)"),
           "ff_only": ("#d2691e", "--", "feed-forward only (Remark)"),
@@ -121,3 +121,39 @@ def draw_margins(out_dir: Path, rates: np.ndarray, guards: Mapping[str, np.ndarr
                 ax.legend(loc="best")
         fig.suptitle(title)
         return save_figure(fig, out_dir, "tube_margins", formats)
+
+
+def draw_reality(out_dir: Path, periods: Iterable[tuple[np.ndarray, np.ndarray]],
+                 t: np.ndarray, curves: Mapping[str, np.ndarray], title: str,
+                 formats: Iterable[str]) -> list[Path]:
+    """Writes ``tube_reality.<fmt>``: every period's deviation (grey) over the bounds.
+
+    Args:
+        out_dir: existing output directory.
+        periods: per period (tau (K,) [s], deviation (K,) [state norm]).
+        t: times since the solve (M,) [s] of the bound curves.
+        curves: bound name -> bound (M,) [state norm] (NaN: not drawn).
+        title: figure title.
+        formats: output formats.
+
+    Returns:
+        The written paths.
+    """
+    import matplotlib.pyplot as plt
+
+    periods = list(periods)
+    with figure_style():
+        fig, ax = plt.subplots(figsize=(COLUMN_WIDTH_IN, 2.4), layout="constrained")
+        for i, (tau, dev) in enumerate(periods):
+            ax.plot(tau, np.where(dev > 0, dev, np.nan), color="0.6", linewidth=0.6,
+                    marker=".", markersize=2, label="observed" if i == 0 else None)
+        for name, values in curves.items():
+            color, ls, label = _STYLE.get(name, ("k", ":", name))
+            ax.plot(t, _plottable(values), color=color, linestyle=ls, label=label)
+        _scale(ax, [v[~np.isnan(v)] for v in curves.values()]
+               + [d[d > 0] for _, d in periods])
+        ax.set_xlabel("time since the solve tau [s]")
+        ax.set_ylabel("||x - x_plan|| [state norm]")
+        ax.set_title(title)
+        ax.legend(loc="best")
+        return save_figure(fig, out_dir, "tube_reality", formats)

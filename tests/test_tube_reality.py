@@ -1,0 +1,91 @@
+"""Tubes held against reality: deviations of recorded ball runs from their plans."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hmpc_cli.tube_reality import Period, RunData, check_bounds, read_run, run_periods
+
+ROOT = Path(__file__).resolve().parents[1]
+SC = ROOT / "scenarios"
+
+
+def hmpc(*args, cwd):
+    """Runs the real CLI in a subprocess."""
+    return subprocess.run([sys.executable, "-m", "hmpc_cli.cli", *map(str, args)], cwd=cwd,
+                          capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory):
+    """Three disturbed ball runs (trials 1..3) and a nominal one, 0.6 s each."""
+    d = tmp_path_factory.mktemp("reality")
+    procs = [subprocess.Popen([sys.executable, "-m", "hmpc_cli.cli", "run",
+                               str(SC / "ball_disturbed.toml"), "-q", "--set",
+                               "sim.duration=0.6", "--set", f"disturbance.trial={n}",
+                               "--out", f"d{n}"], cwd=d) for n in (1, 2)]
+    for args in ([SC / "ball_disturbed.toml", "--set", "disturbance.trial=3", "--out", "d3"],
+                 [SC / "ball.toml", "--out", "nom"]):
+        r = hmpc("run", args[0], "-q", "--set", "sim.duration=0.6", *args[1:], cwd=d)
+        assert r.returncode == 0, r.stderr
+    assert all(p.wait(300) == 0 for p in procs)
+    return d
+
+
+def test_disturbed_runs_stay_inside_the_trivial_tube(campaign):
+    r = hmpc("tube", SC / "ball_disturbed.toml", "--samples", "2000", "--formats", "png",
+             "--out", "tout", *[a for n in (1, 2, 3) for a in ("--runs", f"d{n}")],
+             cwd=campaign)
+    assert r.returncode == 0, r.stderr
+    table = r.stdout.split("tube vs reality")[1]
+    row = next(line for line in table.splitlines() if "│ trivial" in line)
+    cells = [c.strip() for c in row.split("│")[1:-1]]
+    assert int(cells[1]) >= 15 and cells[2] == "1.000" and cells[5] == "0"
+    assert "violation: trivial" not in r.stdout
+    assert (campaign / "tout" / "tube_reality.png").is_file()
+
+
+def test_nominal_run_follows_its_plan_nodes(campaign):
+    periods, _, unmatched = run_periods(read_run(campaign / "nom"))
+    assert periods and unmatched == 0
+    assert max(float(p.dev.max()) for p in periods) < 1e-3
+
+
+def test_a_run_of_another_system_is_refused(campaign):
+    r = hmpc("tube", SC / "biped_stairs.toml", "--samples", "100", "--formats", "png",
+             "--out", "tb", "--runs", "d1", cwd=campaign)
+    assert r.returncode == 2 and "not a run of this scenario's system" in r.stderr
+
+
+def test_counting_and_ratios_on_hand_made_periods():
+    periods = [Period("a", 0.0, np.array([0.1, 0.2]), np.array([0.05, 0.1])),   # inside, 2x
+               Period("b", 1.0, np.array([0.1, 0.2]), np.array([0.3, 0.1])),    # 0.1 out
+               Period("c", 2.0, np.array([0.1]), np.array([0.025]))]            # 4x
+    checks = check_bounds(periods, lambda tau: {"lin": np.asarray(tau, dtype=float),
+                                                "none": np.full(len(tau), np.nan)})
+    lin, none = checks
+    assert (lin.periods, lin.inside) == (3, 2) and lin.fraction == pytest.approx(2 / 3)
+    assert sorted(lin.ratios) == pytest.approx([1 / 3, 2.0, 4.0])
+    assert lin.median_ratio == pytest.approx(2.0) and lin.worst_ratio == pytest.approx(1 / 3)
+    (v,) = lin.violations
+    assert (v.run, v.t, v.observed, v.predicted) == ("b", pytest.approx(1.1), 0.3,
+                                                      pytest.approx(0.1))
+    assert none.periods == 0 and np.isnan(none.fraction)
+
+
+def test_plan_nodes_domains_and_skips():
+    t_plan = np.array([0.0, 0.5, 0.5, 1.0])   # a reset node pair at 0.5
+    x_plan = np.array([[0.0], [1.0], [-1.0], [2.0]])
+    seg = np.array([0, 0, 1, 1])
+    run = RunData("r", {}, np.array([0.25, 0.5, 0.75]), np.array([[9.0], [-1.5], [9.0]]),
+                  np.array([0.4]),
+                  [(0.0, t_plan, x_plan, seg), (1.0, t_plan + 1.0, x_plan + 3.0, seg),
+                   (1.7, np.array([1.7, 2.7]), np.zeros((2, 1)), np.array([0, 0]))])
+    periods, skipped, unmatched = run_periods(run)
+    # period 0: sample at 0.5 after one reset -> segment 1 node -1; end at 1.0 vs node 2
+    assert len(periods) == 1 and skipped == 2 and unmatched == 0
+    assert periods[0].tau == pytest.approx([0.5, 1.0])
+    assert periods[0].dev == pytest.approx([0.5, 1.0])
