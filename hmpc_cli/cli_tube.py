@@ -172,6 +172,23 @@ def _write(report, system, out: Path, formats: str, title: str) -> list[str]:
     return ["tube.json"] + [f"{s}.{f}" for s in ("tube_diameter", "tube_margins") for f in fmts]
 
 
+def _analyse(sc, system, observed: list, states: Path | None, pad: float | None,
+             samples: int):
+    """The tube report of a scenario.
+
+    The region spans the states of the run ``states``, else those of the observed runs,
+    else x0 and the goal (see :func:`hmpc_cli.tube.region_from_scenario`).
+    """
+    from hmpc_cli.tube import analyse, region_from_scenario
+
+    visited = _states_of(states, system.n_x) if states is not None else (
+        _stack([r.x for r in observed]) if observed else None)
+    region = region_from_scenario(system, pad, visited)
+    return analyse(system, region=region, kind=sc.disturbance.kind,
+                   magnitude=sc.disturbance.magnitude, kp=sc.lowlevel.kp, kd=sc.lowlevel.kd,
+                   rate_hz=sc.mpc.rate_hz, samples=samples, seed=sc.seed)
+
+
 def tube_command(
     scenario: Annotated[Path, typer.Argument(help="scenario TOML file")],
     set_: Annotated[list[str] | None, typer.Option(
@@ -200,7 +217,7 @@ def tube_command(
     from hmpc_cli.figures.common import FigureInputError, parse_formats
     from hmpc_cli.registry import PluginError, build_system
     from hmpc_cli.scenario import ScenarioError, load_scenario
-    from hmpc_cli.tube import TubeError, analyse, region_from_scenario
+    from hmpc_cli.tube import TubeError
 
     try:
         sc, _ = load_scenario(scenario, set_ or [], check_margins=False)
@@ -212,13 +229,7 @@ def tube_command(
     try:
         system = build_system(sc.system)
         observed = _read_runs(runs or [], sc.system)
-        visited = _states_of(states, system.n_x) if states is not None else (
-            _stack([r.x for r in observed]) if observed else None)
-        region = region_from_scenario(system, pad, visited)
-        report = analyse(system, region=region, kind=sc.disturbance.kind,
-                         magnitude=sc.disturbance.magnitude, kp=sc.lowlevel.kp,
-                         kd=sc.lowlevel.kd, rate_hz=sc.mpc.rate_hz, samples=samples,
-                         seed=sc.seed)
+        report = _analyse(sc, system, observed, states, pad, samples)
     except TubeError as exc:
         _fail([f"{scenario}: tube: {exc.quantity}: {exc.reason} (no trivial tube)"])
     except (PluginError, ValueError) as exc:
