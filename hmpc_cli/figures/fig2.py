@@ -259,17 +259,10 @@ def _open(log_path: str | Path):
     Raises:
         FigureInputError: no such log, unreadable, or a system without a 2-D plane.
     """
-    from hmpc_cli.figures.model import system_from_log
-    from hmpc_cli.recorder import read_log
+    from hmpc_cli.figures.model import read_logged_system
 
     path = resolve_run_log(log_path)
-    if not path.is_file():
-        raise FigureInputError(f"{path}: no such run log")
-    try:
-        log = read_log(path)
-    except (OSError, ValueError) as exc:
-        raise FigureInputError(f"{path}: cannot read log ({exc})") from None
-    system = system_from_log(path, log)
+    log, system = read_logged_system(path, "run log")
     if system.plane is None or len(system.plane) != 2:
         raise FigureInputError(f"{path}: system {system.name!r} has no 2-D drawing plane")
     plane = tuple(system.state_names.index(s) for s in system.plane)

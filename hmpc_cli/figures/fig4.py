@@ -66,17 +66,10 @@ def load_walk(path: str | Path) -> WalkLog:
         FigureInputError: no such log, unreadable, or its system has no body points
             and terrain to draw.
     """
-    from hmpc_cli.figures.model import system_from_log
-    from hmpc_cli.recorder import read_log
+    from hmpc_cli.figures.model import read_logged_system
 
     path = Path(path)
-    if not path.is_file():
-        raise FigureInputError(f"{path}: no such log")
-    try:
-        log = read_log(path)
-    except (OSError, ValueError) as exc:
-        raise FigureInputError(f"{path}: cannot read log ({exc})") from None
-    system = system_from_log(path, log)
+    log, system = read_logged_system(path)
     names = system.point_names
     if "points_world" not in system.outputs or system.terrain is None or \
             not {"hip", "swing_foot"} <= set(names):
