@@ -69,6 +69,10 @@ def _constants_table(report, sc_name: str):
     t.add_row("L_u", f"{_g(lx.L_u)}  (max ||df/du||_2, mode {lx.mode_u})")
     t.add_row("", escape(f"L_x, L_u: {lx.samples} samples each; {lx.note}"))
     t.add_row("eta", f"{_g(dist.eta)}  ({escape(dist.note)})")
+    names = [report.state_names[i] for i in report.kinematic_states]
+    t.add_row("kinematic states", escape(
+        f"{', '.join(names)}: flow = another state or 0, so their error is "
+        "int ||e|| <= int_0^dt diam T(s) ds" if names else "none (no kinematic tube)"))
     t.add_row("zeta", f"{_g(row.margins.zeta)} at {report.rate_hz:g} Hz  (min(||K|| "
               f"diam T(dt), D_U): ||K|| = {_g(report.gain_norm)}, kp = {report.kp:g}, "
               f"kd = {report.kd:g}, D_U = {_g(report.box_diameter)})")
@@ -96,12 +100,12 @@ def _diam_table(report):
 
     t = Table(title=escape("diam T(dt) per MPC rate [state norm]"))
     for col in ("MPC rate", escape("dt [s]"), "trivial", "ff-only", "Prop. 3", "diam T(dt)",
-                "bound", "zeta"):
+                "bound", "kinematic", "zeta"):
         t.add_column(col, justify="left" if col == "bound" else "right")
     for r in report.rows:
         mark = " *" if r.rate_hz == report.rate_hz else ""
         t.add_row(f"{r.rate_hz:g} Hz{mark}", _g(r.dt), _g(r.trivial), _g(r.ff_only),
-                  _g(r.prop3), _g(r.diam), r.bound, _g(r.margins.zeta))
+                  _g(r.prop3), _g(r.diam), r.bound, _g(r.kinematic), _g(r.margins.zeta))
     return t
 
 
@@ -116,7 +120,8 @@ def _margin_table(report):
         t.add_column(f"{r.rate_hz:g} Hz", justify="right")
     first = report.rows[0].margins
     for i, g in enumerate(first.guards):
-        t.add_row(f"guard {g.guard}", *[
+        kin = " (kinematic)" if report.kinematic_guards and report.kinematic_guards[i] else ""
+        t.add_row(f"guard {g.guard}{kin}", *[
             f"{_g(r.margins.guards[i].avoid)} / {_g(r.margins.guards[i].pass_through)}"
             + ("" if r.margins.guards[i].monotone else " !") for r in report.rows])
     for i, m in enumerate(first.inputs):
@@ -132,13 +137,15 @@ def _print(report, sc_name: str) -> None:
     from rich.markup import escape
 
     con = Console()
+    con = Console(width=max(con.width, 110))
     con.print(_constants_table(report, sc_name))
     con.print(_diam_table(report))
     con.print(_margin_table(report))
     con.print("* the scenario's MPC rate; ! the guard's margin formula does not hold at "
-              "that radius. L_x, L_u, eta and the ROA are sampled estimates, not "
-              "certificates; the MPC applies them only through a margins file (--write, "
-              "mpc.margins).")
+              "that radius; (kinematic): the guard's gap depends on kinematic states only, "
+              "its margins are of the kinematic radius. L_x, L_u, eta and the ROA are "
+              "sampled estimates, not certificates; the MPC applies them only through a "
+              "margins file (--write, mpc.margins).")
     for line in report.notes:
         con.print(f"note: {escape(line)}")
     for line in report.warnings:
@@ -293,10 +300,13 @@ def _reality(report, runs: list, out: Path, formats: str, title: str) -> None:
     from hmpc_cli.tube import diameter_curves
     from hmpc_cli.tube_reality import reality
 
-    rep = reality(runs, lambda tau: diameter_curves(report, tau))
+    rep = reality(runs, lambda tau: diameter_curves(report, tau),
+                  dict(zip(report.kinematic_states, report.kinematic_rates, strict=True)))
+    how = (f"; {len(rep.interpolated)} against the interpolated plan (no sample at a node "
+           "time)" if rep.interpolated else "")
     t = Table(title=escape(f"tube vs reality: {len(runs)} runs, {len(rep.periods)} periods "
-                           f"({rep.skipped} skipped: no sample at a node time; "
-                           f"{rep.unmatched} samples with no node in the plant's domain)"))
+                           f"({rep.skipped} skipped: no sample; {rep.unmatched} samples "
+                           f"with no node in the plant's domain{how})"))
     for col in ("bound", "periods", "inside", "median ratio", "worst ratio", "violations"):
         t.add_column(col, justify="left" if col == "bound" else "right")
     for c in rep.checks:
@@ -312,7 +322,9 @@ def _reality(report, runs: list, out: Path, formats: str, title: str) -> None:
     grid = np.linspace(0.0, tmax, 201)[1:]
     try:
         paths = draw_reality(out, [(p.tau, p.dev) for p in rep.periods], grid,
-                             diameter_curves(report, grid), title, parse_formats(formats))
+                             diameter_curves(report, grid), title, parse_formats(formats),
+                             [(p.tau, p.dev_kin) for p in rep.periods
+                              if p.dev_kin is not None])
     except (OSError, FigureInputError) as exc:
         _fail([f"{out}: cannot write ({exc})"])
     typer.echo(f"wrote {', '.join(p.name for p in paths)} to {out}")

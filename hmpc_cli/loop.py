@@ -313,11 +313,14 @@ def _margins(sc, model) -> ConstraintMargins | None:
     Raises:
         ValueError: ``mpc.margins: ...`` when the file does not fit the scenario.
     """
+    from hmpc_cli.registry import registry
+
     source = getattr(sc.mpc, "margins", None)
-    if source is None:  # an MPC without margins settings (e.g. walking)
+    hand = registry().mpc(sc.mpc.kind).hand_margins
+    if source is None or (source == "hand" and hand is None):  # an MPC without margins
         return None
     if source == "hand":
-        return ConstraintMargins.hand(model, sc.mpc.tube_margin, sc.mpc.input_margin)
+        return hand(model, sc.mpc)
     from hmpc_cli.tube.margins_file import constraint_margins
 
     return constraint_margins(source, model, sc.system, sc.mpc.rate_hz)

@@ -105,14 +105,18 @@ class MPCSpec:
         make: (system, settings, problem) -> :class:`~hmpc_cli.stack.FixedModeMPC`.
         needs: system capabilities it uses.
         requires: settings it needs (and their defaults).
+        hand_margins: (system, settings) -> the hand-set
+            :class:`~hmpc_cli.messages.ConstraintMargins` (``margins = "hand"``; logged
+            in /run/info); None: the MPC applies no tube margins.
     """
 
     kind: str
     settings: type[BaseModel]
-    problem: Callable[[Any, Any], Any]
+    problem: Callable[..., Any]
     make: Callable[[Any, Any, Any], Any]
     needs: frozenset[str] = frozenset()
     requires: tuple[Requirement, ...] = ()
+    hand_margins: Callable[[Any, Any], Any] | None = None
 
 
 @dataclass(frozen=True)

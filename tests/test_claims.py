@@ -68,3 +68,18 @@ def test_biped_walks_the_figure_4_course(tmp_path, run_hmpc):
     assert "stair_3" not in landed  # the 0.2 m segment is skipped
     assert landed[-1] == "stair_4"
     assert landed.index("stair_4") > max(i for i, g in enumerate(landed) if g == "stair_2")
+
+
+@pytest.mark.slow
+def test_computed_margins_do_as_well_as_the_hand_set_ones_at_20_hz(tmp_path, run_hmpc):
+    """sweeps/margins.toml: Figure 3's nominal run and ten trials at 20 Hz, hand-set vs
+    the margins file hmpc tube wrote (the kinematic tube): no fewer successes."""
+    proc = run_hmpc(["sweep", str(ROOT / "sweeps" / "margins.toml"), "--out",
+                     str(tmp_path / "m")], cwd=tmp_path, timeout=1800)
+    assert proc.returncode == 0, proc.stderr
+    with open(tmp_path / "m" / "results.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    ok = Counter(r["margins"] for r in rows if r["success"] == "true")
+    print(dict(ok))
+    assert len(rows) == 22 and ok["computed"] >= ok["hand 0.025"] >= 10
+    assert all(int(r["solver_failures"]) == 0 for r in rows if r["margins"] == "computed")

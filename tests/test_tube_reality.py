@@ -45,6 +45,10 @@ def test_disturbed_runs_stay_inside_the_trivial_tube(campaign):
     cells = [c.strip() for c in row.split("│")[1:-1]]
     assert int(cells[1]) >= 15 and cells[2] == "1.000" and cells[5] == "0"
     assert "violation: trivial" not in r.stdout
+    # the positions (kinematic states) stay inside the integrated tube as well
+    row = next(line for line in table.splitlines() if "│ kinematic" in line)
+    cells = [c.strip() for c in row.split("│")[1:-1]]
+    assert int(cells[1]) >= 15 and cells[2] == "1.000" and cells[5] == "0"
     assert (campaign / "tout" / "tube_reality.png").is_file()
 
 
@@ -89,3 +93,19 @@ def test_plan_nodes_domains_and_skips():
     assert len(periods) == 1 and skipped == 2 and unmatched == 0
     assert periods[0].tau == pytest.approx([0.5, 1.0])
     assert periods[0].dev == pytest.approx([0.5, 1.0])
+
+
+def test_biped_run_against_its_tubes_through_the_interpolated_plan(tmp_path):
+    """The walking plan's nodes fall between the logged samples: interpolated, still inside."""
+    r = hmpc("run", SC / "biped_stairs.toml", "-q", "--set", "sim.duration=0.7", "--out",
+             "b0", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    r = hmpc("tube", SC / "biped_stairs.toml", "--samples", "500", "--formats", "png",
+             "--out", "tb", "--runs", "b0", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    table = r.stdout.split("tube vs reality")[1]
+    assert "1 against the interpolated plan" in " ".join(table.split())
+    row = next(line for line in table.splitlines() if "│ trivial" in line)
+    cells = [c.strip() for c in row.split("│")[1:-1]]
+    assert int(cells[1]) >= 6 and cells[2] == "1.000" and cells[5] == "0"
+    assert (tmp_path / "tb" / "tube_reality.png").is_file()

@@ -18,7 +18,8 @@ __all__ = ["draw_diameters", "draw_margins", "draw_reality"]
 
 _STYLE = {"trivial": ("#1f4e8c", "-", "trivial (Prop. 2)"),
           "ff_only": ("#d2691e", "--", "feed-forward only (Remark)"),
-          "prop3": ("#2e8b57", "-", "Prop. 3: a(t)")}
+          "prop3": ("#2e8b57", "-", "Prop. 3: a(t)"),
+          "kinematic": ("#8b008b", "-.", "kinematic: int diam T")}
 
 
 #: values above this are off scale (Matplotlib's log axes overflow near 1e308)
@@ -123,37 +124,52 @@ def draw_margins(out_dir: Path, rates: np.ndarray, guards: Mapping[str, np.ndarr
         return save_figure(fig, out_dir, "tube_margins", formats)
 
 
+def _reality_panel(ax, periods: list[tuple[np.ndarray, np.ndarray]], t: np.ndarray,
+                   curves: Mapping[str, np.ndarray], ylabel: str) -> None:
+    """One panel of :func:`draw_reality`: the deviations (grey) under the bounds."""
+    for i, (tau, dev) in enumerate(periods):
+        ax.plot(tau, np.where(dev > 0, dev, np.nan), color="0.6", linewidth=0.6,
+                marker=".", markersize=2, label="observed" if i == 0 else None)
+    for name, values in curves.items():
+        color, ls, label = _STYLE.get(name, ("k", ":", name))
+        ax.plot(t, _plottable(values), color=color, linestyle=ls, label=label)
+    _scale(ax, [v[~np.isnan(v)] for v in curves.values()] + [d[d > 0] for _, d in periods])
+    ax.set_xlabel("time since the solve tau [s]")
+    ax.set_ylabel(ylabel)
+    ax.legend(loc="best")
+
+
 def draw_reality(out_dir: Path, periods: Iterable[tuple[np.ndarray, np.ndarray]],
                  t: np.ndarray, curves: Mapping[str, np.ndarray], title: str,
-                 formats: Iterable[str]) -> list[Path]:
+                 formats: Iterable[str],
+                 kinematic: Iterable[tuple[np.ndarray, np.ndarray]] = ()) -> list[Path]:
     """Writes ``tube_reality.<fmt>``: every period's deviation (grey) over the bounds.
 
     Args:
         out_dir: existing output directory.
         periods: per period (tau (K,) [s], deviation (K,) [state norm]).
         t: times since the solve (M,) [s] of the bound curves.
-        curves: bound name -> bound (M,) [state norm] (NaN: not drawn).
+        curves: bound name -> bound (M,) [state norm] (NaN: not drawn); ``kinematic``
+            goes to the second panel.
         title: figure title.
         formats: output formats.
+        kinematic: per period (tau, deviation of the kinematic states): a second panel
+            against the ``kinematic`` curve when given.
 
     Returns:
         The written paths.
     """
     import matplotlib.pyplot as plt
 
-    periods = list(periods)
+    periods, kinematic = list(periods), list(kinematic)
+    state = {k: v for k, v in curves.items() if k != "kinematic"}
+    panels = 2 if kinematic and "kinematic" in curves else 1
     with figure_style():
-        fig, ax = plt.subplots(figsize=(COLUMN_WIDTH_IN, 2.4), layout="constrained")
-        for i, (tau, dev) in enumerate(periods):
-            ax.plot(tau, np.where(dev > 0, dev, np.nan), color="0.6", linewidth=0.6,
-                    marker=".", markersize=2, label="observed" if i == 0 else None)
-        for name, values in curves.items():
-            color, ls, label = _STYLE.get(name, ("k", ":", name))
-            ax.plot(t, _plottable(values), color=color, linestyle=ls, label=label)
-        _scale(ax, [v[~np.isnan(v)] for v in curves.values()]
-               + [d[d > 0] for _, d in periods])
-        ax.set_xlabel("time since the solve tau [s]")
-        ax.set_ylabel("||x - x_plan|| [state norm]")
-        ax.set_title(title)
-        ax.legend(loc="best")
+        fig, axes = plt.subplots(1, panels, figsize=(panels * COLUMN_WIDTH_IN, 2.4),
+                                 layout="constrained", squeeze=False)
+        _reality_panel(axes[0, 0], periods, t, state, "||x - x_plan|| [state norm]")
+        if panels == 2:
+            _reality_panel(axes[0, 1], kinematic, t, {"kinematic": curves["kinematic"]},
+                           "kinematic states' deviation")
+        fig.suptitle(title)
         return save_figure(fig, out_dir, "tube_reality", formats)

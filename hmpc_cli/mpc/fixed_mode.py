@@ -131,4 +131,9 @@ def _problem(system: HybridSystem, settings: MPCSettings,
     return FixedModeNLPs(system, settings, margins)
 
 
-MPC = MPCSpec(kind="fixed_mode", settings=MPCSettings, problem=_problem, make=ChainMPC)
+def _hand_margins(system: HybridSystem, settings: MPCSettings) -> ConstraintMargins:
+    return ConstraintMargins.hand(system, settings.tube_margin, settings.input_margin)
+
+
+MPC = MPCSpec(kind="fixed_mode", settings=MPCSettings, problem=_problem, make=ChainMPC,
+              hand_margins=_hand_margins)

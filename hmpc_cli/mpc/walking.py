@@ -32,10 +32,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from hmpc_cli.hybrid import HybridSystem
-from hmpc_cli.messages import GuardEvent, ModeSchedule, Plan, Trajectory
+from hmpc_cli.messages import ConstraintMargins, GuardEvent, ModeSchedule, Plan, Trajectory
 from hmpc_cli.mpc.fixed_mode import rejected_plan
 from hmpc_cli.mpc.solver import failed
-from hmpc_cli.mpc.walking_nlp import WalkingMPCSettings, WalkingNLP
+from hmpc_cli.mpc.walking_nlp import WalkingMPCSettings, WalkingNLP, hand_margins
 from hmpc_cli.registry import MPCSpec
 
 __all__ = ["MPC", "WalkingMPC", "WalkingMPCSettings", "WalkingNLP"]
@@ -225,9 +225,9 @@ class WalkingMPC:
         a, b, _ = self.segments[segment]
         if not np.all(np.isfinite(x0)):
             res = failed(w0, "non-finite initial state")
-        elif b - a < 2 * self.s.segment_margin:
+        elif b - a < 2 * nlp.segment_margin:
             res = failed(w0, f"segment {segment} ({b - a:g} m) is shorter than twice "
-                             f"segment_margin ({self.s.segment_margin:g} m)")
+                             f"the segment margin ({nlp.segment_margin:g} m)")
         else:
             res = nlp.solve(w0, p, lbx, ubx, lbg, ubg, lam_x, lam_g)
         if res.stats.success:
@@ -262,12 +262,14 @@ class WalkingMPC:
         return Trajectory(t, xs, u, np.zeros(2 * N + 2, dtype=int), seg, (segment,), "zoh")
 
 
-def _problem(system: HybridSystem, settings: WalkingMPCSettings) -> WalkingNLP:
-    return WalkingNLP(system, settings)
+def _problem(system: HybridSystem, settings: WalkingMPCSettings,
+             margins: ConstraintMargins | None = None) -> WalkingNLP:
+    return WalkingNLP(system, settings, margins)
 
 
 MPC = MPCSpec(
     kind="walking", settings=WalkingMPCSettings, problem=_problem, make=WalkingMPC,
+    hand_margins=hand_margins,
     needs=frozenset({"terrain", "guard_surfaces", "points", "swing_foot_world",
                      "inverse_dynamics", "swing_foot_velocity", "swing_foot_jacobian",
                      "contact_reset"}))

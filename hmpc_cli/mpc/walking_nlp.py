@@ -56,9 +56,10 @@ import casadi as ca
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from hmpc_cli.hybrid import HybridSystem
+from hmpc_cli.messages import ConstraintMargins
 from hmpc_cli.mpc.builder import Bounds, NLPBuilder
 from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart
-from hmpc_cli.hybrid import HybridSystem
 
 INF = np.inf
 WARM_START = WarmStart(mu_init=1e-4, bound_push=1e-6)  # the warm IPOPT instance
@@ -77,7 +78,8 @@ class WalkingMPCSettings(BaseModel):
     touchdown_depth: float = Field(0.005, ge=0.0, description="touchdown node this far "
                                    "below the target surface [m]")
     segment_margin: float = Field(0.075, ge=0.0, description="touchdown at least this far "
-                                  "inside the segment's ends (tube tightening) [m]")
+                                  "inside the segment's ends (tube tightening) [m] (hand-set "
+                                  "margins)")
     apex_node: int = Field(20, ge=1, description="node of a swing with the apex row")
     apex_clearance: float = Field(0.05, ge=0.0, description="foot above the terrain at the "
                                   "apex node [m]")
@@ -87,7 +89,7 @@ class WalkingMPCSettings(BaseModel):
                                  "node 0 when the swing starts within the liftoff window "
                                  "[m/s^2]")
     terrain_margin: float = Field(0.025, ge=0.0, description="edge inflation of the "
-                                  "guard-avoid terrain [m]")
+                                  "guard-avoid terrain [m] (hand-set margins)")
     terrain_smoothing: float = Field(0.005, gt=0.0, description="logistic width of the "
                                      "terrain steps [m]")
     swing2_end_clearance: float | None = Field(0.05, gt=0.0, description="swing 1's last "
@@ -98,7 +100,14 @@ class WalkingMPCSettings(BaseModel):
                                            "None: no cap")
     knee_clearance: float = Field(0.2, description="knees above the stance foot [m]")
     torque_margin: float = Field(300.0, ge=0.0, description="torque limit tightening "
-                                 "(the low-level controller's share) [N m]")
+                                 "(the low-level controller's share) [N m] (hand-set "
+                                 "margins: mpc.margins = \"hand\")")
+    margins: Literal["hand"] | str = Field(
+        "hand", description='"hand": terrain_margin, segment_margin and torque_margin; else '
+        "a margins file of hmpc tube --write (relative to the scenario file's directory): "
+        "at mpc.rate_hz its largest guard-avoid offset is the terrain margin, its largest "
+        "pass-through offset of a contact surface the segment margin, its input shrink the "
+        "torque margin per joint")
     torso_top_target: tuple[float, float] = Field((0.2, 1.6), description="torso top "
                                                   "relative to the stance foot [m]")
     torso_top_weights: tuple[float, float] = Field((50.0, 5.0), description="cost weights "
@@ -125,6 +134,21 @@ class WalkingMPCSettings(BaseModel):
         return self.swing_time / self.nodes_per_swing
 
 
+def hand_margins(system: HybridSystem, settings: WalkingMPCSettings) -> ConstraintMargins:
+    """The hand-set margins as :class:`ConstraintMargins` (what ``margins = "hand"`` means).
+
+    Every guard's avoid offset is ``terrain_margin`` and its pass-through offset
+    ``segment_margin`` [m]; every joint's shrink ``torque_margin`` [N m]; the radius is the
+    state-norm radius whose offset is ``terrain_margin`` (the guards' Lipschitz constant).
+    """
+    gs = system.guards
+    lip = max((g.lipschitz for g in gs), default=1.0)
+    return ConstraintMargins(
+        "hand", settings.terrain_margin / lip, (settings.terrain_margin,) * len(gs),
+        tuple(g.kappa(0.0, past=False) for g in gs), (settings.segment_margin,) * len(gs),
+        tuple((settings.torque_margin,) * system.n_u for _ in system.modes))
+
+
 def _smooth_step(z):
     return 0.5 * (1.0 + ca.tanh(0.5 * z))
 
@@ -146,9 +170,22 @@ class WalkingNLP:
            shifted ``edges`` (E), ``jumps`` (E), clearances ``clear`` (2, N + 1).
     """
 
-    def __init__(self, system: HybridSystem, settings: WalkingMPCSettings) -> None:
-        """Builds the NLP and its solver session."""
+    def __init__(self, system: HybridSystem, settings: WalkingMPCSettings,
+                 margins: ConstraintMargins | None = None) -> None:
+        """Builds the NLP and its solver session.
+
+        ``margins``: the tightenings (default :func:`hand_margins` of the settings); the
+        NLP uses the largest guard-avoid offset as ``terrain_margin``, the largest
+        pass-through offset of a guard with a contact surface as ``segment_margin`` [m]
+        and the first mode's input shrink as ``torque_margin`` [N m] per joint.
+        """
         self.system, self.s = system, settings
+        self.margins = margins or hand_margins(system, settings)
+        surfaces = list(system.guard_surfaces) or range(len(system.guards))
+        self.terrain_margin = max(self.margins.avoid, default=0.0)
+        self.segment_margin = max((self.margins.pass_through[g] for g in surfaces),
+                                  default=0.0)
+        self.torque_margin = np.asarray(self.margins.inputs[0], dtype=float)
         self.model = _Outputs(system)
         self.nq = self.model.inverse_dynamics.size1_in(0)
         self.nx = 2 * self.nq  # (q, qd) per node; p_st is a parameter or an expression
@@ -255,7 +292,7 @@ class WalkingNLP:
 
     def terrain(self) -> tuple[float, np.ndarray, np.ndarray]:
         """(h0, inflated edges (E,), jumps (E,)) of the guard-avoid floor."""
-        terrain, m = self.system.terrain, self.s.terrain_margin
+        terrain, m = self.system.terrain, self.terrain_margin
         h_prev, e, d = terrain.ground, [], []
         for start, _, h in terrain.segments:
             jump = h - h_prev
@@ -295,8 +332,8 @@ class WalkingNLP:
         self._interval_bounds(bounds, clear)
         lbg, ubg = bounds.lbg, bounds.ubg
         start, end, height = segment
-        lbg["touchdown"][0], ubg["touchdown"][0] = start + s.segment_margin, \
-            end - s.segment_margin
+        lbg["touchdown"][0], ubg["touchdown"][0] = start + self.segment_margin, \
+            end - self.segment_margin
         lbg["touchdown"][1] = ubg["touchdown"][1] = height - s.touchdown_depth
         lbg["reset"][:] = ubg["reset"][:] = 0.0
         if elapsed < s.liftoff_time:
@@ -325,7 +362,7 @@ class WalkingNLP:
         lower, upper = self.system.state_box
         bounds.lbx["x"][:], bounds.ubx["x"][:] = lower[:self.nx], upper[:self.nx]
         lbg, ubg = bounds.lbg, bounds.ubg
-        umax = np.maximum(np.asarray(self.system.modes[0].u_upper) - s.torque_margin, 0.0)
+        umax = np.maximum(np.asarray(self.system.modes[0].u_upper) - self.torque_margin, 0.0)
         lbg["dynamics"][:] = ubg["dynamics"][:] = 0.0
         lbg["torque"][:], ubg["torque"][:] = -umax, umax
         lbg["knees"][:] = s.knee_clearance

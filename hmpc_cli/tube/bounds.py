@@ -1,14 +1,15 @@
 """Tube bounds (Prop. 2, its Remark), the low level's input share and the margins.
 
 The trivial tube (eta + L_u zeta) t e^{L_x t}, the feed-forward-only tube eta t e^{L_x t},
-zeta (what the PD law adds to the feed-forward) and the tightened constraints of problem
-(14) a tube radius d implies: guard-avoid rows, the virtual pass-through node and the
-input boxes.
+zeta (what the PD law adds to the feed-forward), the kinematic tube (a tube integrated
+once: :mod:`.structure`) and the tightened constraints of problem (14) a tube implies:
+guard-avoid rows, the virtual pass-through node and the input boxes.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import casadi as ca
@@ -18,7 +19,11 @@ from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.tube.sampling import num
 
 __all__ = ["GuardMargin", "InputMargin", "Margins", "feedforward_tube", "initial_violations",
-           "input_box_diameter", "low_level_share", "margins", "trivial_tube", "zeta_bound"]
+           "input_box_diameter", "integrated_tube", "low_level_share", "margins",
+           "trivial_tube", "zeta_bound"]
+
+#: pieces of the Riemann sum of :func:`integrated_tube`
+PIECES = 400
 
 
 def input_box_diameter(system: HybridSystem) -> float:
@@ -74,12 +79,30 @@ def low_level_share(t: float, eta: float, L_x: float, L_u: float, gain_norm: flo
     return float(sat), float(box_diameter)
 
 
+def integrated_tube(t: float, diam: Callable[[np.ndarray], np.ndarray],
+                    pieces: int = PIECES) -> float:
+    """An upper bound of int_0^t diam(s) ds [state norm s]: the kinematic tube at t.
+
+    The right Riemann sum of the running maximum of ``diam`` (an upper bound for any
+    ``diam``, exact as pieces grow for a non-decreasing one); NaN samples count as inf.
+    """
+    if t <= 0.0:
+        return 0.0
+    s = np.linspace(0.0, t, pieces + 1)[1:]
+    d = np.asarray(diam(s), dtype=float)
+    d = np.maximum.accumulate(np.where(np.isnan(d), np.inf, d))
+    with np.errstate(over="ignore", invalid="ignore"):
+        return float(np.sum(d) * (t / pieces))
+
+
 @dataclass(frozen=True)
 class GuardMargin:
     """A guard's NLP row offsets for a tube radius.
 
     Attributes:
         guard: guard name.
+        radius: the radius the offsets are of: the kinematic radius when the guard's gap
+            depends on kinematic states only, else the state radius.
         avoid: guard-avoid offset kappa(d, past=False): q(x) >= avoid keeps the ball before it.
         pass_through: virtual-node offset kappa(d, past=True): -q(x) >= it puts the ball past.
         monotone: whether kappa is non-decreasing on [0, d] (False: the guard's margin
@@ -87,6 +110,7 @@ class GuardMargin:
     """
 
     guard: str
+    radius: float
     avoid: float
     pass_through: float
     monotone: bool = True
@@ -108,6 +132,7 @@ class Margins:
     Attributes:
         radius: the tube radius d [state norm].
         zeta: the low level's input share the input boxes are shrunk by.
+        kinematic: the kinematic tube radius (<= radius), or None (no kinematic states).
         guards: one :class:`GuardMargin` per guard.
         inputs: one :class:`InputMargin` per mode.
     """
@@ -116,11 +141,13 @@ class Margins:
     zeta: float
     guards: tuple[GuardMargin, ...]
     inputs: tuple[InputMargin, ...]
+    kinematic: float | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready dict (infinities as "inf")."""
         return {"radius": num(self.radius), "zeta": num(self.zeta),
-                "guards": [{"guard": g.guard, "avoid": num(g.avoid),
+                "kinematic": None if self.kinematic is None else num(self.kinematic),
+                "guards": [{"guard": g.guard, "radius": num(g.radius), "avoid": num(g.avoid),
                             "pass_through": num(g.pass_through), "monotone": g.monotone}
                            for g in self.guards],
                 "inputs": [{"mode": i.mode, "per_side": [num(v) for v in i.per_side],
@@ -129,36 +156,51 @@ class Margins:
     @classmethod
     def from_dict(cls, d: dict) -> Margins:
         """Inverse of :meth:`to_dict`."""
+        kin = d.get("kinematic")
         return cls(float(d["radius"]), float(d["zeta"]),
-                   tuple(GuardMargin(g["guard"], float(g["avoid"]), float(g["pass_through"]),
-                                     bool(g["monotone"])) for g in d["guards"]),
+                   tuple(GuardMargin(g["guard"], float(g["radius"]), float(g["avoid"]),
+                                     float(g["pass_through"]), bool(g["monotone"]))
+                         for g in d["guards"]),
                    tuple(InputMargin(i["mode"], tuple(float(v) for v in i["per_side"]),
-                                     bool(i["capped"])) for i in d["inputs"]))
+                                     bool(i["capped"])) for i in d["inputs"]),
+                   None if kin is None else float(kin))
 
 
-def margins(system: HybridSystem, d: float, zeta: float = 0.0) -> Margins:
+def _monotone(guard, d: float) -> bool:
+    """Whether both offsets of ``guard`` are non-decreasing on [0, d] (d finite)."""
+    if not math.isfinite(d):
+        return True
+    grid = np.linspace(0.0, d, 11)
+    for past in (False, True):
+        ks = np.array([guard.kappa(float(s), past) for s in grid])
+        if not np.all(np.diff(ks) >= -1e-12 * (1 + np.abs(ks[1:]))):
+            return False
+    return True
+
+
+def margins(system: HybridSystem, d: float, zeta: float = 0.0,
+            kinematic: float | None = None, kinematic_guards: Sequence[bool] = ()) -> Margins:
     """Guard-avoid, pass-through and input margins of a tube of radius ``d``.
 
-    Per guard: ``guard.kappa(d, past=False)`` and ``guard.kappa(d, past=True)``; per mode:
+    Per guard g of radius d_g: ``g.kappa(d_g, past=False)`` and ``g.kappa(d_g, past=True)``,
+    d_g = min(d, kinematic) when ``kinematic_guards[g]`` (its gap depends on kinematic
+    states only, :mod:`.structure`) and a kinematic radius is given, else d. Per mode:
     each input bound moves inwards by zeta (||u - u_ff|| <= zeta bounds every component),
     at most to the box's centre.
     """
-    grid = np.linspace(0.0, d, 11) if math.isfinite(d) else None
     guards = []
-    for g in system.guards:
-        mono = True
-        if grid is not None:
-            for past in (False, True):
-                ks = np.array([g.kappa(float(s), past) for s in grid])
-                mono &= bool(np.all(np.diff(ks) >= -1e-12 * (1 + np.abs(ks[1:]))))
-        guards.append(GuardMargin(g.name, float(g.kappa(d, False)), float(g.kappa(d, True)),
-                                  mono))
+    for i, g in enumerate(system.guards):
+        use = kinematic is not None and i < len(kinematic_guards) and kinematic_guards[i]
+        r = min(d, kinematic) if use else d
+        guards.append(GuardMargin(g.name, float(r), float(g.kappa(r, False)),
+                                  float(g.kappa(r, True)), _monotone(g, r)))
     inputs = []
     for m in system.modes:
         half = 0.5 * (np.asarray(m.u_upper, dtype=float) - np.asarray(m.u_lower, dtype=float))
         inputs.append(InputMargin(m.name, tuple(np.minimum(zeta, half).tolist()),
                                   bool(np.any(zeta >= half))))
-    return Margins(float(d), float(zeta), tuple(guards), tuple(inputs))
+    return Margins(float(d), float(zeta), tuple(guards), tuple(inputs),
+                   None if kinematic is None else float(min(d, kinematic)))
 
 
 def initial_violations(system: HybridSystem, m: Margins) -> list[tuple[str, float, float]]:

@@ -49,6 +49,8 @@ class GuardOffsets(BaseModel):
     """One guard's row offsets at a tube radius (NLP row units)."""
 
     model_config = ConfigDict(extra="forbid")
+    radius: float | None = Field(None, ge=0.0, description="the radius d_g the offsets are "
+                                 "of (the kinematic radius for a guard on kinematic states)")
     avoid: float = Field(description="guard-avoid offset kappa(d, past=False)")
     pass_through: float = Field(description="virtual-node offset kappa(d, past=True)")
     formula_holds: bool = Field(True, description="kappa is monotone on [0, d]")
@@ -60,6 +62,8 @@ class RateMargins(BaseModel):
     model_config = ConfigDict(extra="forbid")
     dt: float = Field(gt=0.0, description="MPC period [s]")
     radius: float = Field(ge=0.0, description="tube radius diam T(dt) [state norm]")
+    kinematic: float | None = Field(None, ge=0.0, description="kinematic tube "
+                                    "int_0^dt diam T(s) ds (none: no kinematic states)")
     bound: str = Field(description="the bound the radius is (prop3 or trivial)")
     zeta: float = Field(ge=0.0, description="the low level's input share")
     guards: dict[str, GuardOffsets] = Field(description="offsets by guard name")
@@ -125,8 +129,11 @@ def _rate_tables(row: TubeRow) -> list[str]:
     out = [f"\n[rates.{k}]", f"dt = {_val(row.dt)}  # [s]",
            f"radius = {_val(row.diam)}  # diam T(dt) [state norm]",
            f"bound = {_val(row.bound)}", f"zeta = {_val(m.zeta)}"]
+    if row.kinematic is not None:
+        out.append(f"kinematic = {_val(row.kinematic)}  # int_0^dt diam T(s) ds")
     for g in m.guards:
-        out += [f"\n[rates.{k}.guards.{_key(g.guard)}]", f"avoid = {_val(g.avoid)}",
+        out += [f"\n[rates.{k}.guards.{_key(g.guard)}]", f"radius = {_val(g.radius)}",
+                f"avoid = {_val(g.avoid)}",
                 f"pass_through = {_val(g.pass_through)}",
                 f"formula_holds = {_val(g.monotone)}"]
     out.append(f"\n[rates.{k}.inputs]  # shrink per side, one per input")
@@ -152,9 +159,11 @@ def margins_text(report: TubeReport, *, scenario: str, params: BaseModel, kind: 
              f"# disturbance {kind}, magnitude {magnitude:g}; low level kp = {report.kp:g}, "
              f"kd = {report.kd:g}",
              f"# region: {report.region.note}; {samples} samples per estimated constant",
-             "# per MPC rate [Hz]: the tube radius d = diam T(dt) [state norm], per guard the",
-             "# guard-avoid offset kappa(d, past=False) and the pass-through offset",
-             "# kappa(d, past=True) (NLP row units), per mode the input-box shrink per side.",
+             "# per MPC rate [Hz]: the tube radius d = diam T(dt) [state norm] and the",
+             "# kinematic radius int_0^dt diam T(s) ds; per guard its radius d_g (the",
+             "# kinematic one when the guard sees kinematic states only), the guard-avoid",
+             "# offset kappa(d_g, past=False) and the pass-through offset kappa(d_g,",
+             "# past=True) (NLP row units); per mode the input-box shrink per side.",
              "# Estimates (sampled L_x, L_u, eta), not certificates.",
              f"format = {FORMAT}", f"hmpc_version = {_val(__version__)}",
              f"scenario = {_val(scenario)}", f"system = {_val(report.system)}",

@@ -15,13 +15,15 @@ import numpy as np
 
 from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.tube.bounds import (
-    Margins, feedforward_tube, initial_violations, input_box_diameter, low_level_share,
-    margins)
+    Margins, feedforward_tube, initial_violations, input_box_diameter, integrated_tube,
+    low_level_share, margins)
 from hmpc_cli.tube.certificate import Certificate, pd_certificate
 from hmpc_cli.tube.sampling import (
     DisturbanceBound, LipschitzEstimate, Region, eta_bound, lipschitz, num)
+from hmpc_cli.tube.structure import guard_states, kinematic_rates
 
-__all__ = ["DEFAULT_RATES", "TubeReport", "TubeRow", "analyse", "diameter_curves", "tube_row"]
+__all__ = ["DEFAULT_RATES", "TubeReport", "TubeRow", "analyse", "diameter_curves",
+           "kinematic_curve", "planning_diameter", "tube_row"]
 
 #: MPC rates [Hz] every report tabulates (plus the scenario's own rate)
 DEFAULT_RATES = (5, 10, 20, 50, 100)
@@ -38,7 +40,10 @@ class TubeRow:
         prop3: a(dt) when certified and dt <= tau, else None.
         diam: the planning tube diam T(dt): min(a(dt), trivial) when Prop. 3 applies.
         bound: which bound ``diam`` is ("prop3" or "trivial").
-        margins: the margins of ``diam``.
+        margins: the margins of ``diam`` (and of ``kinematic`` for guards that see only
+            kinematic states).
+        kinematic: the kinematic tube int_0^dt diam T(s) ds, or None without kinematic
+            states (:mod:`hmpc_cli.tube.structure`).
     """
 
     rate_hz: float
@@ -49,6 +54,7 @@ class TubeRow:
     diam: float
     bound: str
     margins: Margins
+    kinematic: float | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready dict."""
@@ -56,6 +62,7 @@ class TubeRow:
                 "ff_only": num(self.ff_only),
                 "prop3": None if self.prop3 is None else num(self.prop3),
                 "diam": num(self.diam), "bound": self.bound,
+                "kinematic": None if self.kinematic is None else num(self.kinematic),
                 "margins": self.margins.to_dict()}
 
 
@@ -74,6 +81,11 @@ class TubeReport:
         certificate: Prop. 3's certificate, or why there is none.
         rate_hz: the scenario's MPC rate [Hz].
         rows: diam T(dt) and margins per rate (ascending).
+        state_names: the system's state names.
+        kinematic_states: indices of the kinematic states (may be empty).
+        kinematic_rates: per kinematic state, the index of the state that is its rate
+            (-1: its flow is zero).
+        kinematic_guards: per guard, whether its gap depends on kinematic states only.
         warnings: problems the margins cause (e.g. infeasible at x0).
         notes: quantities that could not be computed and why.
     """
@@ -89,6 +101,10 @@ class TubeReport:
     certificate: Certificate
     rate_hz: float
     rows: tuple[TubeRow, ...]
+    state_names: tuple[str, ...] = ()
+    kinematic_states: tuple[int, ...] = ()
+    kinematic_rates: tuple[int, ...] = ()
+    kinematic_guards: tuple[bool, ...] = ()
     warnings: tuple[str, ...] = ()
     notes: tuple[str, ...] = field(default_factory=tuple)
 
@@ -99,7 +115,8 @@ class TubeReport:
     def row_at(self, system: HybridSystem, rate_hz: float) -> TubeRow:
         """The row of any MPC rate [Hz] from this report's constants (``system``: its own)."""
         return tube_row(system, rate_hz, self.lipschitz, self.disturbance.eta,
-                        self.certificate, self.gain_norm, self.box_diameter)
+                        self.certificate, self.gain_norm, self.box_diameter,
+                        self.kinematic_guards if self.kinematic_states else None)
 
     def to_dict(self) -> dict:
         """JSON-ready dict of the whole report."""
@@ -108,12 +125,32 @@ class TubeReport:
                 "disturbance": self.disturbance.to_dict(), "kp": self.kp, "kd": self.kd,
                 "gain_norm": self.gain_norm, "box_diameter": self.box_diameter,
                 "certificate": self.certificate.to_dict(), "rate_hz": self.rate_hz,
-                "rows": [r.to_dict() for r in self.rows], "warnings": list(self.warnings),
+                "rows": [r.to_dict() for r in self.rows],
+                "kinematic_states": list(self.kinematic_states),
+                "kinematic_rates": list(self.kinematic_rates),
+                "kinematic_guards": list(self.kinematic_guards),
+                "warnings": list(self.warnings),
                 "notes": list(self.notes)}
 
 
+def planning_diameter(t: np.ndarray, lx: LipschitzEstimate, eta: float, cert: Certificate,
+                      gain_norm: float, box: float) -> np.ndarray:
+    """The planning tube diam T(t) on times t (K,) [s].
+
+    The trivial tube, or a(t) where Prop. 3 holds and is smaller.
+    """
+    t = np.asarray(t, dtype=float)
+    out = np.array([low_level_share(float(s), eta, lx.L_x, lx.L_u, gain_norm, box)[0]
+                    for s in t.ravel()]).reshape(t.shape)
+    if cert.certified:
+        a = np.where(t <= cert.tau, cert.a(t), np.inf)
+        out = np.minimum(out, a)
+    return out
+
+
 def tube_row(system: HybridSystem, rate: float, lx: LipschitzEstimate, eta: float,
-             cert: Certificate, gain_norm: float, box: float) -> TubeRow:
+             cert: Certificate, gain_norm: float, box: float,
+             kinematic_guards: Sequence[bool] | None = None) -> TubeRow:
     """The tube diam T(1 / rate) by every bound, the chosen one and its margins.
 
     Args:
@@ -124,6 +161,8 @@ def tube_row(system: HybridSystem, rate: float, lx: LipschitzEstimate, eta: floa
         cert: Prop. 3's certificate (used when certified and 1 / rate <= tau).
         gain_norm: ||K||_2 of the low level.
         box: the largest input-box diameter.
+        kinematic_guards: per guard, whether it sees kinematic states only; None: the
+            system has no kinematic states (no kinematic tube).
     """
     dt = 1.0 / rate
     trivial, zeta = low_level_share(dt, eta, lx.L_x, lx.L_u, gain_norm, box)
@@ -132,8 +171,10 @@ def tube_row(system: HybridSystem, rate: float, lx: LipschitzEstimate, eta: floa
     diam, bound = (a, "prop3") if a is not None and a <= trivial else (trivial, "trivial")
     if bound == "prop3":
         zeta = min(gain_norm * diam, box)
+    kin = None if kinematic_guards is None else min(diam, integrated_tube(
+        dt, lambda s: planning_diameter(s, lx, eta, cert, gain_norm, box)))
     return TubeRow(float(rate), dt, trivial, ff, a, diam, bound,
-                   margins(system, diam, zeta))
+                   margins(system, diam, zeta, kin, kinematic_guards or ()), kin)
 
 
 def analyse(system: HybridSystem, *, region: Region, kind: str, magnitude: float,
@@ -164,13 +205,18 @@ def analyse(system: HybridSystem, *, region: Region, kind: str, magnitude: float
     box = input_box_diameter(system)
     cert = pd_certificate(system, kp, kd, dist.eta, max(samples // 10, 200), seed,
                           scale=region.diameter)
-    rows = tuple(tube_row(system, r, lx, dist.eta, cert, gain_norm, box)
+    rates_of = kinematic_rates(system)
+    kin = tuple(rates_of)
+    kin_guards = tuple(set(guard_states(g, system.n_x)) <= set(kin) for g in system.guards)
+    rows = tuple(tube_row(system, r, lx, dist.eta, cert, gain_norm, box,
+                          kin_guards if kin else None)
                  for r in sorted({float(r) for r in (*rates, rate_hz)}))
     notes = [f"eta: {dist.note}"] if dist.zero else []
     if not cert.certified:
         notes.append(f"certificate: none: {cert.reason} (the trivial tube still holds)")
     return TubeReport(system.name, region, lx, dist, float(kp), float(kd), gain_norm, box,
-                      cert, float(rate_hz), rows,
+                      cert, float(rate_hz), rows, system.state_names, kin,
+                      tuple(rates_of.values()), kin_guards,
                       tuple(_warnings(system, rows, rate_hz, lx.L_x)), tuple(notes))
 
 
@@ -182,7 +228,7 @@ def _warnings(system: HybridSystem, rows: Sequence[TubeRow], rate_hz: float,
            f"exceeds its NLP gap at x0 ({q:.4g}): the tightened problem is infeasible at "
            f"the initial state" for name, q, k in initial_violations(system, row.margins)]
     out += [f"at {rate_hz:g} Hz the margin of guard {g.guard} decreases with the radius "
-            f"{row.diam:.4g}: its formula does not hold for a tube this large (the tube "
+            f"{g.radius:.4g}: its formula does not hold for a tube this large (the tube "
             f"does not fit the guard's geometry)" for g in row.margins.guards if not g.monotone]
     if not math.isfinite(row.diam):
         out.append(f"at {rate_hz:g} Hz diam T(dt) overflows (L_x dt = "
@@ -190,8 +236,25 @@ def _warnings(system: HybridSystem, rows: Sequence[TubeRow], rate_hz: float,
     return out
 
 
+def kinematic_curve(report: TubeReport, t: np.ndarray) -> np.ndarray:
+    """The kinematic tube int_0^t diam T(s) ds on times ``t`` (K,) [s] (NaN: none)."""
+    if not report.kinematic_states:
+        return np.full(np.shape(t), np.nan)
+    lx, eta = report.lipschitz, report.disturbance.eta
+
+    def diam(s):
+        return planning_diameter(s, lx, eta, report.certificate, report.gain_norm,
+                                 report.box_diameter)
+
+    return np.array([integrated_tube(float(s), diam, 100) for s in np.ravel(t)])
+
+
 def diameter_curves(report: TubeReport, t: np.ndarray) -> dict[str, np.ndarray]:
-    """diam(t) of each bound on times ``t`` (K,) [s]: trivial, ff_only, prop3 (NaN past tau)."""
+    """Each bound on times ``t`` (K,) [s] by name.
+
+    trivial, ff_only, prop3 (NaN past tau) and, with kinematic states, ``kinematic``
+    (their tube, :func:`kinematic_curve`).
+    """
     lx, eta = report.lipschitz, report.disturbance.eta
     trivial = np.array([low_level_share(float(s), eta, lx.L_x, lx.L_u, report.gain_norm,
                                         report.box_diameter)[0] for s in t])
@@ -199,4 +262,6 @@ def diameter_curves(report: TubeReport, t: np.ndarray) -> dict[str, np.ndarray]:
     cert = report.certificate
     if cert.certified:
         out["prop3"] = np.where(t <= cert.tau, cert.a(t), np.nan)
+    if report.kinematic_states:
+        out["kinematic"] = kinematic_curve(report, t)
     return out

@@ -48,14 +48,26 @@ def _guards(p: BipedParams, model: BipedModel, x: ca.SX) -> tuple[Guard, ...]:
     """
     foot = model.swing_foot_world(x)
     h = ca.Function("h_swing_foot_y", [x], [foot[1]])
+    lip = _foot_height_lipschitz(p)
     guards = []
     for i, (start, end, height) in enumerate(stair_edges(p), start=1):
         region = ca.Function(f"A_stair_{i}", [x], [ca.vertcat(foot[0] - start, end - foot[0])])
         guards.append(Guard(f"stair_{i}", MODE, MODE, h, height, -1, reset=model.reset,
-                            region=region))
+                            region=region, lipschitz=lip))
     guards.append(Guard("ground", MODE, MODE, h, p.ground_height, -1, reset=model.reset,
-                        region=ca.Function("A_ground", [x], [-foot[0]])))
+                        region=ca.Function("A_ground", [x], [-foot[0]]), lipschitz=lip))
     return tuple(guards)
+
+
+def _foot_height_lipschitz(p: BipedParams) -> float:
+    """A global Lipschitz constant of the swing-foot height in the state norm [m per unit].
+
+    y = stance_y + Lc cos th1 + Lt cos th2 - Lt cos th4 - Lc cos th5 with th = S q, so
+    dy/dq = S^T a with ||a|| <= sqrt(2 (Lc^2 + Lt^2)) and dy/dstance_y = 1.
+    """
+    S = np.tril(np.ones((N_Q, N_Q)))
+    arm = np.linalg.norm(S, 2) * np.sqrt(2.0 * (p.calf_length**2 + p.thigh_length**2))
+    return float(np.hypot(arm, 1.0))
 
 
 def _outputs(model: BipedModel, x: ca.SX) -> dict[str, ca.Function]:
