@@ -43,7 +43,7 @@ def closed_loop_solves(overrides: list[str], runs: int) -> dict[str, np.ndarray]
                 out["all"].append(t)
                 if m.data["reason"] == "period":
                     out["warm"].append(t)
-                out["final" if len(m.data["counts"]) == 1 else "switching"].append(t)
+                out["final" if len(m.data["detail"]["counts"]) == 1 else "switching"].append(t)
     return {k: np.array(v) for k, v in out.items()}
 
 

@@ -55,6 +55,10 @@ def run(
     if (out / "run.mcap").exists():
         _err([f"{out}: already holds a run (choose another --out)"])
         raise typer.Exit(EXIT_BAD_INPUT)
+    from hmpc_cli.runlog import Provenance
+
+    loop.log.provenance = Provenance(overrides=tuple(
+        [*(set_ or []), *([f"seed={seed}"] if seed is not None else [])]))
     result = _execute(loop, sc, toml_text, out, quiet)
     _print_summary(result, out)
 

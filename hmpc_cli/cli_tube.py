@@ -40,20 +40,12 @@ def _states_of(log: Path, n: int) -> object:
     Raises:
         ValueError: the log cannot be read or has no state of dimension n.
     """
-    import numpy as np
+    from hmpc_cli.rundata import read_run
 
-    from hmpc_cli.recorder import read_log
-    from hmpc_cli.figures.common import resolve_run_log
-
-    path = resolve_run_log(log)
-    try:
-        rows = [m.data.get("x") or [] for m in read_log(path).topic("/sim/state")]
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{path}: cannot read the log ({exc})") from None
-    rows = [r for r in rows if len(r) == n]
-    if not rows:
-        raise ValueError(f"{path}: no /sim/state state of dimension {n}")
-    return np.array(rows, dtype=float)
+    run = read_run(log)
+    if not run.t.size or run.x.shape[1] != n:
+        raise ValueError(f"{run.path}: no /sim/state state of dimension {n}")
+    return run.x
 
 
 def _constants_table(report, sc_name: str):

@@ -302,7 +302,10 @@ def build(scenario, log: RunLog,
     task = plugin_call(f"system: the task of {spec.name!r} failed to build", spec.task, world,
                        system)
     log.set_info(sc.name, sc.seed, sc.model_dump(mode="json"), s.rate_hz // s.log_rate_hz,
-                 margins.to_dict(model) if margins is not None else None)
+                 margins.to_dict(model) if margins is not None else None,
+                 (sc.planner.kind, sc.mpc.kind),
+                 {"planner": reg.planner(sc.planner.kind).detail,
+                  "mpc": reg.mpc(sc.mpc.kind).detail})
     return ClosedLoop(plant, planner, mpc, _timing(sc, model), task, log, s.duration,
                       s.divergence_bound, progress)
 

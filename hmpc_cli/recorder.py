@@ -80,9 +80,19 @@ def _jsonable(obj: Any) -> Any:
 
 
 def to_json_bytes(payload: Any) -> bytes:
-    """Encodes `payload` as compact UTF-8 JSON (numpy and dataclasses ok, NaN/inf -> null)."""
-    obj = _jsonable(payload)
-    return json.dumps(obj, separators=(",", ":"), allow_nan=False, ensure_ascii=False).encode()
+    """Encodes `payload` as compact UTF-8 JSON (numpy and dataclasses ok, NaN/inf -> null).
+
+    orjson encodes dataclasses, numpy arrays and scalars natively and writes NaN and inf
+    as null; anything it refuses (e.g. non-string keys) takes the recursive conversion.
+    """
+    import orjson
+
+    try:
+        return orjson.dumps(payload, option=orjson.OPT_SERIALIZE_NUMPY)
+    except TypeError:
+        obj = _jsonable(payload)
+        return json.dumps(obj, separators=(",", ":"), allow_nan=False,
+                          ensure_ascii=False).encode()
 
 
 class Recorder:

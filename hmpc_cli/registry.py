@@ -82,6 +82,9 @@ class PlannerSpec:
         make: (system, settings, run_seed) -> :class:`~hmpc_cli.stack.Planner`.
         needs: system capabilities it uses (checked against ``SystemSpec.provides``).
         requires: settings it needs (and their defaults).
+        detail: the frozen dataclass its ``PlannerResult.extra`` is logged as (the
+            /planner/plan ``detail`` field; its JSON schema is generated from it), or
+            None (no detail logged).
     """
 
     kind: str
@@ -89,6 +92,7 @@ class PlannerSpec:
     make: Callable[[Any, Any, int], Any]
     needs: frozenset[str] = frozenset()
     requires: tuple[Requirement, ...] = ()
+    detail: type | None = None
 
 
 @dataclass(frozen=True)
@@ -108,6 +112,8 @@ class MPCSpec:
         hand_margins: (system, settings) -> the hand-set
             :class:`~hmpc_cli.messages.ConstraintMargins` (``margins = "hand"``; logged
             in /run/info); None: the MPC applies no tube margins.
+        detail: the frozen dataclass its ``Plan.extra`` is logged as (the /mpc/solve
+            ``detail`` field), or None.
     """
 
     kind: str
@@ -117,6 +123,7 @@ class MPCSpec:
     needs: frozenset[str] = frozenset()
     requires: tuple[Requirement, ...] = ()
     hand_margins: Callable[[Any, Any], Any] | None = None
+    detail: type | None = None
 
 
 @dataclass(frozen=True)

@@ -212,7 +212,7 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
               "* `sweeps/<name>/`: one `hmpc sweep` (`runs/<run id>/`, `results.csv`).",
               "* `report/`: the figures and tables of this page.", "",
               "Open an MCAP log in Foxglove or Lichtblick, or read it in Python with "
-              "`hmpc_cli.recorder.read_log(path)`.", ""]
+              "`hmpc_cli.rundata.read_run(path)` (arrays per topic).", ""]
     page = results / "README.md"
     tmp = page.with_name(".README.md.tmp")
     tmp.write_text("\n".join(lines), encoding="utf-8")

@@ -2,14 +2,17 @@
 
 :class:`RunLog` wraps an open MCAP writer (:class:`hmpc_cli.recorder.Recorder` or
 anything with ``add_topic``/``add_metadata``/``write``), which the caller opens and
-closes; it writes the topics of :data:`hmpc_cli.logschema.TOPICS` and keeps the
-:class:`RunResult` counts (contacts, solves, failures, planner calls) that become
-``summary.json``.
+closes; it writes the typed topics of :mod:`hmpc_cli.logtypes` (their JSON schemas
+generated from the types, with the system's names and the plug-ins' detail types) and
+keeps the :class:`RunResult` counts (contacts, solves, failures, planner calls) that
+become ``summary.json``.
 """
 
 from __future__ import annotations
 
+import json
 import platform
+import shlex
 import sys
 from dataclasses import dataclass, field
 
@@ -17,8 +20,11 @@ import numpy as np
 
 from hmpc_cli import __version__
 from hmpc_cli.hybrid import HybridSystem
-from hmpc_cli.logschema import TOPICS
-from hmpc_cli.messages import GuardEvent, Plan, PlannerResult
+from hmpc_cli.logtypes import (
+    LOG_VERSION, GuardEventRec, MarginsRec, MpcSolve, PlanNode, PlannerCall, RolloutNode,
+    RunInfo, ScheduleRec, StateSample, StatusCount, Summary, Versions, WRec, convert, named,
+    topic_schemas)
+from hmpc_cli.messages import GuardEvent, ModeSchedule, Plan, PlannerResult, Trajectory
 
 SOFTENED_TOL = 1e-6  # a solve whose hybrid-constraint slack exceeds this is "softened"
 
@@ -64,6 +70,19 @@ def versions() -> dict[str, str]:
             "mcap": getattr(mcap, "__version__", "?"), "platform": platform.platform()}
 
 
+@dataclass
+class Provenance:
+    """What started a run: the command line and the overrides applied to its scenario.
+
+    Attributes:
+        command: the command line (default: this process's ``sys.argv``).
+        overrides: the ``key=value`` overrides (``--set``, a sweep cell's, ``seed=``).
+    """
+
+    command: str = field(default_factory=lambda: shlex.join(sys.argv))
+    overrides: tuple[str, ...] = ()
+
+
 class RunLog:
     """Topics and books of one run.
 
@@ -77,12 +96,16 @@ class RunLog:
         self.per_state = per_state
         self.result = RunResult("scenario", 0)
         self.info: dict = {}
+        self.provenance = Provenance()
+        self.details: dict[str, type | None] = {}
         self.solve_times: list[float] = []
         self.plan_times: list[float] = []
-        self._last_w: np.ndarray | None = None
+        self._last_w: bytes | None = None  # the last logged disturbance's bytes
+        self._model: HybridSystem | None = None
 
     def set_info(self, name: str, seed: int, scenario: dict, per_state: int,
-                 margins: dict | None = None) -> None:
+                 margins: dict | None = None, kinds: tuple[str, str] = ("", ""),
+                 details: dict[str, type | None] | None = None) -> None:
         """The run's identity for /run/info and the summary.
 
         Args:
@@ -91,31 +114,42 @@ class RunLog:
             scenario: the validated scenario (JSON-ready).
             per_state: simulator steps per /sim/state sample.
             margins: the MPC's margins (source, radius, per guard, per mode), if it has any.
+            kinds: (planner kind, MPC kind).
+            details: ``planner``/``mpc`` -> the plug-ins' log detail dataclasses.
         """
         self.result.scenario, self.result.seed = name, seed
-        self.info = {"scenario_name": name, "seed": seed, "scenario": scenario}
-        if margins is not None:
-            self.info["margins"] = margins
+        self.info = {"scenario_name": name, "seed": seed, "scenario": scenario,
+                     "margins": margins, "kinds": kinds}
+        self.details = dict(details or {})
         self.per_state = per_state
 
-    def _write(self, topic: str, t: float, payload: dict) -> None:
+    def _write(self, topic: str, t: float, payload) -> None:
         if self.rec is not None:
             self.rec.write(topic, t, payload)
 
     def open(self, model: HybridSystem) -> None:
         """Registers the topics and writes /run/info (seed, versions, scenario, names)."""
+        self._model = model
         if self.rec is None:
             return
-        for topic, (schema_name, schema) in TOPICS.items():
+        names = {"state": model.state_names, "input": model.input_names,
+                 "disturbance": model.disturbance_names,
+                 "guard": [g.name for g in model.guards]}
+        for topic, (schema_name, schema) in topic_schemas(names, self.details).items():
             self.rec.add_topic(topic, schema_name, schema)
         vers = versions()
-        self._write("/run/info", 0.0, {
-            **self.info, "versions": vers, "system": model.name,
-            "state_names": list(model.state_names), "input_names": list(model.input_names),
-            "mode_names": [m.name for m in model.modes],
-            "guard_names": [g.name for g in model.guards]})
+        info = self.info
+        self._write("/run/info", 0.0, RunInfo(
+            LOG_VERSION, info.get("scenario_name", ""), int(info.get("seed", 0)), model.name,
+            info.get("kinds", ("", ""))[1], info.get("kinds", ("", ""))[0],
+            self.provenance.command, tuple(self.provenance.overrides), Versions(**vers),
+            json.dumps(info.get("scenario", {}), sort_keys=True), tuple(model.state_names),
+            tuple(model.input_names), tuple(model.disturbance_names),
+            tuple(m.name for m in model.modes), tuple(g.name for g in model.guards),
+            convert(MarginsRec, info["margins"]) if info.get("margins") else None))
         self.rec.add_metadata("run", {"scenario": self.result.scenario,
                                       "seed": str(self.result.seed),
+                                      "log_version": str(LOG_VERSION),
                                       **{f"version.{k}": v for k, v in vers.items()}})
 
     def step(self, i: int, t: float, x: np.ndarray, mode: int, u: np.ndarray,
@@ -126,15 +160,22 @@ class RunLog:
         """
         if i % self.per_state == 0:
             self.state(t, x, mode, u, x_ref, w)
-        if self._last_w is None or not np.array_equal(w, self._last_w):
-            self._write("/disturbance", t, {"t": t, "w": w})
-            self._last_w = w
+        key = np.asarray(w, dtype=float).tobytes()
+        if key != self._last_w:
+            if self.rec is not None:
+                self._write("/disturbance", t, WRec(t, named(self._model.disturbance_names, w)))
+            self._last_w = key
 
     def state(self, t: float, x: np.ndarray, mode: int, u: np.ndarray, x_ref: np.ndarray,
               w: np.ndarray) -> None:
         """One /sim/state sample."""
-        self._write("/sim/state", t, {"t": t, "x": x, "mode": mode, "u": u, "x_ref": x_ref,
-                                      "w": w})
+        if self.rec is None:
+            return
+        m = self._model
+        self._write("/sim/state", t, StateSample(
+            t, int(mode), m.modes[mode].name, named(m.state_names, x),
+            named(m.input_names, u), named(m.state_names, x_ref),
+            named(m.disturbance_names, w)))
 
     def event(self, ev: GuardEvent, system: HybridSystem, scheduled: bool) -> None:
         """Counts and logs a guard event of the simulated system."""
@@ -142,24 +183,28 @@ class RunLog:
         r = self.result
         r.contacts += 1
         r.contacts_by_guard[g.name] = r.contacts_by_guard.get(g.name, 0) + 1
-        self._write("/sim/event", ev.t, {
-            "t": ev.t, "guard": ev.guard, "guard_name": g.name, "mode_before": g.source,
-            "mode_after": g.target, "x_before": ev.x_before, "x_after": ev.x_after,
-            "scheduled": scheduled})
+        if self.rec is not None:
+            self._write("/sim/event", ev.t, GuardEventRec(
+                ev.t, int(ev.guard), g.name, g.source, g.target,
+                named(system.state_names, ev.x_before), named(system.state_names, ev.x_after),
+                bool(scheduled)))
 
     def planner(self, t: float, reason: str, result: PlannerResult, accepted: bool,
                 note: str, model: HybridSystem) -> None:
         """Logs one planner call (counted by the loop)."""
         self.plan_times.append(result.wall_time)
-        sched = result.schedule.to_dict(model) if result.schedule is not None else None
-        rollout = {}
+        if self.rec is None:
+            return
+        rollout = ()
         if result.trajectory is not None:
-            rollout = {"t_rollout": result.trajectory.t, "x_rollout": result.trajectory.x}
-        self._write("/planner/plan", t, {
-            "t": t, "reason": reason, "accepted": accepted,
-            "reached_final": result.reached_final, "cost": result.cost,
-            "wall_time": result.wall_time, "iterations": result.iterations, "note": note,
-            "schedule": sched, **rollout, **result.extra})
+            rollout = tuple(RolloutNode(float(ti), named(model.state_names, xi))
+                            for ti, xi in zip(result.trajectory.t, result.trajectory.x,
+                                              strict=True))
+        self._write("/planner/plan", t, PlannerCall(
+            t, reason, bool(accepted), bool(result.reached_final), float(result.cost),
+            float(result.wall_time), int(result.iterations), note,
+            _schedule(result.schedule, model), rollout,
+            _detail(self.details.get("planner"), result.extra)))
 
     def solve(self, t: float, plan: Plan, reason: str, model: HybridSystem) -> None:
         """Counts one fixed-mode MPC solve and logs it to /mpc/solve."""
@@ -172,13 +217,13 @@ class RunLog:
         elif st.slack > SOFTENED_TOL:
             r.softened_solves += 1
             r.max_slack = max(r.max_slack, st.slack)
-        self._write("/mpc/solve", t, {
-            "t": t, "reason": reason, "status": st.status, "success": st.success,
-            "iterations": st.iterations, "wall_time": st.wall_time, "cost": st.cost,
-            "max_violation": st.max_violation, "slack": st.slack, **plan.extra,
-            "schedule": plan.schedule.to_dict(model), "adopted": plan.adopt,
-            "t_plan": plan.traj.t + t, "x_plan": plan.traj.x, "u_plan": plan.traj.u,
-            "seg_plan": plan.traj.seg})
+        if self.rec is None:
+            return
+        self._write("/mpc/solve", t, MpcSolve(
+            t, reason, st.status, bool(st.success), int(st.iterations), float(st.wall_time),
+            float(st.cost), float(st.max_violation), float(st.slack), bool(plan.adopt),
+            _schedule(plan.schedule, model), plan_nodes(plan.traj, t, model),
+            _detail(self.details.get("mpc"), plan.extra)))
 
     def summary(self, r: RunResult) -> None:
         """Fills the timing statistics and writes /run/summary."""
@@ -189,4 +234,45 @@ class RunLog:
             r.solve_time_max = float(st.max())
         if self.plan_times:
             r.plan_time_median = float(np.median(self.plan_times))
-        self._write("/run/summary", r.t_end, r.__dict__)
+        if self.rec is not None and self._model is not None:
+            self._write("/run/summary", r.t_end, summary_record(r, self._model))
+
+
+def plan_nodes(traj: Trajectory, t0: float, model: HybridSystem) -> tuple[dict, ...]:
+    """A plan's nodes as :class:`PlanNode` records (absolute times: t0 + traj.t)."""
+    sn, un, modes = model.state_names, model.input_names, [m.name for m in model.modes]
+    ts = (np.asarray(traj.t, dtype=float) + t0).tolist()
+    xs = np.asarray(traj.x, dtype=float).tolist()
+    us = np.asarray(traj.u, dtype=float).tolist()
+    # plain dicts with PlanNode's fields (the schema's; tests validate every message):
+    # a dataclass per node costs more than the rest of the logging of a solve
+    return tuple({"t": ti, "seg": sg, "mode": md, "mode_name": modes[md],
+                  "x": dict(zip(sn, xi, strict=False)), "u": dict(zip(un, ui, strict=False))}
+                 for ti, sg, md, xi, ui in zip(ts, np.asarray(traj.seg).tolist(),
+                                               np.asarray(traj.mode).tolist(), xs, us,
+                                               strict=True))
+
+
+def _schedule(schedule: ModeSchedule | None, model: HybridSystem) -> ScheduleRec | None:
+    if schedule is None:
+        return None
+    d = schedule.to_dict(model)
+    return ScheduleRec(tuple(d["modes"]), tuple(d["mode_names"]), tuple(d["guards"]),
+                       tuple(d["guard_names"]), tuple(d["durations"]), d["t0"])
+
+
+def _detail(cls: type | None, extra: dict):
+    """A plug-in's ``extra`` as its declared detail type (None without one)."""
+    return convert(cls, extra) if cls is not None and extra else None
+
+
+def summary_record(r: RunResult, model: HybridSystem) -> Summary:
+    """The typed /run/summary of a result (every guard named in ``contacts_by_guard``)."""
+    d = dict(r.__dict__)
+    d["x_end"] = named(model.state_names, r.x_end) if len(r.x_end) == model.n_x else {}
+    d["contacts_by_guard"] = {g.name: int(r.contacts_by_guard.get(g.name, 0))
+                              for g in model.guards}
+    d["failure_statuses"] = tuple(StatusCount(k, int(v))
+                                  for k, v in sorted(r.failure_statuses.items()))
+    d["warnings"] = tuple(str(w) for w in r.warnings)
+    return Summary(**d)

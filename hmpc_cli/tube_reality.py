@@ -143,34 +143,20 @@ class RealityReport:
 
 
 def read_run(path: Path) -> RunData:
-    """Reads a run directory or run.mcap.
+    """Reads a run directory or run.mcap (through :func:`hmpc_cli.rundata.read_run`).
 
     Raises:
         ValueError: unreadable, or without states or adopted solves.
     """
-    from hmpc_cli.figures.common import resolve_run_log
-    from hmpc_cli.recorder import read_log
+    from hmpc_cli.rundata import read_run as read_log_arrays
 
-    log_path = resolve_run_log(path)
-    try:
-        log = read_log(log_path)
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{log_path}: cannot read the log ({exc})") from None
-    infos = log.topic("/run/info")
-    system = dict(((infos[0].data.get("scenario") or {}) if infos else {}).get("system") or {})
-    states = log.topic("/sim/state")
-    if not states:
-        raise ValueError(f"{log_path}: no /sim/state")
-    solves = [(float(m.data["t"]), np.asarray(m.data["t_plan"], dtype=float),
-               np.atleast_2d(np.asarray(m.data["x_plan"], dtype=float)),
-               np.asarray(m.data["seg_plan"], dtype=int))
-              for m in log.topic("/mpc/solve") if m.data.get("adopted", True)]
+    run = read_log_arrays(path)
+    if not run.t.size:
+        raise ValueError(f"{run.path}: no /sim/state")
+    solves = [(s.t, s.t_plan, np.atleast_2d(s.x_plan), s.seg_plan) for s in run.adopted()]
     if not solves:
-        raise ValueError(f"{log_path}: no adopted /mpc/solve")
-    name = log_path.parent.name if log_path.name == "run.mcap" else log_path.name
-    return RunData(name, system, np.array([float(m.data["t"]) for m in states]),
-                   np.array([m.data["x"] for m in states], dtype=float),
-                   np.array([float(m.data["t"]) for m in log.topic("/sim/event")]),
+        raise ValueError(f"{run.path}: no adopted /mpc/solve")
+    return RunData(run.name, run.system, run.t, run.x, np.array([e.t for e in run.events]),
                    sorted(solves, key=lambda s: s[0]))
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -11,7 +13,6 @@ from conftest import BALL
 from hmpc_cli.figures.common import FigureInputError
 from hmpc_cli.figures.fig2 import fig2, fig2_geometry
 from hmpc_cli.figures.model import system_from_params
-from hmpc_cli.logschema import TOPICS
 from hmpc_cli.recorder import Recorder, read_log
 from test_plot import make_app
 
@@ -33,7 +34,7 @@ def rewrite(src, dst, edit):
     log = read_log(src)
     with Recorder(dst) as rec:
         for topic in dict.fromkeys(m.topic for m in log.messages):
-            rec.add_topic(topic, *TOPICS[topic])
+            rec.add_topic(topic, f"copy{topic}", log.schemas[topic])
         for m in log.messages:
             rec.write(m.topic, m.t, edit(m.topic, dict(m.data)))
     return dst
@@ -56,9 +57,11 @@ def test_cli_writes_the_figure_deterministically(run, run_hmpc, tmp_path):
 
 def test_virtual_node_is_past_the_guard_by_the_tube(run):
     log = read_log(run / "run.mcap")
-    system = system_from_params(log.topic("/run/info")[0].data["scenario"]["system"], "log")
+    info = log.topic("/run/info")[0].data
+    system = system_from_params(json.loads(info["scenario_json"])["system"], "log")
     solves = log.topic("/mpc/solve")
-    crossing = [i + 1 for i, m in enumerate(solves) if max(m.data["seg_plan"]) >= 1]
+    crossing = [i + 1 for i, m in enumerate(solves)
+                if max(n["seg"] for n in m.data["plan"]) >= 1]
     assert crossing and fig2_geometry(run).solve == crossing[0]
     for k in crossing:
         geo = fig2_geometry(run, solve=k)
@@ -102,12 +105,14 @@ def bad_cases(run, tmp_path) -> dict[str, list[str]]:
 
     def no_crossing(topic, data):
         if topic == "/mpc/solve":
-            data["seg_plan"] = [0] * len(data["seg_plan"])
+            for node in data["plan"]:
+                node["seg"] = 0
         return data
 
     def no_plane(topic, data):
         if topic == "/run/info":
-            data["scenario"] = {**data["scenario"], "system": {"name": "biped"}}
+            data["scenario_json"] = json.dumps({**json.loads(data["scenario_json"]),
+                                                "system": {"name": "biped"}})
         return data
 
     flat = rewrite(log, tmp_path / "flat.mcap", no_crossing)

@@ -74,12 +74,12 @@ def test_the_plant_differs_from_the_model_only_where_the_scenario_says(tmp_path)
     (tmp_path / "b").mkdir()
     same, log_a = run(tmp_path / "a", ["sim.duration=0.4"])
     heavy, log_b = run(tmp_path / "b", ["sim.duration=0.4", "plant.drag=0.2"])
-    xa = np.array([m.data["x"] for m in log_a.topic("/sim/state")])
-    xb = np.array([m.data["x"] for m in log_b.topic("/sim/state")])
+    xa = np.array([list(m.data["x"].values()) for m in log_a.topic("/sim/state")])
+    xb = np.array([list(m.data["x"].values()) for m in log_b.topic("/sim/state")])
     assert np.array_equal(xa[0], xb[0]) and not np.allclose(xa[-1], xb[-1])
     # the controllers keep the model: the first plans are identical
     pa, pb = log_a.topic("/mpc/solve")[0].data, log_b.topic("/mpc/solve")[0].data
-    assert pa["x_plan"] == pb["x_plan"]
+    assert pa["plan"] == pb["plan"]
 
 
 def test_a_schedule_the_nlp_cannot_hold_is_rejected_not_fatal(tmp_path):

@@ -145,8 +145,7 @@ def test_a_run_with_a_computed_margins_file(ball_file: Path, tmp_path: Path):
         res = CliRunner().invoke(app, ["run", str(BALL), "--out", str(tmp_path / name),
                                        *args, *SHORT])
         assert res.exit_code == 0, res.output
-    for topic, key in (("/sim/state", "x"), ("/mpc/solve", "x_plan"),
-                       ("/mpc/solve", "u_plan"), ("/sim/event", "t")):
+    for topic, key in (("/sim/state", "x"), ("/mpc/solve", "plan"), ("/sim/event", "t")):
         assert _xs(tmp_path / "file", topic, key) == _xs(tmp_path / "hand", topic, key)
     info = _xs(tmp_path / "file", "/run/info", "margins")[0]
     assert info["source"] == str(ball_file.resolve()) and info["radius"] == 0.0

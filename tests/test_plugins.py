@@ -81,11 +81,12 @@ def test_dock_runs_through_the_cli(tmp_path):
     assert info["guard_names"] == ["dock", "bumper"]
     assert info["mode_names"] == ["free", "docked"]
     assert info["state_names"] == ["p", "v"]
-    assert info["scenario"]["system"]["name"] == "dock"
+    scenario = json.loads(info["scenario_json"])
+    assert scenario["system"]["name"] == "dock"
     # the plug-in's planner defaults (SystemSpec.defaults["planner.cem"]) were applied
-    assert info["scenario"]["planner"]["kind"] == "cem"
-    assert info["scenario"]["planner"]["horizon"] == 2.0
-    assert info["scenario"]["planner"]["knots"] == 10
+    assert scenario["planner"]["kind"] == "cem"
+    assert scenario["planner"]["horizon"] == 2.0
+    assert scenario["planner"]["knots"] == 10
     (plan,) = log.topic("/planner/plan")
     assert plan.data["schedule"]["guard_names"] == ["bumper", "dock"]
     events = [(m.data["guard_name"], m.data["scheduled"]) for m in log.topic("/sim/event")]
@@ -248,9 +249,9 @@ def test_changed_ball_geometry_is_used_logged_and_drawn(tmp_path, monkeypatch):
     assert s["success"], s["reason"]
     assert s["mode_end"] == "inside" and s["contacts_by_guard"].get("circle_in") == 1
     # (b) the log's scenario holds the new geometry
-    info = read_log(out / "run.mcap").topic("/run/info")[0].data
-    assert info["scenario"]["system"]["circle_center"] == list(CENTRE)
-    assert info["scenario"]["system"]["circle_radius"] == RADIUS
+    info = json.loads(read_log(out / "run.mcap").topic("/run/info")[0].data["scenario_json"])
+    assert info["system"]["circle_center"] == list(CENTRE)
+    assert info["system"]["circle_radius"] == RADIUS
 
     # (c) Figure 3 from a sweep directory (what `hmpc plot fig3 SWEEP_DIR` reads) draws the
     # new circle, not the default one; the figure is taken where it is saved

@@ -360,7 +360,7 @@ def test_cli_overrides_and_seed_reach_the_run(tmp_path: Path, run_hmpc) -> None:
     log = read_log(out / "run.mcap")
     (info,) = log.topic("/run/info")
     assert info.data["seed"] == 11
-    assert Scenario.model_validate(info.data["scenario"]) == written
+    assert Scenario.model_validate(json.loads(info.data["scenario_json"])) == written
     assert len(log.topic("/sim/state")) == 0.06 * 50 + 1
 
 

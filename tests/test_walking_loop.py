@@ -48,7 +48,7 @@ def test_two_steps_land_on_the_long_segment_and_replan_at_each_contact(short_wal
     events = log.topic("/sim/event")
     for plan, ev in zip(plans[1:], events, strict=True):  # a replan at each contact
         assert plan.t == pytest.approx(ev.t, abs=1e-12)  # planned at the contact itself
-        segs = [c["segment"] for c in plan.data["candidates"]]
+        segs = [c["segment"] for c in plan.data["detail"]["candidates"]]
         assert segs == sorted(segs) and 1 in segs  # the 1.0 m segment was a candidate
     # periodic re-solves at 10 Hz between the contacts, all warm and successful
     period = [m for m in log.topic("/mpc/solve") if m.data["reason"] == "period"]
@@ -59,7 +59,8 @@ def test_the_touchdowns_hit_the_guard_inside_the_segment(short_walk):
     p = BipedParams()
     model = make_biped_model(p.model_copy(update={"mass_scale": 1.1}))
     for ev in read_log(short_walk / "run.mcap").topic("/sim/event"):
-        xb, xa = np.array(ev.data["x_before"]), np.array(ev.data["x_after"])
+        xb = np.array(list(ev.data["x_before"].values()))
+        xa = np.array(list(ev.data["x_after"].values()))
         foot = np.asarray(model.swing_foot_world(xb)).ravel()
         assert foot[1] == pytest.approx(0.075, abs=1e-8)  # on the guard (stair 2's level)
         assert 0.4 < foot[0] < 1.4

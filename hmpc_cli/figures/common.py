@@ -265,30 +265,26 @@ def load_trace(path: Path) -> RunTrace:
     The exact pre- and post-reset positions of /sim/event are inserted at the event times, so
     drawn bounces touch the guard instead of cutting the corner between logged samples.
     """
-    from hmpc_cli.recorder import read_log
+    from hmpc_cli.rundata import read_run
 
     try:
-        log = read_log(path)
-    except (OSError, ValueError) as exc:
+        run = read_run(path)
+    except ValueError as exc:
         raise FigureInputError(f"{path}: cannot read log ({exc})") from None
     points: list[tuple[float, int, int, float, float]] = []  # (t, kind, seq, px, py)
-    for i, m in enumerate(log.topic("/sim/state")):
-        x = m.data.get("x") or []
-        if len(x) >= 2:
-            points.append((m.t, 1, i, _num(x[0]), _num(x[1])))
+    if run.x.shape[1] >= 2:
+        points += [(float(t), 1, i, _num(x[0]), _num(x[1]))
+                   for i, (t, x) in enumerate(zip(run.t, run.x, strict=True))]
     if not points:
         raise FigureInputError(f"{path}: log has no /sim/state positions")
-    for i, m in enumerate(log.topic("/sim/event")):
-        for j, key in enumerate(("x_before", "x_after")):
-            x = m.data.get(key) or []
-            t = _num(m.data.get("t", m.t))
-            if len(x) >= 2 and math.isfinite(t):
-                points.append((t, 0, 2 * i + j, _num(x[0]), _num(x[1])))
+    for i, ev in enumerate(run.events):
+        for j, x in enumerate((ev.x_before, ev.x_after)):
+            if len(x) >= 2 and math.isfinite(ev.t):
+                points.append((ev.t, 0, 2 * i + j, _num(x[0]), _num(x[1])))
     points.sort(key=lambda p: (p[0], p[1], p[2]))
     arr = np.array([(p[0], p[3], p[4]) for p in points], dtype=float)
-    infos = log.topic("/run/info")
-    scenario = dict(infos[0].data.get("scenario") or {}) if infos else {}
-    summaries = log.topic("/run/summary")
-    ok = summaries[-1].data.get("success") if summaries else None
+    scenario = run.scenario
+    ok = run.summary.get("success") if run.summary else None
+    log = run
     return RunTrace(Path(path), arr[:, 0], arr[:, 1:3], scenario,
                     ok if isinstance(ok, bool) else None, log.complete)

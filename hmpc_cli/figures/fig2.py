@@ -140,10 +140,9 @@ def _array(value, where: str, ndim: int) -> np.ndarray:
     return arr
 
 
-def _crosses(data: dict) -> bool:
+def _crosses(solve) -> bool:
     """Whether a logged solve's plan has two segments or more."""
-    seg = data.get("seg_plan") or []
-    return len(seg) > 0 and max(seg) >= 1
+    return solve.seg_plan.size > 0 and int(solve.seg_plan.max()) >= 1
 
 
 def _pick(solves: list, solve: int | None, path: Path):
@@ -154,12 +153,12 @@ def _pick(solves: list, solve: int | None, path: Path):
         if not 1 <= solve <= len(solves):
             raise FigureInputError(f"--solve {solve} is out of range: the log has "
                                    f"{len(solves)} solves (1..{len(solves)})")
-        if not _crosses(solves[solve - 1].data):
+        if not _crosses(solves[solve - 1]):
             raise FigureInputError(f"{path}: solve {solve} plans no guard crossing (one "
                                    f"segment)")
         return solve, solves[solve - 1]
     for i, m in enumerate(solves):
-        if _crosses(m.data):
+        if _crosses(m):
             return i + 1, m
     raise FigureInputError(f"{path}: no logged solve plans a guard crossing "
                            f"({len(solves)} solves)")
@@ -262,13 +261,11 @@ def _open(log_path: str | Path):
     from hmpc_cli.figures.model import read_logged_system
 
     path = resolve_run_log(log_path)
-    log, system = read_logged_system(path, "run log")
+    run, system = read_logged_system(path, "run log")
     if system.plane is None or len(system.plane) != 2:
         raise FigureInputError(f"{path}: system {system.name!r} has no 2-D drawing plane")
     plane = tuple(system.state_names.index(s) for s in system.plane)
-    infos = log.topic("/run/info")
-    scenario = dict(infos[0].data.get("scenario") or {}) if infos else {}
-    return path, log, system, plane, scenario
+    return path, run, system, plane, run.scenario
 
 
 def _geometry(log_path: str | Path, solve: int | None, radius: float | None,
@@ -288,14 +285,14 @@ def _geometry(log_path: str | Path, solve: int | None, radius: float | None,
     """
     import casadi as ca
 
-    path, log, system, plane, scenario = _open(log_path)
-    index, msg = _pick(log.topic("/mpc/solve"), solve, path)
-    where, data = f"{path}: solve {index}", msg.data
-    t = _array(data.get("t_plan"), f"{where}: t_plan", 1)
-    x = _array(data.get("x_plan"), f"{where}: x_plan", 2)
-    u = _array(data.get("u_plan"), f"{where}: u_plan", 2)
-    seg = np.asarray(data.get("seg_plan"), dtype=int)
-    guards = list((data.get("schedule") or {}).get("guards") or [])
+    path, run, system, plane, scenario = _open(log_path)
+    index, msg = _pick(run.solves, solve, path)
+    where = f"{path}: solve {index}"
+    t = _array(msg.t_plan, f"{where}: t_plan", 1)
+    x = _array(msg.x_plan, f"{where}: x_plan", 2)
+    u = _array(msg.u_plan, f"{where}: u_plan", 2)
+    seg = msg.seg_plan
+    guards = list((msg.schedule or {}).get("guards") or [])
     if not (len(t) == len(x) == len(u) == len(seg)) or x.shape[1] != system.n_x \
             or u.shape[1] != system.n_u:
         raise FigureInputError(f"{where}: the plan's arrays do not fit the system")
@@ -316,7 +313,7 @@ def _geometry(log_path: str | Path, solve: int | None, radius: float | None,
     q = ca.Function("q", [xs], [g.q_expr(xs)])
     num = system.numeric
     disc_gap, disc_point = _disc_max_gap(num, gi, xv, plane, d)
-    slack = data.get("slack")
+    slack = msg.slack
     geo = Fig2Geometry(
         log=path, solve=index, t=float(msg.t), guard=gi, guard_name=g.name,
         source_mode=g.source, target_mode=g.target, plane=plane,
@@ -327,7 +324,7 @@ def _geometry(log_path: str | Path, solve: int | None, radius: float | None,
         guard_node_gap=float(num.gap(gi, x[k][None])[0]),
         virtual_gap=float(num.gap(gi, xv[None])[0]), virtual_q=float(q(xv)),
         kappa=float(g.kappa(d, past=True)), disc_gap=disc_gap, disc_point=disc_point,
-        slack=float(slack) if isinstance(slack, (int, float)) else math.nan)
+        slack=float(slack))
     return geo, system
 
 

@@ -11,7 +11,6 @@ exposes these (and a ``hip`` and ``swing_foot`` point) can be drawn.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -69,55 +68,50 @@ def load_walk(path: str | Path) -> WalkLog:
     from hmpc_cli.figures.model import read_logged_system
 
     path = Path(path)
-    log, system = read_logged_system(path)
+    run, system = read_logged_system(path)
     names = system.point_names
     if "points_world" not in system.outputs or system.terrain is None or \
             not {"hip", "swing_foot"} <= set(names):
         raise FigureInputError(f"{path}: not a biped run (system {system.name!r} has no "
                                "body points and terrain to draw)")
     points_fn = system.numeric.output("points_world")
-    states = [(m.t, m.data.get("x")) for m in log.topic("/sim/state")]
-    states = [(t, x) for t, x in states if x is not None and len(x) == system.n_x
-              and all(v is not None and math.isfinite(v) for v in x)]
-    if not states:
+    keep = np.all(np.isfinite(run.x), axis=1) if run.x.shape[1] == system.n_x else \
+        np.zeros(len(run.t), dtype=bool)
+    if not np.any(keep):
         raise FigureInputError(f"{path}: log has no finite /sim/state samples")
-    t = np.array([s[0] for s in states])
-    points = points_fn(np.array([s[1] for s in states], dtype=float))[0] \
-        .reshape(len(t), len(names), 2)
+    t = run.t[keep]
+    points = points_fn(run.x[keep])[0].reshape(len(t), len(names), 2)
     return WalkLog(path, t, points, points[:, names.index("hip"), :],
-                   _contacts(log, system, points_fn), _force(log), list(system.terrain.segments),
-                   system.terrain.ground, *_outcome(log),
+                   _contacts(run, system, points_fn), _force(run), list(system.terrain.segments),
+                   system.terrain.ground, *_outcome(run),
                    [[names.index(n) for n in line] for line in system.skeleton])
 
 
-def _contacts(log, system, points_fn) -> list[tuple[float, str, float, float]]:
+def _contacts(run, system, points_fn) -> list[tuple[float, str, float, float]]:
     """(t, guard name, swing foot x, y) of every logged guard event."""
     foot = system.point_names.index("swing_foot")
     out = []
-    for m in log.topic("/sim/event"):
-        xb = m.data.get("x_before")
-        if xb is None or len(xb) != system.n_x:
+    for ev in run.events:
+        if len(ev.x_before) != system.n_x or not np.all(np.isfinite(ev.x_before)):
             continue
-        p = points_fn(np.array(xb, dtype=float)[None])[0].reshape(-1, 2)
-        out.append((float(m.data.get("t", m.t)), str(m.data.get("guard_name", "")),
-                    float(p[foot, 0]), float(p[foot, 1])))
+        p = points_fn(ev.x_before[None])[0].reshape(-1, 2)
+        out.append((ev.t, ev.guard_name, float(p[foot, 0]), float(p[foot, 1])))
     return out
 
 
-def _force(log) -> tuple[np.ndarray, np.ndarray]:
+def _force(run) -> tuple[np.ndarray, np.ndarray]:
     """The first disturbance channel's samples (t, w_0)."""
-    dist = [(m.t, (m.data.get("w") or [0.0])[0]) for m in log.topic("/disturbance")]
-    ft = np.array([d[0] for d in dist] or [0.0])
-    fx = np.array([float(d[1]) if d[1] is not None else math.nan for d in dist] or [0.0])
-    return ft, fx
+    if not run.t_w.size or not run.w_changes.shape[1]:
+        return np.array([0.0]), np.array([0.0])
+    return run.t_w, run.w_changes[:, 0]
 
 
-def _outcome(log) -> tuple[bool | None, str]:
+def _outcome(run) -> tuple[bool | None, str]:
     """The logged success (None if the run has no summary) and reason."""
-    summaries = log.topic("/run/summary")
-    ok = summaries[-1].data.get("success") if summaries else None
-    reason = str(summaries[-1].data.get("reason", "")) if summaries else "no summary (killed?)"
-    return ok if isinstance(ok, bool) else None, reason
+    if run.summary is None:
+        return None, "no summary (killed?)"
+    ok = run.summary.get("success")
+    return ok if isinstance(ok, bool) else None, str(run.summary.get("reason", ""))
 
 
 def _stairs_xy(walk: WalkLog, x_min: float) -> tuple[list[float], list[float]]:

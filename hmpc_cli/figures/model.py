@@ -31,25 +31,18 @@ def system_from_params(system: dict, where: str) -> Any:
                                f"({exc.error_count()} errors)") from None
 
 
-def system_from_log(path: Path, log) -> Any:
-    """The system of a read log (its /run/info scenario's ``[system]`` section)."""
-    infos = log.topic("/run/info")
-    scenario = (infos[0].data.get("scenario") or {}) if infos else {}
-    return system_from_params(dict(scenario.get("system") or {}), str(path))
-
-
 def read_logged_system(path: Path, what: str = "log") -> tuple[Any, Any]:
-    """(log, system) of the run log ``path``: its messages and its rebuilt system.
+    """(run, system) of the run log ``path``: its arrays (:class:`RunData`) and its system.
 
     Raises:
         FigureInputError: "no such <what>", an unreadable log, or no buildable system.
     """
-    from hmpc_cli.recorder import read_log
+    from hmpc_cli.rundata import read_run
 
     if not path.is_file():
         raise FigureInputError(f"{path}: no such {what}")
     try:
-        log = read_log(path)
-    except (OSError, ValueError) as exc:
+        run = read_run(path)
+    except ValueError as exc:
         raise FigureInputError(f"{path}: cannot read log ({exc})") from None
-    return log, system_from_log(path, log)
+    return run, system_from_params(run.system, str(path))

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -131,9 +131,17 @@ def _problem(system: HybridSystem, settings: MPCSettings,
     return FixedModeNLPs(system, settings, margins)
 
 
+@dataclass(frozen=True)
+class ChainDetail:
+    """/mpc/solve detail of the chain MPC: nodes shifted by time, flow nodes per domain."""
+
+    shifted: int
+    counts: tuple[int, ...]
+
+
 def _hand_margins(system: HybridSystem, settings: MPCSettings) -> ConstraintMargins:
     return ConstraintMargins.hand(system, settings.tube_margin, settings.input_margin)
 
 
 MPC = MPCSpec(kind="fixed_mode", settings=MPCSettings, problem=_problem, make=ChainMPC,
-              hand_margins=_hand_margins)
+              hand_margins=_hand_margins, detail=ChainDetail)

@@ -262,6 +262,23 @@ class WalkingMPC:
         return Trajectory(t, xs, u, np.zeros(2 * N + 2, dtype=int), seg, (segment,), "zoh")
 
 
+@dataclass(frozen=True)
+class WalkingDetail:
+    """/mpc/solve detail of the walking MPC.
+
+    Attributes:
+        segment: the target guard's index; ``elapsed``: time spent in the swing [s].
+        warm: the warm start (primal-dual, primal or cold).
+        touchdown: planned touchdown (x, y) [m]; ``final_hip``: final hip (x, y) [m].
+    """
+
+    segment: int
+    elapsed: float
+    warm: str
+    touchdown: tuple[float, ...]
+    final_hip: tuple[float, ...]
+
+
 def _problem(system: HybridSystem, settings: WalkingMPCSettings,
              margins: ConstraintMargins | None = None) -> WalkingNLP:
     return WalkingNLP(system, settings, margins)
@@ -269,7 +286,7 @@ def _problem(system: HybridSystem, settings: WalkingMPCSettings,
 
 MPC = MPCSpec(
     kind="walking", settings=WalkingMPCSettings, problem=_problem, make=WalkingMPC,
-    hand_margins=hand_margins,
+    hand_margins=hand_margins, detail=WalkingDetail,
     needs=frozenset({"terrain", "guard_surfaces", "points", "swing_foot_world",
                      "inverse_dynamics", "swing_foot_velocity", "swing_foot_jacobian",
                      "contact_reset"}))

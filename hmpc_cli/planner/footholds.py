@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -146,10 +147,32 @@ class FootholdPlanner:
                              iters, "", {"candidates": rows})
 
 
+@dataclass(frozen=True)
+class Candidate:
+    """One foothold candidate's solve (the /planner/plan detail)."""
+
+    segment: int
+    guard_name: str
+    status: str
+    success: bool
+    iterations: int
+    wall_time: float
+    cost: float
+    final_hip: tuple[float, ...] | None = None
+    touchdown: tuple[float, ...] | None = None
+
+
+@dataclass(frozen=True)
+class FootholdsDetail:
+    """/planner/plan detail: every candidate's solve."""
+
+    candidates: tuple[Candidate, ...]
+
+
 PLANNER = PlannerSpec(
     kind="footholds", settings=FootholdSettings,
     make=lambda system, settings, seed: FootholdPlanner(system, settings),
-    needs=frozenset({"guard_surfaces", "stance_foot", "hip_world"}),
+    needs=frozenset({"guard_surfaces", "stance_foot", "hip_world"}), detail=FootholdsDetail,
     requires=(Requirement("replanning.policy", "on_contact",
                           "the foothold of every swing is chosen at its contact"),),
 )
