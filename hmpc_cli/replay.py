@@ -138,6 +138,8 @@ def load_replay(path: Path) -> Replay:
         topics = sorted({m.topic for m in log.messages})
         raise ReplayError("not an hmpc run log (no /run/info; its topics: "
                           f"{', '.join(topics)})")
+    if not isinstance(infos[0].data, dict) or "scenario_name" not in infos[0].data:
+        raise ReplayError("not an hmpc run log (its /run/info has no scenario_name)")
     summaries = log.topic("/run/summary")
     text = log.attachments.get("scenario.toml")
     try:

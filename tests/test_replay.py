@@ -347,3 +347,12 @@ def test_named_field_layout(tmp_path, monkeypatch) -> None:
 def test_current_log_version_has_no_note(tmp_path) -> None:
     out = replay(_named_layout_log(tmp_path / "v1.mcap", {"log_version": 1})).output
     assert "log version" not in out and re.search(r"command\W+not recorded", out)
+
+
+def test_foreign_log_with_a_run_info_topic(tmp_path) -> None:
+    path = tmp_path / "other.mcap"
+    with Recorder(path) as rec:
+        rec.add_topic("/run/info", "Other", {"type": "object"})
+        rec.write("/run/info", 0.0, {"robot": "arm"})
+    assert _error_line(replay(path)) == (
+        f"error: {path}: not an hmpc run log (its /run/info has no scenario_name)")
