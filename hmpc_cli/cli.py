@@ -125,6 +125,7 @@ def schema() -> None:
 
 def _register() -> None:
     from hmpc_cli.cli_plot import plot_command
+    from hmpc_cli.cli_replay import replay_command
     from hmpc_cli.cli_report import report_command
     from hmpc_cli.cli_sweep import sweep_command
     from hmpc_cli.cli_tube import tube_command
@@ -133,6 +134,7 @@ def _register() -> None:
     app.command("plot")(plot_command)
     app.command("report")(report_command)
     app.command("tube")(tube_command)
+    app.command("replay")(replay_command)
 
 
 _register()

@@ -24,8 +24,22 @@ __all__ = ["Log", "LogMessage", "Recorder", "read_log", "to_json_bytes"]
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _NS_PER_S = 1_000_000_000
+
+
+def _codec_errors() -> tuple[type[BaseException], ...]:
+    """Decompression errors of the installed codecs (zstd, LZ4) on a damaged chunk."""
+    errors: list[type[BaseException]] = []
+    for module, name in (("zstandard", "ZstdError"), ("lz4.frame", "LZ4FrameError")):
+        try:
+            errors.append(getattr(importlib.import_module(module), name))
+        except (ImportError, AttributeError):
+            continue
+    return tuple(errors)
+
+
 # Errors that mean "damaged or truncated file" while decoding MCAP records.
-_DAMAGE_ERRORS = (McapError, struct.error, ValueError, RuntimeError, KeyError, IndexError, EOFError)
+_DAMAGE_ERRORS = (McapError, struct.error, ValueError, RuntimeError, KeyError, IndexError,
+                  EOFError, *_codec_errors())
 
 
 def _compression() -> CompressionType:
@@ -201,13 +215,18 @@ class LogMessage:
 
 @dataclasses.dataclass
 class Log:
-    """Contents of a run log; `complete` is False for truncated files."""
+    """Contents of a run log; `complete` is False for truncated or damaged files.
+
+    `damage` says why reading stopped at a chunk that failed its CRC, decompression or
+    decoding ("" otherwise, also for a file that merely ends early).
+    """
 
     messages: list[LogMessage]
     metadata: dict[str, dict[str, str]]
     attachments: dict[str, bytes]
     schemas: dict[str, dict]
     complete: bool
+    damage: str = ""
 
     def topic(self, name: str) -> list[LogMessage]:
         """Returns the messages on topic `name`, in file order."""
@@ -238,6 +257,12 @@ def _read_indexed(path: Path) -> Log:
         metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
         attachments = {a.name: a.data for a in reader.iter_attachments()}
     return Log(messages, metadata, attachments, schemas, complete=True)
+
+
+def _damage_text(what: str, exc: BaseException) -> str:
+    """Why a linear scan stopped at a chunk, for :attr:`Log.damage`."""
+    detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return f"{what} ({detail[:120]})"
 
 
 def _read_stream(path: Path) -> Log:
@@ -274,7 +299,8 @@ def _read_stream(path: Path) -> Log:
                 chunk = isinstance(record, Chunk)
                 for r in breakup_chunk(record, validate_crc=True) if chunk else [record]:
                     handle(r, pending)
-            except _DAMAGE_ERRORS:
+            except _DAMAGE_ERRORS as exc:
+                log.damage = _damage_text("a chunk is damaged", exc)
                 return log  # corrupt chunk: stop at the last good one
             log.messages.extend(pending)
             saw_footer = saw_footer or isinstance(record, Footer)

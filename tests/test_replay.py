@@ -1,0 +1,358 @@
+"""``hmpc replay``: timeline, filters, export, verify and damaged or foreign files."""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from conftest import SCENARIOS
+from hmpc_cli.cli import app
+from hmpc_cli.recorder import Recorder, read_log
+
+ENV = {"COLUMNS": "220", "NO_COLOR": "1", "TERM": "dumb"}
+
+
+def _run(scenario: str, out: Path, *overrides: str) -> Path:
+    """One short run in this process; returns its run directory."""
+    from hmpc_cli.runner import run_scenario
+    from hmpc_cli.scenario import load_scenario
+
+    sc, text = load_scenario(SCENARIOS / scenario, list(overrides))
+    run_scenario(sc, text, out)
+    return out
+
+
+def replay(*args: str):
+    """``hmpc replay ARGS`` in this process."""
+    res = CliRunner().invoke(app, ["replay", *map(str, args)], env=ENV)
+    assert "Traceback" not in res.output, res.output
+    assert res.exception is None or isinstance(res.exception, SystemExit), res.exception
+    return res
+
+
+@pytest.fixture(scope="module")
+def ball(tmp_path_factory) -> Path:
+    """A 0.6 s disturbed ball run, every simulator step logged (several chunks)."""
+    return _run("ball_disturbed.toml", tmp_path_factory.mktemp("ball") / "run",
+                "sim.duration=0.6", "sim.log_rate_hz=600")
+
+
+@pytest.fixture(scope="module")
+def ball_log(ball):
+    return read_log(ball / "run.mcap")
+
+
+@pytest.fixture(scope="module")
+def biped(tmp_path_factory) -> Path:
+    """A 0.6 s biped run on the stairs (two steps)."""
+    return _run("biped_stairs.toml", tmp_path_factory.mktemp("biped") / "run",
+                "sim.duration=0.6")
+
+
+def _rows(output: str, kind: str) -> list[str]:
+    """The timeline rows of one kind (contact, plan, solve, solves)."""
+    return [line for line in output.splitlines()
+            if re.match(rf"^\W*\d+\.\d{{4}}\W+{kind}\W", line)]
+
+
+def _solves_in(output: str) -> int:
+    """Solves in the timeline: single rows plus the summarised runs."""
+    runs = sum(int(re.search(r"\.\.\. (\d+) solves ok", r).group(1))
+               for r in _rows(output, "solves"))
+    return len(_rows(output, "solve")) + runs
+
+
+def test_ball_identity_summary_and_timeline(ball, ball_log) -> None:
+    res = replay(ball)
+    assert res.exit_code == 0, res.output
+    out = res.output
+    assert "ball_disturbed" in out and "complete" in out and "not recorded" in out
+    assert "success" in out and "contacts_by_guard" in out
+    assert len(_rows(out, "contact")) == len(ball_log.topic("/sim/event")) > 0
+    assert len(_rows(out, "plan")) == len(ball_log.topic("/planner/plan")) == 1
+    assert _solves_in(out) == len(ball_log.topic("/mpc/solve")) > 2
+    assert len(_rows(out, "solves")) >= 1  # ordinary solves are summarised by default
+    assert "softened" in out  # this trial softens a guard-crossing solve
+    assert "disturbance:" in out and "w[0]" in out and "w[1]" in out
+
+
+def test_all_shows_every_solve(ball, ball_log) -> None:
+    out = replay(ball, "--all").output
+    assert len(_rows(out, "solve")) == len(ball_log.topic("/mpc/solve"))
+    assert not _rows(out, "solves")
+
+
+def test_biped_timeline(biped) -> None:
+    log = read_log(biped / "run.mcap")
+    res = replay(biped / "run.mcap", "--all")
+    assert res.exit_code == 0, res.output
+    assert len(_rows(res.output, "contact")) == len(log.topic("/sim/event")) >= 1
+    assert len(_rows(res.output, "solve")) == len(log.topic("/mpc/solve"))
+    assert len(_rows(res.output, "plan")) == len(log.topic("/planner/plan")) >= 2
+    assert "biped" in res.output and "single_support" in res.output
+
+
+def test_time_and_topic_filters(ball, ball_log) -> None:
+    out = replay(ball, "--from", "0.1", "--to", "0.3", "--all").output
+    times = [float(r.split()[1]) for r in _rows(out, r"(contact|plan|solve)")]
+    expected = [m for m in ball_log.messages if m.topic in ("/sim/event", "/mpc/solve",
+                                                            "/planner/plan")
+                and 0.1 - 1e-12 <= m.t <= 0.3 + 1e-12]
+    assert times and all(0.1 - 1e-9 <= t <= 0.3 + 1e-9 for t in times)
+    assert len(times) == len(expected)
+    for name in ("/mpc/solve", "mpc/solve", "solve"):
+        out = replay(ball, "--topic", name).output
+        assert not _rows(out, "contact") and not _rows(out, "plan")
+        assert _solves_in(out) == len(ball_log.topic("/mpc/solve"))
+    out = replay(ball, "--topic", "event", "--topic", "plan").output
+    assert len(_rows(out, "contact")) == len(ball_log.topic("/sim/event"))
+    assert _solves_in(out) == 0
+
+
+def test_unknown_topic(ball) -> None:
+    res = replay(ball, "--topic", "camera")
+    assert res.exit_code == 2
+    assert "unknown topic 'camera'" in res.output and "/mpc/solve" in res.output
+
+
+def test_csv_export(ball, ball_log, tmp_path) -> None:
+    out = tmp_path / "csv"
+    res = replay(ball, "--export", out)
+    assert res.exit_code == 0, res.output
+    counts: dict[str, int] = {}
+    for m in ball_log.messages:
+        counts[m.topic] = counts.get(m.topic, 0) + 1
+    for topic, n in counts.items():
+        with open(out / (topic.strip("/").replace("/", "_") + ".csv")) as f:
+            rows = list(csv.DictReader(f))
+        assert len(rows) == n, topic
+    with open(out / "mpc_solve.csv") as f:
+        header = next(csv.reader(f))
+    assert {"t", "status", "iterations", "wall_time", "schedule.t0", "t_plan[0]"} <= set(header)
+    with open(out / "sim_state.csv") as f:
+        header = next(csv.reader(f))
+    assert {"t", "x[0]", "x[3]", "u[1]", "w[1]", "mode"} <= set(header)
+    with open(out / "mpc_solve_x_plan.csv") as f:  # one row per planned node
+        rows = list(csv.DictReader(f))
+    assert len(rows) == sum(len(m.data["x_plan"]) for m in ball_log.topic("/mpc/solve"))
+    assert list(rows[0])[:3] == ["msg_t", "index", "x_plan[0]"]
+    info = json.loads((out / "info.json").read_text())
+    assert info["run_info"]["scenario_name"] == "ball_disturbed"
+    assert "[disturbance]" in info["scenario_toml"]
+
+
+def test_export_after_filters(ball, ball_log, tmp_path) -> None:
+    res = replay(ball, "--topic", "disturbance", "--to", "0.2", "--export", tmp_path)
+    assert res.exit_code == 0, res.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["disturbance.csv", "info.json"]
+    with open(tmp_path / "disturbance.csv") as f:
+        n = len(list(csv.DictReader(f)))
+    assert n == len([m for m in ball_log.topic("/disturbance") if m.t <= 0.2 + 1e-12])
+
+
+def test_parquet_export(ball, tmp_path) -> None:
+    res = replay(ball, "--export", tmp_path / "pq", "--format", "parquet")
+    try:
+        import pyarrow  # noqa: F401
+    except ImportError:
+        assert res.exit_code == 2 and "pip install pyarrow" in res.output
+        return
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "pq" / "mpc_solve.parquet").is_file()
+
+
+def test_verify_identical(ball, ball_log) -> None:
+    res = replay(ball, "--verify")
+    assert res.exit_code == 0, res.output
+    topics = {m.topic for m in ball_log.messages}
+    assert f"identical ({len(ball_log.messages)} messages on {len(topics)} topics)" in res.output
+
+
+def _rewrite(src: Path, dst: Path, scenario: str | None) -> Path:
+    """A copy of a log with another (or no) scenario.toml attachment."""
+    log = read_log(src)
+    with Recorder(dst) as rec:
+        for topic, schema in log.schemas.items():
+            rec.add_topic(topic, "hmpc.copy", schema)
+        if scenario is not None:
+            rec.add_attachment("scenario.toml", scenario.encode(), "application/toml")
+        for m in log.messages:
+            rec.write(m.topic, m.t, m.data)
+    return dst
+
+
+def test_verify_names_the_first_divergence(ball, ball_log, tmp_path) -> None:
+    text = (ball / "scenario.toml").read_text()
+    assert 'policy = "once"' in text
+    edited = _rewrite(ball / "run.mcap", tmp_path / "edited.mcap",
+                      text.replace('policy = "once"', 'policy = "on_contact"'))
+    res = replay(edited, "--verify")
+    assert res.exit_code == 1, res.output
+    # the re-run replans at the first contact; the recorded run planned once
+    hit = re.search(r"diverged at t = ([\d.]+) s on /planner/plan, field \(message count\): "
+                    r"recorded 1, re-run \d+", res.output)
+    assert hit, res.output
+    first = ball_log.topic("/sim/event")[0].t  # replanned at the step after the contact
+    assert first <= float(hit.group(1)) <= first + 1 / 600 + 1e-9
+
+
+def test_verify_without_a_rebuildable_scenario(ball, tmp_path) -> None:
+    res = replay(_rewrite(ball / "run.mcap", tmp_path / "none.mcap", None), "--verify")
+    assert res.exit_code == 2 and "no scenario.toml attached" in res.output
+    bad = (ball / "scenario.toml").read_text().replace('name = "ball"', 'name = "no_such"')
+    res = replay(_rewrite(ball / "run.mcap", tmp_path / "bad.mcap", bad), "--verify")
+    assert res.exit_code == 2 and "cannot be rebuilt" in res.output and "no_such" in res.output
+
+
+def _error_line(res) -> str:
+    lines = [line for line in res.output.splitlines() if line.startswith("error: ")]
+    assert res.exit_code == 2 and len(lines) == 1, res.output
+    return lines[0]
+
+
+@pytest.mark.parametrize("where", ["0", "8", "100", "half", "after-chunk-1", "last-10"])
+def test_truncated_file(ball, tmp_path, where) -> None:
+    from mcap.reader import make_reader
+
+    data = (ball / "run.mcap").read_bytes()
+    with open(ball / "run.mcap", "rb") as f:
+        second = make_reader(f).get_summary().chunk_indexes[1].chunk_start_offset
+    cut = {"0": 0, "8": 8, "100": 100, "half": len(data) // 2, "after-chunk-1": second + 10,
+           "last-10": len(data) - 10}[where]
+    path = tmp_path / "cut.mcap"
+    path.write_bytes(data[:cut])
+    if cut == 0:
+        assert _error_line(replay(path)) == f"error: {path}: empty file"
+        return
+    log = read_log(path)
+    assert where not in ("after-chunk-1", "last-10") or log.messages
+    res = replay(path)
+    if not log.messages:  # nothing completed: one error line
+        assert f"{path}: no message could be read" in _error_line(res)
+        return
+    assert res.exit_code == 0, res.output
+    assert f"cut short at t = {max(m.t for m in log.messages):.3f} s" in res.output
+    assert ("no summary (the run did not finish)" in res.output) == (where != "last-10")
+
+
+def test_bit_flip_inside_a_chunk(ball, ball_log, tmp_path) -> None:
+    from mcap.reader import make_reader
+
+    data = bytearray((ball / "run.mcap").read_bytes())
+    with open(ball / "run.mcap", "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    assert len(chunks) >= 2
+    second = chunks[1]
+    data[second.chunk_start_offset + second.chunk_length // 2] ^= 0x10
+    path = tmp_path / "flipped.mcap"
+    path.write_bytes(bytes(data))
+    res = replay(path)
+    assert res.exit_code == 0, res.output
+    assert "damaged" in res.output and "cut short at t = " in res.output
+    first = chunks[0]
+    data[first.chunk_start_offset + first.chunk_length // 2] ^= 0x10
+    path.write_bytes(bytes(data))
+    assert "no message could be read" in _error_line(replay(path))
+
+
+def test_bad_files(ball, tmp_path) -> None:
+    import random
+
+    from mcap.writer import Writer
+
+    empty = tmp_path / "empty.mcap"
+    empty.write_bytes(b"")
+    noise = tmp_path / "noise.bin"
+    noise.write_bytes(random.Random(0).randbytes(4000))
+    foreign = tmp_path / "foreign.mcap"
+    with open(foreign, "wb") as f:
+        w = Writer(f)
+        w.start(profile="", library="other")
+        sid = w.register_schema("Cam", "jsonschema", b"{}")
+        cid = w.register_channel("/camera", "json", sid)
+        w.add_message(cid, 0, b'{"frame": 1}', 0)
+        w.finish()
+    (tmp_path / "dir").mkdir()
+    cases = {tmp_path / "missing.mcap": "no such file",
+             tmp_path / "dir": "a directory without run.mcap",
+             empty: "empty file", noise: "not an MCAP file",
+             foreign: "not an hmpc run log (no /run/info; its topics: /camera)"}
+    for path, what in cases.items():
+        assert _error_line(replay(path)) == f"error: {path}: {what}"
+
+
+def test_bad_file_in_a_real_process(run_hmpc, tmp_path) -> None:
+    (tmp_path / "x.mcap").write_bytes(b"\x89MCAP0\r\n\x01\x02")
+    res = run_hmpc(["replay", "x.mcap"], tmp_path)
+    assert res.returncode == 2 and "Traceback" not in res.stderr + res.stdout
+    assert res.stderr.startswith("error: x.mcap: no message could be read")
+
+
+def _named_layout_log(path: Path, info_extra: dict) -> Path:
+    """A synthetic log in the named-field layout (states and plans as named objects)."""
+    with Recorder(path) as rec:
+        for topic in ("/run/info", "/sim/state", "/disturbance", "/mpc/solve", "/sim/event",
+                      "/planner/plan"):
+            rec.add_topic(topic, "hmpc.any", {"type": "object"})
+        rec.write("/run/info", 0.0, {"scenario_name": "named", "seed": 3, "system": "ball",
+                                     "versions": {"hmpc": "9"}, **info_extra})
+        rec.write("/planner/plan", 0.0, {"t": 0.0, "reason": "initial", "accepted": False,
+                                         "reached_final": False, "cost": None,
+                                         "wall_time": 0.01, "note": "no schedule"})
+        for k in range(4):
+            t = 0.1 * k
+            rec.write("/sim/state", t, {"t": t, "x": {"px": 1.0 + t, "py": 2.0}, "mode": "out"})
+            rec.write("/disturbance", t, {"t": t, "w": {"fx": [1.0, -3.0, 2.0, 0.0][k],
+                                                        "fy": 0.5}})
+            rec.write("/mpc/solve", t, {
+                "t": t, "reason": "period", "status": "Solve_Succeeded" if k != 2 else
+                "Maximum_Iterations_Exceeded", "success": k != 2, "iterations": 5,
+                "wall_time": 0.002, "cost": 1.0, "slack": 0.0, "adopted": k != 3,
+                "plan": [{"t": t + 0.05 * i, "seg": 0, "x": {"px": 1.0, "py": 2.0},
+                          "u": {"ux": -1.0}} for i in range(k + 2)]})
+        rec.write("/sim/event", 0.15, {"t": 0.15, "guard_name": "floor", "mode_before": "out",
+                                       "mode_after": "out", "scheduled": False})
+    return path
+
+
+def test_named_field_layout(tmp_path, monkeypatch) -> None:
+    import hmpc_cli.replay as rp
+
+    path = _named_layout_log(tmp_path / "named.mcap", {
+        "log_version": 2, "argv": ["hmpc", "run", "x.toml", "--set", "sim.duration=1"],
+        "overrides": ["sim.duration=1"]})
+    monkeypatch.setattr(rp, "LOG_VERSION", 3)
+    res = replay(path, "--export", tmp_path / "csv")
+    assert res.exit_code == 0, res.output
+    out = res.output
+    assert "written by an older hmpc log version (2" in out
+    assert "hmpc run x.toml --set sim.duration=1" in out and "sim.duration=1" in out
+    assert "no summary (the run did not finish)" in out
+    assert "REJECTED" in out and "no schedule" in out and "NOT scheduled" in out
+    assert "FAILED Maximum_Iterations_Exceeded" in out and "not adopted" in out
+    assert re.search(r"fx\W+3\W", out) and re.search(r"fy\W+0\.5\W+0\.5", out)
+    with open(tmp_path / "csv" / "mpc_solve_plan.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 2 + 3 + 4 + 5
+    assert list(rows[0]) == ["msg_t", "index", "t", "seg", "x.px", "x.py", "u.ux"]
+    with open(tmp_path / "csv" / "sim_state.csv") as f:
+        assert next(csv.reader(f)) == ["t", "x.px", "x.py", "mode"]
+
+
+def test_current_log_version_has_no_note(tmp_path) -> None:
+    out = replay(_named_layout_log(tmp_path / "v1.mcap", {"log_version": 1})).output
+    assert "log version" not in out and re.search(r"command\W+not recorded", out)
+
+
+def test_foreign_log_with_a_run_info_topic(tmp_path) -> None:
+    path = tmp_path / "other.mcap"
+    with Recorder(path) as rec:
+        rec.add_topic("/run/info", "Other", {"type": "object"})
+        rec.write("/run/info", 0.0, {"robot": "arm"})
+    assert _error_line(replay(path)) == (
+        f"error: {path}: not an hmpc run log (its /run/info has no scenario_name)")
