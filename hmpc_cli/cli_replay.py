@@ -52,8 +52,7 @@ def _identity_table(rp, size: int):
 
     info = rp.info
     t = Table(title=escape(f"run {info.get('scenario_name', '?')}"), show_header=False)
-    desc = (info.get("scenario") or {}).get("description") if isinstance(
-        info.get("scenario"), dict) else None
+    desc = rp.scenario.get("description")
     if desc:
         t.add_row("description", escape(str(desc)))
     t.add_row("system", escape(str(info.get("system", "?"))))

@@ -18,12 +18,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from hmpc_cli.logtypes import LOG_VERSION
+
 __all__ = ["LOG_VERSION", "TOPICS", "Divergence", "Replay", "ReplayError", "TimelineRow",
            "compare_logs", "disturbance_stats", "load_replay", "resolve_topics",
            "select", "timeline", "verify"]
 
-#: the run-log version this reader knows (logs without ``log_version`` are version 1)
-LOG_VERSION = 1
 #: the topics an hmpc run writes
 TOPICS = ("/run/info", "/planner/plan", "/mpc/solve", "/sim/event", "/disturbance",
           "/sim/state", "/run/summary")
@@ -59,13 +59,26 @@ class Replay:
     t_last: float
 
     @property
+    def scenario(self) -> dict:
+        """The scenario as run (from /run/info), or {}."""
+        import json
+
+        text = self.info.get("scenario_json")
+        if isinstance(text, str):
+            try:
+                return dict(json.loads(text))
+            except (ValueError, TypeError):
+                return {}
+        return dict(self.info.get("scenario") or {})
+
+    @property
     def complete(self) -> bool:
         """Whether the file was read to its footer."""
         return bool(self.log.complete)
 
     def version_note(self) -> str:
         """A note when the log's version differs from :data:`LOG_VERSION`, else ""."""
-        version = self.info.get("log_version")
+        version = self.info.get("log_version", 1)  # logs without it: version 1
         if not isinstance(version, int) or version == LOG_VERSION:
             return ""
         if version < LOG_VERSION:
