@@ -80,6 +80,7 @@ class RunLog:
         self.solve_times: list[float] = []
         self.plan_times: list[float] = []
         self._last_w: np.ndarray | None = None
+        self.scene = None  # 3D scene writer (hmpc_cli.scene.SceneWriter), set by the runner
 
     def set_info(self, name: str, seed: int, scenario: dict, per_state: int,
                  margins: dict | None = None) -> None:
@@ -135,6 +136,8 @@ class RunLog:
         """One /sim/state sample."""
         self._write("/sim/state", t, {"t": t, "x": x, "mode": mode, "u": u, "x_ref": x_ref,
                                       "w": w})
+        if self.scene is not None:  # scene
+            self.scene.state(t, x)
 
     def event(self, ev: GuardEvent, system: HybridSystem, scheduled: bool) -> None:
         """Counts and logs a guard event of the simulated system."""
@@ -160,6 +163,8 @@ class RunLog:
             "reached_final": result.reached_final, "cost": result.cost,
             "wall_time": result.wall_time, "iterations": result.iterations, "note": note,
             "schedule": sched, **rollout, **result.extra})
+        if self.scene is not None:  # scene
+            self.scene.rollout(t, result.trajectory)
 
     def solve(self, t: float, plan: Plan, reason: str, model: HybridSystem) -> None:
         """Counts one fixed-mode MPC solve and logs it to /mpc/solve."""
@@ -179,6 +184,8 @@ class RunLog:
             "schedule": plan.schedule.to_dict(model), "adopted": plan.adopt,
             "t_plan": plan.traj.t + t, "x_plan": plan.traj.x, "u_plan": plan.traj.u,
             "seg_plan": plan.traj.seg})
+        if self.scene is not None:  # scene
+            self.scene.plan(t, plan)
 
     def summary(self, r: RunResult) -> None:
         """Fills the timing statistics and writes /run/summary."""

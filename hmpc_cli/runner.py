@@ -51,10 +51,12 @@ def execute_run(loop: ClosedLoop, toml_text: str, out: Path,
     (out / "scenario.toml").write_text(toml_text, encoding="utf-8")
     rec = Recorder(out / "run.mcap")
     loop.log.rec = rec
+    loop.log.scene = None
     loop.progress = progress
     result = None
     try:
         rec.add_attachment("scenario.toml", toml_text.encode(), "application/toml")
+        loop.log.scene = _open_scene(loop, rec)
         result = loop.run()
     except KeyboardInterrupt:
         loop.res.reason = "interrupted"
@@ -64,6 +66,13 @@ def execute_run(loop: ClosedLoop, toml_text: str, out: Path,
         res = result if result is not None else loop.res
         (out / "summary.json").write_text(json.dumps(jsonable(res.__dict__), indent=2) + "\n")
     return result
+
+
+def _open_scene(loop: ClosedLoop, rec: Recorder):
+    """The run's 3D scene writer (the simulated system's drawing), or None."""
+    from hmpc_cli.scene import open_scene
+
+    return open_scene(rec, loop.plant.system, loop.log.info.get("margins"))
 
 
 def run_scenario(scenario, toml_text: str, out: Path,
