@@ -115,9 +115,19 @@ def file_descriptor_set(message_type: Any) -> bytes:
 
 
 class Recorder:
-    """Writes one run's MCAP log: JSON messages on topics, sim time (s) as log time."""
+    """Writes one run's MCAP log: JSON messages on topics, sim time (s) as log time.
 
-    def __init__(self, path: str | Path, *, flush_every: int = 200, chunk_size: int = 256 * 1024):
+    Args:
+        path: the MCAP file to write.
+        flush_every: messages per flush (closes a chunk: a killed run keeps it).
+        chunk_size: MCAP chunk size [bytes].
+        mirror: also gets every topic and message (e.g. :class:`hmpc_cli.live.LiveSink`):
+            ``add_topic(topic, message_encoding, schema_name, schema_encoding, data)`` and
+            ``write(topic, log_time_ns, data)``; None: the file only.
+    """
+
+    def __init__(self, path: str | Path, *, flush_every: int = 200, chunk_size: int = 256 * 1024,
+                 mirror: Any = None):
         if flush_every < 1:
             raise ValueError(f"flush_every must be >= 1, got {flush_every}")
         self.path = Path(path)
@@ -135,6 +145,7 @@ class Recorder:
         self._protobuf: set[str] = set()  # topics with protobuf messages
         self._sequence: dict[str, int] = {}
         self._unflushed, self._closed = 0, False
+        self.mirror = mirror
 
     @property
     def closed(self) -> bool:
@@ -155,6 +166,8 @@ class Recorder:
         if key not in self._schema_ids:
             self._schema_ids[key] = self._writer.register_schema(schema_name, "jsonschema", data)
         self._channels[topic] = self._writer.register_channel(topic, "json", self._schema_ids[key])
+        if self.mirror is not None:
+            self.mirror.add_topic(topic, "json", schema_name, "jsonschema", data)
         self._sequence[topic] = 0
 
     def add_protobuf_topic(self, topic: str, message_type: Any) -> None:
@@ -174,6 +187,8 @@ class Recorder:
                                                               self._schema_ids[key])
         self._sequence[topic] = 0
         self._protobuf.add(topic)
+        if self.mirror is not None:
+            self.mirror.add_topic(topic, "protobuf", name, "protobuf", key[1])
 
     def write(self, topic: str, t: float, payload: dict) -> None:
         """Writes one JSON message on `topic` at simulated time `t` (s, >= 0)."""
@@ -195,6 +210,8 @@ class Recorder:
     def _add(self, topic: str, ns: int, data: bytes) -> None:
         """Adds one encoded message; flushes every ``flush_every`` messages."""
         self._writer.add_message(self._channels[topic], ns, data, ns, self._sequence[topic])
+        if self.mirror is not None:
+            self.mirror.write(topic, ns, data)
         self._sequence[topic] = (self._sequence[topic] + 1) & 0xFFFFFFFF
         self._unflushed += 1
         if self._unflushed >= self.flush_every:

@@ -41,15 +41,17 @@ def jsonable(value):
 
 
 def execute_run(loop: ClosedLoop, toml_text: str, out: Path,
-                progress: Callable[[int, int, str], None] | None = None) -> RunResult:
+                progress: Callable[[int, int, str], None] | None = None,
+                mirror=None) -> RunResult:
     """Runs ``loop`` into directory ``out``.
 
     The log is closed and the summary written even when the run is interrupted
-    (KeyboardInterrupt propagates after that).
+    (KeyboardInterrupt propagates after that). ``mirror`` (e.g. a
+    :class:`hmpc_cli.live.LiveSink`) also gets every topic and message of the log.
     """
     out.mkdir(parents=True, exist_ok=True)
     (out / "scenario.toml").write_text(toml_text, encoding="utf-8")
-    rec = Recorder(out / "run.mcap")
+    rec = Recorder(out / "run.mcap", mirror=mirror)
     loop.log.rec = rec
     loop.log.scene = None
     loop.progress = progress
