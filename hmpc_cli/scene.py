@@ -1,21 +1,25 @@
-"""The run log's 3D scene: ``foxglove.SceneUpdate`` messages on ``/scene``.
+"""The run log's 3D scene: ``foxglove.SceneUpdate`` messages on the ``/scene/*`` topics.
 
 Built from the system's :class:`~hmpc_cli.drawing.Drawing` (None: no scene) with the
 published Foxglove protobuf schemas (``foxglove_schemas_protobuf``), so Foxglove and
 Lichtblick draw a run in their 3D panel. All entities are in frame ``world``; the system's
 plane (a, b) stands upright as world (a, 0, b): z is the plane's "up".
 
-Entities (ids), all with lifetime 0 (kept until replaced by id):
+Topics and entities (ids), all entities with lifetime 0 (kept until replaced by id):
 
-* ``static/<name>``: the drawing's static polylines (guards, walls, terrain), written
-  once at t = 0, ``frame_locked``;
-* ``body``: links (line list) and balls (spheres) at each /sim/state sample, at most
-  ``max_rate_hz`` (60 Hz) times per simulated second;
-* ``plan``: at each MPC solve, one line strip per trace point through the plan's nodes
-  (one vertex per node); ``tube``: spheres of the MPC's tube radius (its margins'
-  ``radius``, in the state norm, drawn in the plane) around the first trace point at up
-  to :data:`TUBE_SPHERES` plan nodes (only with margins);
-* ``rollout``: at each planner call with a trajectory, one line strip per trace point.
+* ``/scene/static``: ``static/<name>``, the drawing's static polylines (guards, walls,
+  terrain), written once at t = 0, ``frame_locked``;
+* ``/scene/body``: ``body``, links (line list) and balls (spheres) at each /sim/state
+  sample, at most ``max_rate_hz`` (60 Hz) times per simulated second;
+* ``/scene/plan``: at each MPC solve, ``plan``, one line strip per trace point through the
+  plan's nodes (one vertex per node), and ``tube``, spheres of the MPC's tube radius (its
+  margins' ``radius``, in the state norm, drawn in the plane) around the first trace
+  point at up to :data:`TUBE_SPHERES` plan nodes (only with margins);
+* ``/scene/rollout``: ``rollout``, at each planner call with a trajectory, one line strip
+  per trace point.
+
+One topic per kind because a viewer that seeks shows the latest message of each topic:
+the static geometry, the body and the current plan all stay on screen after a seek.
 
 The protobuf modules are imported when a writer is made (not at import time).
 """
@@ -29,10 +33,11 @@ import numpy as np
 from hmpc_cli.drawing import Drawing, Rgba
 from hmpc_cli.messages import Plan, Trajectory
 
-__all__ = ["FRAME", "MAX_RATE_HZ", "TOPIC", "TUBE_SPHERES", "SceneWriter", "open_scene",
-           "to_world"]
+__all__ = ["BODY", "FRAME", "MAX_RATE_HZ", "PLAN", "ROLLOUT", "STATIC", "TOPICS", "TUBE_SPHERES",
+           "SceneWriter", "open_scene", "to_world"]
 
-TOPIC = "/scene"
+STATIC, BODY, PLAN, ROLLOUT = "/scene/static", "/scene/body", "/scene/plan", "/scene/rollout"
+TOPICS = (STATIC, BODY, PLAN, ROLLOUT)
 FRAME = "world"
 MAX_RATE_HZ = 60.0
 TUBE_SPHERES = 30
@@ -40,7 +45,7 @@ _NS_PER_S = 1_000_000_000
 PLAN_COLORS: tuple[Rgba, ...] = ((0.1, 0.6, 0.1, 1.0), (0.6, 0.2, 0.7, 1.0),
                                  (0.1, 0.5, 0.8, 1.0))
 REJECTED: Rgba = (0.8, 0.2, 0.2, 0.6)
-ROLLOUT: Rgba = (0.95, 0.65, 0.1, 0.8)
+ORANGE: Rgba = (0.95, 0.65, 0.1, 0.8)
 TUBE: Rgba = (0.1, 0.6, 0.1, 0.25)
 
 
@@ -51,7 +56,7 @@ def to_world(points: np.ndarray) -> np.ndarray:
 
 
 class SceneWriter:
-    """Writes the ``/scene`` topic of one run (see the module docstring).
+    """Writes the ``/scene/*`` topics of one run (see the module docstring).
 
     Args:
         recorder: an open :class:`~hmpc_cli.recorder.Recorder` (protobuf topics).
@@ -76,7 +81,8 @@ class SceneWriter:
         self.tube_radius = tube_radius if tube_radius and tube_radius > 0 else None
         self.period = 1.0 / max_rate_hz
         self._next = 0.0
-        self.rec.add_protobuf_topic(TOPIC, self.pb["Update"])
+        for topic in TOPICS:
+            self.rec.add_protobuf_topic(topic, self.pb["Update"])
 
     # ------------------------------------------------------------ primitives
     def _pose(self, center: np.ndarray | None = None) -> Any:
@@ -109,8 +115,8 @@ class SceneWriter:
         entity.timestamp.FromNanoseconds(round(t * _NS_PER_S))
         return entity
 
-    def _write(self, t: float, entities: list) -> None:
-        self.rec.write_protobuf(TOPIC, t, self.pb["Update"](entities=entities))
+    def _write(self, topic: str, t: float, entities: list) -> None:
+        self.rec.write_protobuf(topic, t, self.pb["Update"](entities=entities))
 
     # --------------------------------------------------------------- topics
     def start(self) -> None:
@@ -121,7 +127,7 @@ class SceneWriter:
             prim = self._line(kind, to_world(np.array(line.points)), line.color, line.thickness)
             entities.append(self._entity(0.0, f"static/{line.name}", True, lines=[prim]))
         if entities:
-            self._write(0.0, entities)
+            self._write(STATIC, 0.0, entities)
 
     def state(self, t: float, x: np.ndarray) -> None:
         """The ``body`` at state x (n,) and time t [s]; skipped within the rate limit."""
@@ -137,7 +143,7 @@ class SceneWriter:
             lines.append(self._line("LINE_LIST", np.concatenate(segs), d.link_color,
                                     d.link_thickness))
         spheres = [self._sphere(pts[d.index(b.point)], b.radius, b.color) for b in d.balls]
-        self._write(t, [self._entity(t, "body", lines=lines, spheres=spheres)])
+        self._write(BODY, t, [self._entity(t, "body", lines=lines, spheres=spheres)])
 
     def _traces(self, xs: np.ndarray, colors: tuple[Rgba, ...], thickness: float) -> list:
         """One line strip per trace point along states xs (K, n)."""
@@ -157,14 +163,15 @@ class SceneWriter:
             centers = to_world(self.drawing.traced(xs[nodes.astype(int)])[0])
             entities.append(self._entity(t, "tube", spheres=[
                 self._sphere(c, self.tube_radius, TUBE) for c in centers]))
-        self._write(t, entities)
+        self._write(PLAN, t, entities)
 
     def rollout(self, t: float, trajectory: Trajectory | None) -> None:
         """The planner's ``rollout`` at time t [s] (nothing without a trajectory)."""
         if trajectory is None or not self.drawing.trace or len(trajectory.x) == 0:
             return
         xs = np.atleast_2d(np.asarray(trajectory.x, dtype=float))
-        self._write(t, [self._entity(t, "rollout", lines=self._traces(xs, (ROLLOUT,), 0.01))])
+        self._write(ROLLOUT, t, [self._entity(t, "rollout",
+                                              lines=self._traces(xs, (ORANGE,), 0.01))])
 
 
 def open_scene(recorder: Any, system: Any, margins: dict | None = None,

@@ -10,6 +10,7 @@ from typer.testing import CliRunner
 
 from hmpc_cli.cli import app
 from hmpc_cli.recorder import read_log
+from hmpc_cli.scene import TOPICS
 
 
 def test_live_without_foxglove_sdk_exits_2(tmp_path, monkeypatch):
@@ -43,7 +44,7 @@ def test_live_mirrors_every_topic_and_message(tmp_path):
     finally:
         sink.close()
     log = read_log(tmp_path / "r" / "run.mcap")
-    assert set(sink._channels) == {m.topic for m in log.messages} | {"/scene"}
+    assert set(sink._channels) == {m.topic for m in log.messages} | set(TOPICS)
     logged = sorted([(m.topic, m.log_time_ns) for m in log.messages]
                     + [(m.topic, m.log_time_ns) for m in log.raw])
     assert sorted(sent) == logged

@@ -14,7 +14,7 @@ from hmpc_cli.recorder import Recorder, read_log
 from hmpc_cli.registry import build_system
 from hmpc_cli.runner import run_scenario
 from hmpc_cli.scenario import load_scenario
-from hmpc_cli.scene import FRAME, TOPIC, TUBE_SPHERES
+from hmpc_cli.scene import FRAME, STATIC, TOPICS, TUBE_SPHERES
 
 from conftest import BALL, SCENARIOS
 
@@ -46,8 +46,9 @@ def biped(tmp_path_factory):
 
 
 def updates(log):
-    """(log_time_ns, SceneUpdate) of every /scene message, decoded with the published type."""
-    return [(m.log_time_ns, SceneUpdate.FromString(m.data)) for m in log.raw_topic(TOPIC)]
+    """(log_time_ns, SceneUpdate) of every /scene/* message, decoded with the published type."""
+    return [(m.log_time_ns, SceneUpdate.FromString(m.data)) for m in log.raw
+            if m.topic in TOPICS]
 
 
 def entities(log, entity_id):
@@ -60,7 +61,9 @@ def xyz(p):
 
 def test_schema_is_the_published_protobuf_scene_update(ball):
     _, log, _ = ball
-    schema = log.raw_schemas[TOPIC]
+    assert set(log.raw_schemas) == set(TOPICS)
+    schema = log.raw_schemas[STATIC]
+    assert all(log.raw_schemas[t] == schema for t in TOPICS)
     assert schema.name == "foxglove.SceneUpdate" and schema.encoding == "protobuf"
     fds = FileDescriptorSet.FromString(schema.data)
     pool = descriptor_pool.DescriptorPool()
@@ -68,13 +71,15 @@ def test_schema_is_the_published_protobuf_scene_update(ball):
         pool.Add(f)
     assert pool.FindMessageTypeByName("foxglove.SceneUpdate").full_name == "foxglove.SceneUpdate"
     assert {m.encoding for m in log.raw} == {"protobuf"}
-    assert TOPIC not in log.schemas and all(m.topic != TOPIC for m in log.messages)
+    assert not set(TOPICS) & set(log.schemas)
+    assert not set(TOPICS) & {m.topic for m in log.messages}
 
 
 def test_static_entities_appear_once_at_t0(ball):
     _, log, _ = ball
     ups = updates(log)
     ids = [e.id for _, u in ups for e in u.entities if e.id.startswith("static/")]
+    assert len(log.raw_topic(STATIC)) == 1
     assert sorted(ids) == ["static/circle", "static/floor", "static/wall"]
     ns, first = ups[0]
     assert ns == 0 and {e.id for e in first.entities} == set(ids)
@@ -176,7 +181,7 @@ def test_truncated_log_reads_both_encodings_front_to_back(ball, tmp_path):
     assert not log.complete
     assert [m.data for m in log.messages] == [m.data for m in full.messages]
     assert [m.data for m in log.raw] == [m.data for m in full.raw]
-    assert log.raw_schemas[TOPIC].name == "foxglove.SceneUpdate"
+    assert log.raw_schemas[STATIC].name == "foxglove.SceneUpdate"
 
 
 def test_recorder_keeps_json_and_protobuf_topics_apart(tmp_path):
