@@ -119,7 +119,8 @@ def ball_drawing(p: BallParams) -> Drawing:
     The floor (y = 0 over ``floor_extent``) and the wall (x = 0 over ``wall_extent``) are
     the surfaces the ball bounces on (their guards act on its centre, ``radius`` away);
     the circle is the guard |p - c| = R of the centre. The body is a sphere of the
-    ball's radius at (px, py), which also traces plans and rollouts.
+    ball's radius (at least 2 cm, so a point ball stays visible) at (px, py), which also
+    traces plans and rollouts.
     """
     fx, wy = p.floor_extent, p.wall_extent
     brown, teal = (0.55, 0.4, 0.25, 1.0), (0.1, 0.7, 0.6, 1.0)
