@@ -22,6 +22,8 @@ import time
 
 from hmpc_cli.recorder import Recorder
 from hmpc_cli.runlog import RunLog
+from hmpc_cli.runner import prepare
+from hmpc_cli.scenario import load_scenario
 
 LOGGED = ("step", "state", "event", "planner", "solve", "summary")
 
@@ -47,13 +49,11 @@ class _Timed:
     def __exit__(self, *exc) -> None:
         for name, fn in self._orig.items():
             setattr(RunLog, name, fn)
-from hmpc_cli.runner import prepare
-from hmpc_cli.scenario import load_scenario
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def one_run(scenario: str, log: bool, timer: _Timed | None = None) -> tuple[float, int]:
+def one_run(scenario: str, log: bool) -> tuple[float, int]:
     """(wall time [s], log bytes) of one run with the log on or off."""
     sc, _ = load_scenario(scenario)
     loop = prepare(sc)

@@ -31,6 +31,11 @@ def run(
         "--set", help="override a setting: key.path=value (repeatable)")] = None,
     seed: Annotated[int | None, typer.Option("--seed", help="override the seed")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar")] = False,
+    live: Annotated[bool, typer.Option(
+        "--live", help="also stream the log's topics to a Foxglove WebSocket server on "
+        "127.0.0.1 (needs foxglove-sdk), paced to real time")] = False,
+    live_port: Annotated[int, typer.Option(
+        "--live-port", help="port of the --live server")] = 8765,
 ) -> None:
     """Run the layered controller in closed loop and log everything to MCAP."""
     from hmpc_cli.scenario import ScenarioError, load_scenario
@@ -59,11 +64,29 @@ def run(
 
     loop.log.provenance = Provenance(overrides=tuple(
         [*(set_ or []), *([f"seed={seed}"] if seed is not None else [])]))
-    result = _execute(loop, sc, toml_text, out, quiet)
+    sink = _live_sink(live_port) if live else None
+    try:
+        result = _execute(loop, sc, toml_text, out, quiet, sink)
+    finally:
+        if sink is not None:
+            sink.close()
     _print_summary(result, out)
 
 
-def _execute(loop, sc, toml_text: str, out: Path, quiet: bool):
+def _live_sink(port: int):
+    """The --live server (exit 2 with a clear message without foxglove-sdk)."""
+    from hmpc_cli.live import LiveSink, LiveError
+
+    try:
+        sink = LiveSink(port)
+    except LiveError as exc:
+        _err([str(exc)])
+        raise typer.Exit(EXIT_BAD_INPUT) from None
+    typer.echo(f"live: connect Foxglove or Lichtblick to {sink.url}", err=True)
+    return sink
+
+
+def _execute(loop, sc, toml_text: str, out: Path, quiet: bool, sink=None):
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from hmpc_cli.runner import execute_run
@@ -81,7 +104,7 @@ def _execute(loop, sc, toml_text: str, out: Path, quiet: bool):
                     desc = f"{sc.name} [yellow]({note})[/]" if note else sc.name
                     progress.update(task, completed=i / n, t=i / n * dur, description=desc)
 
-            return execute_run(loop, toml_text, out, tick)
+            return execute_run(loop, toml_text, out, tick, sink)
     except KeyboardInterrupt:
         typer.echo(f"interrupted; partial log in {out / 'run.mcap'}", err=True)
         raise typer.Exit(130) from None

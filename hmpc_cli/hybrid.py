@@ -20,6 +20,7 @@ from functools import cached_property
 import casadi as ca
 import numpy as np
 
+from hmpc_cli.drawing import Drawing
 from hmpc_cli.numeric import compile_numpy
 
 
@@ -173,6 +174,8 @@ class HybridSystem:
             node; the chain MPC does not read them).
         guard_surfaces: per guard index, the flat contact surface (start, end, height)
             it models [m] (contact-planning systems: the foothold candidates).
+        drawing: how the run log's 3D scene draws the system (static geometry, body,
+            plan trace; :mod:`hmpc_cli.drawing`), or None (no scene).
     """
 
     name: str
@@ -197,6 +200,7 @@ class HybridSystem:
     plane: tuple[str, str] | None = None
     state_box: tuple[np.ndarray, np.ndarray] | None = None
     guard_surfaces: Mapping[int, tuple[float, float, float]] = field(default_factory=dict)
+    drawing: Drawing | None = None
 
     def __post_init__(self) -> None:
         names = [m.name for m in self.modes]

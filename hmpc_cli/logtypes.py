@@ -280,7 +280,7 @@ def named(names: typing.Sequence[str], values) -> dict:
     return dict(zip(names, np.asarray(values, dtype=float).ravel().tolist(), strict=False))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _hints(cls: type) -> dict[str, Any]:
     return typing.get_type_hints(cls, include_extras=True)
 

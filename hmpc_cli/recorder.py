@@ -1,5 +1,11 @@
 """MCAP run logs: JSON messages (``jsonschema``/``json`` encodings), sim time as log time.
 
+Protobuf channels (e.g. the 3D scene's ``foxglove.SceneUpdate``) are written beside them:
+schema encoding ``protobuf`` with the message's ``FileDescriptorSet`` as schema data,
+message encoding ``protobuf`` (what Foxglove and Lichtblick read). :func:`read_log` decodes
+the JSON channels into :attr:`Log.messages` as before and keeps the other channels'
+messages undecoded in :attr:`Log.raw`.
+
 Logs of killed runs stay readable: :func:`read_log` keeps every chunk that reached the disk.
 """
 
@@ -20,7 +26,8 @@ from mcap.records import Attachment, Channel, Chunk, Footer, Message, Metadata, 
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-__all__ = ["Log", "LogMessage", "Recorder", "read_log", "to_json_bytes"]
+__all__ = ["Log", "LogMessage", "RawMessage", "Recorder", "file_descriptor_set", "read_log",
+           "to_json_bytes"]
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _NS_PER_S = 1_000_000_000
@@ -109,10 +116,42 @@ def to_json_bytes(payload: Any) -> bytes:
                           ensure_ascii=False).encode()
 
 
-class Recorder:
-    """Writes one run's MCAP log: JSON messages on topics, sim time (s) as log time."""
+def file_descriptor_set(message_type: Any) -> bytes:
+    """The serialized ``FileDescriptorSet`` of a protobuf message class.
 
-    def __init__(self, path: str | Path, *, flush_every: int = 200, chunk_size: int = 256 * 1024):
+    Holds the message's file and every file it imports, dependencies first (the MCAP
+    ``protobuf`` schema encoding).
+    """
+    from google.protobuf.descriptor_pb2 import FileDescriptorSet
+
+    fds, seen = FileDescriptorSet(), set()
+
+    def add(file: Any) -> None:
+        if file.name in seen:
+            return
+        seen.add(file.name)
+        for dep in file.dependencies:
+            add(dep)
+        file.CopyToProto(fds.file.add())
+
+    add(message_type.DESCRIPTOR.file)
+    return fds.SerializeToString()
+
+
+class Recorder:
+    """Writes one run's MCAP log: JSON messages on topics, sim time (s) as log time.
+
+    Args:
+        path: the MCAP file to write.
+        flush_every: messages per flush (closes a chunk: a killed run keeps it).
+        chunk_size: MCAP chunk size [bytes].
+        mirror: also gets every topic and message (e.g. :class:`hmpc_cli.live.LiveSink`):
+            ``add_topic(topic, message_encoding, schema_name, schema_encoding, data)`` and
+            ``write(topic, log_time_ns, data)``; None: the file only.
+    """
+
+    def __init__(self, path: str | Path, *, flush_every: int = 200, chunk_size: int = 256 * 1024,
+                 mirror: Any = None):
         if flush_every < 1:
             raise ValueError(f"flush_every must be >= 1, got {flush_every}")
         self.path = Path(path)
@@ -126,9 +165,11 @@ class Recorder:
             self._file.close()
             raise
         self._channels: dict[str, int] = {}  # topic -> channel id
-        self._schema_ids: dict[tuple[str, bytes], int] = {}  # (name, json) -> schema id
+        self._schema_ids: dict[tuple[str, bytes], int] = {}  # (name, data) -> schema id
+        self._protobuf: set[str] = set()  # topics with protobuf messages
         self._sequence: dict[str, int] = {}
         self._unflushed, self._closed = 0, False
+        self.mirror = mirror
 
     @property
     def closed(self) -> bool:
@@ -149,7 +190,29 @@ class Recorder:
         if key not in self._schema_ids:
             self._schema_ids[key] = self._writer.register_schema(schema_name, "jsonschema", data)
         self._channels[topic] = self._writer.register_channel(topic, "json", self._schema_ids[key])
+        if self.mirror is not None:
+            self.mirror.add_topic(topic, "json", schema_name, "jsonschema", data)
         self._sequence[topic] = 0
+
+    def add_protobuf_topic(self, topic: str, message_type: Any) -> None:
+        """Registers `topic` for protobuf messages of class `message_type`.
+
+        The schema is named by the message's full name (e.g. ``foxglove.SceneUpdate``)
+        and holds its ``FileDescriptorSet``; raises ValueError if already registered.
+        """
+        self._check_open()
+        if topic in self._channels:
+            raise ValueError(f"topic {topic!r} is already registered")
+        name = message_type.DESCRIPTOR.full_name
+        key = (name, file_descriptor_set(message_type))
+        if key not in self._schema_ids:
+            self._schema_ids[key] = self._writer.register_schema(name, "protobuf", key[1])
+        self._channels[topic] = self._writer.register_channel(topic, "protobuf",
+                                                              self._schema_ids[key])
+        self._sequence[topic] = 0
+        self._protobuf.add(topic)
+        if self.mirror is not None:
+            self.mirror.add_topic(topic, "protobuf", name, "protobuf", key[1])
 
     def write(self, topic: str, t: float, payload: dict) -> None:
         """Writes one JSON message on `topic` at simulated time `t` (s, >= 0)."""
@@ -157,8 +220,22 @@ class Recorder:
         if topic not in self._channels:
             known = sorted(self._channels)
             raise KeyError(f"unknown topic {topic!r}; call add_topic() first (registered: {known})")
-        ns, data = _to_ns(t), to_json_bytes(payload)
+        if topic in self._protobuf:
+            raise TypeError(f"topic {topic!r} holds protobuf messages: use write_protobuf()")
+        self._add(topic, _to_ns(t), to_json_bytes(payload))
+
+    def write_protobuf(self, topic: str, t: float, message: Any) -> None:
+        """Writes one protobuf message on `topic` at simulated time `t` (s, >= 0)."""
+        self._check_open()
+        if topic not in self._protobuf:
+            raise KeyError(f"unknown protobuf topic {topic!r}; call add_protobuf_topic() first")
+        self._add(topic, _to_ns(t), message.SerializeToString())
+
+    def _add(self, topic: str, ns: int, data: bytes) -> None:
+        """Adds one encoded message; flushes every ``flush_every`` messages."""
         self._writer.add_message(self._channels[topic], ns, data, ns, self._sequence[topic])
+        if self.mirror is not None:
+            self.mirror.write(topic, ns, data)
         self._sequence[topic] = (self._sequence[topic] + 1) & 0xFFFFFFFF
         self._unflushed += 1
         if self._unflushed >= self.flush_every:
@@ -214,11 +291,34 @@ class LogMessage:
 
 
 @dataclasses.dataclass
+class RawMessage:
+    """One message of a non-JSON channel (e.g. protobuf), undecoded.
+
+    Attributes:
+        topic: its topic.
+        t: log time [s].
+        data: the encoded message (decode protobuf with ``MessageClass.FromString``).
+        encoding: the channel's message encoding (e.g. ``protobuf``).
+        schema_name: the schema's name (e.g. ``foxglove.SceneUpdate``).
+        log_time_ns: the exact MCAP log time.
+    """
+
+    topic: str
+    t: float
+    data: bytes
+    encoding: str
+    schema_name: str
+    log_time_ns: int = 0
+
+
+@dataclasses.dataclass
 class Log:
     """Contents of a run log; `complete` is False for truncated or damaged files.
 
-    `damage` says why reading stopped at a chunk that failed its CRC, decompression or
-    decoding ("" otherwise, also for a file that merely ends early).
+    `messages` and `schemas` hold the JSON channels (decoded); `raw` the messages of the
+    other channels undecoded, `raw_schemas` their schema records by topic. `damage` says
+    why reading stopped at a chunk that failed its CRC, decompression or decoding (""
+    otherwise, also for a file that merely ends early).
     """
 
     messages: list[LogMessage]
@@ -227,10 +327,33 @@ class Log:
     schemas: dict[str, dict]
     complete: bool
     damage: str = ""
+    raw: list[RawMessage] = dataclasses.field(default_factory=list)
+    raw_schemas: dict[str, Schema] = dataclasses.field(default_factory=dict)
 
     def topic(self, name: str) -> list[LogMessage]:
         """Returns the messages on topic `name`, in file order."""
         return [m for m in self.messages if m.topic == name]
+
+    def raw_topic(self, name: str) -> list[RawMessage]:
+        """Returns the undecoded messages on (non-JSON) topic `name`, in file order."""
+        return [m for m in self.raw if m.topic == name]
+
+    def _add(self, channel: Channel, schema: Schema | None, msg: Message,
+             out: list[LogMessage], raw: list[RawMessage]) -> None:
+        """Files one message: JSON ones decoded into `out`, others into `raw`."""
+        if channel.message_encoding == "json":
+            out.append(_message(channel, msg))
+        else:
+            raw.append(RawMessage(channel.topic, msg.log_time / _NS_PER_S, msg.data,
+                                  channel.message_encoding,
+                                  schema.name if schema is not None else "", msg.log_time))
+
+    def _add_channel(self, channel: Channel, schema: Schema | None) -> None:
+        """Files one channel's schema (JSON schemas decoded)."""
+        if channel.message_encoding == "json":
+            self.schemas[channel.topic] = _schema_dict(schema)
+        elif schema is not None:
+            self.raw_schemas[channel.topic] = schema
 
 
 def _message(channel: Channel, msg: Message) -> LogMessage:
@@ -246,17 +369,17 @@ def _read_indexed(path: Path) -> Log:
     with open(path, "rb") as f:
         reader = make_reader(f, validate_crcs=True)
         summary = reader.get_summary()
-        schemas: dict[str, dict] = {}
+        log = Log([], {}, {}, {}, complete=True)
         if summary is not None:
             for ch in summary.channels.values():
-                schemas[ch.topic] = _schema_dict(summary.schemas.get(ch.schema_id))
-        messages = []
+                log._add_channel(ch, summary.schemas.get(ch.schema_id))
         for schema, channel, msg in reader.iter_messages(log_time_order=False):
-            schemas.setdefault(channel.topic, _schema_dict(schema))
-            messages.append(_message(channel, msg))
-        metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
-        attachments = {a.name: a.data for a in reader.iter_attachments()}
-    return Log(messages, metadata, attachments, schemas, complete=True)
+            if channel.topic not in log.schemas and channel.topic not in log.raw_schemas:
+                log._add_channel(channel, schema)
+            log._add(channel, schema, msg, log.messages, log.raw)
+        log.metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+        log.attachments = {a.name: a.data for a in reader.iter_attachments()}
+    return log
 
 
 def _damage_text(what: str, exc: BaseException) -> str:
@@ -271,14 +394,15 @@ def _read_stream(path: Path) -> Log:
     channels: dict[int, Channel] = {}
     log = Log([], {}, {}, {}, complete=False)
 
-    def handle(record: Any, out: list[LogMessage]) -> None:
+    def handle(record: Any, out: list[LogMessage], raw: list[RawMessage]) -> None:
         if isinstance(record, Schema):
             schemas[record.id] = record
         elif isinstance(record, Channel):
             channels[record.id] = record
-            log.schemas[record.topic] = _schema_dict(schemas.get(record.schema_id))
+            log._add_channel(record, schemas.get(record.schema_id))
         elif isinstance(record, Message):
-            out.append(_message(channels[record.channel_id], record))
+            channel = channels[record.channel_id]
+            log._add(channel, schemas.get(channel.schema_id), record, out, raw)
         elif isinstance(record, Metadata):
             log.metadata[record.name] = dict(record.metadata)
         elif isinstance(record, Attachment):
@@ -295,14 +419,16 @@ def _read_stream(path: Path) -> Log:
             except _DAMAGE_ERRORS:
                 return log  # truncated mid-record: keep what was complete
             pending: list[LogMessage] = []
+            pending_raw: list[RawMessage] = []
             try:  # a chunk is kept only as a whole: CRC-checked, every message decoded
                 chunk = isinstance(record, Chunk)
                 for r in breakup_chunk(record, validate_crc=True) if chunk else [record]:
-                    handle(r, pending)
+                    handle(r, pending, pending_raw)
             except _DAMAGE_ERRORS as exc:
                 log.damage = _damage_text("a chunk is damaged", exc)
                 return log  # corrupt chunk: stop at the last good one
             log.messages.extend(pending)
+            log.raw.extend(pending_raw)
             saw_footer = saw_footer or isinstance(record, Footer)
     log.complete = saw_footer
     return log

@@ -21,7 +21,7 @@ import numpy as np
 from hmpc_cli import __version__
 from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.logtypes import (
-    LOG_VERSION, GuardEventRec, MarginsRec, MpcSolve, PlanNode, PlannerCall, RolloutNode,
+    LOG_VERSION, GuardEventRec, MarginsRec, MpcSolve, PlannerCall, RolloutNode,
     RunInfo, ScheduleRec, StateSample, StatusCount, Summary, Versions, WRec, convert, named,
     topic_schemas)
 from hmpc_cli.messages import GuardEvent, ModeSchedule, Plan, PlannerResult, Trajectory
@@ -102,6 +102,7 @@ class RunLog:
         self.plan_times: list[float] = []
         self._last_w: bytes | None = None  # the last logged disturbance's bytes
         self._model: HybridSystem | None = None
+        self.scene = None  # 3D scene writer (hmpc_cli.scene.SceneWriter), set by the runner
 
     def set_info(self, name: str, seed: int, scenario: dict, per_state: int,
                  margins: dict | None = None, kinds: tuple[str, str] = ("", ""),
@@ -176,6 +177,8 @@ class RunLog:
             t, int(mode), m.modes[mode].name, named(m.state_names, x),
             named(m.input_names, u), named(m.state_names, x_ref),
             named(m.disturbance_names, w)))
+        if self.scene is not None:
+            self.scene.state(t, x)
 
     def event(self, ev: GuardEvent, system: HybridSystem, scheduled: bool) -> None:
         """Counts and logs a guard event of the simulated system."""
@@ -205,6 +208,8 @@ class RunLog:
             float(result.wall_time), int(result.iterations), note,
             _schedule(result.schedule, model), rollout,
             _detail(self.details.get("planner"), result.extra)))
+        if self.scene is not None:
+            self.scene.rollout(t, result.trajectory)
 
     def solve(self, t: float, plan: Plan, reason: str, model: HybridSystem) -> None:
         """Counts one fixed-mode MPC solve and logs it to /mpc/solve."""
@@ -224,6 +229,8 @@ class RunLog:
             float(st.cost), float(st.max_violation), float(st.slack), bool(plan.adopt),
             _schedule(plan.schedule, model), plan_nodes(plan.traj, t, model),
             _detail(self.details.get("mpc"), plan.extra)))
+        if self.scene is not None:
+            self.scene.plan(t, plan)
 
     def summary(self, r: RunResult) -> None:
         """Fills the timing statistics and writes /run/summary."""

@@ -41,20 +41,24 @@ def jsonable(value):
 
 
 def execute_run(loop: ClosedLoop, toml_text: str, out: Path,
-                progress: Callable[[int, int, str], None] | None = None) -> RunResult:
+                progress: Callable[[int, int, str], None] | None = None,
+                mirror=None) -> RunResult:
     """Runs ``loop`` into directory ``out``.
 
     The log is closed and the summary written even when the run is interrupted
-    (KeyboardInterrupt propagates after that).
+    (KeyboardInterrupt propagates after that). ``mirror`` (e.g. a
+    :class:`hmpc_cli.live.LiveSink`) also gets every topic and message of the log.
     """
     out.mkdir(parents=True, exist_ok=True)
     (out / "scenario.toml").write_text(toml_text, encoding="utf-8")
-    rec = Recorder(out / "run.mcap")
+    rec = Recorder(out / "run.mcap", mirror=mirror)
     loop.log.rec = rec
+    loop.log.scene = None
     loop.progress = progress
     result = None
     try:
         rec.add_attachment("scenario.toml", toml_text.encode(), "application/toml")
+        loop.log.scene = _open_scene(loop, rec)
         result = loop.run()
     except KeyboardInterrupt:
         loop.res.reason = "interrupted"
@@ -64,6 +68,13 @@ def execute_run(loop: ClosedLoop, toml_text: str, out: Path,
         res = result if result is not None else loop.res
         (out / "summary.json").write_text(json.dumps(jsonable(res.__dict__), indent=2) + "\n")
     return result
+
+
+def _open_scene(loop: ClosedLoop, rec: Recorder):
+    """The run's 3D scene writer (the simulated system's drawing), or None."""
+    from hmpc_cli.scene import open_scene
+
+    return open_scene(rec, loop.plant.system, loop.log.info.get("margins"))
 
 
 def run_scenario(scenario, toml_text: str, out: Path,

@@ -9,10 +9,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "hmpc_cli"
 PEERS = {"planner", "mpc", "lowlevel", "recorder", "runlog", "tube"}
-BOTTOM = {"hybrid", "messages", "numeric"}
+BOTTOM = {"hybrid", "messages", "numeric", "drawing"}
 #: rooms that must work for any registered system: they never import a system plug-in
 SYSTEM_AGNOSTIC = {"mpc", "planner", "figures", "loop", "plant", "runlog", "stack",
-                   "scenario", "runner", "sweep", "report", "lowlevel", "sim", "tasks", "tube"}
+                   "scenario", "runner", "sweep", "report", "lowlevel", "sim", "tasks", "tube",
+                   "scene", "drawing"}
 SYSTEM_NAMES = {"ball", "biped"}
 
 

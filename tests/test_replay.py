@@ -72,14 +72,14 @@ def test_ball_identity_summary_and_timeline(ball, ball_log) -> None:
     assert res.exit_code == 0, res.output
     out = res.output
     assert "ball_disturbed" in out and "complete" in out
-    assert "sim.duration=0.6" in out  # the overrides (--set) are recorded
+    assert re.search(r"command\W+\S", out)  # the command line is recorded
     assert "success" in out and "contacts_by_guard" in out
     assert len(_rows(out, "contact")) == len(ball_log.topic("/sim/event")) > 0
     assert len(_rows(out, "plan")) == len(ball_log.topic("/planner/plan")) == 1
     assert _solves_in(out) == len(ball_log.topic("/mpc/solve")) > 2
     assert len(_rows(out, "solves")) >= 1  # ordinary solves are summarised by default
     assert "softened" in out  # this trial softens a guard-crossing solve
-    assert "disturbance:" in out and "w[0]" in out and "w[1]" in out
+    assert "disturbance:" in out and "wx" in out and "wy" in out
 
 
 def test_all_shows_every_solve(ball, ball_log) -> None:
@@ -134,14 +134,18 @@ def test_csv_export(ball, ball_log, tmp_path) -> None:
         assert len(rows) == n, topic
     with open(out / "mpc_solve.csv") as f:
         header = next(csv.reader(f))
-    assert {"t", "status", "iterations", "wall_time", "schedule.t0", "t_plan[0]"} <= set(header)
+    assert {"t", "status", "iterations", "wall_time", "schedule.t0", "detail.shifted"} <= \
+        set(header)
+    with open(out / "mpc_solve_plan.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert set(rows[0]) >= {"msg_t", "index", "t", "seg", "x.px", "x.vy", "u.ux"}
     with open(out / "sim_state.csv") as f:
         header = next(csv.reader(f))
-    assert {"t", "x[0]", "x[3]", "u[1]", "w[1]", "mode"} <= set(header)
-    with open(out / "mpc_solve_x_plan.csv") as f:  # one row per planned node
+    assert {"t", "x.px", "x.vy", "u.uy", "w.wy", "mode", "mode_name"} <= set(header)
+    with open(out / "mpc_solve_plan.csv") as f:  # one row per planned node
         rows = list(csv.DictReader(f))
-    assert len(rows) == sum(len(m.data["x_plan"]) for m in ball_log.topic("/mpc/solve"))
-    assert list(rows[0])[:3] == ["msg_t", "index", "x_plan[0]"]
+    assert len(rows) == sum(len(m.data["plan"]) for m in ball_log.topic("/mpc/solve"))
+    assert list(rows[0])[:4] == ["msg_t", "index", "t", "seg"]
     info = json.loads((out / "info.json").read_text())
     assert info["run_info"]["scenario_name"] == "ball_disturbed"
     assert "[disturbance]" in info["scenario_toml"]
@@ -346,8 +350,12 @@ def test_named_field_layout(tmp_path, monkeypatch) -> None:
 
 
 def test_current_log_version_has_no_note(tmp_path) -> None:
-    out = replay(_named_layout_log(tmp_path / "v1.mcap", {"log_version": 1})).output
+    from hmpc_cli.logtypes import LOG_VERSION
+
+    out = replay(_named_layout_log(tmp_path / "v.mcap", {"log_version": LOG_VERSION})).output
     assert "log version" not in out and re.search(r"command\W+not recorded", out)
+    old = replay(_named_layout_log(tmp_path / "v1.mcap", {"log_version": 1})).output
+    assert "written by an older hmpc log version (1" in " ".join(old.split())
 
 
 def test_foreign_log_with_a_run_info_topic(tmp_path) -> None:

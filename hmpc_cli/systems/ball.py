@@ -20,6 +20,7 @@ import casadi as ca
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from hmpc_cli.drawing import Ball, Drawing, Polyline, circle
 from hmpc_cli.hybrid import Guard, HybridSystem, Mode
 from hmpc_cli.registry import SystemSpec
 from hmpc_cli.tasks import ReachGoal
@@ -112,6 +113,25 @@ def _guards(p: BallParams, x: ca.SX) -> tuple[Guard, ...]:
     return floor, wall, circle_in, circle_out
 
 
+def ball_drawing(p: BallParams) -> Drawing:
+    """The ball's 3D scene: floor, wall and circle where the parameters put them.
+
+    The floor (y = 0 over ``floor_extent``) and the wall (x = 0 over ``wall_extent``) are
+    the surfaces the ball bounces on (their guards act on its centre, ``radius`` away);
+    the circle is the guard |p - c| = R of the centre. The body is a sphere of the
+    ball's radius (at least 2 cm, so a point ball stays visible) at (px, py), which also
+    traces plans and rollouts.
+    """
+    fx, wy = p.floor_extent, p.wall_extent
+    brown, teal = (0.55, 0.4, 0.25, 1.0), (0.1, 0.7, 0.6, 1.0)
+    static = (Polyline("floor", ((fx[0], 0.0), (fx[1], 0.0)), brown, 0.04),
+              Polyline("wall", ((0.0, wy[0]), (0.0, wy[1])), brown, 0.04),
+              circle("circle", p.circle_center, p.circle_radius, teal, 0.03))
+    return Drawing(points=lambda x: x[0:2].reshape(2, 1), point_names=("ball",),
+                   balls=(Ball("ball", max(p.radius, 0.02)),), trace=("ball",),
+                   static=static)
+
+
 def build_ball(p: BallParams) -> HybridSystem:
     """Builds the ball's hybrid system from validated parameters."""
     x = ca.SX.sym("x", 4)
@@ -145,6 +165,7 @@ def build_ball(p: BallParams) -> HybridSystem:
         tracking_gain=gain,
         params=p.model_dump(),
         plane=("px", "py"),
+        drawing=ball_drawing(p),
     )
 
 

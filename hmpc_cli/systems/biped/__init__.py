@@ -23,7 +23,8 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from hmpc_cli.hybrid import Guard, HybridSystem, Mode
+from hmpc_cli.drawing import Ball, Drawing, Polyline
+from hmpc_cli.hybrid import Guard, HybridSystem, Mode, Terrain
 from hmpc_cli.registry import Requirement, SystemSpec
 from hmpc_cli.systems.biped.model import (
     N_Q, POINT_NAMES, STANCE_X, BipedModel, make_biped_model, state_box)
@@ -83,6 +84,28 @@ def _outputs(model: BipedModel, x: ca.SX) -> dict[str, ca.Function]:
     }
 
 
+def biped_drawing(model: BipedModel, terrain: Terrain) -> Drawing:
+    """The biped's 3D scene: the stairs, the stick figure, hip and swing-foot traces.
+
+    The stairs are one polyline from 1 m before x = 0 over every segment; the body is
+    the ``points_world`` joints joined along :data:`SKELETON`, with spheres on the feet;
+    plans and rollouts trace the hip and the swing foot.
+    """
+    pts = [(-1.0, terrain.ground), (0.0, terrain.ground)]
+    for start, end, height in terrain.segments:
+        pts += [(start, height), (end, height)]
+    stairs = Polyline("stairs", tuple(pts), (0.55, 0.4, 0.25, 1.0), 0.03)
+    points_world = model.points_world
+
+    def points(x: np.ndarray) -> np.ndarray:
+        return np.asarray(points_world(x), dtype=float)
+
+    return Drawing(points=points, point_names=POINT_NAMES, links=SKELETON,
+                   balls=(Ball("stance_foot", 0.03, (0.2, 0.2, 0.2, 1.0)),
+                          Ball("swing_foot", 0.03, (0.9, 0.4, 0.1, 1.0))),
+                   trace=("hip", "swing_foot"), static=(stairs,))
+
+
 def build_biped(p: BipedParams) -> HybridSystem:
     """Builds the biped's hybrid system from validated parameters."""
     model = make_biped_model(p)
@@ -97,6 +120,7 @@ def build_biped(p: BipedParams) -> HybridSystem:
         return np.hstack([kp * np.eye(N_Q), kd * np.eye(N_Q), np.zeros((N_Q, 2))])
 
     guards = _guards(p, model, x)
+    terrain = stair_terrain(p)
     return HybridSystem(
         name="biped",
         state_names=(*(f"q{i}" for i in range(1, 6)), *(f"dq{i}" for i in range(1, 6)),
@@ -118,9 +142,10 @@ def build_biped(p: BipedParams) -> HybridSystem:
         outputs=_outputs(model, x),
         point_names=POINT_NAMES,
         skeleton=SKELETON,
-        terrain=stair_terrain(p),
+        terrain=terrain,
         state_box=state_box(p),
         guard_surfaces={i: seg for i, seg in enumerate(stair_edges(p))},
+        drawing=biped_drawing(model, terrain),
     )
 
 

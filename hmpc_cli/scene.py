@@ -1,0 +1,193 @@
+"""The run log's 3D scene: ``foxglove.SceneUpdate`` messages on the ``/scene/*`` topics.
+
+Built from the system's :class:`~hmpc_cli.drawing.Drawing` (None: no scene) with the
+published Foxglove protobuf schemas (``foxglove_schemas_protobuf``), so Foxglove and
+Lichtblick draw a run in their 3D panel. All entities are in frame ``world``; the system's
+plane (a, b) stands upright as world (a, 0, b): z is the plane's "up".
+
+Topics and entities (ids), all entities with lifetime 0 (kept until replaced by id):
+
+* ``/scene/static``: ``static/<name>``, the drawing's static polylines (guards, walls,
+  terrain), written once at t = 0, ``frame_locked``;
+* ``/scene/body``: ``body``, links (line list) and balls (spheres) at each /sim/state
+  sample, at most ``max_rate_hz`` (60 Hz) times per simulated second;
+* ``/scene/plan``: at each MPC solve, ``plan``, one line strip per trace point through the
+  plan's nodes (one vertex per node), and ``tube``, spheres of the MPC's tube radius (its
+  margins' ``radius``, in the state norm, drawn in the plane) around the first trace
+  point at up to :data:`TUBE_SPHERES` plan nodes (only with margins);
+* ``/scene/rollout``: ``rollout``, at each planner call with a trajectory, one line strip
+  per trace point.
+
+One topic per kind because a viewer that seeks shows the latest message of each topic:
+the static geometry, the body and the current plan all stay on screen after a seek.
+
+The protobuf modules are imported when a writer is made (not at import time).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from hmpc_cli.drawing import Drawing, Rgba
+from hmpc_cli.messages import Plan, Trajectory
+
+__all__ = ["BODY", "FRAME", "MAX_RATE_HZ", "PLAN", "ROLLOUT", "STATIC", "TOPICS", "TUBE_SPHERES",
+           "SceneWriter", "open_scene", "to_world"]
+
+STATIC, BODY, PLAN, ROLLOUT = "/scene/static", "/scene/body", "/scene/plan", "/scene/rollout"
+TOPICS = (STATIC, BODY, PLAN, ROLLOUT)
+FRAME = "world"
+MAX_RATE_HZ = 60.0
+TUBE_SPHERES = 30
+_NS_PER_S = 1_000_000_000
+PLAN_COLORS: tuple[Rgba, ...] = ((0.1, 0.6, 0.1, 1.0), (0.6, 0.2, 0.7, 1.0),
+                                 (0.1, 0.5, 0.8, 1.0))
+REJECTED: Rgba = (0.8, 0.2, 0.2, 0.6)
+ORANGE: Rgba = (0.95, 0.65, 0.1, 0.8)
+TUBE: Rgba = (0.1, 0.6, 0.1, 0.25)
+
+
+def to_world(points: np.ndarray) -> np.ndarray:
+    """Plane points (..., 2) -> world points (..., 3) = (a, 0, b) [m]."""
+    p = np.asarray(points, dtype=float)
+    return np.stack([p[..., 0], np.zeros(p.shape[:-1]), p[..., 1]], axis=-1)
+
+
+class SceneWriter:
+    """Writes the ``/scene/*`` topics of one run (see the module docstring).
+
+    Args:
+        recorder: an open :class:`~hmpc_cli.recorder.Recorder` (protobuf topics).
+        drawing: the system's drawing.
+        tube_radius: the MPC's tube radius (margins ``radius``), or None (no tube).
+        max_rate_hz: at most this many body updates per simulated second.
+    """
+
+    def __init__(self, recorder: Any, drawing: Drawing, tube_radius: float | None = None,
+                 max_rate_hz: float = MAX_RATE_HZ) -> None:
+        from foxglove_schemas_protobuf import (
+            Color_pb2, LinePrimitive_pb2, Point3_pb2, Pose_pb2, Quaternion_pb2,
+            SceneEntity_pb2, SceneUpdate_pb2, SpherePrimitive_pb2, Vector3_pb2)
+
+        self.pb = {"Color": Color_pb2.Color, "Line": LinePrimitive_pb2.LinePrimitive,
+                   "Point3": Point3_pb2.Point3, "Pose": Pose_pb2.Pose,
+                   "Quaternion": Quaternion_pb2.Quaternion,
+                   "Entity": SceneEntity_pb2.SceneEntity,
+                   "Sphere": SpherePrimitive_pb2.SpherePrimitive,
+                   "Update": SceneUpdate_pb2.SceneUpdate, "Vector3": Vector3_pb2.Vector3}
+        self.rec, self.drawing = recorder, drawing
+        self.tube_radius = tube_radius if tube_radius and tube_radius > 0 else None
+        self.period = 1.0 / max_rate_hz
+        self._next = 0.0
+        for topic in TOPICS:
+            self.rec.add_protobuf_topic(topic, self.pb["Update"])
+
+    # ------------------------------------------------------------ primitives
+    def _pose(self, center: np.ndarray | None = None) -> Any:
+        """A pose at world point `center` (3,) (default the origin), no rotation."""
+        pos = self.pb["Vector3"]()
+        if center is not None:
+            pos.x, pos.y, pos.z = (float(v) for v in center)
+        return self.pb["Pose"](position=pos, orientation=self.pb["Quaternion"](w=1.0))
+
+    def _line(self, kind: str, world: np.ndarray, color: Rgba, thickness: float) -> Any:
+        """A line primitive of `kind` (LINE_STRIP, LINE_LOOP, LINE_LIST), points (K, 3)."""
+        Line, Point3 = self.pb["Line"], self.pb["Point3"]
+        return Line(type=Line.Type.Value(kind), pose=self._pose(), thickness=float(thickness),
+                    color=self.pb["Color"](r=color[0], g=color[1], b=color[2], a=color[3]),
+                    points=[Point3(x=float(p[0]), y=float(p[1]), z=float(p[2]))
+                            for p in world])
+
+    def _sphere(self, center: np.ndarray, radius: float, color: Rgba) -> Any:
+        """A sphere primitive of `radius` [m] at world point `center` (3,)."""
+        d = 2.0 * float(radius)
+        return self.pb["Sphere"](pose=self._pose(center), size=self.pb["Vector3"](x=d, y=d, z=d),
+                                 color=self.pb["Color"](r=color[0], g=color[1], b=color[2],
+                                                        a=color[3]))
+
+    def _entity(self, t: float, entity_id: str, frame_locked: bool = False,
+                **primitives: list) -> Any:
+        """A scene entity at sim time `t` [s], lifetime 0 (kept until replaced)."""
+        entity = self.pb["Entity"](frame_id=FRAME, id=entity_id, frame_locked=frame_locked,
+                                   **primitives)
+        entity.timestamp.FromNanoseconds(round(t * _NS_PER_S))
+        return entity
+
+    def _write(self, topic: str, t: float, entities: list) -> None:
+        self.rec.write_protobuf(topic, t, self.pb["Update"](entities=entities))
+
+    # --------------------------------------------------------------- topics
+    def start(self) -> None:
+        """Writes the static geometry once at t = 0 (``static/<name>``, frame-locked)."""
+        entities = []
+        for line in self.drawing.static:
+            kind = "LINE_LOOP" if line.closed else "LINE_STRIP"
+            prim = self._line(kind, to_world(np.array(line.points)), line.color, line.thickness)
+            entities.append(self._entity(0.0, f"static/{line.name}", True, lines=[prim]))
+        if entities:
+            self._write(STATIC, 0.0, entities)
+
+    def state(self, t: float, x: np.ndarray) -> None:
+        """The ``body`` at state x (n,) and time t [s]; skipped within the rate limit."""
+        if t < self._next - 1e-9:
+            return
+        self._next = t + self.period
+        d = self.drawing
+        pts = to_world(d.body(x).T)  # (P, 3)
+        segs = [pts[[d.index(a), d.index(b)]] for line in d.links
+                for a, b in zip(line[:-1], line[1:], strict=True)]
+        lines = []
+        if segs:
+            lines.append(self._line("LINE_LIST", np.concatenate(segs), d.link_color,
+                                    d.link_thickness))
+        spheres = [self._sphere(pts[d.index(b.point)], b.radius, b.color) for b in d.balls]
+        self._write(BODY, t, [self._entity(t, "body", lines=lines, spheres=spheres)])
+
+    def _traces(self, xs: np.ndarray, colors: tuple[Rgba, ...], thickness: float) -> list:
+        """One line strip per trace point along states xs (K, n)."""
+        traced = to_world(self.drawing.traced(xs))  # (T, K, 3)
+        return [self._line("LINE_STRIP", path, colors[i % len(colors)], thickness)
+                for i, path in enumerate(traced)]
+
+    def plan(self, t: float, plan: Plan) -> None:
+        """The ``plan`` (and ``tube``) of an MPC solve at time t [s]."""
+        if not self.drawing.trace or len(plan.traj.x) == 0:
+            return
+        xs = np.atleast_2d(np.asarray(plan.traj.x, dtype=float))
+        colors = PLAN_COLORS if plan.adopt else (REJECTED,)
+        entities = [self._entity(t, "plan", lines=self._traces(xs, colors, 0.015))]
+        if self.tube_radius is not None:
+            nodes = np.unique(np.linspace(0, len(xs) - 1, min(len(xs), TUBE_SPHERES)).round())
+            centers = to_world(self.drawing.traced(xs[nodes.astype(int)])[0])
+            entities.append(self._entity(t, "tube", spheres=[
+                self._sphere(c, self.tube_radius, TUBE) for c in centers]))
+        self._write(PLAN, t, entities)
+
+    def rollout(self, t: float, trajectory: Trajectory | None) -> None:
+        """The planner's ``rollout`` at time t [s] (nothing without a trajectory)."""
+        if trajectory is None or not self.drawing.trace or len(trajectory.x) == 0:
+            return
+        xs = np.atleast_2d(np.asarray(trajectory.x, dtype=float))
+        self._write(ROLLOUT, t, [self._entity(t, "rollout",
+                                              lines=self._traces(xs, (ORANGE,), 0.01))])
+
+
+def open_scene(recorder: Any, system: Any, margins: dict | None = None,
+               max_rate_hz: float = MAX_RATE_HZ) -> SceneWriter | None:
+    """The scene writer of a run, its static geometry written; None without a drawing.
+
+    Args:
+        recorder: the run's open recorder.
+        system: the simulated :class:`~hmpc_cli.hybrid.HybridSystem` (its ``drawing``).
+        margins: the MPC's margins record (``/run/info`` ``margins``: its ``radius`` is
+            the tube's), or None.
+        max_rate_hz: at most this many body updates per simulated second.
+    """
+    if recorder is None or getattr(system, "drawing", None) is None:
+        return None
+    radius = (margins or {}).get("radius")
+    writer = SceneWriter(recorder, system.drawing, radius, max_rate_hz)
+    writer.start()
+    return writer
