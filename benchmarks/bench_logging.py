@@ -3,9 +3,10 @@
 Run on demand:  python benchmarks/bench_logging.py [--runs N] [--scenario PATH]
 
 Builds the scenario's loop once per variant and run (the NLPs are cached per process, so
-both variants find the same process state), runs it with a recorder writing run.mcap
-("on") and with no recorder ("off"), alternating, and prints the median and p95 of the
-run wall times, the overhead ratio (on / off - 1, target < 5 %) and the log size. The
+both variants find the same process state), runs it as ``hmpc run`` does (run.mcap with
+the typed topics and the 3D scene: "on") and with no recorder ("off"), alternating, and
+prints the median and p95 of the run wall times, the overhead ratio (on / off - 1,
+target < 5 %) and the log size. The
 loop itself is identical; only the writing of the topics differs. On a busy machine the
 wall-time ratio is noisy, so the log-on runs also time every RunLog call from inside
 (perf_counter around each): their share of the run is the overhead without the noise.
@@ -19,10 +20,10 @@ import os
 import statistics
 import tempfile
 import time
+from pathlib import Path
 
-from hmpc_cli.recorder import Recorder
 from hmpc_cli.runlog import RunLog
-from hmpc_cli.runner import prepare
+from hmpc_cli.runner import execute_run, prepare
 from hmpc_cli.scenario import load_scenario
 
 LOGGED = ("step", "state", "event", "planner", "solve", "summary")
@@ -54,21 +55,18 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 
 
 def one_run(scenario: str, log: bool) -> tuple[float, int]:
-    """(wall time [s], log bytes) of one run with the log on or off."""
-    sc, _ = load_scenario(scenario)
+    """(wall time [s], log bytes) of one run with the log on (as ``hmpc run`` writes it:
+    the typed topics and the 3D scene) or off (no recorder)."""
+    sc, toml_text = load_scenario(scenario)
     loop = prepare(sc)
     with tempfile.TemporaryDirectory() as tmp:
-        path = os.path.join(tmp, "run.mcap")
-        rec = Recorder(path) if log else None
-        loop.log.rec = rec
         start = time.perf_counter()
-        try:
+        if log:
+            execute_run(loop, toml_text, Path(tmp))
+        else:
             loop.run()
-        finally:
-            if rec is not None:
-                rec.close()
         wall = time.perf_counter() - start
-        return wall, os.path.getsize(path) if log else 0
+        return wall, os.path.getsize(Path(tmp) / "run.mcap") if log else 0
 
 
 def main() -> None:

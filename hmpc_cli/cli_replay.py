@@ -205,6 +205,10 @@ def replay_command(
     check: Annotated[bool, typer.Option(
         "--verify", help="re-run the attached scenario with the same seed and compare the "
         "logs (exit 1 at the first divergence)")] = False,
+    figures: Annotated[Path | None, typer.Option(
+        "--figures", metavar="DIR", help="re-render the run's figures (those its system "
+        "supports) and an animation of its logged scene (scene.gif; scene.mp4 with "
+        "ffmpeg) into this directory")] = None,
 ) -> None:
     """Replay a recorded run: identity, summary, timeline; filter, export, verify."""
     from rich.console import Console
@@ -234,5 +238,34 @@ def replay_command(
     if export is not None:
         _export(console, rp, selected, export, fmt.lower(),
                 {"from": t_from, "to": t_to, "topics": topics or "all"})
+    if figures is not None:
+        _figures(console, rp, figures)
     if check:
         _verify(console, rp)
+
+
+def _figures(console, rp, out: Path) -> None:
+    """Writes the run's figures and its scene animation into ``out`` (what applies)."""
+    from rich.markup import escape
+
+    from hmpc_cli.figures.common import FigureInputError
+    from hmpc_cli.figures.fig2 import fig2
+    from hmpc_cli.figures.fig4 import fig4
+    from hmpc_cli.figures.scene_anim import animate_scene
+
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        _fail([f"--figures {out}: cannot write ({exc})"])
+    title = str(rp.info.get("scenario_name", rp.path.stem))
+    jobs = (("fig2", lambda: fig2(rp.path, out, ["pdf", "png"])),
+            ("fig4", lambda: fig4(rp.path, out, ["pdf", "png"])),
+            ("scene animation", lambda: animate_scene(rp.log, out, title)))
+    for name, job in jobs:
+        try:
+            job()
+            console.print(f"figures: {name} written to {escape(str(out))}")
+        except FigureInputError as exc:
+            console.print(f"figures: {name} not drawn: {escape(str(exc))}")
+        except OSError as exc:
+            _fail([f"--figures {out}: cannot write ({exc})"])

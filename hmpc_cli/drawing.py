@@ -82,6 +82,8 @@ class Drawing:
         static: world geometry drawn once.
         link_color: RGBA of the links.
         link_thickness: width of the links [m].
+        points_many: optional batched ``points``: states (K, n) -> (K, 2, P) [m] (plans and
+            rollouts are drawn from it in one call).
     """
 
     points: Callable[[np.ndarray], np.ndarray]
@@ -92,6 +94,7 @@ class Drawing:
     static: tuple[Polyline, ...] = ()
     link_color: Rgba = (0.2, 0.3, 0.8, 1.0)
     link_thickness: float = 0.03
+    points_many: Callable[[np.ndarray], np.ndarray] | None = None
 
     def __post_init__(self) -> None:
         named = set(self.point_names)
@@ -106,13 +109,18 @@ class Drawing:
 
     def body(self, x: np.ndarray) -> np.ndarray:
         """The body points of state x, shape (n,) -> (2, P) [m]."""
-        pts = np.asarray(self.points(np.asarray(x, dtype=float)), dtype=float)
+        x = np.asarray(x, dtype=float)
+        if self.points_many is not None:
+            return np.asarray(self.points_many(x[None]), dtype=float)[0]
+        pts = np.asarray(self.points(x), dtype=float)
         return pts.reshape(2, len(self.point_names))
 
     def traced(self, xs: np.ndarray) -> np.ndarray:
         """The trace points along states xs, shape (K, n) -> (T, K, 2) [m]."""
         cols = [self.index(n) for n in self.trace]
         xs = np.atleast_2d(np.asarray(xs, dtype=float))
+        if self.points_many is not None:  # (K, 2, P) -> (T, K, 2)
+            return np.asarray(self.points_many(xs), dtype=float)[:, :, cols].transpose(2, 0, 1)
         out = np.empty((len(cols), len(xs), 2))
         for k, x in enumerate(xs):
             out[:, k, :] = self.body(x)[:, cols].T

@@ -24,6 +24,10 @@ from hmpc_cli.drawing import Drawing
 from hmpc_cli.numeric import compile_numpy
 
 
+#: fields of a logged plan node besides the state and input names
+RESERVED_NAMES = frozenset({"t", "seg", "mode", "mode_name"})
+
+
 def _linear_margin(lipschitz: float) -> Callable[[float, bool], float]:
     def margin(d: float, past: bool) -> float:
         return lipschitz * d
@@ -222,6 +226,13 @@ class HybridSystem:
                 raise ValueError(f"{self.name}: skeleton names unknown points {line}")
         if self.plane is not None and not set(self.plane) <= set(self.state_names):
             raise ValueError(f"{self.name}: plane {self.plane} names unknown states")
+        vector_names = [*self.state_names, *self.input_names]
+        clash = sorted({n for n in vector_names if vector_names.count(n) > 1}
+                       | (set(vector_names) & RESERVED_NAMES))
+        if clash:
+            raise ValueError(f"{self.name}: state and input names must be distinct and not "
+                             f"{sorted(RESERVED_NAMES)} (a logged plan node holds them all): "
+                             f"{clash}")
 
     def output(self, name: str) -> ca.Function:
         """The named output ``name``.

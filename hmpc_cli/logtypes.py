@@ -25,7 +25,8 @@ import numpy as np
 __all__ = [
     "LOG_VERSION", "TOPICS", "Detail", "GuardEventRec", "MarginsRec", "MpcSolve",
     "Names", "PlanNode", "PlannerCall", "RolloutNode", "RunInfo", "ScheduleRec",
-    "StateSample", "StatusCount", "Summary", "Versions", "WRec", "convert", "named",
+    "StateSample", "StatusCount", "Summary", "Versions", "WRec", "convert", "flat_keys",
+    "named",
     "topic_schemas", "validate", "viewer_problems"]
 
 #: the log layout this hmpc writes (1: plain arrays, untyped; 2: this module)
@@ -37,11 +38,13 @@ class Names:
     """A vector written as an object with one field per name of a name set.
 
     ``kind``: ``state``, ``input``, ``disturbance`` or ``guard`` (the system's names);
-    ``value``: the JSON type of each field.
+    ``value``: the JSON type of each field; ``flat``: the names are fields of the
+    enclosing object itself (a plan node's ``px``, ``ux``), not of a nested one.
     """
 
     kind: str
     value: str = "number"
+    flat: bool = False
 
 
 @dataclass(frozen=True)
@@ -167,14 +170,18 @@ class ScheduleRec:
 
 @dataclass(frozen=True)
 class PlanNode:
-    """One node of an MPC plan: absolute time [s], domain segment, mode, state, input."""
+    """One node of an MPC plan: absolute time [s], domain segment, mode, values.
+
+    The state's and the input's named values are fields of the node itself
+    (``plan[:].px``).
+    """
 
     t: float
     seg: int
     mode: int
     mode_name: str
-    x: State
-    u: Input
+    x: Annotated[dict, Names("state", flat=True)]
+    u: Annotated[dict, Names("input", flat=True)]
 
 
 @dataclass(frozen=True)
@@ -198,10 +205,10 @@ class MpcSolve:
 
 @dataclass(frozen=True)
 class RolloutNode:
-    """One node of a planner's rollout: absolute time [s] and state."""
+    """One node of a planner's rollout: absolute time [s] and the state's named values."""
 
     t: float
-    x: State
+    x: Annotated[dict, Names("state", flat=True)]
 
 
 @dataclass(frozen=True)
@@ -318,10 +325,42 @@ def _schema(tp, names: Mapping[str, typing.Sequence[str]],
             raise TypeError(f"array items must be scalars or objects, not {item!r}")
         return {"type": "array", "items": inner}
     if dataclasses.is_dataclass(tp):
-        hints = _hints(tp)
-        return {"title": tp.__name__, "type": "object", "properties": {
-            f.name: _schema(hints[f.name], names, details) for f in dataclasses.fields(tp)}}
+        return _object_schema(tp, names, details)
     raise TypeError(f"no JSON schema for {tp!r}")
+
+
+def _object_schema(tp: type, names: Mapping[str, typing.Sequence[str]],
+                   details: Mapping[str, type | None]) -> dict:
+    """The object schema of a dataclass (flat name fields spliced into its properties)."""
+    hints, props = _hints(tp), {}
+    for f in dataclasses.fields(tp):
+        flat = _flat(hints[f.name])
+        if flat is None:
+            props[f.name] = _schema(hints[f.name], names, details)
+            continue
+        for n in names.get(flat.kind, ()):
+            if n in props:
+                raise TypeError(f"{tp.__name__}: name {n!r} of {flat.kind} names collides "
+                                "with another field")
+            props[n] = {"type": flat.value}
+    return {"title": tp.__name__, "type": "object", "properties": props}
+
+
+def _flat(tp) -> Names | None:
+    """The flat :class:`Names` of a field annotation, or None."""
+    if typing.get_origin(tp) is Annotated:
+        return next((m for m in typing.get_args(tp)[1:]
+                     if isinstance(m, Names) and m.flat), None)
+    return None
+
+
+def flat_keys(cls: type, names: Mapping[str, typing.Sequence[str]]) -> tuple[str, ...]:
+    """The JSON keys of a record with flat name fields, in field order (e.g. PlanNode)."""
+    hints, out = _hints(cls), []
+    for f in dataclasses.fields(cls):
+        flat = _flat(hints[f.name])
+        out += list(names.get(flat.kind, ())) if flat is not None else [f.name]
+    return tuple(out)
 
 
 def topic_schemas(names: Mapping[str, typing.Sequence[str]],

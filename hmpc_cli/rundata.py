@@ -146,6 +146,12 @@ def _vec(value, names) -> np.ndarray:
     return np.array([np.nan if v is None else v for v in vals], dtype=float)
 
 
+def _part(node: dict, key: str) -> dict:
+    """A node's nested vector ``key`` (an early typed layout), else the node itself (flat)."""
+    v = node.get(key)
+    return v if isinstance(v, dict) else node
+
+
 def _mat(rows: list[np.ndarray], width: int) -> np.ndarray:
     return np.vstack(rows) if rows else np.zeros((0, width))
 
@@ -155,8 +161,8 @@ def _plan(d: dict, names: tuple, inputs: tuple) -> tuple:
     if "plan" in d:
         nodes = d.get("plan") or []
         return (np.array([float(n["t"]) for n in nodes]),
-                _mat([_vec(n["x"], names) for n in nodes], len(names)),
-                _mat([_vec(n["u"], inputs) for n in nodes], len(inputs)),
+                _mat([_vec(_part(n, "x"), names) for n in nodes], len(names)),
+                _mat([_vec(_part(n, "u"), inputs) for n in nodes], len(inputs)),
                 np.array([int(n["seg"]) for n in nodes], dtype=int))
     x = np.atleast_2d(np.asarray(d.get("x_plan") or np.zeros((0, len(names))), dtype=float))
     u = np.atleast_2d(np.asarray(d.get("u_plan") or np.zeros((0, len(inputs))), dtype=float))
@@ -186,7 +192,7 @@ def _planner(d: dict, names: tuple) -> PlannerCallData:
     if "rollout" in d:
         nodes = d.get("rollout") or []
         t_r = np.array([float(n["t"]) for n in nodes])
-        x_r = _mat([_vec(n["x"], names) for n in nodes], len(names))
+        x_r = _mat([_vec(_part(n, "x"), names) for n in nodes], len(names))
     else:
         t_r = np.asarray(d.get("t_rollout") or [], dtype=float)
         x_r = np.atleast_2d(np.asarray(d.get("x_rollout") or np.zeros((0, len(names))),

@@ -21,9 +21,9 @@ import numpy as np
 from hmpc_cli import __version__
 from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.logtypes import (
-    LOG_VERSION, GuardEventRec, MarginsRec, MpcSolve, PlannerCall, RolloutNode,
-    RunInfo, ScheduleRec, StateSample, StatusCount, Summary, Versions, WRec, convert, named,
-    topic_schemas)
+    LOG_VERSION, GuardEventRec, MarginsRec, MpcSolve, PlanNode, PlannerCall, RolloutNode,
+    RunInfo, ScheduleRec, StateSample, StatusCount, Summary, Versions, WRec, convert,
+    flat_keys, named, topic_schemas)
 from hmpc_cli.messages import GuardEvent, ModeSchedule, Plan, PlannerResult, Trajectory
 
 SOFTENED_TOL = 1e-6  # a solve whose hybrid-constraint slack exceeds this is "softened"
@@ -200,9 +200,11 @@ class RunLog:
             return
         rollout = ()
         if result.trajectory is not None:
-            rollout = tuple(RolloutNode(float(ti), named(model.state_names, xi))
-                            for ti, xi in zip(result.trajectory.t, result.trajectory.x,
-                                              strict=True))
+            keys = flat_keys(RolloutNode, {"state": model.state_names})
+            traj = result.trajectory
+            rollout = tuple(dict(zip(keys, [ti, *xi], strict=True)) for ti, xi in zip(
+                np.asarray(traj.t, dtype=float).tolist(),
+                np.asarray(traj.x, dtype=float).tolist(), strict=True))
         self._write("/planner/plan", t, PlannerCall(
             t, reason, bool(accepted), bool(result.reached_final), float(result.cost),
             float(result.wall_time), int(result.iterations), note,
@@ -247,14 +249,14 @@ class RunLog:
 
 def plan_nodes(traj: Trajectory, t0: float, model: HybridSystem) -> tuple[dict, ...]:
     """A plan's nodes as :class:`PlanNode` records (absolute times: t0 + traj.t)."""
-    sn, un, modes = model.state_names, model.input_names, [m.name for m in model.modes]
+    keys = flat_keys(PlanNode, {"state": model.state_names, "input": model.input_names})
+    modes = [m.name for m in model.modes]
     ts = (np.asarray(traj.t, dtype=float) + t0).tolist()
     xs = np.asarray(traj.x, dtype=float).tolist()
     us = np.asarray(traj.u, dtype=float).tolist()
-    # plain dicts with PlanNode's fields (the schema's; tests validate every message):
-    # a dataclass per node costs more than the rest of the logging of a solve
-    return tuple({"t": ti, "seg": sg, "mode": md, "mode_name": modes[md],
-                  "x": dict(zip(sn, xi, strict=False)), "u": dict(zip(un, ui, strict=False))}
+    # one plain dict per node with PlanNode's keys (the schema's; tests validate every
+    # message): a dataclass per node costs more than the rest of the logging of a solve
+    return tuple(dict(zip(keys, [ti, sg, md, modes[md], *xi, *ui], strict=True))
                  for ti, sg, md, xi, ui in zip(ts, np.asarray(traj.seg).tolist(),
                                                np.asarray(traj.mode).tolist(), xs, us,
                                                strict=True))

@@ -10,7 +10,8 @@ Topics and entities (ids), all entities with lifetime 0 (kept until replaced by 
 * ``/scene/static``: ``static/<name>``, the drawing's static polylines (guards, walls,
   terrain), written once at t = 0, ``frame_locked``;
 * ``/scene/body``: ``body``, links (line list) and balls (spheres) at each /sim/state
-  sample, at most ``max_rate_hz`` (60 Hz) times per simulated second;
+  sample, at most ``max_rate_hz`` (30 Hz) times per simulated second (the scene's share
+  of the logging overhead: ``benchmarks/bench_logging.py``);
 * ``/scene/plan``: at each MPC solve, ``plan``, one line strip per trace point through the
   plan's nodes (one vertex per node), and ``tube``, spheres of the MPC's tube radius (its
   margins' ``radius``, in the state norm, drawn in the plane) around the first trace
@@ -39,8 +40,8 @@ __all__ = ["BODY", "FRAME", "MAX_RATE_HZ", "PLAN", "ROLLOUT", "STATIC", "TOPICS"
 STATIC, BODY, PLAN, ROLLOUT = "/scene/static", "/scene/body", "/scene/plan", "/scene/rollout"
 TOPICS = (STATIC, BODY, PLAN, ROLLOUT)
 FRAME = "world"
-MAX_RATE_HZ = 60.0
-TUBE_SPHERES = 30
+MAX_RATE_HZ = 30.0
+TUBE_SPHERES = 12
 _NS_PER_S = 1_000_000_000
 PLAN_COLORS: tuple[Rgba, ...] = ((0.1, 0.6, 0.1, 1.0), (0.6, 0.2, 0.7, 1.0),
                                  (0.1, 0.5, 0.8, 1.0))
@@ -94,11 +95,13 @@ class SceneWriter:
 
     def _line(self, kind: str, world: np.ndarray, color: Rgba, thickness: float) -> Any:
         """A line primitive of `kind` (LINE_STRIP, LINE_LOOP, LINE_LIST), points (K, 3)."""
-        Line, Point3 = self.pb["Line"], self.pb["Point3"]
-        return Line(type=Line.Type.Value(kind), pose=self._pose(), thickness=float(thickness),
-                    color=self.pb["Color"](r=color[0], g=color[1], b=color[2], a=color[3]),
-                    points=[Point3(x=float(p[0]), y=float(p[1]), z=float(p[2]))
-                            for p in world])
+        Line = self.pb["Line"]
+        line = Line(type=Line.Type.Value(kind), pose=self._pose(), thickness=float(thickness),
+                    color=self.pb["Color"](r=color[0], g=color[1], b=color[2], a=color[3]))
+        add = line.points.add
+        for x, y, z in np.asarray(world, dtype=float).tolist():
+            add(x=x, y=y, z=z)
+        return line
 
     def _sphere(self, center: np.ndarray, radius: float, color: Rgba) -> Any:
         """A sphere primitive of `radius` [m] at world point `center` (3,)."""

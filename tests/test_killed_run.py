@@ -1,6 +1,7 @@
 """A run killed mid-way leaves a log whose completed chunks read back."""
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -37,3 +38,11 @@ def test_sigkilled_run_leaves_a_readable_log(tmp_path):
     times = [m.t for m in states]
     assert times == sorted(times)
     assert log.topic("/mpc/solve"), "solves before the kill are in the log"
+    # hmpc replay reads it up to its last completed chunk and says where it was cut
+    rp = subprocess.run([sys.executable, "-m", "hmpc_cli.cli", "replay", str(out), "--topic",
+                         "summary"], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert rp.returncode == 0, rp.stderr
+    text = " ".join(rp.stdout.split())
+    cut = re.search(r"cut short at t = ([0-9.]+) s", text)
+    assert cut and float(cut.group(1)) >= round(times[-1], 3) - 1e-3
+    assert "no summary (the run did not finish)" in text and "Traceback" not in rp.stderr

@@ -60,13 +60,16 @@ def test_states_plans_and_details_are_named(logs):
     state = log.topic("/sim/state")[0].data
     assert list(state["x"]) == info["state_names"] and state["mode_name"] == "single_support"
     solve = log.topic("/mpc/solve")[0].data
-    node = solve["plan"][0]
-    assert list(node["x"]) == info["state_names"] and list(node["u"]) == info["input_names"]
+    node = solve["plan"][0]  # plan[:].q1 ...: the names are the node's own fields
+    assert list(node) == ["t", "seg", "mode", "mode_name", *info["state_names"],
+                          *info["input_names"]]
     assert set(solve["detail"]) == {"segment", "elapsed", "warm", "touchdown", "final_hip"}
     plan = log.topic("/planner/plan")[0].data
     assert plan["detail"]["candidates"][0]["guard_name"].startswith("stair_")
-    schema = log.schemas["/mpc/solve"]["properties"]["plan"]["items"]["properties"]["x"]
-    assert list(schema["properties"]) == info["state_names"]
+    schema = log.schemas["/mpc/solve"]["properties"]["plan"]["items"]
+    assert list(schema["properties"]) == list(node)
+    rollout = log.schemas["/planner/plan"]["properties"]["rollout"]["items"]
+    assert list(rollout["properties"]) == ["t", *info["state_names"]]
 
 
 def test_read_run_gives_arrays_per_topic(logs):

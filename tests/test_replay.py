@@ -138,7 +138,7 @@ def test_csv_export(ball, ball_log, tmp_path) -> None:
         set(header)
     with open(out / "mpc_solve_plan.csv") as f:
         rows = list(csv.DictReader(f))
-    assert set(rows[0]) >= {"msg_t", "index", "t", "seg", "x.px", "x.vy", "u.ux"}
+    assert set(rows[0]) >= {"msg_t", "index", "t", "seg", "mode_name", "px", "vy", "ux"}
     with open(out / "sim_state.csv") as f:
         header = next(csv.reader(f))
     assert {"t", "x.px", "x.vy", "u.uy", "w.wy", "mode", "mode_name"} <= set(header)
@@ -365,3 +365,18 @@ def test_foreign_log_with_a_run_info_topic(tmp_path) -> None:
         rec.write("/run/info", 0.0, {"robot": "arm"})
     assert _error_line(replay(path)) == (
         f"error: {path}: not an hmpc run log (its /run/info has no scenario_name)")
+
+
+@pytest.mark.parametrize("system", ["ball", "biped"])
+def test_figures_and_the_scene_animation(system, request, tmp_path) -> None:
+    """--figures: the figures the system supports, the others named; a GIF of the scene."""
+    run = request.getfixturevalue(system)
+    res = replay(run, "--topic", "summary", "--figures", tmp_path / "f")
+    assert res.exit_code == 0, res.output
+    out = " ".join(res.output.split())
+    drawn, skipped = ("fig2", "fig4") if system == "ball" else ("fig4", "fig2")
+    assert f"figures: {drawn} written" in out and f"figures: {skipped} not drawn" in out
+    assert (tmp_path / "f" / f"{drawn}.png").is_file()
+    assert not (tmp_path / "f" / f"{skipped}.png").exists()
+    gif = (tmp_path / "f" / "scene.gif").read_bytes()
+    assert gif[:6] in (b"GIF87a", b"GIF89a") and gif.count(b"\x21\xf9\x04") > 5  # frames

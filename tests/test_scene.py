@@ -92,9 +92,12 @@ def test_ball_sphere_is_at_the_logged_state(ball):
     sc, log, _ = ball
     states = {m.log_time_ns: list(m.data["x"].values()) for m in log.topic("/sim/state")}
     bodies = entities(log, "body")
-    assert len(bodies) >= 0.5 * 50  # 100 Hz states drawn at <= 60 Hz: every second one
+    from hmpc_cli.scene import MAX_RATE_HZ
+
+    # 0.5 s of 100 Hz states drawn at <= 30 Hz: every 4th sample (25 Hz), 13 of them
+    assert len(bodies) == 13
     times = [ns for ns, _ in bodies]
-    assert min(np.diff(times)) >= 1e9 / 60 - 1
+    assert min(np.diff(times)) >= 1e9 / MAX_RATE_HZ - 1
     for ns, e in bodies:
         (sphere,) = e.spheres
         x = states[ns]
@@ -123,7 +126,8 @@ def test_plan_line_has_a_vertex_per_node(ball):
     radius = log.topic("/run/info")[0].data["margins"]["radius"]
     tubes = dict(entities(log, "tube"))
     for ns, e in plans:
-        x_plan = np.array([list(n["x"].values()) for n in solves[ns]["plan"]])
+        x_plan = np.array([[n[k] for k in ("px", "py", "vx", "vy")]
+                           for n in solves[ns]["plan"]])
         (line,) = e.lines
         pts = np.array([xyz(p) for p in line.points])
         assert pts.shape == (len(x_plan), 3)

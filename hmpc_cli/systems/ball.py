@@ -128,6 +128,7 @@ def ball_drawing(p: BallParams) -> Drawing:
               Polyline("wall", ((0.0, wy[0]), (0.0, wy[1])), brown, 0.04),
               circle("circle", p.circle_center, p.circle_radius, teal, 0.03))
     return Drawing(points=lambda x: x[0:2].reshape(2, 1), point_names=("ball",),
+                   points_many=lambda xs: xs[:, 0:2, None],
                    balls=(Ball("ball", max(p.radius, 0.02)),), trace=("ball",),
                    static=static)
 

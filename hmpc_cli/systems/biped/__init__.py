@@ -24,6 +24,7 @@ import casadi as ca
 import numpy as np
 
 from hmpc_cli.drawing import Ball, Drawing, Polyline
+from hmpc_cli.numeric import compile_numpy
 from hmpc_cli.hybrid import Guard, HybridSystem, Mode, Terrain
 from hmpc_cli.registry import Requirement, SystemSpec
 from hmpc_cli.systems.biped.model import (
@@ -96,11 +97,18 @@ def biped_drawing(model: BipedModel, terrain: Terrain) -> Drawing:
         pts += [(start, height), (end, height)]
     stairs = Polyline("stairs", tuple(pts), (0.55, 0.4, 0.25, 1.0), 0.03)
     points_world = model.points_world
+    batched = compile_numpy(points_world)
+    n_points = len(POINT_NAMES)
 
     def points(x: np.ndarray) -> np.ndarray:
         return np.asarray(points_world(x), dtype=float)
 
+    def points_many(xs: np.ndarray) -> np.ndarray:  # column-major (2, P) nonzeros
+        flat = batched(np.asarray(xs, dtype=float))[0]
+        return flat.reshape(len(xs), n_points, 2).transpose(0, 2, 1)
+
     return Drawing(points=points, point_names=POINT_NAMES, links=SKELETON,
+                   points_many=points_many,
                    balls=(Ball("stance_foot", 0.03, (0.2, 0.2, 0.2, 1.0)),
                           Ball("swing_foot", 0.03, (0.9, 0.4, 0.1, 1.0))),
                    trace=("hip", "swing_foot"), static=(stairs,))
