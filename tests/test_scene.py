@@ -203,3 +203,21 @@ def test_recorder_keeps_json_and_protobuf_topics_apart(tmp_path):
     assert [m.data for m in log.messages] == [{"a": 1}]
     (raw,) = log.raw
     assert raw.t == 0.5 and SceneUpdate.FromString(raw.data).entities[0].id == "e"
+
+
+def test_points_wire_bytes_equal_the_message_api():
+    """The fast line encoding parses to exactly the points the message API builds."""
+    from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
+
+    from hmpc_cli.scene import points_wire
+
+    pts = np.array([[0.0, 1.5, -2.0], [np.nan, 0.0, 1e300], [-0.0, 3.25, 7.0]])
+    fast, slow = LinePrimitive(thickness=0.1), LinePrimitive(thickness=0.1)
+    fast.MergeFromString(points_wire(LinePrimitive.DESCRIPTOR.fields_by_name["points"].number,
+                                     pts))
+    for x, y, z in pts.tolist():
+        slow.points.add(x=x, y=y, z=z)
+    got = np.array([[p.x, p.y, p.z] for p in fast.points])
+    assert np.array_equal(got, pts, equal_nan=True)
+    assert LinePrimitive.FromString(fast.SerializeToString()).points[2].y == 3.25
+    assert [[p.x, p.y, p.z] for p in slow.points][0] == [0.0, 1.5, -2.0]
