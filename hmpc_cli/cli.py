@@ -37,11 +37,29 @@ def run(
     live_port: Annotated[int, typer.Option(
         "--live-port", help="port of the --live server")] = 8765,
 ) -> None:
-    """Run the layered controller in closed loop and log everything to MCAP."""
+    """Run the layered controller in closed loop and log everything to MCAP.
+
+    SIGINT, SIGTERM and SIGHUP stop the run within one simulator step: the log is closed,
+    summary.json says ``interrupted (SIGTERM)``; exit code 128 + the signal number.
+    """
+    from hmpc_cli.signals import Interrupted, handle_signals
+
+    try:
+        with handle_signals():
+            _run(scenario, out, set_ or [], seed, quiet, live, live_port)
+    except Interrupted as exc:
+        raise typer.Exit(exc.exit_code) from None
+    except KeyboardInterrupt:
+        raise typer.Exit(130) from None
+
+
+def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, quiet: bool,
+         live: bool, live_port: int) -> None:
+    """The body of ``hmpc run`` (signal handlers installed)."""
     from hmpc_cli.scenario import ScenarioError, load_scenario
 
     try:
-        sc, toml_text = load_scenario(scenario, set_ or [], seed)
+        sc, toml_text = load_scenario(scenario, sets, seed)
     except ScenarioError as exc:
         _err(exc.lines)
         raise typer.Exit(EXIT_BAD_INPUT) from None
@@ -53,17 +71,11 @@ def run(
     except (PluginError, ValueError) as exc:
         _err([f"{scenario}: {exc}"])
         raise typer.Exit(EXIT_BAD_INPUT) from None
-
-    if out is None:
-        stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
-        out = Path("results") / sc.name / f"{stamp}-seed{sc.seed}"
-    if (out / "run.mcap").exists():
-        _err([f"{out}: already holds a run (choose another --out)"])
-        raise typer.Exit(EXIT_BAD_INPUT)
+    out = _run_dir(out, sc)
     from hmpc_cli.runlog import Provenance
 
     loop.log.provenance = Provenance(overrides=tuple(
-        [*(set_ or []), *([f"seed={seed}"] if seed is not None else [])]))
+        [*sets, *([f"seed={seed}"] if seed is not None else [])]))
     sink = _live_sink(live_port) if live else None
     try:
         result = _execute(loop, sc, toml_text, out, quiet, sink)
@@ -71,6 +83,31 @@ def run(
         if sink is not None:
             sink.close()
     _print_summary(result, out)
+
+
+def _run_dir(out: Path | None, sc) -> Path:
+    """The run directory: ``--out`` (refused if it holds a run) or a new unique default.
+
+    The default ``results/<scenario>/<UTC time>-seed<N>`` is created atomically; a
+    directory of the same name (two runs in one second) gets a suffix ``-2``, ``-3``...
+    """
+    if out is not None:
+        if (out / "run.mcap").exists():
+            _err([f"{out}: already holds a run (choose another --out)"])
+            raise typer.Exit(EXIT_BAD_INPUT)
+        return out
+    stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
+    base = Path("results") / sc.name / f"{stamp}-seed{sc.seed}"
+    base.parent.mkdir(parents=True, exist_ok=True)
+    for k in range(1, 10_000):
+        path = base if k == 1 else base.with_name(f"{base.name}-{k}")
+        try:
+            path.mkdir()
+        except FileExistsError:
+            continue
+        return path
+    _err([f"{base}: cannot create a unique run directory"])
+    raise typer.Exit(EXIT_BAD_INPUT)
 
 
 def _live_sink(port: int):
@@ -105,9 +142,13 @@ def _execute(loop, sc, toml_text: str, out: Path, quiet: bool, sink=None):
                     progress.update(task, completed=i / n, t=i / n * dur, description=desc)
 
             return execute_run(loop, toml_text, out, tick, sink)
-    except KeyboardInterrupt:
-        typer.echo(f"interrupted; partial log in {out / 'run.mcap'}", err=True)
-        raise typer.Exit(130) from None
+    except KeyboardInterrupt as exc:
+        from hmpc_cli.signals import as_interrupted
+
+        stop = as_interrupted(exc)
+        typer.echo(f"interrupted ({stop.name}) at t = {loop.res.t_end:.3f} s; partial log "
+                   f"in {out / 'run.mcap'}", err=True)
+        raise stop from None
 
 
 def _print_summary(r, out: Path) -> None:

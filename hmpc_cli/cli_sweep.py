@@ -58,7 +58,7 @@ def sweep_command(
             raise typer.Exit(EXIT_BAD_INPUT) from None
     out = out if out is not None else Path("results") / "sweeps" / plan.spec.name
     try:
-        outcome = _execute(plan, out, workers or os.cpu_count() or 1, client)
+        outcome = _locked_execute(plan, out, workers or os.cpu_count() or 1, client)
     finally:
         if client is not None:
             client.close()
@@ -69,9 +69,25 @@ def sweep_command(
     if outcome.interrupted:
         typer.echo(f"interrupted: {outcome.done} of {outcome.total} runs done; run the same "
                    "command again to resume", err=True)
-        raise typer.Exit(EXIT_INTERRUPTED)
+        raise typer.Exit(128 + outcome.signum)
     if outcome.lost:
         raise typer.Exit(EXIT_FAILED)
+
+
+def _locked_execute(plan, out: Path, workers: int, client):
+    """:func:`_execute` holding the output directory's lock, stop signals handled.
+
+    Exits 2 when another sweep writes to ``out``.
+    """
+    from hmpc_cli.signals import handle_signals
+    from hmpc_cli.sweep import SweepLockedError, output_lock
+
+    try:
+        with output_lock(out), handle_signals():
+            return _execute(plan, out, workers, client)
+    except SweepLockedError as exc:
+        _err([str(exc)])
+        raise typer.Exit(EXIT_BAD_INPUT) from None
 
 
 def _list_runs(plan) -> None:

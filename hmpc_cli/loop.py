@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hmpc_cli import signals
 from hmpc_cli.messages import (
     OFF_SCHEDULE, SCHEDULED, ConstraintMargins, GuardEvent, ModeSchedule, Plan)
 from hmpc_cli.runlog import RunLog, RunResult, versions
@@ -95,28 +96,64 @@ class ClosedLoop:
 
     # ---------------------------------------------------------------- run
     def run(self) -> RunResult:
-        """Runs to the end of the scenario (or a failure); the log is the caller's."""
+        """Runs to the end of the scenario (or a failure); the log is the caller's.
+
+        A stop signal (:mod:`hmpc_cli.signals`, checked after every step and every solve)
+        or an exception ends the run where it is: the result and /run/summary get the
+        time and state reached and the statistics so far, then the exception propagates
+        (:class:`hmpc_cli.signals.Interrupted` for a signal or Ctrl-C).
+        """
         start = time.perf_counter()
         self.log.open(self.model)
         x = np.array(self.model.x0, dtype=float)
         mode = self.model.mode_index(self.model.initial_mode)
+        self._now = (0.0, x, mode)
+        try:
+            with signals.deferred():
+                x, mode, stopped = self._steps(x, mode)
+        except KeyboardInterrupt as exc:
+            self._abort(start, signals.as_interrupted(exc), "interrupted")
+        except Exception as exc:
+            self._abort(start, exc, f"{type(exc).__name__}: {' '.join(str(exc).split())}")
+        if not stopped:
+            self.res.t_end = self._now[0]
+        t = self.res.t_end
+        self.log.state(t, x, mode, np.zeros(self.model.n_u), x, self.plant.disturbance(t))
+        return self._finish(x, mode, stopped, start)
+
+    def _steps(self, x: np.ndarray, mode: int) -> tuple[np.ndarray, int, bool]:
+        """The simulator loop; returns the final (x, mode, stopped by a failure)."""
         self._start(x, mode)
-        t, stopped = 0.0, False
+        signals.check()
         for i in range(self.n_steps):
             t = i * self.plant.h
             u, x_ref = self.plant.command(t, x, mode, self.st.plan, self.plant.h)
             x, mode, stopped = self._step(i, t, x, mode, u, x_ref)
             if stopped:  # the failure set the end time (the step's start for Zeno)
-                break
+                return x, mode, True
             t = (i + 1) * self.plant.h
+            self._now = (t, x, mode)
             self._after_step(i, t, x, mode, i + 1 == self.n_steps)
             if self.progress is not None:
                 self.progress(i + 1, self.n_steps, self._note())
-        if not stopped:
-            self.res.t_end = t
-        t = self.res.t_end
-        self.log.state(t, x, mode, np.zeros(self.model.n_u), x, self.plant.disturbance(t))
-        return self._finish(x, mode, stopped, start)
+            signals.check()
+        return x, mode, False
+
+    def _abort(self, start: float, exc: BaseException, reason: str) -> None:
+        """Ends an interrupted or crashed run at the last state reached; re-raises ``exc``."""
+        t, x, mode = self._now
+        if isinstance(exc, signals.Interrupted):
+            reason = f"interrupted ({exc.name})"
+        with signals.deferred():
+            r = self.res
+            r.t_end, r.reason = t, reason
+            try:
+                self.log.state(t, x, mode, np.zeros(self.model.n_u), x,
+                               self.plant.disturbance(t))
+                self._finish(x, mode, True, start)
+            except Exception:
+                pass
+        raise exc
 
     def _step(self, i: int, t: float, x: np.ndarray, mode: int, u: np.ndarray,
               x_ref: np.ndarray) -> tuple[np.ndarray, int, bool]:
@@ -235,6 +272,7 @@ class ClosedLoop:
         self.log.solve(t, plan, reason, self.model)
         if plan.adopt:
             st.plan = plan
+        signals.check()
 
     # ------------------------------------------------------------ the end
     def _fail(self, t: float, reason: str, diverged: bool = True) -> bool:

@@ -148,6 +148,8 @@ class RunLog:
             tuple(model.input_names), tuple(model.disturbance_names),
             tuple(m.name for m in model.modes), tuple(g.name for g in model.guards),
             convert(MarginsRec, info["margins"]) if info.get("margins") else None))
+        if hasattr(self.rec, "flush"):
+            self.rec.flush()  # the run's identity on disk at once (a killed run keeps it)
         self.rec.add_metadata("run", {"scenario": self.result.scenario,
                                       "seed": str(self.result.seed),
                                       "log_version": str(LOG_VERSION),

@@ -8,12 +8,16 @@ NLPs are built once per process per (system, MPC settings) by :func:`hmpc_cli.lo
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Callable
 from pathlib import Path
 
+from hmpc_cli import signals
 from hmpc_cli.loop import ClosedLoop, RunResult, build
 from hmpc_cli.recorder import Recorder
 from hmpc_cli.runlog import RunLog
+
+INTERRUPTED = "interrupted"  # a summary reason's prefix: the run was stopped
 
 __all__ = ["execute_run", "jsonable", "prepare", "run_scenario"]
 
@@ -45,29 +49,45 @@ def execute_run(loop: ClosedLoop, toml_text: str, out: Path,
                 mirror=None) -> RunResult:
     """Runs ``loop`` into directory ``out``.
 
-    The log is closed and the summary written even when the run is interrupted
-    (KeyboardInterrupt propagates after that). ``mirror`` (e.g. a
+    The log is closed and the summary written even when the run is interrupted or
+    crashes (``reason``: ``interrupted (SIGTERM)``, or the exception's type and message;
+    the exception propagates after that: :class:`hmpc_cli.signals.Interrupted` for a stop
+    signal). ``mirror`` (e.g. a
     :class:`hmpc_cli.live.LiveSink`) also gets every topic and message of the log.
     """
     out.mkdir(parents=True, exist_ok=True)
     (out / "scenario.toml").write_text(toml_text, encoding="utf-8")
-    rec = Recorder(out / "run.mcap", mirror=mirror)
-    loop.log.rec = rec
-    loop.log.scene = None
-    loop.progress = progress
-    result = None
-    try:
-        rec.add_attachment("scenario.toml", toml_text.encode(), "application/toml")
-        loop.log.scene = _open_scene(loop, rec)
-        result = loop.run()
-    except KeyboardInterrupt:
-        loop.res.reason = "interrupted"
-        raise
-    finally:
-        rec.close()
-        res = result if result is not None else loop.res
-        (out / "summary.json").write_text(json.dumps(jsonable(res.__dict__), indent=2) + "\n")
+    with signals.deferred():  # a signal stops the loop at its next check, not the writes
+        rec = Recorder(out / "run.mcap", mirror=mirror)
+        loop.log.rec = rec
+        loop.log.scene = None
+        loop.progress = progress
+        result = None
+        try:
+            rec.add_attachment("scenario.toml", toml_text.encode(), "application/toml")
+            loop.log.scene = _open_scene(loop, rec)
+            signals.check()
+            result = loop.run()
+        except KeyboardInterrupt as exc:
+            if not loop.res.reason.startswith(INTERRUPTED):
+                loop.res.reason = f"{INTERRUPTED} ({signals.as_interrupted(exc).name})"
+            raise
+        except Exception as exc:
+            if not loop.res.reason:
+                loop.res.reason = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+            raise
+        finally:
+            rec.close()
+            res = result if result is not None else loop.res
+            _write_summary(out, res)
     return result
+
+
+def _write_summary(out: Path, res: RunResult) -> None:
+    """Writes ``summary.json`` atomically (a reader never sees half of it)."""
+    tmp = out / "summary.json.tmp"
+    tmp.write_text(json.dumps(jsonable(res.__dict__), indent=2) + "\n")
+    os.replace(tmp, out / "summary.json")
 
 
 def _open_scene(loop: ClosedLoop, rec: Recorder):

@@ -10,10 +10,12 @@ worker processes or on a Dask cluster, and ``<out>/results.csv`` is rebuilt from
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import itertools
 import json
+import os
 import re
 import shutil
 import signal
@@ -21,15 +23,18 @@ import threading
 import tomllib
 import traceback
 import typing
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from hmpc_cli import signals
 from hmpc_cli.scenario import ScenarioError, format_errors, load_scenario, scenario_model
-from hmpc_cli.sweep_table import INTERRUPTED, METRICS, TIMING, cell_text, finished, write_results  # noqa: F401
+from hmpc_cli.sweep_pool import run_pool
+from hmpc_cli.sweep_table import (  # noqa: F401
+    INTERRUPTED, METRICS, TIMING, cell_text, finished, is_interrupted, write_results)
 
 RESERVED = {"run_id", "seed", "log", *METRICS}
 _KEY = re.compile(r"^[A-Za-z0-9_-]+(\.[A-Za-z0-9_-]+)*$")
@@ -330,19 +335,43 @@ def _bad_keys(src: str, items: list[tuple[str, Any, str]]) -> list[str]:
 
 # ------------------------------------------------------------------------- one run
 _LOCK = threading.Lock()
-_STOP = None  # multiprocessing.Event in pool workers: set by the parent on Ctrl-C
 
 
-def _init_worker(stop) -> None:
-    """Pool worker start: Ctrl-C is the parent's business (it sets ``stop``)."""
-    global _STOP
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _STOP = stop
+class SweepLockedError(Exception):
+    """Another sweep holds the output directory's lock.
+
+    Attributes:
+        out: the directory; pid: the holder's process id (0 if unknown).
+    """
+
+    def __init__(self, out: Path, pid: int) -> None:
+        super().__init__(f"{out}: another sweep is writing here (pid {pid})")
+        self.out, self.pid = out, pid
 
 
-def _check_stop(i: int, n: int, note: str = "") -> None:
-    if i % 10 == 0 and _STOP is not None and _STOP.is_set():
-        raise KeyboardInterrupt
+@contextlib.contextmanager
+def output_lock(out: Path) -> Iterator[None]:
+    """Holds ``<out>/.lock`` (``fcntl.flock``, holding the pid) while a sweep writes there.
+
+    Raises:
+        SweepLockedError: another process holds the lock (nothing is written).
+    """
+    import fcntl
+
+    out.mkdir(parents=True, exist_ok=True)
+    fd = os.open(out / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        text = os.pread(fd, 32, 0).decode(errors="replace").strip()
+        os.close(fd)
+        raise SweepLockedError(out, int(text) if text.isdigit() else 0) from None
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def run_one(toml_text: str, run_dir: str) -> dict:
@@ -363,7 +392,7 @@ def run_one(toml_text: str, run_dir: str) -> dict:
         try:
             sc = scenario_model().model_validate(tomllib.loads(toml_text))
             loop = prepare(sc)
-            execute_run(loop, toml_text, out, _check_stop if _STOP is not None else None)
+            execute_run(loop, toml_text, out)
         except Exception as exc:  # broad on purpose: a failed run is a result
             res = loop.res if loop is not None else RunResult(
                 sc.name if sc else "?", sc.seed if sc else -1)
@@ -377,16 +406,6 @@ def run_one(toml_text: str, run_dir: str) -> dict:
         return json.loads((out / "summary.json").read_text())
 
 
-def _pool_run(toml_text: str, run_dir: str) -> dict | None:
-    """:func:`run_one` in a pool worker; None when stopped by the parent."""
-    if _STOP is not None and _STOP.is_set():
-        return None
-    try:
-        return run_one(toml_text, run_dir)
-    except KeyboardInterrupt:
-        return None
-
-
 # ---------------------------------------------------------------------- the sweep
 @dataclass
 class Outcome:
@@ -398,6 +417,7 @@ class Outcome:
     done: int = 0
     lost: list[str] = field(default_factory=list)
     interrupted: bool = False
+    signum: int = int(signal.SIGINT)
 
 
 def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
@@ -421,7 +441,7 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
         on_start(res.total, res.skipped, sum(bool(s and s.get("success")) for s in done.values()))
 
     def record(run: Run, summary: dict | None) -> None:
-        if summary is not None and summary.get("reason") != INTERRUPTED:
+        if summary is not None and not is_interrupted(summary):
             res.ran += 1
             if on_done:
                 on_done(run, summary)
@@ -433,37 +453,29 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
             for run in pending:
                 record(run, run_one(run.toml, str(out / "runs" / run.run_id)))
         else:
-            _on_pool(min(workers, len(pending)), pending, out, record, res)
-    except KeyboardInterrupt:
+            run_pool(min(workers, len(pending)), pending, out, record,
+                     lambda run, signum: record(run, _worker_died(run, out, signum)))
+    except KeyboardInterrupt as exc:
         res.interrupted = True
+        res.signum = signals.as_interrupted(exc).signum
     finally:
         res.done = write_results(plan, out)
     return res
 
 
-def _on_pool(n: int, pending: list[Run], out: Path, record, res: Outcome) -> None:
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+def _worker_died(run: Run, out: Path, signum: int) -> dict:
+    """Records a run that killed its worker twice as failed; returns its summary."""
+    from hmpc_cli.loop import RunResult
+    from hmpc_cli.runner import jsonable
 
-    ctx = multiprocessing.get_context("spawn")
-    stop = ctx.Event()
-    pool = ProcessPoolExecutor(n, mp_context=ctx, initializer=_init_worker, initargs=(stop,))
-    futures = {pool.submit(_pool_run, r.toml, str(out / "runs" / r.run_id)): r for r in pending}
-    try:
-        for fut in as_completed(futures):
-            _collect(fut, futures[fut], record, res)
-    except KeyboardInterrupt:
-        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-        try:
-            stop.set()
-            for fut in futures:
-                fut.cancel()
-            pool.shutdown(wait=True, cancel_futures=True)
-        finally:
-            signal.signal(signal.SIGINT, previous)
-        raise
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+    d = out / "runs" / run.run_id
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "scenario.toml").write_text(run.toml, encoding="utf-8")
+    sc = tomllib.loads(run.toml)
+    res = RunResult(str(sc.get("name", "?")), int(sc.get("seed", run.seed)))
+    res.reason = f"worker died (signal {signum}) twice"
+    (d / "summary.json").write_text(json.dumps(jsonable(res.__dict__), indent=2) + "\n")
+    return json.loads((d / "summary.json").read_text())
 
 
 def _on_dask(client, pending: list[Run], out: Path, record, res: Outcome) -> None:

@@ -17,6 +17,11 @@ METRICS = ("success", "final_error", "contacts", "solves", "solver_failures", "s
 INTERRUPTED = "interrupted"
 
 
+def is_interrupted(summary: dict) -> bool:
+    """Whether a run summary is of a run stopped by a signal (``interrupted (SIGTERM)``)."""
+    return str(summary.get("reason", "")).startswith(INTERRUPTED)
+
+
 def finished(out: Path, run) -> dict | None:
     """The run's summary if it finished with the same effective scenario, else None."""
     return finished_in(out / "runs" / run.run_id, run.toml)
@@ -25,7 +30,7 @@ def finished(out: Path, run) -> dict | None:
 def finished_in(d: Path, toml_text: str) -> dict | None:
     """The summary of the run in directory ``d``, if it finished there; else None.
 
-    Finished means: summary.json holds a JSON object whose reason is not ``interrupted``,
+    Finished means: summary.json holds a JSON object whose reason is not ``interrupted...``,
     and scenario.toml equals the effective scenario ``toml_text``.
     """
     try:
@@ -33,7 +38,7 @@ def finished_in(d: Path, toml_text: str) -> dict | None:
         same = (d / "scenario.toml").read_text(encoding="utf-8") == toml_text
     except (OSError, ValueError):
         return None
-    if not isinstance(summary, dict) or summary.get("reason") == INTERRUPTED or not same:
+    if not isinstance(summary, dict) or is_interrupted(summary) or not same:
         return None
     return summary
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from hmpc_cli import signals
 from hmpc_cli.messages import SolveStats
 
 INTERRUPTED = "NonIpopt_Exception_Thrown"
@@ -152,7 +153,8 @@ class SolverSession:
         variables without finite bounds zeroed), else the cold one.
 
         Raises:
-            KeyboardInterrupt: the solve was interrupted (Ctrl-C inside IPOPT).
+            KeyboardInterrupt: the solve was interrupted (Ctrl-C inside IPOPT);
+                :class:`hmpc_cli.signals.Interrupted` when a stop signal is pending.
         """
         start = time.perf_counter()
         args = {"x0": w0, "p": p, "lbx": lbx, "ubx": ubx, "lbg": lbg, "ubg": ubg}
@@ -161,14 +163,16 @@ class SolverSession:
             args["lam_g0"] = np.where(np.isfinite(lbg) | np.isfinite(ubg), lam_g0, 0.0)
             args["lam_x0"] = np.where(np.isfinite(lbx) | np.isfinite(ubx), lam_x0, 0.0)
             solver = self.warm
-        try:
-            sol = solver(**args)
-        except RuntimeError as exc:  # CasADi raises on NaN evaluations
-            return failed(w0, str(exc), time.perf_counter() - start)
-        st = solver.stats()
-        status = str(st.get("return_status", st.get("success")))
-        if status == INTERRUPTED:
-            raise KeyboardInterrupt(f"solver interrupted ({status})")
+        with signals.abortable():  # a stop signal cuts the solve (checked after it too)
+            try:
+                sol = solver(**args)
+            except RuntimeError as exc:  # CasADi raises on NaN evaluations
+                return failed(w0, str(exc), time.perf_counter() - start)
+            st = solver.stats()
+            status = str(st.get("return_status", st.get("success")))
+            if status == INTERRUPTED:  # CasADi swallowed the interrupt
+                signals.check()
+                raise KeyboardInterrupt(f"solver interrupted ({status})")
         w = np.asarray(sol["x"]).ravel()
         finite = bool(np.all(np.isfinite(w)))
         cost = float(sol["f"]) if finite else np.nan

@@ -1,0 +1,165 @@
+"""``hmpc run`` stopped by SIGINT, SIGTERM and SIGHUP: clean log, true summary, exit code."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from datetime import datetime
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+from conftest import BALL, cli_env
+from hmpc_cli.recorder import read_log
+
+CODES = {signal.SIGINT: 130, signal.SIGTERM: 143, signal.SIGHUP: 129}
+# solves of ~1 s each: IPOPT cannot converge (tol 1e-300), 150 iterations per solve
+LONG_SOLVES = ["--set", "mpc.max_iter=150", "--set",
+               "mpc.solver_options={ipopt = {tol = 1e-300, acceptable_iter = 0, "
+               "dual_inf_tol = 1e-300, compl_inf_tol = 1e-300}}"]
+
+
+def _start(tmp_path: Path, out: Path, extra: list[str]) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "hmpc_cli.cli", "run", str(BALL), "--out", str(out), "-q",
+           *extra]
+    return subprocess.Popen(cmd, cwd=tmp_path, env=cli_env(), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for_log(proc: subprocess.Popen, mcap: Path, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and proc.poll() is None:
+        if mcap.exists() and mcap.stat().st_size > 0:
+            return
+        time.sleep(0.05)
+    raise AssertionError("the run did not start its log")
+
+
+def _stop(proc: subprocess.Popen, sig: int) -> tuple[float, str]:
+    """Sends ``sig``; returns (seconds until the process exited, its stderr)."""
+    sent = time.monotonic()
+    os.kill(proc.pid, sig)
+    try:
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return time.monotonic() - sent, err
+
+
+def _check_interrupted(out: Path, sig: int, proc: subprocess.Popen, err: str) -> dict:
+    name = signal.Signals(sig).name
+    assert proc.returncode == CODES[sig], err
+    assert "Traceback" not in err
+    lines = [ln for ln in err.splitlines() if ln.startswith("interrupted")]
+    assert len(lines) == 1 and str(out / "run.mcap") in lines[0] and name in lines[0], err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["reason"] == f"interrupted ({name})"
+    assert summary["success"] is False
+    log = read_log(out / "run.mcap")
+    assert log.complete, "the log is closed with its footer"
+    assert log.topic("/run/info") and log.topic("/run/summary")
+    states = log.topic("/sim/state")
+    assert summary["t_end"] > 0.0
+    assert abs(states[-1].t - summary["t_end"]) <= 1.0 / 600 + 1e-9
+    assert len(summary["x_end"]) == 4 and summary["mode_end"]
+    assert summary["solves"] == len(log.topic("/mpc/solve")) > 0
+    assert math.isfinite(summary["solve_time_median"])
+    assert summary["planner_calls"] >= 1
+    return summary
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP],
+                         ids=lambda s: signal.Signals(s).name)
+def test_signal_stops_run_cleanly(tmp_path, sig):
+    out = tmp_path / "run"
+    proc = _start(tmp_path, out, ["--set", "sim.duration=60.0"])
+    _wait_for_log(proc, out / "run.mcap")
+    time.sleep(2.0)
+    _, err = _stop(proc, sig)
+    _check_interrupted(out, sig, proc, err)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP],
+                         ids=lambda s: signal.Signals(s).name)
+def test_signal_inside_an_ipopt_solve_stops_it(tmp_path, sig):
+    """The run spends nearly all its time in ~1 s solves: it must stop far sooner."""
+    out = tmp_path / "run"
+    proc = _start(tmp_path, out, ["--set", "sim.duration=20.0", *LONG_SOLVES])
+    _wait_for_log(proc, out / "run.mcap")
+    time.sleep(3.5)  # the initial solve and a few more are done
+    latency, err = _stop(proc, sig)
+    summary = _check_interrupted(out, sig, proc, err)
+    assert summary["solve_time_median"] > 0.2
+    assert latency < 0.5 * summary["solve_time_max"] + 0.3, (latency, summary)
+
+
+class _Frozen(datetime):
+    @classmethod
+    def now(cls, tz=None):
+        return datetime(2026, 1, 2, 3, 4, 5, tzinfo=tz)
+
+
+def test_default_run_dirs_are_unique_within_a_second(tmp_path, monkeypatch):
+    from hmpc_cli import cli
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(cli, "datetime", _Frozen)
+    sc = SimpleNamespace(name="ball", seed=3)
+    dirs = [cli._run_dir(None, sc) for _ in range(3)]
+    assert [d.name for d in dirs] == ["20260102-030405-seed3", "20260102-030405-seed3-2",
+                                      "20260102-030405-seed3-3"]
+    assert all((tmp_path / d).is_dir() for d in dirs)
+
+
+def test_two_default_runs_at_once_get_two_directories(tmp_path):
+    cmd = [sys.executable, "-m", "hmpc_cli.cli", "run", str(BALL), "-q", "--set",
+           "sim.duration=0.05"]
+    procs = [subprocess.Popen(cmd, cwd=tmp_path, env=cli_env(), stdout=subprocess.DEVNULL,
+                              stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    errs = [p.communicate(timeout=120)[1] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], errs
+    runs = sorted((tmp_path / "results" / "ball").iterdir())
+    assert len(runs) == 2 and all((d / "summary.json").exists() for d in runs)
+    assert all(read_log(d / "run.mcap").complete for d in runs)
+
+
+def test_explicit_out_holding_a_run_is_refused(tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "run.mcap").write_bytes(b"x")
+    r = subprocess.run([sys.executable, "-m", "hmpc_cli.cli", "run", str(BALL), "--out",
+                        str(out), "-q"], cwd=tmp_path, env=cli_env(), capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 2 and "already holds a run" in r.stderr
+
+
+def test_a_crashed_run_summary_has_the_exception_and_the_state_reached(tmp_path):
+    from hmpc_cli.runner import execute_run, prepare
+    from hmpc_cli.scenario import load_scenario
+
+    sc, text = load_scenario(BALL, ["sim.duration=0.5"], None)
+    loop = prepare(sc)
+    step, calls = loop.plant.step, []
+
+    def failing(*args, **kw):
+        calls.append(1)
+        if len(calls) == 100:
+            raise RuntimeError("boom  in\nthe plant")
+        return step(*args, **kw)
+
+    loop.plant.step = failing
+    with pytest.raises(RuntimeError):
+        execute_run(loop, text, tmp_path / "run")
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["reason"] == "RuntimeError: boom in the plant"
+    assert summary["t_end"] == pytest.approx(99 / 600) and summary["solves"] > 0
+    assert len(summary["x_end"]) == 4 and math.isfinite(summary["solve_time_median"])
+    assert read_log(tmp_path / "run" / "run.mcap").complete

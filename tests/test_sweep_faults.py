@@ -1,0 +1,190 @@
+"""``hmpc sweep`` under faults: signals, a killed parent, killed workers, two sweeps at once."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from test_sweep import REGISTER, sweep, table, write_sweep
+
+from conftest import cli_env
+
+
+def _spec(name: str, seeds: int, duration: float) -> str:
+    return (f'name = "{name}"\nscenario = "{{scenario}}"\nseeds = {seeds}\n[set]\n'
+            f'"sim.duration" = {duration}\n"mpc.horizon" = 1.0\n"planner.iterations" = 6\n'
+            '"planner.samples" = 20\n"planner.knots" = 10\n')
+
+
+def _start(path: Path, out: Path, cwd: Path, workers: int = 2) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", REGISTER, "sweep", str(path), "--workers",
+                             str(workers), "--out", str(out)], cwd=cwd, env=cli_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _workers(parent: int) -> list[int]:
+    """Pids of the sweep's worker processes (children running multiprocessing's spawn)."""
+    pids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            cmd = (stat.parent / "cmdline").read_bytes()
+        except OSError:
+            continue
+        if int(fields[1]) == parent and b"spawn_main" in cmd:
+            pids.append(int(stat.parent.name))
+    return pids
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def _run_of(pid: int) -> str | None:
+    """The run id whose run.mcap worker ``pid`` has open, if any."""
+    try:
+        for fd in Path(f"/proc/{pid}/fd").iterdir():
+            target = os.readlink(fd)
+            if target.endswith("/run.mcap"):
+                return Path(target).parent.name
+    except OSError:
+        return None
+    return None
+
+
+def _wait(cond, timeout: float = 60.0, what: str = "") -> object:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = cond()
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def _busy_workers(proc: subprocess.Popen, n: int) -> dict[int, str]:
+    """Waits until ``n`` workers each hold a run: worker pid -> run id."""
+    def busy():
+        runs = {pid: _run_of(pid) for pid in _workers(proc.pid)}
+        runs = {p: r for p, r in runs.items() if r}
+        return runs if len(runs) >= n else None
+    return _wait(busy, what=f"{n} busy workers")
+
+
+def _finish(proc: subprocess.Popen, timeout: float = 90) -> tuple[str, str]:
+    try:
+        return proc.communicate(timeout=timeout)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_sigterm_stops_the_sweep_and_resume_redoes_interrupted_runs(tmp_path):
+    path = write_sweep(tmp_path, _spec("stop", 4, 20.0))
+    out = tmp_path / "out"
+    proc = _start(path, out, tmp_path)
+    busy = _busy_workers(proc, 2)
+    time.sleep(1.0)
+    os.kill(proc.pid, signal.SIGTERM)
+    _, err = _finish(proc)
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err and "interrupted:" in err
+    assert (out / "results.csv").exists() and table(out) == []
+    for run in busy.values():  # the runs in flight stopped cleanly, marked interrupted
+        summary = json.loads((out / "runs" / run / "summary.json").read_text())
+        assert summary["reason"] == "interrupted (SIGTERM)" and summary["t_end"] > 0
+    assert not any(_alive(p) for p in busy), "the workers stopped"
+    path.write_text(path.read_text().replace("20.0", "0.3"))  # same ids, short runs
+    # a changed duration changes the effective scenario: resume redoes them anyway
+    again = sweep([str(path), "--workers", "2", "--out", str(out)], tmp_path)
+    assert again.returncode == 0, again.stderr
+    assert len(table(out)) == 4
+
+
+def test_interrupted_summary_is_never_kept_as_finished(tmp_path):
+    from hmpc_cli.sweep_table import finished_in
+
+    (tmp_path / "scenario.toml").write_text("x")
+    for reason, kept in [("interrupted", False), ("interrupted (SIGTERM)", False),
+                         ("interrupted (SIGHUP)", False), ("diverged", True)]:
+        (tmp_path / "summary.json").write_text(json.dumps({"reason": reason}))
+        assert (finished_in(tmp_path, "x") is not None) == kept, reason
+
+
+def test_parent_sigkill_leaves_no_orphans(tmp_path):
+    path = write_sweep(tmp_path, _spec("orphans", 4, 20.0))
+    proc = _start(path, tmp_path / "out", tmp_path)
+    workers = list(_busy_workers(proc, 2))
+    os.kill(proc.pid, signal.SIGKILL)
+    _finish(proc)
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline and any(_alive(p) for p in workers):
+        time.sleep(0.1)
+    left = [p for p in workers if _alive(p)]
+    for p in left:
+        os.kill(p, signal.SIGKILL)
+    assert not left, "workers outlived their parent"
+
+
+def test_a_killed_worker_loses_only_its_run_which_is_retried(tmp_path):
+    path = write_sweep(tmp_path, _spec("kill1", 2, 3.0))
+    out = tmp_path / "out"
+    proc = _start(path, out, tmp_path)
+    busy = _busy_workers(proc, 2)
+    victim = next(iter(busy))
+    os.kill(victim, signal.SIGKILL)
+    stdout, err = _finish(proc)
+    assert proc.returncode == 0, err
+    rows = table(out)
+    assert len(rows) == 2
+    assert not any("BrokenProcessPool" in r["reason"] or "died" in r["reason"] for r in rows)
+
+
+def test_a_run_that_kills_its_worker_twice_is_failed(tmp_path):
+    path = write_sweep(tmp_path, _spec("kill2", 2, 6.0))
+    out = tmp_path / "out"
+    proc = _start(path, out, tmp_path)
+    busy = _busy_workers(proc, 2)
+    victim, run = next(iter(busy.items()))
+    os.kill(victim, signal.SIGKILL)
+
+    def holder():  # the fresh worker that took the run again
+        return next((p for p in _workers(proc.pid) if p != victim and _run_of(p) == run), None)
+    os.kill(_wait(holder, what="the retried run"), signal.SIGKILL)
+    _, err = _finish(proc)
+    assert proc.returncode == 0, err
+    rows = {r["run_id"]: r for r in table(out)}
+    assert len(rows) == 2
+    assert rows[run]["reason"] == "worker died (signal 9) twice"
+    assert rows[run]["success"] == "false"
+    other = next(r for k, r in rows.items() if k != run)
+    assert "died" not in other["reason"]
+
+
+def test_two_sweeps_on_one_directory(tmp_path):
+    path = write_sweep(tmp_path, _spec("lock", 4, 20.0))
+    out = tmp_path / "out"
+    first = _start(path, out, tmp_path)
+    try:
+        _busy_workers(first, 1)
+        stamp = (out / "sweep.toml").stat().st_mtime_ns
+        second = sweep([str(path), "--workers", "2", "--out", str(out)], tmp_path)
+        assert second.returncode == 2, second.stderr
+        assert f"error: {out}: another sweep is writing here (pid {first.pid})" in second.stderr
+        # the second wrote nothing (the first is still running its 20 s runs)
+        assert (out / "sweep.toml").stat().st_mtime_ns == stamp
+        assert not (out / "results.csv").exists() and "results" not in second.stdout
+    finally:
+        os.kill(first.pid, signal.SIGINT)
+        _finish(first)
+    assert first.returncode == 130
