@@ -46,20 +46,23 @@ def run(
         _err(exc.lines)
         raise typer.Exit(EXIT_BAD_INPUT) from None
     from hmpc_cli.registry import PluginError
-    from hmpc_cli.runner import prepare
-
-    try:
-        loop = prepare(sc)
-    except (PluginError, ValueError) as exc:
-        _err([f"{scenario}: {exc}"])
-        raise typer.Exit(EXIT_BAD_INPUT) from None
+    from hmpc_cli.runner import out_problem, prepare
 
     if out is None:
         stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
         out = Path("results") / sc.name / f"{stamp}-seed{sc.seed}"
-    if (out / "run.mcap").exists():
-        _err([f"{out}: already holds a run (choose another --out)"])
+    problem = out_problem(out)  # before the solvers are built
+    if problem is not None:
+        _err([f"{out}: {problem}"])
         raise typer.Exit(EXIT_BAD_INPUT)
+    try:
+        loop = prepare(sc)
+    except (PluginError, ValueError) as exc:
+        from hmpc_cli.scenario import attribute_to_sets
+
+        _err(attribute_to_sets([f"{scenario}: {line}" for line in str(exc).splitlines()],
+                               str(scenario), set_ or [], True))
+        raise typer.Exit(EXIT_BAD_INPUT) from None
     from hmpc_cli.runlog import Provenance
 
     loop.log.provenance = Provenance(overrides=tuple(
