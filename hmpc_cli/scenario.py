@@ -46,7 +46,8 @@ class SimSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
     rate_hz: BoundedInt = Field(600, gt=0, description="fixed RK4 step rate [Hz]")
     duration: FiniteFloat = Field(3.0, gt=0.0, description="simulated time [s]")
-    max_events_per_step: BoundedInt = Field(10, ge=1, description="more is Zeno chattering")
+    max_events_per_step: BoundedInt = Field(10, ge=1, le=1000,
+                                            description="more is Zeno chattering")
     event_time_tol: FiniteFloat = Field(1e-10, gt=0.0, description="event time bracket [s]")
     divergence_bound: LargeFloat = Field(1e6, gt=0.0, description="|x| beyond this is "
                                          "divergence")
