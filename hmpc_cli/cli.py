@@ -64,12 +64,20 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
         _err(exc.lines)
         raise typer.Exit(EXIT_BAD_INPUT) from None
     from hmpc_cli.registry import PluginError
-    from hmpc_cli.runner import prepare
+    from hmpc_cli.runner import out_problem, prepare
 
+    check = out if out is not None else Path("results") / sc.name / "run"
+    problem = out_problem(check)  # before the solvers are built
+    if problem is not None:
+        _err([f"{check if out is not None else check.parent}: {problem}"])
+        raise typer.Exit(EXIT_BAD_INPUT)
     try:
         loop = prepare(sc)
     except (PluginError, ValueError) as exc:
-        _err([f"{scenario}: {exc}"])
+        from hmpc_cli.scenario import attribute_to_sets
+
+        _err(attribute_to_sets([f"{scenario}: {line}" for line in str(exc).splitlines()],
+                               str(scenario), sets, True))
         raise typer.Exit(EXIT_BAD_INPUT) from None
     out = _run_dir(out, sc)
     from hmpc_cli.runlog import Provenance

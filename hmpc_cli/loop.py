@@ -333,6 +333,9 @@ def build(scenario, log: RunLog,
                   dist, LowLevelController(model, sc.lowlevel), s.rate_hz,
                   s.input_at_events == "recompute", s.max_events_per_step)
     margins = _margins(sc, model)
+    problems = _margin_problems(sc, model, margins) + _solver_problems(sc)
+    if problems:  # before the NLPs are built
+        raise ValueError("\n".join(problems))
     mpc = _mpc(sc, model, margins)
     planner = plugin_call(f"planner: {sc.planner.kind!r} failed to build for system "
                           f"{spec.name!r}", reg.planner(sc.planner.kind).make, model,
@@ -365,6 +368,32 @@ def _margins(sc, model) -> ConstraintMargins | None:
     from hmpc_cli.tube.margins_file import constraint_margins
 
     return constraint_margins(source, model, sc.system, sc.mpc.rate_hz)
+
+
+def _margin_problems(sc, model, margins: ConstraintMargins | None) -> list[str]:
+    """``mpc.<margin>: reason`` when an input shrink leaves a mode's input box empty."""
+    if margins is None:
+        return []
+    key = "mpc.margins" if margins.source != "hand" else next(
+        (f"mpc.{k}" for k in ("input_margin", "torque_margin") if hasattr(sc.mpc, k)),
+        "mpc.margins")
+    for mode, shrink in zip(model.modes, margins.inputs, strict=False):
+        for i, (lo, hi, m) in enumerate(zip(mode.u_lower, mode.u_upper, shrink, strict=False)):
+            if 2.0 * m > hi - lo:
+                return [f"{key}: {m:g} per side exceeds half the input box of mode "
+                        f"{mode.name!r} input {i} ([{lo:g}, {hi:g}]: half-width "
+                        f"{(hi - lo) / 2:g})"]
+    return []
+
+
+def _solver_problems(sc) -> list[str]:
+    """The MPC's solver options, tried once on a tiny NLP (see ``option_problems``)."""
+    from hmpc_cli.mpc.solver import option_problems
+
+    options = getattr(sc.mpc, "solver_options", None)
+    if not isinstance(options, dict):
+        return []
+    return option_problems(getattr(sc.mpc, "solver", "ipopt"), options)
 
 
 def _mpc(sc, model, margins: ConstraintMargins | None) -> FixedModeMPC:

@@ -18,14 +18,15 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.messages import Plan
+from hmpc_cli.settings_types import FiniteFloat
 
 
 class LowLevelSettings(BaseModel):
     """Low-level tracking controller settings."""
 
     model_config = ConfigDict(extra="forbid")
-    kp: float = Field(0.0, ge=0.0, description="proportional gain")
-    kd: float = Field(0.0, ge=0.0, description="derivative gain")
+    kp: FiniteFloat = Field(0.0, ge=0.0, description="proportional gain")
+    kd: FiniteFloat = Field(0.0, ge=0.0, description="derivative gain")
     feedforward: Literal["plan", "foh", "zoh"] = Field(
         "plan", description="input interpolation: as the plan was computed ('plan'), or "
                             "forced first-order ('foh') or zero-order ('zoh') hold")

@@ -19,7 +19,7 @@ from hmpc_cli.runlog import RunLog
 
 INTERRUPTED = "interrupted"  # a summary reason's prefix: the run was stopped
 
-__all__ = ["execute_run", "jsonable", "prepare", "run_scenario"]
+__all__ = ["execute_run", "jsonable", "out_problem", "prepare", "run_scenario"]
 
 
 def prepare(scenario) -> ClosedLoop:
@@ -31,6 +31,36 @@ def prepare(scenario) -> ClosedLoop:
         RuntimeError: CasADi rejects the solver settings.
     """
     return build(scenario, RunLog(None))
+
+
+def out_problem(out: Path) -> str | None:
+    """Why ``out`` cannot become a run directory, or None; creates and removes nothing.
+
+    Checked before anything is built: an existing run, a file in the way, a name the
+    file system refuses, or a directory that cannot be created or written.
+    """
+    import os
+
+    try:
+        for part in out.absolute().parts:
+            if len(os.fsencode(part)) > 255:
+                return f"name too long: {part[:40]}... ({len(os.fsencode(part))} bytes, max 255)"
+        if (out / "run.mcap").exists():
+            return "already holds a run (choose another --out)"
+        if out.exists() and not out.is_dir():
+            return "exists and is not a directory"
+    except (OSError, RuntimeError, ValueError) as exc:
+        return f"not a usable path: {exc}"
+    parent = out
+    while not parent.exists():  # the nearest existing ancestor must be a writable directory
+        if parent.parent == parent:
+            break
+        parent = parent.parent
+    if not parent.is_dir():
+        return f"cannot create it: {parent} is not a directory"
+    if not os.access(parent, os.W_OK | os.X_OK):
+        return f"cannot create or write it: {parent} is not writable"
+    return None
 
 
 def jsonable(value):

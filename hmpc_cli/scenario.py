@@ -19,13 +19,17 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
 from pydantic import (
-    BaseModel, ConfigDict, Field, ValidationError, create_model, model_validator)
+    BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator,
+    model_validator)
 
 from hmpc_cli.lowlevel import LowLevelSettings
 from hmpc_cli.registry import PluginError, Requirement, registry
+from hmpc_cli.settings_types import BoundedInt, FiniteFloat, LargeFloat
 
 #: the system of a scenario that names none
 DEFAULT_SYSTEM = "ball"
+#: most simulator steps of a run (duration x rate: ~5 h at 600 Hz; per-step arrays grow)
+MAX_SIM_STEPS = 10_000_000
 
 
 class ScenarioError(Exception):
@@ -40,12 +44,14 @@ class SimSettings(BaseModel):
     """Simulator settings."""
 
     model_config = ConfigDict(extra="forbid")
-    rate_hz: int = Field(600, gt=0, description="fixed RK4 step rate [Hz]")
-    duration: float = Field(3.0, gt=0.0, description="simulated time [s]")
-    max_events_per_step: int = Field(10, ge=1, description="more is Zeno chattering")
-    event_time_tol: float = Field(1e-10, gt=0.0, description="event time bracket [s]")
-    divergence_bound: float = Field(1e6, gt=0.0, description="|x| beyond this is divergence")
-    log_rate_hz: int = Field(100, gt=0, description="state logging rate [Hz]")
+    rate_hz: BoundedInt = Field(600, gt=0, description="fixed RK4 step rate [Hz]")
+    duration: FiniteFloat = Field(3.0, gt=0.0, description="simulated time [s]")
+    max_events_per_step: BoundedInt = Field(10, ge=1, le=1000,
+                                            description="more is Zeno chattering")
+    event_time_tol: FiniteFloat = Field(1e-10, gt=0.0, description="event time bracket [s]")
+    divergence_bound: LargeFloat = Field(1e6, gt=0.0, description="|x| beyond this is "
+                                         "divergence")
+    log_rate_hz: BoundedInt = Field(100, gt=0, description="state logging rate [Hz]")
     input_at_events: Literal["hold", "recompute"] = Field(
         "hold", description="after a reset inside a step: hold the step's input (the "
         "paper's ball) or let the controllers react at the event time and compute a new "
@@ -57,9 +63,9 @@ class DisturbanceSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     kind: Literal["none", "box", "paper_fig3"] = "none"
-    magnitude: float = Field(10.0, ge=0.0, description="uniform box half-width per channel")
-    hold: float = Field(0.05, gt=0.0, description="hold period [s] (box)")
-    trial: int = Field(1, ge=1, le=10, description="paper_fig3 trial 1..10")
+    magnitude: FiniteFloat = Field(10.0, ge=0.0, description="uniform box half-width per channel")
+    hold: FiniteFloat = Field(0.05, gt=0.0, description="hold period [s] (box)")
+    trial: BoundedInt = Field(1, ge=1, le=10, description="paper_fig3 trial 1..10")
 
 
 class ReplanSettings(BaseModel):
@@ -67,7 +73,7 @@ class ReplanSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     policy: Literal["once", "on_contact", "periodic"] = "once"
-    period: float = Field(0.5, gt=0.0, description="replanning period [s] (periodic)")
+    period: FiniteFloat = Field(0.5, gt=0.0, description="replanning period [s] (periodic)")
     contact_guards: list[str] | None = Field(
         None, description="guards that trigger on_contact (default: all but those "
                           "entering the final domain from another domain)")
@@ -80,9 +86,10 @@ class ScenarioBase(BaseModel):
     """
 
     model_config = ConfigDict(extra="forbid")
-    name: str = Field("scenario", pattern=r"^[A-Za-z0-9_.-]+$")
+    name: str = Field("scenario", pattern=r"^[A-Za-z0-9_.-]+$", max_length=100,
+                      description="run directory name: letters, digits, _ . - (not only dots)")
     description: str = ""
-    seed: int = Field(0, ge=0)
+    seed: BoundedInt = Field(0, ge=0)
     plant: dict[str, Any] = Field(
         default_factory=dict, description="system parameters of the simulated plant that "
         "differ from the controllers' model, e.g. mass_scale = 1.1 (the biped of Fig. 4)")
@@ -90,6 +97,14 @@ class ScenarioBase(BaseModel):
     disturbance: DisturbanceSettings = Field(default_factory=DisturbanceSettings)
     replanning: ReplanSettings = Field(default_factory=ReplanSettings)
     lowlevel: LowLevelSettings = Field(default_factory=LowLevelSettings)
+
+    @field_validator("name")
+    @classmethod
+    def _not_only_dots(cls, v: str) -> str:
+        if not v.strip("."):
+            raise ValueError(f"{v!r} is not a directory name (only dots: the run would be "
+                             "written outside results/)")
+        return v
 
     @model_validator(mode="before")
     @classmethod
@@ -135,7 +150,7 @@ class ScenarioBase(BaseModel):
     @model_validator(mode="after")
     def _consistent(self) -> ScenarioBase:
         # One "key.path: reason" line per problem (format_errors splits them).
-        problems = self._stack_problems() + self._rate_problems()
+        problems = self._stack_problems() + self._rate_problems() + self._size_problems()
         if problems:
             raise ValueError("\n".join(problems))
         return self
@@ -160,6 +175,18 @@ class ScenarioBase(BaseModel):
             problems.append("replanning.period: must be a whole number of simulator steps")
         return problems + list(getattr(m, "scenario_problems", list)())
 
+    def _size_problems(self) -> list[str]:
+        """Upper bounds on the work a run asks for, checked before anything is built."""
+        s = self.sim
+        steps = s.duration * s.rate_hz
+        out = []
+        if steps > MAX_SIM_STEPS:
+            out.append(f"sim.duration: {s.duration:g} s x {s.rate_hz} steps/s = {steps:.3g} "
+                       f"simulator steps exceeds the limit {MAX_SIM_STEPS:.0e}")
+        out += list(getattr(self.planner, "size_problems", list)())
+        out += list(getattr(self.mpc, "size_problems", list)())
+        return out
+
     def _stack_problems(self) -> list[str]:
         """Required settings of the plug-ins; plant keys must be valid system parameters."""
         reg = registry()
@@ -180,7 +207,7 @@ class ScenarioBase(BaseModel):
             self.plant_params()
         except ValidationError as exc:
             for err in exc.errors():
-                loc = ".".join(["plant", *(str(p) for p in err["loc"])])
+                loc = key_path(["plant", *err["loc"]])
                 msg = err["msg"].removeprefix("Value error, ")
                 msg = "unknown key" if err["type"] == "extra_forbidden" else msg
                 out.append(f"{loc}: {msg}")
@@ -301,10 +328,10 @@ def format_errors(exc: ValidationError, source: str) -> list[str]:
     """One ``file: key.path: reason`` line per pydantic error."""
     lines, tags = [], _tags()
     for err in exc.errors():
-        parts = [str(p) for p in err["loc"] if p not in ("function-after",)]
-        if len(parts) >= 2 and parts[1] in tags.get(parts[0], ()):
+        parts = [p for p in err["loc"] if p not in ("function-after",)]
+        if len(parts) >= 2 and parts[1] in tags.get(str(parts[0]), ()):
             del parts[1]  # the union member's tag (e.g. planner.cem.samples -> planner.samples)
-        loc = ".".join(parts) or "(top)"
+        loc = key_path(parts) or "(top)"
         msg = err["msg"].removeprefix("Value error, ")
         if err["type"] == "extra_forbidden":
             msg = "unknown key"
@@ -315,22 +342,54 @@ def format_errors(exc: ValidationError, source: str) -> list[str]:
     return lines
 
 
+def key_path(parts: list) -> str:
+    """``['system', 'x0', 3]`` -> ``'system.x0[3]'``."""
+    out = ""
+    for p in parts:
+        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
+    return out
+
+
 def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None = None,
-                  check_margins: bool = True) -> tuple[ScenarioBase, str]:
+                  check_margins: bool = True, attribute_sets: bool = True,
+                  ) -> tuple[ScenarioBase, str]:
     """Reads, overrides and validates a scenario file.
 
     A margins file (``mpc.margins``) is resolved against the scenario file's directory
     (the effective TOML holds the absolute path, so a sweep worker or a rerun of the run
     directory's copy finds it) and, with ``check_margins``, checked against the scenario
     (its system, parameters and MPC rate; ``hmpc tube`` skips the check: it writes them).
+    Every problem is reported at once; with ``attribute_sets`` a problem with a key an
+    override set is attributed to ``--set key=value`` rather than to the file.
 
     Returns:
         The scenario and the effective TOML text (after overrides).
 
     Raises:
-        ScenarioError: missing file, TOML syntax error or invalid settings.
+        ScenarioError: missing or empty file, TOML syntax error or invalid settings.
     """
     path = Path(path)
+    data = _read_toml(path)
+    data = apply_overrides(data, list(overrides), str(path))
+    if seed is not None:
+        data["seed"] = seed
+    data.setdefault("name", re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem))
+    try:
+        scenario = scenario_model().model_validate(data)
+    except ValidationError as exc:
+        lines = format_errors(exc, str(path)) + _hidden_problems(data, str(path))
+        raise ScenarioError(attribute_to_sets(list(dict.fromkeys(lines)), str(path), overrides,
+                                          attribute_sets)) from None
+    except PluginError as exc:
+        raise ScenarioError([f"{path}: {exc}"]) from None
+    problems = _resolve_margins(scenario, path, check_margins)
+    if problems:
+        raise ScenarioError([f"{path}: mpc.margins: {p}" for p in problems])
+    return scenario, dump_toml(scenario.model_dump(mode="json", exclude_none=True))
+
+
+def _read_toml(path: Path) -> dict:
+    """A scenario file's TOML table (raises :class:`ScenarioError`)."""
     if not path.is_file():
         raise ScenarioError([f"{path}: file not found"])
     try:
@@ -339,20 +398,65 @@ def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None 
         raise ScenarioError([f"{path}: TOML syntax error: {exc}"]) from None
     except UnicodeDecodeError:
         raise ScenarioError([f"{path}: not a UTF-8 text file"]) from None
-    data = apply_overrides(data, list(overrides), str(path))
-    if seed is not None:
-        data["seed"] = seed
-    data.setdefault("name", re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem))
+    if not data:
+        raise ScenarioError([f"{path}: file is empty (no settings; write at least "
+                             f"[system] name = \"{DEFAULT_SYSTEM}\")"])
+    return data
+
+
+#: sections validated on their own when the system is unknown
+_COMMON = ("name", "description", "seed", "sim", "disturbance", "replanning", "lowlevel")
+
+
+def _hidden_problems(data: dict, source: str) -> list[str]:
+    """Problems the first validation could not reach.
+
+    An unknown system stops the plug-in sections from being checked: the common sections
+    are then validated on their own (with the default system). ``[plant]`` keys are
+    checked against the system's parameters even when other sections are wrong.
+    """
+    reg = registry()
+    system = data.get("system", {})
+    if not isinstance(system, dict):
+        return []
+    name = system.get("name", DEFAULT_SYSTEM)
+    if not isinstance(name, str) or name not in reg.systems:
+        common = {k: v for k, v in data.items() if k in _COMMON}
+        try:
+            scenario_model().model_validate(common)
+        except ValidationError as exc:
+            return [line for line in format_errors(exc, source)
+                    if line.split(": ")[1].split(".")[0].split("[")[0] in _COMMON]
+        return []
+    plant = data.get("plant")
+    if not isinstance(plant, dict) or not plant:
+        return []
+    params = reg.systems[name].params
+    base = {k: v for k, v in system.items() if k not in plant}
     try:
-        scenario = scenario_model().model_validate(data)
+        params.model_validate({**base, **plant})
     except ValidationError as exc:
-        raise ScenarioError(format_errors(exc, str(path))) from None
-    except PluginError as exc:
-        raise ScenarioError([f"{path}: {exc}"]) from None
-    problems = _resolve_margins(scenario, path, check_margins)
-    if problems:
-        raise ScenarioError([f"{path}: mpc.margins: {p}" for p in problems])
-    return scenario, dump_toml(scenario.model_dump(mode="json", exclude_none=True))
+        out = []
+        for err in exc.errors():
+            if err["loc"] and err["loc"][0] in plant:
+                msg = err["msg"].removeprefix("Value error, ")
+                msg = "unknown key" if err["type"] == "extra_forbidden" else msg
+                out.append(f"{source}: {key_path(['plant', *err['loc']])}: {msg}")
+        return out
+    return []
+
+
+def attribute_to_sets(lines: list[str], source: str, overrides: list[str], on: bool
+                      ) -> list[str]:
+    """Re-attributes ``source: key: reason`` lines on an overridden key to its ``--set``."""
+    if not on or not overrides:
+        return lines
+    keys, out = [(item.partition("=")[0].strip(), item) for item in overrides], []
+    for line in lines:
+        key = line.removeprefix(f"{source}: ").partition(": ")[0]
+        hit = [item for k, item in keys if key == k or key.startswith((f"{k}.", f"{k}["))]
+        out.append(f"--set {hit[-1]}: " + line.removeprefix(f"{source}: ") if hit else line)
+    return out
 
 
 def _resolve_margins(scenario: ScenarioBase, path: Path, check: bool) -> list[str]:

@@ -15,6 +15,7 @@ import dataclasses
 import hashlib
 import itertools
 import json
+import math
 import os
 import re
 import shutil
@@ -32,11 +33,18 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from hmpc_cli import signals
 from hmpc_cli.scenario import ScenarioError, format_errors, load_scenario, scenario_model
+from hmpc_cli.settings_types import MAX_INT
 from hmpc_cli.sweep_pool import run_pool
 from hmpc_cli.sweep_table import (  # noqa: F401
-    INTERRUPTED, METRICS, TIMING, cell_text, finished, is_interrupted, write_results)
+    INTERRUPTED, METRICS, TIMING, cell_text, finished, is_interrupted, toml_value,
+    write_results)
 
 RESERVED = {"run_id", "seed", "log", *METRICS}
+#: most seeds of a sweep and most runs (cells x seeds); validating a run takes ~0.3 ms and
+#: running one seconds to minutes: 20 000 runs is already hours of work on this machine
+MAX_SEEDS = 100_000
+MAX_RUNS = 20_000
+_INDEX = re.compile(r"\[\d+\]$")
 _KEY = re.compile(r"^[A-Za-z0-9_-]+(\.[A-Za-z0-9_-]+)*$")
 
 
@@ -57,11 +65,16 @@ class SweepSpec(BaseModel):
         if isinstance(v, int) and not isinstance(v, bool):
             if v < 1:
                 raise ValueError(f"a seed count must be >= 1, got {v}")
+            if v > MAX_SEEDS:
+                raise ValueError(f"{v} seeds exceed the limit {MAX_SEEDS}")
             return list(range(v))
         if not isinstance(v, list) or not v:
             raise ValueError("expected a non-empty list of seeds or a seed count")
-        if any(not isinstance(s, int) or isinstance(s, bool) or s < 0 for s in v):
-            raise ValueError("seeds must be integers >= 0")
+        if len(v) > MAX_SEEDS:
+            raise ValueError(f"{len(v)} seeds exceed the limit {MAX_SEEDS}")
+        if any(not isinstance(s, int) or isinstance(s, bool) or not 0 <= s <= MAX_INT
+               for s in v):
+            raise ValueError(f"seeds must be integers from 0 to {MAX_INT}")
         if len(set(v)) != len(v):
             raise ValueError("duplicate seeds")
         return v
@@ -112,22 +125,6 @@ class SweepPlan:
         """results.csv columns, in order."""
         return ["run_id", *(a.name for a in self.axes), "seed",
                 *(f"set.{k}" for k in self.keys), *METRICS, "log"]
-
-
-def toml_value(v: Any) -> str:
-    """A value as TOML text (what :func:`apply_overrides` parses back)."""
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v, ensure_ascii=False).replace("\x7f", "\\u007f")
-    if isinstance(v, list):
-        return "[" + ", ".join(toml_value(x) for x in v) + "]"
-    if isinstance(v, dict):
-        return "{" + ", ".join(f"{toml_value(str(k))} = {toml_value(x)}"
-                               for k, x in v.items()) + "}"
-    raise TypeError(f"unsupported value type {type(v).__name__}")
 
 
 def _models(ann: Any) -> list[type[BaseModel]]:
@@ -212,13 +209,20 @@ def run_id(overrides: dict[str, Any], seed: int) -> str:
 
 
 def _rewrite(line: str, scenario: Path, src: str, run: Run) -> str:
-    """Attributes a scenario error on an overridden key to the sweep file."""
+    """Attributes a scenario error on an overridden key to the sweep file and its entry.
+
+    ``sweep.toml: grid.axis[i]: key.path: reason (value v)`` (or ``[set]``); an element
+    of an overridden list (``system.x0[3]``) counts as the list's key.
+    """
     rest = line.removeprefix(f"{scenario}: ")
     key, sep, reason = rest.partition(": ")
-    if rest == line or not sep or key not in run.overrides:
+    hit = [k for k in run.overrides if key == k or key.startswith((f"{k}.", f"{k}["))]
+    if rest == line or not sep or not hit:
         return line
-    value = "" if reason == "unknown key" else f"value {toml_value(run.overrides[key])} "
-    return f"{src}: {key}: {reason} ({value}from {run.origin[key]})"
+    where = run.origin[hit[-1]]
+    if reason == "unknown key":
+        return f"{src}: {_INDEX.sub('', where)}: {key}: {reason}"
+    return f"{src}: {where}: {key}: {reason} (value {toml_value(run.overrides[hit[-1]])})"
 
 
 def plan_sweep(path: str | Path) -> SweepPlan:
@@ -239,11 +243,16 @@ def plan_sweep(path: str | Path) -> SweepPlan:
         (k, v, f"grid.{a.name}") for a in axes for ov in a.overrides for k, v in ov.items()])
     if bad_keys:
         raise ScenarioError(list(dict.fromkeys(errors + bad_keys)))
+    total = len(spec.seeds) * math.prod(len(a.labels) for a in axes)
+    if total > MAX_RUNS:
+        cells = " x ".join(str(len(a.labels)) for a in axes) or "1"
+        raise ScenarioError([*errors, f"{src}: seeds: {cells} grid cells x {len(spec.seeds)} "
+                             f"seeds = {total} runs exceeds the limit {MAX_RUNS}"])
     runs = _expand(spec, base, axes, src, errors)
     for run in runs if scenario.is_file() else []:
         try:
             items = [f"{k}={toml_value(v)}" for k, v in run.overrides.items()]
-            _, run.toml = load_scenario(scenario, items, run.seed)
+            _, run.toml = load_scenario(scenario, items, run.seed, attribute_sets=False)
         except ScenarioError as exc:
             errors += [_rewrite(line, scenario, src, run) for line in exc.lines]
     if errors:
@@ -286,7 +295,7 @@ def _expand(spec: SweepSpec, base: dict[str, Any], axes: list[Axis], src: str,
         overrides, origin = dict(base), dict.fromkeys(base, "[set]")
         for a, i in zip(axes, combo, strict=True):
             overrides.update(a.overrides[i])
-            where = f"grid.{a.name}" + (f"[{a.labels[i]!r}]" if a.table else "")
+            where = f"grid.{a.name}[{i}]"
             origin.update(dict.fromkeys(a.overrides[i], where))
         cell = tuple(a.labels[i] for a, i in zip(axes, combo, strict=True))
         for seed in spec.seeds:

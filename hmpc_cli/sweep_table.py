@@ -82,3 +82,19 @@ def write_results(plan, out: Path) -> int:
     tmp.write_text(buf.getvalue(), encoding="utf-8")
     os.replace(tmp, out / "results.csv")
     return len(rows)
+
+
+def toml_value(v: Any) -> str:
+    """A value as TOML text (what :func:`apply_overrides` parses back)."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v, ensure_ascii=False).replace("\x7f", "\\u007f")
+    if isinstance(v, list):
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{toml_value(str(k))} = {toml_value(x)}"
+                               for k, x in v.items()) + "}"
+    raise TypeError(f"unsupported value type {type(v).__name__}")

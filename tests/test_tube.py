@@ -277,7 +277,7 @@ def test_cli_tube_bad_input(tmp_path: Path):
     proc = hmpc(["tube", str(BALL), "--set", "lowlevel.kp=-1", "--out", str(tmp_path)],
                 tmp_path)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
-    assert proc.stderr.startswith(f"error: {BALL}: lowlevel.kp:")
+    assert proc.stderr.startswith("error: --set lowlevel.kp=-1: lowlevel.kp:")
     proc = hmpc(["tube", str(tmp_path / "missing.toml")], tmp_path)
     assert proc.returncode == 2 and "file not found" in proc.stderr
 

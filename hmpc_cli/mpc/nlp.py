@@ -52,6 +52,7 @@ from hmpc_cli.mpc.builder import Blocks, NLPBuilder
 from hmpc_cli.mpc.layout import FLOW, ChainLayout, NodeSchedule
 from hmpc_cli.mpc.nlp_data import INF, problem_data
 from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart
+from hmpc_cli.settings_types import MAX_NLP_NODES, BoundedInt, FiniteFloat, StrictBool
 
 __all__ = ["INF", "FixedModeNLP", "FixedModeNLPs", "MPCSettings"]
 
@@ -64,21 +65,21 @@ class MPCSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
     kind: Literal["fixed_mode"] = Field("fixed_mode", description="mode-schedule MPC on "
                                         "the chain transcription (any system)")
-    rate_hz: int = Field(10, gt=0, description="MPC re-solve rate [Hz]")
-    nodes_per_second: int = Field(60, gt=0, description="NLP node rate: node step = 1/this")
-    horizon: float = Field(3.0, gt=0.0, description="receding horizon [s]")
-    max_switches: int = Field(10, ge=0, description="guard events the NLP chain can hold")
+    rate_hz: BoundedInt = Field(10, gt=0, description="MPC re-solve rate [Hz]")
+    nodes_per_second: BoundedInt = Field(60, gt=0, description="NLP node rate: node step = 1/this")
+    horizon: FiniteFloat = Field(3.0, gt=0.0, description="receding horizon [s]")
+    max_switches: BoundedInt = Field(10, ge=0, description="guard events the NLP chain can hold")
     integrator: Literal["rk4", "euler"] = "rk4"
     input_hold: Literal["foh", "zoh"] = Field(
         "foh", description="input between nodes: first-order hold (linear from u_k to "
                            "u_k+1, as the low level feeds it forward) or zero-order hold")
-    robust: bool = Field(True, description="virtual pass-through node (problem (14))")
-    soft_penalty: float = Field(
+    robust: StrictBool = Field(True, description="virtual pass-through node (problem (14))")
+    soft_penalty: FiniteFloat = Field(
         1e4, ge=0.0, description="L1 penalty on relaxing guard, virtual-node, region and "
                                  "terminal rows (0: hard constraints, as in the paper)")
-    tube_margin: float = Field(0.025, ge=0.0, description="tube radius diam T(dt) [state "
+    tube_margin: FiniteFloat = Field(0.025, ge=0.0, description="tube radius diam T(dt) [state "
                                "norm] (hand-set margins: mpc.margins = \"hand\")")
-    input_margin: float = Field(0.0, ge=0.0, description="input-box tightening per side "
+    input_margin: FiniteFloat = Field(0.0, ge=0.0, description="input-box tightening per side "
                                 "(hand-set margins: mpc.margins = \"hand\")")
     margins: Literal["hand"] | str = Field(
         "hand", description='"hand": the margins of tube_margin and input_margin; else a '
@@ -86,10 +87,10 @@ class MPCSettings(BaseModel):
         "guard-avoid, pass-through and input margins at mpc.rate_hz replace them")
     solver: Literal["ipopt", "fatrop", "sqpmethod"] = "ipopt"
     solver_options: dict = Field(default_factory=dict, description="passed to the plugin")
-    max_iter: int = Field(200, gt=0)
-    warm_start: bool = True
-    resolve_on_impact: bool = True
-    final_domain_nlp: bool = Field(
+    max_iter: BoundedInt = Field(200, gt=0)
+    warm_start: StrictBool = True
+    resolve_on_impact: StrictBool = True
+    final_domain_nlp: StrictBool = Field(
         True, description="solve schedules with no switch left on the final domain's own, "
                           "smaller NLP (same problem, no switching rows)")
 
@@ -104,6 +105,14 @@ class MPCSettings(BaseModel):
     def period_steps(self) -> list[tuple[str, int]]:
         """Step rates the MPC period must be a whole number of (key path, rate [Hz])."""
         return [("mpc.nodes_per_second", self.nodes_per_second)]
+
+    def size_problems(self) -> list[str]:
+        """``mpc.horizon`` beyond :data:`MAX_NLP_NODES` nodes (before anything is built)."""
+        n = self.horizon * self.nodes_per_second
+        if n <= MAX_NLP_NODES:
+            return []
+        return [f"mpc.horizon: {self.horizon:g} s x {self.nodes_per_second} nodes/s = {n:.3g} "
+                f"NLP nodes exceeds the limit {MAX_NLP_NODES}"]
 
     def scenario_problems(self) -> list[str]:
         """``mpc.key: reason`` lines for settings that do not fit together."""

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
 
 import casadi as ca
 import numpy as np
@@ -193,3 +195,103 @@ class SolverSession:
         v = [np.maximum(lbg - g, 0.0), np.maximum(g - ubg, 0.0),
              np.maximum(lbx - w, 0.0), np.maximum(w - ubx, 0.0)]
         return float(max(np.max(a, initial=0.0) for a in v))
+
+
+#: IPOPT linear solvers a build may provide (HSL's, Pardiso, SPRAL, WSMP, MUMPS)
+LINEAR_SOLVERS = ("mumps", "ma27", "ma57", "ma77", "ma86", "ma97", "pardiso", "spral", "wsmp")
+
+
+def option_problems(plugin: str, extra: dict, key: str = "mpc.solver_options") -> list[str]:
+    """Solver options tried once on a tiny NLP: ``key.path: reason`` lines (none: usable).
+
+    CasADi rejects unknown ``nlpsol`` options when the solver is built; IPOPT reports an
+    unknown option or an unavailable linear solver only when it solves (status
+    ``Invalid_Option``), so one tiny problem is solved with the same options.
+    """
+    import json
+
+    if plugin != "ipopt":  # their options fail when the NLP is built (a PluginError)
+        return []
+    return list(_option_problems(plugin, json.dumps(extra, sort_keys=True), key))
+
+
+@lru_cache(maxsize=64)
+def _option_problems(plugin: str, extra_json: str, key: str) -> tuple[str, ...]:
+    import json
+
+    extra = json.loads(extra_json)
+    for instance, opts in _probe_options(plugin, extra):
+        solver = opts.get("ipopt", {}).get("linear_solver")
+        # a linear solver is tried in a child process: some HSL stubs crash the process
+        status = _probe(plugin, opts) if solver is None else _probe_isolated([(plugin, opts)])[0]
+        if status is None:
+            continue
+        section = "ipopt_warm" if "linear_solver" in extra.get("ipopt_warm", {}) else "ipopt"
+        if solver is not None and _probe(plugin, _with_solver(opts, "mumps")) is None:
+            found = _probe_isolated([(plugin, _with_solver(opts, s)) for s in LINEAR_SOLVERS])
+            available = [s for s, st in zip(LINEAR_SOLVERS, found, strict=True) if st is None]
+            return (f"{key}.{section}.linear_solver: {solver!r} is not available "
+                    f"(available: {', '.join(available) or 'none'})",)
+        return (f"{key}: the solver rejects these options ({instance} instance): {status}",)
+    return ()
+
+
+def _with_solver(opts: dict, solver: str) -> dict:
+    return {**opts, "ipopt": {**opts["ipopt"], "linear_solver": solver}}
+
+
+_CHILD = """
+import json, sys
+from hmpc_cli.mpc.solver import _probe
+plugin, opts = json.loads(sys.argv[1])
+print(json.dumps(_probe(plugin, opts)))
+"""
+
+
+def _probe_isolated(cases: list[tuple[str, dict]]) -> list[str | None]:
+    """:func:`_probe` of each case in its own child process (in parallel)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(Path(__file__).resolve().parents[2]), os.environ.get("PYTHONPATH", "")])}
+    procs = [subprocess.Popen([sys.executable, "-c", _CHILD, json.dumps(case)], env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+             for case in cases]
+    out = []
+    for proc in procs:
+        stdout, _ = proc.communicate()
+        if proc.returncode:
+            out.append(f"the solver process crashed (exit {proc.returncode})")
+        else:
+            out.append(json.loads(stdout.strip().splitlines()[-1]))
+    return out
+
+
+def _probe_options(plugin: str, extra: dict) -> list[tuple[str, dict]]:
+    """(instance, nlpsol options) of the cold and (IPOPT) warm instances."""
+    cold = plugin_options(plugin, 5, extra=extra)
+    if plugin != "ipopt":
+        return [("cold", cold)]
+    return [("cold", cold), ("warm", warm_options(cold, WarmStart(1e-4, 1e-6), extra))]
+
+
+def _probe(plugin: str, opts: dict) -> str | None:
+    """None if ``min (x - 1)^2`` solves with ``opts``; else the status or error."""
+    from hmpc_cli.registry import one_line
+
+    x = ca.SX.sym("x")
+    try:
+        solver = ca.nlpsol("probe", plugin, {"x": x, "f": (x - 1) ** 2, "g": x}, opts)
+        solver(x0=0.0, lbg=-10.0, ubg=10.0)
+    except RuntimeError as exc:
+        return one_line(exc)
+    stats = solver.stats()
+    status = str(stats.get("return_status", ""))
+    if plugin == "ipopt" and status in ("Invalid_Option", "Invalid_Problem_Definition",
+                                        "Unrecoverable_Exception", "NonIpopt_Exception_Thrown",
+                                        "Internal_Error", "Insufficient_Memory"):
+        return status
+    return None

@@ -60,6 +60,7 @@ from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.messages import ConstraintMargins
 from hmpc_cli.mpc.builder import Bounds, NLPBuilder
 from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart
+from hmpc_cli.settings_types import MAX_NLP_NODES, BoundedInt, FiniteFloat, Pair, StrictBool
 
 INF = np.inf
 WARM_START = WarmStart(mu_init=1e-4, bound_push=1e-6)  # the warm IPOPT instance
@@ -70,36 +71,36 @@ class WalkingMPCSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     kind: Literal["walking"] = Field("walking", description="two-swing walking MPC (biped)")
-    rate_hz: int = Field(10, gt=0, description="re-solve rate [Hz] (also after contacts)")
-    swing_time: float = Field(0.3, gt=0.0, description="duration of a swing [s]")
-    nodes_per_swing: int = Field(25, ge=4, description="intervals per swing")
-    min_swing_time: float = Field(0.03, gt=0.0, description="lower bound on swing 0's "
+    rate_hz: BoundedInt = Field(10, gt=0, description="re-solve rate [Hz] (also after contacts)")
+    swing_time: FiniteFloat = Field(0.3, gt=0.0, description="duration of a swing [s]")
+    nodes_per_swing: BoundedInt = Field(25, ge=4, description="intervals per swing")
+    min_swing_time: FiniteFloat = Field(0.03, gt=0.0, description="lower bound on swing 0's "
                                   "remaining time [s]")
-    touchdown_depth: float = Field(0.005, ge=0.0, description="touchdown node this far "
+    touchdown_depth: FiniteFloat = Field(0.005, ge=0.0, description="touchdown node this far "
                                    "below the target surface [m]")
-    segment_margin: float = Field(0.075, ge=0.0, description="touchdown at least this far "
+    segment_margin: FiniteFloat = Field(0.075, ge=0.0, description="touchdown at least this far "
                                   "inside the segment's ends (tube tightening) [m] (hand-set "
                                   "margins)")
-    apex_node: int = Field(20, ge=1, description="node of a swing with the apex row")
-    apex_clearance: float = Field(0.05, ge=0.0, description="foot above the terrain at the "
+    apex_node: BoundedInt = Field(20, ge=1, description="node of a swing with the apex row")
+    apex_clearance: FiniteFloat = Field(0.05, ge=0.0, description="foot above the terrain at the "
                                   "apex node [m]")
-    liftoff_time: float = Field(0.024, ge=0.0, description="liftoff window: guard-avoid "
+    liftoff_time: FiniteFloat = Field(0.024, ge=0.0, description="liftoff window: guard-avoid "
                                 "row relaxed to the start height [s]")
-    liftoff_accel: float = Field(3.0, description="upward swing-foot acceleration at "
+    liftoff_accel: FiniteFloat = Field(3.0, description="upward swing-foot acceleration at "
                                  "node 0 when the swing starts within the liftoff window "
                                  "[m/s^2]")
-    terrain_margin: float = Field(0.025, ge=0.0, description="edge inflation of the "
+    terrain_margin: FiniteFloat = Field(0.025, ge=0.0, description="edge inflation of the "
                                   "guard-avoid terrain [m] (hand-set margins)")
-    terrain_smoothing: float = Field(0.005, gt=0.0, description="logistic width of the "
+    terrain_smoothing: FiniteFloat = Field(0.005, gt=0.0, description="logistic width of the "
                                      "terrain steps [m]")
-    swing2_end_clearance: float | None = Field(0.05, gt=0.0, description="swing 1's last "
+    swing2_end_clearance: FiniteFloat | None = Field(0.05, gt=0.0, description="swing 1's last "
                                                "node at most this above the terrain [m]; "
                                                "None: free")
-    swing_height_cap: float | None = Field(0.25, gt=0.0, description="swing foot at most "
+    swing_height_cap: FiniteFloat | None = Field(0.25, gt=0.0, description="swing foot at most "
                                            "this above the terrain at every node [m]; "
                                            "None: no cap")
-    knee_clearance: float = Field(0.2, description="knees above the stance foot [m]")
-    torque_margin: float = Field(300.0, ge=0.0, description="torque limit tightening "
+    knee_clearance: FiniteFloat = Field(0.2, description="knees above the stance foot [m]")
+    torque_margin: FiniteFloat = Field(300.0, ge=0.0, description="torque limit tightening "
                                  "(the low-level controller's share) [N m] (hand-set "
                                  "margins: mpc.margins = \"hand\")")
     margins: Literal["hand"] | str = Field(
@@ -108,16 +109,16 @@ class WalkingMPCSettings(BaseModel):
         "at mpc.rate_hz its largest guard-avoid offset is the terrain margin, its largest "
         "pass-through offset of a contact surface the segment margin, its input shrink the "
         "torque margin per joint")
-    torso_top_target: tuple[float, float] = Field((0.2, 1.6), description="torso top "
+    torso_top_target: Pair = Field((0.2, 1.6), description="torso top "
                                                   "relative to the stance foot [m]")
-    torso_top_weights: tuple[float, float] = Field((50.0, 5.0), description="cost weights "
+    torso_top_weights: Pair = Field((50.0, 5.0), description="cost weights "
                                                    "on the torso-top error [1/(m^2 s)]")
-    max_iter: int = Field(200, gt=0, description="IPOPT iterations")
-    tol: float = Field(1e-6, gt=0.0, description="IPOPT tol")
-    max_wall_time: float | None = Field(None, gt=0.0, description="IPOPT wall-time cap [s]")
-    warm_start: bool = Field(True, description="primal-dual warm start from the previous "
+    max_iter: BoundedInt = Field(200, gt=0, description="IPOPT iterations")
+    tol: FiniteFloat = Field(1e-6, gt=0.0, description="IPOPT tol")
+    max_wall_time: FiniteFloat | None = Field(None, gt=0.0, description="IPOPT wall-time cap [s]")
+    warm_start: StrictBool = Field(True, description="primal-dual warm start from the previous "
                              "solution of the same candidate")
-    impact_duals: bool = Field(True, description="after a contact, also shift the "
+    impact_duals: StrictBool = Field(True, description="after a contact, also shift the "
                                "executed plan's multipliers (warm IPOPT instance)")
     solver_options: dict = Field(default_factory=dict, description="extra IPOPT options")
 
@@ -127,6 +128,14 @@ class WalkingMPCSettings(BaseModel):
             raise ValueError(f"apex_node {self.apex_node} must be below nodes_per_swing "
                              f"{self.nodes_per_swing}")
         return self
+
+    def size_problems(self) -> list[str]:
+        """``mpc.nodes_per_swing`` beyond :data:`MAX_NLP_NODES` nodes (two swings)."""
+        n = 2 * self.nodes_per_swing
+        if n <= MAX_NLP_NODES:
+            return []
+        return [f"mpc.nodes_per_swing: 2 swings x {self.nodes_per_swing} = {n} NLP nodes "
+                f"exceeds the limit {MAX_NLP_NODES}"]
 
     @property
     def dt(self) -> float:

@@ -26,6 +26,7 @@ from hmpc_cli.messages import ModeSchedule, PlannerResult, Trajectory
 from hmpc_cli.numeric import compile_numpy
 from hmpc_cli.planner.rollout_c import CRollout, RolloutBuildError
 from hmpc_cli.registry import PlannerSpec
+from hmpc_cli.settings_types import BoundedInt, FiniteFloat, StrictBool, gib, memory_limit
 from hmpc_cli.sim import HybridSimulator
 
 UNREACHED_PENALTY = 1e4
@@ -36,19 +37,19 @@ class CEMSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     kind: Literal["cem"] = Field("cem", description="cross-entropy method (ball)")
-    horizon: float = Field(3.0, gt=0.0, description="planning horizon [s]")
-    knots: int = Field(45, ge=2, description="input knots per channel over the horizon")
-    samples: int = Field(50, ge=1, description="random samples per iteration (+ the mean)")
-    elites: int = Field(1, ge=1)
-    iterations: int = Field(15, ge=1)
-    init_mean: float = Field(0.0, description="initial mean of every knot (a system may "
+    horizon: FiniteFloat = Field(3.0, gt=0.0, description="planning horizon [s]")
+    knots: BoundedInt = Field(45, ge=2, description="input knots per channel over the horizon")
+    samples: BoundedInt = Field(50, ge=1, description="random samples per iteration (+ the mean)")
+    elites: BoundedInt = Field(1, ge=1)
+    iterations: BoundedInt = Field(15, ge=1)
+    init_mean: FiniteFloat = Field(0.0, description="initial mean of every knot (a system may "
                              "set its own default)")
-    init_cov: float = Field(250.0, gt=0.0, description="initial variance of every knot")
-    adapt_covariance: bool = Field(False, description="refit the variance to the elites")
-    min_cov: float = Field(1.0, gt=0.0, description="variance floor when adapting")
-    rollout_rate_hz: int = Field(60, gt=0, description="rollout integration rate [Hz]")
-    warm_start: bool = Field(False, description="start from the previous best, shifted")
-    seed: int = Field(0, ge=0, description="base seed (the run seed is mixed in)")
+    init_cov: FiniteFloat = Field(250.0, gt=0.0, description="initial variance of every knot")
+    adapt_covariance: StrictBool = Field(False, description="refit the variance to the elites")
+    min_cov: FiniteFloat = Field(1.0, gt=0.0, description="variance floor when adapting")
+    rollout_rate_hz: BoundedInt = Field(60, gt=0, description="rollout integration rate [Hz]")
+    warm_start: StrictBool = Field(False, description="start from the previous best, shifted")
+    seed: BoundedInt = Field(0, ge=0, description="base seed (the run seed is mixed in)")
     rollout_backend: Literal["auto", "c", "numpy"] = Field(
         "auto", description="rollout code: compiled C, NumPy, or auto (C if it builds, "
                             "else NumPy with a warning)")
@@ -60,6 +61,25 @@ class CEMSettings(BaseModel):
         if samples is not None and v > samples + 1:
             raise ValueError(f"{v} elites exceed the {samples} samples + the mean")
         return v
+
+
+    def size_problems(self) -> list[str]:
+        """Rollout arrays that would not fit in memory (before anything is built).
+
+        Per input channel a CEM iteration holds (samples + 1) x (rollout steps + 2 knots)
+        floats (the interpolated inputs, the noise and the samples).
+        """
+        steps = self.horizon * self.rollout_rate_hz
+        need = 8.0 * (self.samples + 1) * (steps + 2 * self.knots) * MAX_INPUTS
+        if need <= memory_limit():
+            return []
+        return [f"planner.samples: {self.samples} samples x ({steps:.3g} rollout steps + 2 x "
+                f"{self.knots} knots) x {MAX_INPUTS} inputs x 8 B = {gib(need)} exceeds the "
+                f"memory limit {gib(memory_limit())} (half of this machine's RAM)"]
+
+
+#: input channels the memory estimate assumes (the biped's 4; the ball has 2)
+MAX_INPUTS = 4
 
 
 class CrossEntropyPlanner:

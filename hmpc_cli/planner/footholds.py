@@ -23,6 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.messages import ModeSchedule, Plan, PlannerResult
 from hmpc_cli.registry import PlannerSpec, Requirement
+from hmpc_cli.settings_types import FiniteFloat, StrictBool
 from hmpc_cli.stack import SolveFn
 
 Segment = tuple[float, float, float]
@@ -34,11 +35,11 @@ class FootholdSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
     kind: Literal["footholds"] = Field("footholds", description="foothold candidates "
                                        "ranked by the fixed-mode MPC (walking systems)")
-    reach: float = Field(0.45, gt=0.0, description="a segment is a candidate if one of "
+    reach: FiniteFloat = Field(0.45, gt=0.0, description="a segment is a candidate if one of "
                          "its ends lies within this of the stance foot [m]")
-    include_current: bool = Field(True, description="the segment under the stance foot "
+    include_current: StrictBool = Field(True, description="the segment under the stance foot "
                                   "is always a candidate")
-    ahead_only: bool = Field(True, description="drop segments that end at or behind "
+    ahead_only: StrictBool = Field(True, description="drop segments that end at or behind "
                              "the stance foot")
     criterion: Literal["max_hip_x", "min_cost"] = Field(
         "max_hip_x", description="max_hip_x: largest final hip x (reference); min_cost: "

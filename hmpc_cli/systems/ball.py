@@ -23,9 +23,10 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from hmpc_cli.drawing import Ball, Drawing, Polyline, circle
 from hmpc_cli.hybrid import Guard, HybridSystem, Mode
 from hmpc_cli.registry import SystemSpec
+from hmpc_cli.settings_types import FiniteFloat
 from hmpc_cli.tasks import ReachGoal
 
-Pair = tuple[float, float]
+Pair = tuple[FiniteFloat, FiniteFloat]
 
 
 class BallParams(BaseModel):
@@ -33,25 +34,26 @@ class BallParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     name: Literal["ball"] = "ball"
-    radius: float = Field(0.1, ge=0.0, description="ball radius r [m]; shifts the wall guards")
-    mass: float = Field(1.0, gt=0.0, description="mass [kg]")
-    drag: float = Field(0.02, ge=0.0, description="drag gamma: acceleration -gamma |v|^2 v")
-    gravity: float = Field(9.81, ge=0.0, description="gravity outside the circle [m/s^2]")
+    radius: FiniteFloat = Field(0.1, ge=0.0, description="ball radius r [m]; shifts the wall "
+                                                     "guards")
+    mass: FiniteFloat = Field(1.0, gt=0.0, description="mass [kg]")
+    drag: FiniteFloat = Field(0.02, ge=0.0, description="drag gamma: acceleration -gamma |v|^2 v")
+    gravity: FiniteFloat = Field(9.81, ge=0.0, description="gravity outside the circle [m/s^2]")
     circle_center: Pair = (3.0, 3.0)
-    circle_radius: float = Field(1.0, gt=0.0)
+    circle_radius: FiniteFloat = Field(1.0, gt=0.0)
     floor_extent: Pair = Field((0.0, 8.0), description="x range where the floor is active")
     wall_extent: Pair = Field((0.0, 8.0), description="y range where the wall is active")
     u_outside: Pair = Field((-100.0, 0.0), description="input bounds per axis outside")
     u_inside: Pair = Field((-100.0, 100.0), description="input bounds per axis inside")
-    x0: tuple[float, float, float, float] = (1.0, 1.0, 0.0, 0.0)
+    x0: tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat] = (1.0, 1.0, 0.0, 0.0)
     goal: Pair | None = Field(None, description="target position of the stage cost and "
                               "the success test [m] (default: the circle's centre)")
-    q_position: float = Field(50.0, ge=0.0, description="stage cost weight on |p - goal|^2")
-    q_velocity: float = Field(0.001, ge=0.0, description="stage cost weight on |v|^2")
-    r_input: float = Field(0.001, ge=0.0, description="stage cost weight on |u|^2")
-    terminal_radius: float | None = Field(
+    q_position: FiniteFloat = Field(50.0, ge=0.0, description="stage cost weight on |p - goal|^2")
+    q_velocity: FiniteFloat = Field(0.001, ge=0.0, description="stage cost weight on |v|^2")
+    r_input: FiniteFloat = Field(0.001, ge=0.0, description="stage cost weight on |u|^2")
+    terminal_radius: FiniteFloat | None = Field(
         None, gt=0.0, description="terminal set |p - goal| <= this (None: the final domain)")
-    success_radius: float | None = Field(
+    success_radius: FiniteFloat | None = Field(
         None, gt=0.0, description="success: |p_end - goal| <= this [m] (default: the "
                                   "circle's radius)")
 

@@ -8,11 +8,12 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from pydantic_core import InitErrorDetails, PydanticCustomError
 
+from hmpc_cli.settings_types import FiniteFloat
 from hmpc_cli.systems.biped.model import swing_foot_numeric
 from hmpc_cli.systems.biped.terrain import stair_terrain
 
-Five = tuple[float, float, float, float, float]
-Pair = tuple[float, float]
+Five = tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat]
+Pair = tuple[FiniteFloat, FiniteFloat]
 Q0: Five = (-0.78, 0.9, 0.0133, 0.51, -1.0951)
 
 
@@ -20,8 +21,8 @@ class Stair(BaseModel):
     """A flat segment of the course; segments follow each other from x = 0."""
 
     model_config = ConfigDict(extra="forbid")
-    length: float = Field(gt=0.0, description="segment length along x [m]")
-    height: float = Field(description="segment height [m]")
+    length: FiniteFloat = Field(gt=0.0, description="segment length along x [m]")
+    height: FiniteFloat = Field(description="segment height [m]")
 
 
 def _fig4_stairs() -> list[Stair]:
@@ -34,23 +35,23 @@ class BipedParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     name: Literal["biped"] = "biped"
-    torso_length: float = Field(0.625, gt=0.0, description="hip to torso top [m]")
-    thigh_length: float = Field(0.4, gt=0.0, description="hip to knee [m]")
-    calf_length: float = Field(0.4, gt=0.0, description="knee to foot [m]")
-    torso_mass: float = Field(10.0, gt=0.0, description="[kg]")
-    thigh_mass: float = Field(3.0, gt=0.0, description="[kg]")
-    calf_mass: float = Field(1.0, gt=0.0, description="[kg]")
-    torso_inertia: float = Field(2.22, ge=0.0, description="about the CoM [kg m^2]")
-    thigh_inertia: float = Field(1.08, ge=0.0, description="about the CoM [kg m^2]")
-    calf_inertia: float = Field(0.93, ge=0.0, description="about the CoM [kg m^2]")
-    torso_com: float = Field(0.2, ge=0.0, description="CoM distance from the hip [m]")
-    thigh_com: float = Field(0.163, ge=0.0, description="CoM distance from the hip [m]")
-    calf_com: float = Field(0.128, ge=0.0, description="CoM distance from the knee [m]")
-    gravity: float = Field(9.81, ge=0.0, description="[m/s^2]")
-    mass_scale: float = Field(1.0, gt=0.0, description="factor on every mass and inertia "
+    torso_length: FiniteFloat = Field(0.625, gt=0.0, description="hip to torso top [m]")
+    thigh_length: FiniteFloat = Field(0.4, gt=0.0, description="hip to knee [m]")
+    calf_length: FiniteFloat = Field(0.4, gt=0.0, description="knee to foot [m]")
+    torso_mass: FiniteFloat = Field(10.0, gt=0.0, description="[kg]")
+    thigh_mass: FiniteFloat = Field(3.0, gt=0.0, description="[kg]")
+    calf_mass: FiniteFloat = Field(1.0, gt=0.0, description="[kg]")
+    torso_inertia: FiniteFloat = Field(2.22, ge=0.0, description="about the CoM [kg m^2]")
+    thigh_inertia: FiniteFloat = Field(1.08, ge=0.0, description="about the CoM [kg m^2]")
+    calf_inertia: FiniteFloat = Field(0.93, ge=0.0, description="about the CoM [kg m^2]")
+    torso_com: FiniteFloat = Field(0.2, ge=0.0, description="CoM distance from the hip [m]")
+    thigh_com: FiniteFloat = Field(0.163, ge=0.0, description="CoM distance from the hip [m]")
+    calf_com: FiniteFloat = Field(0.128, ge=0.0, description="CoM distance from the knee [m]")
+    gravity: FiniteFloat = Field(9.81, ge=0.0, description="[m/s^2]")
+    mass_scale: FiniteFloat = Field(1.0, gt=0.0, description="factor on every mass and inertia "
                                                        "(1.1: the paper's heavier robot)")
-    torque_limit: float = Field(3000.0, gt=0.0, description="|u_i| <= this [N m]")
-    rate_limit: float = Field(35.0, gt=0.0, description="|qdot_i| <= this [rad/s]")
+    torque_limit: FiniteFloat = Field(3000.0, gt=0.0, description="|u_i| <= this [N m]")
+    rate_limit: FiniteFloat = Field(35.0, gt=0.0, description="|qdot_i| <= this [rad/s]")
     stance_knee_range: Pair = Field((0.0, math.pi / 2), description="q2 bounds [rad]")
     torso_range: Pair = Field((-math.pi / 2, math.pi / 2),
                               description="q3 (torso relative to stance thigh) bounds [rad]")
@@ -59,14 +60,14 @@ class BipedParams(BaseModel):
     stance_foot0: Pair = Field((0.0, 0.0), description="initial stance foot [m]")
     stairs: list[Stair] = Field(default_factory=_fig4_stairs, min_length=1,
                                 description="consecutive flat segments from x = 0")
-    ground_height: float = Field(0.0, description="terrain height for x <= 0 [m]")
+    ground_height: FiniteFloat = Field(0.0, description="terrain height for x <= 0 [m]")
     goal: Pair = Field((2.0, 0.8), description="hip target in the world [m]")
-    q_hip: float = Field(10.0, ge=0.0, description="stage cost weight on |hip - goal|^2")
+    q_hip: FiniteFloat = Field(10.0, ge=0.0, description="stage cost weight on |hip - goal|^2")
     q_nominal: Five = Field(Q0, description="nominal pose of the stage cost [rad]")
     pose_weights: Five = Field((0.0, 1.0, 1.0, 1.0, 1.0),
                                description="stage cost weights on (q - q_nominal)^2")
-    r_torque: float = Field(1e-4, ge=0.0, description="stage cost weight on |u|^2")
-    fall_hip_height: float = Field(0.35, ge=0.0, description="a fall: the hip less than "
+    r_torque: FiniteFloat = Field(1e-4, ge=0.0, description="stage cost weight on |u|^2")
+    fall_hip_height: FiniteFloat = Field(0.35, ge=0.0, description="a fall: the hip less than "
                                    "this above the terrain under it [m]")
 
     @model_validator(mode="after")

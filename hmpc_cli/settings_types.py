@@ -1,0 +1,64 @@
+"""Field types shared by every settings model of a scenario: strict and finite.
+
+Booleans and strings are not numbers (``duration = true`` and ``rate_hz = "600"`` are
+errors, an integer is a valid float), NaN and infinities are rejected, and no value may
+exceed :data:`MAX_FLOAT` / :data:`MAX_INT` in magnitude (beyond them a setting is a typo
+or an overflow waiting to happen). Fields that need tighter bounds add their own.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from pydantic import AfterValidator, AllowInfNan, Strict, StrictBool
+
+#: largest magnitude of a float setting
+MAX_FLOAT = 1e9
+#: largest integer setting
+MAX_INT = 10**9
+
+
+
+def _float_magnitude(v: float) -> float:
+    if abs(v) > MAX_FLOAT:
+        raise ValueError(f"{v:g} exceeds the largest allowed magnitude {MAX_FLOAT:g}")
+    return v
+
+
+def _int_magnitude(v: int) -> int:
+    if abs(v) > MAX_INT:
+        raise ValueError(f"{v} exceeds the largest allowed magnitude {MAX_INT:g}")
+    return v
+
+
+# (a validator, not ge/le: a field's own Field(ge=...) must keep its bound)
+FiniteFloat = Annotated[float, Strict(), AllowInfNan(False), AfterValidator(_float_magnitude)]
+BoundedInt = Annotated[int, Strict(), AfterValidator(_int_magnitude)]
+#: a finite float without the magnitude bound (a threshold where "huge" means "never")
+LargeFloat = Annotated[float, Strict(), AllowInfNan(False)]
+
+#: most nodes of one NLP: IPOPT and CasADi's expression graphs grow with them (a ball
+#: NLP of 180 nodes solves in milliseconds; 20 000 nodes is minutes per solve)
+MAX_NLP_NODES = 20_000
+
+
+def memory_limit() -> int:
+    """Bytes one array of a run may take: half this machine's physical memory."""
+    import os
+
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2
+    except (ValueError, OSError, AttributeError):  # pragma: no cover (not POSIX)
+        return 4 * 1024**3
+
+
+def gib(n: float) -> str:
+    """Bytes as GiB text."""
+    return f"{n / 1024**3:.3g} GiB"
+
+
+#: a pair of finite floats (bounds, positions)
+Pair = tuple[FiniteFloat, FiniteFloat]
+
+__all__ = ["MAX_FLOAT", "MAX_INT", "MAX_NLP_NODES", "BoundedInt", "FiniteFloat", "LargeFloat",
+           "Pair", "StrictBool", "gib", "memory_limit"]

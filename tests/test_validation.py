@@ -1,0 +1,338 @@
+"""Validation that cannot be fooled: every numeric setting, from the file, --set and a sweep.
+
+The cases are generated from the scenario's JSON schema (both systems with their default
+planner and MPC): every numeric field, and every number inside a tuple or list field, gets
+NaN, inf, -inf, 1e300, a negative value where the field has a lower bound, and the wrong
+types "1" and true. Each must end with exit 2, one ``source: key.path: reason`` line naming
+the key and where the value came from, no traceback and nothing written. Runs go through a
+click ``CliRunner`` in-process (the Typer app's click command built once: milliseconds a
+call); ``prepare`` is replaced so that a value that slips through fails at once instead of
+running a simulation.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import pytest
+import typer
+from click.testing import CliRunner
+
+import hmpc_cli.runner
+from hmpc_cli.cli import app
+from hmpc_cli.scenario import dump_toml, scenario_model
+
+#: system -> (planner kind, MPC kind): the plug-in sections validated with it
+STACKS = {"ball": ("cem", "fixed_mode"), "biped": ("footholds", "walking")}
+#: fields that are finite but deliberately unbounded ("huge" means "never")
+UNBOUNDED = {"sim.divergence_bound"}
+COMMAND = typer.main.get_command(app)
+BAD = {"nan": math.nan, "inf": math.inf, "-inf": -math.inf, "huge": 1e300,
+       "string": "1", "bool": True}
+
+
+def _resolve(schema: dict, node: dict) -> dict:
+    if "$ref" in node:
+        return schema["$defs"][node["$ref"].rsplit("/", 1)[1]]
+    branches = [b for b in node.get("anyOf", []) if b.get("type") != "null"]
+    return _resolve(schema, branches[0]) if len(branches) == 1 else node
+
+
+def _numeric(node: dict) -> bool:
+    return node.get("type") in ("number", "integer")
+
+
+def _has_lower_bound(node: dict) -> bool:
+    low = node.get("minimum", node.get("exclusiveMinimum"))
+    return low is not None and low >= 0
+
+
+def _fields(schema: dict, model: dict, section: str):
+    """(key path, path to the bad number, default, number schema) per numeric slot."""
+    for name, prop in model["properties"].items():
+        node = _resolve(schema, prop)
+        key = f"{section}.{name}" if section else name
+        if _numeric(node):
+            yield key, (), prop.get("default"), node
+        elif node.get("type") == "array" and "prefixItems" in node:
+            default = list(prop.get("default") or [1.0] * len(node["prefixItems"]))
+            for i, item in enumerate(node["prefixItems"]):
+                if _numeric(_resolve(schema, item)):
+                    yield key, (i,), default, _resolve(schema, item)
+        elif node.get("type") == "array" and "$ref" in node.get("items", {}):
+            item = _resolve(schema, node["items"])  # a list of tables (biped stairs)
+            for sub, sub_node in item["properties"].items():
+                if _numeric(_resolve(schema, sub_node)):
+                    yield key, (0, sub), item, _resolve(schema, sub_node)
+
+
+def _cases() -> list[tuple[str, str, tuple, object, dict]]:
+    schema = scenario_model().model_json_schema()
+    defs = schema["$defs"]
+    seen, out = set(), []
+    plugin = {"system": {s: f"{s.title()}Params" for s in STACKS},
+              "planner": {"cem": "CEMSettings", "footholds": "FootholdSettings"},
+              "mpc": {"fixed_mode": "MPCSettings", "walking": "WalkingMPCSettings"}}
+    for system, (planner, mpc) in STACKS.items():
+        sections = [("", schema), ("system", defs[plugin["system"][system]]),
+                    ("planner", defs[plugin["planner"][planner]]),
+                    ("mpc", defs[plugin["mpc"][mpc]])]
+        sections += [(k, _resolve(schema, schema["properties"][k]))
+                     for k in ("sim", "disturbance", "replanning", "lowlevel")]
+        for section, model in sections:
+            for key, path, default, node in _fields(schema, model, section):
+                if (system, key, path) in seen or (system != "ball" and section in (
+                        "", "sim", "disturbance", "replanning", "lowlevel")):
+                    continue  # the common sections once (with the ball)
+                seen.add((system, key, path))
+                out.append((system, key, path, default, node))
+    return out
+
+
+CASES = _cases()
+
+
+def _value(path: tuple, default, bad):
+    """The TOML value of the key: the bad number itself or inside its tuple / table list."""
+    if not path:
+        return bad
+    if len(path) == 1:
+        value = list(default)
+        value[path[0]] = bad
+        return value
+    table = {k: 1.0 for k, v in default["properties"].items() if _numeric(v) or "anyOf" in v}
+    table[path[1]] = bad
+    return [table]
+
+
+def _key(key: str, path: tuple) -> str:
+    """The key path an error names (``system.x0[2]``, ``system.stairs[0].length``)."""
+    return key + "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in path)
+
+
+def _toml(value) -> str:
+    return dump_toml({"v": value}).strip().removeprefix("v = ")
+
+
+def _values(node: dict) -> list[str]:
+    names = [n for n in BAD if n != "huge" or node.get("type") == "integer"
+             or node.get("maximum") is None]
+    return names + (["negative"] if _has_lower_bound(node) else [])
+
+
+def _bad(name: str, node: dict):
+    return -1 if name == "negative" else BAD[name]
+
+
+TABLE = [(s, k, p, d, n, v) for s, k, p, d, n in CASES for v in _values(n)]
+
+
+@pytest.fixture
+def work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A scratch current directory; building a loop fails the test (input slipped through)."""
+    monkeypatch.chdir(tmp_path)
+
+    def prepare(scenario):
+        raise AssertionError("invalid input reached prepare()")
+
+    monkeypatch.setattr(hmpc_cli.runner, "prepare", prepare)
+    return tmp_path
+
+
+def _tree(root: Path) -> set[str]:
+    return {str(p.relative_to(root)) for p in root.rglob("*")}
+
+
+def bad_run(work: Path, args: list[str]) -> list[str]:
+    """``hmpc ARGS`` expecting bad input: exit 2, no traceback, nothing written; the lines."""
+    before = _tree(work)
+    res = CliRunner().invoke(COMMAND, args)
+    assert res.exit_code == 2, (args, res.output, res.exception)
+    assert isinstance(res.exception, SystemExit), repr(res.exception)
+    assert "Traceback" not in res.output
+    assert _tree(work) == before, "bad input must not create any file or directory"
+    lines = res.stderr.splitlines()
+    assert lines and all(line.startswith("error: ") for line in lines), lines
+    return lines
+
+
+def _scenario(work: Path, system: str, data: dict | None = None, name: str = "") -> Path:
+    path = work / f"{name or system}.toml"
+    data = {"name": system, **(data or {})}
+    data.setdefault("system", {})["name"] = system
+    path.write_text(dump_toml(data), encoding="utf-8")
+    return path
+
+
+def _nested(key: str, value) -> dict:
+    head, _, rest = key.partition(".")
+    return {head: _nested(rest, value) if rest else value}
+
+
+def _is_unbounded(key: str, value: str) -> bool:
+    return key in UNBOUNDED and value == "huge"
+
+
+# ----------------------------------------------------------- every numeric field, every source
+def test_the_table_covers_both_systems_and_every_section():
+    keys = {(s, k.split(".")[0]) for s, k, *_ in CASES}
+    for section in ("system", "planner", "mpc"):
+        assert {("ball", section), ("biped", section)} <= keys
+    assert {("ball", s) for s in ("sim", "disturbance", "replanning", "lowlevel", "seed")} <= keys
+    assert len(TABLE) > 500
+
+
+def test_every_bad_number_from_the_file_and_from_set(work: Path):
+    """One in-process CLI call per (field, value, source); failures are collected."""
+    failures = []
+    for system, key, path, default, node, value in TABLE:
+        if _is_unbounded(key, value):
+            continue
+        bad = _value(path, default, _bad(value, node))
+        where = _key(key, path)
+        scenario = _scenario(work, system, _nested(key, bad), "bad")
+        for source, args in (
+                ("file", ["run", scenario.name]),
+                ("set", ["run", _scenario(work, system).name, "--set", f"{key}={_toml(bad)}"])):
+            try:
+                lines = bad_run(work, [*args, "--out", "out"])
+                prefix = (f"error: {scenario.name}: " if source == "file"
+                          else f"error: --set {key}={_toml(bad)}: ")
+                assert any(line.startswith(prefix + where + ":") for line in lines), lines
+            except AssertionError as exc:
+                failures.append(f"{system} {where} = {value} ({source}): {exc}")
+        scenario.unlink()
+    assert not failures, f"{len(failures)} cases:\n" + "\n".join(failures[:20])
+
+
+SWEEP_SAMPLE = [("mpc.horizon", "inf"), ("sim.duration", "nan"), ("system.mass", "huge"),
+                ("planner.samples", "string"), ("mpc.rate_hz", "bool"),
+                ("lowlevel.kp", "negative"), ("disturbance.magnitude", "-inf")]
+
+
+@pytest.mark.parametrize("key,value", SWEEP_SAMPLE)
+@pytest.mark.parametrize("axis", ["plain", "table"])
+def test_a_bad_number_in_a_sweep_grid(work: Path, key: str, value: str, axis: str):
+    (node,) = [n for s, k, p, d, n in CASES if s == "ball" and k == key and not p]
+    bad = _toml(_bad(value, node))
+    _scenario(work, "ball")
+    if axis == "plain":
+        grid, where = f'"{key}" = [{_toml(node.get("default", 1))}, {bad}]', f"grid.{key}[1]"
+    else:
+        grid, where = f'controller = [{{ label = "ok" }}, {{ "{key}" = {bad} }}]', \
+            "grid.controller[1]"
+    (work / "x.toml").write_text(f'name = "x"\nscenario = "ball.toml"\n[grid]\n{grid}\n')
+    lines = bad_run(work, ["sweep", "x.toml", "--dry-run"])
+    assert any(line.startswith(f"error: x.toml: {where}: {key}: ") for line in lines), lines
+
+
+# ------------------------------------------------------------------------- the named defects
+def test_bool_and_string_are_not_numbers(work: Path):
+    ball = _scenario(work, "ball").name
+    lines = bad_run(work, ["run", ball, "--set", "sim.duration=true"])
+    assert lines == ["error: --set sim.duration=true: sim.duration: Input should be a valid "
+                     "number"]
+    lines = bad_run(work, ["run", ball, "--set", 'sim.rate_hz="600"'])
+    assert lines == ['error: --set sim.rate_hz="600": sim.rate_hz: Input should be a valid '
+                     'integer']
+
+
+@pytest.mark.parametrize("item,message", [
+    ("mpc.horizon=1e6", "mpc.horizon: 1e+06 s x 60 nodes/s = 6e+07 NLP nodes exceeds the "
+                        "limit 20000"),
+    ("sim.duration=1e6", "sim.duration: 1e+06 s x 600 steps/s = 6e+08 simulator steps "
+                         "exceeds the limit 1e+07"),
+    ("planner.samples=100000000", "planner.samples: 100000000 samples x (180 rollout steps "
+                                  "+ 2 x 45 knots) x 4 inputs x 8 B = 805 GiB exceeds the "
+                                  "memory limit"),
+    ("planner.samples=1e10", "planner.samples: Input should be a valid integer"),
+    ("mpc.horizon=1e9", "mpc.horizon: 1e+09 s x 60 nodes/s = 6e+10 NLP nodes exceeds"),
+])
+def test_size_limits_are_checked_before_anything_is_built(work: Path, item: str, message: str):
+    lines = bad_run(work, ["run", _scenario(work, "ball").name, "--set", item])
+    assert len(lines) == 1 and lines[0].startswith(f"error: --set {item}: {message}"), lines
+
+
+def test_walking_nlp_size_limit(work: Path):
+    lines = bad_run(work, ["run", _scenario(work, "biped").name,
+                           "--set", "mpc.nodes_per_swing=20000"])
+    assert lines == ["error: --set mpc.nodes_per_swing=20000: mpc.nodes_per_swing: 2 swings "
+                     "x 20000 = 40000 NLP nodes exceeds the limit 20000"]
+
+
+@pytest.mark.parametrize("seeds,message", [
+    ("100000000", "x.toml: seeds: 100000000 seeds exceed the limit 100000"),
+    ("50000", "x.toml: seeds: 2 grid cells x 50000 seeds = 100000 runs exceeds the limit "
+              "20000"),
+])
+def test_sweep_size_limits_are_fast(work: Path, seeds: str, message: str):
+    _scenario(work, "ball")
+    (work / "x.toml").write_text(f'name = "x"\nscenario = "ball.toml"\nseeds = {seeds}\n'
+                                 '[grid]\n"mpc.rate_hz" = [10, 20]\n')
+    start = time.monotonic()
+    assert bad_run(work, ["sweep", "x.toml", "--dry-run"]) == [f"error: {message}"]
+    assert time.monotonic() - start < 5
+
+
+def test_unknown_system_still_reports_the_other_sections(work: Path):
+    ball = _scenario(work, "ball", {"sim": {"rate_hz": 0}, "lowlevel": {"kp": math.nan}})
+    lines = bad_run(work, ["run", ball.name, "--set", 'system.name="rocket"'])
+    assert lines[0].startswith('error: --set system.name="rocket": system.name: unknown '
+                               "system 'rocket'")
+    assert sorted(lines[1:]) == ["error: ball.toml: lowlevel.kp: Input should be a finite number",
+                                 "error: ball.toml: sim.rate_hz: Input should be greater than 0"]
+
+
+def test_plant_problems_are_reported_with_the_others(work: Path):
+    ball = _scenario(work, "ball", {"plant": {"mass": -1.0, "spin": 2}, "sim": {"rate_hz": 0}})
+    assert sorted(bad_run(work, ["run", ball.name])) == [
+        "error: ball.toml: plant.mass: Input should be greater than 0",
+        "error: ball.toml: plant.spin: unknown key",
+        "error: ball.toml: sim.rate_hz: Input should be greater than 0"]
+
+
+def test_empty_file(work: Path):
+    (work / "empty.toml").write_text("# nothing\n")
+    lines = bad_run(work, ["run", "empty.toml"])
+    assert len(lines) == 1 and lines[0].startswith("error: empty.toml: file is empty")
+
+
+@pytest.mark.parametrize("name", ["..", ".", "...", "a/b", "../up", "x" * 101])
+def test_a_name_cannot_leave_results(work: Path, name: str):
+    ball = _scenario(work, "ball", {"name": name})
+    lines = bad_run(work, ["run", ball.name])
+    assert len(lines) == 1 and lines[0].startswith("error: ball.toml: name: "), lines
+
+
+def test_out_is_checked_before_the_solvers_are_built(work: Path):
+    ball = _scenario(work, "ball").name
+    (work / "afile").write_text("x")
+    for out, reason in (("afile", "exists and is not a directory"),
+                        ("afile/sub", "cannot create it: afile is not a directory"),
+                        ("y" * 300, "name too long")):
+        lines = bad_run(work, ["run", ball, "--out", out])
+        assert len(lines) == 1 and lines[0].startswith(f"error: {out}: {reason}"), lines
+
+
+# -------------------------------------------- cross-field checks that need the built system
+@pytest.fixture
+def real_prepare(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+@pytest.mark.parametrize("system,item,message", [
+    ("ball", "mpc.input_margin=60", "mpc.input_margin: 60 per side exceeds half the input box "
+                                    "of mode 'outside' input 0 ([-100, 0]: half-width 50)"),
+    ("biped", "mpc.torque_margin=3500", "mpc.torque_margin: 3500 per side exceeds half the "
+                                        "input box of mode"),
+    ("ball", 'mpc.solver_options={ipopt={linear_solver="ma57"}}',
+     "mpc.solver_options.ipopt.linear_solver: 'ma57' is not available (available: mumps"),
+])
+def test_contradictory_settings_fail_at_set_up(real_prepare: Path, system: str, item: str,
+                                               message: str):
+    lines = bad_run(real_prepare, ["run", _scenario(real_prepare, system).name, "--set", item,
+                                   "--out", "out"])
+    assert len(lines) == 1 and lines[0].startswith(f"error: --set {item}: {message}"), lines
