@@ -1,4 +1,8 @@
-"""The ``hmpc`` command line (Typer). Argument handling only; heavy imports inside commands."""
+"""The ``hmpc`` command line (Typer). Argument handling only; heavy imports inside commands.
+
+Exit codes: 0 ran; 1 ``--strict`` failure or lost work; 2 bad input or environment;
+129/130/143 hang-up/interrupt/termination.
+"""
 
 from __future__ import annotations
 
@@ -10,11 +14,30 @@ from typing import Annotated
 
 import typer
 
-app = typer.Typer(
-    name="hmpc", no_args_is_help=True, add_completion=False,
-    help="Layered nonlinear MPC of hybrid systems (Olkin & Ames, 2024): run, log, inspect.")
+from hmpc_cli.cli_common import complete_set_key, print_version, with_verbosity
 
+app = typer.Typer(
+    name="hmpc", no_args_is_help=True, add_completion=True,
+    context_settings={"help_option_names": ["-h", "--help"]},
+    help="Layered nonlinear MPC of hybrid systems (Olkin & Ames, 2024): run, log, inspect.",
+    epilog="Exit codes: 0 ran; 1 --strict failure or lost work; 2 bad input or environment; "
+    "129/130/143 signals (hang-up, interrupt, termination).")
+
+EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
+
+
+@app.callback()
+def _main(
+    version: Annotated[bool, typer.Option(
+        "--version", callback=print_version, is_eager=True,
+        help="print the hmpc, CasADi and Python versions and exit")] = False,
+) -> None:
+    """Layered nonlinear MPC of hybrid systems (Olkin & Ames, 2024): run, log, inspect.
+
+    Exit codes: 0 ran; 1 --strict failure or lost work; 2 bad input or environment;
+    129/130/143 signals (hang-up, interrupt, termination).
+    """
 
 
 def _err(lines: list[str]) -> None:
@@ -23,12 +46,14 @@ def _err(lines: list[str]) -> None:
 
 
 @app.command()
+@with_verbosity
 def run(
     scenario: Annotated[Path, typer.Argument(help="scenario TOML file")],
     out: Annotated[Path | None, typer.Option(
         "--out", help="run directory (default results/<scenario>/<time>-seed<N>)")] = None,
     set_: Annotated[list[str] | None, typer.Option(
-        "--set", help="override a setting: key.path=value (repeatable)")] = None,
+        "--set", help="override a setting: key.path=value (repeatable)",
+        autocompletion=complete_set_key)] = None,
     seed: Annotated[int | None, typer.Option("--seed", help="override the seed")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar")] = False,
     live: Annotated[bool, typer.Option(
@@ -36,8 +61,13 @@ def run(
         "127.0.0.1 (needs foxglove-sdk), paced to real time")] = False,
     live_port: Annotated[int, typer.Option(
         "--live-port", help="port of the --live server")] = 8765,
+    strict: Annotated[bool, typer.Option(
+        "--strict", help="exit 1 when the run's task fails (success false)")] = False,
 ) -> None:
-    """Run the layered controller in closed loop and log everything to MCAP."""
+    """Run the layered controller in closed loop and log everything to MCAP.
+
+    When stdout is not a terminal, the log's path is also printed whole on the last line.
+    """
     from hmpc_cli.scenario import ScenarioError, load_scenario
 
     try:
@@ -71,6 +101,10 @@ def run(
         if sink is not None:
             sink.close()
     _print_summary(result, out)
+    if not sys.stdout.isatty():
+        typer.echo(str(out / "run.mcap"))
+    if strict and not result.success:
+        raise typer.Exit(EXIT_FAILED)
 
 
 def _live_sink(port: int):
@@ -139,6 +173,7 @@ def _print_summary(r, out: Path) -> None:
 
 
 @app.command()
+@with_verbosity
 def schema() -> None:
     """Print the scenario JSON Schema."""
     from hmpc_cli.scenario import scenario_model
@@ -153,19 +188,19 @@ def _register() -> None:
     from hmpc_cli.cli_sweep import sweep_command
     from hmpc_cli.cli_tube import tube_command
 
-    app.command("sweep")(sweep_command)
-    app.command("plot")(plot_command)
-    app.command("report")(report_command)
-    app.command("tube")(tube_command)
-    app.command("replay")(replay_command)
+    app.command("sweep")(with_verbosity(sweep_command))
+    app.command("plot")(with_verbosity(plot_command))
+    app.command("report")(with_verbosity(report_command))
+    app.command("tube")(with_verbosity(tube_command))
+    app.command("replay")(with_verbosity(replay_command))
 
 
 _register()
 
 
 def main() -> None:
-    """Console-script entry point."""
-    app()
+    """Console-script entry point (also ``python -m hmpc_cli``)."""
+    app(prog_name="hmpc")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -30,14 +30,10 @@ def prepare(scenario) -> ClosedLoop:
 
 
 def jsonable(value):
-    """Replaces NaN by None recursively (JSON has no NaN)."""
-    if isinstance(value, float) and value != value:
-        return None
-    if isinstance(value, dict):
-        return {k: jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [jsonable(v) for v in value]
-    return value
+    """Replaces NaN and +-inf by None recursively (strict JSON has neither)."""
+    from hmpc_cli.jsonio import finite
+
+    return finite(value)
 
 
 def execute_run(loop: ClosedLoop, toml_text: str, out: Path,
@@ -66,7 +62,8 @@ def execute_run(loop: ClosedLoop, toml_text: str, out: Path,
     finally:
         rec.close()
         res = result if result is not None else loop.res
-        (out / "summary.json").write_text(json.dumps(jsonable(res.__dict__), indent=2) + "\n")
+        (out / "summary.json").write_text(
+            json.dumps(jsonable(res.__dict__), indent=2, allow_nan=False) + "\n")
     return result
 
 
