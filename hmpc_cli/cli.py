@@ -1,4 +1,8 @@
-"""The ``hmpc`` command line (Typer). Argument handling only; heavy imports inside commands."""
+"""The ``hmpc`` command line (Typer). Argument handling only; heavy imports inside commands.
+
+Exit codes: 0 ran; 1 ``--strict`` failure or lost work; 2 bad input or environment;
+129/130/143 hang-up/interrupt/termination.
+"""
 
 from __future__ import annotations
 
@@ -10,11 +14,30 @@ from typing import Annotated
 
 import typer
 
-app = typer.Typer(
-    name="hmpc", no_args_is_help=True, add_completion=False,
-    help="Layered nonlinear MPC of hybrid systems (Olkin & Ames, 2024): run, log, inspect.")
+from hmpc_cli.cli_common import complete_set_key, print_version, with_verbosity
 
+app = typer.Typer(
+    name="hmpc", no_args_is_help=True, add_completion=True,
+    context_settings={"help_option_names": ["-h", "--help"]},
+    help="Layered nonlinear MPC of hybrid systems (Olkin & Ames, 2024): run, log, inspect.",
+    epilog="Exit codes: 0 ran; 1 --strict failure or lost work; 2 bad input or environment; "
+    "129/130/143 signals (hang-up, interrupt, termination).")
+
+EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
+
+
+@app.callback()
+def _main(
+    version: Annotated[bool, typer.Option(
+        "--version", callback=print_version, is_eager=True,
+        help="print the hmpc, CasADi and Python versions and exit")] = False,
+) -> None:
+    """Layered nonlinear MPC of hybrid systems (Olkin & Ames, 2024): run, log, inspect.
+
+    Exit codes: 0 ran; 1 --strict failure or lost work; 2 bad input or environment;
+    129/130/143 signals (hang-up, interrupt, termination).
+    """
 
 
 def _err(lines: list[str]) -> None:
@@ -23,12 +46,14 @@ def _err(lines: list[str]) -> None:
 
 
 @app.command()
+@with_verbosity
 def run(
     scenario: Annotated[Path, typer.Argument(help="scenario TOML file")],
     out: Annotated[Path | None, typer.Option(
         "--out", help="run directory (default results/<scenario>/<time>-seed<N>)")] = None,
     set_: Annotated[list[str] | None, typer.Option(
-        "--set", help="override a setting: key.path=value (repeatable)")] = None,
+        "--set", help="override a setting: key.path=value (repeatable)",
+        autocompletion=complete_set_key)] = None,
     seed: Annotated[int | None, typer.Option("--seed", help="override the seed")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar")] = False,
     live: Annotated[bool, typer.Option(
@@ -36,17 +61,20 @@ def run(
         "127.0.0.1 (needs foxglove-sdk), paced to real time")] = False,
     live_port: Annotated[int, typer.Option(
         "--live-port", help="port of the --live server")] = 8765,
+    strict: Annotated[bool, typer.Option(
+        "--strict", help="exit 1 when the run's task fails (success false)")] = False,
 ) -> None:
     """Run the layered controller in closed loop and log everything to MCAP.
 
     SIGINT, SIGTERM and SIGHUP stop the run within one simulator step: the log is closed,
     summary.json says ``interrupted (SIGTERM)``; exit code 128 + the signal number.
+    When stdout is not a terminal, the log's path is also printed whole on the last line.
     """
     from hmpc_cli.signals import Interrupted, handle_signals
 
     try:
         with handle_signals():
-            _run(scenario, out, set_ or [], seed, quiet, live, live_port)
+            _run(scenario, out, set_ or [], seed, quiet, live, live_port, strict)
     except Interrupted as exc:
         raise typer.Exit(exc.exit_code) from None
     except KeyboardInterrupt:
@@ -54,7 +82,7 @@ def run(
 
 
 def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, quiet: bool,
-         live: bool, live_port: int) -> None:
+         live: bool, live_port: int, strict: bool = False) -> None:
     """The body of ``hmpc run`` (signal handlers installed)."""
     from hmpc_cli.scenario import ScenarioError, load_scenario
 
@@ -91,6 +119,10 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
         if sink is not None:
             sink.close()
     _print_summary(result, out)
+    if not sys.stdout.isatty():
+        typer.echo(str(out / "run.mcap"))
+    if strict and not result.success:
+        raise typer.Exit(EXIT_FAILED)
 
 
 def _run_dir(out: Path | None, sc) -> Path:
@@ -188,6 +220,7 @@ def _print_summary(r, out: Path) -> None:
 
 
 @app.command()
+@with_verbosity
 def schema() -> None:
     """Print the scenario JSON Schema."""
     from hmpc_cli.scenario import scenario_model
@@ -202,19 +235,19 @@ def _register() -> None:
     from hmpc_cli.cli_sweep import sweep_command
     from hmpc_cli.cli_tube import tube_command
 
-    app.command("sweep")(sweep_command)
-    app.command("plot")(plot_command)
-    app.command("report")(report_command)
-    app.command("tube")(tube_command)
-    app.command("replay")(replay_command)
+    app.command("sweep")(with_verbosity(sweep_command))
+    app.command("plot")(with_verbosity(plot_command))
+    app.command("report")(with_verbosity(report_command))
+    app.command("tube")(with_verbosity(tube_command))
+    app.command("replay")(with_verbosity(replay_command))
 
 
 _register()
 
 
 def main() -> None:
-    """Console-script entry point."""
-    app()
+    """Console-script entry point (also ``python -m hmpc_cli``)."""
+    app(prog_name="hmpc")
 
 
 if __name__ == "__main__":  # pragma: no cover

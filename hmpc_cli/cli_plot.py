@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from hmpc_cli.cli_common import complete_figure
+
 __all__ = ["plot_command"]
 
 EXIT_BAD_INPUT = 2
@@ -46,6 +48,8 @@ def _fig3(table: Path, out: Path | None, formats: str, options: dict) -> None:
         counts = fig3(table, out_dir, formats, **options)
     except FigureInputError as exc:
         _fail(str(exc))
+    for note in (n for c in counts.values() for n in c.notes):
+        typer.echo(f"warning: {note}", err=True)
     _print_counts(counts, REFERENCE_COUNTS)
     names = [f"fig3.{f}" for f in parse_formats(formats)] + ["fig3_counts.csv"]
     typer.echo(f"wrote {', '.join(names)} to {out_dir}")
@@ -126,7 +130,8 @@ def _robustness(table: Path, out: Path | None, formats: str, options: dict) -> N
 
 
 def plot_command(
-    figure: Annotated[str, typer.Argument(help="figure to draw: fig2, fig3, robustness or fig4")],
+    figure: Annotated[str, typer.Argument(
+        help="figure to draw: fig2, fig3, robustness or fig4", autocompletion=complete_figure)],
     table: Annotated[Path, typer.Argument(
         help="fig3, robustness: sweep table (results.csv, or the sweep directory holding "
         "it); fig2: a run log, fig4: a biped run log (run.mcap, or the run directory "

@@ -27,8 +27,8 @@ def report_command(
         "--biped", help="biped scenario for Figure 4 ('' to leave out)")
     ] = Path("scenarios/biped_stairs.toml"),
     run: Annotated[bool, typer.Option(
-        "--run/--no-run", help="run unfinished sweep runs first (finished ones are skipped)")
-    ] = True,
+        "--run/--no-run", help="run the missing sweep runs first (finished ones are skipped; "
+        "default: run nothing, print what is missing)")] = False,
     workers: Annotated[int | None, typer.Option(
         "--workers", min=1, help="worker processes (default: all cores)")] = None,
     seeds: Annotated[int | None, typer.Option(
@@ -43,6 +43,8 @@ def report_command(
                    "are all empty)", err=True)
         raise typer.Exit(EXIT_BAD_INPUT)
     dirs = {k: results / "sweeps" / p.spec.name for k, p in plans.items()}
+    if not run:
+        _print_missing(plans, dirs)
     lost = _run_sweeps(plans, dirs, workers) if run else []
     biped_dir = _biped_run(biped, results, run)
     _write_page(results, dirs, biped_dir)
@@ -51,6 +53,28 @@ def report_command(
             typer.echo(f"error: worker failed, run not recorded (rerun to retry): {line}",
                        err=True)
         raise typer.Exit(EXIT_FAILED)
+
+
+def _print_missing(plans: dict, dirs: dict[str, Path]) -> None:
+    """Prints, per sweep, how many runs are missing and their simulated time (an estimate)."""
+    import tomllib
+
+    from hmpc_cli.sweep_table import finished
+
+    total = 0
+    for key, plan in plans.items():
+        missing = [r for r in plan.selected if finished(dirs[key].resolve(), r) is None]
+        if not missing:
+            continue
+        total += len(missing)
+        sim = sum(float(tomllib.loads(r.toml).get("sim", {}).get("duration", 0.0) or 0.0)
+                  for r in missing if r.toml)
+        typer.echo(f"note: {plan.path}: {len(missing)} of {len(plan.selected)} runs missing "
+                   f"({sim:g} s of simulated time, several times that in wall time)",
+                   err=True)
+    if total:
+        typer.echo(f"note: nothing was run; `hmpc report --run` runs the {total} missing "
+                   "runs (resumable), then writes the page", err=True)
 
 
 def _left_out(path: Path | None) -> bool:

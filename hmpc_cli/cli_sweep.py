@@ -32,6 +32,8 @@ def sweep_command(
     seeds: Annotated[int | None, typer.Option(
         "--seeds", help="run only the sweep's first N seeds (the rest resume later)")
     ] = None,
+    dask_timeout: Annotated[float, typer.Option(
+        "--dask-timeout", min=0.1, help="seconds to wait for the --dask scheduler")] = 10.0,
 ) -> None:
     """Run a grid of scenario overrides x seeds in parallel; resumable; one results table."""
     import os
@@ -52,7 +54,7 @@ def sweep_command(
         if workers is not None:
             typer.echo("note: --workers is ignored with --dask", err=True)
         try:
-            client = connect_dask(dask)
+            client = connect_dask(dask, dask_timeout)
         except ScenarioError as exc:
             _err(exc.lines)
             raise typer.Exit(EXIT_BAD_INPUT) from None
@@ -163,12 +165,55 @@ def cell_stats(plan, out: Path) -> list[tuple[tuple[str, ...], int, int]]:
     return [(c, n, k) for c, (n, k) in stats.items()]
 
 
-def connect_dask(address: str, timeout: float = 5.0):
-    """A ``distributed.Client`` for ``address``.
+DASK_HINT = "is it the dashboard port 8787? the scheduler listens on 8786"
+
+
+def _probe_scheduler(address: str, timeout: float) -> str:
+    """'' if a TCP Dask scheduler at ``address`` sends its handshake within ``timeout``.
+
+    A scheduler writes its handshake frame (8-byte little-endian length, then the message)
+    as soon as a connection is accepted; an HTTP server or a silent peer sends nothing.
+    Addresses of other protocols (tls://, ucx://, ...) are not probed. Otherwise returns why.
+    """
+    import socket
+    import struct
+    import time
+
+    scheme, _, rest = address.rpartition("://")
+    if scheme not in ("", "tcp"):
+        return ""
+    host, _, port = rest.rpartition(":")
+    if not host or not port.isdigit():
+        return ""  # left to distributed (default port, names it resolves itself)
+    deadline = time.monotonic() + timeout
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout) as sock:
+            head = b""
+            while len(head) < 8:
+                sock.settimeout(max(deadline - time.monotonic(), 0.01))
+                chunk = sock.recv(8 - len(head))
+                if not chunk:
+                    return "the peer closed the connection without a Dask handshake"
+                head += chunk
+    except TimeoutError:
+        return f"no Dask scheduler answered within {timeout:g} s"
+    except OSError as exc:
+        return f"cannot connect: {exc.strerror or exc}"
+    (size,) = struct.unpack("<Q", head)
+    if not 0 < size < 1 << 26:
+        return "the peer does not speak the Dask protocol"
+    return ""
+
+
+def connect_dask(address: str, timeout: float = 10.0):
+    """A ``distributed.Client`` for ``address``, connected within ``timeout`` seconds.
 
     Raises:
-        ScenarioError: distributed missing or the scheduler unreachable.
+        ScenarioError: distributed missing, or no scheduler answered in time (one line with
+            a hint about the dashboard port).
     """
+    import threading
+
     from hmpc_cli.scenario import ScenarioError
 
     try:
@@ -176,8 +221,23 @@ def connect_dask(address: str, timeout: float = 5.0):
     except ImportError:
         raise ScenarioError([f"--dask {address}: the 'distributed' package is not installed "
                              "(pip install 'hmpc[dask]')"]) from None
-    try:
-        return Client(address, timeout=timeout)
-    except (OSError, TimeoutError, ValueError) as exc:
-        reason = " ".join(str(exc).split()) or type(exc).__name__
-        raise ScenarioError([f"--dask {address}: cannot connect: {reason}"]) from None
+    reason = _probe_scheduler(address, timeout)
+    if reason:
+        raise ScenarioError([f"--dask {address}: {reason} ({DASK_HINT})"])
+    box: dict = {}
+
+    def connect() -> None:
+        try:
+            box["client"] = Client(address, timeout=timeout)
+        except BaseException as exc:
+            box["error"] = exc
+
+    worker = threading.Thread(target=connect, name="hmpc-dask-connect", daemon=True)
+    worker.start()
+    worker.join(timeout + 1.0)
+    if "client" in box:
+        return box["client"]
+    exc = box.get("error")
+    reason = (" ".join(str(exc).split()) or type(exc).__name__) if exc is not None else \
+        f"no Dask scheduler answered within {timeout:g} s"
+    raise ScenarioError([f"--dask {address}: cannot connect: {reason} ({DASK_HINT})"])

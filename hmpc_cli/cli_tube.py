@@ -6,7 +6,6 @@ Reads the scenario, builds its system through the registry, runs
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Annotated
@@ -150,11 +149,12 @@ def _write(report, system, out: Path, formats: str, title: str) -> list[str]:
 
     from hmpc_cli.figures.common import parse_formats
     from hmpc_cli.figures.tube import draw_diameters, draw_margins
+    from hmpc_cli.jsonio import dumps
     from hmpc_cli.tube import diameter_curves
 
     fmts = parse_formats(formats)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "tube.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
+    (out / "tube.json").write_text(dumps(report.to_dict(), indent=2) + "\n")
     periods = [r.dt for r in report.rows]
     t = np.linspace(0.0, max(periods), 401)[1:]
     cert = report.certificate

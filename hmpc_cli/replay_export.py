@@ -16,9 +16,10 @@ the attached scenario text and the filters.
 from __future__ import annotations
 
 import csv
-import json
 from pathlib import Path
 from typing import Any
+
+from hmpc_cli.jsonio import dumps
 
 __all__ = ["ExportError", "check_format", "flatten", "tables", "write_export"]
 
@@ -48,7 +49,7 @@ def _into(value: Any, key: str, row: dict, nested: dict | None) -> None:
             row[f"{key}[{i}]"] = v
     elif isinstance(value, list):
         if nested is None:
-            row[key] = json.dumps(value, separators=(",", ":"))
+            row[key] = dumps(value, separators=(",", ":"))
         else:
             nested[key] = value
     else:
@@ -115,7 +116,7 @@ def _arrow_column(values: list) -> tuple[list, str]:
         return values, "int64"
     if kinds <= {int, float} and kinds:
         return [None if v is None else float(v) for v in values], "float64"
-    return [None if v is None else (v if isinstance(v, str) else json.dumps(v))
+    return [None if v is None else (v if isinstance(v, str) else dumps(v))
             for v in values], "string"
 
 
@@ -172,7 +173,7 @@ def write_export(out: Path, messages: list, info: dict, fmt: str = "csv") -> lis
             (_write_csv if fmt == "csv" else _write_parquet)(path, rows)
             written.append(path)
         path = out / "info.json"
-        path.write_text(json.dumps(info, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+        path.write_text(dumps(info, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
         written.append(path)
     except OSError as exc:
         raise ExportError(f"{out}: cannot write ({exc.strerror or exc})") from None

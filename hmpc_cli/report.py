@@ -53,6 +53,10 @@ def _fig3_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]:
     for c in [*counts.values(), *extra.values()]:
         lines.append(f"| {c.label} | {c.successes}/{c.runs} | {REFERENCE.get(c.label, '-')} | "
                      f"{', '.join(c.failed) or '-'} |")
+    notes = [n for c in [*counts.values(), *extra.values()] for n in c.notes]
+    if notes:
+        lines += ["", "Logs left out or drawn only in part:", "",
+                  *(f"- {n}" for n in notes)]
     if extra:
         lines += ["", f"The 100 Hz panel: [{_rel(fig_dir / 'fig3_extra' / 'fig3.png', base)}]"
                   f"({_rel(fig_dir / 'fig3_extra' / 'fig3.png', base)})."]

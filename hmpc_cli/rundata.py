@@ -98,6 +98,7 @@ class RunData:
         t_w (D,) [s], w_changes (D, n_w): /disturbance.
         solves: /mpc/solve in time order; planner: /planner/plan.
         summary: /run/summary (None: the run did not finish).
+        damage: why reading stopped early at a damaged chunk ('' if it did not).
     """
 
     path: Path
@@ -121,6 +122,7 @@ class RunData:
     solves: list[SolveData] = field(default_factory=list)
     planner: list[PlannerCallData] = field(default_factory=list)
     summary: dict | None = None
+    damage: str = ""
 
     @property
     def name(self) -> str:
@@ -268,4 +270,4 @@ def read_run(path: Path) -> RunData:
                key=lambda s: s.t),
         sorted((_planner(m.data, names) for m in log.topic("/planner/plan")),
                key=lambda p: p.t),
-        dict(summaries[-1].data) if summaries else None)
+        dict(summaries[-1].data) if summaries else None, getattr(log, "damage", ""))

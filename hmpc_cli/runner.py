@@ -64,14 +64,10 @@ def out_problem(out: Path) -> str | None:
 
 
 def jsonable(value):
-    """Replaces NaN by None recursively (JSON has no NaN)."""
-    if isinstance(value, float) and value != value:
-        return None
-    if isinstance(value, dict):
-        return {k: jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [jsonable(v) for v in value]
-    return value
+    """Replaces NaN and +-inf by None recursively (strict JSON has neither)."""
+    from hmpc_cli.jsonio import finite
+
+    return finite(value)
 
 
 def execute_run(loop: ClosedLoop, toml_text: str, out: Path,
@@ -116,7 +112,7 @@ def execute_run(loop: ClosedLoop, toml_text: str, out: Path,
 def _write_summary(out: Path, res: RunResult) -> None:
     """Writes ``summary.json`` atomically (a reader never sees half of it)."""
     tmp = out / "summary.json.tmp"
-    tmp.write_text(json.dumps(jsonable(res.__dict__), indent=2) + "\n")
+    tmp.write_text(json.dumps(jsonable(res.__dict__), indent=2, allow_nan=False) + "\n")
     os.replace(tmp, out / "summary.json")
 
 

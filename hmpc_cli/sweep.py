@@ -410,8 +410,8 @@ def run_one(toml_text: str, run_dir: str) -> dict:
             out.mkdir(parents=True, exist_ok=True)
             (out / "scenario.toml").write_text(toml_text, encoding="utf-8")
             (out / "error.txt").write_text(traceback.format_exc(), encoding="utf-8")
-            (out / "summary.json").write_text(json.dumps(jsonable(res.__dict__), indent=2)
-                                              + "\n")
+            (out / "summary.json").write_text(
+                json.dumps(jsonable(res.__dict__), indent=2, allow_nan=False) + "\n")
         return json.loads((out / "summary.json").read_text())
 
 

@@ -51,7 +51,9 @@ def cell_text(v: Any) -> str:
         return "true" if v else "false"
     if isinstance(v, (int, float, str)):
         return repr(v) if isinstance(v, float) else str(v)
-    return json.dumps(v, sort_keys=True)
+    from hmpc_cli.jsonio import dumps
+
+    return dumps(v, sort_keys=True)  # strict JSON: non-finite numbers as null
 
 
 def result_rows(plan, out: Path) -> list[dict[str, str]]:

@@ -119,7 +119,8 @@ seeds = 2
 "disturbance.magnitude" = [5.0]
 """)
     res = tmp_path / "results"
-    args = ["report", "--results", str(res), "--fig3", "", "--fig3-extra", "", "--biped", "",
+    args = ["report", "--run", "--results", str(res), "--fig3", "", "--fig3-extra", "",
+            "--biped", "",
             "--robustness", str(sweep), "--workers", "1"]
     proc = run_hmpc(args, tmp_path, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]

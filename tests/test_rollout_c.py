@@ -161,7 +161,9 @@ def test_compiled_library_is_cached_on_disk(tmp_path, monkeypatch):
     second = CRollout(ball)
     assert second.compile_seconds is None and rollout_c.COMPILES - before == 1
     assert second.path == first.path and first.path.stat().st_mtime_ns == stamp
-    assert sorted(p.name for p in tmp_path.iterdir()) == [first.path.name]  # no temp files
+    # no temp files: the library and its sha256
+    assert sorted(p.name for p in tmp_path.iterdir()) == [first.path.name,
+                                                          first.path.name + ".sha256"]
 
 
 @needs_cc
@@ -174,7 +176,8 @@ def test_concurrent_processes_share_one_build(tmp_path):
                               text=True) for _ in range(2)]
     paths = {p.communicate(timeout=120)[0].strip() for p in procs}
     assert all(p.returncode == 0 for p in procs) and len(paths) == 1
-    assert [p.name for p in tmp_path.iterdir()] == [os.path.basename(paths.pop())]
+    name = os.path.basename(paths.pop())
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name, name + ".sha256"]
 
 
 def test_missing_compiler_falls_back_to_numpy(tmp_path, monkeypatch):

@@ -248,6 +248,7 @@ class RunTrace:
     scenario: dict = field(default_factory=dict)
     logged_success: bool | None = None  # the log's own /run/summary verdict, if any
     complete: bool = True
+    damage: str = ""  # why reading stopped at a damaged chunk ('' if it did not)
 
     @property
     def system(self) -> dict:
@@ -287,4 +288,4 @@ def load_trace(path: Path) -> RunTrace:
     ok = run.summary.get("success") if run.summary else None
     log = run
     return RunTrace(Path(path), arr[:, 0], arr[:, 1:3], scenario,
-                    ok if isinstance(ok, bool) else None, log.complete)
+                    ok if isinstance(ok, bool) else None, log.complete, log.damage)

@@ -48,12 +48,16 @@ FAIL_COLOR = "#d62728"  # red
 
 @dataclass
 class PanelCounts:
-    """Outcome of one panel: number of runs, stable runs, trace labels of the failed runs."""
+    """Outcome of one panel: number of runs, stable runs, trace labels of the failed runs.
+
+    ``notes`` names the logs left out (unreadable) or drawn only up to a damaged chunk.
+    """
 
     label: str
     runs: int = 0
     successes: int = 0
     failed: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -93,19 +97,36 @@ def _group(rows: list[dict[str, str]], panel_axis: str, panels: Sequence[str] | 
     return {p: groups[p] for p in panels}
 
 
-def _load_runs(table: Path, groups: dict, trace_axis: str,
-               nominal: str | None) -> dict[str, list[_Run]]:
-    """Loads every run of every panel (all checks happen here, before anything is written)."""
+def _load_runs(table: Path, groups: dict, trace_axis: str, nominal: str | None,
+               notes: dict[str, list[str]]) -> dict[str, list[_Run]]:
+    """Loads every run of every panel (all checks happen here, before anything is written).
+
+    An unreadable log is left out and a damaged one kept up to the damage, each with a line
+    in ``notes[label]``; a panel left without runs is dropped (FigureInputError if all are).
+    """
     out: dict[str, list[_Run]] = {}
     for label, rows in groups.items():
-        runs = []
+        runs, notes[label] = [], []
         for line, row in rows:
             where = f"{table}:{line}"
             ok = parse_bool(row.get("success"), f"{where}: success")
-            trace = load_trace(resolve_log(table, row.get("log"), where))
+            try:
+                trace = load_trace(resolve_log(table, row.get("log"), where))
+            except FigureInputError as exc:
+                notes[label].append(f"{where}: skipped: {exc}")
+                continue
+            if trace.damage:
+                notes[label].append(f"{trace.path}: damaged log, drawn up to the damage "
+                                    f"({trace.damage})")
             tl = (row.get(trace_axis) or "").strip()
             runs.append(_Run(tl, ok, nominal is not None and tl == nominal, trace))
-        out[label] = runs
+        if runs:
+            out[label] = runs
+        else:
+            notes[label].append(f"panel {label!r}: no readable log, panel left out")
+    if not out:
+        raise FigureInputError(f"{table}: no readable run log: "
+                               + "; ".join(n for ns in notes.values() for n in ns))
     return out
 
 
@@ -318,11 +339,15 @@ def fig3(table_path: str | Path, out_dir: str | Path | None = None,
     fmts = parse_formats(formats)
     rows = read_table(table, [panel_axis, trace_axis, "success", "log"])
     groups = _group(rows, panel_axis, list(panels) if panels is not None else None, table)
-    runs = _load_runs(table, groups, trace_axis, nominal or None)
+    notes: dict[str, list[str]] = {}
+    runs = _load_runs(table, groups, trace_axis, nominal or None, notes)
     counts = {label: PanelCounts(label, len(rs), sum(r.success for r in rs),
                                  sorted((r.trace_label for r in rs if not r.success),
-                                        key=_natural))
+                                        key=_natural), notes[label])
               for label, rs in runs.items()}
+    dropped = [n for label, ns in notes.items() if label not in runs for n in ns]
+    if dropped:
+        next(iter(counts.values())).notes.extend(dropped)
     out = Path(out_dir) if out_dir is not None else table.parent
     make_out_dir(out)
     with figure_style():  # nothing from the user's matplotlibrc leaks in

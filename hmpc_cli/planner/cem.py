@@ -116,9 +116,11 @@ class CrossEntropyPlanner:
                 self._c = CRollout(system, self.sim.max_events, self.sim.time_tol)
                 self.backend = "c"
             except RolloutBuildError as e:
-                if settings.rollout_backend == "c":
-                    raise
                 first = (str(e).splitlines() or [""])[0]
+                if settings.rollout_backend == "c":
+                    raise RolloutBuildError(
+                        f"planner.rollout_backend = 'c': the C rollouts cannot be built "
+                        f"({first}); set it to 'auto' or 'numpy'") from e
                 warnings.warn(f"C rollouts unavailable, using NumPy: {first}", RuntimeWarning,
                               stacklevel=2)
 

@@ -8,12 +8,18 @@ written) runs the planner's rollouts with the event location of
 one event search iterate together until all converge), so its results are NumPy's bit for
 bit when both evaluate the elementary operations alike (IEEE +, -, *, /, sqrt; libm and
 NumPy may differ in the last bit of sin, exp, ...). The shared library is compiled once per
-machine and source, cached under a hash of source and flags in ``$HMPC_CACHE_DIR`` (default
-``~/.cache/hmpc``), written atomically, and loaded with ctypes.
+machine and source, cached under a hash of source, flags and the compiler's identity (its
+path and ``--version`` output) in ``$HMPC_CACHE_DIR`` (default ``~/.cache/hmpc``), written
+atomically with its sha256 next to it (``.sha256``), and loaded with ctypes only when that
+hash matches (a truncated or replaced library is rebuilt, never executed). A cache directory
+writable by group or others, or owned by another user, is not used: the library is then
+built in a private temporary directory (with a warning).
 """
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import ctypes
 import hashlib
 import logging
@@ -23,6 +29,7 @@ import shutil
 import subprocess
 import tempfile
 import time
+import warnings
 from importlib import resources
 from pathlib import Path
 
@@ -36,6 +43,8 @@ ABI = 3  # must equal HM_ABI of rollout_kernel.c
 COMPILES = 0  # compilations done by this process (the cache makes repeats free)
 _LIBS: dict[str, ctypes.CDLL] = {}  # loaded libraries by path
 _FAILED: dict[tuple[str, tuple[str, ...]], str] = {}  # failed builds by path and compiler
+_IDENTITY: dict[tuple[str, ...], str] = {}  # compiler identity by command
+_PRIVATE: list[Path] = []  # this process's private build directory, once made
 _D = ctypes.POINTER(ctypes.c_double)
 _LOG = logging.getLogger(__name__)
 
@@ -157,6 +166,81 @@ def cache_dir() -> Path:
     return Path(os.environ.get("HMPC_CACHE_DIR") or Path.home() / ".cache" / "hmpc")
 
 
+def unsafe_reason(folder: Path) -> str:
+    """Why ``folder`` must not hold libraries that get executed ('' if it may).
+
+    Unsafe: not a directory, owned by another user, or writable by group or others.
+    """
+    try:
+        st = folder.stat()
+    except OSError as e:
+        return f"cannot stat it: {e}"
+    if not folder.is_dir():
+        return "not a directory"
+    if hasattr(os, "getuid") and st.st_uid != os.getuid():
+        return f"owned by uid {st.st_uid}, not by this user"
+    if st.st_mode & 0o022:
+        return f"writable by group or others (mode {st.st_mode & 0o777:o})"
+    return ""
+
+
+def _safe_cache_dir() -> Path:
+    """The cache directory if it is safe, else a private temporary one (with a warning)."""
+    folder = cache_dir()
+    with contextlib.suppress(OSError):  # reported as unsafe below
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    reason = unsafe_reason(folder)
+    if not reason:
+        return folder
+    if not _PRIVATE:
+        _PRIVATE.append(Path(tempfile.mkdtemp(prefix="hmpc-rollout-")))
+        atexit.register(shutil.rmtree, _PRIVATE[0], ignore_errors=True)
+        warnings.warn(f"C rollout cache {folder} is not used ({reason}); building in "
+                      f"{_PRIVATE[0]}", RuntimeWarning, stacklevel=3)
+    return _PRIVATE[0]
+
+
+def compiler_identity(cc: list[str]) -> str:
+    """The compiler's resolved path and a hash of its ``--version`` output.
+
+    Raises:
+        RolloutBuildError: the compiler cannot be run.
+    """
+    key = tuple(cc)
+    if key not in _IDENTITY:
+        exe = shutil.which(cc[0]) or cc[0]
+        try:
+            out = subprocess.run([*cc, "--version"], capture_output=True, text=True,
+                                 timeout=60, check=False)
+        except (OSError, subprocess.SubprocessError) as e:
+            raise RolloutBuildError(f"cannot run {shlex.join(cc)}: {e}") from e
+        digest = hashlib.sha256((out.stdout + out.stderr).encode()).hexdigest()
+        _IDENTITY[key] = f"{os.path.realpath(exe)} {shlex.join(cc[1:])} {digest}"
+    return _IDENTITY[key]
+
+
+def file_sha256(path: Path) -> str:
+    """sha256 hex digest of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _hash_path(path: Path) -> Path:
+    return path.with_name(path.name + ".sha256")
+
+
+def _verified(path: Path) -> bool:
+    """True if ``path`` exists and its bytes match the recorded sha256."""
+    try:
+        recorded = _hash_path(path).read_text().split()[0]
+        return file_sha256(path) == recorded
+    except (OSError, IndexError):
+        return False
+
+
 def _load(path: Path) -> ctypes.CDLL:
     lib = ctypes.CDLL(str(path))
     if lib.hm_abi() != ABI:
@@ -173,7 +257,7 @@ def _load(path: Path) -> ctypes.CDLL:
 
 
 def build_library(source: str) -> tuple[ctypes.CDLL, Path, float | None]:
-    """Loads the library of ``source``, compiling it first if it is not cached.
+    """Loads the library of ``source``, compiling it first if no verified copy is cached.
 
     Returns:
         The library, its path, and the compile time [s] (None if it was cached).
@@ -181,20 +265,21 @@ def build_library(source: str) -> tuple[ctypes.CDLL, Path, float | None]:
     Raises:
         RolloutBuildError: no compiler, the compilation failed, or the library won't load.
     """
-    key = hashlib.sha256("\0".join([source, *CFLAGS]).encode()).hexdigest()[:24]
-    folder = cache_dir()
-    path = folder / f"rollout-{key}.so"
+    cc = compiler()
+    if cc is None:
+        raise RolloutBuildError("no C compiler found (set CC or install cc/gcc)")
+    key = hashlib.sha256("\0".join([source, *CFLAGS, compiler_identity(cc)]).encode())
+    path = _safe_cache_dir() / f"rollout-{key.hexdigest()[:24]}.so"
     if str(path) in _LIBS:
         return _LIBS[str(path)], path, None
-    if path.exists():
+    if _verified(path):
         try:
             _LIBS[str(path)] = _load(path)
             return _LIBS[str(path)], path, None
         except (OSError, AttributeError):
-            pass  # stale or damaged: rebuild
-    cc = compiler()
-    if cc is None:
-        raise RolloutBuildError("no C compiler found (set CC or install cc/gcc)")
+            pass  # stale: rebuild
+    elif path.exists():
+        _LOG.warning("%s does not match its recorded sha256: rebuilding it", path)
     failed = _FAILED.get((str(path), tuple(cc)))
     if failed:
         raise RolloutBuildError(failed)
@@ -209,8 +294,22 @@ def build_library(source: str) -> tuple[ctypes.CDLL, Path, float | None]:
     return _LIBS[str(path)], path, seconds
 
 
+def _atomic_write(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=".rollout-", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
 def _compile(cc: list[str], source: str, path: Path) -> float:
-    """Compiles ``source`` to ``path`` atomically (temp file + os.replace); returns seconds."""
+    """Compiles ``source`` to ``path`` atomically (temp file + os.replace); returns seconds.
+
+    The library's sha256 is written next to it (atomically) after it is in place.
+    """
     global COMPILES
     start = time.perf_counter()
     try:
@@ -230,7 +329,9 @@ def _compile(cc: list[str], source: str, path: Path) -> float:
                 raise RolloutBuildError(f"cannot run {shlex.join(cc)}: {e}") from e
             if out.returncode != 0:
                 raise RolloutBuildError(f"{shlex.join(cmd)} failed:\n{out.stderr[-2000:]}")
+        digest = file_sha256(Path(tmp))
         os.replace(tmp, path)
+        _atomic_write(_hash_path(path), f"{digest}  {path.name}\n")
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)

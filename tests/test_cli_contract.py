@@ -1,0 +1,141 @@
+"""The command line researchers expect: --version, -h, -q/-v, completion, exit codes, pins."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import tomllib
+
+import pytest
+
+from conftest import BALL, REPO, cli_env, hmpc_command
+
+COMMANDS = ["run", "schema", "sweep", "plot", "report", "tube", "replay"]
+
+
+def _hmpc(args, cwd, env=None, timeout=120):
+    return subprocess.run([*hmpc_command(), *args], cwd=cwd, env=env or cli_env(),
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def test_version_prints_hmpc_casadi_python(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "hmpc_cli", "--version"], cwd=tmp_path,
+                          env={**cli_env(), "PYTHONPATH": str(REPO)}, capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    assert [ln.split()[0] for ln in lines] == ["hmpc", "casadi", "python"]
+    assert re.match(r"casadi \d+\.\d+", lines[1])
+
+
+def test_dash_h_and_verbosity_options_on_every_command(tmp_path):
+    top = _hmpc(["-h"], tmp_path)
+    assert top.returncode == 0 and "Usage: hmpc" in top.stdout
+    for option in ("--install-completion", "--show-completion", "--version", "Exit codes"):
+        assert option in top.stdout
+    for command in COMMANDS:
+        proc = _hmpc([command, "-h"], tmp_path)
+        assert proc.returncode == 0 and f"Usage: hmpc {command}" in proc.stdout, command
+        for option in ("--quiet", "-q", "--verbose", "-v"):
+            assert option in proc.stdout, (command, option)
+
+
+def test_quiet_and_verbose_are_accepted(tmp_path):
+    proc = _hmpc(["schema", "-q"], tmp_path)
+    assert proc.returncode == 0 and '"properties"' in proc.stdout
+    proc = _hmpc(["plot", "-v", "fig9", "nothing"], tmp_path)
+    assert proc.returncode == 2 and "unknown figure 'fig9'" in proc.stderr
+
+
+def test_help_imports_no_casadi_or_matplotlib(tmp_path):
+    proc = subprocess.run([sys.executable, "-X", "importtime", "-m", "hmpc_cli", "--help"],
+                          cwd=tmp_path, env={**cli_env(), "PYTHONPATH": str(REPO)},
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0
+    imported = {ln.split("|")[-1].strip().split(".")[0] for ln in proc.stderr.splitlines()
+                if ln.startswith("import time:")}
+    assert "typer" in imported and not imported & {"casadi", "matplotlib"}
+
+
+def test_completion_of_figures_and_set_keys(tmp_path):
+    from hmpc_cli.cli_common import complete_figure, complete_set_key
+
+    assert complete_figure("fig") == ["fig2", "fig3", "fig4"]
+    assert "sim.duration=" in complete_set_key("sim.d")
+    assert "planner.rollout_backend=" in complete_set_key("planner.roll")
+    env = {**cli_env(), "_HMPC_COMPLETE": "complete_bash", "COMP_WORDS": "hmpc plot fi",
+           "COMP_CWORD": "2"}
+    proc = _hmpc([], tmp_path, env=env)
+    assert {"fig2", "fig3", "fig4"} <= set(proc.stdout.split()), proc.stdout + proc.stderr
+
+
+def test_run_prints_its_log_path_and_strict_exits_1_on_failure(tmp_path):
+    out = tmp_path / "short run"
+    proc = _hmpc(["run", str(BALL), "--set", "sim.duration=0.2", "--out", str(out), "-q",
+                  "--strict"], tmp_path)
+    assert proc.returncode == 1, proc.stderr[-2000:]  # 0.2 s does not reach the goal
+    assert proc.stdout.splitlines()[-1] == str(out / "run.mcap")
+    assert (out / "run.mcap").is_file()
+
+
+def test_report_runs_nothing_without_run(tmp_path):
+    sweep = tmp_path / "tiny.toml"
+    sweep.write_text(f'name = "tiny"\nscenario = "{BALL.as_posix()}"\nseeds = 3\n'
+                     '[set]\n"sim.duration" = 0.5\n')
+    start = os.times().elapsed
+    proc = _hmpc(["report", "--results", str(tmp_path / "r"), "--fig3", "", "--fig3-extra",
+                  "", "--biped", "", "--robustness", str(sweep)], tmp_path)
+    assert os.times().elapsed - start < 30
+    assert "3 of 3 runs missing (1.5 s of simulated time" in proc.stderr, proc.stderr
+    assert "hmpc report --run" in proc.stderr
+    assert not (tmp_path / "r" / "sweeps" / "tiny" / "runs").exists()
+
+
+def test_readme_documents_exit_codes_and_constraints():
+    text = (REPO / "README.md").read_text()
+    assert "129/130/143" in text and "--strict" in text
+    assert "pip install -e '.[test]' -c constraints/tested.txt" in text
+
+
+def _lower_bounds() -> dict[str, str]:
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    reqs = list(project["dependencies"])
+    for extra in project["optional-dependencies"].values():
+        reqs += extra
+    out = {}
+    for req in reqs:
+        m = re.match(r"^([A-Za-z0-9_.-]+)\s*>=\s*([0-9][^,;\s]*)", req)
+        if m:
+            out[m.group(1)] = m.group(2)
+    return out
+
+
+def test_installed_versions_satisfy_every_lower_bound():
+    from importlib.metadata import PackageNotFoundError, version
+
+    from packaging.version import Version
+
+    bounds = _lower_bounds()
+    assert bounds["mcap"] == "1.5"
+    for name, low in bounds.items():
+        try:
+            have = version(name)
+        except PackageNotFoundError:
+            continue  # an optional extra that is not installed here
+        assert Version(have) >= Version(low), f"{name} {have} < {low}"
+
+
+def test_constraints_pin_the_installed_versions():
+    from importlib.metadata import PackageNotFoundError, version
+
+    pins = dict(line.split("==") for line in (REPO / "constraints" / "tested.txt")
+                .read_text().splitlines() if line and not line.startswith("#"))
+    for name in ("casadi", "numpy", "typer", "pydantic", "mcap", "matplotlib"):
+        assert name in pins
+    for name, pinned in pins.items():
+        try:
+            assert version(name) == pinned, name
+        except PackageNotFoundError:
+            pytest.fail(f"constraints/tested.txt pins {name}, which is not installed")
