@@ -10,13 +10,11 @@ worker processes or on a Dask cluster, and ``<out>/results.csv`` is rebuilt from
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import hashlib
 import itertools
 import json
 import math
-import os
 import re
 import shutil
 import signal
@@ -24,7 +22,7 @@ import threading
 import tomllib
 import traceback
 import typing
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,6 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from hmpc_cli import signals
 from hmpc_cli.scenario import ScenarioError, format_errors, load_scenario, scenario_model
 from hmpc_cli.settings_types import MAX_INT
+from hmpc_cli.sweep_lock import SweepLockedError, output_lock  # noqa: F401
 from hmpc_cli.sweep_pool import run_pool
 from hmpc_cli.sweep_table import (  # noqa: F401
     INTERRUPTED, METRICS, TIMING, cell_text, finished, is_interrupted, toml_value,
@@ -346,43 +345,6 @@ def _bad_keys(src: str, items: list[tuple[str, Any, str]]) -> list[str]:
 _LOCK = threading.Lock()
 
 
-class SweepLockedError(Exception):
-    """Another sweep holds the output directory's lock.
-
-    Attributes:
-        out: the directory; pid: the holder's process id (0 if unknown).
-    """
-
-    def __init__(self, out: Path, pid: int) -> None:
-        super().__init__(f"{out}: another sweep is writing here (pid {pid})")
-        self.out, self.pid = out, pid
-
-
-@contextlib.contextmanager
-def output_lock(out: Path) -> Iterator[None]:
-    """Holds ``<out>/.lock`` (``fcntl.flock``, holding the pid) while a sweep writes there.
-
-    Raises:
-        SweepLockedError: another process holds the lock (nothing is written).
-    """
-    import fcntl
-
-    out.mkdir(parents=True, exist_ok=True)
-    fd = os.open(out / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        text = os.pread(fd, 32, 0).decode(errors="replace").strip()
-        os.close(fd)
-        raise SweepLockedError(out, int(text) if text.isdigit() else 0) from None
-    try:
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        yield
-    finally:
-        os.close(fd)  # releases the lock
-
-
 def run_one(toml_text: str, run_dir: str) -> dict:
     """Runs one effective scenario into ``run_dir`` (replacing it); returns its summary.
 
@@ -483,7 +445,8 @@ def _worker_died(run: Run, out: Path, signum: int) -> dict:
     sc = tomllib.loads(run.toml)
     res = RunResult(str(sc.get("name", "?")), int(sc.get("seed", run.seed)))
     res.reason = f"worker died (signal {signum}) twice"
-    (d / "summary.json").write_text(json.dumps(jsonable(res.__dict__), indent=2) + "\n")
+    (d / "summary.json").write_text(
+        json.dumps(jsonable(res.__dict__), indent=2, allow_nan=False) + "\n")
     return json.loads((d / "summary.json").read_text())
 
 

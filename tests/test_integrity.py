@@ -196,15 +196,18 @@ def _chunks(path: Path):
 
 
 def _damage(sweep_dir: Path, tmp_path: Path) -> tuple[Path, Path, Path]:
-    """A copy with trial 1 bit-flipped in its second chunk and trial 2 cut to 200 bytes."""
+    """A copy with trial 1 bit-flipped in its last chunk and trial 2 cut to 200 bytes.
+
+    (The first chunk holds /run/info alone: the run flushes it at once.)
+    """
     table = tmp_path / "sweep"
     shutil.copytree(sweep_dir, table)
     logs = _logs(table)
     flipped, cut = logs["trial 1"], logs["trial 2"]
     chunks = _chunks(flipped)
-    assert len(chunks) >= 2
+    assert len(chunks) >= 3
     data = bytearray(flipped.read_bytes())
-    at = chunks[1].chunk_start_offset + chunks[1].chunk_length // 2
+    at = chunks[-1].chunk_start_offset + chunks[-1].chunk_length // 2
     for k in range(8):
         data[at + 97 * k] ^= 0x55
     flipped.write_bytes(bytes(data))

@@ -142,7 +142,7 @@ def test_plot_fig4_command_writes_the_gif_and_rejects_a_ball_log(short_walk, tmp
     ("plant.mass_scal=1.1", "plant.mass_scal"),
     ("plant.mass_scale=-1", "plant.mass_scale"),
     ("system.stairs=[{length = 0.4, height = 0.0}, {length = -1.0, height = 0.1}]",
-     "system.stairs.1.length"),
+     "system.stairs[1].length"),
     ("system.stance_foot0=[0.0, 0.2]", "system.stance_foot0"),
 ])
 def test_bad_biped_scenarios_give_one_keyed_line(tmp_path, run_hmpc, override, key):
@@ -150,7 +150,7 @@ def test_bad_biped_scenarios_give_one_keyed_line(tmp_path, run_hmpc, override, k
                     tmp_path)
     assert proc.returncode == 2
     lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
-    assert len(lines) == 1 and f"biped_stairs.toml: {key}:" in lines[0], proc.stderr
+    assert len(lines) == 1 and f"--set {override}: {key}:" in lines[0], proc.stderr
     assert not (tmp_path / "r").exists()
 
 
