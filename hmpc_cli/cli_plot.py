@@ -173,23 +173,34 @@ def plot_command(
     ] = False,
 ) -> None:
     """Draw a paper figure from recorded runs (a sweep table and the logs it points to)."""
+    _draw(figure, table, out, formats, dict(
+        panel_axis=panel_axis, x_axis=x_axis, series_axis=series_axis, trace_axis=trace_axis,
+        nominal=nominal, panels=panels, width=width, height=height, view=view, every=every,
+        gif=gif, solve=solve, radius=radius, from_tube=from_tube))
+
+
+def _draw(figure: str, table: Path, out: Path | None, formats: str, o: dict) -> None:
+    """Dispatches ``hmpc plot FIGURE`` with the command's options ``o`` (by name)."""
     from hmpc_cli.figures import FIGURES
 
     if figure not in FIGURES:
         _fail(f"unknown figure {figure!r} (choose from {', '.join(FIGURES)})")
+    width, height = o["width"], o["height"]
     if figure == "fig2":
-        return _fig2(table, out, formats, {"solve": solve, "radius": radius, "width": width,
-                                           "from_tube": from_tube, "height": height or 2.8})
+        return _fig2(table, out, formats, {"solve": o["solve"], "radius": o["radius"],
+                                           "width": width, "from_tube": o["from_tube"],
+                                           "height": height or 2.8})
     if figure == "fig4":
-        return _fig4(table, out, formats, every, gif, width, height or 4.2)
+        return _fig4(table, out, formats, o["every"], o["gif"], width, height or 4.2)
     if figure == "robustness":
         return _robustness(table, out, formats, {
-            "x_axis": x_axis, "series_axis": series_axis, "width": width,
-            "panel_axis": panel_axis or "disturbance.magnitude", "height": height or 1.9})
-    _fig3(table, out, formats, {
-        "panel_axis": panel_axis or "controller", "trace_axis": trace_axis,
-        "nominal": nominal, "panels": _panels(panels), "width": width,
-        "height": height or 2.5, "view": _limits(view)})
+            "x_axis": o["x_axis"], "series_axis": o["series_axis"], "width": width,
+            "panel_axis": o["panel_axis"] or "disturbance.magnitude",
+            "height": height or 1.9})
+    return _fig3(table, out, formats, {
+        "panel_axis": o["panel_axis"] or "controller", "trace_axis": o["trace_axis"],
+        "nominal": o["nominal"], "panels": _panels(o["panels"]), "width": width,
+        "height": height or 2.5, "view": _limits(o["view"])})
 
 
 def _panels(panels: str | None) -> list[str] | None:
