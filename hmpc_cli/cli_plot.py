@@ -80,14 +80,18 @@ def _fig4(log: Path, out: Path | None, formats: str, every: float, gif: bool,
 
 
 def _fig2(log: Path, out: Path | None, formats: str, options: dict) -> None:
-    """Draws Figure 2 from a run log; prints the geometry's checks and the written files."""
+    """Figure 2 from a run log: the pass-through computed, drawn; prints its checks."""
     from hmpc_cli.figures.common import FigureInputError, parse_formats, resolve_run_log
-    from hmpc_cli.figures.fig2 import fig2
+    from hmpc_cli.figures.fig2 import check_request, fig2
+    from hmpc_cli.passthrough import PassThroughError, pass_through_geometry
 
-    out_dir = out if out is not None else resolve_run_log(log).parent
+    size = {k: options.pop(k) for k in ("width", "height", "dpi") if k in options}
     try:
-        geo = fig2(log, out_dir, formats, **options)
-    except FigureInputError as exc:
+        check_request(formats, size["width"], size["height"])
+        out_dir = out if out is not None else resolve_run_log(log).parent
+        geo = pass_through_geometry(log, **options)
+        fig2(geo, out_dir, formats, **size)
+    except (FigureInputError, PassThroughError) as exc:
         _fail(str(exc))
     typer.echo(f"solve {geo.solve} at t = {geo.t:.3f} s crosses guard {geo.guard_name} "
                f"({geo.source_mode} -> {geo.target_mode}); tube radius d = {geo.radius:.4g} "

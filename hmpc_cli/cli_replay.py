@@ -252,20 +252,21 @@ def _figures(console, rp, out: Path) -> None:
     from hmpc_cli.figures.fig2 import fig2
     from hmpc_cli.figures.fig4 import fig4
     from hmpc_cli.figures.scene_anim import animate_scene
+    from hmpc_cli.passthrough import PassThroughError, pass_through_geometry
 
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         _fail([f"--figures {out}: cannot write ({exc})"])
     title = str(rp.info.get("scenario_name", rp.path.stem))
-    jobs = (("fig2", lambda: fig2(rp.path, out, ["pdf", "png"])),
+    jobs = (("fig2", lambda: fig2(pass_through_geometry(rp.path), out, ["pdf", "png"])),
             ("fig4", lambda: fig4(rp.path, out, ["pdf", "png"])),
             ("scene animation", lambda: animate_scene(rp.log, out, title)))
     for name, job in jobs:
         try:
             job()
             console.print(f"figures: {name} written to {escape(str(out))}")
-        except FigureInputError as exc:
+        except (FigureInputError, PassThroughError) as exc:
             console.print(f"figures: {name} not drawn: {escape(str(exc))}")
         except OSError as exc:
             _fail([f"--figures {out}: cannot write ({exc})"])

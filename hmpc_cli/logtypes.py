@@ -17,10 +17,12 @@ import functools
 import types
 import typing
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Annotated, Any
 
 import numpy as np
+
+from hmpc_cli.loggeometry import GeometryRec
 
 __all__ = [
     "LOG_VERSION", "TOPICS", "Detail", "GuardEventRec", "MarginsRec", "MpcSolve",
@@ -29,15 +31,17 @@ __all__ = [
     "named",
     "topic_schemas", "validate", "viewer_problems"]
 
-#: the log layout this hmpc writes (1: plain arrays, untyped; 2: this module)
-LOG_VERSION = 2
+#: the log layout this hmpc writes (1: plain arrays, untyped; 2: this module; 3: with the
+#: system's geometry and body points, :mod:`hmpc_cli.loggeometry`)
+LOG_VERSION = 3
 
 
 @dataclass(frozen=True)
 class Names:
     """A vector written as an object with one field per name of a name set.
 
-    ``kind``: ``state``, ``input``, ``disturbance`` or ``guard`` (the system's names);
+    ``kind``: ``state``, ``input``, ``disturbance``, ``guard`` (the system's names) or
+    ``body`` (the logged body points' coordinates, :func:`~hmpc_cli.loggeometry.body_names`);
     ``value``: the JSON type of each field; ``flat``: the names are fields of the
     enclosing object itself (a plan node's ``px``, ``ux``), not of a nested one.
     """
@@ -57,6 +61,7 @@ class Detail:
 State = Annotated[dict, Names("state")]
 Input = Annotated[dict, Names("input")]
 Dist = Annotated[dict, Names("disturbance")]
+Body = Annotated[dict, Names("body")]
 
 
 @dataclass(frozen=True)
@@ -119,6 +124,7 @@ class RunInfo:
     mode_names: tuple[str, ...]
     guard_names: tuple[str, ...]
     margins: MarginsRec | None = None
+    geometry: GeometryRec | None = None
 
 
 @dataclass(frozen=True)
@@ -132,6 +138,7 @@ class StateSample:
     u: Input
     x_ref: State
     w: Dist
+    body: Body = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -146,6 +153,7 @@ class GuardEventRec:
     x_before: State
     x_after: State
     scheduled: bool
+    body_before: Body = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

@@ -104,7 +104,7 @@ class ClosedLoop:
         (:class:`hmpc_cli.signals.Interrupted` for a signal or Ctrl-C).
         """
         start = time.perf_counter()
-        self.log.open(self.model)
+        self.log.open(self.model, self.plant.system)
         x = np.array(self.model.x0, dtype=float)
         mode = self.model.mode_index(self.model.initial_mode)
         self._now = (0.0, x, mode)

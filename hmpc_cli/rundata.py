@@ -29,7 +29,10 @@ def resolve_log(path: Path) -> Path:
 
 @dataclass(frozen=True)
 class Event:
-    """A guard event: time [s], guard index and name, modes, states before/after (n,)."""
+    """A guard event: time [s], guard index and name, modes, states before/after (n,).
+
+    ``body_before``: the body points before the event (P, 2) [m] (P = 0: none logged).
+    """
 
     t: float
     guard: int
@@ -39,6 +42,7 @@ class Event:
     x_before: np.ndarray
     x_after: np.ndarray
     scheduled: bool
+    body_before: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 @dataclass(frozen=True)
@@ -89,7 +93,7 @@ class RunData:
     Attributes:
         path: the log file.
         complete: False when the file was cut short (no footer).
-        log_version: the log layout (1: untyped arrays, 2: typed).
+        log_version: the log layout (1: untyped arrays, 2: typed, 3: with geometry).
         info: /run/info as a dict (empty when missing).
         scenario: the scenario as run (a dict).
         state_names, input_names, mode_names, guard_names: the system's names.
@@ -99,6 +103,10 @@ class RunData:
         solves: /mpc/solve in time order; planner: /planner/plan.
         summary: /run/summary (None: the run did not finish).
         damage: why reading stopped early at a damaged chunk ('' if it did not).
+        geometry: /run/info's ``geometry`` (:class:`~hmpc_cli.loggeometry.GeometryRec` as
+            a dict; empty for logs before version 3).
+        body: the body points of each /sim/state sample (K, P, 2) [m] (P = 0: none logged;
+            names in ``geometry["point_names"]``).
     """
 
     path: Path
@@ -123,6 +131,8 @@ class RunData:
     planner: list[PlannerCallData] = field(default_factory=list)
     summary: dict | None = None
     damage: str = ""
+    geometry: dict = field(default_factory=dict)
+    body: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 2)))
 
     @property
     def name(self) -> str:
@@ -206,6 +216,23 @@ def _planner(d: dict, names: tuple) -> PlannerCallData:
                            t_r, x_r, dict(detail))
 
 
+def _points(value, points: tuple[str, ...]) -> np.ndarray:
+    """Logged body coordinates {``<p>_x``, ``<p>_y``} as points (P, 2) [m] (NaN: missing)."""
+    if not points:
+        return np.zeros((0, 2))
+    from hmpc_cli.loggeometry import body_names
+
+    return _vec(value if isinstance(value, dict) else {}, body_names(points)).reshape(-1, 2)
+
+
+def _body(states: list[dict], points: tuple[str, ...]) -> np.ndarray:
+    """The body points of each state sample, (K, P, 2) [m]."""
+    if not points:
+        return np.zeros((len(states), 0, 2))
+    return np.stack([_points(s.get("body"), points) for s in states]) if states else \
+        np.zeros((0, len(points), 2))
+
+
 def _scenario(info: dict) -> dict:
     if "scenario_json" in info:
         try:
@@ -248,6 +275,8 @@ def read_run(path: Path) -> RunData:
     dist = _names(info, "disturbance_names", [s.get("w") for s in states[:1]],
                   len(states[0].get("w") or []) if states else 0)
     w_msgs = [{"t": m.t, **m.data} for m in log.topic("/disturbance")]
+    geometry = dict(info.get("geometry") or {})
+    points = tuple(geometry.get("point_names") or ())
     summaries = log.topic("/run/summary")
     return RunData(
         log_path, log.complete, int(info.get("log_version", 1)), info, _scenario(info),
@@ -262,7 +291,7 @@ def read_run(path: Path) -> RunData:
         sorted((Event(float(d["t"]), int(d.get("guard", -1)), str(d.get("guard_name", "")),
                       str(d.get("mode_before", "")), str(d.get("mode_after", "")),
                       _vec(d.get("x_before"), names), _vec(d.get("x_after"), names),
-                      bool(d.get("scheduled", True)))
+                      bool(d.get("scheduled", True)), _points(d.get("body_before"), points))
                 for d in (m.data for m in log.topic("/sim/event"))), key=lambda e: e.t),
         np.array([float(d["t"]) for d in w_msgs]),
         _mat([_vec(d.get("w"), dist) for d in w_msgs], len(dist)),
@@ -270,4 +299,5 @@ def read_run(path: Path) -> RunData:
                key=lambda s: s.t),
         sorted((_planner(m.data, names) for m in log.topic("/planner/plan")),
                key=lambda p: p.t),
-        dict(summaries[-1].data) if summaries else None, getattr(log, "damage", ""))
+        dict(summaries[-1].data) if summaries else None, getattr(log, "damage", ""),
+        geometry, _body(states, points))

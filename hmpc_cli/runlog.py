@@ -20,6 +20,7 @@ import numpy as np
 
 from hmpc_cli import __version__
 from hmpc_cli.hybrid import HybridSystem
+from hmpc_cli.loggeometry import body_logger, body_names, geometry_record
 from hmpc_cli.logtypes import (
     LOG_VERSION, GuardEventRec, MarginsRec, MpcSolve, PlanNode, PlannerCall, RolloutNode,
     RunInfo, ScheduleRec, StateSample, StatusCount, Summary, Versions, WRec, convert,
@@ -102,6 +103,7 @@ class RunLog:
         self.plan_times: list[float] = []
         self._last_w: bytes | None = None  # the last logged disturbance's bytes
         self._model: HybridSystem | None = None
+        self._body = None  # x -> the plant's body points (None: no body logged)
         self.scene = None  # 3D scene writer (hmpc_cli.scene.SceneWriter), set by the runner
 
     def set_info(self, name: str, seed: int, scenario: dict, per_state: int,
@@ -128,14 +130,24 @@ class RunLog:
         if self.rec is not None:
             self.rec.write(topic, t, payload)
 
-    def open(self, model: HybridSystem) -> None:
-        """Registers the topics and writes /run/info (seed, versions, scenario, names)."""
+    def open(self, model: HybridSystem, plant: HybridSystem | None = None) -> None:
+        """Registers the topics and writes /run/info (seed, versions, scenario, names).
+
+        Args:
+            model: the controllers' model (names, modes, guards).
+            plant: the simulated system (default: the model): its geometry and body
+                points are logged (:mod:`hmpc_cli.loggeometry`).
+        """
         self._model = model
         if self.rec is None:
             return
+        plant = model if plant is None else plant
+        geometry = geometry_record(plant)
+        self._body = body_logger(plant)
         names = {"state": model.state_names, "input": model.input_names,
                  "disturbance": model.disturbance_names,
-                 "guard": [g.name for g in model.guards]}
+                 "guard": [g.name for g in model.guards],
+                 "body": body_names(geometry.point_names)}
         for topic, (schema_name, schema) in topic_schemas(names, self.details).items():
             self.rec.add_topic(topic, schema_name, schema)
         vers = versions()
@@ -147,7 +159,7 @@ class RunLog:
             json.dumps(info.get("scenario", {}), sort_keys=True), tuple(model.state_names),
             tuple(model.input_names), tuple(model.disturbance_names),
             tuple(m.name for m in model.modes), tuple(g.name for g in model.guards),
-            convert(MarginsRec, info["margins"]) if info.get("margins") else None))
+            convert(MarginsRec, info["margins"]) if info.get("margins") else None, geometry))
         if hasattr(self.rec, "flush"):
             self.rec.flush()  # the run's identity on disk at once (a killed run keeps it)
         self.rec.add_metadata("run", {"scenario": self.result.scenario,
@@ -178,7 +190,7 @@ class RunLog:
         self._write("/sim/state", t, StateSample(
             t, int(mode), m.modes[mode].name, named(m.state_names, x),
             named(m.input_names, u), named(m.state_names, x_ref),
-            named(m.disturbance_names, w)))
+            named(m.disturbance_names, w), self._body(x) if self._body is not None else {}))
         if self.scene is not None:
             self.scene.state(t, x)
 
@@ -192,7 +204,7 @@ class RunLog:
             self._write("/sim/event", ev.t, GuardEventRec(
                 ev.t, int(ev.guard), g.name, g.source, g.target,
                 named(system.state_names, ev.x_before), named(system.state_names, ev.x_after),
-                bool(scheduled)))
+                bool(scheduled), self._body(ev.x_before) if self._body is not None else {}))
 
     def planner(self, t: float, reason: str, result: PlannerResult, accepted: bool,
                 note: str, model: HybridSystem) -> None:

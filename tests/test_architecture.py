@@ -91,3 +91,11 @@ def test_no_code_outside_systems_tests_a_system_name():
         tree = ast.parse(path.read_text())
         bad = [n.lineno for n in ast.walk(tree) if _compares_a_system_name(n)]
         assert not bad, f"{path.relative_to(ROOT)}:{bad} compares with a system name"
+
+
+def test_figures_read_logs_only_and_never_rebuild_a_model():
+    """Figures draw what the run log (rundata) or a computed result hands them."""
+    for path in (PKG / "figures").rglob("*.py"):
+        bad = imports_of(path) & {"registry", "systems", "recorder"}  # types only from others
+        assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
+        assert "build_system" not in path.read_text(), path

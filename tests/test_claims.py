@@ -38,7 +38,7 @@ def test_figure_3_campaign_and_the_100_hz_controller(tmp_path, run_hmpc):
     assert counts["10 Hz fixed"] >= 9  # the paper's left panel: 9/11
 
 
-@pytest.mark.parametrize("rate", [20, 100])
+@pytest.mark.parametrize("rate", [20, pytest.param(100, marks=pytest.mark.slow)])
 def test_fast_mpc_holds_the_hardest_paper_trial(tmp_path, run_hmpc, rate):
     """Trial 5 (a reference failure at 10 Hz, ours at 100 Hz before the first-order-hold
     transcription) at 20 and 100 Hz: stable, no solver failure."""
@@ -53,6 +53,7 @@ def test_fast_mpc_holds_the_hardest_paper_trial(tmp_path, run_hmpc, rate):
     assert summary["solves"] >= 3 * rate - 1
 
 
+@pytest.mark.slow
 def test_biped_walks_the_figure_4_course(tmp_path, run_hmpc):
     """The heavier, pushed robot lands on the 1.0 m segment, skips the 0.2 m one, reaches
     the top segment and does not fall in 2.5 s."""

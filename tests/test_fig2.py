@@ -10,9 +10,9 @@ import pytest
 from typer.testing import CliRunner
 
 from conftest import BALL
-from hmpc_cli.figures.common import FigureInputError
-from hmpc_cli.figures.fig2 import fig2, fig2_geometry
-from hmpc_cli.figures.model import system_from_params
+from hmpc_cli.figures.fig2 import fig2
+from hmpc_cli.passthrough import PassThroughError, _logged_system
+from hmpc_cli.passthrough import pass_through_geometry as fig2_geometry
 from hmpc_cli.recorder import Recorder, read_log
 from test_plot import make_app
 
@@ -58,7 +58,7 @@ def test_cli_writes_the_figure_deterministically(run, run_hmpc, tmp_path):
 def test_virtual_node_is_past_the_guard_by_the_tube(run):
     log = read_log(run / "run.mcap")
     info = log.topic("/run/info")[0].data
-    system = system_from_params(json.loads(info["scenario_json"])["system"], "log")
+    system = _logged_system(json.loads(info["scenario_json"])["system"], "log")
     solves = log.topic("/mpc/solve")
     crossing = [i + 1 for i, m in enumerate(solves)
                 if max(n["seg"] for n in m.data["plan"]) >= 1]
@@ -91,7 +91,8 @@ def test_virtual_node_is_past_the_guard_by_the_tube(run):
 
 
 def test_radius_options_and_the_verdict(run, tmp_path):
-    geo = fig2(run, tmp_path, "png", radius=0.3)
+    geo = fig2_geometry(run, radius=0.3)
+    fig2(geo, tmp_path, "png")
     assert geo.radius == 0.3 and geo.radius_source == "given radius"
     assert not geo.disc_past and geo.nlp_row < 0  # a tube this large does not pass
     assert (tmp_path / "fig2.png").is_file() and not (tmp_path / "fig2.pdf").exists()
@@ -138,9 +139,9 @@ def test_bad_input_exits_2_and_writes_nothing(run, tmp_path):
         assert len(err) == 1 and err[0].startswith("error: "), f"{name}: {res.stderr!r}"
         assert not out.exists(), name
     assert sorted(p.name for p in run.iterdir()) == before
-    with pytest.raises(FigureInputError, match="no logged solve plans a guard crossing"):
+    with pytest.raises(PassThroughError, match="no logged solve plans a guard crossing"):
         fig2_geometry(tmp_path / "flat.mcap")
-    with pytest.raises(FigureInputError, match="no 2-D drawing plane"):
+    with pytest.raises(PassThroughError, match="no 2-D drawing plane"):
         fig2_geometry(tmp_path / "biped.mcap")
 
 

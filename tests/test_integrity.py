@@ -134,6 +134,7 @@ def test_ball_rollout_survives_a_truncated_cache(tmp_path):
     assert run() == [path, "True", "True"]
 
 
+@pytest.mark.slow
 @needs_cc
 def test_failed_c_build_is_a_planner_error_not_an_mpc_one(tmp_path):
     env = {**cli_env(), "CC": "false", "HMPC_CACHE_DIR": str(tmp_path / "cache")}

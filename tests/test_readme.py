@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN_BY_CI = {"pip install -e '.[test]'", "hmpc run scenarios/ball.toml"}
@@ -24,6 +26,7 @@ def test_readme_starts_with_the_two_commands():
     assert "`pytest`" in (ROOT / "README.md").read_text().split("##")[0]
 
 
+@pytest.mark.slow
 def test_readme_commands_run_in_order(tmp_path):
     for name in ("scenarios", "benchmarks", "sweeps"):
         os.symlink(ROOT / name, tmp_path / name)

@@ -76,7 +76,9 @@ def _check_interrupted(out: Path, sig: int, proc: subprocess.Popen, err: str) ->
     return summary
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP],
+@pytest.mark.parametrize("sig", [pytest.param(signal.SIGINT, marks=pytest.mark.slow),
+                                 signal.SIGTERM,
+                                 pytest.param(signal.SIGHUP, marks=pytest.mark.slow)],
                          ids=lambda s: signal.Signals(s).name)
 def test_signal_stops_run_cleanly(tmp_path, sig):
     out = tmp_path / "run"
@@ -87,7 +89,9 @@ def test_signal_stops_run_cleanly(tmp_path, sig):
     _check_interrupted(out, sig, proc, err)
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP],
+@pytest.mark.parametrize("sig", [signal.SIGINT,
+                                 pytest.param(signal.SIGTERM, marks=pytest.mark.slow),
+                                 pytest.param(signal.SIGHUP, marks=pytest.mark.slow)],
                          ids=lambda s: signal.Signals(s).name)
 def test_signal_inside_an_ipopt_solve_stops_it(tmp_path, sig):
     """The run spends nearly all its time in ~1 s solves: it must stop far sooner."""

@@ -35,6 +35,7 @@ def campaign(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow
 def test_disturbed_runs_stay_inside_the_trivial_tube(campaign):
     r = hmpc("tube", SC / "ball_disturbed.toml", "--samples", "2000", "--formats", "png",
              "--out", "tout", *[a for n in (1, 2, 3) for a in ("--runs", f"d{n}")],
@@ -95,6 +96,7 @@ def test_plan_nodes_domains_and_skips():
     assert periods[0].dev == pytest.approx([0.5, 1.0])
 
 
+@pytest.mark.slow
 def test_biped_run_against_its_tubes_through_the_interpolated_plan(tmp_path):
     """The walking plan's nodes fall between the logged samples: interpolated, still inside."""
     r = hmpc("run", SC / "biped_stairs.toml", "-q", "--set", "sim.duration=0.7", "--out",

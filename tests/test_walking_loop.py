@@ -80,6 +80,7 @@ def test_a_run_is_bit_for_bit_reproducible(tmp_path):
         assert a == b and a, topic
 
 
+@pytest.mark.slow
 def test_a_fall_ends_the_run_cleanly_as_failed(tmp_path, run_hmpc):
     out = tmp_path / "fall"
     proc = run_hmpc(["run", str(STAIRS), "--out", str(out), "-q", "--set",
@@ -129,7 +130,7 @@ def test_plot_fig4_command_writes_the_gif_and_rejects_a_ball_log(short_walk, tmp
     gif = (tmp_path / "f" / "walk.gif").read_bytes()
     assert gif[:6] in (b"GIF89a", b"GIF87a") and len(gif) > 10_000
     bad = run_hmpc(["plot", "fig4", str(full_run.out), "--out", str(tmp_path / "g")], tmp_path)
-    assert bad.returncode == 2 and "not a biped run" in bad.stderr
+    assert bad.returncode == 2 and "not a walking run to draw" in bad.stderr
     assert "Traceback" not in bad.stderr
     with pytest.raises(FigureInputError, match="no such log"):
         load_walk(tmp_path / "missing.mcap")
@@ -164,6 +165,7 @@ def test_results_page_figure_4_section(short_walk, tmp_path):
     assert (tmp_path / "results" / "report" / "walk.gif").is_file()
 
 
+@pytest.mark.slow
 def test_a_biped_sweep_reuses_one_nlp_per_worker(tmp_path):
     from hmpc_cli import loop
     from hmpc_cli.sweep import execute_sweep, plan_sweep

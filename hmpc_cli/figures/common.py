@@ -249,6 +249,7 @@ class RunTrace:
     logged_success: bool | None = None  # the log's own /run/summary verdict, if any
     complete: bool = True
     damage: str = ""  # why reading stopped at a damaged chunk ('' if it did not)
+    geometry: dict = field(default_factory=dict)  # the log's geometry (loggeometry)
 
     @property
     def system(self) -> dict:
@@ -261,10 +262,12 @@ def _num(v: Any) -> float:
 
 
 def load_trace(path: Path) -> RunTrace:
-    """Reads a run log's positions x[0:2] from /sim/state, with guard events spliced in.
+    """Reads a run log's positions in its drawing plane from /sim/state, events spliced in.
 
-    The exact pre- and post-reset positions of /sim/event are inserted at the event times, so
-    drawn bounces touch the guard instead of cutting the corner between logged samples.
+    The plane is the log geometry's ``plane`` (two state names; default the first two
+    states). The exact pre- and post-reset positions of /sim/event are inserted at the
+    event times, so drawn bounces touch the guard instead of cutting the corner between
+    logged samples.
     """
     from hmpc_cli.rundata import read_run
 
@@ -272,20 +275,22 @@ def load_trace(path: Path) -> RunTrace:
         run = read_run(path)
     except ValueError as exc:
         raise FigureInputError(f"{path}: cannot read log ({exc})") from None
-    points: list[tuple[float, int, int, float, float]] = []  # (t, kind, seq, px, py)
-    if run.x.shape[1] >= 2:
-        points += [(float(t), 1, i, _num(x[0]), _num(x[1]))
-                   for i, (t, x) in enumerate(zip(run.t, run.x, strict=True))]
+    plane = list(run.geometry.get("plane") or ())
+    i, j = (run.state_names.index(plane[0]), run.state_names.index(plane[1])) \
+        if len(plane) == 2 and set(plane) <= set(run.state_names) else (0, 1)
+    points: list[tuple[float, int, int, float, float]] = []  # (t, kind, seq, a, b)
+    if run.x.shape[1] > max(i, j):
+        points += [(float(t), 1, k, _num(x[i]), _num(x[j]))
+                   for k, (t, x) in enumerate(zip(run.t, run.x, strict=True))]
     if not points:
         raise FigureInputError(f"{path}: log has no /sim/state positions")
-    for i, ev in enumerate(run.events):
-        for j, x in enumerate((ev.x_before, ev.x_after)):
-            if len(x) >= 2 and math.isfinite(ev.t):
-                points.append((ev.t, 0, 2 * i + j, _num(x[0]), _num(x[1])))
+    for k, ev in enumerate(run.events):
+        for m, x in enumerate((ev.x_before, ev.x_after)):
+            if len(x) > max(i, j) and math.isfinite(ev.t):
+                points.append((ev.t, 0, 2 * k + m, _num(x[i]), _num(x[j])))
     points.sort(key=lambda p: (p[0], p[1], p[2]))
     arr = np.array([(p[0], p[3], p[4]) for p in points], dtype=float)
-    scenario = run.scenario
     ok = run.summary.get("success") if run.summary else None
-    log = run
-    return RunTrace(Path(path), arr[:, 0], arr[:, 1:3], scenario,
-                    ok if isinstance(ok, bool) else None, log.complete, log.damage)
+    return RunTrace(Path(path), arr[:, 0], arr[:, 1:3], run.scenario,
+                    ok if isinstance(ok, bool) else None, run.complete, run.damage,
+                    dict(run.geometry))

@@ -1,10 +1,9 @@
 """Figure 3 of the paper: the bouncing ball under the same disturbances, one panel per controller.
 
-Drawn from a sweep table (results.csv) and the run logs it points to; never runs a controller.
-Each panel's guards are drawn as the zero level sets of the guards' gaps (inside their
-activity regions) of the system its logs name, rebuilt through the registry from the logged
-parameters, in the plane of that system's ``plane`` states: any registered system, with its
-own geometry.
+Drawn from a sweep table (results.csv) and the run logs it points to; never runs a controller
+and never rebuilds a model. Each panel's guards are the static polylines its logs' geometry
+records (what the system's drawing declares, :mod:`hmpc_cli.loggeometry`), in the plane of
+the logged ``plane`` states: any system, with its own geometry.
 """
 
 from __future__ import annotations
@@ -130,59 +129,35 @@ def _load_runs(table: Path, groups: dict, trace_axis: str, nominal: str | None,
     return out
 
 
-def _system(runs: list[_Run]):
-    """The controllers' model of the first run that logged its scenario, or None.
-
-    It is rebuilt through the registry from the logged parameters.
-    """
-    from hmpc_cli.figures.model import system_from_params
-
-    for r in runs:
-        if r.trace.system:
-            return system_from_params(r.trace.system, str(r.trace.path))
-    return None
+def _geometry(runs: list[_Run]) -> dict:
+    """The logged geometry of the first run that has one (``{}``: none, e.g. an old log)."""
+    return next((r.trace.geometry for r in runs if r.trace.geometry), {})
 
 
-def _plane(system) -> tuple[int, int]:
-    """Indices of the two states a trajectory is drawn in (default: the first two)."""
-    if system is None or system.plane is None:
-        return 0, 1
-    return tuple(system.state_names.index(n) for n in system.plane)
-
-
-def _goal(system) -> np.ndarray | None:
+def _goal(geo: dict) -> np.ndarray | None:
     """The goal point if it lives in the drawing plane (two coordinates), else None."""
-    goal = None if system is None else np.asarray(system.goal, dtype=float).ravel()
-    return goal if goal is not None and goal.size == 2 else None
+    goal = np.asarray(geo.get("goal") or [], dtype=float).ravel()
+    return goal if goal.size == 2 else None
 
 
-def _guard_fields(system, box, n: int = 401):
-    """Each guard's signed gap on an n x n grid over ``box`` in the drawing plane.
-
-    The other states are at x0; NaN outside the guard's activity region; guards with the
-    same zero set as an earlier one (e.g. a circle crossed both ways) are left out.
-    """
-    (x0, x1), (y0, y1) = box
-    gx, gy = np.meshgrid(np.linspace(x0, x1, n), np.linspace(y0, y1, n))
-    states = np.tile(np.asarray(system.x0, dtype=float), (gx.size, 1))
-    i, j = _plane(system)
-    states[:, i], states[:, j] = gx.ravel(), gy.ravel()
-    fields, seen = [], []
-    for k in range(len(system.guards)):
-        gap = system.numeric.gap(k, states)
-        gap = np.where(system.numeric.active(k, states), gap, np.nan).reshape(gx.shape)
-        if any(np.allclose(np.abs(gap), s, equal_nan=True) for s in seen):
-            continue
-        seen.append(np.abs(gap))
-        fields.append(gap)
-    return gx, gy, fields
+def _polylines(geo: dict) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The drawing's static polylines as (a (K,), b (K,)) [m], closed ones closed."""
+    out = []
+    for line in geo.get("static") or ():
+        a = np.asarray(line.get("a") or [], dtype=float)
+        b = np.asarray(line.get("b") or [], dtype=float)
+        if a.size >= 2 and a.size == b.size:
+            if line.get("closed"):
+                a, b = np.append(a, a[0]), np.append(b, b[0])
+            out.append((a, b))
+    return out
 
 
-def _view(runs: dict[str, list[_Run]], systems) -> tuple[tuple[float, float], ...]:
-    """Common (x, y) limits: every trajectory, goal, the origin and the guards nearby."""
+def _view(runs: dict[str, list[_Run]], geos) -> tuple[tuple[float, float], ...]:
+    """Common (x, y) limits: every trajectory, goal, the origin and closed guards nearby."""
     xs, ys = [0.0], [0.0]
-    for sysm in systems:
-        goal = _goal(sysm)
+    for geo in geos:
+        goal = _goal(geo)
         if goal is not None:
             xs.append(float(goal[0]))
             ys.append(float(goal[1]))
@@ -195,40 +170,25 @@ def _view(runs: dict[str, list[_Run]], systems) -> tuple[tuple[float, float], ..
     span = max(max(xs) - min(xs), max(ys) - min(ys), 1e-6)
     box = ((min(xs) - 0.6 * span, max(xs) + 0.6 * span),
            (min(ys) - 0.6 * span, max(ys) + 0.6 * span))
-    for sysm in systems:  # closed guard curves near the data (a circle) are shown whole
-        if sysm is None:
-            continue
-        gx, gy, fields = _guard_fields(sysm, box, 161)
-        for gap in fields:
-            closed = _crossings(gap)
-            if closed.any() and not closed[0, :].any() and not closed[-1, :].any() \
-                    and not closed[:, 0].any() and not closed[:, -1].any():
-                xs += [float(gx[closed].min()), float(gx[closed].max())]
-                ys += [float(gy[closed].min()), float(gy[closed].max())]
+    for geo in geos:  # closed guard curves near the data (a circle) are shown whole
+        for line in geo.get("static") or ():
+            a, b = np.asarray(line.get("a") or [0.0]), np.asarray(line.get("b") or [0.0])
+            if line.get("closed") and box[0][0] <= a.min() and a.max() <= box[0][1] \
+                    and box[1][0] <= b.min() and b.max() <= box[1][1]:
+                xs += [float(a.min()), float(a.max())]
+                ys += [float(b.min()), float(b.max())]
     span = max(max(xs) - min(xs), max(ys) - min(ys))
     pad = 0.04 * span
     return (min(xs) - pad, max(xs) + pad), (min(ys) - pad, max(ys) + pad)
 
 
-def _crossings(gap: np.ndarray) -> np.ndarray:
-    """Grid points next to a sign change of ``gap`` (its zero level set)."""
-    s = np.sign(np.nan_to_num(gap, nan=0.0))
-    out = np.zeros(gap.shape, dtype=bool)
-    out[:, 1:] |= s[:, 1:] * s[:, :-1] < 0
-    out[1:, :] |= s[1:, :] * s[:-1, :] < 0
-    return out
-
-
-def _draw_guards(ax, system, view) -> None:
-    """Every guard as the zero level set of its gap, inside its activity region."""
-    if system is None:
-        return
-    gx, gy, fields = _guard_fields(system, view)
-    for gap in fields:
-        if np.nanmin(gap, initial=np.inf) <= 0.0 <= np.nanmax(gap, initial=-np.inf):
-            ax.contour(gx, gy, np.ma.masked_invalid(gap), levels=[0.0], colors="black",
-                       linewidths=0.8, zorder=2)
-    ax.plot([], [], color="black", lw=0.8, label="guards")
+def _draw_guards(ax, geo: dict) -> None:
+    """The guards as the system's drawing declares them (its static polylines)."""
+    lines = _polylines(geo)
+    for a, b in lines:
+        ax.plot(a, b, color="black", lw=0.8, zorder=2)
+    if lines:
+        ax.plot([], [], color="black", lw=0.8, label="guards")
 
 
 def _end(xy: np.ndarray) -> np.ndarray | None:
@@ -237,9 +197,9 @@ def _end(xy: np.ndarray) -> np.ndarray | None:
     return xy[good[-1]] if len(good) else None
 
 
-def _draw_panel(ax, label: str, runs: list[_Run], system, view) -> None:
+def _draw_panel(ax, label: str, runs: list[_Run], geo: dict, view) -> None:
     """One panel: guards, trajectories, nominal on top, start/end/failed markers, goal, title."""
-    _draw_guards(ax, system, view)
+    _draw_guards(ax, geo)
     for r in runs:
         if not r.nominal:
             ax.plot(r.trace.xy[:, 0], r.trace.xy[:, 1], color=TRACE_COLOR, lw=0.6, alpha=0.85,
@@ -265,7 +225,7 @@ def _draw_panel(ax, label: str, runs: list[_Run], system, view) -> None:
         s = np.array(sorted(starts))
         ax.plot(s[:, 0], s[:, 1], ls="none", marker="o", ms=7.0, mew=0, color=START_COLOR,
                 zorder=8, label="start")
-    goal = _goal(system)
+    goal = _goal(geo)
     if goal is not None:
         ax.plot([goal[0]], [goal[1]], ls="none", marker="+", ms=7.0, mew=0.8, color="black",
                 zorder=9, label="goal")
@@ -294,14 +254,14 @@ def _figure(runs: dict[str, list[_Run]], width: float, height: float,
     """Builds the matplotlib Figure (no pyplot state); guards from each panel's own logs."""
     from matplotlib.figure import Figure
 
-    systems = {label: _system(rs) for label, rs in runs.items()}
-    lims = _view(runs, systems.values()) if view is None else \
+    geos = {label: _geometry(rs) for label, rs in runs.items()}
+    lims = _view(runs, list(geos.values())) if view is None else \
         ((view[0], view[1]), (view[2], view[3]))
     fig = Figure(figsize=(width, height), layout="constrained")
     fig.get_layout_engine().set(w_pad=0.02, h_pad=0.02, wspace=0.02)
     axes = fig.subplots(1, len(runs), sharex=True, sharey=True, squeeze=False)[0]
     for ax, (label, rs) in zip(axes, runs.items(), strict=True):
-        _draw_panel(ax, label, rs, systems[label], lims)
+        _draw_panel(ax, label, rs, geos[label], lims)
     axes[0].set_ylabel(r"$y$ (m)")
     _legend(fig, axes)
     return fig

@@ -3,10 +3,10 @@
 Top: stick-figure snapshots over the terrain profile (colour = time), touchdown points
 marked. Bottom: hip x(t), hip y(t) and the first disturbance channel (the biped's
 horizontal torso force F_x(t)), contact times as dotted lines. Also a GIF animation of
-the walk. Reads the MCAP log only; the kinematics come from the logged system's own
-plug-in (rebuilt through the registry from the logged parameters): its ``points_world``
-output, ``point_names``, ``skeleton`` and ``terrain``. Any registered system that
-exposes these (and a ``hip`` and ``swing_foot`` point) can be drawn.
+the walk. Reads the MCAP log only (:func:`hmpc_cli.rundata.read_run`): the body points
+logged with every state sample and guard event, the skeleton and the terrain of the log's
+geometry (:mod:`hmpc_cli.loggeometry`). Any system whose drawing has links, a ``hip`` and
+a ``swing_foot`` point and a terrain can be drawn.
 """
 
 from __future__ import annotations
@@ -61,41 +61,49 @@ class WalkLog:
 def load_walk(path: str | Path) -> WalkLog:
     """Reads a walking run's log (any complete chunks of a killed run are used).
 
+    Everything comes from the log (:class:`~hmpc_cli.rundata.RunData`): the body points
+    of every state sample, the skeleton, the terrain and the touchdown points.
+
     Raises:
-        FigureInputError: no such log, unreadable, or its system has no body points
-            and terrain to draw.
+        FigureInputError: no such log, unreadable, or a log without body points and
+            terrain (not a walking run, or written by an hmpc before log version 3).
     """
-    from hmpc_cli.figures.model import read_logged_system
+    from hmpc_cli.rundata import read_run
 
     path = Path(path)
-    run, system = read_logged_system(path)
-    names = system.point_names
-    if "points_world" not in system.outputs or system.terrain is None or \
-            not {"hip", "swing_foot"} <= set(names):
-        raise FigureInputError(f"{path}: not a biped run (system {system.name!r} has no "
-                               "body points and terrain to draw)")
-    points_fn = system.numeric.output("points_world")
-    keep = np.all(np.isfinite(run.x), axis=1) if run.x.shape[1] == system.n_x else \
-        np.zeros(len(run.t), dtype=bool)
+    if not path.is_file():
+        raise FigureInputError(f"{path}: no such log")
+    try:
+        run = read_run(path)
+    except ValueError as exc:
+        raise FigureInputError(f"{path}: cannot read log ({exc})") from None
+    geo = run.geometry
+    names = list(geo.get("point_names") or ())
+    if not geo.get("terrain") or not {"hip", "swing_foot"} <= set(names):
+        why = f"log version {run.log_version} has no geometry; re-run it with this hmpc" \
+            if run.log_version < 3 else \
+            f"system {run.system.get('name', '?')!r} logs no body points and terrain"
+        raise FigureInputError(f"{path}: not a walking run to draw ({why})")
+    keep = np.all(np.isfinite(run.body), axis=(1, 2)) & np.all(np.isfinite(run.x), axis=1)
     if not np.any(keep):
         raise FigureInputError(f"{path}: log has no finite /sim/state samples")
-    t = run.t[keep]
-    points = points_fn(run.x[keep])[0].reshape(len(t), len(names), 2)
-    return WalkLog(path, t, points, points[:, names.index("hip"), :],
-                   _contacts(run, system, points_fn), _force(run), list(system.terrain.segments),
-                   system.terrain.ground, *_outcome(run),
-                   [[names.index(n) for n in line] for line in system.skeleton])
+    points = run.body[keep]
+    terrain = geo["terrain"]
+    return WalkLog(path, run.t[keep], points, points[:, names.index("hip"), :],
+                   _contacts(run, names.index("swing_foot")), _force(run),
+                   [(s["x0"], s["x1"], s["height"]) for s in terrain["segments"]],
+                   float(terrain["ground"]), *_outcome(run),
+                   [[names.index(n) for n in line["points"]] for line in geo["skeleton"]])
 
 
-def _contacts(run, system, points_fn) -> list[tuple[float, str, float, float]]:
-    """(t, guard name, swing foot x, y) of every logged guard event."""
-    foot = system.point_names.index("swing_foot")
+def _contacts(run, foot: int) -> list[tuple[float, str, float, float]]:
+    """(t, guard name, swing foot x, y) of every logged guard event (its body before)."""
     out = []
     for ev in run.events:
-        if len(ev.x_before) != system.n_x or not np.all(np.isfinite(ev.x_before)):
+        if len(ev.body_before) <= foot or not np.all(np.isfinite(ev.body_before[foot])):
             continue
-        p = points_fn(ev.x_before[None])[0].reshape(-1, 2)
-        out.append((ev.t, ev.guard_name, float(p[foot, 0]), float(p[foot, 1])))
+        out.append((ev.t, ev.guard_name, float(ev.body_before[foot, 0]),
+                    float(ev.body_before[foot, 1])))
     return out
 
 
