@@ -70,6 +70,43 @@ def points_wire(field_number: int, world: np.ndarray) -> bytes:
     return rec.tobytes()
 
 
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while True:
+        byte, n = n & 0x7F, n >> 7
+        out.append(byte | (0x80 if n else 0))
+        if not n:
+            return bytes(out)
+
+
+#: a pose message at (x, y, z), no rotation: position Vector3 (field 1, three tagged
+#: doubles), orientation Quaternion (field 2) with only w = 1 (field 4)
+_POSE_HEAD = bytes([0x0A, 27, 0x09])
+_POSE_TAIL = bytes([0x12, 9, 0x21]) + np.float64(1.0).astype("<f8").tobytes()
+
+
+def spheres_wire(field_number: int, centers: np.ndarray, rest: bytes) -> bytes:
+    """Protobuf wire bytes of spheres at world points (K, 3) as repeated field ``field_number``.
+
+    Each sphere is ``SpherePrimitive`` bytes: its pose (field 1) at the centre, then
+    ``rest`` (the serialized size and colour, the same for all). Parsed into an entity
+    (``MergeFromString``) they append K spheres, as K ``spheres.add(...)`` calls do.
+    """
+    c = np.asarray(centers, dtype=float).reshape(-1, 3)
+    pose = len(_POSE_HEAD) + 8 + 1 + 8 + 1 + 8 + len(_POSE_TAIL)
+    body = bytes([0x0A]) + _varint(pose) + _POSE_HEAD
+    head = _varint((field_number << 3) | 2) + _varint(len(body) + pose - len(_POSE_HEAD)
+                                                      + len(rest)) + body
+    tail = _POSE_TAIL + rest
+    rec = np.empty(len(c), dtype=[("head", f"V{len(head)}"), ("x", "<f8"), ("ty", "u1"),
+                                  ("y", "<f8"), ("tz", "u1"), ("z", "<f8"),
+                                  ("tail", f"V{len(tail)}")])
+    rec["head"], rec["tail"] = np.void(head), np.void(tail)
+    rec["ty"], rec["tz"] = 0x11, 0x19
+    rec["x"], rec["y"], rec["z"] = c[:, 0], c[:, 1], c[:, 2]
+    return rec.tobytes()
+
+
 def to_world(points: np.ndarray) -> np.ndarray:
     """Plane points (..., 2) -> world points (..., 3) = (a, 0, b) [m]."""
     p = np.asarray(points, dtype=float)
@@ -101,6 +138,9 @@ class SceneWriter:
         self.rec, self.drawing = recorder, drawing
         self._points_field = LinePrimitive_pb2.LinePrimitive.DESCRIPTOR.fields_by_name[
             "points"].number
+        self._spheres_field = SceneEntity_pb2.SceneEntity.DESCRIPTOR.fields_by_name[
+            "spheres"].number
+        self._sphere_rest: dict[tuple, bytes] = {}  # (radius, colour) -> size + colour bytes
         self.tube_radius = tube_radius if tube_radius and tube_radius > 0 else None
         self.period = 1.0 / max_rate_hz
         self._next = 0.0
@@ -123,12 +163,18 @@ class SceneWriter:
         line.MergeFromString(points_wire(self._points_field, world))
         return line
 
-    def _sphere(self, center: np.ndarray, radius: float, color: Rgba) -> Any:
-        """A sphere primitive of `radius` [m] at world point `center` (3,)."""
-        d = 2.0 * float(radius)
-        return self.pb["Sphere"](pose=self._pose(center), size=self.pb["Vector3"](x=d, y=d, z=d),
-                                 color=self.pb["Color"](r=color[0], g=color[1], b=color[2],
-                                                        a=color[3]))
+    def _spheres(self, entity: Any, centers: np.ndarray, radius: float, color: Rgba) -> Any:
+        """``entity`` with spheres of `radius` [m] at world points `centers` (K, 3) added."""
+        key = (float(radius), tuple(color))
+        rest = self._sphere_rest.get(key)
+        if rest is None:
+            d = 2.0 * float(radius)
+            rest = self._sphere_rest[key] = self.pb["Sphere"](
+                size=self.pb["Vector3"](x=d, y=d, z=d),
+                color=self.pb["Color"](r=color[0], g=color[1], b=color[2], a=color[3])
+            ).SerializeToString()
+        entity.MergeFromString(spheres_wire(self._spheres_field, centers, rest))
+        return entity
 
     def _entity(self, t: float, entity_id: str, frame_locked: bool = False,
                 **primitives: list) -> Any:
@@ -165,8 +211,10 @@ class SceneWriter:
         if segs:
             lines.append(self._line("LINE_LIST", np.concatenate(segs), d.link_color,
                                     d.link_thickness))
-        spheres = [self._sphere(pts[d.index(b.point)], b.radius, b.color) for b in d.balls]
-        self._write(BODY, t, [self._entity(t, "body", lines=lines, spheres=spheres)])
+        entity = self._entity(t, "body", lines=lines)
+        for b in d.balls:
+            self._spheres(entity, pts[d.index(b.point)], b.radius, b.color)
+        self._write(BODY, t, [entity])
 
     def _traces(self, xs: np.ndarray, colors: tuple[Rgba, ...], thickness: float) -> list:
         """One line strip per trace point along states xs (K, n)."""
@@ -184,8 +232,8 @@ class SceneWriter:
         if self.tube_radius is not None:
             nodes = np.unique(np.linspace(0, len(xs) - 1, min(len(xs), TUBE_SPHERES)).round())
             centers = to_world(self.drawing.traced(xs[nodes.astype(int)])[0])
-            entities.append(self._entity(t, "tube", spheres=[
-                self._sphere(c, self.tube_radius, TUBE) for c in centers]))
+            entities.append(self._spheres(self._entity(t, "tube"), centers, self.tube_radius,
+                                          TUBE))
         self._write(PLAN, t, entities)
 
     def rollout(self, t: float, trajectory: Trajectory | None) -> None:

@@ -221,3 +221,26 @@ def test_points_wire_bytes_equal_the_message_api():
     assert np.array_equal(got, pts, equal_nan=True)
     assert LinePrimitive.FromString(fast.SerializeToString()).points[2].y == 3.25
     assert [[p.x, p.y, p.z] for p in slow.points][0] == [0.0, 1.5, -2.0]
+
+
+def test_spheres_wire_bytes_equal_the_message_api():
+    from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
+    from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
+
+    from hmpc_cli.scene import spheres_wire
+
+    centers = np.array([[0.0, 0.0, 0.0], [1.5, -2.0, 3.25], [1e-300, 7.0, -0.0]])
+    rest = SpherePrimitive(size={"x": 0.1, "y": 0.1, "z": 0.1},
+                           color={"r": 0.1, "g": 0.6, "b": 0.1, "a": 0.25}).SerializeToString()
+    slow = SceneEntity(id="tube")
+    for c in centers:
+        s = slow.spheres.add()
+        s.pose.position.x, s.pose.position.y, s.pose.position.z = c
+        s.pose.orientation.w = 1.0
+        s.size.x = s.size.y = s.size.z = 0.1
+        s.color.r, s.color.g, s.color.b, s.color.a = 0.1, 0.6, 0.1, 0.25
+    fast = SceneEntity(id="tube")
+    fast.MergeFromString(spheres_wire(SceneEntity.DESCRIPTOR.fields_by_name["spheres"].number,
+                                      centers, rest))
+    assert fast == slow and len(fast.spheres) == 3
+    assert SceneEntity.FromString(fast.SerializeToString()) == slow
