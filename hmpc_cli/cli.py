@@ -70,15 +70,17 @@ def run(
     summary.json says ``interrupted (SIGTERM)``; exit code 128 + the signal number.
     When stdout is not a terminal, the log's path is also printed whole on the last line.
     """
-    from hmpc_cli.signals import Interrupted, handle_signals
+    from hmpc_cli.signals import as_interrupted, handle_signals
 
     try:
         with handle_signals():
             _run(scenario, out, set_ or [], seed, quiet, live, live_port, strict)
-    except Interrupted as exc:
-        raise typer.Exit(exc.exit_code) from None
-    except KeyboardInterrupt:
-        raise typer.Exit(130) from None
+    except KeyboardInterrupt as exc:
+        stop = as_interrupted(exc)
+        if not getattr(exc, "reported", False):  # stopped while setting up: say so
+            typer.echo(f"interrupted ({stop.name}) while setting up; no run was started",
+                       err=True)
+        raise typer.Exit(stop.exit_code) from None
 
 
 def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, quiet: bool,
@@ -188,7 +190,28 @@ def _execute(loop, sc, toml_text: str, out: Path, quiet: bool, sink=None):
         stop = as_interrupted(exc)
         typer.echo(f"interrupted ({stop.name}) at t = {loop.res.t_end:.3f} s; partial log "
                    f"in {out / 'run.mcap'}", err=True)
+        stop.reported = True
         raise stop from None
+    except Exception as exc:  # a crash inside the loop: the log and summary are written
+        _crashed(exc, loop, out)
+
+
+def _crashed(exc: Exception, loop, out: Path) -> None:
+    """Reports a run that crashed: one line, the traceback in ``out/error.txt``; exit 1."""
+    import contextlib
+    import traceback
+
+    from hmpc_cli.cli_common import EXIT_INTERNAL, VERBOSITY
+
+    trace = "".join(traceback.format_exception(exc))
+    with contextlib.suppress(OSError):  # the one-line report does not depend on it
+        (out / "error.txt").write_text(trace, encoding="utf-8")
+    msg = " ".join(str(exc).split())[:300]
+    _err([f"the run crashed at t = {loop.res.t_end:.3f} s: {type(exc).__name__}: {msg}",
+          f"its log, summary.json and the traceback (error.txt) are in {out}"])
+    if VERBOSITY[0] >= 1:
+        typer.echo(trace.rstrip(), err=True)
+    raise typer.Exit(EXIT_INTERNAL)
 
 
 def _print_summary(r, out: Path) -> None:

@@ -14,8 +14,8 @@ from typing import Annotated
 
 import typer
 
-__all__ = ["VERBOSITY", "complete_figure", "complete_set_key", "print_version",
-           "with_verbosity"]
+__all__ = ["EXIT_INTERNAL", "VERBOSITY", "complete_figure", "complete_set_key",
+           "internal_error", "print_version", "with_verbosity"]
 
 #: -1 quiet, 0 default, 1 and more verbose; set by every command's -q/-v
 VERBOSITY = [0]
@@ -64,12 +64,49 @@ def with_verbosity(fn):
         quiet = kwargs["quiet"] if "quiet" in own else kwargs.pop("quiet", False)
         verbose = kwargs["verbose"] if "verbose" in own else kwargs.pop("verbose", 0)
         set_verbosity(bool(quiet), int(verbose or 0))
-        return fn(*args, **kwargs)
+        try:
+            return fn(*args, **kwargs)
+        except (typer.Exit, typer.Abort, typer.BadParameter):
+            raise
+        except KeyboardInterrupt as exc:  # Ctrl-C in any command: 128 + signal, one line
+            from hmpc_cli.signals import as_interrupted
+
+            stop = as_interrupted(exc)
+            if not getattr(exc, "reported", False):
+                typer.echo(f"interrupted ({stop.name})", err=True)
+            raise typer.Exit(stop.exit_code) from None
+        except Exception as exc:  # a bug, not bad input: one line, exit 1, trace with -v
+            if _is_cli_exception(exc):
+                raise
+            internal_error(exc)
 
     params = [*sig.parameters.values(), *extra]
     command.__signature__ = sig.replace(parameters=params)
     command.__annotations__ = {p.name: p.annotation for p in params}
     return command
+
+
+#: exit code of an internal error (like lost work: the command did not finish its job)
+EXIT_INTERNAL = 1
+
+
+def _is_cli_exception(exc: BaseException) -> bool:
+    """Whether ``exc`` is the command-line framework's own (usage errors and exits)."""
+    return any(cls.__name__ == "ClickException" for cls in type(exc).__mro__)
+
+
+def internal_error(exc: BaseException) -> None:
+    """Reports an unexpected exception in one line (the traceback with -v) and exits 1."""
+    import traceback
+
+    first = " ".join(str(exc).split())[:300]
+    typer.echo(f"error: internal error: {type(exc).__name__}" + (f": {first}" if first else ""),
+               err=True)
+    if VERBOSITY[0] >= 1:
+        typer.echo("".join(traceback.format_exception(exc)).rstrip(), err=True)
+    else:
+        typer.echo("(run again with -v for the traceback; please report it)", err=True)
+    raise typer.Exit(EXIT_INTERNAL) from None
 
 
 def _version(name: str) -> str:

@@ -46,6 +46,10 @@ def sweep_command(
     except ScenarioError as exc:
         _err(exc.lines)
         raise typer.Exit(EXIT_BAD_INPUT) from None
+    problems = setup_problems(plan)
+    if problems:  # what only the built system can tell, for every cell, before any run
+        _err(problems)
+        raise typer.Exit(EXIT_BAD_INPUT)
     if dry_run:
         _list_runs(plan)
         return
@@ -90,6 +94,32 @@ def _locked_execute(plan, out: Path, workers: int, client):
     except SweepLockedError as exc:
         _err([str(exc)])
         raise typer.Exit(EXIT_BAD_INPUT) from None
+
+
+def setup_problems(plan) -> list[str]:
+    """The set-up checks of every distinct (system, MPC) cell of a sweep, attributed.
+
+    Lines ``SWEEP: cell k=v, ...: key.path: reason`` (:func:`hmpc_cli.loop.setup_problems`;
+    seeds and settings that cannot change them share one check).
+    """
+    import json
+    import tomllib
+
+    from hmpc_cli.loop import setup_problems as scenario_problems
+    from hmpc_cli.scenario import scenario_model
+
+    seen: set[str] = set()
+    out: list[str] = []
+    for run in plan.selected:
+        sc = scenario_model().model_validate(tomllib.loads(run.toml))
+        key = json.dumps([sc.system.model_dump(mode="json"), sc.mpc.model_dump(mode="json")],
+                         sort_keys=True)
+        if key in seen:
+            continue
+        seen.add(key)
+        cell = ", ".join(f"{k}={v}" for k, v in run.overrides.items()) or "the base scenario"
+        out += [f"{plan.path}: cell {cell}: {line}" for line in scenario_problems(sc)]
+    return out
 
 
 def _list_runs(plan) -> None:

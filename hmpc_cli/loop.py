@@ -351,6 +351,24 @@ def build(scenario, log: RunLog,
                       s.divergence_bound, progress)
 
 
+def setup_problems(scenario) -> list[str]:
+    """The set-up checks :func:`build` makes once the system is built, and nothing more.
+
+    ``key.path: reason`` lines (none: the scenario sets up): margins that do not fit the
+    system (a margins file, an input shrink beyond half an input box) and solver options
+    the solver rejects. Builds the controllers' model only (no NLP, no planner), so a
+    sweep checks every cell before it starts a run.
+    """
+    from hmpc_cli.registry import PluginError, build_system
+
+    try:
+        model = build_system(scenario.system)
+        margins = _margins(scenario, model)
+    except (PluginError, ValueError) as exc:
+        return str(exc).splitlines()
+    return _margin_problems(scenario, model, margins) + _solver_problems(scenario)
+
+
 def _margins(sc, model) -> ConstraintMargins | None:
     """The MPC's margins: hand-set, from the scenario's margins file, or None (no field).
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -139,3 +140,73 @@ def test_constraints_pin_the_installed_versions():
             assert version(name) == pinned, name
         except PackageNotFoundError:
             pytest.fail(f"constraints/tested.txt pins {name}, which is not installed")
+
+
+def test_a_crash_inside_the_loop_is_one_line_exit_1_with_its_traceback_on_disk(
+        tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    from hmpc_cli.cli import app
+    from hmpc_cli.loop import ClosedLoop
+
+    calls = {"n": 0}
+    real = ClosedLoop.run
+
+    def crash_later(self, *args, **kwargs):
+        calls["n"] += 1
+        self.log.state = _boom  # the first logged state sample crashes the run
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(ClosedLoop, "run", crash_later)
+    out = tmp_path / "run"
+    res = CliRunner().invoke(app, ["run", str(BALL), "--out", str(out), "-q", "--set",
+                                   "sim.duration=0.2"])
+    assert res.exit_code == 1, res.output
+    assert "Traceback" not in res.stderr
+    err = res.stderr.strip().splitlines()
+    assert err[0].startswith("error: the run crashed at t = ") and "ZeroDivisionError" in err[0]
+    assert str(out) in err[1] and len(err) == 2
+    assert "ZeroDivisionError" in (out / "error.txt").read_text()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["reason"].startswith("ZeroDivisionError") and not summary["success"]
+
+
+def _boom(*args, **kwargs):
+    return 1 / 0
+
+
+def test_a_crash_while_setting_up_is_an_internal_error_traceback_only_with_v(
+        tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    from hmpc_cli import runner
+    from hmpc_cli.cli import app
+
+    def broken(*args, **kwargs):
+        raise TypeError("an unexpected bug")
+
+    monkeypatch.setattr(runner, "prepare", broken)
+    args = ["run", str(BALL), "--out", str(tmp_path / "r"), "-q"]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 1 and "Traceback" not in res.stderr, res.output
+    assert res.stderr.splitlines()[0] == "error: internal error: TypeError: an unexpected bug"
+    assert "run again with -v" in res.stderr
+    verbose = CliRunner().invoke(app, [*args[:-1], "-v"])
+    assert verbose.exit_code == 1 and "Traceback" in verbose.stderr
+    assert not (tmp_path / "r").exists()
+
+
+def test_sigint_while_the_controllers_are_built_says_so_and_exits_130(tmp_path):
+    import signal
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "hmpc_cli.cli", "run", str(BALL), "--out",
+                             str(tmp_path / "run"), "-q"], cwd=tmp_path, env=cli_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(2.0)  # imports done, the NLPs are being built (about 3 s)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "Aborted" not in err
+    assert "interrupted (SIGINT)" in err
+    assert not (tmp_path / "run" / "run.mcap").exists() or "partial log" in err

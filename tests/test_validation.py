@@ -241,7 +241,7 @@ def test_bool_and_string_are_not_numbers(work: Path):
 
 @pytest.mark.parametrize("item,message", [
     ("mpc.horizon=1e6", "mpc.horizon: 1e+06 s x 60 nodes/s = 6e+07 NLP nodes exceeds the "
-                        "limit 20000"),
+                        "limit 20000 (it would need about 4.98e+04 GiB of memory"),
     ("sim.duration=1e6", "sim.duration: 1e+06 s x 600 steps/s = 6e+08 simulator steps "
                          "exceeds the limit 1e+07"),
     ("planner.samples=100000000", "planner.samples: 100000000 samples x (180 rollout steps "
@@ -258,8 +258,10 @@ def test_size_limits_are_checked_before_anything_is_built(work: Path, item: str,
 def test_walking_nlp_size_limit(work: Path):
     lines = bad_run(work, ["run", _scenario(work, "biped").name,
                            "--set", "mpc.nodes_per_swing=20000"])
-    assert lines == ["error: --set mpc.nodes_per_swing=20000: mpc.nodes_per_swing: 2 swings "
-                     "x 20000 = 40000 NLP nodes exceeds the limit 20000"]
+    assert len(lines) == 1 and lines[0].startswith(
+        "error: --set mpc.nodes_per_swing=20000: mpc.nodes_per_swing: 2 swings x 20000 = "
+        "40000 NLP nodes exceeds the limit 20000 (it would need about 85.9 GiB of memory")
+    assert "18 min to build, at 2.2 MiB and 27 ms per node" in lines[0]
 
 
 @pytest.mark.parametrize("seeds,message", [
@@ -336,3 +338,15 @@ def test_contradictory_settings_fail_at_set_up(real_prepare: Path, system: str, 
     lines = bad_run(real_prepare, ["run", _scenario(real_prepare, system).name, "--set", item,
                                    "--out", "out"])
     assert len(lines) == 1 and lines[0].startswith(f"error: --set {item}: {message}"), lines
+
+
+@pytest.mark.parametrize("dry", [True, False])
+def test_a_cell_the_built_system_refuses_stops_the_sweep_before_any_run(work: Path, dry: bool):
+    """An input margin beyond half the ball's input box: only the built system knows."""
+    _scenario(work, "ball")
+    (work / "x.toml").write_text('name = "x"\nscenario = "ball.toml"\nseeds = 2\n[grid]\n'
+                                 '"mpc.input_margin" = [0.0, 60.0]\n')
+    lines = bad_run(work, ["sweep", "x.toml", *(["--dry-run"] if dry else [])])
+    assert lines == ["error: x.toml: cell mpc.input_margin=60.0: mpc.input_margin: 60 per "
+                     "side exceeds half the input box of mode 'outside' input 0 ([-100, 0]: "
+                     "half-width 50)"]

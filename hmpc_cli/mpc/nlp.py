@@ -52,11 +52,14 @@ from hmpc_cli.mpc.builder import Blocks, NLPBuilder
 from hmpc_cli.mpc.layout import FLOW, ChainLayout, NodeSchedule
 from hmpc_cli.mpc.nlp_data import INF, problem_data
 from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart
-from hmpc_cli.settings_types import MAX_NLP_NODES, BoundedInt, FiniteFloat, StrictBool
+from hmpc_cli.settings_types import MAX_NLP_NODES, nlp_estimate, BoundedInt, FiniteFloat, StrictBool
 
 __all__ = ["INF", "FixedModeNLP", "FixedModeNLPs", "MPCSettings"]
 
 WARM_START = WarmStart(mu_init=1e-6, bound_push=1e-9)  # the warm IPOPT instance
+
+#: measured cost of one chain-NLP node (both NLPs, cold and warm solvers; ball, 2 cores)
+NODE_MIB, NODE_MS = 0.85, 18.0
 
 
 class MPCSettings(BaseModel):
@@ -112,7 +115,8 @@ class MPCSettings(BaseModel):
         if n <= MAX_NLP_NODES:
             return []
         return [f"mpc.horizon: {self.horizon:g} s x {self.nodes_per_second} nodes/s = {n:.3g} "
-                f"NLP nodes exceeds the limit {MAX_NLP_NODES}"]
+                f"NLP nodes exceeds the limit {MAX_NLP_NODES} (it would need "
+                f"{nlp_estimate(n, NODE_MIB, NODE_MS)})"]
 
     def scenario_problems(self) -> list[str]:
         """``mpc.key: reason`` lines for settings that do not fit together."""

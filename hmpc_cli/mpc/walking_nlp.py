@@ -60,10 +60,14 @@ from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.messages import ConstraintMargins
 from hmpc_cli.mpc.builder import Bounds, NLPBuilder
 from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart
-from hmpc_cli.settings_types import MAX_NLP_NODES, BoundedInt, FiniteFloat, Pair, StrictBool
+from hmpc_cli.settings_types import (
+    MAX_NLP_NODES, BoundedInt, FiniteFloat, Pair, StrictBool, nlp_estimate)
 
 INF = np.inf
 WARM_START = WarmStart(mu_init=1e-4, bound_push=1e-6)  # the warm IPOPT instance
+
+#: measured cost of one walking-NLP node (cold and warm solvers; biped, 2 cores)
+NODE_MIB, NODE_MS = 2.2, 27.0
 
 
 class WalkingMPCSettings(BaseModel):
@@ -135,7 +139,8 @@ class WalkingMPCSettings(BaseModel):
         if n <= MAX_NLP_NODES:
             return []
         return [f"mpc.nodes_per_swing: 2 swings x {self.nodes_per_swing} = {n} NLP nodes "
-                f"exceeds the limit {MAX_NLP_NODES}"]
+                f"exceeds the limit {MAX_NLP_NODES} (it would need "
+                f"{nlp_estimate(n, NODE_MIB, NODE_MS)})"]
 
     @property
     def dt(self) -> float:
