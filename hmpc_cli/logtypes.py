@@ -119,6 +119,7 @@ class RunInfo:
     mode_names: tuple[str, ...]
     guard_names: tuple[str, ...]
     margins: MarginsRec | None = None
+    sweep: str = ""  # the sweep file of a sweep's run, "" for a single run
 
 
 @dataclass(frozen=True)
