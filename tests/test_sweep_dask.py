@@ -236,3 +236,11 @@ def test_a_failed_future_is_lost_not_recorded(tmp_path):
     collect(Dead(), Run(), tmp_path, lambda r, s: recorded.append(r), lost)
     assert lost == ["abc: worker failed: OSError: connection to the worker lost"] and recorded == []
     assert list((tmp_path / "runs").iterdir()) == []
+
+
+def test_stale_staging_directories_are_cleared(tmp_path):
+    runs = tmp_path / "runs"
+    for name in (".abc.part-x1", ".abc.old-1234", "abc", ".keep"):
+        (runs / name).mkdir(parents=True)
+    sweep_dask.clear_stale(runs)
+    assert sorted(p.name for p in runs.iterdir()) == [".keep", "abc"]
