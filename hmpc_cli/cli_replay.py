@@ -62,6 +62,8 @@ def _identity_table(rp, size: int):
     cmd = info.get("command") if info.get("command") is not None else info.get("argv")
     t.add_row("command", escape(_recorded({"c": cmd}, "c")))
     t.add_row("overrides", escape(_recorded(info, "overrides")))
+    if info.get("sweep"):
+        t.add_row("sweep", escape(str(info["sweep"])))
     t.add_row("log", escape(f"{rp.path} ({size} bytes)"))
     if rp.log.damage:
         t.add_row("file", f"[red]damaged[/]: {escape(rp.log.damage)}; cut short at t = "

@@ -71,7 +71,7 @@ def sweep_command(
     _print_cells(plan, out)
     typer.echo(f"results: {out / 'results.csv'}")
     if outcome.lost:
-        _err([f"worker failed, run not recorded (rerun to retry): {x}" for x in outcome.lost])
+        _err([f"run not recorded (rerun to retry): {x}" for x in outcome.lost])
     if outcome.interrupted:
         typer.echo(f"interrupted: {outcome.done} of {outcome.total} runs done; run the same "
                    "command again to resume", err=True)

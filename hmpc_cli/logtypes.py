@@ -125,6 +125,7 @@ class RunInfo:
     guard_names: tuple[str, ...]
     margins: MarginsRec | None = None
     geometry: GeometryRec | None = None
+    sweep: str = ""  # the sweep file of a sweep's run, "" for a single run
 
 
 @dataclass(frozen=True)

@@ -78,10 +78,12 @@ class Provenance:
     Attributes:
         command: the command line (default: this process's ``sys.argv``).
         overrides: the ``key=value`` overrides (``--set``, a sweep cell's, ``seed=``).
+        sweep: the sweep file of a sweep's run (as given on the command line), else "".
     """
 
     command: str = field(default_factory=lambda: shlex.join(sys.argv))
     overrides: tuple[str, ...] = ()
+    sweep: str = ""
 
 
 class RunLog:
@@ -159,7 +161,8 @@ class RunLog:
             json.dumps(info.get("scenario", {}), sort_keys=True), tuple(model.state_names),
             tuple(model.input_names), tuple(model.disturbance_names),
             tuple(m.name for m in model.modes), tuple(g.name for g in model.guards),
-            convert(MarginsRec, info["margins"]) if info.get("margins") else None, geometry))
+            convert(MarginsRec, info["margins"]) if info.get("margins") else None, geometry,
+            self.provenance.sweep))
         if hasattr(self.rec, "flush"):
             self.rec.flush()  # the run's identity on disk at once (a killed run keeps it)
         self.rec.add_metadata("run", {"scenario": self.result.scenario,

@@ -4,8 +4,10 @@ A sweep file (TOML) names a scenario, overrides applied to every run (``[set]``)
 axes (a scenario key with a list of values, or a name with a list of override tables,
 each with an optional ``label``) and seeds. Every run is validated before any starts;
 runs go to ``<out>/runs/<run_id>/`` (see :mod:`hmpc_cli.runner`), in-process, in spawned
-worker processes or on a Dask cluster, and ``<out>/results.csv`` is rebuilt from their
-``summary.json`` files. A run id hashes the run's sorted overrides and seed only.
+worker processes (:mod:`hmpc_cli.sweep_pool`) or on a Dask cluster whose workers return
+their files through the futures (:mod:`hmpc_cli.sweep_dask`), and ``<out>/results.csv``
+is rebuilt from their ``summary.json`` files. A run id hashes the run's sorted overrides
+and seed only.
 """
 
 from __future__ import annotations
@@ -16,8 +18,10 @@ import itertools
 import json
 import math
 import re
+import shlex
 import shutil
 import signal
+import sys
 import threading
 import tomllib
 import traceback
@@ -345,12 +349,14 @@ def _bad_keys(src: str, items: list[tuple[str, Any, str]]) -> list[str]:
 _LOCK = threading.Lock()
 
 
-def run_one(toml_text: str, run_dir: str) -> dict:
+def run_one(toml_text: str, run_dir: str, provenance=None) -> dict:
     """Runs one effective scenario into ``run_dir`` (replacing it); returns its summary.
 
     An exception becomes a failed run: ``reason`` is the exception type and message and
     ``error.txt`` holds the traceback. Runs in one process are serialized (IPOPT is not
     thread-safe); NLPs are cached per process (:func:`hmpc_cli.loop.build`).
+    ``provenance`` (:class:`hmpc_cli.runlog.Provenance`, see :func:`run_provenance`) is
+    recorded in the run's log; None records this process's command line only.
     """
     from hmpc_cli.loop import RunResult
     from hmpc_cli.runner import execute_run, jsonable, prepare
@@ -363,6 +369,8 @@ def run_one(toml_text: str, run_dir: str) -> dict:
         try:
             sc = scenario_model().model_validate(tomllib.loads(toml_text))
             loop = prepare(sc)
+            if provenance is not None:
+                loop.log.provenance = provenance
             execute_run(loop, toml_text, out)
         except Exception as exc:  # broad on purpose: a failed run is a result
             res = loop.res if loop is not None else RunResult(
@@ -375,6 +383,25 @@ def run_one(toml_text: str, run_dir: str) -> dict:
             (out / "summary.json").write_text(
                 json.dumps(jsonable(res.__dict__), indent=2, allow_nan=False) + "\n")
         return json.loads((out / "summary.json").read_text())
+
+
+def run_provenance(plan: SweepPlan, run: Run, command: str | None = None):
+    """What started ``run``: the sweep's command line, the run's overrides and sweep file.
+
+    Args:
+        plan: the sweep.
+        run: one of its runs.
+        command: the command line (default: this process's ``sys.argv``).
+
+    Returns:
+        A :class:`hmpc_cli.runlog.Provenance` whose overrides are the run's ``[set]`` and
+        grid overrides (``key=value``, TOML values, sorted) and ``seed=N``.
+    """
+    from hmpc_cli.runlog import Provenance
+
+    overrides = [f"{k}={toml_value(v)}" for k, v in run.overrides.items()]
+    prov = Provenance(overrides=(*overrides, f"seed={run.seed}"), sweep=str(plan.path))
+    return prov if command is None else dataclasses.replace(prov, command=command)
 
 
 # ---------------------------------------------------------------------- the sweep
@@ -398,8 +425,9 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
 
     ``on_start(total, skipped, successes_skipped)`` and ``on_done(run, summary)`` report
     progress. Ctrl-C stops cleanly (``Outcome.interrupted``); results.csv is always
-    rewritten (``Outcome.done`` rows). ``lost`` lists runs whose worker failed (not
-    recorded, retried on resume).
+    rewritten (``Outcome.done`` rows). ``lost`` lists runs whose worker failed or whose
+    results did not arrive from Dask (not recorded, retried on resume). Every run's log
+    records its provenance (:func:`run_provenance`, this process's command line).
     """
     out = out.resolve()
     (out / "runs").mkdir(parents=True, exist_ok=True)
@@ -417,15 +445,22 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
             if on_done:
                 on_done(run, summary)
 
+    command = shlex.join(sys.argv)  # this process's, not a worker's
+
+    def prov(run: Run):
+        return run_provenance(plan, run, command)
+
     try:
         if client is not None:
-            _on_dask(client, pending, out, record, res)
+            from hmpc_cli.sweep_dask import run_on_dask
+
+            run_on_dask(client, pending, out, record, res.lost, prov)
         elif workers <= 1 or len(pending) <= 1:
             for run in pending:
-                record(run, run_one(run.toml, str(out / "runs" / run.run_id)))
+                record(run, run_one(run.toml, str(out / "runs" / run.run_id), prov(run)))
         else:
             run_pool(min(workers, len(pending)), pending, out, record,
-                     lambda run, signum: record(run, _worker_died(run, out, signum)))
+                     lambda run, signum: record(run, _worker_died(run, out, signum)), prov)
     except KeyboardInterrupt as exc:
         res.interrupted = True
         res.signum = signals.as_interrupted(exc).signum
@@ -448,23 +483,3 @@ def _worker_died(run: Run, out: Path, signum: int) -> dict:
     (d / "summary.json").write_text(
         json.dumps(jsonable(res.__dict__), indent=2, allow_nan=False) + "\n")
     return json.loads((d / "summary.json").read_text())
-
-
-def _on_dask(client, pending: list[Run], out: Path, record, res: Outcome) -> None:
-    from distributed import as_completed
-
-    futures = {client.submit(run_one, r.toml, str(out / "runs" / r.run_id), pure=False): r
-               for r in pending}
-    try:
-        for fut in as_completed(list(futures)):
-            _collect(fut, futures[fut], record, res)
-    except KeyboardInterrupt:
-        client.cancel(list(futures))
-        raise
-
-
-def _collect(fut, run: Run, record, res: Outcome) -> None:
-    try:
-        record(run, fut.result())
-    except Exception as exc:  # broad on purpose: the worker (not the run) failed
-        res.lost.append(f"{run.run_id}: {type(exc).__name__}: {exc}")

@@ -55,10 +55,10 @@ def _die_with_parent(parent: int) -> None:
 
 
 def worker_main(conn, parent: int) -> None:
-    """A worker: runs ``(toml_text, run_dir)`` tasks from ``conn`` until None or a signal.
+    """A worker: runs ``(toml_text, run_dir, provenance)`` tasks from ``conn``.
 
-    Replies with each run's summary, or None when the run was stopped by a signal (the
-    worker then exits).
+    Stops at a None task or a signal. Replies with each run's summary, or None when the
+    run was stopped by a signal (the worker then exits).
     """
     from hmpc_cli.sweep import run_one
 
@@ -94,12 +94,13 @@ class _Worker:
         child.close()
         self.run = None
 
-    def give(self, run, out: Path) -> None:
+    def give(self, run, out: Path, provenance) -> None:
         self.run = run
-        self.conn.send((run.toml, str(out / "runs" / run.run_id)))
+        self.conn.send((run.toml, str(out / "runs" / run.run_id), provenance))
 
 
-def run_pool(n: int, pending: list, out: Path, record: Callable, died: Callable) -> None:
+def run_pool(n: int, pending: list, out: Path, record: Callable, died: Callable,
+             provenance: Callable = lambda run: None) -> None:
     """Runs ``pending`` on ``n`` worker processes; returns when all are done.
 
     Args:
@@ -108,6 +109,8 @@ def run_pool(n: int, pending: list, out: Path, record: Callable, died: Callable)
         out: the sweep's output directory.
         record: ``record(run, summary)``; summary None for a run stopped by a signal.
         died: ``died(run, signum)`` for a run whose worker died twice (records it failed).
+        provenance: ``provenance(run)``, the :class:`hmpc_cli.runlog.Provenance` the run's
+            log records (None: the worker's own command line).
 
     Raises:
         KeyboardInterrupt: a stop signal (the workers are stopped first).
@@ -124,7 +127,8 @@ def run_pool(n: int, pending: list, out: Path, record: Callable, died: Callable)
                 workers.append(_Worker(ctx))
             for w in workers:
                 if w.run is None and todo:
-                    w.give(todo.popleft(), out)
+                    run = todo.popleft()
+                    w.give(run, out, provenance(run))
             busy = [w for w in workers if w.run is not None]
             ready = wait([w.conn for w in busy] + [w.proc.sentinel for w in busy])
             for w in busy:

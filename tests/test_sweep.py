@@ -124,6 +124,12 @@ def test_two_workers_give_the_same_table(tiny):
     assert "(2 worker processes)" in proc.stdout
     assert table(out2) == table(out)
     assert table(out2, timing=True) != table(out, timing=True)  # timings are measured
+    from hmpc_cli.recorder import read_log
+
+    row = next(r for r in table(out2) if r["case"] == "ok" and r["lowlevel.kp"] == "1.0")
+    info = read_log(out2 / row["log"]).topic("/run/info")[0].data  # written by a worker
+    assert "lowlevel.kp=1.0" in info["overrides"] and f"seed={row['seed']}" in info["overrides"]
+    assert info["sweep"] == str(path) and info["command"].endswith(f"--out {out2}")
 
 
 def test_resume_skips_finished_runs(tiny):
