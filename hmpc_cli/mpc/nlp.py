@@ -48,6 +48,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.messages import ConstraintMargins, Trajectory
+from hmpc_cli.mpc.backends import OCPStructure
 from hmpc_cli.mpc.builder import Blocks, NLPBuilder
 from hmpc_cli.mpc.layout import FLOW, ChainLayout, NodeSchedule
 from hmpc_cli.mpc.nlp_data import INF, problem_data
@@ -85,9 +86,17 @@ class MPCSettings(BaseModel):
         "hand", description='"hand": the margins of tube_margin and input_margin; else a '
         "margins file of hmpc tube --write (relative to the scenario file's directory): its "
         "guard-avoid, pass-through and input margins at mpc.rate_hz replace them")
-    solver: Literal["ipopt", "fatrop", "sqpmethod"] = "ipopt"
+    solver: Literal["ipopt", "sqp_hpipm", "fatrop", "sqpmethod"] = Field(
+        "ipopt", description='NLP back-end: "ipopt" (interior point, MUMPS), "sqp_hpipm" '
+        "(SQP with a Gauss-Newton Hessian and HPIPM's Riccati QP solver, IPOPT fallback on "
+        'failure; needs input_hold = "zoh"), "fatrop" (needs "zoh"), "sqpmethod" (exact '
+        "Hessian, sparse active-set QP)")
     solver_options: dict = Field(default_factory=dict, description="passed to the plugin")
-    max_iter: BoundedInt = Field(200, gt=0)
+    max_iter: BoundedInt = Field(200, gt=0, description="iteration limit (sqp_hpipm: of "
+                                 "its IPOPT fallback)")
+    max_sqp_iter: BoundedInt = Field(10, gt=0, description="sqp_hpipm: SQP iterations per "
+                                     "solve (real-time iterations; a feasible point at the "
+                                     "limit is accepted)")
     warm_start: StrictBool = True
     resolve_on_impact: StrictBool = True
     final_domain_nlp: StrictBool = Field(
@@ -96,10 +105,10 @@ class MPCSettings(BaseModel):
 
     @model_validator(mode="after")
     def _stagewise_for_fatrop(self) -> MPCSettings:
-        if self.solver == "fatrop" and self.input_hold == "foh":
-            raise ValueError('solver "fatrop" needs stage-wise dynamics: set input_hold = '
-                             '"zoh" (a first-order hold couples each interval to the next '
-                             'input)')
+        if self.solver in ("fatrop", "sqp_hpipm") and self.input_hold == "foh":
+            raise ValueError(f'solver "{self.solver}" needs stage-wise dynamics: set '
+                             'input_hold = "zoh" (a first-order hold couples each interval '
+                             'to the next input)')
         return self
 
     def period_steps(self) -> list[tuple[str, int]]:
@@ -228,10 +237,23 @@ class FixedModeNLP:
             equality = eq.tolist()
         self.session = SolverSession(
             "fixed_mode_mpc", nlp, self.s.solver, max_iter=self.s.max_iter, tol=1e-8,
-            equality=equality, extra=self.s.solver_options, warm=WARM_START)
+            equality=equality, extra=self.s.solver_options, warm=WARM_START,
+            structure=self.structure() if self.s.solver == "sqp_hpipm" else None,
+            sqp_iter=self.s.max_sqp_iter)
         self.nx_var, self.ng, self.np = X.size, g.size, self.layout.p.size
         self.z_idx, self.u_idx, self.s_idx = X["z"], X["u"], X["sigma"]
         self.link_rows = np.stack([g.at(k) for k in range(self.L)])  # (L, rows per link)
+
+    def structure(self) -> OCPStructure:
+        """The HPIPM stage structure (zero-order hold only).
+
+        Per stage k the state z_k, the controls (u_k, sigma_k) (sigma_L alone at the
+        last stage), the dynamics rows then the path rows.
+        """
+        g = self.layout.g
+        ng = [g.at(k).size - self.n for k in range(self.L)]
+        ng.append(g.size - sum(ng) - self.n * self.L)  # node L's rows and the terminal set
+        return OCPStructure.chain(self.n, [self.m + 1] * self.L + [1], ng)
 
     def _parameters(self, b: NLPBuilder) -> dict:
         """The parameter blocks (link types, weights, path-row signs and offsets)."""
