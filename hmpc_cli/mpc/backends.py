@@ -115,7 +115,8 @@ def sqp_options(nlp: dict, structure: OCPStructure, max_iter: int, tol: float = 
         max_iter: SQP iterations (a real-time iteration scheme bounds them).
         tol: primal and dual tolerance.
         residuals: see :func:`gauss_newton_hessian`.
-        hpipm: HPIPM options (default: 50 iterations, mode "balance").
+        hpipm: HPIPM options (default: 50 iterations, mode "speed": relative
+            tolerances; "speed_abs" stops too early for the SQP to converge).
 
     Raises:
         ValueError: the structure's sizes do not match the NLP's.
@@ -125,7 +126,7 @@ def sqp_options(nlp: dict, structure: OCPStructure, max_iter: int, tol: float = 
         raise ValueError(f"OCP structure of {nv} variables and {nr} rows for an NLP of "
                          f"{nlp['x'].size1()} variables and {nlp['g'].size1()} rows")
     qp = {**structure.qpsol_options(), "print_problem": False, "error_on_fail": False,
-          "hpipm": {"iter_max": 50, "mode": "balance", **(hpipm or {})}}
+          "hpipm": {"iter_max": 50, "mode": "speed", **(hpipm or {})}}
     return {"expand": True, "print_time": False, "print_header": False,
             "print_iteration": False, "print_status": False, "max_iter": max_iter,
             "tol_pr": tol, "tol_du": tol, "hess_lag": gauss_newton_hessian(nlp, residuals),

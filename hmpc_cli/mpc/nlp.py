@@ -94,9 +94,13 @@ class MPCSettings(BaseModel):
     solver_options: dict = Field(default_factory=dict, description="passed to the plugin")
     max_iter: BoundedInt = Field(200, gt=0, description="iteration limit (sqp_hpipm: of "
                                  "its IPOPT fallback)")
-    max_sqp_iter: BoundedInt = Field(10, gt=0, description="sqp_hpipm: SQP iterations per "
+    max_sqp_iter: BoundedInt = Field(3, gt=0, description="sqp_hpipm: SQP iterations per "
                                      "solve (real-time iterations; a feasible point at the "
                                      "limit is accepted)")
+    switching_solver: Literal["ipopt", "sqp_hpipm", "fatrop", "sqpmethod"] | None = Field(
+        None, description="back-end of the switching chain NLP (None: mpc.solver, but "
+        '"ipopt" when mpc.solver is "sqp_hpipm": the SQP converges only linearly on its '
+        "degenerate guard-hit rows)")
     warm_start: StrictBool = True
     resolve_on_impact: StrictBool = True
     final_domain_nlp: StrictBool = Field(
@@ -105,11 +109,20 @@ class MPCSettings(BaseModel):
 
     @model_validator(mode="after")
     def _stagewise_for_fatrop(self) -> MPCSettings:
-        if self.solver in ("fatrop", "sqp_hpipm") and self.input_hold == "foh":
-            raise ValueError(f'solver "{self.solver}" needs stage-wise dynamics: set '
-                             'input_hold = "zoh" (a first-order hold couples each interval '
-                             'to the next input)')
+        for solver in (self.solver, self.switching_solver):
+            if solver in ("fatrop", "sqp_hpipm") and self.input_hold == "foh":
+                raise ValueError(f'solver "{solver}" needs stage-wise dynamics: set '
+                                 'input_hold = "zoh" (a first-order hold couples each '
+                                 'interval to the next input)')
         return self
+
+    def solver_of(self, switches: int) -> str:
+        """The back-end of the NLP with ``switches`` guard events (0: final domain's)."""
+        if switches == 0:
+            return self.solver
+        if self.switching_solver is not None:
+            return self.switching_solver
+        return "ipopt" if self.solver == "sqp_hpipm" else self.solver
 
     def period_steps(self) -> list[tuple[str, int]]:
         """Step rates the MPC period must be a whole number of (key path, rate [Hz])."""
@@ -230,15 +243,15 @@ class FixedModeNLP:
         J = self._transcribe(b, zs, us, sigmas)
         nlp, self.layout = b.build(J)
         X, g = self.layout.x, self.layout.g
-        equality = None
-        if self.s.solver == "fatrop":
+        equality, solver = None, self.s.solver_of(self.S)
+        if solver == "fatrop":
             eq = np.zeros(g.size, dtype=bool)
             eq[g["dynamics"]] = True
             equality = eq.tolist()
         self.session = SolverSession(
-            "fixed_mode_mpc", nlp, self.s.solver, max_iter=self.s.max_iter, tol=1e-8,
+            "fixed_mode_mpc", nlp, solver, max_iter=self.s.max_iter, tol=1e-8,
             equality=equality, extra=self.s.solver_options, warm=WARM_START,
-            structure=self.structure() if self.s.solver == "sqp_hpipm" else None,
+            structure=self.structure() if solver == "sqp_hpipm" else None,
             sqp_iter=self.s.max_sqp_iter)
         self.nx_var, self.ng, self.np = X.size, g.size, self.layout.p.size
         self.z_idx, self.u_idx, self.s_idx = X["z"], X["u"], X["sigma"]

@@ -85,6 +85,7 @@ def plugin_options(plugin: str, max_iter: int, tol: float = 1e-8,
     opts: dict = {"expand": True}
     extra = dict(extra or {})
     extra.pop("ipopt_warm", None)
+    extra.pop("hpipm", None)  # the sqp_hpipm back-end's (shared settings)
     if plugin == "ipopt":
         ipopt = {"print_level": 0, "sb": "yes", "max_iter": max_iter, "tol": tol,
                  "constr_viol_tol": 1e-8, "mu_strategy": "adaptive"}
@@ -189,7 +190,8 @@ class SolverSession:
                  sqp_iter: int = 10, residuals=None) -> None:
         """Builds the cold and (IPOPT with ``warm``) the warm instance."""
         self.plugin, self._nlp, self._name = plugin, nlp, name
-        self._ipopt_args = (max_iter, tol, max_wall_time, extra, warm)
+        ipopt_extra = {k: v for k, v in (extra or {}).items() if k in ("ipopt", "ipopt_warm")}
+        self._ipopt_args = (max_iter, tol, max_wall_time, ipopt_extra, warm)
         self._fallback: tuple | None = None
         if plugin == "sqp_hpipm":
             if structure is None:
@@ -269,6 +271,9 @@ def option_problems(plugin: str, extra: dict, key: str = "mpc.solver_options") -
     """
     import json
 
+    if plugin == "sqp_hpipm":  # its IPOPT fallback's options (the rest fail at build)
+        plugin, extra = "ipopt", {k: v for k, v in extra.items()
+                                  if k in ("ipopt", "ipopt_warm")}
     if plugin != "ipopt":  # their options fail when the NLP is built (a PluginError)
         return []
     return list(_option_problems(plugin, json.dumps(extra, sort_keys=True), key))
