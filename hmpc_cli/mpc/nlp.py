@@ -212,6 +212,10 @@ class FixedModeNLP:
                                                          settings.input_margin)
         # guard-avoid offsets: margin 0 for the guard just crossed, else the tube margin
         self.avoid_offsets = list(zip(self.margins.entered, self.margins.avoid, strict=True))
+        #: per mode: its column in the link-type parameter a (-1: no flow in this NLP)
+        self.mode_cols = np.array([self.mode_col.get(i, -1) for i in range(len(system.modes))])
+        #: per mode: its tightened input box (lower, upper), shape (modes, 2, m)
+        self.input_boxes = np.array([self.input_box(i) for i in range(len(system.modes))])
         self._build()
 
     # ------------------------------------------------------------------ build
