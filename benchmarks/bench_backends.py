@@ -80,13 +80,36 @@ def _default_ipopt(nlp: FixedModeNLP) -> SolverSession:
     return session
 
 
+#: (back-end, NLP) -> per solve: the solver's own timers [s] (CasADi ``t_wall_*``)
+SPLITS: dict[tuple[str, str], list[dict]] = {}
+
+
 def _caller(nlp: FixedModeNLP, label: str):
+    which = "final" if nlp.S == 0 else "switching"
+
     def call(args):
         w0, p, lbx, ubx, lbg, ubg, lam_x, lam_g = args
         if label == "ipopt_defaults" or label == "fatrop":
             lam_x = lam_g = None  # cold (fatrop: no dual warm start through CasADi)
-        return nlp.solve(w0, p, lbx, ubx, lbg, ubg, lam_x, lam_g).stats
+        start = time.perf_counter()
+        stats = nlp.solve(w0, p, lbx, ubx, lbg, ubg, lam_x, lam_g).stats
+        total = time.perf_counter() - start
+        inner = nlp.session.warm.stats() if lam_x is not None else nlp.session.cold.stats()
+        split = {k[7:]: v for k, v in inner.items() if k.startswith("t_wall_") and v}
+        split["call (hmpc + CasADi)"] = total
+        SPLITS.setdefault((label, which), []).append(split)
+        return stats
     return call
+
+
+def time_split(label: str = "sqp_hpipm_rti3", which: str = "final") -> None:
+    """Prints where one back-end's solve time goes (median per part) [ms]."""
+    rows = SPLITS.get((label, which), [])
+    if not rows:
+        return
+    print(f"\nwhere the time goes: {label}, {which} NLP (median per solve, ms)")
+    for key in sorted({k for r in rows for k in r}):
+        print(f"  {key:24s} {1e3 * np.median([r.get(key, 0.0) for r in rows]):7.3f}")
 
 
 def replay(problems, solvers) -> dict[tuple[str, str], list]:
@@ -144,6 +167,8 @@ def main() -> None:
     problems = [rec for trial in args.trials for rec in record(trial)]
     solvers = backends(build_system(sc.system), sc.mpc)
     table(replay(problems, solvers))
+    time_split()
+    time_split("hmpc_ipopt")
     if args.closed_loop:
         closed_loop(args.trials)
 

@@ -122,8 +122,8 @@ def warm_options(cold: dict, warm: WarmStart, extra: dict | None = None) -> dict
     return {**cold, "ipopt": ipopt}
 
 
-def _run(instances: tuple, session: SolverSession, w0, p, lbx, ubx, lbg, ubg, lam_x0,
-         lam_g0, rti: bool = False) -> SolveResult:
+def _run(instances: tuple, w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0,
+         rti: bool = False) -> SolveResult:
     """One solve on the (cold, warm) instances (see :meth:`SolverSession.solve`).
 
     ``rti``: a bounded SQP run (success by :func:`~hmpc_cli.mpc.backends.rti_success`).
@@ -148,7 +148,8 @@ def _run(instances: tuple, session: SolverSession, w0, p, lbx, ubx, lbg, ubg, la
     w = np.asarray(sol["x"]).ravel()
     finite = bool(np.all(np.isfinite(w)))
     cost = float(sol["f"]) if finite else np.nan
-    viol = session.violation(w, p, lbx, ubx, lbg, ubg) if finite else np.inf
+    # the rows at w come with the solution (no second evaluation)
+    viol = _violation(w, np.asarray(sol["g"]).ravel(), lbx, ubx, lbg, ubg) if finite else np.inf
     ok = bool(st.get("success", False))
     if rti:
         ok = rti_success(status, ok, viol)
@@ -224,10 +225,10 @@ class SolverSession:
                 :class:`hmpc_cli.signals.Interrupted` when a stop signal is pending.
         """
         args = (w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0)
-        res = _run((self.cold, self.warm), self, *args, rti=self.plugin == "sqp_hpipm")
+        res = _run((self.cold, self.warm), *args, rti=self.plugin == "sqp_hpipm")
         if self.plugin != "sqp_hpipm" or res.stats.success:
             return res
-        again = _run(self.fallback_instances(), self, *args)
+        again = _run(self.fallback_instances(), *args)
         st = again.stats
         status = f"{st.status} (fallback; sqp_hpipm: {res.stats.status})"
         stats = SolveStats(status, st.success, res.stats.iterations + st.iterations,
@@ -252,10 +253,14 @@ class SolverSession:
 
     def violation(self, w, p, lbx, ubx, lbg, ubg) -> float:
         """Largest constraint or bound violation at primal point w (0 if none)."""
-        g = self.constraints(w, p)
-        v = [np.maximum(lbg - g, 0.0), np.maximum(g - ubg, 0.0),
-             np.maximum(lbx - w, 0.0), np.maximum(w - ubx, 0.0)]
-        return float(max(np.max(a, initial=0.0) for a in v))
+        return _violation(w, self.constraints(w, p), lbx, ubx, lbg, ubg)
+
+
+def _violation(w, g, lbx, ubx, lbg, ubg) -> float:
+    """Largest violation of rows g (ng,) and bounds at w (nx,) (0 if none)."""
+    v = [np.maximum(lbg - g, 0.0), np.maximum(g - ubg, 0.0),
+         np.maximum(lbx - w, 0.0), np.maximum(w - ubx, 0.0)]
+    return float(max(np.max(a, initial=0.0) for a in v))
 
 
 #: IPOPT linear solvers a build may provide (HSL's, Pardiso, SPRAL, WSMP, MUMPS)
