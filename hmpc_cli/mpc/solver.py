@@ -80,7 +80,8 @@ def plugin_options(plugin: str, max_iter: int, tol: float = 1e-8,
         max_wall_time: IPOPT ``max_wall_time`` [s] (None: none).
         equality: fatrop: per row, True for equality rows, shape (ng,).
         extra: user options: ``"ipopt"`` (IPOPT options), ``"ipopt_warm"`` (warm
-            instance only), the rest ``nlpsol`` options.
+            instance only), ``"hpipm"`` (``sqp_hpipm`` only, dropped here), the rest
+            ``nlpsol`` options.
     """
     opts: dict = {"expand": True}
     extra = dict(extra or {})
