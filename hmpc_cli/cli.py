@@ -231,6 +231,8 @@ def _print_summary(r, out: Path) -> None:
                   f"{ms(r.solve_time_median)} / {ms(r.solve_time_p95)} / {ms(r.solve_time_max)}")
     table.add_row("solver failures", f"{r.solver_failures} "
                   + (json.dumps(r.failure_statuses) if r.failure_statuses else ""))
+    if r.fallbacks:
+        table.add_row("back-end fallbacks to IPOPT", str(r.fallbacks))
     table.add_row("softened solves (max slack)",
                   f"{r.softened_solves}" + (f" ({r.max_slack:.3g})" if r.softened_solves else ""))
     table.add_row("planner calls (rejected)", f"{r.planner_calls} ({r.planner_rejected})")

@@ -263,6 +263,7 @@ class Summary:
     failure_statuses: tuple[StatusCount, ...]
     softened_solves: int
     max_slack: float
+    fallbacks: int
     solve_time_median: float
     solve_time_p95: float
     solve_time_max: float

@@ -162,6 +162,7 @@ class SolveStats:
         max_violation: largest violation of the solved NLP's rows and bounds.
         slack: largest relaxation of the hybrid (guard, virtual-node, region, terminal)
             constraints by the soft-constraint slacks; 0 when they hold exactly.
+        fallback: the back-end failed and IPOPT solved this problem instead.
     """
 
     status: str
@@ -171,6 +172,7 @@ class SolveStats:
     cost: float
     max_violation: float
     slack: float = 0.0
+    fallback: bool = False
 
 
 @dataclass(frozen=True)

@@ -48,6 +48,7 @@ class RunResult:
     failure_statuses: dict = field(default_factory=dict)
     softened_solves: int = 0
     max_slack: float = 0.0
+    fallbacks: int = 0
     solve_time_median: float = float("nan")
     solve_time_p95: float = float("nan")
     solve_time_max: float = float("nan")
@@ -235,6 +236,7 @@ class RunLog:
         st, r = plan.stats, self.result
         r.solves += 1
         self.solve_times.append(st.wall_time)
+        r.fallbacks += bool(st.fallback)
         if not st.success:
             r.solver_failures += 1
             r.failure_statuses[st.status] = r.failure_statuses.get(st.status, 0) + 1

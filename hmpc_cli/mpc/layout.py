@@ -160,8 +160,13 @@ def remap(old: ChainLayout, new: ChainLayout, dropped: int, offset0: int) -> np.
         Old node index per new node, shape (L + 1,); hold nodes map to old.last.
     """
     out = np.full(new.seg.shape, old.last)
-    for k in range(new.last + 1):
-        j = int(new.seg[k])
-        shift = offset0 if j == 0 else 0
-        out[k] = old.node_of(j + dropped, int(new.local[k]) + shift)
+    k = np.arange(new.last + 1)
+    j = new.seg[k]
+    local = new.local[k] + np.where(j == 0, offset0, 0)
+    # segments are contiguous runs of nodes: their first node and length in old
+    n_seg = int(old.seg.max()) + 1
+    first = np.searchsorted(old.seg[: old.last + 1], np.arange(n_seg))
+    length = np.bincount(old.seg[old.seg >= 0], minlength=n_seg)
+    src = j + dropped
+    out[k] = first[src] + np.clip(local, 0, length[src] - 1)
     return out

@@ -48,6 +48,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.messages import ConstraintMargins, Trajectory
+from hmpc_cli.mpc.backends import OCPStructure
 from hmpc_cli.mpc.builder import Blocks, NLPBuilder
 from hmpc_cli.mpc.layout import FLOW, ChainLayout, NodeSchedule
 from hmpc_cli.mpc.nlp_data import INF, problem_data
@@ -88,9 +89,21 @@ class MPCSettings(BaseModel):
         "hand", description='"hand": the margins of tube_margin and input_margin; else a '
         "margins file of hmpc tube --write (relative to the scenario file's directory): its "
         "guard-avoid, pass-through and input margins at mpc.rate_hz replace them")
-    solver: Literal["ipopt", "fatrop", "sqpmethod"] = "ipopt"
+    solver: Literal["ipopt", "sqp_hpipm", "fatrop", "sqpmethod"] = Field(
+        "ipopt", description='NLP back-end: "ipopt" (interior point, MUMPS), "sqp_hpipm" '
+        "(SQP with a Gauss-Newton Hessian and HPIPM's Riccati QP solver, IPOPT fallback on "
+        'failure; needs input_hold = "zoh"), "fatrop" (needs "zoh"), "sqpmethod" (exact '
+        "Hessian, sparse active-set QP)")
     solver_options: dict = Field(default_factory=dict, description="passed to the plugin")
-    max_iter: BoundedInt = Field(200, gt=0)
+    max_iter: BoundedInt = Field(200, gt=0, description="iteration limit (sqp_hpipm: of "
+                                 "its IPOPT fallback)")
+    max_sqp_iter: BoundedInt = Field(3, gt=0, description="sqp_hpipm: SQP iterations per "
+                                     "solve (real-time iterations; a feasible point at the "
+                                     "limit is accepted)")
+    switching_solver: Literal["ipopt", "sqp_hpipm", "fatrop", "sqpmethod"] | None = Field(
+        None, description="back-end of the switching chain NLP (None: mpc.solver, but "
+        '"ipopt" when mpc.solver is "sqp_hpipm": the SQP converges only linearly on its '
+        "degenerate guard-hit rows)")
     warm_start: StrictBool = True
     resolve_on_impact: StrictBool = True
     final_domain_nlp: StrictBool = Field(
@@ -99,11 +112,20 @@ class MPCSettings(BaseModel):
 
     @model_validator(mode="after")
     def _stagewise_for_fatrop(self) -> MPCSettings:
-        if self.solver == "fatrop" and self.input_hold == "foh":
-            raise ValueError('solver "fatrop" needs stage-wise dynamics: set input_hold = '
-                             '"zoh" (a first-order hold couples each interval to the next '
-                             'input)')
+        for solver in (self.solver, self.switching_solver):
+            if solver in ("fatrop", "sqp_hpipm") and self.input_hold == "foh":
+                raise ValueError(f'solver "{solver}" needs stage-wise dynamics: set '
+                                 'input_hold = "zoh" (a first-order hold couples each '
+                                 'interval to the next input)')
         return self
+
+    def solver_of(self, switches: int) -> str:
+        """The back-end of the NLP with ``switches`` guard events (0: final domain's)."""
+        if switches == 0:
+            return self.solver
+        if self.switching_solver is not None:
+            return self.switching_solver
+        return "ipopt" if self.solver == "sqp_hpipm" else self.solver
 
     def period_steps(self) -> list[tuple[str, int]]:
         """Step rates the MPC period must be a whole number of (key path, rate [Hz])."""
@@ -194,6 +216,10 @@ class FixedModeNLP:
                                                          settings.input_margin)
         # guard-avoid offsets: margin 0 for the guard just crossed, else the tube margin
         self.avoid_offsets = list(zip(self.margins.entered, self.margins.avoid, strict=True))
+        #: per mode: its column in the link-type parameter a (-1: no flow in this NLP)
+        self.mode_cols = np.array([self.mode_col.get(i, -1) for i in range(len(system.modes))])
+        #: per mode: its tightened input box (lower, upper), shape (modes, 2, m)
+        self.input_boxes = np.array([self.input_box(i) for i in range(len(system.modes))])
         self._build()
 
     # ------------------------------------------------------------------ build
@@ -225,17 +251,30 @@ class FixedModeNLP:
         J = self._transcribe(b, zs, us, sigmas)
         nlp, self.layout = b.build(J)
         X, g = self.layout.x, self.layout.g
-        equality = None
-        if self.s.solver == "fatrop":
+        equality, solver = None, self.s.solver_of(self.S)
+        if solver == "fatrop":
             eq = np.zeros(g.size, dtype=bool)
             eq[g["dynamics"]] = True
             equality = eq.tolist()
         self.session = SolverSession(
-            "fixed_mode_mpc", nlp, self.s.solver, max_iter=self.s.max_iter, tol=1e-8,
-            equality=equality, extra=self.s.solver_options, warm=WARM_START)
+            "fixed_mode_mpc", nlp, solver, max_iter=self.s.max_iter, tol=1e-8,
+            equality=equality, extra=self.s.solver_options, warm=WARM_START,
+            structure=self.structure() if solver == "sqp_hpipm" else None,
+            sqp_iter=self.s.max_sqp_iter)
         self.nx_var, self.ng, self.np = X.size, g.size, self.layout.p.size
         self.z_idx, self.u_idx, self.s_idx = X["z"], X["u"], X["sigma"]
         self.link_rows = np.stack([g.at(k) for k in range(self.L)])  # (L, rows per link)
+
+    def structure(self) -> OCPStructure:
+        """The HPIPM stage structure (zero-order hold only).
+
+        Per stage k the state z_k, the controls (u_k, sigma_k) (sigma_L alone at the
+        last stage), the dynamics rows then the path rows.
+        """
+        g = self.layout.g
+        ng = [g.at(k).size - self.n for k in range(self.L)]
+        ng.append(g.size - sum(ng) - self.n * self.L)  # node L's rows and the terminal set
+        return OCPStructure.chain(self.n, [self.m + 1] * self.L + [1], ng)
 
     def _parameters(self, b: NLPBuilder) -> dict:
         """The parameter blocks (link types, weights, path-row signs and offsets)."""

@@ -21,7 +21,7 @@ VIRTUAL_INPUT_WEIGHT = 1e-3
 
 
 def problem_data(nlp: FixedModeNLP, ns: NodeSchedule, lay: ChainLayout, x0: np.ndarray):
-    """Parameters and bounds of one solve of ``nlp``.
+    """Parameters and bounds of one solve of ``nlp`` (vectorised over links and nodes).
 
     Args:
         nlp: the NLP.
@@ -38,54 +38,58 @@ def problem_data(nlp: FixedModeNLP, ns: NodeSchedule, lay: ChainLayout, x0: np.n
     bounds.ubx["sigma"][:] = INF if nlp.s.soft_penalty > 0.0 else 0.0
     bounds.lbx["z"][0] = bounds.ubx["z"][0] = x0
     bounds.lbg["dynamics"][:] = bounds.ubg["dynamics"][:] = 0.0
-    for k in range(nlp.L):
-        _link(nlp, lay, k, par, bounds)
-    for k in range(1, lay.last + 1):
-        if not lay.first_after_reset[k]:
-            _node(nlp, ns, lay, k, par, bounds)
+    _links(nlp, lay, par, bounds)
+    for j in range(len(ns.modes)):
+        _segment(nlp, ns, lay, j, par, bounds)
     if "terminal" in nlp.layout.g:
         bounds.lbg["terminal"][:] = 0.0
     return (nlp.layout.p.pack(par), *bounds.arrays())
 
 
-def _link(nlp: FixedModeNLP, lay: ChainLayout, k: int, par: dict, bounds: Bounds) -> None:
-    """Link k: its type (a, b, e), cost weights, input hold and input bounds."""
-    typ, mode = lay.link_type[k], lay.link_mode[k]
-    lo = hi = np.zeros(nlp.m)
-    if typ == FLOW:
-        par["a"][k, nlp.mode_col[mode]], par["w"][k] = 1.0, nlp.dt
-        lo, hi = nlp.input_box(mode)
-        # first-order hold up to the next link's input (the virtual input before a guard
-        # node); the horizon's last interval holds its input
-        if nlp.s.input_hold == "foh" and k + 1 < nlp.L and lay.link_type[k + 1] != HOLD:
-            par["foh"][k] = 1.0
-    elif typ == RESET:
-        par["b"][k, lay.link_guard[k]] = 1.0
-        if nlp.s.robust:
-            par["v"][k] = VIRTUAL_INPUT_WEIGHT * nlp.dt
-            lo, hi = nlp.input_box(mode)
-    else:
-        par["e"][k] = 1.0
-    bounds.lbx["u"][k], bounds.ubx["u"][k] = lo, hi
+def _links(nlp: FixedModeNLP, lay: ChainLayout, par: dict, bounds: Bounds) -> None:
+    """Every link: its type (a, b, e), cost weights, input hold and input bounds."""
+    typ, mode = lay.link_type, lay.link_mode
+    lo, hi = np.zeros((nlp.L, nlp.m)), np.zeros((nlp.L, nlp.m))
+    boxes = nlp.input_boxes  # (modes, 2, m)
+    flow = np.nonzero(typ == FLOW)[0]
+    par["a"][flow, nlp.mode_cols[mode[flow]]] = 1.0
+    par["w"][flow] = nlp.dt
+    lo[flow], hi[flow] = boxes[mode[flow], 0], boxes[mode[flow], 1]
+    # first-order hold up to the next link's input (the virtual input before a guard
+    # node); the horizon's last interval holds its input
+    if nlp.s.input_hold == "foh":
+        nxt = np.append(typ[1:], HOLD)
+        par["foh"][flow[nxt[flow] != HOLD]] = 1.0
+    reset = np.nonzero(typ == RESET)[0]
+    par["b"][reset, lay.link_guard[reset]] = 1.0
+    if nlp.s.robust:
+        par["v"][reset] = VIRTUAL_INPUT_WEIGHT * nlp.dt
+        lo[reset], hi[reset] = boxes[mode[reset], 0], boxes[mode[reset], 1]
+    par["e"][typ == HOLD] = 1.0
+    bounds.lbx["u"][:], bounds.ubx["u"][:] = lo, hi
 
 
-def _node(nlp: FixedModeNLP, ns: NodeSchedule, lay: ChainLayout, k: int, par: dict,
-          bounds: Bounds) -> None:
-    """Node k's path rows: guard-avoid or guard-hit per guard of its mode (+ guard node)."""
-    j = int(lay.seg[k])
+def _segment(nlp: FixedModeNLP, ns: NodeSchedule, lay: ChainLayout, j: int, par: dict,
+             bounds: Bounds) -> None:
+    """Domain j's path rows: guard-avoid per guard of its mode, guard-hit at its guard node.
+
+    Its nodes from 1 on, without the first node after a reset (fixed by the reset link).
+    """
+    k = np.nonzero((lay.seg == j) & ~lay.first_after_reset)[0]
+    k = k[k >= 1]
     entered_by = ns.guards[j - 1] if j > 0 else -1
-    is_guard_node = j < len(ns.guards) and lay.local[k] == ns.counts[j]
+    guard_node = lay.node_of(j, ns.counts[j]) if j < len(ns.guards) else -1
     for gi in nlp.guards_of[ns.modes[j]]:
         c = nlp.guard_col[gi]
         par["s"][k, c] = 1.0
         bounds.lbg["guard_avoid"][k, c] = 0.0
-        if is_guard_node and gi == ns.guards[j]:  # guard-hit: |q| <= sigma
-            par["hit"][k, gi] = 1.0
-            bounds.ubg["guard_hit"][k] = 0.0
-        else:
-            par["kappa"][k, c] = nlp.avoid_offsets[gi][0 if gi == entered_by else 1]
-    if is_guard_node:
-        _guard_node(nlp, ns.guards[j], k, par, bounds)
+        par["kappa"][k, c] = nlp.avoid_offsets[gi][0 if gi == entered_by else 1]
+        if guard_node >= 0 and gi == ns.guards[j]:  # guard-hit: |q| <= sigma
+            par["kappa"][guard_node, c] = 0.0
+            par["hit"][guard_node, gi] = 1.0
+            bounds.ubg["guard_hit"][guard_node] = 0.0
+    if guard_node >= 0:
+        _guard_node(nlp, ns.guards[j], guard_node, par, bounds)
 
 
 def _guard_node(nlp: FixedModeNLP, gi: int, k: int, par: dict, bounds: Bounds) -> None:

@@ -3,11 +3,14 @@
 Both MPC NLPs solve through a :class:`SolverSession`: it builds the plugin's options
 (:func:`plugin_options`), a cold instance and, for IPOPT, a warm-start instance
 (:class:`WarmStart`), and turns every solve into a :class:`SolveResult` with the
-:class:`~hmpc_cli.messages.SolveStats` of the closed loop. A solve never raises on a
-solver failure (CasADi's ``RuntimeError`` on NaN evaluations becomes a failed solve with
-status ``"error: ..."``); it does raise ``KeyboardInterrupt`` when the user interrupted
-IPOPT: CasADi catches the interrupt inside IPOPT's callbacks and returns the status
-``NonIpopt_Exception_Thrown``, which the session turns back into the interrupt.
+:class:`~hmpc_cli.messages.SolveStats` of the closed loop. The back-end ``sqp_hpipm``
+(:mod:`hmpc_cli.mpc.backends`: SQP, Gauss-Newton Hessian, HPIPM on the NLP's stage
+structure) runs a bounded number of iterations from the primal-dual warm start; a solve
+it fails is solved again by IPOPT (built on first use) and marked ``fallback``. A solve
+never raises on a solver failure (CasADi's ``RuntimeError`` on NaN evaluations becomes a
+failed solve with status ``"error: ..."``); it does raise ``KeyboardInterrupt`` when the
+user interrupted IPOPT: CasADi catches the interrupt inside IPOPT's callbacks and returns
+the status ``NonIpopt_Exception_Thrown``, which the session turns back into the interrupt.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import numpy as np
 
 from hmpc_cli import signals
 from hmpc_cli.messages import SolveStats
+from hmpc_cli.mpc.backends import OCPStructure, rti_success, sqp_options
 
 INTERRUPTED = "NonIpopt_Exception_Thrown"
 
@@ -69,17 +73,20 @@ def plugin_options(plugin: str, max_iter: int, tol: float = 1e-8,
     """CasADi ``nlpsol`` options of the cold instance.
 
     Args:
-        plugin: "ipopt", "sqpmethod" or "fatrop".
+        plugin: "ipopt", "sqpmethod" or "fatrop" ("sqp_hpipm": see
+            :func:`hmpc_cli.mpc.backends.sqp_options`).
         max_iter: iteration limit.
         tol: IPOPT ``tol``.
         max_wall_time: IPOPT ``max_wall_time`` [s] (None: none).
         equality: fatrop: per row, True for equality rows, shape (ng,).
         extra: user options: ``"ipopt"`` (IPOPT options), ``"ipopt_warm"`` (warm
-            instance only), the rest ``nlpsol`` options.
+            instance only), ``"hpipm"`` (``sqp_hpipm`` only, dropped here), the rest
+            ``nlpsol`` options.
     """
     opts: dict = {"expand": True}
     extra = dict(extra or {})
     extra.pop("ipopt_warm", None)
+    extra.pop("hpipm", None)  # the sqp_hpipm back-end's (shared settings)
     if plugin == "ipopt":
         ipopt = {"print_level": 0, "sb": "yes", "max_iter": max_iter, "tol": tol,
                  "constr_viol_tol": 1e-8, "mu_strategy": "adaptive"}
@@ -116,6 +123,43 @@ def warm_options(cold: dict, warm: WarmStart, extra: dict | None = None) -> dict
     return {**cold, "ipopt": ipopt}
 
 
+def _run(instances: tuple, w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0,
+         rti: bool = False) -> SolveResult:
+    """One solve on the (cold, warm) instances (see :meth:`SolverSession.solve`).
+
+    ``rti``: a bounded SQP run (success by :func:`~hmpc_cli.mpc.backends.rti_success`).
+    """
+    start = time.perf_counter()
+    args = {"x0": w0, "p": p, "lbx": lbx, "ubx": ubx, "lbg": lbg, "ubg": ubg}
+    solver = instances[0]
+    if lam_x0 is not None and lam_g0 is not None:
+        args["lam_g0"] = np.where(np.isfinite(lbg) | np.isfinite(ubg), lam_g0, 0.0)
+        args["lam_x0"] = np.where(np.isfinite(lbx) | np.isfinite(ubx), lam_x0, 0.0)
+        solver = instances[1]
+    with signals.abortable():  # a stop signal cuts the solve (checked after it too)
+        try:
+            sol = solver(**args)
+        except RuntimeError as exc:  # CasADi raises on NaN evaluations
+            return failed(w0, str(exc), time.perf_counter() - start)
+        st = solver.stats()
+        status = str(st.get("return_status", st.get("success")))
+        if status == INTERRUPTED:  # CasADi swallowed the interrupt
+            signals.check()
+            raise KeyboardInterrupt(f"solver interrupted ({status})")
+    w = np.asarray(sol["x"]).ravel()
+    finite = bool(np.all(np.isfinite(w)))
+    cost = float(sol["f"]) if finite else np.nan
+    # the rows at w come with the solution (no second evaluation)
+    viol = _violation(w, np.asarray(sol["g"]).ravel(), lbx, ubx, lbg, ubg) if finite else np.inf
+    ok = bool(st.get("success", False))
+    if rti:
+        ok = rti_success(status, ok, viol)
+    stats = SolveStats(status, ok and finite, _iterations(st), time.perf_counter() - start,
+                       cost, float(viol))
+    return SolveResult(w, np.asarray(sol["lam_x"]).ravel(), np.asarray(sol["lam_g"]).ravel(),
+                       stats)
+
+
 def _iterations(stats: dict) -> int:
     if "iter_count" in stats:
         return int(stats["iter_count"])
@@ -129,61 +173,80 @@ class SolverSession:
     Args:
         name: instance name (the warm one gets ``_warm`` appended).
         nlp: ``{"x", "p", "f", "g"}`` (e.g. from :meth:`NLPBuilder.build`).
-        plugin: "ipopt", "sqpmethod" or "fatrop".
-        max_iter, tol, max_wall_time, equality, extra: see :func:`plugin_options`.
+        plugin: "ipopt", "sqpmethod", "fatrop" or "sqp_hpipm".
+        max_iter, tol, max_wall_time, equality, extra: see :func:`plugin_options`
+            (``sqp_hpipm``: ``max_iter`` and ``tol`` are those of the IPOPT fallback,
+            ``extra["hpipm"]`` HPIPM options, ``extra["ipopt"]`` the fallback's).
         warm: warm IPOPT instance options (None, or another plugin: warm starts run on
             the cold instance).
+        structure: ``sqp_hpipm``: the NLP's stage structure (required).
+        sqp_iter: ``sqp_hpipm``: SQP iterations per solve (real-time iterations).
+        residuals: ``sqp_hpipm``: least-squares residuals of the cost (see
+            :func:`hmpc_cli.mpc.backends.gauss_newton_hessian`).
     """
 
     def __init__(self, name: str, nlp: dict, plugin: str = "ipopt", *, max_iter: int,
                  tol: float = 1e-8, max_wall_time: float | None = None,
                  equality: list[bool] | None = None, extra: dict | None = None,
-                 warm: WarmStart | None = None) -> None:
+                 warm: WarmStart | None = None, structure: OCPStructure | None = None,
+                 sqp_iter: int = 10, residuals=None) -> None:
         """Builds the cold and (IPOPT with ``warm``) the warm instance."""
-        self.options = plugin_options(plugin, max_iter, tol, max_wall_time, equality, extra)
-        self.cold = ca.nlpsol(name, plugin, nlp, self.options)
-        self.warm = self.cold
-        if plugin == "ipopt" and warm is not None:
-            self.warm = ca.nlpsol(f"{name}_warm", plugin, nlp,
-                                  warm_options(self.options, warm, extra))
+        self.plugin, self._nlp, self._name = plugin, nlp, name
+        ipopt_extra = {k: v for k, v in (extra or {}).items() if k in ("ipopt", "ipopt_warm")}
+        self._ipopt_args = (max_iter, tol, max_wall_time, ipopt_extra, warm)
+        self._fallback: tuple | None = None
+        if plugin == "sqp_hpipm":
+            if structure is None:
+                raise ValueError("solver sqp_hpipm needs the NLP's stage structure")
+            extra = dict(extra or {})
+            hpipm = extra.pop("hpipm", {})
+            extra.pop("ipopt", None)
+            extra.pop("ipopt_warm", None)
+            self.options = {**sqp_options(nlp, structure, sqp_iter, tol, residuals, hpipm),
+                            **extra}
+            self.cold = self.warm = ca.nlpsol(name, "sqpmethod", nlp, self.options)
+        else:
+            self.options = plugin_options(plugin, max_iter, tol, max_wall_time, equality,
+                                          extra)
+            self.cold = self.warm = ca.nlpsol(name, plugin, nlp, self.options)
+            if plugin == "ipopt" and warm is not None:
+                self.warm = ca.nlpsol(f"{name}_warm", plugin, nlp,
+                                      warm_options(self.options, warm, extra))
         self._g = ca.Function("g", [nlp["x"], nlp["p"]], [nlp["g"]])
 
     def solve(self, w0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None) -> SolveResult:
         """One solve from ``w0``; never raises on a solver failure.
 
         With both multiplier guesses the warm instance runs (multipliers of rows and
-        variables without finite bounds zeroed), else the cold one.
+        variables without finite bounds zeroed), else the cold one. ``sqp_hpipm``: a
+        failed solve is solved again by IPOPT (``stats.fallback`` True).
 
         Raises:
             KeyboardInterrupt: the solve was interrupted (Ctrl-C inside IPOPT);
                 :class:`hmpc_cli.signals.Interrupted` when a stop signal is pending.
         """
-        start = time.perf_counter()
-        args = {"x0": w0, "p": p, "lbx": lbx, "ubx": ubx, "lbg": lbg, "ubg": ubg}
-        solver = self.cold
-        if lam_x0 is not None and lam_g0 is not None:
-            args["lam_g0"] = np.where(np.isfinite(lbg) | np.isfinite(ubg), lam_g0, 0.0)
-            args["lam_x0"] = np.where(np.isfinite(lbx) | np.isfinite(ubx), lam_x0, 0.0)
-            solver = self.warm
-        with signals.abortable():  # a stop signal cuts the solve (checked after it too)
-            try:
-                sol = solver(**args)
-            except RuntimeError as exc:  # CasADi raises on NaN evaluations
-                return failed(w0, str(exc), time.perf_counter() - start)
-            st = solver.stats()
-            status = str(st.get("return_status", st.get("success")))
-            if status == INTERRUPTED:  # CasADi swallowed the interrupt
-                signals.check()
-                raise KeyboardInterrupt(f"solver interrupted ({status})")
-        w = np.asarray(sol["x"]).ravel()
-        finite = bool(np.all(np.isfinite(w)))
-        cost = float(sol["f"]) if finite else np.nan
-        viol = self.violation(w, p, lbx, ubx, lbg, ubg) if finite else np.inf
-        ok = bool(st.get("success", False)) and finite
-        stats = SolveStats(status, ok, _iterations(st), time.perf_counter() - start, cost,
-                           float(viol))
-        return SolveResult(w, np.asarray(sol["lam_x"]).ravel(),
-                           np.asarray(sol["lam_g"]).ravel(), stats)
+        args = (w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0)
+        res = _run((self.cold, self.warm), *args, rti=self.plugin == "sqp_hpipm")
+        if self.plugin != "sqp_hpipm" or res.stats.success:
+            return res
+        again = _run(self.fallback_instances(), *args)
+        st = again.stats
+        status = f"{st.status} (fallback; sqp_hpipm: {res.stats.status})"
+        stats = SolveStats(status, st.success, res.stats.iterations + st.iterations,
+                           res.stats.wall_time + st.wall_time, st.cost, st.max_violation,
+                           fallback=True)
+        return SolveResult(again.x, again.lam_x, again.lam_g, stats)
+
+    def fallback_instances(self) -> tuple:
+        """The (cold, warm) IPOPT instances of the fallback (built on first use)."""
+        if self._fallback is None:
+            max_iter, tol, wall, extra, warm = self._ipopt_args
+            cold = plugin_options("ipopt", max_iter, tol, wall, extra=extra)
+            self._fallback = (ca.nlpsol(f"{self._name}_ipopt", "ipopt", self._nlp, cold),
+                              ca.nlpsol(f"{self._name}_ipopt_warm", "ipopt", self._nlp,
+                                        warm_options(cold, warm or WarmStart(1e-6, 1e-9),
+                                                     extra)))
+        return self._fallback
 
     def constraints(self, w, p) -> np.ndarray:
         """Constraint values g(w, p), shape (ng,)."""
@@ -191,10 +254,14 @@ class SolverSession:
 
     def violation(self, w, p, lbx, ubx, lbg, ubg) -> float:
         """Largest constraint or bound violation at primal point w (0 if none)."""
-        g = self.constraints(w, p)
-        v = [np.maximum(lbg - g, 0.0), np.maximum(g - ubg, 0.0),
-             np.maximum(lbx - w, 0.0), np.maximum(w - ubx, 0.0)]
-        return float(max(np.max(a, initial=0.0) for a in v))
+        return _violation(w, self.constraints(w, p), lbx, ubx, lbg, ubg)
+
+
+def _violation(w, g, lbx, ubx, lbg, ubg) -> float:
+    """Largest violation of rows g (ng,) and bounds at w (nx,) (0 if none)."""
+    v = [np.maximum(lbg - g, 0.0), np.maximum(g - ubg, 0.0),
+         np.maximum(lbx - w, 0.0), np.maximum(w - ubx, 0.0)]
+    return float(max(np.max(a, initial=0.0) for a in v))
 
 
 #: IPOPT linear solvers a build may provide (HSL's, Pardiso, SPRAL, WSMP, MUMPS)
@@ -210,6 +277,9 @@ def option_problems(plugin: str, extra: dict, key: str = "mpc.solver_options") -
     """
     import json
 
+    if plugin == "sqp_hpipm":  # its IPOPT fallback's options (the rest fail at build)
+        plugin, extra = "ipopt", {k: v for k, v in extra.items()
+                                  if k in ("ipopt", "ipopt_warm")}
     if plugin != "ipopt":  # their options fail when the NLP is built (a PluginError)
         return []
     return list(_option_problems(plugin, json.dumps(extra, sort_keys=True), key))

@@ -1,0 +1,147 @@
+"""NLP back-ends of the fixed-mode MPC: SQP + Gauss-Newton + HPIPM and fatrop against
+IPOPT on the same problems, the IPOPT fallback, and the closed loop."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from hmpc_cli.messages import Plan
+from hmpc_cli.mpc.backends import OCPStructure, rti_success
+from hmpc_cli.mpc.controller import FixedModeMPC
+from hmpc_cli.mpc.layout import ChainLayout, NodeSchedule
+from hmpc_cli.mpc.nlp import FixedModeNLP, MPCSettings
+from hmpc_cli.planner.cem import CEMSettings, CrossEntropyPlanner
+from hmpc_cli.runlog import RunLog
+from hmpc_cli.scenario import ScenarioError, load_scenario
+from hmpc_cli.systems.ball import BallParams, build_ball
+
+SMALL = {"horizon": 1.5, "max_switches": 6, "input_hold": "zoh"}
+
+
+@pytest.fixture(scope="module")
+def ball():
+    return build_ball(BallParams())
+
+
+@pytest.fixture(scope="module")
+def problems(ball):
+    """Recorded IPOPT problems and solutions: {"switching": ..., "final": ...}.
+
+    Each: (solve arguments (w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0), IPOPT's
+    SolveResult). The switching one is the warm re-solve one MPC period after the first
+    solve; the final-domain one starts after the planned impacts (primal warm start).
+    """
+    planned = CrossEntropyPlanner(ball, CEMSettings(init_mean=-20.0, horizon=1.5)).plan(
+        0.0, ball.x0, 0)
+    mpc = FixedModeMPC(ball, MPCSettings(**SMALL))
+    ns = NodeSchedule.from_schedule(planned.schedule, mpc.N, mpc.dt)
+    mpc.set_schedule(ns, planned.trajectory)
+    first = mpc.solve(0.0, ball.x0)
+    assert first.stats.success and len(ns.guards) > 0
+    out = {}
+    mpc.shift(6)
+    x_next = first.traj.x[6]
+    out["switching"] = _record(mpc, x_next, duals=True)
+    while len(mpc.node_schedule.guards):
+        mpc.on_impact()
+    out["final"] = _record(mpc, mpc.solution[mpc.nlp.z_idx[0]], duals=False)
+    return out
+
+
+def _record(mpc: FixedModeMPC, x0: np.ndarray, duals: bool):
+    nlp = mpc.nlp
+    p, lbx, ubx, lbg, ubg = nlp.problem_data(mpc.node_schedule, mpc.layout, x0)
+    w0 = mpc.solution.copy()
+    w0[nlp.z_idx[0]] = x0
+    lam = (mpc._lam_x, mpc._lam_g) if duals else (None, None)
+    args = (w0, p, lbx, ubx, lbg, ubg, *lam)
+    res = nlp.solve(*args)
+    assert res.stats.success, res.stats.status
+    return args, res
+
+
+def _nlp(ball, which: str, **settings) -> FixedModeNLP:
+    s = MPCSettings(**SMALL, **settings)
+    return FixedModeNLP(ball, s, switches=0 if which == "final" else None)
+
+
+def test_ocp_structure_describes_both_nlps(ball):
+    """The HPIPM stage structure counts every variable and row of either NLP."""
+    for which in ("final", "switching"):
+        nlp = _nlp(ball, which)
+        st = nlp.structure()
+        assert st.sizes() == (nlp.nx_var, nlp.ng)
+        assert st.nu[-1] == 0 and st.nx[-1] == 0  # the trailing empty stage
+    with pytest.raises(ValueError, match="nu"):
+        OCPStructure((4, 4), (2, 1), (0, 0))
+
+
+@pytest.mark.parametrize("which", ["final", "switching"])
+@pytest.mark.parametrize("solver", ["sqp_hpipm", "fatrop"])
+def test_backend_reaches_ipopts_optimum(ball, problems, which, solver):
+    """Each back-end, converged, on IPOPT's recorded problem: same cost and plan."""
+    args, ref = problems[which]
+    nlp = _nlp(ball, which, solver=solver, switching_solver=solver, max_sqp_iter=200)
+    lam = args[6:] if solver == "sqp_hpipm" else (None, None)
+    res = nlp.solve(*args[:6], *lam)
+    assert res.stats.success and not res.stats.fallback, res.stats.status
+    assert res.stats.max_violation < 1e-6
+    # IPOPT relaxes the slacks' bounds by 1e-8 (x the 1e4 penalty per node): compare
+    # the costs without the penalty term
+    assert _unpenalized(nlp, res) == pytest.approx(_unpenalized(nlp, ref), rel=1e-6)
+    np.testing.assert_allclose(res.x[nlp.z_idx], ref.x[nlp.z_idx], atol=2e-3)
+    np.testing.assert_allclose(res.x[nlp.u_idx], ref.x[nlp.u_idx], atol=5e-2)
+
+
+def _unpenalized(nlp: FixedModeNLP, res) -> float:
+    return res.stats.cost - nlp.s.soft_penalty * float(np.sum(res.x[nlp.s_idx]))
+
+
+def test_real_time_iterations_accept_a_feasible_point_only():
+    assert rti_success("Solve_Succeeded", True, 1.0)
+    assert rti_success("Maximum_Iterations_Exceeded", False, 1e-9)
+    assert not rti_success("Maximum_Iterations_Exceeded", False, 1e-3)
+    assert not rti_success("Search_Direction_Becomes_Too_Small", False, 0.0)
+
+
+def test_failed_backend_solve_falls_back_to_ipopt_and_is_counted(ball, problems):
+    """HPIPM cut to one iteration fails every QP: IPOPT solves instead, counted."""
+    args, ref = problems["final"]
+    nlp = _nlp(ball, "final", solver="sqp_hpipm",
+               solver_options={"hpipm": {"iter_max": 1}})
+    res = nlp.solve(*args)
+    assert res.stats.fallback and res.stats.success
+    assert "fallback" in res.stats.status
+    assert res.stats.cost == pytest.approx(ref.stats.cost, rel=1e-6)
+    log = RunLog(None)
+    ns = NodeSchedule((ball.mode_index(ball.final_mode),), (), (nlp.N,))
+    traj = nlp.trajectory(res.x, ns, ChainLayout.build(ns, nlp.L))
+    for stats in (res.stats, replace(res.stats, fallback=False)):
+        log.solve(0.0, Plan(0.0, traj, stats, None), "period", ball)
+    assert log.result.fallbacks == 1 and log.result.solver_failures == 0
+
+
+def test_sqp_backend_needs_stagewise_dynamics():
+    with pytest.raises(ScenarioError, match=r'mpc: solver "sqp_hpipm" needs stage-wise'):
+        load_scenario("scenarios/ball.toml", ['mpc.solver="sqp_hpipm"'])
+    sc, _ = load_scenario("scenarios/ball.toml", ['mpc.solver="sqp_hpipm"',
+                                                  'mpc.input_hold="zoh"'])
+    assert sc.mpc.solver_of(0) == "sqp_hpipm" and sc.mpc.solver_of(10) == "ipopt"
+
+
+def test_sqp_closed_loop_matches_ipopt():
+    """Figure 3, trial 5 (zero-order hold): same outcome with either back-end."""
+    from hmpc_cli.runner import prepare
+
+    out = {}
+    for solver in ("ipopt", "sqp_hpipm"):
+        sc, _ = load_scenario("scenarios/ball_disturbed.toml", [
+            'mpc.input_hold="zoh"', f'mpc.solver="{solver}"'])
+        out[solver] = prepare(sc).run()
+    ipopt, sqp = out["ipopt"], out["sqp_hpipm"]
+    assert sqp.success == ipopt.success
+    assert (sqp.contacts, sqp.solves, sqp.solver_failures) == \
+        (ipopt.contacts, ipopt.solves, ipopt.solver_failures)
+    assert sqp.final_error == pytest.approx(ipopt.final_error, abs=1e-3)
+    assert ipopt.fallbacks == 0
