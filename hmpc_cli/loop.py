@@ -333,7 +333,8 @@ def build(scenario, log: RunLog,
                   dist, LowLevelController(model, sc.lowlevel), s.rate_hz,
                   s.input_at_events == "recompute", s.max_events_per_step)
     margins = _margins(sc, model)
-    problems = _margin_problems(sc, model, margins) + _solver_problems(sc)
+    problems = (_margin_problems(sc, model, margins) + _solver_problems(sc)
+                + _planner_problems(sc, model))
     if problems:  # before the NLPs are built
         raise ValueError("\n".join(problems))
     mpc = _mpc(sc, model, margins)
@@ -355,9 +356,10 @@ def setup_problems(scenario) -> list[str]:
     """The set-up checks :func:`build` makes once the system is built, and nothing more.
 
     ``key.path: reason`` lines (none: the scenario sets up): margins that do not fit the
-    system (a margins file, an input shrink beyond half an input box) and solver options
-    the solver rejects. Builds the controllers' model only (no NLP, no planner), so a
-    sweep checks every cell before it starts a run.
+    system (a margins file, an input shrink beyond half an input box), solver options
+    the solver rejects and planner settings that do not fit the system (a schedule).
+    Builds the controllers' model only (no NLP, no planner), so a sweep checks every cell
+    before it starts a run.
     """
     from hmpc_cli.registry import PluginError, build_system
 
@@ -366,7 +368,14 @@ def setup_problems(scenario) -> list[str]:
         margins = _margins(scenario, model)
     except (PluginError, ValueError) as exc:
         return str(exc).splitlines()
-    return _margin_problems(scenario, model, margins) + _solver_problems(scenario)
+    return (_margin_problems(scenario, model, margins) + _solver_problems(scenario)
+            + _planner_problems(scenario, model))
+
+
+def _planner_problems(sc, model) -> list[str]:
+    """``planner.key: reason`` lines from planner settings that check a built system."""
+    check = getattr(sc.planner, "system_problems", None)
+    return list(check(model)) if callable(check) else []
 
 
 def _margins(sc, model) -> ConstraintMargins | None:
