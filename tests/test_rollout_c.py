@@ -152,9 +152,10 @@ def _same_trajectory(a, b):
 
 
 @needs_cc
-def test_plan_is_the_same_with_both_backends():
-    ball, c = _planner("c", warm_start=True)
-    _, py = _planner("numpy", warm_start=True)
+@pytest.mark.parametrize("cost", ["hmpc", "reference"])
+def test_plan_is_the_same_with_both_backends(cost):
+    ball, c = _planner("c", warm_start=True, cost=cost)
+    _, py = _planner("numpy", warm_start=True, cost=cost)
     for t in (0.0, 0.02):
         a, b = c.plan(t, ball.x0, 0), py.plan(t, ball.x0, 0)
         assert a.reached_final and a.schedule == b.schedule and a.cost == b.cost
