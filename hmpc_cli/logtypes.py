@@ -210,6 +210,8 @@ class MpcSolve:
     schedule: ScheduleRec | None
     plan: tuple[PlanNode, ...]
     detail: Annotated[Any, Detail("mpc")] = None
+    #: delay [s] before the plan reaches the plant (``sim.latency``; 0: time paused)
+    latency: float = 0.0
 
 
 @dataclass(frozen=True)

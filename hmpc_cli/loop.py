@@ -14,7 +14,13 @@ own settings. :class:`ClosedLoop` runs the multi-rate loop once for every system
   Policy ``periodic`` replans every ``replanning.period``; while no schedule the MPC can
   solve is held, the planner is retried every MPC period.
 
-Simulated time pauses while controllers compute; their wall time is recorded.
+``sim.latency`` says how the controllers' compute time is charged: ``"paused"`` (the
+default, the paper's runs) pauses simulated time while they compute and a new plan is
+tracked at once; a fixed delay L [s] or ``"measured"`` (the plan's measured compute wall
+time: planner, if it ran for this solve, plus MPC; runs are then not reproducible) lets
+a plan computed from the state at t reach the plant at the first simulator step at or
+after t + L, the previous plan being tracked until then. The delay is logged with each
+solve (/mpc/solve ``latency``).
 """
 
 from __future__ import annotations
@@ -44,12 +50,14 @@ class StackTiming:
         per_replan: steps per replanning period (policy ``periodic``), else None.
         on_contact: guards whose events trigger a replan (policy ``on_contact``).
         resolve_on_impact: re-solve right after a guard event.
+        latency: "paused", "measured" or a fixed delay [s] before a plan reaches the plant.
     """
 
     per_solve: int
     per_replan: int | None
     on_contact: frozenset[int]
     resolve_on_impact: bool
+    latency: str | float = "paused"
 
 
 @dataclass
@@ -66,6 +74,8 @@ class _State:
     impact: bool = False
     accepted_plans: int = 0
     last_note: str = ""
+    pending: list[tuple[float, Plan]] = field(default_factory=list)  # (due [s], plan)
+    planner_wall: float = 0.0  # wall time [s] of the planner call the next solve follows
 
 
 class ClosedLoop:
@@ -93,6 +103,10 @@ class ClosedLoop:
         self.divergence_bound = divergence_bound
         self.st = _State()
         self.res = log.result
+        if timing.latency == "measured":
+            self.res.warnings.append("sim.latency = 'measured': plans reach the plant after "
+                                     "their measured compute time, so this run is not "
+                                     "reproducible")
 
     # ---------------------------------------------------------------- run
     def run(self) -> RunResult:
@@ -127,6 +141,8 @@ class ClosedLoop:
         signals.check()
         for i in range(self.n_steps):
             t = i * self.plant.h
+            if self.st.pending:
+                self._adopt_due(t)
             u, x_ref = self.plant.command(t, x, mode, self.st.plan, self.plant.h)
             x, mode, stopped = self._step(i, t, x, mode, u, x_ref)
             if stopped:  # the failure set the end time (the step's start for Zeno)
@@ -250,6 +266,7 @@ class ClosedLoop:
         result = self.planner.plan(
             t, x, mode, lambda sched: self.mpc.solve(t, x, mode, sched, st.events))
         self.res.planner_calls += 1
+        st.planner_wall = result.wall_time
         note = result.note
         if result.schedule is not None:
             note = self.mpc.check(result.schedule)
@@ -269,10 +286,31 @@ class ClosedLoop:
             return
         plan = self.mpc.solve(t, x, mode, st.schedule, st.events, st.guess)
         st.events = []
-        self.log.solve(t, plan, reason, self.model)
-        if plan.adopt:
-            st.plan = plan
+        latency = self.timing.latency
+        if latency == "paused":
+            self.log.solve(t, plan, reason, self.model)
+            if plan.adopt:
+                st.plan = plan
+        else:
+            delay = (st.planner_wall + plan.stats.wall_time if latency == "measured"
+                     else float(latency))
+            self.log.solve(t, plan, reason, self.model, delay)
+            if plan.adopt:
+                st.pending.append((t + delay, plan))
+        st.planner_wall = 0.0
         signals.check()
+
+    def _adopt_due(self, t: float) -> None:
+        """Tracks the newest pending plan due at step time t [s]; older ones are dropped.
+
+        A plan is due at the first simulator step at or after its solve time + latency
+        (1e-9 s of rounding allowed: t is a step count times the step).
+        """
+        pending = self.st.pending
+        due = [k for k, (t_due, _) in enumerate(pending) if t_due <= t + 1e-9]
+        if due:
+            self.st.plan = pending[due[-1]][1]
+            del pending[: due[-1] + 1]
 
     # ------------------------------------------------------------ the end
     def _fail(self, t: float, reason: str, diverged: bool = True) -> bool:
@@ -333,7 +371,8 @@ def build(scenario, log: RunLog,
                   dist, LowLevelController(model, sc.lowlevel), s.rate_hz,
                   s.input_at_events == "recompute", s.max_events_per_step)
     margins = _margins(sc, model)
-    problems = _margin_problems(sc, model, margins) + _solver_problems(sc)
+    problems = (_margin_problems(sc, model, margins) + _solver_problems(sc)
+                + _planner_problems(sc, model))
     if problems:  # before the NLPs are built
         raise ValueError("\n".join(problems))
     mpc = _mpc(sc, model, margins)
@@ -355,9 +394,10 @@ def setup_problems(scenario) -> list[str]:
     """The set-up checks :func:`build` makes once the system is built, and nothing more.
 
     ``key.path: reason`` lines (none: the scenario sets up): margins that do not fit the
-    system (a margins file, an input shrink beyond half an input box) and solver options
-    the solver rejects. Builds the controllers' model only (no NLP, no planner), so a
-    sweep checks every cell before it starts a run.
+    system (a margins file, an input shrink beyond half an input box), solver options
+    the solver rejects and planner settings that do not fit the system (a schedule).
+    Builds the controllers' model only (no NLP, no planner), so a sweep checks every cell
+    before it starts a run.
     """
     from hmpc_cli.registry import PluginError, build_system
 
@@ -366,7 +406,14 @@ def setup_problems(scenario) -> list[str]:
         margins = _margins(scenario, model)
     except (PluginError, ValueError) as exc:
         return str(exc).splitlines()
-    return _margin_problems(scenario, model, margins) + _solver_problems(scenario)
+    return (_margin_problems(scenario, model, margins) + _solver_problems(scenario)
+            + _planner_problems(scenario, model))
+
+
+def _planner_problems(sc, model) -> list[str]:
+    """``planner.key: reason`` lines from planner settings that check a built system."""
+    check = getattr(sc.planner, "system_problems", None)
+    return list(check(model)) if callable(check) else []
 
 
 def _margins(sc, model) -> ConstraintMargins | None:
@@ -448,4 +495,4 @@ def _timing(sc, model) -> StackTiming:
         contact = frozenset()
     per_replan = int(round(rp.period * sc.sim.rate_hz)) if rp.policy == "periodic" else None
     return StackTiming(sc.sim.rate_hz // sc.mpc.rate_hz, per_replan, contact,
-                       getattr(sc.mpc, "resolve_on_impact", True))
+                       getattr(sc.mpc, "resolve_on_impact", True), sc.sim.latency)

@@ -67,6 +67,7 @@ class SolveData:
     u_plan: np.ndarray
     seg_plan: np.ndarray
     detail: dict
+    latency: float = 0.0  # [s] before the plan reached the plant (old logs: 0, paused)
 
 
 @dataclass(frozen=True)
@@ -184,7 +185,7 @@ def _plan(d: dict, names: tuple, inputs: tuple) -> tuple:
 
 _SOLVE_KEYS = ("t", "reason", "status", "success", "iterations", "wall_time", "cost", "slack",
                "adopted", "schedule", "plan", "x_plan", "u_plan", "t_plan", "seg_plan",
-               "max_violation", "detail")
+               "max_violation", "detail", "latency")
 
 
 def _solve(d: dict, names: tuple, inputs: tuple) -> SolveData:
@@ -193,7 +194,7 @@ def _solve(d: dict, names: tuple, inputs: tuple) -> SolveData:
                      bool(d.get("success")), int(d.get("iterations") or 0),
                      _f(d.get("wall_time")), _f(d.get("cost")), _f(d.get("slack")),
                      bool(d.get("adopted", True)), d.get("schedule"),
-                     *_plan(d, names, inputs), dict(detail))
+                     *_plan(d, names, inputs), dict(detail), _f(d.get("latency", 0.0)))
 
 
 def _f(v) -> float:

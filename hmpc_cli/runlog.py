@@ -231,8 +231,12 @@ class RunLog:
         if self.scene is not None:
             self.scene.rollout(t, result.trajectory)
 
-    def solve(self, t: float, plan: Plan, reason: str, model: HybridSystem) -> None:
-        """Counts one fixed-mode MPC solve and logs it to /mpc/solve."""
+    def solve(self, t: float, plan: Plan, reason: str, model: HybridSystem,
+              latency: float = 0.0) -> None:
+        """Counts one fixed-mode MPC solve and logs it to /mpc/solve.
+
+        ``latency`` [s]: how long after t the plan reaches the plant (0: time paused).
+        """
         st, r = plan.stats, self.result
         r.solves += 1
         self.solve_times.append(st.wall_time)
@@ -249,7 +253,7 @@ class RunLog:
             t, reason, st.status, bool(st.success), int(st.iterations), float(st.wall_time),
             float(st.cost), float(st.max_violation), float(st.slack), bool(plan.adopt),
             _schedule(plan.schedule, model), plan_nodes(plan.traj, t, model),
-            _detail(self.details.get("mpc"), plan.extra)))
+            _detail(self.details.get("mpc"), plan.extra), float(latency)))
         if self.scene is not None:
             self.scene.plan(t, plan)
 

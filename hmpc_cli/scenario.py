@@ -56,6 +56,23 @@ class SimSettings(BaseModel):
         "hold", description="after a reset inside a step: hold the step's input (the "
         "paper's ball) or let the controllers react at the event time and compute a new "
         "input for the rest of the step (needed when a reset relabels the inputs: biped)")
+    latency: Literal["paused", "measured"] | FiniteFloat = Field(
+        "paused", description="solve time charged to the simulation: 'paused' (simulated "
+        "time stops while the controllers compute; the paper's runs), 'measured' (a plan "
+        "reaches the plant its measured compute wall time [s] after the state it was "
+        "computed from: not reproducible) or a fixed delay [s]; until then the previous "
+        "plan is tracked, and a plan takes effect at the first simulator step at or after "
+        "t + latency")
+
+    @field_validator("latency", mode="before")
+    @classmethod
+    def _latency(cls, v: Any) -> Any:
+        ok = v in ("paused", "measured") if isinstance(v, str) else (
+            isinstance(v, int | float) and not isinstance(v, bool) and 0.0 <= v < 1e6)
+        if not ok:
+            raise ValueError(f"expected 'paused', 'measured' or a delay in [0, 1e6) s, got "
+                             f"{v!r}")
+        return float(v) if not isinstance(v, str) else v
 
 
 class DisturbanceSettings(BaseModel):

@@ -26,7 +26,7 @@ needs_cc = pytest.mark.skipif(not HAVE_CC, reason="no C compiler on this machine
 # a stand-in for the generated rollout source: the ABI entry points plus a marker
 TINY = """
 #define E __attribute__((visibility("default")))
-E int hm_abi(void) { return 3; }
+E int hm_abi(void) { return 4; }
 E int hm_rollout(void) { return 0; }
 E int hm_step(void) { return 0; }
 E int hm_trajectory(void) { return 0; }

@@ -106,6 +106,30 @@ def test_c_rollout_equals_numpy(start):
 
 
 @needs_cc
+@pytest.mark.parametrize("start", [STARTS[0], STARTS[3], STARTS[4]])
+def test_reference_cost_c_equals_numpy_and_runs_the_whole_horizon(start):
+    _, planner = _planner("c", cost="reference")
+    _, hmpc = _planner("c")
+    x0 = np.array(start)
+    knots = _knots(np.random.default_rng(11), 24)
+    cost, reached = planner.rollout_cost(x0, 0, knots)
+    ref, ref_reached = planner.rollout_cost_numpy(x0, 0, knots)
+    assert np.array_equal(reached, ref_reached) and np.array_equal(cost, ref)
+    finite = cost[np.isfinite(cost)]
+    bound = float(np.median(finite))
+    for bnd in (bound, np.inf):  # pruning too, bit for bit
+        a, ra = planner.rollout_cost(x0, 0, knots, bnd)
+        b, rb = planner.rollout_cost_numpy(x0, 0, knots, bnd)
+        assert np.array_equal(a, b) and np.array_equal(ra, rb)
+    # no penalty; a rollout that never enters costs what the absorbing cost charges it
+    # without the penalty (both integrate the same steps)
+    h_cost, h_reached = hmpc.rollout_cost(x0, 0, knots)
+    never = ~reached & ~h_reached & np.isfinite(cost)
+    assert never.any() or start == STARTS[3]  # near the circle every sample enters
+    np.testing.assert_allclose(cost[never] + UNREACHED_PENALTY, h_cost[never], rtol=1e-12)
+
+
+@needs_cc
 def test_c_rollout_zeno_and_start_in_the_final_domain():
     _, planner = _planner("c", BallParams(u_outside=(-1e4, 0.0)))
     x0 = np.array(STARTS[-1])
@@ -128,9 +152,10 @@ def _same_trajectory(a, b):
 
 
 @needs_cc
-def test_plan_is_the_same_with_both_backends():
-    ball, c = _planner("c", warm_start=True)
-    _, py = _planner("numpy", warm_start=True)
+@pytest.mark.parametrize("cost", ["hmpc", "reference"])
+def test_plan_is_the_same_with_both_backends(cost):
+    ball, c = _planner("c", warm_start=True, cost=cost)
+    _, py = _planner("numpy", warm_start=True, cost=cost)
     for t in (0.0, 0.02):
         a, b = c.plan(t, ball.x0, 0), py.plan(t, ball.x0, 0)
         assert a.reached_final and a.schedule == b.schedule and a.cost == b.cost

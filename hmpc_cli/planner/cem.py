@@ -50,6 +50,12 @@ class CEMSettings(BaseModel):
     rollout_rate_hz: BoundedInt = Field(60, gt=0, description="rollout integration rate [Hz]")
     warm_start: StrictBool = Field(False, description="start from the previous best, shifted")
     seed: BoundedInt = Field(0, ge=0, description="base seed (the run seed is mixed in)")
+    cost: Literal["hmpc", "reference"] = Field(
+        "hmpc", description="rollout cost: 'hmpc' (the final domain is absorbing: a rollout "
+        "entering it stops and accrues its entry state's stage cost [cost units] for the rest "
+        "of the horizon; one never entering pays a penalty of 1e4) or 'reference' (the "
+        "authors' plan: the stage cost summed over the whole horizon [s] with the sampled "
+        "inputs, the final domain not absorbing, no penalty; a plan must have entered it)")
     rollout_backend: Literal["auto", "c", "numpy"] = Field(
         "auto", description="rollout code: compiled C, NumPy, or auto (C if it builds, "
                             "else NumPy with a warning)")
@@ -145,17 +151,30 @@ class CrossEntropyPlanner:
         if self._c is None:
             return self.rollout_cost_numpy(x0, mode0, knots, bound)
         return self._c.cost(np.asarray(x0, dtype=float), mode0, self._inputs(knots), self.dt,
-                            self.final_mode, bound, UNREACHED_PENALTY)
+                            self.final_mode, bound, self.penalty, self.absorbing)
+
+    @property
+    def absorbing(self) -> bool:
+        """Whether a rollout stops in the final domain (cost "hmpc") or runs on."""
+        return self.s.cost == "hmpc"
+
+    @property
+    def penalty(self) -> float:
+        """Cost added to a rollout that never enters the final domain."""
+        return UNREACHED_PENALTY if self.absorbing else 0.0
 
     def rollout_cost_numpy(self, x0: np.ndarray, mode0: int, knots: np.ndarray,
                            bound: float = np.inf):
         """Costs (B,) and final-domain flags (B,) of knot sequences (B, knots, m), NumPy.
 
-        The final domain is absorbing: a rollout that enters it stops there and accrues
-        the stage cost of its entry state (zero input) for the rest of the horizon; one
-        that never enters pays ``UNREACHED_PENALTY`` on top of its cost. Costs only grow
-        along a rollout, so one whose running cost exceeds ``bound`` is stopped and
-        gets cost inf (exact pruning when only the best sample matters).
+        Cost "hmpc": the final domain is absorbing: a rollout that enters it stops there
+        and accrues the stage cost of its entry state (zero input) for the rest of the
+        horizon; one that never enters pays ``UNREACHED_PENALTY`` on top of its cost.
+        Cost "reference": every rollout runs the whole horizon with its sampled inputs
+        (leaving the final domain again is possible), the flag says whether it ever
+        entered, no penalty. Costs only grow along a rollout, so one whose running cost
+        exceeds ``bound`` is stopped and gets cost inf (exact pruning when only the best
+        sample matters).
         """
         b = knots.shape[0]
         u = self._inputs(knots)
@@ -166,8 +185,9 @@ class CrossEntropyPlanner:
         cost = np.zeros(b)
         alive = np.ones(b, dtype=bool)
         reached = mode == self.final_mode
+        absorbing = self.absorbing
         for k in range(self.n_steps):
-            todo = alive & ~reached
+            todo = alive & ~reached if absorbing else alive
             if todo.all():
                 run = slice(None)  # views, no copies
             else:
@@ -181,12 +201,15 @@ class CrossEntropyPlanner:
                                 record=False, raise_zeno=False)
             x[run], mode[run] = res.x, res.mode
             alive[run] &= ~res.zeno & np.isfinite(res.x).all(axis=1) & (cost[run] <= bound)
+            if not absorbing:
+                reached[run] = (reached[run] | (res.mode == self.final_mode)) & alive[run]
+                continue
             reached[run] = (res.mode == self.final_mode) & alive[run]
             entered = np.arange(b)[run][reached[run]]
             if entered.size:
                 rest = self.n_steps - k - 1
                 cost[entered] += rest * self.dt * self.cost_fn(x[entered], u_zero[entered])[0][:, 0]
-        cost = np.where(alive, cost, np.inf) + np.where(reached, 0.0, UNREACHED_PENALTY)
+        cost = np.where(alive, cost, np.inf) + np.where(reached, 0.0, self.penalty)
         return cost, reached
 
     def plan(self, t: float, x0: np.ndarray, mode0: int, solve=None) -> PlannerResult:

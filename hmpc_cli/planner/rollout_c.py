@@ -39,7 +39,7 @@ import numpy as np
 from hmpc_cli.hybrid import HybridSystem, rk4_expr
 
 CFLAGS = ("-O2", "-shared", "-fPIC", "-ffp-contract=off", "-fvisibility=hidden")
-ABI = 3  # must equal HM_ABI of rollout_kernel.c
+ABI = 4  # must equal HM_ABI of rollout_kernel.c
 COMPILES = 0  # compilations done by this process (the cache makes repeats free)
 _LIBS: dict[str, ctypes.CDLL] = {}  # loaded libraries by path
 _FAILED: dict[tuple[str, tuple[str, ...]], str] = {}  # failed builds by path and compiler
@@ -246,7 +246,7 @@ def _load(path: Path) -> ctypes.CDLL:
     if lib.hm_abi() != ABI:
         raise OSError(f"{path}: kernel ABI {lib.hm_abi()} != {ABI}")
     ptr, i, d = ctypes.c_void_p, ctypes.c_int, ctypes.c_double
-    lib.hm_rollout.argtypes = [i, i, _D, i, _D, d, d, i, i, d, d, _D, ptr]
+    lib.hm_rollout.argtypes = [i, i, _D, i, _D, d, d, i, i, d, d, i, _D, ptr]
     lib.hm_rollout.restype = i
     lib.hm_step.argtypes = [i, _D, ptr, _D, d, i, d, _D, ptr, ptr]
     lib.hm_step.restype = i
@@ -366,10 +366,13 @@ class CRollout:
         self.lib, self.path, self.compile_seconds = build_library(source)
 
     def cost(self, x0: np.ndarray, mode0: int, u: np.ndarray, dt: float, final_mode: int,
-             bound: float, penalty: float) -> tuple[np.ndarray, np.ndarray]:
+             bound: float, penalty: float, absorbing: bool = True
+             ) -> tuple[np.ndarray, np.ndarray]:
         """Costs (B,) and final-domain flags (B,) of step inputs u (B, n_steps, m).
 
         Same as ``CrossEntropyPlanner.rollout_cost_numpy`` on the same batch, bit for bit.
+        ``absorbing``: the final domain ends a rollout (cost "hmpc"); else every rollout
+        runs the whole horizon and the flag says whether it ever entered (cost "reference").
         """
         x0 = np.ascontiguousarray(x0, dtype=float)
         u = np.ascontiguousarray(u, dtype=float)
@@ -381,7 +384,8 @@ class CRollout:
         status = self.lib.hm_rollout(b, n_steps, x0.ctypes.data_as(_D), int(mode0),
                                      u.ctypes.data_as(_D), float(dt), float(bound),
                                      int(final_mode), self.max_events, self.time_tol,
-                                     float(penalty), cost.ctypes.data_as(_D),
+                                     float(penalty), int(bool(absorbing)),
+                                     cost.ctypes.data_as(_D),
                                      reached.ctypes.data)
         _check(status)
         return cost, reached.astype(bool)

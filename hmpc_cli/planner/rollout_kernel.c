@@ -13,7 +13,7 @@
 #include <stdlib.h>
 #include <string.h>
 
-#define HM_ABI 3
+#define HM_ABI 4
 #define HM_EXPORT __attribute__((visibility("default")))
 
 typedef struct {
@@ -341,7 +341,8 @@ HM_EXPORT int hm_step(int b, const double *x, const int *mode, const double *u, 
  * and reached (b,). Returns 0, -1 bad mode, -2 no memory. */
 HM_EXPORT int hm_rollout(int b, int n_steps, const double *x0, int mode0, const double *u,
                          double dt, double bound, int final_mode, int max_events,
-                         double time_tol, double penalty, double *cost, unsigned char *reached) {
+                         double time_tol, double penalty, int absorbing, double *cost,
+                         unsigned char *reached) {
   hm_ctx c;
   hm_ws ws;
   void *block;
@@ -371,7 +372,7 @@ HM_EXPORT int hm_rollout(int b, int n_steps, const double *x0, int mode0, const 
   for (k = 0; k < n_steps; k++) {
     n = 0;
     for (i = 0; i < b; i++)
-      if (alive[i] && !reached[i]) run[n++] = i;
+      if (alive[i] && !(absorbing && reached[i])) run[n++] = i;
     if (n == 0) break;
     ws.u = u + (size_t)k * HM_NU;
     for (i = 0; i < n; i++) {
@@ -389,6 +390,10 @@ HM_EXPORT int hm_rollout(int b, int n_steps, const double *x0, int mode0, const 
       finite = 1;
       for (j = 0; j < HM_NX; j++) finite &= isfinite(x[s * HM_NX + j]) != 0;
       alive[s] = !ws.zeno[s] && finite && cost[s] <= bound;
+      if (!absorbing) {  /* reference cost: the rollout goes on; reached = ever entered */
+        reached[s] = (reached[s] || mode[s] == final_mode) && alive[s];
+        continue;
+      }
       reached[s] = mode[s] == final_mode && alive[s];
       if (reached[s])
         cost[s] += (double)(n_steps - k - 1) * dt * hm_cost_call(&c, x + s * HM_NX, zero);
