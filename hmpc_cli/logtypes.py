@@ -23,7 +23,7 @@ from typing import Annotated, Any
 import numpy as np
 
 __all__ = [
-    "LOG_VERSION", "TOPICS", "Detail", "GuardEventRec", "MarginsRec", "MpcSolve",
+    "LOG_VERSION", "TOPICS", "BuildRec", "Detail", "GuardEventRec", "MarginsRec", "MpcSolve",
     "Names", "PlanNode", "PlannerCall", "RolloutNode", "RunInfo", "ScheduleRec",
     "StateSample", "StatusCount", "Summary", "Versions", "WRec", "convert", "flat_keys",
     "named",
@@ -100,6 +100,22 @@ class MarginsRec:
 
 
 @dataclass(frozen=True)
+class BuildRec:
+    """How the MPC's NLPs were built (:class:`hmpc_cli.mpc.cache.BuildInfo`).
+
+    Attributes:
+        cache: "hit" (compiled NLPs loaded from the build cache), "miss" (built in SX
+            and cached) or "disabled" (built in SX, no cache).
+        compiled: the solves call compiled code (else CasADi's SX virtual machine).
+        reason: why, in one line.
+    """
+
+    cache: str
+    compiled: bool
+    reason: str
+
+
+@dataclass(frozen=True)
 class RunInfo:
     """/run/info: the run's identity (written first)."""
 
@@ -119,6 +135,7 @@ class RunInfo:
     mode_names: tuple[str, ...]
     guard_names: tuple[str, ...]
     margins: MarginsRec | None = None
+    build: BuildRec | None = None
 
 
 @dataclass(frozen=True)

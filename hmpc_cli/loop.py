@@ -19,6 +19,7 @@ Simulated time pauses while controllers compute; their wall time is recorded.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from collections.abc import Callable
@@ -336,7 +337,7 @@ def build(scenario, log: RunLog,
     problems = _margin_problems(sc, model, margins) + _solver_problems(sc)
     if problems:  # before the NLPs are built
         raise ValueError("\n".join(problems))
-    mpc = _mpc(sc, model, margins)
+    mpc, problem = _mpc(sc, model, margins)
     planner = plugin_call(f"planner: {sc.planner.kind!r} failed to build for system "
                           f"{spec.name!r}", reg.planner(sc.planner.kind).make, model,
                           sc.planner, sc.seed)
@@ -346,7 +347,7 @@ def build(scenario, log: RunLog,
                  margins.to_dict(model) if margins is not None else None,
                  (sc.planner.kind, sc.mpc.kind),
                  {"planner": reg.planner(sc.planner.kind).detail,
-                  "mpc": reg.mpc(sc.mpc.kind).detail})
+                  "mpc": reg.mpc(sc.mpc.kind).detail}, _build_info(problem))
     return ClosedLoop(plant, planner, mpc, _timing(sc, model), task, log, s.duration,
                       s.divergence_bound, progress)
 
@@ -396,10 +397,17 @@ def _solver_problems(sc) -> list[str]:
     return option_problems(getattr(sc.mpc, "solver", "ipopt"), options)
 
 
-def _mpc(sc, model, margins: ConstraintMargins | None) -> FixedModeMPC:
-    """The MPC controller; its NLPs built once per process per (system, settings, margins).
+def _build_info(problem) -> dict | None:
+    """How an MPC problem's NLPs were built (its ``build_info``), JSON-ready, if it says."""
+    info = getattr(problem, "build_info", None)
+    return dataclasses.asdict(info) if dataclasses.is_dataclass(info) else None
 
-    A margins file's values go to the plug-in's ``problem`` as a third argument.
+
+def _mpc(sc, model, margins: ConstraintMargins | None) -> tuple[FixedModeMPC, object]:
+    """The MPC controller and its problem (built once per process per system and settings).
+
+    The problem is shared by the runs of one (system, MPC settings, margins). A margins
+    file's values go to the plug-in's ``problem`` as a third argument.
     """
     from hmpc_cli.registry import plugin_call, registry
 
@@ -412,7 +420,7 @@ def _mpc(sc, model, margins: ConstraintMargins | None) -> FixedModeMPC:
     if key not in _PROBLEMS:
         extra = (margins,) if from_file else ()
         _PROBLEMS[key] = plugin_call(what, mpc_spec.problem, model, sc.mpc, *extra)
-    return plugin_call(what, mpc_spec.make, model, sc.mpc, _PROBLEMS[key])
+    return plugin_call(what, mpc_spec.make, model, sc.mpc, _PROBLEMS[key]), _PROBLEMS[key]
 
 
 def _timing(sc, model) -> StackTiming:

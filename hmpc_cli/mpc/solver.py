@@ -128,7 +128,9 @@ class SolverSession:
 
     Args:
         name: instance name (the warm one gets ``_warm`` appended).
-        nlp: ``{"x", "p", "f", "g"}`` (e.g. from :meth:`NLPBuilder.build`).
+        nlp: ``{"x", "p", "f", "g"}`` (e.g. from :meth:`NLPBuilder.build`), or the path
+            of a shared library of the functions an ``nlpsol`` of that NLP generates
+            (``generate_dependencies``; see :mod:`hmpc_cli.mpc.cache`).
         plugin: "ipopt", "sqpmethod" or "fatrop".
         max_iter, tol, max_wall_time, equality, extra: see :func:`plugin_options`.
         warm: warm IPOPT instance options (None, or another plugin: warm starts run on
@@ -141,12 +143,16 @@ class SolverSession:
                  warm: WarmStart | None = None) -> None:
         """Builds the cold and (IPOPT with ``warm``) the warm instance."""
         self.options = plugin_options(plugin, max_iter, tol, max_wall_time, equality, extra)
-        self.cold = ca.nlpsol(name, plugin, nlp, self.options)
+        compiled = isinstance(nlp, str)  # a library of nlpsol's generated functions
+        load = {k: v for k, v in self.options.items() if k != "expand"} if compiled \
+            else self.options
+        self.cold = ca.nlpsol(name, plugin, nlp, load)
         self.warm = self.cold
         if plugin == "ipopt" and warm is not None:
             self.warm = ca.nlpsol(f"{name}_warm", plugin, nlp,
-                                  warm_options(self.options, warm, extra))
-        self._g = ca.Function("g", [nlp["x"], nlp["p"]], [nlp["g"]])
+                                  warm_options(load, warm, extra))
+        self._g = ca.external("nlp_g", nlp) if compiled else \
+            ca.Function("g", [nlp["x"], nlp["p"]], [nlp["g"]])
 
     def solve(self, w0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None) -> SolveResult:
         """One solve from ``w0``; never raises on a solver failure.
