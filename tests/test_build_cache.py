@@ -203,3 +203,27 @@ def test_run_log_names_the_build(tiny, filled, use, run_hmpc, tmp_path):
     build = read_run(out / "run.mcap").info["build"]
     assert build["cache"] == "hit" and build["compiled"] is True
     assert build["reason"].startswith("loaded nlp-")
+
+
+def test_background_compile_after_exit_fills_the_cache(tiny, use):
+    import subprocess
+    import sys
+    import time
+
+    folder = use(mode="background")
+    code = ("from hmpc_cli.registry import build_system; from hmpc_cli.scenario import "
+            "load_scenario; from hmpc_cli.mpc.nlp import FixedModeNLP; import sys; "
+            f"sc, _ = load_scenario(sys.argv[1], {TINY!r}); "
+            "n = FixedModeNLP(build_system(sc.system), sc.mpc); print(n.build_info.reason)")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get(
+        "PYTHONPATH", "")])}
+    res = subprocess.run([sys.executable, "-c", code, str(REPO / "scenarios" / "ball.toml")],
+                         env=env, capture_output=True, text=True, timeout=120, check=True)
+    assert "compiled in the background when this process exits" in res.stdout
+    key = cache.structure_key(*tiny, 1)
+    deadline = time.monotonic() + 120
+    while list(folder.glob("*.lock")) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert not list(folder.glob("*.failed"))
+    hit = cache.lookup(key, "ipopt")
+    assert hit.info.cache == "hit" and hit.library is not None

@@ -13,8 +13,8 @@ SX virtual machine's bit for bit (same operations, ``-ffp-contract=off``).
 
 One *entry* per problem structure, keyed by :func:`structure_key` (what determines the
 graph: the system's CasADi functions and numbers, the structural MPC settings, the chain
-length S, the source of the ``hmpc_cli`` package, and the hmpc, CasADi and Python
-versions; not the solver options, rates, margins or iteration limits, which are applied
+length S, the sources that build the graph (:data:`GRAPH_SOURCES`), and the hmpc, CasADi
+and Python versions; not the solver options, rates, margins or iteration limits, which are applied
 when the library is loaded), in the directory of the C rollouts
 (:func:`hmpc_cli.cbuild.cache_dir`):
 
@@ -26,8 +26,10 @@ when the library is loaded), in the directory of the C rollouts
 Each file is written atomically with its sha256 beside it and used only when its bytes
 match; a damaged file is reported, removed and rebuilt. A miss builds the NLP in SX as
 before, stores the layout and the function, and compiles the library in a detached
-background process (``python -m hmpc_cli.mpc.cache``, one per entry at a time: a lock
-file), so a run never waits for the compiler; the next run loads it.
+background process started when the process exits (``python -m hmpc_cli.mpc.cache``;
+one entry is compiled by one process at a time: a lock file), so a run never waits for
+the compiler nor competes with it; the next run loads it. The compile is the price:
+for the ball's switching NLP (22 MB of C) about 5 min of CPU and 3 GB of memory at -O1.
 
 ``HMPC_BUILD_CACHE``: ``off`` (or ``0``) disables the cache, ``sync`` compiles in the
 foreground (benchmarks, tests), anything else (default) compiles in the background. No
@@ -38,6 +40,7 @@ log's ``/run/info``).
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import dataclasses
 import functools
@@ -63,12 +66,13 @@ from hmpc_cli.mpc.builder import NLPLayout
 ENV = "HMPC_BUILD_CACHE"
 CFLAGS = ("-O1", "-shared", "-fPIC", "-ffp-contract=off", "-fno-fast-math")
 FORMAT = 1  # of the entry files
-LOCK_STALE = 3600.0  # [s] a compile lock older than this is taken over
+LOCK_STALE = 3600.0  # [s] a compile lock older than this (or of a dead process) is taken over
 #: MPC settings applied at solve time (bounds, parameters, options): not in the key
 NON_STRUCTURAL = frozenset({"rate_hz", "tube_margin", "input_margin", "margins", "robust",
                             "solver", "solver_options", "max_iter", "warm_start",
                             "resolve_on_impact", "final_domain_nlp"})
 _LOG = logging.getLogger(__name__)
+_QUEUE: list[Entry] = []  # entries this process compiles in the background at exit
 
 
 @dataclass(frozen=True)
@@ -104,12 +108,19 @@ def mode() -> str:
     return "sync" if value == "sync" else "background"
 
 
+#: the sources that turn a system and settings into the NLP's graph and code
+GRAPH_SOURCES = ("mpc/*.py", "hybrid.py", "numeric.py", "cbuild.py")
+
+
 @functools.lru_cache(maxsize=1)
 def source_digest() -> str:
-    """sha256 of the ``hmpc_cli`` package's Python sources (names and bytes)."""
+    """sha256 of the :data:`GRAPH_SOURCES` of ``hmpc_cli`` (names and bytes).
+
+    The system's own code needs no entry: its CasADi functions are in the key.
+    """
     root = Path(__file__).resolve().parents[1]
     h = hashlib.sha256()
-    for path in sorted(root.rglob("*.py")):
+    for path in sorted(p for pattern in GRAPH_SOURCES for p in root.glob(pattern)):
         h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
     return h.hexdigest()
 
@@ -257,11 +268,23 @@ def store(key: str, plugin: str, nlp: dict, layout: NLPLayout) -> BuildInfo:
     return BuildInfo("miss", False, _spawn(entry))
 
 
+def _stale(lock: Path) -> bool:
+    """True if ``lock`` is older than :data:`LOCK_STALE` or its process is gone."""
+    try:
+        if time.time() - lock.stat().st_mtime > LOCK_STALE:
+            return True
+        os.kill(int(lock.read_text().strip()), 0)
+    except ProcessLookupError:
+        return True
+    except (OSError, ValueError):
+        return False
+    return False
+
+
 def _take_lock(entry: Entry) -> bool:
     """Creates the entry's lock file (False if another live compile holds it)."""
-    with contextlib.suppress(OSError):
-        if time.time() - entry.lock.stat().st_mtime > LOCK_STALE:
-            entry.lock.unlink()
+    if _stale(entry.lock):
+        entry.lock.unlink(missing_ok=True)
     try:
         fd = os.open(entry.lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600)
     except FileExistsError:
@@ -272,21 +295,34 @@ def _take_lock(entry: Entry) -> bool:
 
 
 def _spawn(entry: Entry) -> str:
-    """Starts the detached compile of ``entry``; returns what was done."""
+    """Queues ``entry`` for the background compile started at exit; returns what was done.
+
+    The lock is taken now; one detached process compiles this process's entries one after
+    the other once it exits (never competing with its run, one compiler's memory at a
+    time).
+    """
     if not _take_lock(entry):
         return f"being compiled by another process ({entry.lock.name})"
+    if not _QUEUE:
+        atexit.register(_start_queue)
+    _QUEUE.append(entry)
+    return f"{entry.library.name} is compiled in the background when this process exits"
+
+
+def _start_queue() -> None:
+    """Starts the detached compile of the queued entries (at exit)."""
+    entries, _QUEUE[:] = list(_QUEUE), []
     root = str(Path(__file__).resolve().parents[2])
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
         p for p in (root, os.environ.get("PYTHONPATH", "")) if p)}
+    args = [a for e in entries for a in (str(e.folder), e.key)]
     try:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "hmpc_cli.mpc.cache", str(entry.folder), entry.key],
-            env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL, start_new_session=True)
-    except OSError as e:
-        entry.lock.unlink(missing_ok=True)
-        return f"cannot start the compiler process: {e}"
-    return f"compiling {entry.library.name} in the background (pid {proc.pid})"
+        subprocess.Popen([sys.executable, "-m", "hmpc_cli.mpc.cache", *args], env=env,
+                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                         stderr=subprocess.DEVNULL, start_new_session=True)
+    except OSError:
+        for e in entries:
+            e.lock.unlink(missing_ok=True)
 
 
 def generate(entry: Entry, folder: Path) -> Path:
@@ -329,21 +365,26 @@ def compile_entry(entry: Entry) -> float:
     return seconds
 
 
-def _main(folder: str, key: str) -> int:
-    """The background compile: ``python -m hmpc_cli.mpc.cache <folder> <key>``."""
+def _main(args: list[str]) -> int:
+    """The background compile: ``python -m hmpc_cli.mpc.cache (<folder> <key>)...``."""
     with contextlib.suppress(OSError, AttributeError):
         os.nice(10)
     cc = cbuild.compiler()
-    entry = Entry(Path(folder), key, cbuild.compiler_identity(cc) if cc else "")
-    try:
-        compile_entry(entry)
-    except cbuild.CBuildError as e:
-        cbuild.atomic_write(entry.failed, f"{e}\n")
-        return 1
-    finally:
-        entry.lock.unlink(missing_ok=True)
-    return 0
+    identity = cbuild.compiler_identity(cc) if cc else ""
+    entries = [Entry(Path(f), k, identity) for f, k in zip(args[::2], args[1::2], strict=True)]
+    for entry in entries:  # the locks are this process's now
+        cbuild.atomic_write(entry.lock, str(os.getpid()))
+    failures = 0
+    for entry in entries:
+        try:
+            compile_entry(entry)
+        except cbuild.CBuildError as e:
+            cbuild.atomic_write(entry.failed, f"{e}\n")
+            failures += 1
+        finally:
+            entry.lock.unlink(missing_ok=True)
+    return 1 if failures else 0
 
 
 if __name__ == "__main__":
-    sys.exit(_main(*sys.argv[1:3]))
+    sys.exit(_main(sys.argv[1:]))
