@@ -227,3 +227,19 @@ def test_background_compile_after_exit_fills_the_cache(tiny, use):
     assert not list(folder.glob("*.failed"))
     hit = cache.lookup(key, "ipopt")
     assert hit.info.cache == "hit" and hit.library is not None
+
+
+def test_layout_round_trips_through_json(filled):
+    import json
+
+    from hmpc_cli.mpc.builder import NLPLayout
+
+    layout = filled[1].layout
+    back = NLPLayout.from_dict(json.loads(json.dumps(layout.to_dict())))
+    for kind in "xpg":
+        a, b = getattr(layout, kind), getattr(back, kind)
+        assert a.size == b.size and a.names == b.names
+        for name in a.names:
+            np.testing.assert_array_equal(a[name], b[name])
+            assert a.stages(name) == b.stages(name)
+        np.testing.assert_array_equal(a.at(0), b.at(0))
