@@ -5,8 +5,10 @@ Uses its own cache directory (``--cache``, default a directory under the system 
 dir, kept between calls so the compile is paid once). First fills it in the foreground
 (``HMPC_BUILD_CACHE=sync``, the compile time is printed), then times ``hmpc run`` in fresh
 processes, cache off and warm interleaved, and prints the medians, the build-time split
-measured in this process (transcription, ``nlpsol``, cache lookup and load) and the median
-MPC solve time of both (compiled vs SX virtual machine). Measured, never asserted.
+measured in this process (transcription, ``nlpsol``, cache lookup and load), the median
+MPC solve time of both runs, and one run's solve calls replayed in this process on the SX
+and the compiled NLPs, interleaved (compiled vs SX virtual machine, and whether the
+solutions are bit-identical). Measured, never asserted.
 """
 
 from __future__ import annotations
@@ -79,6 +81,55 @@ def split(scenario: str, cache: Path) -> dict[str, float]:
     return out
 
 
+def solve_split(scenario: str, cache: Path, passes: int = 5) -> dict[str, tuple]:
+    """One closed loop's solve calls replayed on SX and compiled NLPs, interleaved.
+
+    Returns:
+        Per NLP ("switching", "final"): (solves per pass, median pass time SX [s], median
+        pass time compiled [s], primal solutions bit-identical).
+    """
+    import numpy as np
+
+    from hmpc_cli.loop import build
+    from hmpc_cli.mpc.nlp import FixedModeNLPs
+    from hmpc_cli.registry import build_system
+    from hmpc_cli.runlog import RunLog
+    from hmpc_cli.scenario import load_scenario
+
+    os.environ["HMPC_CACHE_DIR"] = str(cache)
+    sc, _ = load_scenario(scenario)
+    system = build_system(sc.system)
+    os.environ["HMPC_BUILD_CACHE"] = "off"
+    sx = FixedModeNLPs(system, sc.mpc)
+    os.environ["HMPC_BUILD_CACHE"] = "background"
+    compiled = FixedModeNLPs(system, sc.mpc)
+    loop = build(sc, RunLog(None))  # records the solve calls of one run
+    calls: list[tuple[str, tuple]] = []
+    for label in ("switching", "final"):
+        nlp = getattr(loop.mpc.chain.nlps, label)
+        if nlp is None:
+            continue
+        solve = nlp.session.solve
+        nlp.session.solve = (lambda *a, _s=solve, _l=label: calls.append((_l, a)) or _s(*a))
+    loop.run()
+    out = {}
+    for label in ("switching", "final"):
+        args = [a for lab, a in calls if lab == label]
+        times: dict[str, list[float]] = {"sx": [], "compiled": []}
+        xs: dict[str, list] = {"sx": [], "compiled": []}
+        for i in range(passes):
+            order = (("sx", sx), ("compiled", compiled))
+            for name, nlps in order if i % 2 == 0 else order[::-1]:
+                start = time.perf_counter()
+                res = [getattr(nlps, label).solve(*a) for a in args]
+                times[name].append(time.perf_counter() - start)
+                xs[name] = [r.x for r in res]
+        same = all(np.array_equal(a, b) for a, b in zip(xs["sx"], xs["compiled"], strict=True))
+        out[label] = (len(args), statistics.median(times["sx"]),
+                      statistics.median(times["compiled"]), same)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeats", type=int, default=5)
@@ -108,6 +159,9 @@ def main() -> None:
     print(f"warm / target ({TARGET_S} s): {statistics.median(walls['background']) / TARGET_S:.2f}")
     for name, seconds in split(args.scenario, cache).items():
         print(f"  {name:40s} {seconds:6.3f} s")
+    for label, (n, t_sx, t_c, same) in solve_split(args.scenario, cache).items():
+        print(f"{label} NLP, {n} solves of one run replayed: SX {t_sx:.3f} s, compiled "
+              f"{t_c:.3f} s ({t_c / t_sx:.2f}x); {'bit-identical' if same else 'DIFFERENT'}")
     print(f"machine: {os.cpu_count()} cores")
 
 
