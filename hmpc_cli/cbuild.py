@@ -153,6 +153,21 @@ def write_verified(path: Path, data: str | bytes) -> None:
     atomic_write(path, raw)
 
 
+def remove_stale_temporaries(folder: Path, age: float = 86400.0) -> int:
+    """Removes this module's temporary files older than ``age`` [s] (of killed builds).
+
+    Returns:
+        How many were removed.
+    """
+    removed = 0
+    for tmp in folder.glob(".hmpc-*"):
+        with contextlib.suppress(OSError):
+            if time.time() - tmp.stat().st_mtime > age:
+                tmp.unlink()
+                removed += 1
+    return removed
+
+
 def recorded(path: Path) -> list[str]:
     """The fields of the sha256 record of ``path`` (digest, name, notes; [] if none)."""
     try:

@@ -243,3 +243,12 @@ def test_layout_round_trips_through_json(filled):
             np.testing.assert_array_equal(a[name], b[name])
             assert a.stages(name) == b.stages(name)
         np.testing.assert_array_equal(a.at(0), b.at(0))
+
+
+def test_stale_temporaries_are_removed(tmp_path):
+    old, new = tmp_path / ".hmpc-old.so", tmp_path / ".hmpc-new.so"
+    old.write_bytes(b"partial")
+    new.write_bytes(b"in progress")
+    os.utime(old, (1.0, 1.0))
+    assert cbuild.remove_stale_temporaries(tmp_path) == 1
+    assert not old.exists() and new.exists()

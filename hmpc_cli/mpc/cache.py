@@ -374,6 +374,8 @@ def _main(args: list[str]) -> int:
     entries = [Entry(Path(f), k, identity) for f, k in zip(args[::2], args[1::2], strict=True)]
     for entry in entries:  # the locks are this process's now
         cbuild.atomic_write(entry.lock, str(os.getpid()))
+    for folder in {e.folder for e in entries}:  # left by compiles killed midway
+        cbuild.remove_stale_temporaries(folder)
     failures = 0
     for entry in entries:
         try:
