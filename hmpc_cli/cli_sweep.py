@@ -99,13 +99,13 @@ def _locked_execute(plan, out: Path, workers: int, client):
 def setup_problems(plan) -> list[str]:
     """The set-up checks of every distinct (system, MPC) cell of a sweep, attributed.
 
-    Lines ``SWEEP: cell k=v, ...: key.path: reason`` (:func:`hmpc_cli.loop.setup_problems`;
+    Lines ``SWEEP: cell k=v, ...: key.path: reason`` (:func:`hmpc_cli.setup_checks.setup_problems`;
     seeds and settings that cannot change them share one check).
     """
     import json
     import tomllib
 
-    from hmpc_cli.loop import setup_problems as scenario_problems
+    from hmpc_cli.setup_checks import setup_problems as scenario_problems
     from hmpc_cli.scenario import scenario_model
 
     seen: set[str] = set()

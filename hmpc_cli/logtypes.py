@@ -25,7 +25,7 @@ import numpy as np
 from hmpc_cli.loggeometry import GeometryRec
 
 __all__ = [
-    "LOG_VERSION", "TOPICS", "Detail", "GuardEventRec", "MarginsRec", "MpcSolve",
+    "LOG_VERSION", "TOPICS", "BuildRec", "Detail", "GuardEventRec", "MarginsRec", "MpcSolve",
     "Names", "PlanNode", "PlannerCall", "RolloutNode", "RunInfo", "ScheduleRec",
     "StateSample", "StatusCount", "Summary", "Versions", "WRec", "convert", "flat_keys",
     "named",
@@ -105,6 +105,22 @@ class MarginsRec:
 
 
 @dataclass(frozen=True)
+class BuildRec:
+    """How the MPC's NLPs were built (:class:`hmpc_cli.mpc.cache.BuildInfo`).
+
+    Attributes:
+        cache: "hit" (compiled NLPs loaded from the build cache), "miss" (built in SX
+            and cached) or "disabled" (built in SX, no cache).
+        compiled: the solves call compiled code (else CasADi's SX virtual machine).
+        reason: why, in one line.
+    """
+
+    cache: str
+    compiled: bool
+    reason: str
+
+
+@dataclass(frozen=True)
 class RunInfo:
     """/run/info: the run's identity (written first)."""
 
@@ -126,6 +142,7 @@ class RunInfo:
     margins: MarginsRec | None = None
     geometry: GeometryRec | None = None
     sweep: str = ""  # the sweep file of a sweep's run, "" for a single run
+    build: BuildRec | None = None
 
 
 @dataclass(frozen=True)

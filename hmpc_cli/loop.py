@@ -25,6 +25,7 @@ solve (/mpc/solve ``latency``).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from collections.abc import Callable
@@ -36,6 +37,7 @@ from hmpc_cli import signals
 from hmpc_cli.messages import (
     OFF_SCHEDULE, SCHEDULED, ConstraintMargins, GuardEvent, ModeSchedule, Plan)
 from hmpc_cli.runlog import RunLog, RunResult, versions
+from hmpc_cli.setup_checks import built_problems, margins_of
 from hmpc_cli.stack import FixedModeMPC, Planner, Task
 
 __all__ = ["ClosedLoop", "RunResult", "StackTiming", "build", "versions"]
@@ -370,12 +372,11 @@ def build(scenario, log: RunLog,
                                                  s.event_time_tol),
                   dist, LowLevelController(model, sc.lowlevel), s.rate_hz,
                   s.input_at_events == "recompute", s.max_events_per_step)
-    margins = _margins(sc, model)
-    problems = (_margin_problems(sc, model, margins) + _solver_problems(sc)
-                + _planner_problems(sc, model))
+    margins = margins_of(sc, model)
+    problems = built_problems(sc, model, margins)
     if problems:  # before the NLPs are built
         raise ValueError("\n".join(problems))
-    mpc = _mpc(sc, model, margins)
+    mpc, problem = _mpc(sc, model, margins)
     planner = plugin_call(f"planner: {sc.planner.kind!r} failed to build for system "
                           f"{spec.name!r}", reg.planner(sc.planner.kind).make, model,
                           sc.planner, sc.seed)
@@ -385,86 +386,22 @@ def build(scenario, log: RunLog,
                  margins.to_dict(model) if margins is not None else None,
                  (sc.planner.kind, sc.mpc.kind),
                  {"planner": reg.planner(sc.planner.kind).detail,
-                  "mpc": reg.mpc(sc.mpc.kind).detail})
+                  "mpc": reg.mpc(sc.mpc.kind).detail}, _build_info(problem))
     return ClosedLoop(plant, planner, mpc, _timing(sc, model), task, log, s.duration,
                       s.divergence_bound, progress)
 
 
-def setup_problems(scenario) -> list[str]:
-    """The set-up checks :func:`build` makes once the system is built, and nothing more.
-
-    ``key.path: reason`` lines (none: the scenario sets up): margins that do not fit the
-    system (a margins file, an input shrink beyond half an input box), solver options
-    the solver rejects and planner settings that do not fit the system (a schedule).
-    Builds the controllers' model only (no NLP, no planner), so a sweep checks every cell
-    before it starts a run.
-    """
-    from hmpc_cli.registry import PluginError, build_system
-
-    try:
-        model = build_system(scenario.system)
-        margins = _margins(scenario, model)
-    except (PluginError, ValueError) as exc:
-        return str(exc).splitlines()
-    return (_margin_problems(scenario, model, margins) + _solver_problems(scenario)
-            + _planner_problems(scenario, model))
+def _build_info(problem) -> dict | None:
+    """How an MPC problem's NLPs were built (its ``build_info``), JSON-ready, if it says."""
+    info = getattr(problem, "build_info", None)
+    return dataclasses.asdict(info) if dataclasses.is_dataclass(info) else None
 
 
-def _planner_problems(sc, model) -> list[str]:
-    """``planner.key: reason`` lines from planner settings that check a built system."""
-    check = getattr(sc.planner, "system_problems", None)
-    return list(check(model)) if callable(check) else []
+def _mpc(sc, model, margins: ConstraintMargins | None) -> tuple[FixedModeMPC, object]:
+    """The MPC controller and its problem (built once per process per system and settings).
 
-
-def _margins(sc, model) -> ConstraintMargins | None:
-    """The MPC's margins: hand-set, from the scenario's margins file, or None (no field).
-
-    Raises:
-        ValueError: ``mpc.margins: ...`` when the file does not fit the scenario.
-    """
-    from hmpc_cli.registry import registry
-
-    source = getattr(sc.mpc, "margins", None)
-    hand = registry().mpc(sc.mpc.kind).hand_margins
-    if source is None or (source == "hand" and hand is None):  # an MPC without margins
-        return None
-    if source == "hand":
-        return hand(model, sc.mpc)
-    from hmpc_cli.tube.margins_file import constraint_margins
-
-    return constraint_margins(source, model, sc.system, sc.mpc.rate_hz)
-
-
-def _margin_problems(sc, model, margins: ConstraintMargins | None) -> list[str]:
-    """``mpc.<margin>: reason`` when an input shrink leaves a mode's input box empty."""
-    if margins is None:
-        return []
-    key = "mpc.margins" if margins.source != "hand" else next(
-        (f"mpc.{k}" for k in ("input_margin", "torque_margin") if hasattr(sc.mpc, k)),
-        "mpc.margins")
-    for mode, shrink in zip(model.modes, margins.inputs, strict=False):
-        for i, (lo, hi, m) in enumerate(zip(mode.u_lower, mode.u_upper, shrink, strict=False)):
-            if 2.0 * m > hi - lo:
-                return [f"{key}: {m:g} per side exceeds half the input box of mode "
-                        f"{mode.name!r} input {i} ([{lo:g}, {hi:g}]: half-width "
-                        f"{(hi - lo) / 2:g})"]
-    return []
-
-
-def _solver_problems(sc) -> list[str]:
-    """The MPC's solver options, tried once on a tiny NLP (see ``option_problems``)."""
-    from hmpc_cli.mpc.solver import option_problems
-
-    options = getattr(sc.mpc, "solver_options", None)
-    if not isinstance(options, dict):
-        return []
-    return option_problems(getattr(sc.mpc, "solver", "ipopt"), options)
-
-
-def _mpc(sc, model, margins: ConstraintMargins | None) -> FixedModeMPC:
-    """The MPC controller; its NLPs built once per process per (system, settings, margins).
-
-    A margins file's values go to the plug-in's ``problem`` as a third argument.
+    The problem is shared by the runs of one (system, MPC settings, margins). A margins
+    file's values go to the plug-in's ``problem`` as a third argument.
     """
     from hmpc_cli.registry import plugin_call, registry
 
@@ -477,7 +414,7 @@ def _mpc(sc, model, margins: ConstraintMargins | None) -> FixedModeMPC:
     if key not in _PROBLEMS:
         extra = (margins,) if from_file else ()
         _PROBLEMS[key] = plugin_call(what, mpc_spec.problem, model, sc.mpc, *extra)
-    return plugin_call(what, mpc_spec.make, model, sc.mpc, _PROBLEMS[key])
+    return plugin_call(what, mpc_spec.make, model, sc.mpc, _PROBLEMS[key]), _PROBLEMS[key]
 
 
 def _timing(sc, model) -> StackTiming:

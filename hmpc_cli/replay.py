@@ -30,7 +30,8 @@ TOPICS = ("/run/info", "/planner/plan", "/mpc/solve", "/sim/event", "/disturbanc
 SOFTENED_TOL = 1e-6  # as hmpc_cli.runlog.SOFTENED_TOL (not imported: it pulls in casadi)
 RTOL, ATOL = 1e-9, 1e-12
 # fields that are measurements or the command line, not results: never compared by verify
-_IGNORED = {"wall_time", "versions", "command", "argv", "overrides", "sweep", "log_version"}
+_IGNORED = {"wall_time", "versions", "command", "argv", "overrides", "sweep", "log_version",
+            "build"}
 _IGNORED_RE = re.compile(r"(wall_time|_time_(median|mean|p\d+|max|min))$")
 
 

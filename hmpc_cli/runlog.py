@@ -22,8 +22,8 @@ from hmpc_cli import __version__
 from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.loggeometry import body_logger, body_names, geometry_record
 from hmpc_cli.logtypes import (
-    LOG_VERSION, GuardEventRec, MarginsRec, MpcSolve, PlanNode, PlannerCall, RolloutNode,
-    RunInfo, ScheduleRec, StateSample, StatusCount, Summary, Versions, WRec, convert,
+    LOG_VERSION, BuildRec, GuardEventRec, MarginsRec, MpcSolve, PlanNode, PlannerCall,
+    RolloutNode, RunInfo, ScheduleRec, StateSample, StatusCount, Summary, Versions, WRec, convert,
     flat_keys, named, topic_schemas)
 from hmpc_cli.messages import GuardEvent, ModeSchedule, Plan, PlannerResult, Trajectory
 
@@ -111,7 +111,8 @@ class RunLog:
 
     def set_info(self, name: str, seed: int, scenario: dict, per_state: int,
                  margins: dict | None = None, kinds: tuple[str, str] = ("", ""),
-                 details: dict[str, type | None] | None = None) -> None:
+                 details: dict[str, type | None] | None = None,
+                 build: dict | None = None) -> None:
         """The run's identity for /run/info and the summary.
 
         Args:
@@ -122,10 +123,11 @@ class RunLog:
             margins: the MPC's margins (source, radius, per guard, per mode), if it has any.
             kinds: (planner kind, MPC kind).
             details: ``planner``/``mpc`` -> the plug-ins' log detail dataclasses.
+            build: how the MPC's NLPs were built (``cache``, ``compiled``, ``reason``).
         """
         self.result.scenario, self.result.seed = name, seed
         self.info = {"scenario_name": name, "seed": seed, "scenario": scenario,
-                     "margins": margins, "kinds": kinds}
+                     "margins": margins, "kinds": kinds, "build": build}
         self.details = dict(details or {})
         self.per_state = per_state
 
@@ -163,7 +165,8 @@ class RunLog:
             tuple(model.input_names), tuple(model.disturbance_names),
             tuple(m.name for m in model.modes), tuple(g.name for g in model.guards),
             convert(MarginsRec, info["margins"]) if info.get("margins") else None, geometry,
-            self.provenance.sweep))
+            self.provenance.sweep,
+            convert(BuildRec, info["build"]) if info.get("build") else None))
         if hasattr(self.rec, "flush"):
             self.rec.flush()  # the run's identity on disk at once (a killed run keeps it)
         self.rec.add_metadata("run", {"scenario": self.result.scenario,

@@ -21,6 +21,9 @@ if "HMPC_CACHE_DIR" not in os.environ:
 
     os.environ["HMPC_CACHE_DIR"] = tempfile.mkdtemp(prefix="hmpc-test-cache-")
     atexit.register(shutil.rmtree, os.environ["HMPC_CACHE_DIR"], ignore_errors=True)
+# no background compilation of the MPC's NLPs (minutes of CPU per structure) in a test
+# session: tests/test_build_cache.py turns the build cache on where it tests it
+os.environ.setdefault("HMPC_BUILD_CACHE", "off")
 SCENARIOS = REPO / "scenarios"
 BALL = SCENARIOS / "ball.toml"
 

@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 
 from conftest import run_loop
-from hmpc_cli.loop import setup_problems
+from hmpc_cli.setup_checks import setup_problems
 from hmpc_cli.planner.schedule import SchedulePlanner, ScheduleSettings
 from hmpc_cli.recorder import read_log
 from hmpc_cli.scenario import ScenarioError, load_scenario

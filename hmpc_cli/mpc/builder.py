@@ -190,6 +190,42 @@ class NLPLayout:
         return Bounds(self.x.vector(-np.inf), self.x.vector(np.inf),
                       self.g.vector(-np.inf), self.g.vector(np.inf))
 
+    def to_dict(self) -> dict:
+        """JSON-ready registrations of x, p and g (:meth:`from_dict` rebuilds the layout)."""
+        return {kind: {"size": blocks.size, "entries": {
+            name: [[_label(e.stage), e.offset, list(e.shape)] for e in es]
+            for name, es in blocks._entries.items()}}
+            for kind, blocks in (("x", self.x), ("p", self.p), ("g", self.g))}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> NLPLayout:
+        """The layout of :meth:`to_dict`'s output.
+
+        Raises:
+            KeyError, TypeError, ValueError: ``data`` is not such an output.
+        """
+        def blocks(d: dict) -> Blocks:
+            entries = {str(name): [_Entry(_stage(st), int(off), tuple(int(v) for v in shape))
+                                   for st, off, shape in es]
+                       for name, es in d["entries"].items()}
+            return Blocks(entries, int(d["size"]))
+
+        return cls(blocks(data["x"]), blocks(data["p"]), blocks(data["g"]))
+
+
+def _label(stage: Hashable | None):
+    """A stage label as JSON (tuples as lists)."""
+    return list(stage) if isinstance(stage, tuple) else stage
+
+
+def _stage(label) -> Hashable | None:
+    """The stage label of :func:`_label`'s output."""
+    if isinstance(label, list):
+        return tuple(int(v) for v in label)
+    if label is None or isinstance(label, int | str):
+        return label
+    raise TypeError(f"stage label {label!r}")
+
 
 class _Flat:
     """The registrations of one flat vector while building."""

@@ -40,6 +40,7 @@ S_max) and re-solved with parameters, bounds and a primal-dual warm start.
 
 from __future__ import annotations
 
+import logging
 from typing import Literal
 
 import casadi as ca
@@ -48,8 +49,9 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.messages import ConstraintMargins, Trajectory
+from hmpc_cli.mpc import cache
 from hmpc_cli.mpc.backends import OCPStructure
-from hmpc_cli.mpc.builder import Blocks, NLPBuilder
+from hmpc_cli.mpc.builder import Blocks, NLPBuilder, NLPLayout
 from hmpc_cli.mpc.layout import FLOW, ChainLayout, NodeSchedule
 from hmpc_cli.mpc.nlp_data import INF, problem_data
 from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart
@@ -58,6 +60,7 @@ from hmpc_cli.settings_types import MAX_NLP_NODES, nlp_estimate, BoundedInt, Fin
 __all__ = ["INF", "FixedModeNLP", "FixedModeNLPs", "MPCSettings"]
 
 WARM_START = WarmStart(mu_init=1e-6, bound_push=1e-9)  # the warm IPOPT instance
+_LOG = logging.getLogger(__name__)
 
 #: measured cost of one chain-NLP node (both NLPs, cold and warm solvers; ball, 2 cores)
 NODE_MIB, NODE_MS = 0.85, 18.0
@@ -238,6 +241,43 @@ class FixedModeNLP:
         return z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
     def _build(self) -> None:
+        """The NLP from the build cache if compiled there, else transcribed (and cached)."""
+        key = cache.structure_key(self.system, self.s, self.S)
+        hit = cache.lookup(key, self.s.solver_of(self.S))
+        self.session = None
+        if hit.library is not None:
+            self.layout, self.build_info = hit.layout, hit.info
+            try:
+                self.session = self._session(hit.library)
+            except RuntimeError as exc:  # a library CasADi refuses: build in SX
+                _LOG.warning("cannot load %s (%s): building the NLP in SX", hit.library,
+                             str(exc).strip().splitlines()[-1:])
+                hit = cache.Hit(None, None, cache.BuildInfo("miss", False, "unloadable"))
+        if self.session is None:
+            nlp, self.layout = self._transcription()
+            self.session = self._session(nlp)
+            self.build_info = hit.info if hit.info.cache == "disabled" else \
+                cache.store(key, self.s.solver_of(self.S), nlp, self.layout)
+        X, g = self.layout.x, self.layout.g
+        self.nx_var, self.ng, self.np = X.size, g.size, self.layout.p.size
+        self.z_idx, self.u_idx, self.s_idx = X["z"], X["u"], X["sigma"]
+        self.link_rows = np.stack([g.at(k) for k in range(self.L)])  # (L, rows per link)
+
+    def _session(self, nlp: dict | str) -> SolverSession:
+        """The solver session of the NLP (an SX dict or a compiled library's path)."""
+        equality, solver = None, self.s.solver_of(self.S)
+        if solver == "fatrop":
+            eq = np.zeros(self.layout.g.size, dtype=bool)
+            eq[self.layout.g["dynamics"]] = True
+            equality = eq.tolist()
+        return SolverSession(
+            "fixed_mode_mpc", nlp, solver, max_iter=self.s.max_iter, tol=1e-8,
+            equality=equality, extra=self.s.solver_options, warm=WARM_START,
+            structure=self.structure() if solver == "sqp_hpipm" else None,
+            sqp_iter=self.s.max_sqp_iter)
+
+    def _transcription(self) -> tuple[dict, NLPLayout]:
+        """The NLP ``{"x", "p", "f", "g"}`` in SX and its layout."""
         b = NLPBuilder()
         zs, us, sigmas = [], [], []
         for k in range(self.L + 1):
@@ -249,21 +289,7 @@ class FixedModeNLP:
         self._par = self._parameters(b)
         self._guard_functions()
         J = self._transcribe(b, zs, us, sigmas)
-        nlp, self.layout = b.build(J)
-        X, g = self.layout.x, self.layout.g
-        equality, solver = None, self.s.solver_of(self.S)
-        if solver == "fatrop":
-            eq = np.zeros(g.size, dtype=bool)
-            eq[g["dynamics"]] = True
-            equality = eq.tolist()
-        self.session = SolverSession(
-            "fixed_mode_mpc", nlp, solver, max_iter=self.s.max_iter, tol=1e-8,
-            equality=equality, extra=self.s.solver_options, warm=WARM_START,
-            structure=self.structure() if solver == "sqp_hpipm" else None,
-            sqp_iter=self.s.max_sqp_iter)
-        self.nx_var, self.ng, self.np = X.size, g.size, self.layout.p.size
-        self.z_idx, self.u_idx, self.s_idx = X["z"], X["u"], X["sigma"]
-        self.link_rows = np.stack([g.at(k) for k in range(self.L)])  # (L, rows per link)
+        return b.build(J)
 
     def structure(self) -> OCPStructure:
         """The HPIPM stage structure (zero-order hold only).
@@ -409,7 +435,7 @@ def _move(dst: np.ndarray, src: np.ndarray, maps: dict, to: Blocks, frm: Blocks)
 
 
 class FixedModeNLPs:
-    """The fixed-mode NLPs of one (system, settings), each built once.
+    """The fixed-mode NLPs of one (system, settings), each built once (or cache-loaded).
 
     The switching chain (S = ``max_switches``) and, with ``final_domain_nlp``, the final
     domain's (S = 0).
@@ -423,6 +449,15 @@ class FixedModeNLPs:
             if settings.final_domain_nlp else None
         self._final_mode = system.mode_index(system.final_mode)
         self.N, self.dt = self.switching.N, self.switching.dt
+
+    @property
+    def build_info(self) -> cache.BuildInfo:
+        """How the NLPs were built: a hit if all were loaded, a miss if any was built."""
+        infos = [n.build_info for n in (self.switching, self.final) if n is not None]
+        kinds = {i.cache for i in infos}
+        kind = "miss" if "miss" in kinds else ("hit" if kinds == {"hit"} else "disabled")
+        return cache.BuildInfo(kind, all(i.compiled for i in infos),
+                               "; ".join(dict.fromkeys(i.reason for i in infos)))
 
     def for_schedule(self, ns: NodeSchedule) -> FixedModeNLP:
         """The NLP that solves node schedule ``ns``."""

@@ -172,7 +172,10 @@ class SolverSession:
 
     Args:
         name: instance name (the warm one gets ``_warm`` appended).
-        nlp: ``{"x", "p", "f", "g"}`` (e.g. from :meth:`NLPBuilder.build`).
+        nlp: ``{"x", "p", "f", "g"}`` (e.g. from :meth:`NLPBuilder.build`), or (IPOPT,
+            fatrop, sqpmethod) the path of a shared library of the functions an
+            ``nlpsol`` of that NLP generates (``generate_dependencies``; see
+            :mod:`hmpc_cli.mpc.cache`).
         plugin: "ipopt", "sqpmethod", "fatrop" or "sqp_hpipm".
         max_iter, tol, max_wall_time, equality, extra: see :func:`plugin_options`
             (``sqp_hpipm``: ``max_iter`` and ``tol`` are those of the IPOPT fallback,
@@ -195,9 +198,11 @@ class SolverSession:
         ipopt_extra = {k: v for k, v in (extra or {}).items() if k in ("ipopt", "ipopt_warm")}
         self._ipopt_args = (max_iter, tol, max_wall_time, ipopt_extra, warm)
         self._fallback: tuple | None = None
+        compiled = isinstance(nlp, str)  # a library of nlpsol's generated functions
         if plugin == "sqp_hpipm":
-            if structure is None:
-                raise ValueError("solver sqp_hpipm needs the NLP's stage structure")
+            if structure is None or compiled:
+                raise ValueError("solver sqp_hpipm needs the NLP's expressions and its stage "
+                                 "structure")
             extra = dict(extra or {})
             hpipm = extra.pop("hpipm", {})
             extra.pop("ipopt", None)
@@ -208,11 +213,14 @@ class SolverSession:
         else:
             self.options = plugin_options(plugin, max_iter, tol, max_wall_time, equality,
                                           extra)
-            self.cold = self.warm = ca.nlpsol(name, plugin, nlp, self.options)
+            load = {k: v for k, v in self.options.items() if k != "expand"} if compiled \
+                else self.options
+            self.cold = self.warm = ca.nlpsol(name, plugin, nlp, load)
             if plugin == "ipopt" and warm is not None:
                 self.warm = ca.nlpsol(f"{name}_warm", plugin, nlp,
-                                      warm_options(self.options, warm, extra))
-        self._g = ca.Function("g", [nlp["x"], nlp["p"]], [nlp["g"]])
+                                      warm_options(load, warm, extra))
+        self._g = ca.external("nlp_g", nlp) if compiled else \
+            ca.Function("g", [nlp["x"], nlp["p"]], [nlp["g"]])
 
     def solve(self, w0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None) -> SolveResult:
         """One solve from ``w0``; never raises on a solver failure.

@@ -18,24 +18,25 @@ built in a private temporary directory (with a warning).
 
 from __future__ import annotations
 
-import atexit
-import contextlib
 import ctypes
 import hashlib
 import logging
-import os
-import shlex
-import shutil
-import subprocess
 import tempfile
-import time
-import warnings
 from importlib import resources
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
 
+from hmpc_cli.cbuild import (
+    CBuildError,
+    checked_cache_dir,
+    compile_shared,
+    compiler,
+    compiler_identity,
+    private_dir,
+    verified,
+)
 from hmpc_cli.hybrid import HybridSystem, rk4_expr
 
 CFLAGS = ("-O2", "-shared", "-fPIC", "-ffp-contract=off", "-fvisibility=hidden")
@@ -43,13 +44,11 @@ ABI = 4  # must equal HM_ABI of rollout_kernel.c
 COMPILES = 0  # compilations done by this process (the cache makes repeats free)
 _LIBS: dict[str, ctypes.CDLL] = {}  # loaded libraries by path
 _FAILED: dict[tuple[str, tuple[str, ...]], str] = {}  # failed builds by path and compiler
-_IDENTITY: dict[tuple[str, ...], str] = {}  # compiler identity by command
-_PRIVATE: list[Path] = []  # this process's private build directory, once made
 _D = ctypes.POINTER(ctypes.c_double)
 _LOG = logging.getLogger(__name__)
 
 
-class RolloutBuildError(RuntimeError):
+class RolloutBuildError(CBuildError):
     """The C rollout could not be generated, compiled or loaded."""
 
 
@@ -152,93 +151,10 @@ def generate_source(system: HybridSystem) -> str:
     return cg.dump() + tab + "\n" + kernel
 
 
-def compiler() -> list[str] | None:
-    """The C compiler command: ``$CC`` if set, else ``cc`` or ``gcc`` on the PATH."""
-    cc = os.environ.get("CC")
-    if cc:
-        return shlex.split(cc)
-    found = shutil.which("cc") or shutil.which("gcc")
-    return [found] if found else None
-
-
-def cache_dir() -> Path:
-    """Where compiled rollouts are kept: ``$HMPC_CACHE_DIR`` or ``~/.cache/hmpc``."""
-    return Path(os.environ.get("HMPC_CACHE_DIR") or Path.home() / ".cache" / "hmpc")
-
-
-def unsafe_reason(folder: Path) -> str:
-    """Why ``folder`` must not hold libraries that get executed ('' if it may).
-
-    Unsafe: not a directory, owned by another user, or writable by group or others.
-    """
-    try:
-        st = folder.stat()
-    except OSError as e:
-        return f"cannot stat it: {e}"
-    if not folder.is_dir():
-        return "not a directory"
-    if hasattr(os, "getuid") and st.st_uid != os.getuid():
-        return f"owned by uid {st.st_uid}, not by this user"
-    if st.st_mode & 0o022:
-        return f"writable by group or others (mode {st.st_mode & 0o777:o})"
-    return ""
-
-
 def _safe_cache_dir() -> Path:
     """The cache directory if it is safe, else a private temporary one (with a warning)."""
-    folder = cache_dir()
-    with contextlib.suppress(OSError):  # reported as unsafe below
-        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
-    reason = unsafe_reason(folder)
-    if not reason:
-        return folder
-    if not _PRIVATE:
-        _PRIVATE.append(Path(tempfile.mkdtemp(prefix="hmpc-rollout-")))
-        atexit.register(shutil.rmtree, _PRIVATE[0], ignore_errors=True)
-        warnings.warn(f"C rollout cache {folder} is not used ({reason}); building in "
-                      f"{_PRIVATE[0]}", RuntimeWarning, stacklevel=3)
-    return _PRIVATE[0]
-
-
-def compiler_identity(cc: list[str]) -> str:
-    """The compiler's resolved path and a hash of its ``--version`` output.
-
-    Raises:
-        RolloutBuildError: the compiler cannot be run.
-    """
-    key = tuple(cc)
-    if key not in _IDENTITY:
-        exe = shutil.which(cc[0]) or cc[0]
-        try:
-            out = subprocess.run([*cc, "--version"], capture_output=True, text=True,
-                                 timeout=60, check=False)
-        except (OSError, subprocess.SubprocessError) as e:
-            raise RolloutBuildError(f"cannot run {shlex.join(cc)}: {e}") from e
-        digest = hashlib.sha256((out.stdout + out.stderr).encode()).hexdigest()
-        _IDENTITY[key] = f"{os.path.realpath(exe)} {shlex.join(cc[1:])} {digest}"
-    return _IDENTITY[key]
-
-
-def file_sha256(path: Path) -> str:
-    """sha256 hex digest of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
-def _hash_path(path: Path) -> Path:
-    return path.with_name(path.name + ".sha256")
-
-
-def _verified(path: Path) -> bool:
-    """True if ``path`` exists and its bytes match the recorded sha256."""
-    try:
-        recorded = _hash_path(path).read_text().split()[0]
-        return file_sha256(path) == recorded
-    except (OSError, IndexError):
-        return False
+    folder, reason = checked_cache_dir()
+    return private_dir("C rollout", folder, reason) if reason else folder
 
 
 def _load(path: Path) -> ctypes.CDLL:
@@ -268,11 +184,15 @@ def build_library(source: str) -> tuple[ctypes.CDLL, Path, float | None]:
     cc = compiler()
     if cc is None:
         raise RolloutBuildError("no C compiler found (set CC or install cc/gcc)")
-    key = hashlib.sha256("\0".join([source, *CFLAGS, compiler_identity(cc)]).encode())
+    try:
+        identity = compiler_identity(cc)
+    except CBuildError as e:
+        raise RolloutBuildError(str(e)) from e
+    key = hashlib.sha256("\0".join([source, *CFLAGS, identity]).encode())
     path = _safe_cache_dir() / f"rollout-{key.hexdigest()[:24]}.so"
     if str(path) in _LIBS:
         return _LIBS[str(path)], path, None
-    if _verified(path):
+    if verified(path):
         try:
             _LIBS[str(path)] = _load(path)
             return _LIBS[str(path)], path, None
@@ -294,49 +214,17 @@ def build_library(source: str) -> tuple[ctypes.CDLL, Path, float | None]:
     return _LIBS[str(path)], path, seconds
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=".rollout-", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
 def _compile(cc: list[str], source: str, path: Path) -> float:
-    """Compiles ``source`` to ``path`` atomically (temp file + os.replace); returns seconds.
-
-    The library's sha256 is written next to it (atomically) after it is in place.
-    """
+    """Compiles ``source`` to ``path`` atomically with its sha256; returns seconds."""
     global COMPILES
-    start = time.perf_counter()
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=".rollout-", suffix=".so", dir=path.parent)
-        os.close(fd)
-    except OSError as e:
-        raise RolloutBuildError(f"cache directory {path.parent} is not writable: {e}") from e
-    try:
-        with tempfile.TemporaryDirectory() as work:
-            src = Path(work) / (path.stem + ".c")
-            src.write_text(source)
-            cmd = [*cc, *CFLAGS, "-o", tmp, str(src), "-lm"]
-            try:
-                out = subprocess.run(cmd, capture_output=True, text=True, timeout=300, check=False)
-            except (OSError, subprocess.SubprocessError) as e:
-                raise RolloutBuildError(f"cannot run {shlex.join(cc)}: {e}") from e
-            if out.returncode != 0:
-                raise RolloutBuildError(f"{shlex.join(cmd)} failed:\n{out.stderr[-2000:]}")
-        digest = file_sha256(Path(tmp))
-        os.replace(tmp, path)
-        _atomic_write(_hash_path(path), f"{digest}  {path.name}\n")
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    with tempfile.TemporaryDirectory() as work:
+        src = Path(work) / (path.stem + ".c")
+        src.write_text(source)
+        try:
+            seconds = compile_shared(cc, CFLAGS, src, path, timeout=300)
+        except CBuildError as e:
+            raise RolloutBuildError(str(e)) from e
     COMPILES += 1
-    seconds = time.perf_counter() - start
     _LOG.info("compiled the C rollouts in %.2f s: %s", seconds, path)
     return seconds
 

@@ -1,0 +1,410 @@
+"""Build cache of the MPC's NLPs: compiled once per problem structure, loaded after.
+
+Where a process spends its start-up (``hmpc run scenarios/ball.toml``): about 0.4 s
+transcribing each NLP into an SX graph and 0.4-0.7 s in every ``ca.nlpsol`` call (the
+symbolic gradient, Jacobian and Hessian of the Lagrangian and their sparsity), which the
+cold and the warm IPOPT instance of both NLPs repeat: ~2.7 s of a 4.4 s run. A serialized
+``nlpsol`` does not help (75 MB for the switching NLP, slower to read than to rebuild), so
+the cache keeps what IPOPT calls, compiled: the C that ``nlpsol.generate_dependencies``
+writes (``nlp_f``, ``nlp_g``, ``nlp_grad_f``, ``nlp_jac_g``, ``nlp_hess_l``, ``nlp_grad``),
+built into a shared library that ``ca.nlpsol(name, "ipopt", library)`` loads in
+milliseconds, with the NLP's block layout beside it. Compiled this way the solves are the
+SX virtual machine's bit for bit (same operations, ``-ffp-contract=off``).
+
+One *entry* per problem structure, keyed by :func:`structure_key` (what determines the
+graph: the system's CasADi functions and numbers, the structural MPC settings, the chain
+length S, the sources that build the graph (:data:`GRAPH_SOURCES`), and the hmpc, CasADi
+and Python versions; not the solver options, rates, margins or iteration limits, which are applied
+when the library is loaded), in the directory of the C rollouts
+(:func:`hmpc_cli.cbuild.cache_dir`):
+
+* ``nlp-<key>.json``: the layout (block names, stages, offsets, shapes);
+* ``nlp-<key>.casadi``: the NLP's ``(x, p) -> (f, g)`` function, serialized;
+* ``nlp-<key>-<compiler>.so``: the library, its name also keyed by the compiler's identity
+  and the flags.
+
+Each file is written atomically with its sha256 beside it and used only when its bytes
+match; a damaged file is reported, removed and rebuilt. A miss builds the NLP in SX as
+before, stores the layout and the function, and compiles the library in a detached
+background process started when the process exits (``python -m hmpc_cli.mpc.cache``;
+one entry is compiled by one process at a time: a lock file), so a run never waits for
+the compiler nor competes with it; the next run loads it. The compile is the price:
+for the ball's switching NLP (22 MB of C) about 5 min of CPU and 3 GB of memory at -O1.
+
+``HMPC_BUILD_CACHE`` (:func:`mode`): ``off`` (or ``0``) disables the cache; ``use`` (the
+default) loads compiled NLPs but never compiles (the user asks for the cost, once);
+``background`` compiles a missing one at exit, ``sync`` in the foreground. No
+compiler, a cache directory writable by others, a non-IPOPT solver or a failed
+compilation: the NLP is built in SX, and :class:`BuildInfo` says why (it goes to the run
+log's ``/run/info``).
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import dataclasses
+import functools
+import hashlib
+import json
+import logging
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from hmpc_cli import __version__, cbuild
+from hmpc_cli.mpc.builder import NLPLayout
+
+ENV = "HMPC_BUILD_CACHE"
+CFLAGS = ("-O1", "-shared", "-fPIC", "-ffp-contract=off", "-fno-fast-math")
+FORMAT = 1  # of the entry files
+LOCK_STALE = 3600.0  # [s] a compile lock older than this (or of a dead process) is taken over
+#: MPC settings applied at solve time (bounds, parameters, options): not in the key
+NON_STRUCTURAL = frozenset({"rate_hz", "tube_margin", "input_margin", "margins", "robust",
+                            "solver", "solver_options", "max_iter", "warm_start",
+                            "resolve_on_impact", "final_domain_nlp"})
+_LOG = logging.getLogger(__name__)
+_QUEUE: list[Entry] = []  # entries this process compiles in the background at exit
+
+
+@dataclass(frozen=True)
+class BuildInfo:
+    """How an NLP was built.
+
+    Attributes:
+        cache: ``"hit"`` (loaded from the cache), ``"miss"`` (built in SX, the cache
+            filled) or ``"disabled"`` (built in SX, no cache).
+        compiled: the solver calls compiled code (else the SX virtual machine).
+        reason: why, in one line.
+    """
+
+    cache: str
+    compiled: bool
+    reason: str
+
+
+@dataclass(frozen=True)
+class Hit:
+    """A lookup: the library and layout on a hit (else None), and the build info."""
+
+    library: str | None
+    layout: NLPLayout | None
+    info: BuildInfo
+
+
+#: ``$HMPC_BUILD_CACHE`` values: off, use (default), background, sync
+MODES = ("off", "use", "background", "sync")
+
+
+def mode() -> str:
+    """The cache mode from ``$HMPC_BUILD_CACHE`` (default ``"use"``).
+
+    ``off``: no cache; ``use``: load compiled NLPs, never compile (a compile costs minutes
+    of CPU and GBs of memory once per problem structure: the user asks for it);
+    ``background``: also compile a missing one in a detached process at exit; ``sync``:
+    compile it in the foreground.
+    """
+    value = os.environ.get(ENV, "").strip().lower()
+    if value in ("off", "0", "no", "false", "disabled"):
+        return "off"
+    return value if value in ("background", "sync") else "use"
+
+
+#: why a miss is not compiled in the default mode
+NOT_COMPILED = (f"not compiled: {ENV}=background (at exit) or {ENV}=sync (now) compiles it, "
+                "once per problem structure (minutes of CPU, ~3 GB for the ball)")
+
+
+#: the sources that turn a system and settings into the NLP's graph and code
+GRAPH_SOURCES = ("mpc/*.py", "hybrid.py", "numeric.py", "cbuild.py")
+
+
+@functools.lru_cache(maxsize=1)
+def source_digest() -> str:
+    """sha256 of the :data:`GRAPH_SOURCES` of ``hmpc_cli`` (names and bytes).
+
+    The system's own code needs no entry: its CasADi functions are in the key.
+    """
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for path in sorted(p for pattern in GRAPH_SOURCES for p in root.glob(pattern)):
+        h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def _fingerprint(value) -> object:
+    """A JSON-ready fingerprint of a system's field (functions by their serialization)."""
+    if isinstance(value, ca.Function):
+        return hashlib.sha256(value.serialize().encode()).hexdigest()
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _fingerprint(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, Mapping):
+        return {str(k): _fingerprint(v) for k, v in sorted(value.items(), key=str)}
+    if isinstance(value, list | tuple):
+        return [_fingerprint(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, str | int | float | bool) or value is None:
+        return value
+    # callables (margins, gains: parameters, not graph) and other objects: by type only
+    return f"<{type(value).__module__}.{type(value).__qualname__}>"
+
+
+def structure_key(system, settings, switches: int) -> str:
+    """sha256 of everything that determines the NLP's graph (see the module docstring).
+
+    Args:
+        system: the controllers' hybrid system.
+        settings: the MPC settings (a pydantic model).
+        switches: S, the guard events of the chain.
+    """
+    fields = {k: v for k, v in settings.model_dump(mode="json").items()
+              if k not in NON_STRUCTURAL}
+    material = {"format": FORMAT, "hmpc": __version__, "casadi": ca.__version__,
+                "python": sys.version, "machine": platform.machine(),
+                "source": source_digest(), "system": _fingerprint(system),
+                "settings": fields, "switches": int(switches)}
+    return hashlib.sha256(json.dumps(material, sort_keys=True).encode()).hexdigest()
+
+
+class Entry:
+    """The files of one cache entry (see the module docstring).
+
+    Args:
+        folder: the cache directory.
+        key: the structure key.
+        identity: the compiler's identity (:func:`hmpc_cli.cbuild.compiler_identity`).
+    """
+
+    def __init__(self, folder: Path, key: str, identity: str) -> None:
+        """The entry's paths."""
+        stem = f"nlp-{key[:32]}"
+        cc = hashlib.sha256("\0".join([identity, *CFLAGS]).encode()).hexdigest()[:16]
+        self.key, self.folder = key, folder
+        self.meta = folder / f"{stem}.json"
+        self.function = folder / f"{stem}.casadi"
+        self.library = folder / f"{stem}-{cc}.so"
+        self.lock = folder / f"{stem}-{cc}.lock"
+        self.failed = folder / f"{stem}-{cc}.failed"
+
+    def check(self, path: Path, note: str = "") -> bool:
+        """True if ``path`` is verified (and recorded with ``note``); else it is removed.
+
+        A damaged or foreign file (bytes not matching its sha256, or recorded for another
+        key) is reported as a warning.
+        """
+        if cbuild.verified(path) and (not note or cbuild.recorded(path)[2:3] == [note]):
+            return True
+        if path.exists():
+            _LOG.warning("%s does not match its recorded sha256%s: rebuilding it", path,
+                         f" and key {note[:16]}" if note else "")
+            for p in (path, cbuild.hash_path(path)):
+                with contextlib.suppress(OSError):
+                    p.unlink()
+        return False
+
+
+def _disabled(reason: str) -> Hit:
+    return Hit(None, None, BuildInfo("disabled", False, reason))
+
+
+def open_entry(key: str, plugin: str) -> tuple[Entry | None, Hit | None]:
+    """The entry of ``key``, or None and why the cache is not used."""
+    if mode() == "off":
+        return None, _disabled(f"{ENV}=off: the NLPs are built in SX")
+    if plugin != "ipopt":
+        return None, _disabled(f"solver {plugin!r}: compiled NLPs are for ipopt only")
+    cc = cbuild.compiler()
+    if cc is None:
+        return None, _disabled("no C compiler found (set CC or install cc/gcc): the NLPs "
+                               "are built in SX")
+    try:
+        identity = cbuild.compiler_identity(cc)
+    except cbuild.CBuildError as e:
+        return None, _disabled(f"{e}: the NLPs are built in SX")
+    folder, unsafe = cbuild.checked_cache_dir()
+    if unsafe:
+        return None, _disabled(f"cache directory {folder} is not used ({unsafe})")
+    return Entry(folder, key, identity), None
+
+
+def lookup(key: str, plugin: str) -> Hit:
+    """The compiled library and layout of ``key`` if cached and verified, else why not."""
+    entry, off = open_entry(key, plugin)
+    if entry is None:
+        return off
+    if entry.check(entry.meta) and entry.check(entry.library, entry.key):
+        try:
+            meta = json.loads(entry.meta.read_text())
+            if meta.get("format") != FORMAT or meta.get("key") != entry.key:
+                raise ValueError(f"{entry.meta} belongs to another entry")
+            layout = NLPLayout.from_dict(meta["layout"])
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            _LOG.warning("%s is unusable (%s): rebuilding it", entry.meta, e)
+            return Hit(None, None, BuildInfo("miss", False, f"unusable entry: {e}"))
+        return Hit(str(entry.library), layout,
+                   BuildInfo("hit", True, f"loaded {entry.library.name}"))
+    return Hit(None, None, BuildInfo("miss", False, "not in the cache"))
+
+
+def store(key: str, plugin: str, nlp: dict, layout: NLPLayout) -> BuildInfo:
+    """Stores a freshly built NLP's layout and function, and starts its compilation.
+
+    Returns:
+        The build info of this (SX) build: ``miss`` and what happens to the library.
+    """
+    entry, off = open_entry(key, plugin)
+    if entry is None:
+        return off.info
+    if mode() == "use":
+        return BuildInfo("miss", False, NOT_COMPILED)
+    if entry.failed.exists():
+        return BuildInfo("miss", False, f"compilation failed before (see {entry.failed})")
+    fun = ca.Function("nlp", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]],
+                      ["x", "p"], ["f", "g"])
+    try:
+        cbuild.write_verified(entry.function, fun.serialize())
+        cbuild.write_verified(entry.meta, json.dumps(
+            {"format": FORMAT, "key": key, "layout": layout.to_dict()}, sort_keys=True))
+    except OSError as e:
+        return BuildInfo("miss", False, f"cannot write the cache: {e}")
+    if mode() == "sync":
+        try:
+            seconds = compile_entry(entry)
+        except cbuild.CBuildError as e:
+            return BuildInfo("miss", False, f"compilation failed: {e}")
+        return BuildInfo("miss", False, f"compiled {entry.library.name} in {seconds:.1f} s")
+    return BuildInfo("miss", False, _spawn(entry))
+
+
+def _stale(lock: Path) -> bool:
+    """True if ``lock`` is older than :data:`LOCK_STALE` or its process is gone."""
+    try:
+        if time.time() - lock.stat().st_mtime > LOCK_STALE:
+            return True
+        os.kill(int(lock.read_text().strip()), 0)
+    except ProcessLookupError:
+        return True
+    except (OSError, ValueError):
+        return False
+    return False
+
+
+def _take_lock(entry: Entry) -> bool:
+    """Creates the entry's lock file (False if another live compile holds it)."""
+    if _stale(entry.lock):
+        entry.lock.unlink(missing_ok=True)
+    try:
+        fd = os.open(entry.lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600)
+    except FileExistsError:
+        return False
+    os.write(fd, str(os.getpid()).encode())
+    os.close(fd)
+    return True
+
+
+def _spawn(entry: Entry) -> str:
+    """Queues ``entry`` for the background compile started at exit; returns what was done.
+
+    The lock is taken now; one detached process compiles this process's entries one after
+    the other once it exits (never competing with its run, one compiler's memory at a
+    time).
+    """
+    if not _take_lock(entry):
+        return f"being compiled by another process ({entry.lock.name})"
+    if not _QUEUE:
+        atexit.register(_start_queue)
+    _QUEUE.append(entry)
+    return f"{entry.library.name} is compiled in the background when this process exits"
+
+
+def _start_queue() -> None:
+    """Starts the detached compile of the queued entries (at exit)."""
+    entries, _QUEUE[:] = list(_QUEUE), []
+    root = str(Path(__file__).resolve().parents[2])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        p for p in (root, os.environ.get("PYTHONPATH", "")) if p)}
+    args = [a for e in entries for a in (str(e.folder), e.key)]
+    try:
+        subprocess.Popen([sys.executable, "-m", "hmpc_cli.mpc.cache", *args], env=env,
+                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                         stderr=subprocess.DEVNULL, start_new_session=True)
+    except OSError:
+        for e in entries:
+            e.lock.unlink(missing_ok=True)
+
+
+def generate(entry: Entry, folder: Path) -> Path:
+    """Writes the C of the entry's ``nlpsol`` functions into ``folder``; returns its path.
+
+    Raises:
+        cbuild.CBuildError: the stored function is damaged or the code cannot be made.
+    """
+    if not entry.check(entry.function):
+        raise cbuild.CBuildError(f"{entry.function} is missing or damaged")
+    try:
+        fun = ca.Function.deserialize(entry.function.read_bytes().decode())
+        x = ca.SX.sym("x", fun.size1_in(0))
+        p = ca.SX.sym("p", fun.size1_in(1))
+        f, g = fun(x, p)
+        solver = ca.nlpsol("nlp", "ipopt", {"x": x, "p": p, "f": f, "g": g},
+                           {"expand": True})
+        with contextlib.chdir(folder):
+            solver.generate_dependencies("nlp.c", {"with_header": False})
+    except RuntimeError as e:
+        raise cbuild.CBuildError(f"code generation failed: {e}") from e
+    return folder / "nlp.c"
+
+
+def compile_entry(entry: Entry) -> float:
+    """Generates and compiles the entry's library (verified on disk); returns seconds.
+
+    Raises:
+        cbuild.CBuildError: no compiler, generation or compilation failed.
+    """
+    cc = cbuild.compiler()
+    if cc is None:
+        raise cbuild.CBuildError("no C compiler found")
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="hmpc-nlp-") as work:
+        source = generate(entry, Path(work))
+        cbuild.compile_shared(cc, CFLAGS, source, entry.library, note=entry.key)
+    seconds = time.perf_counter() - start
+    _LOG.info("compiled %s in %.1f s", entry.library, seconds)
+    return seconds
+
+
+def _main(args: list[str]) -> int:
+    """The background compile: ``python -m hmpc_cli.mpc.cache (<folder> <key>)...``."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.nice(10)
+    cc = cbuild.compiler()
+    identity = cbuild.compiler_identity(cc) if cc else ""
+    entries = [Entry(Path(f), k, identity) for f, k in zip(args[::2], args[1::2], strict=True)]
+    for entry in entries:  # the locks are this process's now
+        cbuild.atomic_write(entry.lock, str(os.getpid()))
+    for folder in {e.folder for e in entries}:  # left by compiles killed midway
+        cbuild.remove_stale_temporaries(folder)
+    failures = 0
+    for entry in entries:
+        try:
+            compile_entry(entry)
+        except cbuild.CBuildError as e:
+            cbuild.atomic_write(entry.failed, f"{e}\n")
+            failures += 1
+        finally:
+            entry.lock.unlink(missing_ok=True)
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    sys.exit(_main(sys.argv[1:]))

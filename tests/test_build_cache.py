@@ -1,0 +1,268 @@
+"""The MPC's build cache: same structure hits and solves alike, damage is caught, fallbacks.
+
+A tiny chain (0.1 s horizon at 20 nodes/s, one switch) keeps the compiles to seconds; the
+compiled entry is made once per module (``HMPC_BUILD_CACHE=sync``) and copied where a
+test damages it.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hmpc_cli import cbuild
+from hmpc_cli.mpc import cache
+from hmpc_cli.mpc.layout import ChainLayout, NodeSchedule
+from hmpc_cli.mpc.nlp import FixedModeNLP, MPCSettings
+from hmpc_cli.registry import build_system
+from hmpc_cli.scenario import load_scenario
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = ["mpc.horizon=0.1", "mpc.nodes_per_second=20", "mpc.max_switches=1"]
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    """The ball and the tiny chain's settings."""
+    sc, _ = load_scenario(REPO / "scenarios" / "ball.toml", TINY)
+    return build_system(sc.system), sc.mpc
+
+
+@pytest.fixture(scope="module")
+def filled(tiny, tmp_path_factory):
+    """A cache directory holding the compiled tiny NLP, and the NLP of that first build."""
+    folder = tmp_path_factory.mktemp("build-cache")
+    folder.chmod(0o700)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("HMPC_CACHE_DIR", str(folder))
+        mp.setenv(cache.ENV, "sync")
+        first = FixedModeNLP(*tiny)
+        FixedModeNLP(*tiny, switches=0)  # the final domain's NLP: a second entry
+    return folder, first
+
+
+@pytest.fixture
+def use(monkeypatch, tmp_path):
+    """``use(folder=None, mode="sync")``: points the cache at a copy of ``folder``."""
+    def point(folder: Path | None = None, mode: str = "sync") -> Path:
+        target = tmp_path / "cache"
+        if folder is not None:
+            shutil.copytree(folder, target)
+        target.mkdir(mode=0o700, exist_ok=True)
+        target.chmod(0o700)
+        monkeypatch.setenv("HMPC_CACHE_DIR", str(target))
+        monkeypatch.setenv(cache.ENV, mode)
+        return target
+    return point
+
+
+def _problem(nlp: FixedModeNLP, ball):
+    """Parameters and bounds of a flow-only schedule in the ball's first mode."""
+    ns = NodeSchedule((0,), (), (nlp.N,))
+    return nlp.problem_data(ns, ChainLayout.build(ns, nlp.L), ball.x0)
+
+
+def _solve_twice(nlp: FixedModeNLP, ball):
+    """A cold solve and a warm re-solve from its result."""
+    data = _problem(nlp, ball)
+    cold = nlp.solve(np.zeros(nlp.nx_var), *data)
+    warm = nlp.solve(cold.x, *data, cold.lam_x, cold.lam_g)
+    return cold, warm
+
+
+def test_first_build_misses_and_compiles(filled):
+    _, first = filled
+    assert first.build_info.cache == "miss" and not first.build_info.compiled
+    assert "compiled" in first.build_info.reason
+
+
+def test_same_problem_hits_and_solves_bit_identically(tiny, filled, use):
+    folder, first = filled
+    use(folder)
+    second = FixedModeNLP(*tiny)
+    assert second.build_info.cache == "hit" and second.build_info.compiled
+    np.testing.assert_array_equal(second.layout.g["dynamics"], first.layout.g["dynamics"])
+    for a, b in zip(_solve_twice(first, tiny[0]), _solve_twice(second, tiny[0]), strict=True):
+        assert a.stats.success and b.stats.success
+        assert a.stats.iterations == b.stats.iterations
+        np.testing.assert_array_equal(a.x, b.x)
+        np.testing.assert_array_equal(a.lam_g, b.lam_g)
+    w = np.linspace(0.0, 1.0, first.nx_var)
+    p = _problem(first, tiny[0])[0]
+    np.testing.assert_array_equal(first.constraints(w, p), second.constraints(w, p))
+
+
+def test_the_default_mode_loads_but_never_compiles(tiny, filled, use, monkeypatch):
+    folder = use()  # an empty cache
+    monkeypatch.delenv(cache.ENV)
+    assert cache.mode() == "use"
+    built = FixedModeNLP(*tiny)
+    assert built.build_info.cache == "miss" and not built.build_info.compiled
+    assert built.build_info.reason.startswith("not compiled: HMPC_BUILD_CACHE=background")
+    assert not list(folder.iterdir()), "a miss in the default mode writes nothing"
+    shutil.rmtree(folder)
+    use(filled[0])  # a compiled entry is used in the default mode
+    monkeypatch.delenv(cache.ENV)
+    assert FixedModeNLP(*tiny).build_info.cache == "hit"
+
+
+def test_changed_setting_misses_solver_option_hits(tiny):
+    system, s = tiny
+    key = cache.structure_key(system, s, 1)
+    assert cache.structure_key(system, s, 1) == key
+    for change in ({"horizon": 0.15}, {"integrator": "euler"}, {"input_hold": "zoh"},
+                   {"soft_penalty": 1e3}):
+        changed = MPCSettings(**{**s.model_dump(), **change})
+        assert cache.structure_key(system, changed, 1) != key, change
+    assert cache.structure_key(system, s, 0) != key
+    applied = MPCSettings(**{**s.model_dump(), "max_iter": 7, "rate_hz": 20,
+                             "tube_margin": 0.05})
+    assert cache.structure_key(system, applied, 1) == key  # options, rates, margins
+    sc, _ = load_scenario(REPO / "scenarios" / "ball.toml", [*TINY, "system.drag=0.03"])
+    assert cache.structure_key(build_system(sc.system), s, 1) != key
+
+
+def test_changed_setting_misses_the_filled_cache(tiny, filled, use):
+    use(filled[0], mode="background")
+    other = MPCSettings(**{**tiny[1].model_dump(), "max_iter": 30, "horizon": 0.15})
+    assert cache.lookup(cache.structure_key(tiny[0], other, 1), "ipopt").info.cache == "miss"
+    same = MPCSettings(**{**tiny[1].model_dump(), "max_iter": 30})
+    hit = cache.lookup(cache.structure_key(tiny[0], same, 1), "ipopt")
+    assert hit.info.cache == "hit" and hit.library is not None
+
+
+@pytest.mark.parametrize("damage", ["truncate", "flip", "foreign"])
+def test_damaged_library_is_detected_and_rebuilt(tiny, filled, use, caplog, damage):
+    folder = use(filled[0])
+    libs = sorted(folder.glob("nlp-*.so"))
+    target = next(p for p in libs if cache.structure_key(tiny[0], tiny[1], 1)[:32] in p.name)
+    if damage == "truncate":
+        target.write_bytes(target.read_bytes()[: target.stat().st_size // 2])
+    elif damage == "flip":
+        raw = bytearray(target.read_bytes())
+        raw[len(raw) // 2] ^= 0x01
+        target.write_bytes(bytes(raw))
+    else:  # another entry's library with its own (valid) record
+        other = next(p for p in libs if p != target)
+        shutil.copy(other, target)
+        shutil.copy(cbuild.hash_path(other), cbuild.hash_path(target))
+    with caplog.at_level(logging.WARNING, logger="hmpc_cli.mpc.cache"):
+        nlp = FixedModeNLP(*tiny)
+    assert "does not match its recorded sha256" in caplog.text
+    assert nlp.build_info.cache == "miss" and "compiled" in nlp.build_info.reason
+    assert _solve_twice(nlp, tiny[0])[0].stats.success
+    again = FixedModeNLP(*tiny)  # the rebuilt library is used
+    assert again.build_info.cache == "hit" and cbuild.verified(target)
+
+
+def test_damaged_layout_is_detected(tiny, filled, use, caplog):
+    folder = use(filled[0], mode="background")
+    key = cache.structure_key(tiny[0], tiny[1], 1)
+    meta = folder / f"nlp-{key[:32]}.json"
+    meta.write_text(meta.read_text().replace('"size": ', '"size": 1', 1))
+    with caplog.at_level(logging.WARNING, logger="hmpc_cli.mpc.cache"):
+        hit = cache.lookup(key, "ipopt")
+    assert hit.library is None and hit.info.cache == "miss"
+    assert "does not match its recorded sha256" in caplog.text and not meta.exists()
+
+
+def test_cache_writable_by_others_is_refused(tiny, filled, use):
+    folder = use(filled[0])
+    folder.chmod(0o777)
+    nlp = FixedModeNLP(*tiny)
+    assert nlp.build_info.cache == "disabled" and not nlp.build_info.compiled
+    assert "writable by group or others" in nlp.build_info.reason
+    assert _solve_twice(nlp, tiny[0])[0].stats.success
+
+
+@pytest.mark.parametrize("how", ["missing CC", "empty PATH"])
+def test_no_compiler_falls_back_to_sx_and_says_so(tiny, use, monkeypatch, how):
+    use()
+    if how == "missing CC":
+        monkeypatch.setenv("CC", "/nonexistent/cc")
+    else:
+        monkeypatch.delenv("CC", raising=False)
+        monkeypatch.setenv("PATH", "")
+    nlp = FixedModeNLP(*tiny)
+    info = nlp.build_info
+    assert info.cache == "disabled" and not info.compiled
+    assert ("cannot run /nonexistent/cc" if how == "missing CC" else "no C compiler") \
+        in info.reason
+    assert _solve_twice(nlp, tiny[0])[0].stats.success
+
+
+def test_disabled_by_environment_writes_nothing(tiny, use, monkeypatch):
+    folder = use()
+    monkeypatch.setenv(cache.ENV, "off")
+    nlp = FixedModeNLP(*tiny)
+    assert nlp.build_info == cache.BuildInfo("disabled", False,
+                                             "HMPC_BUILD_CACHE=off: the NLPs are built in SX")
+    assert not os.listdir(folder)
+
+
+def test_run_log_names_the_build(tiny, filled, use, run_hmpc, tmp_path):
+    from hmpc_cli.rundata import read_run
+
+    use(filled[0], mode="background")  # inherited by the hmpc process
+    out = tmp_path / "run"
+    res = run_hmpc(["run", str(REPO / "scenarios" / "ball.toml"), "--out", str(out),
+                    "--quiet", "--set", "sim.duration=0.2",
+                    *[a for t in TINY for a in ("--set", t)]], REPO)
+    assert res.returncode in (0, 1), res.stderr
+    build = read_run(out / "run.mcap").info["build"]
+    assert build["cache"] == "hit" and build["compiled"] is True
+    assert build["reason"].startswith("loaded nlp-")
+
+
+def test_background_compile_after_exit_fills_the_cache(tiny, use):
+    import subprocess
+    import sys
+    import time
+
+    folder = use(mode="background")
+    code = ("from hmpc_cli.registry import build_system; from hmpc_cli.scenario import "
+            "load_scenario; from hmpc_cli.mpc.nlp import FixedModeNLP; import sys; "
+            f"sc, _ = load_scenario(sys.argv[1], {TINY!r}); "
+            "n = FixedModeNLP(build_system(sc.system), sc.mpc); print(n.build_info.reason)")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get(
+        "PYTHONPATH", "")])}
+    res = subprocess.run([sys.executable, "-c", code, str(REPO / "scenarios" / "ball.toml")],
+                         env=env, capture_output=True, text=True, timeout=120, check=True)
+    assert "compiled in the background when this process exits" in res.stdout
+    key = cache.structure_key(*tiny, 1)
+    deadline = time.monotonic() + 120
+    while list(folder.glob("*.lock")) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert not list(folder.glob("*.failed"))
+    hit = cache.lookup(key, "ipopt")
+    assert hit.info.cache == "hit" and hit.library is not None
+
+
+def test_layout_round_trips_through_json(filled):
+    import json
+
+    from hmpc_cli.mpc.builder import NLPLayout
+
+    layout = filled[1].layout
+    back = NLPLayout.from_dict(json.loads(json.dumps(layout.to_dict())))
+    for kind in "xpg":
+        a, b = getattr(layout, kind), getattr(back, kind)
+        assert a.size == b.size and a.names == b.names
+        for name in a.names:
+            np.testing.assert_array_equal(a[name], b[name])
+            assert a.stages(name) == b.stages(name)
+        np.testing.assert_array_equal(a.at(0), b.at(0))
+
+
+def test_stale_temporaries_are_removed(tmp_path):
+    old, new = tmp_path / ".hmpc-old.so", tmp_path / ".hmpc-new.so"
+    old.write_bytes(b"partial")
+    new.write_bytes(b"in progress")
+    os.utime(old, (1.0, 1.0))
+    assert cbuild.remove_stale_temporaries(tmp_path) == 1
+    assert not old.exists() and new.exists()
