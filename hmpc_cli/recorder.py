@@ -231,6 +231,13 @@ class Recorder:
             raise KeyError(f"unknown protobuf topic {topic!r}; call add_protobuf_topic() first")
         self._add(topic, _to_ns(t), message.SerializeToString())
 
+    def write_protobuf_bytes(self, topic: str, t: float, data: bytes) -> None:
+        """Writes one protobuf message, already encoded, on `topic` at sim time `t` (s)."""
+        self._check_open()
+        if topic not in self._protobuf:
+            raise KeyError(f"unknown protobuf topic {topic!r}; call add_protobuf_topic() first")
+        self._add(topic, _to_ns(t), bytes(data))
+
     def _add(self, topic: str, ns: int, data: bytes) -> None:
         """Adds one encoded message; flushes every ``flush_every`` messages."""
         self._writer.add_message(self._channels[topic], ns, data, ns, self._sequence[topic])

@@ -130,6 +130,7 @@ def test_sqp_backend_needs_stagewise_dynamics():
     assert sc.mpc.solver_of(0) == "sqp_hpipm" and sc.mpc.solver_of(10) == "ipopt"
 
 
+@pytest.mark.slow
 def test_sqp_closed_loop_matches_ipopt():
     """Figure 3, trial 5 (zero-order hold): same outcome with either back-end."""
     from hmpc_cli.runner import prepare

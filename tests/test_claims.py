@@ -22,6 +22,7 @@ def _successes(results: Path) -> Counter:
 
 
 @pytest.mark.slow
+@pytest.mark.campaign
 def test_figure_3_campaign_and_the_100_hz_controller(tmp_path, run_hmpc):
     """All 44 runs: faster MPC and replanning never do worse than the 10 Hz fixed
     controller, and 100 Hz does at least as well as 20 Hz (the reference's 4/11 at 100 Hz
@@ -72,6 +73,7 @@ def test_biped_walks_the_figure_4_course(tmp_path, run_hmpc):
 
 
 @pytest.mark.slow
+@pytest.mark.campaign
 def test_computed_margins_do_as_well_as_the_hand_set_ones_at_20_hz(tmp_path, run_hmpc):
     """sweeps/margins.toml: Figure 3's nominal run and ten trials at 20 Hz, hand-set vs
     the margins file hmpc tube wrote (the kinematic tube): no fewer successes."""

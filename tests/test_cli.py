@@ -39,6 +39,7 @@ def log(full) -> Log:
     return read_log(full.out / "run.mcap")
 
 
+@pytest.mark.slow
 def test_run_writes_the_run_directory(full) -> None:
     assert sorted(p.name for p in full.out.iterdir()) == ["run.mcap", "scenario.toml",
                                                           "summary.json"]
@@ -161,6 +162,7 @@ def _data(log: Log, topic: str, key: str) -> list:
     return [m.data[key] for m in log.topic(topic)]
 
 
+@pytest.mark.slow
 def test_runs_are_bit_for_bit_reproducible(twin_logs) -> None:
     a, b = twin_logs
     xs = _data(a, "/sim/state", "x")

@@ -72,6 +72,7 @@ def test_completion_of_figures_and_set_keys(tmp_path):
     assert {"fig2", "fig3", "fig4"} <= set(proc.stdout.split()), proc.stdout + proc.stderr
 
 
+@pytest.mark.slow
 def test_run_prints_its_log_path_and_strict_exits_1_on_failure(tmp_path):
     out = tmp_path / "short run"
     proc = _hmpc(["run", str(BALL), "--set", "sim.duration=0.2", "--out", str(out), "-q",
@@ -142,6 +143,7 @@ def test_constraints_pin_the_installed_versions():
             pytest.fail(f"constraints/tested.txt pins {name}, which is not installed")
 
 
+@pytest.mark.slow
 def test_a_crash_inside_the_loop_is_one_line_exit_1_with_its_traceback_on_disk(
         tmp_path, monkeypatch):
     from typer.testing import CliRunner

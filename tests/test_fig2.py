@@ -40,6 +40,7 @@ def rewrite(src, dst, edit):
     return dst
 
 
+@pytest.mark.slow
 def test_cli_writes_the_figure_deterministically(run, run_hmpc, tmp_path):
     first = run_hmpc(["plot", "fig2", str(run), "--out", str(tmp_path / "a")], cwd=tmp_path)
     assert first.returncode == 0, first.stderr

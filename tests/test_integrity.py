@@ -331,6 +331,7 @@ class _Quiet(BaseHTTPRequestHandler):
         pass
 
 
+@pytest.mark.slow
 def test_dask_http_port_exits_2_quickly(tmp_path):
     pytest.importorskip("distributed")
     (tmp_path / "tiny.toml").write_text(TINY_SWEEP.format(ball=BALL.as_posix()))

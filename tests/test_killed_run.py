@@ -8,11 +8,14 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from hmpc_cli.recorder import read_log
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_sigkilled_run_leaves_a_readable_log(tmp_path):
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "hmpc_cli.cli", "run", str(ROOT / "scenarios" / "ball.toml"),

@@ -79,6 +79,7 @@ def test_paused_is_the_default_bit_for_bit(tmp_path):
     assert np.array_equal(a.x, b.x) and np.array_equal(a.u, b.u)
 
 
+@pytest.mark.slow
 def test_measured_latency_is_the_compute_time_and_is_flagged(tmp_path):
     result, log, solves, used = _run(tmp_path, "measured", ["sim.latency=\"measured\""])
     assert any("not reproducible" in w for w in result.warnings)

@@ -34,6 +34,7 @@ def logs(tmp_path_factory, run_hmpc) -> dict[str, Path]:
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("system", ["ball", "biped"])
 def test_every_topic_schema_is_inside_the_viewers_subset(logs, system):
     log = read_log(logs[system])

@@ -18,6 +18,7 @@ def run(tmp_path, overrides):
     return result, read_log(tmp_path / "run.mcap")
 
 
+@pytest.mark.slow
 def test_solver_failures_are_counted_logged_and_survived(tmp_path):
     result, log = run(tmp_path, ["mpc.max_iter=2", "sim.duration=0.5"])
     solves = log.topic("/mpc/solve")

@@ -137,6 +137,7 @@ def _xs(path: Path, topic: str, key: str) -> list:
     return [m.data[key] for m in read_log(path / "run.mcap").topic(topic)]
 
 
+@pytest.mark.slow
 def test_a_run_with_a_computed_margins_file(ball_file: Path, tmp_path: Path):
     """All margins 0: the same trajectories as the hand-set tube_margin = 0."""
     runs = {"file": [f'mpc.margins="{ball_file}"'], "hand": ["mpc.tube_margin=0"]}

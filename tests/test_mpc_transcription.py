@@ -83,6 +83,7 @@ def test_soft_constraints_change_nothing_when_the_hard_problem_is_feasible(ball,
     np.testing.assert_allclose(soft.stats.cost, hard.stats.cost, rtol=1e-3)
 
 
+@pytest.mark.slow
 def test_an_unreachable_guard_time_is_softened_not_failed(ball, planned):
     # the wall 0.05 s after rest at (1, 1): 0.9 m away, unreachable with |u| <= 100
     ns = NodeSchedule((0, 0, 1), (1, 2), (3, 40, 47))

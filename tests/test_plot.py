@@ -94,6 +94,7 @@ def has_color(img: np.ndarray, hex_color: str, tol: int = 12) -> bool:
     return bool((np.abs(img - rgb).max(axis=2) <= tol).any())
 
 
+@pytest.mark.slow
 def test_fig3_writes_figures_and_counts_deterministically(table, tmp_path):
     first = plot_proc(["fig3", str(table)], tmp_path)
     assert first.returncode == 0, first.stderr

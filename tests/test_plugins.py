@@ -144,6 +144,7 @@ def test_a_broken_plugin_is_one_error_line(tmp_path, broken_dist, name, value, r
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_the_others_still_run_beside_a_broken_plugin(tmp_path, broken_dist):
     out = tmp_path / "ball"
     proc = hmpc(["run", str(BALL), "--set", "sim.duration=0.2", "--out", str(out), "-q"],
@@ -235,6 +236,7 @@ def circle_points(fig, centre, radius, tol) -> np.ndarray:
     return np.concatenate(angles) if angles else np.zeros(0)
 
 
+@pytest.mark.slow
 def test_changed_ball_geometry_is_used_logged_and_drawn(tmp_path, monkeypatch):
     sweep = tmp_path / "sweep"
     out = sweep / "runs" / "geo"

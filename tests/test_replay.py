@@ -88,6 +88,7 @@ def test_all_shows_every_solve(ball, ball_log) -> None:
     assert not _rows(out, "solves")
 
 
+@pytest.mark.slow
 def test_biped_timeline(biped) -> None:
     log = read_log(biped / "run.mcap")
     res = replay(biped / "run.mcap", "--all")
@@ -367,6 +368,7 @@ def test_foreign_log_with_a_run_info_topic(tmp_path) -> None:
         f"error: {path}: not an hmpc run log (its /run/info has no scenario_name)")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("system", ["ball", "biped"])
 def test_figures_and_the_scene_animation(system, request, tmp_path) -> None:
     """--figures: the figures the system supports, the others named; a GIF of the scene."""

@@ -101,6 +101,7 @@ def test_report_page_tables_the_study(tmp_path):
     assert "±30.0, once: 50 Hz is higher than 5 Hz (20 % vs 0 %; intervals overlap)" in text
 
 
+@pytest.mark.slow
 def test_report_command_runs_a_tiny_study_then_writes_the_page(tmp_path, run_hmpc):
     sweep = tmp_path / "tiny_study.toml"
     sweep.write_text(f"""name = "tiny_study"

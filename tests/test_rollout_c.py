@@ -105,6 +105,7 @@ def test_c_rollout_equals_numpy(start):
     assert np.isinf(cost).sum() > len(cost) // 3  # the bound pruned
 
 
+@pytest.mark.slow
 @needs_cc
 @pytest.mark.parametrize("start", [STARTS[0], STARTS[3], STARTS[4]])
 def test_reference_cost_c_equals_numpy_and_runs_the_whole_horizon(start):
@@ -151,6 +152,7 @@ def _same_trajectory(a, b):
     assert a.guards == b.guards
 
 
+@pytest.mark.slow
 @needs_cc
 @pytest.mark.parametrize("cost", ["hmpc", "reference"])
 def test_plan_is_the_same_with_both_backends(cost):

@@ -346,6 +346,7 @@ def test_effective_toml_round_trips(tmp_path: Path, overrides: list[str]) -> Non
     assert dump_toml(sc.model_dump(mode="json", exclude_none=True)) == text
 
 
+@pytest.mark.slow
 def test_cli_overrides_and_seed_reach_the_run(tmp_path: Path, run_hmpc) -> None:
     out = tmp_path / "o"
     proc = run_hmpc(["run", str(BALL), "--out", str(out), "-q", "--seed", "11",

@@ -76,9 +76,8 @@ def _check_interrupted(out: Path, sig: int, proc: subprocess.Popen, err: str) ->
     return summary
 
 
-@pytest.mark.parametrize("sig", [pytest.param(signal.SIGINT, marks=pytest.mark.slow),
-                                 signal.SIGTERM,
-                                 pytest.param(signal.SIGHUP, marks=pytest.mark.slow)],
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP],
                          ids=lambda s: signal.Signals(s).name)
 def test_signal_stops_run_cleanly(tmp_path, sig):
     out = tmp_path / "run"
@@ -89,9 +88,8 @@ def test_signal_stops_run_cleanly(tmp_path, sig):
     _check_interrupted(out, sig, proc, err)
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT,
-                                 pytest.param(signal.SIGTERM, marks=pytest.mark.slow),
-                                 pytest.param(signal.SIGHUP, marks=pytest.mark.slow)],
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP],
                          ids=lambda s: signal.Signals(s).name)
 def test_signal_inside_an_ipopt_solve_stops_it(tmp_path, sig):
     """The run spends nearly all its time in ~1 s solves: it must stop far sooner."""
@@ -123,6 +121,7 @@ def test_default_run_dirs_are_unique_within_a_second(tmp_path, monkeypatch):
     assert all((tmp_path / d).is_dir() for d in dirs)
 
 
+@pytest.mark.slow
 def test_two_default_runs_at_once_get_two_directories(tmp_path):
     cmd = [sys.executable, "-m", "hmpc_cli.cli", "run", str(BALL), "-q", "--set",
            "sim.duration=0.05"]

@@ -121,6 +121,7 @@ def test_ball_task_follows_the_circle_unless_the_scenario_sets_goal_and_radius()
     assert ball_task(set_p, build_ball(set_p)).goal.tolist() == [3.0, 3.5]
 
 
+@pytest.mark.slow
 def test_a_planner_that_never_finds_a_schedule_says_so(tmp_path, run_hmpc):
     from conftest import BALL
 

@@ -152,6 +152,7 @@ def test_resume_skips_finished_runs(tiny):
     assert table(out3) == table(out)
 
 
+@pytest.mark.slow
 def test_dask_matches_local(tiny):
     import distributed  # in the `test` extra
     base, path, out, _ = tiny
@@ -247,6 +248,7 @@ def test_fig3_expands_to_33_valid_runs(tmp_path):
                                         for r in fast.runs)
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_cleanly_and_resumes(tmp_path):
     path = write_sweep(tmp_path, 'name = "stop"\nscenario = "{scenario}"\nseeds = 4\n'
                        + TINY_SET.replace("0.3", "0.6"))

@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from test_sweep import REGISTER, sweep, table, write_sweep
 
 from conftest import cli_env
@@ -89,6 +91,7 @@ def _finish(proc: subprocess.Popen, timeout: float = 90) -> tuple[str, str]:
             proc.wait()
 
 
+@pytest.mark.slow
 def test_sigterm_stops_the_sweep_and_resume_redoes_interrupted_runs(tmp_path):
     path = write_sweep(tmp_path, _spec("stop", 4, 20.0))
     out = tmp_path / "out"
@@ -136,6 +139,7 @@ def test_parent_sigkill_leaves_no_orphans(tmp_path):
     assert not left, "workers outlived their parent"
 
 
+@pytest.mark.slow
 def test_a_killed_worker_loses_only_its_run_which_is_retried(tmp_path):
     path = write_sweep(tmp_path, _spec("kill1", 2, 5.0))
     out = tmp_path / "out"
@@ -150,6 +154,7 @@ def test_a_killed_worker_loses_only_its_run_which_is_retried(tmp_path):
     assert not any("BrokenProcessPool" in r["reason"] or "died" in r["reason"] for r in rows)
 
 
+@pytest.mark.slow
 def test_a_run_that_kills_its_worker_twice_is_failed(tmp_path):
     path = write_sweep(tmp_path, _spec("kill2", 2, 6.0))
     out = tmp_path / "out"
@@ -171,6 +176,7 @@ def test_a_run_that_kills_its_worker_twice_is_failed(tmp_path):
     assert "died" not in other["reason"]
 
 
+@pytest.mark.slow
 def test_two_sweeps_on_one_directory(tmp_path):
     path = write_sweep(tmp_path, _spec("lock", 4, 20.0))
     out = tmp_path / "out"

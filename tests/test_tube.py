@@ -229,6 +229,7 @@ def hmpc(args: list[str], cwd: Path, env: dict | None = None) -> subprocess.Comp
                           capture_output=True, text=True, timeout=300)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scenario", [BALL, BIPED], ids=["ball", "biped"])
 def test_cli_tube(scenario: Path, tmp_path: Path):
     out = tmp_path / "tube"
@@ -255,6 +256,7 @@ def test_cli_tube_disturbed_ball_warns_and_defaults_its_directory(tmp_path: Path
     assert (tmp_path / "results" / "ball_disturbed" / "tube" / "tube_margins.png").is_file()
 
 
+@pytest.mark.slow
 def test_cli_tube_region_from_a_run_log(tmp_path: Path):
     from hmpc_cli.recorder import Recorder
 

@@ -34,6 +34,7 @@ def short_walk(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_two_steps_land_on_the_long_segment_and_replan_at_each_contact(short_walk):
     summary = json.loads((short_walk / "summary.json").read_text())
     assert not summary["diverged"]
@@ -68,6 +69,7 @@ def test_the_touchdowns_hit_the_guard_inside_the_segment(short_walk):
         np.testing.assert_allclose(np.asarray(model.reset(xb)).ravel(), xa, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_a_run_is_bit_for_bit_reproducible(tmp_path):
     logs = []
     for k in range(2):
@@ -121,6 +123,7 @@ def test_figure_4_from_the_log_is_deterministic(short_walk, tmp_path):
     np.testing.assert_allclose(hip0, [0.2334, 0.6815], atol=1e-3)
 
 
+@pytest.mark.slow
 def test_plot_fig4_command_writes_the_gif_and_rejects_a_ball_log(short_walk, tmp_path,
                                                                   run_hmpc, full_run):
     proc = run_hmpc(["plot", "fig4", str(short_walk), "--out", str(tmp_path / "f"),
