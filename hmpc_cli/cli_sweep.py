@@ -39,17 +39,8 @@ def sweep_command(
     import os
 
     from hmpc_cli.scenario import ScenarioError
-    from hmpc_cli.sweep import first_seeds, plan_sweep
 
-    try:
-        plan = first_seeds(plan_sweep(sweep_file), seeds)
-    except ScenarioError as exc:
-        _err(exc.lines)
-        raise typer.Exit(EXIT_BAD_INPUT) from None
-    problems = setup_problems(plan)
-    if problems:  # what only the built system can tell, for every cell, before any run
-        _err(problems)
-        raise typer.Exit(EXIT_BAD_INPUT)
+    plan = _checked_plan(sweep_file, seeds)
     if dry_run:
         _list_runs(plan)
         return
@@ -94,6 +85,23 @@ def _locked_execute(plan, out: Path, workers: int, client):
     except SweepLockedError as exc:
         _err([str(exc)])
         raise typer.Exit(EXIT_BAD_INPUT) from None
+
+
+def _checked_plan(sweep_file: Path, seeds: int | None):
+    """The sweep's plan, every cell set-up checked; exit 2 with every problem if any."""
+    from hmpc_cli.scenario import ScenarioError
+    from hmpc_cli.sweep import first_seeds, plan_sweep
+
+    try:
+        plan = first_seeds(plan_sweep(sweep_file), seeds)
+    except ScenarioError as exc:
+        _err(exc.lines)
+        raise typer.Exit(EXIT_BAD_INPUT) from None
+    problems = setup_problems(plan)
+    if problems:  # what only the built system can tell, for every cell, before any run
+        _err(problems)
+        raise typer.Exit(EXIT_BAD_INPUT)
+    return plan
 
 
 def setup_problems(plan) -> list[str]:
