@@ -64,6 +64,11 @@ def _identity_table(rp, size: int):
     t.add_row("overrides", escape(_recorded(info, "overrides")))
     if info.get("sweep"):
         t.add_row("sweep", escape(str(info["sweep"])))
+    build = info.get("build") or {}
+    if build:  # how the MPC's NLPs were built (the build cache)
+        t.add_row("NLP build", escape(f"{build.get('cache', '?')}"
+                                      + (", compiled" if build.get("compiled") else "")
+                                      + (f": {build['reason']}" if build.get("reason") else "")))
     t.add_row("log", escape(f"{rp.path} ({size} bytes)"))
     if rp.log.damage:
         t.add_row("file", f"[red]damaged[/]: {escape(rp.log.damage)}; cut short at t = "

@@ -80,6 +80,7 @@ def test_ball_identity_summary_and_timeline(ball, ball_log) -> None:
     assert len(_rows(out, "solves")) >= 1  # ordinary solves are summarised by default
     assert "softened" in out  # this trial softens a guard-crossing solve
     assert "disturbance:" in out and "wx" in out and "wy" in out
+    assert re.search(r"NLP build\W+disabled", out)  # how the NLPs were built (tests: no cache)
 
 
 def test_all_shows_every_solve(ball, ball_log) -> None:
