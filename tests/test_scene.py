@@ -244,3 +244,50 @@ def test_spheres_wire_bytes_equal_the_message_api():
                                       centers, rest))
     assert fast == slow and len(fast.spheres) == 3
     assert SceneEntity.FromString(fast.SerializeToString()) == slow
+
+
+def test_scene_writer_bytes_equal_the_message_api():
+    """The wire-composed SceneUpdate parses to what the published classes build."""
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+    from hmpc_cli.drawing import Ball, Drawing, Polyline
+    from hmpc_cli.scene import FRAME, SceneWriter
+
+    class Capture:
+        def __init__(self):
+            self.out = []
+
+        def add_protobuf_topic(self, topic, message_type):
+            pass
+
+        def write_protobuf_bytes(self, topic, t, data):
+            self.out.append((topic, t, data))
+
+    drawing = Drawing(points=lambda x: np.array([[x[0], 0.0], [x[1], 1.0]]),
+                      point_names=("a", "b"), links=(("a", "b"),),
+                      balls=(Ball("a", 0.05, (0.1, 0.2, 0.3, 1.0)),),
+                      static=(Polyline("floor", ((0.0, 0.0), (2.0, 0.0))),))
+    rec = Capture()
+    writer = SceneWriter(rec, drawing, max_rate_hz=1e9)
+    writer.start()
+    writer.state(1.25, np.array([0.5, -0.5]))
+    (_, _, static), (_, t, body) = rec.out
+    assert t == 1.25
+    want = SceneUpdate()
+    e = want.entities.add(frame_id=FRAME, id="body")
+    e.timestamp.FromNanoseconds(1_250_000_000)
+    line = e.lines.add(type=2, thickness=drawing.link_thickness)  # LINE_LIST
+    line.pose.position.SetInParent()  # an explicit origin, as the scene has always written
+    line.pose.orientation.w = 1.0
+    line.color.r, line.color.g, line.color.b, line.color.a = drawing.link_color
+    line.points.add(x=0.5, y=0.0, z=-0.5)
+    line.points.add(x=0.0, y=0.0, z=1.0)
+    s = e.spheres.add()
+    s.pose.position.x, s.pose.position.z = 0.5, -0.5
+    s.pose.orientation.w = 1.0
+    s.size.x = s.size.y = s.size.z = 0.1
+    s.color.r, s.color.g, s.color.b, s.color.a = 0.1, 0.2, 0.3, 1.0
+    assert SceneUpdate.FromString(body) == want
+    floor = SceneUpdate.FromString(static).entities[0]
+    assert floor.id == "static/floor" and floor.frame_locked and floor.frame_id == FRAME
+    assert not floor.HasField("timestamp") or floor.timestamp.ToNanoseconds() == 0
