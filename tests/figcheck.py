@@ -16,8 +16,10 @@ def _agg(fig):
 
 def _undrawn_tick_labels(fig) -> set[int]:
     """ids of tick labels whose tick lies outside its axis's view (Matplotlib skips them)."""
+    from matplotlib.axes import Axes
+
     out = set()
-    for ax in fig.axes:
+    for ax in fig.findobj(Axes):  # insets (a colour bar) too
         for axis in (ax.xaxis, ax.yaxis):
             lo, hi = sorted(axis.get_view_interval())
             tol = 1e-9 * max(1.0, hi - lo)

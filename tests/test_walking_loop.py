@@ -128,6 +128,8 @@ def test_fig4_is_legible_at_one_column(short_walk, tmp_path, width, height):
     """One column by default (--width overrides): the saved size, STIX, text >= 7 pt, no
     overlapping text; a colour bar for time; poses that did not move are not redrawn."""
     from figcheck import assert_legible
+    from matplotlib.axes import Axes
+
     from hmpc_cli.figures import fig4 as f4
     from hmpc_cli.figures.common import COLUMN_WIDTH_IN, figure_style
     from PIL import Image
@@ -141,7 +143,7 @@ def test_fig4_is_legible_at_one_column(short_walk, tmp_path, width, height):
     with figure_style():
         fig = f4._figure(walk, 0.1, width, height)
         assert_legible(fig, width, height)
-        assert any(ax.get_label() == "<colorbar>" for ax in fig.axes)
+        assert any(ax.get_ylabel() == "$t$ (s)" for ax in fig.findobj(Axes))  # the time bar
         labels = {ax.get_xlabel() for ax in fig.axes} | {ax.get_ylabel() for ax in fig.axes}
         assert {"$x$ (m)", "$t$ (s)", "$F_x$ (N)"} <= labels
     # Standing still: the same pose repeated is drawn once.

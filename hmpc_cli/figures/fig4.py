@@ -191,7 +191,7 @@ def _figure(walk: WalkLog, every: float, width: float, height: float):
     """
     import matplotlib as mpl
     from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import Normalize
+    from matplotlib.colors import ListedColormap, Normalize
     from matplotlib.figure import Figure
     from matplotlib.ticker import MaxNLocator
 
@@ -200,12 +200,14 @@ def _figure(walk: WalkLog, every: float, width: float, height: float):
     grid = fig.add_gridspec(4, 1, height_ratios=[2.3, 1.0, 1.0, 1.0])
     ax = fig.add_subplot(grid[0])
     t0, t1 = walk.t[0], max(walk.t[-1], walk.t[0] + 1e-9)
-    cmap, norm = mpl.colormaps["viridis"], Normalize(t0, t0 + (t1 - t0) / 0.9)
+    # viridis without its palest yellow (too faint on white), t0 .. t1 over the bar
+    cmap = ListedColormap(mpl.colormaps["viridis"](np.linspace(0.0, 0.9, 256)))
+    norm = Normalize(t0, t1)
     _draw_walk(ax, walk, every, cmap, norm)
-    bar = fig.colorbar(ScalarMappable(norm, cmap), ax=ax, location="right", fraction=0.05,
-                       pad=0.02, aspect=12)
+    # the bar as high as the equal-aspect panel itself (an inset follows its drawn box)
+    bar = fig.colorbar(ScalarMappable(norm, cmap), cax=ax.inset_axes([1.025, 0.0, 0.035, 1.0]))
+    ax.set_anchor("C")  # a wide figure's equal-aspect panel stays centred
     bar.set_label("$t$ (s)")
-    bar.ax.set_ylim(t0, t1)
     bar.locator = MaxNLocator(4)
     bar.update_ticks()
     panels = [(walk.t, walk.hip[:, 0], "hip $x$ (m)"), (walk.t, walk.hip[:, 1], "hip $y$ (m)"),
