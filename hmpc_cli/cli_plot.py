@@ -12,6 +12,8 @@ from hmpc_cli.cli_common import complete_figure
 __all__ = ["plot_command"]
 
 EXIT_BAD_INPUT = 2
+TEXT_WIDTH_IN = 7.16  # as hmpc_cli.figures.common (not imported: --help stays light)
+COLUMN_WIDTH_IN = 3.5
 
 
 def _fail(message: str) -> None:
@@ -158,9 +160,12 @@ def plot_command(
         "--nominal", help="trace-axis value of the undisturbed run (orange)")] = "nominal",
     panels: Annotated[str | None, typer.Option(
         "--panels", help='panels in order, e.g. "10 Hz fixed,20 Hz fixed" (default: all)')] = None,
-    width: Annotated[float, typer.Option("--width", help="figure width (in)")] = 7.16,
+    width: Annotated[float | None, typer.Option(
+        "--width", help="figure width (in; fig3, fig4 3.5 = one column; fig2, robustness "
+        "7.16 = text width)")] = None,
     height: Annotated[float | None, typer.Option(
-        "--height", help="figure height (in; fig3 2.5, robustness 1.9)")] = None,
+        "--height", help="figure height (in; fig3 2.1, fig4 4.2, fig2 2.8, robustness 1.9)")
+    ] = None,
     view: Annotated[str | None, typer.Option(
         "--view", help='axis limits "x0,x1,y0,y1" (default: from the data)')] = None,
     every: Annotated[float, typer.Option(
@@ -189,7 +194,10 @@ def _draw(figure: str, table: Path, out: Path | None, formats: str, o: dict) -> 
 
     if figure not in FIGURES:
         _fail(f"unknown figure {figure!r} (choose from {', '.join(FIGURES)})")
-    width, height = o["width"], o["height"]
+    height = o["height"]
+    # fig3 and fig4 fit one IEEE column; fig2 and the robustness curves span the text width
+    width = o["width"] if o["width"] is not None else \
+        COLUMN_WIDTH_IN if figure in ("fig3", "fig4") else TEXT_WIDTH_IN
     if figure == "fig2":
         return _fig2(table, out, formats, {"solve": o["solve"], "radius": o["radius"],
                                            "width": width, "from_tube": o["from_tube"],
@@ -204,7 +212,7 @@ def _draw(figure: str, table: Path, out: Path | None, formats: str, o: dict) -> 
     return _fig3(table, out, formats, {
         "panel_axis": o["panel_axis"] or "controller", "trace_axis": o["trace_axis"],
         "nominal": o["nominal"], "panels": _panels(o["panels"]), "width": width,
-        "height": height or 2.5, "view": _limits(o["view"])})
+        "height": height or 2.1, "view": _limits(o["view"])})
 
 
 def _panels(panels: str | None) -> list[str] | None:

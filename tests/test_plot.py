@@ -13,6 +13,7 @@ import typer
 from typer.testing import CliRunner
 
 from conftest import BALL, cli_env, hmpc_command
+from figcheck import assert_legible
 from hmpc_cli.cli_plot import plot_command
 
 FAST = ["--set", "sim.duration=0.6", "--set", "planner.iterations=3", "-q"]
@@ -120,14 +121,49 @@ def test_png_size_and_marks(table, tmp_path):
 
     fig3(table, tmp_path / "all", formats="png")
     img = read_png(tmp_path / "all" / "fig3.png")
-    assert img.shape == (750, 2148, 3)  # 7.16 x 2.5 in at 300 dpi
+    assert img.shape == (630, 1050, 3)  # one column: 3.5 x 2.1 in at 300 dpi
     assert (img < 50).all(axis=2).mean() > 0.002  # black guards, text, end points
     for color in (NOMINAL_COLOR, START_COLOR, FAIL_COLOR):
         assert has_color(img, color), color
     fig3(table, tmp_path / "b", formats="png", panels=["B"], width=3.5, height=2.0)
     img_b = read_png(tmp_path / "b" / "fig3.png")
     assert img_b.shape == (600, 1050, 3)
-    assert not has_color(img_b, FAIL_COLOR)  # panel B has no failed run: no red circle
+    assert not has_color(img_b, FAIL_COLOR)  # panel B has no failed run: no red cross
+    fig3(table, tmp_path / "wide", formats="png", width=7.16, height=2.5)  # --width overrides
+    assert read_png(tmp_path / "wide" / "fig3.png").shape == (750, 2148, 3)
+
+
+PAPER_ROWS = [(c, d, ok, run) for c in ("10 Hz fixed", "20 Hz fixed", "10 Hz replan")
+              for d, ok, run in (("nominal", True, "nom"), ("trial 1", True, "t1"),
+                                 ("trial 2", c != "10 Hz fixed", "t2"))]
+
+
+@pytest.mark.parametrize("width,height", [(None, None), (7.16, 2.5)])
+def test_fig3_is_legible_at_its_size(runs, tmp_path, width, height):
+    """Three panels with the paper's titles at one column (the default) and at text width:
+    the figure is the size asked for, STIX, text >= 7 pt, no two texts overlap."""
+    from hmpc_cli.figures import fig3 as f3
+    from hmpc_cli.figures.common import COLUMN_WIDTH_IN, figure_style, read_table
+
+    table = write_table(tmp_path / "results.csv", PAPER_ROWS, {k: str(v) for k, v in runs.items()})
+    rows = read_table(table, ["controller", "disturbance", "success", "log"])
+    loaded = f3._load_runs(table, f3._group(rows, "controller", None, table), "disturbance",
+                           "nominal", {})
+    assert len(loaded) == 3
+    width, height = width or f3.fig3.__kwdefaults__["width"], height or f3.HEIGHT_IN
+    assert f3.fig3.__kwdefaults__["width"] == COLUMN_WIDTH_IN == 3.5
+    with figure_style():
+        import matplotlib as mpl
+
+        assert mpl.rcParams["mathtext.fontset"] == "stix"
+        fig = f3._figure(loaded, width, height, None)
+        assert_legible(fig, width, height)
+        legend = fig.legends[0]
+        box = legend.get_window_extent()
+        assert all(box.y1 <= ax.get_window_extent().y0 for ax in fig.axes)  # below the panels
+        ratios = {round(ax.get_position().width * width / (ax.get_position().height * height), 2)
+                  for ax in fig.axes}
+        assert len(ratios) == 1  # equal panels
 
 
 def test_panel_order_reference_counts_and_sweep_dir(runs, tmp_path):

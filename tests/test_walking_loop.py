@@ -123,6 +123,36 @@ def test_figure_4_from_the_log_is_deterministic(short_walk, tmp_path):
     np.testing.assert_allclose(hip0, [0.2334, 0.6815], atol=1e-3)
 
 
+@pytest.mark.parametrize("width,height", [(None, None), (7.16, 4.2)])
+def test_fig4_is_legible_at_one_column(short_walk, tmp_path, width, height):
+    """One column by default (--width overrides): the saved size, STIX, text >= 7 pt, no
+    overlapping text; a colour bar for time; poses that did not move are not redrawn."""
+    from figcheck import assert_legible
+    from matplotlib.axes import Axes
+
+    from hmpc_cli.figures import fig4 as f4
+    from hmpc_cli.figures.common import COLUMN_WIDTH_IN, figure_style
+    from PIL import Image
+
+    walk = load_walk(short_walk / "run.mcap")
+    kw = {} if width is None else {"width": width, "height": height}
+    fig4(walk, tmp_path, "png", **kw)
+    width, height = width or COLUMN_WIDTH_IN, height or f4.HEIGHT_IN
+    with Image.open(tmp_path / "fig4.png") as im:
+        assert im.size == (round(width * 300), round(height * 300))
+    with figure_style():
+        fig = f4._figure(walk, 0.1, width, height)
+        assert_legible(fig, width, height)
+        assert any(ax.get_ylabel() == "$t$ (s)" for ax in fig.findobj(Axes))  # the time bar
+        labels = {ax.get_xlabel() for ax in fig.axes} | {ax.get_ylabel() for ax in fig.axes}
+        assert {"$x$ (m)", "$t$ (s)", "$F_x$ (N)"} <= labels
+    # Standing still: the same pose repeated is drawn once.
+    still = f4.WalkLog(**{**walk.__dict__, "t": np.arange(5) * 0.1,
+                          "points": np.repeat(walk.points[:1], 5, axis=0)})
+    assert f4._snapshots(still, 0.1) == [0]
+    assert len(f4._snapshots(walk, 0.1)) >= 5
+
+
 @pytest.mark.slow
 def test_plot_fig4_command_writes_the_gif_and_rejects_a_ball_log(short_walk, tmp_path,
                                                                   run_hmpc, full_run):

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 __all__ = [
-    "COLUMN_WIDTH_IN", "FORMATS", "FigureInputError", "RunTrace", "TEXT_WIDTH_IN",
+    "COLUMN_WIDTH_IN", "FORMATS", "OKABE_ITO", "FigureInputError", "RunTrace", "TEXT_WIDTH_IN",
     "check_size", "figure_style", "ieee_rc", "load_trace", "parse_bool", "parse_formats",
     "read_table", "resolve_log", "resolve_run_log", "resolve_table", "save_figure",
     "write_csv",
@@ -23,6 +23,11 @@ __all__ = [
 TEXT_WIDTH_IN = 7.16  # IEEE two-column: full text width (in)
 COLUMN_WIDTH_IN = 3.5  # IEEE two-column: one column (in)
 FORMATS = ("pdf", "svg", "png")
+# Okabe-Ito colour-blind-safe palette (Okabe & Ito 2008); every series also has its own
+# marker or line style, so the figures read in grey too.
+OKABE_ITO = {"orange": "#E69F00", "sky_blue": "#56B4E9", "green": "#009E73",
+             "yellow": "#F0E442", "blue": "#0072B2", "vermillion": "#D55E00",
+             "purple": "#CC79A7", "black": "#000000"}
 _TRUE = {"true", "1", "yes"}
 _FALSE = {"false", "0", "no"}
 # Fixed metadata per format: no dates, no version strings, so the bytes depend on the input only.
@@ -38,17 +43,22 @@ class FigureInputError(ValueError):
 
 
 def ieee_rc(font_size: float = 8.0) -> dict[str, Any]:
-    """Returns rcParams for IEEE two-column figures: serif 8 pt, thin lines, embeddable fonts."""
+    """Returns rcParams for IEEE two-column figures: Times-like 8 pt, thin lines, embeddable fonts.
+
+    The font is STIX (Times-like, as IEEE's body text), text and mathtext alike; STIXGeneral
+    ships with Matplotlib, so every machine draws the same glyphs (deterministic bytes).
+    No text is smaller than 7 pt at print size.
+    """
     return {
         "font.family": "serif",
-        "font.serif": ["DejaVu Serif"],
-        "mathtext.fontset": "dejavuserif",
+        "font.serif": ["STIXGeneral"],
+        "mathtext.fontset": "stix",
         "font.size": font_size,
         "axes.titlesize": font_size,
         "axes.labelsize": font_size,
         "xtick.labelsize": font_size,
         "ytick.labelsize": font_size,
-        "legend.fontsize": font_size - 1,
+        "legend.fontsize": max(font_size - 1, 7.0),
         "axes.linewidth": 0.6,
         "lines.linewidth": 0.7,
         "lines.markersize": 3.0,

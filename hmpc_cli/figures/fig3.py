@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from hmpc_cli.figures.common import (
-    TEXT_WIDTH_IN,
+    COLUMN_WIDTH_IN,
+    OKABE_ITO,
     FigureInputError,
     RunTrace,
     check_size,
@@ -39,10 +40,14 @@ __all__ = ["REFERENCE_COUNTS", "PanelCounts", "fig3"]
 REFERENCE_COUNTS: dict[str, tuple[int, int]] = {
     "10 Hz fixed": (9, 11), "20 Hz fixed": (11, 11), "10 Hz replan": (11, 11)}
 
-TRACE_COLOR = "#4a6fa5"  # disturbed runs: muted blue
-NOMINAL_COLOR = "#ff7f0e"  # the paper's orange
-START_COLOR = "#e020e0"  # magenta
-FAIL_COLOR = "#d62728"  # red
+# Okabe-Ito colours; each kind also differs without colour: nominal a thick solid line,
+# disturbed thin dashed lines, end points small dots, failed ends large crosses, the start a
+# square, the goal a plus.
+TRACE_COLOR = OKABE_ITO["blue"]  # disturbed runs
+NOMINAL_COLOR = OKABE_ITO["orange"]  # the paper's orange
+START_COLOR = OKABE_ITO["purple"]
+FAIL_COLOR = OKABE_ITO["vermillion"]
+HEIGHT_IN = 2.1  # default height at one-column width: three square panels + legend below
 
 
 @dataclass
@@ -199,14 +204,16 @@ def _end(xy: np.ndarray) -> np.ndarray | None:
 
 def _draw_panel(ax, label: str, runs: list[_Run], geo: dict, view) -> None:
     """One panel: guards, trajectories, nominal on top, start/end/failed markers, goal, title."""
+    from matplotlib.ticker import MaxNLocator
+
     _draw_guards(ax, geo)
     for r in runs:
         if not r.nominal:
-            ax.plot(r.trace.xy[:, 0], r.trace.xy[:, 1], color=TRACE_COLOR, lw=0.6, alpha=0.85,
-                    zorder=3, label="disturbed")
+            ax.plot(r.trace.xy[:, 0], r.trace.xy[:, 1], color=TRACE_COLOR, lw=0.5, alpha=0.85,
+                    ls=(0, (3.0, 1.2)), zorder=3, label="disturbed")
     for r in runs:
         if r.nominal:
-            ax.plot(r.trace.xy[:, 0], r.trace.xy[:, 1], color=NOMINAL_COLOR, lw=1.1, zorder=4,
+            ax.plot(r.trace.xy[:, 0], r.trace.xy[:, 1], color=NOMINAL_COLOR, lw=1.3, zorder=4,
                     label="nominal")
     # End points outside a user-set view sit on its border, so no failure goes unseen.
     lo, hi = np.array([view[0][0], view[1][0]]), np.array([view[0][1], view[1][1]])
@@ -218,19 +225,21 @@ def _draw_panel(ax, label: str, runs: list[_Run], geo: dict, view) -> None:
                 **mark)
     bad = np.array([e for e, s in ends if not s])
     if len(bad):
-        ax.plot(bad[:, 0], bad[:, 1], ms=6.5, mfc="none", mew=0.9, color=FAIL_COLOR, zorder=7,
-                label="unstable", **mark)
+        ax.plot(bad[:, 0], bad[:, 1], ms=5.5, mew=1.0, color=FAIL_COLOR, zorder=7,
+                label="unstable", **{**mark, "marker": "x"})
     starts = {tuple(np.round(r.trace.xy[0], 9)) for r in runs if np.isfinite(r.trace.xy[0]).all()}
     if starts:
         s = np.array(sorted(starts))
-        ax.plot(s[:, 0], s[:, 1], ls="none", marker="o", ms=7.0, mew=0, color=START_COLOR,
+        ax.plot(s[:, 0], s[:, 1], ls="none", marker="s", ms=4.5, mew=0, color=START_COLOR,
                 zorder=8, label="start")
     goal = _goal(geo)
     if goal is not None:
         ax.plot([goal[0]], [goal[1]], ls="none", marker="+", ms=7.0, mew=0.8, color="black",
                 zorder=9, label="goal")
     n_ok = sum(r.success for r in runs)
-    ax.set_title(f"{label}: {n_ok}/{len(runs)} stable")
+    ax.set_title(f"{label}\n{n_ok}/{len(runs)} stable", linespacing=1.1)
+    ax.xaxis.set_major_locator(MaxNLocator(3))
+    ax.yaxis.set_major_locator(MaxNLocator(4))
     ax.set_xlim(*view[0])
     ax.set_ylim(*view[1])
     ax.set_aspect("equal", adjustable="box")
@@ -238,15 +247,16 @@ def _draw_panel(ax, label: str, runs: list[_Run], geo: dict, view) -> None:
 
 
 def _legend(fig, axes) -> None:
-    """One legend for the figure, right of the panels, one entry per kind of mark."""
+    """One legend for the figure, below the panels, one entry per kind of mark."""
     seen: dict[str, object] = {}
     for ax in axes:
         for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
             seen.setdefault(lab, h)
     order = ["guards", "nominal", "disturbed", "start", "end point", "unstable", "goal"]
     labels = [k for k in order if k in seen]
-    fig.legend([seen[k] for k in labels], labels, loc="outside right center",
-               handlelength=1.8, labelspacing=0.7)
+    fig.legend([seen[k] for k in labels], labels, loc="outside lower center",
+               ncol=min(4, len(labels)), handlelength=1.8, columnspacing=1.0,
+               labelspacing=0.3, handletextpad=0.4)
 
 
 def _figure(runs: dict[str, list[_Run]], width: float, height: float,
@@ -277,7 +287,7 @@ def fig3(table_path: str | Path, out_dir: str | Path | None = None,
          formats: str | Iterable[str] = ("pdf", "svg", "png"), *,
          panel_axis: str = "controller", trace_axis: str = "disturbance",
          nominal: str | None = "nominal", panels: Sequence[str] | None = None,
-         width: float = TEXT_WIDTH_IN, height: float = 2.5,
+         width: float = COLUMN_WIDTH_IN, height: float = HEIGHT_IN,
          view: Sequence[float] | None = None, dpi: int = 300) -> dict[str, PanelCounts]:
     """Draws Figure 3 from a sweep table into out_dir/fig3.<fmt> and out_dir/fig3_counts.csv.
 

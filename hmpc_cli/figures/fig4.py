@@ -1,8 +1,9 @@
 """Figure 4 of the paper: a walking system climbing its terrain, drawn from one run log.
 
-Top: stick-figure snapshots over the terrain profile (colour = time), touchdown points
-marked. Bottom: hip x(t), hip y(t) and the first disturbance channel (the biped's
-horizontal torso force F_x(t)), contact times as dotted lines. Also a GIF animation of
+Top: stick-figure snapshots over the terrain profile (colour = time, with a colour bar;
+poses that barely moved are skipped), touchdown points marked. Below: hip x(t), hip y(t)
+and the first disturbance channel (the biped's horizontal torso force F_x(t)), contact
+times as dotted lines. Also a GIF animation of
 the walk. Reads the MCAP log only (:func:`hmpc_cli.rundata.read_run`): the body points
 logged with every state sample and guard event, the skeleton and the terrain of the log's
 geometry (:mod:`hmpc_cli.loggeometry`). Any system whose drawing has links, a ``hip`` and
@@ -18,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from hmpc_cli.figures.common import (
-    TEXT_WIDTH_IN,
+    COLUMN_WIDTH_IN,
+    OKABE_ITO,
     FigureInputError,
     check_size,
     figure_style,
@@ -30,9 +32,11 @@ from hmpc_cli.figures.common import (
 
 __all__ = ["WalkLog", "animate_walk", "fig4", "load_walk", "resolve_run_log"]
 
-LINK_COLOR = "#1f4e8c"
+LINK_COLOR = OKABE_ITO["blue"]
 STAIR_COLOR = "#555555"
-CONTACT_COLOR = "#d62728"
+CONTACT_COLOR = OKABE_ITO["vermillion"]
+HEIGHT_IN = 4.2  # default height at one-column width
+MIN_MOVE_M = 0.03  # a snapshot is drawn only if some body point moved this far [m]
 
 
 @dataclass
@@ -140,28 +144,101 @@ def _draw_stick(ax, pts: np.ndarray, skeleton: list[list[int]], color, lw: float
                 solid_capstyle="round")
 
 
-def _snapshots(walk: WalkLog, every: float) -> list[int]:
+def _snapshots(walk: WalkLog, every: float, min_move: float = MIN_MOVE_M) -> list[int]:
+    """Samples ``every`` seconds apart, less those where the robot stands still.
+
+    A snapshot whose body points all lie within ``min_move`` metres of the last drawn one is
+    skipped (it would only redraw the same pose on top of itself).
+    """
     picks, next_t = [], walk.t[0]
     for k, tk in enumerate(walk.t):
-        if tk >= next_t - 1e-9:
-            picks.append(k)
+        if tk >= next_t - 1e-9 or k == len(walk.t) - 1:
             next_t = tk + every
-    if picks[-1] != len(walk.t) - 1:
-        picks.append(len(walk.t) - 1)
+            if picks and np.max(np.linalg.norm(walk.points[k] - walk.points[picks[-1]],
+                                               axis=1)) < min_move:
+                continue
+            picks.append(k)
     return picks
+
+
+def _draw_walk(ax, walk: WalkLog, every: float, cmap, norm) -> None:
+    """The top panel: snapshots coloured by time, hip path, stairs, touchdowns."""
+    for k in _snapshots(walk, every):
+        _draw_stick(ax, walk.points[k], walk.skeleton, cmap(norm(walk.t[k])))
+    ax.plot(walk.hip[:, 0], walk.hip[:, 1], color="0.4", lw=0.5, ls="--", label="hip path")
+    x_min = min(-0.2, float(walk.points[:, :, 0].min()) - 0.05)
+    sx, sy = _stairs_xy(walk, x_min)
+    ax.plot(sx, sy, color=STAIR_COLOR, lw=1.0)
+    if walk.contacts:
+        ax.plot([c[2] for c in walk.contacts], [c[3] for c in walk.contacts], "v",
+                color=CONTACT_COLOR, ms=3.5, label="touchdown")
+    ax.set_aspect("equal")
+    ax.set_xlim(x_min, walk.stairs[-1][1] + 0.05)
+    # headroom above the tallest pose for the legend
+    ax.set_ylim(min(sy) - 0.02, float(walk.points[:, :, 1].max()) + 0.3)
+    ax.set_xlabel("$x$ (m)")
+    ax.set_ylabel("$y$ (m)")
+    verdict = {True: "success", False: "failed", None: "unfinished"}[walk.success]
+    ax.set_title(f"biped on the stairs ({verdict}), snapshots every {every:g} s")
+    ax.legend(loc="upper left", ncol=2, handlelength=1.6, columnspacing=1.0)
+
+
+def _figure(walk: WalkLog, every: float, width: float, height: float):
+    """Builds Figure 4 (no pyplot state).
+
+    The walk with a time colour bar over the hip x(t), y(t) and force panels (one shared
+    time axis, contact times dotted).
+    """
+    import matplotlib as mpl
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import ListedColormap, Normalize
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
+
+    fig = Figure(figsize=(width, height), layout="constrained")
+    fig.get_layout_engine().set(w_pad=0.02, h_pad=0.02, hspace=0.03)
+    grid = fig.add_gridspec(4, 1, height_ratios=[2.3, 1.0, 1.0, 1.0])
+    ax = fig.add_subplot(grid[0])
+    t0, t1 = walk.t[0], max(walk.t[-1], walk.t[0] + 1e-9)
+    # viridis without its palest yellow (too faint on white), t0 .. t1 over the bar
+    cmap = ListedColormap(mpl.colormaps["viridis"](np.linspace(0.0, 0.9, 256)))
+    norm = Normalize(t0, t1)
+    _draw_walk(ax, walk, every, cmap, norm)
+    # the bar as high as the equal-aspect panel itself (an inset follows its drawn box)
+    bar = fig.colorbar(ScalarMappable(norm, cmap), cax=ax.inset_axes([1.025, 0.0, 0.035, 1.0]))
+    ax.set_anchor("C")  # a wide figure's equal-aspect panel stays centred
+    bar.set_label("$t$ (s)")
+    bar.locator = MaxNLocator(4)
+    bar.update_ticks()
+    panels = [(walk.t, walk.hip[:, 0], "hip $x$ (m)"), (walk.t, walk.hip[:, 1], "hip $y$ (m)"),
+              (walk.force[0], walk.force[1], "$F_x$ (N)")]
+    axes = []
+    for j, (tt, yy, label) in enumerate(panels):
+        a = fig.add_subplot(grid[j + 1], sharex=axes[0] if axes else None)
+        a.plot(tt, yy, color=LINK_COLOR, drawstyle="steps-post" if j == 2 else "default")
+        for c in walk.contacts:
+            a.axvline(c[0], color=CONTACT_COLOR, lw=0.5, ls=":")
+        a.set_xlim(t0, t1)
+        a.set_ylabel(label)
+        a.yaxis.set_major_locator(MaxNLocator(3))
+        a.tick_params(labelbottom=j == 2)
+        axes.append(a)
+    axes[-1].set_xlabel("$t$ (s)")
+    fig.align_ylabels(axes)
+    return fig
 
 
 def fig4(log: str | Path | WalkLog, out_dir: str | Path | None = None,
          formats: str | Iterable[str] = ("pdf", "svg", "png"), *,
-         every: float = 0.1, width: float = TEXT_WIDTH_IN, height: float = 4.2) -> WalkLog:
+         every: float = 0.1, width: float = COLUMN_WIDTH_IN, height: float = HEIGHT_IN
+         ) -> WalkLog:
     """Draws Figure 4 from a walking run into out_dir/fig4.<fmt>; returns the parsed log.
 
     ``log``: a log path, a run directory or a loaded :class:`WalkLog`.
 
-    ``every``: time between stick-figure snapshots [s]; sizes in inches.
+    ``every``: time between stick-figure snapshots [s] (poses that barely moved are
+    skipped); sizes in inches (default: one IEEE column).
     """
-    import matplotlib as mpl
-
     if not every > 0.0:
         raise FigureInputError(f"snapshot interval must be > 0 s, got {every}")
     fmts = parse_formats(formats)
@@ -169,44 +246,7 @@ def fig4(log: str | Path | WalkLog, out_dir: str | Path | None = None,
     walk = log if isinstance(log, WalkLog) else load_walk(resolve_run_log(log))
     out = make_out_dir(Path(out_dir) if out_dir is not None else walk.path.parent)
     with figure_style():
-        import matplotlib.pyplot as plt
-
-        fig = plt.figure(figsize=(width, height))
-        grid = fig.add_gridspec(2, 3, height_ratios=[2.4, 1.0], hspace=0.3, wspace=0.32,
-                                left=0.07, right=0.99, top=0.95, bottom=0.09)
-        ax = fig.add_subplot(grid[0, :])
-        cmap = mpl.colormaps["viridis"]
-        t0, t1 = walk.t[0], max(walk.t[-1], walk.t[0] + 1e-9)
-        for k in _snapshots(walk, every):
-            _draw_stick(ax, walk.points[k], walk.skeleton, cmap(0.9 * (walk.t[k] - t0) / (t1 - t0)))
-        ax.plot(walk.hip[:, 0], walk.hip[:, 1], color="0.5", lw=0.5, ls="--", label="hip path")
-        x_min = min(-0.2, float(walk.points[:, :, 0].min()) - 0.05)
-        sx, sy = _stairs_xy(walk, x_min)
-        ax.plot(sx, sy, color=STAIR_COLOR, lw=1.0, drawstyle="default")
-        if walk.contacts:
-            cx = [c[2] for c in walk.contacts]
-            cy = [c[3] for c in walk.contacts]
-            ax.plot(cx, cy, "v", color=CONTACT_COLOR, ms=3.5, label="touchdown")
-        ax.set_aspect("equal")
-        ax.set_xlim(x_min, walk.stairs[-1][1] + 0.05)
-        ax.set_ylim(min(sy) - 0.02, float(walk.points[:, :, 1].max()) + 0.08)
-        ax.set_xlabel("x [m]")
-        ax.set_ylabel("y [m]")
-        verdict = {True: "success", False: "failed", None: "unfinished"}[walk.success]
-        ax.set_title(f"biped on the stairs ({verdict}); snapshots every {every:g} s, "
-                     "colour = time")
-        ax.legend(loc="upper left", ncol=2)
-        panels = [(walk.t, walk.hip[:, 0], "hip x [m]"), (walk.t, walk.hip[:, 1], "hip y [m]"),
-                  (walk.force[0], walk.force[1], "torso force $F_x$ [N]")]
-        for j, (tt, yy, label) in enumerate(panels):
-            a = fig.add_subplot(grid[1, j])
-            a.plot(tt, yy, color=LINK_COLOR, drawstyle="steps-post" if j == 2 else "default")
-            for c in walk.contacts:
-                a.axvline(c[0], color=CONTACT_COLOR, lw=0.4, ls=":")
-            a.set_xlim(t0, t1)
-            a.set_xlabel("t [s]")
-            a.set_ylabel(label)
-        save_figure(fig, out, "fig4", fmts)
+        save_figure(_figure(walk, every, width, height), out, "fig4", fmts)
     return walk
 
 
