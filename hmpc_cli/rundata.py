@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hmpc_cli.loggeometry import body_names
+
 __all__ = ["Event", "PlannerCallData", "RunData", "SolveData", "read_run", "resolve_log"]
 
 
@@ -217,21 +219,22 @@ def _planner(d: dict, names: tuple) -> PlannerCallData:
                            t_r, x_r, dict(detail))
 
 
-def _points(value, points: tuple[str, ...]) -> np.ndarray:
-    """Logged body coordinates {``<p>_x``, ``<p>_y``} as points (P, 2) [m] (NaN: missing)."""
-    if not points:
+def _points(value, coords: tuple[str, ...]) -> np.ndarray:
+    """Logged body coordinates (``coords``: ``<p>_x``, ``<p>_y``, ...) as points (P, 2) [m].
+
+    NaN where missing; (0, 2) when no body is logged (``coords`` empty).
+    """
+    if not coords:
         return np.zeros((0, 2))
-    from hmpc_cli.loggeometry import body_names
-
-    return _vec(value if isinstance(value, dict) else {}, body_names(points)).reshape(-1, 2)
+    return _vec(value if isinstance(value, dict) else {}, coords).reshape(-1, 2)
 
 
-def _body(states: list[dict], points: tuple[str, ...]) -> np.ndarray:
+def _body(states: list[dict], coords: tuple[str, ...]) -> np.ndarray:
     """The body points of each state sample, (K, P, 2) [m]."""
-    if not points:
+    if not coords:
         return np.zeros((len(states), 0, 2))
-    return np.stack([_points(s.get("body"), points) for s in states]) if states else \
-        np.zeros((0, len(points), 2))
+    return np.stack([_points(s.get("body"), coords) for s in states]) if states else \
+        np.zeros((0, len(coords) // 2, 2))
 
 
 def _scenario(info: dict) -> dict:
@@ -277,7 +280,7 @@ def read_run(path: Path) -> RunData:
                   len(states[0].get("w") or []) if states else 0)
     w_msgs = [{"t": m.t, **m.data} for m in log.topic("/disturbance")]
     geometry = dict(info.get("geometry") or {})
-    points = tuple(geometry.get("point_names") or ())
+    coords = body_names(tuple(geometry.get("point_names") or ()))  # once, not per sample
     summaries = log.topic("/run/summary")
     return RunData(
         log_path, log.complete, int(info.get("log_version", 1)), info, _scenario(info),
@@ -292,7 +295,7 @@ def read_run(path: Path) -> RunData:
         sorted((Event(float(d["t"]), int(d.get("guard", -1)), str(d.get("guard_name", "")),
                       str(d.get("mode_before", "")), str(d.get("mode_after", "")),
                       _vec(d.get("x_before"), names), _vec(d.get("x_after"), names),
-                      bool(d.get("scheduled", True)), _points(d.get("body_before"), points))
+                      bool(d.get("scheduled", True)), _points(d.get("body_before"), coords))
                 for d in (m.data for m in log.topic("/sim/event"))), key=lambda e: e.t),
         np.array([float(d["t"]) for d in w_msgs]),
         _mat([_vec(d.get("w"), dist) for d in w_msgs], len(dist)),
@@ -301,4 +304,4 @@ def read_run(path: Path) -> RunData:
         sorted((_planner(m.data, names) for m in log.topic("/planner/plan")),
                key=lambda p: p.t),
         dict(summaries[-1].data) if summaries else None, getattr(log, "damage", ""),
-        geometry, _body(states, points))
+        geometry, _body(states, coords))
