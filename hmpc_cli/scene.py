@@ -27,6 +27,7 @@ The protobuf modules are imported when a writer is made (not at import time).
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -244,8 +245,7 @@ class SceneWriter:
         colors = PLAN_COLORS if plan.adopt else (REJECTED,)
         entities = [self._entity(t, "plan", self._traces(xs, colors, 0.015))]
         if self.tube_radius is not None:
-            nodes = np.unique(np.linspace(0, len(xs) - 1, min(len(xs), TUBE_SPHERES)).round())
-            centers = to_world(self.drawing.traced(xs[nodes.astype(int)])[0])
+            centers = to_world(self.drawing.traced(xs[_tube_nodes(len(xs))])[0])
             entities.append(self._entity(t, "tube", spheres=self._spheres(
                 centers, self.tube_radius, TUBE)))
         self._write(PLAN, t, entities)
@@ -256,6 +256,14 @@ class SceneWriter:
             return
         xs = np.atleast_2d(np.asarray(trajectory.x, dtype=float))
         self._write(ROLLOUT, t, [self._entity(t, "rollout", self._traces(xs, (ORANGE,), 0.01))])
+
+
+@lru_cache(maxsize=64)
+def _tube_nodes(n: int) -> np.ndarray:
+    """Indices of the (at most TUBE_SPHERES) plan nodes drawn as tube spheres, of n."""
+    nodes = np.unique(np.linspace(0, n - 1, min(n, TUBE_SPHERES)).round()).astype(int)
+    nodes.setflags(write=False)
+    return nodes
 
 
 def open_scene(recorder: Any, system: Any, margins: dict | None = None,

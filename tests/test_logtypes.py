@@ -133,3 +133,30 @@ def test_read_run_reads_the_older_untyped_layout(tmp_path):
     assert run.solves[0].x_plan.shape == (2, 2) and run.solves[0].detail == {"shifted": 2}
     assert run.summary is None
     assert json.dumps(run.info)  # plain JSON
+
+
+def test_plan_nodes_are_the_schemas_records_node_by_node():
+    """plan_nodes' compiled dict display gives, per node, dict(zip(keys, row))."""
+    from hmpc_cli.logtypes import PlanNode, flat_keys
+    from hmpc_cli.messages import Trajectory
+    from hmpc_cli.registry import build_system
+    from hmpc_cli.runlog import plan_nodes, record_maker
+    from hmpc_cli.systems.ball import BallParams
+
+    model = build_system(BallParams())
+    rng = np.random.default_rng(3)
+    n = 7
+    traj = Trajectory(t=np.linspace(0.0, 0.6, n), x=rng.normal(size=(n, 4)),
+                      u=rng.normal(size=(n, 2)), mode=np.array([0, 0, 0, 1, 1, 1, 1]),
+                      seg=np.array([0, 0, 0, 1, 1, 1, 1]))
+    nodes = plan_nodes(traj, 2.0, model)
+    keys = flat_keys(PlanNode, {"state": model.state_names, "input": model.input_names})
+    modes = [m.name for m in model.modes]
+    assert nodes == tuple(
+        dict(zip(keys, [2.0 + traj.t[k], int(traj.seg[k]), int(traj.mode[k]),
+                        modes[traj.mode[k]], *traj.x[k], *traj.u[k]], strict=True))
+        for k in range(n))
+    empty = Trajectory(t=np.zeros(0), x=np.zeros((0, 4)), u=np.zeros((0, 2)),
+                       mode=np.zeros(0, int), seg=np.zeros(0, int))
+    assert plan_nodes(empty, 0.0, model) == ()
+    assert record_maker(("a", "b c", "'q'"))(1, 2.5, "x") == {"a": 1, "b c": 2.5, "'q'": "x"}

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from hmpc_cli import recorder
+from hmpc_cli.mcap_codecs import ZSTD_LEVEL
 from hmpc_cli.recorder import Log, Recorder, read_log, to_json_bytes
 
 REPO = Path(__file__).resolve().parents[1]
@@ -197,7 +198,7 @@ def test_truncated_last_chunk(
     from mcap.writer import CompressionType
 
     if not compressed:
-        monkeypatch.setattr(recorder, "_compression", lambda: CompressionType.NONE)
+        monkeypatch.setattr(recorder, "mcap_compression", lambda: CompressionType.NONE)
     full = tmp_path / "full.mcap"
     _write_run(full, n=400, flush_every=50)
     complete = read_log(full)
@@ -296,3 +297,45 @@ def test_exit_on_exception_still_finishes_file(tmp_path: Path) -> None:
         raise RuntimeError("boom")
     log = read_log(path)
     assert log.complete and [m.data for m in log.messages] == [{"v": 1}]
+
+
+def test_chunks_are_zstd_at_the_recorders_level(tmp_path: Path) -> None:
+    """mcap's Writer has no level setting: the recorder's chunks are zstd at ZSTD_LEVEL."""
+    import zstandard
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader
+
+    path = tmp_path / "level.mcap"
+    _write_run(path, n=2000)
+    _write_run(tmp_path / "again.mcap", n=10)  # a second recorder: the stand-in not stacked
+    import mcap.writer
+
+    assert type(mcap.writer.zstandard).__name__ == "_ZstdAtLevel"
+    assert mcap.writer.zstandard.module is zstandard
+    with open(path, "rb") as f:
+        chunks = [r for r in StreamReader(f, emit_chunks=True).records if isinstance(r, Chunk)]
+    assert len(chunks) >= 2 and all(c.compression == "zstd" for c in chunks)
+    for c in chunks:
+        raw = zstandard.decompress(c.data, max_output_size=c.uncompressed_size)
+        assert c.data == zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress(raw)
+        assert c.data != zstandard.ZstdCompressor(level=3).compress(raw)
+    assert len(read_log(path).messages) == 2000 + 2000 // 10
+
+
+def test_queued_messages_keep_their_order_around_metadata_and_attachments(
+        tmp_path: Path) -> None:
+    """Messages reach mcap's writer at flushes: in call order, nothing lost at close."""
+    path = tmp_path / "order.mcap"
+    with Recorder(path, flush_every=7) as rec:
+        rec.add_topic("/a", "hmpc.Info", INFO_SCHEMA)
+        rec.add_topic("/b", "hmpc.Info", INFO_SCHEMA)
+        for k in range(50):
+            rec.write("/a" if k % 3 else "/b", k * 0.1, {"msg": str(k)})
+            if k == 20:
+                rec.add_metadata("mid", {"k": "20"})
+                rec.add_attachment("note.txt", b"hello", "text/plain", t=2.0)
+    log = read_log(path)
+    assert log.complete
+    assert [m.data["msg"] for m in log.messages] == [str(k) for k in range(50)]
+    assert [m.topic for m in log.messages] == ["/a" if k % 3 else "/b" for k in range(50)]
+    assert log.metadata["mid"] == {"k": "20"}
