@@ -10,6 +10,9 @@ import typer
 EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
+#: the robustness study's sweeps: paper geometry, a moved geometry, solve latency charged
+ROBUSTNESS = (Path("sweeps/robustness.toml"), Path("sweeps/robustness_moved.toml"),
+              Path("sweeps/robustness_latency.toml"))
 
 
 def report_command(
@@ -20,9 +23,10 @@ def report_command(
     fig3_extra: Annotated[Path | None, typer.Option(
         "--fig3-extra", help="extra Figure 3 panel sweep (100 Hz; '' to leave out)")
     ] = Path("sweeps/fig3_100hz.toml"),
-    robustness: Annotated[Path | None, typer.Option(
-        "--robustness", help="robustness study sweep file ('' to leave out)")
-    ] = Path("sweeps/robustness.toml"),
+    robustness: Annotated[list[Path] | None, typer.Option(
+        "--robustness", help="robustness study sweep file, repeatable (default: "
+        "sweeps/robustness.toml, robustness_moved.toml and robustness_latency.toml; '' to "
+        "leave out)")] = None,
     biped: Annotated[Path | None, typer.Option(
         "--biped", help="biped scenario for Figure 4 ('' to leave out)")
     ] = Path("scenarios/biped_stairs.toml"),
@@ -36,8 +40,10 @@ def report_command(
     ] = None,
 ) -> None:
     """Regenerate the results page: Figure 3 beside the paper's counts, robustness curves."""
-    plans = _plan_sweeps({"fig3": fig3, "fig3_extra": fig3_extra, "robustness": robustness},
-                         seeds)
+    studies = [p for p in (ROBUSTNESS if robustness is None else robustness)
+               if not _left_out(p)]
+    plans = _plan_sweeps({"fig3": fig3, "fig3_extra": fig3_extra,
+                          **{f"robustness:{i}": p for i, p in enumerate(studies)}}, seeds)
     if not plans and _left_out(biped):
         typer.echo("error: nothing to report (--fig3, --fig3-extra, --robustness and --biped "
                    "are all empty)", err=True)
@@ -47,7 +53,7 @@ def report_command(
         _print_missing(plans, dirs)
     lost = _run_sweeps(plans, dirs, workers) if run else []
     biped_dir = _biped_run(biped, results, run)
-    _write_page(results, dirs, biped_dir)
+    _write_page(results, dirs, biped_dir, plans)
     if lost:  # the page holds every finished run; these are missing from it
         for line in lost:
             typer.echo(f"error: worker failed, run not recorded (rerun to retry): {line}",
@@ -92,7 +98,7 @@ def _plan_sweeps(files: dict[str, Path | None], seeds: int | None) -> dict:
     """Reads and validates the sweep files that are not left out.
 
     Args:
-        files: sweep file per report part (``fig3``, ``fig3_extra``, ``robustness``).
+        files: sweep file per report part (``fig3``, ``fig3_extra``, ``robustness:<i>``).
         seeds: the robustness study runs only its first ``seeds`` seeds (None: all).
 
     Returns:
@@ -110,7 +116,7 @@ def _plan_sweeps(files: dict[str, Path | None], seeds: int | None) -> dict:
             continue
         try:
             plans[key] = plan_sweep(path)
-            if key == "robustness":
+            if key.startswith("robustness"):
                 plans[key] = first_seeds(plans[key], seeds)
         except ScenarioError as exc:
             _echo_errors(exc.lines)
@@ -147,13 +153,15 @@ def _run_sweeps(plans: dict, dirs: dict[str, Path], workers: int | None) -> list
     return lost
 
 
-def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None) -> None:
+def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None,
+                plans: dict) -> None:
     """Draws the figures from the finished runs and writes ``<results>/README.md``.
 
     Args:
         results: results directory.
         dirs: sweep output directory per report part given.
         biped_dir: run directory of the biped scenario (None: no Figure 4).
+        plans: the sweep plan per report part given.
 
     Raises:
         typer.Exit: a figure's input is unusable (exit code 2).
@@ -161,7 +169,11 @@ def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None) ->
     from hmpc_cli.figures.common import FigureInputError
     from hmpc_cli.report import ReportInputs, write_report
 
-    inputs = ReportInputs(dirs.get("fig3"), dirs.get("fig3_extra"), dirs.get("robustness"),
+    from hmpc_cli.report_robustness import Study
+
+    studies = tuple(Study(dirs[k], plans[k].path, len(plans[k].spec.seeds)) for k in dirs
+                    if k.startswith("robustness"))
+    inputs = ReportInputs(dirs.get("fig3"), dirs.get("fig3_extra"), studies or None,
                           biped_dir)
     try:
         page = write_report(results, inputs, "hmpc report")

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from hmpc_cli.figures.common import FigureInputError, read_table, resolve_table
+from hmpc_cli.figures.common import FigureInputError
 
 __all__ = ["ReportInputs", "write_report"]
 
@@ -25,7 +25,7 @@ class ReportInputs:
 
     fig3: Path | None
     fig3_extra: Path | None
-    robustness: Path | None
+    robustness: Path | tuple | None  # a sweep directory, or Study records (report_robustness)
     biped: Path | None = None  # a biped run directory (Figure 4)
 
 
@@ -63,92 +63,13 @@ def _fig3_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]:
     return lines + [""]
 
 
-def _pivot(cells) -> list[str]:
-    xs = sorted({c.x for c in cells})
-    head = "| disturbance | policy | " + " | ".join(f"{x:g} Hz" for x in xs) + " |"
-    lines = [head, "| --- | --- | " + " | ".join("---" for _ in xs) + " |"]
-    rows: dict[tuple[str, str], dict[float, object]] = {}
-    for c in cells:
-        rows.setdefault((c.panel, c.series), {})[c.x] = c
-    for (panel, series), by_x in rows.items():
-        parts = []
-        for x in xs:
-            c = by_x.get(x)
-            if c is None:
-                parts.append("-")
-                continue
-            lo, hi = c.interval
-            parts.append(f"{c.successes}/{c.runs} ({100 * lo:.0f}-{100 * hi:.0f} %)")
-        lines.append(f"| ±{panel} | {series} | " + " | ".join(parts) + " |")
-    return lines
-
-
-def _findings(cells) -> list[str]:
-    """Plain statements computed from the cells (interval overlap = not resolved)."""
-    out = []
-    panels = list(dict.fromkeys(c.panel for c in cells))
-    series = list(dict.fromkeys(c.series for c in cells))
-    for p in panels:
-        for s in series:
-            sel = sorted((c for c in cells if c.panel == p and c.series == s), key=lambda c: c.x)
-            if len(sel) < 2:
-                continue
-            lo, hi = sel[0], sel[-1]
-            sep = lo.interval[1] < hi.interval[0] or hi.interval[1] < lo.interval[0]
-            verdict = ("higher than" if hi.rate > lo.rate else "lower than"
-                       if hi.rate < lo.rate else "the same as")
-            out.append(f"- ±{p}, {s}: {hi.x:g} Hz is {verdict} {lo.x:g} Hz "
-                       f"({100 * hi.rate:.0f} % vs {100 * lo.rate:.0f} %; "
-                       f"{'intervals separate' if sep else 'intervals overlap'}).")
-        if len(series) == 2:
-            a, b = series
-            diffs = []
-            for x in sorted({c.x for c in cells if c.panel == p}):
-                ca = [c for c in cells if c.panel == p and c.series == a and c.x == x]
-                cb = [c for c in cells if c.panel == p and c.series == b and c.x == x]
-                if ca and cb:
-                    diffs.append(cb[0].rate - ca[0].rate)
-            if diffs:
-                mean = sum(diffs) / len(diffs)
-                out.append(f"- ±{p}: {b} minus {a}, mean over rates: "
-                           f"{100 * mean:+.0f} percentage points.")
-    return out
-
-
-def _sweep_spec(path: Path) -> tuple[str, int | None]:
-    """The sweep file's ``[set]`` overrides as text ("-" if none) and its seed count."""
-    import tomllib
-
-    try:
-        spec = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return "-", None
-    seeds = spec.get("seeds")
-    count = seeds if isinstance(seeds, int) else len(seeds) if isinstance(seeds, list) else None
-    return ", ".join(f"`{k} = {v}`" for k, v in spec.get("set", {}).items()) or "-", count
-
-
 def _robustness_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]:
-    from hmpc_cli.figures.robustness import robustness
+    from hmpc_cli.report_robustness import Study, robustness_sections
 
-    table = resolve_table(inputs.robustness)
-    rows = read_table(table, ["seed"])
-    cells = robustness(table, fig_dir, "pdf,svg,png")
-    seeds = len({r["seed"] for r in rows})
-    n = sorted({c.runs for c in cells})
-    fixed, planned = _sweep_spec(table.parent / "sweep.toml")
-    partial = (f" (a prefix: {seeds} of the sweep's {planned} seeds; `hmpc report` runs "
-               "the rest, resuming)" if planned and seeds < planned else "")
-    lines = ["## Robustness study: success rate vs MPC rate", "",
-             f"![robustness]({_rel(fig_dir / 'robustness.png', base)})", "",
-             f"{len(rows)} finished runs, {seeds} seeds{partial}, {n[0]}"
-             f"{'' if len(n) == 1 else f'-{n[-1]}'} runs per cell; settings of every run: "
-             f"{fixed}; Wilson 95 % intervals. Table: "
-             f"[{_rel(fig_dir / 'robustness_table.csv', base)}]"
-             f"({_rel(fig_dir / 'robustness_table.csv', base)}).", "", *_pivot(cells), "",
-             "Computed findings (a claim holds only where the intervals separate):", "",
-             *_findings(cells), ""]
-    return lines
+    given = inputs.robustness
+    studies = [s if isinstance(s, Study) else Study(Path(s))
+               for s in ((given,) if isinstance(given, (str, Path)) else given)]
+    return robustness_sections(studies, fig_dir, base)
 
 
 def _biped_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]:

@@ -12,7 +12,8 @@ PEERS = {"planner", "mpc", "lowlevel", "recorder", "runlog", "tube"}
 BOTTOM = {"hybrid", "messages", "numeric", "drawing"}
 #: rooms that must work for any registered system: they never import a system plug-in
 SYSTEM_AGNOSTIC = {"mpc", "planner", "figures", "loop", "plant", "runlog", "stack",
-                   "scenario", "runner", "sweep", "report", "lowlevel", "sim", "tasks", "tube",
+                   "scenario", "runner", "sweep", "report", "report_robustness", "lowlevel",
+                   "sim", "tasks", "tube",
                    "scene", "drawing"}
 SYSTEM_NAMES = {"ball", "biped"}
 

@@ -125,11 +125,16 @@ seeds = 2
             "--robustness", str(sweep), "--workers", "1"]
     proc = run_hmpc(args, tmp_path, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    with open(res / "report" / "robustness_table.csv") as f:
+    with open(res / "report" / "tiny_study_table.csv") as f:  # named after the sweep
         rows = list(csv.DictReader(f))
     assert len(rows) == 4 and all(r["runs"] == "2" for r in rows)
     page = (res / "README.md").read_text()
     assert "8 finished runs, 2 seeds" in page
+    assert "![tiny_study](report/tiny_study.png)" in page
+    # the tube diameter of the sweep's own scenario on the same rate axis (Step 5)
+    assert "| ±5, trivial | " in page and "| tube | 10 Hz | 20 Hz |" in page
+    assert f"Resume or complete: `hmpc sweep {sweep}`" in page
+    assert "### Reading" in page
     # rerun: every run is skipped (resume), the page is rewritten identically
     again = run_hmpc(args, tmp_path, timeout=600)
     assert again.returncode == 0 and "8 skipped" in again.stdout
@@ -164,3 +169,45 @@ def test_first_seeds_is_a_resumable_prefix_of_the_study():
     for bad in (0, 101):
         with pytest.raises(ScenarioError, match="the sweep has 100 seed"):
             first_seeds(full, bad)
+
+
+def test_latency_study_sits_beside_its_paused_twin_and_the_reading_counts(tmp_path):
+    """Three studies: paused, moved (another geometry), latency charged (the size fixed
+    in [set]); the latency cells are compared with the paused twin only; counts exact."""
+    from hmpc_cli.report_robustness import Study, robustness_sections
+
+    def study(name: str, fixed: str, truth: dict, size_in_grid: bool = True) -> Path:
+        d = tmp_path / name
+        write_study(d / "results.csv", truth, seeds=20)
+        if not size_in_grid:  # the size is the sweep's fixed setting: its set. column
+            text = (d / "results.csv").read_text().replace(
+                "disturbance.magnitude", "set.disturbance.magnitude", 1)
+            (d / "results.csv").write_text(text)
+        (d / "sweep.toml").write_text(f'name = "{name}"\nseeds = 20\n[set]\n{fixed}\n')
+        return d
+
+    paused = {(5, "once", 15.0): 2, (50, "once", 15.0): 20, (5, "on_contact", 15.0): 19,
+              (50, "on_contact", 15.0): 20}
+    moved = {(5, "once", 15.0): 10, (50, "once", 15.0): 12}
+    charged = {(5, "once", 15.0): 2, (50, "once", 15.0): 3}
+    dirs = [study("paper", '"disturbance.kind" = "box"', paused),
+            study("moved", '"disturbance.kind" = "box"\n"system.circle_radius" = 0.6', moved),
+            study("lat", '"disturbance.kind" = "box"\n"sim.latency" = 0.05\n'
+                  '"disturbance.magnitude" = 15.0', charged, size_in_grid=False)]
+    lines = robustness_sections([Study(d) for d in dirs], tmp_path / "fig", tmp_path)
+    text = "\n".join(lines)
+    assert "- ±15.0, once: 50 Hz is higher than 5 Hz (100 % vs 10 %; intervals separate)." \
+        in text
+    assert "- ±15.0, 5 Hz: on_contact is higher than once (95 % vs 10 %; intervals separate)." \
+        in text
+    assert "`lat` beside the same cells of `paper`:" in text  # not the moved geometry
+    assert ("- ±15.0, once, 50 Hz: 0.05 s latency is lower than time paused (15 % vs 100 %; "
+            "intervals separate).") in text
+    assert "- ±15.0, once, 5 Hz: 0.05 s latency is the same as time paused" in text
+    # paused series: paper once (up), paper on_contact (overlap), moved once (overlap)
+    assert "in 1 of 3 series" in text and "in 0 less often; 2 unresolved" in text
+    assert "better in 1 of 2 cells with separated intervals, worse in 0; 1 unresolved" in text
+    assert "Solve time charged: 1 of 2 cells succeed less often" in text
+    for name in ("paper", "moved", "lat"):
+        assert (tmp_path / "fig" / f"{name}.png").is_file()
+        assert (tmp_path / "fig" / f"{name}_table.csv").is_file()

@@ -8,7 +8,7 @@ cell (x value, series, panel) gets its success rate with a Wilson score interval
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -130,6 +130,7 @@ def _axis_label(axis: str) -> str:
 
 
 def _panel_title(axis: str, value: str) -> str:
+    axis = axis.removeprefix("set.")  # a sweep's fixed setting as a column
     try:
         if axis == "disturbance.magnitude":
             return f"$|w_i| \\leq {float(value):g}$"
@@ -138,52 +139,108 @@ def _panel_title(axis: str, value: str) -> str:
     return f"{_axis_label(axis)} {value}"
 
 
+#: line styles of the tube-diameter curves, by bound name (others: grey)
+TUBE_STYLE = {"trivial": {"color": "#0072B2", "linestyle": "-", "marker": "v"},
+              "kinematic": {"color": "#CC79A7", "linestyle": "-.", "marker": "x"}}
+
+
 def robustness(table: str | Path, out_dir: str | Path | None = None,
                formats: str | Sequence[str] = "pdf,svg,png", *,
                x_axis: str = "mpc.rate_hz", series_axis: str = "replanning.policy",
                panel_axis: str = "disturbance.magnitude", width: float = TEXT_WIDTH_IN,
-               height: float = 1.9) -> list[Cell]:
+               height: float = 1.9, name: str = "robustness",
+               diameters: Mapping[float, Mapping[str, Sequence[tuple[float, float]]]]
+               | None = None) -> list[Cell]:
     """Draws success rate vs ``x_axis`` (log scale) with Wilson 95 % intervals.
 
-    One panel per ``panel_axis`` value, one line per ``series_axis`` value. Writes
-    ``robustness.<fmt>`` and ``robustness_table.csv`` to ``out_dir`` (default: the
-    table's directory) and returns the cells.
+    One panel per ``panel_axis`` value, one line per ``series_axis`` value. With
+    ``diameters`` (panel value -> bound name -> [(x, diam T(1/x))]) a second row draws the
+    tube diameters on the same x axis (log y). Writes ``<name>.<fmt>`` and
+    ``<name>_table.csv`` to ``out_dir`` (default: the table's directory) and returns the
+    cells.
     """
     fmts = parse_formats(formats)
-    check_size(width, height)
+    rows = 2 if diameters else 1
+    check_size(width, height * (1.0 + 0.75 * (rows - 1)))
     data = cells(table, x_axis, series_axis, panel_axis)
     out = Path(out_dir) if out_dir is not None else resolve_table(table).parent
     make_out_dir(out)
     import matplotlib.pyplot as plt
 
     panels = list(dict.fromkeys(c.panel for c in data))
-    series = list(dict.fromkeys(c.series for c in data))
-    xs = sorted({c.x for c in data})
     with figure_style():
-        fig, axes = plt.subplots(1, len(panels), figsize=(width, height), sharey=True,
-                                 squeeze=False)
+        fig, axes = plt.subplots(rows, len(panels), sharex="col", squeeze=False,
+                                 figsize=(width, height * (1.0 + 0.75 * (rows - 1))),
+                                 gridspec_kw={"height_ratios": [1.0, 0.75][:rows]})
         for ax, p in zip(axes[0], panels, strict=True):
-            for j, s in enumerate(series):
-                sel = [c for c in data if c.panel == p and c.series == s]
-                lo = [c.rate - c.interval[0] for c in sel]
-                hi = [c.interval[1] - c.rate for c in sel]
-                style = SERIES_STYLE[j % len(SERIES_STYLE)]
-                dodge = 1.06 ** (j - (len(series) - 1) / 2)  # keep the bars apart (log x)
-                ax.errorbar([c.x * dodge for c in sel], [c.rate for c in sel], yerr=[lo, hi],
-                            capsize=1.5, elinewidth=0.6, markersize=2.5, label=s, **style)
-            n = sorted({c.runs for c in data if c.panel == p})
-            runs = f"{n[0]}" if len(n) == 1 else f"{n[0]}-{n[-1]}"
-            ax.set_title(f"{_panel_title(panel_axis, p)}  (n = {runs})")
+            _success_panel(ax, data, p, panel_axis, series_axis)
+        axes[0][0].set_ylabel("success rate (Wilson 95 %)")
+        axes[0][-1].legend(loc="lower right", title=_axis_label(series_axis))
+        if diameters:
+            for ax, p in zip(axes[1], panels, strict=True):
+                if ax is not axes[1][0]:
+                    ax.sharey(axes[1][0])
+                _diameter_panel(ax, diameters, p)
+            axes[1][0].set_ylabel("diam $T(1/f)$")
+            found = {lb: h for ax in axes[1] for h, lb in zip(*ax.get_legend_handles_labels(),
+                                                              strict=True)}
+            if found:
+                axes[1][-1].legend(found.values(), found.keys(), loc="upper right",
+                                   title="tube bound")
+        xs = sorted({c.x for c in data})
+        for ax in axes[-1]:
+            ax.set_xlabel(_axis_label(x_axis))
+        for ax in axes.ravel():
             ax.set_xscale("log")
             ax.set_xticks(xs)
             ax.set_xticklabels([f"{x:g}" for x in xs])
             ax.minorticks_off()
-            ax.set_ylim(-0.03, 1.03)
-            ax.set_xlabel(_axis_label(x_axis))
             ax.grid(True, linewidth=0.3, alpha=0.5)
-        axes[0][0].set_ylabel("success rate (Wilson 95 %)")
-        axes[0][-1].legend(loc="lower right", title=_axis_label(series_axis))
-        fig.tight_layout(pad=0.3, w_pad=0.4)
-        save_figure(fig, out, "robustness", fmts)
-    _write_table(out / "robustness_table.csv", data, (panel_axis, series_axis, x_axis))
+        fig.tight_layout(pad=0.3, w_pad=0.4, h_pad=0.3)
+        save_figure(fig, out, name, fmts)
+    _write_table(out / f"{name}_table.csv", data, (panel_axis, series_axis, x_axis))
     return data
+
+
+def _success_panel(ax, data: list[Cell], panel: str, panel_axis: str,
+                   series_axis: str) -> None:
+    """One panel's success rates per series with Wilson bars (series dodged on log x)."""
+    series = list(dict.fromkeys(c.series for c in data))
+    for j, s in enumerate(series):
+        sel = [c for c in data if c.panel == panel and c.series == s]
+        lo = [c.rate - c.interval[0] for c in sel]
+        hi = [c.interval[1] - c.rate for c in sel]
+        style = SERIES_STYLE[j % len(SERIES_STYLE)]
+        dodge = 1.06 ** (j - (len(series) - 1) / 2)  # keep the bars apart (log x)
+        ax.errorbar([c.x * dodge for c in sel], [c.rate for c in sel], yerr=[lo, hi],
+                    capsize=1.5, elinewidth=0.6, markersize=2.5, label=s, **style)
+    n = sorted({c.runs for c in data if c.panel == panel})
+    runs = f"{n[0]}" if len(n) == 1 else f"{n[0]}-{n[-1]}"
+    ax.set_title(f"{_panel_title(panel_axis, panel)}  (n = {runs})")
+    ax.set_ylim(-0.03, 1.03)
+    if ax is not ax.figure.axes[0]:
+        ax.tick_params(labelleft=False)
+
+
+def _diameter_panel(ax, diameters: Mapping[float, Mapping[str, Sequence[tuple[float, float]]]],
+                    panel: str) -> None:
+    """Tube diameters vs x for the panel's value (log y); 'no tube' if none given."""
+    curves = next((v for k, v in diameters.items() if _same(k, panel)), None)
+    if not curves:
+        ax.text(0.5, 0.5, "no tube", transform=ax.transAxes, ha="center", va="center")
+        return
+    for bound, points in curves.items():
+        pts = sorted((x, d) for x, d in points if math.isfinite(d) and d > 0)
+        if pts:
+            style = TUBE_STYLE.get(bound, {"color": "0.4", "linestyle": ":", "marker": "."})
+            ax.plot([x for x, _ in pts], [d for _, d in pts], markersize=3, label=bound,
+                    **style)
+    ax.set_yscale("log")
+
+
+def _same(key: float, panel: str) -> bool:
+    """Whether a diameters key names the panel value (numerically)."""
+    try:
+        return math.isclose(float(key), float(panel))
+    except (TypeError, ValueError):
+        return str(key) == panel

@@ -1,0 +1,315 @@
+"""The results page's robustness study: success rate vs MPC rate, with real statistics.
+
+One section per study sweep (paper geometry, a moved geometry, solve latency charged): the
+success rates with Wilson 95 % intervals and, on the same rate axis, the tube diameter
+diam T(1/f) of Step 5 computed for the sweep's own scenario and disturbance size; the
+table; findings computed from the intervals; the runs' summed wall time and how to
+resume. Then the latency comparison and a reading computed from all of it: a claim is
+made only where intervals separate.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from hmpc_cli.figures.common import FigureInputError, read_table, resolve_table
+
+__all__ = ["Study", "robustness_sections"]
+
+RATE, POLICY, SIZE = "mpc.rate_hz", "replanning.policy", "disturbance.magnitude"
+
+
+@dataclass(frozen=True)
+class Study:
+    """One robustness sweep on the page.
+
+    Attributes:
+        directory: the sweep's output directory (results.csv, sweep.toml, runs/).
+        sweep_file: the sweep file (how to resume), or None.
+        planned_seeds: the sweep's seeds (None: its ``sweep.toml``'s).
+    """
+
+    directory: Path
+    sweep_file: Path | None = None
+    planned_seeds: int | None = None
+
+
+def _rel(path: Path, base: Path) -> str:
+    try:
+        return path.resolve().relative_to(base.resolve()).as_posix()
+    except ValueError:
+        return path.resolve().as_posix()
+
+
+def _spec(directory: Path) -> dict:
+    """The sweep's own file as it ran (``sweep.toml`` in its directory; {} if unreadable)."""
+    import tomllib
+
+    try:
+        return tomllib.loads((directory / "sweep.toml").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+
+
+def _fixed(spec: dict) -> str:
+    """The sweep's ``[set]`` overrides as text ("-" if none)."""
+    return ", ".join(f"`{k} = {v}`" for k, v in spec.get("set", {}).items()) or "-"
+
+
+def tube_diameters(table: Path, rows: list[dict], size_column: str = SIZE
+                   ) -> dict[float, dict[str, list]]:
+    """Diam T(1/f) per disturbance size of a sweep: size -> bound -> [(rate, diam)].
+
+    Computed by Step 5's tube analysis (``hmpc tube``'s, default samples) for the
+    effective scenario of the first finished run of each size (its ``scenario.toml``);
+    bounds ``trivial`` (Prop. 2) and ``kinematic``; {} when no run can be read.
+    """
+    from hmpc_cli.registry import build_system
+    from hmpc_cli.scenario import ScenarioError, load_scenario
+    from hmpc_cli.tube import TubeError, analyse, region_from_scenario
+
+    rates = sorted({float(r[RATE]) for r in rows if r.get(RATE)})
+    out: dict[float, dict[str, list]] = {}
+    for size in sorted({float(r[size_column]) for r in rows if r.get(size_column)}):
+        first = next(r for r in rows if r.get(size_column) and float(r[size_column]) == size)
+        scenario = table.parent / Path(first.get("log", "")).parent / "scenario.toml"
+        try:
+            sc, _ = load_scenario(scenario, check_margins=False)
+            system = build_system(sc.system)
+            rep = analyse(system, region=region_from_scenario(system), kind=sc.disturbance.kind,
+                          magnitude=sc.disturbance.magnitude, kp=sc.lowlevel.kp,
+                          kd=sc.lowlevel.kd, rate_hz=sc.mpc.rate_hz, rates=rates,
+                          seed=sc.seed)
+        except (OSError, ScenarioError, TubeError, ValueError):
+            continue
+        picked = [r for r in rep.rows if any(math.isclose(r.rate_hz, x) for x in rates)]
+        out[size] = {"trivial": [(r.rate_hz, r.trivial) for r in picked],
+                     "kinematic": [(r.rate_hz, r.kinematic) for r in picked
+                                   if r.kinematic is not None]}
+    return out
+
+
+def _pivot(cells) -> list[str]:
+    """Markdown table: one row per (size, policy), one column per rate."""
+    xs = sorted({c.x for c in cells})
+    lines = ["| disturbance | policy | " + " | ".join(f"{x:g} Hz" for x in xs) + " |",
+             "| --- | --- | " + " | ".join("---" for _ in xs) + " |"]
+    rows: dict[tuple[str, str], dict[float, object]] = {}
+    for c in cells:
+        rows.setdefault((c.panel, c.series), {})[c.x] = c
+    for (panel, series), by_x in rows.items():
+        parts = []
+        for x in xs:
+            c = by_x.get(x)
+            parts.append("-" if c is None else
+                         f"{c.successes}/{c.runs} ({100 * c.interval[0]:.0f}-"
+                         f"{100 * c.interval[1]:.0f} %)")
+        lines.append(f"| ±{panel} | {series} | " + " | ".join(parts) + " |")
+    return lines
+
+
+def _diam_lines(diameters: dict[float, dict[str, list]]) -> list[str]:
+    """Markdown table of diam T(1/f) per size and bound."""
+    if not diameters:
+        return []
+    xs = sorted({x for d in diameters.values() for pts in d.values() for x, _ in pts})
+    lines = ["| tube | " + " | ".join(f"{x:g} Hz" for x in xs) + " |",
+             "| --- | " + " | ".join("---" for _ in xs) + " |"]
+    for size, curves in diameters.items():
+        for bound, pts in curves.items():
+            by = dict(pts)
+            lines.append(f"| ±{size:g}, {bound} | " + " | ".join(
+                f"{by[x]:.3g}" if x in by else "-" for x in xs) + " |")
+    return lines
+
+
+def separated(a, b) -> bool:
+    """Whether two cells' Wilson intervals do not overlap."""
+    return a.interval[1] < b.interval[0] or b.interval[1] < a.interval[0]
+
+
+def _compare(hi, lo, what_hi: str, what_lo: str) -> str:
+    """'<hi> is higher than / lower than / the same as <lo> (rates; intervals ...)'."""
+    verdict = ("higher than" if hi.rate > lo.rate else "lower than" if hi.rate < lo.rate
+               else "the same as")
+    return (f"{what_hi} is {verdict} {what_lo} ({100 * hi.rate:.0f} % vs "
+            f"{100 * lo.rate:.0f} %; intervals {'separate' if separated(hi, lo) else 'overlap'})")
+
+
+def findings(cells) -> list[str]:
+    """Per (size, policy): fastest vs slowest rate; per (size, rate): replanning vs once."""
+    out = []
+    panels = list(dict.fromkeys(c.panel for c in cells))
+    series = list(dict.fromkeys(c.series for c in cells))
+    for p in panels:
+        for s in series:
+            sel = sorted((c for c in cells if c.panel == p and c.series == s), key=lambda c: c.x)
+            if len(sel) >= 2:
+                out.append(f"- ±{p}, {s}: " + _compare(sel[-1], sel[0], f"{sel[-1].x:g} Hz",
+                                                       f"{sel[0].x:g} Hz") + ".")
+        if len(series) == 2:
+            a, b = series
+            for x in sorted({c.x for c in cells if c.panel == p}):
+                ca = [c for c in cells if (c.panel, c.series, c.x) == (p, a, x)]
+                cb = [c for c in cells if (c.panel, c.series, c.x) == (p, b, x)]
+                if ca and cb and separated(ca[0], cb[0]):
+                    out.append(f"- ±{p}, {x:g} Hz: " + _compare(cb[0], ca[0], b, a) + ".")
+    return out
+
+
+def _wall(rows: list[dict]) -> str:
+    """The runs' summed wall time (core hours) and mean per run."""
+    walls = [float(r["wall_time"]) for r in rows if r.get("wall_time") not in (None, "")]
+    if not walls:
+        return "wall time not recorded"
+    return (f"the runs took {sum(walls) / 3600:.1f} core-hours ({sum(walls) / len(walls):.1f} s "
+            "per run on average; divide by the worker processes for the elapsed time)")
+
+
+def _size_column(rows: list[dict]) -> str:
+    """The table's disturbance-size column: the grid's, else the sweep's fixed ``[set]``."""
+    return SIZE if rows and SIZE in rows[0] else f"set.{SIZE}"
+
+
+def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], list, dict]:
+    """One sweep's section: figure with tubes, tables, findings, wall time, resume.
+
+    Returns:
+        (markdown lines, the cells, the sweep's ``sweep.toml`` as it ran).
+    """
+    from hmpc_cli.figures.common import TEXT_WIDTH_IN
+    from hmpc_cli.figures.robustness import robustness
+
+    table = resolve_table(study.directory)
+    rows = read_table(table, ["seed"])
+    spec = _spec(study.directory)
+    name = str(spec.get("name") or study.directory.name)
+    size = _size_column(rows)
+    diam = tube_diameters(table, rows, size)
+    cells = robustness(table, fig_dir, "pdf,svg,png", name=name, diameters=diam,
+                       panel_axis=size, width=min(TEXT_WIDTH_IN, 3.5 * max(1, len(diam))))
+    seeds = len({r["seed"] for r in rows})
+    n = sorted({c.runs for c in cells})
+    seeds_spec = spec.get("seeds")
+    planned = study.planned_seeds or (seeds_spec if isinstance(seeds_spec, int) else len(
+        seeds_spec) if isinstance(seeds_spec, list) else None)
+    partial = (f" (a prefix: {seeds} of the sweep's {planned} seeds)"
+               if planned and seeds < planned else "")
+    resume = (f" Resume or complete: `hmpc sweep {study.sweep_file}` (finished runs are "
+              "skipped), or `hmpc report --run`." if study.sweep_file else "")
+    png = _rel(fig_dir / f"{name}.png", base)
+    csv = _rel(fig_dir / f"{name}_table.csv", base)
+    return ([f"### {spec.get('description', name)}", "", f"![{name}]({png})", "",
+             f"{len(rows)} finished runs, {seeds} seeds{partial}, {n[0]}"
+             f"{'' if len(n) == 1 else f'-{n[-1]}'} runs per cell; settings of every run: "
+             f"{_fixed(spec)}; Wilson 95 % intervals; {_wall(rows)}. Table: [{csv}]({csv})."
+             + resume, "", *_pivot(cells), "",
+             *(["Tube diameter diam T(1/f) at each rate (Step 5, sampled constants; the "
+                "lower panels):", "", *_diam_lines(diam), ""] if diam else []),
+             "Computed findings (a claim holds only where the intervals separate):", "",
+             *(findings(cells) or ["- none: no cell has runs at two rates"]), ""],
+            cells, spec)
+
+
+def latency_lines(paused: list, charged: list, latency: object) -> list[str]:
+    """The cells run with latency charged beside the same cells with time paused."""
+    out = []
+    for c in charged:
+        twin = [p for p in paused if (p.panel, p.series, p.x) == (c.panel, c.series, c.x)]
+        if twin:
+            out.append(f"- ±{c.panel}, {c.series}, {c.x:g} Hz: " + _compare(
+                c, twin[0], f"{latency} s latency", "time paused") + ".")
+    return out
+
+
+def _tally(pairs: list[tuple]) -> tuple[int, int, int]:
+    """(first higher with separated intervals, first lower so, unresolved) over pairs."""
+    up = sum(separated(a, b) and a.rate > b.rate for a, b in pairs)
+    down = sum(separated(a, b) and a.rate < b.rate for a, b in pairs)
+    return up, down, len(pairs) - up - down
+
+
+def _pairs(cells) -> tuple[list, list]:
+    """(fastest vs slowest rate per size and policy, replanning vs once per size and rate)."""
+    by: dict[tuple, object] = {(c.panel, c.series, c.x): c for c in cells}
+    rate_pairs, plan_pairs = [], []
+    for p, s in dict.fromkeys((c.panel, c.series) for c in cells):
+        xs = sorted(x for (pp, ss, x) in by if (pp, ss) == (p, s))
+        if len(xs) >= 2:
+            rate_pairs.append((by[(p, s, xs[-1])], by[(p, s, xs[0])]))
+    for p, x in dict.fromkeys((c.panel, c.x) for c in cells):
+        if (p, "once", x) in by and (p, "on_contact", x) in by:
+            plan_pairs.append((by[(p, "on_contact", x)], by[(p, "once", x)]))
+    return rate_pairs, plan_pairs
+
+
+def reading(results: list[tuple[dict, list]], latency: list[str]) -> list[str]:
+    """What the evidence does and does not support, counted from the intervals."""
+    rate_pairs, plan_pairs = [], []
+    for spec, cells in results:
+        if "sim.latency" not in spec.get("set", {}):
+            r, p = _pairs(cells)
+            rate_pairs += r
+            plan_pairs += p
+    lines = ["### Reading", ""]
+    if rate_pairs:
+        up, down, tie = _tally(rate_pairs)
+        lines.append(f"- Faster MPC (time paused): in {up} of {len(rate_pairs)} series "
+                     "(geometry x disturbance size x policy) the fastest rate succeeds more "
+                     f"often than the slowest with separated intervals, in {down} less often; "
+                     f"{tie} unresolved at this sample size.")
+    if plan_pairs:
+        up, down, tie = _tally(plan_pairs)
+        lines.append(f"- Replanning at contacts vs planning once (time paused): better in {up} "
+                     f"of {len(plan_pairs)} cells with separated intervals, worse in {down}; "
+                     f"{tie} unresolved.")
+    if latency:
+        worse = sum("lower than" in line and "separate)" in line for line in latency)
+        better = sum("higher than" in line and "separate)" in line for line in latency)
+        lines.append(f"- Solve time charged: {worse} of {len(latency)} cells succeed less "
+                     f"often than with time paused, {better} more often (separated intervals); "
+                     "the rest unresolved.")
+    lines += ["- Not supported by this study: rates outside the tested grid, other systems, "
+              "other disturbance shapes than a held uniform box, and real-time behaviour "
+              "beyond a fixed charged latency; the tube diameters are bounds from sampled "
+              "constants (Step 5), an explanation of the trend, not a certificate of it.", ""]
+    return lines
+
+
+def _twin(charged: dict, paused: list[tuple[dict, list]]) -> tuple[dict, list] | None:
+    """The paused study with the latency study's settings but the latency (and size)."""
+    def key(spec: dict) -> dict:
+        return {k: v for k, v in spec.get("set", {}).items() if k not in ("sim.latency", SIZE)}
+
+    return next((p for p in paused if key(p[0]) == key(charged)), None)
+
+
+def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list[str]:
+    """The page's robustness part: every study, the latency comparison, the reading."""
+    lines = ["## Robustness study: success rate vs MPC rate", "",
+             "Each run draws a uniform box disturbance held 0.05 s from its seed; success = "
+             "ending inside the circle at t = 3 s. Lower panels: the tube diameter "
+             "diam T(1/f) of the same scenario and disturbance size at each MPC rate f.", ""]
+    results: list[tuple[dict, list]] = []
+    for study in studies:
+        try:
+            section, cells, spec = study_section(study, fig_dir, base)
+        except FigureInputError as exc:
+            lines += [f"### {study.directory.name}", "", f"Not drawn: {exc}", ""]
+            continue
+        lines += section
+        results.append((spec, cells))
+    paused = [r for r in results if "sim.latency" not in r[0].get("set", {})]
+    latency: list[str] = []
+    for spec, cells in results:
+        twin = _twin(spec, paused) if "sim.latency" in spec.get("set", {}) else None
+        if twin is not None:
+            lat = spec["set"]["sim.latency"]
+            mine = latency_lines(twin[1], cells, lat)
+            latency += mine
+            lines += [f"### {lat} s latency charged vs time paused", "",
+                      f"`{spec.get('name')}` beside the same cells of `{twin[0].get('name')}`:",
+                      "", *mine, ""]
+    return lines + reading(results, latency)
