@@ -20,7 +20,10 @@ tracked at once; a fixed delay L [s] or ``"measured"`` (the plan's measured comp
 time: planner, if it ran for this solve, plus MPC; runs are then not reproducible) lets
 a plan computed from the state at t reach the plant at the first simulator step at or
 after t + L, the previous plan being tracked until then. The delay is logged with each
-solve (/mpc/solve ``latency``).
+solve (/mpc/solve ``latency``). There is one solver: a solve that falls due while it is
+still computing (a period, an impact, a replanning) waits until it is free and then
+starts from the state of that moment, so an MPC rate faster than 1 / L runs at the
+solver's pace.
 """
 
 from __future__ import annotations
@@ -78,6 +81,7 @@ class _State:
     last_note: str = ""
     pending: list[tuple[float, Plan]] = field(default_factory=list)  # (due [s], plan)
     planner_wall: float = 0.0  # wall time [s] of the planner call the next solve follows
+    free_at: float = 0.0  # sim time [s] the solver is free again (latency charged)
 
 
 class ClosedLoop:
@@ -239,9 +243,14 @@ class ClosedLoop:
             st.need_replan = True  # no schedule the MPC can solve: retry every period
         if last:  # the run ends here: no more controller work
             return
-        if not self._react(t, x, mode) and st.since_solve >= tm.per_solve:
+        if (not self._react(t, x, mode) and st.since_solve >= tm.per_solve
+                and self._solver_free(t)):
             self._solve(t, x, mode, "period")
             st.since_solve = 0
+
+    def _solver_free(self, t: float) -> bool:
+        """Whether the solver is done with its last solve at sim time t [s]."""
+        return t >= self.st.free_at - 1e-9
 
     def _react(self, t: float, x: np.ndarray, mode: int) -> bool:
         """Replans and/or re-solves after events or a replanning trigger.
@@ -250,6 +259,8 @@ class ClosedLoop:
             Whether the stack worked (the MPC period restarts then).
         """
         st = self.st
+        if not self._solver_free(t):
+            return False  # the triggers wait for the solver
         need_replan, impact = st.need_replan, st.impact
         st.need_replan = st.impact = False
         if need_replan:
@@ -297,6 +308,7 @@ class ClosedLoop:
             delay = (st.planner_wall + plan.stats.wall_time if latency == "measured"
                      else float(latency))
             self.log.solve(t, plan, reason, self.model, delay)
+            st.free_at = t + delay
             if plan.adopt:
                 st.pending.append((t + delay, plan))
         st.planner_wall = 0.0
