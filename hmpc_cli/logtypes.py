@@ -313,7 +313,22 @@ def named(names: typing.Sequence[str], values) -> dict:
     """The vector ``values`` as an object {name: value} (values as Python floats)."""
     if values is None:
         return {}
-    return dict(zip(names, np.asarray(values, dtype=float).ravel().tolist(), strict=False))
+    vals = np.asarray(values, dtype=float).ravel().tolist()
+    if len(vals) == len(names):
+        return record_maker(tuple(names))(*vals)
+    return dict(zip(names, vals, strict=False))
+
+
+@functools.lru_cache(maxsize=128)
+def record_maker(keys: tuple[str, ...]):
+    """``f(v0, v1, ...) -> {keys[0]: v0, keys[1]: v1, ...}``.
+
+    A dict display compiled once per key tuple: the fastest way to make many dicts of
+    the same keys (the keys enter the source as string literals, by ``repr``).
+    """
+    args = ", ".join(f"v{i}" for i in range(len(keys)))
+    body = ", ".join(f"{k!r}: v{i}" for i, k in enumerate(keys))
+    return eval(f"lambda {args}: {{{body}}}")
 
 
 @functools.cache

@@ -15,7 +15,6 @@ import platform
 import shlex
 import sys
 from dataclasses import dataclass, field
-from functools import lru_cache
 
 import numpy as np
 
@@ -25,7 +24,7 @@ from hmpc_cli.loggeometry import body_logger, body_names, geometry_record
 from hmpc_cli.logtypes import (
     LOG_VERSION, BuildRec, GuardEventRec, MarginsRec, MpcSolve, PlanNode, PlannerCall,
     RolloutNode, RunInfo, ScheduleRec, StateSample, StatusCount, Summary, Versions, WRec, convert,
-    flat_keys, named, topic_schemas)
+    flat_keys, named, record_maker, topic_schemas)
 from hmpc_cli.messages import GuardEvent, ModeSchedule, Plan, PlannerResult, Trajectory
 
 SOFTENED_TOL = 1e-6  # a solve whose hybrid-constraint slack exceeds this is "softened"
@@ -287,18 +286,6 @@ def plan_nodes(traj: Trajectory, t0: float, model: HybridSystem) -> tuple[dict, 
                      np.asarray(traj.seg).tolist(), md, [modes[m] for m in md],
                      *np.asarray(traj.x, dtype=float).T.tolist(),
                      *np.asarray(traj.u, dtype=float).T.tolist()))
-
-
-@lru_cache(maxsize=64)
-def record_maker(keys: tuple[str, ...]):
-    """``f(v0, v1, ...) -> {keys[0]: v0, keys[1]: v1, ...}``.
-
-    A dict display compiled once per key tuple: the fastest way to make many dicts of
-    the same keys (the keys enter the source as string literals, by ``repr``).
-    """
-    args = ", ".join(f"v{i}" for i in range(len(keys)))
-    body = ", ".join(f"{k!r}: v{i}" for i, k in enumerate(keys))
-    return eval(f"lambda {args}: {{{body}}}")
 
 
 def _schedule(schedule: ModeSchedule | None, model: HybridSystem) -> ScheduleRec | None:

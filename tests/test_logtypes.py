@@ -140,7 +140,8 @@ def test_plan_nodes_are_the_schemas_records_node_by_node():
     from hmpc_cli.logtypes import PlanNode, flat_keys
     from hmpc_cli.messages import Trajectory
     from hmpc_cli.registry import build_system
-    from hmpc_cli.runlog import plan_nodes, record_maker
+    from hmpc_cli.logtypes import record_maker
+    from hmpc_cli.runlog import plan_nodes
     from hmpc_cli.systems.ball import BallParams
 
     model = build_system(BallParams())
