@@ -138,25 +138,28 @@ def select(problems: list[Problem], limit: int | None) -> list[Problem]:
 
 
 class TimedSolver:
-    """A CasADi solver whose stats add ``t_wall_casadi_call``: its last call's wall time [s].
+    """A CasADi solver whose stats add its last call's wall and process (CPU) time [s].
 
-    (The Python-to-CasADi call around the solver's own ``t_wall_total``.)
+    ``t_wall_casadi_call``: the Python-to-CasADi call around the solver's own
+    ``t_wall_total``; ``t_wall_cpu_casadi_call``: the process time of that call (wall
+    above CPU time: the process waited for a core).
     """
 
     def __init__(self, solver) -> None:
         """Wraps ``solver`` (a ``casadi.Function`` from ``nlpsol``)."""
-        self.solver, self.last = solver, 0.0
+        self.solver, self.last = solver, (0.0, 0.0)
 
     def __call__(self, **kwargs):
         """Calls the solver, timing the call."""
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         out = self.solver(**kwargs)
-        self.last = time.perf_counter() - start
+        self.last = (time.perf_counter() - start, time.process_time() - cpu)
         return out
 
     def stats(self) -> dict:
-        """The solver's stats and ``t_wall_casadi_call``."""
-        return {**self.solver.stats(), "t_wall_casadi_call": self.last}
+        """The solver's stats, ``t_wall_casadi_call`` and ``t_wall_cpu_casadi_call``."""
+        return {**self.solver.stats(), "t_wall_casadi_call": self.last[0],
+                "t_wall_cpu_casadi_call": self.last[1]}
 
 
 def configurations(system, settings, run: SuiteRun, with_dompc: bool = True) -> dict:
@@ -178,16 +181,25 @@ def configurations(system, settings, run: SuiteRun, with_dompc: bool = True) -> 
             session.cold = cold
         configs[label] = lambda prob, _f=by_nlp: _f[prob.nlp](prob.args)
     run.build["hmpc back-ends (6 x 2 NLPs)"] = time.perf_counter() - start
+    dm = dompc_config(templates["final"], run, with_dompc)
+    if dm is not None:
+        configs["do_mpc"] = dm
+    return configs
+
+
+def dompc_config(final: FixedModeNLP, run: SuiteRun, with_dompc: bool = True):
+    """do-mpc's configuration (final-domain problems only), or None with one printed line
+    and a note when do-mpc is not installed (or ``with_dompc`` is False)."""
     do_mpc = peers.import_do_mpc() if with_dompc else None
     if do_mpc is None:
-        why = "not installed (pip install -e '.[bench]')" if with_dompc else "--no-do-mpc"
-        run.notes.append(f"do-mpc: {why}; its row is left out")
+        why = ("not installed (pip install -e '.[bench]')" if with_dompc
+               else "not asked for (--no-do-mpc)")
+        run.notes.append(f"do-mpc {why}: its row is left out")
         print(f"do-mpc {why}: its row is left out", flush=True)
-        return configs
-    dm = peers.DoMPCFinal(do_mpc, templates["final"])
+        return None
+    dm = peers.DoMPCFinal(do_mpc, final)
     run.build["do_mpc"] = dm.build_time
-    configs["do_mpc"] = lambda prob: dm(prob.trial, prob.x0) if prob.nlp == "final" else None
-    return configs
+    return lambda prob: dm(prob.trial, prob.x0) if prob.nlp == "final" else None
 
 
 def replay(problems: list[Problem], configs: dict, run: SuiteRun,
@@ -213,16 +225,23 @@ def replay(problems: list[Problem], configs: dict, run: SuiteRun,
 def run_suite(trials, overrides=(), limit=None, with_dompc=True, progress=False) -> SuiteRun:
     """Records the trials' problems and replays them with every configuration."""
     os.environ.setdefault("HMPC_BUILD_CACHE", "off")  # every row in SX (see the docstring)
-    run = SuiteRun(notes=[SQPMETHOD])
-    bb.SPLITS.clear()
-    problems = []
+    problems, packing = [], []
     for trial in trials:
-        recorded, packing = record(trial, list(overrides))
+        recorded, packed = record(trial, list(overrides))
         problems += recorded
-        run.packing += packing
+        packing += packed
         if progress:
             print(f"trial {trial}: {len(recorded)} MPC problems recorded", flush=True)
-    problems = select(problems, limit)
+    run = measure(select(problems, limit), overrides, with_dompc, progress)
+    run.packing = packing
+    return run
+
+
+def measure(problems: list[Problem], overrides=(), with_dompc=True,
+            progress=False) -> SuiteRun:
+    """Builds every configuration (the recording's scenario overrides) and replays."""
+    run = SuiteRun(notes=[SQPMETHOD])
+    bb.SPLITS.clear()
     sc, _ = load_scenario(bb.SCENARIO, [*bb.ZOH, *overrides])
     configs = configurations(build_system(sc.system), sc.mpc, run, with_dompc)
     replay(problems, configs, run, progress)
@@ -247,10 +266,10 @@ def main(argv: list[str] | None = None) -> int:
     trials = args.trials or (QUICK_TRIALS if args.quick else TRIALS)
     limit = args.problems or (QUICK_PROBLEMS if args.quick else None)
     out = args.out or os.path.join("results", "bench", "quick" if args.quick else "")
-    load0, start = os.getloadavg(), time.perf_counter()
+    load0, start, git = os.getloadavg(), time.perf_counter(), report.git_describe()
     run = run_suite(trials, args.overrides, limit, not args.no_do_mpc, progress=True)
     machine = report.machine(["python", *sys.argv] if argv is None else argv, load0,
-                             time.perf_counter() - start, trials, args.overrides)
+                             time.perf_counter() - start, trials, args.overrides, git)
     text, files = report.write(run, machine, out)
     print(text)
     print("\nwrote " + ", ".join(files))

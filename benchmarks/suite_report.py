@@ -110,9 +110,13 @@ def profile(splits: list[dict], stats: list, packing: list[float]) -> list[tuple
     its ``nlp_fg`` calls, the rest of the solver's ``total`` (IPOPT: its linear algebra
     and algorithm; SQP: its own steps), the CasADi call around the solver (argument
     conversion, ``casadi_call`` - ``total``) and hmpc's Python around that call.
-    Parameter packing runs in the closed loop, outside the solve timer.
+    Below them, not parts: the CasADi call's process (CPU) time (wall above it: the
+    process waited for a core), one QP's time (QP time / SQP iterations) and the
+    parameter packing, which runs in the closed loop outside the solve timer.
     """
     keep = [s for s, st in zip(splits, stats, strict=True) if not st.fallback]
+    if not keep:
+        return []
     parts: dict[str, list[float]] = {k: [] for k in PARTS}
     for s in keep:
         call = s["call (hmpc + CasADi)"]
@@ -125,10 +129,18 @@ def profile(splits: list[dict], stats: list, packing: list[float]) -> list[tuple
                                   call - casadi), strict=True):
             parts[key].append(max(v, 0.0))
     calls = [s["call (hmpc + CasADi)"] for s in keep]
-    mean = float(np.mean(calls)) if calls else np.nan
+    mean = float(np.mean(calls))
     out = [(k, MS * float(np.median(v)), MS * float(np.mean(v)), float(np.mean(v)) / mean)
-           for k, v in parts.items() if v and max(v) > 0.0]
+           for k, v in parts.items() if max(v) > 0.0]
     out.append(("whole solve call", MS * float(np.median(calls)), MS * mean, 1.0))
+    extra = {"CasADi call, CPU (process) time": [s["cpu_casadi_call"] for s in keep
+                                                 if "cpu_casadi_call" in s]}
+    its = [st.iterations for st in stats if not st.fallback]
+    if "QP" in keep[0]:
+        extra["one QP (QP time / SQP iterations)"] = [
+            s["QP"] / max(n, 1) for s, n in zip(keep, its, strict=True)]
+    out += [(k, MS * float(np.median(v)), MS * float(np.mean(v)), np.nan)
+            for k, v in extra.items() if v]
     if packing:
         out.append(("parameter packing (closed loop, not timed above)",
                     MS * float(np.median(packing)), MS * float(np.mean(packing)), np.nan))
@@ -198,6 +210,8 @@ def profile_lines(run, label: str, markdown: bool = False) -> list[str]:
         if not splits:
             continue
         prof = profile(splits, stats, run.packing)
+        if not prof:  # every solve fell back to IPOPT
+            continue
         head = f"{label}, {nlp} NLP ({len(splits)} solves; medians and means per solve, ms)"
         if markdown:
             out += ["", f"**{head}**", "", "| part | median ms | mean ms | share of mean |",
@@ -213,8 +227,17 @@ def profile_lines(run, label: str, markdown: bool = False) -> list[str]:
     return out
 
 
-def machine(argv: list[str], load0: tuple, seconds: float, trials, overrides) -> dict:
-    """The machine and run description: CPU, cores, RAM, OS, versions, date, load."""
+def machine(argv: list[str], load0: tuple, seconds: float, trials, overrides,
+            git: str | None = None) -> dict:
+    """The machine and run description: CPU, cores, RAM, OS, versions, date, load.
+
+    Args:
+        argv: the command line.
+        load0: the load average (1, 5, 15 min) at the start.
+        seconds: the suite's wall time [s].
+        trials, overrides: the recorded trials and scenario overrides.
+        git: ``git describe`` of the code measured (taken at the start).
+    """
     def version(pkg: str) -> str | None:
         try:
             return metadata.version(pkg)
@@ -232,7 +255,7 @@ def machine(argv: list[str], load0: tuple, seconds: float, trials, overrides) ->
             "ram_gib": round(int(mem) / 2**20, 1) if mem else None,
             "os": f"{osname} ({platform.platform()})", "python": sys.version.split()[0],
             "casadi": version("casadi"), "numpy": version("numpy"),
-            "do_mpc": version("do-mpc"), "hmpc": version("hmpc"), "git": _git(),
+            "do_mpc": version("do-mpc"), "hmpc": version("hmpc"), "git": git,
             "date_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
             "command": shlex.join(argv), "trials": list(trials),
             "overrides": list(overrides),
@@ -250,7 +273,8 @@ def _read(path: str) -> str:
         return ""
 
 
-def _git() -> str | None:
+def git_describe() -> str | None:
+    """``git describe --always --dirty`` of this checkout (None outside git)."""
     here = os.path.dirname(os.path.abspath(__file__))
     try:
         out = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=here,
