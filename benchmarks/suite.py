@@ -1,7 +1,7 @@
 """The benchmark suite: every fixed-mode MPC configuration on the same recorded problems.
 
-Run:  python benchmarks/suite.py            (trials 1 2 3 5 7: ~160 problems, ~10 min)
-      python benchmarks/suite.py --quick    (trial 1, 10 problems, ~2 min)
+Run:  python benchmarks/suite.py            (trials 1 2 3 5 7: 160 problems, ~6 min)
+      python benchmarks/suite.py --quick    (trial 1, 10 problems, ~1 min)
 
 1. Records the MPC problems of disturbed Figure 3 trials in closed loop (10 Hz, plan once,
    zero-order hold: the structured back-ends need stage-wise dynamics) with hmpc's IPOPT:
