@@ -99,6 +99,7 @@ def _caller(nlp: FixedModeNLP, label: str):
         split["call (hmpc + CasADi)"] = total
         SPLITS.setdefault((label, which), []).append(split)
         return stats
+    call.nlp = nlp  # the NLP it solves (its session's solver instances)
     return call
 
 
