@@ -87,6 +87,10 @@ class Provenance:
     sweep: str = ""
 
 
+#: /sim/state samples held before they are written (see :meth:`RunLog.state`)
+SAMPLES_HELD = 64
+
+
 class RunLog:
     """Topics and books of one run.
 
@@ -108,6 +112,7 @@ class RunLog:
         self._model: HybridSystem | None = None
         self._body = None  # x -> the plant's body points (None: no body logged)
         self.scene = None  # 3D scene writer (hmpc_cli.scene.SceneWriter), set by the runner
+        self._samples: list[tuple] = []  # /sim/state samples not yet written (in order)
 
     def set_info(self, name: str, seed: int, scenario: dict, per_state: int,
                  margins: dict | None = None, kinds: tuple[str, str] = ("", ""),
@@ -133,6 +138,8 @@ class RunLog:
 
     def _write(self, topic: str, t: float, payload) -> None:
         if self.rec is not None:
+            if self._samples:
+                self.flush_samples()
             self.rec.write(topic, t, payload)
 
     def open(self, model: HybridSystem, plant: HybridSystem | None = None) -> None:
@@ -190,16 +197,33 @@ class RunLog:
 
     def state(self, t: float, x: np.ndarray, mode: int, u: np.ndarray, x_ref: np.ndarray,
               w: np.ndarray) -> None:
-        """One /sim/state sample."""
+        """One /sim/state sample (with its scene body).
+
+        Held (copied) until the next message of another topic, :data:`SAMPLES_HELD`
+        samples, or :meth:`flush_samples`, then encoded in one loop, in order: the file's
+        message order is unchanged, and the encoding costs a run about half as much as
+        spread between the solves (measured).
+        """
+        if self.rec is None:
+            return
+        self._samples.append((t, int(mode), *(None if v is None else np.array(v, dtype=float)
+                                               for v in (x, u, x_ref, w))))
+        if len(self._samples) >= SAMPLES_HELD:
+            self.flush_samples()
+
+    def flush_samples(self) -> None:
+        """Writes the held /sim/state samples and their scene bodies."""
+        samples, self._samples = self._samples, []
         if self.rec is None:
             return
         m = self._model
-        self._write("/sim/state", t, StateSample(
-            t, int(mode), m.modes[mode].name, named(m.state_names, x),
-            named(m.input_names, u), named(m.state_names, x_ref),
-            named(m.disturbance_names, w), self._body(x) if self._body is not None else {}))
-        if self.scene is not None:
-            self.scene.state(t, x)
+        for t, mode, x, u, x_ref, w in samples:
+            self.rec.write("/sim/state", t, StateSample(
+                t, mode, m.modes[mode].name, named(m.state_names, x),
+                named(m.input_names, u), named(m.state_names, x_ref),
+                named(m.disturbance_names, w), self._body(x) if self._body is not None else {}))
+            if self.scene is not None:
+                self.scene.state(t, x)
 
     def event(self, ev: GuardEvent, system: HybridSystem, scheduled: bool) -> None:
         """Counts and logs a guard event of the simulated system."""

@@ -103,7 +103,10 @@ def execute_run(loop: ClosedLoop, toml_text: str, out: Path,
                 loop.res.reason = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
             raise
         finally:
-            rec.close()
+            try:
+                loop.log.flush_samples()
+            finally:
+                rec.close()
             res = result if result is not None else loop.res
             _write_summary(out, res)
     return result
