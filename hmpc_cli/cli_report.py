@@ -10,6 +10,7 @@ import typer
 EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
+DEFAULT_AUTHORS = Path("../shared/reference")  # the authors' data beside the repository
 
 
 def report_command(
@@ -20,6 +21,19 @@ def report_command(
     fig3_extra: Annotated[Path | None, typer.Option(
         "--fig3-extra", help="extra Figure 3 panel sweep (100 Hz; '' to leave out)")
     ] = Path("sweeps/fig3_100hz.toml"),
+    fig3_reference: Annotated[Path | None, typer.Option(
+        "--fig3-reference", help="Figure 3 sweep in reference mode ('' to leave out)")
+    ] = Path("sweeps/fig3_reference.toml"),
+    fig3_reference_extra: Annotated[Path | None, typer.Option(
+        "--fig3-reference-extra", help="its 100 Hz panels ('' to leave out)")
+    ] = Path("sweeps/fig3_reference_100hz.toml"),
+    fig3_schedule: Annotated[Path | None, typer.Option(
+        "--fig3-schedule", help="Figure 3 sweep flying the authors' plan ('' to leave out)")
+    ] = Path("sweeps/fig3_reference_schedule.toml"),
+    authors: Annotated[Path | None, typer.Option(
+        "--authors", help="directory of the authors' Figure 3 CSVs (fig3_*.csv) for the "
+        "trial-by-trial comparison (default: ../shared/reference if it exists; '' to leave "
+        "out)")] = None,
     robustness: Annotated[Path | None, typer.Option(
         "--robustness", help="robustness study sweep file ('' to leave out)")
     ] = Path("sweeps/robustness.toml"),
@@ -35,24 +49,44 @@ def report_command(
         "--seeds", help="robustness study: only its first N seeds (resume later with more)")
     ] = None,
 ) -> None:
-    """Regenerate the results page: Figure 3 beside the paper's counts, robustness curves."""
-    plans = _plan_sweeps({"fig3": fig3, "fig3_extra": fig3_extra, "robustness": robustness},
-                         seeds)
-    if not plans and _left_out(biped):
-        typer.echo("error: nothing to report (--fig3, --fig3-extra, --robustness and --biped "
-                   "are all empty)", err=True)
-        raise typer.Exit(EXIT_BAD_INPUT)
-    dirs = {k: results / "sweeps" / p.spec.name for k, p in plans.items()}
+    """Regenerate the results page: Figure 3 (both modes, beside the paper), robustness, Fig. 4.
+
+    Each sweep option takes a sweep file (its runs: <results>/sweeps/<name>) or a sweep's
+    output directory (read as it is, never run).
+    """
+    plans, dirs = _sweeps(results, seeds, biped, fig3=fig3, fig3_extra=fig3_extra,
+                          fig3_reference=fig3_reference,
+                          fig3_reference_extra=fig3_reference_extra,
+                          fig3_schedule=fig3_schedule, robustness=robustness)
     if not run:
         _print_missing(plans, dirs)
     lost = _run_sweeps(plans, dirs, workers) if run else []
     biped_dir = _biped_run(biped, results, run)
-    _write_page(results, dirs, biped_dir)
+    _write_page(results, dirs, biped_dir, _authors_dir(authors))
     if lost:  # the page holds every finished run; these are missing from it
         for line in lost:
             typer.echo(f"error: worker failed, run not recorded (rerun to retry): {line}",
                        err=True)
         raise typer.Exit(EXIT_FAILED)
+
+
+def _sweeps(results: Path, seeds: int | None, biped: Path | None,
+            **files: Path | None) -> tuple[dict, dict[str, Path]]:
+    """The sweep plans to run and every part's output directory.
+
+    A sweep file runs into ``<results>/sweeps/<name>``; a directory is a sweep's output,
+    read as it is; '' leaves a part out.
+
+    Raises:
+        typer.Exit: an invalid sweep file, or nothing to report (exit code 2).
+    """
+    given = {k: v for k, v in files.items() if not _left_out(v) and v.is_dir()}
+    plans = _plan_sweeps({k: v for k, v in files.items() if k not in given}, seeds)
+    if not plans and not given and _left_out(biped):
+        typer.echo("error: nothing to report (every sweep option and --biped are empty)",
+                   err=True)
+        raise typer.Exit(EXIT_BAD_INPUT)
+    return plans, {k: results / "sweeps" / p.spec.name for k, p in plans.items()} | given
 
 
 def _print_missing(plans: dict, dirs: dict[str, Path]) -> None:
@@ -147,13 +181,34 @@ def _run_sweeps(plans: dict, dirs: dict[str, Path], workers: int | None) -> list
     return lost
 
 
-def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None) -> None:
+def _authors_dir(path: Path | None) -> tuple[Path | None, str]:
+    """The authors' data directory and, when there is none, the page's note saying so.
+
+    Raises:
+        typer.Exit: an explicitly given directory that does not exist (exit code 2).
+    """
+    if path is None:
+        if DEFAULT_AUTHORS.is_dir():
+            return DEFAULT_AUTHORS, ""
+        return None, (f"The authors' data ({DEFAULT_AUTHORS}) was not found: the "
+                      "trial-by-trial comparison is left out (`hmpc report --authors DIR`).")
+    if _left_out(path):
+        return None, ""
+    if not path.is_dir():
+        typer.echo(f"error: --authors: {path}: no such directory", err=True)
+        raise typer.Exit(EXIT_BAD_INPUT)
+    return path, ""
+
+
+def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None,
+                authors: tuple[Path | None, str] = (None, "")) -> None:
     """Draws the figures from the finished runs and writes ``<results>/README.md``.
 
     Args:
         results: results directory.
         dirs: sweep output directory per report part given.
         biped_dir: run directory of the biped scenario (None: no Figure 4).
+        authors: the authors' data directory (None: none) and the page's note about it.
 
     Raises:
         typer.Exit: a figure's input is unusable (exit code 2).
@@ -162,7 +217,9 @@ def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None) ->
     from hmpc_cli.report import ReportInputs, write_report
 
     inputs = ReportInputs(dirs.get("fig3"), dirs.get("fig3_extra"), dirs.get("robustness"),
-                          biped_dir)
+                          biped_dir, dirs.get("fig3_reference"),
+                          dirs.get("fig3_reference_extra"), *authors,
+                          dirs.get("fig3_schedule"))
     try:
         page = write_report(results, inputs, "hmpc report")
     except FigureInputError as exc:
