@@ -4,7 +4,8 @@ For each run of a Figure 3 sweep (results.csv with ``controller``, ``disturbance
 ``success``, ``log``) and the authors' trajectory of the same panel and trial
 (:mod:`hmpc_cli.authors`): the contact sequence (ours: the log's guard events; theirs:
 found in their positions), the circle-entry time (the first time |p - c| <= the circle's
-radius, on both sides), the end point and success. Where the outcomes differ, the reason
+radius: ours the logged circle_in event, theirs the first such sample), the end point and
+success. Where the outcomes differ, the reason
 is computed from the log and the data, never written by hand: whether the initial plans
 differ (ours: the first accepted planner call; theirs: the contacts of their undisturbed
 run in that panel), when the two paths part, the first contact that differs, and how the
@@ -249,9 +250,10 @@ def _our_side(run, success: bool, geo: BallGeometry) -> tuple[Side, RunFacts]:
     from hmpc_cli.figures.common import trace_of
 
     trace = trace_of(run, run.path)
+    entry = next((e.t for e in run.events if e.guard_name == "circle_in"), None)
     side = Side(tuple(Contact(e.t, e.guard_name) for e in run.events),
-                circle_entry(trace.t, trace.xy, geo), trace.xy[-1].copy(), success,
-                trace.t, trace.xy)
+                entry if entry is not None else circle_entry(trace.t, trace.xy, geo),
+                trace.xy[-1].copy(), success, trace.t, trace.xy)
     plan: tuple[Contact, ...] = ()
     first = next((p for p in run.planner if p.accepted and p.schedule), None)
     if first is not None:
