@@ -121,6 +121,7 @@ seeds = 2
 """)
     res = tmp_path / "results"
     args = ["report", "--run", "--results", str(res), "--fig3", "", "--fig3-extra", "",
+            "--fig3-reference", "", "--fig3-reference-extra", "", "--fig3-schedule", "",
             "--biped", "",
             "--robustness", str(sweep), "--workers", "1"]
     proc = run_hmpc(args, tmp_path, timeout=600)
@@ -143,7 +144,8 @@ seeds = 2
 def test_report_without_results_is_a_clear_error(tmp_path, run_hmpc):
     proc = run_hmpc(["report", "--no-run", "--results", str(tmp_path / "r"),
                      "--fig3", str(REPO / "sweeps" / "fig3.toml"), "--fig3-extra", "",
-                     "--robustness", "", "--biped", ""], tmp_path)
+                     "--fig3-reference", "", "--fig3-reference-extra", "",
+                     "--fig3-schedule", "", "--robustness", "", "--biped", ""], tmp_path)
     assert "no such table" in proc.stderr
     assert proc.returncode == 2
     assert "error:" in proc.stderr and "Traceback" not in proc.stderr
@@ -164,3 +166,12 @@ def test_first_seeds_is_a_resumable_prefix_of_the_study():
     for bad in (0, 101):
         with pytest.raises(ScenarioError, match="the sweep has 100 seed"):
             first_seeds(full, bad)
+
+
+def test_report_with_a_missing_authors_directory_is_a_clear_error(tmp_path, run_hmpc):
+    proc = run_hmpc(["report", "--no-run", "--results", str(tmp_path / "r"),
+                     "--fig3", str(tmp_path), "--fig3-extra", "", "--fig3-reference", "",
+                     "--fig3-reference-extra", "", "--fig3-schedule", "", "--robustness", "",
+                     "--biped", "", "--authors", str(tmp_path / "nowhere")], tmp_path)
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == f"error: --authors: {tmp_path / 'nowhere'}: no such directory"
