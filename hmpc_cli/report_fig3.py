@@ -210,7 +210,10 @@ def _compare_mode(mode: Fig3Mode, authors: dict, fig_dir: Path, base: Path,
         mine = [r for r in rows if r.panel == panel]
         fig3_overlay(mine, fig_dir / "overlay", stem, "png", title=f"{mode.name}, {panel}")
         lines.append(f"![{mode.name}, {panel}]({_rel(fig_dir / 'overlay' / f'{stem}.png', base)})")
-    return lines + ["", "Every trial:", "", *_trial_table(rows), ""]
+    return lines + ["", "Every trial (contacts in order, repeats folded; entry: the first time "
+                    "|p - (3, 3)| <= 1, ours the logged circle_in event, theirs the first of "
+                    "their samples; their contacts found in their sampled positions, "
+                    "`hmpc_cli/authors.py`):", "", *_trial_table(rows), ""]
 
 
 def _settings_line(modes: Sequence[Fig3Mode]) -> list[str]:
