@@ -213,6 +213,9 @@ def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None,
     Raises:
         typer.Exit: a figure's input is unusable (exit code 2).
     """
+    import shlex
+    import sys
+
     from hmpc_cli.figures.common import FigureInputError
     from hmpc_cli.report import ReportInputs, write_report
 
@@ -221,7 +224,7 @@ def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None,
                           dirs.get("fig3_reference_extra"), *authors,
                           dirs.get("fig3_schedule"))
     try:
-        page = write_report(results, inputs, "hmpc report")
+        page = write_report(results, inputs, shlex.join(["hmpc", *sys.argv[1:]]))
     except FigureInputError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(EXIT_BAD_INPUT) from None
