@@ -45,9 +45,9 @@ def _polylines(rows) -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
-def _limits(rows) -> tuple[tuple[float, float], tuple[float, float]]:
-    """Common square (x, y) limits [m] spanning both sides' paths and the origin."""
-    pts = [np.zeros((1, 2))]
+def _limits(rows, closed: list[np.ndarray]) -> tuple[tuple[float, float], tuple[float, float]]:
+    """Common square (x, y) limits [m]: both sides' paths, the origin, closed guards (K, 2)."""
+    pts = [np.zeros((1, 2)), *closed]
     for r in rows:
         for side in (r.ours, r.theirs):
             if side is not None:
@@ -102,7 +102,9 @@ def overlay_figure(rows: Sequence, title: str = "", width: float = TEXT_WIDTH_IN
     fig = Figure(figsize=(width, height), layout="constrained")
     fig.get_layout_engine().set(w_pad=0.02, h_pad=0.02, wspace=0.02, hspace=0.02)
     axes = fig.subplots(nrows, COLUMNS, sharex=True, sharey=True, squeeze=False).ravel()
-    lines, lims = _polylines(rows), _limits(rows)
+    lines = _polylines(rows)
+    lims = _limits(rows, [np.column_stack([a, b]) for a, b in lines
+                          if len(a) > 2 and a[0] == a[-1] and b[0] == b[-1]])
     for ax, row in zip(axes, rows, strict=False):
         _draw_trial(ax, row, lines, lims)
         ax.xaxis.set_major_locator(MaxNLocator(3))
@@ -130,7 +132,7 @@ def overlay_figure(rows: Sequence, title: str = "", width: float = TEXT_WIDTH_IN
 def fig3_overlay(rows: Sequence, out_dir: str | Path, stem: str,
                  formats: str | Iterable[str] = ("png",), *, title: str = "",
                  width: float = TEXT_WIDTH_IN, height: float | None = None,
-                 dpi: int = 200) -> list[Path]:
+                 dpi: int = 120) -> list[Path]:
     """Draws :func:`overlay_figure` into out_dir/stem.<fmt>; returns the written paths.
 
     Raises:
