@@ -169,8 +169,9 @@ def _failure(who: str, side: Side, centre: Sequence[float], facts: RunFacts | No
         how = f"entered at {side.entry:.2f} s, left at {outs[-1]:.2f} s"
     else:
         how = f"entered at {side.entry:.2f} s"
-    text = (f"{who} {how}, {_tail(side)} floor/wall contacts in the last second, ends "
-            f"{d:.2f} m from the centre")
+    n = _tail(side)
+    text = (f"{who} {how}, {n} floor/wall contact{'' if n == 1 else 's'} in the last second, "
+            f"ends {d:.2f} m from the centre")
     if facts is not None:
         text += (f" ({facts.softened} of {facts.solves} solves softened, {facts.failed} "
                  f"failed; {facts.reason})")
