@@ -10,6 +10,7 @@ import typer
 EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
+DEFAULT_AUTHORS = Path("../shared/reference")  # the authors' data beside the repository
 #: the robustness study's sweeps: paper geometry, a moved geometry, solve latency charged
 ROBUSTNESS = (Path("sweeps/robustness.toml"), Path("sweeps/robustness_moved.toml"),
               Path("sweeps/robustness_latency.toml"))
@@ -23,10 +24,23 @@ def report_command(
     fig3_extra: Annotated[Path | None, typer.Option(
         "--fig3-extra", help="extra Figure 3 panel sweep (100 Hz; '' to leave out)")
     ] = Path("sweeps/fig3_100hz.toml"),
+    fig3_reference: Annotated[Path | None, typer.Option(
+        "--fig3-reference", help="Figure 3 sweep in reference mode ('' to leave out)")
+    ] = Path("sweeps/fig3_reference.toml"),
+    fig3_reference_extra: Annotated[Path | None, typer.Option(
+        "--fig3-reference-extra", help="its 100 Hz panels ('' to leave out)")
+    ] = Path("sweeps/fig3_reference_100hz.toml"),
+    fig3_schedule: Annotated[Path | None, typer.Option(
+        "--fig3-schedule", help="Figure 3 sweep flying the authors' plan ('' to leave out)")
+    ] = Path("sweeps/fig3_reference_schedule.toml"),
+    authors: Annotated[Path | None, typer.Option(
+        "--authors", help="directory of the authors' Figure 3 CSVs (fig3_*.csv) for the "
+        "trial-by-trial comparison (default: ../shared/reference if it exists; '' to leave "
+        "out)")] = None,
     robustness: Annotated[list[Path] | None, typer.Option(
-        "--robustness", help="robustness study sweep file, repeatable (default: "
-        "sweeps/robustness.toml, robustness_moved.toml and robustness_latency.toml; '' to "
-        "leave out)")] = None,
+        "--robustness", help="robustness study sweep file or output directory, repeatable "
+        "(default: sweeps/robustness.toml, robustness_moved.toml and robustness_latency.toml; "
+        "'' to leave out)")] = None,
     biped: Annotated[Path | None, typer.Option(
         "--biped", help="biped scenario for Figure 4 ('' to leave out)")
     ] = Path("scenarios/biped_stairs.toml"),
@@ -39,26 +53,46 @@ def report_command(
         "--seeds", help="robustness study: only its first N seeds (resume later with more)")
     ] = None,
 ) -> None:
-    """Regenerate the results page: Figure 3 beside the paper's counts, robustness curves."""
-    studies = [p for p in (ROBUSTNESS if robustness is None else robustness)
-               if not _left_out(p)]
-    plans = _plan_sweeps({"fig3": fig3, "fig3_extra": fig3_extra,
-                          **{f"robustness:{i}": p for i, p in enumerate(studies)}}, seeds)
-    if not plans and _left_out(biped):
-        typer.echo("error: nothing to report (--fig3, --fig3-extra, --robustness and --biped "
-                   "are all empty)", err=True)
-        raise typer.Exit(EXIT_BAD_INPUT)
-    dirs = {k: results / "sweeps" / p.spec.name for k, p in plans.items()}
+    """Regenerate the results page: Figure 3 (both modes, beside the paper), robustness, Fig. 4.
+
+    Each sweep option takes a sweep file (its runs: <results>/sweeps/<name>) or a sweep's
+    output directory (read as it is, never run).
+    """
+    plans, dirs = _sweeps(results, seeds, biped, fig3=fig3, fig3_extra=fig3_extra,
+                          fig3_reference=fig3_reference,
+                          fig3_reference_extra=fig3_reference_extra,
+                          fig3_schedule=fig3_schedule,
+                          **{f"robustness:{i}": p for i, p in enumerate(
+                              ROBUSTNESS if robustness is None else robustness)})
     if not run:
         _print_missing(plans, dirs)
     lost = _run_sweeps(plans, dirs, workers) if run else []
     biped_dir = _biped_run(biped, results, run)
-    _write_page(results, dirs, biped_dir, plans)
+    _write_page(results, dirs, biped_dir, _authors_dir(authors), plans)
     if lost:  # the page holds every finished run; these are missing from it
         for line in lost:
             typer.echo(f"error: worker failed, run not recorded (rerun to retry): {line}",
                        err=True)
         raise typer.Exit(EXIT_FAILED)
+
+
+def _sweeps(results: Path, seeds: int | None, biped: Path | None,
+            **files: Path | None) -> tuple[dict, dict[str, Path]]:
+    """The sweep plans to run and every part's output directory.
+
+    A sweep file runs into ``<results>/sweeps/<name>``; a directory is a sweep's output,
+    read as it is; '' leaves a part out.
+
+    Raises:
+        typer.Exit: an invalid sweep file, or nothing to report (exit code 2).
+    """
+    given = {k: v for k, v in files.items() if not _left_out(v) and v.is_dir()}
+    plans = _plan_sweeps({k: v for k, v in files.items() if k not in given}, seeds)
+    if not plans and not given and _left_out(biped):
+        typer.echo("error: nothing to report (every sweep option and --biped are empty)",
+                   err=True)
+        raise typer.Exit(EXIT_BAD_INPUT)
+    return plans, {k: results / "sweeps" / p.spec.name for k, p in plans.items()} | given
 
 
 def _print_missing(plans: dict, dirs: dict[str, Path]) -> None:
@@ -98,7 +132,7 @@ def _plan_sweeps(files: dict[str, Path | None], seeds: int | None) -> dict:
     """Reads and validates the sweep files that are not left out.
 
     Args:
-        files: sweep file per report part (``fig3``, ``fig3_extra``, ``robustness:<i>``).
+        files: sweep file per report part (``fig3``, ``fig3_extra``, ``robustness:<i>``...).
         seeds: the robustness study runs only its first ``seeds`` seeds (None: all).
 
     Returns:
@@ -153,30 +187,58 @@ def _run_sweeps(plans: dict, dirs: dict[str, Path], workers: int | None) -> list
     return lost
 
 
+def _authors_dir(path: Path | None) -> tuple[Path | None, str]:
+    """The authors' data directory and, when there is none, the page's note saying so.
+
+    Raises:
+        typer.Exit: an explicitly given directory that does not exist (exit code 2).
+    """
+    if path is None:
+        if DEFAULT_AUTHORS.is_dir():
+            return DEFAULT_AUTHORS, ""
+        return None, (f"The authors' data ({DEFAULT_AUTHORS}) was not found: the "
+                      "trial-by-trial comparison is left out (`hmpc report --authors DIR`).")
+    if _left_out(path):
+        return None, ""
+    if not path.is_dir():
+        typer.echo(f"error: --authors: {path}: no such directory", err=True)
+        raise typer.Exit(EXIT_BAD_INPUT)
+    return path, ""
+
+
 def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None,
-                plans: dict) -> None:
+                authors: tuple[Path | None, str] = (None, ""),
+                plans: dict | None = None) -> None:
     """Draws the figures from the finished runs and writes ``<results>/README.md``.
 
     Args:
         results: results directory.
         dirs: sweep output directory per report part given.
         biped_dir: run directory of the biped scenario (None: no Figure 4).
-        plans: the sweep plan per report part given.
+        authors: the authors' data directory (None: none) and the page's note about it.
+        plans: the sweep plan per part given as a sweep file (resume commands, seeds).
 
     Raises:
         typer.Exit: a figure's input is unusable (exit code 2).
     """
+    import shlex
+    import sys
+
     from hmpc_cli.figures.common import FigureInputError
     from hmpc_cli.report import ReportInputs, write_report
 
     from hmpc_cli.report_robustness import Study
 
-    studies = tuple(Study(dirs[k], plans[k].path, len(plans[k].spec.seeds)) for k in dirs
-                    if k.startswith("robustness"))
+    plans = plans or {}
+    studies = tuple(Study(d, plans[k].path if k in plans else None,
+                          len(plans[k].spec.seeds) if k in plans else None)
+                    for k, d in dirs.items() if k.startswith("robustness"))
     inputs = ReportInputs(dirs.get("fig3"), dirs.get("fig3_extra"), studies or None,
-                          biped_dir)
+                          biped_dir, dirs.get("fig3_reference"),
+                          dirs.get("fig3_reference_extra"), *authors,
+                          dirs.get("fig3_schedule"))
     try:
-        page = write_report(results, inputs, "hmpc report")
+        page = write_report(results, inputs, shlex.join(["hmpc", *sys.argv[1:]]))
     except FigureInputError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(EXIT_BAD_INPUT) from None

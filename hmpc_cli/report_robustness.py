@@ -58,6 +58,11 @@ def _fixed(spec: dict) -> str:
     return ", ".join(f"`{k} = {v}`" for k, v in spec.get("set", {}).items()) or "-"
 
 
+def fixed_settings(directory: Path) -> str:
+    """A sweep output directory's ``[set]`` overrides as text ("-" if none)."""
+    return _fixed(_spec(directory))
+
+
 def tube_diameters(table: Path, rows: list[dict], size_column: str = SIZE
                    ) -> dict[float, dict[str, list]]:
     """Diam T(1/f) per disturbance size of a sweep: size -> bound -> [(rate, diam)].

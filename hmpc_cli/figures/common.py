@@ -17,7 +17,7 @@ __all__ = [
     "COLUMN_WIDTH_IN", "FORMATS", "OKABE_ITO", "FigureInputError", "RunTrace", "TEXT_WIDTH_IN",
     "check_size", "figure_style", "ieee_rc", "load_trace", "parse_bool", "parse_formats",
     "read_table", "resolve_log", "resolve_run_log", "resolve_table", "save_figure",
-    "write_csv",
+    "trace_of", "write_csv",
 ]
 
 TEXT_WIDTH_IN = 7.16  # IEEE two-column: full text width (in)
@@ -285,6 +285,11 @@ def load_trace(path: Path) -> RunTrace:
         run = read_run(path)
     except ValueError as exc:
         raise FigureInputError(f"{path}: cannot read log ({exc})") from None
+    return trace_of(run, Path(path))
+
+
+def trace_of(run: Any, path: Path) -> RunTrace:
+    """The positions of a run already read by ``read_run``, as :func:`load_trace` gives them."""
     plane = list(run.geometry.get("plane") or ())
     i, j = (run.state_names.index(plane[0]), run.state_names.index(plane[1])) \
         if len(plane) == 2 and set(plane) <= set(run.state_names) else (0, 1)

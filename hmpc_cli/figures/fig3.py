@@ -81,16 +81,21 @@ def _group(rows: list[dict[str, str]], panel_axis: str, panels: Sequence[str] | 
            table: Path) -> dict[str, list[tuple[int, dict[str, str]]]]:
     """Groups rows (with their table line numbers) by panel, in order of first appearance.
 
-    Panels that are exactly the paper's Figure 3 controllers keep the paper's left-to-right
-    order (sweep tables list runs by run id, not by grid order).
+    The paper's Figure 3 controllers keep the paper's left-to-right order, a variant of one
+    ("10 Hz fixed, floor shift") right after it, any other panel after them (sweep tables
+    list runs by run id, not by grid order).
     """
     groups: dict[str, list[tuple[int, dict[str, str]]]] = {}
     for i, row in enumerate(rows):
         groups.setdefault((row.get(panel_axis) or "").strip(), []).append((i + 2, row))
     if panels is None:
-        if set(groups) <= set(REFERENCE_COUNTS):
-            return {p: groups[p] for p in REFERENCE_COUNTS if p in groups}
-        return groups
+        paper = list(REFERENCE_COUNTS)
+
+        def key(p: str) -> int:
+            return next((k for k, q in enumerate(paper) if p == q or p.startswith(q + ",")),
+                        len(paper))
+
+        return {p: groups[p] for p in sorted(groups, key=key)}
     unknown = [p for p in panels if p not in groups]
     if unknown:
         have = ", ".join(repr(g) for g in groups)

@@ -71,7 +71,7 @@ LOCK_STALE = 3600.0  # [s] a compile lock older than this (or of a dead process)
 #: MPC settings applied at solve time (bounds, parameters, options): not in the key
 NON_STRUCTURAL = frozenset({"rate_hz", "tube_margin", "input_margin", "margins", "robust",
                             "solver", "solver_options", "max_iter", "warm_start",
-                            "resolve_on_impact", "final_domain_nlp"})
+                            "resolve_on_impact", "final_domain_nlp", "node_shift"})
 _LOG = logging.getLogger(__name__)
 _QUEUE: list[Entry] = []  # entries this process compiles in the background at exit
 

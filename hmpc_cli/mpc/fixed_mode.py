@@ -97,7 +97,7 @@ class ChainMPC:
         elif dropped:
             shifted = 0
         else:
-            shifted = self.chain.shift(int(round((t - self._t_shift) / self.chain.dt)))
+            shifted = self.chain.shift(self.s.shifted_nodes(t - self._t_shift))
         self._t_shift = t
         plan = self.chain.solve(t, x)
         counts = list(self.chain.node_schedule.counts)

@@ -41,6 +41,7 @@ S_max) and re-solved with parameters, bounds and a primal-dual warm start.
 from __future__ import annotations
 
 import logging
+import math
 from typing import Literal
 
 import casadi as ca
@@ -109,6 +110,13 @@ class MPCSettings(BaseModel):
         "degenerate guard-hit rows)")
     warm_start: StrictBool = True
     resolve_on_impact: StrictBool = True
+    node_shift: Literal["elapsed", "floor"] = Field(
+        "elapsed", description='nodes moved to the final domain at each re-solve: "elapsed" '
+        "(the time since the previous re-solve or scheduled contact [s] in whole node steps, "
+        "rounded; the MPC period must then be a whole number of node steps) or \"floor\" (the "
+        "reference code's floor(nodes_per_second x elapsed), computed in floating point: "
+        "0 at 100 Hz with 60 nodes/s, so the nodes never move, and 5 instead of 6 in some 10 "
+        "Hz periods; any nodes_per_second)")
     final_domain_nlp: StrictBool = Field(
         True, description="solve schedules with no switch left on the final domain's own, "
                           "smaller NLP (same problem, no switching rows)")
@@ -132,7 +140,15 @@ class MPCSettings(BaseModel):
 
     def period_steps(self) -> list[tuple[str, int]]:
         """Step rates the MPC period must be a whole number of (key path, rate [Hz])."""
+        if self.node_shift == "floor":  # the reference's rule needs no whole number
+            return []
         return [("mpc.nodes_per_second", self.nodes_per_second)]
+
+    def shifted_nodes(self, elapsed: float) -> int:
+        """Intervals to move after ``elapsed`` seconds, by ``node_shift`` (>= 0)."""
+        if self.node_shift == "floor":
+            return max(0, math.floor(self.nodes_per_second * elapsed))
+        return max(0, int(round(elapsed / self.dt)))
 
     def size_problems(self) -> list[str]:
         """``mpc.horizon`` beyond :data:`MAX_NLP_NODES` nodes (before anything is built)."""

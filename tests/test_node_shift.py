@@ -1,0 +1,62 @@
+"""mpc.node_shift: the elapsed nodes (hmpc) or the reference code's floor(60 x elapsed)."""
+
+from pathlib import Path
+
+import pytest
+
+from hmpc_cli.mpc.nlp import MPCSettings
+from hmpc_cli.recorder import Recorder
+from hmpc_cli.rundata import read_run
+from hmpc_cli.runner import prepare
+from hmpc_cli.scenario import ScenarioError, load_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+BALL = ROOT / "scenarios" / "ball.toml"
+
+
+@pytest.mark.parametrize("rate, nps, shift, elapsed, moved", [
+    (10, 60, "elapsed", 0.1, 6), (10, 60, "floor", 0.1, 6),
+    (20, 60, "floor", 0.05, 3), (100, 60, "floor", 0.01, 0), (100, 100, "elapsed", 0.01, 1),
+    # the reference's floor of a floating-point difference: 0.3 - 0.2 < 0.1
+    (10, 60, "floor", 0.3 - 0.2, 5), (10, 60, "elapsed", 0.3 - 0.2, 6)])
+def test_nodes_moved_per_period(rate, nps, shift, elapsed, moved):
+    s = MPCSettings(rate_hz=rate, nodes_per_second=nps, node_shift=shift)
+    assert s.shifted_nodes(elapsed) == moved
+
+
+def test_floor_shift_allows_a_period_that_is_no_whole_number_of_nodes():
+    with pytest.raises(ScenarioError, match="mpc.rate_hz: 100 must divide"):
+        load_scenario(BALL, ["mpc.rate_hz=100"])
+    sc, _ = load_scenario(BALL, ["mpc.rate_hz=100", 'mpc.node_shift="floor"'])
+    assert sc.mpc.node_shift == "floor" and sc.mpc.nodes_per_second == 60
+
+
+def _counts(tmp_path: Path, name: str, overrides: list[str]) -> list[tuple[int, list[int]]]:
+    """(shifted, counts) of every periodic /mpc/solve of a 0.1 s ball run at 100 Hz."""
+    sc, _ = load_scenario(BALL, ["sim.duration=0.1", "mpc.rate_hz=100", "mpc.horizon=1.2",
+                                 *overrides])
+    loop = prepare(sc)
+    loop.log.rec = rec = Recorder(tmp_path / f"{name}.mcap")
+    try:
+        loop.run()
+    finally:
+        rec.close()
+    run = read_run(tmp_path / f"{name}.mcap")
+    return [(s.detail["shifted"], s.detail["counts"]) for s in run.solves
+            if s.reason == "period"]
+
+
+@pytest.mark.slow  # two NLP builds and 0.1 s at 100 Hz each: about 10-25 s
+def test_floor_shift_at_100_hz_never_moves_a_node(tmp_path):
+    floor = _counts(tmp_path, "floor", ['mpc.node_shift="floor"'])
+    exact = _counts(tmp_path, "exact", ["mpc.nodes_per_second=100"])
+    assert len(floor) == len(exact) == 9  # solves at 0.01 .. 0.09 s (0: the initial one)
+    # floor(60 x 0.01) = 0: the first domain keeps its intervals, so its guard stays
+    # equally far ahead at every re-solve
+    assert [s for s, _ in floor] == [0] * 9
+    assert len({tuple(c) for _, c in floor}) == 1
+    # the exact shift moves one 0.01 s node per period from the first domain to the last
+    assert [s for s, _ in exact] == [1] * 9
+    firsts = [c[0] for _, c in exact]
+    assert firsts == list(range(firsts[0], firsts[0] - 9, -1))
+    assert len({sum(c) for _, c in exact}) == 1  # the horizon keeps its length
