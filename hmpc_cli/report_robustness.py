@@ -202,8 +202,13 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
         seeds_spec) if isinstance(seeds_spec, list) else None)
     partial = (f" (a prefix: {seeds} of the sweep's {planned} seeds)"
                if planned and seeds < planned else "")
-    resume = (f" Resume or complete: `hmpc sweep {study.sweep_file}` (finished runs are "
-              "skipped), or `hmpc report --run`." if study.sweep_file else "")
+    grid = spec.get("grid", {})
+    planned_cells = math.prod(len(v) for v in grid.values() if isinstance(v, list))
+    if grid and len(cells) < planned_cells:
+        partial += f"; {len(cells)} of its {planned_cells} cells have runs so far"
+    resume = (f"`hmpc sweep {study.sweep_file}`" if study.sweep_file else
+              f"`hmpc sweep sweeps/{name}.toml --out {study.directory}`")
+    resume = f" Resume or complete: {resume} (finished runs are skipped)."
     png = _rel(fig_dir / f"{name}.png", base)
     csv = _rel(fig_dir / f"{name}_table.csv", base)
     return ([f"### {spec.get('description', name)}", "", f"![{name}]({png})", "",
