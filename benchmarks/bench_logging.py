@@ -6,12 +6,14 @@ Builds the scenario's loop once per variant and run (the NLPs are cached per pro
 both variants find the same process state), runs it as ``hmpc run`` does (run.mcap with
 the typed topics and the 3D scene: "on") and with no recorder ("off"), alternating, and
 prints the run's wall time and its CPU time (this thread's) per variant, the overhead
-ratios on / off - 1 (target < 5 %) of the medians and of the minima (the work is
+ratios on / off - 1 (target < 5 %) of the medians, of the minima (the work is
 deterministic: the minimum is the run least disturbed by the rest of the machine) and
-the log size. The loop itself is identical; only the writing of the topics differs. The
-log-on runs also time every logging call from inside (perf_counter around the outermost
-ones): steadier than the on/off difference of two noisy medians, an upper bound (it
-includes the timer itself). Measured, never asserted.
+paired (each log-on run against the log-off run just before it: slow drifts of the
+machine cancel), and the log size. The loop itself is identical; only the writing of the
+topics differs. The log-on runs also time every logging call from inside (perf_counter
+around the outermost ones): steadier than the on/off difference of two noisy medians, but
+blind to what logging costs the rest of the run (e.g. caches refilled after it; the
+timer itself counts). Measured, never asserted.
 """
 
 from __future__ import annotations
@@ -107,6 +109,13 @@ def main() -> None:
               f"{p95[True] * 1e3:7.1f}, min {low[True] * 1e3:7.1f})   overhead: medians "
               f"{(med[True] / med[False] - 1.0) * 100:+.1f} %, minima "
               f"{(low[True] / low[False] - 1.0) * 100:+.1f} %")
+    for k, what in enumerate(("wall", "CPU ")):  # each on run beside the off run before it
+        pairs = sorted(on[k] / off[k] - 1.0 for off, on in zip(times[False], times[True],
+                                                                strict=True))
+        q1, q3 = pairs[len(pairs) // 4], pairs[(3 * len(pairs)) // 4]
+        print(f"{what}: paired overhead (on / the off run just before - 1): median "
+              f"{statistics.median(pairs) * 100:+.1f} %, quartiles {q1 * 100:+.1f} .. "
+              f"{q3 * 100:+.1f} %")
     print(f"log size {size / 1024:.0f} KiB ({args.runs} runs per variant)")
     shares = []
     for _ in range(args.runs):
