@@ -185,7 +185,7 @@ def robustness(table: str | Path, out_dir: str | Path | None = None,
             found = {lb: h for ax in axes[1] for h, lb in zip(*ax.get_legend_handles_labels(),
                                                               strict=True)}
             if found:
-                axes[1][-1].legend(found.values(), found.keys(), loc="upper right",
+                axes[1][-1].legend(found.values(), found.keys(), loc="lower left",
                                    title="tube bound")
         xs = sorted({c.x for c in data})
         for ax in axes[-1]:
