@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from hmpc_cli.figures.common import FigureInputError, resolve_table
+from hmpc_cli.figures.common import FigureInputError, page_link, resolve_table
 
 __all__ = ["ReportInputs", "write_report"]
 
@@ -34,13 +34,6 @@ class ReportInputs:
     authors: Path | None = None
     authors_note: str = ""
     fig3_schedule: Path | None = None  # the authors' plan flown (schedule planner)
-
-
-def _rel(path: Path, base: Path) -> str:
-    try:
-        return path.resolve().relative_to(base.resolve()).as_posix()
-    except ValueError:
-        return path.resolve().as_posix()
 
 
 def _settings(*dirs: Path | None) -> str:
@@ -102,9 +95,9 @@ def _biped_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]
                 if d.get("kind", "none") != "none" else "none"))
     verdict = {True: "success", False: "failed", None: "unfinished"}[walk.success]
     lines = ["## Figure 4: the five-link biped on the stairs", "",
-             f"![Figure 4]({_rel(fig_dir / 'fig4.png', base)})", "",
-             f"Animation: [{_rel(fig_dir / 'walk.gif', base)}]"
-             f"({_rel(fig_dir / 'walk.gif', base)}). {setup}; outcome: {verdict}"
+             f"![Figure 4]({page_link(fig_dir / 'fig4.png', base)})", "",
+             f"Animation: [{page_link(fig_dir / 'walk.gif', base)}]"
+             f"({page_link(fig_dir / 'walk.gif', base)}). {setup}; outcome: {verdict}"
              f"{f' ({walk.reason})' if walk.reason not in ('', verdict) else ''}; hip ends at "
              f"({walk.hip[-1, 0]:.3f}, {walk.hip[-1, 1]:.3f}) m.", "",
              "| contact | t [s] | segment | foot x [m] |", "| --- | --- | --- | --- |"]

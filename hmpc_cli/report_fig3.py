@@ -14,6 +14,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from hmpc_cli.figures.common import page_link
+
 __all__ = ["PAPER", "Fig3Mode", "fig3_section"]
 
 #: the paper's Figure 3 counts (the 100 Hz one from the reference README), by panel
@@ -44,13 +46,6 @@ class Fig3Mode:
     settings: str = ""
 
 
-def _rel(path: Path, base: Path) -> str:
-    try:
-        return path.resolve().relative_to(base.resolve()).as_posix()
-    except ValueError:
-        return path.resolve().as_posix()
-
-
 def _paper(panel: str) -> str:
     from hmpc_cli.fig3compare import authors_panel
 
@@ -78,7 +73,7 @@ def _image(mode: Fig3Mode, fig_dir: Path, base: Path, extra: bool) -> str:
     sub = ("fig3_extra" if extra else "") if mode.stem == "hmpc" else \
         f"fig3_{mode.stem}{'_extra' if extra else ''}"
     path = fig_dir / sub / "fig3.png"
-    return f"![{mode.name}{' extra' if extra else ''}]({_rel(path, base)})"
+    return f"![{mode.name}{' extra' if extra else ''}]({page_link(path, base)})"
 
 
 def _counts_table(modes: Sequence[Fig3Mode], counts: dict, authors: dict) -> list[str]:
@@ -209,7 +204,8 @@ def _compare_mode(mode: Fig3Mode, fig_dir: Path, base: Path, rows: list) -> list
         stem = f"overlay_{mode.stem}_" + "".join(ch if ch.isalnum() else "_" for ch in panel)
         mine = [r for r in rows if r.panel == panel]
         fig3_overlay(mine, fig_dir / "overlay", stem, "png", title=f"{mode.name}, {panel}")
-        lines.append(f"![{mode.name}, {panel}]({_rel(fig_dir / 'overlay' / f'{stem}.png', base)})")
+        link = page_link(fig_dir / "overlay" / f"{stem}.png", base)
+        lines.append(f"![{mode.name}, {panel}]({link})")
     return lines + ["", "Every trial (contacts in order, repeats folded; entry: the first time "
                     "|p - (3, 3)| <= 1, ours the logged circle_in event, theirs the first of "
                     "their samples; their contacts found in their sampled positions, "

@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from hmpc_cli.figures.common import FigureInputError, read_table, resolve_table
+from hmpc_cli.figures.common import FigureInputError, page_link, read_table, resolve_table
 
 __all__ = ["Study", "robustness_sections"]
 
@@ -34,13 +34,6 @@ class Study:
     directory: Path
     sweep_file: Path | None = None
     planned_seeds: int | None = None
-
-
-def _rel(path: Path, base: Path) -> str:
-    try:
-        return path.resolve().relative_to(base.resolve()).as_posix()
-    except ValueError:
-        return path.resolve().as_posix()
 
 
 def _spec(directory: Path) -> dict:
@@ -209,8 +202,8 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
     resume = (f"`hmpc sweep {study.sweep_file}`" if study.sweep_file else
               f"`hmpc sweep sweeps/{name}.toml --out {study.directory}`")
     resume = f" Resume or complete: {resume} (finished runs are skipped)."
-    png = _rel(fig_dir / f"{name}.png", base)
-    csv = _rel(fig_dir / f"{name}_table.csv", base)
+    png = page_link(fig_dir / f"{name}.png", base)
+    csv = page_link(fig_dir / f"{name}_table.csv", base)
     return ([f"### {spec.get('description', name)}", "", f"![{name}]({png})", "",
              f"{len(rows)} finished runs, {seeds} seeds{partial}, {n[0]}"
              f"{'' if len(n) == 1 else f'-{n[-1]}'} runs per cell; settings of every run: "

@@ -15,6 +15,7 @@ import numpy as np
 
 __all__ = [
     "COLUMN_WIDTH_IN", "FORMATS", "OKABE_ITO", "FigureInputError", "RunTrace", "TEXT_WIDTH_IN",
+    "page_link",
     "check_size", "figure_style", "ieee_rc", "load_trace", "parse_bool", "parse_formats",
     "read_table", "resolve_log", "resolve_run_log", "resolve_table", "save_figure",
     "trace_of", "write_csv",
@@ -309,3 +310,11 @@ def trace_of(run: Any, path: Path) -> RunTrace:
     return RunTrace(Path(path), arr[:, 0], arr[:, 1:3], run.scenario,
                     ok if isinstance(ok, bool) else None, run.complete, run.damage,
                     dict(run.geometry))
+
+
+def page_link(path: Path, base: Path) -> str:
+    """``path`` as a link on a page in ``base``: relative if inside it, else absolute."""
+    try:
+        return Path(path).resolve().relative_to(Path(base).resolve()).as_posix()
+    except ValueError:
+        return Path(path).resolve().as_posix()
