@@ -31,16 +31,38 @@ def finished_in(d: Path, toml_text: str) -> dict | None:
     """The summary of the run in directory ``d``, if it finished there; else None.
 
     Finished means: summary.json holds a JSON object whose reason is not ``interrupted...``,
-    and scenario.toml equals the effective scenario ``toml_text``.
+    and scenario.toml is the effective scenario ``toml_text`` (:func:`same_scenario`).
     """
     try:
         summary = json.loads((d / "summary.json").read_text())
-        same = (d / "scenario.toml").read_text(encoding="utf-8") == toml_text
+        stored = (d / "scenario.toml").read_text(encoding="utf-8")
     except (OSError, ValueError):
         return None
-    if not isinstance(summary, dict) or is_interrupted(summary) or not same:
+    if not isinstance(summary, dict) or is_interrupted(summary):
         return None
-    return summary
+    return summary if same_scenario(stored, toml_text) else None
+
+
+def same_scenario(stored: str, planned: str) -> bool:
+    """Whether a run's stored effective scenario is the planned one.
+
+    Equal text, or equal once the stored text is read by today's scenario model: a setting
+    added to hmpc since the run takes its default (every other setting is written out in
+    full in a run's scenario.toml, so a changed default or value still differs). A run
+    of an older hmpc thus stays finished unless something it ran with changed.
+    """
+    if stored == planned:
+        return True
+    import tomllib
+
+    from hmpc_cli.registry import PluginError
+    from hmpc_cli.scenario import dump_toml, scenario_model
+
+    try:
+        scenario = scenario_model().model_validate(tomllib.loads(stored))
+    except (ValueError, TypeError, KeyError, PluginError):  # not a scenario today: differs
+        return False
+    return dump_toml(scenario.model_dump(mode="json", exclude_none=True)) == planned
 
 
 def cell_text(v: Any) -> str:

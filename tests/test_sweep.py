@@ -303,3 +303,25 @@ def test_cli_sweep_imports_stay_light():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          cwd=REPO, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_a_run_of_an_older_hmpc_stays_finished_unless_a_value_changed(tmp_path):
+    """A setting added since a run (absent from its scenario.toml) takes its default: the
+    run stays finished, so a sweep resumes across an upgrade; a changed value does not."""
+    from hmpc_cli.scenario import load_scenario
+    from hmpc_cli.sweep_table import finished_in, same_scenario
+
+    _, text = load_scenario(REPO / "scenarios" / "ball.toml")
+    older = "".join(line + "\n" for line in text.splitlines()
+                    if not line.startswith("node_shift"))  # written before mpc.node_shift
+    assert older != text and same_scenario(older, text)
+    changed = older.replace("rate_hz = 10\n", "rate_hz = 20\n")  # the MPC rate
+    assert changed != older and not same_scenario(changed, text)
+    assert not same_scenario("not = [toml", text)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "summary.json").write_text('{"success": true, "reason": "success"}')
+    (run / "scenario.toml").write_text(older)
+    assert finished_in(run, text) == {"success": True, "reason": "success"}
+    (run / "scenario.toml").write_text(changed)
+    assert finished_in(run, text) is None
