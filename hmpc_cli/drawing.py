@@ -115,6 +115,15 @@ class Drawing:
         pts = np.asarray(self.points(x), dtype=float)
         return pts.reshape(2, len(self.point_names))
 
+    def bodies(self, xs: np.ndarray) -> np.ndarray:
+        """The body points of states xs, shape (K, n) -> (K, 2, P) [m]."""
+        xs = np.atleast_2d(np.asarray(xs, dtype=float))
+        if self.points_many is not None:
+            return np.asarray(self.points_many(xs), dtype=float).reshape(
+                len(xs), 2, len(self.point_names))
+        return np.stack([self.body(x) for x in xs]) if len(xs) else \
+            np.empty((0, 2, len(self.point_names)))
+
     def traced(self, xs: np.ndarray) -> np.ndarray:
         """The trace points along states xs, shape (K, n) -> (T, K, 2) [m]."""
         cols = [self.index(n) for n in self.trace]

@@ -13,13 +13,15 @@ Everything here is taken from the :class:`~hmpc_cli.hybrid.HybridSystem` and its
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import functools
+import itertools
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 __all__ = ["GeometryRec", "LineRec", "PolylineRec", "SegmentRec", "TerrainRec", "body_logger",
-           "body_names", "geometry_record"]
+           "body_names", "geometry_record", "record_maker"]
 
 
 @dataclass(frozen=True)
@@ -77,6 +79,18 @@ class GeometryRec:
     terrain: TerrainRec | None = None
 
 
+@functools.lru_cache(maxsize=128)
+def record_maker(keys: tuple[str, ...]):
+    """``f(v0, v1, ...) -> {keys[0]: v0, keys[1]: v1, ...}``.
+
+    A dict display compiled once per key tuple: the fastest way to make many dicts of
+    the same keys (the keys enter the source as string literals, by ``repr``).
+    """
+    args = ", ".join(f"v{i}" for i in range(len(keys)))
+    body = ", ".join(f"{k!r}: v{i}" for i, k in enumerate(keys))
+    return eval(f"lambda {args}: {{{body}}}")
+
+
 def body_names(point_names: Sequence[str]) -> tuple[str, ...]:
     """The logged coordinates of body points: ``<point>_x``, ``<point>_y`` per point."""
     return tuple(f"{p}_{c}" for p in point_names for c in ("x", "y"))
@@ -105,15 +119,26 @@ def geometry_record(system) -> GeometryRec:
             SegmentRec(float(a), float(b), float(h)) for a, b, h in terrain.segments)))
 
 
-def body_logger(system) -> Callable[[np.ndarray], dict] | None:
-    """The body logger: state x (n,) -> {``<point>_x``, ``<point>_y``} [m]; None: no body."""
+class BodyLogger:
+    """State x -> the body's logged coordinates {``<point>_x``, ``<point>_y``} [m]."""
+
+    def __init__(self, drawing) -> None:
+        self.drawing = drawing
+        self.keys = body_names(drawing.point_names)
+
+    def __call__(self, x: np.ndarray) -> dict:
+        """The body of one state x (n,)."""
+        return dict(zip(self.keys, self.drawing.body(x).T.ravel().tolist(), strict=True))
+
+    def many(self, xs: np.ndarray) -> list[dict]:
+        """The bodies of states xs (K, n), in order (one batched drawing call)."""
+        pts = self.drawing.bodies(xs)  # (K, 2, P)
+        rows = pts.transpose(0, 2, 1).reshape(len(pts), -1).tolist()
+        return list(itertools.starmap(record_maker(self.keys), rows))
+
+
+def body_logger(system) -> BodyLogger | None:
+    """The body logger of a system's drawing; None: no body logged."""
     if not _logs_body(system):
         return None
-    drawing = system.drawing
-    keys = body_names(drawing.point_names)
-
-    def body(x: np.ndarray) -> dict:
-        pts = drawing.body(x)  # (2, P)
-        return dict(zip(keys, pts.T.ravel().tolist(), strict=True))
-
-    return body
+    return BodyLogger(system.drawing)

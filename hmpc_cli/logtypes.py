@@ -22,13 +22,13 @@ from typing import Annotated, Any
 
 import numpy as np
 
-from hmpc_cli.loggeometry import GeometryRec
+from hmpc_cli.loggeometry import GeometryRec, record_maker
 
 __all__ = [
     "LOG_VERSION", "TOPICS", "BuildRec", "Detail", "GuardEventRec", "MarginsRec", "MpcSolve",
     "Names", "PlanNode", "PlannerCall", "RolloutNode", "RunInfo", "ScheduleRec",
     "StateSample", "StatusCount", "Summary", "Versions", "WRec", "convert", "flat_keys",
-    "named",
+    "named", "record_maker",
     "topic_schemas", "validate", "viewer_problems"]
 
 #: the log layout this hmpc writes (1: plain arrays, untyped; 2: this module; 3: with the
@@ -319,16 +319,6 @@ def named(names: typing.Sequence[str], values) -> dict:
     return dict(zip(names, vals, strict=False))
 
 
-@functools.lru_cache(maxsize=128)
-def record_maker(keys: tuple[str, ...]):
-    """``f(v0, v1, ...) -> {keys[0]: v0, keys[1]: v1, ...}``.
-
-    A dict display compiled once per key tuple: the fastest way to make many dicts of
-    the same keys (the keys enter the source as string literals, by ``repr``).
-    """
-    args = ", ".join(f"v{i}" for i in range(len(keys)))
-    body = ", ".join(f"{k!r}: v{i}" for i, k in enumerate(keys))
-    return eval(f"lambda {args}: {{{body}}}")
 
 
 @functools.cache

@@ -10,10 +10,12 @@ become ``summary.json``.
 
 from __future__ import annotations
 
+import itertools
 import json
 import platform
 import shlex
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -212,18 +214,29 @@ class RunLog:
             self.flush_samples()
 
     def flush_samples(self) -> None:
-        """Writes the held /sim/state samples and their scene bodies."""
+        """Writes the held /sim/state samples and their scene bodies.
+
+        Column by column: each vector column becomes its dicts in one ``tolist`` and one
+        compiled dict display per row, and the body points of all samples come from one
+        batched drawing call (:meth:`~hmpc_cli.drawing.Drawing.bodies`).
+        """
         samples, self._samples = self._samples, []
-        if self.rec is None:
+        if self.rec is None or not samples:
             return
         m = self._model
-        for t, mode, x, u, x_ref, w in samples:
-            self.rec.write("/sim/state", t, StateSample(
-                t, mode, m.modes[mode].name, named(m.state_names, x),
-                named(m.input_names, u), named(m.state_names, x_ref),
-                named(m.disturbance_names, w), self._body(x) if self._body is not None else {}))
-            if self.scene is not None:
-                self.scene.state(t, x)
+        ts, modes, xs, us, refs, ws = zip(*samples, strict=True)
+        mode_names = [m.modes[k].name for k in modes]
+        cols = [_named_rows(names, col) for names, col in (
+            (m.state_names, xs), (m.input_names, us), (m.state_names, refs),
+            (m.disturbance_names, ws))]
+        bodies = self._body.many(np.stack(xs)) if self._body is not None else \
+            [{}] * len(samples)
+        write = self.rec.write
+        for t, k, name, x, u, ref, w, body in zip(ts, modes, mode_names, *cols, bodies,
+                                                strict=True):
+            write("/sim/state", t, StateSample(t, k, name, x, u, ref, w, body))
+        if self.scene is not None:
+            self.scene.states(ts, np.stack(xs))
 
     def event(self, ev: GuardEvent, system: HybridSystem, scheduled: bool) -> None:
         """Counts and logs a guard event of the simulated system."""
@@ -294,6 +307,14 @@ class RunLog:
             r.plan_time_median = float(np.median(self.plan_times))
         if self.rec is not None and self._model is not None:
             self._write("/run/summary", r.t_end, summary_record(r, self._model))
+
+
+def _named_rows(names: Sequence[str], rows: Sequence[np.ndarray | None]) -> list[dict]:
+    """Vectors (each (len(names),) or None) -> their :func:`named` dicts, in order."""
+    if any(r is None or r.size != len(names) for r in rows):
+        return [named(names, r) for r in rows]
+    return list(itertools.starmap(record_maker(tuple(names)),
+                                  np.stack(rows).reshape(len(rows), -1).tolist()))
 
 
 def plan_nodes(traj: Trajectory, t0: float, model: HybridSystem) -> tuple[dict, ...]:

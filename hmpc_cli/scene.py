@@ -94,18 +94,25 @@ def spheres_wire(field_number: int, centers: np.ndarray, rest: bytes) -> bytes:
     (``MergeFromString``) they append K spheres, as K ``spheres.add(...)`` calls do.
     """
     c = np.asarray(centers, dtype=float).reshape(-1, 3)
+    dtype, head, tail = _sphere_layout(field_number, rest)
+    rec = np.empty(len(c), dtype=dtype)
+    rec["head"], rec["tail"] = head, tail
+    rec["ty"], rec["tz"] = 0x11, 0x19
+    rec["x"], rec["y"], rec["z"] = c[:, 0], c[:, 1], c[:, 2]
+    return rec.tobytes()
+
+
+@lru_cache(maxsize=64)
+def _sphere_layout(field_number: int, rest: bytes) -> tuple[np.dtype, np.void, np.void]:
+    """(record dtype, head, tail) of one sphere's wire bytes around its centre's doubles."""
     pose = len(_POSE_HEAD) + 8 + 1 + 8 + 1 + 8 + len(_POSE_TAIL)
     body = bytes([0x0A]) + _varint(pose) + _POSE_HEAD
     head = _varint((field_number << 3) | 2) + _varint(len(body) + pose - len(_POSE_HEAD)
                                                       + len(rest)) + body
     tail = _POSE_TAIL + rest
-    rec = np.empty(len(c), dtype=[("head", f"V{len(head)}"), ("x", "<f8"), ("ty", "u1"),
-                                  ("y", "<f8"), ("tz", "u1"), ("z", "<f8"),
-                                  ("tail", f"V{len(tail)}")])
-    rec["head"], rec["tail"] = np.void(head), np.void(tail)
-    rec["ty"], rec["tz"] = 0x11, 0x19
-    rec["x"], rec["y"], rec["z"] = c[:, 0], c[:, 1], c[:, 2]
-    return rec.tobytes()
+    dtype = np.dtype([("head", f"V{len(head)}"), ("x", "<f8"), ("ty", "u1"), ("y", "<f8"),
+                      ("tz", "u1"), ("z", "<f8"), ("tail", f"V{len(tail)}")])
+    return dtype, np.void(head), np.void(tail)
 
 
 def to_world(points: np.ndarray) -> np.ndarray:
@@ -218,18 +225,30 @@ class SceneWriter:
 
     def state(self, t: float, x: np.ndarray) -> None:
         """The ``body`` at state x (n,) and time t [s]; skipped within the rate limit."""
-        if t < self._next - 1e-9:
+        self.states((t,), np.asarray(x, dtype=float)[None])
+
+    def states(self, ts: tuple[float, ...], xs: np.ndarray) -> None:
+        """The ``body`` at states xs (K, n) and times ts (K,) [s], in order.
+
+        A state within the rate limit of the last body written is skipped.
+        """
+        due = []
+        for k, t in enumerate(ts):
+            if t >= self._next - 1e-9:
+                due.append(k)
+                self._next = t + self.period
+        if not due:
             return
-        self._next = t + self.period
         d = self.drawing
-        pts = to_world(d.body(x).T)  # (P, 3)
-        segs = [pts[[d.index(a), d.index(b)]] for line in d.links
-                for a, b in zip(line[:-1], line[1:], strict=True)]
-        lines = [self._line("LINE_LIST", np.concatenate(segs), d.link_color,
-                            d.link_thickness)] if segs else []
-        spheres = b"".join(self._spheres(pts[d.index(b.point)], b.radius, b.color)
-                           for b in d.balls)
-        self._write(BODY, t, [self._entity(t, "body", lines, spheres)])
+        bodies = to_world(d.bodies(np.asarray(xs)[due]).transpose(0, 2, 1))  # (K', P, 3)
+        link_idx = [[d.index(a), d.index(b)] for line in d.links
+                    for a, b in zip(line[:-1], line[1:], strict=True)]
+        balls = [(d.index(b.point), b) for b in d.balls]
+        for k, pts in zip(due, bodies, strict=True):
+            lines = [self._line("LINE_LIST", pts[np.ravel(link_idx)], d.link_color,
+                                d.link_thickness)] if link_idx else []
+            spheres = b"".join(self._spheres(pts[i], b.radius, b.color) for i, b in balls)
+            self._write(BODY, ts[k], [self._entity(ts[k], "body", lines, spheres)])
 
     def _traces(self, xs: np.ndarray, colors: tuple[Rgba, ...], thickness: float) -> list:
         """One line strip per trace point along states xs (K, n)."""
