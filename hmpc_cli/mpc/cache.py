@@ -159,13 +159,15 @@ def _fingerprint(value) -> object:
     return f"<{type(value).__module__}.{type(value).__qualname__}>"
 
 
-def structure_key(system, settings, switches: int) -> str:
+def structure_key(system, settings, switches: int, variant: dict | None = None) -> str:
     """sha256 of everything that determines the NLP's graph (see the module docstring).
 
     Args:
         system: the controllers' hybrid system.
         settings: the MPC settings (a pydantic model).
         switches: S, the guard events of the chain.
+        variant: another NLP than the chain (its kind and the numbers its graph holds
+            beyond the settings, JSON-ready), e.g. ``{"kind": "walking", ...}``.
     """
     fields = {k: v for k, v in settings.model_dump(mode="json").items()
               if k not in NON_STRUCTURAL}
@@ -173,6 +175,8 @@ def structure_key(system, settings, switches: int) -> str:
                 "python": sys.version, "machine": platform.machine(),
                 "source": source_digest(), "system": _fingerprint(system),
                 "settings": fields, "switches": int(switches)}
+    if variant is not None:  # absent for the chain: its keys (and compiled entries) stay
+        material["variant"] = variant
     return hashlib.sha256(json.dumps(material, sort_keys=True).encode()).hexdigest()
 
 

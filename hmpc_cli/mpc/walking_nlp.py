@@ -50,6 +50,7 @@ state x = (q[n_q], qd[n_q], p_st[2]) (n_q from ``inverse_dynamics``; the biped's
 
 from __future__ import annotations
 
+import logging
 from typing import Literal
 
 import casadi as ca
@@ -58,12 +59,14 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from hmpc_cli.hybrid import HybridSystem
 from hmpc_cli.messages import ConstraintMargins
+from hmpc_cli.mpc import cache
 from hmpc_cli.mpc.builder import Bounds, NLPBuilder
 from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart
 from hmpc_cli.settings_types import (
     MAX_NLP_NODES, BoundedInt, FiniteFloat, Pair, StrictBool, nlp_estimate)
 
 INF = np.inf
+_LOG = logging.getLogger(__name__)
 WARM_START = WarmStart(mu_init=1e-4, bound_push=1e-6)  # the warm IPOPT instance
 
 #: measured cost of one walking-NLP node (cold and warm solvers; biped, 2 cores)
@@ -212,7 +215,7 @@ class WalkingNLP:
 
     # ------------------------------------------------------------------ build
     def _build(self) -> None:
-        b, N, s = NLPBuilder(), self.N, self.s
+        b, N = NLPBuilder(), self.N
         xs, acc = {}, {}
         for j in range(2):
             if j == 1:
@@ -229,9 +232,7 @@ class WalkingNLP:
         xs[0, 0] = par["x0"]
         J, xs_out, us_out = self._transcribe(b, xs, acc, par)
         nlp, self.layout = b.build(J)
-        self.session = SolverSession(
-            "walking_mpc", nlp, "ipopt", max_iter=s.max_iter, tol=s.tol,
-            max_wall_time=s.max_wall_time, extra=s.solver_options, warm=WARM_START)
+        self.session, self.build_info = self._session(nlp)
         self._traj_fun = ca.Function("traj", [nlp["x"], nlp["p"]],
                                      [ca.horzcat(*xs_out).T, ca.horzcat(*us_out).T])
         self._f_fun = ca.Function("f", [nlp["x"], nlp["p"]], [J])
@@ -239,6 +240,38 @@ class WalkingNLP:
         self.nw, self.ng, self.n_par = X.size, g.size, self.layout.p.size
         self.x_idx, self.a_idx = X.grid("x"), X.grid("a")
         self.interval_rows = np.array([[g.at((j, k)) for k in range(N)] for j in range(2)])
+
+    def _session(self, nlp: dict) -> tuple[SolverSession, cache.BuildInfo]:
+        """IPOPT on the NLP's compiled functions when the build cache holds them, else SX.
+
+        The graph is transcribed either way (the plan and cost functions need it); a
+        cached library is used only if its layout is this NLP's.
+        """
+        s = self.s
+        key = cache.structure_key(self.system, s, 0, {
+            "kind": "walking", "terrain_margin": float(self.terrain_margin),
+            "segment_margin": float(self.segment_margin),
+            "torque_margin": self.torque_margin.tolist()})
+        hit = cache.lookup(key, "ipopt")
+
+        def session(source: dict | str) -> SolverSession:
+            return SolverSession("walking_mpc", source, "ipopt", max_iter=s.max_iter,
+                                 tol=s.tol, max_wall_time=s.max_wall_time,
+                                 extra=s.solver_options, warm=WARM_START)
+
+        if hit.library is not None:
+            if hit.layout.to_dict() != self.layout.to_dict():
+                _LOG.warning("%s: layout differs from the NLP's: building it in SX",
+                             hit.library)
+            else:
+                try:
+                    return session(hit.library), hit.info
+                except RuntimeError as exc:  # a library CasADi refuses: SX
+                    _LOG.warning("cannot load %s (%s): building the NLP in SX",
+                                 hit.library, str(exc).strip().splitlines()[-1:])
+            return session(nlp), cache.BuildInfo("miss", False, "unloadable")
+        return session(nlp), hit.info if hit.info.cache == "disabled" else \
+            cache.store(key, "ipopt", nlp, self.layout)
 
     def _transcribe(self, b: NLPBuilder, xs: dict, acc: dict, par: dict):
         """Registers the rows; returns the cost and the plan's node states and torques."""
