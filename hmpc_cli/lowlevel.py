@@ -38,6 +38,7 @@ class LowLevelController:
     def __init__(self, system: HybridSystem, settings: LowLevelSettings) -> None:
         self.settings = settings
         self.K = np.asarray(system.tracking_gain(settings.kp, settings.kd), dtype=float)
+        self._memo: tuple | None = None  # (plan, its domain's arrays): see _domain
 
     def reference(self, t: float, plan: Plan, span: float = 0.0
                   ) -> tuple[np.ndarray, np.ndarray]:
@@ -56,16 +57,32 @@ class LowLevelController:
             span <= 0), the held input that gives the plant over the step the same impulse
             as the plan's interpolated input.
         """
-        tr = plan.traj
-        first = np.nonzero(tr.seg == tr.seg[0])[0]
-        ts, xs, us = tr.t[first], tr.x[first], tr.u[first]
+        ts, xs, us, zoh, cum = self._domain(plan)
         tau = t - plan.t0
-        hold = self.settings.feedforward
-        zoh = (tr.input_hold if hold == "plan" else hold) == "zoh"
         x_ref = _interp(ts, xs, tau, zoh=False)
         if span <= 0.0:
             return x_ref, _interp(ts, us, tau, zoh)
-        return x_ref, (_integral(ts, us, tau + span, zoh) - _integral(ts, us, tau, zoh)) / span
+        return x_ref, (_integral(ts, us, tau + span, zoh, cum)
+                       - _integral(ts, us, tau, zoh, cum)) / span
+
+    def _domain(self, plan: Plan) -> tuple:
+        """(ts (K,), xs (K, n), us (K, m), zoh, cum (K, m)) of the plan's current domain.
+
+        ``cum[k]``: the integral of the interpolated input from ts[0] to ts[k]. Made once
+        per plan (the simulator asks for the reference at every step, the plan changes at
+        the MPC's rate).
+        """
+        if self._memo is not None and self._memo[0] is plan:
+            return self._memo[1]
+        tr = plan.traj
+        first = np.nonzero(tr.seg == tr.seg[0])[0]
+        ts, xs, us = tr.t[first], tr.x[first], tr.u[first]
+        hold = self.settings.feedforward
+        zoh = (tr.input_hold if hold == "plan" else hold) == "zoh"
+        pieces = np.diff(ts)[:, None] * (us[:-1] if zoh else 0.5 * (us[:-1] + us[1:]))
+        cum = np.concatenate([np.zeros((1, us.shape[1])), np.cumsum(pieces, axis=0)])
+        self._memo = (plan, (ts, xs, us, zoh, cum))
+        return self._memo[1]
 
     def command(self, t: float, x: np.ndarray, plan: Plan | None, span: float = 0.0):
         """Input to hold over [t, t + span] and the reference state at t.
@@ -103,14 +120,16 @@ def _interp(ts: np.ndarray, vs: np.ndarray, tau: float, zoh: bool) -> np.ndarray
     return (1.0 - a) * vs[k] + a * vs[k + 1]
 
 
-def _integral(ts: np.ndarray, vs: np.ndarray, tau: float, zoh: bool) -> np.ndarray:
-    """Integral from ts[0] to tau of the interpolated samples (constant outside)."""
+def _integral(ts: np.ndarray, vs: np.ndarray, tau: float, zoh: bool,
+              cum: np.ndarray) -> np.ndarray:
+    """Integral from ts[0] to tau of the interpolated samples (constant outside).
+
+    ``cum`` (K, d): the integral up to each sample time (see ``LowLevelController._domain``).
+    """
     if tau <= ts[0] or len(ts) == 1:
         return (tau - ts[0]) * vs[0]
-    dt = np.diff(ts)[:, None]
-    pieces = dt * (vs[:-1] if zoh else 0.5 * (vs[:-1] + vs[1:]))
     k = min(int(np.searchsorted(ts, tau, side="right")) - 1, len(ts) - 1)
-    done = pieces[:k].sum(axis=0)
+    done = cum[k]
     if k == len(ts) - 1:
         return done + (tau - ts[-1]) * vs[-1]
     v_tau = _interp(ts, vs, tau, zoh)
