@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import struct
 import types
 from typing import Any
 
@@ -66,3 +67,62 @@ def zstd_chunks_at_level() -> None:
     current = getattr(mcap.writer, "zstandard", None)
     if isinstance(current, types.ModuleType) and current.__name__ == "zstandard":
         mcap.writer.zstandard = _ZstdAtLevel(current)
+
+
+#: a Message record's head: opcode 0x05, record length, channel, sequence, log and publish
+#: time (MCAP spec; what ``mcap.records.Message.write`` frames, field by field)
+_MESSAGE_HEAD = struct.Struct("<BQHIQQ")
+
+
+def add_messages(writer: Any, batch: list[tuple[int, int, bytes, int]]) -> None:
+    """``writer.add_message(channel, ns, data, ns, sequence)`` for each of ``batch``, in order.
+
+    The same bytes, chunk boundaries and indexes as those calls (tested), in one loop over
+    mcap's chunk builder: a message costs a quarter of ``add_message``'s Python. A writer
+    without chunks or of another layout gets the ``add_message`` calls.
+    """
+    try:
+        stats = writer._Writer__statistics
+        limit = writer._Writer__chunk_size
+        finalize = writer._Writer__maybe_finalize_chunk
+        chunk = writer._Writer__chunk_builder
+        buf = chunk.record_writer._buffer if chunk else None
+    except AttributeError:
+        chunk = None
+    if not chunk or buf is None:
+        for channel, ns, data, sequence in batch:
+            writer.add_message(channel, ns, data, ns, sequence)
+        return
+    counts, indices, head = stats.channel_message_counts, chunk.message_indices, _MESSAGE_HEAD
+    for channel, ns, data, sequence in batch:
+        _span(stats, stats.message_count, ns)
+        counts[channel] += 1
+        stats.message_count += 1
+        _span(chunk, chunk.num_messages, ns)
+        index = indices.get(channel)
+        if index is None:
+            index = indices[channel] = _message_index(channel)
+        buf = chunk.record_writer._buffer  # a finalized chunk starts a new buffer
+        index.records.append((ns, buf.tell()))
+        chunk.num_messages += 1
+        buf.write(head.pack(0x05, 22 + len(data), channel, sequence, ns, ns))
+        buf.write(data)
+        if buf.tell() > limit:
+            finalize()
+
+
+def _span(record: Any, count: int, ns: int) -> None:
+    """Widens ``record``'s message start and end times to ``ns`` (as mcap's writer does).
+
+    ``count``: the messages it holds so far (the first sets the start time outright).
+    """
+    if count == 0 or ns < record.message_start_time:
+        record.message_start_time = ns
+    if ns > record.message_end_time:
+        record.message_end_time = ns
+
+
+def _message_index(channel: int) -> Any:
+    from mcap.records import MessageIndex
+
+    return MessageIndex(channel_id=channel, records=[])

@@ -25,7 +25,7 @@ from mcap.records import Attachment, Channel, Chunk, Footer, Message, Metadata, 
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from hmpc_cli.mcap_codecs import codec_errors, zstd_chunks_at_level
+from hmpc_cli.mcap_codecs import add_messages, codec_errors, zstd_chunks_at_level
 from hmpc_cli.mcap_codecs import compression as mcap_compression
 
 __all__ = ["Log", "LogMessage", "RawMessage", "Recorder", "file_descriptor_set", "read_log",
@@ -239,9 +239,7 @@ class Recorder:
 
     def _drain(self) -> None:
         """Hands the queued messages to mcap's writer, in order."""
-        add = self._writer.add_message
-        for channel, ns, data, sequence in self._pending:
-            add(channel, ns, data, ns, sequence)
+        add_messages(self._writer, self._pending)
         self._pending.clear()
 
     def flush(self) -> None:

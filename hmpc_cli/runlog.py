@@ -10,6 +10,7 @@ become ``summary.json``.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import platform
@@ -89,6 +90,9 @@ class Provenance:
     sweep: str = ""
 
 
+#: :class:`StateSample`'s fields: its JSON object's keys, in order (a dict of them encodes
+#: as the dataclass does, without a frozen dataclass per sample)
+_STATE_KEYS = tuple(f.name for f in dataclasses.fields(StateSample))
 #: /sim/state samples held before they are written (see :meth:`RunLog.state`)
 SAMPLES_HELD = 64
 
@@ -231,10 +235,10 @@ class RunLog:
             (m.disturbance_names, ws))]
         bodies = self._body.many(np.stack(xs)) if self._body is not None else \
             [{}] * len(samples)
-        write = self.rec.write
+        write, sample = self.rec.write, record_maker(_STATE_KEYS)  # StateSample's JSON
         for t, k, name, x, u, ref, w, body in zip(ts, modes, mode_names, *cols, bodies,
                                                 strict=True):
-            write("/sim/state", t, StateSample(t, k, name, x, u, ref, w, body))
+            write("/sim/state", t, sample(t, k, name, x, u, ref, w, body))
         if self.scene is not None:
             self.scene.states(ts, np.stack(xs))
 

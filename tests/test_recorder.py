@@ -339,3 +339,44 @@ def test_queued_messages_keep_their_order_around_metadata_and_attachments(
     assert [m.data["msg"] for m in log.messages] == [str(k) for k in range(50)]
     assert [m.topic for m in log.messages] == ["/a" if k % 3 else "/b" for k in range(50)]
     assert log.metadata["mid"] == {"k": "20"}
+
+
+@pytest.mark.parametrize("chunk_size", [256 * 1024, 700])  # 700 B: chunks close mid-batch
+def test_batched_messages_are_the_bytes_of_add_message(tmp_path: Path, chunk_size) -> None:
+    """The recorder's one-loop path writes exactly what mcap's add_message calls write."""
+    import io
+
+    from mcap.writer import Writer
+
+    from hmpc_cli.mcap_codecs import add_messages
+
+    rng = np.random.default_rng(3)
+    batches = [[(1 + int(rng.integers(2)), int(t), bytes(rng.integers(0, 255, int(n),
+                                                                      dtype=np.uint8)), s)
+                for s, (t, n) in enumerate(zip(rng.integers(0, 10**9, 40),
+                                               rng.integers(0, 90, 40), strict=True))]
+               for _ in range(5)]  # times out of order too
+    files = []
+    for batched in (True, False):
+        out = io.BytesIO()
+        w = Writer(out, chunk_size=chunk_size)
+        w.start()
+        schema = w.register_schema("s", "jsonschema", b"{}")
+        for topic in ("/a", "/b"):
+            w.register_channel(topic, "json", schema)
+        for batch in batches:
+            if batched:
+                add_messages(w, batch)
+            else:
+                for channel, ns, data, seq in batch:
+                    w.add_message(channel, ns, data, ns, seq)
+            w.flush()
+        w.finish()
+        files.append(out.getvalue())
+    assert files[0] == files[1]
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader
+
+    chunks = [r for r in StreamReader(io.BytesIO(files[0]), emit_chunks=True).records
+              if isinstance(r, Chunk)]
+    assert len(chunks) >= (5 if chunk_size == 256 * 1024 else 10)
