@@ -152,6 +152,27 @@ class WalkingMPC:
             out[nlp.a_idx[j]] = v[nlp.a_idx[1]]
         return out
 
+    def _start(self, segment: int, x0: np.ndarray, elapsed: float) -> tuple:
+        """The start (w0, lam_x, lam_g, kind) of a solve onto ``segment`` from x0.
+
+        In order: its own memory shifted, the template after a contact, a neighbour's
+        solution of the same state, or the held state (cold).
+        """
+        if not self.s.warm_start:
+            return self._hold(x0), None, None, "cold"
+        mem = self._memory.get(segment)
+        if mem is not None:
+            w0, lam_x, lam_g = self._shifted(mem, elapsed)
+            return w0, lam_x, lam_g, "primal-dual" if lam_g is not None else "primal"
+        if self._template is not None:
+            tpl = self._template
+            return (tpl.w.copy(), tpl.lam_x, tpl.lam_g,
+                    "primal-dual" if tpl.lam_g is not None else "primal")
+        near = self._neighbour(x0, elapsed)
+        if near is not None:
+            return near.w.copy(), near.lam_x, near.lam_g, "neighbour"
+        return self._hold(x0), None, None, "cold"
+
     def _neighbour(self, x0: np.ndarray, elapsed: float) -> _Memory | None:
         """Another surface's solution from this very state and swing time, if any.
 
@@ -224,19 +245,7 @@ class WalkingMPC:
         nlp = self.nlp
         x0 = np.asarray(x0, dtype=float).reshape(-1)
         p, lbx, ubx, lbg, ubg = nlp.problem_data(x0, self.segments[segment], elapsed)
-        lam_x = lam_g = None
-        mem = self._memory.get(segment) if self.s.warm_start else None
-        if mem is not None:
-            w0, lam_x, lam_g = self._shifted(mem, elapsed)
-            kind = "primal-dual" if lam_g is not None else "primal"
-        elif self.s.warm_start and self._template is not None:
-            w0, lam_x, lam_g = self._template.w.copy(), self._template.lam_x, \
-                self._template.lam_g
-            kind = "primal-dual" if lam_g is not None else "primal"
-        elif self.s.warm_start and (near := self._neighbour(x0, elapsed)) is not None:
-            w0, lam_x, lam_g, kind = near.w.copy(), near.lam_x, near.lam_g, "neighbour"
-        else:
-            w0, kind = self._hold(x0), "cold"
+        w0, lam_x, lam_g, kind = self._start(segment, x0, elapsed)
         a, b, _ = self.segments[segment]
         if not np.all(np.isfinite(x0)):
             res = failed(w0, "non-finite initial state")
