@@ -12,6 +12,8 @@ Measures, on this machine, what the issue's targets name and where the time goes
   <= 100 ms per planning step) on ``scenarios/biped_stairs.toml``: every IPOPT call's
   wall time, iterations and its split into function evaluations and IPOPT's own work
   (linear algebra: MUMPS), periodic re-solves apart from the planner's candidate solves;
+* the ball's CEM plan (target <= 5 ms with the reference's parameters): plan time and
+  the compiled rollout kernel's share;
 * the Figure 3 campaign (``sweeps/fig3.toml``, 33 runs, 2 workers; target <= 20 s): wall
   time and how much of it the runs themselves account for.
 
@@ -31,6 +33,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import suite_report
 
 HERE = Path(__file__).resolve().parent
@@ -223,6 +226,50 @@ def biped_section() -> tuple[list[str], dict]:
     return lines, {"calls": calls, "build": build, **info}
 
 
+# ------------------------------------------------------------------ ball CEM
+def cem_section(plans: int = 20) -> tuple[list[str], dict]:
+    """The ball's CEM plan from x0 (target <= 5 ms with the reference's parameters)."""
+    from hmpc_cli.planner import rollout_c
+    from hmpc_cli.planner.cem import CrossEntropyPlanner
+    from hmpc_cli.registry import build_system
+    from hmpc_cli.scenario import load_scenario
+
+    sc, _ = load_scenario(str(ROOT / BALL))
+    system, x0 = build_system(sc.system), np.asarray(sc.system.x0, dtype=float)
+    kernel, cost = {"s": 0.0}, rollout_c.CRollout.cost
+
+    def timed(self, *a, **kw):
+        start = time.perf_counter()
+        try:
+            return cost(self, *a, **kw)
+        finally:
+            kernel["s"] += time.perf_counter() - start
+
+    lines = ["## Ball CEM plan from x0 (target <= 5 ms, the reference's parameters)", "",
+             "| planner.cost | backend | median ms | min ms | rollout kernel share |",
+             "|---|---|--:|--:|--:|"]
+    rollout_c.CRollout.cost = timed
+    try:
+        for kind in ("reference", "hmpc"):
+            planner = CrossEntropyPlanner(system, sc.planner.model_copy(
+                update={"cost": kind}), sc.seed)
+            planner.plan(0.0, x0, 0)
+            kernel["s"], walls = 0.0, []
+            for _ in range(plans):
+                start = time.perf_counter()
+                planner.plan(0.0, x0, 0)
+                walls.append(time.perf_counter() - start)
+            lines.append(f"| {kind} | {planner.backend} | {_median(walls) * 1e3:.1f} | "
+                         f"{min(walls) * 1e3:.1f} | {kernel['s'] / sum(walls) * 100:.0f} % |")
+    finally:
+        rollout_c.CRollout.cost = cost
+    s = sc.planner
+    lines += ["", f"{s.iterations} iterations x {s.samples + 1} rollouts of "
+              f"{s.horizon * s.rollout_rate_hz:.0f} steps per plan, in the compiled C "
+              "kernel (bit-identical to the NumPy rollouts)."]
+    return lines, {}
+
+
 # ------------------------------------------------------------ Figure 3 campaign
 def _logged_times(logs) -> tuple[float, float]:
     """Total logged MPC solve and planner call wall times [s] of run logs."""
@@ -271,7 +318,7 @@ def main() -> None:
         print(json.dumps(phases()))
         return
     git, load0, start = suite_report.git_describe(), os.getloadavg(), time.perf_counter()
-    sections = [run_section(args.runs), biped_section()]
+    sections = [run_section(args.runs), biped_section(), cem_section()]
     if not args.no_campaign:
         sections.append(campaign_section())
     desc = suite_report.machine(sys.argv, load0, time.perf_counter() - start, (), (), git)
