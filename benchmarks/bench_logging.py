@@ -1,6 +1,7 @@
 """Logging overhead: the same closed-loop runs with the run log on and off, interleaved.
 
 Run on demand:  python benchmarks/bench_logging.py [--runs N] [--scenario PATH]
+                [--set KEY=VALUE ...]   (e.g. --set sim.log_plan_stride=3)
 
 Builds the scenario's loop once per variant and run (the NLPs are cached per process, so
 both variants find the same process state), runs it as ``hmpc run`` does (run.mcap with
@@ -70,10 +71,11 @@ class _Timed:
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def one_run(scenario: str, log: bool) -> tuple[float, float, int]:
+def one_run(scenario: str, log: bool, sets: tuple[str, ...] = ()) -> tuple[float, float, int]:
     """(wall time [s], CPU time of this thread [s], log bytes) of one run with the log on
-    (as ``hmpc run`` writes it: the typed topics and the 3D scene) or off (no recorder)."""
-    sc, toml_text = load_scenario(scenario)
+    (as ``hmpc run`` writes it: the typed topics and the 3D scene) or off (no recorder);
+    ``sets``: ``key=value`` overrides of the scenario."""
+    sc, toml_text = load_scenario(scenario, list(sets))
     loop = prepare(sc)
     with tempfile.TemporaryDirectory() as tmp:
         start, cpu = time.perf_counter(), time.thread_time()
@@ -90,13 +92,16 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--scenario", default=os.path.join(HERE, "..", "scenarios", "ball.toml"))
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a setting of the scenario (repeatable)")
     args = ap.parse_args()
-    one_run(args.scenario, True)  # warm-up: NLPs built, caches filled
+    sets = tuple(args.set)
+    one_run(args.scenario, True, sets)  # warm-up: NLPs built, caches filled
     times: dict[bool, list[tuple[float, float]]] = {True: [], False: []}
     size = 0
     for _ in range(args.runs):
         for log in (False, True):
-            wall, cpu, n = one_run(args.scenario, log)
+            wall, cpu, n = one_run(args.scenario, log, sets)
             times[log].append((wall, cpu))
             size = n or size
     for k, what in enumerate(("wall", "CPU ")):
@@ -120,7 +125,7 @@ def main() -> None:
     shares = []
     for _ in range(args.runs):
         with _Timed() as timer:
-            wall, _, _ = one_run(args.scenario, True)
+            wall, _, _ = one_run(args.scenario, True, sets)
         shares.append(timer.total / wall)
     print(f"time inside the logging calls, share of the run: median "
           f"{statistics.median(shares) * 100:.1f} %, max {max(shares) * 100:.1f} % "

@@ -398,7 +398,8 @@ def build(scenario, log: RunLog,
                  margins.to_dict(model) if margins is not None else None,
                  (sc.planner.kind, sc.mpc.kind),
                  {"planner": reg.planner(sc.planner.kind).detail,
-                  "mpc": reg.mpc(sc.mpc.kind).detail}, _build_info(problem))
+                  "mpc": reg.mpc(sc.mpc.kind).detail}, _build_info(problem),
+                 s.log_plan_stride)
     return ClosedLoop(plant, planner, mpc, _timing(sc, model), task, log, s.duration,
                       s.divergence_bound, progress)
 

@@ -108,6 +108,7 @@ class RunLog:
     def __init__(self, recorder, per_state: int = 1) -> None:
         self.rec = recorder
         self.per_state = per_state
+        self.plan_stride = 1  # every k-th plan node is logged (see thinned)
         self.result = RunResult("scenario", 0)
         self.info: dict = {}
         self.provenance = Provenance()
@@ -123,7 +124,7 @@ class RunLog:
     def set_info(self, name: str, seed: int, scenario: dict, per_state: int,
                  margins: dict | None = None, kinds: tuple[str, str] = ("", ""),
                  details: dict[str, type | None] | None = None,
-                 build: dict | None = None) -> None:
+                 build: dict | None = None, plan_stride: int = 1) -> None:
         """The run's identity for /run/info and the summary.
 
         Args:
@@ -135,12 +136,14 @@ class RunLog:
             kinds: (planner kind, MPC kind).
             details: ``planner``/``mpc`` -> the plug-ins' log detail dataclasses.
             build: how the MPC's NLPs were built (``cache``, ``compiled``, ``reason``).
+            plan_stride: every k-th node of a plan is logged (:func:`thinned`).
         """
         self.result.scenario, self.result.seed = name, seed
         self.info = {"scenario_name": name, "seed": seed, "scenario": scenario,
                      "margins": margins, "kinds": kinds, "build": build}
         self.details = dict(details or {})
         self.per_state = per_state
+        self.plan_stride = plan_stride
 
     def _write(self, topic: str, t: float, payload) -> None:
         if self.rec is not None:
@@ -292,6 +295,8 @@ class RunLog:
             r.max_slack = max(r.max_slack, st.slack)
         if self.rec is None:
             return
+        if self.plan_stride > 1:
+            plan = dataclasses.replace(plan, traj=thinned(plan.traj, self.plan_stride))
         self._write("/mpc/solve", t, MpcSolve(
             t, reason, st.status, bool(st.success), int(st.iterations), float(st.wall_time),
             float(st.cost), float(st.max_violation), float(st.slack), bool(plan.adopt),
@@ -319,6 +324,23 @@ def _named_rows(names: Sequence[str], rows: Sequence[np.ndarray | None]) -> list
         return [named(names, r) for r in rows]
     return list(itertools.starmap(record_maker(tuple(names)),
                                   np.stack(rows).reshape(len(rows), -1).tolist()))
+
+
+def thinned(traj: Trajectory, stride: int) -> Trajectory:
+    """Every ``stride``-th node of ``traj``, with the last node and both nodes of every
+    domain-segment change (a reset's pair: on the guard, after the reset) always kept."""
+    seg = np.asarray(traj.seg)
+    n = len(seg)
+    if stride <= 1 or n == 0:
+        return traj
+    keep = np.zeros(n, dtype=bool)
+    keep[::stride] = True
+    keep[-1] = True
+    change = np.flatnonzero(seg[1:] != seg[:-1])
+    keep[change] = keep[change + 1] = True
+    return dataclasses.replace(traj, t=np.asarray(traj.t)[keep], x=np.asarray(traj.x)[keep],
+                               u=np.asarray(traj.u)[keep], mode=np.asarray(traj.mode)[keep],
+                               seg=seg[keep])
 
 
 def plan_nodes(traj: Trajectory, t0: float, model: HybridSystem) -> tuple[dict, ...]:

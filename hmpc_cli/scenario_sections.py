@@ -27,6 +27,10 @@ class SimSettings(BaseModel):
     divergence_bound: LargeFloat = Field(1e6, gt=0.0, description="|x| beyond this is "
                                          "divergence")
     log_rate_hz: BoundedInt = Field(100, gt=0, description="state logging rate [Hz]")
+    log_plan_stride: BoundedInt = Field(
+        1, ge=1, description="log every k-th node of each MPC plan (/mpc/solve and the 3D "
+        "scene; the nodes either side of a reset and the last node always): 1 logs every "
+        "node; 3 makes a ball log about half as large")
     input_at_events: Literal["hold", "recompute"] = Field(
         "hold", description="after a reset inside a step: hold the step's input (the "
         "paper's ball) or let the controllers react at the event time and compute a new "
