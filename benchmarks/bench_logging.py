@@ -87,6 +87,19 @@ def one_run(scenario: str, log: bool, sets: tuple[str, ...] = ()) -> tuple[float
         return wall, cpu, os.path.getsize(Path(tmp) / "run.mcap") if log else 0
 
 
+def median_ci(values: list[float], level: float = 0.95, resamples: int = 4000,
+              seed: int = 0) -> tuple[float, float]:
+    """Percentile-bootstrap interval of the median of ``values`` (fixed seed: the same
+    runs give the same interval)."""
+    import numpy as np
+
+    v = np.asarray(values, dtype=float)
+    rng = np.random.default_rng(seed)
+    meds = np.median(v[rng.integers(0, len(v), size=(resamples, len(v)))], axis=1)
+    tail = (1.0 - level) / 2.0
+    return float(np.quantile(meds, tail)), float(np.quantile(meds, 1.0 - tail))
+
+
 def main() -> None:
     """Interleaves runs with the log on and off and prints the comparison."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -118,9 +131,10 @@ def main() -> None:
         pairs = sorted(on[k] / off[k] - 1.0 for off, on in zip(times[False], times[True],
                                                                 strict=True))
         q1, q3 = pairs[len(pairs) // 4], pairs[(3 * len(pairs)) // 4]
+        lo, hi = median_ci(pairs)
         print(f"{what}: paired overhead (on / the off run just before - 1): median "
-              f"{statistics.median(pairs) * 100:+.1f} %, quartiles {q1 * 100:+.1f} .. "
-              f"{q3 * 100:+.1f} %")
+              f"{statistics.median(pairs) * 100:+.1f} % (95 % CI {lo * 100:+.1f} .. "
+              f"{hi * 100:+.1f}), quartiles {q1 * 100:+.1f} .. {q3 * 100:+.1f} %")
     print(f"log size {size / 1024:.0f} KiB ({args.runs} runs per variant)")
     shares = []
     for _ in range(args.runs):
