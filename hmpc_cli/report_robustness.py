@@ -11,10 +11,14 @@ made only where intervals separate.
 from __future__ import annotations
 
 import math
+import re
+import statistics
+from collections import Counter, defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 
-from hmpc_cli.figures.common import FigureInputError, page_link, read_table, resolve_table
+from hmpc_cli.figures.common import (
+    FigureInputError, page_link, parse_bool, read_table, resolve_table)
 
 __all__ = ["Study", "robustness_sections"]
 
@@ -166,6 +170,58 @@ def _wall(rows: list[dict]) -> str:
             "per run on average; divide by the worker processes for the elapsed time)")
 
 
+def _median(rows: list[dict], key: str) -> float:
+    """The median of a numeric column over rows (finite cells only; nan if none)."""
+    vals = []
+    for r in rows:
+        try:
+            v = float(r.get(key) or "nan")
+        except ValueError:
+            continue
+        if math.isfinite(v):
+            vals.append(v)
+    return statistics.median(vals) if vals else math.nan
+
+
+def failure_lines(rows: list[dict], size: str) -> list[str]:
+    """How the failed runs failed, and how much the disturbance draw alone decides.
+
+    From results.csv rows: the failed runs' final distance to the goal and solver failures
+    beside the successful runs', their reasons (numbers elided), and over the draws (seed
+    and ``size``) run in more than one cell how many succeed everywhere, fail everywhere
+    or differ between cells.
+    """
+    ok = [parse_bool(r.get("success"), "results.csv: success") for r in rows]
+    failed = [r for r, good in zip(rows, ok, strict=True) if not good]
+    if not failed:
+        return [f"- Failed runs: none of {len(rows)}."]
+    good = [r for r, g in zip(rows, ok, strict=True) if g]
+    has = set(rows[0])
+    parts = [f"- Failed runs: {len(failed)} of {len(rows)}"]
+    if "final_error" in has:
+        parts.append(f"they end a median {_median(failed, 'final_error'):.2f} m from the goal "
+                     f"(successful runs: {_median(good, 'final_error'):.2f} m)")
+    if "solver_failures" in has:
+        parts.append(f"with a median {_median(failed, 'solver_failures'):g} solver failures per "
+                     f"run (successful runs: {_median(good, 'solver_failures'):g})")
+    if "reason" in has:
+        why = Counter(re.sub(r"-?\d+(\.\d+)?(e[-+]?\d+)?", "…", r.get("reason") or "?")
+                      for r in failed)
+        parts.append("reasons: " + ", ".join(f"`{k}` ({v})" for k, v in why.most_common(4)))
+    lines = ["; ".join(parts) + "."]
+    draws: dict[tuple, list[bool]] = defaultdict(list)
+    for r, g in zip(rows, ok, strict=True):
+        draws[(r.get("seed"), r.get(size))].append(g)
+    multi = [v for v in draws.values() if len(v) > 1]
+    if multi:
+        everywhere, nowhere = sum(all(v) for v in multi), sum(not any(v) for v in multi)
+        lines.append(f"- The same disturbance draw (seed and size) in every rate and policy: "
+                     f"succeeds in all its cells for {everywhere} of {len(multi)} draws, fails "
+                     f"in all for {nowhere}, differs between cells for "
+                     f"{len(multi) - everywhere - nowhere}.")
+    return lines
+
+
 def _size_column(rows: list[dict]) -> str:
     """The table's disturbance-size column: the grid's, else the sweep's fixed ``[set]``."""
     return SIZE if rows and SIZE in rows[0] else f"set.{SIZE}"
@@ -212,7 +268,8 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
              *(["Tube diameter diam T(1/f) at each rate (Step 5, sampled constants; the "
                 "lower panels):", "", *_diam_lines(diam), ""] if diam else []),
              "Computed findings (a claim holds only where the intervals separate):", "",
-             *(findings(cells) or ["- none: no cell has runs at two rates"]), ""],
+             *(findings(cells) or ["- none: no cell has runs at two rates"]), "",
+             "How the runs failed (each run's summary):", "", *failure_lines(rows, size), ""],
             cells, spec)
 
 

@@ -100,6 +100,32 @@ def test_report_page_tables_the_study(tmp_path):
     # 50 Hz beats 5 Hz with separate intervals only where the data say so
     assert "±10.0, once: 50 Hz is higher than 5 Hz (100 % vs 30 %; intervals separate)" in text
     assert "±30.0, once: 50 Hz is higher than 5 Hz (20 % vs 0 %; intervals overlap)" in text
+    # 38 of the 80 runs succeed; seeds 0-2 at +-10 succeed in all four cells, seeds 5-9 at
+    # +-30 fail in all four, the other 12 draws differ between cells
+    assert "How the runs failed (each run's summary):\n\n- Failed runs: 42 of 80.\n" in text
+    assert ("- The same disturbance draw (seed and size) in every rate and policy: succeeds "
+            "in all its cells for 3 of 20 draws, fails in all for 5, differs between cells "
+            "for 12.") in text
+
+
+def test_failure_lines_say_how_failed_runs_ended():
+    from hmpc_cli.report_robustness import failure_lines
+
+    def row(seed, ok, err, fails, reason, rate):
+        return {"seed": str(seed), "disturbance.magnitude": "15.0", "mpc.rate_hz": str(rate),
+                "success": ok, "final_error": str(err), "solver_failures": str(fails),
+                "reason": reason}
+
+    rows = [row(0, "true", 0.05, 0, "success", 5), row(0, "false", 2.5, 7,
+            "final error 2.500 > 0.6", 50), row(1, "false", 1.5, 3, "final error 1.500 > 0.6",
+            5), row(1, "false", float("nan"), 11, "diverged: |x| 1e+07 > 1e6", 50)]
+    assert failure_lines(rows, "disturbance.magnitude") == [
+        "- Failed runs: 3 of 4; they end a median 2.00 m from the goal (successful runs: "
+        "0.05 m); with a median 7 solver failures per run (successful runs: 0); reasons: "
+        "`final error … > …` (2), `diverged: |x| … > …` (1).",
+        "- The same disturbance draw (seed and size) in every rate and policy: succeeds in "
+        "all its cells for 0 of 2 draws, fails in all for 1, differs between cells for 1."]
+    assert failure_lines(rows[:1], "disturbance.magnitude") == ["- Failed runs: none of 1."]
 
 
 @pytest.mark.slow
