@@ -370,6 +370,8 @@ def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list
             mine = latency_lines(twin[1], cells, lat)
             latency += mine
             lines += [f"### {lat} s latency charged vs time paused", "",
-                      f"`{spec.get('name')}` beside the same cells of `{twin[0].get('name')}`:",
+                      f"`{spec.get('name')}` beside the same cells of `{twin[0].get('name')}`. "
+                      f"The first plan, too, reaches the plant {lat} s after the state it was "
+                      f"computed from: until then the input is zero (`sim.latency`).",
                       "", *mine, ""]
     return lines + reading(results, latency)

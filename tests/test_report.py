@@ -232,7 +232,8 @@ def test_latency_study_sits_beside_its_paused_twin_and_the_reading_counts(tmp_pa
         in text
     assert "- ±15.0, 5 Hz: on_contact is higher than once (95 % vs 10 %; intervals separate)." \
         in text
-    assert "`lat` beside the same cells of `paper`:" in text  # not the moved geometry
+    assert "`lat` beside the same cells of `paper`. The first plan, too, reaches the plant " \
+        "0.05 s after the state it was computed from" in text  # not the moved geometry
     assert ("- ±15.0, once, 50 Hz: 0.05 s latency is lower than time paused (15 % vs 100 %; "
             "intervals separate).") in text
     assert "- ±15.0, once, 5 Hz: 0.05 s latency is the same as time paused" in text

@@ -175,7 +175,7 @@ def robustness(table: str | Path, out_dir: str | Path | None = None,
         for ax, p in zip(axes[0], panels, strict=True):
             _success_panel(ax, data, p, panel_axis, series_axis)
         axes[0][0].set_ylabel("success rate (Wilson 95 %)")
-        axes[0][-1].legend(loc="lower right", title=_axis_label(series_axis))
+        axes[0][-1].legend(loc="best", title=_axis_label(series_axis))
         if diameters:
             for ax, p in zip(axes[1], panels, strict=True):
                 if ax is not axes[1][0]:
