@@ -327,8 +327,11 @@ def _named_rows(names: Sequence[str], rows: Sequence[np.ndarray | None]) -> list
 
 
 def thinned(traj: Trajectory, stride: int) -> Trajectory:
-    """Every ``stride``-th node of ``traj``, with the last node and both nodes of every
-    domain-segment change (a reset's pair: on the guard, after the reset) always kept."""
+    """Every ``stride``-th node of ``traj``; the last node is always kept.
+
+    So are both nodes of every domain-segment change (a reset's pair: on the guard, after
+    the reset).
+    """
     seg = np.asarray(traj.seg)
     n = len(seg)
     if stride <= 1 or n == 0:
