@@ -19,11 +19,12 @@ default, the paper's runs) pauses simulated time while they compute and a new pl
 tracked at once; a fixed delay L [s] or ``"measured"`` (the plan's measured compute wall
 time: planner, if it ran for this solve, plus MPC; runs are then not reproducible) lets
 a plan computed from the state at t reach the plant at the first simulator step at or
-after t + L, the previous plan being tracked until then. The delay is logged with each
-solve (/mpc/solve ``latency``). There is one solver: a solve that falls due while it is
-still computing (a period, an impact, a replanning) waits until it is free and then
-starts from the state of that moment, so an MPC rate faster than 1 / L runs at the
-solver's pace.
+after t + L, the previous plan being tracked until then (the first plan too, unless
+``sim.latency_first = "paused"``: then it is computed with time paused at t = 0). The
+delay is logged with each solve (/mpc/solve ``latency``). There is one solver: a solve
+that falls due while it is still computing (a period, an impact, a replanning) waits
+until it is free and then starts from the state of that moment, so an MPC rate faster
+than 1 / L runs at the solver's pace.
 """
 
 from __future__ import annotations
@@ -56,6 +57,8 @@ class StackTiming:
         on_contact: guards whose events trigger a replan (policy ``on_contact``).
         resolve_on_impact: re-solve right after a guard event.
         latency: "paused", "measured" or a fixed delay [s] before a plan reaches the plant.
+        latency_first: "charged" (the first plan waits its latency too) or "paused" (the
+            first plan, at t = 0, is computed with time paused).
     """
 
     per_solve: int
@@ -63,6 +66,7 @@ class StackTiming:
     on_contact: frozenset[int]
     resolve_on_impact: bool
     latency: str | float = "paused"
+    latency_first: str = "charged"
 
 
 @dataclass
@@ -300,7 +304,8 @@ class ClosedLoop:
         plan = self.mpc.solve(t, x, mode, st.schedule, st.events, st.guess)
         st.events = []
         latency = self.timing.latency
-        if latency == "paused":
+        if latency == "paused" or (reason == "initial" and
+                                   self.timing.latency_first == "paused"):
             self.log.solve(t, plan, reason, self.model)
             if plan.adopt:
                 st.plan = plan
@@ -445,4 +450,5 @@ def _timing(sc, model) -> StackTiming:
         contact = frozenset()
     per_replan = int(round(rp.period * sc.sim.rate_hz)) if rp.policy == "periodic" else None
     return StackTiming(sc.sim.rate_hz // sc.mpc.rate_hz, per_replan, contact,
-                       getattr(sc.mpc, "resolve_on_impact", True), sc.sim.latency)
+                       getattr(sc.mpc, "resolve_on_impact", True), sc.sim.latency,
+                       sc.sim.latency_first)

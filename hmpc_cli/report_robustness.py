@@ -372,6 +372,7 @@ def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list
             lines += [f"### {lat} s latency charged vs time paused", "",
                       f"`{spec.get('name')}` beside the same cells of `{twin[0].get('name')}`. "
                       f"The first plan, too, reaches the plant {lat} s after the state it was "
-                      f"computed from: until then the input is zero (`sim.latency`).",
+                      f"computed from: until then the input is zero (`sim.latency_first = "
+                      f"\"paused\"` would compute it with time paused).",
                       "", *mine, ""]
     return lines + reading(results, latency)

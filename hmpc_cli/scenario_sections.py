@@ -43,6 +43,12 @@ class SimSettings(BaseModel):
         "plan is tracked, and a plan takes effect at the first simulator step at or after "
         "t + latency")
 
+    latency_first: Literal["charged", "paused"] = Field(
+        "charged", description="with a latency: 'charged' (default) lets the first plan, too, "
+        "reach the plant only after the latency (no plan and zero input until then); "
+        "'paused' computes the first plan (planner and MPC at t = 0) with time paused, as "
+        "a controller that planned before the run started, and charges every later solve")
+
     @field_validator("latency", mode="before")
     @classmethod
     def _latency(cls, v: Any) -> Any:

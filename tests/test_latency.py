@@ -71,6 +71,25 @@ def test_a_fixed_latency_delays_each_plan_by_exactly_that(tmp_path):
     assert lat_p == [0.0] * len(solves_p) and lat_d == [L] * len(solves_d)
 
 
+def test_the_first_plan_can_be_computed_with_time_paused(tmp_path):
+    _, log, solves, used = _run(tmp_path, "first", [f"sim.latency={L}",
+                                                    'sim.latency_first="paused"'])
+    _, _, solves_c, used_c = _run(tmp_path, "charged", [f"sim.latency={L}"])
+    h = 1.0 / 600
+    (t0, first), (_, first_c) = solves[0], solves_c[0]
+    assert t0 == 0.0 and np.array_equal(first.traj.u, first_c.traj.u)
+    assert _first_use(used, first) == 0.0  # tracked at once: no step without a plan
+    assert all(p is not None for _, p in used)
+    assert _first_use(used_c, first_c) == pytest.approx(L, abs=1e-12)  # the default waits
+    later = [(t, p) for t, p in solves[1:] if p.adopt and t + L < 0.6 - h / 2]
+    assert len(later) >= 3  # every later plan waits its latency, to the simulator step
+    for t, plan in later:
+        assert _first_use(used, plan) == pytest.approx(np.ceil((t + L) / h - 1e-6) * h,
+                                                       abs=1e-9), t
+    lat = [m.data["latency"] for m in read_log(log).topic("/mpc/solve")]
+    assert lat[0] == 0.0 and lat[1:] == [L] * (len(lat) - 1)
+
+
 def test_paused_is_the_default_bit_for_bit(tmp_path):
     _, log_default, _, _ = _run(tmp_path, "default", [])
     _, log_paused, _, _ = _run(tmp_path, "paused", ["sim.latency=\"paused\""])
