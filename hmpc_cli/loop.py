@@ -58,7 +58,8 @@ class StackTiming:
         resolve_on_impact: re-solve right after a guard event.
         latency: "paused", "measured" or a fixed delay [s] before a plan reaches the plant.
         latency_first: "charged" (the first plan waits its latency too) or "paused" (the
-            first plan, at t = 0, is computed with time paused).
+            solve at t = 0 is computed with time paused; a first plan found only later,
+            the planner having none at t = 0, is charged).
     """
 
     per_solve: int

@@ -270,13 +270,15 @@ def _open(log_path: str | Path):
     """(path, run, system, plane indices, logged scenario) of a run with a 2-D plane.
 
     Raises:
-        PassThroughError: no such log, unreadable, or a system without a 2-D plane.
+        PassThroughError: no such log, unreadable, plans thinned by ``sim.log_plan_stride``,
+            or a system without a 2-D plane.
     """
     from hmpc_cli.rundata import read_run, resolve_log
 
     try:
         path = resolve_log(Path(log_path))
         run = read_run(path)
+        run.full_plans("the pass-through (its node step and guard-side node)")
     except ValueError as exc:
         raise PassThroughError(str(exc)) from None
     system = _logged_system(run.system, str(path))

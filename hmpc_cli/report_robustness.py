@@ -199,27 +199,64 @@ def failure_lines(rows: list[dict], size: str) -> list[str]:
     has = set(rows[0])
     parts = [f"- Failed runs: {len(failed)} of {len(rows)}"]
     if "final_error" in has:
-        parts.append(f"they end a median {_median(failed, 'final_error'):.2f} m from the goal "
-                     f"(successful runs: {_median(good, 'final_error'):.2f} m)")
+        parts.append("they end " + _stat(failed, good, "final_error", "{:.2f} m",
+                                         " from the goal"))
     if "solver_failures" in has:
-        parts.append(f"with a median {_median(failed, 'solver_failures'):g} solver failures per "
-                     f"run (successful runs: {_median(good, 'solver_failures'):g})")
+        parts.append("with " + _stat(failed, good, "solver_failures", "{:g}",
+                                     " solver failures per run"))
     if "reason" in has:
-        why = Counter(re.sub(r"-?\d+(\.\d+)?(e[-+]?\d+)?", "…", r.get("reason") or "?")
-                      for r in failed)
+        why = Counter(_NUMBER.sub("…", r.get("reason") or "?") for r in failed)
         parts.append("reasons: " + ", ".join(f"`{k}` ({v})" for k, v in why.most_common(4)))
-    lines = ["; ".join(parts) + "."]
+    return ["; ".join(parts) + "."] + _draw_lines(rows, ok, size)
+
+
+#: a number in a failure reason (not digits inside a name such as ``wall2``)
+_NUMBER = re.compile(r"(?<![\w.])-?\d+(\.\d+)?([eE][-+]?\d+)?")
+
+
+def _stat(failed: list[dict], good: list[dict], key: str, fmt: str, what: str) -> str:
+    """"a median X<what>" of the failed runs' ``key``, beside the successful runs' median.
+
+    ``fmt`` formats a value (its unit included, e.g. ``"{:.2f} m"``). Non-finite values (a
+    diverged run's distance) are left out and counted; "n/a" when none is finite.
+    """
+    def med(rows: list[dict]) -> str:
+        m = _median(rows, key)
+        return fmt.format(m) if math.isfinite(m) else "n/a"
+
+    notes = [f"successful runs: {med(good)}"] if good else []
+    gone = sum(not _finite(r.get(key)) for r in failed)
+    if gone:
+        notes.append(f"{gone} failed run{'s' * (gone > 1)} without a finite value")
+    return f"a median {med(failed)}{what}" + (f" ({'; '.join(notes)})" if notes else "")
+
+
+def _finite(value) -> bool:
+    try:
+        return math.isfinite(float(value))
+    except (TypeError, ValueError):
+        return False
+
+
+def _draw_lines(rows: list[dict], ok: list[bool], size: str) -> list[str]:
+    """How the draws (seed and ``size``) run in every cell of their size fare across cells.
+
+    A draw run in fewer cells than the most any draw of its size was run in (a campaign
+    under way) is left out.
+    """
     draws: dict[tuple, list[bool]] = defaultdict(list)
     for r, g in zip(rows, ok, strict=True):
         draws[(r.get("seed"), r.get(size))].append(g)
-    multi = [v for v in draws.values() if len(v) > 1]
-    if multi:
-        everywhere, nowhere = sum(all(v) for v in multi), sum(not any(v) for v in multi)
-        lines.append(f"- The same disturbance draw (seed and size) in every rate and policy: "
-                     f"succeeds in all its cells for {everywhere} of {len(multi)} draws, fails "
-                     f"in all for {nowhere}, differs between cells for "
-                     f"{len(multi) - everywhere - nowhere}.")
-    return lines
+    width: dict[object, int] = defaultdict(int)
+    for (_, z), v in draws.items():
+        width[z] = max(width[z], len(v))
+    full = [v for (_, z), v in draws.items() if len(v) == width[z] > 1]
+    if not full:
+        return []
+    everywhere, nowhere = sum(all(v) for v in full), sum(not any(v) for v in full)
+    return [f"- The same disturbance draw (seed and size) in every rate and policy: succeeds "
+            f"in all its cells for {everywhere} of {len(full)} draws, fails in all for "
+            f"{nowhere}, differs between cells for {len(full) - everywhere - nowhere}."]
 
 
 def _size_column(rows: list[dict]) -> str:
@@ -280,8 +317,19 @@ def latency_lines(paused: list, charged: list, latency: object) -> list[str]:
         twin = [p for p in paused if (p.panel, p.series, p.x) == (c.panel, c.series, c.x)]
         if twin:
             out.append(f"- ±{c.panel}, {c.series}, {c.x:g} Hz: " + _compare(
-                c, twin[0], f"{latency} s latency", "time paused") + ".")
+                c, twin[0], latency_text(latency), "time paused") + ".")
     return out
+
+
+def latency_text(latency: object) -> str:
+    """``sim.latency`` in words: "0.05 s latency" or "measured latency" (the solve time)."""
+    return "measured latency" if latency == "measured" else f"{latency} s latency"
+
+
+def charged(spec: dict) -> object | None:
+    """A sweep's charged ``sim.latency`` from its ``[set]`` (None: time paused)."""
+    lat = spec.get("set", {}).get("sim.latency")
+    return None if lat in (None, "paused") else lat
 
 
 def _tally(pairs: list[tuple]) -> tuple[int, int, int]:
@@ -309,7 +357,7 @@ def reading(results: list[tuple[dict, list]], latency: list[str]) -> list[str]:
     """What the evidence does and does not support, counted from the intervals."""
     rate_pairs, plan_pairs = [], []
     for spec, cells in results:
-        if "sim.latency" not in spec.get("set", {}):
+        if charged(spec) is None:
             r, p = _pairs(cells)
             rate_pairs += r
             plan_pairs += p
@@ -338,12 +386,27 @@ def reading(results: list[tuple[dict, list]], latency: list[str]) -> list[str]:
     return lines
 
 
-def _twin(charged: dict, paused: list[tuple[dict, list]]) -> tuple[dict, list] | None:
-    """The paused study with the latency study's settings but the latency (and size)."""
-    def key(spec: dict) -> dict:
-        return {k: v for k, v in spec.get("set", {}).items() if k not in ("sim.latency", SIZE)}
+#: the [set] keys in which a latency study and its time-paused twin may differ
+_LATENCY_KEYS = ("sim.latency", "sim.latency_first", SIZE)
 
-    return next((p for p in paused if key(p[0]) == key(charged)), None)
+
+def _twin(spec: dict, paused: list[tuple[dict, list]]) -> tuple[dict, list] | None:
+    """The paused study with the latency study's settings but the latency (and size)."""
+    def key(s: dict) -> dict:
+        return {k: v for k, v in s.get("set", {}).items() if k not in _LATENCY_KEYS}
+
+    return next((p for p in paused if key(p[0]) == key(spec)), None)
+
+
+def _first_plan(spec: dict, latency: object) -> str:
+    """How a latency study treats the first plan (``sim.latency_first``), in a sentence."""
+    if spec.get("set", {}).get("sim.latency_first") == "paused":
+        return ("The first plan is computed with time paused at t = 0 "
+                "(`sim.latency_first = \"paused\"`); every later plan is charged.")
+    wait = "its solve time" if latency == "measured" else f"{latency} s"
+    return (f"The first plan, too, reaches the plant {wait} after the state it was computed "
+            "from: until then the input is zero (`sim.latency_first = \"paused\"` would "
+            "compute it with time paused).")
 
 
 def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list[str]:
@@ -361,18 +424,21 @@ def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list
             continue
         lines += section
         results.append((spec, cells))
-    paused = [r for r in results if "sim.latency" not in r[0].get("set", {})]
+    paused = [r for r in results if charged(r[0]) is None]
     latency: list[str] = []
     for spec, cells in results:
-        twin = _twin(spec, paused) if "sim.latency" in spec.get("set", {}) else None
-        if twin is not None:
-            lat = spec["set"]["sim.latency"]
-            mine = latency_lines(twin[1], cells, lat)
-            latency += mine
-            lines += [f"### {lat} s latency charged vs time paused", "",
-                      f"`{spec.get('name')}` beside the same cells of `{twin[0].get('name')}`. "
-                      f"The first plan, too, reaches the plant {lat} s after the state it was "
-                      f"computed from: until then the input is zero (`sim.latency_first = "
-                      f"\"paused\"` would compute it with time paused).",
-                      "", *mine, ""]
+        lat = charged(spec)
+        if lat is None:
+            continue
+        twin = _twin(spec, paused)
+        if twin is None:
+            lines += [f"### {latency_text(lat)} charged", "",
+                      f"`{spec.get('name')}`: no study on this page has its settings with "
+                      "time paused, so its cells are not compared.", ""]
+            continue
+        mine = latency_lines(twin[1], cells, lat)
+        latency += mine
+        lines += [f"### {latency_text(lat)} charged vs time paused", "",
+                  f"`{spec.get('name')}` beside the same cells of `{twin[0].get('name')}`. "
+                  + _first_plan(spec, lat), "", *mine, ""]
     return lines + reading(results, latency)

@@ -147,6 +147,25 @@ class RunData:
         """The scenario's ``[system]`` section."""
         return dict(self.scenario.get("system") or {})
 
+    @property
+    def plan_stride(self) -> int:
+        """The scenario's ``sim.log_plan_stride``: every k-th plan node was logged (1: all)."""
+        try:
+            return max(1, int((self.scenario.get("sim") or {}).get("log_plan_stride", 1)))
+        except (TypeError, ValueError):
+            return 1
+
+    def full_plans(self, use: str) -> None:
+        """Raises ValueError when the logged plans are thinned: ``use`` needs every node.
+
+        The message names the setting and how to get a log with every node.
+        """
+        if self.plan_stride > 1:
+            raise ValueError(
+                f"{self.path}: the logged plans are thinned (sim.log_plan_stride = "
+                f"{self.plan_stride}: every {self.plan_stride}th node); {use} needs every "
+                "plan node: run the scenario again with --set sim.log_plan_stride=1")
+
     def adopted(self) -> list[SolveData]:
         """The solves whose plan the loop adopted."""
         return [s for s in self.solves if s.adopted]

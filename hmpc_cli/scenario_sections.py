@@ -47,7 +47,8 @@ class SimSettings(BaseModel):
         "charged", description="with a latency: 'charged' (default) lets the first plan, too, "
         "reach the plant only after the latency (no plan and zero input until then); "
         "'paused' computes the first plan (planner and MPC at t = 0) with time paused, as "
-        "a controller that planned before the run started, and charges every later solve")
+        "a controller that planned before the run started, and charges every later solve "
+        "(also a first plan found only after t = 0)")
 
     @field_validator("latency", mode="before")
     @classmethod

@@ -146,11 +146,14 @@ def read_run(path: Path) -> RunData:
     """Reads a run directory or run.mcap (through :func:`hmpc_cli.rundata.read_run`).
 
     Raises:
-        ValueError: unreadable, or without states or adopted solves.
+        ValueError: unreadable, plans thinned by ``sim.log_plan_stride`` (the deviation
+            from a plan interpolated over the missing nodes would count the interpolation's
+            error as the plant's), or without states or adopted solves.
     """
     from hmpc_cli.rundata import read_run as read_log_arrays
 
     run = read_log_arrays(path)
+    run.full_plans("tube vs reality (the plan at every logged state)")
     if not run.t.size:
         raise ValueError(f"{run.path}: no /sim/state")
     solves = [(s.t, s.t_plan, np.atleast_2d(s.x_plan), s.seg_plan) for s in run.adopted()]

@@ -58,3 +58,21 @@ def test_a_thinned_log_holds_the_full_logs_nodes_it_keeps(tmp_path):
     assert scene[3] < 0.6 * scene[1]  # the 3D scene draws the thinned plan
     assert (tmp_path / "3" / "run.mcap").stat().st_size < 0.7 * (
         tmp_path / "1" / "run.mcap").stat().st_size
+    _readers_that_need_every_node(tmp_path / "1", tmp_path / "3")
+
+
+def _readers_that_need_every_node(full: Path, thin: Path) -> None:
+    """The pass-through and tube-vs-reality read the full log and refuse the thinned one."""
+    import pytest
+
+    from hmpc_cli.passthrough import PassThroughError, pass_through_geometry
+    from hmpc_cli.rundata import read_run
+    from hmpc_cli.tube_reality import read_run as read_reality
+
+    assert read_run(full).plan_stride == 1 and read_run(thin).plan_stride == 3
+    assert pass_through_geometry(full).dt > 0 and read_reality(full).solves
+    with pytest.raises(PassThroughError, match=r"thinned \(sim.log_plan_stride = 3.*"
+                                               r"--set sim.log_plan_stride=1"):
+        pass_through_geometry(thin)
+    with pytest.raises(ValueError, match=r"thinned .*tube vs reality"):
+        read_reality(thin)

@@ -121,11 +121,25 @@ def test_failure_lines_say_how_failed_runs_ended():
             5), row(1, "false", float("nan"), 11, "diverged: |x| 1e+07 > 1e6", 50)]
     assert failure_lines(rows, "disturbance.magnitude") == [
         "- Failed runs: 3 of 4; they end a median 2.00 m from the goal (successful runs: "
-        "0.05 m); with a median 7 solver failures per run (successful runs: 0); reasons: "
-        "`final error … > …` (2), `diverged: |x| … > …` (1).",
+        "0.05 m; 1 failed run without a finite value); with a median 7 solver failures per "
+        "run (successful runs: 0); reasons: `final error … > …` (2), `diverged: |x| … > …` "
+        "(1).",
         "- The same disturbance draw (seed and size) in every rate and policy: succeeds in "
         "all its cells for 0 of 2 draws, fails in all for 1, differs between cells for 1."]
     assert failure_lines(rows[:1], "disturbance.magnitude") == ["- Failed runs: none of 1."]
+    # a draw not yet run in every cell (a campaign under way) is left out; names keep
+    # their digits; no successful run and no finite distance: said, never "nan"
+    late = rows[1:] + [row(2, "false", float("nan"), 1, "guard wall2 at 1E-3 s", 5)]
+    lines = failure_lines(late, "disturbance.magnitude")
+    assert lines[0].startswith("- Failed runs: 4 of 4; they end a median 2.00 m from the "
+                               "goal (2 failed runs without a finite value); with a median ")
+    assert "`guard wall2 at … s` (1)" in lines[0] and "nan" not in "\n".join(lines)
+    assert lines[1].endswith("all its cells for 0 of 1 draws, fails in all for 1, differs "
+                             "between cells for 0.")  # seeds 0 and 2: one cell each
+    lone = failure_lines([row(0, "false", float("nan"), 1, "d", 5)], "disturbance.magnitude")
+    assert lone == ["- Failed runs: 1 of 1; they end a median n/a from the goal (1 failed run "
+                    "without a finite value); with a median 1 solver failures per run; "
+                    "reasons: `d` (1)."]
 
 
 @pytest.mark.slow
@@ -244,6 +258,38 @@ def test_latency_study_sits_beside_its_paused_twin_and_the_reading_counts(tmp_pa
     for name in ("paper", "moved", "lat"):
         assert (tmp_path / "fig" / f"{name}.png").is_file()
         assert (tmp_path / "fig" / f"{name}_table.csv").is_file()
+
+
+def test_latency_study_with_the_first_plan_paused_or_measured_latency_is_said(tmp_path):
+    """sim.latency_first = "paused" still finds the twin and is said; "measured" reads as
+    words; a latency study without a paused twin says so instead of vanishing."""
+    from hmpc_cli.report_robustness import Study, robustness_sections
+
+    truth = {(5, "once", 15.0): 2, (50, "once", 15.0): 20}
+
+    def study(name: str, fixed: str) -> Path:
+        d = tmp_path / name
+        write_study(d / "results.csv", truth, seeds=20)
+        (d / "sweep.toml").write_text(f'name = "{name}"\nseeds = 20\n[set]\n{fixed}\n')
+        return d
+
+    box = '"disturbance.kind" = "box"'
+    dirs = [study("paper", box),
+            study("first", f'{box}\n"sim.latency" = 0.03\n"sim.latency_first" = "paused"'),
+            study("meas", f'{box}\n"sim.latency" = "measured"'),
+            study("alone", '"disturbance.kind" = "box"\n"sim.latency" = 0.02\n'
+                  '"system.circle_radius" = 0.6')]
+    text = "\n".join(robustness_sections([Study(d) for d in dirs], tmp_path / "fig", tmp_path))
+    assert "### 0.03 s latency charged vs time paused" in text
+    assert ("`first` beside the same cells of `paper`. The first plan is computed with time "
+            "paused at t = 0 (`sim.latency_first = \"paused\"`); every later plan is "
+            "charged.") in text
+    assert "### measured latency charged vs time paused" in text
+    assert "reaches the plant its solve time after the state" in text
+    assert "- ±15.0, once, 50 Hz: measured latency is the same as time paused" in text
+    assert ("### 0.02 s latency charged\n\n`alone`: no study on this page has its settings "
+            "with time paused, so its cells are not compared.") in text
+    assert "measured s" not in text
 
 
 def test_report_with_a_missing_authors_directory_is_a_clear_error(tmp_path, run_hmpc):
