@@ -70,6 +70,10 @@ def _identity_table(rp, size: int):
                                       + (", compiled" if build.get("compiled") else "")
                                       + (f": {build['reason']}" if build.get("reason") else "")))
     t.add_row("log", escape(f"{rp.path} ({size} bytes)"))
+    stride = (rp.scenario.get("sim") or {}).get("log_plan_stride", 1)
+    if isinstance(stride, int) and stride > 1:
+        t.add_row("plans", f"thinned: sim.log_plan_stride = {stride} (one node in {stride}, "
+                  "both nodes of each reset and the last)")
     if rp.log.damage:
         t.add_row("file", f"[red]damaged[/]: {escape(rp.log.damage)}; cut short at t = "
                   f"{rp.t_last:.3f} s (the chunks before it are shown)")

@@ -163,7 +163,7 @@ class RunData:
         if self.plan_stride > 1:
             raise ValueError(
                 f"{self.path}: the logged plans are thinned (sim.log_plan_stride = "
-                f"{self.plan_stride}: every {self.plan_stride}th node); {use} needs every "
+                f"{self.plan_stride}: one node in {self.plan_stride}); {use} needs every "
                 "plan node: run the scenario again with --set sim.log_plan_stride=1")
 
     def adopted(self) -> list[SolveData]:
