@@ -455,3 +455,20 @@ def read_log(path: str | Path) -> Log:
         except (*_DAMAGE_ERRORS, OSError):
             pass  # footer present but file damaged: fall back to a linear scan
     return _read_stream(path)
+
+
+def first_message(path: str | Path, topic: str) -> dict | None:
+    """The first JSON message on ``topic`` of a log (e.g. /run/info), or None.
+
+    Reads only as far as that message (through the index of a finished file); None when
+    the file is missing, unreadable or has no such message: for quick looks, not
+    diagnosis (:func:`read_log` says what is wrong).
+    """
+    try:
+        with open(path, "rb") as f:
+            for _, _, msg in make_reader(f).iter_messages(topics=[topic]):
+                data = json.loads(msg.data)
+                return data if isinstance(data, dict) else None
+    except (OSError, ValueError, McapError, *_DAMAGE_ERRORS):
+        return None
+    return None

@@ -219,6 +219,31 @@ def test_run_log_names_the_build(tiny, filled, use, run_hmpc, tmp_path):
     assert build["reason"].startswith("loaded nlp-")
 
 
+def test_sweep_says_when_its_nlps_are_not_compiled(tiny, filled, use, run_hmpc, tmp_path,
+                                                   monkeypatch):
+    """The default mode on an empty cache: the sweep notes the miss once and how to compile;
+    with the compiled entry (a hit) it says nothing."""
+    sets = "\n".join(f'"{k}" = {v}' for k, v in (t.split("=") for t in TINY))
+    sweep = tmp_path / "sweep.toml"
+    sweep.write_text(f'name = "tiny"\nscenario = "{REPO / "scenarios" / "ball.toml"}"\n'
+                     f'seeds = 2\n[set]\n"sim.duration" = 0.2\n{sets}\n')
+    use(filled[0], mode="use")  # inherited by the hmpc process
+    empty = tmp_path / "empty-cache"
+    empty.mkdir(mode=0o700)
+    for folder, noted in ((None, False), (empty, True)):
+        if folder is not None:
+            monkeypatch.setenv("HMPC_CACHE_DIR", str(folder))
+        out = tmp_path / f"out-{noted}"
+        res = run_hmpc(["sweep", str(sweep), "--out", str(out), "--quiet"], REPO)
+        assert res.returncode == 0, res.stderr
+        text = " ".join((res.stdout + res.stderr).split())
+        note = "note: the MPC's NLPs of this sweep are not compiled (build cache miss)"
+        assert (note in text) is noted and text.count(note) <= 1
+        if noted:
+            assert (f"HMPC_BUILD_CACHE=sync hmpc run {out / 'runs'}") in text
+            assert "--set sim.duration=0.1" in text
+
+
 def test_background_compile_after_exit_fills_the_cache(tiny, use):
     import subprocess
     import sys
