@@ -50,6 +50,8 @@ def _identity_table(rp, size: int):
     from rich.markup import escape
     from rich.table import Table
 
+    from hmpc_cli.rundata import plan_stride
+
     info = rp.info
     t = Table(title=escape(f"run {info.get('scenario_name', '?')}"), show_header=False)
     desc = rp.scenario.get("description")
@@ -70,8 +72,8 @@ def _identity_table(rp, size: int):
                                       + (", compiled" if build.get("compiled") else "")
                                       + (f": {build['reason']}" if build.get("reason") else "")))
     t.add_row("log", escape(f"{rp.path} ({size} bytes)"))
-    stride = (rp.scenario.get("sim") or {}).get("log_plan_stride", 1)
-    if isinstance(stride, int) and stride > 1:
+    stride = plan_stride(rp.scenario)
+    if stride > 1:
         t.add_row("plans", f"thinned: sim.log_plan_stride = {stride} (one node in {stride}, "
                   "both nodes of each reset and the last)")
     if rp.log.damage:

@@ -170,16 +170,17 @@ def _wall(rows: list[dict]) -> str:
             "per run on average; divide by the worker processes for the elapsed time)")
 
 
+def _number(value) -> float:
+    """A results.csv cell as a float (nan: empty or not a number)."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
 def _median(rows: list[dict], key: str) -> float:
     """The median of a numeric column over rows (finite cells only; nan if none)."""
-    vals = []
-    for r in rows:
-        try:
-            v = float(r.get(key) or "nan")
-        except ValueError:
-            continue
-        if math.isfinite(v):
-            vals.append(v)
+    vals = [v for v in (_number(r.get(key)) for r in rows) if math.isfinite(v)]
     return statistics.median(vals) if vals else math.nan
 
 
@@ -225,17 +226,10 @@ def _stat(failed: list[dict], good: list[dict], key: str, fmt: str, what: str) -
         return fmt.format(m) if math.isfinite(m) else "n/a"
 
     notes = [f"successful runs: {med(good)}"] if good else []
-    gone = sum(not _finite(r.get(key)) for r in failed)
+    gone = sum(not math.isfinite(_number(r.get(key))) for r in failed)
     if gone:
         notes.append(f"{gone} failed run{'s' * (gone > 1)} without a finite value")
     return f"a median {med(failed)}{what}" + (f" ({'; '.join(notes)})" if notes else "")
-
-
-def _finite(value) -> bool:
-    try:
-        return math.isfinite(float(value))
-    except (TypeError, ValueError):
-        return False
 
 
 def _draw_lines(rows: list[dict], ok: list[bool], size: str) -> list[str]:

@@ -149,11 +149,8 @@ class RunData:
 
     @property
     def plan_stride(self) -> int:
-        """The scenario's ``sim.log_plan_stride``: every k-th plan node was logged (1: all)."""
-        try:
-            return max(1, int((self.scenario.get("sim") or {}).get("log_plan_stride", 1)))
-        except (TypeError, ValueError):
-            return 1
+        """The scenario's ``sim.log_plan_stride`` (:func:`plan_stride`)."""
+        return plan_stride(self.scenario)
 
     def full_plans(self, use: str) -> None:
         """Raises ValueError when the logged plans are thinned: ``use`` needs every node.
@@ -169,6 +166,14 @@ class RunData:
     def adopted(self) -> list[SolveData]:
         """The solves whose plan the loop adopted."""
         return [s for s in self.solves if s.adopted]
+
+
+def plan_stride(scenario: dict) -> int:
+    """A logged scenario's ``sim.log_plan_stride``: one plan node in k was logged (1: all)."""
+    try:
+        return max(1, int((scenario.get("sim") or {}).get("log_plan_stride", 1)))
+    except (TypeError, ValueError):
+        return 1
 
 
 def _vec(value, names) -> np.ndarray:
