@@ -59,6 +59,21 @@ def test_cells_pool_seeds_per_rate_policy_and_magnitude(tmp_path):
     assert [c.x for c in data if c.panel == "10.0" and c.series == "once"] == [5.0, 50.0]
 
 
+def test_cells_follow_the_sweeps_grid_order_not_the_first_row(tmp_path):
+    """A sweep's results.csv is sorted by run id: its series come in the grid's order."""
+    truth = dict(reversed(list(TRUTH.items())))  # the first row is on_contact
+    table = write_study(tmp_path / "sweep" / "results.csv", truth)
+    order = lambda: list(dict.fromkeys(c.series for c in cells(  # noqa: E731
+        table, "mpc.rate_hz", "replanning.policy", "disturbance.magnitude")))
+    assert order() == ["on_contact", "once"]  # no sweep file: order of appearance
+    (table.parent / "sweep.toml").write_text(
+        'name = "s"\nscenario = "x.toml"\n[grid]\n"replanning.policy" = ["once", '
+        '"on_contact"]\n"mpc.rate_hz" = [50, 5]\n')
+    assert order() == ["once", "on_contact"]
+    data = cells(table, "mpc.rate_hz", "replanning.policy", "disturbance.magnitude")
+    assert [c.x for c in data if c.panel == "10.0" and c.series == "once"] == [5.0, 50.0]
+
+
 def test_robustness_figure_is_deterministic_and_tabled(tmp_path):
     table = write_study(tmp_path / "results.csv")
     robustness(table, tmp_path / "a", "png,svg,pdf")

@@ -79,12 +79,32 @@ def _number(text: str, where: str) -> float:
     return v
 
 
-def _order(values: list[str]) -> list[str]:
-    """Numeric order when every value is a number, else order of first appearance."""
+def grid_order(table: Path, axis: str) -> list[str]:
+    """The values of ``axis`` in the order its sweep lists them, as text.
+
+    From ``[grid]`` of the ``sweep.toml`` beside the table; [] without one.
+    """
+    import tomllib
+
+    try:
+        spec = tomllib.loads((Path(table).parent / "sweep.toml").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return []
+    values = spec.get("grid", {}).get(axis) if isinstance(spec.get("grid"), dict) else None
+    return [str(v) for v in values] if isinstance(values, list) else []
+
+
+def _order(values: list[str], listed: Sequence[str] = ()) -> list[str]:
+    """Numeric order when every value is a number, else the sweep's order (``listed``).
+
+    Values the sweep does not list come after, in order of first appearance (a sweep's
+    results.csv is sorted by run id: its first row's values say nothing).
+    """
     try:
         return sorted(values, key=float)
     except ValueError:
-        return values
+        rank = {v: i for i, v in enumerate(listed)}
+        return sorted(values, key=lambda v: rank.get(v, len(rank)))
 
 
 def cells(table: str | Path, x_axis: str, series_axis: str, panel_axis: str) -> list[Cell]:
@@ -105,8 +125,8 @@ def cells(table: str | Path, x_axis: str, series_axis: str, panel_axis: str) -> 
         c[0] += 1
         c[1] += ok
     out = []
-    for p in _order(panels):
-        for s in _order(series):
+    for p in _order(panels, grid_order(path, panel_axis)):
+        for s in _order(series, grid_order(path, series_axis)):
             for x in sorted({k[2] for k in counts if k[0] == p and k[1] == s}):
                 n, k = counts[(p, s, x)]
                 out.append(Cell(p, s, x, n, k))
