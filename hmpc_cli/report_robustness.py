@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from hmpc_cli.figures.common import (
-    FigureInputError, page_link, parse_bool, read_table, resolve_table)
+    FigureInputError, page_link, parse_bool, read_table, resolve_table, sweep_spec)
 
 __all__ = ["Study", "robustness_sections"]
 
@@ -40,16 +40,6 @@ class Study:
     planned_seeds: int | None = None
 
 
-def _spec(directory: Path) -> dict:
-    """The sweep's own file as it ran (``sweep.toml`` in its directory; {} if unreadable)."""
-    import tomllib
-
-    try:
-        return tomllib.loads((directory / "sweep.toml").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return {}
-
-
 def _fixed(spec: dict) -> str:
     """The sweep's ``[set]`` overrides as text ("-" if none)."""
     return ", ".join(f"`{k} = {v}`" for k, v in spec.get("set", {}).items()) or "-"
@@ -57,7 +47,7 @@ def _fixed(spec: dict) -> str:
 
 def fixed_settings(directory: Path) -> str:
     """A sweep output directory's ``[set]`` overrides as text ("-" if none)."""
-    return _fixed(_spec(directory))
+    return _fixed(sweep_spec(directory))
 
 
 def tube_diameters(table: Path, rows: list[dict], size_column: str = SIZE
@@ -269,7 +259,7 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
 
     table = resolve_table(study.directory)
     rows = read_table(table, ["seed"])
-    spec = _spec(study.directory)
+    spec = sweep_spec(study.directory)
     name = str(spec.get("name") or study.directory.name)
     size = _size_column(rows)
     diam = tube_diameters(table, rows, size)

@@ -197,6 +197,16 @@ def save_figure(fig: Any, out_dir: Path, stem: str, formats: Iterable[str],
     return paths
 
 
+def sweep_spec(directory: str | Path) -> dict:
+    """The sweep's own file as it ran (its output directory's ``sweep.toml``; {} if none)."""
+    import tomllib
+
+    try:
+        return tomllib.loads((Path(directory) / "sweep.toml").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+
+
 def resolve_table(path: str | Path) -> Path:
     """The table itself, or results.csv when `path` is a sweep directory holding one."""
     path = Path(path)

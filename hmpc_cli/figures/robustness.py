@@ -23,6 +23,7 @@ from hmpc_cli.figures.common import (
     read_table,
     resolve_table,
     save_figure,
+    sweep_spec,
     write_csv,
 )
 
@@ -84,12 +85,7 @@ def grid_order(table: Path, axis: str) -> list[str]:
 
     From ``[grid]`` of the ``sweep.toml`` beside the table; [] without one.
     """
-    import tomllib
-
-    try:
-        spec = tomllib.loads((Path(table).parent / "sweep.toml").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return []
+    spec = sweep_spec(Path(table).parent)
     values = spec.get("grid", {}).get(axis) if isinstance(spec.get("grid"), dict) else None
     return [str(v) for v in values] if isinstance(values, list) else []
 
