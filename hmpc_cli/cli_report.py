@@ -12,8 +12,9 @@ EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 DEFAULT_AUTHORS = Path("../shared/reference")  # the authors' data beside the repository
 #: the robustness study's sweeps: paper geometry, a moved geometry, solve latency charged
+#: (0.05 s: about one solve here; 0.03 s: the largest the undisturbed ball survives)
 ROBUSTNESS = (Path("sweeps/robustness.toml"), Path("sweeps/robustness_moved.toml"),
-              Path("sweeps/robustness_latency.toml"))
+              Path("sweeps/robustness_latency.toml"), Path("sweeps/robustness_latency_30ms.toml"))
 
 
 def report_command(
@@ -39,7 +40,8 @@ def report_command(
         "out)")] = None,
     robustness: Annotated[list[Path] | None, typer.Option(
         "--robustness", help="robustness study sweep file or output directory, repeatable "
-        "(default: sweeps/robustness.toml, robustness_moved.toml and robustness_latency.toml; "
+        "(default: sweeps/robustness.toml, robustness_moved.toml, robustness_latency.toml and "
+        "robustness_latency_30ms.toml; "
         "'' to leave out)")] = None,
     biped: Annotated[Path | None, typer.Option(
         "--biped", help="biped scenario for Figure 4 ('' to leave out)")

@@ -337,8 +337,15 @@ def _pairs(cells) -> tuple[list, list]:
     return rate_pairs, plan_pairs
 
 
-def reading(results: list[tuple[dict, list]], latency: list[str]) -> list[str]:
-    """What the evidence does and does not support, counted from the intervals."""
+def reading(results: list[tuple[dict, list]],
+            latency: list[tuple[str, list, list[str]]]) -> list[str]:
+    """What the evidence does and does not support, counted from the intervals.
+
+    Args:
+        results: every study's (``sweep.toml``, cells).
+        latency: per latency study compared with its paused twin: (its latency in words,
+            its cells, its comparison lines from :func:`latency_lines`).
+    """
     rate_pairs, plan_pairs = [], []
     for spec, cells in results:
         if charged(spec) is None:
@@ -347,27 +354,35 @@ def reading(results: list[tuple[dict, list]], latency: list[str]) -> list[str]:
             plan_pairs += p
     lines = ["### Reading", ""]
     if rate_pairs:
-        up, down, tie = _tally(rate_pairs)
-        lines.append(f"- Faster MPC (time paused): in {up} of {len(rate_pairs)} series "
-                     "(geometry x disturbance size x policy) the fastest rate succeeds more "
-                     f"often than the slowest with separated intervals, in {down} less often; "
-                     f"{tie} unresolved at this sample size.")
+        lines.append(_rate_reading("Faster MPC (time paused)", rate_pairs, "geometry x "
+                                   "disturbance size x policy"))
     if plan_pairs:
         up, down, tie = _tally(plan_pairs)
         lines.append(f"- Replanning at contacts vs planning once (time paused): better in {up} "
                      f"of {len(plan_pairs)} cells with separated intervals, worse in {down}; "
                      f"{tie} unresolved.")
-    if latency:
-        worse = sum("lower than" in line and "separate)" in line for line in latency)
-        better = sum("higher than" in line and "separate)" in line for line in latency)
-        lines.append(f"- Solve time charged: {worse} of {len(latency)} cells succeed less "
-                     f"often than with time paused, {better} more often (separated intervals); "
-                     "the rest unresolved.")
+    for words, cells, compared in latency:
+        worse = sum("lower than" in line and "separate)" in line for line in compared)
+        better = sum("higher than" in line and "separate)" in line for line in compared)
+        lines.append(f"- Solve time charged ({words}): {worse} of {len(compared)} cells "
+                     f"succeed less often than with time paused, {better} more often "
+                     "(separated intervals); the rest unresolved.")
+        if _pairs(cells)[0]:
+            lines.append(_rate_reading(f"Faster MPC ({words} charged)", _pairs(cells)[0],
+                                       "policy"))
     lines += ["- Not supported by this study: rates outside the tested grid, other systems, "
               "other disturbance shapes than a held uniform box, and real-time behaviour "
               "beyond a fixed charged latency; the tube diameters are bounds from sampled "
               "constants (Step 5), an explanation of the trend, not a certificate of it.", ""]
     return lines
+
+
+def _rate_reading(what: str, pairs: list[tuple], series: str) -> str:
+    """The fastest-vs-slowest-rate tally of ``pairs`` as a reading line."""
+    up, down, tie = _tally(pairs)
+    return (f"- {what}: in {up} of {len(pairs)} series ({series}) the fastest rate succeeds "
+            f"more often than the slowest with separated intervals, in {down} less often; "
+            f"{tie} unresolved at this sample size.")
 
 
 #: the [set] keys in which a latency study and its time-paused twin may differ
@@ -393,6 +408,22 @@ def _first_plan(spec: dict, latency: object) -> str:
             "compute it with time paused).")
 
 
+def _latency_words(spec: dict, latency: object) -> str:
+    """A latency study in a few words: "0.03 s latency, first plan paused"."""
+    first = spec.get("set", {}).get("sim.latency_first") == "paused"
+    return latency_text(latency) + (", first plan paused" if first else "")
+
+
+def _solver_pace(latency: object) -> str:
+    """The rate above which a fixed latency L makes the MPC run at the solver's pace."""
+    try:
+        pace = 1.0 / float(latency)
+    except (TypeError, ValueError, ZeroDivisionError):
+        return ""
+    return (f" There is one solver: a solve that falls due while it still computes waits "
+            f"for it, so rates above 1/L = {pace:.3g} Hz run at {pace:.3g} Hz.")
+
+
 def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list[str]:
     """The page's robustness part: every study, the latency comparison, the reading."""
     lines = ["## Robustness study: success rate vs MPC rate", "",
@@ -409,7 +440,7 @@ def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list
         lines += section
         results.append((spec, cells))
     paused = [r for r in results if charged(r[0]) is None]
-    latency: list[str] = []
+    latency: list[tuple[str, list, list[str]]] = []
     for spec, cells in results:
         lat = charged(spec)
         if lat is None:
@@ -421,8 +452,8 @@ def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list
                       "time paused, so its cells are not compared.", ""]
             continue
         mine = latency_lines(twin[1], cells, lat)
-        latency += mine
+        latency.append((_latency_words(spec, lat), cells, mine))
         lines += [f"### {latency_text(lat)} charged vs time paused", "",
                   f"`{spec.get('name')}` beside the same cells of `{twin[0].get('name')}`. "
-                  + _first_plan(spec, lat), "", *mine, ""]
+                  + _first_plan(spec, lat) + _solver_pace(lat), "", *mine, ""]
     return lines + reading(results, latency)

@@ -217,6 +217,19 @@ def test_report_without_results_is_a_clear_error(tmp_path, run_hmpc):
     assert bad.returncode == 2 and "nope.toml" in bad.stderr
 
 
+def test_every_default_robustness_sweep_is_bundled_and_valid():
+    """`hmpc report --run`'s robustness sweeps exist, plan (every run's scenario is
+    validated) and hold the study's grid: 5 rates x 2 policies (x sizes) x 100 seeds."""
+    from hmpc_cli.cli_report import ROBUSTNESS
+    from hmpc_cli.sweep import plan_sweep
+
+    for rel in ROBUSTNESS:
+        plan = plan_sweep(REPO / rel)
+        sizes = len({r.overrides.get("disturbance.magnitude") for r in plan.runs})
+        assert len(plan.runs) == 5 * 2 * sizes * 100, rel
+        assert {r.seed for r in plan.runs} == set(range(100)), rel
+
+
 def test_first_seeds_is_a_resumable_prefix_of_the_study():
     from hmpc_cli.scenario import ScenarioError
     from hmpc_cli.sweep import first_seeds, plan_sweep
@@ -269,7 +282,12 @@ def test_latency_study_sits_beside_its_paused_twin_and_the_reading_counts(tmp_pa
     # paused series: paper once (up), paper on_contact (overlap), moved once (overlap)
     assert "in 1 of 3 series" in text and "in 0 less often; 2 unresolved" in text
     assert "better in 1 of 2 cells with separated intervals, worse in 0; 1 unresolved" in text
-    assert "Solve time charged: 1 of 2 cells succeed less often" in text
+    assert "Solve time charged (0.05 s latency): 1 of 2 cells succeed less often" in text
+    # the latency study's own rates: 5 Hz 2/20 vs 50 Hz 3/20 overlap; its solver's pace
+    assert ("- Faster MPC (0.05 s latency charged): in 0 of 1 series (policy) the fastest "
+            "rate succeeds more often than the slowest with separated intervals, in 0 less "
+            "often; 1 unresolved") in text
+    assert "rates above 1/L = 20 Hz run at 20 Hz." in text
     for name in ("paper", "moved", "lat"):
         assert (tmp_path / "fig" / f"{name}.png").is_file()
         assert (tmp_path / "fig" / f"{name}_table.csv").is_file()
@@ -305,6 +323,11 @@ def test_latency_study_with_the_first_plan_paused_or_measured_latency_is_said(tm
     assert ("### 0.02 s latency charged\n\n`alone`: no study on this page has its settings "
             "with time paused, so its cells are not compared.") in text
     assert "measured s" not in text
+    # one reading line per latency study, named by its latency and first plan
+    assert "- Solve time charged (0.03 s latency, first plan paused): 0 of 2 cells" in text
+    assert "- Solve time charged (measured latency): 0 of 2 cells" in text
+    assert "rates above 1/L = 33.3 Hz run at 33.3 Hz." in text
+    assert text.count("rates above 1/L") == 1  # not for measured latency, not for `alone`
 
 
 def test_report_with_a_missing_authors_directory_is_a_clear_error(tmp_path, run_hmpc):
