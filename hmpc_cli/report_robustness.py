@@ -338,13 +338,13 @@ def _pairs(cells) -> tuple[list, list]:
 
 
 def reading(results: list[tuple[dict, list]],
-            latency: list[tuple[str, list, list[str]]]) -> list[str]:
+            latency: list[tuple[tuple[str, ...], list, list[str]]]) -> list[str]:
     """What the evidence does and does not support, counted from the intervals.
 
     Args:
         results: every study's (``sweep.toml``, cells).
         latency: per latency study compared with its paused twin: (its latency in words,
-            its cells, its comparison lines from :func:`latency_lines`).
+            :func:`_latency_words`; its cells; its lines from :func:`latency_lines`).
     """
     rate_pairs, plan_pairs = [], []
     for spec, cells in results:
@@ -364,12 +364,12 @@ def reading(results: list[tuple[dict, list]],
     for words, cells, compared in latency:
         worse = sum("lower than" in line and "separate)" in line for line in compared)
         better = sum("higher than" in line and "separate)" in line for line in compared)
-        lines.append(f"- Solve time charged ({words}): {worse} of {len(compared)} cells "
-                     f"succeed less often than with time paused, {better} more often "
+        lines.append(f"- Solve time charged ({', '.join(words)}): {worse} of {len(compared)} "
+                     f"cells succeed less often than with time paused, {better} more often "
                      "(separated intervals); the rest unresolved.")
         if _pairs(cells)[0]:
-            lines.append(_rate_reading(f"Faster MPC ({words} charged)", _pairs(cells)[0],
-                                       "policy"))
+            what = ", ".join([f"{words[0]} charged", *words[1:]])
+            lines.append(_rate_reading(f"Faster MPC ({what})", _pairs(cells)[0], "policy"))
     lines += ["- Not supported by this study: rates outside the tested grid, other systems, "
               "other disturbance shapes than a held uniform box, and real-time behaviour "
               "beyond a fixed charged latency; the tube diameters are bounds from sampled "
@@ -408,10 +408,10 @@ def _first_plan(spec: dict, latency: object) -> str:
             "compute it with time paused).")
 
 
-def _latency_words(spec: dict, latency: object) -> str:
-    """A latency study in a few words: "0.03 s latency, first plan paused"."""
+def _latency_words(spec: dict, latency: object) -> tuple[str, ...]:
+    """A latency study in a few words: ("0.03 s latency", "first plan paused")."""
     first = spec.get("set", {}).get("sim.latency_first") == "paused"
-    return latency_text(latency) + (", first plan paused" if first else "")
+    return (latency_text(latency), *(["first plan paused"] if first else []))
 
 
 def _solver_pace(latency: object) -> str:
@@ -440,7 +440,7 @@ def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list
         lines += section
         results.append((spec, cells))
     paused = [r for r in results if charged(r[0]) is None]
-    latency: list[tuple[str, list, list[str]]] = []
+    latency: list[tuple[tuple[str, ...], list, list[str]]] = []
     for spec, cells in results:
         lat = charged(spec)
         if lat is None:

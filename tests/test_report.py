@@ -327,6 +327,7 @@ def test_latency_study_with_the_first_plan_paused_or_measured_latency_is_said(tm
     assert "- Solve time charged (0.03 s latency, first plan paused): 0 of 2 cells" in text
     assert "- Solve time charged (measured latency): 0 of 2 cells" in text
     assert "rates above 1/L = 33.3 Hz run at 33.3 Hz." in text
+    assert "- Faster MPC (0.03 s latency charged, first plan paused): in 1 of 1 series" in text
     assert text.count("rates above 1/L") == 1  # not for measured latency, not for `alone`
 
 
