@@ -294,15 +294,17 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
             cells, spec)
 
 
-def latency_lines(paused: list, charged: list, latency: object) -> list[str]:
+def twin_pairs(paused: list, charged: list) -> list[tuple]:
+    """(charged cell, the same cell with time paused) for every charged cell with a twin."""
+    by = {(p.panel, p.series, p.x): p for p in paused}
+    return [(c, by[(c.panel, c.series, c.x)]) for c in charged
+            if (c.panel, c.series, c.x) in by]
+
+
+def latency_lines(pairs: list[tuple], latency: object) -> list[str]:
     """The cells run with latency charged beside the same cells with time paused."""
-    out = []
-    for c in charged:
-        twin = [p for p in paused if (p.panel, p.series, p.x) == (c.panel, c.series, c.x)]
-        if twin:
-            out.append(f"- ±{c.panel}, {c.series}, {c.x:g} Hz: " + _compare(
-                c, twin[0], latency_text(latency), "time paused") + ".")
-    return out
+    return [f"- ±{c.panel}, {c.series}, {c.x:g} Hz: "
+            + _compare(c, twin, latency_text(latency), "time paused") + "." for c, twin in pairs]
 
 
 def latency_text(latency: object) -> str:
@@ -338,13 +340,13 @@ def _pairs(cells) -> tuple[list, list]:
 
 
 def reading(results: list[tuple[dict, list]],
-            latency: list[tuple[tuple[str, ...], list, list[str]]]) -> list[str]:
+            latency: list[tuple[tuple[str, ...], list, list[tuple]]]) -> list[str]:
     """What the evidence does and does not support, counted from the intervals.
 
     Args:
         results: every study's (``sweep.toml``, cells).
         latency: per latency study compared with its paused twin: (its latency in words,
-            :func:`_latency_words`; its cells; its lines from :func:`latency_lines`).
+            :func:`_latency_words`; its cells; :func:`twin_pairs` with the paused twin).
     """
     rate_pairs, plan_pairs = [], []
     for spec, cells in results:
@@ -361,15 +363,15 @@ def reading(results: list[tuple[dict, list]],
         lines.append(f"- Replanning at contacts vs planning once (time paused): better in {up} "
                      f"of {len(plan_pairs)} cells with separated intervals, worse in {down}; "
                      f"{tie} unresolved.")
-    for words, cells, compared in latency:
-        worse = sum("lower than" in line and "separate)" in line for line in compared)
-        better = sum("higher than" in line and "separate)" in line for line in compared)
-        lines.append(f"- Solve time charged ({', '.join(words)}): {worse} of {len(compared)} "
+    for words, cells, twins in latency:
+        better, worse, _ = _tally(twins)
+        lines.append(f"- Solve time charged ({', '.join(words)}): {worse} of {len(twins)} "
                      f"cells succeed less often than with time paused, {better} more often "
                      "(separated intervals); the rest unresolved.")
-        if _pairs(cells)[0]:
+        rates = _pairs(cells)[0]
+        if rates:
             what = ", ".join([f"{words[0]} charged", *words[1:]])
-            lines.append(_rate_reading(f"Faster MPC ({what})", _pairs(cells)[0], "policy"))
+            lines.append(_rate_reading(f"Faster MPC ({what})", rates, "policy"))
     lines += ["- Not supported by this study: rates outside the tested grid, other systems, "
               "other disturbance shapes than a held uniform box, and real-time behaviour "
               "beyond a fixed charged latency; the tube diameters are bounds from sampled "
@@ -440,7 +442,7 @@ def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list
         lines += section
         results.append((spec, cells))
     paused = [r for r in results if charged(r[0]) is None]
-    latency: list[tuple[tuple[str, ...], list, list[str]]] = []
+    latency: list[tuple[tuple[str, ...], list, list[tuple]]] = []
     for spec, cells in results:
         lat = charged(spec)
         if lat is None:
@@ -451,8 +453,9 @@ def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list
                       f"`{spec.get('name')}`: no study on this page has its settings with "
                       "time paused, so its cells are not compared.", ""]
             continue
-        mine = latency_lines(twin[1], cells, lat)
-        latency.append((_latency_words(spec, lat), cells, mine))
+        pairs = twin_pairs(twin[1], cells)
+        mine = latency_lines(pairs, lat)
+        latency.append((_latency_words(spec, lat), cells, pairs))
         lines += [f"### {latency_text(lat)} charged vs time paused", "",
                   f"`{spec.get('name')}` beside the same cells of `{twin[0].get('name')}`. "
                   + _first_plan(spec, lat) + _solver_pace(lat), "", *mine, ""]
