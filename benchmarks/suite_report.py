@@ -210,7 +210,10 @@ def profile_lines(run, label: str, markdown: bool = False) -> list[str]:
         if not splits:
             continue
         prof = profile(splits, stats, run.packing)
-        if not prof:  # every solve fell back to IPOPT
+        if not prof:  # said, not left out: the fastest back-end may be one of these
+            note = (f"{label}, {nlp} NLP: every one of its {len(splits)} solves fell back to "
+                    "IPOPT (no profile of its own)")
+            out += ["", f"**{note}**"] if markdown else [f"\nwhere the time goes: {note}"]
             continue
         head = f"{label}, {nlp} NLP ({len(splits)} solves; medians and means per solve, ms)"
         if markdown:

@@ -126,3 +126,17 @@ def test_missing_do_mpc_is_reported_not_raised(monkeypatch, capsys):
     out = capsys.readouterr().out.strip().splitlines()
     assert len(out) == 1 and "do-mpc not installed" in out[0] and ".[bench]" in out[0]
     assert run.notes == ["do-mpc not installed (pip install -e '.[bench]'): its row is left out"]
+
+
+def test_every_hmpc_back_end_gets_a_profile_or_says_why_not(measured):
+    """The report profiles its fastest back-end, which the machine's load picks: each of
+    them must have a profile, or a line saying its solves all fell back to IPOPT."""
+    _, run = measured
+    for label in suite_report.HMPC:
+        text = "\n".join(suite_report.profile_lines(run, label))
+        assert f"where the time goes: {label}" in text, label
+        for nlp in ("final", "switching"):
+            stats = run.stats.get((label, nlp), [])
+            if stats and all(s.fallback for s in stats):
+                assert (f"{label}, {nlp} NLP: every one of its {len(stats)} solves fell back "
+                        "to IPOPT") in text
