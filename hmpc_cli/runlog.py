@@ -1,10 +1,10 @@
 """The run's books and its log topics: what a closed-loop run writes, in one place.
 
 :class:`RunLog` wraps an open MCAP writer (:class:`hmpc_cli.recorder.Recorder` or
-anything with ``add_topic``/``add_metadata``/``write``), which the caller opens and
-closes; it writes the typed topics of :mod:`hmpc_cli.logtypes` (their JSON schemas
-generated from the types, with the system's names and the plug-ins' detail types) and
-keeps the :class:`RunResult` counts (contacts, solves, failures, planner calls) that
+anything with ``add_topic``/``add_metadata``/``write``/``write_many``), which the caller
+opens and closes; it writes the typed topics of :mod:`hmpc_cli.logtypes` (their JSON
+schemas generated from the types, with the system's names and the plug-ins' detail types)
+and keeps the :class:`RunResult` counts (contacts, solves, failures, planner calls) that
 become ``summary.json``.
 """
 
@@ -93,8 +93,9 @@ class Provenance:
 #: :class:`StateSample`'s fields: its JSON object's keys, in order (a dict of them encodes
 #: as the dataclass does, without a frozen dataclass per sample)
 _STATE_KEYS = tuple(f.name for f in dataclasses.fields(StateSample))
-#: /sim/state samples held before they are written (see :meth:`RunLog.state`)
-SAMPLES_HELD = 64
+#: messages (/sim/state samples, MPC solves, disturbances) held before they are written
+#: (see :meth:`RunLog.flush_held`)
+HELD = 64
 
 
 class RunLog:
@@ -119,7 +120,8 @@ class RunLog:
         self._model: HybridSystem | None = None
         self._body = None  # x -> the plant's body points (None: no body logged)
         self.scene = None  # 3D scene writer (hmpc_cli.scene.SceneWriter), set by the runner
-        self._samples: list[tuple] = []  # /sim/state samples not yet written (in order)
+        #: messages not yet written, in order: (None, /sim/state sample) or (writer, args)
+        self._held: list[tuple] = []
 
     def set_info(self, name: str, seed: int, scenario: dict, per_state: int,
                  margins: dict | None = None, kinds: tuple[str, str] = ("", ""),
@@ -147,9 +149,15 @@ class RunLog:
 
     def _write(self, topic: str, t: float, payload) -> None:
         if self.rec is not None:
-            if self._samples:
-                self.flush_samples()
+            if self._held:
+                self.flush_held()
             self.rec.write(topic, t, payload)
+
+    def _hold(self, writer, args: tuple) -> None:
+        """Holds one message: ``writer(*args)`` writes it (None: a /sim/state sample)."""
+        self._held.append((writer, args))
+        if len(self._held) >= HELD:
+            self.flush_held()
 
     def open(self, model: HybridSystem, plant: HybridSystem | None = None) -> None:
         """Registers the topics and writes /run/info (seed, versions, scenario, names).
@@ -201,35 +209,50 @@ class RunLog:
         key = np.asarray(w, dtype=float).tobytes()
         if key != self._last_w:
             if self.rec is not None:
-                self._write("/disturbance", t, WRec(t, named(self._model.disturbance_names, w)))
+                self._hold(self._write_w, (t, np.array(w, dtype=float)))
             self._last_w = key
+
+    def _write_w(self, t: float, w: np.ndarray) -> None:
+        self.rec.write("/disturbance", t, WRec(t, named(self._model.disturbance_names, w)))
 
     def state(self, t: float, x: np.ndarray, mode: int, u: np.ndarray, x_ref: np.ndarray,
               w: np.ndarray) -> None:
-        """One /sim/state sample (with its scene body).
-
-        Held (copied) until the next message of another topic, :data:`SAMPLES_HELD`
-        samples, or :meth:`flush_samples`, then encoded in one loop, in order: the file's
-        message order is unchanged, and the encoding costs a run about half as much as
-        spread between the solves (measured).
-        """
+        """One /sim/state sample (with its scene body), held (copied): see :meth:`flush_held`."""
         if self.rec is None:
             return
-        self._samples.append((t, int(mode), *(None if v is None else np.array(v, dtype=float)
-                                               for v in (x, u, x_ref, w))))
-        if len(self._samples) >= SAMPLES_HELD:
-            self.flush_samples()
+        self._hold(None, (t, int(mode), *(None if v is None else np.array(v, dtype=float)
+                                          for v in (x, u, x_ref, w))))
 
-    def flush_samples(self) -> None:
-        """Writes the held /sim/state samples and their scene bodies.
+    def flush_held(self) -> None:
+        """Writes the held messages, in order (the file's message order is unchanged).
+
+        Messages are held until the next message of a topic that is not held,
+        :data:`HELD` of them, or this call: encoded together, they cost a run about half
+        as much as spread between the solves (measured). Consecutive /sim/state samples
+        are written by :meth:`_write_samples` in one batch.
+        """
+        held, self._held = self._held, []
+        if self.rec is None:
+            return
+        samples: list[tuple] = []
+        for writer, args in held:
+            if writer is None:
+                samples.append(args)
+                continue
+            if samples:
+                self._write_samples(samples)
+                samples = []
+            writer(*args)
+        if samples:
+            self._write_samples(samples)
+
+    def _write_samples(self, samples: list[tuple]) -> None:
+        """Writes /sim/state samples and their scene bodies.
 
         Column by column: each vector column becomes its dicts in one ``tolist`` and one
         compiled dict display per row, and the body points of all samples come from one
         batched drawing call (:meth:`~hmpc_cli.drawing.Drawing.bodies`).
         """
-        samples, self._samples = self._samples, []
-        if self.rec is None or not samples:
-            return
         m = self._model
         ts, modes, xs, us, refs, ws = zip(*samples, strict=True)
         mode_names = [m.modes[k].name for k in modes]
@@ -238,10 +261,8 @@ class RunLog:
             (m.disturbance_names, ws))]
         bodies = self._body.many(np.stack(xs)) if self._body is not None else \
             [{}] * len(samples)
-        write, sample = self.rec.write, record_maker(_STATE_KEYS)  # StateSample's JSON
-        for t, k, name, x, u, ref, w, body in zip(ts, modes, mode_names, *cols, bodies,
-                                                strict=True):
-            write("/sim/state", t, sample(t, k, name, x, u, ref, w, body))
+        sample = record_maker(_STATE_KEYS)  # StateSample's JSON
+        self.rec.write_many("/sim/state", ts, map(sample, ts, modes, mode_names, *cols, bodies))
         if self.scene is not None:
             self.scene.states(ts, np.stack(xs))
 
@@ -295,13 +316,23 @@ class RunLog:
             r.max_slack = max(r.max_slack, st.slack)
         if self.rec is None:
             return
-        if self.plan_stride > 1:
-            plan = dataclasses.replace(plan, traj=thinned(plan.traj, self.plan_stride))
-        self._write("/mpc/solve", t, MpcSolve(
+        traj = plan.traj  # a snapshot: the solve is written at the next flush_held
+        traj = thinned(traj, self.plan_stride) if self.plan_stride > 1 else dataclasses.replace(
+            traj, t=np.array(traj.t, dtype=float), x=np.array(traj.x, dtype=float),
+            u=np.array(traj.u, dtype=float), mode=np.array(traj.mode), seg=np.array(traj.seg))
+        self._hold(self._write_solve, (t, dataclasses.replace(plan, traj=traj, extra={}),
+                                       reason, model, latency,
+                                       _detail(self.details.get("mpc"), plan.extra)))
+
+    def _write_solve(self, t: float, plan: Plan, reason: str, model: HybridSystem,
+                     latency: float, detail) -> None:
+        """Writes one /mpc/solve message and its scene plan (``detail``: the MPC's)."""
+        st = plan.stats
+        self.rec.write("/mpc/solve", t, MpcSolve(
             t, reason, st.status, bool(st.success), int(st.iterations), float(st.wall_time),
             float(st.cost), float(st.max_violation), float(st.slack), bool(plan.adopt),
-            _schedule(plan.schedule, model), plan_nodes(plan.traj, t, model),
-            _detail(self.details.get("mpc"), plan.extra), float(latency)))
+            _schedule(plan.schedule, model), plan_nodes(plan.traj, t, model), detail,
+            float(latency)))
         if self.scene is not None:
             self.scene.plan(t, plan)
 

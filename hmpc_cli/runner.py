@@ -104,11 +104,12 @@ def execute_run(loop: ClosedLoop, toml_text: str, out: Path,
             raise
         finally:
             try:
-                loop.log.flush_samples()
+                loop.log.flush_held()
             finally:
-                rec.close()
-            res = result if result is not None else loop.res
-            _write_summary(out, res)
+                try:
+                    rec.close()
+                finally:  # the summary also when the last writes fail (e.g. a full disk)
+                    _write_summary(out, result if result is not None else loop.res)
     return result
 
 

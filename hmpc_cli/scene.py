@@ -199,14 +199,18 @@ class SceneWriter:
             ).SerializeToString()
         return spheres_wire(self._f["spheres"], centers, rest)
 
-    def _entity(self, t: float, entity_id: str, lines: list[bytes] = (), spheres: bytes = b"",
+    def _entity(self, t: float, entity_id: str, lines: list[bytes] = (), fields: bytes = b"",
                 frame_locked: bool = False) -> bytes:
-        """SceneUpdate ``entities`` field bytes: an entity at sim time `t` [s], lifetime 0."""
+        """SceneUpdate ``entities`` field bytes: an entity at sim time `t` [s], lifetime 0.
+
+        ``lines``: LinePrimitive bytes (each framed as a ``lines`` field); ``fields``: more
+        SceneEntity field bytes, already framed (e.g. :meth:`_spheres`).
+        """
         f = self._f
         body = (_field(f["timestamp"], _timestamp(t)) + _field(f["frame_id"], FRAME.encode())
                 + _field(f["id"], entity_id.encode())
                 + (_varint(f["frame_locked"] << 3) + b"\x01" if frame_locked else b"")
-                + b"".join(_field(f["lines"], line) for line in lines) + spheres)
+                + b"".join(_field(f["lines"], line) for line in lines) + fields)
         return _field(f["entities"], body)
 
     def _write(self, topic: str, t: float, entities: list[bytes]) -> None:
@@ -239,16 +243,31 @@ class SceneWriter:
                 self._next = t + self.period
         if not due:
             return
-        d = self.drawing
-        bodies = to_world(d.bodies(np.asarray(xs)[due]).transpose(0, 2, 1))  # (K', P, 3)
-        link_idx = [[d.index(a), d.index(b)] for line in d.links
-                    for a, b in zip(line[:-1], line[1:], strict=True)]
-        balls = [(d.index(b.point), b) for b in d.balls]
-        for k, pts in zip(due, bodies, strict=True):
-            lines = [self._line("LINE_LIST", pts[np.ravel(link_idx)], d.link_color,
-                                d.link_thickness)] if link_idx else []
-            spheres = b"".join(self._spheres(pts[i], b.radius, b.color) for i, b in balls)
-            self._write(BODY, ts[k], [self._entity(ts[k], "body", lines, spheres)])
+        bodies = to_world(self.drawing.bodies(np.asarray(xs)[due]).transpose(0, 2, 1))
+        for k, body in zip(due, self._bodies_wire(bodies), strict=True):
+            self._write(BODY, ts[k], [self._entity(ts[k], "body", fields=body)])
+
+    def _bodies_wire(self, bodies: np.ndarray) -> list[bytes]:
+        """Per body (K, P, 3) world points: its entity's ``lines`` and ``spheres`` bytes.
+
+        All K bodies in one encoding call per part (the records have fixed sizes), then
+        cut per body: what ``_line`` and ``_spheres`` per body give, byte for byte.
+        """
+        d, k = self.drawing, len(bodies)
+        parts = []  # per part: (its K bytes, one body's share of them, its field prefix)
+        link_idx = [i for line in d.links for a, b in zip(line[:-1], line[1:], strict=True)
+                    for i in (d.index(a), d.index(b))]
+        if link_idx:
+            head = self._line("LINE_LIST", np.empty((0, 3)), d.link_color, d.link_thickness)
+            pts = points_wire(self._f["points"], bodies[:, link_idx])
+            share = len(pts) // k
+            parts.append((pts, share, _varint((self._f["lines"] << 3) | 2)
+                          + _varint(len(head) + share) + head))
+        for ball in d.balls:
+            spheres = self._spheres(bodies[:, d.index(ball.point)], ball.radius, ball.color)
+            parts.append((spheres, len(spheres) // k, b""))
+        return [b"".join(prefix + data[j * share:(j + 1) * share]
+                         for data, share, prefix in parts) for j in range(k)]
 
     def _traces(self, xs: np.ndarray, colors: tuple[Rgba, ...], thickness: float) -> list:
         """One line strip per trace point along states xs (K, n)."""
@@ -265,7 +284,7 @@ class SceneWriter:
         entities = [self._entity(t, "plan", self._traces(xs, colors, 0.015))]
         if self.tube_radius is not None:
             centers = to_world(self.drawing.traced(xs[_tube_nodes(len(xs))])[0])
-            entities.append(self._entity(t, "tube", spheres=self._spheres(
+            entities.append(self._entity(t, "tube", fields=self._spheres(
                 centers, self.tube_radius, TUBE)))
         self._write(PLAN, t, entities)
 

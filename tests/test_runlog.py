@@ -1,0 +1,81 @@
+"""The run log's held messages: written later, but in order and as they were logged."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from conftest import SCENARIOS
+from hmpc_cli import runlog
+from hmpc_cli.mpc.fixed_mode import ChainDetail
+from hmpc_cli.messages import ModeSchedule, Plan, SolveStats, Trajectory
+from hmpc_cli.recorder import Recorder, read_log
+from hmpc_cli.registry import build_system
+from hmpc_cli.replay import _ignored
+from hmpc_cli.runlog import RunLog
+from hmpc_cli.runner import execute_run, prepare
+from hmpc_cli.scenario import load_scenario
+from hmpc_cli.systems.ball import BallParams
+
+
+def _untimed(value):
+    """A JSON value without its measured times and command line (what verify skips)."""
+    if isinstance(value, dict):
+        return {k: _untimed(v) for k, v in value.items() if not _ignored(k)}
+    return [_untimed(v) for v in value] if isinstance(value, list) else value
+
+
+def _messages(path):
+    """Every message of a log, JSON (untimed) and protobuf: (topic, log time [ns], data)."""
+    log = read_log(path)
+    return ([(m.topic, m.log_time_ns, _untimed(m.data)) for m in log.messages],
+            [(m.topic, m.log_time_ns, m.data) for m in log.raw])
+
+
+def test_held_messages_are_the_messages_written_at_once(tmp_path, monkeypatch):
+    """A disturbed ball run (states, disturbances, solves, contacts, the scene) logs the
+    same messages in the same order whether each is written at once or held."""
+    sc, text = load_scenario(SCENARIOS / "ball_disturbed.toml", ["sim.duration=0.8"])
+    logs = {}
+    for held in (1, runlog.HELD):
+        monkeypatch.setattr(runlog, "HELD", held)
+        execute_run(prepare(sc), text, tmp_path / str(held))
+        logs[held] = _messages(tmp_path / str(held) / "run.mcap")
+    at_once, held = logs[1], logs[runlog.HELD]
+    topics = {m[0] for m in at_once[0]}
+    assert {"/sim/state", "/disturbance", "/mpc/solve", "/sim/event"} <= topics
+    assert len(at_once[0]) > runlog.HELD
+    assert held == at_once
+
+
+def _plan(model) -> Plan:
+    n = 5
+    traj = Trajectory(t=np.linspace(0.0, 0.4, n), x=np.ones((n, 4)), u=np.zeros((n, 2)),
+                      mode=np.zeros(n, dtype=int), seg=np.zeros(n, dtype=int))
+    return Plan(0.3, traj, SolveStats("Solve_Succeeded", True, 2, 0.01, 1.5, 0.0),
+                ModeSchedule((0,), (), (), 0.0), {"shifted": 1, "counts": [5]})
+
+
+def test_a_held_solve_is_logged_as_it_was_when_solved(tmp_path):
+    """The plan's arrays (and extra) may change after solve(): the log keeps the solve."""
+    model = build_system(BallParams())
+    rec = Recorder(tmp_path / "run.mcap")
+    log = RunLog(rec)
+    log.set_info("ball", 0, {}, 1, kinds=("none", "fixed_mode"),
+                 details={"mpc": ChainDetail})
+    log.open(model)
+    plan = _plan(model)
+    log.solve(0.3, plan, "test", model)
+    assert log._held  # not written yet
+    plan.traj.x[:] = -7.0
+    plan.traj.t[:] = 9.0
+    plan.extra["shifted"] = 99
+    plan.extra["counts"].append(3)  # a shallow copy would not keep this
+    log.flush_held()
+    rec.close()
+    solve = read_log(tmp_path / "run.mcap").topic("/mpc/solve")[0].data
+    assert [node["px"] for node in solve["plan"]] == [1.0] * 5
+    assert solve["plan"][-1]["t"] == 0.3 + 0.4
+    assert solve["detail"] == {"shifted": 1, "counts": [5]}
+    assert dataclasses.asdict(_plan(model).stats)["iterations"] == solve["iterations"]
