@@ -227,8 +227,8 @@ class RunLog:
         """Writes the held messages, in order (the file's message order is unchanged).
 
         Messages are held until the next message of a topic that is not held,
-        :data:`HELD` of them, or this call: encoded together, they cost a run about half
-        as much as spread between the solves (measured). Consecutive /sim/state samples
+        :data:`HELD` of them, or this call: encoded together, with warm caches, a ball
+        run's logging takes 28 instead of 35 ms (measured). Consecutive /sim/state samples
         are written by :meth:`_write_samples` in one batch.
         """
         held, self._held = self._held, []
