@@ -198,33 +198,28 @@ class Recorder:
         if self.mirror is not None:
             self.mirror.add_topic(topic, "protobuf", name, "protobuf", key[1])
 
-    def write(self, topic: str, t: float, payload: dict) -> None:
-        """Writes one JSON message on `topic` at simulated time `t` (s, >= 0)."""
+    def _check_json_topic(self, topic: str) -> None:
+        """Raises unless the recorder is open and `topic` a registered JSON topic."""
         self._check_open()
         if topic not in self._channels:
             known = sorted(self._channels)
             raise KeyError(f"unknown topic {topic!r}; call add_topic() first (registered: {known})")
         if topic in self._protobuf:
             raise TypeError(f"topic {topic!r} holds protobuf messages: use write_protobuf()")
+
+    def write(self, topic: str, t: float, payload: dict) -> None:
+        """Writes one JSON message on `topic` at simulated time `t` (s, >= 0)."""
+        self._check_json_topic(topic)
         self._add(topic, _to_ns(t), to_json_bytes(payload))
 
     def write_many(self, topic: str, ts: Any, payloads: Any) -> None:
         """Writes JSON messages on `topic` at simulated times `ts` (s, >= 0), in order.
 
-        The same messages as a :meth:`write` per pair, its checks made once.
+        The same messages as a :meth:`write` per pair, the topic checked once.
         """
-        self._check_open()
-        if topic not in self._channels or topic in self._protobuf:
-            self.write(topic, 0.0, {})  # raises the error write() raises
-        import orjson
-
-        option = orjson.OPT_SERIALIZE_NUMPY
+        self._check_json_topic(topic)
         for t, payload in zip(ts, payloads, strict=True):
-            try:
-                data = orjson.dumps(payload, option=option)
-            except TypeError:
-                data = to_json_bytes(payload)
-            self._add(topic, _to_ns(t), data)
+            self._add(topic, _to_ns(t), to_json_bytes(payload))
 
     def write_protobuf(self, topic: str, t: float, message: Any) -> None:
         """Writes one protobuf message on `topic` at simulated time `t` (s, >= 0)."""
