@@ -167,6 +167,10 @@ class SceneWriter:
                 "entities"].number}
         self._templates: dict[tuple, bytes] = {}  # constant parts of primitives, by look
         self.rec, self.drawing = recorder, drawing
+        #: the body's columns of its link segments' ends, in order (a LINE_LIST's points)
+        self._link_idx = [i for line in drawing.links
+                          for a, b in zip(line[:-1], line[1:], strict=True)
+                          for i in (drawing.index(a), drawing.index(b))]
         self.tube_radius = tube_radius if tube_radius and tube_radius > 0 else None
         self.period = 1.0 / max_rate_hz
         self._next = 0.0
@@ -255,8 +259,7 @@ class SceneWriter:
         """
         d, k = self.drawing, len(bodies)
         parts = []  # per part: (its K bytes, one body's share of them, its field prefix)
-        link_idx = [i for line in d.links for a, b in zip(line[:-1], line[1:], strict=True)
-                    for i in (d.index(a), d.index(b))]
+        link_idx = self._link_idx
         if link_idx:
             head = self._line("LINE_LIST", np.empty((0, 3)), d.link_color, d.link_thickness)
             pts = points_wire(self._f["points"], bodies[:, link_idx])
