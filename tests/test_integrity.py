@@ -315,7 +315,7 @@ def test_dask_silent_peer_fails_fast_with_a_hint():
         start = time.monotonic()
         with pytest.raises(ScenarioError) as err:
             connect_dask(address, 2.0)
-    assert time.monotonic() - start < 10
+    assert time.monotonic() - start < 60  # a hang guard (the deadline is 2 s), not a timing
     (line,) = err.value.lines
     assert line.startswith(f"--dask {address}: no Dask scheduler answered within 2 s")
     assert "8787" in line and "8786" in line
@@ -340,15 +340,13 @@ def test_dask_http_port_exits_2_quickly(tmp_path):
     thread.start()
     address = f"tcp://127.0.0.1:{server.server_address[1]}"
     try:
-        start = time.monotonic()
         proc = subprocess.run([*hmpc_command(), "sweep", "tiny.toml", "--dask", address,
                                "--dask-timeout", "3", "--out", "out"], capture_output=True,
                               text=True, timeout=60, env=cli_env(), cwd=tmp_path)
-        elapsed = time.monotonic() - start
     finally:
         server.shutdown()
         server.server_close()
-    assert proc.returncode == 2 and elapsed < 20, (elapsed, proc.stderr)
+    assert proc.returncode == 2, proc.stderr  # a hang fails through the timeout above
     assert f"error: --dask {address}: no Dask scheduler answered within 3 s" in proc.stderr
     assert "dashboard port 8787" in proc.stderr and "Traceback" not in proc.stderr
     assert not (tmp_path / "out").exists()
