@@ -25,11 +25,11 @@ import time
 
 import numpy as np
 
-from hmpc_cli.mpc.nlp import FixedModeNLP
+from hmpc_cli.mpc.chain.nlp import FixedModeNLP
 from hmpc_cli.mpc.solver import SolverSession, plugin_options
-from hmpc_cli.registry import build_system
-from hmpc_cli.runner import prepare
-from hmpc_cli.scenario import load_scenario
+from hmpc_cli.core.registry import build_system
+from hmpc_cli.run.runner import prepare
+from hmpc_cli.run.scenario import load_scenario
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 SCENARIO = os.path.join(HERE, "..", "scenarios", "ball_disturbed.toml")

@@ -16,10 +16,11 @@ import time
 import numpy as np
 
 from hmpc_cli.planner.cem import CrossEntropyPlanner
-from hmpc_cli.recorder import Recorder, read_log
-from hmpc_cli.registry import build_system
-from hmpc_cli.runner import prepare
-from hmpc_cli.scenario import load_scenario
+from hmpc_cli.log.recorder import Recorder
+from hmpc_cli.log.reader import read_log
+from hmpc_cli.core.registry import build_system
+from hmpc_cli.run.runner import prepare
+from hmpc_cli.run.scenario import load_scenario
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 SCENARIO = os.path.join(HERE, "..", "scenarios", "ball.toml")

@@ -19,9 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from hmpc_cli.recorder import Recorder, read_log
-from hmpc_cli.runner import prepare
-from hmpc_cli.scenario import load_scenario
+from hmpc_cli.log.recorder import Recorder
+from hmpc_cli.log.reader import read_log
+from hmpc_cli.run.runner import prepare
+from hmpc_cli.run.scenario import load_scenario
 
 SCENARIO = Path(__file__).resolve().parent.parent / "scenarios" / "biped_stairs.toml"
 TARGET = 0.100

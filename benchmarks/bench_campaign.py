@@ -15,7 +15,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from hmpc_cli.sweep import execute_sweep, plan_sweep
+from hmpc_cli.sweep.execute import execute_sweep
+from hmpc_cli.sweep.plan import plan_sweep
 
 HERE = Path(__file__).resolve().parent
 TARGET_S = 20.0

@@ -29,11 +29,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from hmpc_cli import scene
-from hmpc_cli.recorder import Recorder
-from hmpc_cli.runlog import RunLog
-from hmpc_cli.runner import execute_run, prepare
-from hmpc_cli.scenario import load_scenario
+from hmpc_cli.log import scene
+from hmpc_cli.log.recorder import Recorder
+from hmpc_cli.log.runlog import RunLog
+from hmpc_cli.run.runner import execute_run, prepare
+from hmpc_cli.run.scenario import load_scenario
 
 #: the calls that log: RunLog's topics, the recorder's open (header, attachment) and
 #: close (the queued messages, the last chunk, summary and footer), the scene's set-up

@@ -42,7 +42,7 @@ def _run(scenario: str, cache: Path, mode: str, out: Path) -> tuple[float, dict]
 
 
 def _build_info(run_dir: Path) -> dict:
-    from hmpc_cli.rundata import read_run
+    from hmpc_cli.log.rundata import read_run
 
     return read_run(run_dir / "run.mcap").info.get("build") or {}
 
@@ -50,9 +50,9 @@ def _build_info(run_dir: Path) -> dict:
 def split(scenario: str, cache: Path) -> dict[str, float]:
     """Build-time split [s] in this process: SX (transcription, nlpsol) and warm load."""
     from hmpc_cli.mpc import cache as nlp_cache
-    from hmpc_cli.mpc.nlp import FixedModeNLP
-    from hmpc_cli.registry import build_system
-    from hmpc_cli.scenario import load_scenario
+    from hmpc_cli.mpc.chain.nlp import FixedModeNLP
+    from hmpc_cli.core.registry import build_system
+    from hmpc_cli.run.scenario import load_scenario
 
     sc, _ = load_scenario(scenario)
     system = build_system(sc.system)
@@ -90,11 +90,11 @@ def solve_split(scenario: str, cache: Path, passes: int = 5) -> dict[str, tuple]
     """
     import numpy as np
 
-    from hmpc_cli.loop import build
-    from hmpc_cli.mpc.nlp import FixedModeNLPs
-    from hmpc_cli.registry import build_system
-    from hmpc_cli.runlog import RunLog
-    from hmpc_cli.scenario import load_scenario
+    from hmpc_cli.run.loop import build
+    from hmpc_cli.mpc.chain.nlp import FixedModeNLPs
+    from hmpc_cli.core.registry import build_system
+    from hmpc_cli.log.runlog import RunLog
+    from hmpc_cli.run.scenario import load_scenario
 
     os.environ["HMPC_CACHE_DIR"] = str(cache)
     sc, _ = load_scenario(scenario)

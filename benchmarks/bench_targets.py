@@ -74,9 +74,9 @@ def phases() -> dict[str, float]:
     import casadi as ca
 
     from hmpc_cli import cli  # noqa: F401  (what the command imports first)
-    from hmpc_cli.mpc import nlp as nlp_mod
-    from hmpc_cli.runner import execute_run, prepare
-    from hmpc_cli.scenario import load_scenario
+    from hmpc_cli.mpc.chain import nlp as nlp_mod
+    from hmpc_cli.run.runner import execute_run, prepare
+    from hmpc_cli.run.scenario import load_scenario
     out = {"imports": time.perf_counter() - t0}
     spent = {"nlpsol": 0.0, "transcription": 0.0}
 
@@ -147,8 +147,8 @@ def biped_calls() -> tuple[list[dict], float, dict]:
     """
     from hmpc_cli.mpc import solver as solver_mod
     from hmpc_cli.planner.footholds import FootholdPlanner
-    from hmpc_cli.runner import prepare
-    from hmpc_cli.scenario import load_scenario
+    from hmpc_cli.run.runner import prepare
+    from hmpc_cli.run.scenario import load_scenario
 
     calls: list[dict] = []
     state = {"planning": False}
@@ -229,10 +229,10 @@ def biped_section() -> tuple[list[str], dict]:
 # ------------------------------------------------------------------ ball CEM
 def cem_section(plans: int = 20) -> tuple[list[str], dict]:
     """The ball's CEM plan from x0 (target <= 5 ms with the reference's parameters)."""
-    from hmpc_cli.planner import rollout_c
+    from hmpc_cli.sim import rollout as rollout_c
     from hmpc_cli.planner.cem import CrossEntropyPlanner
-    from hmpc_cli.registry import build_system
-    from hmpc_cli.scenario import load_scenario
+    from hmpc_cli.core.registry import build_system
+    from hmpc_cli.run.scenario import load_scenario
 
     sc, _ = load_scenario(str(ROOT / BALL))
     system, x0 = build_system(sc.system), np.asarray(sc.system.x0, dtype=float)

@@ -44,11 +44,11 @@ import numpy as np
 import bench_backends as bb
 import suite_peers as peers
 import suite_report as report
-from hmpc_cli.messages import SolveStats
-from hmpc_cli.mpc.nlp import FixedModeNLP
-from hmpc_cli.registry import build_system
-from hmpc_cli.runner import prepare
-from hmpc_cli.scenario import load_scenario
+from hmpc_cli.core.messages import SolveStats
+from hmpc_cli.mpc.chain.nlp import FixedModeNLP
+from hmpc_cli.core.registry import build_system
+from hmpc_cli.run.runner import prepare
+from hmpc_cli.run.scenario import load_scenario
 
 TRIALS = (1, 2, 3, 5, 7)
 QUICK_TRIALS, QUICK_PROBLEMS = (1,), 10

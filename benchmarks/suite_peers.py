@@ -12,7 +12,7 @@
   final domain's guard-avoid rows as soft constraints with the same L1 penalty.
   Built once per run from the system's CasADi functions; reset at each trial's first call.
 
-Both return :class:`~hmpc_cli.messages.SolveStats` (``wall_time`` [s] of the whole call).
+Both return :class:`~hmpc_cli.core.messages.SolveStats` (``wall_time`` [s] of the whole call).
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ import warnings
 import casadi as ca
 import numpy as np
 
-from hmpc_cli.messages import SolveStats
-from hmpc_cli.mpc.nlp import FixedModeNLP
+from hmpc_cli.core.messages import SolveStats
+from hmpc_cli.mpc.chain.nlp import FixedModeNLP
 
 #: IPOPT silent (printing is not part of any solve compared here)
 SILENT = {"ipopt": {"print_level": 0, "sb": "yes"}, "print_time": False}

@@ -1,5 +1,5 @@
 """``python -m hmpc_cli``: the ``hmpc`` command line."""
 
-from hmpc_cli.cli import main
+from hmpc_cli.cli.app import main
 
 main()

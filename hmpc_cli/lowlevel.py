@@ -16,9 +16,9 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from hmpc_cli.hybrid import HybridSystem
-from hmpc_cli.messages import Plan
-from hmpc_cli.settings_types import FiniteFloat
+from hmpc_cli.core.hybrid import HybridSystem
+from hmpc_cli.core.messages import Plan
+from hmpc_cli.core.settings_types import FiniteFloat
 
 
 class LowLevelSettings(BaseModel):

@@ -34,7 +34,7 @@ def hmpc_command() -> list[str]:
     if script.is_file() and os.access(script, os.X_OK):
         return [str(script)]
     found = shutil.which("hmpc")
-    return [found] if found else [sys.executable, "-m", "hmpc_cli.cli"]
+    return [found] if found else [sys.executable, "-m", "hmpc_cli"]
 
 
 def cli_env() -> dict[str, str]:
@@ -83,8 +83,8 @@ def full_run(tmp_path_factory: pytest.TempPathFactory) -> FullRun:
 
 def run_loop(scenario, path: Path):
     """Runs a validated scenario's closed loop in this process into the log ``path``."""
-    from hmpc_cli.recorder import Recorder
-    from hmpc_cli.runner import prepare
+    from hmpc_cli.log.recorder import Recorder
+    from hmpc_cli.run.runner import prepare
 
     loop = prepare(scenario)
     rec = Recorder(path)

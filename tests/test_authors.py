@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hmpc_cli.authors import (
+from hmpc_cli.analysis.authors import (
     BallGeometry, circle_entry, contacts, end_distance, read_authors, read_panels)
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -6,14 +6,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from hmpc_cli.messages import Plan
+from hmpc_cli.core.messages import Plan
 from hmpc_cli.mpc.backends import OCPStructure, rti_success
-from hmpc_cli.mpc.controller import FixedModeMPC
-from hmpc_cli.mpc.layout import ChainLayout, NodeSchedule
-from hmpc_cli.mpc.nlp import FixedModeNLP, MPCSettings
+from hmpc_cli.mpc.chain.controller import FixedModeMPC
+from hmpc_cli.mpc.chain.layout import ChainLayout, NodeSchedule
+from hmpc_cli.mpc.chain.nlp import FixedModeNLP, MPCSettings
 from hmpc_cli.planner.cem import CEMSettings, CrossEntropyPlanner
-from hmpc_cli.runlog import RunLog
-from hmpc_cli.scenario import ScenarioError, load_scenario
+from hmpc_cli.log.runlog import RunLog
+from hmpc_cli.run.scenario import ScenarioError, load_scenario
 from hmpc_cli.systems.ball import BallParams, build_ball
 
 SMALL = {"horizon": 1.5, "max_switches": 6, "input_hold": "zoh"}
@@ -133,7 +133,7 @@ def test_sqp_backend_needs_stagewise_dynamics():
 @pytest.mark.slow
 def test_sqp_closed_loop_matches_ipopt():
     """Figure 3, trial 5 (zero-order hold): same outcome with either back-end."""
-    from hmpc_cli.runner import prepare
+    from hmpc_cli.run.runner import prepare
 
     out = {}
     for solver in ("ipopt", "sqp_hpipm"):

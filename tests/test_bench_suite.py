@@ -15,7 +15,7 @@ import suite
 import suite_peers
 import suite_report
 
-from hmpc_cli.messages import SolveStats
+from hmpc_cli.core.messages import SolveStats
 
 #: a short horizon (15 nodes) and chain keep every NLP small
 SHORT = ["mpc.horizon=0.5", "mpc.nodes_per_second=30", "mpc.max_switches=3"]

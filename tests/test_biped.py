@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from hmpc_cli.sim import HybridSimulator
+from hmpc_cli.sim.simulator import HybridSimulator
 from hmpc_cli.systems.biped import POINT_NAMES, BipedParams, build_biped, make_biped_model
 
 P = BipedParams()

@@ -15,12 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hmpc_cli import cbuild
+from hmpc_cli.core import cbuild
 from hmpc_cli.mpc import cache
-from hmpc_cli.mpc.layout import ChainLayout, NodeSchedule
-from hmpc_cli.mpc.nlp import FixedModeNLP, MPCSettings
-from hmpc_cli.registry import build_system
-from hmpc_cli.scenario import load_scenario
+from hmpc_cli.mpc.chain.layout import ChainLayout, NodeSchedule
+from hmpc_cli.mpc.chain.nlp import FixedModeNLP, MPCSettings
+from hmpc_cli.core.registry import build_system
+from hmpc_cli.run.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = ["mpc.horizon=0.1", "mpc.nodes_per_second=20", "mpc.max_switches=1"]
@@ -206,7 +206,7 @@ def test_disabled_by_environment_writes_nothing(tiny, use, monkeypatch):
 
 
 def test_run_log_names_the_build(tiny, filled, use, run_hmpc, tmp_path):
-    from hmpc_cli.rundata import read_run
+    from hmpc_cli.log.rundata import read_run
 
     use(filled[0], mode="background")  # inherited by the hmpc process
     out = tmp_path / "run"
@@ -250,8 +250,8 @@ def test_background_compile_after_exit_fills_the_cache(tiny, use):
     import time
 
     folder = use(mode="background")
-    code = ("from hmpc_cli.registry import build_system; from hmpc_cli.scenario import "
-            "load_scenario; from hmpc_cli.mpc.nlp import FixedModeNLP; import sys; "
+    code = ("from hmpc_cli.core.registry import build_system; from hmpc_cli.run.scenario import "
+            "load_scenario; from hmpc_cli.mpc.chain.nlp import FixedModeNLP; import sys; "
             f"sc, _ = load_scenario(sys.argv[1], {TINY!r}); "
             "n = FixedModeNLP(build_system(sc.system), sc.mpc); print(n.build_info.reason)")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get(

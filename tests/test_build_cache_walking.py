@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from hmpc_cli.mpc import cache
-from hmpc_cli.mpc.walking import WalkingMPC
-from hmpc_cli.mpc.walking_nlp import WalkingNLP
-from hmpc_cli.registry import build_system
-from hmpc_cli.scenario import load_scenario
+from hmpc_cli.mpc.walking.kind import WalkingMPC
+from hmpc_cli.mpc.walking.nlp import WalkingNLP
+from hmpc_cli.core.registry import build_system
+from hmpc_cli.run.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parents[1]
 SHORT = ["mpc.nodes_per_swing=6", "mpc.apex_node=3"]

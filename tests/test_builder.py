@@ -182,8 +182,8 @@ def test_plugin_options_table():
 
 
 def test_fixed_mode_row_groups_by_name_and_size():
-    from hmpc_cli.mpc.layout import ChainLayout, NodeSchedule
-    from hmpc_cli.mpc.nlp import FixedModeNLPs, MPCSettings
+    from hmpc_cli.mpc.chain.layout import ChainLayout, NodeSchedule
+    from hmpc_cli.mpc.chain.nlp import FixedModeNLPs, MPCSettings
     from hmpc_cli.systems.ball import BallParams, build_ball
 
     ball = build_ball(BallParams(terminal_radius=0.5))
@@ -224,7 +224,7 @@ def test_fixed_mode_row_groups_by_name_and_size():
 
 
 def test_walking_row_groups_by_name_and_size():
-    from hmpc_cli.mpc.walking_nlp import WalkingMPCSettings, WalkingNLP
+    from hmpc_cli.mpc.walking.nlp import WalkingMPCSettings, WalkingNLP
     from hmpc_cli.systems.biped import BipedParams, build_biped
 
     N = 6

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from hmpc_cli.recorder import read_log
+from hmpc_cli.log.reader import read_log
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -13,9 +13,9 @@ import pytest
 from typer.testing import CliRunner
 
 import hmpc_cli
-from hmpc_cli.cli import app
-from hmpc_cli.recorder import Log, read_log
-from hmpc_cli.scenario import Scenario, load_scenario
+from hmpc_cli.cli.app import app
+from hmpc_cli.log.reader import Log, read_log
+from hmpc_cli.run.scenario import Scenario, load_scenario
 
 REPO = Path(__file__).resolve().parents[1]
 BALL = REPO / "scenarios" / "ball.toml"

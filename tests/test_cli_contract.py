@@ -61,7 +61,7 @@ def test_help_imports_no_casadi_or_matplotlib(tmp_path):
 
 
 def test_completion_of_figures_and_set_keys(tmp_path):
-    from hmpc_cli.cli_common import complete_figure, complete_set_key
+    from hmpc_cli.cli.common import complete_figure, complete_set_key
 
     assert complete_figure("fig") == ["fig2", "fig3", "fig4"]
     assert "sim.duration=" in complete_set_key("sim.d")
@@ -194,8 +194,8 @@ def test_a_crash_inside_the_loop_is_one_line_exit_1_with_its_traceback_on_disk(
         tmp_path, monkeypatch):
     from typer.testing import CliRunner
 
-    from hmpc_cli.cli import app
-    from hmpc_cli.loop import ClosedLoop
+    from hmpc_cli.cli.app import app
+    from hmpc_cli.run.loop import ClosedLoop
 
     calls = {"n": 0}
     real = ClosedLoop.run
@@ -227,8 +227,8 @@ def test_a_crash_while_setting_up_is_an_internal_error_traceback_only_with_v(
         tmp_path, monkeypatch):
     from typer.testing import CliRunner
 
-    from hmpc_cli import runner
-    from hmpc_cli.cli import app
+    from hmpc_cli.run import runner
+    from hmpc_cli.cli.app import app
 
     def broken(*args, **kwargs):
         raise TypeError("an unexpected bug")
@@ -248,7 +248,7 @@ def test_sigint_while_the_controllers_are_built_says_so_and_exits_130(tmp_path):
     import signal
     import time
 
-    proc = subprocess.Popen([sys.executable, "-m", "hmpc_cli.cli", "run", str(BALL), "--out",
+    proc = subprocess.Popen([sys.executable, "-m", "hmpc_cli", "run", str(BALL), "--out",
                              str(tmp_path / "run"), "-q"], cwd=tmp_path, env=cli_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     time.sleep(2.0)  # imports done, the NLPs are being built (about 3 s)

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from hmpc_cli.disturbance import make_disturbance, paper_fig3_sequence
+from hmpc_cli.sim.disturbance import make_disturbance, paper_fig3_sequence
 
 
 def test_paper_recipe_first_values():

@@ -11,9 +11,10 @@ from typer.testing import CliRunner
 
 from conftest import BALL
 from hmpc_cli.figures.fig2 import fig2
-from hmpc_cli.passthrough import PassThroughError, _logged_system
-from hmpc_cli.passthrough import pass_through_geometry as fig2_geometry
-from hmpc_cli.recorder import Recorder, read_log
+from hmpc_cli.analysis.passthrough import PassThroughError, _logged_system
+from hmpc_cli.analysis.passthrough import pass_through_geometry as fig2_geometry
+from hmpc_cli.log.recorder import Recorder
+from hmpc_cli.log.reader import read_log
 from test_plot import make_app
 
 TOL = 1e-6  # the solver's tolerance (1e-8) with room for the logged rounding

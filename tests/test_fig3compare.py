@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from figcheck import assert_legible
-from hmpc_cli.authors import AuthorsTrace, Contact, read_panels
-from hmpc_cli.fig3compare import Side, TrialComparison, compare_sweep, sequence_text
+from hmpc_cli.analysis.authors import AuthorsTrace, Contact, read_panels
+from hmpc_cli.analysis.fig3compare import Side, TrialComparison, compare_sweep, sequence_text
 from hmpc_cli.figures.common import TEXT_WIDTH_IN, figure_style
-from hmpc_cli.recorder import Recorder
-from hmpc_cli.runner import prepare
-from hmpc_cli.scenario import load_scenario
+from hmpc_cli.log.recorder import Recorder
+from hmpc_cli.run.runner import prepare
+from hmpc_cli.run.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 BALL = ROOT / "scenarios" / "ball.toml"
@@ -45,7 +45,7 @@ def _authors_csv(path: Path, trials: dict[str, np.ndarray], t: np.ndarray) -> No
 
 @pytest.mark.slow  # two 0.6 s ball runs (one NLP build): about 6-10 s
 def test_per_trial_rows_from_small_real_runs(tmp_path):
-    from hmpc_cli.rundata import read_run
+    from hmpc_cli.log.rundata import read_run
 
     ok = {"nominal": _run(tmp_path / "nominal", ['disturbance.kind="none"']),
           "trial 1": _run(tmp_path / "trial1", ['disturbance.kind="paper_fig3"',
@@ -125,8 +125,8 @@ def test_authors_trace_rows_without_our_log_keep_theirs(tmp_path):
 
 @pytest.mark.slow  # the two short runs again, then Figure 3, the overlay and the page
 def test_report_page_tables_every_trial_beside_the_authors(tmp_path):
-    from hmpc_cli.report import ReportInputs, write_report
-    from hmpc_cli.rundata import read_run
+    from hmpc_cli.report.page import ReportInputs, write_report
+    from hmpc_cli.log.rundata import read_run
 
     sweep = tmp_path / "sweep"
     ok = _run(sweep / "nominal", ['disturbance.kind="none"'])

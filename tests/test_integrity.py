@@ -32,7 +32,7 @@ E int hm_step(void) { return 0; }
 E int hm_trajectory(void) { return 0; }
 E int hm_marker(void) { return MARK; }
 """
-BUILD = ("import sys; from hmpc_cli.planner import rollout_c as rc; "
+BUILD = ("import sys; from hmpc_cli.sim import rollout as rc; "
          "lib, path, s = rc.build_library(open(sys.argv[1]).read()); "
          "print(path, s is not None, lib.hm_marker())")
 
@@ -114,7 +114,7 @@ def test_compiler_identity_is_part_of_the_key(tiny_source, tmp_path):
 
 @needs_cc
 def test_ball_rollout_survives_a_truncated_cache(tmp_path):
-    code = ("import numpy as np; from hmpc_cli.planner.rollout_c import CRollout; "
+    code = ("import numpy as np; from hmpc_cli.sim.rollout import CRollout; "
             "from hmpc_cli.systems.ball import BallParams, build_ball; "
             "b = build_ball(BallParams(radius=0.13)); c = CRollout(b); "
             "cost, _ = c.cost(np.asarray(b.x0, float), 0, np.zeros((3, 5, 2)), 0.05, 1, 1e3, "
@@ -218,8 +218,8 @@ def _damage(sweep_dir: Path, tmp_path: Path) -> tuple[Path, Path, Path]:
 
 
 def test_read_log_stops_at_a_bit_flip(sweep_dir, tmp_path):
-    from hmpc_cli.recorder import read_log
-    from hmpc_cli.rundata import read_run
+    from hmpc_cli.log.reader import read_log
+    from hmpc_cli.log.rundata import read_run
 
     _, flipped, _ = _damage(sweep_dir, tmp_path)
     log = read_log(flipped)
@@ -245,7 +245,7 @@ def test_fig3_skips_unreadable_logs_and_notes_damaged_ones(sweep_dir, tmp_path):
 
 
 def test_report_page_names_the_skipped_logs(sweep_dir, tmp_path):
-    from hmpc_cli.report import ReportInputs, write_report
+    from hmpc_cli.report.page import ReportInputs, write_report
 
     table, flipped, cut = _damage(sweep_dir, tmp_path)
     page = write_report(tmp_path / "results", ReportInputs(table, None, None, None), "t")
@@ -270,8 +270,8 @@ def test_fig3_with_every_log_unreadable_is_a_clear_error(sweep_dir, tmp_path):
 def test_json_writer_turns_non_finite_into_null():
     import numpy as np
 
-    from hmpc_cli.jsonio import dumps
-    from hmpc_cli.runner import jsonable
+    from hmpc_cli.core.jsonio import dumps
+    from hmpc_cli.run.runner import jsonable
 
     value = {"final_error": math.inf, "t": -math.inf, "m": math.nan,
              "a": [1.0, np.float64("inf"), np.float32(2.5)], "arr": np.array([np.nan, 1.0])}
@@ -304,8 +304,8 @@ def _free_port() -> int:
 
 
 def test_dask_silent_peer_fails_fast_with_a_hint():
-    from hmpc_cli.cli_sweep import connect_dask
-    from hmpc_cli.scenario import ScenarioError
+    from hmpc_cli.cli.sweep import connect_dask
+    from hmpc_cli.run.scenario import ScenarioError
 
     pytest.importorskip("distributed")
     with socket.socket() as server:

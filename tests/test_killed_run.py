@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from hmpc_cli.recorder import read_log
+from hmpc_cli.log.reader import read_log
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.mark.slow
 def test_sigkilled_run_leaves_a_readable_log(tmp_path):
     out = tmp_path / "run"
-    cmd = [sys.executable, "-m", "hmpc_cli.cli", "run", str(ROOT / "scenarios" / "ball.toml"),
+    cmd = [sys.executable, "-m", "hmpc_cli", "run", str(ROOT / "scenarios" / "ball.toml"),
            "--out", str(out), "-q", "--set", "sim.duration=30.0", "--set", "sim.log_rate_hz=600"]
     proc = subprocess.Popen(cmd, cwd=tmp_path, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
@@ -42,7 +42,7 @@ def test_sigkilled_run_leaves_a_readable_log(tmp_path):
     assert times == sorted(times)
     assert log.topic("/mpc/solve"), "solves before the kill are in the log"
     # hmpc replay reads it up to its last completed chunk and says where it was cut
-    rp = subprocess.run([sys.executable, "-m", "hmpc_cli.cli", "replay", str(out), "--topic",
+    rp = subprocess.run([sys.executable, "-m", "hmpc_cli", "replay", str(out), "--topic",
                          "summary"], cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert rp.returncode == 0, rp.stderr
     text = " ".join(rp.stdout.split())

@@ -5,10 +5,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hmpc_cli.recorder import Recorder, read_log
-from hmpc_cli.rundata import read_run
-from hmpc_cli.runner import prepare
-from hmpc_cli.scenario import ScenarioError, load_scenario
+from hmpc_cli.log.recorder import Recorder
+from hmpc_cli.log.reader import read_log
+from hmpc_cli.log.rundata import read_run
+from hmpc_cli.run.runner import prepare
+from hmpc_cli.run.scenario import ScenarioError, load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 BALL = ROOT / "scenarios" / "ball.toml"

@@ -8,9 +8,9 @@ import pytest
 from conftest import BALL
 from typer.testing import CliRunner
 
-from hmpc_cli.cli import app
-from hmpc_cli.recorder import read_log
-from hmpc_cli.scene import TOPICS
+from hmpc_cli.cli.app import app
+from hmpc_cli.log.reader import read_log
+from hmpc_cli.log.scene import TOPICS
 
 
 def test_live_without_foxglove_sdk_exits_2(tmp_path, monkeypatch):
@@ -25,9 +25,9 @@ def test_live_without_foxglove_sdk_exits_2(tmp_path, monkeypatch):
 
 def test_live_mirrors_every_topic_and_message(tmp_path):
     pytest.importorskip("foxglove")
-    from hmpc_cli.live import LiveSink
-    from hmpc_cli.runner import execute_run, prepare
-    from hmpc_cli.scenario import load_scenario
+    from hmpc_cli.log.live import LiveSink
+    from hmpc_cli.run.runner import execute_run, prepare
+    from hmpc_cli.run.scenario import load_scenario
 
     sc, text = load_scenario(BALL, ["sim.duration=0.2"])
     sink = LiveSink(port=0, speed=0.0)

@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 
 from conftest import BALL, SCENARIOS
-from hmpc_cli.logtypes import (
-    LOG_VERSION, TOPICS, convert, named, topic_schemas, validate, viewer_problems)
-from hmpc_cli.recorder import Recorder, read_log
-from hmpc_cli.rundata import read_run
+from hmpc_cli.log.topics import LOG_VERSION, TOPICS, named, topic_schemas
+from hmpc_cli.log.schema import convert, validate, viewer_problems
+from hmpc_cli.log.recorder import Recorder
+from hmpc_cli.log.reader import read_log
+from hmpc_cli.log.rundata import read_run
 
 NAMES = {"state": ("px", "py"), "input": ("u",), "disturbance": ("w",),
          "guard": ("floor",)}
@@ -137,11 +138,12 @@ def test_read_run_reads_the_older_untyped_layout(tmp_path):
 
 def test_plan_nodes_are_the_schemas_records_node_by_node():
     """plan_nodes' compiled dict display gives, per node, dict(zip(keys, row))."""
-    from hmpc_cli.logtypes import PlanNode, flat_keys
-    from hmpc_cli.messages import Trajectory
-    from hmpc_cli.registry import build_system
-    from hmpc_cli.logtypes import record_maker
-    from hmpc_cli.runlog import plan_nodes
+    from hmpc_cli.log.topics import PlanNode
+    from hmpc_cli.log.schema import flat_keys
+    from hmpc_cli.core.messages import Trajectory
+    from hmpc_cli.core.registry import build_system
+    from hmpc_cli.log.geometry import record_maker
+    from hmpc_cli.log.runlog import plan_nodes
     from hmpc_cli.systems.ball import BallParams
 
     model = build_system(BallParams())

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from conftest import run_loop
-from hmpc_cli.recorder import read_log
-from hmpc_cli.scenario import load_scenario
+from hmpc_cli.log.reader import read_log
+from hmpc_cli.run.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from hmpc_cli.lowlevel import LowLevelController, LowLevelSettings
-from hmpc_cli.messages import ModeSchedule, Plan, SolveStats, Trajectory
-from hmpc_cli.registry import build_system
+from hmpc_cli.core.messages import ModeSchedule, Plan, SolveStats, Trajectory
+from hmpc_cli.core.registry import build_system
 from hmpc_cli.systems.ball import BallParams
 
 

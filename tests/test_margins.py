@@ -10,11 +10,11 @@ import pytest
 from typer.testing import CliRunner
 
 from conftest import BALL
-from hmpc_cli.cli import app
-from hmpc_cli.messages import ConstraintMargins
-from hmpc_cli.recorder import read_log
-from hmpc_cli.registry import build_system
-from hmpc_cli.scenario import ScenarioError, load_scenario
+from hmpc_cli.cli.app import app
+from hmpc_cli.core.messages import ConstraintMargins
+from hmpc_cli.log.reader import read_log
+from hmpc_cli.core.registry import build_system
+from hmpc_cli.run.scenario import ScenarioError, load_scenario
 from hmpc_cli.tube import analyse, region_from_scenario
 from hmpc_cli.tube.margins_file import (
     constraint_margins, margins_text, params_hash, read_margins, write_margins)
@@ -160,7 +160,7 @@ def test_a_run_with_a_computed_margins_file(ball_file: Path, tmp_path: Path):
 
 
 def test_a_sweep_checks_its_margins_files_before_any_run(ball_file: Path, tmp_path: Path):
-    from hmpc_cli.sweep import plan_sweep
+    from hmpc_cli.sweep.plan import plan_sweep
 
     sweep = tmp_path / "sweep.toml"
     sweep.write_text(f'name = "m"\nscenario = "{BALL}"\n[grid]\nm = [\n'

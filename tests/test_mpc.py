@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from hmpc_cli.messages import ModeSchedule
-from hmpc_cli.mpc.controller import FixedModeMPC
-from hmpc_cli.mpc.layout import FLOW, HOLD, RESET, ChainLayout, NodeSchedule
-from hmpc_cli.mpc.nlp import MPCSettings
+from hmpc_cli.core.messages import ModeSchedule
+from hmpc_cli.mpc.chain.controller import FixedModeMPC
+from hmpc_cli.mpc.chain.layout import FLOW, HOLD, RESET, ChainLayout, NodeSchedule
+from hmpc_cli.mpc.chain.nlp import MPCSettings
 from hmpc_cli.planner.cem import CEMSettings, CrossEntropyPlanner
 from hmpc_cli.systems.ball import BallParams, build_ball
 

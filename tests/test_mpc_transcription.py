@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 
 from hmpc_cli.lowlevel import LowLevelController, LowLevelSettings
-from hmpc_cli.messages import Plan
-from hmpc_cli.mpc.controller import FixedModeMPC
-from hmpc_cli.mpc.layout import NodeSchedule
-from hmpc_cli.mpc.nlp import MPCSettings
+from hmpc_cli.core.messages import Plan
+from hmpc_cli.mpc.chain.controller import FixedModeMPC
+from hmpc_cli.mpc.chain.layout import NodeSchedule
+from hmpc_cli.mpc.chain.nlp import MPCSettings
 from hmpc_cli.planner.cem import CEMSettings, CrossEntropyPlanner
-from hmpc_cli.sim import HybridSimulator
+from hmpc_cli.sim.simulator import HybridSimulator
 from hmpc_cli.systems.ball import BallParams, build_ball
 
 BALL_MEAN = -20.0  # the ball plug-in's CEM initial mean (its default)

@@ -4,11 +4,11 @@ from pathlib import Path
 
 import pytest
 
-from hmpc_cli.mpc.nlp import MPCSettings
-from hmpc_cli.recorder import Recorder
-from hmpc_cli.rundata import read_run
-from hmpc_cli.runner import prepare
-from hmpc_cli.scenario import ScenarioError, load_scenario
+from hmpc_cli.mpc.chain.nlp import MPCSettings
+from hmpc_cli.log.recorder import Recorder
+from hmpc_cli.log.rundata import read_run
+from hmpc_cli.run.runner import prepare
+from hmpc_cli.run.scenario import ScenarioError, load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 BALL = ROOT / "scenarios" / "ball.toml"

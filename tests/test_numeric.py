@@ -3,7 +3,7 @@
 import casadi as ca
 import numpy as np
 
-from hmpc_cli.numeric import compile_numpy
+from hmpc_cli.core.numeric import compile_numpy
 from hmpc_cli.systems.ball import BallParams, build_ball
 
 

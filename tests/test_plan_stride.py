@@ -6,9 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from hmpc_cli.messages import Trajectory
-from hmpc_cli.recorder import read_log
-from hmpc_cli.runlog import thinned
+from hmpc_cli.core.messages import Trajectory
+from hmpc_cli.log.reader import read_log
+from hmpc_cli.log.runlog import thinned
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -32,8 +32,8 @@ def test_thinned_keeps_every_kth_node_the_last_and_both_sides_of_a_reset():
 
 
 def test_a_thinned_log_holds_the_full_logs_nodes_it_keeps(tmp_path, run_hmpc):
-    from hmpc_cli.runner import run_scenario
-    from hmpc_cli.scenario import load_scenario
+    from hmpc_cli.run.runner import run_scenario
+    from hmpc_cli.run.scenario import load_scenario
 
     logs = {}
     for k in (1, 3):
@@ -69,9 +69,9 @@ def _readers_that_need_every_node(full: Path, thin: Path) -> None:
     """The pass-through and tube-vs-reality read the full log and refuse the thinned one."""
     import pytest
 
-    from hmpc_cli.passthrough import PassThroughError, pass_through_geometry
-    from hmpc_cli.rundata import read_run
-    from hmpc_cli.tube_reality import read_run as read_reality
+    from hmpc_cli.analysis.passthrough import PassThroughError, pass_through_geometry
+    from hmpc_cli.log.rundata import read_run
+    from hmpc_cli.analysis.tube_reality import read_run as read_reality
 
     assert read_run(full).plan_stride == 1 and read_run(thin).plan_stride == 3
     assert pass_through_geometry(full).dt > 0 and read_reality(full).solves

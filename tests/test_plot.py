@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 from conftest import BALL, cli_env, hmpc_command
 from figcheck import assert_legible
-from hmpc_cli.cli_plot import plot_command
+from hmpc_cli.cli.plot import plot_command
 
 FAST = ["--set", "sim.duration=0.6", "--set", "planner.iterations=3", "-q"]
 RUNS = {"nom": [], "t1": ["--set", "disturbance.kind=\"paper_fig3\"", "--set",
@@ -26,7 +26,7 @@ COLUMNS = ["run_id", "controller", "disturbance", "seed", "success", "final_erro
 ROWS = [("A", "trial 1", True, "t1"), ("A", "nominal", True, "nom"), ("A", "trial 2", False, "t2"),
         ("B", "nominal", True, "nom"), ("B", "trial 1", True, "t1")]
 # A stand-alone app with only the plot command, run in a fresh process.
-APP = ("import sys, typer; from hmpc_cli.cli_plot import plot_command; app = typer.Typer(); "
+APP = ("import sys, typer; from hmpc_cli.cli.plot import plot_command; app = typer.Typer(); "
        "app.callback()(lambda: None); app.command('plot')(plot_command); "
        "sys.argv[0] = 'hmpc'; app()")
 
@@ -143,7 +143,8 @@ def test_fig3_is_legible_at_its_size(runs, tmp_path, width, height):
     """Three panels with the paper's titles at one column (the default) and at text width:
     the figure is the size asked for, STIX, text >= 7 pt, no two texts overlap."""
     from hmpc_cli.figures import fig3 as f3
-    from hmpc_cli.figures.common import COLUMN_WIDTH_IN, figure_style, read_table
+    from hmpc_cli.figures.common import COLUMN_WIDTH_IN, figure_style
+    from hmpc_cli.analysis.tables import read_table
 
     table = write_table(tmp_path / "results.csv", PAPER_ROWS, {k: str(v) for k, v in runs.items()})
     rows = read_table(table, ["controller", "disturbance", "success", "log"])
@@ -189,7 +190,7 @@ def test_panel_order_reference_counts_and_sweep_dir(runs, tmp_path):
 
 
 def test_bounces_touch_the_guard(runs):
-    from hmpc_cli.figures.common import load_trace
+    from hmpc_cli.analysis.tables import load_trace
 
     tr = load_trace(runs["nom"])
     r = tr.system["radius"]
@@ -210,7 +211,7 @@ def test_rc_params_do_not_leak(table, tmp_path):
 
 
 def test_plot_module_is_light_and_uses_no_pyplot(table, tmp_path):
-    code = ("import sys; import hmpc_cli.cli_plot; assert 'matplotlib' not in sys.modules; "
+    code = ("import sys; import hmpc_cli.cli.plot; assert 'matplotlib' not in sys.modules; "
             "from hmpc_cli.figures.fig3 import fig3; "
             f"fig3({str(table)!r}, {str(tmp_path / 'o')!r}, 'png'); "
             "assert 'matplotlib.pyplot' not in sys.modules; print('ok')")

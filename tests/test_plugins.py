@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from conftest import BALL, REPO, cli_env, hmpc_command
-from hmpc_cli.recorder import read_log
+from hmpc_cli.log.reader import read_log
 
 PLUGINS = REPO / "tests" / "plugins"
 DOCK = PLUGINS / "dock.toml"

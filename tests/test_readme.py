@@ -34,7 +34,7 @@ def test_readme_commands_run_in_order(tmp_path):
     for cmd in [c for c in readme_commands() if c not in RUN_BY_CI]:
         argv = shlex.split(cmd)
         if argv[0] == "hmpc":
-            argv = [sys.executable, "-c", "from hmpc_cli.cli import main; main()"] + argv[1:]
+            argv = [sys.executable, "-c", "from hmpc_cli.cli.app import main; main()"] + argv[1:]
         elif argv[0] == "python":
             argv[0] = sys.executable
         proc = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True, env=env,

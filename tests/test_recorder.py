@@ -15,9 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hmpc_cli import recorder
-from hmpc_cli.mcap_codecs import ZSTD_LEVEL
-from hmpc_cli.recorder import Log, Recorder, read_log, to_json_bytes
+from hmpc_cli.log import recorder
+from hmpc_cli.log.codecs import ZSTD_LEVEL
+from hmpc_cli.log.reader import Log, read_log
+from hmpc_cli.log.recorder import Recorder, to_json_bytes
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -148,7 +149,7 @@ def test_killed_writer_keeps_flushed_chunks(tmp_path: Path) -> None:
         f"""
         import os, signal
         import numpy as np
-        from hmpc_cli.recorder import Recorder
+        from hmpc_cli.log.recorder import Recorder
         rec = Recorder({str(path)!r}, flush_every=100)
         rec.add_metadata("run", {{"seed": "1"}})
         rec.add_topic("/state", "hmpc.State", {{"type": "object"}})
@@ -348,7 +349,7 @@ def test_batched_messages_are_the_bytes_of_add_message(tmp_path: Path, chunk_siz
 
     from mcap.writer import Writer
 
-    from hmpc_cli.mcap_codecs import add_messages
+    from hmpc_cli.log.codecs import add_messages
 
     rng = np.random.default_rng(3)
     batches = [[(1 + int(rng.integers(2)), int(t), bytes(rng.integers(0, 255, int(n),

@@ -11,16 +11,17 @@ import pytest
 from typer.testing import CliRunner
 
 from conftest import SCENARIOS
-from hmpc_cli.cli import app
-from hmpc_cli.recorder import Recorder, read_log
+from hmpc_cli.cli.app import app
+from hmpc_cli.log.recorder import Recorder
+from hmpc_cli.log.reader import read_log
 
 ENV = {"COLUMNS": "220", "NO_COLOR": "1", "TERM": "dumb"}
 
 
 def _run(scenario: str, out: Path, *overrides: str) -> Path:
     """One short run in this process; returns its run directory."""
-    from hmpc_cli.runner import run_scenario
-    from hmpc_cli.scenario import load_scenario
+    from hmpc_cli.run.runner import run_scenario
+    from hmpc_cli.run.scenario import load_scenario
 
     sc, text = load_scenario(SCENARIOS / scenario, list(overrides))
     run_scenario(sc, text, out)
@@ -328,7 +329,7 @@ def _named_layout_log(path: Path, info_extra: dict) -> Path:
 
 
 def test_named_field_layout(tmp_path, monkeypatch) -> None:
-    import hmpc_cli.replay as rp
+    import hmpc_cli.analysis.replay as rp
 
     path = _named_layout_log(tmp_path / "named.mcap", {
         "log_version": 2, "argv": ["hmpc", "run", "x.toml", "--set", "sim.duration=1"],
@@ -352,7 +353,7 @@ def test_named_field_layout(tmp_path, monkeypatch) -> None:
 
 
 def test_current_log_version_has_no_note(tmp_path) -> None:
-    from hmpc_cli.logtypes import LOG_VERSION
+    from hmpc_cli.log.topics import LOG_VERSION
 
     out = replay(_named_layout_log(tmp_path / "v.mcap", {"log_version": LOG_VERSION})).output
     assert "log version" not in out and re.search(r"command\W+not recorded", out)

@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 
 from conftest import BALL, REPO
-from hmpc_cli.figures.common import FigureInputError
+from hmpc_cli.analysis.tables import FigureInputError
 from hmpc_cli.figures.robustness import cells, robustness, wilson
-from hmpc_cli.report import ReportInputs, write_report
+from hmpc_cli.report.page import ReportInputs, write_report
 
 COLUMNS = ["run_id", "seed", "mpc.rate_hz", "replanning.policy", "disturbance.magnitude",
            "success", "log"]
@@ -124,7 +124,7 @@ def test_report_page_tables_the_study(tmp_path):
 
 
 def test_failure_lines_say_how_failed_runs_ended():
-    from hmpc_cli.report_robustness import failure_lines
+    from hmpc_cli.report.robustness import failure_lines
 
     def row(seed, ok, err, fails, reason, rate):
         return {"seed": str(seed), "disturbance.magnitude": "15.0", "mpc.rate_hz": str(rate),
@@ -220,8 +220,8 @@ def test_report_without_results_is_a_clear_error(tmp_path, run_hmpc):
 def test_every_default_robustness_sweep_is_bundled_and_valid():
     """`hmpc report --run`'s robustness sweeps exist, plan (every run's scenario is
     validated) and hold the study's grid: 5 rates x 2 policies (x sizes) x 100 seeds."""
-    from hmpc_cli.cli_report import ROBUSTNESS
-    from hmpc_cli.sweep import plan_sweep
+    from hmpc_cli.cli.report import ROBUSTNESS
+    from hmpc_cli.sweep.plan import plan_sweep
 
     for rel in ROBUSTNESS:
         plan = plan_sweep(REPO / rel)
@@ -231,8 +231,8 @@ def test_every_default_robustness_sweep_is_bundled_and_valid():
 
 
 def test_first_seeds_is_a_resumable_prefix_of_the_study():
-    from hmpc_cli.scenario import ScenarioError
-    from hmpc_cli.sweep import first_seeds, plan_sweep
+    from hmpc_cli.run.scenario import ScenarioError
+    from hmpc_cli.sweep.plan import first_seeds, plan_sweep
 
     full = plan_sweep(REPO / "sweeps" / "robustness.toml")
     assert len(full.runs) == 5 * 2 * 2 * 100  # rates x policies x disturbance sizes x seeds
@@ -248,7 +248,7 @@ def test_first_seeds_is_a_resumable_prefix_of_the_study():
 def test_latency_study_sits_beside_its_paused_twin_and_the_reading_counts(tmp_path):
     """Three studies: paused, moved (another geometry), latency charged (the size fixed
     in [set]); the latency cells are compared with the paused twin only; counts exact."""
-    from hmpc_cli.report_robustness import Study, robustness_sections
+    from hmpc_cli.report.robustness import Study, robustness_sections
 
     def study(name: str, fixed: str, truth: dict, size_in_grid: bool = True) -> Path:
         d = tmp_path / name
@@ -296,7 +296,7 @@ def test_latency_study_sits_beside_its_paused_twin_and_the_reading_counts(tmp_pa
 def test_latency_study_with_the_first_plan_paused_or_measured_latency_is_said(tmp_path):
     """sim.latency_first = "paused" still finds the twin and is said; "measured" reads as
     words; a latency study without a paused twin says so instead of vanishing."""
-    from hmpc_cli.report_robustness import Study, robustness_sections
+    from hmpc_cli.report.robustness import Study, robustness_sections
 
     truth = {(5, "once", 15.0): 2, (50, "once", 15.0): 20}
 

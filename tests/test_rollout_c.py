@@ -8,10 +8,10 @@ import sys
 import numpy as np
 import pytest
 
-from hmpc_cli.planner import rollout_c
+from hmpc_cli.sim import rollout as rollout_c
 from hmpc_cli.planner.cem import UNREACHED_PENALTY, CEMSettings, CrossEntropyPlanner
-from hmpc_cli.planner.rollout_c import CRollout, RolloutBuildError
-from hmpc_cli.sim import HybridSimulator
+from hmpc_cli.sim.rollout import CRollout, RolloutBuildError
+from hmpc_cli.sim.simulator import HybridSimulator
 from hmpc_cli.systems.ball import BallParams, build_ball
 
 BALL_MEAN = -20.0  # the ball plug-in's CEM initial mean (its default)
@@ -195,7 +195,7 @@ def test_compiled_library_is_cached_on_disk(tmp_path, monkeypatch):
 
 @needs_cc
 def test_concurrent_processes_share_one_build(tmp_path):
-    code = ("from hmpc_cli.planner.rollout_c import CRollout; "
+    code = ("from hmpc_cli.sim.rollout import CRollout; "
             "from hmpc_cli.systems.ball import BallParams, build_ball; "
             "print(CRollout(build_ball(BallParams(radius=0.12))).path)")
     env = {**os.environ, "HMPC_CACHE_DIR": str(tmp_path)}

@@ -7,15 +7,16 @@ import dataclasses
 import numpy as np
 
 from conftest import SCENARIOS
-from hmpc_cli import runlog
-from hmpc_cli.mpc.fixed_mode import ChainDetail
-from hmpc_cli.messages import ModeSchedule, Plan, SolveStats, Trajectory
-from hmpc_cli.recorder import Recorder, read_log
-from hmpc_cli.registry import build_system
-from hmpc_cli.replay import _ignored
-from hmpc_cli.runlog import RunLog
-from hmpc_cli.runner import execute_run, prepare
-from hmpc_cli.scenario import load_scenario
+from hmpc_cli.log import runlog
+from hmpc_cli.mpc.chain.kind import ChainDetail
+from hmpc_cli.core.messages import ModeSchedule, Plan, SolveStats, Trajectory
+from hmpc_cli.log.recorder import Recorder
+from hmpc_cli.log.reader import read_log
+from hmpc_cli.core.registry import build_system
+from hmpc_cli.analysis.replay import _ignored
+from hmpc_cli.log.runlog import RunLog
+from hmpc_cli.run.runner import execute_run, prepare
+from hmpc_cli.run.scenario import load_scenario
 from hmpc_cli.systems.ball import BallParams
 
 

@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from hmpc_cli.cli import app
-from hmpc_cli.recorder import read_log
-from hmpc_cli.scenario import Scenario, ScenarioError, dump_toml, load_scenario
+from hmpc_cli.cli.app import app
+from hmpc_cli.log.reader import read_log
+from hmpc_cli.run.scenario import Scenario, ScenarioError, dump_toml, load_scenario
 
 REPO = Path(__file__).resolve().parents[1]
 SCENARIOS = REPO / "scenarios"

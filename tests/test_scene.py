@@ -10,11 +10,12 @@ from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from google.protobuf import descriptor_pool
 from google.protobuf.descriptor_pb2 import FileDescriptorSet
 
-from hmpc_cli.recorder import Recorder, read_log
-from hmpc_cli.registry import build_system
-from hmpc_cli.runner import run_scenario
-from hmpc_cli.scenario import load_scenario
-from hmpc_cli.scene import FRAME, STATIC, TOPICS, TUBE_SPHERES
+from hmpc_cli.log.recorder import Recorder
+from hmpc_cli.log.reader import read_log
+from hmpc_cli.core.registry import build_system
+from hmpc_cli.run.runner import run_scenario
+from hmpc_cli.run.scenario import load_scenario
+from hmpc_cli.log.scene import FRAME, STATIC, TOPICS, TUBE_SPHERES
 
 from conftest import BALL, SCENARIOS
 
@@ -92,7 +93,7 @@ def test_ball_sphere_is_at_the_logged_state(ball):
     sc, log, _ = ball
     states = {m.log_time_ns: list(m.data["x"].values()) for m in log.topic("/sim/state")}
     bodies = entities(log, "body")
-    from hmpc_cli.scene import MAX_RATE_HZ
+    from hmpc_cli.log.scene import MAX_RATE_HZ
 
     # 0.5 s of 100 Hz states drawn at <= 30 Hz: every 4th sample (25 Hz), 13 of them
     assert len(bodies) == 13
@@ -209,7 +210,7 @@ def test_points_wire_bytes_equal_the_message_api():
     """The fast line encoding parses to exactly the points the message API builds."""
     from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
 
-    from hmpc_cli.scene import points_wire
+    from hmpc_cli.log.scene import points_wire
 
     pts = np.array([[0.0, 1.5, -2.0], [np.nan, 0.0, 1e300], [-0.0, 3.25, 7.0]])
     fast, slow = LinePrimitive(thickness=0.1), LinePrimitive(thickness=0.1)
@@ -227,7 +228,7 @@ def test_spheres_wire_bytes_equal_the_message_api():
     from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
     from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
 
-    from hmpc_cli.scene import spheres_wire
+    from hmpc_cli.log.scene import spheres_wire
 
     centers = np.array([[0.0, 0.0, 0.0], [1.5, -2.0, 3.25], [1e-300, 7.0, -0.0]])
     rest = SpherePrimitive(size={"x": 0.1, "y": 0.1, "z": 0.1},
@@ -250,8 +251,8 @@ def test_scene_writer_bytes_equal_the_message_api():
     """The wire-composed SceneUpdate parses to what the published classes build."""
     from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
-    from hmpc_cli.drawing import Ball, Drawing, Polyline
-    from hmpc_cli.scene import FRAME, SceneWriter
+    from hmpc_cli.core.drawing import Ball, Drawing, Polyline
+    from hmpc_cli.log.scene import FRAME, SceneWriter
 
     class Capture:
         def __init__(self):

@@ -6,10 +6,10 @@ from pathlib import Path
 import pytest
 
 from conftest import run_loop
-from hmpc_cli.setup_checks import setup_problems
+from hmpc_cli.run.setup_checks import setup_problems
 from hmpc_cli.planner.schedule import SchedulePlanner, ScheduleSettings
-from hmpc_cli.recorder import read_log
-from hmpc_cli.scenario import ScenarioError, load_scenario
+from hmpc_cli.log.reader import read_log
+from hmpc_cli.run.scenario import ScenarioError, load_scenario
 from hmpc_cli.systems.ball import BallParams, build_ball
 
 ROOT = Path(__file__).resolve().parents[1]

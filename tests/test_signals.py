@@ -16,7 +16,7 @@ from types import SimpleNamespace
 import pytest
 
 from conftest import BALL, cli_env
-from hmpc_cli.recorder import read_log
+from hmpc_cli.log.reader import read_log
 
 CODES = {signal.SIGINT: 130, signal.SIGTERM: 143, signal.SIGHUP: 129}
 # solves of ~1 s each: IPOPT cannot converge (tol 1e-300), 150 iterations per solve
@@ -26,7 +26,7 @@ LONG_SOLVES = ["--set", "mpc.max_iter=150", "--set",
 
 
 def _start(tmp_path: Path, out: Path, extra: list[str]) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "hmpc_cli.cli", "run", str(BALL), "--out", str(out), "-q",
+    cmd = [sys.executable, "-m", "hmpc_cli", "run", str(BALL), "--out", str(out), "-q",
            *extra]
     return subprocess.Popen(cmd, cwd=tmp_path, env=cli_env(), stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
@@ -110,7 +110,7 @@ class _Frozen(datetime):
 
 
 def test_default_run_dirs_are_unique_within_a_second(tmp_path, monkeypatch):
-    from hmpc_cli import cli
+    from hmpc_cli.cli import run as cli
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(cli, "datetime", _Frozen)
@@ -123,7 +123,7 @@ def test_default_run_dirs_are_unique_within_a_second(tmp_path, monkeypatch):
 
 @pytest.mark.slow
 def test_two_default_runs_at_once_get_two_directories(tmp_path):
-    cmd = [sys.executable, "-m", "hmpc_cli.cli", "run", str(BALL), "-q", "--set",
+    cmd = [sys.executable, "-m", "hmpc_cli", "run", str(BALL), "-q", "--set",
            "sim.duration=0.05"]
     procs = [subprocess.Popen(cmd, cwd=tmp_path, env=cli_env(), stdout=subprocess.DEVNULL,
                               stderr=subprocess.PIPE, text=True) for _ in range(2)]
@@ -138,15 +138,15 @@ def test_explicit_out_holding_a_run_is_refused(tmp_path):
     out = tmp_path / "run"
     out.mkdir()
     (out / "run.mcap").write_bytes(b"x")
-    r = subprocess.run([sys.executable, "-m", "hmpc_cli.cli", "run", str(BALL), "--out",
+    r = subprocess.run([sys.executable, "-m", "hmpc_cli", "run", str(BALL), "--out",
                         str(out), "-q"], cwd=tmp_path, env=cli_env(), capture_output=True,
                        text=True, timeout=120)
     assert r.returncode == 2 and "already holds a run" in r.stderr
 
 
 def test_a_crashed_run_summary_has_the_exception_and_the_state_reached(tmp_path):
-    from hmpc_cli.runner import execute_run, prepare
-    from hmpc_cli.scenario import load_scenario
+    from hmpc_cli.run.runner import execute_run, prepare
+    from hmpc_cli.run.scenario import load_scenario
 
     sc, text = load_scenario(BALL, ["sim.duration=0.5"], None)
     loop = prepare(sc)

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from hmpc_cli.sim import HybridSimulator, ZenoError
+from hmpc_cli.sim.simulator import HybridSimulator, ZenoError
 from hmpc_cli.systems.ball import BallParams, build_ball
 
 G = 9.81

@@ -9,12 +9,12 @@ from importlib.metadata import EntryPoint
 import numpy as np
 import pytest
 
-from hmpc_cli.messages import (
+from hmpc_cli.core.messages import (
     AHEAD, OFF_SCHEDULE, SCHEDULED, SELF_LOOP, GuardEvent, ModeSchedule)
-from hmpc_cli.mpc.fixed_mode import ChainMPC
-from hmpc_cli.mpc.nlp import MPCSettings
+from hmpc_cli.mpc.chain.kind import ChainMPC
+from hmpc_cli.mpc.chain.nlp import MPCSettings
 from hmpc_cli.planner.cem import CEMSettings, CrossEntropyPlanner
-from hmpc_cli.registry import PluginError, SystemSpec, _load_one, registry
+from hmpc_cli.core.registry import PluginError, SystemSpec, _load_one, registry
 from hmpc_cli.systems.ball import BallParams, build_ball, ball_task
 
 FLOOR, WALL, CIRCLE_IN, CIRCLE_OUT = range(4)
@@ -139,8 +139,8 @@ def test_a_planner_that_never_finds_a_schedule_says_so(tmp_path, run_hmpc):
 
 def test_the_progress_line_says_when_no_schedule_is_held(tmp_path):
     from conftest import BALL
-    from hmpc_cli.runner import execute_run, prepare
-    from hmpc_cli.scenario import load_scenario
+    from hmpc_cli.run.runner import execute_run, prepare
+    from hmpc_cli.run.scenario import load_scenario
 
     sc, text = load_scenario(BALL, ["planner.horizon=0.2", "sim.duration=0.2"])
     notes = []

@@ -16,13 +16,14 @@ from pathlib import Path
 import pytest
 
 from conftest import BALL, REPO, cli_env
-from hmpc_cli.cli_sweep import connect_dask
-from hmpc_cli.scenario import ScenarioError
-from hmpc_cli.sweep import TIMING, plan_sweep, run_id
+from hmpc_cli.cli.sweep import connect_dask
+from hmpc_cli.run.scenario import ScenarioError
+from hmpc_cli.sweep.table import TIMING
+from hmpc_cli.sweep.plan import plan_sweep, run_id
 
 # ``hmpc`` with the sweep command registered (cli.py registers it the same way).
-REGISTER = ("from hmpc_cli.cli import app\n"
-            "from hmpc_cli.cli_sweep import sweep_command\n"
+REGISTER = ("from hmpc_cli.cli.app import app\n"
+            "from hmpc_cli.cli.sweep import sweep_command\n"
             "if not any(c.name == 'sweep' for c in app.registered_commands):\n"
             "    app.command('sweep')(sweep_command)\n"
             "app()\n")
@@ -124,7 +125,7 @@ def test_two_workers_give_the_same_table(tiny):
     assert "(2 worker processes)" in proc.stdout
     assert table(out2) == table(out)
     assert table(out2, timing=True) != table(out, timing=True)  # timings are measured
-    from hmpc_cli.recorder import read_log
+    from hmpc_cli.log.reader import read_log
 
     row = next(r for r in table(out2) if r["case"] == "ok" and r["lowlevel.kp"] == "1.0")
     info = read_log(out2 / row["log"]).topic("/run/info")[0].data  # written by a worker
@@ -290,7 +291,7 @@ def _group_gone(pgid: int, wait: float = 10.0) -> bool:
 
 
 def test_cli_sweep_imports_stay_light():
-    tree = ast.parse((REPO / "hmpc_cli" / "cli_sweep.py").read_text())
+    tree = ast.parse((REPO / "hmpc_cli" / "cli" / "sweep.py").read_text())
     top = [n for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))]
     names = {a.name for n in top for a in n.names} | {n.module for n in top
                                                        if isinstance(n, ast.ImportFrom)}
@@ -298,8 +299,9 @@ def test_cli_sweep_imports_stay_light():
                      "Optional", "typer"}
     assert not any("click" in ast.unparse(n) for n in ast.walk(tree)
                    if isinstance(n, (ast.Import, ast.ImportFrom)))
-    code = ("import sys; import hmpc_cli.cli_sweep; print(sorted(m for m in ('casadi', 'numpy', "
-            "'hmpc_cli.sweep', 'hmpc_cli.loop', 'hmpc_cli.runner') if m in sys.modules))")
+    code = ("import sys; import hmpc_cli.cli.sweep; print(sorted(m for m in ('casadi', 'numpy', "
+            "'hmpc_cli.sweep.plan', 'hmpc_cli.run.loop', 'hmpc_cli.run.runner') "
+            "if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          cwd=REPO, check=True).stdout
     assert out.strip() == "[]"
@@ -308,8 +310,8 @@ def test_cli_sweep_imports_stay_light():
 def test_a_run_of_an_older_hmpc_stays_finished_unless_a_value_changed(tmp_path):
     """A setting added since a run (absent from its scenario.toml) takes its default: the
     run stays finished, so a sweep resumes across an upgrade; a changed value does not."""
-    from hmpc_cli.scenario import load_scenario
-    from hmpc_cli.sweep_table import finished_in, same_scenario
+    from hmpc_cli.run.scenario import load_scenario
+    from hmpc_cli.sweep.table import finished_in, same_scenario
 
     _, text = load_scenario(REPO / "scenarios" / "ball.toml")
     older = "".join(line + "\n" for line in text.splitlines()

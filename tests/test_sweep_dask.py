@@ -16,11 +16,12 @@ from pathlib import Path
 import pytest
 
 from test_sweep import TIMING, TINY_SET, table, write_sweep
-from hmpc_cli import sweep_dask
-from hmpc_cli.recorder import read_log
-from hmpc_cli.replay import compare_logs
-from hmpc_cli.sweep import execute_sweep, plan_sweep
-from hmpc_cli.sweep_dask import TransferError, collect, store_run
+from hmpc_cli.sweep import dask as sweep_dask
+from hmpc_cli.log.reader import read_log
+from hmpc_cli.analysis.replay import compare_logs
+from hmpc_cli.sweep.execute import execute_sweep
+from hmpc_cli.sweep.plan import plan_sweep
+from hmpc_cli.sweep.dask import TransferError, collect, store_run
 
 distributed = pytest.importorskip("distributed")
 

@@ -115,7 +115,7 @@ def test_sigterm_stops_the_sweep_and_resume_redoes_interrupted_runs(tmp_path):
 
 
 def test_interrupted_summary_is_never_kept_as_finished(tmp_path):
-    from hmpc_cli.sweep_table import finished_in
+    from hmpc_cli.sweep.table import finished_in
 
     (tmp_path / "scenario.toml").write_text("x")
     for reason, kept in [("interrupted", False), ("interrupted (SIGTERM)", False),

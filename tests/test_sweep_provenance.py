@@ -6,8 +6,9 @@ import re
 
 from test_replay import replay
 from test_sweep import TINY_SET, write_sweep
-from hmpc_cli.recorder import read_log
-from hmpc_cli.sweep import execute_sweep, plan_sweep, run_provenance
+from hmpc_cli.log.reader import read_log
+from hmpc_cli.sweep.execute import execute_sweep, run_provenance
+from hmpc_cli.sweep.plan import plan_sweep
 
 ONE = """name = "one"
 scenario = "{scenario}"

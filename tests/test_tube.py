@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from conftest import BALL, REPO, SCENARIOS, cli_env, hmpc_command
-from hmpc_cli.hybrid import Guard, HybridSystem, Mode
+from hmpc_cli.core.hybrid import Guard, HybridSystem, Mode
 from hmpc_cli.tube import (
     Margins, Region, TubeError, a_bound, analyse, eiss_constants, eta_bound,
     feedforward_tube, lipschitz, low_level_share, margins, pd_certificate,
@@ -189,8 +189,8 @@ def test_saturation_limits_the_region_of_attraction():
 
 
 def test_ball_default_scenario_has_no_certificate():
-    from hmpc_cli.registry import build_system
-    from hmpc_cli.scenario import load_scenario
+    from hmpc_cli.core.registry import build_system
+    from hmpc_cli.run.scenario import load_scenario
 
     sc, _ = load_scenario(BALL)
     system = build_system(sc.system)
@@ -258,7 +258,7 @@ def test_cli_tube_disturbed_ball_warns_and_defaults_its_directory(tmp_path: Path
 
 @pytest.mark.slow
 def test_cli_tube_region_from_a_run_log(tmp_path: Path):
-    from hmpc_cli.recorder import Recorder
+    from hmpc_cli.log.recorder import Recorder
 
     states = [[1.0, 1.0, 0.0, 0.0], [2.0, 1.5, 3.0, -1.0], [3.0, 2.0, -2.0, 4.0]]
     with Recorder(tmp_path / "run.mcap") as rec:
@@ -306,9 +306,9 @@ from typing import Literal
 import casadi as ca
 import numpy as np
 from pydantic import BaseModel
-from hmpc_cli.hybrid import HybridSystem, Mode
-from hmpc_cli.registry import SystemSpec
-from hmpc_cli.tasks import ReachGoal
+from hmpc_cli.core.hybrid import HybridSystem, Mode
+from hmpc_cli.core.registry import SystemSpec
+from hmpc_cli.core.tasks import ReachGoal
 
 
 class RootParams(BaseModel):

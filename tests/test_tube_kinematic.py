@@ -17,13 +17,13 @@ import pytest
 from typer.testing import CliRunner
 
 from conftest import SCENARIOS
-from hmpc_cli.cli import app
-from hmpc_cli.messages import ConstraintMargins
-from hmpc_cli.registry import build_system, registry
+from hmpc_cli.cli.app import app
+from hmpc_cli.core.messages import ConstraintMargins
+from hmpc_cli.core.registry import build_system, registry
 from hmpc_cli.tube import Region, analyse, margins, trivial_tube
 from hmpc_cli.tube.bounds import integrated_tube
 from hmpc_cli.tube.structure import ZERO, guard_states, kinematic_rates
-from hmpc_cli.tube_reality import RunData, run_periods
+from hmpc_cli.analysis.tube_reality import RunData, run_periods
 
 
 def _system(name: str):
@@ -105,7 +105,7 @@ def test_biped_foot_height_lipschitz_constant_bounds_its_gradient():
 
 
 def test_walking_nlp_takes_its_margins_from_constraint_margins():
-    from hmpc_cli.mpc.walking_nlp import WalkingMPCSettings, WalkingNLP, hand_margins
+    from hmpc_cli.mpc.walking.nlp import WalkingMPCSettings, WalkingNLP, hand_margins
 
     biped = _system("biped")
     s = WalkingMPCSettings()

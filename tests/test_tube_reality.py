@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hmpc_cli.tube_reality import Period, RunData, check_bounds, read_run, run_periods
+from hmpc_cli.analysis.tube_reality import Period, RunData, check_bounds, read_run, run_periods
 
 ROOT = Path(__file__).resolve().parents[1]
 SC = ROOT / "scenarios"
@@ -15,7 +15,7 @@ SC = ROOT / "scenarios"
 
 def hmpc(*args, cwd):
     """Runs the real CLI in a subprocess."""
-    return subprocess.run([sys.executable, "-m", "hmpc_cli.cli", *map(str, args)], cwd=cwd,
+    return subprocess.run([sys.executable, "-m", "hmpc_cli", *map(str, args)], cwd=cwd,
                           capture_output=True, text=True, timeout=300)
 
 
@@ -23,7 +23,7 @@ def hmpc(*args, cwd):
 def campaign(tmp_path_factory):
     """Three disturbed ball runs (trials 1..3) and a nominal one, 0.6 s each."""
     d = tmp_path_factory.mktemp("reality")
-    procs = [subprocess.Popen([sys.executable, "-m", "hmpc_cli.cli", "run",
+    procs = [subprocess.Popen([sys.executable, "-m", "hmpc_cli", "run",
                                str(SC / "ball_disturbed.toml"), "-q", "--set",
                                "sim.duration=0.6", "--set", f"disturbance.trial={n}",
                                "--out", f"d{n}"], cwd=d) for n in (1, 2)]

@@ -20,9 +20,9 @@ import pytest
 import typer
 from click.testing import CliRunner
 
-import hmpc_cli.runner
-from hmpc_cli.cli import app
-from hmpc_cli.scenario import dump_toml, scenario_model
+import hmpc_cli.run.runner
+from hmpc_cli.cli.app import app
+from hmpc_cli.run.scenario import dump_toml, scenario_model
 
 #: system -> (planner kind, MPC kind): the plug-in sections validated with it
 STACKS = {"ball": ("cem", "fixed_mode"), "biped": ("footholds", "walking")}
@@ -137,7 +137,7 @@ def work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     def prepare(scenario):
         raise AssertionError("invalid input reached prepare()")
 
-    monkeypatch.setattr(hmpc_cli.runner, "prepare", prepare)
+    monkeypatch.setattr(hmpc_cli.run.runner, "prepare", prepare)
     return tmp_path
 
 

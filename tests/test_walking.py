@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from hmpc_cli.lowlevel import LowLevelController, LowLevelSettings
-from hmpc_cli.messages import ModeSchedule, Plan, SolveStats, Trajectory
-from hmpc_cli.mpc.walking import WalkingMPC, WalkingMPCSettings
+from hmpc_cli.core.messages import ModeSchedule, Plan, SolveStats, Trajectory
+from hmpc_cli.mpc.walking.kind import WalkingMPC
+from hmpc_cli.mpc.walking.nlp import WalkingMPCSettings
 from hmpc_cli.planner.footholds import FootholdSettings, candidates, choose
 from hmpc_cli.systems.biped import BipedParams, Stair, build_biped, make_biped_model, stair_edges
 
@@ -250,7 +251,7 @@ def test_choose_keeps_the_largest_final_hip_x_among_successes():
 def test_walking_mpc_behind_the_contract(mpc):
     """A schedule without a target guard is rejected; the loop's solve of the schedule a
     foothold planner has just chosen reuses that solve; an event restarts the swing."""
-    from hmpc_cli.messages import GuardEvent
+    from hmpc_cli.core.messages import GuardEvent
 
     walker = WalkingMPC(SYS, mpc.s, nlp=mpc.nlp)
     x0 = SYS.x0

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from conftest import REPO
-from hmpc_cli.figures.common import FigureInputError
+from hmpc_cli.analysis.tables import FigureInputError
 from hmpc_cli.figures.fig4 import fig4, load_walk
 from conftest import run_loop
-from hmpc_cli.recorder import read_log
-from hmpc_cli.scenario import load_scenario
+from hmpc_cli.log.reader import read_log
+from hmpc_cli.run.scenario import load_scenario
 from hmpc_cli.systems.biped import BipedParams, make_biped_model, stair_terrain
 
 STAIRS = REPO / "scenarios" / "biped_stairs.toml"
@@ -189,7 +189,7 @@ def test_bad_biped_scenarios_give_one_keyed_line(tmp_path, run_hmpc, override, k
 
 
 def test_results_page_figure_4_section(short_walk, tmp_path):
-    from hmpc_cli.report import ReportInputs, write_report
+    from hmpc_cli.report.page import ReportInputs, write_report
 
     page = write_report(tmp_path / "results", ReportInputs(None, None, None, short_walk),
                         "hmpc report").read_text()
@@ -200,8 +200,9 @@ def test_results_page_figure_4_section(short_walk, tmp_path):
 
 @pytest.mark.slow
 def test_a_biped_sweep_reuses_one_nlp_per_worker(tmp_path):
-    from hmpc_cli import loop
-    from hmpc_cli.sweep import execute_sweep, plan_sweep
+    from hmpc_cli.run import loop
+    from hmpc_cli.sweep.execute import execute_sweep
+    from hmpc_cli.sweep.plan import plan_sweep
 
     sweep = tmp_path / "biped.toml"
     sweep.write_text(f'name = "biped_tiny"\nscenario = "{STAIRS.as_posix()}"\nseeds = 2\n'

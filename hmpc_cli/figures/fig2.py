@@ -1,7 +1,7 @@
 """Figure 2 of the paper from a recorded run: the virtual pass-through node and its tube.
 
-Draws a :class:`~hmpc_cli.passthrough.PassThroughGeometry` (computed from a run log by
-:func:`hmpc_cli.passthrough.pass_through_geometry`; this module never rebuilds a model),
+Draws a :class:`~hmpc_cli.analysis.passthrough.PassThroughGeometry` (computed from a run log by
+:func:`hmpc_cli.analysis.passthrough.pass_through_geometry`; this module never rebuilds a model),
 in the plane of the system's ``plane`` states, two panels (the planned domain, and a
 zoom on the guard):
 
@@ -36,7 +36,7 @@ from hmpc_cli.figures.common import (
 )
 
 if TYPE_CHECKING:
-    from hmpc_cli.passthrough import PassThroughGeometry
+    from hmpc_cli.analysis.passthrough import PassThroughGeometry
 
 __all__ = ["fig2"]
 

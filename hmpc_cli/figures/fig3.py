@@ -2,7 +2,7 @@
 
 Drawn from a sweep table (results.csv) and the run logs it points to; never runs a controller
 and never rebuilds a model. Each panel's guards are the static polylines its logs' geometry
-records (what the system's drawing declares, :mod:`hmpc_cli.loggeometry`), in the plane of
+records (what the system's drawing declares, :mod:`hmpc_cli.log.geometry`), in the plane of
 the logged ``plane`` states: any system, with its own geometry.
 """
 
@@ -16,23 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
+from hmpc_cli.analysis.tables import (
+    FigureInputError, RunTrace, load_trace, parse_bool, read_table, resolve_log, resolve_table)
 from hmpc_cli.figures.common import (
-    COLUMN_WIDTH_IN,
-    OKABE_ITO,
-    FigureInputError,
-    RunTrace,
-    check_size,
-    figure_style,
-    load_trace,
-    make_out_dir,
-    parse_bool,
-    parse_formats,
-    read_table,
-    resolve_log,
-    resolve_table,
-    save_figure,
-    write_csv,
-)
+    COLUMN_WIDTH_IN, OKABE_ITO, check_size, figure_style, make_out_dir, parse_formats,
+    save_figure, write_csv)
 
 __all__ = ["REFERENCE_COUNTS", "PanelCounts", "fig3"]
 

@@ -1,8 +1,8 @@
 """Our Figure 3 runs drawn over the authors' trajectories: one small panel per trial.
 
-Drawn from :class:`~hmpc_cli.fig3compare.TrialComparison` rows: our positions as the run
-logs hold them (read by :func:`hmpc_cli.rundata.read_run`, bounces spliced in at the
-logged events), theirs from the authors' CSV (:mod:`hmpc_cli.authors`), the guards from
+Drawn from :class:`~hmpc_cli.analysis.fig3compare.TrialComparison` rows: our positions as the run
+logs hold them (read by :func:`hmpc_cli.log.rundata.read_run`, bounces spliced in at the
+logged events), theirs from the authors' CSV (:mod:`hmpc_cli.analysis.authors`), the guards from
 the logs' static polylines. Never runs a controller and never builds a model.
 """
 
@@ -16,13 +16,12 @@ import numpy as np
 from hmpc_cli.figures.common import (
     OKABE_ITO,
     TEXT_WIDTH_IN,
-    FigureInputError,
     check_size,
     figure_style,
     make_out_dir,
     parse_formats,
-    save_figure,
-)
+    save_figure)
+from hmpc_cli.analysis.tables import FigureInputError
 
 __all__ = ["COLUMNS", "HEIGHT_PER_ROW_IN", "fig3_overlay", "overlay_figure"]
 
@@ -88,7 +87,7 @@ def overlay_figure(rows: Sequence, title: str = "", width: float = TEXT_WIDTH_IN
     """The overlay of one panel's trials as a Matplotlib Figure (no pyplot state).
 
     Args:
-        rows: :class:`~hmpc_cli.fig3compare.TrialComparison` of one panel, drawn in order.
+        rows: :class:`~hmpc_cli.analysis.fig3compare.TrialComparison` of one panel, drawn in order.
         title: the figure's title ('' for none).
         width: figure width [in].
         height: figure height [in] (None: :data:`HEIGHT_PER_ROW_IN` per row of panels).

@@ -4,9 +4,9 @@ Top: stick-figure snapshots over the terrain profile (colour = time, with a colo
 poses that barely moved are skipped), touchdown points marked. Below: hip x(t), hip y(t)
 and the first disturbance channel (the biped's horizontal torso force F_x(t)), contact
 times as dotted lines. Also a GIF animation of
-the walk. Reads the MCAP log only (:func:`hmpc_cli.rundata.read_run`): the body points
+the walk. Reads the MCAP log only (:func:`hmpc_cli.log.rundata.read_run`): the body points
 logged with every state sample and guard event, the skeleton and the terrain of the log's
-geometry (:mod:`hmpc_cli.loggeometry`). Any system whose drawing has links, a ``hip`` and
+geometry (:mod:`hmpc_cli.log.geometry`). Any system whose drawing has links, a ``hip`` and
 a ``swing_foot`` point and a terrain can be drawn.
 """
 
@@ -21,14 +21,12 @@ import numpy as np
 from hmpc_cli.figures.common import (
     COLUMN_WIDTH_IN,
     OKABE_ITO,
-    FigureInputError,
     check_size,
     figure_style,
     make_out_dir,
     parse_formats,
-    resolve_run_log,
-    save_figure,
-)
+    save_figure)
+from hmpc_cli.analysis.tables import FigureInputError, resolve_run_log
 
 __all__ = ["WalkLog", "animate_walk", "fig4", "load_walk", "resolve_run_log"]
 
@@ -65,14 +63,14 @@ class WalkLog:
 def load_walk(path: str | Path) -> WalkLog:
     """Reads a walking run's log (any complete chunks of a killed run are used).
 
-    Everything comes from the log (:class:`~hmpc_cli.rundata.RunData`): the body points
+    Everything comes from the log (:class:`~hmpc_cli.log.rundata.RunData`): the body points
     of every state sample, the skeleton, the terrain and the touchdown points.
 
     Raises:
         FigureInputError: no such log, unreadable, or a log without body points and
             terrain (not a walking run, or written by an hmpc before log version 3).
     """
-    from hmpc_cli.rundata import read_run
+    from hmpc_cli.log.rundata import read_run
 
     path = Path(path)
     if not path.is_file():

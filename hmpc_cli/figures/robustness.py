@@ -14,18 +14,18 @@ from pathlib import Path
 
 from hmpc_cli.figures.common import (
     TEXT_WIDTH_IN,
-    FigureInputError,
     check_size,
     figure_style,
     make_out_dir,
-    parse_bool,
     parse_formats,
+    save_figure,
+    write_csv)
+from hmpc_cli.analysis.tables import (
+    FigureInputError,
+    parse_bool,
     read_table,
     resolve_table,
-    save_figure,
-    sweep_spec,
-    write_csv,
-)
+    sweep_spec)
 
 __all__ = ["Cell", "cells", "robustness", "wilson"]
 

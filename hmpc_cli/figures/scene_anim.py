@@ -2,7 +2,7 @@
 
 The frames replay what the viewers show: the static geometry, the body, the current MPC
 plan with its tube and the planner's latest rollout, drawn in the system's plane (world
-x horizontal, world z up; :mod:`hmpc_cli.scene` puts plane (a, b) at (a, 0, b)). Written
+x horizontal, world z up; :mod:`hmpc_cli.log.scene` puts plane (a, b) at (a, 0, b)). Written
 as GIF (Pillow, through Matplotlib) and as MP4 when ffmpeg is on the PATH.
 """
 
@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hmpc_cli.figures.common import FigureInputError, figure_style
+from hmpc_cli.analysis.tables import FigureInputError
+from hmpc_cli.figures.common import figure_style
 
 __all__ = ["SceneFrames", "animate_scene", "read_scene"]
 
@@ -34,7 +35,7 @@ class SceneFrames:
 
 
 def read_scene(log) -> SceneFrames:
-    """The /scene/* topics of a read log (:func:`hmpc_cli.recorder.read_log`).
+    """The /scene/* topics of a read log (:func:`hmpc_cli.log.reader.read_log`).
 
     Raises:
         FigureInputError: the log has no scene (a system without a drawing, or an older
@@ -106,7 +107,7 @@ def animate_scene(log, out_dir: Path, title: str, fps: int = 20) -> list[Path]:
     """Writes ``scene.gif`` (and ``scene.mp4`` with ffmpeg) into ``out_dir``.
 
     Args:
-        log: a read log (:func:`hmpc_cli.recorder.read_log`) with /scene/* topics.
+        log: a read log (:func:`hmpc_cli.log.reader.read_log`) with /scene/* topics.
         out_dir: existing output directory.
         title: the figure title (the time is appended per frame).
         fps: frames per simulated second (playback in real time), capped so that at most

@@ -16,7 +16,7 @@ graph: the system's CasADi functions and numbers, the structural MPC settings, t
 length S, the sources that build the graph (:data:`GRAPH_SOURCES`), and the hmpc, CasADi
 and Python versions; not the solver options, rates, margins or iteration limits, which are applied
 when the library is loaded), in the directory of the C rollouts
-(:func:`hmpc_cli.cbuild.cache_dir`):
+(:func:`hmpc_cli.core.cbuild.cache_dir`):
 
 * ``nlp-<key>.json``: the layout (block names, stages, offsets, shapes);
 * ``nlp-<key>.casadi``: the NLP's ``(x, p) -> (f, g)`` function, serialized;
@@ -61,7 +61,8 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from hmpc_cli import __version__, cbuild
+from hmpc_cli import __version__
+from hmpc_cli.core import cbuild
 from hmpc_cli.mpc.builder import NLPLayout
 
 ENV = "HMPC_BUILD_CACHE"
@@ -125,7 +126,7 @@ NOT_COMPILED = (f"not compiled: {ENV}=background (at exit) or {ENV}=sync (now) c
 
 
 #: the sources that turn a system and settings into the NLP's graph and code
-GRAPH_SOURCES = ("mpc/*.py", "hybrid.py", "numeric.py", "cbuild.py")
+GRAPH_SOURCES = ("mpc/**/*.py", "core/hybrid.py", "core/numeric.py", "core/cbuild.py")
 
 
 @functools.lru_cache(maxsize=1)
@@ -186,7 +187,7 @@ class Entry:
     Args:
         folder: the cache directory.
         key: the structure key.
-        identity: the compiler's identity (:func:`hmpc_cli.cbuild.compiler_identity`).
+        identity: the compiler's identity (:func:`hmpc_cli.core.cbuild.compiler_identity`).
     """
 
     def __init__(self, folder: Path, key: str, identity: str) -> None:

@@ -3,7 +3,7 @@
 Both MPC NLPs solve through a :class:`SolverSession`: it builds the plugin's options
 (:func:`plugin_options`), a cold instance and, for IPOPT, a warm-start instance
 (:class:`WarmStart`), and turns every solve into a :class:`SolveResult` with the
-:class:`~hmpc_cli.messages.SolveStats` of the closed loop. The back-end ``sqp_hpipm``
+:class:`~hmpc_cli.core.messages.SolveStats` of the closed loop. The back-end ``sqp_hpipm``
 (:mod:`hmpc_cli.mpc.backends`: SQP, Gauss-Newton Hessian, HPIPM on the NLP's stage
 structure) runs a bounded number of iterations from the primal-dual warm start; a solve
 it fails is solved again by IPOPT (built on first use) and marked ``fallback``. A solve
@@ -23,8 +23,8 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from hmpc_cli import signals
-from hmpc_cli.messages import SolveStats
+from hmpc_cli.core import signals
+from hmpc_cli.core.messages import SolveStats
 from hmpc_cli.mpc.backends import OCPStructure, rti_success, sqp_options
 
 INTERRUPTED = "NonIpopt_Exception_Thrown"
@@ -246,7 +246,7 @@ class SolverSession:
 
         Raises:
             KeyboardInterrupt: the solve was interrupted (Ctrl-C inside IPOPT);
-                :class:`hmpc_cli.signals.Interrupted` when a stop signal is pending.
+                :class:`hmpc_cli.core.signals.Interrupted` when a stop signal is pending.
         """
         args = (w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0)
         res = _run((self.cold, self.warm), *args, rti=self.plugin == "sqp_hpipm")
@@ -374,7 +374,7 @@ def _probe_options(plugin: str, extra: dict) -> list[tuple[str, dict]]:
 
 def _probe(plugin: str, opts: dict) -> str | None:
     """None if ``min (x - 1)^2`` solves with ``opts``; else the status or error."""
-    from hmpc_cli.registry import one_line
+    from hmpc_cli.core.registry import one_line
 
     x = ca.SX.sym("x")
     try:

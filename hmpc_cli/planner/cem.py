@@ -8,7 +8,7 @@ schedule. Reference parameters by default: 50 samples plus the current mean, 1 e
 15 iterations, initial mean -20, covariance 250 I never adapted.
 
 Rollouts and the best sample's recorded trajectory run in compiled C
-(:mod:`hmpc_cli.planner.rollout_c`, same guard logic, same numbers) when a C compiler is
+(:mod:`hmpc_cli.sim.rollout`, same guard logic, same numbers) when a C compiler is
 available, else with the NumPy simulator, which is also the reference.
 """
 
@@ -21,13 +21,13 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
-from hmpc_cli.hybrid import HybridSystem
-from hmpc_cli.messages import ModeSchedule, PlannerResult, Trajectory
-from hmpc_cli.numeric import compile_numpy
-from hmpc_cli.planner.rollout_c import CRollout, RolloutBuildError
-from hmpc_cli.registry import PlannerSpec
-from hmpc_cli.settings_types import BoundedInt, FiniteFloat, StrictBool, gib, memory_limit
-from hmpc_cli.sim import HybridSimulator
+from hmpc_cli.core.hybrid import HybridSystem
+from hmpc_cli.core.messages import ModeSchedule, PlannerResult, Trajectory
+from hmpc_cli.core.numeric import compile_numpy
+from hmpc_cli.sim.rollout import CRollout, RolloutBuildError
+from hmpc_cli.core.registry import PlannerSpec
+from hmpc_cli.core.settings_types import BoundedInt, FiniteFloat, StrictBool, gib, memory_limit
+from hmpc_cli.sim.simulator import HybridSimulator
 
 UNREACHED_PENALTY = 1e4
 

@@ -20,11 +20,11 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from hmpc_cli.hybrid import HybridSystem
-from hmpc_cli.messages import ModeSchedule, Plan, PlannerResult
-from hmpc_cli.registry import PlannerSpec, Requirement
-from hmpc_cli.settings_types import FiniteFloat, StrictBool
-from hmpc_cli.stack import SolveFn
+from hmpc_cli.core.hybrid import HybridSystem
+from hmpc_cli.core.messages import ModeSchedule, Plan, PlannerResult
+from hmpc_cli.core.registry import PlannerSpec, Requirement
+from hmpc_cli.core.settings_types import FiniteFloat, StrictBool
+from hmpc_cli.core.stack import SolveFn
 
 Segment = tuple[float, float, float]
 

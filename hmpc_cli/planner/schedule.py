@@ -16,10 +16,10 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from hmpc_cli.hybrid import HybridSystem
-from hmpc_cli.messages import ModeSchedule, PlannerResult
-from hmpc_cli.registry import PlannerSpec
-from hmpc_cli.settings_types import FiniteFloat
+from hmpc_cli.core.hybrid import HybridSystem
+from hmpc_cli.core.messages import ModeSchedule, PlannerResult
+from hmpc_cli.core.registry import PlannerSpec
+from hmpc_cli.core.settings_types import FiniteFloat
 
 
 class ScheduleSettings(BaseModel):

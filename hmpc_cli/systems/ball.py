@@ -20,11 +20,9 @@ import casadi as ca
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from hmpc_cli.drawing import Ball, Drawing, Polyline, circle
-from hmpc_cli.hybrid import Guard, HybridSystem, Mode
-from hmpc_cli.registry import SystemSpec
-from hmpc_cli.settings_types import FiniteFloat
-from hmpc_cli.tasks import ReachGoal
+from hmpc_cli.plugin import (
+    Ball, Drawing, FiniteFloat, Guard, HybridSystem, Mode, Polyline, ReachGoal, SystemSpec, circle)
+
 
 Pair = tuple[FiniteFloat, FiniteFloat]
 

@@ -1,6 +1,6 @@
 """Tracking-error tubes of the paper's Section III-B: constants, bounds, margins.
 
-Pure mathematics on a :class:`~hmpc_cli.hybrid.HybridSystem` and plain settings values
+Pure mathematics on a :class:`~hmpc_cli.core.hybrid.HybridSystem` and plain settings values
 (never a Scenario). Notation (Euclidean norms; the tracking error is e = x - x_ref):
 
 * L_x, L_u: Lipschitz constants of the flows, *estimated* as the sampled maximum of

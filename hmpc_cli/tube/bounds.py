@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from hmpc_cli.hybrid import HybridSystem
+from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.tube.sampling import num
 
 __all__ = ["GuardMargin", "InputMargin", "Margins", "feedforward_tube", "initial_violations",

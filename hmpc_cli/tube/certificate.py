@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hmpc_cli.hybrid import HybridSystem
+from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.tube.sampling import TubeError, jacobians, num
 
 __all__ = ["Certificate", "a_bound", "eiss_constants", "pd_certificate", "roa_level",

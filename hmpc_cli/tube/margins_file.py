@@ -34,7 +34,7 @@ from pathlib import Path
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from hmpc_cli import __version__
-from hmpc_cli.messages import ConstraintMargins
+from hmpc_cli.core.messages import ConstraintMargins
 from hmpc_cli.tube.report import TubeReport, TubeRow
 
 __all__ = ["FORMAT", "GuardOffsets", "MarginsFile", "RateMargins", "constraint_margins",
@@ -240,7 +240,7 @@ def constraint_margins(path: Path, system, params: BaseModel,
 
     Args:
         path: the margins file.
-        system: the built :class:`~hmpc_cli.hybrid.HybridSystem` (guard and mode order).
+        system: the built :class:`~hmpc_cli.core.hybrid.HybridSystem` (guard and mode order).
         params: its parameters (checked against the file's hash).
         rate_hz: the scenario's MPC rate [Hz].
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hmpc_cli.hybrid import HybridSystem
+from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.tube.bounds import (
     Margins, feedforward_tube, initial_violations, input_box_diameter, integrated_tube,
     low_level_share, margins)

@@ -4,7 +4,7 @@ Every constant is the sampled maximum of a Jacobian norm over a box of states
 (:class:`Region`) and each mode's input box (w = 0), refined by a local random search
 from the best samples. A sampled maximum is a lower bound on the true supremum: these are
 estimates, not certificates. The Jacobians are built once per system in CasADi and
-evaluated on batches through :func:`~hmpc_cli.numeric.compile_numpy`.
+evaluated on batches through :func:`~hmpc_cli.core.numeric.compile_numpy`.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from dataclasses import asdict, dataclass
 import casadi as ca
 import numpy as np
 
-from hmpc_cli.hybrid import HybridSystem
-from hmpc_cli.numeric import compile_numpy
+from hmpc_cli.core.hybrid import HybridSystem
+from hmpc_cli.core.numeric import compile_numpy
 
 __all__ = ["ESTIMATE_NOTE", "DisturbanceBound", "LipschitzEstimate", "Region", "TubeError",
            "eta_bound", "jacobians", "lipschitz", "num", "region_from_scenario"]

@@ -13,7 +13,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from hmpc_cli.hybrid import Guard, HybridSystem
+from hmpc_cli.core.hybrid import Guard, HybridSystem
 
 __all__ = ["guard_states", "kinematic_rates", "kinematic_states"]
 

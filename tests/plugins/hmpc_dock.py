@@ -23,9 +23,7 @@ import casadi as ca
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from hmpc_cli.hybrid import Guard, HybridSystem, Mode
-from hmpc_cli.registry import SystemSpec
-from hmpc_cli.tasks import ReachGoal
+from hmpc_cli.plugin import Guard, HybridSystem, Mode, ReachGoal, SystemSpec
 
 
 class DockParams(BaseModel):

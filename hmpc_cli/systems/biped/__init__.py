@@ -3,7 +3,7 @@
 A plug-in in three parts: :mod:`.params` (validated parameters and the stairs),
 :mod:`.model` (Lagrangian dynamics, kinematics, impact and leg swap, derived once in
 CasADi), :mod:`.terrain` (the stairs as a terrain) and :mod:`.task` (falls, success).
-:func:`build_biped` assembles the :class:`~hmpc_cli.hybrid.HybridSystem` with the named
+:func:`build_biped` assembles the :class:`~hmpc_cli.core.hybrid.HybridSystem` with the named
 outputs the walking MPC, the foothold planner and the figures use:
 
 * ``points`` q -> (2, 6) and ``points_world`` x -> (2, 6): the joint points
@@ -23,12 +23,12 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from hmpc_cli.drawing import Ball, Drawing, Polyline
-from hmpc_cli.numeric import compile_numpy
-from hmpc_cli.hybrid import Guard, HybridSystem, Mode, Terrain
-from hmpc_cli.registry import Requirement, SystemSpec
-from hmpc_cli.systems.biped.model import (
-    N_Q, POINT_NAMES, STANCE_X, BipedModel, make_biped_model, state_box)
+from hmpc_cli.core.drawing import Ball, Drawing, Polyline
+from hmpc_cli.core.numeric import compile_numpy
+from hmpc_cli.core.hybrid import Guard, HybridSystem, Mode, Terrain
+from hmpc_cli.core.registry import Requirement, SystemSpec
+from hmpc_cli.systems.biped.kinematics import N_Q, POINT_NAMES, STANCE_X
+from hmpc_cli.systems.biped.model import BipedModel, make_biped_model, state_box
 from hmpc_cli.systems.biped.params import BipedParams, Stair
 from hmpc_cli.systems.biped.task import ClimbStairs
 from hmpc_cli.systems.biped.terrain import stair_edges, stair_terrain

@@ -55,43 +55,14 @@ angular momentum about the impact point is not (the pin takes an impulse too).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import casadi as ca
 import numpy as np
 
-if TYPE_CHECKING:
-    from hmpc_cli.systems.biped.params import BipedParams
+from hmpc_cli.systems.biped.kinematics import N_Q, POINT_NAMES, link_geometry
+from hmpc_cli.systems.biped.params import BipedParams
 
-N_Q = 5
-STANCE_X = 2 * N_Q  #: index of the stance-foot x in the state (the stance-foot y follows)
-#: names of the points returned by :attr:`BipedModel.points` (columns, in this order)
-POINT_NAMES = ("stance_foot", "stance_knee", "hip", "torso_top", "swing_knee", "swing_foot")
-
-
-def _geometry(p: BipedParams) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Coefficients D (points x links), C (bodies x links), masses and inertias."""
-    lc, lt, lT = p.calf_length, p.thigh_length, p.torso_length
-    d = np.array([[0, 0, 0, 0, 0], [lc, 0, 0, 0, 0], [lc, lt, 0, 0, 0], [lc, lt, lT, 0, 0],
-                  [lc, lt, 0, -lt, 0], [lc, lt, 0, -lt, -lc]], dtype=float)
-    c = np.array([[lc - p.calf_com, 0, 0, 0, 0],           # stance calf: calf_com from knee
-                  [lc, lt - p.thigh_com, 0, 0, 0],         # stance thigh: thigh_com from hip
-                  [lc, lt, p.torso_com, 0, 0],             # torso
-                  [lc, lt, 0, -p.thigh_com, 0],            # swing thigh
-                  [lc, lt, 0, -lt, -p.calf_com]], dtype=float)  # swing calf
-    s = p.mass_scale
-    mass = s * np.array([p.calf_mass, p.thigh_mass, p.torso_mass, p.thigh_mass, p.calf_mass])
-    inertia = s * np.array([p.calf_inertia, p.thigh_inertia, p.torso_inertia,
-                            p.thigh_inertia, p.calf_inertia])
-    return d, c, mass, inertia
-
-
-def swing_foot_numeric(p: BipedParams, q) -> np.ndarray:
-    """Swing foot relative to the stance foot for angles q (NumPy, used by validation)."""
-    d = _geometry(p)[0]
-    theta = np.cumsum(np.asarray(q, dtype=float))
-    return np.array([-d[-1] @ np.sin(theta), d[-1] @ np.cos(theta)])
-
+__all__ = ["BipedModel", "make_biped_model", "state_box"]
 
 @dataclass(frozen=True)
 class BipedModel:
@@ -164,7 +135,7 @@ class _Terms:
     """Closed-form Lagrangian terms in the absolute angles for symbolic q, qd."""
 
     def __init__(self, p: BipedParams, q: ca.SX, qd: ca.SX) -> None:
-        d, c, mass, inertia = _geometry(p)
+        d, c, mass, inertia = link_geometry(p)
         self.S = np.tril(np.ones((N_Q, N_Q)))
         self.Sinv = np.linalg.inv(self.S)  # bidiagonal: exact differences
         self.a = c.T @ np.diag(mass) @ c + np.diag(inertia)
@@ -221,7 +192,7 @@ def make_biped_model(p: BipedParams) -> BipedModel:
     model = _joint_space(t, q, qd)
     model.update(_state_space(p, t, model, q, qd))
     lower, upper = state_box(p)
-    return BipedModel(**model, total_mass=float(_geometry(p)[2].sum()), state_lower=lower,
+    return BipedModel(**model, total_mass=float(link_geometry(p)[2].sum()), state_lower=lower,
                       state_upper=upper, u_max=p.torque_limit)
 
 
@@ -282,7 +253,7 @@ def _state_space(p: BipedParams, t: _Terms, model: dict, q: ca.SX, qd: ca.SX
     jf_th = t.jac_theta(foot_coeff)
     kin = 0.5 * ca.dot(t.thd, ca.mtimes(m_th, t.thd))
     pot = (p.gravity * sum(t.beta[k] * t.cos[k] for k in range(N_Q))
-           + float(_geometry(p)[2].sum()) * p.gravity * x[2 * N_Q + 1])
+           + float(link_geometry(p)[2].sum()) * p.gravity * x[2 * N_Q + 1])
     # state-level functions: substitute (q, qd) = x[0:5], x[5:10]
     xq, xv, pst = x[0:N_Q], x[N_Q:2 * N_Q], x[2 * N_Q:]
 

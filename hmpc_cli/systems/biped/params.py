@@ -8,8 +8,8 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from pydantic_core import InitErrorDetails, PydanticCustomError
 
-from hmpc_cli.settings_types import FiniteFloat
-from hmpc_cli.systems.biped.model import swing_foot_numeric
+from hmpc_cli.core.settings_types import FiniteFloat
+from hmpc_cli.systems.biped.kinematics import swing_foot_numeric
 from hmpc_cli.systems.biped.terrain import stair_terrain
 
 Five = tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat]

@@ -6,9 +6,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hmpc_cli.hybrid import HybridSystem
-from hmpc_cli.numeric import compile_numpy
-from hmpc_cli.stack import Verdict
+from hmpc_cli.core.hybrid import HybridSystem
+from hmpc_cli.core.numeric import compile_numpy
+from hmpc_cli.core.stack import Verdict
 
 #: body points that must stay above the terrain (a knee, the hip or the torso top down
 #: is a fall)

@@ -1,16 +1,26 @@
-"""The stairs as a :class:`~hmpc_cli.hybrid.Terrain` (consecutive flat segments from x = 0)."""
+"""The stairs as a :class:`~hmpc_cli.core.hybrid.Terrain` (consecutive flat segments from x = 0)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from collections.abc import Sequence
+from typing import Protocol
 
-from hmpc_cli.hybrid import Terrain
-
-if TYPE_CHECKING:
-    from hmpc_cli.systems.biped.params import BipedParams
+from hmpc_cli.core.hybrid import Terrain
 
 
-def stair_edges(p: BipedParams) -> list[tuple[float, float, float]]:
+class _Stair(Protocol):
+    length: float
+    height: float
+
+
+class Stairs(Protocol):
+    """The terrain data the stairs read: the stair segments and the ground height [m]."""
+
+    stairs: Sequence[_Stair]
+    ground_height: float
+
+
+def stair_edges(p: Stairs) -> list[tuple[float, float, float]]:
     """(start, end, height) of each stair segment, consecutive from x = 0 [m]."""
     out, x = [], 0.0
     for s in p.stairs:
@@ -19,6 +29,6 @@ def stair_edges(p: BipedParams) -> list[tuple[float, float, float]]:
     return out
 
 
-def stair_terrain(p: BipedParams) -> Terrain:
+def stair_terrain(p: Stairs) -> Terrain:
     """The ground (x <= 0) and the stair segments as a terrain."""
     return Terrain(p.ground_height, tuple(stair_edges(p)))

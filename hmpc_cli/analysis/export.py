@@ -1,0 +1,180 @@
+"""``hmpc replay --export``: one flat table per topic (CSV, or Parquet with pyarrow).
+
+Flattening of a message (a JSON object):
+
+* nested objects become dotted columns (``schedule.t0``, ``x.px``);
+* lists of scalars become indexed columns (``w[0]``, ``w[1]``, ...; ``[]`` for an empty list);
+* lists holding objects or lists (``x_plan``, ``candidates``, the ``plan`` array of named
+  nodes) go to a separate table ``<topic>_<field>`` with one row per element, keyed by
+  ``msg_t`` (the message's time) and ``index`` (the element's position); inside such a row
+  a further list of objects is one JSON-string column.
+
+Each topic's table has one row per message; ``info.json`` holds the run info, the metadata,
+the attached scenario text and the filters.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import Any
+
+from hmpc_cli.core.jsonio import dumps
+
+__all__ = ["ExportError", "check_format", "flatten", "tables", "write_export"]
+
+FORMATS = ("csv", "parquet")
+
+
+class ExportError(Exception):
+    """The export cannot be written (unknown format, missing pyarrow, unwritable directory)."""
+
+
+def _scalar(v: Any) -> bool:
+    """Whether ``v`` is a JSON scalar."""
+    return v is None or isinstance(v, (str, bool, int, float))
+
+
+def _into(value: Any, key: str, row: dict, nested: dict | None) -> None:
+    """Flattens ``value`` under column ``key`` into ``row``; lists of objects to ``nested``."""
+    if isinstance(value, dict):
+        if not value and key:
+            row[key] = "{}"
+        for k, v in value.items():
+            _into(v, f"{key}.{k}" if key else str(k), row, nested)
+    elif isinstance(value, list) and all(_scalar(v) for v in value):
+        if not value:
+            row[key] = "[]"
+        for i, v in enumerate(value):
+            row[f"{key}[{i}]"] = v
+    elif isinstance(value, list):
+        if nested is None:
+            row[key] = dumps(value, separators=(",", ":"))
+        else:
+            nested[key] = value
+    else:
+        row[key] = value
+
+
+def flatten(data: dict, nested: dict | None = None) -> dict:
+    """One flat row of a message (see the module docstring).
+
+    Args:
+        data: the message.
+        nested: receives ``{field: list}`` for lists holding objects or lists; None
+            writes them as JSON-string columns instead.
+    """
+    row: dict = {}
+    _into(data, "", row, nested)
+    return row
+
+
+def _table_name(topic: str) -> str:
+    """``/mpc/solve`` -> ``mpc_solve``."""
+    return topic.strip("/").replace("/", "_").replace(".", "_") or "root"
+
+
+def tables(messages: list) -> dict[str, list[dict]]:
+    """Rows per table name: one table per topic, one per (topic, list-of-objects field)."""
+    out: dict[str, list[dict]] = {}
+    for m in messages:
+        name = _table_name(m.topic)
+        nested: dict[str, list] = {}
+        out.setdefault(name, []).append({"t": m.t, **flatten(m.data, nested)})
+        for key, items in nested.items():
+            child = out.setdefault(f"{name}_{_table_name(key)}", [])
+            for i, item in enumerate(items):
+                row = flatten(item if isinstance(item, dict) else {key: item}, None)
+                child.append({"msg_t": m.t, "index": i, **row})
+    return out
+
+
+def _columns(rows: list[dict]) -> list[str]:
+    """The union of the rows' columns in first-seen order."""
+    seen: dict[str, None] = {}
+    for r in rows:
+        for k in r:
+            seen.setdefault(k, None)
+    return list(seen)
+
+
+def _write_csv(path: Path, rows: list[dict]) -> None:
+    """Writes rows as CSV (missing cells and None empty)."""
+    with open(path, "w", newline="", encoding="utf-8") as f:
+        writer = csv.DictWriter(f, fieldnames=_columns(rows), restval="")
+        writer.writeheader()
+        for r in rows:
+            writer.writerow({k: "" if v is None else v for k, v in r.items()})
+
+
+def _arrow_column(values: list) -> tuple[list, str]:
+    """A column's values and arrow type name: bool, int64, float64 or string."""
+    kinds = {type(v) for v in values if v is not None}
+    if kinds <= {bool} and kinds:
+        return values, "bool_"
+    if kinds <= {int} and kinds:
+        return values, "int64"
+    if kinds <= {int, float} and kinds:
+        return [None if v is None else float(v) for v in values], "float64"
+    return [None if v is None else (v if isinstance(v, str) else dumps(v))
+            for v in values], "string"
+
+
+def _write_parquet(path: Path, rows: list[dict]) -> None:
+    """Writes rows as a Parquet file (one typed column per flattened field)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    arrays, names = [], []
+    for col in _columns(rows):
+        values, kind = _arrow_column([r.get(col) for r in rows])
+        arrays.append(pa.array(values, type=getattr(pa, kind)()))
+        names.append(col)
+    pq.write_table(pa.Table.from_arrays(arrays, names=names), path)
+
+
+def check_format(fmt: str) -> None:
+    """Checks an export format and, for Parquet, that pyarrow is installed.
+
+    Raises:
+        ExportError: unknown format or pyarrow missing.
+    """
+    if fmt not in FORMATS:
+        raise ExportError(f"--format: unknown format {fmt!r} (choose from {', '.join(FORMATS)})")
+    if fmt == "parquet":
+        try:
+            import pyarrow.parquet  # noqa: F401
+        except ImportError:
+            raise ExportError("--format parquet needs pyarrow: pip install pyarrow "
+                              "(or pip install -e '.[parquet]')") from None
+
+
+def write_export(out: Path, messages: list, info: dict, fmt: str = "csv") -> list[Path]:
+    """Writes the tables of ``messages`` and ``info.json`` into directory ``out``.
+
+    Args:
+        out: output directory (created).
+        messages: the (filtered) log messages.
+        info: what ``info.json`` holds (run info, scenario text, filters, ...).
+        fmt: ``csv`` or ``parquet``.
+
+    Returns:
+        The written files.
+
+    Raises:
+        ExportError: unknown format, pyarrow missing for Parquet, or ``out`` unwritable.
+    """
+    check_format(fmt)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        written = []
+        for name, rows in tables(messages).items():
+            path = out / f"{name}.{fmt}"
+            (_write_csv if fmt == "csv" else _write_parquet)(path, rows)
+            written.append(path)
+        path = out / "info.json"
+        path.write_text(dumps(info, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+        written.append(path)
+    except OSError as exc:
+        raise ExportError(f"{out}: cannot write ({exc.strerror or exc})") from None
+    return written

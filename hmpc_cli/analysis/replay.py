@@ -1,0 +1,444 @@
+"""Replay of a recorded run: its identity, a timeline, filters and a re-run check.
+
+Plain logic for ``hmpc replay`` (the Typer command is :mod:`hmpc_cli.cli.replay`). The
+messages are read as generic JSON dicts: only the names every log version keeps are used
+(``t``; ``/sim/event``: ``guard_name``, ``mode_before``, ``mode_after``, ``scheduled``;
+``/mpc/solve``: ``reason``, ``status``, ``success``, ``iterations``, ``wall_time``, ``slack``,
+``adopted``; ``/planner/plan``: ``reason``, ``accepted``, ``reached_final``, ``cost``,
+``wall_time``, ``note``; ``/disturbance``: ``w``, a list of numbers or an object of named
+numbers). The CSV/Parquet export is :mod:`hmpc_cli.analysis.export`.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import statistics
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from hmpc_cli.log.topics import LOG_VERSION
+
+__all__ = ["LOG_VERSION", "TOPICS", "Divergence", "Replay", "ReplayError", "TimelineRow",
+           "compare_logs", "disturbance_stats", "load_replay", "resolve_topics",
+           "select", "timeline", "verify"]
+
+#: the topics an hmpc run writes
+TOPICS = ("/run/info", "/planner/plan", "/mpc/solve", "/sim/event", "/disturbance",
+          "/sim/state", "/run/summary")
+SOFTENED_TOL = 1e-6  # as hmpc_cli.log.runlog.SOFTENED_TOL (not imported: it pulls in casadi)
+RTOL, ATOL = 1e-9, 1e-12
+# fields that are measurements or the command line, not results: never compared by verify
+_IGNORED = {"wall_time", "versions", "command", "argv", "overrides", "sweep", "log_version",
+            "build"}
+_IGNORED_RE = re.compile(r"(wall_time|_time_(median|mean|p\d+|max|min))$")
+
+
+class ReplayError(Exception):
+    """A log that cannot be replayed or re-run; the message is one line without the file."""
+
+
+@dataclass
+class Replay:
+    """A run log read for replay.
+
+    Attributes:
+        path: the MCAP file.
+        log: the decoded log (:class:`hmpc_cli.log.reader.Log`).
+        info: the /run/info payload.
+        summary: the /run/summary payload, or None if the run did not finish.
+        scenario_text: the attached ``scenario.toml``, or None.
+        t_last: time of the last message read [s].
+    """
+
+    path: Path
+    log: Any
+    info: dict
+    summary: dict | None
+    scenario_text: str | None
+    t_last: float
+
+    @property
+    def scenario(self) -> dict:
+        """The scenario as run (from /run/info), or {}."""
+        import json
+
+        text = self.info.get("scenario_json")
+        if isinstance(text, str):
+            try:
+                return dict(json.loads(text))
+            except (ValueError, TypeError):
+                return {}
+        return dict(self.info.get("scenario") or {})
+
+    @property
+    def complete(self) -> bool:
+        """Whether the file was read to its footer."""
+        return bool(self.log.complete)
+
+    def version_note(self) -> str:
+        """A note when the log's version differs from :data:`LOG_VERSION`, else ""."""
+        version = self.info.get("log_version", 1)  # logs without it: version 1
+        if not isinstance(version, int) or version == LOG_VERSION:
+            return ""
+        if version < LOG_VERSION:
+            return f"written by an older hmpc log version ({version}; this reader: {LOG_VERSION})"
+        return f"written by a newer hmpc log version ({version}; this reader: {LOG_VERSION})"
+
+
+@dataclass
+class TimelineRow:
+    """One timeline line: time, kind (contact, plan, solve, solves, ...), text, emphasis."""
+
+    t: float
+    kind: str
+    text: str
+    style: str = ""
+
+
+@dataclass
+class Divergence:
+    """The first difference between a log and its re-run."""
+
+    t: float
+    topic: str
+    path: str
+    recorded: Any
+    rerun: Any
+
+
+def resolve_log_path(path: Path) -> Path:
+    """The MCAP file of ``path`` (a file, or a run directory holding ``run.mcap``).
+
+    Raises:
+        ReplayError: missing, a directory without run.mcap, or an empty file.
+    """
+    if path.is_dir():
+        if not (path / "run.mcap").is_file():
+            raise ReplayError("a directory without run.mcap")
+        path = path / "run.mcap"
+    if not path.exists():
+        raise ReplayError("no such file")
+    if not path.is_file():
+        raise ReplayError("not a regular file")
+    if path.stat().st_size == 0:
+        raise ReplayError("empty file")
+    return path
+
+
+def load_replay(path: Path) -> Replay:
+    """Reads a run log for replay; a truncated or damaged file yields what was completed.
+
+    Raises:
+        ReplayError: not an MCAP file, another program's MCAP file, or nothing readable.
+    """
+    from hmpc_cli.log.reader import read_log
+
+    path = resolve_log_path(path)
+    try:
+        log = read_log(path)
+    except ValueError as exc:
+        if "not an MCAP file" in str(exc):
+            raise ReplayError("not an MCAP file") from None
+        raise ReplayError(f"unreadable MCAP file ({exc})") from None
+    except OSError as exc:
+        raise ReplayError(f"cannot read ({exc.strerror or exc})") from None
+    if not log.messages:
+        why = log.damage or "the file ends before its first complete chunk"
+        raise ReplayError(f"no message could be read: {why}")
+    infos = log.topic("/run/info")
+    if not infos:
+        topics = sorted({m.topic for m in log.messages})
+        raise ReplayError("not an hmpc run log (no /run/info; its topics: "
+                          f"{', '.join(topics)})")
+    if not isinstance(infos[0].data, dict) or "scenario_name" not in infos[0].data:
+        raise ReplayError("not an hmpc run log (its /run/info has no scenario_name)")
+    summaries = log.topic("/run/summary")
+    text = log.attachments.get("scenario.toml")
+    try:
+        text = text.decode("utf-8") if text is not None else None
+    except UnicodeDecodeError:
+        text = None
+    return Replay(path, log, infos[0].data, summaries[-1].data if summaries else None, text,
+                  max(m.t for m in log.messages))
+
+
+def resolve_topics(names: list[str], present: list[str]) -> list[str]:
+    """Full topic names for ``--topic`` values.
+
+    A value is a full name (``/mpc/solve``), the name without its slash (``mpc/solve``) or
+    its last part when that is unique (``solve``, ``event``, ``plan``, ``state``, ...).
+
+    Raises:
+        ReplayError: an unknown topic (the message lists the known ones).
+    """
+    known = list(TOPICS) + sorted(set(present) - set(TOPICS))
+    out: list[str] = []
+    for name in names:
+        key = name.strip().strip("/")
+        hits = [t for t in known if t.strip("/") == key] or \
+               [t for t in known if t.rsplit("/", 1)[-1] == key]
+        if len(hits) != 1:
+            raise ReplayError(f"unknown topic {name!r} (known: {', '.join(known)})")
+        if hits[0] not in out:
+            out.append(hits[0])
+    return out
+
+
+def select(messages: list, t0: float | None = None, t1: float | None = None,
+           topics: list[str] | None = None) -> list:
+    """Messages with ``t0 <= t <= t1`` (either bound optional) on ``topics`` (all if None)."""
+    keep = set(topics) if topics else None
+    return [m for m in messages
+            if (keep is None or m.topic in keep)
+            and (t0 is None or m.t >= t0 - 1e-12) and (t1 is None or m.t <= t1 + 1e-12)]
+
+
+def _num(v: Any) -> float | None:
+    """``v`` as a finite float, or None."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        return None
+    return float(v)
+
+
+def _ms(v: Any) -> str:
+    """Seconds as milliseconds text, or '-'."""
+    v = _num(v)
+    return "-" if v is None else f"{1e3 * v:.1f} ms"
+
+
+def _g(v: Any) -> str:
+    """A number in 4 significant digits, or '-'."""
+    v = _num(v)
+    return "-" if v is None else f"{v:.4g}"
+
+
+def _contact(d: dict) -> TimelineRow:
+    """Timeline row of a /sim/event message."""
+    sched = "scheduled" if d.get("scheduled") else "NOT scheduled"
+    text = (f"{d.get('guard_name', '?')}: {d.get('mode_before', '?')} -> "
+            f"{d.get('mode_after', '?')} ({sched})")
+    return TimelineRow(float(d.get("t", 0.0)), "contact", text,
+                       "" if d.get("scheduled") else "yellow")
+
+
+def _plan(d: dict) -> TimelineRow:
+    """Timeline row of a /planner/plan message."""
+    acc = "accepted" if d.get("accepted") else "REJECTED"
+    text = f"{d.get('reason', '?')}: {acc}, cost {_g(d.get('cost'))}, {_ms(d.get('wall_time'))}"
+    if d.get("reached_final") is False:
+        text += ", did not reach the final domain"
+    if d.get("note"):
+        text += f"; {d['note']}"
+    return TimelineRow(float(d.get("t", 0.0)), "plan", text, "" if d.get("accepted") else "red")
+
+
+def _ordinary(d: dict) -> bool:
+    """A successful, adopted, not softened solve."""
+    slack = _num(d.get("slack")) or 0.0
+    return bool(d.get("success")) and slack <= SOFTENED_TOL and d.get("adopted", True) is not False
+
+
+def _solve(d: dict) -> TimelineRow:
+    """Timeline row of one /mpc/solve message."""
+    ok = bool(d.get("success"))
+    text = (f"{d.get('reason', '?')}: {'' if ok else 'FAILED '}{d.get('status', '?')}, "
+            f"{d.get('iterations', '?')} it, {_ms(d.get('wall_time'))}")
+    style = "" if ok else "bold red"
+    slack = _num(d.get("slack")) or 0.0
+    if ok and slack > SOFTENED_TOL:
+        text += f", softened (slack {slack:.3g})"
+        style = "yellow"
+    if d.get("adopted") is False:
+        text += ", not adopted"
+        style = style or "yellow"
+    return TimelineRow(float(d.get("t", 0.0)), "solve", text, style)
+
+
+def _solves_row(group: list[dict]) -> TimelineRow:
+    """One row for a run of ordinary solves (a single one is shown as it is)."""
+    if len(group) == 1:
+        return _solve(group[0])
+    its = [v for v in (_num(d.get("iterations")) for d in group) if v is not None]
+    wall = [v for v in (_num(d.get("wall_time")) for d in group) if v is not None]
+    reasons: dict[str, int] = {}
+    for d in group:
+        reasons[str(d.get("reason", "?"))] = reasons.get(str(d.get("reason", "?")), 0) + 1
+    text = (f"... {len(group)} solves ok until t = {float(group[-1].get('t', 0.0)):.3f} s, "
+            f"{_g(statistics.median(its)) if its else '-'} iterations median, "
+            f"{_ms(statistics.median(wall)) if wall else '-'} median ("
+            + ", ".join(f"{k} {n}" for k, n in reasons.items()) + ")")
+    return TimelineRow(float(group[0].get("t", 0.0)), "solves", text, "dim")
+
+
+def timeline(messages: list, show_all: bool = False) -> list[TimelineRow]:
+    """The time-ordered timeline of contacts, planner calls and solves.
+
+    Args:
+        messages: log messages (any topics; only events, plans and solves appear).
+        show_all: one row per solve; otherwise runs of ordinary solves (successful,
+            adopted, not softened) between other rows are summarised in one row.
+    """
+    rank = {"/sim/event": 0, "/planner/plan": 1, "/mpc/solve": 2}  # contact, then replan
+    ordered = sorted((m for m in messages if m.topic in rank),
+                     key=lambda m: (m.t, rank[m.topic]))
+    rows: list[TimelineRow] = []
+    group: list[dict] = []
+    for m in ordered:
+        if m.topic == "/mpc/solve" and not show_all and _ordinary(m.data):
+            group.append(m.data)
+            continue
+        if group:
+            rows.append(_solves_row(group))
+            group = []
+        make = {"/planner/plan": _plan, "/mpc/solve": _solve, "/sim/event": _contact}
+        rows.append(make[m.topic](m.data))
+    if group:
+        rows.append(_solves_row(group))
+    return rows
+
+
+def _channels(w: Any) -> dict[str, float]:
+    """Named channels of one disturbance value (a list or an object of numbers)."""
+    if isinstance(w, dict):
+        return {str(k): abs(_num(v) or 0.0) for k, v in w.items()}
+    if isinstance(w, (list, tuple)):
+        return {f"w[{i}]": abs(_num(v) or 0.0) for i, v in enumerate(w)}
+    v = _num(w)
+    return {} if v is None else {"w": abs(v)}
+
+
+def disturbance_stats(messages: list, t_end: float) -> dict:
+    """Statistics of the /disturbance messages.
+
+    Each value holds until the next one (the last until ``t_end``); the mean |w| is
+    time-weighted (a plain mean if the values span no time).
+
+    Returns:
+        ``{"values": N, "changes": N - 1, "channels": {name: {"max": .., "mean": ..}}}``.
+    """
+    dist = sorted((m for m in messages if m.topic == "/disturbance"), key=lambda m: m.t)
+    if not dist:
+        return {"values": 0, "changes": 0, "channels": {}}
+    ends = [m.t for m in dist[1:]] + [max(t_end, dist[-1].t)]
+    spans = [max(e - m.t, 0.0) for m, e in zip(dist, ends, strict=True)]
+    total = sum(spans)
+    weights = [s / total for s in spans] if total > 0 else [1 / len(dist)] * len(dist)
+    chans: dict[str, dict[str, float]] = {}
+    for m, wgt in zip(dist, weights, strict=True):
+        for name, a in _channels(m.data.get("w")).items():
+            c = chans.setdefault(name, {"max": 0.0, "mean": 0.0})
+            c["max"] = max(c["max"], a)
+            c["mean"] += wgt * a
+    return {"values": len(dist), "changes": len(dist) - 1, "channels": chans}
+
+
+def _ignored(key: str) -> bool:
+    """Whether a field is a measurement or the command line (skipped by verify)."""
+    return key in _IGNORED or bool(_IGNORED_RE.search(key))
+
+
+def _differs(a: Any, b: Any) -> bool:
+    """Whether two JSON leaves differ (numbers to RTOL/ATOL)."""
+    na, nb = _num(a), _num(b)
+    if na is not None and nb is not None:
+        return abs(na - nb) > max(ATOL, RTOL * max(abs(na), abs(nb)))
+    return type(a) is not type(b) or a != b
+
+
+def first_difference(a: Any, b: Any, path: str = "") -> tuple[str, Any, Any] | None:
+    """The first differing field of two JSON values: (path, value in a, value in b)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for key in list(a) + [k for k in b if k not in a]:
+            if _ignored(str(key)):
+                continue
+            sub = f"{path}.{key}" if path else str(key)
+            if key not in b or key not in a:
+                return sub, a.get(key, "(missing)"), b.get(key, "(missing)")
+            hit = first_difference(a[key], b[key], sub)
+            if hit:
+                return hit
+        return None
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return f"{path} (length)", len(a), len(b)
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            hit = first_difference(x, y, f"{path}[{i}]")
+            if hit:
+                return hit
+        return None
+    return (path or "(value)", a, b) if _differs(a, b) else None
+
+
+def _topic_divergence(topic: str, rec: list, new: list, prefix_only: bool) -> Divergence | None:
+    """The first divergence on one topic (message by message), or None."""
+    for i, m in enumerate(rec):
+        if i >= len(new):
+            return Divergence(m.t, topic, "(message count)", len(rec), len(new))
+        hit = first_difference(m.data, new[i].data)
+        if hit:
+            return Divergence(m.t, topic, *hit)
+    if len(new) > len(rec) and not prefix_only:
+        m = new[len(rec)]
+        return Divergence(m.t, topic, "(message count)", len(rec), len(new))
+    return None
+
+
+def compare_logs(recorded: list, rerun: list, prefix_only: bool = False) -> Divergence | None:
+    """The first divergence between two logs' messages, or None if they agree.
+
+    Topics are compared message by message (count, keys, values; numbers to a relative
+    1e-9, measured times and the command line skipped); of the per-topic divergences the
+    earliest is returned. /run/info counts only when nothing else diverges: it holds the
+    inputs (the scenario), not the behaviour, so an edited scenario is reported where the
+    run first behaves differently.
+
+    Args:
+        recorded: the recorded log's messages.
+        rerun: the re-run's messages.
+        prefix_only: the recorded log was cut short: extra re-run messages are fine.
+    """
+    order = {t: i for i, t in enumerate(TOPICS[1:] + TOPICS[:1])}
+    topics = sorted({m.topic for m in recorded} | {m.topic for m in rerun},
+                    key=lambda t: (order.get(t, len(order)), t))
+    found = []
+    for topic in topics:
+        div = _topic_divergence(topic, [m for m in recorded if m.topic == topic],
+                                [m for m in rerun if m.topic == topic], prefix_only)
+        if div is not None:
+            found.append((topic == "/run/info", div.t, order.get(topic, len(order)), div))
+    return min(found, key=lambda f: f[:3])[3] if found else None
+
+
+def verify(replay: Replay, workdir: Path) -> tuple[Divergence | None, int, int]:
+    """Re-runs the log's attached scenario (its seed) in ``workdir`` and compares the logs.
+
+    Returns:
+        The first divergence (or None), the number of compared messages and of topics.
+
+    Raises:
+        ReplayError: no scenario attached, or the scenario cannot be rebuilt.
+    """
+    from hmpc_cli.log.reader import read_log
+    from hmpc_cli.core.registry import PluginError
+    from hmpc_cli.run.runner import prepare, execute_run
+    from hmpc_cli.run.scenario import ScenarioError, load_scenario
+
+    if not replay.scenario_text:
+        raise ReplayError("no scenario.toml attached: the run cannot be re-run")
+    toml = workdir / "scenario.toml"
+    toml.write_text(replay.scenario_text, encoding="utf-8")
+    try:
+        sc, text = load_scenario(toml)
+        loop = prepare(sc)
+    except ScenarioError as exc:
+        detail = "; ".join(line.replace(str(toml), "scenario.toml") for line in exc.lines)
+        raise ReplayError(f"the attached scenario cannot be rebuilt: {detail}") from None
+    except (PluginError, ValueError, RuntimeError) as exc:
+        raise ReplayError(f"the attached scenario cannot be rebuilt: {exc}") from None
+    execute_run(loop, text, workdir / "rerun")
+    rerun = read_log(workdir / "rerun" / "run.mcap").messages
+    recorded = replay.log.messages
+    div = compare_logs(recorded, rerun, prefix_only=not replay.complete)
+    return div, len(recorded), len({m.topic for m in recorded})

@@ -1,0 +1,158 @@
+"""Sweep tables and run traces as the figures and the analyses read them.
+
+A sweep's ``results.csv`` and its own ``sweep.toml``, table cells, log paths relative to a
+table, and a run's positions in its drawing plane (:class:`RunTrace`). Every bad input is a
+:class:`FigureInputError` with a one-line message.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["FigureInputError", "RunTrace", "load_trace", "parse_bool", "read_table",
+           "resolve_log", "resolve_run_log", "resolve_table", "sweep_spec", "trace_of"]
+
+_TRUE = {"true", "1", "yes"}
+_FALSE = {"false", "0", "no"}
+
+
+class FigureInputError(ValueError):
+    """Bad figure input (table, columns, logs, options); the message is one line."""
+
+
+def resolve_run_log(path: str | Path) -> Path:
+    """The log itself, or run.mcap when ``path`` is a run directory holding one."""
+    path = Path(path)
+    return path / "run.mcap" if path.is_dir() and (path / "run.mcap").is_file() else path
+
+
+def sweep_spec(directory: str | Path) -> dict:
+    """The sweep's own file as it ran (its output directory's ``sweep.toml``; {} if none)."""
+    import tomllib
+
+    try:
+        return tomllib.loads((Path(directory) / "sweep.toml").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+
+
+def resolve_table(path: str | Path) -> Path:
+    """The table itself, or results.csv when `path` is a sweep directory holding one."""
+    path = Path(path)
+    if path.is_dir() and (path / "results.csv").is_file():
+        return path / "results.csv"
+    return path
+
+
+def read_table(path: Path, required: Iterable[str]) -> list[dict[str, str]]:
+    """Reads a CSV table with a header; checks it exists, has rows and the `required` columns."""
+    path = Path(path)
+    if not path.is_file():
+        raise FigureInputError(f"{path}: no such table")
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            reader = csv.DictReader(f)
+            columns = list(reader.fieldnames or [])
+            rows = [dict(r) for r in reader]
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise FigureInputError(f"{path}: cannot read table ({exc})") from None
+    missing = [c for c in required if c not in columns]
+    if missing:
+        have = ", ".join(columns) if columns else "none"
+        raise FigureInputError(f"{path}: missing column(s) {', '.join(missing)} (has: {have})")
+    if not rows:
+        raise FigureInputError(f"{path}: table has no rows")
+    return rows
+
+
+def parse_bool(value: str | None, where: str) -> bool:
+    """Parses a table cell like True/False (also true/1/yes, false/0/no)."""
+    text = (value or "").strip().lower()
+    if text in _TRUE:
+        return True
+    if text in _FALSE:
+        return False
+    raise FigureInputError(f"{where}: expected True or False, got {value!r}")
+
+
+def resolve_log(table_path: Path, log: str | None, where: str) -> Path:
+    """Resolves a log path relative to the table's directory; checks that the file exists."""
+    text = (log or "").strip()
+    if not text:
+        raise FigureInputError(f"{where}: empty log path")
+    path = Path(text)
+    if not path.is_absolute():
+        path = Path(table_path).parent / path
+    if not path.is_file():
+        raise FigureInputError(f"{where}: log {path} does not exist")
+    return path
+
+
+@dataclass
+class RunTrace:
+    """Positions of one recorded run: `t` (s), `xy` (n x 2, NaN where not finite), run info."""
+
+    path: Path
+    t: np.ndarray
+    xy: np.ndarray
+    scenario: dict = field(default_factory=dict)
+    logged_success: bool | None = None  # the log's own /run/summary verdict, if any
+    complete: bool = True
+    damage: str = ""  # why reading stopped at a damaged chunk ('' if it did not)
+    geometry: dict = field(default_factory=dict)  # the log's geometry (loggeometry)
+
+    @property
+    def system(self) -> dict:
+        """The scenario's system parameters (radius, guards, goal, ...)."""
+        return dict(self.scenario.get("system") or {})
+
+
+def _num(v: Any) -> float:
+    return float(v) if isinstance(v, (int, float)) and math.isfinite(v) else math.nan
+
+
+def load_trace(path: Path) -> RunTrace:
+    """Reads a run log's positions in its drawing plane from /sim/state, events spliced in.
+
+    The plane is the log geometry's ``plane`` (two state names; default the first two
+    states). The exact pre- and post-reset positions of /sim/event are inserted at the
+    event times, so drawn bounces touch the guard instead of cutting the corner between
+    logged samples.
+    """
+    from hmpc_cli.log.rundata import read_run
+
+    try:
+        run = read_run(path)
+    except ValueError as exc:
+        raise FigureInputError(f"{path}: cannot read log ({exc})") from None
+    return trace_of(run, Path(path))
+
+
+def trace_of(run: Any, path: Path) -> RunTrace:
+    """The positions of a run already read by ``read_run``, as :func:`load_trace` gives them."""
+    plane = list(run.geometry.get("plane") or ())
+    i, j = (run.state_names.index(plane[0]), run.state_names.index(plane[1])) \
+        if len(plane) == 2 and set(plane) <= set(run.state_names) else (0, 1)
+    points: list[tuple[float, int, int, float, float]] = []  # (t, kind, seq, a, b)
+    if run.x.shape[1] > max(i, j):
+        points += [(float(t), 1, k, _num(x[i]), _num(x[j]))
+                   for k, (t, x) in enumerate(zip(run.t, run.x, strict=True))]
+    if not points:
+        raise FigureInputError(f"{path}: log has no /sim/state positions")
+    for k, ev in enumerate(run.events):
+        for m, x in enumerate((ev.x_before, ev.x_after)):
+            if len(x) > max(i, j) and math.isfinite(ev.t):
+                points.append((ev.t, 0, 2 * k + m, _num(x[i]), _num(x[j])))
+    points.sort(key=lambda p: (p[0], p[1], p[2]))
+    arr = np.array([(p[0], p[3], p[4]) for p in points], dtype=float)
+    ok = run.summary.get("success") if run.summary else None
+    return RunTrace(Path(path), arr[:, 0], arr[:, 1:3], run.scenario,
+                    ok if isinstance(ok, bool) else None, run.complete, run.damage,
+                    dict(run.geometry))

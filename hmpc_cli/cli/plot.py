@@ -1,0 +1,238 @@
+"""``hmpc plot``: the paper's figures from recorded runs (heavy imports inside the command)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from hmpc_cli.cli.common import complete_figure
+
+__all__ = ["plot_command"]
+
+EXIT_BAD_INPUT = 2
+TEXT_WIDTH_IN = 7.16  # as hmpc_cli.figures.common (not imported: --help stays light)
+COLUMN_WIDTH_IN = 3.5
+
+
+def _fail(message: str) -> None:
+    """Prints one error line and exits with the bad-input code."""
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(EXIT_BAD_INPUT)
+
+
+def _print_counts(counts: dict, reference: dict) -> None:
+    """Prints the counts per panel; adds the paper's counts when the labels are the paper's."""
+    from rich.console import Console
+    from rich.table import Table
+
+    with_ref = any(label in reference for label in counts)
+    table = Table(title="Figure 3: stable runs per panel")
+    for col in ("panel", "runs", "stable", "failed") + (("paper",) if with_ref else ()):
+        table.add_column(col, justify="right" if col in ("runs", "stable", "paper") else "left")
+    for c in counts.values():
+        row = [c.label, str(c.runs), str(c.successes), ", ".join(c.failed) or "-"]
+        if with_ref:
+            ref = reference.get(c.label)
+            row.append(f"{ref[0]}/{ref[1]}" if ref else "-")
+        table.add_row(*row)
+    Console().print(table)
+
+
+def _fig3(table: Path, out: Path | None, formats: str, options: dict) -> None:
+    """Draws Figure 3, prints the counts and the written files."""
+    from hmpc_cli.analysis.tables import FigureInputError, resolve_table
+    from hmpc_cli.figures.common import parse_formats
+    from hmpc_cli.figures.fig3 import REFERENCE_COUNTS, fig3
+
+    out_dir = out if out is not None else resolve_table(table).parent
+    try:
+        counts = fig3(table, out_dir, formats, **options)
+    except FigureInputError as exc:
+        _fail(str(exc))
+    for note in (n for c in counts.values() for n in c.notes):
+        typer.echo(f"warning: {note}", err=True)
+    _print_counts(counts, REFERENCE_COUNTS)
+    names = [f"fig3.{f}" for f in parse_formats(formats)] + ["fig3_counts.csv"]
+    typer.echo(f"wrote {', '.join(names)} to {out_dir}")
+
+
+def _fig4(log: Path, out: Path | None, formats: str, every: float, gif: bool,
+          width: float, height: float) -> None:
+    """Draws Figure 4 (and the GIF) from a biped run log."""
+    from hmpc_cli.analysis.tables import FigureInputError
+    from hmpc_cli.figures.common import parse_formats
+    from hmpc_cli.figures.fig4 import animate_walk, fig4
+    from hmpc_cli.analysis.tables import resolve_run_log
+
+    log = resolve_run_log(log)
+    out_dir = out if out is not None else log.parent
+    try:
+        walk = fig4(log, out_dir, formats, every=every, width=width, height=height)
+        if gif:
+            animate_walk(walk, out_dir / "walk.gif")
+    except FigureInputError as exc:
+        _fail(str(exc))
+    for t, guard, fx, fy in walk.contacts:
+        typer.echo(f"contact t = {t:.3f} s  {guard:<8} foot ({fx:.3f}, {fy:.3f}) m")
+    verdict = {True: "success", False: "failed", None: "unfinished"}[walk.success]
+    why = f" ({walk.reason})" if walk.reason not in ("", verdict) else ""
+    typer.echo(f"{verdict}{why}; hip ends at ({walk.hip[-1, 0]:.3f}, "
+               f"{walk.hip[-1, 1]:.3f}) m")
+    names = [f"fig4.{f}" for f in parse_formats(formats)] + (["walk.gif"] if gif else [])
+    typer.echo(f"wrote {', '.join(names)} to {out_dir}")
+
+
+def _fig2(log: Path, out: Path | None, formats: str, options: dict) -> None:
+    """Figure 2 from a run log: the pass-through computed, drawn; prints its checks."""
+    from hmpc_cli.analysis.tables import FigureInputError, resolve_run_log
+    from hmpc_cli.figures.common import parse_formats
+    from hmpc_cli.figures.fig2 import check_request, fig2
+    from hmpc_cli.analysis.passthrough import PassThroughError, pass_through_geometry
+
+    size = {k: options.pop(k) for k in ("width", "height", "dpi") if k in options}
+    try:
+        check_request(formats, size["width"], size["height"])
+        out_dir = out if out is not None else resolve_run_log(log).parent
+        geo = pass_through_geometry(log, **options)
+        fig2(geo, out_dir, formats, **size)
+    except (FigureInputError, PassThroughError) as exc:
+        _fail(str(exc))
+    typer.echo(f"solve {geo.solve} at t = {geo.t:.3f} s crosses guard {geo.guard_name} "
+               f"({geo.source_mode} -> {geo.target_mode}); tube radius d = {geo.radius:.4g} "
+               f"({geo.radius_source}); solve slack {geo.slack:.2g}")
+    typer.echo(f"guard node gap {geo.guard_node_gap:.3g}; virtual node gap "
+               f"{geo.virtual_gap:.4g}; disc's nearest point gap {geo.disc_gap:.4g}: "
+               + ("past the guard" if geo.disc_past else "NOT entirely past the guard"))
+    typer.echo(f"NLP row q(x_v) <= -kappa(d): {geo.virtual_q:.4g} vs {-geo.kappa:.4g}: "
+               + ("holds" if geo.nlp_row >= -1e-6 else "violated")
+               + f"; |post-reset - R(guard node)| = "
+               f"{float(abs(geo.post_reset - geo.reset_of_guard_node).max()):.2g}")
+    names = [f"fig2.{f}" for f in parse_formats(formats)]
+    typer.echo(f"wrote {', '.join(names)} to {out_dir}")
+
+
+def _robustness(table: Path, out: Path | None, formats: str, options: dict) -> None:
+    """Draws the robustness curves, prints the cell table and the written files."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from hmpc_cli.analysis.tables import FigureInputError, resolve_table
+    from hmpc_cli.figures.common import parse_formats
+    from hmpc_cli.figures.robustness import robustness
+
+    out_dir = out if out is not None else resolve_table(table).parent
+    try:
+        data = robustness(table, out_dir, formats, **options)
+    except FigureInputError as exc:
+        _fail(str(exc))
+    t = Table(title="success rate per cell (Wilson 95 % interval)")
+    for col in (options["panel_axis"], options["series_axis"], options["x_axis"], "runs",
+                "success", "95 % interval"):
+        t.add_column(col, justify="right")
+    for c in data:
+        lo, hi = c.interval
+        t.add_row(c.panel, c.series, f"{c.x:g}", str(c.runs),
+                  f"{100 * c.rate:.0f} %", f"{100 * lo:.0f}-{100 * hi:.0f} %")
+    Console().print(t)
+    names = [f"robustness.{f}" for f in parse_formats(formats)] + ["robustness_table.csv"]
+    typer.echo(f"wrote {', '.join(names)} to {out_dir}")
+
+
+def plot_command(
+    figure: Annotated[str, typer.Argument(
+        help="figure to draw: fig2, fig3, robustness or fig4", autocompletion=complete_figure)],
+    table: Annotated[Path, typer.Argument(
+        help="fig3, robustness: sweep table (results.csv, or the sweep directory holding "
+        "it); fig2: a run log, fig4: a biped run log (run.mcap, or the run directory "
+        "holding it)")],
+    out: Annotated[Path | None, typer.Option(
+        "--out", help="output directory (default: the table's directory)")] = None,
+    formats: Annotated[str, typer.Option(
+        "--formats", help="comma-separated output formats: pdf,svg,png")] = "pdf,svg,png",
+    panel_axis: Annotated[str | None, typer.Option(
+        "--panel-axis", help="table column with one panel per value (fig3: controller, "
+        "robustness: disturbance.magnitude)")] = None,
+    x_axis: Annotated[str, typer.Option(
+        "--x-axis", help="robustness: numeric column on the x axis")] = "mpc.rate_hz",
+    series_axis: Annotated[str, typer.Option(
+        "--series-axis", help="robustness: column with one line per value")
+    ] = "replanning.policy",
+    trace_axis: Annotated[str, typer.Option(
+        "--trace-axis", help="table column naming the trajectories of a panel")] = "disturbance",
+    nominal: Annotated[str, typer.Option(
+        "--nominal", help="trace-axis value of the undisturbed run (orange)")] = "nominal",
+    panels: Annotated[str | None, typer.Option(
+        "--panels", help='panels in order, e.g. "10 Hz fixed,20 Hz fixed" (default: all)')] = None,
+    width: Annotated[float | None, typer.Option(
+        "--width", help="figure width (in; fig3, fig4 3.5 = one column; fig2, robustness "
+        "7.16 = text width)")] = None,
+    height: Annotated[float | None, typer.Option(
+        "--height", help="figure height (in; fig3 2.1, fig4 4.2, fig2 2.8, robustness 1.9)")
+    ] = None,
+    view: Annotated[str | None, typer.Option(
+        "--view", help='axis limits "x0,x1,y0,y1" (default: from the data)')] = None,
+    every: Annotated[float, typer.Option(
+        "--every", help="fig4: time between stick-figure snapshots [s]")] = 0.1,
+    gif: Annotated[bool, typer.Option(
+        "--gif/--no-gif", help="fig4: also write the animation walk.gif")] = True,
+    solve: Annotated[int | None, typer.Option(
+        "--solve", help="fig2: draw the K-th logged MPC solve (from 1; default: the "
+        "first whose plan crosses a guard)")] = None,
+    radius: Annotated[float | None, typer.Option(
+        "--radius", help="fig2: tube radius d (default: the run's mpc.tube_margin)")] = None,
+    from_tube: Annotated[bool, typer.Option(
+        "--from-tube", help="fig2: d = diam T(dt) at the run's MPC rate (hmpc tube)")
+    ] = False,
+) -> None:
+    """Draw a paper figure from recorded runs (a sweep table and the logs it points to)."""
+    _draw(figure, table, out, formats, dict(
+        panel_axis=panel_axis, x_axis=x_axis, series_axis=series_axis, trace_axis=trace_axis,
+        nominal=nominal, panels=panels, width=width, height=height, view=view, every=every,
+        gif=gif, solve=solve, radius=radius, from_tube=from_tube))
+
+
+def _draw(figure: str, table: Path, out: Path | None, formats: str, o: dict) -> None:
+    """Dispatches ``hmpc plot FIGURE`` with the command's options ``o`` (by name)."""
+    from hmpc_cli.figures import FIGURES
+
+    if figure not in FIGURES:
+        _fail(f"unknown figure {figure!r} (choose from {', '.join(FIGURES)})")
+    height = o["height"]
+    # fig3 and fig4 fit one IEEE column; fig2 and the robustness curves span the text width
+    width = o["width"] if o["width"] is not None else \
+        COLUMN_WIDTH_IN if figure in ("fig3", "fig4") else TEXT_WIDTH_IN
+    if figure == "fig2":
+        return _fig2(table, out, formats, {"solve": o["solve"], "radius": o["radius"],
+                                           "width": width, "from_tube": o["from_tube"],
+                                           "height": height or 2.8})
+    if figure == "fig4":
+        return _fig4(table, out, formats, o["every"], o["gif"], width, height or 4.2)
+    if figure == "robustness":
+        return _robustness(table, out, formats, {
+            "x_axis": o["x_axis"], "series_axis": o["series_axis"], "width": width,
+            "panel_axis": o["panel_axis"] or "disturbance.magnitude",
+            "height": height or 1.9})
+    return _fig3(table, out, formats, {
+        "panel_axis": o["panel_axis"] or "controller", "trace_axis": o["trace_axis"],
+        "nominal": o["nominal"], "panels": _panels(o["panels"]), "width": width,
+        "height": height or 2.1, "view": _limits(o["view"])})
+
+
+def _panels(panels: str | None) -> list[str] | None:
+    """The --panels list (None: all); an empty list is bad input (exit 2)."""
+    chosen = [p.strip() for p in panels.split(",") if p.strip()] if panels is not None else None
+    if chosen == []:
+        _fail("--panels is empty")
+    return chosen
+
+
+def _limits(view: str | None) -> list[float] | None:
+    """The --view limits as numbers (None: from the data); bad input exits 2."""
+    if view is None:
+        return None
+    try:
+        return [float(v) for v in view.split(",")]
+    except ValueError:
+        _fail(f"--view must be four numbers x0,x1,y0,y1, got {view!r}")

@@ -1,0 +1,285 @@
+"""``hmpc replay``: what a recorded run did, its tables, and whether it re-runs identically.
+
+Argument handling and printing only (heavy imports inside the command); the logic is
+:mod:`hmpc_cli.analysis.replay` and :mod:`hmpc_cli.analysis.export`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+__all__ = ["replay_command"]
+
+EXIT_BAD_INPUT = 2
+EXIT_DIVERGED = 1
+
+
+def _fail(lines: list[str]) -> None:
+    """Prints ``error:`` lines and exits with the bad-input code."""
+    for line in lines:
+        typer.echo(f"error: {line}", err=True)
+    raise typer.Exit(EXIT_BAD_INPUT)
+
+
+def _text(v: Any) -> str:
+    """A summary value as text: numbers in 6 significant digits, objects as JSON."""
+    if isinstance(v, bool) or v is None:
+        return str(v).lower() if v is not None else "-"
+    if isinstance(v, float):
+        return f"{v:.6g}" if math.isfinite(v) else str(v)
+    if isinstance(v, (dict, list)):
+        return json.dumps(v, separators=(", ", ": "))
+    return str(v)
+
+
+def _recorded(info: dict, key: str) -> str:
+    """An optional /run/info field as text, or "not recorded"."""
+    v = info.get(key)
+    if v is None:
+        return "not recorded"
+    return " ".join(map(str, v)) if isinstance(v, list) else _text(v)
+
+
+def _identity_table(rp, size: int):
+    """Rich table of the run's identity and the state of its log file."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    from hmpc_cli.log.rundata import plan_stride
+
+    info = rp.info
+    t = Table(title=escape(f"run {info.get('scenario_name', '?')}"), show_header=False)
+    desc = rp.scenario.get("description")
+    if desc:
+        t.add_row("description", escape(str(desc)))
+    t.add_row("system", escape(str(info.get("system", "?"))))
+    t.add_row("seed", str(info.get("seed", "?")))
+    vers = info.get("versions") or {}
+    t.add_row("versions", escape(", ".join(f"{k} {v}" for k, v in vers.items()) or "-"))
+    cmd = info.get("command") if info.get("command") is not None else info.get("argv")
+    t.add_row("command", escape(_recorded({"c": cmd}, "c")))
+    t.add_row("overrides", escape(_recorded(info, "overrides")))
+    if info.get("sweep"):
+        t.add_row("sweep", escape(str(info["sweep"])))
+    build = info.get("build") or {}
+    if build:  # how the MPC's NLPs were built (the build cache)
+        t.add_row("NLP build", escape(f"{build.get('cache', '?')}"
+                                      + (", compiled" if build.get("compiled") else "")
+                                      + (f": {build['reason']}" if build.get("reason") else "")))
+    t.add_row("log", escape(f"{rp.path} ({size} bytes)"))
+    stride = plan_stride(rp.scenario)
+    if stride > 1:
+        t.add_row("plans", f"thinned: sim.log_plan_stride = {stride} (one node in {stride}, "
+                  "both nodes of each reset and the last)")
+    if rp.log.damage:
+        t.add_row("file", f"[red]damaged[/]: {escape(rp.log.damage)}; cut short at t = "
+                  f"{rp.t_last:.3f} s (the chunks before it are shown)")
+    elif rp.complete:
+        t.add_row("file", "complete")
+    else:
+        t.add_row("file", f"[yellow]cut short at t = {rp.t_last:.3f} s[/] "
+                  "(no footer: the completed chunks are shown)")
+    note = rp.version_note()
+    if note:
+        t.add_row("log version", f"[yellow]{escape(note)}[/]")
+    return t
+
+
+def _summary_table(summary: dict):
+    """Rich table of the /run/summary fields."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    t = Table(title="summary", show_header=False)
+    for key, v in summary.items():
+        text = escape(_text(v))
+        if key == "success":
+            text = "[green]true[/]" if v else "[red]false[/]"
+        t.add_row(escape(key), text)
+    return t
+
+
+def _timeline_table(rows, n_messages: int, window: str):
+    """Rich table of the timeline rows."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    t = Table(title=escape(f"timeline{window} ({n_messages} messages selected)"))
+    t.add_column(escape("t [s]"), justify="right")
+    t.add_column("what")
+    t.add_column("details")
+    for r in rows:
+        text = escape(r.text)
+        t.add_row(f"{r.t:.4f}", r.kind, f"[{r.style}]{text}[/]" if r.style else text)
+    return t
+
+
+def _disturbance_table(stats: dict):
+    """Rich table of the disturbance statistics."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    t = Table(title=f"disturbance: {stats['values']} values ({stats['changes']} changes)")
+    t.add_column("channel")
+    t.add_column("max |w|", justify="right")
+    t.add_column("mean |w| (time-weighted)", justify="right")
+    for name, c in stats["channels"].items():
+        t.add_row(escape(name), f"{c['max']:.4g}", f"{c['mean']:.4g}")
+    return t
+
+
+def _counts_line(messages: list) -> str:
+    """'N messages: /topic n, ...' for the selected messages."""
+    counts: dict[str, int] = {}
+    for m in messages:
+        counts[m.topic] = counts.get(m.topic, 0) + 1
+    return ", ".join(f"{k} {n}" for k, n in sorted(counts.items())) or "none"
+
+
+def _print_report(console, rp, selected: list, show_all: bool, window: str) -> None:
+    """Identity, summary, timeline and disturbance statistics."""
+    from hmpc_cli.analysis.replay import disturbance_stats, timeline
+
+    console.print(_identity_table(rp, rp.path.stat().st_size))
+    if rp.summary is None:
+        console.print("[yellow]no summary (the run did not finish)[/]")
+    else:
+        console.print(_summary_table(rp.summary))
+    console.print(_timeline_table(timeline(selected, show_all), len(selected), window))
+    console.print(f"selected messages per topic: {_counts_line(selected)}", markup=False)
+    stats = disturbance_stats(selected, rp.t_last)
+    if stats["values"]:
+        console.print(_disturbance_table(stats))
+
+
+def _export(console, rp, selected: list, out: Path, fmt: str, filters: dict) -> None:
+    """Writes the export and lists the files."""
+    from hmpc_cli.analysis.export import ExportError, write_export
+
+    info = {"log": str(rp.path), "complete": rp.complete, "damage": rp.log.damage,
+            "filters": filters, "run_info": rp.info, "metadata": rp.log.metadata,
+            "scenario_toml": rp.scenario_text}
+    try:
+        files = write_export(out, selected, info, fmt)
+    except ExportError as exc:
+        _fail([str(exc)])
+    console.print(f"exported {len(files)} files to {out}: "
+                  + ", ".join(p.name for p in files), markup=False)
+
+
+def _verify(console, rp) -> None:
+    """Re-runs the scenario and prints the comparison; exits 1 on a divergence."""
+    import tempfile
+
+    from rich.markup import escape
+
+    from hmpc_cli.analysis.replay import ReplayError, verify
+
+    console.print("verify: re-running the attached scenario (seed "
+                  f"{rp.info.get('seed', '?')}) ...", markup=False)
+    with tempfile.TemporaryDirectory(prefix="hmpc-verify-") as tmp:
+        try:
+            div, n, k = verify(rp, Path(tmp))
+        except ReplayError as exc:
+            _fail([f"{rp.path}: {exc}"])
+    scope = "" if rp.complete else f" up to t = {rp.t_last:.4g} s (the log was cut short)"
+    if div is None:
+        console.print(f"[green]identical[/] ({n} messages on {k} topics){escape(scope)}")
+        return
+    console.print(f"[red]diverged[/] at t = {div.t:.6g} s on {escape(div.topic)}, field "
+                  f"{escape(div.path)}: recorded {escape(_text(div.recorded))}, "
+                  f"re-run {escape(_text(div.rerun))}")
+    raise typer.Exit(EXIT_DIVERGED)
+
+
+def replay_command(
+    log: Annotated[Path, typer.Argument(help="a run log (run.mcap) or its run directory")],
+    t_from: Annotated[float | None, typer.Option(
+        "--from", metavar="T0", help="only messages at t >= T0 seconds")] = None,
+    t_to: Annotated[float | None, typer.Option(
+        "--to", metavar="T1", help="only messages at t <= T1 seconds")] = None,
+    topic: Annotated[list[str] | None, typer.Option(
+        "--topic", metavar="NAME", help="only this topic (repeatable): /mpc/solve, "
+        "mpc/solve or solve; also plan, event, disturbance, state, info, summary")] = None,
+    show_all: Annotated[bool, typer.Option(
+        "--all", help="one timeline row per solve (default: runs of ordinary solves "
+        "summarised in one row)")] = False,
+    export: Annotated[Path | None, typer.Option(
+        "--export", metavar="DIR", help="write one table per topic (after the filters) "
+        "and info.json into this directory")] = None,
+    fmt: Annotated[str, typer.Option(
+        "--format", metavar="FORMAT",
+        help="export format: csv, or parquet (needs pyarrow)")] = "csv",
+    check: Annotated[bool, typer.Option(
+        "--verify", help="re-run the attached scenario with the same seed and compare the "
+        "logs (exit 1 at the first divergence)")] = False,
+    figures: Annotated[Path | None, typer.Option(
+        "--figures", metavar="DIR", help="re-render the run's figures (those its system "
+        "supports) and an animation of its logged scene (scene.gif; scene.mp4 with "
+        "ffmpeg) into this directory")] = None,
+) -> None:
+    """Replay a recorded run: identity, summary, timeline; filter, export, verify."""
+    from rich.console import Console
+
+    from hmpc_cli.analysis.replay import ReplayError, load_replay, resolve_topics, select
+
+    try:
+        rp = load_replay(log)
+        topics = resolve_topics(topic or [], [m.topic for m in rp.log.messages])
+    except ReplayError as exc:
+        _fail([f"{log}: {exc}"])
+    if export is not None:
+        from hmpc_cli.analysis.export import ExportError, check_format
+
+        try:
+            check_format(fmt.lower())
+        except ExportError as exc:
+            _fail([str(exc)])
+    if t_from is not None and t_to is not None and t_from > t_to:
+        _fail([f"--from {t_from:g} is after --to {t_to:g}"])
+    selected = select(rp.log.messages, t_from, t_to, topics or None)
+    window = "" if t_from is None and t_to is None else (
+        f" from {'start' if t_from is None else f'{t_from:g} s'}"
+        f" to {'end' if t_to is None else f'{t_to:g} s'}")
+    console = Console()
+    _print_report(console, rp, selected, show_all, window)
+    if export is not None:
+        _export(console, rp, selected, export, fmt.lower(),
+                {"from": t_from, "to": t_to, "topics": topics or "all"})
+    if figures is not None:
+        _figures(console, rp, figures)
+    if check:
+        _verify(console, rp)
+
+
+def _figures(console, rp, out: Path) -> None:
+    """Writes the run's figures and its scene animation into ``out`` (what applies)."""
+    from rich.markup import escape
+
+    from hmpc_cli.analysis.tables import FigureInputError
+    from hmpc_cli.figures.fig2 import fig2
+    from hmpc_cli.figures.fig4 import fig4
+    from hmpc_cli.figures.scene_anim import animate_scene
+    from hmpc_cli.analysis.passthrough import PassThroughError, pass_through_geometry
+
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        _fail([f"--figures {out}: cannot write ({exc})"])
+    title = str(rp.info.get("scenario_name", rp.path.stem))
+    jobs = (("fig2", lambda: fig2(pass_through_geometry(rp.path), out, ["pdf", "png"])),
+            ("fig4", lambda: fig4(rp.path, out, ["pdf", "png"])),
+            ("scene animation", lambda: animate_scene(rp.log, out, title)))
+    for name, job in jobs:
+        try:
+            job()
+            console.print(f"figures: {name} written to {escape(str(out))}")
+        except (FigureInputError, PassThroughError) as exc:
+            console.print(f"figures: {name} not drawn: {escape(str(exc))}")
+        except OSError as exc:
+            _fail([f"--figures {out}: cannot write ({exc})"])

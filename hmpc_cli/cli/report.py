@@ -1,0 +1,280 @@
+"""``hmpc report``: run the paper's sweeps (resumably), draw their figures, write the page."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+EXIT_FAILED = 1
+EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130
+DEFAULT_AUTHORS = Path("../shared/reference")  # the authors' data beside the repository
+#: the robustness study's sweeps: paper geometry, a moved geometry, solve latency charged
+#: (0.05 s: about one solve here; 0.03 s: the largest the undisturbed ball survives)
+ROBUSTNESS = (Path("sweeps/robustness.toml"), Path("sweeps/robustness_moved.toml"),
+              Path("sweeps/robustness_latency.toml"), Path("sweeps/robustness_latency_30ms.toml"))
+
+
+def report_command(
+    results: Annotated[Path, typer.Option(
+        "--results", help="results directory (page: <results>/README.md)")] = Path("results"),
+    fig3: Annotated[Path | None, typer.Option(
+        "--fig3", help="Figure 3 sweep file ('' to leave out)")] = Path("sweeps/fig3.toml"),
+    fig3_extra: Annotated[Path | None, typer.Option(
+        "--fig3-extra", help="extra Figure 3 panel sweep (100 Hz; '' to leave out)")
+    ] = Path("sweeps/fig3_100hz.toml"),
+    fig3_reference: Annotated[Path | None, typer.Option(
+        "--fig3-reference", help="Figure 3 sweep in reference mode ('' to leave out)")
+    ] = Path("sweeps/fig3_reference.toml"),
+    fig3_reference_extra: Annotated[Path | None, typer.Option(
+        "--fig3-reference-extra", help="its 100 Hz panels ('' to leave out)")
+    ] = Path("sweeps/fig3_reference_100hz.toml"),
+    fig3_schedule: Annotated[Path | None, typer.Option(
+        "--fig3-schedule", help="Figure 3 sweep flying the authors' plan ('' to leave out)")
+    ] = Path("sweeps/fig3_reference_schedule.toml"),
+    authors: Annotated[Path | None, typer.Option(
+        "--authors", help="directory of the authors' Figure 3 CSVs (fig3_*.csv) for the "
+        "trial-by-trial comparison (default: ../shared/reference if it exists; '' to leave "
+        "out)")] = None,
+    robustness: Annotated[list[Path] | None, typer.Option(
+        "--robustness", help="robustness study sweep file or output directory, repeatable "
+        "(default: sweeps/robustness.toml, robustness_moved.toml, robustness_latency.toml and "
+        "robustness_latency_30ms.toml; "
+        "'' to leave out)")] = None,
+    biped: Annotated[Path | None, typer.Option(
+        "--biped", help="biped scenario for Figure 4 ('' to leave out)")
+    ] = Path("scenarios/biped_stairs.toml"),
+    run: Annotated[bool, typer.Option(
+        "--run/--no-run", help="run the missing sweep runs first (finished ones are skipped; "
+        "default: run nothing, print what is missing)")] = False,
+    workers: Annotated[int | None, typer.Option(
+        "--workers", min=1, help="worker processes (default: all cores)")] = None,
+    seeds: Annotated[int | None, typer.Option(
+        "--seeds", help="robustness study: only its first N seeds (resume later with more)")
+    ] = None,
+) -> None:
+    """Regenerate the results page: Figure 3 (both modes, beside the paper), robustness, Fig. 4.
+
+    Each sweep option takes a sweep file (its runs: <results>/sweeps/<name>) or a sweep's
+    output directory (read as it is, never run).
+    """
+    plans, dirs = _sweeps(results, seeds, biped, fig3=fig3, fig3_extra=fig3_extra,
+                          fig3_reference=fig3_reference,
+                          fig3_reference_extra=fig3_reference_extra,
+                          fig3_schedule=fig3_schedule,
+                          **{f"robustness:{i}": p for i, p in enumerate(
+                              ROBUSTNESS if robustness is None else robustness)})
+    if not run:
+        _print_missing(plans, dirs)
+    lost = _run_sweeps(plans, dirs, workers) if run else []
+    biped_dir = _biped_run(biped, results, run)
+    _write_page(results, dirs, biped_dir, _authors_dir(authors), plans)
+    if lost:  # the page holds every finished run; these are missing from it
+        for line in lost:
+            typer.echo(f"error: worker failed, run not recorded (rerun to retry): {line}",
+                       err=True)
+        raise typer.Exit(EXIT_FAILED)
+
+
+def _sweeps(results: Path, seeds: int | None, biped: Path | None,
+            **files: Path | None) -> tuple[dict, dict[str, Path]]:
+    """The sweep plans to run and every part's output directory.
+
+    A sweep file runs into ``<results>/sweeps/<name>``; a directory is a sweep's output,
+    read as it is; '' leaves a part out.
+
+    Raises:
+        typer.Exit: an invalid sweep file, or nothing to report (exit code 2).
+    """
+    given = {k: v for k, v in files.items() if not _left_out(v) and v.is_dir()}
+    plans = _plan_sweeps({k: v for k, v in files.items() if k not in given}, seeds)
+    if not plans and not given and _left_out(biped):
+        typer.echo("error: nothing to report (every sweep option and --biped are empty)",
+                   err=True)
+        raise typer.Exit(EXIT_BAD_INPUT)
+    return plans, {k: results / "sweeps" / p.spec.name for k, p in plans.items()} | given
+
+
+def _print_missing(plans: dict, dirs: dict[str, Path]) -> None:
+    """Prints, per sweep, how many runs are missing and their simulated time (an estimate)."""
+    import tomllib
+
+    from hmpc_cli.sweep.table import finished
+
+    total = 0
+    for key, plan in plans.items():
+        missing = [r for r in plan.selected if finished(dirs[key].resolve(), r) is None]
+        if not missing:
+            continue
+        total += len(missing)
+        sim = sum(float(tomllib.loads(r.toml).get("sim", {}).get("duration", 0.0) or 0.0)
+                  for r in missing if r.toml)
+        typer.echo(f"note: {plan.path}: {len(missing)} of {len(plan.selected)} runs missing "
+                   f"({sim:g} s of simulated time, several times that in wall time)",
+                   err=True)
+    if total:
+        typer.echo(f"note: nothing was run; `hmpc report --run` runs the {total} missing "
+                   "runs (resumable), then writes the page", err=True)
+
+
+def _left_out(path: Path | None) -> bool:
+    """Whether an optional input is left out: no path, or '' (which typer turns into '.')."""
+    return path is None or str(path) in ("", ".")
+
+
+def _echo_errors(lines: list[str]) -> None:
+    """Prints one ``error: ...`` line per problem on stderr."""
+    for line in lines:
+        typer.echo(f"error: {line}", err=True)
+
+
+def _plan_sweeps(files: dict[str, Path | None], seeds: int | None) -> dict:
+    """Reads and validates the sweep files that are not left out.
+
+    Args:
+        files: sweep file per report part (``fig3``, ``fig3_extra``, ``robustness:<i>``...).
+        seeds: the robustness study runs only its first ``seeds`` seeds (None: all).
+
+    Returns:
+        The :class:`~hmpc_cli.sweep.plan.SweepPlan` per part given, in the order of ``files``.
+
+    Raises:
+        typer.Exit: a sweep file is invalid (exit code 2, its problems printed).
+    """
+    from hmpc_cli.run.scenario import ScenarioError
+    from hmpc_cli.sweep.plan import first_seeds, plan_sweep
+
+    plans = {}
+    for key, path in files.items():
+        if _left_out(path):
+            continue
+        try:
+            plans[key] = plan_sweep(path)
+            if key.startswith("robustness"):
+                plans[key] = first_seeds(plans[key], seeds)
+        except ScenarioError as exc:
+            _echo_errors(exc.lines)
+            raise typer.Exit(EXIT_BAD_INPUT) from None
+    return plans
+
+
+def _run_sweeps(plans: dict, dirs: dict[str, Path], workers: int | None) -> list[str]:
+    """Runs each sweep's unfinished runs (finished ones are skipped), prints its cells.
+
+    Args:
+        plans: sweep plan per report part.
+        dirs: output directory per report part.
+        workers: worker processes (None: all cores).
+
+    Returns:
+        One line per run a worker lost: ``<sweep name>: <run id>: <reason>``.
+
+    Raises:
+        typer.Exit: interrupted (exit code 130; the same command resumes).
+    """
+    import os
+
+    from hmpc_cli.cli.sweep import _execute, _print_cells
+
+    lost: list[str] = []
+    for key, plan in plans.items():
+        outcome = _execute(plan, dirs[key], workers or os.cpu_count() or 1, None)
+        _print_cells(plan, dirs[key])
+        lost += [f"{plan.spec.name}: {x}" for x in outcome.lost]
+        if outcome.interrupted:
+            typer.echo("interrupted: run the same command again to resume", err=True)
+            raise typer.Exit(EXIT_INTERRUPTED)
+    return lost
+
+
+def _authors_dir(path: Path | None) -> tuple[Path | None, str]:
+    """The authors' data directory and, when there is none, the page's note saying so.
+
+    Raises:
+        typer.Exit: an explicitly given directory that does not exist (exit code 2).
+    """
+    if path is None:
+        if DEFAULT_AUTHORS.is_dir():
+            return DEFAULT_AUTHORS, ""
+        return None, (f"The authors' data ({DEFAULT_AUTHORS}) was not found: the "
+                      "trial-by-trial comparison is left out (`hmpc report --authors DIR`).")
+    if _left_out(path):
+        return None, ""
+    if not path.is_dir():
+        typer.echo(f"error: --authors: {path}: no such directory", err=True)
+        raise typer.Exit(EXIT_BAD_INPUT)
+    return path, ""
+
+
+def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None,
+                authors: tuple[Path | None, str] = (None, ""),
+                plans: dict | None = None) -> None:
+    """Draws the figures from the finished runs and writes ``<results>/README.md``.
+
+    Args:
+        results: results directory.
+        dirs: sweep output directory per report part given.
+        biped_dir: run directory of the biped scenario (None: no Figure 4).
+        authors: the authors' data directory (None: none) and the page's note about it.
+        plans: the sweep plan per part given as a sweep file (resume commands, seeds).
+
+    Raises:
+        typer.Exit: a figure's input is unusable (exit code 2).
+    """
+    import shlex
+    import sys
+
+    from hmpc_cli.analysis.tables import FigureInputError
+    from hmpc_cli.report.page import ReportInputs, write_report
+
+    from hmpc_cli.report.robustness import Study
+
+    plans = plans or {}
+    studies = tuple(Study(d, plans[k].path if k in plans else None,
+                          len(plans[k].spec.seeds) if k in plans else None)
+                    for k, d in dirs.items() if k.startswith("robustness"))
+    inputs = ReportInputs(dirs.get("fig3"), dirs.get("fig3_extra"), studies or None,
+                          biped_dir, dirs.get("fig3_reference"),
+                          dirs.get("fig3_reference_extra"), *authors,
+                          dirs.get("fig3_schedule"))
+    try:
+        page = write_report(results, inputs, shlex.join(["hmpc", *sys.argv[1:]]))
+    except FigureInputError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(EXIT_BAD_INPUT) from None
+    typer.echo(f"wrote {page} and {results / 'report'}/")
+
+
+def _biped_run(scenario: Path | None, results: Path, run: bool) -> Path | None:
+    """Runs the biped scenario into results/<name>/report (unless done); its directory."""
+    if _left_out(scenario):
+        return None
+    from hmpc_cli.run.runner import prepare
+    from hmpc_cli.run.runner import execute_run
+    from hmpc_cli.run.scenario import ScenarioError, load_scenario
+
+    try:
+        sc, toml_text = load_scenario(scenario)
+    except ScenarioError as exc:
+        _echo_errors(exc.lines)
+        raise typer.Exit(EXIT_BAD_INPUT) from None
+    from hmpc_cli.sweep.table import finished_in
+
+    out = results / sc.name / "report"
+    if run and finished_in(out, toml_text) is None:
+        if out.exists():
+            import shutil
+
+            shutil.rmtree(out)
+        typer.echo(f"{sc.name}: running -> {out}")
+        try:
+            execute_run(prepare(sc), toml_text, out)
+        except KeyboardInterrupt:
+            typer.echo("interrupted: run the same command again to resume", err=True)
+            raise typer.Exit(EXIT_INTERRUPTED) from None
+        except (ValueError, RuntimeError) as exc:
+            typer.echo(f"error: {scenario}: {' '.join(str(exc).split())[:300]}", err=True)
+            raise typer.Exit(EXIT_BAD_INPUT) from None
+    return out

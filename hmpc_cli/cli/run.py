@@ -1,0 +1,220 @@
+"""``hmpc run``: one scenario in closed loop, logged to MCAP, its summary printed."""
+
+from __future__ import annotations
+
+import json
+import sys
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from hmpc_cli.cli.common import complete_set_key
+
+__all__ = ["run_command"]
+
+EXIT_FAILED = 1
+EXIT_BAD_INPUT = 2
+
+
+def _err(lines: list[str]) -> None:
+    for line in lines:
+        typer.echo(f"error: {line}", err=True)
+
+
+def run_command(
+    scenario: Annotated[Path, typer.Argument(help="scenario TOML file")],
+    out: Annotated[Path | None, typer.Option(
+        "--out", help="run directory (default results/<scenario>/<time>-seed<N>)")] = None,
+    set_: Annotated[list[str] | None, typer.Option(
+        "--set", help="override a setting: key.path=value (repeatable)",
+        autocompletion=complete_set_key)] = None,
+    seed: Annotated[int | None, typer.Option("--seed", help="override the seed")] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar")] = False,
+    live: Annotated[bool, typer.Option(
+        "--live", help="also stream the log's topics to a Foxglove WebSocket server on "
+        "127.0.0.1 (needs foxglove-sdk), paced to real time")] = False,
+    live_port: Annotated[int, typer.Option(
+        "--live-port", help="port of the --live server")] = 8765,
+    strict: Annotated[bool, typer.Option(
+        "--strict", help="exit 1 when the run's task fails (success false)")] = False,
+) -> None:
+    """Run the layered controller in closed loop and log everything to MCAP.
+
+    SIGINT, SIGTERM and SIGHUP stop the run within one simulator step: the log is closed,
+    summary.json says ``interrupted (SIGTERM)``; exit code 128 + the signal number.
+    When stdout is not a terminal, the log's path is also printed whole on the last line.
+    """
+    from hmpc_cli.core.signals import as_interrupted, handle_signals
+
+    try:
+        with handle_signals():
+            _run(scenario, out, set_ or [], seed, quiet, live, live_port, strict)
+    except KeyboardInterrupt as exc:
+        stop = as_interrupted(exc)
+        if not getattr(exc, "reported", False):  # stopped while setting up: say so
+            typer.echo(f"interrupted ({stop.name}) while setting up; no run was started",
+                       err=True)
+        raise typer.Exit(stop.exit_code) from None
+
+
+def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, quiet: bool,
+         live: bool, live_port: int, strict: bool = False) -> None:
+    """The body of ``hmpc run`` (signal handlers installed)."""
+    from hmpc_cli.run.scenario import ScenarioError, load_scenario
+
+    try:
+        sc, toml_text = load_scenario(scenario, sets, seed)
+    except ScenarioError as exc:
+        _err(exc.lines)
+        raise typer.Exit(EXIT_BAD_INPUT) from None
+    from hmpc_cli.core.registry import PluginError
+    from hmpc_cli.run.runner import out_problem, prepare
+
+    check = out if out is not None else Path("results") / sc.name / "run"
+    problem = out_problem(check)  # before the solvers are built
+    if problem is not None:
+        _err([f"{check if out is not None else check.parent}: {problem}"])
+        raise typer.Exit(EXIT_BAD_INPUT)
+    try:
+        loop = prepare(sc)
+    except (PluginError, ValueError) as exc:
+        from hmpc_cli.run.scenario import attribute_to_sets
+
+        _err(attribute_to_sets([f"{scenario}: {line}" for line in str(exc).splitlines()],
+                               str(scenario), sets, True))
+        raise typer.Exit(EXIT_BAD_INPUT) from None
+    out = _run_dir(out, sc)
+    from hmpc_cli.log.runlog import Provenance
+
+    loop.log.provenance = Provenance(overrides=tuple(
+        [*sets, *([f"seed={seed}"] if seed is not None else [])]))
+    sink = _live_sink(live_port) if live else None
+    try:
+        result = _execute(loop, sc, toml_text, out, quiet, sink)
+    finally:
+        if sink is not None:
+            sink.close()
+    _print_summary(result, out)
+    if not sys.stdout.isatty():
+        typer.echo(str(out / "run.mcap"))
+    if strict and not result.success:
+        raise typer.Exit(EXIT_FAILED)
+
+
+def _run_dir(out: Path | None, sc) -> Path:
+    """The run directory: ``--out`` (refused if it holds a run) or a new unique default.
+
+    The default ``results/<scenario>/<UTC time>-seed<N>`` is created atomically; a
+    directory of the same name (two runs in one second) gets a suffix ``-2``, ``-3``...
+    """
+    if out is not None:
+        if (out / "run.mcap").exists():
+            _err([f"{out}: already holds a run (choose another --out)"])
+            raise typer.Exit(EXIT_BAD_INPUT)
+        return out
+    stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
+    base = Path("results") / sc.name / f"{stamp}-seed{sc.seed}"
+    base.parent.mkdir(parents=True, exist_ok=True)
+    for k in range(1, 10_000):
+        path = base if k == 1 else base.with_name(f"{base.name}-{k}")
+        try:
+            path.mkdir()
+        except FileExistsError:
+            continue
+        return path
+    _err([f"{base}: cannot create a unique run directory"])
+    raise typer.Exit(EXIT_BAD_INPUT)
+
+
+def _live_sink(port: int):
+    """The --live server (exit 2 with a clear message without foxglove-sdk)."""
+    from hmpc_cli.log.live import LiveSink, LiveError
+
+    try:
+        sink = LiveSink(port)
+    except LiveError as exc:
+        _err([str(exc)])
+        raise typer.Exit(EXIT_BAD_INPUT) from None
+    typer.echo(f"live: connect Foxglove or Lichtblick to {sink.url}", err=True)
+    return sink
+
+
+def _execute(loop, sc, toml_text: str, out: Path, quiet: bool, sink=None):
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from hmpc_cli.run.runner import execute_run
+
+    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(),
+                        TextColumn("t = {task.fields[t]:.2f} s"), TimeElapsedColumn(),
+                        disable=quiet, transient=True)
+    try:
+        with progress:
+            task = progress.add_task(sc.name, total=1.0, t=0.0)
+            dur = sc.sim.duration
+
+            def tick(i: int, n: int, note: str = "") -> None:
+                if i % 20 == 0 or i == n:
+                    desc = f"{sc.name} [yellow]({note})[/]" if note else sc.name
+                    progress.update(task, completed=i / n, t=i / n * dur, description=desc)
+
+            return execute_run(loop, toml_text, out, tick, sink)
+    except KeyboardInterrupt as exc:
+        from hmpc_cli.core.signals import as_interrupted
+
+        stop = as_interrupted(exc)
+        typer.echo(f"interrupted ({stop.name}) at t = {loop.res.t_end:.3f} s; partial log "
+                   f"in {out / 'run.mcap'}", err=True)
+        stop.reported = True
+        raise stop from None
+    except Exception as exc:  # a crash inside the loop: the log and summary are written
+        _crashed(exc, loop, out)
+
+
+def _crashed(exc: Exception, loop, out: Path) -> None:
+    """Reports a run that crashed: one line, the traceback in ``out/error.txt``; exit 1."""
+    import contextlib
+    import traceback
+
+    from hmpc_cli.cli.common import EXIT_INTERNAL, VERBOSITY
+
+    trace = "".join(traceback.format_exception(exc))
+    with contextlib.suppress(OSError):  # the one-line report does not depend on it
+        (out / "error.txt").write_text(trace, encoding="utf-8")
+    msg = " ".join(str(exc).split())[:300]
+    _err([f"the run crashed at t = {loop.res.t_end:.3f} s: {type(exc).__name__}: {msg}",
+          f"its log, summary.json and the traceback (error.txt) are in {out}"])
+    if VERBOSITY[0] >= 1:
+        typer.echo(trace.rstrip(), err=True)
+    raise typer.Exit(EXIT_INTERNAL)
+
+
+def _print_summary(r, out: Path) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    def ms(v: float) -> str:
+        return "-" if v != v else f"{1e3 * v:.1f} ms"
+
+    table = Table(title=f"{r.scenario} (seed {r.seed})", show_header=False)
+    table.add_row("result", "[green]success[/]" if r.success else f"[red]failed[/]: {r.reason}")
+    table.add_row("final distance to goal", f"{r.final_error:.4f}")
+    table.add_row("simulated time", f"{r.t_end:.3f} s")
+    table.add_row("contacts", f"{r.contacts} " + json.dumps(r.contacts_by_guard))
+    table.add_row("MPC solves", str(r.solves))
+    table.add_row("solve time median / p95 / max",
+                  f"{ms(r.solve_time_median)} / {ms(r.solve_time_p95)} / {ms(r.solve_time_max)}")
+    table.add_row("solver failures", f"{r.solver_failures} "
+                  + (json.dumps(r.failure_statuses) if r.failure_statuses else ""))
+    if r.fallbacks:
+        table.add_row("back-end fallbacks to IPOPT", str(r.fallbacks))
+    table.add_row("softened solves (max slack)",
+                  f"{r.softened_solves}" + (f" ({r.max_slack:.3g})" if r.softened_solves else ""))
+    table.add_row("planner calls (rejected)", f"{r.planner_calls} ({r.planner_rejected})")
+    table.add_row("plan time median", ms(r.plan_time_median))
+    table.add_row("wall time", f"{r.wall_time:.2f} s")
+    for w in r.warnings:
+        table.add_row("[yellow]warning[/]", w)
+    table.add_row("log", str(out / "run.mcap"))
+    Console().print(table)

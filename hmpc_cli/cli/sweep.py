@@ -1,0 +1,307 @@
+"""``hmpc sweep``: argument handling and output; the work is in :mod:`hmpc_cli.sweep.plan`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+EXIT_BAD_INPUT = 2
+EXIT_FAILED = 1
+EXIT_INTERRUPTED = 130
+
+
+def _err(lines: list[str]) -> None:
+    for line in lines:
+        typer.echo(f"error: {line}", err=True)
+
+
+def sweep_command(
+    sweep_file: Annotated[Path, typer.Argument(help="sweep TOML file")],
+    workers: Annotated[int | None, typer.Option(
+        "--workers", min=1, help="worker processes (default: all cores; 1 = in-process)")
+    ] = None,
+    out: Annotated[Path | None, typer.Option(
+        "--out", help="output directory (default results/sweeps/<name>)")] = None,
+    dask: Annotated[str | None, typer.Option(
+        "--dask", help="run on a Dask cluster: scheduler address, e.g. tcp://host:8786")
+    ] = None,
+    dry_run: Annotated[bool, typer.Option(
+        "--dry-run", help="validate and list the runs, run nothing")] = False,
+    seeds: Annotated[int | None, typer.Option(
+        "--seeds", help="run only the sweep's first N seeds (the rest resume later)")
+    ] = None,
+    dask_timeout: Annotated[float, typer.Option(
+        "--dask-timeout", min=0.1, help="seconds to wait for the --dask scheduler")] = 10.0,
+) -> None:
+    """Run a grid of scenario overrides x seeds in parallel; resumable; one results table."""
+    import os
+
+    from hmpc_cli.run.scenario import ScenarioError
+
+    plan = _checked_plan(sweep_file, seeds)
+    if dry_run:
+        _list_runs(plan)
+        return
+    client = None
+    if dask is not None:
+        if workers is not None:
+            typer.echo("note: --workers is ignored with --dask", err=True)
+        try:
+            client = connect_dask(dask, dask_timeout)
+        except ScenarioError as exc:
+            _err(exc.lines)
+            raise typer.Exit(EXIT_BAD_INPUT) from None
+    out = out if out is not None else Path("results") / "sweeps" / plan.spec.name
+    try:
+        outcome = _locked_execute(plan, out, workers or os.cpu_count() or 1, client)
+    finally:
+        if client is not None:
+            client.close()
+    _print_cells(plan, out)
+    typer.echo(f"results: {out / 'results.csv'}")
+    if outcome.lost:
+        _err([f"run not recorded (rerun to retry): {x}" for x in outcome.lost])
+    if outcome.interrupted:
+        typer.echo(f"interrupted: {outcome.done} of {outcome.total} runs done; run the same "
+                   "command again to resume", err=True)
+        raise typer.Exit(128 + outcome.signum)
+    if outcome.lost:
+        raise typer.Exit(EXIT_FAILED)
+
+
+def _locked_execute(plan, out: Path, workers: int, client):
+    """:func:`_execute` holding the output directory's lock, stop signals handled.
+
+    Exits 2 when another sweep writes to ``out``.
+    """
+    from hmpc_cli.core.signals import handle_signals
+    from hmpc_cli.sweep.lock import SweepLockedError, output_lock
+
+    try:
+        with output_lock(out), handle_signals():
+            return _execute(plan, out, workers, client)
+    except SweepLockedError as exc:
+        _err([str(exc)])
+        raise typer.Exit(EXIT_BAD_INPUT) from None
+
+
+def _checked_plan(sweep_file: Path, seeds: int | None):
+    """The sweep's plan, every cell set-up checked; exit 2 with every problem if any."""
+    from hmpc_cli.run.scenario import ScenarioError
+    from hmpc_cli.sweep.plan import first_seeds, plan_sweep
+
+    try:
+        plan = first_seeds(plan_sweep(sweep_file), seeds)
+    except ScenarioError as exc:
+        _err(exc.lines)
+        raise typer.Exit(EXIT_BAD_INPUT) from None
+    problems = setup_problems(plan)
+    if problems:  # what only the built system can tell, for every cell, before any run
+        _err(problems)
+        raise typer.Exit(EXIT_BAD_INPUT)
+    return plan
+
+
+def setup_problems(plan) -> list[str]:
+    """The set-up checks of every distinct (system, MPC) cell of a sweep, attributed.
+
+    Lines ``SWEEP: cell k=v, ...: key.path: reason``
+    (:func:`hmpc_cli.run.setup_checks.setup_problems`;
+    seeds and settings that cannot change them share one check).
+    """
+    import json
+    import tomllib
+
+    from hmpc_cli.run.setup_checks import setup_problems as scenario_problems
+    from hmpc_cli.run.scenario import scenario_model
+
+    seen: set[str] = set()
+    out: list[str] = []
+    for run in plan.selected:
+        sc = scenario_model().model_validate(tomllib.loads(run.toml))
+        key = json.dumps([sc.system.model_dump(mode="json"), sc.mpc.model_dump(mode="json")],
+                         sort_keys=True)
+        if key in seen:
+            continue
+        seen.add(key)
+        cell = ", ".join(f"{k}={v}" for k, v in run.overrides.items()) or "the base scenario"
+        out += [f"{plan.path}: cell {cell}: {line}" for line in scenario_problems(sc)]
+    return out
+
+
+def _list_runs(plan) -> None:
+    for run in plan.selected:
+        cell = zip(plan.axes, run.cell, strict=True)  # one label per axis
+        parts = [run.run_id, *(f"{a.name}={v}" for a, v in cell)]
+        typer.echo("  ".join([*parts, f"seed={run.seed}"]))
+    typer.echo(f"{len(plan.selected)} runs, all valid (dry run: nothing started)")
+
+
+def _execute(plan, out: Path, workers: int, client):
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
+                               TimeElapsedColumn, TimeRemainingColumn)
+
+    from hmpc_cli.sweep.execute import execute_sweep
+
+    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(),
+                        MofNCompleteColumn(), TextColumn("ok {task.fields[ok]}"),
+                        TimeElapsedColumn(), TimeRemainingColumn(), transient=True)
+    task = progress.add_task(plan.spec.name, total=len(plan.selected), ok=0)
+    state = {"ok": 0}
+
+    def on_start(total: int, skipped: int, ok: int) -> None:
+        todo = total - skipped
+        where = f"Dask {client.scheduler.address}" if client is not None else (
+            "in-process" if min(workers, todo) <= 1 else f"{min(workers, todo)} worker processes")
+        state["ok"] = ok
+        progress.update(task, completed=skipped, ok=ok)
+        typer.echo(f"{plan.spec.name}: {total} runs, {skipped} skipped (already done), "
+                   f"{total - skipped} to run ({where}) -> {out}")
+
+    def on_done(run, summary: dict) -> None:
+        state["ok"] += bool(summary.get("success"))
+        progress.update(task, advance=1, ok=state["ok"])
+        if not state.get("noted"):
+            note = not_compiled_note(out / "runs" / run.run_id)
+            if note:
+                state["noted"] = True
+                progress.console.print(note, markup=False, highlight=False)
+
+    with progress:
+        return execute_sweep(plan, out, workers, client, on_start, on_done)
+
+
+def not_compiled_note(run_dir: Path) -> str:
+    """A note when a finished run solved its MPC NLPs uncompiled for a build cache miss.
+
+    '' when the run's /run/info says the NLPs were loaded compiled, the cache is off, or
+    the log cannot be read. Measured here: the paper robustness sweep's runs 1.5x faster
+    compiled, bit-identical (``hmpc replay --verify``).
+    """
+    from hmpc_cli.log.reader import first_message
+
+    build = ((first_message(run_dir / "run.mcap", "/run/info") or {}).get("build") or {})
+    if build.get("cache") != "miss" or build.get("compiled"):
+        return ""
+    return (f"note: the MPC's NLPs of this sweep are not compiled (build cache miss), so "
+            f"every run solves them in CasADi's SX virtual machine, slower. Compile them once "
+            f"(minutes of CPU, GBs of memory): HMPC_BUILD_CACHE=sync hmpc run "
+            f"{run_dir / 'scenario.toml'} --set sim.duration=0.1 --out <a scratch dir>; "
+            f"sweep workers started after that load them (a resumed sweep; the same results "
+            f"bit for bit).")
+
+
+def _print_cells(plan, out: Path) -> None:
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.table import Table
+
+    table = Table(title=f"{plan.spec.name}: success per grid cell (seeds pooled)")
+    for a in plan.axes:
+        table.add_column(a.name)
+    for name in ("runs", "successes", "success rate"):
+        table.add_column(name, justify="right")
+    total = [0, 0]
+    for cell, n, ok in cell_stats(plan, out):
+        total[0], total[1] = total[0] + n, total[1] + ok
+        rate = f"{100 * ok / n:.0f} %" if n else "-"
+        table.add_row(*map(escape, cell), str(n), str(ok), rate)
+    rate = f"{100 * total[1] / total[0]:.0f} %" if total[0] else "-"
+    table.add_section()
+    table.add_row(*(["all"] + [""] * (len(plan.axes) - 1) if plan.axes else []),
+                  str(total[0]), str(total[1]), rate)
+    Console().print(table)
+
+
+def cell_stats(plan, out: Path) -> list[tuple[tuple[str, ...], int, int]]:
+    """Per grid cell (all axes, seeds pooled): (cell, finished runs, successes)."""
+    from hmpc_cli.sweep.table import cell_text, finished
+
+    stats: dict[tuple[str, ...], list[int]] = {}
+    for run in plan.runs:
+        s = stats.setdefault(tuple(cell_text(v) for v in run.cell), [0, 0])
+        summary = finished(out.resolve(), run)
+        if summary is not None:
+            s[0] += 1
+            s[1] += bool(summary.get("success"))
+    return [(c, n, k) for c, (n, k) in stats.items()]
+
+
+DASK_HINT = "is it the dashboard port 8787? the scheduler listens on 8786"
+
+
+def _probe_scheduler(address: str, timeout: float) -> str:
+    """'' if a TCP Dask scheduler at ``address`` sends its handshake within ``timeout``.
+
+    A scheduler writes its handshake frame (8-byte little-endian length, then the message)
+    as soon as a connection is accepted; an HTTP server or a silent peer sends nothing.
+    Addresses of other protocols (tls://, ucx://, ...) are not probed. Otherwise returns why.
+    """
+    import socket
+    import struct
+    import time
+
+    scheme, _, rest = address.rpartition("://")
+    if scheme not in ("", "tcp"):
+        return ""
+    host, _, port = rest.rpartition(":")
+    if not host or not port.isdigit():
+        return ""  # left to distributed (default port, names it resolves itself)
+    deadline = time.monotonic() + timeout
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout) as sock:
+            head = b""
+            while len(head) < 8:
+                sock.settimeout(max(deadline - time.monotonic(), 0.01))
+                chunk = sock.recv(8 - len(head))
+                if not chunk:
+                    return "the peer closed the connection without a Dask handshake"
+                head += chunk
+    except TimeoutError:
+        return f"no Dask scheduler answered within {timeout:g} s"
+    except OSError as exc:
+        return f"cannot connect: {exc.strerror or exc}"
+    (size,) = struct.unpack("<Q", head)
+    if not 0 < size < 1 << 26:
+        return "the peer does not speak the Dask protocol"
+    return ""
+
+
+def connect_dask(address: str, timeout: float = 10.0):
+    """A ``distributed.Client`` for ``address``, connected within ``timeout`` seconds.
+
+    Raises:
+        ScenarioError: distributed missing, or no scheduler answered in time (one line with
+            a hint about the dashboard port).
+    """
+    import threading
+
+    from hmpc_cli.run.scenario import ScenarioError
+
+    try:
+        from distributed import Client
+    except ImportError:
+        raise ScenarioError([f"--dask {address}: the 'distributed' package is not installed "
+                             "(pip install 'hmpc[dask]')"]) from None
+    reason = _probe_scheduler(address, timeout)
+    if reason:
+        raise ScenarioError([f"--dask {address}: {reason} ({DASK_HINT})"])
+    box: dict = {}
+
+    def connect() -> None:
+        try:
+            box["client"] = Client(address, timeout=timeout)
+        except BaseException as exc:
+            box["error"] = exc
+
+    worker = threading.Thread(target=connect, name="hmpc-dask-connect", daemon=True)
+    worker.start()
+    worker.join(timeout + 1.0)
+    if "client" in box:
+        return box["client"]
+    exc = box.get("error")
+    reason = (" ".join(str(exc).split()) or type(exc).__name__) if exc is not None else \
+        f"no Dask scheduler answered within {timeout:g} s"
+    raise ScenarioError([f"--dask {address}: cannot connect: {reason} ({DASK_HINT})"])

@@ -1,0 +1,338 @@
+"""``hmpc tube``: the tracking-error tubes of a scenario (heavy imports inside the command).
+
+Reads the scenario, builds its system through the registry, runs
+:func:`hmpc_cli.tube.analyse` on plain values and prints, writes and draws the report.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+__all__ = ["tube_command"]
+
+EXIT_BAD_INPUT = 2
+#: MPC rates of the margin-vs-rate figure [Hz]
+PLOT_RATES = (1, 2, 3, 5, 7, 10, 15, 20, 30, 50, 70, 100, 150, 200)
+
+
+def _fail(lines: list[str]) -> None:
+    """Prints ``error:`` lines and exits with the bad-input code."""
+    for line in lines:
+        typer.echo(f"error: {line}", err=True)
+    raise typer.Exit(EXIT_BAD_INPUT)
+
+
+def _g(v: float | None) -> str:
+    """A number for the tables: 4 significant digits, inf, or '-' for None."""
+    if v is None:
+        return "-"
+    return str(float(v)) if not math.isfinite(v) else f"{v:.4g}"
+
+
+def _states_of(log: Path, n: int) -> object:
+    """The states a recorded run visited (K, n), from its /sim/state topic.
+
+    Raises:
+        ValueError: the log cannot be read or has no state of dimension n.
+    """
+    from hmpc_cli.log.rundata import read_run
+
+    run = read_run(log)
+    if not run.t.size or run.x.shape[1] != n:
+        raise ValueError(f"{run.path}: no /sim/state state of dimension {n}")
+    return run.x
+
+
+def _constants_table(report, sc_name: str):
+    """Rich table of the constants and the certificate."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    lx, dist, cert = report.lipschitz, report.disturbance, report.certificate
+    row = report.row(report.rate_hz)
+    t = Table(title=f"tube constants: {sc_name} ({report.system})", show_header=False)
+    t.add_row("region", escape(f"{report.region.note}; diameter {_g(report.region.diameter)}"))
+    t.add_row("L_x", f"{_g(lx.L_x)} 1/s  (max ||df/dx||_2, mode {lx.mode_x})")
+    t.add_row("L_u", f"{_g(lx.L_u)}  (max ||df/du||_2, mode {lx.mode_u})")
+    t.add_row("", escape(f"L_x, L_u: {lx.samples} samples each; {lx.note}"))
+    t.add_row("eta", f"{_g(dist.eta)}  ({escape(dist.note)})")
+    names = [report.state_names[i] for i in report.kinematic_states]
+    t.add_row("kinematic states", escape(
+        f"{', '.join(names)}: flow = another state or 0, so their error is "
+        "int ||e|| <= int_0^dt diam T(s) ds" if names else "none (no kinematic tube)"))
+    t.add_row("zeta", f"{_g(row.margins.zeta)} at {report.rate_hz:g} Hz  (min(||K|| "
+              f"diam T(dt), D_U): ||K|| = {_g(report.gain_norm)}, kp = {report.kp:g}, "
+              f"kd = {report.kd:g}, D_U = {_g(report.box_diameter)})")
+    if not cert.certified:
+        t.add_row("certificate", f"[red]none[/]: {escape(cert.reason)}")
+        return t
+    t.add_row("certificate", f"V = sqrt(e^T P e), A_cl = A - B K at x0 in mode {cert.mode} "
+              f"({len(cert.states)} error states)")
+    t.add_row("k1, k2, k3", f"{_g(cert.k1)}, {_g(cert.k2)}, {_g(cert.k3)}")
+    t.add_row("sigma(eta), gamma", f"{_g(cert.sigma)}, {_g(cert.gamma)} 1/s;  a(inf) = "
+              f"{_g(cert.a_inf)}")
+    t.add_row("check sigma/k1 <= eta", f"{'true' if cert.check else 'false'}: "
+              f"{cert.check_text}")
+    t.add_row("ROA (estimate)", f"{{V <= {_g(cert.roa_level)}}} ⊇ ball of radius "
+              f"{_g(cert.roa_radius)} ({cert.roa_samples} samples"
+              f"{', none violating up to the cap' if cert.roa_capped else ''})")
+    t.add_row("tau", f"{_g(cert.tau)} s")
+    return t
+
+
+def _diam_table(report):
+    """Rich table of diam T(dt) per MPC rate."""
+    from rich.markup import escape
+    from rich.table import Table
+
+    t = Table(title=escape("diam T(dt) per MPC rate [state norm]"))
+    for col in ("MPC rate", escape("dt [s]"), "trivial", "ff-only", "Prop. 3", "diam T(dt)",
+                "bound", "kinematic", "zeta"):
+        t.add_column(col, justify="left" if col == "bound" else "right")
+    for r in report.rows:
+        mark = " *" if r.rate_hz == report.rate_hz else ""
+        t.add_row(f"{r.rate_hz:g} Hz{mark}", _g(r.dt), _g(r.trivial), _g(r.ff_only),
+                  _g(r.prop3), _g(r.diam), r.bound, _g(r.kinematic), _g(r.margins.zeta))
+    return t
+
+
+def _margin_table(report):
+    """Rich table of the implied margins per guard and mode, one column per rate."""
+    from rich.table import Table
+
+    t = Table(title="implied margins: guard-avoid / pass-through offsets (NLP row units), "
+                    "input margin per side")
+    t.add_column("constraint")
+    for r in report.rows:
+        t.add_column(f"{r.rate_hz:g} Hz", justify="right")
+    first = report.rows[0].margins
+    for i, g in enumerate(first.guards):
+        kin = " (kinematic)" if report.kinematic_guards and report.kinematic_guards[i] else ""
+        t.add_row(f"guard {g.guard}{kin}", *[
+            f"{_g(r.margins.guards[i].avoid)} / {_g(r.margins.guards[i].pass_through)}"
+            + ("" if r.margins.guards[i].monotone else " !") for r in report.rows])
+    for i, m in enumerate(first.inputs):
+        t.add_row(f"inputs {m.mode}", *[
+            _g(max(r.margins.inputs[i].per_side, default=0.0))
+            + (" (capped)" if r.margins.inputs[i].capped else "") for r in report.rows])
+    return t
+
+
+def _print(report, sc_name: str) -> None:
+    """Prints the three tables, then the notes and warnings."""
+    from rich.console import Console
+    from rich.markup import escape
+
+    con = Console()
+    con = Console(width=max(con.width, 110))
+    con.print(_constants_table(report, sc_name))
+    con.print(_diam_table(report))
+    con.print(_margin_table(report))
+    con.print("* the scenario's MPC rate; ! the guard's margin formula does not hold at "
+              "that radius; (kinematic): the guard's gap depends on kinematic states only, "
+              "its margins are of the kinematic radius. L_x, L_u, eta and the ROA are "
+              "sampled estimates, not certificates; the MPC applies them only through a "
+              "margins file (--write, mpc.margins).")
+    for line in report.notes:
+        con.print(f"note: {escape(line)}")
+    for line in report.warnings:
+        con.print(f"[bold yellow]warning[/]: {escape(line)}")
+
+
+def _write(report, system, out: Path, formats: str, title: str) -> list[str]:
+    """Writes tube.json and the figures into ``out``; returns the file names."""
+    import numpy as np
+
+    from hmpc_cli.figures.common import parse_formats
+    from hmpc_cli.figures.tube import draw_diameters, draw_margins
+    from hmpc_cli.core.jsonio import dumps
+    from hmpc_cli.tube import diameter_curves
+
+    fmts = parse_formats(formats)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "tube.json").write_text(dumps(report.to_dict(), indent=2) + "\n")
+    periods = [r.dt for r in report.rows]
+    t = np.linspace(0.0, max(periods), 401)[1:]
+    cert = report.certificate
+    draw_diameters(out, t, diameter_curves(report, t), cert.tau if cert.certified else None,
+                   periods, title, fmts)
+    rows = [report.row_at(system, r) for r in PLOT_RATES]
+    guards = {g.guard: np.array([r.margins.guards[i].avoid if r.margins.guards[i].monotone
+                                 else np.nan for r in rows])  # invalid formula: not drawn
+              for i, g in enumerate(rows[0].margins.guards)}
+    inputs = {m.mode: np.array([max(r.margins.inputs[i].per_side, default=0.0) for r in rows])
+              for i, m in enumerate(rows[0].margins.inputs)}
+    draw_margins(out, np.array(PLOT_RATES, dtype=float), guards, inputs, report.rate_hz,
+                 title, fmts)
+    return ["tube.json"] + [f"{s}.{f}" for s in ("tube_diameter", "tube_margins") for f in fmts]
+
+
+def _analyse(sc, system, observed: list, states: Path | None, pad: float | None,
+             samples: int):
+    """The tube report of a scenario.
+
+    The region spans the states of the run ``states``, else those of the observed runs,
+    else x0 and the goal (see :func:`hmpc_cli.tube.region_from_scenario`).
+    """
+    from hmpc_cli.tube import analyse, region_from_scenario
+
+    visited = _states_of(states, system.n_x) if states is not None else (
+        _stack([r.x for r in observed]) if observed else None)
+    region = region_from_scenario(system, pad, visited)
+    return analyse(system, region=region, kind=sc.disturbance.kind,
+                   magnitude=sc.disturbance.magnitude, kp=sc.lowlevel.kp, kd=sc.lowlevel.kd,
+                   rate_hz=sc.mpc.rate_hz, samples=samples, seed=sc.seed)
+
+
+def tube_command(
+    scenario: Annotated[Path, typer.Argument(help="scenario TOML file")],
+    set_: Annotated[list[str] | None, typer.Option(
+        "--set", help="override a setting: key.path=value (repeatable)")] = None,
+    out: Annotated[Path | None, typer.Option(
+        "--out", help="output directory (default results/<scenario>/tube)")] = None,
+    samples: Annotated[int, typer.Option(
+        "--samples", min=1, help="uniform samples per estimated constant")] = 20000,
+    pad: Annotated[float | None, typer.Option(
+        "--pad", min=0.0, help="region padding per side, x each coordinate's width "
+        "(default 1; with --states 0.1)")] = None,
+    states: Annotated[Path | None, typer.Option(
+        "--states", help="a run log (run.mcap or its directory): the region spans the "
+        "states it visited instead of x0 and the goal")] = None,
+    formats: Annotated[str, typer.Option(
+        "--formats", help="comma-separated figure formats: pdf,svg,png")] = "pdf,png",
+    write: Annotated[Path | None, typer.Option(
+        "--write", help="also write a margins file (TOML) a scenario's mpc.margins can "
+        "name: the radius and margins per tabulated MPC rate")] = None,
+    runs: Annotated[list[Path] | None, typer.Option(
+        "--runs", help="a run of this scenario's system (directory or run.mcap; "
+        "repeatable): its deviation from its plans against the tubes; without --states "
+        "the region spans the runs' states")] = None,
+) -> None:
+    """Tracking-error tubes of a scenario: L_x, L_u, eta, zeta, Prop. 3, diam T(dt), margins."""
+    from hmpc_cli.analysis.tables import FigureInputError
+    from hmpc_cli.figures.common import parse_formats
+    from hmpc_cli.core.registry import PluginError, build_system
+    from hmpc_cli.run.scenario import ScenarioError, load_scenario
+    from hmpc_cli.tube import TubeError
+
+    try:
+        sc, _ = load_scenario(scenario, set_ or [], check_margins=False)
+        parse_formats(formats)
+    except ScenarioError as exc:
+        _fail(exc.lines)
+    except FigureInputError as exc:
+        _fail([f"--formats: {exc}"])
+    try:
+        system = build_system(sc.system)
+        observed = _read_runs(runs or [], sc.system)
+        report = _analyse(sc, system, observed, states, pad, samples)
+    except TubeError as exc:
+        _fail([f"{scenario}: tube: {exc.quantity}: {exc.reason} (no trivial tube)"])
+    except (PluginError, ValueError) as exc:
+        _fail([f"{scenario}: {exc}"])
+    _print(report, sc.name)
+    out = out if out is not None else Path("results") / sc.name / "tube"
+    try:
+        names = _write(report, system, out, formats, f"{sc.name}: tubes")
+    except (OSError, FigureInputError) as exc:
+        _fail([f"{out}: cannot write ({exc})"])
+    typer.echo(f"wrote {', '.join(names)} to {out}")
+    if observed:
+        _reality(report, observed, out, formats, f"{sc.name}: tube vs reality")
+    if write is not None:
+        _write_margins(report, sc, write, samples)
+
+
+def _stack(arrays: list) -> object:
+    """The rows of ``arrays`` stacked (sum K, n)."""
+    import numpy as np
+
+    return np.vstack(arrays)
+
+
+def _read_runs(runs: list[Path], params) -> list:
+    """The runs read by :func:`hmpc_cli.analysis.tube_reality.read_run`, each of ``params``' system.
+
+    Raises:
+        ValueError: a run cannot be read or is of another system.
+    """
+    from pydantic import ValidationError
+
+    from hmpc_cli.core.registry import PluginError, registry
+    from hmpc_cli.analysis.tube_reality import read_run
+
+    out = []
+    for path in runs:
+        run = read_run(path)
+        try:
+            logged = registry().system(run.system.get("name", "")).params.model_validate(
+                run.system)
+        except (PluginError, ValidationError):
+            logged = None
+        if logged != params:
+            raise ValueError(f"--runs {path}: not a run of this scenario's system "
+                             f"(logged {run.system.get('name', 'none')!s} with other "
+                             "parameters or none)")
+        out.append(run)
+    return out
+
+
+def _reality(report, runs: list, out: Path, formats: str, title: str) -> None:
+    """Prints the "tube vs reality" table and writes tube_reality.<fmt> into ``out``."""
+    import numpy as np
+    from rich.console import Console
+    from rich.markup import escape
+    from rich.table import Table
+
+    from hmpc_cli.analysis.tables import FigureInputError
+    from hmpc_cli.figures.common import parse_formats
+    from hmpc_cli.figures.tube import draw_reality
+    from hmpc_cli.tube import diameter_curves
+    from hmpc_cli.analysis.tube_reality import reality
+
+    rep = reality(runs, lambda tau: diameter_curves(report, tau),
+                  dict(zip(report.kinematic_states, report.kinematic_rates, strict=True)))
+    how = (f"; {len(rep.interpolated)} against the interpolated plan (no sample at a node "
+           "time)" if rep.interpolated else "")
+    t = Table(title=escape(f"tube vs reality: {len(runs)} runs, {len(rep.periods)} periods "
+                           f"({rep.skipped} skipped: no sample; {rep.unmatched} samples "
+                           f"with no node in the plant's domain{how})"))
+    for col in ("bound", "periods", "inside", "median ratio", "worst ratio", "violations"):
+        t.add_column(col, justify="left" if col == "bound" else "right")
+    for c in rep.checks:
+        t.add_row(c.bound, str(c.periods), f"{c.fraction:.3f}", _g(c.median_ratio),
+                  _g(c.worst_ratio), str(len(c.violations)))
+    con = Console(width=120)
+    con.print(t)
+    for c in rep.checks:
+        for v in c.violations:
+            con.print(f"violation: {v.bound}: run {escape(v.run)} t = {v.t:.6g} s: observed "
+                      f"{v.observed:.4g} > predicted {v.predicted:.4g}")
+    tmax = max((float(p.tau.max()) for p in rep.periods), default=1.0)
+    grid = np.linspace(0.0, tmax, 201)[1:]
+    try:
+        paths = draw_reality(out, [(p.tau, p.dev) for p in rep.periods], grid,
+                             diameter_curves(report, grid), title, parse_formats(formats),
+                             [(p.tau, p.dev_kin) for p in rep.periods
+                              if p.dev_kin is not None])
+    except (OSError, FigureInputError) as exc:
+        _fail([f"{out}: cannot write ({exc})"])
+    typer.echo(f"wrote {', '.join(p.name for p in paths)} to {out}")
+
+
+def _write_margins(report, sc, path: Path, samples: int) -> None:
+    """Writes the margins file of ``report`` (``hmpc tube --write``)."""
+    from hmpc_cli.tube.margins_file import write_margins
+
+    try:
+        write_margins(path, report, scenario=sc.name, params=sc.system,
+                      kind=sc.disturbance.kind, magnitude=sc.disturbance.magnitude,
+                      samples=samples)
+    except OSError as exc:
+        _fail([f"{path}: cannot write ({exc})"])
+    typer.echo(f"wrote margins file {path} (rates "
+               f"{', '.join(f'{r.rate_hz:g}' for r in report.rows)} Hz)")

@@ -1,0 +1,265 @@
+"""Registries of systems, planners and fixed-mode MPCs, filled from Python entry points.
+
+A package registers a system by naming a :class:`SystemSpec` object under the entry-point
+group ``hmpc.systems`` (planners: ``hmpc.planners`` with a :class:`PlannerSpec`, MPCs:
+``hmpc.mpcs`` with an :class:`MPCSpec`); hmpc's own systems, planners and MPCs register
+the same way in its ``pyproject.toml``. The scenario's section unions and its JSON schema
+are assembled from what is registered (:mod:`hmpc_cli.run.scenario`).
+
+An entry point that fails to load is remembered with its reason: using it raises
+:class:`PluginError` naming the entry point; the others still work.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from functools import lru_cache
+from importlib.metadata import EntryPoint, entry_points
+from typing import Any
+
+from pydantic import BaseModel
+
+GROUPS = {"system": "hmpc.systems", "planner": "hmpc.planners", "mpc": "hmpc.mpcs"}
+
+
+class PluginError(Exception):
+    """A registered plug-in cannot be loaded, built or combined (message names it)."""
+
+
+@dataclass(frozen=True)
+class Requirement:
+    """A setting a plug-in needs: ``key`` (a scenario key path) must equal ``value``.
+
+    The value is also the default when the scenario does not set the key.
+    """
+
+    key: str
+    value: Any
+    why: str
+
+
+@dataclass(frozen=True)
+class SystemSpec:
+    """A system plug-in.
+
+    Attributes:
+        name: the system's name (``system.name`` in a scenario).
+        params: pydantic model of its parameters, with a field ``name: Literal[name]``.
+        build: params -> :class:`~hmpc_cli.core.hybrid.HybridSystem` (called once per process
+            per parameter set).
+        task: (params, system) -> :class:`~hmpc_cli.core.stack.Task`; called with the simulated
+            plant's parameters and system (success is judged on the world).
+        planner: default planner kind.
+        mpc: default fixed-mode MPC kind.
+        provides: capabilities planners and MPCs may need (named outputs, ``terrain``,
+            ``guard_surfaces``).
+        requires: settings the system needs (and their defaults).
+        defaults: default settings per section for this system: keys ``sim``,
+            ``replanning``, ``lowlevel``, ``disturbance`` or ``planner.<kind>`` /
+            ``mpc.<kind>`` (those apply only when that kind is used).
+    """
+
+    name: str
+    params: type[BaseModel]
+    build: Callable[[Any], Any]
+    task: Callable[[Any, Any], Any]
+    planner: str
+    mpc: str
+    provides: frozenset[str] = frozenset()
+    requires: tuple[Requirement, ...] = ()
+    defaults: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class PlannerSpec:
+    """A planner (hybrid MPC) plug-in.
+
+    Attributes:
+        kind: ``planner.kind`` in a scenario.
+        settings: pydantic model with a field ``kind: Literal[kind]``.
+        make: (system, settings, run_seed) -> :class:`~hmpc_cli.core.stack.Planner`.
+        needs: system capabilities it uses (checked against ``SystemSpec.provides``).
+        requires: settings it needs (and their defaults).
+        detail: the frozen dataclass its ``PlannerResult.extra`` is logged as (the
+            /planner/plan ``detail`` field; its JSON schema is generated from it), or
+            None (no detail logged).
+    """
+
+    kind: str
+    settings: type[BaseModel]
+    make: Callable[[Any, Any, int], Any]
+    needs: frozenset[str] = frozenset()
+    requires: tuple[Requirement, ...] = ()
+    detail: type | None = None
+
+
+@dataclass(frozen=True)
+class MPCSpec:
+    """A fixed-mode MPC plug-in (one transcription).
+
+    Attributes:
+        kind: ``mpc.kind`` in a scenario.
+        settings: pydantic model with fields ``kind: Literal[kind]`` and ``rate_hz``.
+        problem: (system, settings) -> the built NLP(s): expensive, built once per
+            process per (system, settings) and shared by the controllers made from it.
+            When ``settings.margins`` names a margins file, the loop passes its values as
+            a third argument (a :class:`~hmpc_cli.core.messages.ConstraintMargins`).
+        make: (system, settings, problem) -> :class:`~hmpc_cli.core.stack.FixedModeMPC`.
+        needs: system capabilities it uses.
+        requires: settings it needs (and their defaults).
+        hand_margins: (system, settings) -> the hand-set
+            :class:`~hmpc_cli.core.messages.ConstraintMargins` (``margins = "hand"``; logged
+            in /run/info); None: the MPC applies no tube margins.
+        detail: the frozen dataclass its ``Plan.extra`` is logged as (the /mpc/solve
+            ``detail`` field), or None.
+    """
+
+    kind: str
+    settings: type[BaseModel]
+    problem: Callable[..., Any]
+    make: Callable[[Any, Any, Any], Any]
+    needs: frozenset[str] = frozenset()
+    requires: tuple[Requirement, ...] = ()
+    hand_margins: Callable[[Any, Any], Any] | None = None
+    detail: type | None = None
+
+
+@dataclass(frozen=True)
+class Registry:
+    """Every loaded plug-in by name, and the entry points that failed (name -> reason)."""
+
+    systems: Mapping[str, SystemSpec]
+    planners: Mapping[str, PlannerSpec]
+    mpcs: Mapping[str, MPCSpec]
+    failed: Mapping[str, Mapping[str, str]]
+
+    def system(self, name: str) -> SystemSpec:
+        """The system plug-in ``name``.
+
+        Raises:
+            PluginError: not registered, or its entry point failed to load.
+        """
+        return self._get("system", self.systems, name)
+
+    def planner(self, kind: str) -> PlannerSpec:
+        """The planner plug-in ``kind`` (raises :class:`PluginError` like :meth:`system`)."""
+        return self._get("planner", self.planners, kind)
+
+    def mpc(self, kind: str) -> MPCSpec:
+        """The MPC plug-in ``kind`` (raises :class:`PluginError` like :meth:`system`)."""
+        return self._get("mpc", self.mpcs, kind)
+
+    def _get(self, what: str, table: Mapping[str, Any], name: str) -> Any:
+        if name in table:
+            return table[name]
+        if name in self.failed[what]:
+            raise PluginError(self.failed[what][name])
+        raise PluginError(f"unknown {what} {name!r} (registered: "
+                          f"{', '.join(map(repr, sorted(table))) or 'none'})")
+
+
+def _load(group: str, kind_field: str, spec_type: type) -> tuple[dict, dict]:
+    """Loads every entry point of ``group``; returns (specs by name, failures by name).
+
+    A name registered by two different entry points is ambiguous: neither is used and
+    using the name reports both.
+    """
+    specs, failed, values = {}, {}, {}
+    for ep in sorted(entry_points(group=group), key=lambda e: (e.name, e.value)):
+        if ep.name in values and values[ep.name] != ep.value:
+            failed[ep.name] = (f"{kind_field} {ep.name!r} is registered twice in group "
+                               f"{group}: {values[ep.name]!r} and {ep.value!r}")
+            specs.pop(ep.name, None)
+            continue
+        values[ep.name] = ep.value
+        if ep.name in failed or ep.name in specs:
+            continue
+        try:
+            specs[ep.name] = _load_one(ep, group, kind_field, spec_type)
+        except PluginError as exc:
+            failed[ep.name] = str(exc)
+    return specs, failed
+
+
+def _load_one(ep: EntryPoint, group: str, kind_field: str, spec_type: type) -> Any:
+    """Loads and checks one entry point.
+
+    Raises:
+        PluginError: import failure, wrong object, or a name that does not match.
+    """
+    where = f"entry point {ep.name!r} = {ep.value!r} (group {group})"
+    try:
+        spec = ep.load()
+    except Exception as exc:
+        raise PluginError(f"{where} failed to load: {type(exc).__name__}: {exc}") from None
+    if not isinstance(spec, spec_type):
+        raise PluginError(f"{where} is a {type(spec).__name__}, not a {spec_type.__name__}")
+    name = getattr(spec, kind_field)
+    if name != ep.name:
+        raise PluginError(f"{where} registers {kind_field} {name!r}: the entry point "
+                          f"must be named after it")
+    model = spec.params if kind_field == "name" else spec.settings
+    fld = model.model_fields.get(kind_field)
+    if fld is None or fld.default != name:
+        raise PluginError(f"{where}: {model.__name__} needs a field "
+                          f"{kind_field}: Literal[{name!r}] = {name!r}")
+    return spec
+
+
+@lru_cache(maxsize=1)
+def registry() -> Registry:
+    """Every registered system, planner and MPC (loaded once per process)."""
+    systems, f_sys = _load(GROUPS["system"], "name", SystemSpec)
+    planners, f_pl = _load(GROUPS["planner"], "kind", PlannerSpec)
+    mpcs, f_mpc = _load(GROUPS["mpc"], "kind", MPCSpec)
+    if not systems and not f_sys:
+        raise PluginError("no system is registered: hmpc is not installed (pip install -e .)")
+    return Registry(systems, planners, mpcs,
+                    {"system": f_sys, "planner": f_pl, "mpc": f_mpc})
+
+
+def build_system(params: BaseModel) -> Any:
+    """Builds the registered system named by ``params.name``, once per process per params.
+
+    Raises:
+        PluginError: the plug-in is missing or its ``build`` fails (reason included).
+    """
+    return _build_cached(type(params), params.model_dump_json())
+
+
+@lru_cache(maxsize=32)
+def _build_cached(model: type[BaseModel], params_json: str) -> Any:
+    params = model.model_validate_json(params_json)
+    spec = registry().system(params.name)
+    system = plugin_call(f"system: {spec.name!r} failed to build", spec.build, params)
+    missing = sorted(c for c in spec.provides - CAPABILITIES if c not in system.outputs)
+    missing += sorted(c for c in spec.provides & CAPABILITIES if not getattr(system, c))
+    if missing:
+        raise PluginError(f"system: {spec.name!r} declares that it provides "
+                          f"{', '.join(missing)}, but its HybridSystem has none")
+    return system
+
+
+#: capabilities that are HybridSystem fields rather than named outputs
+CAPABILITIES = frozenset({"terrain", "guard_surfaces", "state_box"})
+
+
+def plugin_call(what: str, fn: Callable[..., Any], *args: Any) -> Any:
+    """``fn(*args)``; any exception becomes a :class:`PluginError` 'what: Type: message'."""
+    try:
+        return fn(*args)
+    except PluginError:
+        raise
+    except Exception as exc:
+        raise PluginError(f"{what}: {type(exc).__name__}: {one_line(exc)}") from None
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception's message on one line.
+
+    CasADi's source locations and its trailing paragraphs are left out.
+    """
+    text = re.sub(r"\S*\.[ch]pp:\d+:\s*", "", str(exc).split("\n\n")[0])
+    return " ".join(text.split())

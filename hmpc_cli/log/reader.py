@@ -1,0 +1,220 @@
+"""Reading MCAP run logs back: JSON channels decoded, other channels kept raw, damage named.
+
+:func:`read_log` decodes the JSON channels into :attr:`Log.messages` and keeps the other
+channels' messages (the scene's protobuf) undecoded in :attr:`Log.raw`. Logs of killed runs
+stay readable: it keeps every chunk that reached the disk and says why reading stopped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import struct
+from pathlib import Path
+from typing import Any
+
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap.records import Attachment, Channel, Chunk, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
+
+from hmpc_cli.log.codecs import codec_errors
+from hmpc_cli.log.recorder import NS_PER_S
+
+__all__ = ["MCAP_MAGIC", "Log", "LogMessage", "RawMessage", "first_message", "read_log"]
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+# Errors that mean "damaged or truncated file" while decoding MCAP records.
+_DAMAGE_ERRORS = (McapError, struct.error, ValueError, RuntimeError, KeyError, IndexError,
+                  EOFError, *codec_errors())
+
+
+@dataclasses.dataclass
+class LogMessage:
+    """One decoded message; `t` in seconds, `log_time_ns` the exact MCAP log time."""
+
+    topic: str
+    t: float
+    data: dict
+    log_time_ns: int = 0
+
+
+@dataclasses.dataclass
+class RawMessage:
+    """One message of a non-JSON channel (e.g. protobuf), undecoded.
+
+    Attributes:
+        topic: its topic.
+        t: log time [s].
+        data: the encoded message (decode protobuf with ``MessageClass.FromString``).
+        encoding: the channel's message encoding (e.g. ``protobuf``).
+        schema_name: the schema's name (e.g. ``foxglove.SceneUpdate``).
+        log_time_ns: the exact MCAP log time.
+    """
+
+    topic: str
+    t: float
+    data: bytes
+    encoding: str
+    schema_name: str
+    log_time_ns: int = 0
+
+
+@dataclasses.dataclass
+class Log:
+    """Contents of a run log; `complete` is False for truncated or damaged files.
+
+    `messages` and `schemas` hold the JSON channels (decoded); `raw` the messages of the
+    other channels undecoded, `raw_schemas` their schema records by topic. `damage` says
+    why reading stopped at a chunk that failed its CRC, decompression or decoding (""
+    otherwise, also for a file that merely ends early).
+    """
+
+    messages: list[LogMessage]
+    metadata: dict[str, dict[str, str]]
+    attachments: dict[str, bytes]
+    schemas: dict[str, dict]
+    complete: bool
+    damage: str = ""
+    raw: list[RawMessage] = dataclasses.field(default_factory=list)
+    raw_schemas: dict[str, Schema] = dataclasses.field(default_factory=dict)
+
+    def topic(self, name: str) -> list[LogMessage]:
+        """Returns the messages on topic `name`, in file order."""
+        return [m for m in self.messages if m.topic == name]
+
+    def raw_topic(self, name: str) -> list[RawMessage]:
+        """Returns the undecoded messages on (non-JSON) topic `name`, in file order."""
+        return [m for m in self.raw if m.topic == name]
+
+    def _add(self, channel: Channel, schema: Schema | None, msg: Message,
+             out: list[LogMessage], raw: list[RawMessage]) -> None:
+        """Files one message: JSON ones decoded into `out`, others into `raw`."""
+        if channel.message_encoding == "json":
+            out.append(_message(channel, msg))
+        else:
+            raw.append(RawMessage(channel.topic, msg.log_time / NS_PER_S, msg.data,
+                                  channel.message_encoding,
+                                  schema.name if schema is not None else "", msg.log_time))
+
+    def _add_channel(self, channel: Channel, schema: Schema | None) -> None:
+        """Files one channel's schema (JSON schemas decoded)."""
+        if channel.message_encoding == "json":
+            self.schemas[channel.topic] = _schema_dict(schema)
+        elif schema is not None:
+            self.raw_schemas[channel.topic] = schema
+
+
+def _message(channel: Channel, msg: Message) -> LogMessage:
+    return LogMessage(channel.topic, msg.log_time / NS_PER_S, json.loads(msg.data), msg.log_time)
+
+
+def _schema_dict(schema: Schema | None) -> dict:
+    return json.loads(schema.data) if schema is not None and schema.data else {}
+
+
+def _read_indexed(path: Path) -> Log:
+    """Reads a finished file through its summary section (SeekingReader)."""
+    with open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        summary = reader.get_summary()
+        log = Log([], {}, {}, {}, complete=True)
+        if summary is not None:
+            for ch in summary.channels.values():
+                log._add_channel(ch, summary.schemas.get(ch.schema_id))
+        for schema, channel, msg in reader.iter_messages(log_time_order=False):
+            if channel.topic not in log.schemas and channel.topic not in log.raw_schemas:
+                log._add_channel(channel, schema)
+            log._add(channel, schema, msg, log.messages, log.raw)
+        log.metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+        log.attachments = {a.name: a.data for a in reader.iter_attachments()}
+    return log
+
+
+def _damage_text(what: str, exc: BaseException) -> str:
+    """Why a linear scan stopped at a chunk, for :attr:`Log.damage`."""
+    detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return f"{what} ({detail[:120]})"
+
+
+def _read_stream(path: Path) -> Log:
+    """Reads records front to back, keeping every fully written chunk."""
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    log = Log([], {}, {}, {}, complete=False)
+
+    def handle(record: Any, out: list[LogMessage], raw: list[RawMessage]) -> None:
+        if isinstance(record, Schema):
+            schemas[record.id] = record
+        elif isinstance(record, Channel):
+            channels[record.id] = record
+            log._add_channel(record, schemas.get(record.schema_id))
+        elif isinstance(record, Message):
+            channel = channels[record.channel_id]
+            log._add(channel, schemas.get(channel.schema_id), record, out, raw)
+        elif isinstance(record, Metadata):
+            log.metadata[record.name] = dict(record.metadata)
+        elif isinstance(record, Attachment):
+            log.attachments[record.name] = record.data
+
+    saw_footer = False
+    with open(path, "rb") as f:
+        records = StreamReader(f, emit_chunks=True).records
+        while True:
+            try:
+                record = next(records)
+            except StopIteration:
+                break
+            except _DAMAGE_ERRORS:
+                return log  # truncated mid-record: keep what was complete
+            pending: list[LogMessage] = []
+            pending_raw: list[RawMessage] = []
+            try:  # a chunk is kept only as a whole: CRC-checked, every message decoded
+                chunk = isinstance(record, Chunk)
+                for r in breakup_chunk(record, validate_crc=True) if chunk else [record]:
+                    handle(r, pending, pending_raw)
+            except _DAMAGE_ERRORS as exc:
+                log.damage = _damage_text("a chunk is damaged", exc)
+                return log  # corrupt chunk: stop at the last good one
+            log.messages.extend(pending)
+            log.raw.extend(pending_raw)
+            saw_footer = saw_footer or isinstance(record, Footer)
+    log.complete = saw_footer
+    return log
+
+
+def read_log(path: str | Path) -> Log:
+    """Reads a run log; truncated files yield the completed chunks with complete=False."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        head = f.read(8)
+        tail = b""
+        if f.seek(0, 2) >= 16:
+            f.seek(-8, 2)
+            tail = f.read(8)
+    if head != MCAP_MAGIC:
+        raise ValueError(f"{path} is not an MCAP file (bad magic {head!r})")
+    if tail == MCAP_MAGIC:
+        try:
+            return _read_indexed(path)
+        except (*_DAMAGE_ERRORS, OSError):
+            pass  # footer present but file damaged: fall back to a linear scan
+    return _read_stream(path)
+
+
+def first_message(path: str | Path, topic: str) -> dict | None:
+    """The first JSON message on ``topic`` of a log (e.g. /run/info), or None.
+
+    Reads only as far as that message (through the index of a finished file); None when
+    the file is missing, unreadable or has no such message: for quick looks, not
+    diagnosis (:func:`read_log` says what is wrong).
+    """
+    try:
+        with open(path, "rb") as f:
+            for _, _, msg in make_reader(f).iter_messages(topics=[topic]):
+                data = json.loads(msg.data)
+                return data if isinstance(data, dict) else None
+    except (OSError, ValueError, McapError, *_DAMAGE_ERRORS):
+        return None
+    return None

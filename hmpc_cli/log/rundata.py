@@ -1,0 +1,331 @@
+"""A run log read back as arrays per topic, for any system: :func:`read_run`.
+
+The one reader of the run log's payloads: figures, ``hmpc tube --runs`` and ``hmpc
+replay`` read through it. It understands the typed log (:mod:`hmpc_cli.log.topics`,
+vectors as named objects, plans as arrays of nodes) and the older untyped layout (log
+version 1: plain arrays), and a log cut short (``complete`` False).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from hmpc_cli.log.geometry import body_names
+
+__all__ = ["Event", "PlannerCallData", "RunData", "SolveData", "read_run", "resolve_log"]
+
+
+def resolve_log(path: Path) -> Path:
+    """``path`` itself, or ``path/run.mcap`` for a run directory (ValueError: neither)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "run.mcap"
+    if not path.is_file():
+        raise ValueError(f"{path}: no such run log")
+    return path
+
+
+@dataclass(frozen=True)
+class Event:
+    """A guard event: time [s], guard index and name, modes, states before/after (n,).
+
+    ``body_before``: the body points before the event (P, 2) [m] (P = 0: none logged).
+    """
+
+    t: float
+    guard: int
+    guard_name: str
+    mode_before: str
+    mode_after: str
+    x_before: np.ndarray
+    x_after: np.ndarray
+    scheduled: bool
+    body_before: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+
+
+@dataclass(frozen=True)
+class SolveData:
+    """An MPC solve: its stats, schedule, plan and the MPC's detail (a dict).
+
+    The plan: absolute times t_plan (N,) [s], x_plan (N, n), u_plan (N, m), seg_plan (N,).
+    """
+
+    t: float
+    reason: str
+    status: str
+    success: bool
+    iterations: int
+    wall_time: float
+    cost: float
+    slack: float
+    adopted: bool
+    schedule: dict | None
+    t_plan: np.ndarray
+    x_plan: np.ndarray
+    u_plan: np.ndarray
+    seg_plan: np.ndarray
+    detail: dict
+    latency: float = 0.0  # [s] before the plan reached the plant (old logs: 0, paused)
+
+
+@dataclass(frozen=True)
+class PlannerCallData:
+    """A planner call: stats, schedule, rollout (t (R,) [s], x (R, n)) and detail."""
+
+    t: float
+    reason: str
+    accepted: bool
+    reached_final: bool
+    cost: float
+    wall_time: float
+    note: str
+    schedule: dict | None
+    t_rollout: np.ndarray
+    x_rollout: np.ndarray
+    detail: dict
+
+
+@dataclass
+class RunData:
+    """Everything a run log holds, as arrays.
+
+    Attributes:
+        path: the log file.
+        complete: False when the file was cut short (no footer).
+        log_version: the log layout (1: untyped arrays, 2: typed, 3: with geometry).
+        info: /run/info as a dict (empty when missing).
+        scenario: the scenario as run (a dict).
+        state_names, input_names, mode_names, guard_names: the system's names.
+        t (K,) [s], x (K, n), u (K, m), x_ref (K, n), w (K, n_w), mode (K,): /sim/state.
+        events: /sim/event in time order.
+        t_w (D,) [s], w_changes (D, n_w): /disturbance.
+        solves: /mpc/solve in time order; planner: /planner/plan.
+        summary: /run/summary (None: the run did not finish).
+        damage: why reading stopped early at a damaged chunk ('' if it did not).
+        geometry: /run/info's ``geometry`` (:class:`~hmpc_cli.log.geometry.GeometryRec` as
+            a dict; empty for logs before version 3).
+        body: the body points of each /sim/state sample (K, P, 2) [m] (P = 0: none logged;
+            names in ``geometry["point_names"]``).
+    """
+
+    path: Path
+    complete: bool
+    log_version: int
+    info: dict
+    scenario: dict
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    mode_names: tuple[str, ...]
+    guard_names: tuple[str, ...]
+    t: np.ndarray
+    x: np.ndarray
+    u: np.ndarray
+    x_ref: np.ndarray
+    w: np.ndarray
+    mode: np.ndarray
+    events: list[Event] = field(default_factory=list)
+    t_w: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    w_changes: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    solves: list[SolveData] = field(default_factory=list)
+    planner: list[PlannerCallData] = field(default_factory=list)
+    summary: dict | None = None
+    damage: str = ""
+    geometry: dict = field(default_factory=dict)
+    body: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 2)))
+
+    @property
+    def name(self) -> str:
+        """The run's name: its directory for a run.mcap, else the file name."""
+        return self.path.parent.name if self.path.name == "run.mcap" else self.path.name
+
+    @property
+    def system(self) -> dict:
+        """The scenario's ``[system]`` section."""
+        return dict(self.scenario.get("system") or {})
+
+    @property
+    def plan_stride(self) -> int:
+        """The scenario's ``sim.log_plan_stride`` (:func:`plan_stride`)."""
+        return plan_stride(self.scenario)
+
+    def full_plans(self, use: str) -> None:
+        """Raises ValueError when the logged plans are thinned: ``use`` needs every node.
+
+        The message names the setting and how to get a log with every node.
+        """
+        if self.plan_stride > 1:
+            raise ValueError(
+                f"{self.path}: the logged plans are thinned (sim.log_plan_stride = "
+                f"{self.plan_stride}: one node in {self.plan_stride}); {use} needs every "
+                "plan node: run the scenario again with --set sim.log_plan_stride=1")
+
+    def adopted(self) -> list[SolveData]:
+        """The solves whose plan the loop adopted."""
+        return [s for s in self.solves if s.adopted]
+
+
+def plan_stride(scenario: dict) -> int:
+    """A logged scenario's ``sim.log_plan_stride``: one plan node in k was logged (1: all)."""
+    try:
+        return max(1, int((scenario.get("sim") or {}).get("log_plan_stride", 1)))
+    except (TypeError, ValueError):
+        return 1
+
+
+def _vec(value, names) -> np.ndarray:
+    """A logged vector (named object or plain list; None entries NaN) as a float array."""
+    if isinstance(value, dict):
+        return np.array([np.nan if value.get(n) is None else value[n] for n in names],
+                        dtype=float)
+    vals = list(value or [])
+    return np.array([np.nan if v is None else v for v in vals], dtype=float)
+
+
+def _part(node: dict, key: str) -> dict:
+    """A node's nested vector ``key`` (an early typed layout), else the node itself (flat)."""
+    v = node.get(key)
+    return v if isinstance(v, dict) else node
+
+
+def _mat(rows: list[np.ndarray], width: int) -> np.ndarray:
+    return np.vstack(rows) if rows else np.zeros((0, width))
+
+
+def _plan(d: dict, names: tuple, inputs: tuple) -> tuple:
+    """(t_plan, x_plan, u_plan, seg_plan) of a solve record (typed or untyped)."""
+    if "plan" in d:
+        nodes = d.get("plan") or []
+        return (np.array([float(n["t"]) for n in nodes]),
+                _mat([_vec(_part(n, "x"), names) for n in nodes], len(names)),
+                _mat([_vec(_part(n, "u"), inputs) for n in nodes], len(inputs)),
+                np.array([int(n["seg"]) for n in nodes], dtype=int))
+    x = np.atleast_2d(np.asarray(d.get("x_plan") or np.zeros((0, len(names))), dtype=float))
+    u = np.atleast_2d(np.asarray(d.get("u_plan") or np.zeros((0, len(inputs))), dtype=float))
+    return (np.asarray(d.get("t_plan") or [], dtype=float), x, u,
+            np.asarray(d.get("seg_plan") or [], dtype=int))
+
+
+_SOLVE_KEYS = ("t", "reason", "status", "success", "iterations", "wall_time", "cost", "slack",
+               "adopted", "schedule", "plan", "x_plan", "u_plan", "t_plan", "seg_plan",
+               "max_violation", "detail", "latency")
+
+
+def _solve(d: dict, names: tuple, inputs: tuple) -> SolveData:
+    detail = d.get("detail") or {k: v for k, v in d.items() if k not in _SOLVE_KEYS}
+    return SolveData(float(d["t"]), str(d.get("reason", "")), str(d.get("status", "")),
+                     bool(d.get("success")), int(d.get("iterations") or 0),
+                     _f(d.get("wall_time")), _f(d.get("cost")), _f(d.get("slack")),
+                     bool(d.get("adopted", True)), d.get("schedule"),
+                     *_plan(d, names, inputs), dict(detail), _f(d.get("latency", 0.0)))
+
+
+def _f(v) -> float:
+    return float("nan") if v is None else float(v)
+
+
+def _planner(d: dict, names: tuple) -> PlannerCallData:
+    if "rollout" in d:
+        nodes = d.get("rollout") or []
+        t_r = np.array([float(n["t"]) for n in nodes])
+        x_r = _mat([_vec(_part(n, "x"), names) for n in nodes], len(names))
+    else:
+        t_r = np.asarray(d.get("t_rollout") or [], dtype=float)
+        x_r = np.atleast_2d(np.asarray(d.get("x_rollout") or np.zeros((0, len(names))),
+                                       dtype=float))
+    detail = d.get("detail") or ({"candidates": d["candidates"]} if "candidates" in d else {})
+    return PlannerCallData(float(d["t"]), str(d.get("reason", "")), bool(d.get("accepted")),
+                           bool(d.get("reached_final")), _f(d.get("cost")),
+                           _f(d.get("wall_time")), str(d.get("note", "")), d.get("schedule"),
+                           t_r, x_r, dict(detail))
+
+
+def _points(value, coords: tuple[str, ...]) -> np.ndarray:
+    """Logged body coordinates (``coords``: ``<p>_x``, ``<p>_y``, ...) as points (P, 2) [m].
+
+    NaN where missing; (0, 2) when no body is logged (``coords`` empty).
+    """
+    if not coords:
+        return np.zeros((0, 2))
+    return _vec(value if isinstance(value, dict) else {}, coords).reshape(-1, 2)
+
+
+def _body(states: list[dict], coords: tuple[str, ...]) -> np.ndarray:
+    """The body points of each state sample, (K, P, 2) [m]."""
+    if not coords:
+        return np.zeros((len(states), 0, 2))
+    return np.stack([_points(s.get("body"), coords) for s in states]) if states else \
+        np.zeros((0, len(coords) // 2, 2))
+
+
+def _scenario(info: dict) -> dict:
+    if "scenario_json" in info:
+        try:
+            return dict(json.loads(info["scenario_json"] or "{}"))
+        except (json.JSONDecodeError, TypeError):
+            return {}
+    return dict(info.get("scenario") or {})
+
+
+def _names(info: dict, key: str, first: list, width: int) -> tuple[str, ...]:
+    """The logged names, else those of the first named record, else x0, x1, ..."""
+    if info.get(key):
+        return tuple(info[key])
+    if first and isinstance(first[0], dict):
+        return tuple(first[0])
+    return tuple(f"{key[0]}{i}" for i in range(width))
+
+
+def read_run(path: Path) -> RunData:
+    """Reads a run log (a run.mcap or its run directory) into arrays.
+
+    Raises:
+        ValueError: missing, not an MCAP file, or not readable at all (the message says
+            which); a log cut short is read up to its last complete chunk.
+    """
+    from hmpc_cli.log.reader import read_log
+
+    log_path = resolve_log(path)
+    try:
+        log = read_log(log_path)
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{log_path}: cannot read the log ({exc})") from None
+    infos = log.topic("/run/info")
+    info = dict(infos[0].data) if infos else {}
+    states = [{"t": m.t, **m.data} for m in log.topic("/sim/state")]
+    width = len(states[0]["x"]) if states else 0
+    names = _names(info, "state_names", [s["x"] for s in states[:1]], width)
+    inputs = _names(info, "input_names", [s.get("u") for s in states[:1]],
+                    len(states[0].get("u") or []) if states else 0)
+    dist = _names(info, "disturbance_names", [s.get("w") for s in states[:1]],
+                  len(states[0].get("w") or []) if states else 0)
+    w_msgs = [{"t": m.t, **m.data} for m in log.topic("/disturbance")]
+    geometry = dict(info.get("geometry") or {})
+    coords = body_names(tuple(geometry.get("point_names") or ()))  # once, not per sample
+    summaries = log.topic("/run/summary")
+    return RunData(
+        log_path, log.complete, int(info.get("log_version", 1)), info, _scenario(info),
+        names, inputs, tuple(info.get("mode_names") or ()),
+        tuple(info.get("guard_names") or ()),
+        np.array([float(s["t"]) for s in states]),
+        _mat([_vec(s["x"], names) for s in states], len(names)),
+        _mat([_vec(s.get("u"), inputs) for s in states], len(inputs)),
+        _mat([_vec(s.get("x_ref"), names) for s in states], len(names)),
+        _mat([_vec(s.get("w"), dist) for s in states], len(dist)),
+        np.array([int(s.get("mode", 0)) for s in states], dtype=int),
+        sorted((Event(float(d["t"]), int(d.get("guard", -1)), str(d.get("guard_name", "")),
+                      str(d.get("mode_before", "")), str(d.get("mode_after", "")),
+                      _vec(d.get("x_before"), names), _vec(d.get("x_after"), names),
+                      bool(d.get("scheduled", True)), _points(d.get("body_before"), coords))
+                for d in (m.data for m in log.topic("/sim/event"))), key=lambda e: e.t),
+        np.array([float(d["t"]) for d in w_msgs]),
+        _mat([_vec(d.get("w"), dist) for d in w_msgs], len(dist)),
+        sorted((_solve(m.data, names, inputs) for m in log.topic("/mpc/solve")),
+               key=lambda s: s.t),
+        sorted((_planner(m.data, names) for m in log.topic("/planner/plan")),
+               key=lambda p: p.t),
+        dict(summaries[-1].data) if summaries else None, getattr(log, "damage", ""),
+        geometry, _body(states, coords))

@@ -1,0 +1,434 @@
+"""The run's books and its log topics: what a closed-loop run writes, in one place.
+
+:class:`RunLog` wraps an open MCAP writer (:class:`hmpc_cli.log.recorder.Recorder` or
+anything with ``add_topic``/``add_metadata``/``write``/``write_many``), which the caller
+opens and closes; it writes the typed topics of :mod:`hmpc_cli.log.topics` (their JSON
+schemas generated from the types, with the system's names and the plug-ins' detail types)
+and keeps the :class:`RunResult` counts (contacts, solves, failures, planner calls) that
+become ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import platform
+import shlex
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hmpc_cli import __version__
+from hmpc_cli.core.hybrid import HybridSystem
+from hmpc_cli.log.geometry import body_logger, body_names, geometry_record
+from hmpc_cli.log.topics import (
+    LOG_VERSION,
+    BuildRec,
+    GuardEventRec,
+    MarginsRec,
+    MpcSolve,
+    PlanNode,
+    PlannerCall,
+    RolloutNode,
+    RunInfo,
+    ScheduleRec,
+    StateSample,
+    StatusCount,
+    Summary,
+    Versions,
+    WRec,
+    named,
+    topic_schemas)
+from hmpc_cli.log.schema import convert, flat_keys
+from hmpc_cli.log.geometry import record_maker
+from hmpc_cli.core.messages import GuardEvent, ModeSchedule, Plan, PlannerResult, Trajectory
+
+SOFTENED_TOL = 1e-6  # a solve whose hybrid-constraint slack exceeds this is "softened"
+
+
+@dataclass
+class RunResult:
+    """Outcome of one closed-loop run (what summary.json holds)."""
+
+    scenario: str
+    seed: int
+    success: bool = False
+    final_error: float = float("nan")
+    t_end: float = 0.0
+    x_end: list = field(default_factory=list)
+    mode_end: str = ""
+    contacts: int = 0
+    contacts_by_guard: dict = field(default_factory=dict)
+    solves: int = 0
+    solver_failures: int = 0
+    failure_statuses: dict = field(default_factory=dict)
+    softened_solves: int = 0
+    max_slack: float = 0.0
+    fallbacks: int = 0
+    solve_time_median: float = float("nan")
+    solve_time_p95: float = float("nan")
+    solve_time_max: float = float("nan")
+    planner_calls: int = 0
+    planner_rejected: int = 0
+    plan_time_median: float = float("nan")
+    diverged: bool = False
+    reason: str = ""
+    wall_time: float = 0.0
+    warnings: list = field(default_factory=list)
+
+
+def versions() -> dict[str, str]:
+    """Versions of everything that can change a trajectory."""
+    import casadi
+    import mcap
+    import pydantic
+
+    return {"hmpc": __version__, "python": sys.version.split()[0], "numpy": np.__version__,
+            "casadi": casadi.__version__, "pydantic": pydantic.__version__,
+            "mcap": getattr(mcap, "__version__", "?"), "platform": platform.platform()}
+
+
+@dataclass
+class Provenance:
+    """What started a run: the command line and the overrides applied to its scenario.
+
+    Attributes:
+        command: the command line (default: this process's ``sys.argv``).
+        overrides: the ``key=value`` overrides (``--set``, a sweep cell's, ``seed=``).
+        sweep: the sweep file of a sweep's run (as given on the command line), else "".
+    """
+
+    command: str = field(default_factory=lambda: shlex.join(sys.argv))
+    overrides: tuple[str, ...] = ()
+    sweep: str = ""
+
+
+#: :class:`StateSample`'s fields: its JSON object's keys, in order (a dict of them encodes
+#: as the dataclass does, without a frozen dataclass per sample)
+_STATE_KEYS = tuple(f.name for f in dataclasses.fields(StateSample))
+#: messages (/sim/state samples, MPC solves, disturbances) held before they are written
+#: (see :meth:`RunLog.flush_held`)
+HELD = 64
+
+
+class RunLog:
+    """Topics and books of one run.
+
+    Args:
+        recorder: an open MCAP writer (closed by the caller), or None to log nothing.
+        per_state: simulator steps per /sim/state sample.
+    """
+
+    def __init__(self, recorder, per_state: int = 1) -> None:
+        self.rec = recorder
+        self.per_state = per_state
+        self.plan_stride = 1  # every k-th plan node is logged (see thinned)
+        self.result = RunResult("scenario", 0)
+        self.info: dict = {}
+        self.provenance = Provenance()
+        self.details: dict[str, type | None] = {}
+        self.solve_times: list[float] = []
+        self.plan_times: list[float] = []
+        self._last_w: bytes | None = None  # the last logged disturbance's bytes
+        self._model: HybridSystem | None = None
+        self._body = None  # x -> the plant's body points (None: no body logged)
+        self.scene = None  # 3D scene writer (hmpc_cli.log.scene.SceneWriter), set by the runner
+        #: messages not yet written, in order: (None, /sim/state sample) or (writer, args)
+        self._held: list[tuple] = []
+
+    def set_info(self, name: str, seed: int, scenario: dict, per_state: int,
+                 margins: dict | None = None, kinds: tuple[str, str] = ("", ""),
+                 details: dict[str, type | None] | None = None,
+                 build: dict | None = None, plan_stride: int = 1) -> None:
+        """The run's identity for /run/info and the summary.
+
+        Args:
+            name: scenario name.
+            seed: run seed.
+            scenario: the validated scenario (JSON-ready).
+            per_state: simulator steps per /sim/state sample.
+            margins: the MPC's margins (source, radius, per guard, per mode), if it has any.
+            kinds: (planner kind, MPC kind).
+            details: ``planner``/``mpc`` -> the plug-ins' log detail dataclasses.
+            build: how the MPC's NLPs were built (``cache``, ``compiled``, ``reason``).
+            plan_stride: every k-th node of a plan is logged (:func:`thinned`).
+        """
+        self.result.scenario, self.result.seed = name, seed
+        self.info = {"scenario_name": name, "seed": seed, "scenario": scenario,
+                     "margins": margins, "kinds": kinds, "build": build}
+        self.details = dict(details or {})
+        self.per_state = per_state
+        self.plan_stride = plan_stride
+
+    def _write(self, topic: str, t: float, payload) -> None:
+        if self.rec is not None:
+            if self._held:
+                self.flush_held()
+            self.rec.write(topic, t, payload)
+
+    def _hold(self, writer, args: tuple) -> None:
+        """Holds one message: ``writer(*args)`` writes it (None: a /sim/state sample)."""
+        self._held.append((writer, args))
+        if len(self._held) >= HELD:
+            self.flush_held()
+
+    def open(self, model: HybridSystem, plant: HybridSystem | None = None) -> None:
+        """Registers the topics and writes /run/info (seed, versions, scenario, names).
+
+        Args:
+            model: the controllers' model (names, modes, guards).
+            plant: the simulated system (default: the model): its geometry and body
+                points are logged (:mod:`hmpc_cli.log.geometry`).
+        """
+        self._model = model
+        if self.rec is None:
+            return
+        plant = model if plant is None else plant
+        geometry = geometry_record(plant)
+        self._body = body_logger(plant)
+        names = {"state": model.state_names, "input": model.input_names,
+                 "disturbance": model.disturbance_names,
+                 "guard": [g.name for g in model.guards],
+                 "body": body_names(geometry.point_names)}
+        for topic, (schema_name, schema) in topic_schemas(names, self.details).items():
+            self.rec.add_topic(topic, schema_name, schema)
+        vers = versions()
+        info = self.info
+        self._write("/run/info", 0.0, RunInfo(
+            LOG_VERSION, info.get("scenario_name", ""), int(info.get("seed", 0)), model.name,
+            info.get("kinds", ("", ""))[1], info.get("kinds", ("", ""))[0],
+            self.provenance.command, tuple(self.provenance.overrides), Versions(**vers),
+            json.dumps(info.get("scenario", {}), sort_keys=True), tuple(model.state_names),
+            tuple(model.input_names), tuple(model.disturbance_names),
+            tuple(m.name for m in model.modes), tuple(g.name for g in model.guards),
+            convert(MarginsRec, info["margins"]) if info.get("margins") else None, geometry,
+            self.provenance.sweep,
+            convert(BuildRec, info["build"]) if info.get("build") else None))
+        if hasattr(self.rec, "flush"):
+            self.rec.flush()  # the run's identity on disk at once (a killed run keeps it)
+        self.rec.add_metadata("run", {"scenario": self.result.scenario,
+                                      "seed": str(self.result.seed),
+                                      "log_version": str(LOG_VERSION),
+                                      **{f"version.{k}": v for k, v in vers.items()}})
+
+    def step(self, i: int, t: float, x: np.ndarray, mode: int, u: np.ndarray,
+             x_ref: np.ndarray, w: np.ndarray) -> None:
+        """Logs before simulator step i.
+
+        /sim/state every ``per_state`` steps, /disturbance whenever w changes.
+        """
+        if i % self.per_state == 0:
+            self.state(t, x, mode, u, x_ref, w)
+        key = np.asarray(w, dtype=float).tobytes()
+        if key != self._last_w:
+            if self.rec is not None:
+                self._hold(self._write_w, (t, np.array(w, dtype=float)))
+            self._last_w = key
+
+    def _write_w(self, t: float, w: np.ndarray) -> None:
+        self.rec.write("/disturbance", t, WRec(t, named(self._model.disturbance_names, w)))
+
+    def state(self, t: float, x: np.ndarray, mode: int, u: np.ndarray, x_ref: np.ndarray,
+              w: np.ndarray) -> None:
+        """One /sim/state sample (with its scene body), held (copied): see :meth:`flush_held`."""
+        if self.rec is None:
+            return
+        self._hold(None, (t, int(mode), *(None if v is None else np.array(v, dtype=float)
+                                          for v in (x, u, x_ref, w))))
+
+    def flush_held(self) -> None:
+        """Writes the held messages, in order (the file's message order is unchanged).
+
+        Messages are held until the next message of a topic that is not held,
+        :data:`HELD` of them, or this call: encoded together, with warm caches, a ball
+        run's logging takes 28 instead of 35 ms (measured). Consecutive /sim/state samples
+        are written by :meth:`_write_samples` in one batch.
+        """
+        held, self._held = self._held, []
+        if self.rec is None:
+            return
+        samples: list[tuple] = []
+        for writer, args in held:
+            if writer is None:
+                samples.append(args)
+                continue
+            if samples:
+                self._write_samples(samples)
+                samples = []
+            writer(*args)
+        if samples:
+            self._write_samples(samples)
+
+    def _write_samples(self, samples: list[tuple]) -> None:
+        """Writes /sim/state samples and their scene bodies.
+
+        Column by column: each vector column becomes its dicts in one ``tolist`` and one
+        compiled dict display per row, and the body points of all samples come from one
+        batched drawing call (:meth:`~hmpc_cli.core.drawing.Drawing.bodies`).
+        """
+        m = self._model
+        ts, modes, xs, us, refs, ws = zip(*samples, strict=True)
+        mode_names = [m.modes[k].name for k in modes]
+        cols = [_named_rows(names, col) for names, col in (
+            (m.state_names, xs), (m.input_names, us), (m.state_names, refs),
+            (m.disturbance_names, ws))]
+        bodies = self._body.many(np.stack(xs)) if self._body is not None else \
+            [{}] * len(samples)
+        sample = record_maker(_STATE_KEYS)  # StateSample's JSON
+        self.rec.write_many("/sim/state", ts, map(sample, ts, modes, mode_names, *cols, bodies))
+        if self.scene is not None:
+            self.scene.states(ts, np.stack(xs))
+
+    def event(self, ev: GuardEvent, system: HybridSystem, scheduled: bool) -> None:
+        """Counts and logs a guard event of the simulated system."""
+        g = system.guards[ev.guard]
+        r = self.result
+        r.contacts += 1
+        r.contacts_by_guard[g.name] = r.contacts_by_guard.get(g.name, 0) + 1
+        if self.rec is not None:
+            self._write("/sim/event", ev.t, GuardEventRec(
+                ev.t, int(ev.guard), g.name, g.source, g.target,
+                named(system.state_names, ev.x_before), named(system.state_names, ev.x_after),
+                bool(scheduled), self._body(ev.x_before) if self._body is not None else {}))
+
+    def planner(self, t: float, reason: str, result: PlannerResult, accepted: bool,
+                note: str, model: HybridSystem) -> None:
+        """Logs one planner call (counted by the loop)."""
+        self.plan_times.append(result.wall_time)
+        if self.rec is None:
+            return
+        rollout = ()
+        if result.trajectory is not None and len(result.trajectory.t):
+            keys = flat_keys(RolloutNode, {"state": model.state_names})
+            traj = result.trajectory
+            rollout = tuple(map(record_maker(keys), np.asarray(traj.t, dtype=float).tolist(),
+                                *np.asarray(traj.x, dtype=float).T.tolist()))
+        self._write("/planner/plan", t, PlannerCall(
+            t, reason, bool(accepted), bool(result.reached_final), float(result.cost),
+            float(result.wall_time), int(result.iterations), note,
+            _schedule(result.schedule, model), rollout,
+            _detail(self.details.get("planner"), result.extra)))
+        if self.scene is not None:
+            self.scene.rollout(t, result.trajectory)
+
+    def solve(self, t: float, plan: Plan, reason: str, model: HybridSystem,
+              latency: float = 0.0) -> None:
+        """Counts one fixed-mode MPC solve and logs it to /mpc/solve.
+
+        ``latency`` [s]: how long after t the plan reaches the plant (0: time paused).
+        """
+        st, r = plan.stats, self.result
+        r.solves += 1
+        self.solve_times.append(st.wall_time)
+        r.fallbacks += bool(st.fallback)
+        if not st.success:
+            r.solver_failures += 1
+            r.failure_statuses[st.status] = r.failure_statuses.get(st.status, 0) + 1
+        elif st.slack > SOFTENED_TOL:
+            r.softened_solves += 1
+            r.max_slack = max(r.max_slack, st.slack)
+        if self.rec is None:
+            return
+        traj = plan.traj  # a snapshot: the solve is written at the next flush_held
+        traj = thinned(traj, self.plan_stride) if self.plan_stride > 1 else dataclasses.replace(
+            traj, t=np.array(traj.t, dtype=float), x=np.array(traj.x, dtype=float),
+            u=np.array(traj.u, dtype=float), mode=np.array(traj.mode), seg=np.array(traj.seg))
+        self._hold(self._write_solve, (t, dataclasses.replace(plan, traj=traj, extra={}),
+                                       reason, model, latency,
+                                       _detail(self.details.get("mpc"), plan.extra)))
+
+    def _write_solve(self, t: float, plan: Plan, reason: str, model: HybridSystem,
+                     latency: float, detail) -> None:
+        """Writes one /mpc/solve message and its scene plan (``detail``: the MPC's)."""
+        st = plan.stats
+        self.rec.write("/mpc/solve", t, MpcSolve(
+            t, reason, st.status, bool(st.success), int(st.iterations), float(st.wall_time),
+            float(st.cost), float(st.max_violation), float(st.slack), bool(plan.adopt),
+            _schedule(plan.schedule, model), plan_nodes(plan.traj, t, model), detail,
+            float(latency)))
+        if self.scene is not None:
+            self.scene.plan(t, plan)
+
+    def summary(self, r: RunResult) -> None:
+        """Fills the timing statistics and writes /run/summary."""
+        if self.solve_times:
+            st = np.array(self.solve_times)
+            r.solve_time_median = float(np.median(st))
+            r.solve_time_p95 = float(np.percentile(st, 95))
+            r.solve_time_max = float(st.max())
+        if self.plan_times:
+            r.plan_time_median = float(np.median(self.plan_times))
+        if self.rec is not None and self._model is not None:
+            self._write("/run/summary", r.t_end, summary_record(r, self._model))
+
+
+def _named_rows(names: Sequence[str], rows: Sequence[np.ndarray | None]) -> list[dict]:
+    """Vectors (each (len(names),) or None) -> their :func:`named` dicts, in order."""
+    if any(r is None or r.size != len(names) for r in rows):
+        return [named(names, r) for r in rows]
+    return list(itertools.starmap(record_maker(tuple(names)),
+                                  np.stack(rows).reshape(len(rows), -1).tolist()))
+
+
+def thinned(traj: Trajectory, stride: int) -> Trajectory:
+    """Every ``stride``-th node of ``traj``; the last node is always kept.
+
+    So are both nodes of every domain-segment change (a reset's pair: on the guard, after
+    the reset).
+    """
+    seg = np.asarray(traj.seg)
+    n = len(seg)
+    if stride <= 1 or n == 0:
+        return traj
+    keep = np.zeros(n, dtype=bool)
+    keep[::stride] = True
+    keep[-1] = True
+    change = np.flatnonzero(seg[1:] != seg[:-1])
+    keep[change] = keep[change + 1] = True
+    return dataclasses.replace(traj, t=np.asarray(traj.t)[keep], x=np.asarray(traj.x)[keep],
+                               u=np.asarray(traj.u)[keep], mode=np.asarray(traj.mode)[keep],
+                               seg=seg[keep])
+
+
+def plan_nodes(traj: Trajectory, t0: float, model: HybridSystem) -> tuple[dict, ...]:
+    """A plan's nodes as :class:`PlanNode` records (absolute times: t0 + traj.t)."""
+    if len(traj.t) == 0:
+        return ()
+    keys = flat_keys(PlanNode, {"state": model.state_names, "input": model.input_names})
+    modes = [m.name for m in model.modes]
+    md = np.asarray(traj.mode).tolist()
+    # one plain dict per node with PlanNode's keys (the schema's; tests validate every
+    # message), made by a dict display over the columns: a dataclass per node costs more
+    # than the rest of the logging of a solve, dict(zip(keys, row)) 2.7x this
+    return tuple(map(record_maker(keys), (np.asarray(traj.t, dtype=float) + t0).tolist(),
+                     np.asarray(traj.seg).tolist(), md, [modes[m] for m in md],
+                     *np.asarray(traj.x, dtype=float).T.tolist(),
+                     *np.asarray(traj.u, dtype=float).T.tolist()))
+
+
+def _schedule(schedule: ModeSchedule | None, model: HybridSystem) -> ScheduleRec | None:
+    if schedule is None:
+        return None
+    d = schedule.to_dict(model)
+    return ScheduleRec(tuple(d["modes"]), tuple(d["mode_names"]), tuple(d["guards"]),
+                       tuple(d["guard_names"]), tuple(d["durations"]), d["t0"])
+
+
+def _detail(cls: type | None, extra: dict):
+    """A plug-in's ``extra`` as its declared detail type (None without one)."""
+    return convert(cls, extra) if cls is not None and extra else None
+
+
+def summary_record(r: RunResult, model: HybridSystem) -> Summary:
+    """The typed /run/summary of a result (every guard named in ``contacts_by_guard``)."""
+    d = dict(r.__dict__)
+    d["x_end"] = named(model.state_names, r.x_end) if len(r.x_end) == model.n_x else {}
+    d["contacts_by_guard"] = {g.name: int(r.contacts_by_guard.get(g.name, 0))
+                              for g in model.guards}
+    d["failure_statuses"] = tuple(StatusCount(k, int(v))
+                                  for k, v in sorted(r.failure_statuses.items()))
+    d["warnings"] = tuple(str(w) for w in r.warnings)
+    return Summary(**d)

@@ -1,0 +1,210 @@
+"""Dataclasses to JSON schemas inside the subset Foxglove and Lichtblick parse, and back.
+
+:func:`type_schema` turns an annotated field type into a JSON schema: every ``type`` one
+string, every object with ``properties``, array items scalars or objects
+(:func:`viewer_problems` checks a schema against that subset). Vectors of a system are
+objects with one number per name (:class:`Names`); a plug-in's typed detail is a field
+whose dataclass the plug-in declares (:class:`Detail`). :func:`convert` builds a dataclass
+from decoded JSON; :func:`validate` checks a message against its schema.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import types
+import typing
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+__all__ = ["Detail", "Names", "convert", "flat_keys", "type_schema", "validate",
+           "viewer_problems"]
+
+
+
+
+
+
+@dataclass(frozen=True)
+class Names:
+    """A vector written as an object with one field per name of a name set.
+
+    ``kind``: ``state``, ``input``, ``disturbance``, ``guard`` (the system's names) or
+    ``body`` (the logged body points' coordinates, :func:`~hmpc_cli.log.geometry.body_names`);
+    ``value``: the JSON type of each field; ``flat``: the names are fields of the
+    enclosing object itself (a plan node's ``px``, ``ux``), not of a nested one.
+    """
+
+    kind: str
+    value: str = "number"
+    flat: bool = False
+
+
+@dataclass(frozen=True)
+class Detail:
+    """A plug-in's typed log detail: ``of`` is ``planner`` or ``mpc``."""
+
+    of: str
+
+
+
+
+_SCALARS = {float: "number", int: "integer", str: "string", bool: "boolean"}
+
+
+
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls, include_extras=True)
+
+
+def _strip_optional(tp):
+    """(X, nullable) for X | None."""
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if len(args) == 1:
+            return args[0], True
+    return tp, False
+
+
+def type_schema(tp, names: Mapping[str, typing.Sequence[str]],
+            details: Mapping[str, type | None]) -> dict:
+    """JSON schema of a field type (``names``: name sets; ``details``: plug-in detail types)."""
+    tp, _ = _strip_optional(tp)
+    if typing.get_origin(tp) is Annotated:
+        base, *meta = typing.get_args(tp)
+        for m in meta:
+            if isinstance(m, Names):
+                return {"type": "object", "properties": {
+                    n: {"type": m.value} for n in names.get(m.kind, ())}}
+            if isinstance(m, Detail):  # no declared detail: an empty object (always null)
+                cls = details.get(m.of)
+                return {"type": "object", "properties": {}} if cls is None else \
+                    type_schema(cls, names, details)
+        return type_schema(base, names, details)
+    if tp in _SCALARS:
+        return {"type": _SCALARS[tp]}
+    if typing.get_origin(tp) in (tuple, list):
+        item = typing.get_args(tp)[0]
+        inner = type_schema(item, names, details)
+        if inner["type"] == "array":
+            raise TypeError(f"array items must be scalars or objects, not {item!r}")
+        return {"type": "array", "items": inner}
+    if dataclasses.is_dataclass(tp):
+        return _object_schema(tp, names, details)
+    raise TypeError(f"no JSON schema for {tp!r}")
+
+
+def _object_schema(tp: type, names: Mapping[str, typing.Sequence[str]],
+                   details: Mapping[str, type | None]) -> dict:
+    """The object schema of a dataclass (flat name fields spliced into its properties)."""
+    hints, props = _hints(tp), {}
+    for f in dataclasses.fields(tp):
+        flat = _flat(hints[f.name])
+        if flat is None:
+            props[f.name] = type_schema(hints[f.name], names, details)
+            continue
+        for n in names.get(flat.kind, ()):
+            if n in props:
+                raise TypeError(f"{tp.__name__}: name {n!r} of {flat.kind} names collides "
+                                "with another field")
+            props[n] = {"type": flat.value}
+    return {"title": tp.__name__, "type": "object", "properties": props}
+
+
+def _flat(tp) -> Names | None:
+    """The flat :class:`Names` of a field annotation, or None."""
+    if typing.get_origin(tp) is Annotated:
+        return next((m for m in typing.get_args(tp)[1:]
+                     if isinstance(m, Names) and m.flat), None)
+    return None
+
+
+def flat_keys(cls: type, names: Mapping[str, typing.Sequence[str]]) -> tuple[str, ...]:
+    """The JSON keys of a record with flat name fields, in field order (e.g. PlanNode)."""
+    hints, out = _hints(cls), []
+    for f in dataclasses.fields(cls):
+        flat = _flat(hints[f.name])
+        out += list(names.get(flat.kind, ())) if flat is not None else [f.name]
+    return tuple(out)
+
+
+def convert(cls, value):
+    """``value`` (dicts, lists, dataclasses) as an instance of dataclass ``cls``.
+
+    Nested dataclass fields and tuples of dataclasses are converted recursively; the
+    result raises TypeError on unknown or missing fields (a plug-in's detail that does
+    not match its declared type).
+    """
+    if value is None or isinstance(value, cls):
+        return value
+    if dataclasses.is_dataclass(value):
+        value = {f.name: getattr(value, f.name) for f in dataclasses.fields(value)}
+    hints = _hints(cls)
+    return cls(**{k: _convert_field(hints.get(k, Any), v) for k, v in dict(value).items()})
+
+
+def _convert_field(tp, v):
+    tp, _ = _strip_optional(tp)
+    if typing.get_origin(tp) is Annotated:
+        tp = typing.get_args(tp)[0]
+    if dataclasses.is_dataclass(tp) and isinstance(v, Mapping):
+        return convert(tp, v)
+    if typing.get_origin(tp) in (tuple, list) and v is not None:
+        item = typing.get_args(tp)[0]
+        return tuple(_convert_field(item, x) for x in v)
+    return v
+
+
+def viewer_problems(schema: dict, path: str = "") -> list[str]:
+    """Where ``schema`` leaves the viewers' subset (empty: Foxglove/Lichtblick parse it)."""
+    out = []
+    t = schema.get("type")
+    where = path or "(root)"
+    if not isinstance(t, str):
+        return [f"{where}: type {t!r} is not one string"]
+    if t == "object":
+        if "properties" not in schema:
+            out.append(f"{where}: object without properties")
+        for k, sub in schema.get("properties", {}).items():
+            out += viewer_problems(sub, f"{path}.{k}" if path else k)
+    elif t == "array":
+        items = schema.get("items")
+        if not isinstance(items, dict) or items.get("type") == "array":
+            out.append(f"{where}: array items must be scalars or objects")
+        else:
+            out += viewer_problems(items, f"{path}[]")
+    return out
+
+
+_PY = {"number": (int, float), "integer": (int,), "string": (str,), "boolean": (bool,)}
+
+
+def validate(schema: dict, value, path: str = "") -> list[str]:
+    """Where a decoded JSON ``value`` does not match ``schema`` (null allowed anywhere).
+
+    Objects must have exactly the schema's properties (no unknown keys; absent ones are
+    allowed only for null-able fields written as null).
+    """
+    where = path or "(root)"
+    if value is None:
+        return []
+    t = schema["type"]
+    if t == "object":
+        if not isinstance(value, dict):
+            return [f"{where}: expected an object"]
+        props = schema["properties"]
+        out = [f"{where}: unknown field {k!r}" for k in value if k not in props]
+        for k, sub in props.items():
+            if k in value:
+                out += validate(sub, value[k], f"{path}.{k}" if path else k)
+        return out
+    if t == "array":
+        if not isinstance(value, list):
+            return [f"{where}: expected an array"]
+        return [p for i, v in enumerate(value) for p in validate(schema["items"], v,
+                                                                 f"{path}[{i}]")]
+    ok = isinstance(value, _PY[t]) and not (t in ("number", "integer")
+                                              and isinstance(value, bool))
+    return [] if ok else [f"{where}: expected {t}, got {type(value).__name__}"]

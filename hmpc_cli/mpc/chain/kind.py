@@ -1,0 +1,147 @@
+"""The fixed-mode MPC behind the stack contract on the chain transcription.
+
+The MPC kind ``fixed_mode`` owns its node schedule.
+
+Given the latest :class:`~hmpc_cli.core.messages.ModeSchedule` and the guard events since its
+previous solve, it
+
+* installs a newly planned schedule (durations rounded up to whole nodes, the planner's
+  rollout as the initial guess), or reports one its chain cannot hold as a rejected plan;
+* applies the paper's impact rule to each new event (:meth:`ModeSchedule.after_event`):
+  a scheduled impact drops the current domain, virtual node included, and its remaining
+  nodes move to the final domain (:meth:`~hmpc_cli.mpc.chain.layout.NodeSchedule.on_impact`);
+* shifts the nodes elapsed since its previous solve (or since the last such impact) from
+  the current domain to the final domain (node shifting, paper Sec. III);
+* solves on the NLP that fits the node schedule (the final domain's own once no switch
+  is left).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from hmpc_cli.core.hybrid import HybridSystem
+from hmpc_cli.core.messages import (
+    AHEAD, SCHEDULED, ConstraintMargins, GuardEvent, ModeSchedule, Plan, SolveStats,
+    Trajectory)
+from hmpc_cli.mpc.chain.controller import FixedModeMPC as ChainSolver
+from hmpc_cli.mpc.chain.layout import ChainLayout, NodeSchedule
+from hmpc_cli.mpc.chain.nlp import FixedModeNLPs, MPCSettings
+from hmpc_cli.core.registry import MPCSpec
+
+
+def rejected_plan(t: float, x: np.ndarray, mode: int, schedule: ModeSchedule,
+                  reason: str) -> Plan:
+    """The plan an MPC returns for a schedule it cannot solve: not solved, not adopted."""
+    x = np.asarray(x, dtype=float)
+    traj = Trajectory(np.zeros(1), x[None], np.zeros((1, 0)), np.array([mode]),
+                      np.zeros(1, dtype=int))
+    stats = SolveStats(f"schedule rejected: {reason}", False, 0, 0.0, math.nan, math.inf)
+    return Plan(t, traj, stats, schedule, {}, adopt=False)
+
+
+class ChainMPC:
+    """Fixed-mode MPC over mode schedules on the chain transcription.
+
+    Args:
+        system: the controllers' model.
+        settings: MPC settings (``rate_hz`` is the re-solve rate the loop keeps).
+        nlps: the NLPs, built once per (system, settings) and shared (default: built).
+    """
+
+    def __init__(self, system: HybridSystem, settings: MPCSettings,
+                 nlps: FixedModeNLPs | None = None) -> None:
+        self.system, self.s = system, settings
+        self.rate_hz = settings.rate_hz
+        self.chain = ChainSolver(system, settings, nlps)
+        self._schedule: ModeSchedule | None = None  # what the node schedule follows
+        self._t_shift = 0.0  # nodes are shifted by the time elapsed since this [s]
+        self._t_event = -math.inf  # the newest event applied [s]
+
+    def check(self, schedule: ModeSchedule) -> str:
+        """Why the chain cannot hold ``schedule`` ('' if it can)."""
+        sysm = self.system
+        for j, g in enumerate(schedule.guards):
+            guard = sysm.guards[g]
+            if (sysm.mode_index(guard.source), sysm.mode_index(guard.target)) != \
+                    (schedule.modes[j], schedule.modes[j + 1]):
+                return f"guard {guard.name} does not lead from domain {j} to domain {j + 1}"
+        try:
+            ns = NodeSchedule.from_schedule(schedule, self.chain.N, self.chain.dt)
+            ChainLayout.build(ns, self.chain.nlps.for_schedule(ns).L)
+        except ValueError as exc:
+            return str(exc)
+        return ""
+
+    def solve(self, t: float, x: np.ndarray, mode: int, schedule: ModeSchedule,
+              events: Sequence[GuardEvent] = (), guess: Trajectory | None = None) -> Plan:
+        """Solves over ``schedule`` from x (n,) at time t [s] (see the module docstring).
+
+        Returns:
+            The plan; ``extra``: ``shifted`` (nodes moved by time), ``counts`` (flow
+            intervals per domain). A schedule the chain cannot hold gives a rejected,
+            unsolved plan (``adopt`` False) and leaves the previous one in place.
+        """
+        dropped = self._apply(events)
+        if schedule != self._schedule:  # a new plan
+            reason = self.check(schedule)
+            if reason:
+                return rejected_plan(t, x, mode, schedule, reason)
+            ns = NodeSchedule.from_schedule(schedule, self.chain.N, self.chain.dt)
+            self.chain.set_schedule(ns, guess)
+            self._schedule, shifted = schedule, 0
+        elif dropped:
+            shifted = 0
+        else:
+            shifted = self.chain.shift(self.s.shifted_nodes(t - self._t_shift))
+        self._t_shift = t
+        plan = self.chain.solve(t, x)
+        counts = list(self.chain.node_schedule.counts)
+        return replace(plan, schedule=self._schedule,
+                       extra={"shifted": shifted, "counts": counts})
+
+    def _apply(self, events: Sequence[GuardEvent]) -> bool:
+        """Applies the impact rule to the events newer than the last applied one.
+
+        Returns:
+            Whether a domain was dropped.
+        """
+        dropped = False
+        for ev in events:
+            if ev.t <= self._t_event:
+                continue
+            self._t_event = ev.t
+            if self._schedule is None:
+                continue
+            after, outcome = self._schedule.after_event(ev.guard, ev.mode_after)
+            if outcome in (SCHEDULED, AHEAD):
+                for _ in range(len(self._schedule.modes) - len(after.modes)):
+                    self.chain.on_impact()
+                self._schedule, dropped = after, True
+                self._t_shift = ev.t
+        return dropped
+
+
+def _problem(system: HybridSystem, settings: MPCSettings,
+             margins: ConstraintMargins | None = None) -> FixedModeNLPs:
+    return FixedModeNLPs(system, settings, margins)
+
+
+@dataclass(frozen=True)
+class ChainDetail:
+    """/mpc/solve detail of the chain MPC: nodes shifted by time, flow nodes per domain."""
+
+    shifted: int
+    counts: tuple[int, ...]
+
+
+def _hand_margins(system: HybridSystem, settings: MPCSettings) -> ConstraintMargins:
+    return ConstraintMargins.hand(system, settings.tube_margin, settings.input_margin)
+
+
+MPC = MPCSpec(kind="fixed_mode", settings=MPCSettings, problem=_problem, make=ChainMPC,
+              hand_margins=_hand_margins, detail=ChainDetail)

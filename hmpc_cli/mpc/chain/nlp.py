@@ -1,0 +1,488 @@
+"""Fixed-mode MPC (the paper's problems (12) and (14)) as one parametric NLP.
+
+Multiple shooting on a chain of ``L = N + S`` links (see :mod:`hmpc_cli.mpc.chain.layout`).
+Link k maps node z_k to z_{k+1}:
+
+    z_{k+1} = sum_m a_km Phi_m(z_k, u_k) + sum_g b_kg R_g(z_k) + e_k z_k
+
+with Phi_m one RK4 (or Euler) interval of mode m, R_g the reset map of guard g and the
+one-hot link type (a, b, e) a *parameter*. With ``input_hold = "foh"`` the input of a flow
+interval goes linearly from u_k to u_{k+1} (the low level's first-order-hold feed-forward,
+so an undisturbed plant follows the plan); the last interval before a guard node ends at
+the virtual input, the horizon's last interval holds its input.
+
+Path rows of node k, with bounds chosen per solve (an inactive row gets infinite bounds),
+by row group (the named blocks of :class:`FixedModeNLP`; link k's ``dynamics`` rows come
+first):
+
+* ``guard_avoid``, one row per guard g: s_kg q_g(z_k) - kappa_kg + sigma_k. Guard-avoid
+  (>= 0, s = +1, kappa from the tube margin), the lower side of the guard-hit at the
+  switching node (>= 0 with kappa = 0), or off;
+* ``guard_hit``: q_G(z_k) - sigma_k <= 0 at the switching node (with the row above:
+  |q_G| <= sigma_k);
+* ``virtual_node``: -q_G(Phi(z_k, u_k)) - kappa + sigma_k >= 0 at each guard node, i.e.
+  one more interval of the source flow with the virtual input u_k puts the whole tube
+  past the guard (problem (14));
+* ``region``: the guard's activity-region rows at the switching node (+ sigma_k >= 0);
+* ``terminal``: terminal-set rows at the last node (+ sigma_L >= 0).
+
+sigma_k >= 0 is one slack per node with an exact L1 penalty ``soft_penalty * sum sigma_k``
+in the cost: whenever the hybrid constraints can be met, the solution meets them exactly
+(sigma = 0); when a disturbance has made them infeasible (the planned guard time can no
+longer be reached, say) the solve returns the least-relaxed plan instead of failing, and
+the relaxation max sigma_k is reported with every solve. ``soft_penalty = 0`` fixes
+sigma = 0: the hard constraints of the paper.
+
+Inputs are bounded by the (tightened) box of each link's mode through the variable
+bounds; reset-link inputs are the virtual inputs. Built once per (system, horizon,
+S_max) and re-solved with parameters, bounds and a primal-dual warm start.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Literal
+
+import casadi as ca
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from hmpc_cli.core.hybrid import HybridSystem
+from hmpc_cli.core.messages import ConstraintMargins, Trajectory
+from hmpc_cli.mpc import cache
+from hmpc_cli.mpc.backends import OCPStructure
+from hmpc_cli.mpc.builder import Blocks, NLPBuilder, NLPLayout
+from hmpc_cli.mpc.chain.layout import FLOW, ChainLayout, NodeSchedule
+from hmpc_cli.mpc.chain.problem_data import INF, ChainShape, problem_data
+from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart
+from hmpc_cli.core.settings_types import (
+    MAX_NLP_NODES, BoundedInt, FiniteFloat, StrictBool, nlp_estimate)
+
+__all__ = ["INF", "FixedModeNLP", "FixedModeNLPs", "MPCSettings"]
+
+WARM_START = WarmStart(mu_init=1e-6, bound_push=1e-9)  # the warm IPOPT instance
+_LOG = logging.getLogger(__name__)
+
+#: measured cost of one chain-NLP node (both NLPs, cold and warm solvers; ball, 2 cores)
+NODE_MIB, NODE_MS = 0.85, 18.0
+
+
+class MPCSettings(BaseModel):
+    """Fixed-mode MPC settings."""
+
+    model_config = ConfigDict(extra="forbid")
+    kind: Literal["fixed_mode"] = Field("fixed_mode", description="mode-schedule MPC on "
+                                        "the chain transcription (any system)")
+    rate_hz: BoundedInt = Field(10, gt=0, description="MPC re-solve rate [Hz]")
+    nodes_per_second: BoundedInt = Field(60, gt=0, description="NLP node rate: node step = 1/this")
+    horizon: FiniteFloat = Field(3.0, gt=0.0, description="receding horizon [s]")
+    max_switches: BoundedInt = Field(10, ge=0, description="guard events the NLP chain can hold")
+    integrator: Literal["rk4", "euler"] = "rk4"
+    input_hold: Literal["foh", "zoh"] = Field(
+        "foh", description="input between nodes: first-order hold (linear from u_k to "
+                           "u_k+1, as the low level feeds it forward) or zero-order hold")
+    robust: StrictBool = Field(True, description="virtual pass-through node (problem (14))")
+    soft_penalty: FiniteFloat = Field(
+        1e4, ge=0.0, description="L1 penalty on relaxing guard, virtual-node, region and "
+                                 "terminal rows (0: hard constraints, as in the paper)")
+    tube_margin: FiniteFloat = Field(0.025, ge=0.0, description="tube radius diam T(dt) [state "
+                               "norm] (hand-set margins: mpc.margins = \"hand\")")
+    input_margin: FiniteFloat = Field(0.0, ge=0.0, description="input-box tightening per side "
+                                "(hand-set margins: mpc.margins = \"hand\")")
+    margins: Literal["hand"] | str = Field(
+        "hand", description='"hand": the margins of tube_margin and input_margin; else a '
+        "margins file of hmpc tube --write (relative to the scenario file's directory): its "
+        "guard-avoid, pass-through and input margins at mpc.rate_hz replace them")
+    solver: Literal["ipopt", "sqp_hpipm", "fatrop", "sqpmethod"] = Field(
+        "ipopt", description='NLP back-end: "ipopt" (interior point, MUMPS), "sqp_hpipm" '
+        "(SQP with a Gauss-Newton Hessian and HPIPM's Riccati QP solver, IPOPT fallback on "
+        'failure; needs input_hold = "zoh"), "fatrop" (needs "zoh"), "sqpmethod" (exact '
+        "Hessian, sparse active-set QP)")
+    solver_options: dict = Field(default_factory=dict, description="passed to the plugin")
+    max_iter: BoundedInt = Field(200, gt=0, description="iteration limit (sqp_hpipm: of "
+                                 "its IPOPT fallback)")
+    max_sqp_iter: BoundedInt = Field(3, gt=0, description="sqp_hpipm: SQP iterations per "
+                                     "solve (real-time iterations; a feasible point at the "
+                                     "limit is accepted)")
+    switching_solver: Literal["ipopt", "sqp_hpipm", "fatrop", "sqpmethod"] | None = Field(
+        None, description="back-end of the switching chain NLP (None: mpc.solver, but "
+        '"ipopt" when mpc.solver is "sqp_hpipm": the SQP converges only linearly on its '
+        "degenerate guard-hit rows)")
+    warm_start: StrictBool = True
+    resolve_on_impact: StrictBool = True
+    node_shift: Literal["elapsed", "floor"] = Field(
+        "elapsed", description='nodes moved to the final domain at each re-solve: "elapsed" '
+        "(the time since the previous re-solve or scheduled contact [s] in whole node steps, "
+        "rounded; the MPC period must then be a whole number of node steps) or \"floor\" (the "
+        "reference code's floor(nodes_per_second x elapsed), computed in floating point: "
+        "0 at 100 Hz with 60 nodes/s, so the nodes never move, and 5 instead of 6 in some 10 "
+        "Hz periods; any nodes_per_second)")
+    final_domain_nlp: StrictBool = Field(
+        True, description="solve schedules with no switch left on the final domain's own, "
+                          "smaller NLP (same problem, no switching rows)")
+
+    @model_validator(mode="after")
+    def _stagewise_for_fatrop(self) -> MPCSettings:
+        for solver in (self.solver, self.switching_solver):
+            if solver in ("fatrop", "sqp_hpipm") and self.input_hold == "foh":
+                raise ValueError(f'solver "{solver}" needs stage-wise dynamics: set '
+                                 'input_hold = "zoh" (a first-order hold couples each '
+                                 'interval to the next input)')
+        return self
+
+    def solver_of(self, switches: int) -> str:
+        """The back-end of the NLP with ``switches`` guard events (0: final domain's)."""
+        if switches == 0:
+            return self.solver
+        if self.switching_solver is not None:
+            return self.switching_solver
+        return "ipopt" if self.solver == "sqp_hpipm" else self.solver
+
+    def period_steps(self) -> list[tuple[str, int]]:
+        """Step rates the MPC period must be a whole number of (key path, rate [Hz])."""
+        if self.node_shift == "floor":  # the reference's rule needs no whole number
+            return []
+        return [("mpc.nodes_per_second", self.nodes_per_second)]
+
+    def shifted_nodes(self, elapsed: float) -> int:
+        """Intervals to move after ``elapsed`` seconds, by ``node_shift`` (>= 0)."""
+        if self.node_shift == "floor":
+            return max(0, math.floor(self.nodes_per_second * elapsed))
+        return max(0, int(round(elapsed / self.dt)))
+
+    def size_problems(self) -> list[str]:
+        """``mpc.horizon`` beyond :data:`MAX_NLP_NODES` nodes (before anything is built)."""
+        n = self.horizon * self.nodes_per_second
+        if n <= MAX_NLP_NODES:
+            return []
+        return [f"mpc.horizon: {self.horizon:g} s x {self.nodes_per_second} nodes/s = {n:.3g} "
+                f"NLP nodes exceeds the limit {MAX_NLP_NODES} (it would need "
+                f"{nlp_estimate(n, NODE_MIB, NODE_MS)})"]
+
+    def scenario_problems(self) -> list[str]:
+        """``mpc.key: reason`` lines for settings that do not fit together."""
+        n = self.horizon * self.nodes_per_second
+        if n < 2 or abs(n - round(n)) > 1e-9 * max(1.0, n):
+            return ["mpc.horizon: must be a whole number (>= 2) of node steps"]
+        return []
+
+    @property
+    def dt(self) -> float:
+        """Node step [s]."""
+        return 1.0 / self.nodes_per_second
+
+    @property
+    def n_intervals(self) -> int:
+        """Flow intervals over the horizon, N."""
+        return round(self.horizon * self.nodes_per_second)
+
+    @property
+    def nodes_per_period(self) -> int:
+        """Intervals elapsed per MPC period."""
+        return self.nodes_per_second // self.rate_hz
+
+
+class FixedModeNLP:
+    """The parametric fixed-mode NLP on a chain of N + S links (built once).
+
+    Named blocks (see :mod:`hmpc_cli.mpc.builder`; stage k = node k and link k), in the
+    order of the flat vectors:
+
+    * x, per stage k: ``z`` (n), ``u`` (m, links only), ``sigma`` (scalar slack);
+    * g, per stage k: ``dynamics`` (n, links only), ``guard_avoid`` (one row per guard
+      with rows), and with S > 0 ``guard_hit`` (scalar), ``virtual_node`` (scalar),
+      ``region`` (R, if any guard has a region); after the last stage ``terminal`` (T);
+    * p: ``a`` (L, M), ``b`` (L, G), ``e``, ``w``, ``v``, ``foh`` (L each), ``s``,
+      ``kappa`` (L + 1, Gr), ``beta`` (L + 1, G), ``kappa_v`` (L + 1), ``hit``
+      (L + 1, G) (the last three with no rows when S = 0).
+
+    Args:
+        system: the hybrid system (the controllers' model).
+        settings: MPC settings.
+        switches: S, the guard events the chain holds (default ``settings.max_switches``).
+            With S = 0 the NLP is the final domain's plain MPC: only that mode's flow and
+            guard-avoid rows, no reset, virtual-node or region rows (a much smaller KKT
+            system for the solves after the last scheduled switch).
+        margins: the guard, virtual-node and input tightenings (parameters and bounds
+            only); default the hand-set ones of ``settings.tube_margin`` and
+            ``settings.input_margin``.
+    """
+
+    def __init__(self, system: HybridSystem, settings: MPCSettings,
+                 switches: int | None = None,
+                 margins: ConstraintMargins | None = None) -> None:
+        """Builds the NLP and its solver session (see the class docstring)."""
+        self.system = system
+        self.s = settings
+        self.S = settings.max_switches if switches is None else switches
+        self.N = settings.n_intervals
+        self.L = self.N + self.S
+        self.dt = settings.dt
+        self.n, self.m = system.n_x, system.n_u
+        self.G = len(system.guards)
+        final = system.mode_index(system.final_mode)
+        # modes with a flow in the chain, guards with rows (local column order)
+        self.modes_in = list(range(len(system.modes))) if self.S else [final]
+        self.row_guards = list(range(self.G)) if self.S else system.guards_of(final)
+        self.mode_col = {mode: c for c, mode in enumerate(self.modes_in)}
+        self.guard_col = {g: c for c, g in enumerate(self.row_guards)}
+        self.M, self.Gr = len(self.modes_in), len(self.row_guards)
+        self.R = max([g.region.size1_out(0) for g in system.guards if g.region is not None]
+                     or [0]) if self.S else 0
+        self.T = system.terminal_set.size1_out(0) if system.terminal_set is not None else 0
+        self.guards_of = [system.guards_of(i) for i in range(len(system.modes))]
+        self.margins = margins or ConstraintMargins.hand(system, settings.tube_margin,
+                                                         settings.input_margin)
+        # guard-avoid offsets: margin 0 for the guard just crossed, else the tube margin
+        self.avoid_offsets = list(zip(self.margins.entered, self.margins.avoid, strict=True))
+        #: per mode: its column in the link-type parameter a (-1: no flow in this NLP)
+        self.mode_cols = np.array([self.mode_col.get(i, -1) for i in range(len(system.modes))])
+        #: per mode: its tightened input box (lower, upper), shape (modes, 2, m)
+        self.input_boxes = np.array([self.input_box(i) for i in range(len(system.modes))])
+        self._build()
+        self.shape = ChainShape(
+            system=system, s=settings, layout=self.layout, L=self.L, m=self.m, dt=self.dt,
+            margins=self.margins, input_boxes=self.input_boxes, mode_cols=self.mode_cols,
+            guards_of=self.guards_of, guard_col=self.guard_col,
+            avoid_offsets=self.avoid_offsets)
+
+    # ------------------------------------------------------------------ build
+    def _interval(self, mode: int, z, u, u_end):
+        """One interval of ``mode`` from z with the input going linearly from u to u_end."""
+        f = self.system.modes[mode].flow
+        w = ca.DM.zeros(self.system.n_w)
+        h = self.dt
+        if self.s.integrator == "euler":
+            return z + h * f(z, u, w)
+        u_mid = 0.5 * (u + u_end)
+        k1 = f(z, u, w)
+        k2 = f(z + h / 2 * k1, u_mid, w)
+        k3 = f(z + h / 2 * k2, u_mid, w)
+        k4 = f(z + h * k3, u_end, w)
+        return z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+    def _build(self) -> None:
+        """The NLP from the build cache if compiled there, else transcribed (and cached)."""
+        key = cache.structure_key(self.system, self.s, self.S)
+        hit = cache.lookup(key, self.s.solver_of(self.S))
+        self.session = None
+        if hit.library is not None:
+            self.layout, self.build_info = hit.layout, hit.info
+            try:
+                self.session = self._session(hit.library)
+            except RuntimeError as exc:  # a library CasADi refuses: build in SX
+                _LOG.warning("cannot load %s (%s): building the NLP in SX", hit.library,
+                             str(exc).strip().splitlines()[-1:])
+                hit = cache.Hit(None, None, cache.BuildInfo("miss", False, "unloadable"))
+        if self.session is None:
+            nlp, self.layout = self._transcription()
+            self.session = self._session(nlp)
+            self.build_info = hit.info if hit.info.cache == "disabled" else \
+                cache.store(key, self.s.solver_of(self.S), nlp, self.layout)
+        X, g = self.layout.x, self.layout.g
+        self.nx_var, self.ng, self.np = X.size, g.size, self.layout.p.size
+        self.z_idx, self.u_idx, self.s_idx = X["z"], X["u"], X["sigma"]
+        self.link_rows = np.stack([g.at(k) for k in range(self.L)])  # (L, rows per link)
+
+    def _session(self, nlp: dict | str) -> SolverSession:
+        """The solver session of the NLP (an SX dict or a compiled library's path)."""
+        equality, solver = None, self.s.solver_of(self.S)
+        if solver == "fatrop":
+            eq = np.zeros(self.layout.g.size, dtype=bool)
+            eq[self.layout.g["dynamics"]] = True
+            equality = eq.tolist()
+        return SolverSession(
+            "fixed_mode_mpc", nlp, solver, max_iter=self.s.max_iter, tol=1e-8,
+            equality=equality, extra=self.s.solver_options, warm=WARM_START,
+            structure=self.structure() if solver == "sqp_hpipm" else None,
+            sqp_iter=self.s.max_sqp_iter)
+
+    def _transcription(self) -> tuple[dict, NLPLayout]:
+        """The NLP ``{"x", "p", "f", "g"}`` in SX and its layout."""
+        b = NLPBuilder()
+        zs, us, sigmas = [], [], []
+        for k in range(self.L + 1):
+            with b.stage(k):
+                zs.append(b.variable("z", self.n))
+                if k < self.L:
+                    us.append(b.variable("u", self.m))
+                sigmas.append(b.variable("sigma"))
+        self._par = self._parameters(b)
+        self._guard_functions()
+        J = self._transcribe(b, zs, us, sigmas)
+        return b.build(J)
+
+    def structure(self) -> OCPStructure:
+        """The HPIPM stage structure (zero-order hold only).
+
+        Per stage k the state z_k, the controls (u_k, sigma_k) (sigma_L alone at the
+        last stage), the dynamics rows then the path rows.
+        """
+        g = self.layout.g
+        ng = [g.at(k).size - self.n for k in range(self.L)]
+        ng.append(g.size - sum(ng) - self.n * self.L)  # node L's rows and the terminal set
+        return OCPStructure.chain(self.n, [self.m + 1] * self.L + [1], ng)
+
+    def _parameters(self, b: NLPBuilder) -> dict:
+        """The parameter blocks (link types, weights, path-row signs and offsets)."""
+        L, G, Gr = self.L, self.G, self.Gr
+        nsw = L + 1 if self.S else 0
+        shapes = {"a": (L, self.M), "b": (L, G if self.S else 0), "e": L, "w": L, "v": L,
+                  "foh": L,  # 1: the interval's input ends at the next link's input
+                  "s": (L + 1, Gr), "kappa": (L + 1, Gr), "beta": (nsw, G),
+                  "kappa_v": nsw, "hit": (nsw, G)}
+        return {name: b.parameter(name, shape) for name, shape in shapes.items()}
+
+    def _guard_functions(self) -> None:
+        """Guard functions q_g, source-flow column of each guard, padded regions."""
+        sysm, zs = self.system, ca.SX.sym("zs", self.n)
+        self._src = [self.mode_col.get(sysm.mode_index(g.source), 0) for g in sysm.guards]
+        self._q = [ca.Function(f"q_{g.name}", [zs], [g.q_expr(zs)]) for g in sysm.guards]
+        self._regions = []
+        for g in sysm.guards if self.S else ():
+            r = g.region(zs) if g.region is not None else ca.SX.zeros(0)
+            pad = ca.vertcat(r, ca.SX.zeros(self.R - r.size1()))
+            self._regions.append(ca.Function(f"r_{g.name}", [zs], [pad]))
+
+    def _transcribe(self, b: NLPBuilder, zs: list, us: list, sigmas: list):
+        """Registers the rows stage by stage; returns the cost."""
+        L, m, P, sysm = self.L, self.m, self._par, self.system
+        switching, J = self.S > 0, 0
+        for k in range(L):
+            foh = self.s.input_hold == "foh" and k + 1 < L  # structural: zoh keeps stages
+            u_end = us[k] + P["foh"][k] * (us[k + 1] - us[k]) if foh else us[k]
+            flows = [self._interval(i, zs[k], us[k], u_end) for i in self.modes_in]
+            nxt = P["e"][k] * zs[k]
+            for c in range(self.M):
+                nxt += P["a"][k, c] * flows[c]
+            for i, g in enumerate(sysm.guards if switching else ()):
+                nxt += P["b"][k, i] * g.reset(zs[k])
+            with b.stage(k):
+                b.rows("dynamics", zs[k + 1] - nxt)
+                self._path_rows(b, k, zs[k], flows, sigmas[k])
+            J += P["w"][k] * sysm.stage_cost(zs[k], us[k]) + P["v"][k] * ca.sumsqr(us[k])
+        last_flows = [self._interval(i, zs[L], ca.DM.zeros(m), ca.DM.zeros(m))
+                      for i in self.modes_in] if switching else []
+        with b.stage(L):
+            self._path_rows(b, L, zs[L], last_flows, sigmas[L])
+        if self.T:
+            b.rows("terminal", sysm.terminal_set(zs[L]) + sigmas[L])
+        return J + self.s.soft_penalty * ca.sum1(ca.vertcat(*sigmas))
+
+    def _path_rows(self, b: NLPBuilder, k: int, z, flows: list, sk) -> None:
+        """Node k's guard-avoid, guard-hit, virtual-node and region rows."""
+        P, q, G, switching = self._par, self._q, self.G, self.S > 0
+        qz = {i: q[i](z) for i in (range(G) if switching else self.row_guards)}
+        b.rows("guard_avoid", [P["s"][k, c] * qz[i] - P["kappa"][k, c] + sk
+                               for c, i in enumerate(self.row_guards)])
+        if not switching:
+            return
+        b.rows("guard_hit", sum(P["hit"][k, i] * qz[i] for i in range(G)) - sk, shape=())
+        virt = 0
+        for i in range(G):
+            virt += P["beta"][k, i] * (-q[i](flows[self._src[i]]))
+        b.rows("virtual_node", virt - P["kappa_v"][k] + sk, shape=())
+        reg = ca.SX.zeros(self.R)
+        for i in range(G):
+            reg += P["beta"][k, i] * self._regions[i](z)
+        if self.R:
+            b.rows("region", reg + sk)
+
+    # ------------------------------------------------------------ problem data
+    def problem_data(self, ns: NodeSchedule, lay: ChainLayout, x0: np.ndarray):
+        """Parameters and bounds of one solve: (p, lbx, ubx, lbg, ubg)."""
+        return problem_data(self.shape, ns, lay, x0)
+
+    def input_box(self, mode: int) -> tuple[np.ndarray, np.ndarray]:
+        """The mode's input box shrunk by its input margins per side (never past its centre)."""
+        md, shrink = self.system.modes[mode], np.array(self.margins.inputs[mode])
+        lo = np.array(md.u_lower) + shrink
+        hi = np.array(md.u_upper) - shrink
+        mid = 0.5 * (np.array(md.u_lower) + np.array(md.u_upper))
+        return np.minimum(lo, mid), np.maximum(hi, mid)
+
+    # ------------------------------------------------------------------ solve
+    def solve(self, w0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None) -> SolveResult:
+        """One solve (see :meth:`SolverSession.solve`); never raises on solver failure."""
+        return self.session.solve(w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0)
+
+    def violation(self, w, p, lbx, ubx, lbg, ubg) -> float:
+        """Largest constraint or bound violation at primal point w."""
+        return self.session.violation(w, p, lbx, ubx, lbg, ubg)
+
+    def constraints(self, w, p) -> np.ndarray:
+        """Constraint values g(w, p), shape (ng,)."""
+        return self.session.constraints(w, p)
+
+    # ------------------------------------------------------------- warm start
+    def remap_vectors(self, node_map, w, lam_x, lam_g, source: FixedModeNLP | None = None):
+        """Re-indexes primal/dual vectors of ``source`` (default: this NLP) node by node.
+
+        See :func:`layout.remap` for ``node_map`` (shape (L + 1,)); a link takes the
+        entries of its start node's link (the source's last link past its end). Duals
+        only within one NLP (None else).
+        """
+        src = source or self
+        link_map = np.minimum(node_map[: self.L], src.L - 1)
+        maps = {"z": node_map, "u": link_map, "sigma": node_map}
+        new_w = w.copy() if src is self else np.zeros(self.nx_var)
+        _move(new_w, w, maps, self.layout.x, src.layout.x)
+        if lam_x is None or lam_g is None or src is not self:
+            return new_w, None, None
+        new_lx = _move(lam_x.copy(), lam_x, maps, self.layout.x, self.layout.x)
+        new_lg = lam_g.copy()
+        new_lg[self.link_rows] = lam_g[self.link_rows[link_map]]
+        return new_w, new_lx, new_lg
+
+    # ------------------------------------------------------------- trajectory
+    def trajectory(self, w: np.ndarray, ns: NodeSchedule, lay: ChainLayout) -> Trajectory:
+        """The planned hybrid trajectory (real nodes only; resets as node pairs)."""
+        k_last = lay.last
+        x = w[self.z_idx[: k_last + 1]]
+        u = w[self.u_idx[: max(k_last, 1)]]
+        u = np.vstack([u, u[-1:]])[: k_last + 1]
+        steps = np.where(lay.link_type[:k_last] == FLOW, self.dt, 0.0)
+        t = np.concatenate([[0.0], np.cumsum(steps)])
+        seg = lay.seg[: k_last + 1].copy()
+        mode = np.array([ns.modes[j] for j in seg])
+        return Trajectory(t, x, u, mode, seg, tuple(ns.guards), self.s.input_hold)
+
+
+def _move(dst: np.ndarray, src: np.ndarray, maps: dict, to: Blocks, frm: Blocks):
+    """Sets stage i of each staged block ``name`` of dst to stage ``maps[name][i]`` of src."""
+    for name, stage_map in maps.items():
+        dst[to[name]] = src[frm[name][stage_map]]
+    return dst
+
+
+class FixedModeNLPs:
+    """The fixed-mode NLPs of one (system, settings), each built once (or cache-loaded).
+
+    The switching chain (S = ``max_switches``) and, with ``final_domain_nlp``, the final
+    domain's (S = 0).
+    """
+
+    def __init__(self, system: HybridSystem, settings: MPCSettings,
+                 margins: ConstraintMargins | None = None) -> None:
+        """Builds the NLPs (``margins``: see :class:`FixedModeNLP`)."""
+        self.switching = FixedModeNLP(system, settings, margins=margins)
+        self.final = FixedModeNLP(system, settings, switches=0, margins=margins) \
+            if settings.final_domain_nlp else None
+        self._final_mode = system.mode_index(system.final_mode)
+        self.N, self.dt = self.switching.N, self.switching.dt
+
+    @property
+    def build_info(self) -> cache.BuildInfo:
+        """How the NLPs were built: a hit if all were loaded, a miss if any was built."""
+        infos = [n.build_info for n in (self.switching, self.final) if n is not None]
+        kinds = {i.cache for i in infos}
+        kind = "miss" if "miss" in kinds else ("hit" if kinds == {"hit"} else "disabled")
+        return cache.BuildInfo(kind, all(i.compiled for i in infos),
+                               "; ".join(dict.fromkeys(i.reason for i in infos)))
+
+    def for_schedule(self, ns: NodeSchedule) -> FixedModeNLP:
+        """The NLP that solves node schedule ``ns``."""
+        if self.final is not None and ns.modes == (self._final_mode,):
+            return self.final
+        return self.switching

@@ -1,0 +1,468 @@
+"""The biped's fixed-mode walking MPC (paper Step 3) as one parametric NLP.
+
+Two swings j = 0, 1 of ``N = nodes_per_swing`` intervals each, linked by the touchdown of
+swing 0 on a target stair segment (the guard) and the model's reset map (impact + leg swap).
+
+Transcription (inverse dynamics, semi-implicit Euler), per swing j, interval k < N:
+
+    qd_{k+1} = qd_k + dt_j a_k,   q_{k+1} = q_k + dt_j qd_{k+1},
+    u_k = ID(q_k, qd_k, a_k, w=0),   |u_k,i| <= torque_limit - torque_margin,
+
+decision variables (q, qd) per node (swing 0's node 0 is the parameter x0) and the
+accelerations a_k per interval. Swing 0 has dt_0 = max(swing_time - elapsed,
+min_swing_time) / N (a parameter: the *remaining* time of the current swing on a fixed
+node count, so the NLP never changes shape); swing 1 has dt_1 = swing_time / N.
+
+Path rows of node k >= 1 of each swing (belonging to interval k - 1):
+
+* guard-avoid: 0 <= foot_y - floor(foot_x) - c_k <= swing_height_cap - c_k in the world,
+  with floor the *inflated* smooth terrain h0 + sum_i dh_i sigma((x - e_i') / w): each
+  edge e_i moved by ``terrain_margin`` towards the lower side (a step up starts that much
+  earlier), sigma the logistic function of width ``terrain_smoothing``. c_k =
+  ``apex_clearance`` at the apex node (swing time apex_node * dt); within the first
+  ``liftoff_time`` of a swing c_k = min(0, gap of the lifting foot at the swing start),
+  so a foot starting on (or, near an edge, below) the inflated floor may not sink. Off
+  at swing 0's touchdown node. Swing 1 has no touchdown: its last node's upper bound
+  is min(cap, ``swing2_end_clearance``) (foot ready to land anywhere; None: the cap);
+* knees: stance and swing knee at least ``knee_clearance`` above the stance foot.
+
+Swing 0's touchdown node (the virtual pass-through node): foot_y = h - touchdown_depth
+and s + segment_margin <= foot_x <= e - segment_margin for the target (s, e, h) (bounds
+only, no parameters). Swing 1's node 0 equals reset(x_N) (q, qd); its stance foot is the
+old swing foot, an expression. State boxes |qd| <= rate_limit, stance knee and torso
+ranges bound every node variable. If the swing started less than ``liftoff_time`` ago,
+the swing foot's continuous-time vertical acceleration at node 0, J(q0) a_0 +
+Jdot(q0, qd0) qd0, is at least ``liftoff_accel`` (one last row): the foot at rest on the
+ground after an impact leaves it at once instead of re-touching.
+
+Cost: sum_j sum_k dt_j [l(x_{k+1}) + r_torque |u_k|^2] with l = q_hip |hip - goal|^2
++ sum pose_weights (q - q_nominal)^2 + sum torso_top_weights (top - torso_top_target)^2
+(hip in the world, torso top relative to the stance foot): the system's own stage cost
+(``HybridSystem.stage_cost`` at (x_{k+1}, u_k)) plus the torso-top posture term of the
+settings.
+
+The transcription needs the system's named outputs ``points`` (with ``point_names``
+holding ``stance_knee``, ``torso_top``, ``swing_knee``, ``swing_foot``),
+``inverse_dynamics``, ``swing_foot_world``, ``swing_foot_velocity``,
+``swing_foot_jacobian`` and ``contact_reset``, its ``terrain`` and ``state_box``, and a
+state x = (q[n_q], qd[n_q], p_st[2]) (n_q from ``inverse_dynamics``; the biped's is 5).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Literal
+
+import casadi as ca
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from hmpc_cli.core.hybrid import HybridSystem
+from hmpc_cli.core.messages import ConstraintMargins
+from hmpc_cli.mpc import cache
+from hmpc_cli.mpc.builder import Bounds, NLPBuilder
+from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart
+from hmpc_cli.core.settings_types import (
+    MAX_NLP_NODES, BoundedInt, FiniteFloat, Pair, StrictBool, nlp_estimate)
+
+INF = np.inf
+_LOG = logging.getLogger(__name__)
+WARM_START = WarmStart(mu_init=1e-4, bound_push=1e-6)  # the warm IPOPT instance
+
+#: measured cost of one walking-NLP node (cold and warm solvers; biped, 2 cores)
+NODE_MIB, NODE_MS = 2.2, 27.0
+
+
+class WalkingMPCSettings(BaseModel):
+    """Fixed-mode walking MPC settings (reference values)."""
+
+    model_config = ConfigDict(extra="forbid")
+    kind: Literal["walking"] = Field("walking", description="two-swing walking MPC (biped)")
+    rate_hz: BoundedInt = Field(10, gt=0, description="re-solve rate [Hz] (also after contacts)")
+    swing_time: FiniteFloat = Field(0.3, gt=0.0, description="duration of a swing [s]")
+    nodes_per_swing: BoundedInt = Field(25, ge=4, description="intervals per swing")
+    min_swing_time: FiniteFloat = Field(0.03, gt=0.0, description="lower bound on swing 0's "
+                                  "remaining time [s]")
+    touchdown_depth: FiniteFloat = Field(0.005, ge=0.0, description="touchdown node this far "
+                                   "below the target surface [m]")
+    segment_margin: FiniteFloat = Field(0.075, ge=0.0, description="touchdown at least this far "
+                                  "inside the segment's ends (tube tightening) [m] (hand-set "
+                                  "margins)")
+    apex_node: BoundedInt = Field(20, ge=1, description="node of a swing with the apex row")
+    apex_clearance: FiniteFloat = Field(0.05, ge=0.0, description="foot above the terrain at the "
+                                  "apex node [m]")
+    liftoff_time: FiniteFloat = Field(0.024, ge=0.0, description="liftoff window: guard-avoid "
+                                "row relaxed to the start height [s]")
+    liftoff_accel: FiniteFloat = Field(3.0, description="upward swing-foot acceleration at "
+                                 "node 0 when the swing starts within the liftoff window "
+                                 "[m/s^2]")
+    terrain_margin: FiniteFloat = Field(0.025, ge=0.0, description="edge inflation of the "
+                                  "guard-avoid terrain [m] (hand-set margins)")
+    terrain_smoothing: FiniteFloat = Field(0.005, gt=0.0, description="logistic width of the "
+                                     "terrain steps [m]")
+    swing2_end_clearance: FiniteFloat | None = Field(0.05, gt=0.0, description="swing 1's last "
+                                               "node at most this above the terrain [m]; "
+                                               "None: free")
+    swing_height_cap: FiniteFloat | None = Field(0.25, gt=0.0, description="swing foot at most "
+                                           "this above the terrain at every node [m]; "
+                                           "None: no cap")
+    knee_clearance: FiniteFloat = Field(0.2, description="knees above the stance foot [m]")
+    torque_margin: FiniteFloat = Field(300.0, ge=0.0, description="torque limit tightening "
+                                 "(the low-level controller's share) [N m] (hand-set "
+                                 "margins: mpc.margins = \"hand\")")
+    margins: Literal["hand"] | str = Field(
+        "hand", description='"hand": terrain_margin, segment_margin and torque_margin; else '
+        "a margins file of hmpc tube --write (relative to the scenario file's directory): "
+        "at mpc.rate_hz its largest guard-avoid offset is the terrain margin, its largest "
+        "pass-through offset of a contact surface the segment margin, its input shrink the "
+        "torque margin per joint")
+    torso_top_target: Pair = Field((0.2, 1.6), description="torso top "
+                                                  "relative to the stance foot [m]")
+    torso_top_weights: Pair = Field((50.0, 5.0), description="cost weights "
+                                                   "on the torso-top error [1/(m^2 s)]")
+    max_iter: BoundedInt = Field(200, gt=0, description="IPOPT iterations")
+    tol: FiniteFloat = Field(1e-6, gt=0.0, description="IPOPT tol")
+    max_wall_time: FiniteFloat | None = Field(None, gt=0.0, description="IPOPT wall-time cap [s]")
+    warm_start: StrictBool = Field(True, description="primal-dual warm start from the previous "
+                             "solution of the same candidate")
+    impact_duals: StrictBool = Field(True, description="after a contact, also shift the "
+                               "executed plan's multipliers (warm IPOPT instance)")
+    solver_options: dict = Field(default_factory=dict, description="extra IPOPT options")
+
+    @model_validator(mode="after")
+    def _apex_inside(self) -> WalkingMPCSettings:
+        if self.apex_node >= self.nodes_per_swing:
+            raise ValueError(f"apex_node {self.apex_node} must be below nodes_per_swing "
+                             f"{self.nodes_per_swing}")
+        return self
+
+    def size_problems(self) -> list[str]:
+        """``mpc.nodes_per_swing`` beyond :data:`MAX_NLP_NODES` nodes (two swings)."""
+        n = 2 * self.nodes_per_swing
+        if n <= MAX_NLP_NODES:
+            return []
+        return [f"mpc.nodes_per_swing: 2 swings x {self.nodes_per_swing} = {n} NLP nodes "
+                f"exceeds the limit {MAX_NLP_NODES} (it would need "
+                f"{nlp_estimate(n, NODE_MIB, NODE_MS)})"]
+
+    @property
+    def dt(self) -> float:
+        """Node step of a full swing [s]."""
+        return self.swing_time / self.nodes_per_swing
+
+
+def hand_margins(system: HybridSystem, settings: WalkingMPCSettings) -> ConstraintMargins:
+    """The hand-set margins as :class:`ConstraintMargins` (what ``margins = "hand"`` means).
+
+    Every guard's avoid offset is ``terrain_margin`` and its pass-through offset
+    ``segment_margin`` [m]; every joint's shrink ``torque_margin`` [N m]; the radius is the
+    state-norm radius whose offset is ``terrain_margin`` (the guards' Lipschitz constant).
+    """
+    gs = system.guards
+    lip = max((g.lipschitz for g in gs), default=1.0)
+    return ConstraintMargins(
+        "hand", settings.terrain_margin / lip, (settings.terrain_margin,) * len(gs),
+        tuple(g.kappa(0.0, past=False) for g in gs), (settings.segment_margin,) * len(gs),
+        tuple((settings.torque_margin,) * system.n_u for _ in system.modes))
+
+
+def _smooth_step(z):
+    return 0.5 * (1.0 + ca.tanh(0.5 * z))
+
+
+class WalkingNLP:
+    """The parametric two-swing NLP (built once per parameters and settings).
+
+    Named blocks (see :mod:`hmpc_cli.mpc.builder`; N = nodes_per_swing, stage (j, k) =
+    interval k of swing j for a and rows, node k of swing j for x), in flat order:
+        x: per swing j, per interval k: ``a`` (5) at (j, k), then ``x`` = (q, qd) (10) at
+           (j, k + 1); swing 1's node 0 (``x`` at (1, 0)) precedes its first interval.
+           ``x_idx[j, k]`` (10 indices, -1 for the parameter node (0, 0)) and
+           ``a_idx[j, k]`` index it.
+        g: per swing, per interval: ``dynamics`` (10), ``torque`` (5), ``guard_avoid``
+           (scalar), ``knees`` (2) (``interval_rows[j, k]``: all 18); after swing 0
+           ``touchdown`` (x, y: the segment and the guard) and ``reset`` (10); last
+           ``liftoff`` (scalar: the swing foot's vertical acceleration at node 0).
+        p: ``x0`` (10) and ``stance`` (2) = the state x0 (12), ``dt0``, ``h0``,
+           shifted ``edges`` (E), ``jumps`` (E), clearances ``clear`` (2, N + 1).
+    """
+
+    def __init__(self, system: HybridSystem, settings: WalkingMPCSettings,
+                 margins: ConstraintMargins | None = None) -> None:
+        """Builds the NLP and its solver session.
+
+        ``margins``: the tightenings (default :func:`hand_margins` of the settings); the
+        NLP uses the largest guard-avoid offset as ``terrain_margin``, the largest
+        pass-through offset of a guard with a contact surface as ``segment_margin`` [m]
+        and the first mode's input shrink as ``torque_margin`` [N m] per joint.
+        """
+        self.system, self.s = system, settings
+        self.margins = margins or hand_margins(system, settings)
+        surfaces = list(system.guard_surfaces) or range(len(system.guards))
+        self.terrain_margin = max(self.margins.avoid, default=0.0)
+        self.segment_margin = max((self.margins.pass_through[g] for g in surfaces),
+                                  default=0.0)
+        self.torque_margin = np.asarray(self.margins.inputs[0], dtype=float)
+        self.model = _Outputs(system)
+        self.nq = self.model.inverse_dynamics.size1_in(0)
+        self.nx = 2 * self.nq  # (q, qd) per node; p_st is a parameter or an expression
+        if system.n_x != self.nx + 2:
+            raise ValueError(f"the walking MPC needs a state (q[{self.nq}], qd[{self.nq}], "
+                             f"p_st[2]); system {system.name!r} has {system.n_x} states")
+        self.N = settings.nodes_per_swing
+        self.E = len(system.terrain.segments)
+        self._build()
+
+    # ------------------------------------------------------------------ build
+    def _build(self) -> None:
+        b, N = NLPBuilder(), self.N
+        xs, acc = {}, {}
+        for j in range(2):
+            if j == 1:
+                with b.stage((1, 0)):
+                    xs[1, 0] = b.variable("x", self.nx)
+            for k in range(N):
+                with b.stage((j, k)):
+                    acc[j, k] = b.variable("a", self.nq)
+                with b.stage((j, k + 1)):
+                    xs[j, k + 1] = b.variable("x", self.nx)
+        shapes = {"x0": self.nx, "stance": 2, "dt0": (), "h0": (), "edges": self.E,
+                  "jumps": self.E, "clear": (2, N + 1)}
+        par = {name: b.parameter(name, shape) for name, shape in shapes.items()}
+        xs[0, 0] = par["x0"]
+        J, xs_out, us_out = self._transcribe(b, xs, acc, par)
+        nlp, self.layout = b.build(J)
+        self.session, self.build_info = self._session(nlp)
+        self._traj_fun = ca.Function("traj", [nlp["x"], nlp["p"]],
+                                     [ca.horzcat(*xs_out).T, ca.horzcat(*us_out).T])
+        self._f_fun = ca.Function("f", [nlp["x"], nlp["p"]], [J])
+        X, g = self.layout.x, self.layout.g
+        self.nw, self.ng, self.n_par = X.size, g.size, self.layout.p.size
+        self.x_idx, self.a_idx = X.grid("x"), X.grid("a")
+        self.interval_rows = np.array([[g.at((j, k)) for k in range(N)] for j in range(2)])
+
+    def _session(self, nlp: dict) -> tuple[SolverSession, cache.BuildInfo]:
+        """IPOPT on the NLP's compiled functions when the build cache holds them, else SX.
+
+        The graph is transcribed either way (the plan and cost functions need it); a
+        cached library is used only if its layout is this NLP's.
+        """
+        s = self.s
+        key = cache.structure_key(self.system, s, 0, {
+            "kind": "walking", "terrain_margin": float(self.terrain_margin),
+            "segment_margin": float(self.segment_margin),
+            "torque_margin": self.torque_margin.tolist()})
+        hit = cache.lookup(key, "ipopt")
+
+        def session(source: dict | str) -> SolverSession:
+            return SolverSession("walking_mpc", source, "ipopt", max_iter=s.max_iter,
+                                 tol=s.tol, max_wall_time=s.max_wall_time,
+                                 extra=s.solver_options, warm=WARM_START)
+
+        if hit.library is not None:
+            if hit.layout.to_dict() != self.layout.to_dict():
+                _LOG.warning("%s: layout differs from the NLP's: building it in SX",
+                             hit.library)
+            else:
+                try:
+                    return session(hit.library), hit.info
+                except RuntimeError as exc:  # a library CasADi refuses: SX
+                    _LOG.warning("cannot load %s (%s): building the NLP in SX",
+                                 hit.library, str(exc).strip().splitlines()[-1:])
+            return session(nlp), cache.BuildInfo("miss", False, "unloadable")
+        return session(nlp), hit.info if hit.info.cache == "disabled" else \
+            cache.store(key, "ipopt", nlp, self.layout)
+
+    def _transcribe(self, b: NLPBuilder, xs: dict, acc: dict, par: dict):
+        """Registers the rows; returns the cost and the plan's node states and torques."""
+        N, s, mdl, nq = self.N, self.s, self.model, self.nq
+        fx = ca.SX.sym("fx")
+        h0, edges, jumps = par["h0"], par["edges"], par["jumps"]
+        floor = h0 + sum(jumps[i] * _smooth_step((fx - edges[i]) / s.terrain_smoothing)
+                         for i in range(self.E))
+        floor_fn = ca.Function("floor", [fx, h0, edges, jumps], [floor])
+        J, pst = 0, par["stance"]
+        xs_out, us_out = [ca.vertcat(par["x0"], pst)], []
+        for j in range(2):
+            dt = par["dt0"] if j == 0 else s.dt
+            for k in range(N):
+                xk, xn, a = xs[j, k], xs[j, k + 1], acc[j, k]
+                q, qd, qn, qdn = xk[:nq], xk[nq:], xn[:nq], xn[nq:]
+                u = mdl.inverse_dynamics(q, qd, a, 0)
+                pts = mdl.points(qn)
+                foot = pts[:, mdl.swing_foot] + pst
+                with b.stage((j, k)):
+                    b.rows("dynamics", [qdn - qd - dt * a, qn - q - dt * qdn])
+                    b.rows("torque", u)
+                    b.rows("guard_avoid", foot[1] - floor_fn(foot[0], h0, edges, jumps)
+                           - par["clear"][j, k + 1], shape=())
+                    b.rows("knees", [pts[1, mdl.stance_knee], pts[1, mdl.swing_knee]])
+                J += dt * self._stage_cost(xn, pst, u)
+                xs_out.append(ca.vertcat(xn, pst))
+                us_out.append(u)
+            if j == 0:
+                x_td = ca.vertcat(xs[0, N], pst)
+                foot = mdl.swing_foot_world(x_td)
+                x_plus = mdl.reset(x_td)
+                b.rows("touchdown", [foot[0], foot[1]])
+                b.rows("reset", xs[1, 0] - x_plus[:self.nx])
+                pst = x_plus[self.nx:]
+                xs_out.append(ca.vertcat(xs[1, 0], pst))
+        q0, qd0 = par["x0"][:nq], par["x0"][nq:]
+        vel = mdl.swing_foot_velocity(q0, qd0)
+        lift = ca.jtimes(vel, q0, qd0) + ca.mtimes(mdl.swing_foot_jacobian(q0), acc[0, 0])
+        b.rows("liftoff", lift[1], shape=())
+        return J, xs_out, us_out
+
+    def _stage_cost(self, xq, pst, u):
+        """The system's stage cost at (xq (nx), pst (2), u) plus the torso-top term."""
+        s, mdl = self.s, self.model
+        pts = mdl.points(xq[:self.nq])
+        top_t, top_w = ca.DM(s.torso_top_target), ca.DM(s.torso_top_weights)
+        return (self.system.stage_cost(ca.vertcat(xq, pst), u)
+                + ca.dot(top_w, (pts[:, mdl.torso_top] - top_t) ** 2))
+
+    def row(self, j: int, k: int) -> int:
+        """First row of interval k of swing j."""
+        return int(self.interval_rows[j, k, 0])
+
+    # ------------------------------------------------------------ problem data
+    def dt0(self, elapsed: float) -> float:
+        """Swing 0's node step for ``elapsed`` seconds already spent in the swing [s]."""
+        s = self.s
+        return max(s.swing_time - elapsed, s.min_swing_time) / self.N
+
+    def swing_times(self, elapsed: float) -> np.ndarray:
+        """Time since liftoff of every node, shape (2, N + 1) [s]."""
+        k = np.arange(self.N + 1)
+        return np.vstack([elapsed + k * self.dt0(elapsed), k * self.s.dt])
+
+    def terrain(self) -> tuple[float, np.ndarray, np.ndarray]:
+        """(h0, inflated edges (E,), jumps (E,)) of the guard-avoid floor."""
+        terrain, m = self.system.terrain, self.terrain_margin
+        h_prev, e, d = terrain.ground, [], []
+        for start, _, h in terrain.segments:
+            jump = h - h_prev
+            e.append(start - np.sign(jump) * m)
+            d.append(jump)
+            h_prev = h
+        return terrain.ground, np.array(e), np.array(d)
+
+    def floor(self, x: np.ndarray) -> np.ndarray:
+        """The guard-avoid floor (inflated smooth terrain) at world x [m]."""
+        h0, e, d = self.terrain()
+        z = (np.asarray(x, dtype=float)[..., None] - e) / self.s.terrain_smoothing
+        return h0 + (d * 0.5 * (1.0 + np.tanh(0.5 * z))).sum(axis=-1)
+
+    def apex_nodes(self, elapsed: float) -> tuple[int | None, int]:
+        """Apex node of swing 0 (None if already past) and of swing 1."""
+        s = self.s
+        k = round((s.apex_node * s.dt - elapsed) / self.dt0(elapsed))
+        return (k if 1 <= k <= self.N - 1 else None), s.apex_node
+
+    def problem_data(self, x0: np.ndarray, segment: tuple[float, float, float],
+                     elapsed: float):
+        """Parameters and bounds of one solve: (p, lbx, ubx, lbg, ubg).
+
+        Args:
+            x0: state (q, qd, p_st), shape (12,).
+            segment: target (start, end, height) of swing 0's touchdown [m].
+            elapsed: time already spent in the current swing [s].
+        """
+        s = self.s
+        clear = self._clearances(x0, elapsed)
+        h0, e, d = self.terrain()
+        p = self.layout.p.pack({"x0": x0[:self.nx], "stance": x0[self.nx:],
+                                "dt0": self.dt0(elapsed), "h0": h0, "edges": e, "jumps": d,
+                                "clear": clear})
+        bounds = self.layout.bounds()
+        self._interval_bounds(bounds, clear)
+        lbg, ubg = bounds.lbg, bounds.ubg
+        start, end, height = segment
+        lbg["touchdown"][0], ubg["touchdown"][0] = start + self.segment_margin, \
+            end - self.segment_margin
+        lbg["touchdown"][1] = ubg["touchdown"][1] = height - s.touchdown_depth
+        lbg["reset"][:] = ubg["reset"][:] = 0.0
+        if elapsed < s.liftoff_time:
+            lbg["liftoff"][()] = s.liftoff_accel
+        return (p, *bounds.arrays())
+
+    def _clearances(self, x0: np.ndarray, elapsed: float) -> np.ndarray:
+        """Guard-avoid clearances c of every node, shape (2, N + 1) [m]."""
+        s = self.s
+        clear = np.zeros((2, self.N + 1))
+        tau = self.swing_times(elapsed)
+        foot0 = np.asarray(self.model.swing_foot_world(x0)).ravel()
+        starts = (foot0, x0[self.nx:])  # swing 1 lifts the current stance foot
+        for j in range(2):
+            lift = tau[j] < s.liftoff_time - 1e-12
+            clear[j, lift] = min(0.0, starts[j][1] - float(self.floor(starts[j][0])))
+        ap0, ap1 = self.apex_nodes(elapsed)
+        if ap0 is not None:
+            clear[0, ap0] = s.apex_clearance
+        clear[1, ap1] = s.apex_clearance
+        return clear
+
+    def _interval_bounds(self, bounds: Bounds, clear: np.ndarray) -> None:
+        """State boxes of the node variables and bounds of the interval rows."""
+        s, N = self.s, self.N
+        lower, upper = self.system.state_box
+        bounds.lbx["x"][:], bounds.ubx["x"][:] = lower[:self.nx], upper[:self.nx]
+        lbg, ubg = bounds.lbg, bounds.ubg
+        umax = np.maximum(np.asarray(self.system.modes[0].u_upper) - self.torque_margin, 0.0)
+        lbg["dynamics"][:] = ubg["dynamics"][:] = 0.0
+        lbg["torque"][:], ubg["torque"][:] = -umax, umax
+        lbg["knees"][:] = s.knee_clearance
+        stages = self.layout.g.stages("guard_avoid")
+        j, k = np.array(stages).T
+        avoid = (j != 0) | (k != N - 1)  # swing 0's touchdown node has its own rows
+        lbg["guard_avoid"][avoid] = 0.0
+        if s.swing_height_cap is not None:
+            ubg["guard_avoid"][avoid] = s.swing_height_cap - clear[j[avoid], k[avoid] + 1]
+        if s.swing2_end_clearance is not None:
+            last = stages.index((1, N - 1))
+            ubg["guard_avoid"][last] = min(s.swing2_end_clearance, ubg["guard_avoid"][last])
+
+    # ------------------------------------------------------------- evaluation
+    def constraints(self, w: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """Constraint values g(w, p), shape (ng,)."""
+        return self.session.constraints(w, p)
+
+    def violation(self, w, p, lbx, ubx, lbg, ubg) -> float:
+        """Largest constraint or bound violation at primal point w."""
+        return self.session.violation(w, p, lbx, ubx, lbg, ubg)
+
+    def cost(self, w: np.ndarray, p: np.ndarray) -> float:
+        """Objective value at w."""
+        return float(self._f_fun(w, p))
+
+    def states_inputs(self, w: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Node states (2 (N + 1), n) and interval torques (2 N, n_q) of a primal point.
+
+        Rows: swing 0 nodes 0..N (pre-impact last), swing 1 nodes 0..N (post-reset first);
+        p_st of swing 1 is the touchdown point.
+        """
+        xs, us = self._traj_fun(w, p)
+        return np.asarray(xs), np.asarray(us)
+
+    def solve(self, w0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None) -> SolveResult:
+        """One IPOPT solve (see :meth:`SolverSession.solve`); never raises on failure.
+
+        With both multiplier guesses the warm instance runs, else the cold one.
+        """
+        return self.session.solve(w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0)
+
+
+class _Outputs:
+    """The system outputs the transcription uses, with the joint-point columns by name."""
+
+    def __init__(self, system: HybridSystem) -> None:
+        names = system.point_names
+        self.points = system.output("points")
+        self.inverse_dynamics = system.output("inverse_dynamics")
+        self.swing_foot_world = system.output("swing_foot_world")
+        self.swing_foot_velocity = system.output("swing_foot_velocity")
+        self.swing_foot_jacobian = system.output("swing_foot_jacobian")
+        self.reset = system.output("contact_reset")
+        self.stance_knee, self.torso_top = names.index("stance_knee"), names.index("torso_top")
+        self.swing_knee, self.swing_foot = names.index("swing_knee"), names.index("swing_foot")

@@ -1,0 +1,150 @@
+"""The results page: Figure 3 with its counts beside the paper's, and the robustness study.
+
+Reads finished sweeps only (their results.csv and logs), draws the figures into
+``<results>/report/`` and writes ``<results>/README.md``. Running the sweeps is the
+caller's job (``hmpc report`` does it first, resumably).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from hmpc_cli.analysis.tables import FigureInputError, resolve_table
+from hmpc_cli.figures.common import page_link
+
+__all__ = ["ReportInputs", "write_report"]
+
+@dataclass(frozen=True)
+class ReportInputs:
+    """Sweep directories feeding the page (None: that section is left out).
+
+    ``fig3``/``fig3_extra``: hmpc mode's Figure 3 (main panels, 100 Hz panel);
+    ``fig3_reference``/``fig3_reference_extra``: the same in reference mode;
+    ``fig3_schedule``: the authors' own plan flown by hmpc's MPC; ``authors``:
+    the directory of the authors' Figure 3 CSVs (None: no comparison; ``authors_note``
+    says why on the page).
+    """
+
+    fig3: Path | None
+    fig3_extra: Path | None
+    robustness: Path | tuple | None  # a sweep directory, or Study records (report_robustness)
+    biped: Path | None = None  # a biped run directory (Figure 4)
+    fig3_reference: Path | None = None
+    fig3_reference_extra: Path | None = None
+    authors: Path | None = None
+    authors_note: str = ""
+    fig3_schedule: Path | None = None  # the authors' plan flown (schedule planner)
+
+
+def _settings(*dirs: Path | None) -> str:
+    """What the sweeps set beyond their scenario (their ``[set]``), as text."""
+    from hmpc_cli.report.robustness import fixed_settings
+
+    parts = []
+    for d in dirs:
+        if d is not None:
+            fixed = fixed_settings(resolve_table(d).parent)
+            if fixed != "-" and fixed not in parts:
+                parts.append(fixed)
+    return ", ".join(parts)
+
+
+def _fig3_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]:
+    from hmpc_cli.report.fig3 import Fig3Mode, fig3_section
+
+    ref = _settings(inputs.fig3_reference, inputs.fig3_reference_extra)
+    own = _settings(inputs.fig3, inputs.fig3_extra)
+    modes = [Fig3Mode("reference mode", "reference", inputs.fig3_reference,
+                      inputs.fig3_reference_extra,
+                      f"the reference code's choices: {ref}" if ref else "the reference's"),
+             Fig3Mode("hmpc mode", "hmpc", inputs.fig3, inputs.fig3_extra,
+                      f"hmpc's own choices{': ' + own if own else ' (its defaults)'}"),
+             Fig3Mode("authors' plan flown", "schedule", inputs.fig3_schedule, None,
+                      "the authors' six-contact initial plan given to hmpc's MPC (planner "
+                      "`schedule`, scenarios/ball_reference_schedule.toml), "
+                      + (_settings(inputs.fig3_schedule) or "hmpc's MPC"))]
+    return fig3_section(modes, inputs.authors, fig_dir, base, inputs.authors_note)
+
+
+def _robustness_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]:
+    from hmpc_cli.report.robustness import Study, robustness_sections
+
+    given = inputs.robustness
+    studies = [s if isinstance(s, Study) else Study(Path(s))
+               for s in ((given,) if isinstance(given, (str, Path)) else given)]
+    return robustness_sections(studies, fig_dir, base)
+
+
+def _biped_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]:
+    import json
+
+    from hmpc_cli.figures.fig4 import animate_walk, fig4
+
+    run = Path(inputs.biped)
+    walk = fig4(run, fig_dir, "pdf,png")
+    animate_walk(walk, fig_dir / "walk.gif")
+    import tomllib
+
+    summary = json.loads((run / "summary.json").read_text()) if (
+        run / "summary.json").is_file() else {}
+    sc = tomllib.loads((run / "scenario.toml").read_text()) if (
+        run / "scenario.toml").is_file() else {}
+    d = sc.get("disturbance", {})
+    setup = (f"plant vs model: {sc.get('plant') or 'identical'}; torso force: "
+             + (f"{d.get('kind')} ±{d.get('magnitude')} N held {d.get('hold')} s"
+                if d.get("kind", "none") != "none" else "none"))
+    verdict = {True: "success", False: "failed", None: "unfinished"}[walk.success]
+    lines = ["## Figure 4: the five-link biped on the stairs", "",
+             f"![Figure 4]({page_link(fig_dir / 'fig4.png', base)})", "",
+             f"Animation: [{page_link(fig_dir / 'walk.gif', base)}]"
+             f"({page_link(fig_dir / 'walk.gif', base)}). {setup}; outcome: {verdict}"
+             f"{f' ({walk.reason})' if walk.reason not in ('', verdict) else ''}; hip ends at "
+             f"({walk.hip[-1, 0]:.3f}, {walk.hip[-1, 1]:.3f}) m.", "",
+             "| contact | t [s] | segment | foot x [m] |", "| --- | --- | --- | --- |"]
+    for k, (t, guard, fx, _) in enumerate(walk.contacts, start=1):
+        lines.append(f"| {k} | {t:.3f} | {guard} | {fx:.3f} |")
+    if summary:
+        lines += ["", f"MPC re-solves: {summary.get('solves')} (median "
+                  f"{1e3 * (summary.get('solve_time_median') or 0):.0f} ms), solver failures "
+                  f"{summary.get('solver_failures')}; foothold planning steps: "
+                  f"{summary.get('planner_calls')} (median "
+                  f"{1e3 * (summary.get('plan_time_median') or 0):.0f} ms). Reference run: "
+                  "touchdowns at x = 0.789, 1.214 (1.0 m segment), 1.720 (top segment)."]
+    return lines + [""]
+
+
+def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
+    """Draws the figures into ``results/report`` and writes ``results/README.md``.
+
+    Raises:
+        FigureInputError: a sweep table or log is missing or malformed.
+    """
+    results = Path(results)
+    fig_dir = results / "report"
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    lines = ["# hmpc results", "",
+             f"Generated by `{command}` from recorded runs (the sweeps' results.csv and MCAP "
+             "logs); regenerate with the same command. Run outputs live beside this page and "
+             "are not tracked by git, apart from this page and `report/`.", ""]
+    if any(d is not None for d in (inputs.fig3, inputs.fig3_reference, inputs.fig3_schedule)):
+        lines += _fig3_section(inputs, fig_dir, results)
+    if inputs.robustness is not None:
+        lines += _robustness_section(inputs, fig_dir, results)
+    if inputs.biped is not None:
+        lines += _biped_section(inputs, fig_dir, results)
+    if inputs.fig3 is None and inputs.fig3_reference is None and inputs.robustness is None \
+            and inputs.biped is None:
+        raise FigureInputError("nothing to report: no Figure 3, robustness sweep or biped run")
+    lines += ["## Layout", "",
+              "* `<scenario>/<UTC time>-seed<N>/`: one `hmpc run` (`run.mcap`, `summary.json`, "
+              "`scenario.toml`).",
+              "* `sweeps/<name>/`: one `hmpc sweep` (`runs/<run id>/`, `results.csv`).",
+              "* `report/`: the figures and tables of this page.", "",
+              "Open an MCAP log in Foxglove or Lichtblick, or read it in Python with "
+              "`hmpc_cli.log.rundata.read_run(path)` (arrays per topic).", ""]
+    page = results / "README.md"
+    tmp = page.with_name(".README.md.tmp")
+    tmp.write_text("\n".join(lines), encoding="utf-8")
+    tmp.replace(page)
+    return page

@@ -1,0 +1,467 @@
+"""The results page's robustness study: success rate vs MPC rate, with real statistics.
+
+One section per study sweep (paper geometry, a moved geometry, solve latency charged): the
+success rates with Wilson 95 % intervals and, on the same rate axis, the tube diameter
+diam T(1/f) of Step 5 computed for the sweep's own scenario and disturbance size; the
+table; findings computed from the intervals; the runs' summed wall time and how to
+resume. Then the latency comparison and a reading computed from all of it: a claim is
+made only where intervals separate.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import statistics
+from collections import Counter, defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+
+from hmpc_cli.analysis.tables import (
+    FigureInputError,
+    parse_bool,
+    read_table,
+    resolve_table,
+    sweep_spec)
+from hmpc_cli.figures.common import page_link
+
+__all__ = ["Study", "robustness_sections"]
+
+RATE, POLICY, SIZE = "mpc.rate_hz", "replanning.policy", "disturbance.magnitude"
+
+
+@dataclass(frozen=True)
+class Study:
+    """One robustness sweep on the page.
+
+    Attributes:
+        directory: the sweep's output directory (results.csv, sweep.toml, runs/).
+        sweep_file: the sweep file (how to resume), or None.
+        planned_seeds: the sweep's seeds (None: its ``sweep.toml``'s).
+    """
+
+    directory: Path
+    sweep_file: Path | None = None
+    planned_seeds: int | None = None
+
+
+def _fixed(spec: dict) -> str:
+    """The sweep's ``[set]`` overrides as text ("-" if none)."""
+    return ", ".join(f"`{k} = {v}`" for k, v in spec.get("set", {}).items()) or "-"
+
+
+def fixed_settings(directory: Path) -> str:
+    """A sweep output directory's ``[set]`` overrides as text ("-" if none)."""
+    return _fixed(sweep_spec(directory))
+
+
+def tube_diameters(table: Path, rows: list[dict], size_column: str = SIZE
+                   ) -> dict[float, dict[str, list]]:
+    """Diam T(1/f) per disturbance size of a sweep: size -> bound -> [(rate, diam)].
+
+    Computed by Step 5's tube analysis (``hmpc tube``'s, default samples) for the
+    effective scenario of the first finished run of each size (its ``scenario.toml``);
+    bounds ``trivial`` (Prop. 2) and ``kinematic``; {} when no run can be read.
+    """
+    from hmpc_cli.core.registry import build_system
+    from hmpc_cli.run.scenario import ScenarioError, load_scenario
+    from hmpc_cli.tube import TubeError, analyse, region_from_scenario
+
+    rates = sorted({float(r[RATE]) for r in rows if r.get(RATE)})
+    out: dict[float, dict[str, list]] = {}
+    for size in sorted({float(r[size_column]) for r in rows if r.get(size_column)}):
+        first = next(r for r in rows if r.get(size_column) and float(r[size_column]) == size)
+        scenario = table.parent / Path(first.get("log", "")).parent / "scenario.toml"
+        try:
+            sc, _ = load_scenario(scenario, check_margins=False)
+            system = build_system(sc.system)
+            rep = analyse(system, region=region_from_scenario(system), kind=sc.disturbance.kind,
+                          magnitude=sc.disturbance.magnitude, kp=sc.lowlevel.kp,
+                          kd=sc.lowlevel.kd, rate_hz=sc.mpc.rate_hz, rates=rates,
+                          seed=sc.seed)
+        except (OSError, ScenarioError, TubeError, ValueError):
+            continue
+        picked = [r for r in rep.rows if any(math.isclose(r.rate_hz, x) for x in rates)]
+        out[size] = {"trivial": [(r.rate_hz, r.trivial) for r in picked],
+                     "kinematic": [(r.rate_hz, r.kinematic) for r in picked
+                                   if r.kinematic is not None]}
+    return out
+
+
+def _pivot(cells) -> list[str]:
+    """Markdown table: one row per (size, policy), one column per rate."""
+    xs = sorted({c.x for c in cells})
+    lines = ["| disturbance | policy | " + " | ".join(f"{x:g} Hz" for x in xs) + " |",
+             "| --- | --- | " + " | ".join("---" for _ in xs) + " |"]
+    rows: dict[tuple[str, str], dict[float, object]] = {}
+    for c in cells:
+        rows.setdefault((c.panel, c.series), {})[c.x] = c
+    for (panel, series), by_x in rows.items():
+        parts = []
+        for x in xs:
+            c = by_x.get(x)
+            parts.append("-" if c is None else
+                         f"{c.successes}/{c.runs} ({100 * c.interval[0]:.0f}-"
+                         f"{100 * c.interval[1]:.0f} %)")
+        lines.append(f"| ±{panel} | {series} | " + " | ".join(parts) + " |")
+    return lines
+
+
+def _diam_lines(diameters: dict[float, dict[str, list]]) -> list[str]:
+    """Markdown table of diam T(1/f) per size and bound."""
+    if not diameters:
+        return []
+    xs = sorted({x for d in diameters.values() for pts in d.values() for x, _ in pts})
+    lines = ["| tube | " + " | ".join(f"{x:g} Hz" for x in xs) + " |",
+             "| --- | " + " | ".join("---" for _ in xs) + " |"]
+    for size, curves in diameters.items():
+        for bound, pts in curves.items():
+            by = dict(pts)
+            lines.append(f"| ±{size:g}, {bound} | " + " | ".join(
+                f"{by[x]:.3g}" if x in by else "-" for x in xs) + " |")
+    return lines
+
+
+def separated(a, b) -> bool:
+    """Whether two cells' Wilson intervals do not overlap."""
+    return a.interval[1] < b.interval[0] or b.interval[1] < a.interval[0]
+
+
+def _compare(hi, lo, what_hi: str, what_lo: str) -> str:
+    """'<hi> is higher than / lower than / the same as <lo> (rates; intervals ...)'."""
+    verdict = ("higher than" if hi.rate > lo.rate else "lower than" if hi.rate < lo.rate
+               else "the same as")
+    return (f"{what_hi} is {verdict} {what_lo} ({100 * hi.rate:.0f} % vs "
+            f"{100 * lo.rate:.0f} %; intervals {'separate' if separated(hi, lo) else 'overlap'})")
+
+
+def findings(cells) -> list[str]:
+    """Per (size, policy): fastest vs slowest rate; per (size, rate): replanning vs once."""
+    out = []
+    panels = list(dict.fromkeys(c.panel for c in cells))
+    series = list(dict.fromkeys(c.series for c in cells))
+    for p in panels:
+        for s in series:
+            sel = sorted((c for c in cells if c.panel == p and c.series == s), key=lambda c: c.x)
+            if len(sel) >= 2:
+                out.append(f"- ±{p}, {s}: " + _compare(sel[-1], sel[0], f"{sel[-1].x:g} Hz",
+                                                       f"{sel[0].x:g} Hz") + ".")
+        if len(series) == 2:
+            a, b = series
+            for x in sorted({c.x for c in cells if c.panel == p}):
+                ca = [c for c in cells if (c.panel, c.series, c.x) == (p, a, x)]
+                cb = [c for c in cells if (c.panel, c.series, c.x) == (p, b, x)]
+                if ca and cb and separated(ca[0], cb[0]):
+                    out.append(f"- ±{p}, {x:g} Hz: " + _compare(cb[0], ca[0], b, a) + ".")
+    return out
+
+
+def _wall(rows: list[dict]) -> str:
+    """The runs' summed wall time (core hours) and mean per run."""
+    walls = [float(r["wall_time"]) for r in rows if r.get("wall_time") not in (None, "")]
+    if not walls:
+        return "wall time not recorded"
+    return (f"the runs took {sum(walls) / 3600:.1f} core-hours ({sum(walls) / len(walls):.1f} s "
+            "per run on average; divide by the worker processes for the elapsed time)")
+
+
+def _number(value) -> float:
+    """A results.csv cell as a float (nan: empty or not a number)."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _median(rows: list[dict], key: str) -> float:
+    """The median of a numeric column over rows (finite cells only; nan if none)."""
+    vals = [v for v in (_number(r.get(key)) for r in rows) if math.isfinite(v)]
+    return statistics.median(vals) if vals else math.nan
+
+
+def failure_lines(rows: list[dict], size: str) -> list[str]:
+    """How the failed runs failed, and how much the disturbance draw alone decides.
+
+    From results.csv rows: the failed runs' final distance to the goal and solver failures
+    beside the successful runs', their reasons (numbers elided), and over the draws (seed
+    and ``size``) run in more than one cell how many succeed everywhere, fail everywhere
+    or differ between cells.
+    """
+    ok = [parse_bool(r.get("success"), "results.csv: success") for r in rows]
+    failed = [r for r, good in zip(rows, ok, strict=True) if not good]
+    if not failed:
+        return [f"- Failed runs: none of {len(rows)}."]
+    good = [r for r, g in zip(rows, ok, strict=True) if g]
+    has = set(rows[0])
+    parts = [f"- Failed runs: {len(failed)} of {len(rows)}"]
+    if "final_error" in has:
+        parts.append("they end " + _stat(failed, good, "final_error", "{:.2f} m",
+                                         " from the goal"))
+    if "solver_failures" in has:
+        parts.append("with " + _stat(failed, good, "solver_failures", "{:g}",
+                                     " solver failures per run"))
+    if "reason" in has:
+        why = Counter(_NUMBER.sub("…", r.get("reason") or "?") for r in failed)
+        parts.append("reasons: " + ", ".join(f"`{k}` ({v})" for k, v in why.most_common(4)))
+    return ["; ".join(parts) + "."] + _draw_lines(rows, ok, size)
+
+
+#: a number in a failure reason (not digits inside a name such as ``wall2``)
+_NUMBER = re.compile(r"(?<![\w.])-?\d+(\.\d+)?([eE][-+]?\d+)?")
+
+
+def _stat(failed: list[dict], good: list[dict], key: str, fmt: str, what: str) -> str:
+    """"a median X<what>" of the failed runs' ``key``, beside the successful runs' median.
+
+    ``fmt`` formats a value (its unit included, e.g. ``"{:.2f} m"``). Non-finite values (a
+    diverged run's distance) are left out and counted; "n/a" when none is finite.
+    """
+    def med(rows: list[dict]) -> str:
+        m = _median(rows, key)
+        return fmt.format(m) if math.isfinite(m) else "n/a"
+
+    notes = [f"successful runs: {med(good)}"] if good else []
+    gone = sum(not math.isfinite(_number(r.get(key))) for r in failed)
+    if gone:
+        notes.append(f"{gone} failed run{'s' * (gone > 1)} without a finite value")
+    return f"a median {med(failed)}{what}" + (f" ({'; '.join(notes)})" if notes else "")
+
+
+def _draw_lines(rows: list[dict], ok: list[bool], size: str) -> list[str]:
+    """How the draws (seed and ``size``) run in every cell of their size fare across cells.
+
+    A draw run in fewer cells than the most any draw of its size was run in (a campaign
+    under way) is left out.
+    """
+    draws: dict[tuple, list[bool]] = defaultdict(list)
+    for r, g in zip(rows, ok, strict=True):
+        draws[(r.get("seed"), r.get(size))].append(g)
+    width: dict[object, int] = defaultdict(int)
+    for (_, z), v in draws.items():
+        width[z] = max(width[z], len(v))
+    full = [v for (_, z), v in draws.items() if len(v) == width[z] > 1]
+    if not full:
+        return []
+    everywhere, nowhere = sum(all(v) for v in full), sum(not any(v) for v in full)
+    return [f"- The same disturbance draw (seed and size) in every rate and policy: succeeds "
+            f"in all its cells for {everywhere} of {len(full)} draws, fails in all for "
+            f"{nowhere}, differs between cells for {len(full) - everywhere - nowhere}."]
+
+
+def _size_column(rows: list[dict]) -> str:
+    """The table's disturbance-size column: the grid's, else the sweep's fixed ``[set]``."""
+    return SIZE if rows and SIZE in rows[0] else f"set.{SIZE}"
+
+
+def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], list, dict]:
+    """One sweep's section: figure with tubes, tables, findings, wall time, resume.
+
+    Returns:
+        (markdown lines, the cells, the sweep's ``sweep.toml`` as it ran).
+    """
+    from hmpc_cli.figures.common import TEXT_WIDTH_IN
+    from hmpc_cli.figures.robustness import robustness
+
+    table = resolve_table(study.directory)
+    rows = read_table(table, ["seed"])
+    spec = sweep_spec(study.directory)
+    name = str(spec.get("name") or study.directory.name)
+    size = _size_column(rows)
+    diam = tube_diameters(table, rows, size)
+    cells = robustness(table, fig_dir, "pdf,svg,png", name=name, diameters=diam,
+                       panel_axis=size, width=min(TEXT_WIDTH_IN, 3.5 * max(1, len(diam))))
+    seeds = len({r["seed"] for r in rows})
+    n = sorted({c.runs for c in cells})
+    seeds_spec = spec.get("seeds")
+    planned = study.planned_seeds or (seeds_spec if isinstance(seeds_spec, int) else len(
+        seeds_spec) if isinstance(seeds_spec, list) else None)
+    partial = (f" (a prefix: {seeds} of the sweep's {planned} seeds)"
+               if planned and seeds < planned else "")
+    grid = spec.get("grid", {})
+    planned_cells = math.prod(len(v) for v in grid.values() if isinstance(v, list))
+    if grid and len(cells) < planned_cells:
+        partial += f"; {len(cells)} of its {planned_cells} cells have runs so far"
+    resume = (f"`hmpc sweep {study.sweep_file}`" if study.sweep_file else
+              f"`hmpc sweep sweeps/{name}.toml --out {study.directory}`")
+    resume = f" Resume or complete: {resume} (finished runs are skipped)."
+    png = page_link(fig_dir / f"{name}.png", base)
+    csv = page_link(fig_dir / f"{name}_table.csv", base)
+    return ([f"### {spec.get('description', name)}", "", f"![{name}]({png})", "",
+             f"{len(rows)} finished runs, {seeds} seeds{partial}, {n[0]}"
+             f"{'' if len(n) == 1 else f'-{n[-1]}'} runs per cell; settings of every run: "
+             f"{_fixed(spec)}; Wilson 95 % intervals; {_wall(rows)}. Table: [{csv}]({csv})."
+             + resume, "", *_pivot(cells), "",
+             *(["Tube diameter diam T(1/f) at each rate (Step 5, sampled constants; the "
+                "lower panels):", "", *_diam_lines(diam), ""] if diam else []),
+             "Computed findings (a claim holds only where the intervals separate):", "",
+             *(findings(cells) or ["- none: no cell has runs at two rates"]), "",
+             "How the runs failed (each run's summary):", "", *failure_lines(rows, size), ""],
+            cells, spec)
+
+
+def twin_pairs(paused: list, charged: list) -> list[tuple]:
+    """(charged cell, the same cell with time paused) for every charged cell with a twin."""
+    by = {(p.panel, p.series, p.x): p for p in paused}
+    return [(c, by[(c.panel, c.series, c.x)]) for c in charged
+            if (c.panel, c.series, c.x) in by]
+
+
+def latency_lines(pairs: list[tuple], latency: object) -> list[str]:
+    """The cells run with latency charged beside the same cells with time paused."""
+    return [f"- ±{c.panel}, {c.series}, {c.x:g} Hz: "
+            + _compare(c, twin, latency_text(latency), "time paused") + "." for c, twin in pairs]
+
+
+def latency_text(latency: object) -> str:
+    """``sim.latency`` in words: "0.05 s latency" or "measured latency" (the solve time)."""
+    return "measured latency" if latency == "measured" else f"{latency} s latency"
+
+
+def charged(spec: dict) -> object | None:
+    """A sweep's charged ``sim.latency`` from its ``[set]`` (None: time paused)."""
+    lat = spec.get("set", {}).get("sim.latency")
+    return None if lat in (None, "paused") else lat
+
+
+def _tally(pairs: list[tuple]) -> tuple[int, int, int]:
+    """(first higher with separated intervals, first lower so, unresolved) over pairs."""
+    up = sum(separated(a, b) and a.rate > b.rate for a, b in pairs)
+    down = sum(separated(a, b) and a.rate < b.rate for a, b in pairs)
+    return up, down, len(pairs) - up - down
+
+
+def _pairs(cells) -> tuple[list, list]:
+    """(fastest vs slowest rate per size and policy, replanning vs once per size and rate)."""
+    by: dict[tuple, object] = {(c.panel, c.series, c.x): c for c in cells}
+    rate_pairs, plan_pairs = [], []
+    for p, s in dict.fromkeys((c.panel, c.series) for c in cells):
+        xs = sorted(x for (pp, ss, x) in by if (pp, ss) == (p, s))
+        if len(xs) >= 2:
+            rate_pairs.append((by[(p, s, xs[-1])], by[(p, s, xs[0])]))
+    for p, x in dict.fromkeys((c.panel, c.x) for c in cells):
+        if (p, "once", x) in by and (p, "on_contact", x) in by:
+            plan_pairs.append((by[(p, "on_contact", x)], by[(p, "once", x)]))
+    return rate_pairs, plan_pairs
+
+
+def reading(results: list[tuple[dict, list]],
+            latency: list[tuple[tuple[str, ...], list, list[tuple]]]) -> list[str]:
+    """What the evidence does and does not support, counted from the intervals.
+
+    Args:
+        results: every study's (``sweep.toml``, cells).
+        latency: per latency study compared with its paused twin: (its latency in words,
+            :func:`_latency_words`; its cells; :func:`twin_pairs` with the paused twin).
+    """
+    rate_pairs, plan_pairs = [], []
+    for spec, cells in results:
+        if charged(spec) is None:
+            r, p = _pairs(cells)
+            rate_pairs += r
+            plan_pairs += p
+    lines = ["### Reading", ""]
+    if rate_pairs:
+        lines.append(_rate_reading("Faster MPC (time paused)", rate_pairs, "geometry x "
+                                   "disturbance size x policy"))
+    if plan_pairs:
+        up, down, tie = _tally(plan_pairs)
+        lines.append(f"- Replanning at contacts vs planning once (time paused): better in {up} "
+                     f"of {len(plan_pairs)} cells with separated intervals, worse in {down}; "
+                     f"{tie} unresolved.")
+    for words, cells, twins in latency:
+        better, worse, _ = _tally(twins)
+        lines.append(f"- Solve time charged ({', '.join(words)}): {worse} of {len(twins)} "
+                     f"cells succeed less often than with time paused, {better} more often "
+                     "(separated intervals); the rest unresolved.")
+        rates = _pairs(cells)[0]
+        if rates:
+            what = ", ".join([f"{words[0]} charged", *words[1:]])
+            lines.append(_rate_reading(f"Faster MPC ({what})", rates, "policy"))
+    lines += ["- Not supported by this study: rates outside the tested grid, other systems, "
+              "other disturbance shapes than a held uniform box, and real-time behaviour "
+              "beyond a fixed charged latency; the tube diameters are bounds from sampled "
+              "constants (Step 5), an explanation of the trend, not a certificate of it.", ""]
+    return lines
+
+
+def _rate_reading(what: str, pairs: list[tuple], series: str) -> str:
+    """The fastest-vs-slowest-rate tally of ``pairs`` as a reading line."""
+    up, down, tie = _tally(pairs)
+    return (f"- {what}: in {up} of {len(pairs)} series ({series}) the fastest rate succeeds "
+            f"more often than the slowest with separated intervals, in {down} less often; "
+            f"{tie} unresolved at this sample size.")
+
+
+#: the [set] keys in which a latency study and its time-paused twin may differ
+_LATENCY_KEYS = ("sim.latency", "sim.latency_first", SIZE)
+
+
+def _twin(spec: dict, paused: list[tuple[dict, list]]) -> tuple[dict, list] | None:
+    """The paused study with the latency study's settings but the latency (and size)."""
+    def key(s: dict) -> dict:
+        return {k: v for k, v in s.get("set", {}).items() if k not in _LATENCY_KEYS}
+
+    return next((p for p in paused if key(p[0]) == key(spec)), None)
+
+
+def _first_plan(spec: dict, latency: object) -> str:
+    """How a latency study treats the first plan (``sim.latency_first``), in a sentence."""
+    if spec.get("set", {}).get("sim.latency_first") == "paused":
+        return ("The first plan is computed with time paused at t = 0 "
+                "(`sim.latency_first = \"paused\"`); every later plan is charged.")
+    wait = "its solve time" if latency == "measured" else f"{latency} s"
+    return (f"The first plan, too, reaches the plant {wait} after the state it was computed "
+            "from: until then the input is zero (`sim.latency_first = \"paused\"` would "
+            "compute it with time paused).")
+
+
+def _latency_words(spec: dict, latency: object) -> tuple[str, ...]:
+    """A latency study in a few words: ("0.03 s latency", "first plan paused")."""
+    first = spec.get("set", {}).get("sim.latency_first") == "paused"
+    return (latency_text(latency), *(["first plan paused"] if first else []))
+
+
+def _solver_pace(latency: object) -> str:
+    """The rate above which a fixed latency L makes the MPC run at the solver's pace."""
+    try:
+        pace = 1.0 / float(latency)
+    except (TypeError, ValueError, ZeroDivisionError):
+        return ""
+    return (f" There is one solver: a solve that falls due while it still computes waits "
+            f"for it, so rates above 1/L = {pace:.3g} Hz run at {pace:.3g} Hz.")
+
+
+def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list[str]:
+    """The page's robustness part: every study, the latency comparison, the reading."""
+    lines = ["## Robustness study: success rate vs MPC rate", "",
+             "Each run draws a uniform box disturbance held 0.05 s from its seed; success = "
+             "ending inside the circle at t = 3 s. Lower panels: the tube diameter "
+             "diam T(1/f) of the same scenario and disturbance size at each MPC rate f.", ""]
+    results: list[tuple[dict, list]] = []
+    for study in studies:
+        try:
+            section, cells, spec = study_section(study, fig_dir, base)
+        except FigureInputError as exc:
+            lines += [f"### {study.directory.name}", "", f"Not drawn: {exc}", ""]
+            continue
+        lines += section
+        results.append((spec, cells))
+    paused = [r for r in results if charged(r[0]) is None]
+    latency: list[tuple[tuple[str, ...], list, list[tuple]]] = []
+    for spec, cells in results:
+        lat = charged(spec)
+        if lat is None:
+            continue
+        twin = _twin(spec, paused)
+        if twin is None:
+            lines += [f"### {latency_text(lat)} charged", "",
+                      f"`{spec.get('name')}`: no study on this page has its settings with "
+                      "time paused, so its cells are not compared.", ""]
+            continue
+        pairs = twin_pairs(twin[1], cells)
+        mine = latency_lines(pairs, lat)
+        latency.append((_latency_words(spec, lat), cells, pairs))
+        lines += [f"### {latency_text(lat)} charged vs time paused", "",
+                  f"`{spec.get('name')}` beside the same cells of `{twin[0].get('name')}`. "
+                  + _first_plan(spec, lat) + _solver_pace(lat), "", *mine, ""]
+    return lines + reading(results, latency)

@@ -1,0 +1,461 @@
+"""Scenario files: pydantic v2 models in TOML, each layer owning its settings section.
+
+The ``system``, ``planner`` and ``mpc`` sections are unions over the registered plug-ins
+(:mod:`hmpc_cli.core.registry`), discriminated by ``system.name``, ``planner.kind`` and
+``mpc.kind``; the planner and MPC kinds and other settings default to what the system's
+plug-in names, and settings a plug-in requires are checked with the reason. Unknown keys
+are rejected; rates are integers in Hz and must be commensurate (the MPC period a whole
+number of simulator steps and of the MPC's node steps). :func:`load_scenario` turns
+every problem into :class:`ScenarioError` lines of the form ``file: key.path: reason``.
+The model class is assembled on first use: ``from hmpc_cli.run.scenario import Scenario``.
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from functools import lru_cache
+from pathlib import Path
+from typing import Annotated, Any, Union
+
+from pydantic import (
+    BaseModel, ConfigDict, Field, ValidationError, create_model, field_validator,
+    model_validator)
+
+from hmpc_cli.lowlevel import LowLevelSettings
+from hmpc_cli.core.registry import PluginError, Requirement, registry
+from hmpc_cli.run.sections import DisturbanceSettings, ReplanSettings, SimSettings
+from hmpc_cli.core.settings_types import BoundedInt
+
+#: the system of a scenario that names none
+DEFAULT_SYSTEM = "ball"
+#: most simulator steps of a run (duration x rate: ~5 h at 600 Hz; per-step arrays grow)
+MAX_SIM_STEPS = 10_000_000
+
+
+class ScenarioError(Exception):
+    """Invalid scenario input; ``lines`` holds one message per problem."""
+
+    def __init__(self, lines: list[str]) -> None:
+        super().__init__("\n".join(lines))
+        self.lines = lines
+
+
+class ScenarioBase(BaseModel):
+    """A complete experiment: system, simulator, disturbance and the three layers.
+
+    The ``system``, ``planner`` and ``mpc`` fields are added by :func:`scenario_model`.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    name: str = Field("scenario", pattern=r"^[A-Za-z0-9_.-]+$", max_length=100,
+                      description="run directory name: letters, digits, _ . - (not only dots)")
+    description: str = ""
+    seed: BoundedInt = Field(0, ge=0)
+    plant: dict[str, Any] = Field(
+        default_factory=dict, description="system parameters of the simulated plant that "
+        "differ from the controllers' model, e.g. mass_scale = 1.1 (the biped of Fig. 4)")
+    sim: SimSettings = Field(default_factory=SimSettings)
+    disturbance: DisturbanceSettings = Field(default_factory=DisturbanceSettings)
+    replanning: ReplanSettings = Field(default_factory=ReplanSettings)
+    lowlevel: LowLevelSettings = Field(default_factory=LowLevelSettings)
+
+    @field_validator("name")
+    @classmethod
+    def _not_only_dots(cls, v: str) -> str:
+        if not v.strip("."):
+            raise ValueError(f"{v!r} is not a directory name (only dots: the run would be "
+                             "written outside results/)")
+        return v
+
+    @model_validator(mode="before")
+    @classmethod
+    def _plugin_defaults(cls, data: Any) -> Any:
+        """Fills the system name, the planner/MPC kinds and the plug-ins' settings.
+
+        Defaults and required values of the plug-ins fill what the scenario leaves
+        out; a value the scenario sets always wins (a wrong one is reported later).
+        """
+        if not isinstance(data, dict):
+            return data
+        data = dict(data)
+        system = data.get("system", {})
+        if not isinstance(system, dict):
+            return data
+        system = data["system"] = {"name": DEFAULT_SYSTEM, **system}
+        reg = registry()
+        if not isinstance(system["name"], str) or system["name"] not in reg.systems:
+            raise ValueError(f"system.name: {_unknown(reg, system['name'])}")
+        spec = reg.system(system["name"])
+        for section, kind in (("planner", spec.planner), ("mpc", spec.mpc)):
+            sec = data.get(section, {})
+            if isinstance(sec, dict):
+                kind = sec.get("kind", kind)
+                data[section] = {"kind": kind, **spec.defaults.get(f"{section}.{kind}", {}),
+                                 **sec}
+        for key, values in spec.defaults.items():
+            if "." not in key and isinstance(data.get(key, {}), dict):
+                data[key] = {**values, **data.get(key, {})}
+        for req in _requirements(reg, data):
+            section, _, name = req.key.partition(".")
+            if isinstance(data.get(section, {}), dict):
+                data[section] = {name: req.value, **data.get(section, {})}
+        problems = _kind_problems(reg, spec, data)
+        if problems:  # before the sections' own keys are checked against the wrong kind
+            raise ValueError("\n".join(problems))
+        return data
+
+    def plant_params(self) -> BaseModel:
+        """The simulated plant's parameters: the system's, updated by ``plant``."""
+        return type(self.system).model_validate({**self.system.model_dump(), **self.plant})
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ScenarioBase:
+        # One "key.path: reason" line per problem (format_errors splits them).
+        problems = self._stack_problems() + self._rate_problems() + self._size_problems()
+        if problems:
+            raise ValueError("\n".join(problems))
+        return self
+
+    def _rate_problems(self) -> list[str]:
+        m, s, problems = self.mpc, self.sim, []
+        steps = [*getattr(m, "period_steps", list)(), ("sim.rate_hz", s.rate_hz)]
+        divides = [f"{k} = {v}" for k, v in steps if v % m.rate_hz]
+        if divides:
+            what = "simulator steps" if len(steps) == 1 else \
+                "node steps and of simulator steps"
+            problems.append(f"mpc.rate_hz: {m.rate_hz} must divide " + " and ".join(divides)
+                            + f" (the MPC period must be a whole number of {what})")
+        if s.rate_hz % s.log_rate_hz:
+            problems.append(f"sim.log_rate_hz: {s.log_rate_hz} must divide sim.rate_hz = "
+                            f"{s.rate_hz}")
+        if not _whole(s.duration * s.rate_hz):
+            problems.append("sim.duration: must be a whole number of simulator steps")
+        if self.disturbance.kind == "box" and not _whole(self.disturbance.hold * s.rate_hz):
+            problems.append("disturbance.hold: must be a whole number of simulator steps")
+        if self.replanning.policy == "periodic" and not _whole(self.replanning.period * s.rate_hz):
+            problems.append("replanning.period: must be a whole number of simulator steps")
+        return problems + list(getattr(m, "scenario_problems", list)())
+
+    def _size_problems(self) -> list[str]:
+        """Upper bounds on the work a run asks for, checked before anything is built."""
+        s = self.sim
+        steps = s.duration * s.rate_hz
+        out = []
+        if steps > MAX_SIM_STEPS:
+            out.append(f"sim.duration: {s.duration:g} s x {s.rate_hz} steps/s = {steps:.3g} "
+                       f"simulator steps exceeds the limit {MAX_SIM_STEPS:.0e}")
+        out += list(getattr(self.planner, "size_problems", list)())
+        out += list(getattr(self.mpc, "size_problems", list)())
+        return out
+
+    def _stack_problems(self) -> list[str]:
+        """Required settings of the plug-ins; plant keys must be valid system parameters."""
+        reg = registry()
+        out = []
+        data = self.model_dump()
+        for req in _requirements(reg, data):
+            section, _, name = req.key.partition(".")
+            value = data.get(section, {}).get(name)
+            if value != req.value:
+                out.append(f"{req.key}: {req.why}; use {req.value!r}, not {value!r}")
+        if self.plant:
+            out += self._plant_problems()
+        return out
+
+    def _plant_problems(self) -> list[str]:
+        out = []
+        try:
+            self.plant_params()
+        except ValidationError as exc:
+            for err in exc.errors():
+                loc = key_path(["plant", *err["loc"]])
+                msg = err["msg"].removeprefix("Value error, ")
+                msg = "unknown key" if err["type"] == "extra_forbidden" else msg
+                out.append(f"{loc}: {msg}")
+        return out
+
+
+def _unknown(reg, name: Any) -> str:
+    """'unknown system ...' with the choices, or why that plug-in failed to load."""
+    if isinstance(name, str) and name in reg.failed["system"]:
+        return reg.failed["system"][name]
+    choices = ", ".join(repr(k) for k in sorted(reg.systems))
+    return f"unknown system {name!r} (choose from {choices})"
+
+
+def _kind_problems(reg, spec, data: dict) -> list[str]:
+    """``planner.kind`` / ``mpc.kind`` lines for a kind the system cannot use.
+
+    A kind needs capabilities the system does not provide, or the system or the other
+    plug-in requires another kind.
+    """
+    out = []
+    required = {r.key: r for r in _requirements(reg, data)}
+    for section, table in (("planner", reg.planners), ("mpc", reg.mpcs)):
+        kind = data[section].get("kind") if isinstance(data.get(section), dict) else None
+        if kind not in table:
+            continue  # an unknown kind is the union's error
+        req = required.get(f"{section}.kind")
+        missing = sorted(table[kind].needs - spec.provides)
+        if missing:
+            out.append(f"{section}.kind: {kind!r} does not fit system {spec.name!r}: it "
+                       f"needs {', '.join(missing)} (use {getattr(spec, section)!r})")
+        elif req is not None and req.value != kind:
+            out.append(f"{section}.kind: {req.why}; use {req.value!r}, not {kind!r}")
+    return out
+
+
+def _requirements(reg, data: dict) -> list[Requirement]:
+    """Settings required by the scenario's system, planner and MPC plug-ins."""
+    out = list(reg.system(data["system"]["name"]).requires)
+    for section, table in (("planner", reg.planners), ("mpc", reg.mpcs)):
+        kind = (data.get(section) or {}).get("kind") if isinstance(data.get(section), dict) \
+            else None
+        if kind in table:
+            out += table[kind].requires
+    return out
+
+
+def _union(models: list[type[BaseModel]], tag: str) -> Any:
+    if len(models) == 1:
+        return models[0]
+    return Annotated[Union[tuple(models)], Field(discriminator=tag)]  # noqa: UP007
+
+
+@lru_cache(maxsize=1)
+def scenario_model() -> type[ScenarioBase]:
+    """The Scenario model with the registered plug-ins' sections (built once)."""
+    reg = registry()
+    default = reg.systems.get(DEFAULT_SYSTEM) or next(iter(reg.systems.values()))
+    planner = reg.planners[default.planner].settings
+    mpc = reg.mpcs[default.mpc].settings
+    model = create_model(
+        "Scenario", __base__=ScenarioBase, __module__=__name__,
+        system=(_union([s.params for s in reg.systems.values()], "name"),
+                Field(default_factory=default.params)),
+        planner=(_union([p.settings for p in reg.planners.values()], "kind"),
+                 Field(default_factory=planner)),
+        mpc=(_union([m.settings for m in reg.mpcs.values()], "kind"),
+             Field(default_factory=mpc)),
+    )
+    model.model_rebuild(_types_namespace=globals())
+    return model
+
+
+def _tags() -> dict[str, set[str]]:
+    """Union member tags pydantic puts in error locations, per section."""
+    reg = registry()
+    return {"system": set(reg.systems), "planner": set(reg.planners), "mpc": set(reg.mpcs)}
+
+
+def __getattr__(name: str) -> Any:
+    if name == "Scenario":
+        return scenario_model()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def _whole(v: float) -> bool:
+    return abs(v - round(v)) < 1e-9 * max(1.0, abs(v))
+
+
+def apply_overrides(data: dict, overrides: list[str], source: str) -> dict:
+    """Applies ``key.path=value`` overrides (value parsed as TOML, else a string)."""
+    errors = []
+    for item in overrides:
+        key, sep, raw = item.partition("=")
+        if not sep or not key.strip():
+            errors.append(f"--set {item!r}: expected key.path=value")
+            continue
+        try:
+            value = tomllib.loads(f"v = {raw}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = raw
+        node = data
+        parts = key.strip().split(".")
+        for part in parts[:-1]:
+            nxt = node.setdefault(part, {})
+            if not isinstance(nxt, dict):
+                errors.append(f"--set {item!r}: {part} is not a table")
+                break
+            node = nxt
+        else:
+            node[parts[-1]] = value
+    if errors:
+        raise ScenarioError([f"{source}: {e}" for e in errors])
+    return data
+
+
+def format_errors(exc: ValidationError, source: str) -> list[str]:
+    """One ``file: key.path: reason`` line per pydantic error."""
+    lines, tags = [], _tags()
+    for err in exc.errors():
+        parts = [p for p in err["loc"] if p not in ("function-after",)]
+        if len(parts) >= 2 and parts[1] in tags.get(str(parts[0]), ()):
+            del parts[1]  # the union member's tag (e.g. planner.cem.samples -> planner.samples)
+        loc = key_path(parts) or "(top)"
+        msg = err["msg"].removeprefix("Value error, ")
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key"
+        if not err["loc"] and err["type"] == "value_error":  # Scenario._rates: own key paths
+            lines += [f"{source}: {m}" for m in msg.split("\n")]
+            continue
+        lines.append(f"{source}: {loc}: {msg}")
+    return lines
+
+
+def key_path(parts: list) -> str:
+    """``['system', 'x0', 3]`` -> ``'system.x0[3]'``."""
+    out = ""
+    for p in parts:
+        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
+    return out
+
+
+def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None = None,
+                  check_margins: bool = True, attribute_sets: bool = True,
+                  ) -> tuple[ScenarioBase, str]:
+    """Reads, overrides and validates a scenario file.
+
+    A margins file (``mpc.margins``) is resolved against the scenario file's directory
+    (the effective TOML holds the absolute path, so a sweep worker or a rerun of the run
+    directory's copy finds it) and, with ``check_margins``, checked against the scenario
+    (its system, parameters and MPC rate; ``hmpc tube`` skips the check: it writes them).
+    Every problem is reported at once; with ``attribute_sets`` a problem with a key an
+    override set is attributed to ``--set key=value`` rather than to the file.
+
+    Returns:
+        The scenario and the effective TOML text (after overrides).
+
+    Raises:
+        ScenarioError: missing or empty file, TOML syntax error or invalid settings.
+    """
+    path = Path(path)
+    data = _read_toml(path)
+    data = apply_overrides(data, list(overrides), str(path))
+    if seed is not None:
+        data["seed"] = seed
+    data.setdefault("name", re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem))
+    try:
+        scenario = scenario_model().model_validate(data)
+    except ValidationError as exc:
+        lines = format_errors(exc, str(path)) + _hidden_problems(data, str(path))
+        raise ScenarioError(attribute_to_sets(list(dict.fromkeys(lines)), str(path), overrides,
+                                          attribute_sets)) from None
+    except PluginError as exc:
+        raise ScenarioError([f"{path}: {exc}"]) from None
+    problems = _resolve_margins(scenario, path, check_margins)
+    if problems:
+        raise ScenarioError([f"{path}: mpc.margins: {p}" for p in problems])
+    return scenario, dump_toml(scenario.model_dump(mode="json", exclude_none=True))
+
+
+def _read_toml(path: Path) -> dict:
+    """A scenario file's TOML table (raises :class:`ScenarioError`)."""
+    if not path.is_file():
+        raise ScenarioError([f"{path}: file not found"])
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError([f"{path}: TOML syntax error: {exc}"]) from None
+    except UnicodeDecodeError:
+        raise ScenarioError([f"{path}: not a UTF-8 text file"]) from None
+    if not data:
+        raise ScenarioError([f"{path}: file is empty (no settings; write at least "
+                             f"[system] name = \"{DEFAULT_SYSTEM}\")"])
+    return data
+
+
+#: sections validated on their own when the system is unknown
+_COMMON = ("name", "description", "seed", "sim", "disturbance", "replanning", "lowlevel")
+
+
+def _hidden_problems(data: dict, source: str) -> list[str]:
+    """Problems the first validation could not reach.
+
+    An unknown system stops the plug-in sections from being checked: the common sections
+    are then validated on their own (with the default system). ``[plant]`` keys are
+    checked against the system's parameters even when other sections are wrong.
+    """
+    reg = registry()
+    system = data.get("system", {})
+    if not isinstance(system, dict):
+        return []
+    name = system.get("name", DEFAULT_SYSTEM)
+    if not isinstance(name, str) or name not in reg.systems:
+        common = {k: v for k, v in data.items() if k in _COMMON}
+        try:
+            scenario_model().model_validate(common)
+        except ValidationError as exc:
+            return [line for line in format_errors(exc, source)
+                    if line.split(": ")[1].split(".")[0].split("[")[0] in _COMMON]
+        return []
+    plant = data.get("plant")
+    if not isinstance(plant, dict) or not plant:
+        return []
+    params = reg.systems[name].params
+    base = {k: v for k, v in system.items() if k not in plant}
+    try:
+        params.model_validate({**base, **plant})
+    except ValidationError as exc:
+        out = []
+        for err in exc.errors():
+            if err["loc"] and err["loc"][0] in plant:
+                msg = err["msg"].removeprefix("Value error, ")
+                msg = "unknown key" if err["type"] == "extra_forbidden" else msg
+                out.append(f"{source}: {key_path(['plant', *err['loc']])}: {msg}")
+        return out
+    return []
+
+
+def attribute_to_sets(lines: list[str], source: str, overrides: list[str], on: bool
+                      ) -> list[str]:
+    """Re-attributes ``source: key: reason`` lines on an overridden key to its ``--set``."""
+    if not on or not overrides:
+        return lines
+    keys, out = [(item.partition("=")[0].strip(), item) for item in overrides], []
+    for line in lines:
+        key = line.removeprefix(f"{source}: ").partition(": ")[0]
+        hit = [item for k, item in keys if key == k or key.startswith((f"{k}.", f"{k}["))]
+        out.append(f"--set {hit[-1]}: " + line.removeprefix(f"{source}: ") if hit else line)
+    return out
+
+
+def _resolve_margins(scenario: ScenarioBase, path: Path, check: bool) -> list[str]:
+    """Makes ``mpc.margins`` absolute (relative: to the scenario's directory); its problems."""
+    margins = getattr(scenario.mpc, "margins", "hand")
+    if margins == "hand":
+        return []
+    file = Path(margins).expanduser()
+    file = (file if file.is_absolute() else path.parent / file).resolve()
+    scenario.mpc.margins = str(file)
+    if not check:
+        return []
+    from hmpc_cli.tube.margins_file import margins_problems
+
+    return margins_problems(file, scenario.system, scenario.mpc.rate_hz)
+
+
+def dump_toml(data: dict) -> str:
+    """Minimal TOML writer for scenario dictionaries (tables, scalars, arrays)."""
+    import json
+
+    def value(v) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, (int, float)):
+            return repr(v)
+        if isinstance(v, str):  # TOML basic string (no surrogate-pair \u escapes, DEL escaped)
+            return json.dumps(v, ensure_ascii=False).replace("\x7f", "\\u007f")
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        if isinstance(v, dict):
+            return "{" + ", ".join(f"{value(str(k))} = {value(x)}" for k, x in v.items()) + "}"
+        raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+    top = [f"{k} = {value(v)}" for k, v in data.items() if not isinstance(v, dict)]
+    out = "\n".join(top) + "\n"
+    for k, v in data.items():
+        if isinstance(v, dict):
+            out += f"\n[{k}]\n" + "".join(f"{kk} = {value(vv)}\n" for kk, vv in v.items())
+    return out

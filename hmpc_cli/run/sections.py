@@ -1,0 +1,82 @@
+"""The scenario's own sections: simulator, disturbance and replanning settings.
+
+The plug-in sections (``system``, ``planner``, ``mpc``) come from the registry and the
+low level's from :mod:`hmpc_cli.lowlevel`; :mod:`hmpc_cli.run.scenario` assembles them all.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from hmpc_cli.core.settings_types import BoundedInt, FiniteFloat, LargeFloat
+
+__all__ = ["DisturbanceSettings", "ReplanSettings", "SimSettings"]
+
+
+class SimSettings(BaseModel):
+    """Simulator settings."""
+
+    model_config = ConfigDict(extra="forbid")
+    rate_hz: BoundedInt = Field(600, gt=0, description="fixed RK4 step rate [Hz]")
+    duration: FiniteFloat = Field(3.0, gt=0.0, description="simulated time [s]")
+    max_events_per_step: BoundedInt = Field(10, ge=1, le=1000,
+                                            description="more is Zeno chattering")
+    event_time_tol: FiniteFloat = Field(1e-10, gt=0.0, description="event time bracket [s]")
+    divergence_bound: LargeFloat = Field(1e6, gt=0.0, description="|x| beyond this is "
+                                         "divergence")
+    log_rate_hz: BoundedInt = Field(100, gt=0, description="state logging rate [Hz]")
+    log_plan_stride: BoundedInt = Field(
+        1, ge=1, description="log every k-th node of each MPC plan (/mpc/solve and the 3D "
+        "scene; the nodes either side of a reset and the last node always): 1 logs every "
+        "node; 3 makes a ball log about half as large")
+    input_at_events: Literal["hold", "recompute"] = Field(
+        "hold", description="after a reset inside a step: hold the step's input (the "
+        "paper's ball) or let the controllers react at the event time and compute a new "
+        "input for the rest of the step (needed when a reset relabels the inputs: biped)")
+    latency: Literal["paused", "measured"] | FiniteFloat = Field(
+        "paused", description="solve time charged to the simulation: 'paused' (simulated "
+        "time stops while the controllers compute; the paper's runs), 'measured' (a plan "
+        "reaches the plant its measured compute wall time [s] after the state it was "
+        "computed from: not reproducible) or a fixed delay [s]; until then the previous "
+        "plan is tracked, and a plan takes effect at the first simulator step at or after "
+        "t + latency")
+
+    latency_first: Literal["charged", "paused"] = Field(
+        "charged", description="with a latency: 'charged' (default) lets the first plan, too, "
+        "reach the plant only after the latency (no plan and zero input until then); "
+        "'paused' computes the first plan (planner and MPC at t = 0) with time paused, as "
+        "a controller that planned before the run started, and charges every later solve "
+        "(also a first plan found only after t = 0)")
+
+    @field_validator("latency", mode="before")
+    @classmethod
+    def _latency(cls, v: Any) -> Any:
+        ok = v in ("paused", "measured") if isinstance(v, str) else (
+            isinstance(v, int | float) and not isinstance(v, bool) and 0.0 <= v < 1e6)
+        if not ok:
+            raise ValueError(f"expected 'paused', 'measured' or a delay in [0, 1e6) s, got "
+                             f"{v!r}")
+        return float(v) if not isinstance(v, str) else v
+
+
+class DisturbanceSettings(BaseModel):
+    """Disturbance w(t) (added to the flow, eq. (1))."""
+
+    model_config = ConfigDict(extra="forbid")
+    kind: Literal["none", "box", "paper_fig3"] = "none"
+    magnitude: FiniteFloat = Field(10.0, ge=0.0, description="uniform box half-width per channel")
+    hold: FiniteFloat = Field(0.05, gt=0.0, description="hold period [s] (box)")
+    trial: BoundedInt = Field(1, ge=1, le=10, description="paper_fig3 trial 1..10")
+
+
+class ReplanSettings(BaseModel):
+    """When the hybrid MPC (planner) runs again."""
+
+    model_config = ConfigDict(extra="forbid")
+    policy: Literal["once", "on_contact", "periodic"] = "once"
+    period: FiniteFloat = Field(0.5, gt=0.0, description="replanning period [s] (periodic)")
+    contact_guards: list[str] | None = Field(
+        None, description="guards that trigger on_contact (default: all but those "
+                          "entering the final domain from another domain)")

@@ -1,0 +1,88 @@
+"""Set-up checks: what only the built system can tell about a scenario, before any NLP.
+
+:func:`hmpc_cli.run.loop.build` runs them once the controllers' model is built (and before
+its NLPs are); :func:`setup_problems` runs them alone (``hmpc sweep`` checks every cell
+with it before a run starts). Every problem is a ``key.path: reason`` line.
+"""
+
+from __future__ import annotations
+
+from hmpc_cli.core.messages import ConstraintMargins
+
+__all__ = ["built_problems", "margins_of", "setup_problems"]
+
+
+def setup_problems(scenario) -> list[str]:
+    """The set-up checks :func:`hmpc_cli.run.loop.build` makes on the built model, and no more.
+
+    ``key.path: reason`` lines (none: the scenario sets up): margins that do not fit the
+    system (a margins file, an input shrink beyond half an input box), solver options
+    the solver rejects and planner settings that do not fit the system (a schedule).
+    Builds the controllers' model only (no NLP, no planner), so a sweep checks every cell
+    before it starts a run.
+    """
+    from hmpc_cli.core.registry import PluginError, build_system
+
+    try:
+        model = build_system(scenario.system)
+        margins = margins_of(scenario, model)
+    except (PluginError, ValueError) as exc:
+        return str(exc).splitlines()
+    return built_problems(scenario, model, margins)
+
+
+def built_problems(sc, model, margins: ConstraintMargins | None) -> list[str]:
+    """The checks of a scenario against its built model: margins, solver, planner."""
+    return (_margin_problems(sc, model, margins) + _solver_problems(sc)
+            + _planner_problems(sc, model))
+
+
+def _planner_problems(sc, model) -> list[str]:
+    """``planner.key: reason`` lines from planner settings that check a built system."""
+    check = getattr(sc.planner, "system_problems", None)
+    return list(check(model)) if callable(check) else []
+
+
+def margins_of(sc, model) -> ConstraintMargins | None:
+    """The MPC's margins: hand-set, from the scenario's margins file, or None (no field).
+
+    Raises:
+        ValueError: ``mpc.margins: ...`` when the file does not fit the scenario.
+    """
+    from hmpc_cli.core.registry import registry
+
+    source = getattr(sc.mpc, "margins", None)
+    hand = registry().mpc(sc.mpc.kind).hand_margins
+    if source is None or (source == "hand" and hand is None):  # an MPC without margins
+        return None
+    if source == "hand":
+        return hand(model, sc.mpc)
+    from hmpc_cli.tube.margins_file import constraint_margins
+
+    return constraint_margins(source, model, sc.system, sc.mpc.rate_hz)
+
+
+def _margin_problems(sc, model, margins: ConstraintMargins | None) -> list[str]:
+    """``mpc.<margin>: reason`` when an input shrink leaves a mode's input box empty."""
+    if margins is None:
+        return []
+    key = "mpc.margins" if margins.source != "hand" else next(
+        (f"mpc.{k}" for k in ("input_margin", "torque_margin") if hasattr(sc.mpc, k)),
+        "mpc.margins")
+    for mode, shrink in zip(model.modes, margins.inputs, strict=False):
+        for i, (lo, hi, m) in enumerate(zip(mode.u_lower, mode.u_upper, shrink, strict=False)):
+            if 2.0 * m > hi - lo:
+                return [f"{key}: {m:g} per side exceeds half the input box of mode "
+                        f"{mode.name!r} input {i} ([{lo:g}, {hi:g}]: half-width "
+                        f"{(hi - lo) / 2:g})"]
+    return []
+
+
+def _solver_problems(sc) -> list[str]:
+    """The MPC's solver options, tried once on a tiny NLP (see ``option_problems``)."""
+    from hmpc_cli.mpc.solver import option_problems
+
+    options = getattr(sc.mpc, "solver_options", None)
+    if not isinstance(options, dict):
+        return []
+    return option_problems(getattr(sc.mpc, "solver", "ipopt"), options)

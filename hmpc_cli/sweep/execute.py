@@ -1,0 +1,125 @@
+"""Executing a sweep's plan: every unfinished run, in-process, on a local pool or on Dask.
+
+Runs go to ``<out>/runs/<run_id>/`` (see :mod:`hmpc_cli.run.runner`), in-process, in spawned
+worker processes (:mod:`hmpc_cli.sweep.pool`) or on a Dask cluster whose workers return
+their files through the futures (:mod:`hmpc_cli.sweep.dask`); ``<out>/results.csv`` is
+rebuilt from their ``summary.json`` files (:mod:`hmpc_cli.sweep.table`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shlex
+import signal
+import sys
+import tomllib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from hmpc_cli.core import signals
+from hmpc_cli.run.runner import run_one
+from hmpc_cli.sweep.plan import Run, SweepPlan
+from hmpc_cli.sweep.pool import run_pool
+from hmpc_cli.sweep.table import finished, is_interrupted, toml_value, write_results
+
+
+def run_provenance(plan: SweepPlan, run: Run, command: str | None = None):
+    """What started ``run``: the sweep's command line, the run's overrides and sweep file.
+
+    Args:
+        plan: the sweep.
+        run: one of its runs.
+        command: the command line (default: this process's ``sys.argv``).
+
+    Returns:
+        A :class:`hmpc_cli.log.runlog.Provenance` whose overrides are the run's ``[set]`` and
+        grid overrides (``key=value``, TOML values, sorted) and ``seed=N``.
+    """
+    from hmpc_cli.log.runlog import Provenance
+
+    overrides = [f"{k}={toml_value(v)}" for k, v in run.overrides.items()]
+    prov = Provenance(overrides=(*overrides, f"seed={run.seed}"), sweep=str(plan.path))
+    return prov if command is None else dataclasses.replace(prov, command=command)
+
+
+# ---------------------------------------------------------------------- the sweep
+@dataclass
+class Outcome:
+    """What :func:`execute_sweep` did."""
+
+    total: int
+    skipped: int = 0
+    ran: int = 0
+    done: int = 0
+    lost: list[str] = field(default_factory=list)
+    interrupted: bool = False
+    signum: int = int(signal.SIGINT)
+
+
+def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
+                  on_start: Callable[[int, int, int], None] | None = None,
+                  on_done: Callable[[Run, dict], None] | None = None) -> Outcome:
+    """Runs every unfinished run (in-process, process pool or Dask ``client``).
+
+    ``on_start(total, skipped, successes_skipped)`` and ``on_done(run, summary)`` report
+    progress. Ctrl-C stops cleanly (``Outcome.interrupted``); results.csv is always
+    rewritten (``Outcome.done`` rows). ``lost`` lists runs whose worker failed or whose
+    results did not arrive from Dask (not recorded, retried on resume). Every run's log
+    records its provenance (:func:`run_provenance`, this process's command line).
+    """
+    out = out.resolve()
+    (out / "runs").mkdir(parents=True, exist_ok=True)
+    (out / "sweep.toml").write_text(plan.text, encoding="utf-8")
+    selected = plan.selected
+    done = {r.run_id: finished(out, r) for r in selected}
+    pending = [r for r in selected if done[r.run_id] is None]
+    res = Outcome(len(selected), skipped=len(selected) - len(pending))
+    if on_start:
+        on_start(res.total, res.skipped, sum(bool(s and s.get("success")) for s in done.values()))
+
+    def record(run: Run, summary: dict | None) -> None:
+        if summary is not None and not is_interrupted(summary):
+            res.ran += 1
+            if on_done:
+                on_done(run, summary)
+
+    command = shlex.join(sys.argv)  # this process's, not a worker's
+
+    def prov(run: Run):
+        return run_provenance(plan, run, command)
+
+    try:
+        if client is not None:
+            from hmpc_cli.sweep.dask import run_on_dask
+
+            run_on_dask(client, pending, out, record, res.lost, prov)
+        elif workers <= 1 or len(pending) <= 1:
+            for run in pending:
+                record(run, run_one(run.toml, str(out / "runs" / run.run_id), prov(run)))
+        else:
+            run_pool(min(workers, len(pending)), pending, out, record,
+                     lambda run, signum: record(run, _worker_died(run, out, signum)), prov)
+    except KeyboardInterrupt as exc:
+        res.interrupted = True
+        res.signum = signals.as_interrupted(exc).signum
+    finally:
+        res.done = write_results(plan, out)
+    return res
+
+
+def _worker_died(run: Run, out: Path, signum: int) -> dict:
+    """Records a run that killed its worker twice as failed; returns its summary."""
+    from hmpc_cli.log.runlog import RunResult
+    from hmpc_cli.run.runner import jsonable
+
+    d = out / "runs" / run.run_id
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "scenario.toml").write_text(run.toml, encoding="utf-8")
+    sc = tomllib.loads(run.toml)
+    res = RunResult(str(sc.get("name", "?")), int(sc.get("seed", run.seed)))
+    res.reason = f"worker died (signal {signum}) twice"
+    (d / "summary.json").write_text(
+        json.dumps(jsonable(res.__dict__), indent=2, allow_nan=False) + "\n")
+    return json.loads((d / "summary.json").read_text())

@@ -1,0 +1,333 @@
+"""Parameter sweeps: one scenario x ``[set]`` overrides x ``[grid]`` axes x seeds.
+
+A sweep file (TOML) names a scenario, overrides applied to every run (``[set]``), grid
+axes (a scenario key with a list of values, or a name with a list of override tables,
+each with an optional ``label``) and seeds. Every run is validated before any starts;
+runs go to ``<out>/runs/<run_id>/`` (see :mod:`hmpc_cli.run.runner`), in-process, in spawned
+worker processes (:mod:`hmpc_cli.sweep.pool`) or on a Dask cluster whose workers return
+their files through the futures (:mod:`hmpc_cli.sweep.dask`), and ``<out>/results.csv``
+is rebuilt from their ``summary.json`` files. A run id hashes the run's sorted overrides
+and seed only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import itertools
+import json
+import math
+import re
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from hmpc_cli.run.scenario import ScenarioError, format_errors, load_scenario, scenario_model
+from hmpc_cli.core.settings_types import MAX_INT
+from hmpc_cli.sweep.table import METRICS, cell_text, toml_value
+
+RESERVED = {"run_id", "seed", "log", *METRICS}
+#: most seeds of a sweep and most runs (cells x seeds); validating a run takes ~0.3 ms and
+#: running one seconds to minutes: 20 000 runs is already hours of work on this machine
+MAX_SEEDS = 100_000
+MAX_RUNS = 20_000
+_INDEX = re.compile(r"\[\d+\]$")
+_KEY = re.compile(r"^[A-Za-z0-9_-]+(\.[A-Za-z0-9_-]+)*$")
+
+
+class SweepSpec(BaseModel):
+    """The sweep file as written (grid and [set] are checked after flattening)."""
+
+    model_config = ConfigDict(extra="forbid")
+    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$")
+    description: str = ""
+    scenario: str = Field(min_length=1, description="scenario file, relative to the sweep file")
+    seeds: list[int] = Field(default_factory=lambda: [0], description="list, or N for 0..N-1")
+    set_: dict[str, Any] = Field(default_factory=dict, alias="set")
+    grid: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator("seeds", mode="before")
+    @classmethod
+    def _seeds(cls, v: Any) -> list[int]:
+        if isinstance(v, int) and not isinstance(v, bool):
+            if v < 1:
+                raise ValueError(f"a seed count must be >= 1, got {v}")
+            if v > MAX_SEEDS:
+                raise ValueError(f"{v} seeds exceed the limit {MAX_SEEDS}")
+            return list(range(v))
+        if not isinstance(v, list) or not v:
+            raise ValueError("expected a non-empty list of seeds or a seed count")
+        if len(v) > MAX_SEEDS:
+            raise ValueError(f"{len(v)} seeds exceed the limit {MAX_SEEDS}")
+        if any(not isinstance(s, int) or isinstance(s, bool) or not 0 <= s <= MAX_INT
+               for s in v):
+            raise ValueError(f"seeds must be integers from 0 to {MAX_INT}")
+        if len(set(v)) != len(v):
+            raise ValueError("duplicate seeds")
+        return v
+
+
+@dataclass(frozen=True)
+class Axis:
+    """One grid axis: per entry a column value (label or value) and its overrides."""
+
+    name: str
+    table: bool
+    labels: tuple[Any, ...]
+    overrides: tuple[dict[str, Any], ...]
+
+
+@dataclass
+class Run:
+    """One run of the sweep."""
+
+    run_id: str
+    seed: int
+    cell: tuple[Any, ...]
+    overrides: dict[str, Any]
+    origin: dict[str, str]
+    toml: str = ""
+
+
+@dataclass
+class SweepPlan:
+    """A validated sweep: every run's effective scenario text is known."""
+
+    path: Path
+    text: str
+    spec: SweepSpec
+    scenario: Path
+    axes: list[Axis]
+    runs: list[Run]
+    keys: list[str] = field(default_factory=list)
+    only_seeds: frozenset[int] | None = None  # run only these seeds (the table keeps all)
+
+    @property
+    def selected(self) -> list[Run]:
+        """The runs to execute: all, or those of ``only_seeds``."""
+        return [r for r in self.runs if self.only_seeds is None or r.seed in self.only_seeds]
+
+    @property
+    def columns(self) -> list[str]:
+        """results.csv columns, in order."""
+        return ["run_id", *(a.name for a in self.axes), "seed",
+                *(f"set.{k}" for k in self.keys), *METRICS, "log"]
+
+
+def _models(ann: Any) -> list[type[BaseModel]]:
+    """The settings models an annotation stands for (a model, or the members of a union)."""
+    if isinstance(ann, type) and issubclass(ann, BaseModel):
+        return [ann]
+    args = ann if isinstance(ann, list) else typing.get_args(ann)
+    return [m for a in args for m in _models(a)]
+
+
+def _flatten(data: dict, model: Any, prefix: str = "") -> dict:
+    """Dotted keys; descends into tables only where the scenario has a settings section."""
+    out = {}
+    models = _models(model)
+    for k, v in data.items():
+        subs = [m.model_fields[k].annotation for m in models if k in m.model_fields]
+        if isinstance(v, dict) and any(_models(a) for a in subs):
+            out.update(_flatten(v, subs, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _axes(spec: SweepSpec, src: str, errors: list[str]) -> list[Axis]:
+    """The grid's axes in file order; problems go to ``errors``, broken axes are left out."""
+    axes = []
+    for name, values in _flatten(spec.grid, scenario_model()).items():
+        where = f"{src}: grid.{name}"
+        problem = _axis_problem(name, values)
+        if problem is not None:
+            errors.append(f"{where}: {problem}")
+        elif isinstance(values[0], dict):
+            axes.append(_table_axis(name, values, where, errors))
+        else:
+            axes.append(Axis(name, False, tuple(values), tuple({name: v} for v in values)))
+    seen: dict[str, str] = {}
+    for ax in axes:
+        for k in sorted({k for ov in ax.overrides for k in ov}):
+            if k in seen:
+                errors.append(f"{src}: grid.{ax.name}: {k}: also set by axis {seen[k]}")
+            seen.setdefault(k, ax.name)
+    return axes
+
+
+def _axis_problem(name: str, values: Any) -> str | None:
+    """Why grid entry ``name = values`` is not an axis, or None if it is one."""
+    if name in RESERVED or name.startswith("set.") or name == "seed":
+        return "reserved name (use another axis name; seeds via `seeds`)"
+    if not isinstance(values, list):
+        return "expected a list of values or of override tables"
+    if not values:
+        return "empty axis (no values)"
+    if len({isinstance(v, dict) for v in values}) > 1:
+        return "mixes override tables and plain values"
+    return None
+
+
+def _table_axis(name: str, tables: list[dict], where: str, errors: list[str]) -> Axis:
+    """An axis of override tables, each labelled by its ``label`` or by its overrides."""
+    labels, overrides = [], []
+    for i, entry in enumerate(tables):
+        entry = dict(entry)
+        label = entry.pop("label", None)
+        if label is not None and not isinstance(label, str):
+            errors.append(f"{where}[{i}].label: must be a string")
+            label = None
+        ov = _flatten(entry, scenario_model())
+        labels.append(label if label is not None else
+                      ", ".join(f"{k}={cell_text(v)}" for k, v in ov.items()) or "(base)")
+        overrides.append(ov)
+    dup = sorted({lb for lb in labels if labels.count(lb) > 1})
+    if dup:
+        errors.append(f"{where}: duplicate labels {dup}")
+    return Axis(name, True, tuple(labels), tuple(overrides))
+
+
+def run_id(overrides: dict[str, Any], seed: int) -> str:
+    """Short stable hash of a run's sorted overrides and seed."""
+    blob = json.dumps({"overrides": overrides, "seed": seed}, sort_keys=True,
+                      separators=(",", ":"))
+    return hashlib.sha256(blob.encode()).hexdigest()[:10]
+
+
+def _rewrite(line: str, scenario: Path, src: str, run: Run) -> str:
+    """Attributes a scenario error on an overridden key to the sweep file and its entry.
+
+    ``sweep.toml: grid.axis[i]: key.path: reason (value v)`` (or ``[set]``); an element
+    of an overridden list (``system.x0[3]``) counts as the list's key.
+    """
+    rest = line.removeprefix(f"{scenario}: ")
+    key, sep, reason = rest.partition(": ")
+    hit = [k for k in run.overrides if key == k or key.startswith((f"{k}.", f"{k}["))]
+    if rest == line or not sep or not hit:
+        return line
+    where = run.origin[hit[-1]]
+    if reason == "unknown key":
+        return f"{src}: {_INDEX.sub('', where)}: {key}: {reason}"
+    return f"{src}: {where}: {key}: {reason} (value {toml_value(run.overrides[hit[-1]])})"
+
+
+def plan_sweep(path: str | Path) -> SweepPlan:
+    """Reads a sweep file, expands it and validates every run's scenario.
+
+    Raises:
+        ScenarioError: one ``file: key.path: reason`` line per problem.
+    """
+    path, src = Path(path), str(path)
+    text, spec = _read_spec(path, src)
+    errors: list[str] = []
+    scenario = path.parent / spec.scenario
+    if not scenario.is_file():
+        errors.append(f"{src}: scenario: file not found: {scenario}")
+    base = _flatten(spec.set_, scenario_model())
+    axes = _axes(spec, src, errors)  # broken axes are left out; their runs still checked
+    bad_keys = _bad_keys(src, [(k, v, "set") for k, v in base.items()] + [
+        (k, v, f"grid.{a.name}") for a in axes for ov in a.overrides for k, v in ov.items()])
+    if bad_keys:
+        raise ScenarioError(list(dict.fromkeys(errors + bad_keys)))
+    total = len(spec.seeds) * math.prod(len(a.labels) for a in axes)
+    if total > MAX_RUNS:
+        cells = " x ".join(str(len(a.labels)) for a in axes) or "1"
+        raise ScenarioError([*errors, f"{src}: seeds: {cells} grid cells x {len(spec.seeds)} "
+                             f"seeds = {total} runs exceeds the limit {MAX_RUNS}"])
+    runs = _expand(spec, base, axes, src, errors)
+    for run in runs if scenario.is_file() else []:
+        try:
+            items = [f"{k}={toml_value(v)}" for k, v in run.overrides.items()]
+            _, run.toml = load_scenario(scenario, items, run.seed, attribute_sets=False)
+        except ScenarioError as exc:
+            errors += [_rewrite(line, scenario, src, run) for line in exc.lines]
+    if errors:
+        raise ScenarioError(list(dict.fromkeys(errors)))
+    keys = sorted({k for r in runs for k in r.overrides})
+    return SweepPlan(path, text, spec, scenario, axes, runs, keys)
+
+
+def _read_spec(path: Path, src: str) -> tuple[str, SweepSpec]:
+    """The sweep file's text and validated spec (its name defaults to the file's stem).
+
+    Raises:
+        ScenarioError: the file is missing, not UTF-8 TOML, or not a valid sweep.
+    """
+    if not path.is_file():
+        raise ScenarioError([f"{src}: file not found"])
+    try:
+        text = path.read_text(encoding="utf-8")
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError([f"{src}: TOML syntax error: {exc}"]) from None
+    except UnicodeDecodeError:
+        raise ScenarioError([f"{src}: not a UTF-8 text file"]) from None
+    data.setdefault("name", re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem))
+    try:
+        return text, SweepSpec.model_validate(data)
+    except ValidationError as exc:
+        raise ScenarioError(format_errors(exc, src)) from None
+
+
+def _expand(spec: SweepSpec, base: dict[str, Any], axes: list[Axis], src: str,
+            errors: list[str]) -> list[Run]:
+    """Every grid cell x seed as a run: ``[set]`` overrides, then each axis's, in order.
+
+    A run identical to an earlier one (two cells with the same overrides) is left out and
+    reported in ``errors``.
+    """
+    runs, ids = [], {}
+    for combo in itertools.product(*(range(len(a.labels)) for a in axes)):
+        overrides, origin = dict(base), dict.fromkeys(base, "[set]")
+        for a, i in zip(axes, combo, strict=True):
+            overrides.update(a.overrides[i])
+            where = f"grid.{a.name}[{i}]"
+            origin.update(dict.fromkeys(a.overrides[i], where))
+        cell = tuple(a.labels[i] for a, i in zip(axes, combo, strict=True))
+        for seed in spec.seeds:
+            run = Run(run_id(overrides, seed), seed, cell, dict(sorted(overrides.items())),
+                      origin)
+            if run.run_id in ids:
+                errors.append(f"{src}: grid: cells {ids[run.run_id]} and {list(cell)} have "
+                              "identical overrides")
+                continue
+            ids[run.run_id] = list(cell)
+            runs.append(run)
+    return runs
+
+
+def first_seeds(plan: SweepPlan, n: int | None) -> SweepPlan:
+    """The plan set to run only its first ``n`` seeds (None: all).
+
+    Run ids ignore the seed list, so the whole sweep later skips these runs; results.csv
+    keeps every finished run.
+
+    Raises:
+        ScenarioError: unless 1 <= n <= the sweep's number of seeds.
+    """
+    seeds = plan.spec.seeds
+    if n is not None and not 1 <= n <= len(seeds):
+        raise ScenarioError([(f"{plan.path}: --seeds {n}: the sweep has {len(seeds)} "
+                              f"seed(s); choose 1..{len(seeds)}")])
+    return plan if n is None else dataclasses.replace(plan, only_seeds=frozenset(seeds[:n]))
+
+
+def _bad_keys(src: str, items: list[tuple[str, Any, str]]) -> list[str]:
+    """Problems with override keys and values themselves (before any scenario)."""
+    out = []
+    for key, value, where in items:
+        if key == "seed":
+            out.append(f"{src}: {where}: seed: set the seeds with `seeds`")
+        elif not _KEY.match(key):
+            out.append(f"{src}: {where}: {key!r}: not a key path")
+        else:
+            try:
+                toml_value(value)
+            except TypeError as exc:
+                out.append(f"{src}: {where}: {key}: {exc}")
+    return out

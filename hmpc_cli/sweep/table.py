@@ -1,0 +1,124 @@
+"""A sweep's results table: finished runs (their summary.json) -> ``<out>/results.csv``."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+TIMING = ("solve_time_median", "solve_time_p95", "solve_time_max", "plan_time_median",
+          "wall_time")
+METRICS = ("success", "final_error", "contacts", "solves", "solver_failures", "softened_solves",
+           "planner_calls", "planner_rejected", "diverged", "reason", *TIMING)
+INTERRUPTED = "interrupted"
+
+
+def is_interrupted(summary: dict) -> bool:
+    """Whether a run summary is of a run stopped by a signal (``interrupted (SIGTERM)``)."""
+    return str(summary.get("reason", "")).startswith(INTERRUPTED)
+
+
+def finished(out: Path, run) -> dict | None:
+    """The run's summary if it finished with the same effective scenario, else None."""
+    return finished_in(out / "runs" / run.run_id, run.toml)
+
+
+def finished_in(d: Path, toml_text: str) -> dict | None:
+    """The summary of the run in directory ``d``, if it finished there; else None.
+
+    Finished means: summary.json holds a JSON object whose reason is not ``interrupted...``,
+    and scenario.toml is the effective scenario ``toml_text`` (:func:`same_scenario`).
+    """
+    try:
+        summary = json.loads((d / "summary.json").read_text())
+        stored = (d / "scenario.toml").read_text(encoding="utf-8")
+    except (OSError, ValueError):
+        return None
+    if not isinstance(summary, dict) or is_interrupted(summary):
+        return None
+    return summary if same_scenario(stored, toml_text) else None
+
+
+def same_scenario(stored: str, planned: str) -> bool:
+    """Whether a run's stored effective scenario is the planned one.
+
+    Equal text, or equal once the stored text is read by today's scenario model: a setting
+    added to hmpc since the run takes its default (every other setting is written out in
+    full in a run's scenario.toml, so a changed default or value still differs). A run
+    of an older hmpc thus stays finished unless something it ran with changed.
+    """
+    if stored == planned:
+        return True
+    import tomllib
+
+    from hmpc_cli.core.registry import PluginError
+    from hmpc_cli.run.scenario import dump_toml, scenario_model
+
+    try:
+        scenario = scenario_model().model_validate(tomllib.loads(stored))
+    except (ValueError, TypeError, KeyError, PluginError):  # not a scenario today: differs
+        return False
+    return dump_toml(scenario.model_dump(mode="json", exclude_none=True)) == planned
+
+
+def cell_text(v: Any) -> str:
+    """A value as a results.csv cell."""
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return ""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float, str)):
+        return repr(v) if isinstance(v, float) else str(v)
+    from hmpc_cli.core.jsonio import dumps
+
+    return dumps(v, sort_keys=True)  # strict JSON: non-finite numbers as null
+
+
+def result_rows(plan, out: Path) -> list[dict[str, str]]:
+    """One row per finished run, sorted by run id (columns: :attr:`SweepPlan.columns`)."""
+    rows = []
+    for run in sorted(plan.runs, key=lambda r: r.run_id):
+        summary = finished(out, run)
+        if summary is None:
+            continue
+        row = {"run_id": run.run_id, "seed": str(run.seed)}
+        cell = zip(plan.axes, run.cell, strict=True)  # one label per axis
+        row |= {a.name: cell_text(v) for a, v in cell}
+        row |= {f"set.{k}": cell_text(run.overrides.get(k)) for k in plan.keys}
+        row |= {k: cell_text(summary.get(k)) for k in METRICS}
+        log = out / "runs" / run.run_id / "run.mcap"
+        row["log"] = log.relative_to(out).as_posix() if log.exists() else ""
+        rows.append({c: row[c] for c in plan.columns})
+    return rows
+
+
+def write_results(plan, out: Path) -> int:
+    """Rewrites ``<out>/results.csv`` from the runs' summary.json files; returns its rows."""
+    buf, rows = io.StringIO(), result_rows(plan, out)
+    writer = csv.DictWriter(buf, plan.columns, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    tmp = out / "results.csv.tmp"
+    tmp.write_text(buf.getvalue(), encoding="utf-8")
+    os.replace(tmp, out / "results.csv")
+    return len(rows)
+
+
+def toml_value(v: Any) -> str:
+    """A value as TOML text (what :func:`apply_overrides` parses back)."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v, ensure_ascii=False).replace("\x7f", "\\u007f")
+    if isinstance(v, list):
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{toml_value(str(k))} = {toml_value(x)}"
+                               for k, x in v.items()) + "}"
+    raise TypeError(f"unsupported value type {type(v).__name__}")
