@@ -28,6 +28,17 @@ SCENARIOS = REPO / "scenarios"
 BALL = SCENARIOS / "ball.toml"
 
 
+@pytest.fixture(autouse=True)
+def _default_verbosity():
+    """Each test starts at the default verbosity: an in-process command run with -q (the
+    process-wide ``VERBOSITY``) does not make a later test's command quiet."""
+    from hmpc_cli.cli.common import VERBOSITY
+
+    VERBOSITY[0] = 0
+    yield
+    VERBOSITY[0] = 0
+
+
 def hmpc_command() -> list[str]:
     """The installed ``hmpc`` console script next to this interpreter, else ``python -m``."""
     script = Path(sys.executable).with_name("hmpc")

@@ -1,4 +1,8 @@
-"""Every command the README shows is run here (install and pytest are run by CI)."""
+"""Every command the README and the manual (docs/*.md) show in a ``console`` block is run here.
+
+Each document's ``$ `` lines run in order in a fresh directory of their own (the scenarios,
+benchmarks and sweeps linked in); install and the default run are run by CI.
+"""
 
 import os
 import re
@@ -12,12 +16,17 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN_BY_CI = {"pip install -e '.[test]'", "hmpc run scenarios/ball.toml"}
+DOCUMENTS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+
+
+def doc_commands(path: Path) -> list[str]:
+    """The ``$ `` lines of every ```console block of a Markdown file, in order."""
+    blocks = re.findall(r"```console\n(.*?)```", path.read_text(), flags=re.S)
+    return [line[2:].strip() for b in blocks for line in b.splitlines() if line.startswith("$ ")]
 
 
 def readme_commands() -> list[str]:
-    text = (ROOT / "README.md").read_text()
-    blocks = re.findall(r"```console\n(.*?)```", text, flags=re.S)
-    return [line[2:].strip() for b in blocks for line in b.splitlines() if line.startswith("$ ")]
+    return doc_commands(ROOT / "README.md")
 
 
 def test_readme_starts_with_the_two_commands():
@@ -26,21 +35,40 @@ def test_readme_starts_with_the_two_commands():
     assert "`pytest`" in (ROOT / "README.md").read_text().split("##")[0]
 
 
-@pytest.mark.slow
-def test_readme_commands_run_in_order(tmp_path):
+def test_console_blocks_hold_only_commands_the_runner_can_start():
+    for doc in DOCUMENTS:
+        for cmd in doc_commands(doc):
+            if cmd in RUN_BY_CI:
+                continue
+            assert shlex.split(cmd)[0] in ("hmpc", "python"), (doc.name, cmd)
+
+
+def _run_commands(cmds: list[str], cwd: Path) -> None:
     for name in ("scenarios", "benchmarks", "sweeps"):
-        os.symlink(ROOT / name, tmp_path / name)
+        os.symlink(ROOT / name, cwd / name)
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    for cmd in [c for c in readme_commands() if c not in RUN_BY_CI]:
+    for cmd in [c for c in cmds if c not in RUN_BY_CI]:
         argv = shlex.split(cmd)
         if argv[0] == "hmpc":
             argv = [sys.executable, "-c", "from hmpc_cli.cli.app import main; main()"] + argv[1:]
         elif argv[0] == "python":
             argv[0] = sys.executable
-        proc = subprocess.run(argv, cwd=tmp_path, capture_output=True, text=True, env=env,
+        proc = subprocess.run(argv, cwd=cwd, capture_output=True, text=True, env=env,
                               timeout=900)
         assert proc.returncode == 0, (cmd, proc.stderr[-3000:])
         assert proc.stdout.strip(), cmd
+
+
+@pytest.mark.slow
+def test_readme_commands_run_in_order(tmp_path):
+    _run_commands(readme_commands(), tmp_path)
     assert (tmp_path / "fig3" / "fig3.pdf").is_file()
     page = (tmp_path / "results" / "README.md").read_text()
     assert "| 10 Hz fixed |" in page and (tmp_path / "results" / "report" / "fig3.png").is_file()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("doc", [d for d in DOCUMENTS[1:] if doc_commands(d)],
+                         ids=lambda d: d.name)
+def test_docs_commands_run_in_order(doc, tmp_path):
+    _run_commands(doc_commands(doc), tmp_path)

@@ -145,10 +145,40 @@ def test_wrong_type_unquoted_string(work: Path) -> None:
     assert "number" in reason
 
 
-@pytest.mark.parametrize("key", ["foo", "mpc.foo", "system.spin", "sim.rate"])
-def test_unknown_key_via_set(work: Path, key: str) -> None:
+@pytest.mark.parametrize("key,hint", [
+    ("foo", ""), ("mpc.foo", ""), ("system.spin", ""), ("sim.rate", " (did you mean 'rate_hz'?)"),
+    ("mpc.rate", " (did you mean 'rate_hz'?)"), ("simm", " (did you mean 'sim'?)"),
+    ("planner.samles", " (did you mean 'samples'?)"), ("seeed", " (did you mean 'seed'?)"),
+    ("system.circle_radiu", " (did you mean 'circle_radius'?)"),
+    ("plant.mas", " (did you mean 'mass'?)")])
+def test_unknown_key_via_set(work: Path, key: str, hint: str) -> None:
     reason = one_keyed(cli_bad(work, ["ball.toml", "--set", f"{key}=1"]), f"--set {key}=1", key)
-    assert reason == "unknown key"
+    assert reason == "unknown key" + hint
+
+
+def test_unknown_key_suggests_a_key_of_the_selected_kind(work: Path) -> None:
+    # the biped's MPC and planner are other union members than the ball's: their keys
+    biped = Path(__file__).parent.parent / "scenarios" / "biped_stairs.toml"
+    lines = cli_bad(work, [str(biped), "--set", "system.circle_radiu=1"])
+    assert lines == ["error: --set system.circle_radiu=1: system.circle_radiu: unknown key"]
+    lines = cli_bad(work, ["ball.toml", "--set", "system.circle_radiu=1"])
+    assert lines == ["error: --set system.circle_radiu=1: system.circle_radiu: unknown key "
+                     "(did you mean 'circle_radius'?)"]
+
+
+def test_unknown_section_via_set_is_the_sets(work: Path) -> None:
+    lines = cli_bad(work, ["ball.toml", "--set", "simm.rate_hz=10"])
+    assert lines == ["error: --set simm.rate_hz=10: simm: unknown key (did you mean 'sim'?)"]
+
+
+def test_unknown_key_in_a_file_suggests_at_every_level(work: Path) -> None:
+    _with_lines(work / "ball.toml", work / "bad.toml", _top="sed = 3", sim="rate = 600",
+                mpc="horizn = 1.0")
+    lines = cli_bad(work, ["bad.toml"])
+    assert sorted(lines) == [
+        "error: bad.toml: mpc.horizn: unknown key (did you mean 'horizon'?)",
+        "error: bad.toml: sed: unknown key (did you mean 'seed'?)",
+        "error: bad.toml: sim.rate: unknown key (did you mean 'rate_hz'?)"]
 
 
 def test_unknown_key_in_file(work: Path) -> None:
@@ -264,7 +294,10 @@ def test_load_errors_directly(tmp_path: Path) -> None:
     lines = load_error(path)
     assert lines == [f"{path}: sim.rate_hz: Input should be greater than 0"]
     lines = load_error(path, ["sim.rate_hz=600", "mpc.bar=2"])
-    assert lines == ["--set mpc.bar=2: mpc.bar: unknown key"]
+    assert lines == ["--set mpc.bar=2: mpc.bar: unknown key",  # and the rate problem too
+                     f"{path}: mpc.rate_hz: 7 must divide mpc.nodes_per_second = 60 and "
+                     "sim.rate_hz = 600 (the MPC period must be a whole number of node steps "
+                     "and of simulator steps)"]
     lines = load_error(path, ["sim.rate_hz=600"])
     assert len(lines) == 1 and lines[0].startswith(f"{path}: mpc.rate_hz: 7 must divide")
     assert not any("(top)" in line for line in load_error(path, ["sim.rate_hz=601"]))
@@ -414,3 +447,25 @@ def test_a_kind_the_system_cannot_use_is_one_keyed_line(system, override, expect
     """Reported before the section's other keys are checked against the wrong kind."""
     lines = load_error(SCENARIOS / system, [override])
     assert len(lines) == 1 and f": {expected}" in lines[0], lines
+
+
+def test_field_and_cross_field_problems_are_reported_together(work: Path) -> None:
+    # a wrong type (a field error) and rates that do not divide (a check across settings)
+    _with_lines(work / "ball.toml", work / "bad.toml", planner="elites = 0",
+                sim="log_rate_hz = 7", replanning="period = 0.1234")
+    lines = cli_bad(work, ["bad.toml"])
+    assert lines == ["error: bad.toml: planner.elites: Input should be greater than or equal to 1",
+                     "error: bad.toml: sim.log_rate_hz: 7 must divide sim.rate_hz = 600"]
+    lines = cli_bad(work, ["bad.toml", "--set", 'replanning.policy="periodic"'])
+    assert lines == ["error: bad.toml: planner.elites: Input should be greater than or equal to 1",
+                     "error: bad.toml: sim.log_rate_hz: 7 must divide sim.rate_hz = 600",
+                     "error: bad.toml: replanning.period: 0.1234 s must be a whole number of "
+                     "simulator steps (1/sim.rate_hz = 1/600 s)"]
+
+
+def test_a_cross_field_problem_about_a_wrong_key_is_not_guessed(tmp_path: Path) -> None:
+    # sim.rate_hz is wrong: whether mpc.rate_hz divides it cannot be told (no default guess)
+    path = _write(tmp_path / "s.toml", "[mpc]\nrate_hz = 7\n[sim]\nrate_hz = -1\n"
+                  "log_rate_hz = 0\nduration = 0.0001\n")
+    assert load_error(path) == [f"{path}: sim.rate_hz: Input should be greater than 0",
+                                f"{path}: sim.log_rate_hz: Input should be greater than 0"]

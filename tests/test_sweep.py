@@ -85,7 +85,7 @@ def test_tiny_sweep_table_and_failures(tiny):
     rows = table(out, timing=True)
     plan = plan_sweep(path)
     assert len(rows) == len(plan.runs) == 12
-    assert [r["run_id"] for r in rows] == sorted(r.run_id for r in plan.runs)
+    assert [r["run_id"] for r in rows] == [r.run_id for r in plan.runs]  # grid order
     assert list(rows[0]) == [
         "run_id", "lowlevel.kp", "case", "seed", "set.lowlevel.kp", "set.mpc.horizon",
         "set.planner.iterations", "set.planner.knots", "set.planner.samples",
@@ -186,7 +186,8 @@ def test_dask_not_installed_is_a_clear_error(monkeypatch):
 
 BAD = {
     "unknown key": ('[grid]\n"mpc.rate_hzz" = [10, 20]\n',
-                    "sweep.toml: grid.mpc.rate_hzz: mpc.rate_hzz: unknown key"),
+                    "sweep.toml: grid.mpc.rate_hzz: mpc.rate_hzz: unknown key "
+                    "(did you mean 'rate_hz'?)"),
     "bad value": ('[grid]\nc = [{ label = "a" }, { label = "b", "mpc.rate_hz" = 7 }]\n',
                   "sweep.toml: grid.c[1]: mpc.rate_hz: 7 must divide mpc.nodes_per_second = 60 "
                   "and sim.rate_hz = 600 (the MPC period must be a whole number of node steps "
@@ -198,7 +199,8 @@ BAD = {
                    "sweep.toml: grid.mpc.rate_hz: empty axis (no values)"),
     "missing scenario": ('scenario = "nope/ball.toml"\n',
                          "sweep.toml: scenario: file not found: nope/ball.toml"),
-    "unknown sweep key": ('seed = 3\n', "sweep.toml: seed: unknown key"),
+    "unknown sweep key": ('seed = 3\n',
+                         "sweep.toml: seed: unknown key (did you mean 'seeds'?)"),
 }
 
 
@@ -327,3 +329,24 @@ def test_a_run_of_an_older_hmpc_stays_finished_unless_a_value_changed(tmp_path):
     assert finished_in(run, text) == {"success": True, "reason": "success"}
     (run / "scenario.toml").write_text(changed)
     assert finished_in(run, text) is None
+
+
+def test_results_rows_are_in_grid_order_not_completion_order(tmp_path):
+    from hmpc_cli.sweep.table import write_results
+
+    path = write_sweep(tmp_path, 'name = "order"\nscenario = "{scenario}"\nseeds = [2, 0, 1]\n'
+                       '[grid]\n"mpc.rate_hz" = [20, 10]\ncase = [{ label = "b" }, '
+                       '{ label = "a", "lowlevel.kp" = 1.0 }]\n')
+    plan = plan_sweep(path)
+    out = tmp_path / "out"
+    for run in reversed(plan.runs):  # the last run of the plan finishes first
+        d = out / "runs" / run.run_id
+        d.mkdir(parents=True)
+        (d / "scenario.toml").write_text(run.toml, encoding="utf-8")
+        (d / "summary.json").write_text(json.dumps({"success": True, "reason": ""}))
+        time.sleep(0.001)
+    assert write_results(plan, out) == 12
+    rows = table(out)
+    assert [(r["mpc.rate_hz"], r["case"], r["seed"]) for r in rows] == [
+        (rate, case, seed) for rate in ("20", "10") for case in ("b", "a")
+        for seed in ("0", "1", "2")]

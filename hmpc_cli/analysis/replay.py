@@ -11,6 +11,9 @@ numbers). The CSV/Parquet export is :mod:`hmpc_cli.analysis.export`.
 
 from __future__ import annotations
 
+import dataclasses
+import json
+
 import math
 import re
 import statistics
@@ -440,5 +443,38 @@ def verify(replay: Replay, workdir: Path) -> tuple[Divergence | None, int, int]:
     execute_run(loop, text, workdir / "rerun")
     rerun = read_log(workdir / "rerun" / "run.mcap").messages
     recorded = replay.log.messages
+    rerun = _settings_added_since(recorded, rerun)
     div = compare_logs(recorded, rerun, prefix_only=not replay.complete)
     return div, len(recorded), len({m.topic for m in recorded})
+
+
+def _settings_added_since(recorded: list, rerun: list) -> list:
+    """The re-run's messages with the settings added since the recorded run forgiven.
+
+    A setting the recorded /run/info scenario lacks took its default in the re-run (as a
+    sweep's resume treats it): when the re-run's scenario equals the recorded one but for
+    such keys, it is taken as the recorded one. Every behaviour still counts.
+    """
+    info = next((m for m in recorded if m.topic == "/run/info"), None)
+    try:
+        old = json.loads(info.data["scenario_json"]) if info is not None else None
+    except (KeyError, TypeError, ValueError):
+        return rerun
+
+    def known(new, was):
+        if isinstance(new, dict) and isinstance(was, dict):
+            return {k: known(v, was[k]) for k, v in new.items() if k in was}
+        return new
+
+    out = []
+    for m in rerun:
+        if m.topic == "/run/info" and isinstance(old, dict):
+            try:
+                same = known(json.loads(m.data["scenario_json"]), old) == old
+            except (KeyError, TypeError, ValueError):
+                same = False
+            if same:
+                m = dataclasses.replace(m, data={**m.data,
+                                                 "scenario_json": info.data["scenario_json"]})
+        out.append(m)
+    return out

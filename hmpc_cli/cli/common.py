@@ -15,15 +15,21 @@ from typing import Annotated
 import typer
 
 __all__ = ["EXIT_INTERNAL", "VERBOSITY", "complete_figure", "complete_set_key",
-           "internal_error", "print_version", "with_verbosity"]
+           "internal_error", "is_quiet", "print_version", "with_verbosity"]
 
 #: -1 quiet, 0 default, 1 and more verbose; set by every command's -q/-v
 VERBOSITY = [0]
 
 _QUIET = Annotated[bool, typer.Option(
-    "--quiet", "-q", help="print only results, warnings and errors (no progress)")]
+    "--quiet", "-q", help="print only errors and the path of what was written (no "
+    "progress, no tables)")]
 _VERBOSE = Annotated[int, typer.Option(
     "--verbose", "-v", count=True, help="more detail on stderr (-vv: debug)")]
+
+
+def is_quiet() -> bool:
+    """Whether the command runs with -q: errors and the final path only on the terminal."""
+    return VERBOSITY[0] < 0
 
 
 def set_verbosity(quiet: bool, verbose: int) -> None:

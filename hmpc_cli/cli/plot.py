@@ -7,13 +7,18 @@ from typing import Annotated
 
 import typer
 
-from hmpc_cli.cli.common import complete_figure
+from hmpc_cli.cli.common import complete_figure, is_quiet
 
 __all__ = ["plot_command"]
 
 EXIT_BAD_INPUT = 2
 TEXT_WIDTH_IN = 7.16  # as hmpc_cli.figures.common (not imported: --help stays light)
 COLUMN_WIDTH_IN = 3.5
+
+
+def _wrote(names: list[str], out_dir: Path) -> None:
+    """The last line: the files written (with -q: the output directory only)."""
+    typer.echo(str(out_dir) if is_quiet() else f"wrote {', '.join(names)} to {out_dir}")
 
 
 def _fail(message: str) -> None:
@@ -23,12 +28,20 @@ def _fail(message: str) -> None:
 
 
 def _print_counts(counts: dict, reference: dict) -> None:
-    """Prints the counts per panel; adds the paper's counts when the labels are the paper's."""
+    """Prints the counts per panel; adds the paper's counts when the labels are the paper's.
+
+    The paper's column only for runs of the paper's system and geometry (the ball with its
+    default geometry); else a caption says why it is left out.
+    """
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
-    with_ref = any(label in reference for label in counts)
-    table = Table(title="Figure 3: stable runs per panel")
+    named = any(label in reference for label in counts)
+    why = next((c.not_paper for c in counts.values() if c.not_paper), "")
+    with_ref = named and not why
+    caption = escape(f"paper column left out: {why}") if named and why else None
+    table = Table(title="Figure 3: stable runs per panel", caption=caption)
     for col in ("panel", "runs", "stable", "failed") + (("paper",) if with_ref else ()):
         table.add_column(col, justify="right" if col in ("runs", "stable", "paper") else "left")
     for c in counts.values():
@@ -53,9 +66,10 @@ def _fig3(table: Path, out: Path | None, formats: str, options: dict) -> None:
         _fail(str(exc))
     for note in (n for c in counts.values() for n in c.notes):
         typer.echo(f"warning: {note}", err=True)
-    _print_counts(counts, REFERENCE_COUNTS)
+    if not is_quiet():
+        _print_counts(counts, REFERENCE_COUNTS)
     names = [f"fig3.{f}" for f in parse_formats(formats)] + ["fig3_counts.csv"]
-    typer.echo(f"wrote {', '.join(names)} to {out_dir}")
+    _wrote(names, out_dir)
 
 
 def _fig4(log: Path, out: Path | None, formats: str, every: float, gif: bool,
@@ -74,14 +88,16 @@ def _fig4(log: Path, out: Path | None, formats: str, every: float, gif: bool,
             animate_walk(walk, out_dir / "walk.gif")
     except FigureInputError as exc:
         _fail(str(exc))
+    names = [f"fig4.{f}" for f in parse_formats(formats)] + (["walk.gif"] if gif else [])
+    if is_quiet():
+        return _wrote(names, out_dir)
     for t, guard, fx, fy in walk.contacts:
         typer.echo(f"contact t = {t:.3f} s  {guard:<8} foot ({fx:.3f}, {fy:.3f}) m")
     verdict = {True: "success", False: "failed", None: "unfinished"}[walk.success]
     why = f" ({walk.reason})" if walk.reason not in ("", verdict) else ""
     typer.echo(f"{verdict}{why}; hip ends at ({walk.hip[-1, 0]:.3f}, "
                f"{walk.hip[-1, 1]:.3f}) m")
-    names = [f"fig4.{f}" for f in parse_formats(formats)] + (["walk.gif"] if gif else [])
-    typer.echo(f"wrote {', '.join(names)} to {out_dir}")
+    _wrote(names, out_dir)
 
 
 def _fig2(log: Path, out: Path | None, formats: str, options: dict) -> None:
@@ -99,6 +115,9 @@ def _fig2(log: Path, out: Path | None, formats: str, options: dict) -> None:
         fig2(geo, out_dir, formats, **size)
     except (FigureInputError, PassThroughError) as exc:
         _fail(str(exc))
+    names = [f"fig2.{f}" for f in parse_formats(formats)]
+    if is_quiet():
+        return _wrote(names, out_dir)
     typer.echo(f"solve {geo.solve} at t = {geo.t:.3f} s crosses guard {geo.guard_name} "
                f"({geo.source_mode} -> {geo.target_mode}); tube radius d = {geo.radius:.4g} "
                f"({geo.radius_source}); solve slack {geo.slack:.2g}")
@@ -109,8 +128,7 @@ def _fig2(log: Path, out: Path | None, formats: str, options: dict) -> None:
                + ("holds" if geo.nlp_row >= -1e-6 else "violated")
                + f"; |post-reset - R(guard node)| = "
                f"{float(abs(geo.post_reset - geo.reset_of_guard_node).max()):.2g}")
-    names = [f"fig2.{f}" for f in parse_formats(formats)]
-    typer.echo(f"wrote {', '.join(names)} to {out_dir}")
+    _wrote(names, out_dir)
 
 
 def _robustness(table: Path, out: Path | None, formats: str, options: dict) -> None:
@@ -127,6 +145,9 @@ def _robustness(table: Path, out: Path | None, formats: str, options: dict) -> N
         data = robustness(table, out_dir, formats, **options)
     except FigureInputError as exc:
         _fail(str(exc))
+    names = [f"robustness.{f}" for f in parse_formats(formats)] + ["robustness_table.csv"]
+    if is_quiet():
+        return _wrote(names, out_dir)
     t = Table(title="success rate per cell (Wilson 95 % interval)")
     for col in (options["panel_axis"], options["series_axis"], options["x_axis"], "runs",
                 "success", "95 % interval"):
@@ -136,8 +157,7 @@ def _robustness(table: Path, out: Path | None, formats: str, options: dict) -> N
         t.add_row(c.panel, c.series, f"{c.x:g}", str(c.runs),
                   f"{100 * c.rate:.0f} %", f"{100 * lo:.0f}-{100 * hi:.0f} %")
     Console().print(t)
-    names = [f"robustness.{f}" for f in parse_formats(formats)] + ["robustness_table.csv"]
-    typer.echo(f"wrote {', '.join(names)} to {out_dir}")
+    _wrote(names, out_dir)
 
 
 def plot_command(

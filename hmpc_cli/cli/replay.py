@@ -168,6 +168,11 @@ def _export(console, rp, selected: list, out: Path, fmt: str, filters: dict) -> 
         files = write_export(out, selected, info, fmt)
     except ExportError as exc:
         _fail([str(exc)])
+    from hmpc_cli.cli.common import is_quiet
+
+    if is_quiet():  # the export's directory only
+        typer.echo(str(out))
+        return
     console.print(f"exported {len(files)} files to {out}: "
                   + ", ".join(p.name for p in files), markup=False)
 
@@ -180,8 +185,11 @@ def _verify(console, rp) -> None:
 
     from hmpc_cli.analysis.replay import ReplayError, verify
 
-    console.print("verify: re-running the attached scenario (seed "
-                  f"{rp.info.get('seed', '?')}) ...", markup=False)
+    from hmpc_cli.cli.common import is_quiet
+
+    if not is_quiet():
+        console.print("verify: re-running the attached scenario (seed "
+                      f"{rp.info.get('seed', '?')}) ...", markup=False)
     with tempfile.TemporaryDirectory(prefix="hmpc-verify-") as tmp:
         try:
             div, n, k = verify(rp, Path(tmp))
@@ -246,8 +254,15 @@ def replay_command(
     window = "" if t_from is None and t_to is None else (
         f" from {'start' if t_from is None else f'{t_from:g} s'}"
         f" to {'end' if t_to is None else f'{t_to:g} s'}")
+    from hmpc_cli.cli.common import is_quiet
+
+    quiet = is_quiet()
     console = Console()
-    _print_report(console, rp, selected, show_all, window)
+    if not quiet:
+        _print_report(console, rp, selected, show_all, window)
+    elif export is None and figures is None and not check:  # the summary is the result
+        console.print(_summary_table(rp.summary) if rp.summary is not None
+                      else "no summary (the run did not finish)")
     if export is not None:
         _export(console, rp, selected, export, fmt.lower(),
                 {"from": t_from, "to": t_to, "topics": topics or "all"})
@@ -271,15 +286,22 @@ def _figures(console, rp, out: Path) -> None:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         _fail([f"--figures {out}: cannot write ({exc})"])
+    from hmpc_cli.cli.common import is_quiet
+
     title = str(rp.info.get("scenario_name", rp.path.stem))
+    quiet = is_quiet()
     jobs = (("fig2", lambda: fig2(pass_through_geometry(rp.path), out, ["pdf", "png"])),
             ("fig4", lambda: fig4(rp.path, out, ["pdf", "png"])),
             ("scene animation", lambda: animate_scene(rp.log, out, title)))
     for name, job in jobs:
         try:
             job()
-            console.print(f"figures: {name} written to {escape(str(out))}")
+            if not quiet:
+                console.print(f"figures: {name} written to {escape(str(out))}")
         except (FigureInputError, PassThroughError) as exc:
-            console.print(f"figures: {name} not drawn: {escape(str(exc))}")
+            if not quiet:
+                console.print(f"figures: {name} not drawn: {escape(str(exc))}")
         except OSError as exc:
             _fail([f"--figures {out}: cannot write ({exc})"])
+    if quiet:
+        typer.echo(str(out))

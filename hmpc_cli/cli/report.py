@@ -66,7 +66,9 @@ def report_command(
                           fig3_schedule=fig3_schedule,
                           **{f"robustness:{i}": p for i, p in enumerate(
                               ROBUSTNESS if robustness is None else robustness)})
-    if not run:
+    from hmpc_cli.cli.common import is_quiet
+
+    if not run and not is_quiet():
         _print_missing(plans, dirs)
     lost = _run_sweeps(plans, dirs, workers) if run else []
     biped_dir = _biped_run(biped, results, run)
@@ -176,12 +178,14 @@ def _run_sweeps(plans: dict, dirs: dict[str, Path], workers: int | None) -> list
     """
     import os
 
+    from hmpc_cli.cli.common import is_quiet
     from hmpc_cli.cli.sweep import _execute, _print_cells
 
     lost: list[str] = []
     for key, plan in plans.items():
         outcome = _execute(plan, dirs[key], workers or os.cpu_count() or 1, None)
-        _print_cells(plan, dirs[key])
+        if not is_quiet():
+            _print_cells(plan, dirs[key])
         lost += [f"{plan.spec.name}: {x}" for x in outcome.lost]
         if outcome.interrupted:
             typer.echo("interrupted: run the same command again to resume", err=True)
@@ -244,7 +248,9 @@ def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None,
     except FigureInputError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(EXIT_BAD_INPUT) from None
-    typer.echo(f"wrote {page} and {results / 'report'}/")
+    from hmpc_cli.cli.common import is_quiet
+
+    typer.echo(str(page) if is_quiet() else f"wrote {page} and {results / 'report'}/")
 
 
 def _biped_run(scenario: Path | None, results: Path, run: bool) -> Path | None:
@@ -268,7 +274,10 @@ def _biped_run(scenario: Path | None, results: Path, run: bool) -> Path | None:
             import shutil
 
             shutil.rmtree(out)
-        typer.echo(f"{sc.name}: running -> {out}")
+        from hmpc_cli.cli.common import is_quiet
+
+        if not is_quiet():
+            typer.echo(f"{sc.name}: running -> {out}")
         try:
             execute_run(prepare(sc), toml_text, out)
         except KeyboardInterrupt:

@@ -31,7 +31,9 @@ def run_command(
         "--set", help="override a setting: key.path=value (repeatable)",
         autocompletion=complete_set_key)] = None,
     seed: Annotated[int | None, typer.Option("--seed", help="override the seed")] = None,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="no progress bar")] = False,
+    quiet: Annotated[bool, typer.Option(
+        "--quiet", "-q", help="no progress bar, no summary table: errors and the log's path "
+        "only")] = False,
     live: Annotated[bool, typer.Option(
         "--live", help="also stream the log's topics to a Foxglove WebSocket server on "
         "127.0.0.1 (needs foxglove-sdk), paced to real time")] = False,
@@ -44,7 +46,8 @@ def run_command(
 
     SIGINT, SIGTERM and SIGHUP stop the run within one simulator step: the log is closed,
     summary.json says ``interrupted (SIGTERM)``; exit code 128 + the signal number.
-    When stdout is not a terminal, the log's path is also printed whole on the last line.
+    When stdout is not a terminal, the log's path is also printed whole on the last line;
+    with -q it is the only line printed on stdout.
     """
     from hmpc_cli.core.signals import as_interrupted, handle_signals
 
@@ -96,9 +99,12 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
     finally:
         if sink is not None:
             sink.close()
-    _print_summary(result, out)
-    if not sys.stdout.isatty():
+    if quiet:  # errors and the log's path only
         typer.echo(str(out / "run.mcap"))
+    else:
+        _print_summary(result, out)
+        if not sys.stdout.isatty():
+            typer.echo(str(out / "run.mcap"))
     if strict and not result.success:
         raise typer.Exit(EXIT_FAILED)
 

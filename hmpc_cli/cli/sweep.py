@@ -40,6 +40,8 @@ def sweep_command(
 
     from hmpc_cli.run.scenario import ScenarioError
 
+    from hmpc_cli.cli.common import is_quiet
+
     plan = _checked_plan(sweep_file, seeds)
     if dry_run:
         _list_runs(plan)
@@ -59,8 +61,11 @@ def sweep_command(
     finally:
         if client is not None:
             client.close()
-    _print_cells(plan, out)
-    typer.echo(f"results: {out / 'results.csv'}")
+    if is_quiet():  # errors and the table's path only
+        typer.echo(str(out / "results.csv"))
+    else:
+        _print_cells(plan, out)
+        typer.echo(f"results: {out / 'results.csv'}")
     if outcome.lost:
         _err([f"run not recorded (rerun to retry): {x}" for x in outcome.lost])
     if outcome.interrupted:
@@ -143,11 +148,14 @@ def _execute(plan, out: Path, workers: int, client):
     from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
                                TimeElapsedColumn, TimeRemainingColumn)
 
+    from hmpc_cli.cli.common import is_quiet
     from hmpc_cli.sweep.execute import execute_sweep
 
+    quiet = is_quiet()
     progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(),
                         MofNCompleteColumn(), TextColumn("ok {task.fields[ok]}"),
-                        TimeElapsedColumn(), TimeRemainingColumn(), transient=True)
+                        TimeElapsedColumn(), TimeRemainingColumn(), transient=True,
+                        disable=quiet)
     task = progress.add_task(plan.spec.name, total=len(plan.selected), ok=0)
     state = {"ok": 0}
 
@@ -157,17 +165,18 @@ def _execute(plan, out: Path, workers: int, client):
             "in-process" if min(workers, todo) <= 1 else f"{min(workers, todo)} worker processes")
         state["ok"] = ok
         progress.update(task, completed=skipped, ok=ok)
-        typer.echo(f"{plan.spec.name}: {total} runs, {skipped} skipped (already done), "
-                   f"{total - skipped} to run ({where}) -> {out}")
+        if not quiet:
+            typer.echo(f"{plan.spec.name}: {total} runs, {skipped} skipped (already done), "
+                       f"{total - skipped} to run ({where}) -> {out}")
 
     def on_done(run, summary: dict) -> None:
         state["ok"] += bool(summary.get("success"))
         progress.update(task, advance=1, ok=state["ok"])
         if not state.get("noted"):
             note = not_compiled_note(out / "runs" / run.run_id)
-            if note:
+            if note:  # advice, on stderr (also with -q: stdout holds the table's path only)
                 state["noted"] = True
-                progress.console.print(note, markup=False, highlight=False)
+                typer.echo(note, err=True)
 
     with progress:
         return execute_sweep(plan, out, workers, client, on_start, on_done)

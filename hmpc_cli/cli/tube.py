@@ -234,15 +234,25 @@ def tube_command(
         _fail([f"{scenario}: tube: {exc.quantity}: {exc.reason} (no trivial tube)"])
     except (PluginError, ValueError) as exc:
         _fail([f"{scenario}: {exc}"])
-    _print(report, sc.name)
+    from hmpc_cli.cli.common import is_quiet
+
+    quiet = is_quiet()  # -q: the warnings (stderr), errors and the written paths only
+    if quiet:
+        for line in report.warnings:
+            typer.echo(f"warning: {line}", err=True)
+    else:
+        _print(report, sc.name)
     out = out if out is not None else Path("results") / sc.name / "tube"
     try:
         names = _write(report, system, out, formats, f"{sc.name}: tubes")
     except (OSError, FigureInputError) as exc:
         _fail([f"{out}: cannot write ({exc})"])
-    typer.echo(f"wrote {', '.join(names)} to {out}")
+    if not quiet:
+        typer.echo(f"wrote {', '.join(names)} to {out}")
     if observed:
-        _reality(report, observed, out, formats, f"{sc.name}: tube vs reality")
+        _reality(report, observed, out, formats, f"{sc.name}: tube vs reality", quiet)
+    if quiet:
+        typer.echo(str(out))
     if write is not None:
         _write_margins(report, sc, write, samples)
 
@@ -281,7 +291,8 @@ def _read_runs(runs: list[Path], params) -> list:
     return out
 
 
-def _reality(report, runs: list, out: Path, formats: str, title: str) -> None:
+def _reality(report, runs: list, out: Path, formats: str, title: str,
+             quiet: bool = False) -> None:
     """Prints the "tube vs reality" table and writes tube_reality.<fmt> into ``out``."""
     import numpy as np
     from rich.console import Console
@@ -306,7 +317,7 @@ def _reality(report, runs: list, out: Path, formats: str, title: str) -> None:
     for c in rep.checks:
         t.add_row(c.bound, str(c.periods), f"{c.fraction:.3f}", _g(c.median_ratio),
                   _g(c.worst_ratio), str(len(c.violations)))
-    con = Console(width=120)
+    con = Console(width=120, quiet=quiet)
     con.print(t)
     for c in rep.checks:
         for v in c.violations:
@@ -321,7 +332,8 @@ def _reality(report, runs: list, out: Path, formats: str, title: str) -> None:
                               if p.dev_kin is not None])
     except (OSError, FigureInputError) as exc:
         _fail([f"{out}: cannot write ({exc})"])
-    typer.echo(f"wrote {', '.join(p.name for p in paths)} to {out}")
+    if not quiet:
+        typer.echo(f"wrote {', '.join(p.name for p in paths)} to {out}")
 
 
 def _write_margins(report, sc, path: Path, samples: int) -> None:
@@ -334,5 +346,10 @@ def _write_margins(report, sc, path: Path, samples: int) -> None:
                       samples=samples)
     except OSError as exc:
         _fail([f"{path}: cannot write ({exc})"])
+    from hmpc_cli.cli.common import is_quiet
+
+    if is_quiet():
+        typer.echo(str(path))
+        return
     typer.echo(f"wrote margins file {path} (rates "
                f"{', '.join(f'{r.rate_hz:g}' for r in report.rows)} Hz)")

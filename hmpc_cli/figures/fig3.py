@@ -22,11 +22,19 @@ from hmpc_cli.figures.common import (
     COLUMN_WIDTH_IN, OKABE_ITO, check_size, figure_style, make_out_dir, parse_formats,
     save_figure, write_csv)
 
-__all__ = ["REFERENCE_COUNTS", "PanelCounts", "fig3"]
+__all__ = ["PAPER_GEOMETRY", "REFERENCE_COUNTS", "PanelCounts", "fig3", "not_the_paper"]
 
-# The paper's Figure 3 outcome (stable runs / runs, 10 disturbed trials + nominal).
+# The paper's Figure 3 outcome (stable runs / runs, 10 disturbed trials + nominal): of the
+# ball with the paper's geometry only (see PAPER_GEOMETRY and not_the_paper).
 REFERENCE_COUNTS: dict[str, tuple[int, int]] = {
     "10 Hz fixed": (9, 11), "20 Hz fixed": (11, 11), "10 Hz replan": (11, 11)}
+#: the paper's ball geometry: the defaults of the ball's parameters (figures read logs and
+#: import no system; tests/test_newcomer.py checks these against BallParams)
+PAPER_SYSTEM = "ball"
+PAPER_GEOMETRY: dict[str, object] = {
+    "radius": 0.1, "circle_center": [3.0, 3.0], "circle_radius": 1.0,
+    "floor_extent": [0.0, 8.0], "wall_extent": [0.0, 8.0], "x0": [1.0, 1.0, 0.0, 0.0],
+    "goal": None}
 
 # Okabe-Ito colours; each kind also differs without colour: nominal a thick solid line,
 # disturbed thin dashed lines, end points small dots, failed ends large crosses, the start a
@@ -50,6 +58,35 @@ class PanelCounts:
     successes: int = 0
     failed: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    #: why the paper's counts do not apply to these runs ('' : they are the paper's system
+    #: and geometry, see :func:`not_the_paper`)
+    not_paper: str = ""
+
+
+def _same(a: object, b: object) -> bool:
+    """Whether two logged parameter values are equal (lists and tuples alike, floats exact)."""
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+    return a == b
+
+
+def not_the_paper(scenarios: Iterable[dict]) -> str:
+    """Why runs of these scenarios are not the paper's Figure 3 setting, or '' if they are.
+
+    The paper's counts (:data:`REFERENCE_COUNTS`) are of the ball with its default geometry
+    (:data:`PAPER_GEOMETRY`); the simulated plant's parameters (``plant``) count too.
+    """
+    for sc in scenarios:
+        system = dict(sc.get("system") or {})
+        name = system.get("name", PAPER_SYSTEM)
+        if name != PAPER_SYSTEM:
+            return f"runs of system {name!r}, not the paper's {PAPER_SYSTEM!r}"
+        for where, params in (("system", system), ("plant", dict(sc.get("plant") or {}))):
+            for key, paper in PAPER_GEOMETRY.items():  # a key not logged: the default
+                if not _same(params.get(key, paper), paper):
+                    return (f"{where}.{key} = {params.get(key)!r}, not the paper's "
+                            f"{paper!r}")
+    return ""
 
 
 @dataclass
@@ -70,8 +107,8 @@ def _group(rows: list[dict[str, str]], panel_axis: str, panels: Sequence[str] | 
     """Groups rows (with their table line numbers) by panel, in order of first appearance.
 
     The paper's Figure 3 controllers keep the paper's left-to-right order, a variant of one
-    ("10 Hz fixed, floor shift") right after it, any other panel after them (sweep tables
-    list runs by run id, not by grid order).
+    ("10 Hz fixed, floor shift") right after it, any other panel after them (a table's
+    order need not be the paper's).
     """
     groups: dict[str, list[tuple[int, dict[str, str]]]] = {}
     for i, row in enumerate(rows):
@@ -306,7 +343,8 @@ def fig3(table_path: str | Path, out_dir: str | Path | None = None,
     runs = _load_runs(table, groups, trace_axis, nominal or None, notes)
     counts = {label: PanelCounts(label, len(rs), sum(r.success for r in rs),
                                  sorted((r.trace_label for r in rs if not r.success),
-                                        key=_natural), notes[label])
+                                        key=_natural), notes[label],
+                                 not_the_paper(r.trace.scenario for r in rs))
               for label, rs in runs.items()}
     dropped = [n for label, ns in notes.items() if label not in runs for n in ns]
     if dropped:

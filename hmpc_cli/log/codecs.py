@@ -44,9 +44,8 @@ class _ZstdAtLevel:
     """Stands in for the ``zstandard`` module inside ``mcap.writer``.
 
     Its one call there, ``compress(data)``, runs at :data:`ZSTD_LEVEL` on a compressor
-    kept per thread (a compressor is not thread-safe; making one per chunk cost a ball
-    run 1.4 of its 4.3 ms of zstd, measured; the output is the same bytes); every other
-    name is the module's.
+    kept per thread (a compressor is not thread-safe; making one per chunk costs more
+    and gives the same bytes); every other name is the module's.
     """
 
     def __init__(self, module: Any) -> None:

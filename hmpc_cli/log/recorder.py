@@ -225,9 +225,8 @@ class Recorder:
         """Queues one encoded message; flushes every ``flush_every`` messages.
 
         The queue reaches mcap's writer at the flush, in one tight loop: its per-message
-        Python code then costs a ball run about 4 ms instead of 15 ms spread between the
-        solves (measured). A message waits no longer than it did in mcap's open chunk,
-        which reaches the file at the flush too.
+        Python code then costs less than spread between the solves. A message waits no
+        longer than it did in mcap's open chunk, which reaches the file at the flush too.
         """
         self._pending.append((self._channels[topic], ns, data, self._sequence[topic]))
         if self.mirror is not None:

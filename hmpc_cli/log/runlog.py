@@ -184,6 +184,10 @@ class RunLog:
                 points are logged (:mod:`hmpc_cli.log.geometry`).
         """
         self._model = model
+        # every guard of the model in summary.json's contact counts, zeros included (as
+        # /run/summary), in the model's order; a guard of the plant only is added when hit
+        self.result.contacts_by_guard = {
+            g.name: 0 for g in model.guards} | self.result.contacts_by_guard
         if self.rec is None:
             return
         plant = model if plant is None else plant
@@ -243,9 +247,9 @@ class RunLog:
         """Writes the held messages, in order (the file's message order is unchanged).
 
         Messages are held until the next message of a topic that is not held,
-        :data:`HELD` of them, or this call: encoded together, with warm caches, a ball
-        run's logging takes 28 instead of 35 ms (measured). Consecutive /sim/state samples
-        are written by :meth:`_write_samples` in one batch.
+        :data:`HELD` of them, or this call: encoded together, with warm caches, they cost
+        less than written one at a time (docs/performance.md). Consecutive /sim/state
+        samples are written by :meth:`_write_samples` in one batch.
         """
         held, self._held = self._held, []
         if self.rec is None:

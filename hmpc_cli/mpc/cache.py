@@ -1,10 +1,10 @@
 """Build cache of the MPC's NLPs: compiled once per problem structure, loaded after.
 
-Where a process spends its start-up (``hmpc run scenarios/ball.toml``): about 0.4 s
-transcribing each NLP into an SX graph and 0.4-0.7 s in every ``ca.nlpsol`` call (the
-symbolic gradient, Jacobian and Hessian of the Lagrangian and their sparsity), which the
-cold and the warm IPOPT instance of both NLPs repeat: ~2.7 s of a 4.4 s run. A serialized
-``nlpsol`` does not help (75 MB for the switching NLP, slower to read than to rebuild), so
+Where a process spends its start-up (``hmpc run scenarios/ball.toml``): transcribing
+each NLP into an SX graph and every ``ca.nlpsol`` call (the symbolic gradient, Jacobian
+and Hessian of the Lagrangian and their sparsity), which the cold and the warm IPOPT
+instance of both NLPs repeat: most of a short run (results/bench/). A serialized
+``nlpsol`` does not help (tens of MB for the switching NLP, slower to read than to rebuild), so
 the cache keeps what IPOPT calls, compiled: the C that ``nlpsol.generate_dependencies``
 writes (``nlp_f``, ``nlp_g``, ``nlp_grad_f``, ``nlp_jac_g``, ``nlp_hess_l``, ``nlp_grad``),
 built into a shared library that ``ca.nlpsol(name, "ipopt", library)`` loads in
@@ -29,7 +29,7 @@ before, stores the layout and the function, and compiles the library in a detach
 background process started when the process exits (``python -m hmpc_cli.mpc.cache``;
 one entry is compiled by one process at a time: a lock file), so a run never waits for
 the compiler nor competes with it; the next run loads it. The compile is the price:
-for the ball's switching NLP (22 MB of C) about 5 min of CPU and 3 GB of memory at -O1.
+for the ball's switching NLP minutes of CPU and GBs of memory at -O1.
 
 ``HMPC_BUILD_CACHE`` (:func:`mode`): ``off`` (or ``0``) disables the cache; ``use`` (the
 default) loads compiled NLPs but never compiles (the user asks for the cost, once);

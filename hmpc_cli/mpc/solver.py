@@ -130,8 +130,8 @@ DERIVATIVES = {"grad_f": "nlp_grad_f", "jac_g": "nlp_jac_g", "hess_lag": "nlp_he
 def derivatives_of(solver: ca.Function) -> dict:
     """The gradient, Jacobian and Hessian functions an IPOPT instance generated, as options.
 
-    Another instance of the same NLP given them skips their symbolic generation (about
-    0.4 s per instance of the ball's NLPs); they are the same SX graphs, so its iterates
+    Another instance of the same NLP given them skips their symbolic generation (a large
+    part of an instance's start-up); they are the same SX graphs, so its iterates
     are the same bit for bit.
     """
     return {opt: solver.get_function(fn) for opt, fn in DERIVATIVES.items()}

@@ -252,7 +252,10 @@ def fig3_section(modes: Sequence[Fig3Mode], authors_dir: Path | None, fig_dir: P
         lines += ["The 100 Hz panels: " + " ".join(extras), ""]
     notes = [n for _, ns in drawn.values() for n in ns]
     if notes:
-        lines += ["Logs left out or drawn only in part:", "", *(f"- {n}" for n in notes), ""]
+        from hmpc_cli.report.paths import portable_text
+
+        lines += ["Logs left out or drawn only in part:", "",
+                  *(f"- {portable_text(n)}" for n in notes), ""]
     if authors_note:
         lines += [authors_note, ""]
     if any(rows.values()):

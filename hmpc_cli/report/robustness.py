@@ -281,8 +281,11 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
     planned_cells = math.prod(len(v) for v in grid.values() if isinstance(v, list))
     if grid and len(cells) < planned_cells:
         partial += f"; {len(cells)} of its {planned_cells} cells have runs so far"
-    resume = (f"`hmpc sweep {study.sweep_file}`" if study.sweep_file else
-              f"`hmpc sweep sweeps/{name}.toml --out {study.directory}`")
+    from hmpc_cli.report.paths import portable_command
+
+    resume = portable_command(f"hmpc sweep {study.sweep_file}" if study.sweep_file else
+                              f"hmpc sweep sweeps/{name}.toml --out {study.directory}")
+    resume = f"`{resume}`"
     resume = f" Resume or complete: {resume} (finished runs are skipped)."
     png = page_link(fig_dir / f"{name}.png", base)
     csv = page_link(fig_dir / f"{name}_table.csv", base)
@@ -442,7 +445,10 @@ def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list
         try:
             section, cells, spec = study_section(study, fig_dir, base)
         except FigureInputError as exc:
-            lines += [f"### {study.directory.name}", "", f"Not drawn: {exc}", ""]
+            from hmpc_cli.report.paths import portable_text
+
+            lines += [f"### {study.directory.name}", "", f"Not drawn: {portable_text(str(exc))}",
+                      ""]
             continue
         lines += section
         results.append((spec, cells))

@@ -14,17 +14,21 @@ own settings. :class:`ClosedLoop` runs the multi-rate loop once for every system
   Policy ``periodic`` replans every ``replanning.period``; while no schedule the MPC can
   solve is held, the planner is retried every MPC period.
 
-``sim.latency`` says how the controllers' compute time is charged: ``"paused"`` (the
-default, the paper's runs) pauses simulated time while they compute and a new plan is
-tracked at once; a fixed delay L [s] or ``"measured"`` (the plan's measured compute wall
-time: planner, if it ran for this solve, plus MPC; runs are then not reproducible) lets
-a plan computed from the state at t reach the plant at the first simulator step at or
-after t + L, the previous plan being tracked until then (the first plan too, unless
-``sim.latency_first = "paused"``: then it is computed with time paused at t = 0). The
-delay is logged with each solve (/mpc/solve ``latency``). There is one solver: a solve
-that falls due while it is still computing (a period, an impact, a replanning) waits
-until it is free and then starts from the state of that moment, so an MPC rate faster
-than 1 / L runs at the solver's pace.
+``sim.latency`` says how the controllers' compute time is charged
+(:class:`~hmpc_cli.run.realtime.Latency`): ``"paused"`` (the default, the paper's runs)
+pauses simulated time while they compute and a new plan is tracked at once; a fixed
+delay L [s], ``"model"`` (iterations x a calibrated cost) or ``"measured"`` (the plan's
+measured compute wall time: planner, if it ran for this solve, plus MPC; runs are then
+not reproducible) lets a plan computed from the state at t reach the plant at the first
+simulator step at or after t + L, the previous plan being tracked until then (the first
+plan too, unless ``sim.latency_first = "paused"``: then it is computed with time paused
+at t = 0). The delay is logged with each solve (/mpc/solve ``latency``). There is one
+solver: a solve that falls due while it is still computing (a period, an impact, a
+replanning) waits until it is free and then starts from the state of that moment, so an
+MPC rate faster than 1 / L runs at the solver's pace. A solve charged more than
+``sim.solve_budget`` is dropped at t + budget (the previous plan tracked on); with
+``sim.delay_compensation`` the period's and impacts' solves start from the state
+predicted at the plan's arrival (:func:`~hmpc_cli.run.realtime.predict`).
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ from hmpc_cli.core import signals
 from hmpc_cli.core.messages import (
     OFF_SCHEDULE, SCHEDULED, ConstraintMargins, GuardEvent, ModeSchedule, Plan)
 from hmpc_cli.log.runlog import RunLog, RunResult, versions
+from hmpc_cli.run.realtime import Latency, advance, predict
 from hmpc_cli.run.setup_checks import built_problems, margins_of
 from hmpc_cli.core.stack import FixedModeMPC, Planner, Task
 
@@ -56,18 +61,14 @@ class StackTiming:
         per_replan: steps per replanning period (policy ``periodic``), else None.
         on_contact: guards whose events trigger a replan (policy ``on_contact``).
         resolve_on_impact: re-solve right after a guard event.
-        latency: "paused", "measured" or a fixed delay [s] before a plan reaches the plant.
-        latency_first: "charged" (the first plan waits its latency too) or "paused" (the
-            solve at t = 0 is computed with time paused; a first plan found only later,
-            the planner having none at t = 0, is charged).
+        latency: how compute time is charged before a plan reaches the plant.
     """
 
     per_solve: int
     per_replan: int | None
     on_contact: frozenset[int]
     resolve_on_impact: bool
-    latency: str | float = "paused"
-    latency_first: str = "charged"
+    latency: Latency = field(default_factory=Latency)
 
 
 @dataclass
@@ -87,6 +88,9 @@ class _State:
     pending: list[tuple[float, Plan]] = field(default_factory=list)  # (due [s], plan)
     planner_wall: float = 0.0  # wall time [s] of the planner call the next solve follows
     free_at: float = 0.0  # sim time [s] the solver is free again (latency charged)
+    last_delay: float = 0.0  # the last charged delay [s] (what a prediction expects)
+    told: list[int] = field(default_factory=list)  # guards of predicted events told the MPC
+    over_budget: int = 0  # solves dropped for their budget
 
 
 class ClosedLoop:
@@ -114,7 +118,8 @@ class ClosedLoop:
         self.divergence_bound = divergence_bound
         self.st = _State()
         self.res = log.result
-        if timing.latency == "measured":
+        self._predictor = _model_plant(plant) if timing.latency.compensate else None
+        if timing.latency.kind == "measured":
             self.res.warnings.append("sim.latency = 'measured': plans reach the plant after "
                                      "their measured compute time, so this run is not "
                                      "reproducible")
@@ -218,7 +223,10 @@ class ClosedLoop:
     def _on_event(self, ev: GuardEvent) -> None:
         """Schedule bookkeeping and contact triggers at a guard event (time ev.t)."""
         st, tm = self.st, self.timing
-        st.events.append(ev)
+        if st.told and st.told[0] == ev.guard:
+            st.told.pop(0)  # predicted and told the MPC at its last solve
+        else:
+            st.events.append(ev)
         scheduled = False
         if st.schedule is None:
             st.need_replan |= ev.mode_after != self.final_mode
@@ -299,26 +307,60 @@ class ClosedLoop:
         self.log.planner(t, reason, result, accepted, note, self.model)
 
     def _solve(self, t: float, x: np.ndarray, mode: int, reason: str) -> None:
-        st = self.st
+        st, lat = self.st, self.timing.latency
         if not st.usable:
             return
-        plan = self.mpc.solve(t, x, mode, st.schedule, st.events, st.guess)
-        st.events = []
-        latency = self.timing.latency
-        if latency == "paused" or (reason == "initial" and
-                                   self.timing.latency_first == "paused"):
+        planned = st.planner_wall > 0.0
+        if not lat.charged(reason):
+            plan = self.mpc.solve(t, x, mode, st.schedule, st.events, st.guess)
+            st.events = []
             self.log.solve(t, plan, reason, self.model)
             if plan.adopt:
                 st.plan = plan
         else:
-            delay = (st.planner_wall + plan.stats.wall_time if latency == "measured"
-                     else float(latency))
-            self.log.solve(t, plan, reason, self.model, delay)
-            st.free_at = t + delay
-            if plan.adopt:
-                st.pending.append((t + delay, plan))
+            plan = self._solve_ahead(t, x, mode, reason)
+            delay = lat.charge(plan.stats.iterations, plan.stats.wall_time, st.planner_wall,
+                               planned)
+            if lat.over_budget(delay):
+                st.over_budget += 1
+                self.log.solve(t, plan, f"{reason} (over budget: dropped)", self.model,
+                               lat.budget)
+                st.free_at = t + lat.budget
+            else:
+                self.log.solve(t, plan, reason, self.model, delay)
+                st.free_at = t + delay
+                if plan.adopt:
+                    st.pending.append((t + delay, plan))
+            st.last_delay = delay
         st.planner_wall = 0.0
         signals.check()
+
+    def _solve_ahead(self, t: float, x: np.ndarray, mode: int, reason: str) -> Plan:
+        """A charged solve, from the state predicted at the plan's arrival if compensating.
+
+        A replan's solves start from the measured state (the planner's schedule starts at
+        t); so does a solve whose prediction leaves the schedule or starts off the grid.
+        """
+        st = self.st
+        pred = sched = None
+        if self._predictor is not None and reason in ("period", "impact"):
+            pred = predict(self._predictor, t, x, mode,
+                           self.timing.latency.expected(st.last_delay), self._plan_at)
+            sched = advance(st.schedule, pred.events) if pred is not None else None
+        if pred is None or sched is None:
+            plan = self.mpc.solve(t, x, mode, st.schedule, st.events, st.guess)
+            st.told = []
+        else:
+            plan = self.mpc.solve(pred.t, pred.x, pred.mode, sched,
+                                  [*st.events, *pred.events], st.guess)
+            st.told = [ev.guard for ev in pred.events]
+        st.events = []
+        return plan
+
+    def _plan_at(self, t: float) -> Plan | None:
+        """The plan the plant tracks over the step at t [s], pending plans included."""
+        due = [p for t_due, p in self.st.pending if t_due <= t + 1e-9]
+        return due[-1] if due else self.st.plan
 
     def _adopt_due(self, t: float) -> None:
         """Tracks the newest pending plan due at step time t [s]; older ones are dropped.
@@ -347,6 +389,10 @@ class ClosedLoop:
         r.success = not stopped and verdict.success
         if not r.reason:
             r.reason = verdict.reason
+        if self.st.over_budget:
+            r.warnings.append(f"{self.st.over_budget} solves charged more than the budget "
+                              f"sim.solve_budget = {self.timing.latency.budget:g} s were "
+                              "dropped (the previous plan tracked on)")
         if r.planner_calls and not self.st.accepted_plans:
             r.warnings.append(f"the planner never found a schedule ({r.planner_calls} "
                               f"calls; last: {self.st.last_note})")
@@ -450,6 +496,19 @@ def _timing(sc, model) -> StackTiming:
     if rp.policy != "on_contact":
         contact = frozenset()
     per_replan = int(round(rp.period * sc.sim.rate_hz)) if rp.policy == "periodic" else None
-    return StackTiming(sc.sim.rate_hz // sc.mpc.rate_hz, per_replan, contact,
-                       getattr(sc.mpc, "resolve_on_impact", True), sc.sim.latency,
-                       sc.sim.latency_first)
+    s = sc.sim
+    latency = Latency.of(s.latency, s.latency_first, s.latency_model, s.solve_budget,
+                         s.delay_compensation)
+    return StackTiming(s.rate_hz // sc.mpc.rate_hz, per_replan, contact,
+                       getattr(sc.mpc, "resolve_on_impact", True), latency)
+
+
+def _model_plant(plant):
+    """The plant a prediction flies: the controllers' model, no disturbance."""
+    from hmpc_cli.sim.simulator import HybridSimulator
+
+    sim = plant.sim if plant.system is plant.model else HybridSimulator(
+        plant.model, plant.sim.max_events, plant.sim.time_tol)
+    zeros = np.zeros(plant.model.n_w)
+    return dataclasses.replace(plant, system=plant.model, sim=sim,
+                               disturbance=lambda t: zeros)

@@ -12,8 +12,11 @@ The model class is assembled on first use: ``from hmpc_cli.run.scenario import S
 
 from __future__ import annotations
 
+import difflib
 import re
 import tomllib
+import types
+import typing
 from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Any, Union
@@ -129,12 +132,13 @@ class ScenarioBase(BaseModel):
         if s.rate_hz % s.log_rate_hz:
             problems.append(f"sim.log_rate_hz: {s.log_rate_hz} must divide sim.rate_hz = "
                             f"{s.rate_hz}")
+        step = f"must be a whole number of simulator steps (1/sim.rate_hz = 1/{s.rate_hz} s)"
         if not _whole(s.duration * s.rate_hz):
-            problems.append("sim.duration: must be a whole number of simulator steps")
+            problems.append(f"sim.duration: {s.duration:g} s {step}")
         if self.disturbance.kind == "box" and not _whole(self.disturbance.hold * s.rate_hz):
-            problems.append("disturbance.hold: must be a whole number of simulator steps")
+            problems.append(f"disturbance.hold: {self.disturbance.hold:g} s {step}")
         if self.replanning.policy == "periodic" and not _whole(self.replanning.period * s.rate_hz):
-            problems.append("replanning.period: must be a whole number of simulator steps")
+            problems.append(f"replanning.period: {self.replanning.period:g} s {step}")
         return problems + list(getattr(m, "scenario_problems", list)())
 
     def _size_problems(self) -> list[str]:
@@ -171,7 +175,8 @@ class ScenarioBase(BaseModel):
             for err in exc.errors():
                 loc = key_path(["plant", *err["loc"]])
                 msg = err["msg"].removeprefix("Value error, ")
-                msg = "unknown key" if err["type"] == "extra_forbidden" else msg
+                if err["type"] == "extra_forbidden":
+                    msg = unknown_key(err["loc"][-1], _field_names([type(self.system)]))
                 out.append(f"{loc}: {msg}")
         return out
 
@@ -286,9 +291,76 @@ def apply_overrides(data: dict, overrides: list[str], source: str) -> dict:
     return data
 
 
-def format_errors(exc: ValidationError, source: str) -> list[str]:
-    """One ``file: key.path: reason`` line per pydantic error."""
+def unknown_key(key: Any, allowed: list[str]) -> str:
+    """``unknown key``, with ``(did you mean 'x'?)`` when an allowed key is close to it."""
+    close = difflib.get_close_matches(str(key), allowed, n=1)
+    return f"unknown key (did you mean {close[0]!r}?)" if close else "unknown key"
+
+
+def _field_names(models: list[type[BaseModel]]) -> list[str]:
+    """The keys a section accepts: its models' field names (aliases where they have one)."""
+    return sorted({f.alias or name for m in models for name, f in m.model_fields.items()})
+
+
+def _members(ann: Any) -> list[Any]:
+    """An annotation's alternatives (the members of a union; ``Annotated`` unwrapped)."""
+    if typing.get_origin(ann) is Annotated:
+        return _members(typing.get_args(ann)[0])
+    if typing.get_origin(ann) in (Union, types.UnionType):
+        return [m for a in typing.get_args(ann) for m in _members(a)]
+    return [ann]
+
+
+def _tag_of(model: type[BaseModel]) -> set[Any]:
+    """The literal values of a model's fields (a union member's discriminator tags)."""
+    out: set[Any] = set()
+    for f in model.model_fields.values():
+        if typing.get_origin(f.annotation) is typing.Literal:
+            out.update(typing.get_args(f.annotation))
+    return out
+
+
+def models_at(model: Any, loc: tuple | list) -> list[type[BaseModel]]:
+    """The settings models at an error location of ``model`` (empty: not a section).
+
+    A location walks fields by name, list items by index, dict values by key and the
+    member of a discriminated union by its tag (pydantic puts the tag in the location).
+    """
+    anns, parts = [model], list(loc)
+    while parts:
+        part = parts.pop(0)
+        members = [m for a in anns for m in _members(a)]
+        models = [m for m in members if isinstance(m, type) and issubclass(m, BaseModel)]
+        tagged = [m for m in models if len(models) > 1 and part in _tag_of(m)]
+        if tagged:
+            anns = tagged
+            continue
+        nxt = []
+        for m in members:
+            if isinstance(m, type) and issubclass(m, BaseModel):
+                nxt += [f.annotation for name, f in m.model_fields.items()
+                        if part in (name, f.alias)]
+            elif typing.get_origin(m) in (list, tuple) and isinstance(part, int):
+                nxt += list(typing.get_args(m)[:1])
+            elif typing.get_origin(m) is dict and isinstance(part, str):
+                nxt += list(typing.get_args(m)[1:2])
+        if not nxt:
+            return []
+        anns = nxt
+    members = [m for a in anns for m in _members(a)]
+    return [m for m in members if isinstance(m, type) and issubclass(m, BaseModel)]
+
+
+def format_errors(exc: ValidationError, source: str, model: Any = None) -> list[str]:
+    """One ``file: key.path: reason`` line per pydantic error.
+
+    An unknown key's line suggests the closest key of its section (``(did you mean
+    'rate_hz'?)``); the section's keys are those of ``model`` (default: the scenario
+    model when ``exc`` is the scenario's), for a union section those of the member given.
+    """
     lines, tags = [], _tags()
+    if model is None and exc.title == "Scenario":
+        model = scenario_model()
     for err in exc.errors():
         parts = [p for p in err["loc"] if p not in ("function-after",)]
         if len(parts) >= 2 and parts[1] in tags.get(str(parts[0]), ()):
@@ -296,7 +368,9 @@ def format_errors(exc: ValidationError, source: str) -> list[str]:
         loc = key_path(parts) or "(top)"
         msg = err["msg"].removeprefix("Value error, ")
         if err["type"] == "extra_forbidden":
-            msg = "unknown key"
+            raw = [p for p in err["loc"] if p not in ("function-after",)]
+            allowed = _field_names(models_at(model, raw[:-1])) if model is not None else []
+            msg = unknown_key(raw[-1], allowed)
         if not err["loc"] and err["type"] == "value_error":  # Scenario._rates: own key paths
             lines += [f"{source}: {m}" for m in msg.split("\n")]
             continue
@@ -339,7 +413,8 @@ def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None 
     try:
         scenario = scenario_model().model_validate(data)
     except ValidationError as exc:
-        lines = format_errors(exc, str(path)) + _hidden_problems(data, str(path))
+        lines = (format_errors(exc, str(path)) + _hidden_problems(data, str(path))
+                 + _cross_field_problems(data, exc, str(path)))
         raise ScenarioError(attribute_to_sets(list(dict.fromkeys(lines)), str(path), overrides,
                                           attribute_sets)) from None
     except PluginError as exc:
@@ -402,10 +477,75 @@ def _hidden_problems(data: dict, source: str) -> list[str]:
         for err in exc.errors():
             if err["loc"] and err["loc"][0] in plant:
                 msg = err["msg"].removeprefix("Value error, ")
-                msg = "unknown key" if err["type"] == "extra_forbidden" else msg
+                if err["type"] == "extra_forbidden":
+                    msg = unknown_key(err["loc"][-1], _field_names([params]))
                 out.append(f"{source}: {key_path(['plant', *err['loc']])}: {msg}")
         return out
     return []
+
+
+def _data_path(loc: tuple, tags: dict[str, set[str]]) -> list:
+    """An error location as the path of keys in the scenario's data (no union tags)."""
+    parts = [p for p in loc if p not in ("function-after",)]
+    if len(parts) >= 2 and parts[1] in tags.get(str(parts[0]), ()):
+        del parts[1]
+    return parts
+
+
+def _without(data: dict, path: list) -> tuple[dict, str] | None:
+    """A copy of ``data`` without the deepest key of ``path`` it holds, and that key's path.
+
+    An element of a list removes the whole list (a key takes its default when absent).
+    """
+    keys, node = [], data
+    for part in path:
+        if not isinstance(part, str) or not isinstance(node, dict) or part not in node:
+            break
+        keys.append(part)
+        node = node[part]
+    if not keys:
+        return None
+    out = node = dict(data)
+    for part in keys[:-1]:
+        node[part] = dict(node[part])
+        node = node[part]
+    del node[keys[-1]]
+    return out, ".".join(keys)
+
+
+def _cross_field_problems(data: dict, exc: ValidationError, source: str) -> list[str]:
+    """The checks across settings (rates, sizes, plug-in requirements) despite field errors.
+
+    pydantic runs the scenario's cross-field checks only when every field is valid, so
+    a file with both kinds of problem would show them one after the other. The wrong
+    keys are left out (their defaults taken) and the rest validated again; a problem of
+    that check that names a left-out setting, or is in its section, is dropped (it would
+    be about the default).
+    """
+    errors = exc.errors()
+    if not errors or any(not e["loc"] for e in errors):  # a whole-scenario problem already
+        return []
+    tags, removed = _tags(), []
+    for err in errors:
+        cut = _without(data, _data_path(err["loc"], tags))
+        if cut is not None:
+            data, key = cut
+            if err["type"] != "extra_forbidden":  # an unknown key changes no setting
+                removed.append(key)
+    try:
+        scenario_model().model_validate(data)
+    except ValidationError as again:
+        found = [e for e in again.errors() if not e["loc"] and e["type"] == "value_error"]
+        lines = [line for e in found
+                 for line in e["msg"].removeprefix("Value error, ").split("\n")]
+    except (PluginError, ValueError, TypeError):
+        return []
+    else:
+        return []
+    named = [re.compile(rf"(?<![\w.]){re.escape(k)}(?![\w])") for k in removed]
+    sections = {k.split(".")[0] for k in removed}
+    return [f"{source}: {line}" for line in lines
+            if not any(r.search(line) for r in named) and line.split(".")[0] not in sections]
 
 
 def attribute_to_sets(lines: list[str], source: str, overrides: list[str], on: bool
@@ -415,8 +555,10 @@ def attribute_to_sets(lines: list[str], source: str, overrides: list[str], on: b
         return lines
     keys, out = [(item.partition("=")[0].strip(), item) for item in overrides], []
     for line in lines:
-        key = line.removeprefix(f"{source}: ").partition(": ")[0]
-        hit = [item for k, item in keys if key == k or key.startswith((f"{k}.", f"{k}["))]
+        key, _, reason = line.removeprefix(f"{source}: ").partition(": ")
+        unknown = reason.startswith("unknown key")  # an unknown section the --set made
+        hit = [item for k, item in keys if key == k or key.startswith((f"{k}.", f"{k}["))
+               or (unknown and k.startswith(f"{key}."))]
         out.append(f"--set {hit[-1]}: " + line.removeprefix(f"{source}: ") if hit else line)
     return out
 

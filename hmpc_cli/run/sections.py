@@ -10,9 +10,22 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from hmpc_cli.core.settings_types import BoundedInt, FiniteFloat, LargeFloat
+from hmpc_cli.core.settings_types import BoundedInt, FiniteFloat, LargeFloat, StrictBool
 
-__all__ = ["DisturbanceSettings", "ReplanSettings", "SimSettings"]
+__all__ = ["DisturbanceSettings", "LatencyModelSettings", "ReplanSettings", "SimSettings"]
+
+
+class LatencyModelSettings(BaseModel):
+    """The deterministic latency model: a solve's charged compute time from its iterations.
+
+    Defaults fitted by ``benchmarks/calibrate_latency.py`` (its report:
+    ``results/bench/latency_model.md``); re-fit them for your machine.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    overhead: FiniteFloat = Field(0.0015, ge=0.0, description="per MPC solve [s]")
+    per_iteration: FiniteFloat = Field(0.0041, ge=0.0, description="per NLP iteration [s]")
+    planner: FiniteFloat = Field(0.01, ge=0.0, description="per planner call [s]")
 
 
 class SimSettings(BaseModel):
@@ -35,13 +48,24 @@ class SimSettings(BaseModel):
         "hold", description="after a reset inside a step: hold the step's input (the "
         "paper's ball) or let the controllers react at the event time and compute a new "
         "input for the rest of the step (needed when a reset relabels the inputs: biped)")
-    latency: Literal["paused", "measured"] | FiniteFloat = Field(
+    latency: Literal["paused", "measured", "model"] | FiniteFloat = Field(
         "paused", description="solve time charged to the simulation: 'paused' (simulated "
         "time stops while the controllers compute; the paper's runs), 'measured' (a plan "
         "reaches the plant its measured compute wall time [s] after the state it was "
-        "computed from: not reproducible) or a fixed delay [s]; until then the previous "
-        "plan is tracked, and a plan takes effect at the first simulator step at or after "
-        "t + latency")
+        "computed from: not reproducible), 'model' (a deterministic charge from the "
+        "solve's iterations, sim.latency_model) or a fixed delay [s]; until then the "
+        "previous plan is tracked, and a plan takes effect at the first simulator step at "
+        "or after t + latency")
+    latency_model: LatencyModelSettings = Field(
+        default_factory=lambda: LatencyModelSettings(),
+        description="sim.latency = 'model': the charged compute time of a solve")
+    solve_budget: FiniteFloat | None = Field(
+        None, gt=0.0, description="with a latency: a solve charged more than this [s] is "
+        "dropped at t + budget and the previous plan tracked on (None: no budget)")
+    delay_compensation: StrictBool = Field(
+        False, description="with a latency: solve from the state the model predicts (w = 0, "
+        "through its resets) at the step the plan will reach the plant, for the MPC "
+        "period's and impacts' solves (a replan's solves start from the measured state)")
 
     latency_first: Literal["charged", "paused"] = Field(
         "charged", description="with a latency: 'charged' (default) lets the first plan, too, "
@@ -53,11 +77,11 @@ class SimSettings(BaseModel):
     @field_validator("latency", mode="before")
     @classmethod
     def _latency(cls, v: Any) -> Any:
-        ok = v in ("paused", "measured") if isinstance(v, str) else (
+        ok = v in ("paused", "measured", "model") if isinstance(v, str) else (
             isinstance(v, int | float) and not isinstance(v, bool) and 0.0 <= v < 1e6)
         if not ok:
-            raise ValueError(f"expected 'paused', 'measured' or a delay in [0, 1e6) s, got "
-                             f"{v!r}")
+            raise ValueError(f"expected 'paused', 'measured', 'model' or a delay in [0, 1e6) "
+                             f"s, got {v!r}")
         return float(v) if not isinstance(v, str) else v
 
 

@@ -207,11 +207,13 @@ def _rewrite(line: str, scenario: Path, src: str, run: Run) -> str:
     """
     rest = line.removeprefix(f"{scenario}: ")
     key, sep, reason = rest.partition(": ")
-    hit = [k for k in run.overrides if key == k or key.startswith((f"{k}.", f"{k}["))]
+    unknown = reason.startswith("unknown key")  # an unknown section an override made
+    hit = [k for k in run.overrides if key == k or key.startswith((f"{k}.", f"{k}["))
+           or (unknown and k.startswith(f"{key}."))]
     if rest == line or not sep or not hit:
         return line
     where = run.origin[hit[-1]]
-    if reason == "unknown key":
+    if reason.startswith("unknown key"):
         return f"{src}: {_INDEX.sub('', where)}: {key}: {reason}"
     return f"{src}: {where}: {key}: {reason} (value {toml_value(run.overrides[hit[-1]])})"
 
@@ -271,7 +273,7 @@ def _read_spec(path: Path, src: str) -> tuple[str, SweepSpec]:
     try:
         return text, SweepSpec.model_validate(data)
     except ValidationError as exc:
-        raise ScenarioError(format_errors(exc, src)) from None
+        raise ScenarioError(format_errors(exc, src, SweepSpec)) from None
 
 
 def _expand(spec: SweepSpec, base: dict[str, Any], axes: list[Axis], src: str,

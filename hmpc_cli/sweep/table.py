@@ -78,10 +78,21 @@ def cell_text(v: Any) -> str:
     return dumps(v, sort_keys=True)  # strict JSON: non-finite numbers as null
 
 
+def grid_order(plan) -> list:
+    """The plan's runs in grid order: cells as the grid lists them, seeds ascending."""
+    cells: dict[tuple, int] = {}
+    for run in plan.runs:  # the plan expands the grid cell by cell
+        cells.setdefault(tuple(map(repr, run.cell)), len(cells))
+    return sorted(plan.runs, key=lambda r: (cells[tuple(map(repr, r.cell))], r.seed))
+
+
 def result_rows(plan, out: Path) -> list[dict[str, str]]:
-    """One row per finished run, sorted by run id (columns: :attr:`SweepPlan.columns`)."""
+    """One row per finished run, in grid order (:func:`grid_order`), however they finished.
+
+    Columns: :attr:`SweepPlan.columns`.
+    """
     rows = []
-    for run in sorted(plan.runs, key=lambda r: r.run_id):
+    for run in grid_order(plan):
         summary = finished(out, run)
         if summary is None:
             continue

@@ -1,0 +1,156 @@
+"""Real time: what the controllers' compute time costs the plant, and how the loop copes.
+
+:class:`Latency` charges each solve a delay before its plan reaches the plant:
+
+* ``paused``: none (simulated time stops while the controllers compute; the paper's runs);
+* ``fixed``: a constant delay L [s];
+* ``measured``: the measured wall time of the planner call it follows plus the MPC solve
+  (machine dependent: runs are not reproducible);
+* ``model``: ``overhead + per_iteration x iterations`` of the MPC solve, plus ``planner``
+  per planner call: a deterministic charge from a calibrated cost per iteration
+  (``benchmarks/calibrate_latency.py`` fits the two constants to measured solves).
+
+A ``budget`` [s] bounds a solve: a solve charged more is abandoned at t + budget, its
+plan dropped and the previous plan (time-indexed, hence shifted) tracked on.
+
+Delay compensation (:func:`predict`) solves from the state predicted at the time the
+plan will reach the plant: the model (never the true plant) flown with w = 0 through
+its resets under the plans the plant will track until then, on the simulator's grid.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from hmpc_cli.core.messages import OFF_SCHEDULE, GuardEvent, ModeSchedule, Plan
+
+__all__ = ["Latency", "Prediction", "advance", "predict"]
+
+GRID_TOL = 1e-9  #: a time within this of a simulator step [s] is on the grid
+
+
+@dataclass(frozen=True)
+class Latency:
+    """How a solve's compute time is charged to simulated time.
+
+    Attributes:
+        kind: ``paused``, ``fixed``, ``measured`` or ``model``.
+        delay: the fixed delay [s] (kind ``fixed``).
+        overhead: per MPC solve [s] (kind ``model``).
+        per_iteration: per NLP iteration [s] (kind ``model``).
+        planner: per planner call [s] (kind ``model``).
+        first: ``charged`` (the first plan waits its delay too) or ``paused``.
+        budget: a solve charged more than this [s] is dropped (None: no budget).
+        compensate: solve from the state predicted at the plan's arrival.
+    """
+
+    kind: str = "paused"
+    delay: float = 0.0
+    overhead: float = 0.0
+    per_iteration: float = 0.0
+    planner: float = 0.0
+    first: str = "charged"
+    budget: float | None = None
+    compensate: bool = False
+
+    @classmethod
+    def of(cls, latency: str | float, first: str = "charged", model=None,
+           budget: float | None = None, compensate: bool = False) -> Latency:
+        """From the scenario's ``sim.latency`` (a kind or a delay [s]) and its model."""
+        if not isinstance(latency, str):
+            return cls("fixed", float(latency), first=first, budget=budget,
+                       compensate=compensate)
+        m = model if latency == "model" else None
+        return cls(latency, overhead=m.overhead if m else 0.0,
+                   per_iteration=m.per_iteration if m else 0.0,
+                   planner=m.planner if m else 0.0, first=first, budget=budget,
+                   compensate=compensate)
+
+    def charged(self, reason: str) -> bool:
+        """Whether a solve for ``reason`` is charged (``initial`` may be paused)."""
+        return self.kind != "paused" and not (reason == "initial" and self.first == "paused")
+
+    def charge(self, iterations: int, solve_wall: float, planner_wall: float,
+               planned: bool) -> float:
+        """The delay [s] of one solve (and of the planner call it follows, if ``planned``)."""
+        if self.kind == "fixed":
+            return self.delay
+        if self.kind == "measured":
+            return planner_wall + solve_wall
+        if self.kind == "model":
+            return (self.planner if planned else 0.0) + self.overhead \
+                + self.per_iteration * max(int(iterations), 0)
+        return 0.0
+
+    def expected(self, last: float) -> float:
+        """The delay [s] a prediction assumes: the fixed delay, else the last one charged."""
+        return self.delay if self.kind == "fixed" else last
+
+    def over_budget(self, delay: float) -> bool:
+        """Whether a solve charged ``delay`` [s] is dropped."""
+        return self.budget is not None and delay > self.budget + GRID_TOL
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """The model's state at the time a plan will reach the plant.
+
+    Attributes:
+        t: that time [s], on the simulator's grid.
+        x: the predicted state (n,).
+        mode: the predicted mode.
+        events: the guard events predicted on the way, in time order.
+    """
+
+    t: float
+    x: np.ndarray
+    mode: int
+    events: tuple[GuardEvent, ...]
+
+
+def predict(plant, t: float, x: np.ndarray, mode: int, delay: float,
+            plan_at: Callable[[float], Plan | None]) -> Prediction | None:
+    """Flies ``plant`` (the model's plant: w = 0) from (t, x, mode) to the plan's arrival.
+
+    The arrival is the first simulator step at or after t + ``delay``, where the loop
+    adopts a plan; each step tracks ``plan_at(step time)`` as the loop would.
+
+    Args:
+        plant: a :class:`~hmpc_cli.run.plant.Plant` of the controllers' model, w = 0.
+        t: the solve time [s] (on the grid).
+        x: the state (n,) at t.
+        mode: the mode at t.
+        delay: the delay [s] the plan is expected to take.
+        plan_at: step time [s] -> the plan the plant tracks over that step.
+
+    Returns:
+        The prediction, or None when t is not on the grid (a solve at an event time
+        inside a step: nothing to predict on the grid from there).
+    """
+    h = plant.h
+    i0 = round(t / h)
+    if abs(i0 * h - t) > GRID_TOL:
+        return None
+    end = max(i0, math.ceil((t + delay) / h - GRID_TOL))
+    events: list[GuardEvent] = []
+    w = np.zeros(plant.model.n_w)
+    xs, m = np.array(x, dtype=float), int(mode)
+    for i in range(i0, end):
+        s = i * h
+        plan = plan_at(s)
+        u, _ = plant.command(s, xs, m, plan, h)
+        xs, m, _ = plant.step(s, xs, m, u, w, events.append, lambda p=plan: p)
+    return Prediction(end * h, xs, m, tuple(events))
+
+
+def advance(schedule: ModeSchedule, events: Sequence[GuardEvent]) -> ModeSchedule | None:
+    """``schedule`` after predicted ``events`` by the impact rule (None: off schedule)."""
+    for ev in events:
+        schedule, outcome = schedule.after_event(ev.guard, ev.mode_after)
+        if outcome == OFF_SCHEDULE:
+            return None
+    return schedule

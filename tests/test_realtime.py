@@ -1,0 +1,134 @@
+"""Real-time machinery: the latency model, the per-solve budget and delay compensation."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import hmpc_cli.run.loop as loop_module
+from hmpc_cli.analysis.replay import _settings_added_since, compare_logs
+from hmpc_cli.log.reader import LogMessage, read_log
+from hmpc_cli.log.recorder import Recorder
+from hmpc_cli.run.realtime import Latency
+from hmpc_cli.run.runner import prepare
+from hmpc_cli.run.scenario import load_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+BALL = ROOT / "scenarios" / "ball.toml"
+
+
+def _run(tmp_path, name, overrides, spy_predict=None):
+    """Runs the ball; returns the result, the log, the MPC's solve calls (t, x, mode, plan)
+    and the plant's state and tracked plan at each step (t -> (x, mode, plan))."""
+    sc, _ = load_scenario(BALL, overrides)
+    loop = prepare(sc)
+    solves, steps = [], {}
+    solve, command = loop.mpc.solve, loop.plant.command
+
+    def spy_solve(t, x, mode, *args, **kw):
+        plan = solve(t, x, mode, *args, **kw)
+        solves.append((t, np.array(x), mode, plan))
+        return plan
+
+    def spy_command(t, x, mode, plan, span):
+        steps.setdefault(round(t * 600), (np.array(x), mode, plan))
+        return command(t, x, mode, plan, span)
+
+    loop.mpc.solve, loop.plant.command = spy_solve, spy_command
+    rec = Recorder(tmp_path / f"{name}.mcap")
+    loop.log.rec = rec
+    try:
+        result = loop.run()
+    finally:
+        rec.close()
+    return result, tmp_path / f"{name}.mcap", solves, steps
+
+
+def test_the_latency_kinds_charge_what_they_say():
+    model = Latency("model", overhead=0.002, per_iteration=0.008, planner=0.01)
+    assert model.charge(12, 5.0, 7.0, planned=False) == pytest.approx(0.002 + 12 * 0.008)
+    assert model.charge(3, 5.0, 7.0, planned=True) == pytest.approx(0.01 + 0.002 + 0.024)
+    assert Latency("fixed", 0.02).charge(40, 5.0, 7.0, True) == 0.02
+    assert Latency("measured").charge(40, 0.05, 0.03, True) == pytest.approx(0.08)
+    assert Latency("paused").charge(40, 0.05, 0.03, True) == 0.0
+    assert not Latency("paused").charged("period")
+    assert not Latency("fixed", 0.02, first="paused").charged("initial")
+    assert Latency("fixed", 0.02, first="paused").charged("period")
+    budget = Latency("model", per_iteration=0.01, budget=0.05)
+    assert budget.over_budget(0.06) and not budget.over_budget(0.05)
+    assert Latency("fixed", 0.02).expected(0.3) == 0.02
+    assert Latency("model").expected(0.3) == 0.3
+
+
+def test_delay_compensation_solves_from_the_state_at_the_plans_arrival(tmp_path, monkeypatch):
+    """Undisturbed ball, 0.02 s charged: every compensated solve starts from exactly the
+    plant's state at the step its plan reaches the plant, a contact inside the delay
+    included (the prediction flies the same simulator through the reset)."""
+    predictions = []
+    real_predict = loop_module.predict
+
+    def spy(plant, t, x, mode, delay, plan_at):
+        pred = real_predict(plant, t, x, mode, delay, plan_at)
+        predictions.append((t, delay, pred))
+        return pred
+
+    monkeypatch.setattr(loop_module, "predict", spy)
+    res, _, solves, steps = _run(tmp_path, "comp", [
+        "sim.duration=1.5", "sim.latency=0.02", 'sim.latency_first="paused"',
+        "sim.delay_compensation=true", "mpc.rate_hz=20"])
+    assert not res.diverged, res.reason
+    made = [(t, p) for t, d, p in predictions if p is not None]
+    assert len(made) >= 10
+    for t, pred in made:
+        assert pred.t == pytest.approx(t + 0.02, abs=1e-9)  # 12 steps of 1/600 s
+        x_real, mode_real, _ = steps[round(pred.t * 600)]
+        assert np.array_equal(pred.x, x_real) and pred.mode == mode_real
+        solved = [s for s in solves if s[0] == pred.t]
+        assert solved and np.array_equal(solved[0][1], pred.x)
+    across = [pred for _, pred in made if pred.events]
+    assert across, "no prediction crossed a contact: the case is not exercised"
+
+
+def test_a_solve_over_its_budget_is_dropped_and_the_previous_plan_tracked_on(tmp_path):
+    res, log, solves, steps = _run(tmp_path, "budget", [
+        "sim.duration=1.0", 'sim.latency="model"', 'sim.latency_first="paused"',
+        "sim.latency_model.overhead=0.0", "sim.latency_model.per_iteration=0.01",
+        "sim.latency_model.planner=0.0", "sim.solve_budget=0.05"])
+    msgs = [m.data for m in read_log(log).messages if m.topic == "/mpc/solve"]
+    dropped = [m for m in msgs if "over budget" in m["reason"]]
+    kept = [m for m in msgs if "over budget" not in m["reason"]]
+    assert dropped and kept
+    assert all(m["iterations"] * 0.01 > 0.05 for m in dropped)
+    assert all(m["latency"] == pytest.approx(0.05) for m in dropped)
+    used = {id(p) for _, _, p in steps.values() if p is not None}
+    plans = {round(t, 9): plan for t, _, _, plan in solves}
+    for m in dropped:
+        assert id(plans[round(m["t"], 9)]) not in used  # never reached the plant
+        # the plant tracks the plan it had, over the budget's window
+        k0, k1 = round(m["t"] * 600), round((m["t"] + 0.05) * 600)
+        before = steps[k0][2]
+        assert all(steps[k][2] is before for k in range(k0, k1) if k in steps)
+    assert any("solve_budget" in w for w in res.warnings)
+
+
+def test_the_model_latency_is_deterministic(tmp_path):
+    args = ["sim.duration=1.0", 'sim.latency="model"', "sim.delay_compensation=true",
+            "sim.latency_model.overhead=0.002", "sim.latency_model.per_iteration=0.008"]
+    _, a, _, _ = _run(tmp_path, "a", args)
+    _, b, _, _ = _run(tmp_path, "b", args)
+    assert compare_logs(read_log(a).messages, read_log(b).messages) is None
+    charged = [m.data["latency"] for m in read_log(a).messages if m.topic == "/mpc/solve"]
+    iters = [m.data["iterations"] for m in read_log(a).messages if m.topic == "/mpc/solve"]
+    assert charged[1:] == pytest.approx([0.002 + 0.008 * k for k in iters[1:]])
+
+
+def test_verify_forgives_a_setting_added_since_the_run_and_nothing_else():
+    old = LogMessage("/run/info", 0.0, {"scenario_json": '{"sim": {"rate_hz": 600}}'}, 0)
+    added = '{"sim": {"rate_hz": 600, "delay_compensation": false}}'
+    new = LogMessage("/run/info", 0.0, {"scenario_json": added}, 0)
+    (same,) = _settings_added_since([old], [new])
+    assert same.data == old.data
+    changed = LogMessage("/run/info", 0.0, {"scenario_json":
+                                            '{"sim": {"rate_hz": 500, "new": 1}}'}, 0)
+    (kept,) = _settings_added_since([old], [changed])
+    assert kept.data == changed.data
