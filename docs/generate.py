@@ -316,8 +316,12 @@ Numbers are strict and finite: `true` or `"600"` is not a number (an integer is 
 float), NaN and ±inf are rejected, and no setting may exceed 1e9 in magnitude
 (`sim.divergence_bound` excepted). Work is bounded before anything is built: at most
 20 000 NLP nodes (`mpc.horizon` × `mpc.nodes_per_second`; walking: 2 × `nodes_per_swing`),
-1e7 simulator steps (`sim.duration` × `sim.rate_hz`), 1000 events per step, CEM rollout
-arrays within half the machine's RAM, 100 000 seeds and 20 000 runs per sweep. Checked
+20 000 links of the switching chain NLP (its nodes + `mpc.max_switches`), 1e7 simulator
+steps (`sim.duration` × `sim.rate_hz`), 1000 events per step, 1e9 CEM rollout steps per
+planner call (`planner.iterations` × (`planner.samples` + 1) × `planner.horizon` ×
+`planner.rollout_rate_hz`), CEM arrays within half the machine's RAM, 100 000 seeds and
+20 000 runs per sweep; a message names the keys and estimates the memory and time asked
+for. Tables and arrays nest at most 32 levels deep. Checked
 when the loop is built, still before any NLP (`hmpc_cli/run/setup_checks.py`): input
 margins (`mpc.input_margin`, `mpc.torque_margin`, a margins file) must leave every input
 box non-empty, and IPOPT options are tried once on a tiny NLP (an unavailable
@@ -337,13 +341,13 @@ counts also freeze the planned contact times; the reference kept each domain's p
 duration and spread its node count over it (node step = duration / count), which hmpc does
 not reproduce.
 
-Bad input (missing or empty file, TOML syntax, wrong type, unknown key, unknown system,
-non-finite, out-of-range or non-commensurate numbers, settings that contradict each other)
-prints one `source: key.path: reason` line per problem, all problems at once (field and
-cross-field problems together), and exits with code 2 before anything is written. An
-unknown key names the closest known key of its level: `mpc.rate: unknown key (did you
-mean 'rate_hz'?)`. The source is the scenario file, `--set key=value`
-for an overridden key, or the sweep file and its entry
+Bad input (missing, unreadable or empty file, a directory, TOML syntax, wrong type,
+unknown key, unknown system, non-finite, out-of-range or non-commensurate numbers,
+settings that contradict each other) prints one `source: key.path: reason` line per
+problem, all problems at once (field and cross-field problems together), and exits with
+code 2 before anything is written. An unknown key names the closest known key of its
+level: `mpc.rate: unknown key (did you mean 'rate_hz'?)`. The source is the scenario
+file, `--set key=value` for an overridden key, or the sweep file and its entry
 (`sweep.toml: grid.axis[i]: key: ...`).
 
 Columns below: *unit* is taken from the description's brackets, *bounds* from the model's
@@ -375,7 +379,9 @@ SET_SYNTAX = """
 `hmpc_cli.run.scenario.apply_overrides`). The key is the dotted path of the table above
 (`mpc.rate_hz`, `system.circle_radius`); a missing table on the way is created. The value
 is parsed as a TOML value (`tomllib.loads("v = " + value)`), and when that fails it is
-taken as a string:
+taken as a string. An inline table is merged into the table already there, key by key
+and table by table: `--set 'mpc={rate_hz=20}'` is `--set mpc.rate_hz=20` (the other
+`[mpc]` keys keep their values); any other value replaces what was there:
 
 | on the command line (after the shell) | value |
 |---|---|
@@ -389,8 +395,13 @@ taken as a string:
 
 So a value that looks like a TOML number, boolean, array or inline table becomes one: to
 get a string that looks like a number, quote it in TOML. A problem with an overridden key
-is reported as `--set key=value: key.path: reason`. The effective scenario (after `--set`
-and `--seed`) is written as the run's `scenario.toml` and into the log's `/run/info`.
+is reported as `--set key=value: key.path: reason`, and so is a problem whose message names
+the overridden key (`--set sim.rate_hz=7: mpc.rate_hz: 10 must divide sim.rate_hz = 7`)
+or, for a table-level problem, its last part (`--set planner.kind=x: planner: Input tag
+'x' ...`); a `--set` that cannot be applied (no `=`, a key through a value that is not a
+table, nesting deeper than 32 levels) is reported as `--set 'item': reason`. The
+effective scenario (after `--set` and `--seed`) is written as the run's `scenario.toml`
+and into the log's `/run/info`.
 Shell completion of keys: `hmpc --install-completion`.
 """
 

@@ -104,3 +104,21 @@ def run_loop(scenario, path: Path):
         return loop.run()
     finally:
         rec.close()
+
+
+def write_finished_log(run_dir: Path, summary: dict | None = None) -> Path:
+    """A minimal complete run log (/run/summary only) in ``run_dir``: what a sweep's resume
+    requires of a finished run besides summary.json (hmpc_cli.sweep.table.finished_in)."""
+    import json
+
+    from mcap.writer import Writer
+
+    path = Path(run_dir) / "run.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(profile="", library="test")
+        sid = w.register_schema("Summary", "jsonschema", b"{}")
+        cid = w.register_channel("/run/summary", "json", sid)
+        w.add_message(cid, 0, json.dumps(summary or {"success": True}).encode(), 0)
+        w.finish()
+    return path

@@ -110,7 +110,7 @@ def test_a_margins_file_that_does_not_fit_exits_2(case: str, ball_file: Path, tm
     res = CliRunner().invoke(app, ["run", str(BALL), "--out", str(out), "--set",
                                    f'mpc.margins="{f}"', *SHORT])
     assert res.exit_code == 2, res.output
-    assert f"error: {BALL}: mpc.margins: " in res.output
+    assert f"error: --set mpc.margins=\"{f}\": mpc.margins: " in res.output  # the --set's file
     assert {"system": "system 'biped', not 'ball'", "params": "other ball parameters",
             "rate": "no margins for mpc.rate_hz = 10", "missing": "file not found"}[case] \
         in " ".join(res.output.split())

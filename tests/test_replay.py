@@ -235,7 +235,7 @@ def test_truncated_file(ball, tmp_path, where) -> None:
     path = tmp_path / "cut.mcap"
     path.write_bytes(data[:cut])
     if cut == 0:
-        assert _error_line(replay(path)) == f"error: {path}: empty file"
+        assert _error_line(replay(path)).startswith(f"error: {path}: empty file")
         return
     log = read_log(path)
     assert where not in ("after-chunk-1", "last-10") or log.messages
@@ -290,8 +290,8 @@ def test_bad_files(ball, tmp_path) -> None:
              tmp_path / "dir": "a directory without run.mcap",
              empty: "empty file", noise: "not an MCAP file",
              foreign: "not an hmpc run log (no /run/info; its topics: /camera)"}
-    for path, what in cases.items():
-        assert _error_line(replay(path)) == f"error: {path}: {what}"
+    for path, what in cases.items():  # an empty file: "empty file: the run was stopped ..."
+        assert _error_line(replay(path)).startswith(f"error: {path}: {what}")
 
 
 def test_bad_file_in_a_real_process(run_hmpc, tmp_path) -> None:

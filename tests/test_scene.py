@@ -129,16 +129,22 @@ def test_plan_line_has_a_vertex_per_node(ball):
     for ns, e in plans:
         x_plan = np.array([[n[k] for k in ("px", "py", "vx", "vy")]
                            for n in solves[ns]["plan"]])
-        (line,) = e.lines
-        pts = np.array([xyz(p) for p in line.points])
-        assert pts.shape == (len(x_plan), 3)
-        assert pts[:, [0, 2]] == pytest.approx(x_plan[:, 0:2], abs=1e-12)
+        segs = [n["seg"] for n in solves[ns]["plan"]]
+        runs = [k for k in np.split(np.arange(len(segs)),
+                                    np.flatnonzero(np.diff(segs)) + 1) if len(k) >= 2]
+        assert len(e.lines) == len(runs)  # one strip per domain segment: broken at resets
+        for line, nodes in zip(e.lines, runs, strict=True):
+            pts = np.array([xyz(p) for p in line.points])
+            assert pts.shape == (len(nodes), 3)
+            assert pts[:, [0, 2]] == pytest.approx(x_plan[nodes, 0:2], abs=1e-12)
         spheres = tubes[ns].spheres
         assert len(spheres) == min(len(x_plan), TUBE_SPHERES)
         assert all(s.size.x == pytest.approx(2 * radius) for s in spheres)
     (rollout,) = entities(log, "rollout")
     (call,) = log.topic("/planner/plan")
-    assert len(rollout[1].lines[0].points) == len(call.data["rollout"])
+    # one strip per domain segment of the rollout (segments of one node draw nothing)
+    sizes = [len(line.points) for line in rollout[1].lines]
+    assert sizes and min(sizes) >= 2 and sum(sizes) <= len(call.data["rollout"])
 
 
 def test_biped_links_join_the_logged_points_world(biped):
@@ -172,8 +178,11 @@ def test_biped_stairs_and_plans(biped):
     plans = entities(log, "plan")
     assert plans and len(plans) == len(solves)
     for ns, e in plans:
-        assert len(e.lines) == 2  # hip and swing foot
-        assert {len(line.points) for line in e.lines} == {len(solves[ns]["plan"])}
+        # hip and swing foot, each broken at the reset: one strip per swing (domain segment)
+        segs = [n["seg"] for n in solves[ns]["plan"]]
+        per_seg = sorted(segs.count(s) for s in set(segs) if segs.count(s) >= 2)
+        assert len(e.lines) == 2 * len(per_seg)
+        assert sorted(len(line.points) for line in e.lines) == sorted(per_seg * 2)
 
 
 def test_truncated_log_reads_both_encodings_front_to_back(ball, tmp_path):

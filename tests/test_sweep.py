@@ -326,12 +326,17 @@ def test_a_run_of_an_older_hmpc_stays_finished_unless_a_value_changed(tmp_path):
     run.mkdir()
     (run / "summary.json").write_text('{"success": true, "reason": "success"}')
     (run / "scenario.toml").write_text(older)
+    from conftest import write_finished_log
+
+    write_finished_log(run)
     assert finished_in(run, text) == {"success": True, "reason": "success"}
     (run / "scenario.toml").write_text(changed)
     assert finished_in(run, text) is None
 
 
 def test_results_rows_are_in_grid_order_not_completion_order(tmp_path):
+    from conftest import write_finished_log
+
     from hmpc_cli.sweep.table import write_results
 
     path = write_sweep(tmp_path, 'name = "order"\nscenario = "{scenario}"\nseeds = [2, 0, 1]\n'
@@ -344,6 +349,7 @@ def test_results_rows_are_in_grid_order_not_completion_order(tmp_path):
         d.mkdir(parents=True)
         (d / "scenario.toml").write_text(run.toml, encoding="utf-8")
         (d / "summary.json").write_text(json.dumps({"success": True, "reason": ""}))
+        write_finished_log(d)
         time.sleep(0.001)
     assert write_results(plan, out) == 12
     rows = table(out)

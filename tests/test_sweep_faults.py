@@ -117,7 +117,10 @@ def test_sigterm_stops_the_sweep_and_resume_redoes_interrupted_runs(tmp_path):
 def test_interrupted_summary_is_never_kept_as_finished(tmp_path):
     from hmpc_cli.sweep.table import finished_in
 
+    from conftest import write_finished_log
+
     (tmp_path / "scenario.toml").write_text("x")
+    write_finished_log(tmp_path)
     for reason, kept in [("interrupted", False), ("interrupted (SIGTERM)", False),
                          ("interrupted (SIGHUP)", False), ("diverged", True)]:
         (tmp_path / "summary.json").write_text(json.dumps({"reason": reason}))

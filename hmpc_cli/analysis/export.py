@@ -164,16 +164,19 @@ def write_export(out: Path, messages: list, info: dict, fmt: str = "csv") -> lis
     Raises:
         ExportError: unknown format, pyarrow missing for Parquet, or ``out`` unwritable.
     """
+    from hmpc_cli.core.paths import atomic_file, write_atomic
+
     check_format(fmt)
     try:
         out.mkdir(parents=True, exist_ok=True)
         written = []
         for name, rows in tables(messages).items():
             path = out / f"{name}.{fmt}"
-            (_write_csv if fmt == "csv" else _write_parquet)(path, rows)
+            with atomic_file(path) as tmp:  # whole or not at all (a full disk)
+                (_write_csv if fmt == "csv" else _write_parquet)(tmp, rows)
             written.append(path)
         path = out / "info.json"
-        path.write_text(dumps(info, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+        write_atomic(path, dumps(info, indent=2, ensure_ascii=False) + "\n")
         written.append(path)
     except OSError as exc:
         raise ExportError(f"{out}: cannot write ({exc.strerror or exc})") from None

@@ -126,7 +126,7 @@ def resolve_log_path(path: Path) -> Path:
     if not path.is_file():
         raise ReplayError("not a regular file")
     if path.stat().st_size == 0:
-        raise ReplayError("empty file")
+        raise ReplayError("empty file: the run was stopped before anything was logged")
     return path
 
 
@@ -148,8 +148,11 @@ def load_replay(path: Path) -> Replay:
     except OSError as exc:
         raise ReplayError(f"cannot read ({exc.strerror or exc})") from None
     if not log.messages:
-        why = log.damage or "the file ends before its first complete chunk"
-        raise ReplayError(f"no message could be read: {why}")
+        if log.damage:
+            raise ReplayError(f"damaged log: no message could be read: {log.damage}")
+        raise ReplayError("no message could be read: the run was stopped before anything "
+                          f"was logged ({path.stat().st_size} bytes: "
+                          + ("closed with no message)" if log.complete else "its header only)"))
     infos = log.topic("/run/info")
     if not infos:
         topics = sorted({m.topic for m in log.messages})
@@ -161,10 +164,21 @@ def load_replay(path: Path) -> Replay:
     text = log.attachments.get("scenario.toml")
     try:
         text = text.decode("utf-8") if text is not None else None
-    except UnicodeDecodeError:
+    except (UnicodeDecodeError, AttributeError):
         text = None
     return Replay(path, log, infos[0].data, summaries[-1].data if summaries else None, text,
                   max(m.t for m in log.messages))
+
+
+def guarded(path: Path, what: str = ""):
+    """A guard that reports wrongly typed content of the log at ``path`` as damage.
+
+    (:func:`hmpc_cli.log.damage.reading`): the timeline, tables, export and comparison
+    read the messages as generic JSON; a foreign or damaged log's odd types end there.
+    """
+    from hmpc_cli.log.damage import reading
+
+    return reading(path, what)
 
 
 def resolve_topics(names: list[str], present: list[str]) -> list[str]:
@@ -443,8 +457,9 @@ def verify(replay: Replay, workdir: Path) -> tuple[Divergence | None, int, int]:
     execute_run(loop, text, workdir / "rerun")
     rerun = read_log(workdir / "rerun" / "run.mcap").messages
     recorded = replay.log.messages
-    rerun = _settings_added_since(recorded, rerun)
-    div = compare_logs(recorded, rerun, prefix_only=not replay.complete)
+    with guarded(replay.path, "comparing it with the re-run"):
+        rerun = _settings_added_since(recorded, rerun)
+        div = compare_logs(recorded, rerun, prefix_only=not replay.complete)
     return div, len(recorded), len({m.topic for m in recorded})
 
 

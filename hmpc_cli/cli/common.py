@@ -14,8 +14,9 @@ from typing import Annotated
 
 import typer
 
-__all__ = ["EXIT_INTERNAL", "VERBOSITY", "complete_figure", "complete_set_key",
-           "internal_error", "is_quiet", "print_version", "with_verbosity"]
+__all__ = ["EXIT_BAD_INPUT", "EXIT_INTERNAL", "VERBOSITY", "checked_output",
+           "complete_figure", "complete_set_key", "environment_error", "internal_error",
+           "is_quiet", "print_version", "with_verbosity"]
 
 #: -1 quiet, 0 default, 1 and more verbose; set by every command's -q/-v
 VERBOSITY = [0]
@@ -55,7 +56,10 @@ def _one_line_warning(message, category, filename, lineno, line=None) -> str:
 def with_verbosity(fn):
     """``fn`` as a Typer command that also takes -q/--quiet and -v/--verbose.
 
-    A command that declares ``quiet`` or ``verbose`` itself receives them as well.
+    A command that declares ``quiet`` or ``verbose`` itself receives them as well. Every
+    command stops on SIGINT, SIGTERM and SIGHUP (:func:`hmpc_cli.core.signals.handle_signals`)
+    with one ``interrupted (SIGTERM)`` line on stderr and exit code 128 + the signal
+    number; long computations also poll :func:`hmpc_cli.core.signals.check`.
     """
     sig = inspect.signature(fn, eval_str=True)
     own = set(sig.parameters)
@@ -70,8 +74,11 @@ def with_verbosity(fn):
         quiet = kwargs["quiet"] if "quiet" in own else kwargs.pop("quiet", False)
         verbose = kwargs["verbose"] if "verbose" in own else kwargs.pop("verbose", 0)
         set_verbosity(bool(quiet), int(verbose or 0))
+        from hmpc_cli.core.signals import handle_signals
+
         try:
-            return fn(*args, **kwargs)
+            with handle_signals():  # SIGTERM, SIGHUP like Ctrl-C: exit 128 + signal, one line
+                return fn(*args, **kwargs)
         except (typer.Exit, typer.Abort, typer.BadParameter):
             raise
         except KeyboardInterrupt as exc:  # Ctrl-C in any command: 128 + signal, one line
@@ -84,6 +91,7 @@ def with_verbosity(fn):
         except Exception as exc:  # a bug, not bad input: one line, exit 1, trace with -v
             if _is_cli_exception(exc):
                 raise
+            environment_error(exc)
             internal_error(exc)
 
     params = [*sig.parameters.values(), *extra]
@@ -99,6 +107,30 @@ EXIT_INTERNAL = 1
 def _is_cli_exception(exc: BaseException) -> bool:
     """Whether ``exc`` is the command-line framework's own (usage errors and exits)."""
     return any(cls.__name__ == "ClickException" for cls in type(exc).__mro__)
+
+
+def environment_error(exc: BaseException) -> None:
+    """Exits 2 with one line when ``exc`` is bad input or environment, not a bug.
+
+    An unusable output path (:class:`hmpc_cli.core.paths.OutputPathError`), a damaged or
+    foreign log (:class:`hmpc_cli.log.damage.DamagedLogError`) or a full or read-only disk
+    (:data:`hmpc_cli.core.paths.DISK_ERRNOS`) wherever a command meets it; else returns.
+    """
+    from hmpc_cli.core.paths import OutputPathError, disk_error, disk_error_text
+    from hmpc_cli.log.damage import DamagedLogError
+
+    if isinstance(exc, (OutputPathError, DamagedLogError)):
+        line = " ".join(str(exc).split())
+    elif disk_error(exc):
+        line = f"cannot write: {disk_error_text(exc)}"
+    else:
+        return
+    typer.echo(f"error: {line}", err=True)
+    raise typer.Exit(EXIT_BAD_INPUT) from None
+
+
+#: exit code of bad input or environment
+EXIT_BAD_INPUT = 2
 
 
 def internal_error(exc: BaseException) -> None:
@@ -176,3 +208,17 @@ def complete_set_key(incomplete: str) -> list[str]:
     except Exception:  # completion must never fail loudly
         return []
     return [f"{k}=" for k in keys if k.startswith(incomplete)]
+
+
+def checked_output(path, option: str, kind: str = "dir"):
+    """``path`` if it can take the output (:func:`hmpc_cli.core.paths.output_problem`).
+
+    Otherwise prints ``error: <option> <path>: <problem>`` and exits 2, nothing written.
+    """
+    from hmpc_cli.core.paths import OutputPathError, check_output
+
+    try:
+        return check_output(path, option, kind)
+    except OutputPathError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(EXIT_BAD_INPUT) from None

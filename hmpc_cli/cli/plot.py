@@ -7,7 +7,8 @@ from typing import Annotated
 
 import typer
 
-from hmpc_cli.cli.common import complete_figure, is_quiet
+from hmpc_cli.cli.common import checked_output, complete_figure, is_quiet
+from hmpc_cli.core.paths import path_option
 
 __all__ = ["plot_command"]
 
@@ -59,7 +60,8 @@ def _fig3(table: Path, out: Path | None, formats: str, options: dict) -> None:
     from hmpc_cli.figures.common import parse_formats
     from hmpc_cli.figures.fig3 import REFERENCE_COUNTS, fig3
 
-    out_dir = out if out is not None else resolve_table(table).parent
+    out_dir = out if out is not None else checked_output(resolve_table(table).parent,
+                                                         "output directory")
     try:
         counts = fig3(table, out_dir, formats, **options)
     except FigureInputError as exc:
@@ -81,7 +83,7 @@ def _fig4(log: Path, out: Path | None, formats: str, every: float, gif: bool,
     from hmpc_cli.analysis.tables import resolve_run_log
 
     log = resolve_run_log(log)
-    out_dir = out if out is not None else log.parent
+    out_dir = out if out is not None else checked_output(log.parent, "output directory")
     try:
         walk = fig4(log, out_dir, formats, every=every, width=width, height=height)
         if gif:
@@ -110,7 +112,8 @@ def _fig2(log: Path, out: Path | None, formats: str, options: dict) -> None:
     size = {k: options.pop(k) for k in ("width", "height", "dpi") if k in options}
     try:
         check_request(formats, size["width"], size["height"])
-        out_dir = out if out is not None else resolve_run_log(log).parent
+        out_dir = out if out is not None else checked_output(resolve_run_log(log).parent,
+                                                             "output directory")
         geo = pass_through_geometry(log, **options)
         fig2(geo, out_dir, formats, **size)
     except (FigureInputError, PassThroughError) as exc:
@@ -140,7 +143,8 @@ def _robustness(table: Path, out: Path | None, formats: str, options: dict) -> N
     from hmpc_cli.figures.common import parse_formats
     from hmpc_cli.figures.robustness import robustness
 
-    out_dir = out if out is not None else resolve_table(table).parent
+    out_dir = out if out is not None else checked_output(resolve_table(table).parent,
+                                                         "output directory")
     try:
         data = robustness(table, out_dir, formats, **options)
     except FigureInputError as exc:
@@ -168,7 +172,8 @@ def plot_command(
         "it); fig2: a run log, fig4: a biped run log (run.mcap, or the run directory "
         "holding it)")],
     out: Annotated[Path | None, typer.Option(
-        "--out", help="output directory (default: the table's directory)")] = None,
+        "--out", help="output directory (default: the table's directory)",
+        parser=path_option)] = None,
     formats: Annotated[str, typer.Option(
         "--formats", help="comma-separated output formats: pdf,svg,png")] = "pdf,svg,png",
     panel_axis: Annotated[str | None, typer.Option(
@@ -207,6 +212,8 @@ def plot_command(
     ] = False,
 ) -> None:
     """Draw a paper figure from recorded runs (a sweep table and the logs it points to)."""
+    if out is not None:  # before any input is read: a bad path writes nothing
+        checked_output(out, "--out")
     _draw(figure, table, out, formats, dict(
         panel_axis=panel_axis, x_axis=x_axis, series_axis=series_axis, trace_axis=trace_axis,
         nominal=nominal, panels=panels, width=width, height=height, view=view, every=every,
@@ -214,6 +221,17 @@ def plot_command(
 
 
 def _draw(figure: str, table: Path, out: Path | None, formats: str, o: dict) -> None:
+    """Dispatches ``hmpc plot FIGURE``; a damaged or foreign log is reported as such."""
+    from hmpc_cli.log.damage import DamagedLogError, reading
+
+    try:
+        with reading(table):
+            _dispatch(figure, table, out, formats, o)
+    except DamagedLogError as exc:
+        _fail(str(exc))
+
+
+def _dispatch(figure: str, table: Path, out: Path | None, formats: str, o: dict) -> None:
     """Dispatches ``hmpc plot FIGURE`` with the command's options ``o`` (by name)."""
     from hmpc_cli.figures import FIGURES
 

@@ -13,6 +13,8 @@ from typing import Annotated, Any
 
 import typer
 
+from hmpc_cli.core.paths import path_option
+
 __all__ = ["replay_command"]
 
 EXIT_BAD_INPUT = 2
@@ -219,7 +221,7 @@ def replay_command(
         "summarised in one row)")] = False,
     export: Annotated[Path | None, typer.Option(
         "--export", metavar="DIR", help="write one table per topic (after the filters) "
-        "and info.json into this directory")] = None,
+        "and info.json into this directory", parser=path_option)] = None,
     fmt: Annotated[str, typer.Option(
         "--format", metavar="FORMAT",
         help="export format: csv, or parquet (needs pyarrow)")] = "csv",
@@ -229,18 +231,36 @@ def replay_command(
     figures: Annotated[Path | None, typer.Option(
         "--figures", metavar="DIR", help="re-render the run's figures (those its system "
         "supports) and an animation of its logged scene (scene.gif; scene.mp4 with "
-        "ffmpeg) into this directory")] = None,
+        "ffmpeg) into this directory", parser=path_option)] = None,
 ) -> None:
     """Replay a recorded run: identity, summary, timeline; filter, export, verify."""
-    from rich.console import Console
+    from hmpc_cli.analysis.replay import ReplayError, load_replay, resolve_topics
+    from hmpc_cli.core.paths import OutputPathError, check_output
+    from hmpc_cli.log.damage import DamagedLogError
 
-    from hmpc_cli.analysis.replay import ReplayError, load_replay, resolve_topics, select
-
+    try:  # the outputs first: a bad path writes nothing and reads nothing
+        for option, where in (("--export", export), ("--figures", figures)):
+            if where is not None:
+                check_output(where, option)
+    except OutputPathError as exc:
+        _fail([str(exc)])
     try:
         rp = load_replay(log)
         topics = resolve_topics(topic or [], [m.topic for m in rp.log.messages])
     except ReplayError as exc:
         _fail([f"{log}: {exc}"])
+    try:
+        _replay(rp, topics, t_from, t_to, show_all, export, fmt, check, figures)
+    except DamagedLogError as exc:
+        _fail([str(exc)])
+
+
+def _replay(rp, topics, t_from, t_to, show_all, export, fmt, check, figures) -> None:
+    """The body of ``hmpc replay`` for a loaded log (its odd content reported as damage)."""
+    from rich.console import Console
+
+    from hmpc_cli.analysis.replay import guarded, select
+
     if export is not None:
         from hmpc_cli.analysis.export import ExportError, check_format
 
@@ -258,14 +278,15 @@ def replay_command(
 
     quiet = is_quiet()
     console = Console()
-    if not quiet:
-        _print_report(console, rp, selected, show_all, window)
-    elif export is None and figures is None and not check:  # the summary is the result
-        console.print(_summary_table(rp.summary) if rp.summary is not None
-                      else "no summary (the run did not finish)")
-    if export is not None:
-        _export(console, rp, selected, export, fmt.lower(),
-                {"from": t_from, "to": t_to, "topics": topics or "all"})
+    with guarded(rp.path):
+        if not quiet:
+            _print_report(console, rp, selected, show_all, window)
+        elif export is None and figures is None and not check:  # the summary is the result
+            console.print(_summary_table(rp.summary) if rp.summary is not None
+                          else "no summary (the run did not finish)")
+        if export is not None:
+            _export(console, rp, selected, export, fmt.lower(),
+                    {"from": t_from, "to": t_to, "topics": topics or "all"})
     if figures is not None:
         _figures(console, rp, figures)
     if check:

@@ -7,6 +7,8 @@ from typing import Annotated
 
 import typer
 
+from hmpc_cli.core.paths import path_option
+
 EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
@@ -19,7 +21,8 @@ ROBUSTNESS = (Path("sweeps/robustness.toml"), Path("sweeps/robustness_moved.toml
 
 def report_command(
     results: Annotated[Path, typer.Option(
-        "--results", help="results directory (page: <results>/README.md)")] = Path("results"),
+        "--results", help="results directory (page: <results>/README.md)",
+        parser=path_option)] = Path("results"),
     fig3: Annotated[Path | None, typer.Option(
         "--fig3", help="Figure 3 sweep file ('' to leave out)")] = Path("sweeps/fig3.toml"),
     fig3_extra: Annotated[Path | None, typer.Option(
@@ -60,6 +63,9 @@ def report_command(
     Each sweep option takes a sweep file (its runs: <results>/sweeps/<name>) or a sweep's
     output directory (read as it is, never run).
     """
+    from hmpc_cli.cli.common import checked_output
+
+    checked_output(results, "--results")  # before anything is read, run or written
     plans, dirs = _sweeps(results, seeds, biped, fig3=fig3, fig3_extra=fig3_extra,
                           fig3_reference=fig3_reference,
                           fig3_reference_extra=fig3_reference_extra,

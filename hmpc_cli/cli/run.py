@@ -11,6 +11,7 @@ from typing import Annotated
 import typer
 
 from hmpc_cli.cli.common import complete_set_key
+from hmpc_cli.core.paths import path_option
 
 __all__ = ["run_command"]
 
@@ -26,7 +27,8 @@ def _err(lines: list[str]) -> None:
 def run_command(
     scenario: Annotated[Path, typer.Argument(help="scenario TOML file")],
     out: Annotated[Path | None, typer.Option(
-        "--out", help="run directory (default results/<scenario>/<time>-seed<N>)")] = None,
+        "--out", help="run directory (default results/<scenario>/<time>-seed<N>)",
+        parser=path_option)] = None,
     set_: Annotated[list[str] | None, typer.Option(
         "--set", help="override a setting: key.path=value (repeatable)",
         autocompletion=complete_set_key)] = None,
@@ -78,7 +80,10 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
     check = out if out is not None else Path("results") / sc.name / "run"
     problem = out_problem(check)  # before the solvers are built
     if problem is not None:
-        _err([f"{check if out is not None else check.parent}: {problem}"])
+        from hmpc_cli.core.paths import EmptyPath
+
+        shown = '""' if isinstance(out, EmptyPath) else out
+        _err([f"{shown}: {problem}" if out is not None else f"{check.parent}: {problem}"])
         raise typer.Exit(EXIT_BAD_INPUT)
     try:
         loop = prepare(sc)
@@ -88,12 +93,17 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
         _err(attribute_to_sets([f"{scenario}: {line}" for line in str(exc).splitlines()],
                                str(scenario), sets, True))
         raise typer.Exit(EXIT_BAD_INPUT) from None
-    out = _run_dir(out, sc)
+    sink = _live_sink(live_port) if live else None  # before the run directory is made
+    try:
+        out = _run_dir(out, sc)
+    except BaseException:
+        if sink is not None:
+            sink.close()
+        raise
     from hmpc_cli.log.runlog import Provenance
 
     loop.log.provenance = Provenance(overrides=tuple(
         [*sets, *([f"seed={seed}"] if seed is not None else [])]))
-    sink = _live_sink(live_port) if live else None
     try:
         result = _execute(loop, sc, toml_text, out, quiet, sink)
     finally:
@@ -115,11 +125,14 @@ def _run_dir(out: Path | None, sc) -> Path:
     The default ``results/<scenario>/<UTC time>-seed<N>`` is created atomically; a
     directory of the same name (two runs in one second) gets a suffix ``-2``, ``-3``...
     """
+    from hmpc_cli.run.runner import RunDirTakenError, claim_run_dir
+
     if out is not None:
-        if (out / "run.mcap").exists():
-            _err([f"{out}: already holds a run (choose another --out)"])
-            raise typer.Exit(EXIT_BAD_INPUT)
-        return out
+        try:  # exclusively: two runs into one --out never share it
+            return claim_run_dir(out)
+        except RunDirTakenError as exc:
+            _err([str(exc)])
+            raise typer.Exit(EXIT_BAD_INPUT) from None
     stamp = datetime.now(UTC).strftime("%Y%m%d-%H%M%S")
     base = Path("results") / sc.name / f"{stamp}-seed{sc.seed}"
     base.parent.mkdir(parents=True, exist_ok=True)

@@ -12,6 +12,13 @@ EXIT_FAILED = 1
 EXIT_INTERRUPTED = 130
 
 
+def path_option(value: str) -> Path:
+    """``--out``'s parser: :func:`hmpc_cli.core.paths.path_option` ('' refused later)."""
+    from hmpc_cli.core.paths import path_option as parse
+
+    return parse(value)
+
+
 def _err(lines: list[str]) -> None:
     for line in lines:
         typer.echo(f"error: {line}", err=True)
@@ -23,7 +30,8 @@ def sweep_command(
         "--workers", min=1, help="worker processes (default: all cores; 1 = in-process)")
     ] = None,
     out: Annotated[Path | None, typer.Option(
-        "--out", help="output directory (default results/sweeps/<name>)")] = None,
+        "--out", help="output directory (default results/sweeps/<name>)",
+        parser=path_option)] = None,
     dask: Annotated[str | None, typer.Option(
         "--dask", help="run on a Dask cluster: scheduler address, e.g. tcp://host:8786")
     ] = None,
@@ -57,6 +65,7 @@ def sweep_command(
             raise typer.Exit(EXIT_BAD_INPUT) from None
     out = out if out is not None else Path("results") / "sweeps" / plan.spec.name
     try:
+        _check_out(out, plan)
         outcome = _locked_execute(plan, out, workers or os.cpu_count() or 1, client)
     finally:
         if client is not None:
@@ -76,11 +85,25 @@ def sweep_command(
         raise typer.Exit(EXIT_FAILED)
 
 
+def _check_out(out: Path, plan) -> None:
+    """Exits 2 (nothing written) when ``out`` cannot take the sweep or is another's."""
+    from hmpc_cli.cli.common import checked_output
+    from hmpc_cli.sweep.lock import owner_problem
+
+    checked_output(out, "--out")
+    problem = owner_problem(out, plan.spec.name)
+    if problem is not None:
+        _err([f"--out {out}: {problem}"])
+        raise typer.Exit(EXIT_BAD_INPUT)
+
+
 def _locked_execute(plan, out: Path, workers: int, client):
     """:func:`_execute` holding the output directory's lock, stop signals handled.
 
-    Exits 2 when another sweep writes to ``out``.
+    Exits 2 when another sweep writes to ``out``, or when the disk fills up (the line
+    says how many runs were kept: finished runs stay, the rest resume later).
     """
+    from hmpc_cli.core.paths import disk_error, disk_error_text
     from hmpc_cli.core.signals import handle_signals
     from hmpc_cli.sweep.lock import SweepLockedError, output_lock
 
@@ -90,6 +113,22 @@ def _locked_execute(plan, out: Path, workers: int, client):
     except SweepLockedError as exc:
         _err([str(exc)])
         raise typer.Exit(EXIT_BAD_INPUT) from None
+    except OSError as exc:
+        if not disk_error(exc):
+            raise
+        kept = sum(cell[1] for cell in _safe_stats(plan, out))
+        _err([f"cannot write: {disk_error_text(exc)}; {kept} of {len(plan.runs)} runs kept "
+              f"in {out} (finished runs stay; free space and run the same command to "
+              "resume)"])
+        raise typer.Exit(EXIT_BAD_INPUT) from None
+
+
+def _safe_stats(plan, out: Path) -> list:
+    """:func:`cell_stats`, or none when even reading fails."""
+    try:
+        return cell_stats(plan, out)
+    except OSError:
+        return []
 
 
 def _checked_plan(sweep_file: Path, seeds: int | None):

@@ -12,6 +12,8 @@ from typing import Annotated
 
 import typer
 
+from hmpc_cli.core.paths import path_option
+
 __all__ = ["tube_command"]
 
 EXIT_BAD_INPUT = 2
@@ -24,6 +26,15 @@ def _fail(lines: list[str]) -> None:
     for line in lines:
         typer.echo(f"error: {line}", err=True)
     raise typer.Exit(EXIT_BAD_INPUT)
+
+
+def _check_samples(samples: int) -> None:
+    """Exits 2 when --samples asks for more than the sampling limit (with its cost)."""
+    from hmpc_cli.tube.sampling import samples_problem
+
+    problem = samples_problem(samples)
+    if problem:
+        _fail([f"--samples: {problem}"])
 
 
 def _g(v: float | None) -> str:
@@ -154,7 +165,9 @@ def _write(report, system, out: Path, formats: str, title: str) -> list[str]:
 
     fmts = parse_formats(formats)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "tube.json").write_text(dumps(report.to_dict(), indent=2) + "\n")
+    from hmpc_cli.core.paths import write_atomic
+
+    write_atomic(out / "tube.json", dumps(report.to_dict(), indent=2) + "\n")
     periods = [r.dt for r in report.rows]
     t = np.linspace(0.0, max(periods), 401)[1:]
     cert = report.certificate
@@ -193,7 +206,8 @@ def tube_command(
     set_: Annotated[list[str] | None, typer.Option(
         "--set", help="override a setting: key.path=value (repeatable)")] = None,
     out: Annotated[Path | None, typer.Option(
-        "--out", help="output directory (default results/<scenario>/tube)")] = None,
+        "--out", help="output directory (default results/<scenario>/tube)",
+        parser=path_option)] = None,
     samples: Annotated[int, typer.Option(
         "--samples", min=1, help="uniform samples per estimated constant")] = 20000,
     pad: Annotated[float | None, typer.Option(
@@ -206,7 +220,7 @@ def tube_command(
         "--formats", help="comma-separated figure formats: pdf,svg,png")] = "pdf,png",
     write: Annotated[Path | None, typer.Option(
         "--write", help="also write a margins file (TOML) a scenario's mpc.margins can "
-        "name: the radius and margins per tabulated MPC rate")] = None,
+        "name: the radius and margins per tabulated MPC rate", parser=path_option)] = None,
     runs: Annotated[list[Path] | None, typer.Option(
         "--runs", help="a run of this scenario's system (directory or run.mcap; "
         "repeatable): its deviation from its plans against the tubes; without --states "
@@ -219,6 +233,7 @@ def tube_command(
     from hmpc_cli.run.scenario import ScenarioError, load_scenario
     from hmpc_cli.tube import TubeError
 
+    _check_samples(samples)  # before anything is read or built
     try:
         sc, _ = load_scenario(scenario, set_ or [], check_margins=False)
         parse_formats(formats)
@@ -226,6 +241,7 @@ def tube_command(
         _fail(exc.lines)
     except FigureInputError as exc:
         _fail([f"--formats: {exc}"])
+    _check_outputs(out, write, sc.name)
     try:
         system = build_system(sc.system)
         observed = _read_runs(runs or [], sc.system)
@@ -257,6 +273,15 @@ def tube_command(
         _write_margins(report, sc, write, samples)
 
 
+def _check_outputs(out: Path | None, write: Path | None, name: str) -> None:
+    """Every output checked before any work: a bad path exits 2 with nothing written."""
+    from hmpc_cli.cli.common import checked_output
+
+    checked_output(out if out is not None else Path("results") / name / "tube", "--out")
+    if write is not None:
+        checked_output(write, "--write", "file")
+
+
 def _stack(arrays: list) -> object:
     """The rows of ``arrays`` stacked (sum K, n)."""
     import numpy as np
@@ -275,9 +300,12 @@ def _read_runs(runs: list[Path], params) -> list:
     from hmpc_cli.core.registry import PluginError, registry
     from hmpc_cli.analysis.tube_reality import read_run
 
+    from hmpc_cli.log.damage import reading
+
     out = []
     for path in runs:
-        run = read_run(path)
+        with reading(path):  # a damaged or foreign log: DamagedLogError, a ValueError
+            run = read_run(path)
         try:
             logged = registry().system(run.system.get("name", "")).params.model_validate(
                 run.system)

@@ -39,10 +39,38 @@ class CBuildError(RuntimeError):
     """Code could not be compiled, or the compiler cannot be run."""
 
 
+_CC_WARNED: set[str] = set()  # unparsable $CC values already warned about
+
+
+def compiler_problem() -> str:
+    """Why ``$CC`` cannot be used as a command ('' if it can, or is not set)."""
+    cc = os.environ.get("CC")
+    if not cc:
+        return ""
+    try:
+        words = shlex.split(cc)
+    except ValueError as e:
+        return f"CC={cc!r} cannot be parsed ({e})"
+    return "" if words else f"CC={cc!r} names no command"
+
+
 def compiler() -> list[str] | None:
-    """The C compiler command: ``$CC`` if set, else ``cc`` or ``gcc`` on the PATH."""
+    """The C compiler command: ``$CC`` if set, else ``cc`` or ``gcc`` on the PATH.
+
+    A ``$CC`` that cannot be parsed as a shell command (an unbalanced quote) means no
+    compiler: compiled NLPs and C rollouts are not used, and one warning says why (once
+    per process); it never fails a run.
+    """
     cc = os.environ.get("CC")
     if cc:
+        problem = compiler_problem()
+        if problem:
+            if cc not in _CC_WARNED:
+                _CC_WARNED.add(cc)
+                warnings.warn(f"{problem}: no C compiler is used (the NLPs stay uncompiled, "
+                              "the planner's rollouts run in NumPy)", RuntimeWarning,
+                              stacklevel=2)
+            return None
         return shlex.split(cc)
     found = shutil.which("cc") or shutil.which("gcc")
     return [found] if found else None

@@ -57,23 +57,33 @@ def gib(n: float) -> str:
     return f"{n / 1024**3:.3g} GiB"
 
 
-def nlp_estimate(nodes: float, mib_per_node: float, ms_per_node: float) -> str:
+def duration_text(secs: float) -> str:
+    """A duration for a size message: seconds, minutes, hours or days (3 digits)."""
+    for unit, size in (("days", 86400.0), ("h", 3600.0), ("min", 60.0)):
+        if secs >= size:
+            return f"{secs / size:.3g} {unit}"
+    return f"{secs:.3g} s"
+
+
+def nlp_estimate(nodes: float, mib_per_node: float, ms_per_node: float,
+                 per: str = "node") -> str:
     """What building an NLP of ``nodes`` nodes would take, as message text.
 
     Args:
-        nodes: NLP nodes asked for.
+        nodes: NLP nodes asked for (or other units of ``per``).
         mib_per_node: measured memory per node [MiB] (the NLP's graphs and solvers).
         ms_per_node: measured build time per node [ms] (on a 2-core machine).
+        per: the unit counted (``node``, ``switch``).
     """
     mem = nodes * mib_per_node * 1024**2
     secs = nodes * ms_per_node / 1e3
     when = f"{secs / 3600:.3g} h" if secs >= 3600 else f"{secs / 60:.3g} min"
     return (f"about {gib(mem)} of memory (this machine: {gib(2 * memory_limit())}) and "
-            f"{when} to build, at {mib_per_node:g} MiB and {ms_per_node:g} ms per node")
+            f"{when} to build, at {mib_per_node:g} MiB and {ms_per_node:g} ms per {per}")
 
 
 #: a pair of finite floats (bounds, positions)
 Pair = tuple[FiniteFloat, FiniteFloat]
 
 __all__ = ["MAX_FLOAT", "MAX_INT", "MAX_NLP_NODES", "BoundedInt", "FiniteFloat", "LargeFloat",
-           "Pair", "StrictBool", "gib", "memory_limit", "nlp_estimate"]
+           "Pair", "StrictBool", "duration_text", "gib", "memory_limit", "nlp_estimate"]

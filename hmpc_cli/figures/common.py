@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import os
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -101,14 +100,14 @@ def check_size(width: float, height: float) -> None:
 
 def write_csv(path: Path, header: Sequence[str], rows: Iterable[Sequence[Any]]) -> None:
     """Writes a CSV table atomically (temporary file, then rename)."""
+    from hmpc_cli.core.paths import atomic_file
+
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
     try:
-        with open(tmp, "w", newline="", encoding="utf-8") as f:
+        with atomic_file(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as f:
             w = csv.writer(f, lineterminator="\n")
             w.writerow(header)
             w.writerows(rows)
-        tmp.replace(path)
     except OSError as exc:
         raise FigureInputError(f"{path}: cannot write ({exc})") from None
 
@@ -163,13 +162,14 @@ def save_figure(fig: Any, out_dir: Path, stem: str, formats: Iterable[str],
     Raises:
         FigureInputError: a file cannot be written.
     """
+    from hmpc_cli.core.paths import atomic_file
+
     paths = []
     try:
         for fmt in formats:
             path = Path(out_dir) / f"{stem}.{fmt}"
-            tmp = path.with_name(f".{path.name}.tmp")
-            fig.savefig(tmp, format=fmt, dpi=dpi, metadata=_METADATA[fmt])
-            os.replace(tmp, path)  # never leave a half-written figure behind
+            with atomic_file(path) as tmp:  # never leave a half-written figure behind
+                fig.savefig(tmp, format=fmt, dpi=dpi, metadata=_METADATA[fmt])
             paths.append(path)
     except OSError as exc:
         raise FigureInputError(f"{out_dir}: cannot write the figure ({exc})") from None

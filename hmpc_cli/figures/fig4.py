@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hmpc_cli.core import signals
 from hmpc_cli.figures.common import (
     COLUMN_WIDTH_IN,
     OKABE_ITO,
@@ -280,6 +281,7 @@ def animate_walk(log: str | Path | WalkLog, out_path: str | Path, fps: int = 25,
         label = ax.text(0.01, 0.95, "", transform=ax.transAxes, va="top")
 
         def draw(i: int):
+            signals.check()  # a stop signal ends the animation between frames
             k = idx[i]
             p = walk.points[k]
             legs.set_data(p[walk.skeleton[0], 0], p[walk.skeleton[0], 1])
@@ -293,8 +295,12 @@ def animate_walk(log: str | Path | WalkLog, out_path: str | Path, fps: int = 25,
         anim = FuncAnimation(fig, draw, frames=len(frames), blit=True)
         tmp = out_path.with_name(f".{out_path.name}.tmp.gif")
         try:
-            anim.save(tmp, writer=PillowWriter(fps=fps))
-            tmp.replace(out_path)
+            try:
+                anim.save(tmp, writer=PillowWriter(fps=fps))
+                tmp.replace(out_path)
+            except BaseException:
+                tmp.unlink(missing_ok=True)  # no half-written temporary left behind
+                raise
         except OSError as exc:
             raise FigureInputError(f"{out_path}: cannot write the animation ({exc})") from None
         finally:

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from hmpc_cli.analysis.tables import FigureInputError
+from hmpc_cli.core import signals
 from hmpc_cli.figures.common import figure_style
 
 __all__ = ["SceneFrames", "animate_scene", "read_scene"]
@@ -129,6 +130,7 @@ def animate_scene(log, out_dir: Path, title: str, fps: int = 20) -> list[Path]:
                                layout="constrained")
 
         def draw(k: int) -> None:
+            signals.check()  # a stop signal ends the animation between frames
             ax.clear()
             _draw(ax, frames.static, 1)
             _draw(ax, _latest(frames.rollout, times[k]), 2)
@@ -142,9 +144,25 @@ def animate_scene(log, out_dir: Path, title: str, fps: int = 20) -> list[Path]:
         anim = FuncAnimation(fig, draw, frames=n)
         rate = max(1, round(n / max(t1 - t0, 1e-9)))
         paths = [Path(out_dir) / "scene.gif"]
-        anim.save(paths[0], writer=PillowWriter(fps=rate))
+        _save(anim, paths[0], PillowWriter(fps=rate))
         if shutil.which("ffmpeg"):
             paths.append(Path(out_dir) / "scene.mp4")
-            anim.save(paths[1], writer=FFMpegWriter(fps=rate))
+            _save(anim, paths[1], FFMpegWriter(fps=rate))
         plt.close(fig)
     return paths
+
+
+def _save(anim, path: Path, writer) -> None:
+    """Saves an animation under a temporary name (same suffix), then renames it.
+
+    A failed save (a full disk) leaves neither the temporary nor a half file.
+    """
+    import os
+
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    try:
+        anim.save(tmp, writer=writer)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise

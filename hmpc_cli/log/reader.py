@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import struct
 from pathlib import Path
 from typing import Any
 
@@ -19,15 +18,18 @@ from mcap.records import Attachment, Channel, Chunk, Footer, Message, Metadata, 
 from mcap.stream_reader import StreamReader, breakup_chunk
 
 from hmpc_cli.log.codecs import codec_errors
+from hmpc_cli.log.damage import CONTENT_ERRORS
 from hmpc_cli.log.recorder import NS_PER_S
 
-__all__ = ["MCAP_MAGIC", "Log", "LogMessage", "RawMessage", "first_message", "read_log"]
+__all__ = ["MCAP_MAGIC", "Log", "LogMessage", "RawMessage", "first_message", "log_finished",
+           "read_log"]
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
-# Errors that mean "damaged or truncated file" while decoding MCAP records.
-_DAMAGE_ERRORS = (McapError, struct.error, ValueError, RuntimeError, KeyError, IndexError,
-                  EOFError, *codec_errors())
+# Errors that mean "damaged, truncated or foreign file" while decoding MCAP records: any
+# the content can raise (a corrupted length field asks for gigabytes: MemoryError; a
+# length past the file's end, a record of the wrong type: TypeError, ...).
+_DAMAGE_ERRORS = (McapError, *CONTENT_ERRORS, *codec_errors())
 
 
 @dataclasses.dataclass
@@ -107,11 +109,17 @@ class Log:
 
 
 def _message(channel: Channel, msg: Message) -> LogMessage:
-    return LogMessage(channel.topic, msg.log_time / NS_PER_S, json.loads(msg.data), msg.log_time)
+    data = json.loads(msg.data)
+    if not isinstance(data, dict):  # every JSON message of a run log is an object
+        raise TypeError(f"{channel.topic}: a JSON message that is not an object")
+    return LogMessage(channel.topic, msg.log_time / NS_PER_S, data, msg.log_time)
 
 
 def _schema_dict(schema: Schema | None) -> dict:
-    return json.loads(schema.data) if schema is not None and schema.data else {}
+    data = json.loads(schema.data) if schema is not None and schema.data else {}
+    if not isinstance(data, dict):
+        raise TypeError(f"schema {schema.name}: not a JSON object")
+    return data
 
 
 def _read_indexed(path: Path) -> Log:
@@ -218,3 +226,53 @@ def first_message(path: str | Path, topic: str) -> dict | None:
     except (OSError, ValueError, McapError, *_DAMAGE_ERRORS):
         return None
     return None
+
+
+_FINISHED: dict[tuple, bool] = {}
+
+
+def log_finished(path: str | Path, summary: bool = True) -> bool:
+    """Whether the run log at ``path`` reads back complete with its /run/summary.
+
+    Complete: the file ends with its footer and summary section (as :func:`read_log`
+    says ``complete``), its statistics count a /run/summary message, and that message
+    (the last chunk, CRC-checked) decodes to a JSON object. False for a missing, empty,
+    cut-short, damaged or foreign file. Cheap (the summary section and one chunk, not the
+    whole log), and remembered per (path, size, modification time) in this process.
+    ``summary`` False: complete is enough (a run that crashed has no /run/summary).
+    """
+    path = Path(path)
+    try:
+        st = path.stat()
+    except OSError:
+        return False
+    key = (str(path.resolve()), st.st_size, st.st_mtime_ns, summary)
+    if key not in _FINISHED:
+        _FINISHED[key] = _log_finished(path, summary)
+    return _FINISHED[key]
+
+
+def _log_finished(path: Path, need_summary: bool) -> bool:
+    try:
+        with open(path, "rb") as f:
+            if f.read(8) != MCAP_MAGIC or f.seek(0, 2) < 16:
+                return False
+            f.seek(-8, 2)
+            if f.read(8) != MCAP_MAGIC:
+                return False
+            f.seek(0)
+            reader = make_reader(f, validate_crcs=True)
+            summary = reader.get_summary()
+            if summary is None or summary.statistics is None:
+                return False
+            if not need_summary:
+                return True
+            ids = [i for i, ch in summary.channels.items() if ch.topic == "/run/summary"]
+            if not any(summary.statistics.channel_message_counts.get(i, 0) for i in ids):
+                return False
+            for _, _, msg in reader.iter_messages(topics=["/run/summary"]):
+                if isinstance(json.loads(msg.data), dict):
+                    return True
+    except (*_DAMAGE_ERRORS, OSError):
+        return False
+    return False

@@ -14,9 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
+from hmpc_cli.log.damage import DamagedLogError, reading
 from hmpc_cli.log.geometry import body_names
 
-__all__ = ["Event", "PlannerCallData", "RunData", "SolveData", "read_run", "resolve_log"]
+__all__ = ["DamagedLogError", "Event", "PlannerCallData", "RunData", "SolveData", "read_run",
+           "resolve_log"]
 
 
 def resolve_log(path: Path) -> Path:
@@ -285,6 +287,8 @@ def read_run(path: Path) -> RunData:
     Raises:
         ValueError: missing, not an MCAP file, or not readable at all (the message says
             which); a log cut short is read up to its last complete chunk.
+        DamagedLogError: a ValueError: content of the wrong type or shape (a damaged or
+            foreign log).
     """
     from hmpc_cli.log.reader import read_log
 
@@ -293,6 +297,12 @@ def read_run(path: Path) -> RunData:
         log = read_log(log_path)
     except (OSError, ValueError) as exc:
         raise ValueError(f"{log_path}: cannot read the log ({exc})") from None
+    with reading(log_path):  # wrongly typed or missing fields: damage, not a bug
+        return _run_data(log_path, log)
+
+
+def _run_data(log_path: Path, log) -> RunData:
+    """:func:`read_run` of a decoded log (its content trusted: the caller guards it)."""
     infos = log.topic("/run/info")
     info = dict(infos[0].data) if infos else {}
     states = [{"t": m.t, **m.data} for m in log.topic("/sim/state")]

@@ -132,6 +132,8 @@ class RunLog:
         self.details: dict[str, type | None] = {}
         self.solve_times: list[float] = []
         self.plan_times: list[float] = []
+        #: failed solves counted from a planner call's candidates: (t, segment, status)
+        self._counted: set[tuple] = set()
         self._last_w: bytes | None = None  # the last logged disturbance's bytes
         self._model: HybridSystem | None = None
         self._body = None  # x -> the plant's body points (None: no body logged)
@@ -300,8 +302,15 @@ class RunLog:
 
     def planner(self, t: float, reason: str, result: PlannerResult, accepted: bool,
                 note: str, model: HybridSystem) -> None:
-        """Logs one planner call (counted by the loop)."""
+        """Logs one planner call (counted by the loop) and counts its failed MPC solves.
+
+        A planner that solves the MPC itself (the biped's foothold planner solves the
+        walking MPC per candidate) reports each solve in its detail's ``candidates``
+        (``status``, ``success``): the failed ones count as solver failures, as a failed
+        /mpc/solve does (:meth:`solve`), once each.
+        """
         self.plan_times.append(result.wall_time)
+        self._count_candidate_failures(t, result)
         if self.rec is None:
             return
         rollout = ()
@@ -318,6 +327,19 @@ class RunLog:
         if self.scene is not None:
             self.scene.rollout(t, result.trajectory)
 
+    def _count_candidate_failures(self, t: float, result: PlannerResult) -> None:
+        """Counts the failed MPC solves a planner call reports (:meth:`planner`)."""
+        rows = (result.extra or {}).get("candidates") if isinstance(result.extra, dict) \
+            else None
+        r = self.result
+        for row in rows or ():
+            if not isinstance(row, dict) or "success" not in row or row.get("success"):
+                continue
+            status = str(row.get("status", "failed"))
+            r.solver_failures += 1
+            r.failure_statuses[status] = r.failure_statuses.get(status, 0) + 1
+            self._counted.add((float(t), row.get("segment"), status))
+
     def solve(self, t: float, plan: Plan, reason: str, model: HybridSystem,
               latency: float = 0.0) -> None:
         """Counts one fixed-mode MPC solve and logs it to /mpc/solve.
@@ -329,8 +351,12 @@ class RunLog:
         self.solve_times.append(st.wall_time)
         r.fallbacks += bool(st.fallback)
         if not st.success:
-            r.solver_failures += 1
-            r.failure_statuses[st.status] = r.failure_statuses.get(st.status, 0) + 1
+            key = (float(t), (plan.extra or {}).get("segment"), st.status)
+            if key in self._counted:  # the planner's candidate solve, counted there
+                self._counted.discard(key)
+            else:
+                r.solver_failures += 1
+                r.failure_statuses[st.status] = r.failure_statuses.get(st.status, 0) + 1
         elif st.slack > SOFTENED_TOL:
             r.softened_solves += 1
             r.max_slack = max(r.max_slack, st.slack)

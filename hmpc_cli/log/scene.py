@@ -12,12 +12,13 @@ Topics and entities (ids), all entities with lifetime 0 (kept until replaced by 
 * ``/scene/body``: ``body``, links (line list) and balls (spheres) at each /sim/state
   sample, at most ``max_rate_hz`` (30 Hz) times per simulated second (the scene's share
   of the logging overhead: ``benchmarks/bench_logging.py``);
-* ``/scene/plan``: at each MPC solve, ``plan``, one line strip per trace point through the
-  plan's nodes (one vertex per node), and ``tube``, spheres of the MPC's tube radius (its
+* ``/scene/plan``: at each MPC solve, ``plan``, per trace point one line strip per domain
+  segment of the plan through its nodes (one vertex per node; the line breaks at each
+  reset, where the biped's legs swap), and ``tube``, spheres of the MPC's tube radius (its
   margins' ``radius``, in the state norm, drawn in the plane) around the first trace
   point at up to :data:`TUBE_SPHERES` plan nodes (only with margins);
-* ``/scene/rollout``: ``rollout``, at each planner call with a trajectory, one line strip
-  per trace point.
+* ``/scene/rollout``: ``rollout``, at each planner call with a trajectory, per trace point
+  one line strip per domain segment.
 
 One topic per kind because a viewer that seeks shows the latest message of each topic:
 the static geometry, the body and the current plan all stay on screen after a seek.
@@ -272,11 +273,18 @@ class SceneWriter:
         return [b"".join(prefix + data[j * share:(j + 1) * share]
                          for data, share, prefix in parts) for j in range(k)]
 
-    def _traces(self, xs: np.ndarray, colors: tuple[Rgba, ...], thickness: float) -> list:
-        """One line strip per trace point along states xs (K, n)."""
+    def _traces(self, xs: np.ndarray, colors: tuple[Rgba, ...], thickness: float,
+                seg: np.ndarray | None = None) -> list:
+        """Line strips per trace point along states xs (K, n), one per domain segment.
+
+        ``seg`` (K,): each node's domain segment; the line breaks where it changes (a
+        reset: the biped's legs swap, the swing foot jumps) instead of drawing a
+        segment across the reset. A segment of one node draws nothing.
+        """
         traced = to_world(self.drawing.traced(xs))  # (T, K, 3)
-        return [self._line("LINE_STRIP", path, colors[i % len(colors)], thickness)
-                for i, path in enumerate(traced)]
+        pieces = _pieces(seg, len(xs))
+        return [self._line("LINE_STRIP", path[a:b], colors[i % len(colors)], thickness)
+                for i, path in enumerate(traced) for a, b in pieces]
 
     def plan(self, t: float, plan: Plan) -> None:
         """The ``plan`` (and ``tube``) of an MPC solve at time t [s]."""
@@ -284,7 +292,8 @@ class SceneWriter:
             return
         xs = np.atleast_2d(np.asarray(plan.traj.x, dtype=float))
         colors = PLAN_COLORS if plan.adopt else (REJECTED,)
-        entities = [self._entity(t, "plan", self._traces(xs, colors, 0.015))]
+        entities = [self._entity(t, "plan", self._traces(xs, colors, 0.015,
+                                                         _segments(plan.traj, len(xs))))]
         if self.tube_radius is not None:
             centers = to_world(self.drawing.traced(xs[_tube_nodes(len(xs))])[0])
             entities.append(self._entity(t, "tube", fields=self._spheres(
@@ -296,7 +305,25 @@ class SceneWriter:
         if trajectory is None or not self.drawing.trace or len(trajectory.x) == 0:
             return
         xs = np.atleast_2d(np.asarray(trajectory.x, dtype=float))
-        self._write(ROLLOUT, t, [self._entity(t, "rollout", self._traces(xs, (ORANGE,), 0.01))])
+        self._write(ROLLOUT, t, [self._entity(t, "rollout", self._traces(
+            xs, (ORANGE,), 0.01, _segments(trajectory, len(xs))))])
+
+
+def _segments(traj: Trajectory, k: int) -> np.ndarray | None:
+    """A trajectory's per-node domain segments (K,), or None when it has none of K."""
+    seg = getattr(traj, "seg", None)
+    if seg is None:
+        return None
+    seg = np.asarray(seg).reshape(-1)
+    return seg if len(seg) == k else None
+
+
+def _pieces(seg: np.ndarray | None, k: int) -> list[tuple[int, int]]:
+    """Node ranges [a, b) of equal ``seg`` with at least two nodes (all K: one range)."""
+    if seg is None or k == 0:
+        return [(0, k)]
+    cuts = [0, *(np.flatnonzero(np.diff(seg) != 0) + 1).tolist(), k]
+    return [(a, b) for a, b in zip(cuts[:-1], cuts[1:], strict=True) if b - a >= 2]
 
 
 @lru_cache(maxsize=64)

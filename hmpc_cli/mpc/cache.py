@@ -68,7 +68,8 @@ from hmpc_cli.mpc.builder import NLPLayout
 ENV = "HMPC_BUILD_CACHE"
 CFLAGS = ("-O1", "-shared", "-fPIC", "-ffp-contract=off", "-fno-fast-math")
 FORMAT = 1  # of the entry files
-LOCK_STALE = 3600.0  # [s] a compile lock older than this (or of a dead process) is taken over
+#: [s] a compile lock older than this is taken over (one of a dead process at once)
+LOCK_STALE = 3600.0
 #: MPC settings applied at solve time (bounds, parameters, options): not in the key
 NON_STRUCTURAL = frozenset({"rate_hz", "tube_margin", "input_margin", "margins", "robust",
                             "solver", "solver_options", "max_iter", "warm_start",
@@ -230,8 +231,8 @@ def open_entry(key: str, plugin: str) -> tuple[Entry | None, Hit | None]:
         return None, _disabled(f"solver {plugin!r}: compiled NLPs are for ipopt only")
     cc = cbuild.compiler()
     if cc is None:
-        return None, _disabled("no C compiler found (set CC or install cc/gcc): the NLPs "
-                               "are built in SX")
+        why = cbuild.compiler_problem() or "no C compiler found (set CC or install cc/gcc)"
+        return None, _disabled(f"{why}: the NLPs are built in SX")
     try:
         identity = cbuild.compiler_identity(cc)
     except cbuild.CBuildError as e:
@@ -291,28 +292,75 @@ def store(key: str, plugin: str, nlp: dict, layout: NLPLayout) -> BuildInfo:
     return BuildInfo("miss", False, _spawn(entry))
 
 
-def _stale(lock: Path) -> bool:
-    """True if ``lock`` is older than :data:`LOCK_STALE` or its process is gone."""
+#: [s] a lock file without a readable owner is taken over after this (its creator
+#: writes its owner right after creating it)
+LOCK_GRACE = 5.0
+
+
+def _start_time(pid: int) -> str:
+    """The start time of process ``pid`` (clock ticks since boot; '' if unknown).
+
+    With the pid it names one process: a pid reused after its process died has another
+    start time.
+    """
     try:
-        if time.time() - lock.stat().st_mtime > LOCK_STALE:
-            return True
-        os.kill(int(lock.read_text().strip()), 0)
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        return stat[stat.rindex(")") + 2:].split()[19]
+    except (OSError, ValueError, IndexError):
+        return ""
+
+
+def lock_owner(pid: int | None = None) -> str:
+    """A compile lock's content: ``<pid> <start time>`` of the process holding it."""
+    pid = os.getpid() if pid is None else int(pid)
+    return f"{pid} {_start_time(pid)}".rstrip()
+
+
+def _stale(lock: Path) -> bool:
+    """True if ``lock`` may be taken over: its owner process is gone, or it is too old.
+
+    Gone: the recorded pid runs no process, or runs another process than the one that
+    took the lock (its start time differs: the pid was reused). A lock without a readable
+    owner (empty, garbage) is stale after :data:`LOCK_GRACE` seconds, any lock after
+    :data:`LOCK_STALE`.
+    """
+    try:
+        age = time.time() - lock.stat().st_mtime
+        fields = lock.read_text().split()
+    except OSError:
+        return False  # no lock (taken below), or unreadable: not ours to remove
+    if age > LOCK_STALE:
+        return True
+    try:
+        pid = int(fields[0])
+        if pid <= 0:
+            raise ValueError(pid)
+    except (IndexError, ValueError):
+        return age > LOCK_GRACE
+    try:
+        os.kill(pid, 0)
     except ProcessLookupError:
         return True
-    except (OSError, ValueError):
-        return False
-    return False
+    except OSError:
+        return False  # alive, another user's
+    started, now = (fields[1] if len(fields) > 1 else ""), _start_time(pid)
+    return bool(started and now and started != now)
 
 
 def _take_lock(entry: Entry) -> bool:
-    """Creates the entry's lock file (False if another live compile holds it)."""
+    """Creates the entry's lock file (False if another live compile holds it).
+
+    The lock records this process (:func:`lock_owner`); one whose owner died is taken
+    over at once.
+    """
     if _stale(entry.lock):
+        _LOG.info("taking over the stale compile lock %s", entry.lock)
         entry.lock.unlink(missing_ok=True)
     try:
         fd = os.open(entry.lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600)
-    except FileExistsError:
+    except OSError:  # held by a live compile (FileExistsError), or not writable
         return False
-    os.write(fd, str(os.getpid()).encode())
+    os.write(fd, lock_owner().encode())
     os.close(fd)
     return True
 
@@ -340,12 +388,16 @@ def _start_queue() -> None:
         p for p in (root, os.environ.get("PYTHONPATH", "")) if p)}
     args = [a for e in entries for a in (str(e.folder), e.key)]
     try:
-        subprocess.Popen([sys.executable, "-m", "hmpc_cli.mpc.cache", *args], env=env,
-                         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                         stderr=subprocess.DEVNULL, start_new_session=True)
+        proc = subprocess.Popen([sys.executable, "-m", "hmpc_cli.mpc.cache", *args], env=env,
+                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, start_new_session=True)
     except OSError:
         for e in entries:
             e.lock.unlink(missing_ok=True)
+        return
+    for e in entries:  # the compiling process owns the locks before this one exits
+        with contextlib.suppress(OSError):
+            cbuild.atomic_write(e.lock, lock_owner(proc.pid))
 
 
 def generate(entry: Entry, folder: Path) -> Path:
@@ -396,7 +448,7 @@ def _main(args: list[str]) -> int:
     identity = cbuild.compiler_identity(cc) if cc else ""
     entries = [Entry(Path(f), k, identity) for f, k in zip(args[::2], args[1::2], strict=True)]
     for entry in entries:  # the locks are this process's now
-        cbuild.atomic_write(entry.lock, str(os.getpid()))
+        cbuild.atomic_write(entry.lock, lock_owner())
     for folder in {e.folder for e in entries}:  # left by compiles killed midway
         cbuild.remove_stale_temporaries(folder)
     failures = 0

@@ -21,12 +21,15 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
+from hmpc_cli.core import signals
+from hmpc_cli.core.cbuild import compiler_problem
 from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.core.messages import ModeSchedule, PlannerResult, Trajectory
 from hmpc_cli.core.numeric import compile_numpy
 from hmpc_cli.sim.rollout import CRollout, RolloutBuildError
 from hmpc_cli.core.registry import PlannerSpec
-from hmpc_cli.core.settings_types import BoundedInt, FiniteFloat, StrictBool, gib, memory_limit
+from hmpc_cli.core.settings_types import (
+    BoundedInt, FiniteFloat, StrictBool, duration_text, gib, memory_limit)
 from hmpc_cli.sim.simulator import HybridSimulator
 
 UNREACHED_PENALTY = 1e4
@@ -39,9 +42,12 @@ class CEMSettings(BaseModel):
     kind: Literal["cem"] = Field("cem", description="cross-entropy method (ball)")
     horizon: FiniteFloat = Field(3.0, gt=0.0, description="planning horizon [s]")
     knots: BoundedInt = Field(45, ge=2, description="input knots per channel over the horizon")
-    samples: BoundedInt = Field(50, ge=1, description="random samples per iteration (+ the mean)")
+    samples: BoundedInt = Field(50, ge=1, description="random samples per iteration (+ the "
+                                "mean); a planner call rolls out at most 1e9 steps in all "
+                                "(iterations x (samples + 1) x horizon x rollout_rate_hz)")
     elites: BoundedInt = Field(1, ge=1)
-    iterations: BoundedInt = Field(15, ge=1)
+    iterations: BoundedInt = Field(15, ge=1, description="CEM iterations per planner call "
+                                   "(the work limit: see samples)")
     init_mean: FiniteFloat = Field(0.0, description="initial mean of every knot (a system may "
                              "set its own default)")
     init_cov: FiniteFloat = Field(250.0, gt=0.0, description="initial variance of every knot")
@@ -70,20 +76,46 @@ class CEMSettings(BaseModel):
 
 
     def size_problems(self) -> list[str]:
-        """Rollout arrays that would not fit in memory (before anything is built).
+        """Planner calls too long to wait for, or rollout arrays too big for memory.
 
-        Per input channel a CEM iteration holds (samples + 1) x (rollout steps + 2 knots)
-        floats (the interpolated inputs, the noise and the samples).
+        Work: a planner call rolls out iterations x (samples + 1) input sequences of
+        horizon x rollout_rate_hz steps each, at most :data:`MAX_ROLLOUT_STEPS` steps in
+        all. Memory: per input channel a CEM iteration holds 2 x (samples + 1) x knots
+        floats (the samples and their noise) and, per batch of at most
+        :data:`ROLLOUT_BATCH` samples, 2 x batch x rollout steps (the interpolated inputs).
         """
+        out = []
         steps = self.horizon * self.rollout_rate_hz
-        need = 8.0 * (self.samples + 1) * (steps + 2 * self.knots) * MAX_INPUTS
-        if need <= memory_limit():
-            return []
-        return [f"planner.samples: {self.samples} samples x ({steps:.3g} rollout steps + 2 x "
-                f"{self.knots} knots) x {MAX_INPUTS} inputs x 8 B = {gib(need)} exceeds the "
-                f"memory limit {gib(memory_limit())} (half of this machine's RAM)"]
+        rollouts = self.iterations * (self.samples + 1)
+        work = rollouts * max(1.0, steps)
+        if work > MAX_ROLLOUT_STEPS:
+            secs = work * ROLLOUT_STEP_NS * 1e-9
+            out.append(
+                f"planner.iterations x planner.samples: {self.iterations} iterations x "
+                f"({self.samples} + 1) samples = {rollouts:.3g} rollouts of {steps:.3g} steps "
+                f"(planner.horizon x planner.rollout_rate_hz) = {work:.3g} rollout steps per "
+                f"planner call, limit {MAX_ROLLOUT_STEPS:.0e} (about {duration_text(secs)} "
+                f"per planner call at {ROLLOUT_STEP_NS:g} ns per step in C)")
+        batch = min(self.samples + 1, ROLLOUT_BATCH)
+        need = 8.0 * 2 * ((self.samples + 1) * self.knots + batch * steps) * MAX_INPUTS
+        if need > memory_limit():
+            out.append(
+                f"planner.samples: 2 x (({self.samples} + 1) samples x {self.knots} knots + "
+                f"{batch} x {steps:.3g} rollout steps) x {MAX_INPUTS} inputs x 8 B = "
+                f"{gib(need)} exceeds the memory limit {gib(memory_limit())} (half of this "
+                f"machine's RAM)")
+        return out
 
 
+#: most rollout steps of one planner call (iterations x (samples + 1) x horizon steps):
+#: about 2 minutes of C rollouts; the paper's planner needs 1.4e5
+MAX_ROLLOUT_STEPS = 1e9
+#: measured time of one rollout step in C [ns] (ball, one core of a 2-core machine)
+ROLLOUT_STEP_NS = 120.0
+#: samples rolled out in one batch: a stop signal is checked between batches (a larger
+#: iteration is cut in batches; rollouts of one batch advance in lockstep, see
+#: :mod:`hmpc_cli.sim.rollout`, so a batch's results are the same in C and NumPy)
+ROLLOUT_BATCH = 4096
 #: input channels the memory estimate assumes (the biped's 4; the ball has 2)
 MAX_INPUTS = 4
 
@@ -127,8 +159,9 @@ class CrossEntropyPlanner:
                     raise RolloutBuildError(
                         f"planner.rollout_backend = 'c': the C rollouts cannot be built "
                         f"({first}); set it to 'auto' or 'numpy'") from e
-                warnings.warn(f"C rollouts unavailable, using NumPy: {first}", RuntimeWarning,
-                              stacklevel=2)
+                if not compiler_problem():  # an unusable $CC has had its one warning
+                    warnings.warn(f"C rollouts unavailable, using NumPy: {first}",
+                                  RuntimeWarning, stacklevel=2)
 
     def _inputs(self, knots: np.ndarray) -> np.ndarray:
         """Knot values (B, knots, m) -> step inputs (B, n_steps, m), linear interpolation."""
@@ -146,8 +179,27 @@ class CrossEntropyPlanner:
         """Costs (B,) and final-domain flags (B,) of knot sequences (B, knots, m).
 
         Runs in C if ``backend == "c"``, else :meth:`rollout_cost_numpy`; both give the
-        same numbers bit for bit (the C kernel keeps NumPy's batch semantics).
+        same numbers bit for bit (the C kernel keeps NumPy's batch semantics). More than
+        :data:`ROLLOUT_BATCH` samples are rolled out in batches of that many, a stop signal
+        checked before each (:func:`hmpc_cli.core.signals.check`).
+
+        Raises:
+            hmpc_cli.core.signals.Interrupted: a stop signal is pending.
         """
+        knots = np.asarray(knots, dtype=float)
+        if knots.shape[0] <= ROLLOUT_BATCH:
+            signals.check()
+            return self._batch_cost(x0, mode0, knots, bound)
+        costs, flags = [], []
+        for i in range(0, knots.shape[0], ROLLOUT_BATCH):
+            signals.check()
+            cost, reached = self._batch_cost(x0, mode0, knots[i:i + ROLLOUT_BATCH], bound)
+            costs.append(cost)
+            flags.append(reached)
+        return np.concatenate(costs), np.concatenate(flags)
+
+    def _batch_cost(self, x0: np.ndarray, mode0: int, knots: np.ndarray, bound: float):
+        """:meth:`rollout_cost` of one batch, in C or NumPy."""
         if self._c is None:
             return self.rollout_cost_numpy(x0, mode0, knots, bound)
         return self._c.cost(np.asarray(x0, dtype=float), mode0, self._inputs(knots), self.dt,
@@ -229,6 +281,7 @@ class CrossEntropyPlanner:
         var = np.full((s.knots, m), s.init_cov)
         best_cost, best = np.inf, mean.copy()
         for _ in range(s.iterations):
+            signals.check()  # the run stops within one iteration (and batch) of a signal
             noise = rng.standard_normal((s.samples, s.knots, m))
             samples = np.concatenate([mean[None], mean[None] + np.sqrt(var)[None] * noise])
             bound = best_cost if s.elites == 1 else np.inf
@@ -240,6 +293,7 @@ class CrossEntropyPlanner:
             mean = elite.mean(axis=0)
             if s.adapt_covariance and s.elites > 1:
                 var = np.maximum(elite.var(axis=0), s.min_cov)
+        signals.check()
         self._previous, self._previous_t = best, t
         traj = self.trajectory(x0, mode0, best)
         reached = bool(traj.mode[-1] == self.final_mode)

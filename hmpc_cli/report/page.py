@@ -146,8 +146,8 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
               "Open an MCAP log in Foxglove or Lichtblick, or read it in Python with "
               "`hmpc_cli.log.rundata.read_run(path)` (arrays per topic).", ""]
     page = results / "README.md"
-    tmp = page.with_name(".README.md.tmp")
+    from hmpc_cli.core.paths import write_atomic
+
     # no machine's absolute path on the committed page (repository-relative or <...>/)
-    tmp.write_text(portable_text("\n".join(lines)), encoding="utf-8")
-    tmp.replace(page)
+    write_atomic(page, portable_text("\n".join(lines)))
     return page

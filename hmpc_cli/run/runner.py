@@ -24,7 +24,8 @@ from hmpc_cli.log.runlog import RunLog
 
 INTERRUPTED = "interrupted"  # a summary reason's prefix: the run was stopped
 
-__all__ = ["execute_run", "jsonable", "out_problem", "prepare", "run_one", "run_scenario"]
+__all__ = ["RunDirTakenError", "claim_run_dir", "execute_run", "jsonable", "out_problem", "prepare",
+           "run_one", "run_scenario"]
 
 
 def prepare(scenario) -> ClosedLoop:
@@ -41,31 +42,42 @@ def prepare(scenario) -> ClosedLoop:
 def out_problem(out: Path) -> str | None:
     """Why ``out`` cannot become a run directory, or None; creates and removes nothing.
 
-    Checked before anything is built: an existing run, a file in the way, a name the
-    file system refuses, or a directory that cannot be created or written.
+    Checked before anything is built: the shared output-path check
+    (:func:`hmpc_cli.core.paths.output_problem`: an empty or too long name, a file in the
+    way, a dangling link, /proc, a directory that cannot be created or written) and an
+    existing run.
     """
-    import os
+    from hmpc_cli.core.paths import output_problem
 
+    problem = output_problem(out, "dir")
+    if problem is not None:
+        return problem
     try:
-        for part in out.absolute().parts:
-            if len(os.fsencode(part)) > 255:
-                return f"name too long: {part[:40]}... ({len(os.fsencode(part))} bytes, max 255)"
-        if (out / "run.mcap").exists():
+        if (out / "run.mcap").exists() or (out / "run.mcap").is_symlink():
             return "already holds a run (choose another --out)"
-        if out.exists() and not out.is_dir():
-            return "exists and is not a directory"
-    except (OSError, RuntimeError, ValueError) as exc:
+    except OSError as exc:
         return f"not a usable path: {exc}"
-    parent = out
-    while not parent.exists():  # the nearest existing ancestor must be a writable directory
-        if parent.parent == parent:
-            break
-        parent = parent.parent
-    if not parent.is_dir():
-        return f"cannot create it: {parent} is not a directory"
-    if not os.access(parent, os.W_OK | os.X_OK):
-        return f"cannot create or write it: {parent} is not writable"
     return None
+
+
+class RunDirTakenError(Exception):
+    """Another run has claimed the directory (its run.mcap exists)."""
+
+
+def claim_run_dir(out: Path) -> Path:
+    """Creates ``out`` (and parents) and claims it for one run: its run.mcap, exclusively.
+
+    Two runs started into one directory at once never share it: the second finds the
+    log created (``O_EXCL``) and raises :class:`RunDirTakenError`; nothing of it is written.
+    The claimed log is empty until :func:`execute_run` writes it.
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        fd = os.open(out / "run.mcap", os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+    except FileExistsError:
+        raise RunDirTakenError(f"{out}: already holds a run (choose another --out)") from None
+    os.close(fd)
+    return out
 
 
 def jsonable(value):
@@ -119,10 +131,11 @@ def execute_run(loop: ClosedLoop, toml_text: str, out: Path,
 
 
 def _write_summary(out: Path, res: RunResult) -> None:
-    """Writes ``summary.json`` atomically (a reader never sees half of it)."""
-    tmp = out / "summary.json.tmp"
-    tmp.write_text(json.dumps(jsonable(res.__dict__), indent=2, allow_nan=False) + "\n")
-    os.replace(tmp, out / "summary.json")
+    """Writes ``summary.json`` atomically (a reader never sees half of it, nor a temporary)."""
+    from hmpc_cli.core.paths import write_atomic
+
+    write_atomic(out / "summary.json",
+                 json.dumps(jsonable(res.__dict__), indent=2, allow_nan=False) + "\n")
 
 
 def _open_scene(loop: ClosedLoop, rec: Recorder):
@@ -169,9 +182,11 @@ def run_one(toml_text: str, run_dir: str, provenance=None) -> dict:
                 sc.name if sc else "?", sc.seed if sc else -1)
             res.success = False
             res.reason = f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:500]
+            from hmpc_cli.core.paths import write_atomic
+
             out.mkdir(parents=True, exist_ok=True)
-            (out / "scenario.toml").write_text(toml_text, encoding="utf-8")
-            (out / "error.txt").write_text(traceback.format_exc(), encoding="utf-8")
-            (out / "summary.json").write_text(
-                json.dumps(jsonable(res.__dict__), indent=2, allow_nan=False) + "\n")
+            write_atomic(out / "scenario.toml", toml_text)
+            write_atomic(out / "error.txt", traceback.format_exc())
+            write_atomic(out / "summary.json",
+                         json.dumps(jsonable(res.__dict__), indent=2, allow_nan=False) + "\n")
         return json.loads((out / "summary.json").read_text())

@@ -12,11 +12,13 @@ The model class is assembled on first use: ``from hmpc_cli.run.scenario import S
 
 from __future__ import annotations
 
+import copy
 import difflib
 import re
 import tomllib
 import types
 import typing
+from collections.abc import Callable
 from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Any, Union
@@ -28,7 +30,7 @@ from pydantic import (
 from hmpc_cli.lowlevel import LowLevelSettings
 from hmpc_cli.core.registry import PluginError, Requirement, registry
 from hmpc_cli.run.sections import DisturbanceSettings, ReplanSettings, SimSettings
-from hmpc_cli.core.settings_types import BoundedInt
+from hmpc_cli.core.settings_types import MAX_NLP_NODES, BoundedInt, nlp_estimate
 
 #: the system of a scenario that names none
 DEFAULT_SYSTEM = "ball"
@@ -151,6 +153,7 @@ class ScenarioBase(BaseModel):
                        f"simulator steps exceeds the limit {MAX_SIM_STEPS:.0e}")
         out += list(getattr(self.planner, "size_problems", list)())
         out += list(getattr(self.mpc, "size_problems", list)())
+        out += _switch_problems(self.mpc)
         return out
 
     def _stack_problems(self) -> list[str]:
@@ -179,6 +182,29 @@ class ScenarioBase(BaseModel):
                     msg = unknown_key(err["loc"][-1], _field_names([type(self.system)]))
                 out.append(f"{loc}: {msg}")
         return out
+
+
+#: measured cost of one guard event of the switching chain NLP (ball, 2 cores): a link
+#: with its guard, virtual-node and region rows, in one NLP (cold and warm solvers)
+SWITCH_MIB, SWITCH_MS = 0.3, 10.0
+
+
+def _switch_problems(mpc: BaseModel) -> list[str]:
+    """``mpc.max_switches`` beyond :data:`MAX_NLP_NODES` links with the horizon's nodes.
+
+    The switching chain NLP has one link per node interval and one per guard event it
+    can hold (:mod:`hmpc_cli.mpc.chain`); the horizon's own limit is its MPC's.
+    """
+    switches = getattr(mpc, "max_switches", None)
+    if not isinstance(switches, int):
+        return []
+    nodes = getattr(mpc, "horizon", 0.0) * getattr(mpc, "nodes_per_second", 0)
+    if nodes > MAX_NLP_NODES or nodes + switches <= MAX_NLP_NODES:
+        return []
+    return [f"mpc.max_switches: {nodes:.3g} nodes (mpc.horizon x mpc.nodes_per_second) + "
+            f"{switches} switches = {nodes + switches:.3g} links of the switching NLP exceeds "
+            f"the limit {MAX_NLP_NODES} (the switches alone would need "
+            f"{nlp_estimate(switches, SWITCH_MIB, SWITCH_MS, per='switch')})"]
 
 
 def _unknown(reg, name: Any) -> str:
@@ -265,7 +291,13 @@ def _whole(v: float) -> bool:
 
 
 def apply_overrides(data: dict, overrides: list[str], source: str) -> dict:
-    """Applies ``key.path=value`` overrides (value parsed as TOML, else a string)."""
+    """Applies ``key.path=value`` overrides (value parsed as TOML, else a string).
+
+    A table value (``mpc={rate_hz=20}``) is merged into the table already there, key by
+    key and table by table (the keys it does not name keep their values); any other value
+    replaces what was there. A problem is reported as ``--set 'item': reason`` (the
+    ``--set`` is at fault, not ``source``, the scenario file).
+    """
     errors = []
     for item in overrides:
         key, sep, raw = item.partition("=")
@@ -276,6 +308,14 @@ def apply_overrides(data: dict, overrides: list[str], source: str) -> dict:
             value = tomllib.loads(f"v = {raw}")["v"]
         except tomllib.TOMLDecodeError:
             value = raw
+        except RecursionError:
+            errors.append(f"--set {_shown(item)}: the value is nested too deeply (more "
+                          f"than {MAX_DEPTH} levels)")
+            continue
+        if nesting(value) > MAX_DEPTH:
+            errors.append(f"--set {_shown(item)}: the value is nested too deeply (more "
+                          f"than {MAX_DEPTH} levels)")
+            continue
         node = data
         parts = key.strip().split(".")
         for part in parts[:-1]:
@@ -285,10 +325,48 @@ def apply_overrides(data: dict, overrides: list[str], source: str) -> dict:
                 break
             node = nxt
         else:
-            node[parts[-1]] = value
+            old = node.get(parts[-1])
+            node[parts[-1]] = merged(old, value) if isinstance(old, dict) else value
     if errors:
-        raise ScenarioError([f"{source}: {e}" for e in errors])
+        raise ScenarioError(errors)
     return data
+
+
+def _shown(item: str, width: int = 60) -> str:
+    """A ``--set`` item for a message: quoted, a long one cut to ``width`` characters."""
+    return repr(item) if len(item) <= width else repr(item[:width]) + "..."
+
+
+def merged(base: Any, value: Any) -> Any:
+    """``value`` merged into ``base``: tables key by key (recursively), else ``value``."""
+    if not isinstance(base, dict) or not isinstance(value, dict):
+        return value
+    out = dict(base)
+    for k, v in value.items():
+        out[k] = merged(out.get(k), v)
+    return out
+
+
+#: deepest nesting of tables and arrays a scenario may have (its own are 3 levels deep)
+MAX_DEPTH = 32
+
+
+def nesting(value: Any) -> int:
+    """How deeply tables and arrays nest in ``value`` (a scalar: 0), without recursion."""
+    deepest, todo = 0, [(value, 0)]
+    while todo:
+        v, depth = todo.pop()
+        if isinstance(v, dict):
+            todo += [(x, depth + 1) for x in v.values()]
+        elif isinstance(v, (list, tuple)):
+            todo += [(x, depth + 1) for x in v]
+        else:
+            deepest = max(deepest, depth)
+            continue
+        deepest = max(deepest, depth + 1)
+        if deepest > MAX_DEPTH:
+            break
+    return deepest
 
 
 def unknown_key(key: Any, allowed: list[str]) -> str:
@@ -405,39 +483,81 @@ def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None 
         ScenarioError: missing or empty file, TOML syntax error or invalid settings.
     """
     path = Path(path)
-    data = _read_toml(path)
-    data = apply_overrides(data, list(overrides), str(path))
-    if seed is not None:
-        data["seed"] = seed
-    data.setdefault("name", re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem))
+    raw = _read_toml(path)
+
+    def effective(items: list[str]) -> dict:
+        data = apply_overrides(copy.deepcopy(raw), items, str(path))
+        if seed is not None:
+            data["seed"] = seed
+        data.setdefault("name", re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem))
+        return data
+
+    def caused(item: str, key: str) -> bool:
+        """Whether the problem with ``key`` goes away without ``--set item``.
+
+        Not when the file's own value of what the ``--set`` sets is wrong too: the
+        ``--set`` then repairs the file (which is at fault) rather than breaking it.
+        """
+        try:
+            lines = _problems(effective([o for o in overrides if o is not item]), str(path))
+        except (ScenarioError, PluginError, ValueError, TypeError):
+            return True
+        keys = {line.removeprefix(f"{path}: ").partition(": ")[0] for line in lines}
+        return key not in keys and not keys & set(_set_keys(item))
+
+    data = effective(list(overrides))
     try:
         scenario = scenario_model().model_validate(data)
     except ValidationError as exc:
         lines = (format_errors(exc, str(path)) + _hidden_problems(data, str(path))
                  + _cross_field_problems(data, exc, str(path)))
         raise ScenarioError(attribute_to_sets(list(dict.fromkeys(lines)), str(path), overrides,
-                                          attribute_sets)) from None
+                                              attribute_sets, caused)) from None
     except PluginError as exc:
-        raise ScenarioError([f"{path}: {exc}"]) from None
+        raise ScenarioError(attribute_to_sets([f"{path}: {exc}"], str(path), overrides,
+                                              attribute_sets)) from None
     problems = _resolve_margins(scenario, path, check_margins)
     if problems:
-        raise ScenarioError([f"{path}: mpc.margins: {p}" for p in problems])
+        raise ScenarioError(attribute_to_sets([f"{path}: mpc.margins: {p}" for p in problems],
+                                              str(path), overrides, attribute_sets))
     return scenario, dump_toml(scenario.model_dump(mode="json", exclude_none=True))
+
+
+def _problems(data: dict, source: str) -> list[str]:
+    """The ``source: key: reason`` lines of scenario data ([] if it is valid)."""
+    try:
+        scenario_model().model_validate(data)
+    except ValidationError as exc:
+        return (format_errors(exc, source) + _hidden_problems(data, source)
+                + _cross_field_problems(data, exc, source))
+    return []
 
 
 def _read_toml(path: Path) -> dict:
     """A scenario file's TOML table (raises :class:`ScenarioError`)."""
-    if not path.is_file():
+    if path.is_dir():
+        raise ScenarioError([f"{path}: is a directory, not a scenario file"])
+    if not path.exists():
         raise ScenarioError([f"{path}: file not found"])
+    if not path.is_file():  # a FIFO or a device: reading it may block forever
+        raise ScenarioError([f"{path}: not a regular file"])
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError([f"{path}: TOML syntax error: {exc}"]) from None
     except UnicodeDecodeError:
         raise ScenarioError([f"{path}: not a UTF-8 text file"]) from None
+    except RecursionError:
+        raise ScenarioError([f"{path}: tables or arrays nested too deeply (more than "
+                             f"{MAX_DEPTH} levels)"]) from None
+    except OSError as exc:  # unreadable (permissions), a FIFO's error, an I/O error
+        raise ScenarioError([f"{path}: cannot read it: {exc.strerror or exc}"]) from None
     if not data:
         raise ScenarioError([f"{path}: file is empty (no settings; write at least "
                              f"[system] name = \"{DEFAULT_SYSTEM}\")"])
+    if nesting(data) > MAX_DEPTH:
+        raise ScenarioError([f"{path}: tables or arrays nested too deeply (more than "
+                             f"{MAX_DEPTH} levels)"])
     return data
 
 
@@ -548,18 +668,61 @@ def _cross_field_problems(data: dict, exc: ValidationError, source: str) -> list
             if not any(r.search(line) for r in named) and line.split(".")[0] not in sections]
 
 
-def attribute_to_sets(lines: list[str], source: str, overrides: list[str], on: bool
-                      ) -> list[str]:
-    """Re-attributes ``source: key: reason`` lines on an overridden key to its ``--set``."""
+#: a dotted key path inside a message (``sim.rate_hz``, ``system.x0[2]``)
+_KEY_IN_TEXT = re.compile(r"(?<![\w.])[A-Za-z_]\w*(?:\.\w+)+")
+
+
+def attribute_to_sets(lines: list[str], source: str, overrides: list[str], on: bool,
+                      caused: Callable[[str, str], bool] | None = None) -> list[str]:
+    """Re-attributes ``source: key: reason`` lines caused by a ``--set`` to that ``--set``.
+
+    A line is the ``--set``'s when its key is the overridden key or inside it (or, for an
+    unknown key, a table the ``--set`` made); when its key is the table of the overridden
+    key and the reason names the key's last part (``planner: Input tag 'x' found using
+    'kind'``); or when its key or reason names the overridden key (``mpc.rate_hz: 10 must
+    divide sim.rate_hz = 7`` after ``--set sim.rate_hz=7``). The last such ``--set`` wins.
+    For the last two, ``caused(item, key)`` (if given) must confirm it: the problem with
+    ``key`` goes away without that ``--set`` (a ``--set`` that fixed one rate is not
+    blamed for the file's other rate).
+    """
     if not on or not overrides:
         return lines
-    keys, out = [(item.partition("=")[0].strip(), item) for item in overrides], []
+    keys, out = [(k, item) for item in overrides for k in _set_keys(item)], []
     for line in lines:
+        if not line.startswith(f"{source}: "):
+            out.append(line)
+            continue
         key, _, reason = line.removeprefix(f"{source}: ").partition(": ")
         unknown = reason.startswith("unknown key")  # an unknown section the --set made
         hit = [item for k, item in keys if key == k or key.startswith((f"{k}.", f"{k}["))
                or (unknown and k.startswith(f"{key}."))]
+        if not hit:
+            hit = [item for k, item in keys if k.startswith(f"{key}.") and "." not in
+                   k.removeprefix(f"{key}.") and re.search(
+                       rf"(?<![\w.]){re.escape(k.rpartition('.')[2])}(?!\w)", reason)]
+            if not hit:
+                named = set(_KEY_IN_TEXT.findall(f"{key} {reason}"))
+                hit = [item for k, item in keys if k in named]
+            hit = [item for item in dict.fromkeys(hit) if caused is None or caused(item, key)]
         out.append(f"--set {hit[-1]}: " + line.removeprefix(f"{source}: ") if hit else line)
+    return out
+
+
+def _set_keys(item: str) -> list[str]:
+    """The keys a ``--set`` item sets: its key, or a table's leaves (merged key by key)."""
+    key, _, raw = item.partition("=")
+    key = key.strip()
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except (tomllib.TOMLDecodeError, RecursionError):
+        return [key]
+    out, todo = [], [(key, value)]
+    while todo:
+        k, v = todo.pop()
+        if isinstance(v, dict) and v:
+            todo += [(f"{k}.{kk}", vv) for kk, vv in v.items()]
+        else:
+            out.append(k)
     return out
 
 

@@ -33,6 +33,7 @@ from hmpc_cli.core.cbuild import (
     checked_cache_dir,
     compile_shared,
     compiler,
+    compiler_problem,
     compiler_identity,
     private_dir,
     verified,
@@ -183,7 +184,8 @@ def build_library(source: str) -> tuple[ctypes.CDLL, Path, float | None]:
     """
     cc = compiler()
     if cc is None:
-        raise RolloutBuildError("no C compiler found (set CC or install cc/gcc)")
+        raise RolloutBuildError(compiler_problem() or
+                                "no C compiler found (set CC or install cc/gcc)")
     try:
         identity = compiler_identity(cc)
     except CBuildError as e:

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from hmpc_cli.core import signals
+from hmpc_cli.core.paths import write_atomic
 from hmpc_cli.run.runner import run_one
 from hmpc_cli.sweep.plan import Run, SweepPlan
 from hmpc_cli.sweep.pool import run_pool
@@ -71,7 +72,7 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
     """
     out = out.resolve()
     (out / "runs").mkdir(parents=True, exist_ok=True)
-    (out / "sweep.toml").write_text(plan.text, encoding="utf-8")
+    write_atomic(out / "sweep.toml", plan.text)
     selected = plan.selected
     done = {r.run_id: finished(out, r) for r in selected}
     pending = [r for r in selected if done[r.run_id] is None]
@@ -116,10 +117,10 @@ def _worker_died(run: Run, out: Path, signum: int) -> dict:
 
     d = out / "runs" / run.run_id
     d.mkdir(parents=True, exist_ok=True)
-    (d / "scenario.toml").write_text(run.toml, encoding="utf-8")
+    write_atomic(d / "scenario.toml", run.toml)
     sc = tomllib.loads(run.toml)
     res = RunResult(str(sc.get("name", "?")), int(sc.get("seed", run.seed)))
     res.reason = f"worker died (signal {signum}) twice"
-    (d / "summary.json").write_text(
-        json.dumps(jsonable(res.__dict__), indent=2, allow_nan=False) + "\n")
+    write_atomic(d / "summary.json",
+                 json.dumps(jsonable(res.__dict__), indent=2, allow_nan=False) + "\n")
     return json.loads((d / "summary.json").read_text())

@@ -1,4 +1,8 @@
-"""The exclusive lock of a sweep's output directory (two sweeps never write one directory)."""
+"""A sweep's output directory: its owner and its exclusive lock (two sweeps never share one).
+
+A directory belongs to the sweep that made it (the name in its ``sweep.toml``,
+:func:`owner_problem`); while a sweep writes there it holds the lock (:func:`output_lock`).
+"""
 
 from __future__ import annotations
 
@@ -7,7 +11,7 @@ import os
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["SweepLockedError", "output_lock"]
+__all__ = ["SweepLockedError", "owner_problem", "output_lock"]
 
 
 class SweepLockedError(Exception):
@@ -45,3 +49,35 @@ def output_lock(out: Path) -> Iterator[None]:
         yield
     finally:
         os.close(fd)  # releases the lock
+
+
+def owner_problem(out: Path, name: str) -> str | None:
+    """Why sweep ``name`` may not write into ``out``, or None; reads only.
+
+    ``out`` is free when it does not exist or is empty (but for a lock); else it must be
+    a sweep's directory (its ``sweep.toml``) of a sweep of the same name: resuming
+    or extending it. A directory of another sweep, or one that is no sweep's, is refused.
+    """
+    import tomllib
+
+    try:
+        if not out.exists():
+            return None
+        entries = sorted(p.name for p in out.iterdir() if p.name != ".lock")
+    except OSError as exc:
+        return f"cannot read it ({exc.strerror or exc})"
+    if not entries:
+        return None
+    stored = out / "sweep.toml"
+    if not stored.is_file():
+        shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
+        return (f"is not a sweep's directory (no sweep.toml; it holds {shown}): choose a new "
+                "or empty --out")
+    try:
+        owner = tomllib.loads(stored.read_text(encoding="utf-8")).get("name")
+    except (OSError, ValueError) as exc:
+        return f"its sweep.toml cannot be read ({exc}): choose another --out"
+    if owner != name:
+        return (f"belongs to sweep {owner!r} (its sweep.toml), not {name!r}: choose another "
+                "--out (the same sweep resumes in its own directory)")
+    return None

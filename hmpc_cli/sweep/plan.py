@@ -50,6 +50,14 @@ class SweepSpec(BaseModel):
     set_: dict[str, Any] = Field(default_factory=dict, alias="set")
     grid: dict[str, Any] = Field(default_factory=dict)
 
+    @field_validator("name")
+    @classmethod
+    def _name(cls, v: str) -> str:
+        if not v.strip("."):  # "." or "..": results/sweeps/<name> would be another folder
+            raise ValueError(f"{v!r} is not a name (it names a folder above the sweep's: "
+                             "use letters, digits, '_', '-' or '.')")
+        return v
+
     @field_validator("seeds", mode="before")
     @classmethod
     def _seeds(cls, v: Any) -> list[int]:

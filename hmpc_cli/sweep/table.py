@@ -6,7 +6,6 @@ import csv
 import io
 import json
 import math
-import os
 from pathlib import Path
 from typing import Any
 
@@ -30,8 +29,12 @@ def finished(out: Path, run) -> dict | None:
 def finished_in(d: Path, toml_text: str) -> dict | None:
     """The summary of the run in directory ``d``, if it finished there; else None.
 
-    Finished means: summary.json holds a JSON object whose reason is not ``interrupted...``,
-    and scenario.toml is the effective scenario ``toml_text`` (:func:`same_scenario`).
+    Finished means: its log ``run.mcap`` reads back complete with its /run/summary
+    (:func:`hmpc_cli.log.reader.log_finished`: a missing, empty, cut-short or damaged log
+    is not finished, whatever summary.json says; a run that raised, recorded with its
+    ``error.txt``, finished with no log or a complete one), summary.json holds a JSON
+    object whose reason is not ``interrupted...``, and scenario.toml is the effective
+    scenario ``toml_text`` (:func:`same_scenario`). Anything else is redone on resume.
     """
     try:
         summary = json.loads((d / "summary.json").read_text())
@@ -40,7 +43,21 @@ def finished_in(d: Path, toml_text: str) -> dict | None:
         return None
     if not isinstance(summary, dict) or is_interrupted(summary):
         return None
-    return summary if same_scenario(stored, toml_text) else None
+    if not same_scenario(stored, toml_text) or not log_done(d):
+        return None
+    return summary
+
+
+def log_done(d: Path) -> bool:
+    """Whether run directory ``d`` holds the log a finished run leaves (:func:`finished_in`)."""
+    from hmpc_cli.log.reader import log_finished
+
+    log = d / "run.mcap"
+    if log_finished(log):
+        return True
+    if not (d / "error.txt").is_file():  # no log of a run that raised: a crash is a result
+        return False
+    return not (log.exists() or log.is_symlink()) or log_finished(log, summary=False)
 
 
 def same_scenario(stored: str, planned: str) -> bool:
@@ -113,9 +130,9 @@ def write_results(plan, out: Path) -> int:
     writer = csv.DictWriter(buf, plan.columns, lineterminator="\n")
     writer.writeheader()
     writer.writerows(rows)
-    tmp = out / "results.csv.tmp"
-    tmp.write_text(buf.getvalue(), encoding="utf-8")
-    os.replace(tmp, out / "results.csv")
+    from hmpc_cli.core.paths import write_atomic
+
+    write_atomic(out / "results.csv", buf.getvalue())
     return len(rows)
 
 

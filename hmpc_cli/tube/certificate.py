@@ -35,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hmpc_cli.core import signals
 from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.tube.sampling import TubeError, jacobians, num
 
@@ -238,6 +239,7 @@ def roa_level(closed: _ClosedLoop, P: np.ndarray, cap: float, samples: int,
     L_inv_T = np.linalg.inv(np.linalg.cholesky(P)).T  # V(L^-T z) = ||z||
     c, count = cap, 0
     for _ in range(_ROA_ROUNDS):
+        signals.check()  # a stop signal ends the sampling between rounds
         z = rng.standard_normal((samples, P.shape[0]))
         z *= (rng.uniform(0.0, 1.0, samples) / np.linalg.norm(z, axis=1))[:, None]
         e = c * z @ L_inv_T.T

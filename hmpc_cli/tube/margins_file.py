@@ -182,7 +182,9 @@ def write_margins(path: Path, report: TubeReport, **meta) -> None:
     path = Path(path)
     if path.parent != Path(""):
         path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(margins_text(report, **meta), encoding="utf-8")
+    from hmpc_cli.core.paths import write_atomic
+
+    write_atomic(path, margins_text(report, **meta))
 
 
 def read_margins(path: Path) -> MarginsFile:

@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass
 import casadi as ca
 import numpy as np
 
+from hmpc_cli.core import signals
 from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.core.numeric import compile_numpy
 
@@ -25,6 +26,22 @@ __all__ = ["ESTIMATE_NOTE", "DisturbanceBound", "LipschitzEstimate", "Region", "
 ESTIMATE_NOTE = ("estimate: sampled maximum of the Jacobian norm (a lower bound on the "
                  "true constant), not a certificate")
 _REFINE_ROUNDS, _REFINE_STARTS, _REFINE_TRIES = 25, 8, 16
+#: most uniform samples per estimated constant (``hmpc tube --samples``)
+MAX_SAMPLES = 10_000_000
+#: measured cost of one sample of ``hmpc tube`` (ball, 2 cores): time [us], memory [KiB]
+SAMPLE_US, SAMPLE_KIB = 5.0, 0.25
+
+
+def samples_problem(samples: int) -> str:
+    """Why ``samples`` per constant are too many to sample ('' if they are not)."""
+    if samples <= MAX_SAMPLES:
+        return ""
+    from hmpc_cli.core.settings_types import duration_text, gib
+
+    return (f"{samples:.3g} samples per constant exceeds the limit {MAX_SAMPLES:.0e} (it "
+            f"would need about {gib(samples * SAMPLE_KIB * 1024)} of memory and "
+            f"{duration_text(samples * SAMPLE_US * 1e-6)}, at {SAMPLE_KIB:g} KiB and "
+            f"{SAMPLE_US:g} us per sample)")
 
 
 class TubeError(ValueError):
@@ -205,6 +222,7 @@ def _sampled_max(system: HybridSystem, region: Region, which: int, quantity: str
     best, count = None, 0
     per_mode = max(1, samples // len(system.modes))
     for i, mode in enumerate(system.modes):
+        signals.check()  # a stop signal ends the sampling between modes and rounds
         ulo, uhi = np.array(mode.u_lower, dtype=float), np.array(mode.u_upper, dtype=float)
 
         def norm(X, U, i=i, mode=mode):
@@ -236,6 +254,7 @@ def _refine(norm: Callable, X: np.ndarray, U: np.ndarray, vals: np.ndarray,
     xw, uw = xbox[1] - xbox[0], ubox[1] - ubox[0]
     k, evals = len(top), 0
     for r in range(_REFINE_ROUNDS):
+        signals.check()
         step = 0.1 * 0.8**r
         Xc = np.clip(np.repeat(X, _REFINE_TRIES, 0) + step * xw * rng.standard_normal(
             (k * _REFINE_TRIES, X.shape[1])), *xbox)

@@ -59,6 +59,7 @@ class ChainMPC:
         self.rate_hz = settings.rate_hz
         self.chain = ChainSolver(system, settings, nlps)
         self._schedule: ModeSchedule | None = None  # what the node schedule follows
+        self._installed: ModeSchedule | None = None  # the plan as installed
         self._t_shift = 0.0  # nodes are shifted by the time elapsed since this [s]
         self._t_event = -math.inf  # the newest event applied [s]
 
@@ -87,25 +88,38 @@ class ChainMPC:
             unsolved plan (``adopt`` False) and leaves the previous one in place.
         """
         dropped = self._apply(events)
-        if schedule != self._schedule:  # a new plan
+        if self._new_plan(schedule):
             reason = self.check(schedule)
             if reason:
                 return rejected_plan(t, x, mode, schedule, reason)
             ns = NodeSchedule.from_schedule(schedule, self.chain.N, self.chain.dt)
             self.chain.set_schedule(ns, guess)
-            self._schedule, shifted = schedule, 0
-        elif dropped:
-            shifted = 0
+            self._schedule, self._installed, shifted = schedule, schedule, 0
+        elif dropped:  # the domain after the impact started at the event, not at t
+            n = self.s.shifted_nodes(t - self._t_shift)
+            shifted = self._shift(n) if n else 0
         else:
-            shifted = self.chain.shift(self.s.shifted_nodes(t - self._t_shift))
+            shifted = self._shift(self.s.shifted_nodes(t - self._t_shift))
         self._t_shift = t
         plan = self.chain.solve(t, x)
         counts = list(self.chain.node_schedule.counts)
         return replace(plan, schedule=self._schedule,
                        extra={"shifted": shifted, "counts": counts})
 
+    def _new_plan(self, schedule: ModeSchedule) -> bool:
+        """Whether ``schedule`` is a newly planned one (else the one the nodes follow).
+
+        Under the reference rule the MPC's own schedule runs ahead of the loop's impact
+        rule: a schedule is new only if it is not the installed plan with domains dropped.
+        """
+        if self.s.schedule_rule == "impact" or self._installed is None:
+            return schedule != self._schedule
+        plan, k = self._installed, len(self._installed.modes) - len(schedule.modes)
+        return not (k >= 0 and schedule.t0 == plan.t0 and schedule.modes == plan.modes[k:]
+                    and schedule.guards == plan.guards[k:])
+
     def _apply(self, events: Sequence[GuardEvent]) -> bool:
-        """Applies the impact rule to the events newer than the last applied one.
+        """Applies the schedule rule to the events newer than the last applied one.
 
         Returns:
             Whether a domain was dropped.
@@ -117,13 +131,39 @@ class ChainMPC:
             self._t_event = ev.t
             if self._schedule is None:
                 continue
-            after, outcome = self._schedule.after_event(ev.guard, ev.mode_after)
-            if outcome in (SCHEDULED, AHEAD):
+            after = self._after(ev)
+            if after is not None:
                 for _ in range(len(self._schedule.modes) - len(after.modes)):
                     self.chain.on_impact()
                 self._schedule, dropped = after, True
                 self._t_shift = ev.t
         return dropped
+
+    def _after(self, ev: GuardEvent) -> ModeSchedule | None:
+        """The schedule after a real event by the rule (None: unchanged)."""
+        sched = self._schedule
+        if self.s.schedule_rule == "impact":
+            after, outcome = sched.after_event(ev.guard, ev.mode_after)
+            return after if outcome in (SCHEDULED, AHEAD) else None
+        if not sched.guards:
+            return None
+        final = self.system.mode_index(self.system.final_mode)
+        return sched.drop(len(sched.guards) if ev.mode_after == final else 1)
+
+    def _shift(self, n: int) -> int:
+        """Moves n elapsed intervals to the final domain; returns how many moved.
+
+        The reference rule first drops every domain whose planned intervals have all
+        elapsed (the impact rule keeps one interval while the guard is pending).
+        """
+        moved = 0
+        if self.s.schedule_rule == "reference":
+            while self._schedule.guards and n >= self.chain.node_schedule.counts[0]:
+                k = self.chain.node_schedule.counts[0]
+                self.chain.on_impact()
+                self._schedule = self._schedule.drop(1)
+                n, moved = n - k, moved + k
+        return moved + self.chain.shift(n)
 
 
 def _problem(system: HybridSystem, settings: MPCSettings,

@@ -118,6 +118,14 @@ class MPCSettings(BaseModel):
         "reference code's floor(nodes_per_second x elapsed), computed in floating point: "
         "0 at 100 Hz with 60 nodes/s, so the nodes never move, and 5 instead of 6 in some 10 "
         "Hz periods; any nodes_per_second)")
+    schedule_rule: Literal["impact", "reference"] = Field(
+        "impact", description='how the MPC keeps its schedule in closed loop: "impact" (the '
+        "paper's impact rule: a domain is dropped when its scheduled guard fires; its node "
+        'count never shifts below one) or "reference" (the reference code\'s bookkeeping, to '
+        "emulate it: every contact that does not enter the final domain drops the first "
+        "domain, whichever guard fired; a contact into the final domain drops every domain "
+        "before it; a domain whose planned nodes have all shifted away is dropped without a "
+        'contact). Pair it with node_shift = "floor" to fly the reference code\'s rule whole')
     final_domain_nlp: StrictBool = Field(
         True, description="solve schedules with no switch left on the final domain's own, "
                           "smaller NLP (same problem, no switching rows)")

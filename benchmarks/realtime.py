@@ -1,0 +1,156 @@
+"""The paper's yardstick in real time: does the layered controller keep up?
+
+Runs the nominal ball and the 10 Figure 3 trials at 10, 20, 60 and 100 Hz (100 Hz on
+``mpc.nodes_per_second = 100``), plan-once and replanning on contact, with the compute time
+``paused`` (the paper's runs), charged by the deterministic ``model`` and ``measured``
+(machine dependent), each with delay compensation and the first plan paused, through
+``hmpc sweep``'s machinery (resumable: ``--out`` keeps finished runs). Prints and writes
+success counts per cell and the MPC solve percentiles (all solves, and those with a switch
+left), measured wall time and charged delay.
+
+    python benchmarks/realtime.py --write results/bench/realtime.md
+    python benchmarks/realtime.py --latency paused,model --rates 20,60 --workers 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hmpc_cli.log.reader import read_log
+from hmpc_cli.sweep.execute import execute_sweep
+from hmpc_cli.sweep.plan import plan_sweep
+
+ROOT = Path(__file__).resolve().parents[1]
+RATES = (10, 20, 60, 100)
+POLICIES = ("once", "on_contact")
+LATENCIES = ("paused", "model", "measured")
+TRIALS = 10
+
+
+def sweep_text(latencies, rates, policies, trials: int, compensate: bool) -> str:
+    """The sweep file of the yardstick's grid."""
+    lines = ['name = "realtime"', f'scenario = "{(ROOT / "scenarios" / "ball.toml").as_posix()}"',
+             "seeds = [0]", "[set]", '"sim.latency_first" = "paused"',
+             f'"sim.delay_compensation" = {str(compensate).lower()}', "[grid]", "latency = ["]
+    lines += [f'  {{ label = "{lat}", "sim.latency" = "{lat}" }},' for lat in latencies]
+    lines += ["]", "controller = ["]
+    for rate in rates:
+        nps = 100 if rate == 100 else 60
+        for pol in policies:
+            lines.append(f'  {{ label = "{rate} Hz {pol}", "mpc.rate_hz" = {rate}, '
+                         f'"mpc.nodes_per_second" = {nps}, "replanning.policy" = "{pol}" }},')
+    lines += ["]", "disturbance = [", '  { label = "nominal", "disturbance.kind" = "none" },']
+    lines += [f'  {{ label = "trial {k}", "disturbance.kind" = "paper_fig3", '
+              f'"disturbance.trial" = {k} }},' for k in range(1, trials + 1)]
+    lines.append("]")
+    return "\n".join(lines) + "\n"
+
+
+def solves_of(log: Path) -> list[tuple[float, float, bool]]:
+    """(measured wall [s], charged delay [s], a switch left) of every MPC solve of a log."""
+    out = []
+    for m in read_log(log).messages:
+        if m.topic == "/mpc/solve":
+            d = m.data
+            sched = d.get("schedule") or {}
+            out.append((float(d.get("wall_time") or math.nan), float(d.get("latency") or 0.0),
+                        bool(sched.get("guards"))))
+    return out
+
+
+def _pct(values: list[float], q: float) -> float:
+    return float(np.percentile(values, q)) * 1e3 if values else math.nan
+
+
+def summarise(out: Path) -> tuple[dict, dict]:
+    """Success counts per (latency, controller) and solve percentiles per latency."""
+    with open(out / "results.csv", newline="", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    counts: dict[tuple[str, str], list[int]] = {}
+    solves: dict[str, list[tuple[float, float, bool]]] = {}
+    for row in rows:
+        key = (row["latency"], row["controller"])
+        ok = row["success"].strip().lower() == "true"
+        c = counts.setdefault(key, [0, 0])
+        c[0] += ok
+        c[1] += 1
+        log = out / row["log"] if row.get("log") else None
+        if log is not None and log.is_file():
+            solves.setdefault(row["latency"], []).extend(solves_of(log))
+    return counts, solves
+
+
+def machine() -> str:
+    cpu = platform.processor() or "?"
+    info = Path("/proc/cpuinfo")
+    if info.is_file():
+        cpu = next((ln.split(":", 1)[1].strip() for ln in info.read_text().splitlines()
+                    if ln.startswith("model name")), cpu)
+    return f"{cpu}, {os.cpu_count()} logical CPUs, load {os.getloadavg()[0]:.1f}"
+
+
+def report(counts: dict, solves: dict, args, elapsed: float) -> str:
+    lats = [lat for lat in args.latency if any(k[0] == lat for k in counts)]
+    ctrls = list(dict.fromkeys(k[1] for k in counts))
+    lines = ["# Real time: the nominal ball and the 10 Figure 3 trials", "",
+             f"Machine: {machine()}. `measured` rows are machine (and load) dependent; "
+             "`model` charges `sim.latency_model` (deterministic); `paused` is the paper's "
+             "setting.", "",
+             f"Delay compensation {'on' if args.compensate else 'off'}, first plan paused; "
+             f"{elapsed / 60:.1f} min with {args.workers} workers.", "",
+             "| controller | " + " | ".join(lats) + " |",
+             "|---|" + "---|" * len(lats)]
+    for c in ctrls:
+        cells = [f"{counts[(lat, c)][0]}/{counts[(lat, c)][1]}" if (lat, c) in counts else "-"
+                 for lat in lats]
+        lines.append(f"| {c} | " + " | ".join(cells) + " |")
+    lines += ["", "MPC solves [ms] (measured wall time; charged delay for model/measured):", "",
+              "| latency | solves | all median | all p95 | switching median | switching p95 "
+              "| charged median | charged p95 |", "|---|---|---|---|---|---|---|---|"]
+    for lat in lats:
+        s = solves.get(lat, [])
+        wall = [w for w, _, _ in s if math.isfinite(w)]
+        sw = [w for w, _, sw_ in s if sw_ and math.isfinite(w)]
+        ch = [c for _, c, _ in s if c > 0]
+        lines.append(f"| {lat} | {len(s)} | {_pct(wall, 50):.1f} | {_pct(wall, 95):.1f} | "
+                     f"{_pct(sw, 50):.1f} | {_pct(sw, 95):.1f} | {_pct(ch, 50):.1f} | "
+                     f"{_pct(ch, 95):.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--latency", default=",".join(LATENCIES))
+    ap.add_argument("--rates", default=",".join(map(str, RATES)))
+    ap.add_argument("--policies", default=",".join(POLICIES))
+    ap.add_argument("--trials", type=int, default=TRIALS, help="disturbed trials (0..10)")
+    ap.add_argument("--no-compensation", dest="compensate", action="store_false")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--out", type=Path, default=ROOT / "results" / "bench" / "realtime_runs")
+    ap.add_argument("--write", type=Path, help="write the Markdown report here")
+    args = ap.parse_args()
+    args.latency = args.latency.split(",")
+    text = sweep_text(args.latency, [int(r) for r in args.rates.split(",")],
+                      args.policies.split(","), args.trials, args.compensate)
+    args.out.mkdir(parents=True, exist_ok=True)
+    spec = args.out / "realtime.toml"
+    spec.write_text(text, encoding="utf-8")
+    start = time.perf_counter()
+    execute_sweep(plan_sweep(spec), args.out, workers=args.workers)
+    counts, solves = summarise(args.out)
+    out = report(counts, solves, args, time.perf_counter() - start)
+    print(out)
+    if args.write:
+        args.write.write_text(out, encoding="utf-8")
+
+
+if __name__ == "__main__":
+    main()

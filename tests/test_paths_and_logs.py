@@ -1,0 +1,527 @@
+"""Step 14, "nothing lies": output paths, sweep resume and ownership, damaged logs, counts, scene.
+
+Table-driven: every writing command against every bad output path (exit 2, one error line,
+nothing written); a sweep run is finished only with a complete log; damaged or foreign logs
+are "damaged log" (exit 2), never an internal error; failed walking-MPC solves are counted;
+the biped's plan and rollout lines break at resets. The fuzz and full-disk tests are slow.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import random
+import shutil
+import struct
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import REPO
+from typer.testing import CliRunner
+
+from hmpc_cli.cli.app import app
+
+BALL = REPO / "scenarios" / "ball.toml"
+BIPED = REPO / "scenarios" / "biped_stairs.toml"
+
+
+def hmpc(args: list[str], cwd: Path | None = None):
+    """``hmpc ARGS`` in this process (stderr apart), from ``cwd``."""
+    old = Path.cwd()
+    if cwd is not None:
+        os.chdir(cwd)
+    try:
+        return CliRunner().invoke(app, [str(a) for a in args])
+    finally:
+        os.chdir(old)
+
+
+def errors(res) -> list[str]:
+    return [ln for ln in res.stderr.splitlines() if ln.strip()]
+
+
+def listing(root: Path) -> list[str]:
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+
+
+@pytest.fixture(scope="module")
+def ball_run(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("ball") / "run"
+    res = hmpc(["run", BALL, "--set", "sim.duration=0.3", "--out", out, "-q"])
+    assert res.exit_code == 0, res.stderr
+    return out
+
+
+@pytest.fixture(scope="module")
+def biped_run(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("biped") / "run"
+    res = hmpc(["run", BIPED, "--set", "sim.duration=0.8", "--out", out, "-q"])
+    assert res.exit_code == 0, res.stderr
+    return out
+
+
+# ----------------------------------------------------------------- output paths
+def _sweep_file(d: Path, name: str = "tiny") -> Path:
+    path = d / f"{name}.toml"
+    path.write_text(f'name = "{name}"\nscenario = "{BALL}"\nseeds = [0]\n'
+                    '[set]\n"sim.duration" = 0.05\n')
+    return path
+
+
+BAD = {  # name -> (the path, what the error line says)
+    "empty": ("", "an empty path"),
+    "file in the way": ("afile/sub", "cannot create it: afile is not a directory"),
+    "proc": ("/proc/hmpc-out", "virtual file system"),
+    "name too long": ("n" * 300, "name too long"),
+    "dangling link": ("dangling/sub", "dangling symbolic link"),
+    "link loop": ("loop/sub", "symbolic link loop"),
+}
+COMMANDS = {  # name -> args with the path as {P}, the check's kind
+    "run --out": ["run", BALL, "--out", "{P}"],
+    "sweep --out": ["sweep", "{SWEEP}", "--out", "{P}", "--workers", "1"],
+    "plot --out": ["plot", "fig4", "{LOG}", "--out", "{P}"],
+    "tube --write": ["tube", BALL, "--write", "{P}", "--samples", "10"],
+    "tube --out": ["tube", BALL, "--out", "{P}", "--samples", "10"],
+    "report --results": ["report", "--results", "{P}", "--biped", ""],
+    "replay --export": ["replay", "{LOG}", "--export", "{P}"],
+    "replay --figures": ["replay", "{LOG}", "--figures", "{P}"],
+}
+
+
+@pytest.mark.parametrize("bad", list(BAD))
+@pytest.mark.parametrize("command", list(COMMANDS))
+def test_every_writing_command_refuses_a_bad_output_path(tmp_path, ball_run, command, bad):
+    (tmp_path / "afile").write_text("x")
+    (tmp_path / "dangling").symlink_to(tmp_path / "nowhere")
+    (tmp_path / "loop").symlink_to(tmp_path / "loop")
+    sweep = _sweep_file(tmp_path)
+    before = listing(tmp_path)
+    path, said = BAD[bad]
+    args = [str(a).replace("{P}", path).replace("{SWEEP}", str(sweep))
+            .replace("{LOG}", str(ball_run / "run.mcap")) for a in COMMANDS[command]]
+    res = hmpc(args, tmp_path)
+    assert res.exit_code == 2, (res.stdout, res.stderr)
+    lines = errors(res)
+    assert len(lines) == 1 and lines[0].startswith("error: ") and said in lines[0], lines
+    assert "internal error" not in res.stderr and "Traceback" not in res.stderr
+    assert listing(tmp_path) == before  # nothing written
+    assert not (tmp_path / "results").exists()
+
+
+@pytest.fixture
+def readonly_dir(tmp_path):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    if os.geteuid() != 0 or subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(ro)],
+            capture_output=True).returncode != 0:
+        pytest.skip("needs root and a tmpfs mount for a read-only directory")
+    yield ro
+    subprocess.run(["umount", str(ro)], check=False)
+
+
+@pytest.mark.parametrize("command", ["run --out", "sweep --out", "tube --write",
+                                     "replay --export"])
+def test_an_unwritable_directory_is_refused(tmp_path, readonly_dir, ball_run, command):
+    args = [str(a).replace("{P}", str(readonly_dir / "x"))
+            .replace("{SWEEP}", str(_sweep_file(tmp_path)))
+            .replace("{LOG}", str(ball_run / "run.mcap")) for a in COMMANDS[command]]
+    res = hmpc(args, tmp_path)
+    assert res.exit_code == 2 and "read-only file system" in res.stderr, res.stderr
+    assert len(errors(res)) == 1
+
+
+def test_a_sweep_named_dotdot_never_writes_into_results(tmp_path):
+    path = tmp_path / "up.toml"
+    path.write_text(f'name = ".."\nscenario = "{BALL}"\n')
+    res = hmpc(["sweep", path, "--workers", "1"], tmp_path)
+    assert res.exit_code == 2 and "is not a name" in res.stderr, res.stderr
+    assert listing(tmp_path) == ["up.toml"]
+
+
+def test_two_runs_never_share_a_directory(tmp_path):
+    from hmpc_cli.run.runner import RunDirTakenError, claim_run_dir, out_problem
+
+    out = tmp_path / "x"
+    assert out_problem(out) is None
+    claim_run_dir(out)
+    assert (out / "run.mcap").is_file()
+    with pytest.raises(RunDirTakenError, match="already holds a run"):
+        claim_run_dir(out)  # the second of two started at once
+    assert "already holds a run" in out_problem(out)
+    res = hmpc(["run", BALL, "--out", out], tmp_path)
+    assert res.exit_code == 2 and "already holds a run" in res.stderr
+
+
+# ----------------------------------------------------------------- atomic writes
+def test_a_failed_write_leaves_no_temporary_and_claims_nothing(tmp_path, monkeypatch):
+    from hmpc_cli.core.paths import atomic_file, write_atomic
+
+    write_atomic(tmp_path / "a.txt", "old")
+    with pytest.raises(OSError), atomic_file(tmp_path / "a.txt") as tmp:
+        tmp.write_text("half")
+        raise OSError(errno.ENOSPC, "No space left on device")
+    assert listing(tmp_path) == ["a.txt"] and (tmp_path / "a.txt").read_text() == "old"
+    with pytest.raises(OSError), atomic_file(tmp_path / "b.txt") as tmp:
+        tmp.write_bytes(b"")
+        raise OSError(errno.ENOSPC, "No space left on device")
+    assert listing(tmp_path) == ["a.txt"]  # no 0-byte temporary, no b.txt
+
+
+def test_a_full_disk_while_saving_a_figure_keeps_nothing_half_written(tmp_path, monkeypatch):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from hmpc_cli.analysis.tables import FigureInputError
+    from hmpc_cli.figures.common import save_figure
+
+    fig = plt.figure()
+
+    def full(path, **_):
+        Path(path).write_bytes(b"")
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(fig, "savefig", full)
+    with pytest.raises(FigureInputError, match="No space left"):
+        save_figure(fig, tmp_path, "f", ["png"])
+    assert listing(tmp_path) == []
+
+
+def test_a_full_disk_is_bad_environment_not_an_internal_error(tmp_path, ball_run,
+                                                               monkeypatch):
+    import hmpc_cli.analysis.export as export
+
+    def full(path, rows):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(export, "_write_csv", full)
+    res = hmpc(["replay", ball_run, "--export", tmp_path / "e", "-q"], tmp_path)
+    assert res.exit_code == 2 and "No space left on device" in res.stderr, res.stderr
+    assert "internal error" not in res.stderr
+    assert listing(tmp_path / "e") == []  # no temporaries, no half tables
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if os.geteuid() != 0 or subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", "size=200k", "tmpfs", str(disk)],
+            capture_output=True).returncode != 0:
+        pytest.skip("needs root and a tmpfs mount for a full disk")
+    yield disk
+    subprocess.run(["umount", str(disk)], check=False)
+
+
+@pytest.mark.slow
+def test_a_sweep_on_a_full_disk_exits_2_and_says_what_was_kept(tmp_path, small_disk):
+    path = tmp_path / "full.toml"
+    path.write_text(f'name = "full"\nscenario = "{BALL}"\nseeds = [0, 1]\n')
+    res = hmpc(["sweep", path, "--out", small_disk / "s", "--workers", "1"], tmp_path)
+    assert res.exit_code == 2, (res.stdout, res.stderr)
+    (line,) = errors(res)
+    assert "No space left on device" in line and "of 2 runs kept" in line, line
+    assert not [p for p in small_disk.rglob("*.tmp")]
+
+
+@pytest.mark.slow
+def test_a_plot_on_a_full_disk_exits_2_with_no_temporaries(tmp_path, small_disk, biped_run):
+    (small_disk / "filler").write_bytes(b"\0" * 150_000)
+    res = hmpc(["plot", "fig4", biped_run, "--out", small_disk / "p"], tmp_path)
+    assert res.exit_code == 2 and "No space left" in res.stderr, res.stderr
+    assert not [p for p in small_disk.rglob("*") if ".tmp" in p.name]
+
+
+# ----------------------------------------------------------------- sweep resume / owner
+def _damage(log: Path, how: str) -> None:
+    if how == "missing":
+        log.unlink()
+    elif how == "empty":
+        log.write_bytes(b"")
+    elif how == "cut short":
+        log.write_bytes(log.read_bytes()[: log.stat().st_size // 2])
+    elif how == "no /run/summary":
+        from mcap.writer import Writer
+
+        with open(log, "wb") as f:
+            w = Writer(f)
+            w.start(profile="", library="test")
+            w.register_channel("/run/info", "json", w.register_schema("I", "jsonschema", b"{}"))
+            w.finish()
+
+
+@pytest.mark.parametrize("how,finished", [("intact", True), ("missing", False),
+                                          ("empty", False), ("cut short", False),
+                                          ("no /run/summary", False)])
+def test_a_sweep_run_is_finished_only_with_a_complete_log(tmp_path, ball_run, how, finished):
+    from hmpc_cli.sweep.table import finished_in
+
+    d = tmp_path / "r"
+    shutil.copytree(ball_run, d)
+    _damage(d / "run.mcap", how)
+    toml = (d / "scenario.toml").read_text()
+    assert (finished_in(d, toml) is not None) == finished
+
+
+def test_resume_redoes_a_run_whose_log_is_gone(tmp_path):
+    path = _sweep_file(tmp_path)
+    out = tmp_path / "out"
+    first = hmpc(["sweep", path, "--out", out, "--workers", "1"], tmp_path)
+    assert first.exit_code == 0, first.stderr
+    (run,) = (out / "runs").iterdir()
+    (run / "run.mcap").unlink()  # summary.json stays: it must not be trusted alone
+    again = hmpc(["sweep", path, "--out", out, "--workers", "1"], tmp_path)
+    assert again.exit_code == 0, again.stderr
+    assert "0 skipped (already done), 1 to run" in again.stdout
+    assert (run / "run.mcap").stat().st_size > 0
+
+
+@pytest.mark.parametrize("case,code,said", [
+    ("another sweep", 2, "belongs to sweep 'other'"),
+    ("not a sweep", 2, "is not a sweep's directory"),
+    ("the same sweep", 0, ""), ("empty directory", 0, "")])
+def test_a_sweep_directory_belongs_to_its_sweep(tmp_path, case, code, said):
+    from hmpc_cli.sweep.lock import owner_problem
+
+    out = tmp_path / "out"
+    out.mkdir()
+    if case == "another sweep":
+        (out / "sweep.toml").write_text('name = "other"\n')
+    elif case == "not a sweep":
+        (out / "notes.txt").write_text("mine")
+    elif case == "the same sweep":
+        (out / "sweep.toml").write_text('name = "tiny"\n')
+    problem = owner_problem(out, "tiny")
+    assert (problem is None) == (code == 0) and said in (problem or "")
+    if code:
+        before = listing(tmp_path)
+        res = hmpc(["sweep", _sweep_file(tmp_path), "--out", out], tmp_path)
+        assert res.exit_code == 2 and said in res.stderr and len(errors(res)) == 1
+        assert listing(tmp_path) == sorted([*before, "tiny.toml"])
+
+
+# ----------------------------------------------------------------- damaged / foreign logs
+def _foreign_log(path: Path, info: dict, extra: dict[str, list[dict]]) -> Path:
+    """A valid MCAP with hmpc's topic names and wrongly typed fields."""
+    from mcap.writer import Writer
+
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(profile="", library="other")
+        sid = w.register_schema("S", "jsonschema", b"{}")
+        topics = {"/run/info": [info], **extra}
+        for topic, msgs in topics.items():
+            cid = w.register_channel(topic, "json", sid)
+            for i, m in enumerate(msgs):
+                w.add_message(cid, i * 1000, json.dumps(m).encode(), i * 1000)
+        w.finish()
+    return path
+
+
+FOREIGN = {  # name -> (/run/info, other topics)
+    "state x a string": ({"scenario_name": "x", "log_version": 3},
+                         {"/sim/state": [{"t": 0.0, "x": "abc", "mode": 0}]}),
+    "solve plan a number": ({"scenario_name": "x", "state_names": ["a"]},
+                            {"/mpc/solve": [{"t": 0.0, "plan": 5, "success": True}]}),
+    "info fields wrong": ({"scenario_name": "x", "versions": [1, 2], "seed": {},
+                           "log_version": "three", "state_names": 7}, {}),
+    "events of lists": ({"scenario_name": "x"}, {"/sim/event": [{"t": [1], "guard": "g"}],
+                                                "/disturbance": [{"t": 0.0, "w": {"a": []}}]}),
+}
+
+
+@pytest.mark.parametrize("name", list(FOREIGN))
+@pytest.mark.parametrize("command", ["replay", "replay --export", "plot fig4", "plot fig2",
+                                     "tube --runs"])
+def test_a_foreign_log_is_damage_not_an_internal_error(tmp_path, name, command):
+    log = _foreign_log(tmp_path / "f.mcap", *FOREIGN[name])
+    args = {"replay": ["replay", log], "replay --export": ["replay", log, "--export",
+                                                           tmp_path / "e"],
+            "plot fig4": ["plot", "fig4", log, "--out", tmp_path / "p"],
+            "plot fig2": ["plot", "fig2", log, "--out", tmp_path / "p"],
+            "tube --runs": ["tube", BALL, "--runs", log, "--samples", "10",
+                            "--out", tmp_path / "t"]}[command]
+    res = hmpc(args, tmp_path)
+    assert res.exit_code in (0, 2), (res.stdout, res.stderr)
+    assert "internal error" not in res.stderr and "Traceback" not in res.stderr
+    if res.exit_code == 2:
+        assert len(errors(res)) == 1
+
+
+def test_a_huge_length_field_is_damage_not_memory_error(tmp_path, biped_run):
+    """A summary-section record whose length asks for exabytes (MemoryError) is damage."""
+    from hmpc_cli.log.reader import read_log
+    from hmpc_cli.log.rundata import read_run
+
+    data = bytearray((biped_run / "run.mcap").read_bytes())
+    footer = len(data) - 8 - 29  # opcode, length, summary_start, offset start, crc; magic
+    (start,) = struct.unpack_from("<Q", data, footer + 9)
+    assert start and data[footer] == 0x02
+    for length in (2**62, 2**40, len(data) * 3):  # past the file's end, or absurd
+        bad = bytearray(data)
+        bad[start + 1:start + 9] = struct.pack("<Q", length)
+        path = tmp_path / "bad.mcap"
+        path.write_bytes(bytes(bad))
+        log = read_log(path)  # never MemoryError: the chunks before are read
+        assert log.messages
+        assert read_run(path).t.size
+        res = hmpc(["replay", path, "-q"], tmp_path)
+        assert res.exit_code == 0, res.stderr
+
+
+def test_memory_and_overflow_errors_of_the_content_are_damage(ball_run, monkeypatch):
+    """A corrupted length field makes the MCAP library allocate gigabytes (MemoryError) or
+    overflow: the index is given up, the chunks before the damage are kept."""
+    import hmpc_cli.log.reader as reader
+
+    whole = reader.read_log(ball_run / "run.mcap")
+
+    def no_index(*_, **__):
+        raise MemoryError()
+
+    monkeypatch.setattr(reader, "make_reader", no_index)
+    log = reader.read_log(ball_run / "run.mcap")  # the linear scan instead
+    assert len(log.messages) == len(whole.messages) and log.complete
+    calls = [0]
+    real = reader.breakup_chunk
+
+    def second_chunk_overflows(chunk, **kw):
+        calls[0] += 1
+        if calls[0] == 2:
+            raise OverflowError("cannot fit 'int' into an index-sized integer")
+        return real(chunk, **kw)
+
+    monkeypatch.setattr(reader, "breakup_chunk", second_chunk_overflows)
+    log = reader.read_log(ball_run / "run.mcap")
+    assert not log.complete and "OverflowError" not in log.damage and log.damage
+    assert 0 < len(log.messages) < len(whole.messages)
+
+
+def test_a_run_stopped_at_its_start_says_so(tmp_path):
+    from hmpc_cli.log.recorder import Recorder
+
+    Recorder(tmp_path / "run.mcap")._file.close()  # the header only: killed at once
+    res = hmpc(["replay", tmp_path / "run.mcap"], tmp_path)
+    assert res.exit_code == 2
+    assert "stopped before anything was logged" in res.stderr and "truncated" not in res.stderr
+    (tmp_path / "run.mcap").write_bytes(b"")
+    res = hmpc(["replay", tmp_path / "run.mcap"], tmp_path)
+    assert res.exit_code == 2 and "stopped before anything was logged" in res.stderr
+
+
+def _variants(data: bytes, n: int, seed: int) -> list[bytes]:
+    """Damaged copies: byte flips (summary section too), truncations, length-field edits."""
+    rng = random.Random(seed)
+    out = []
+    for k in range(n):
+        b = bytearray(data)
+        kind = k % 3
+        if kind == 0:
+            for _ in range(rng.randint(1, 3)):
+                i = rng.randrange(len(b)) if rng.random() < 0.5 else \
+                    rng.randrange(max(0, len(b) - 17000), len(b))
+                b[i] ^= 1 << rng.randrange(8)
+        elif kind == 1:
+            b = b[: rng.randrange(len(b))]
+        else:  # an MCAP record length (opcode, uint64): overwrite one somewhere
+            i = rng.randrange(8, len(b) - 9)
+            b[i + 1:i + 9] = struct.pack("<Q", rng.choice(
+                [2**63 - 1, 2**32, len(b) * 2, rng.randrange(len(b))]))
+        out.append(bytes(b))
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("which", ["ball", "biped"])
+def test_fuzzed_logs_never_give_an_internal_error(tmp_path, ball_run, biped_run, which):
+    from hmpc_cli.log.damage import DamagedLogError
+    from hmpc_cli.log.reader import read_log
+    from hmpc_cli.log.rundata import read_run
+
+    src = (ball_run if which == "ball" else biped_run) / "run.mcap"
+    path = tmp_path / "v.mcap"
+    for k, data in enumerate(_variants(src.read_bytes(), 150, seed=14)):
+        path.write_bytes(data)
+        try:
+            read_log(path)
+            read_run(path)
+        except (ValueError, DamagedLogError):
+            pass  # said clearly (not an MCAP file, damaged log)
+        if k % 3 == 0:  # the command line too (a third of them: it prints tables)
+            res = hmpc(["replay", path, "--export", tmp_path / "e"], tmp_path)
+            assert res.exit_code in (0, 2), (k, res.stderr)
+            assert "internal error" not in res.stderr, (k, res.stderr)
+
+
+# ----------------------------------------------------------------- counts
+def test_failed_walking_solves_are_counted(tmp_path):
+    out = tmp_path / "b"
+    res = hmpc(["run", BIPED, "--set", "sim.duration=0.3", "--set", "mpc.max_iter=2",
+                "--out", out, "-q"], tmp_path)
+    assert res.exit_code == 0, res.stderr
+    s = json.loads((out / "summary.json").read_text())
+    assert s["solver_failures"] > 0  # every candidate's walking MPC solve failed
+    assert sum(s["failure_statuses"].values()) == s["solver_failures"]
+
+
+def test_a_failed_candidate_solve_is_counted_once():
+    from types import SimpleNamespace
+
+    from hmpc_cli.log.runlog import RunLog
+
+    log = RunLog(None)
+    bad = {"segment": 3, "status": "Maximum_Iterations_Exceeded", "success": False}
+    ok = {"segment": 4, "status": "Solve_Succeeded", "success": True}
+    log.planner(1.0, "contact", SimpleNamespace(wall_time=0.1, extra={"candidates": [bad, ok]}),
+                False, "", None)
+    assert log.result.solver_failures == 1
+    stats = SimpleNamespace(success=False, status=bad["status"], wall_time=0.0,
+                            fallback=False, slack=0.0)
+    log.solve(1.0, SimpleNamespace(t=1.0, stats=stats, extra={"segment": 3}), "replan", None)
+    assert log.result.solver_failures == 1  # the same solve, returned again: not twice
+    log.solve(1.1, SimpleNamespace(t=1.1, stats=stats, extra={"segment": 3}), "period", None)
+    assert log.result.solver_failures == 2
+    assert log.result.failure_statuses == {bad["status"]: 2}
+
+
+# ----------------------------------------------------------------- scene
+def _scene_lines(log, entity_id: str) -> list[tuple[int, list[np.ndarray]]]:
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+    out = []
+    for m in log.raw:
+        for e in SceneUpdate.FromString(m.data).entities:
+            if e.id == entity_id:
+                out.append((m.log_time_ns, [np.array([[p.x, p.z] for p in line.points])
+                                            for line in e.lines]))
+    return out
+
+
+def test_biped_plan_and_rollout_lines_break_at_resets(biped_run):
+    """No segment of /scene/plan or /scene/rollout joins the nodes before and after a
+    reset (the legs swap there: the swing-foot trace jumped 0.47-0.74 m)."""
+    from hmpc_cli.log.reader import read_log
+
+    log = read_log(biped_run / "run.mcap")
+    solves = {m.log_time_ns: m.data for m in log.topic("/mpc/solve")}
+    plans = _scene_lines(log, "plan")
+    assert plans and log.topic("/sim/event")
+    for ns, lines in plans:
+        nodes = solves[ns]["plan"]
+        segs = [n["seg"] for n in nodes]
+        assert len(set(segs)) == 2 and len(lines) == 4  # hip and swing foot, per swing
+        per_seg = {s: np.array([[n["t"]] for n in nodes if n["seg"] == s]) for s in set(segs)}
+        assert sorted(len(p) for p in lines) == sorted([len(v) for v in per_seg.values()] * 2)
+        for pts in lines:  # within a swing the traced points move a few cm per node
+            assert np.max(np.hypot(*np.diff(pts, axis=0).T)) < 0.3
+    rollouts = _scene_lines(log, "rollout")
+    assert rollouts
+    for _, lines in rollouts:
+        assert len(lines) == 4
+        for pts in lines:
+            assert np.max(np.hypot(*np.diff(pts, axis=0).T)) < 0.3
