@@ -121,6 +121,12 @@ def _worker_died(run: Run, out: Path, signum: int) -> dict:
     sc = tomllib.loads(run.toml)
     res = RunResult(str(sc.get("name", "?")), int(sc.get("seed", run.seed)))
     res.reason = f"worker died (signal {signum}) twice"
+    log = d / "run.mcap"
+    if log.exists():  # the killed worker's partial log: kept aside, the run is a result
+        log.replace(d / "run.killed.mcap")
+    write_atomic(d / "error.txt", f"{res.reason}: the run was tried twice and each time its "
+                 "worker process was killed; run.killed.mcap is the second try's log so "
+                 "far (if any)\n")
     write_atomic(d / "summary.json",
                  json.dumps(jsonable(res.__dict__), indent=2, allow_nan=False) + "\n")
     return json.loads((d / "summary.json").read_text())
