@@ -24,9 +24,7 @@ def _successes(results: Path) -> Counter:
 @pytest.mark.slow
 @pytest.mark.campaign
 def test_figure_3_campaign_and_the_100_hz_controller(tmp_path, run_hmpc):
-    """All 44 runs: faster MPC and replanning never do worse than the 10 Hz fixed
-    controller, and 100 Hz does at least as well as 20 Hz (the reference's 4/11 at 100 Hz
-    was its node-shifting artefact)."""
+    """All 44 runs of hmpc mode: every controller holds all 11 (the paper: 9/11 at 10 Hz)."""
     counts = Counter()
     for sweep in ("fig3", "fig3_100hz"):
         proc = run_hmpc(["sweep", str(ROOT / "sweeps" / f"{sweep}.toml"), "--out",
@@ -34,9 +32,30 @@ def test_figure_3_campaign_and_the_100_hz_controller(tmp_path, run_hmpc):
         assert proc.returncode == 0, proc.stderr
         counts.update(_successes(tmp_path / sweep / "results.csv"))
     print(dict(counts))
-    assert counts["100 Hz fixed"] >= counts["20 Hz fixed"] >= counts["10 Hz fixed"]
-    assert counts["10 Hz replan"] >= counts["10 Hz fixed"]
-    assert counts["10 Hz fixed"] >= 9  # the paper's left panel: 9/11
+    # the counts hmpc gets (the results page's hmpc-mode column), exactly. Differences from
+    # the paper: its left panel is 9/11 (trials 5 and 7 fail): not reproduced, hmpc holds
+    # all 11; the reference data's 4/11 at 100 Hz is its floor-shift artefact, not ours.
+    assert dict(counts) == {"10 Hz fixed": 11, "20 Hz fixed": 11, "10 Hz replan": 11,
+                            "100 Hz fixed": 11}
+
+
+@pytest.mark.slow
+@pytest.mark.campaign
+def test_the_reference_rule_emulated_does_not_give_the_papers_9_of_11(tmp_path, run_hmpc):
+    """sweeps/fig3_reference_rule.toml: reference mode with the reference code's schedule
+    bookkeeping emulated (a domain dropped at every floor/wall contact and when its planned
+    nodes have shifted away; the floor shift). The results page explains the paper's 9/11
+    by this rule; run, it gives 11/11 at 10 Hz (trials 5 and 7 hold), so it does not
+    explain it. At 100 Hz on 60 nodes/s it gives 0/11, as the floor shift alone does, not
+    the reference data's 4/11."""
+    proc = run_hmpc(["sweep", str(ROOT / "sweeps" / "fig3_reference_rule.toml"), "--out",
+                     str(tmp_path / "r")], cwd=tmp_path, timeout=3600)
+    assert proc.returncode == 0, proc.stderr
+    with open(tmp_path / "r" / "results.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert Counter(r["controller"] for r in rows)["100 Hz fixed"] == 11 and len(rows) == 44
+    counts = _successes(tmp_path / "r" / "results.csv")
+    assert dict(counts) == {"10 Hz fixed": 11, "20 Hz fixed": 11, "10 Hz replan": 11}
 
 
 @pytest.mark.parametrize("rate", [20, pytest.param(100, marks=pytest.mark.slow)])
