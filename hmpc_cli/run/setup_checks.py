@@ -57,6 +57,10 @@ def margins_of(sc, model) -> ConstraintMargins | None:
         return None
     if source == "hand":
         return hand(model, sc.mpc)
+    if source == "tube":
+        from hmpc_cli.run.tube_margins import tube_margins
+
+        return tube_margins(sc, model)
     from hmpc_cli.tube.margins_file import constraint_margins
 
     return constraint_margins(source, model, sc.system, sc.mpc.rate_hz)

@@ -90,10 +90,12 @@ class MPCSettings(BaseModel):
                                "norm] (hand-set margins: mpc.margins = \"hand\")")
     input_margin: FiniteFloat = Field(0.0, ge=0.0, description="input-box tightening per side "
                                 "(hand-set margins: mpc.margins = \"hand\")")
-    margins: Literal["hand"] | str = Field(
-        "hand", description='"hand": the margins of tube_margin and input_margin; else a '
-        "margins file of hmpc tube --write (relative to the scenario file's directory): its "
-        "guard-avoid, pass-through and input margins at mpc.rate_hz replace them")
+    margins: Literal["hand", "tube"] | str = Field(
+        "hand", description='"hand": the margins of tube_margin and input_margin; "tube": '
+        "those of the scenario's own tube diam T(1 / mpc.rate_hz) under its disturbance and "
+        "low level (as hmpc tube computes them; cached), so each MPC rate gets its own; else "
+        "a margins file of hmpc tube --write (relative to the scenario file's directory): "
+        "its guard-avoid, pass-through and input margins at mpc.rate_hz replace them")
     solver: Literal["ipopt", "sqp_hpipm", "fatrop", "sqpmethod"] = Field(
         "ipopt", description='NLP back-end: "ipopt" (interior point, MUMPS), "sqp_hpipm" '
         "(SQP with a Gauss-Newton Hessian and HPIPM's Riccati QP solver, IPOPT fallback on "

@@ -1,0 +1,95 @@
+"""``mpc.margins = "tube"``: the margins of the scenario's own tube at its MPC rate.
+
+The paper's robust MPC tightens its constraints by the tube of its own period: diam T(dt),
+dt = 1 / ``mpc.rate_hz``, under the scenario's disturbance box and low-level gains, on the
+region spanned by x0 and the goal (what ``hmpc tube SCENARIO --write`` computes). A sweep
+over MPC rates thus gives each rate its own margins. The analysis is written once as a
+margins file in ``<cache>/tubes/`` (keyed by everything it depends on) and read back by
+every later run; margins that make the tightened problem infeasible at x0 are refused
+with the tube's own reason.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+from hmpc_cli import __version__
+from hmpc_cli.core.cbuild import cache_dir
+from hmpc_cli.core.messages import ConstraintMargins
+
+__all__ = ["SAMPLES", "TUBE", "tube_margins", "tube_margins_path"]
+
+TUBE = "tube"  #: the ``mpc.margins`` value
+SAMPLES = 20000  #: samples per estimated constant (``hmpc tube``'s default)
+SEED = 0  #: one tube per system and setting, whatever the run's seed
+
+
+def _inputs(sc) -> dict:
+    """Everything the tube depends on (JSON-ready)."""
+    return {"hmpc": __version__, "system": sc.system.model_dump(mode="json"),
+            "disturbance": [sc.disturbance.kind, float(sc.disturbance.magnitude)],
+            "lowlevel": [float(sc.lowlevel.kp), float(sc.lowlevel.kd)],
+            "rate_hz": float(sc.mpc.rate_hz), "samples": SAMPLES, "seed": SEED}
+
+
+def tube_margins_path(sc) -> Path:
+    """The cached margins file of the scenario's tube (it may not exist yet)."""
+    key = hashlib.sha256(json.dumps(_inputs(sc), sort_keys=True).encode()).hexdigest()[:20]
+    return cache_dir() / "tubes" / f"{sc.system.name}-{sc.mpc.rate_hz:g}hz-{key}.toml"
+
+
+def tube_margins(sc, model) -> ConstraintMargins:
+    """The margins of the scenario's tube at ``mpc.rate_hz`` (computed once, cached).
+
+    Raises:
+        ValueError: ``mpc.margins: ...`` when the tube's margins make the tightened problem
+            infeasible at x0, or no finite tube exists at that rate.
+    """
+    import tomllib
+
+    from hmpc_cli.tube.margins_file import MarginsFile
+
+    rate = float(sc.mpc.rate_hz)
+    path = tube_margins_path(sc)
+    text = _read(path)
+    if text is None:
+        text = _compute(sc, model, rate)
+        try:
+            from hmpc_cli.core.paths import write_atomic
+
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_atomic(path, text)
+        except OSError:
+            pass  # an unwritable cache: computed again next time
+    row = MarginsFile.model_validate(tomllib.loads(text)).at(rate)
+    return ConstraintMargins.by_name(
+        model, f"tube at {rate:g} Hz", row.radius,
+        {k: (g.avoid, g.pass_through) for k, g in row.guards.items()}, row.inputs)
+
+
+def _read(path: Path) -> str | None:
+    try:
+        return path.read_text(encoding="utf-8")
+    except OSError:
+        return None
+
+
+def _compute(sc, model, rate: float) -> str:
+    """The margins file text of the scenario's tube at ``rate`` [Hz]."""
+    from hmpc_cli.tube import TubeError, analyse, region_from_scenario
+    from hmpc_cli.tube.margins_file import margins_text
+
+    try:
+        report = analyse(model, region=region_from_scenario(model), kind=sc.disturbance.kind,
+                         magnitude=sc.disturbance.magnitude, kp=sc.lowlevel.kp,
+                         kd=sc.lowlevel.kd, rate_hz=rate, rates=(), samples=SAMPLES,
+                         seed=SEED)
+    except TubeError as exc:
+        raise ValueError(f"mpc.margins: no tube at {rate:g} Hz: {exc}") from None
+    if report.warnings:
+        raise ValueError(f"mpc.margins: the tube's margins at {rate:g} Hz do not fit: "
+                         f"{report.warnings[0]}")
+    return margins_text(report, scenario=sc.name, params=sc.system, kind=sc.disturbance.kind,
+                        magnitude=sc.disturbance.magnitude, samples=SAMPLES)

@@ -1,0 +1,82 @@
+"""mpc.margins = "tube": each MPC rate gets the margins of its own tube, as hmpc tube writes."""
+
+import subprocess
+import tomllib
+from pathlib import Path
+
+import pytest
+
+import hmpc_cli.tube as tube_pkg
+from conftest import cli_env, hmpc_command
+from hmpc_cli.core.registry import build_system
+from hmpc_cli.run.scenario import load_scenario
+from hmpc_cli.run.setup_checks import margins_of
+from hmpc_cli.run.tube_margins import tube_margins_path
+
+ROOT = Path(__file__).resolve().parents[1]
+DISTURBED = ROOT / "scenarios" / "ball_disturbed.toml"
+
+
+def _margins(rate: int):
+    sc, _ = load_scenario(DISTURBED, ['mpc.margins="tube"', f"mpc.rate_hz={rate}"])
+    model = build_system(sc.system)
+    return sc, model, margins_of(sc, model)
+
+
+def test_each_rate_gets_the_margins_hmpc_tube_writes_for_it(tmp_path, monkeypatch):
+    monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path / "cache"))
+    file = tmp_path / "margins.toml"
+    proc = subprocess.run([*hmpc_command(), "tube", str(DISTURBED), "--write", str(file),
+                           "--out", str(tmp_path / "tube"), "-q"], env=cli_env(),
+                          capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    written = tomllib.loads(file.read_text())["rates"]
+    avoid = {}
+    for rate in (5, 10, 20):
+        sc, model, m = _margins(rate)
+        row = written[str(rate)]
+        assert m.source == f"tube at {rate} Hz"
+        assert m.radius == pytest.approx(row["radius"], rel=1e-12)
+        for g, offset in zip(model.guards, m.avoid, strict=True):
+            assert offset == pytest.approx(row["guards"][g.name]["avoid"], rel=1e-12)
+        avoid[rate] = m.avoid[model.guard_index("floor")]
+        assert tube_margins_path(sc).is_file()  # cached for the next run of this cell
+    # a faster MPC has a smaller tube, hence smaller margins (the paper's mechanism)
+    assert avoid[5] > avoid[10] > avoid[20] > 0.0
+    assert avoid[10] == pytest.approx(0.0764, abs=1e-4)
+    assert avoid[20] == pytest.approx(0.0184, abs=1e-4)
+
+
+def test_a_cached_tube_is_read_not_recomputed(tmp_path, monkeypatch):
+    monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path / "cache"))
+    _, _, first = _margins(20)
+
+    def no_analysis(*args, **kwargs):
+        raise AssertionError("the cached tube was analysed again")
+
+    monkeypatch.setattr(tube_pkg, "analyse", no_analysis)
+    _, _, again = _margins(20)
+    assert again == first
+
+
+def test_margins_that_do_not_fit_are_refused_with_the_tubes_reason(tmp_path):
+    proc = subprocess.run([*hmpc_command(), "run", str(DISTURBED), "--set",
+                           'mpc.margins="tube"', "--set", "mpc.rate_hz=2", "--out",
+                           str(tmp_path / "r"), "-q"],
+                          env={**cli_env(), "HMPC_CACHE_DIR": str(tmp_path / "cache")},
+                          capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    (line,) = proc.stderr.strip().splitlines()
+    assert "mpc.margins: the tube's margins at 2 Hz do not fit" in line
+    assert "infeasible at the initial state" in line and "Traceback" not in proc.stderr
+    assert not (tmp_path / "r").exists()
+
+
+def test_the_tube_study_is_the_hand_margin_study_with_tube_margins():
+    from hmpc_cli.sweep.plan import plan_sweep
+
+    tube = plan_sweep(ROOT / "sweeps" / "robustness_tube.toml")
+    hand = plan_sweep(ROOT / "sweeps" / "robustness.toml")
+    assert len(tube.runs) == len(hand.runs) == 2000
+    for a, b in zip(tube.runs, hand.runs, strict=True):
+        assert a.overrides == {**b.overrides, "mpc.margins": "tube"}
