@@ -26,9 +26,18 @@ SAMPLES = 20000  #: samples per estimated constant (``hmpc tube``'s default)
 SEED = 0  #: one tube per system and setting, whatever the run's seed
 
 
+def _tube_sources() -> str:
+    """sha256 of the tube analysis' sources (a changed analysis is another cache entry)."""
+    h = hashlib.sha256()
+    for path in sorted((Path(__file__).resolve().parents[1] / "tube").glob("*.py")):
+        h.update(path.name.encode() + b"\0" + path.read_bytes())
+    return h.hexdigest()
+
+
 def _inputs(sc) -> dict:
     """Everything the tube depends on (JSON-ready)."""
-    return {"hmpc": __version__, "system": sc.system.model_dump(mode="json"),
+    return {"hmpc": __version__, "sources": _tube_sources(),
+            "system": sc.system.model_dump(mode="json"),
             "disturbance": [sc.disturbance.kind, float(sc.disturbance.magnitude)],
             "lowlevel": [float(sc.lowlevel.kp), float(sc.lowlevel.kd)],
             "rate_hz": float(sc.mpc.rate_hz), "samples": SAMPLES, "seed": SEED}
