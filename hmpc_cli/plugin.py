@@ -6,10 +6,12 @@ registers an object under an entry-point group of ``pyproject.toml``:
 
 * ``hmpc.systems``: a :class:`SystemSpec` (settings model, ``build`` -> :class:`HybridSystem`,
   its :class:`Task`, a :class:`Drawing` for the log's 3D scene);
-* ``hmpc.planners``: a :class:`PlannerSpec` (settings model, ``make`` -> a :class:`Planner`
-  returning :class:`PlannerResult` with a :class:`ModeSchedule`);
-* ``hmpc.mpcs``: an :class:`MPCSpec` (settings model, ``make`` -> a :class:`FixedModeMPC`
-  returning a :class:`Plan` with its :class:`SolveStats` and :class:`Trajectory`).
+* ``hmpc.planners``: a :class:`PlannerSpec` (settings: a :class:`PlannerSettings`,
+  ``make`` -> a :class:`Planner` returning :class:`PlannerResult` with a
+  :class:`ModeSchedule`);
+* ``hmpc.mpcs``: an :class:`MPCSpec` (settings: an :class:`MPCKindSettings`, ``make`` -> a
+  :class:`FixedModeMPC` returning a :class:`Plan` with its :class:`SolveStats` and
+  :class:`Trajectory`).
 
 See ``docs/plugins.md`` for one screen per kind.
 """
@@ -17,6 +19,7 @@ See ``docs/plugins.md`` for one screen per kind.
 from __future__ import annotations
 
 from hmpc_cli.core.drawing import Ball, Drawing, Polyline, Rgba, circle
+from hmpc_cli.core.kinds import KindSettings, MPCKindSettings, PlannerSettings
 from hmpc_cli.core.hybrid import (
     RESERVED_NAMES, Guard, HybridSystem, Mode, NumericSystem, Terrain, rk4_expr)
 from hmpc_cli.core.messages import (
@@ -30,9 +33,9 @@ from hmpc_cli.core.tasks import ReachGoal
 
 __all__ = [
     "CAPABILITIES", "RESERVED_NAMES", "Ball", "BoundedInt", "ConstraintMargins", "Drawing",
-    "FiniteFloat", "FixedModeMPC", "Guard", "GuardEvent", "HybridSystem", "LargeFloat",
-    "MPCSpec", "Mode", "ModeSchedule", "NumericSystem", "Plan", "Planner", "PlannerResult",
-    "PlannerSpec", "PluginError", "Polyline", "ReachGoal", "Requirement", "Rgba", "SolveFn",
-    "SolveStats", "StrictBool", "SystemSpec", "Task", "Terrain", "Trajectory", "Verdict",
-    "circle", "compile_numpy", "rk4_expr",
+    "FiniteFloat", "FixedModeMPC", "Guard", "GuardEvent", "HybridSystem", "KindSettings",
+    "LargeFloat", "MPCKindSettings", "MPCSpec", "Mode", "ModeSchedule", "NumericSystem", "Plan",
+    "Planner", "PlannerResult", "PlannerSettings", "PlannerSpec", "PluginError", "Polyline",
+    "ReachGoal", "Requirement", "Rgba", "SolveFn", "SolveStats", "StrictBool", "SystemSpec",
+    "Task", "Terrain", "Trajectory", "Verdict", "circle", "compile_numpy", "rk4_expr",
 ]

@@ -282,3 +282,90 @@ def test_changed_ball_geometry_is_used_logged_and_drawn(tmp_path, monkeypatch):
     assert len(covered) == 36, f"the new circle is not drawn whole ({len(covered)}/36 sectors)"
     assert circle_points(saved[0], (3.0, 3.0), 1.0, tol=0.01).size == 0, \
         "the default circle is drawn"
+
+
+TOY_KINDS = '''"""A toy planner and a toy MPC kind: settings subclass the plug-in bases."""
+from typing import Literal
+
+import numpy as np
+
+from hmpc_cli.plugin import (
+    MPCKindSettings, MPCSpec, ModeSchedule, Plan, PlannerResult, PlannerSettings,
+    PlannerSpec, SolveStats, Trajectory)
+
+
+class StaySettings(PlannerSettings):
+    kind: Literal["stay"] = "stay"
+
+    def system_problems(self, system):
+        return [] if system.final_mode else ["planner.kind: no final mode to stay in"]
+
+
+class Stay:
+    def plan(self, t, x, mode, solve):
+        return PlannerResult(ModeSchedule.final(mode, t), None, 0.0, False, 0.0, 1)
+
+
+class HoldSettings(MPCKindSettings):
+    kind: Literal["hold"] = "hold"
+    rate_hz: int = 10
+    u: float = 0.0
+
+    def scenario_problems(self):
+        return [] if abs(self.u) < 1e3 else ["mpc.u: at most 1e3"]
+
+    def resolves_on_impact(self):
+        return False
+
+
+class Hold:
+    def __init__(self, system, settings):
+        self.system, self.s, self.rate_hz = system, settings, settings.rate_hz
+
+    def check(self, schedule):
+        return ""
+
+    def solve(self, t, x, mode, schedule, events=(), guess=None):
+        ts = np.array([0.0, 1.0])
+        traj = Trajectory(ts, np.vstack([x, x]), np.full((2, self.system.n_u), self.s.u),
+                          np.array([mode, mode]), np.zeros(2, dtype=int))
+        return Plan(t, traj, SolveStats("held", True, 1, 0.0, 0.0, 0.0), schedule)
+
+
+PLANNER = PlannerSpec("stay", StaySettings, lambda system, settings, seed: Stay())
+MPC = MPCSpec("hold", HoldSettings, lambda system, settings: None,
+              lambda system, settings, problem: Hold(system, settings))
+'''
+
+
+def test_a_toy_planner_and_mpc_kind_run_end_to_end(tmp_path):
+    """Kinds registered by entry point, their settings subclassing the plug-in bases (the
+    hooks hmpc calls have defaults): validated, checked, run, logged."""
+    dist = write_dist(tmp_path / "toy", "hmpc-toy",
+                      "[hmpc.planners]\nstay = hmpc_toy:PLANNER\n"
+                      "[hmpc.mpcs]\nhold = hmpc_toy:MPC\n", {"hmpc_toy": TOY_KINDS})
+    toy = tmp_path / "toy.toml"
+    toy.write_text('name = "toy"\n[system]\nname = "ball"\n[sim]\nduration = 0.5\n'
+                   '[planner]\nkind = "stay"\n[mpc]\nkind = "hold"\nrate_hz = 20\n')
+    proc = hmpc(["run", str(toy), "--out", str(tmp_path / "run"), "-q"], dist, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["solves"] == 10 and summary["planner_calls"] == 1  # 20 Hz for 0.5 s
+    solves = [m.data for m in read_log(tmp_path / "run" / "run.mcap").topic("/mpc/solve")]
+    assert {s["status"] for s in solves} == {"held"}
+    bad = hmpc(["run", str(toy), "--set", "mpc.u=5000", "--out", str(tmp_path / "bad")],
+               dist, cwd=tmp_path)
+    assert bad.returncode == 2 and "mpc.u: at most 1e3" in bad.stderr
+
+
+def test_a_kind_whose_settings_skip_the_base_is_refused_by_name(tmp_path):
+    text = TOY_KINDS.replace("class HoldSettings(MPCKindSettings):",
+                             "class HoldSettings(BaseModel):").replace(
+        "import numpy as np", "import numpy as np\nfrom pydantic import BaseModel")
+    dist = write_dist(tmp_path / "toy", "hmpc-toy", "[hmpc.mpcs]\nhold = hmpc_toy:MPC\n",
+                      {"hmpc_toy": text})
+    toy = tmp_path / "toy.toml"
+    toy.write_text('name = "toy"\n[system]\nname = "ball"\n[mpc]\nkind = "hold"\n')
+    proc = hmpc(["run", str(toy), "--out", str(tmp_path / "run")], dist, cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert "must subclass hmpc_cli.plugin.MPCKindSettings" in proc.stderr

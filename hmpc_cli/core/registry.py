@@ -21,6 +21,8 @@ from typing import Any
 
 from pydantic import BaseModel
 
+from hmpc_cli.core.kinds import MPCKindSettings, PlannerSettings
+
 GROUPS = {"system": "hmpc.systems", "planner": "hmpc.planners", "mpc": "hmpc.mpcs"}
 
 
@@ -201,6 +203,10 @@ def _load_one(ep: EntryPoint, group: str, kind_field: str, spec_type: type) -> A
         raise PluginError(f"{where} registers {kind_field} {name!r}: the entry point "
                           f"must be named after it")
     model = spec.params if kind_field == "name" else spec.settings
+    base = {"hmpc.planners": PlannerSettings, "hmpc.mpcs": MPCKindSettings}.get(group)
+    if base is not None and not (isinstance(model, type) and issubclass(model, base)):
+        raise PluginError(f"{where}: its settings {getattr(model, '__name__', model)!r} must "
+                          f"subclass hmpc_cli.plugin.{base.__name__} (the hooks hmpc calls)")
     fld = model.model_fields.get(kind_field)
     if fld is None or fld.default != name:
         raise PluginError(f"{where}: {model.__name__} needs a field "

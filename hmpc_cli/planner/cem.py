@@ -19,8 +19,9 @@ import warnings
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import ConfigDict, Field, ValidationInfo, field_validator
 
+from hmpc_cli.core.kinds import PlannerSettings
 from hmpc_cli.core import signals
 from hmpc_cli.core.cbuild import compiler_problem
 from hmpc_cli.core.hybrid import HybridSystem
@@ -35,7 +36,7 @@ from hmpc_cli.sim.simulator import HybridSimulator
 UNREACHED_PENALTY = 1e4
 
 
-class CEMSettings(BaseModel):
+class CEMSettings(PlannerSettings):
     """Cross-entropy planner settings."""
 
     model_config = ConfigDict(extra="forbid")

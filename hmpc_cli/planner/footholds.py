@@ -18,8 +18,9 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
+from hmpc_cli.core.kinds import PlannerSettings
 from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.core.messages import ModeSchedule, Plan, PlannerResult
 from hmpc_cli.core.registry import PlannerSpec, Requirement
@@ -29,7 +30,7 @@ from hmpc_cli.core.stack import SolveFn
 Segment = tuple[float, float, float]
 
 
-class FootholdSettings(BaseModel):
+class FootholdSettings(PlannerSettings):
     """Candidate enumeration and selection settings."""
 
     model_config = ConfigDict(extra="forbid")

@@ -14,15 +14,16 @@ from __future__ import annotations
 import time
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import ConfigDict, Field, field_validator, model_validator
 
+from hmpc_cli.core.kinds import PlannerSettings
 from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.core.messages import ModeSchedule, PlannerResult
 from hmpc_cli.core.registry import PlannerSpec
 from hmpc_cli.core.settings_types import FiniteFloat
 
 
-class ScheduleSettings(BaseModel):
+class ScheduleSettings(PlannerSettings):
     """A given domain/guard schedule with durations, by name."""
 
     model_config = ConfigDict(extra="forbid")

@@ -500,7 +500,7 @@ def _timing(sc, model) -> StackTiming:
     latency = Latency.of(s.latency, s.latency_first, s.latency_model, s.solve_budget,
                          s.delay_compensation)
     return StackTiming(s.rate_hz // sc.mpc.rate_hz, per_replan, contact,
-                       getattr(sc.mpc, "resolve_on_impact", True), latency)
+                       sc.mpc.resolves_on_impact(), latency)
 
 
 def _model_plant(plant):

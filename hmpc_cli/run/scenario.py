@@ -30,7 +30,7 @@ from pydantic import (
 from hmpc_cli.lowlevel import LowLevelSettings
 from hmpc_cli.core.registry import PluginError, Requirement, registry
 from hmpc_cli.run.sections import DisturbanceSettings, ReplanSettings, SimSettings
-from hmpc_cli.core.settings_types import MAX_NLP_NODES, BoundedInt, nlp_estimate
+from hmpc_cli.core.settings_types import BoundedInt
 
 #: the system of a scenario that names none
 DEFAULT_SYSTEM = "ball"
@@ -124,7 +124,7 @@ class ScenarioBase(BaseModel):
 
     def _rate_problems(self) -> list[str]:
         m, s, problems = self.mpc, self.sim, []
-        steps = [*getattr(m, "period_steps", list)(), ("sim.rate_hz", s.rate_hz)]
+        steps = [*m.period_steps(), ("sim.rate_hz", s.rate_hz)]
         divides = [f"{k} = {v}" for k, v in steps if v % m.rate_hz]
         if divides:
             what = "simulator steps" if len(steps) == 1 else \
@@ -141,7 +141,7 @@ class ScenarioBase(BaseModel):
             problems.append(f"disturbance.hold: {self.disturbance.hold:g} s {step}")
         if self.replanning.policy == "periodic" and not _whole(self.replanning.period * s.rate_hz):
             problems.append(f"replanning.period: {self.replanning.period:g} s {step}")
-        return problems + list(getattr(m, "scenario_problems", list)())
+        return problems + list(m.scenario_problems())
 
     def _size_problems(self) -> list[str]:
         """Upper bounds on the work a run asks for, checked before anything is built."""
@@ -151,9 +151,8 @@ class ScenarioBase(BaseModel):
         if steps > MAX_SIM_STEPS:
             out.append(f"sim.duration: {s.duration:g} s x {s.rate_hz} steps/s = {steps:.3g} "
                        f"simulator steps exceeds the limit {MAX_SIM_STEPS:.0e}")
-        out += list(getattr(self.planner, "size_problems", list)())
-        out += list(getattr(self.mpc, "size_problems", list)())
-        out += _switch_problems(self.mpc)
+        out += list(self.planner.size_problems())
+        out += list(self.mpc.size_problems())
         return out
 
     def _stack_problems(self) -> list[str]:
@@ -182,29 +181,6 @@ class ScenarioBase(BaseModel):
                     msg = unknown_key(err["loc"][-1], _field_names([type(self.system)]))
                 out.append(f"{loc}: {msg}")
         return out
-
-
-#: measured cost of one guard event of the switching chain NLP (ball, 2 cores): a link
-#: with its guard, virtual-node and region rows, in one NLP (cold and warm solvers)
-SWITCH_MIB, SWITCH_MS = 0.3, 10.0
-
-
-def _switch_problems(mpc: BaseModel) -> list[str]:
-    """``mpc.max_switches`` beyond :data:`MAX_NLP_NODES` links with the horizon's nodes.
-
-    The switching chain NLP has one link per node interval and one per guard event it
-    can hold (:mod:`hmpc_cli.mpc.chain`); the horizon's own limit is its MPC's.
-    """
-    switches = getattr(mpc, "max_switches", None)
-    if not isinstance(switches, int):
-        return []
-    nodes = getattr(mpc, "horizon", 0.0) * getattr(mpc, "nodes_per_second", 0)
-    if nodes > MAX_NLP_NODES or nodes + switches <= MAX_NLP_NODES:
-        return []
-    return [f"mpc.max_switches: {nodes:.3g} nodes (mpc.horizon x mpc.nodes_per_second) + "
-            f"{switches} switches = {nodes + switches:.3g} links of the switching NLP exceeds "
-            f"the limit {MAX_NLP_NODES} (the switches alone would need "
-            f"{nlp_estimate(switches, SWITCH_MIB, SWITCH_MS, per='switch')})"]
 
 
 def _unknown(reg, name: Any) -> str:
@@ -445,6 +421,9 @@ def format_errors(exc: ValidationError, source: str, model: Any = None) -> list[
             del parts[1]  # the union member's tag (e.g. planner.cem.samples -> planner.samples)
         loc = key_path(parts) or "(top)"
         msg = err["msg"].removeprefix("Value error, ")
+        if err["type"] == "union_tag_invalid":  # a kind that failed to load says why
+            failed = registry().failed.get(str(parts[0]) if parts else "", {})
+            msg = failed.get(str((err.get("ctx") or {}).get("tag")), msg)
         if err["type"] == "extra_forbidden":
             raw = [p for p in err["loc"] if p not in ("function-after",)]
             allowed = _field_names(models_at(model, raw[:-1])) if model is not None else []
@@ -728,13 +707,8 @@ def _set_keys(item: str) -> list[str]:
 
 def _resolve_margins(scenario: ScenarioBase, path: Path, check: bool) -> list[str]:
     """Makes ``mpc.margins`` absolute (relative: to the scenario's directory); its problems."""
-    margins = getattr(scenario.mpc, "margins", "hand")
-    if margins in ("hand", "tube"):  # "tube": computed when the run is built
-        return []
-    file = Path(margins).expanduser()
-    file = (file if file.is_absolute() else path.parent / file).resolve()
-    scenario.mpc.margins = str(file)
-    if not check:
+    file = scenario.mpc.resolve_margins_file(path.parent)
+    if file is None or not check:  # hand or tube ("tube": computed when the run is built)
         return []
     from hmpc_cli.tube.margins_file import margins_problems
 

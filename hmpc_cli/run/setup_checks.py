@@ -39,8 +39,7 @@ def built_problems(sc, model, margins: ConstraintMargins | None) -> list[str]:
 
 def _planner_problems(sc, model) -> list[str]:
     """``planner.key: reason`` lines from planner settings that check a built system."""
-    check = getattr(sc.planner, "system_problems", None)
-    return list(check(model)) if callable(check) else []
+    return list(sc.planner.system_problems(model))
 
 
 def margins_of(sc, model) -> ConstraintMargins | None:
@@ -51,7 +50,7 @@ def margins_of(sc, model) -> ConstraintMargins | None:
     """
     from hmpc_cli.core.registry import registry
 
-    source = getattr(sc.mpc, "margins", None)
+    source = sc.mpc.margins_source()
     hand = registry().mpc(sc.mpc.kind).hand_margins
     if source is None or (source == "hand" and hand is None):  # an MPC without margins
         return None
@@ -70,9 +69,7 @@ def _margin_problems(sc, model, margins: ConstraintMargins | None) -> list[str]:
     """``mpc.<margin>: reason`` when an input shrink leaves a mode's input box empty."""
     if margins is None:
         return []
-    key = "mpc.margins" if margins.source != "hand" else next(
-        (f"mpc.{k}" for k in ("input_margin", "torque_margin") if hasattr(sc.mpc, k)),
-        "mpc.margins")
+    key = sc.mpc.input_margin_key() if margins.source == "hand" else "mpc.margins"
     for mode, shrink in zip(model.modes, margins.inputs, strict=False):
         for i, (lo, hi, m) in enumerate(zip(mode.u_lower, mode.u_upper, shrink, strict=False)):
             if 2.0 * m > hi - lo:
@@ -86,7 +83,7 @@ def _solver_problems(sc) -> list[str]:
     """The MPC's solver options, tried once on a tiny NLP (see ``option_problems``)."""
     from hmpc_cli.mpc.solver import option_problems
 
-    options = getattr(sc.mpc, "solver_options", None)
-    if not isinstance(options, dict):
+    choice = sc.mpc.solver_choice()
+    if choice is None:
         return []
-    return option_problems(getattr(sc.mpc, "solver", "ipopt"), options)
+    return option_problems(*choice)

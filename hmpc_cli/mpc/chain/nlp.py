@@ -46,9 +46,12 @@ from typing import Literal
 
 import casadi as ca
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pathlib import Path
+
+from pydantic import ConfigDict, Field, model_validator
 
 from hmpc_cli.core.hybrid import HybridSystem
+from hmpc_cli.core.kinds import MPCKindSettings
 from hmpc_cli.core.messages import ConstraintMargins, Trajectory
 from hmpc_cli.mpc import cache
 from hmpc_cli.mpc.backends import OCPStructure
@@ -66,9 +69,12 @@ _LOG = logging.getLogger(__name__)
 
 #: measured cost of one chain-NLP node (both NLPs, cold and warm solvers; ball, 2 cores)
 NODE_MIB, NODE_MS = 0.85, 18.0
+#: measured cost of one guard event of the switching chain NLP (ball, 2 cores): a link
+#: with its guard, virtual-node and region rows, in one NLP (cold and warm solvers)
+SWITCH_MIB, SWITCH_MS = 0.3, 10.0
 
 
-class MPCSettings(BaseModel):
+class MPCSettings(MPCKindSettings):
     """Fixed-mode MPC settings."""
 
     model_config = ConfigDict(extra="forbid")
@@ -141,6 +147,31 @@ class MPCSettings(BaseModel):
                                  'interval to the next input)')
         return self
 
+    def margins_source(self) -> str:
+        """``mpc.margins``: "hand", "tube" or a margins file."""
+        return self.margins
+
+    def resolve_margins_file(self, base: Path) -> Path | None:
+        """A margins file named relative to ``base`` made absolute (None: hand or tube)."""
+        if self.margins in ("hand", "tube"):
+            return None
+        file = Path(self.margins).expanduser()
+        file = (file if file.is_absolute() else base / file).resolve()
+        self.margins = str(file)
+        return file
+
+    def input_margin_key(self) -> str:
+        """The hand-set input margin's key path."""
+        return "mpc.input_margin"
+
+    def solver_choice(self) -> tuple[str, dict]:
+        """(``mpc.solver``, ``mpc.solver_options``) for the set-up checks."""
+        return self.solver, self.solver_options
+
+    def resolves_on_impact(self) -> bool:
+        """``mpc.resolve_on_impact``."""
+        return self.resolve_on_impact
+
     def solver_of(self, switches: int) -> str:
         """The back-end of the NLP with ``switches`` guard events (0: final domain's)."""
         if switches == 0:
@@ -162,13 +193,23 @@ class MPCSettings(BaseModel):
         return max(0, int(round(elapsed / self.dt)))
 
     def size_problems(self) -> list[str]:
-        """``mpc.horizon`` beyond :data:`MAX_NLP_NODES` nodes (before anything is built)."""
+        """Horizon nodes, or nodes + switches, beyond :data:`MAX_NLP_NODES`.
+
+        Checked before anything is built. The switching chain NLP has one link per node
+        interval and one per guard event it can hold.
+        """
         n = self.horizon * self.nodes_per_second
-        if n <= MAX_NLP_NODES:
+        if n > MAX_NLP_NODES:
+            return [f"mpc.horizon: {self.horizon:g} s x {self.nodes_per_second} nodes/s = "
+                    f"{n:.3g} NLP nodes exceeds the limit {MAX_NLP_NODES} (it would need "
+                    f"{nlp_estimate(n, NODE_MIB, NODE_MS)})"]
+        S = self.max_switches
+        if n + S <= MAX_NLP_NODES:
             return []
-        return [f"mpc.horizon: {self.horizon:g} s x {self.nodes_per_second} nodes/s = {n:.3g} "
-                f"NLP nodes exceeds the limit {MAX_NLP_NODES} (it would need "
-                f"{nlp_estimate(n, NODE_MIB, NODE_MS)})"]
+        return [f"mpc.max_switches: {n:.3g} nodes (mpc.horizon x mpc.nodes_per_second) + "
+                f"{S} switches = {n + S:.3g} links of the switching NLP exceeds the limit "
+                f"{MAX_NLP_NODES} (the switches alone would need "
+                f"{nlp_estimate(S, SWITCH_MIB, SWITCH_MS, per='switch')})"]
 
     def scenario_problems(self) -> list[str]:
         """``mpc.key: reason`` lines for settings that do not fit together."""

@@ -55,9 +55,12 @@ from typing import Literal
 
 import casadi as ca
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pathlib import Path
+
+from pydantic import ConfigDict, Field, model_validator
 
 from hmpc_cli.core.hybrid import HybridSystem
+from hmpc_cli.core.kinds import MPCKindSettings
 from hmpc_cli.core.messages import ConstraintMargins
 from hmpc_cli.mpc import cache
 from hmpc_cli.mpc.builder import Bounds, NLPBuilder
@@ -73,7 +76,7 @@ WARM_START = WarmStart(mu_init=1e-4, bound_push=1e-6)  # the warm IPOPT instance
 NODE_MIB, NODE_MS = 2.2, 27.0
 
 
-class WalkingMPCSettings(BaseModel):
+class WalkingMPCSettings(MPCKindSettings):
     """Fixed-mode walking MPC settings (reference values)."""
 
     model_config = ConfigDict(extra="forbid")
@@ -110,8 +113,9 @@ class WalkingMPCSettings(BaseModel):
     torque_margin: FiniteFloat = Field(300.0, ge=0.0, description="torque limit tightening "
                                  "(the low-level controller's share) [N m] (hand-set "
                                  "margins: mpc.margins = \"hand\")")
-    margins: Literal["hand"] | str = Field(
-        "hand", description='"hand": terrain_margin, segment_margin and torque_margin; else '
+    margins: Literal["hand", "tube"] | str = Field(
+        "hand", description='"hand": terrain_margin, segment_margin and torque_margin; '
+        '"tube": those of the scenario\'s own tube at mpc.rate_hz (cached); else '
         "a margins file of hmpc tube --write (relative to the scenario file's directory): "
         "at mpc.rate_hz its largest guard-avoid offset is the terrain margin, its largest "
         "pass-through offset of a contact surface the segment margin, its input shrink the "
@@ -135,6 +139,27 @@ class WalkingMPCSettings(BaseModel):
             raise ValueError(f"apex_node {self.apex_node} must be below nodes_per_swing "
                              f"{self.nodes_per_swing}")
         return self
+
+    def margins_source(self) -> str:
+        """``mpc.margins``: "hand", "tube" or a margins file."""
+        return self.margins
+
+    def resolve_margins_file(self, base: Path) -> Path | None:
+        """A margins file named relative to ``base`` made absolute (None: hand or tube)."""
+        if self.margins in ("hand", "tube"):
+            return None
+        file = Path(self.margins).expanduser()
+        file = (file if file.is_absolute() else base / file).resolve()
+        self.margins = str(file)
+        return file
+
+    def input_margin_key(self) -> str:
+        """The hand-set torque margin's key path."""
+        return "mpc.torque_margin"
+
+    def solver_choice(self) -> tuple[str, dict]:
+        """IPOPT with ``mpc.solver_options`` for the set-up checks."""
+        return "ipopt", self.solver_options
 
     def size_problems(self) -> list[str]:
         """``mpc.nodes_per_swing`` beyond :data:`MAX_NLP_NODES` nodes (two swings)."""
