@@ -153,3 +153,25 @@ def test_report_page_tables_every_trial_beside_the_authors(tmp_path):
         in page
     assert (tmp_path / "results" / "report" / "overlay" / "overlay_reference_10_Hz_fixed.png"
             ).is_file()
+
+
+def test_agreement_counts_contact_times_and_the_whole_path():
+    """Same guards but a contact 40 ms late is not the same timed sequence; the path
+    deviation sees paths apart even when the end points meet."""
+    from hmpc_cli.analysis.fig3compare import CONTACT_TOL
+
+    t = np.linspace(0.0, 3.0, 301)
+    line = np.column_stack([1 + 2 * t / 3, 1 + 2 * t / 3])  # (1, 1) -> (3, 3)
+    bulge = line + np.column_stack([np.zeros_like(t), np.sin(np.pi * t / 3)])  # 1 m off
+    ours = Side((Contact(0.24, "floor"), Contact(0.34, "wall")), 2.0, line[-1], True, t, line)
+    late = Side((Contact(0.24, "floor"), Contact(0.34 + CONTACT_TOL + 0.01, "wall")), 2.0,
+                bulge[-1], True, t, bulge)
+    near = Side((Contact(0.25, "floor"), Contact(0.36, "wall")), 2.0, line[-1], True, t, line)
+    far = TrialComparison("10 Hz fixed", "trial 1", ours, None, late)
+    assert far.same_sequence and not far.same_timed_sequence
+    assert far.end_gap < 1e-12  # the end points meet ...
+    top, rms = far.path_deviation
+    assert top == pytest.approx(1.0, abs=1e-3) and rms == pytest.approx(np.sqrt(0.5), abs=1e-2)
+    same = TrialComparison("10 Hz fixed", "trial 2", ours, None, near)
+    assert same.same_timed_sequence and same.path_deviation == (0.0, 0.0)
+    assert TrialComparison("10 Hz fixed", "trial 3", None, None, near).path_deviation is None

@@ -31,6 +31,7 @@ __all__ = ["APART", "RunFacts", "Side", "TrialComparison", "authors_panel", "com
 
 APART = 0.1  # [m] the two paths have parted once their positions are this far apart
 DRIFT = 0.05  # [s] a contact this far from its planned time is off the plan
+CONTACT_TOL = 0.030  # [s] two sides' k-th contacts match when this close in time too
 _BOUNCES = ("floor", "wall")
 
 
@@ -102,6 +103,27 @@ class TrialComparison:
         return float(np.hypot(*(self.ours.end - self.theirs.end)))
 
     @property
+    def same_timed_sequence(self) -> bool | None:
+        """Same guards in the same order, each within :data:`CONTACT_TOL` of theirs.
+
+        None: a side missing.
+        """
+        if not self.same_sequence:
+            return self.same_sequence
+        return all(abs(a.t - b.t) <= CONTACT_TOL
+                   for a, b in zip(self.ours.contacts, self.theirs.contacts, strict=True))
+
+    @property
+    def path_deviation(self) -> tuple[float, float] | None:
+        """(max, RMS) [m] of the paths' distance at the authors' sample times.
+
+        Ours interpolated, where both runs exist; None: a side missing or no overlap.
+        """
+        if self.ours is None or self.theirs is None:
+            return None
+        return path_deviation(self.ours, self.theirs)
+
+    @property
     def apart_at(self) -> float | None:
         """First time [s] the paths are :data:`APART` apart (None: never, or a side missing)."""
         if self.ours is None or self.theirs is None:
@@ -140,6 +162,20 @@ def _apart(a: Side, b: Side) -> float | None:
     pb = np.column_stack([np.interp(t, b.t, b.xy[:, i]) for i in range(2)])
     far = np.flatnonzero(np.hypot(*(pa - pb).T) > APART)
     return float(t[far[0]]) if far.size else None
+
+
+def path_deviation(ours: Side, theirs: Side) -> tuple[float, float] | None:
+    """(max, RMS) [m] of |ours(t) - theirs(t)| over the authors' times t inside both runs."""
+    keep = (theirs.t >= ours.t[0]) & (theirs.t <= ours.t[-1])
+    t = theirs.t[keep]
+    if not len(t):
+        return None
+    pa = np.column_stack([np.interp(t, ours.t, ours.xy[:, i]) for i in range(2)])
+    d = np.hypot(*(pa - theirs.xy[keep]).T)
+    d = d[np.isfinite(d)]
+    if not len(d):
+        return None
+    return float(d.max()), float(np.sqrt(np.mean(d ** 2)))
 
 
 def _first_difference(ours: Sequence[Contact], theirs: Sequence[Contact]) -> str:

@@ -118,20 +118,25 @@ def _side_cells(side) -> list[str]:
 def _trial_table(rows: Sequence) -> list[str]:
     """One row per trial: ours beside theirs, same sequence, end-point gap."""
     lines = ["| controller | trial | hmpc contacts | entry [s] | end [m] | ok | authors' "
-             "contacts | entry [s] | end [m] | ok | same contacts | end gap [m] |",
-             "|" + " --- |" * 12]
+             "contacts | entry [s] | end [m] | ok | same contacts | same contacts, ±30 ms "
+             "| path deviation max / RMS [m] | end gap [m] |",
+             "|" + " --- |" * 14]
+    yes = {None: "-", True: "yes", False: "no"}
     for r in rows:
-        same = {None: "-", True: "yes", False: "no"}[r.same_sequence]
         gap = "-" if r.end_gap is None else f"{r.end_gap:.3f}"
-        cells = [r.panel, r.trial, *_side_cells(r.ours), *_side_cells(r.theirs), same, gap]
+        dev = r.path_deviation
+        dev = "-" if dev is None else f"{dev[0]:.2f} / {dev[1]:.2f}"
+        cells = [r.panel, r.trial, *_side_cells(r.ours), *_side_cells(r.theirs),
+                 yes[r.same_sequence], yes[r.same_timed_sequence], dev, gap]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 
 
 def _agreement(rows: Sequence) -> list[str]:
     """Per panel: same outcome, same contacts, end gaps where both are stable, entries."""
-    lines = ["| controller | same outcome | same contacts | end gap, both stable: median / "
-             "max [m] | circle entry, median: hmpc / authors [s] |", "|" + " --- |" * 5]
+    lines = ["| controller | same outcome | same contacts | same contacts, ±30 ms | path "
+             "deviation, median of max / RMS [m] | end gap, both stable: median / max [m] | "
+             "circle entry, median: hmpc / authors [s] |", "|" + " --- |" * 7]
     for panel in dict.fromkeys(r.panel for r in rows):
         rs = [r for r in rows if r.panel == panel and r.ours and r.theirs]
         if not rs:
@@ -140,9 +145,13 @@ def _agreement(rows: Sequence) -> list[str]:
         gap = f"{statistics.median(gaps):.3f} / {max(gaps):.3f}" if gaps else "-"
         ent = [statistics.median(e) if (e := [s.entry for s in sides if s.entry is not None])
                else None for sides in ([r.ours for r in rs], [r.theirs for r in rs])]
+        devs = [d for r in rs if (d := r.path_deviation) is not None]
+        dev = (f"{statistics.median(d[0] for d in devs):.2f} / "
+               f"{statistics.median(d[1] for d in devs):.2f}") if devs else "-"
         lines.append(f"| {panel} | {sum(r.ours.success == r.theirs.success for r in rs)}/"
-                     f"{len(rs)} | {sum(bool(r.same_sequence) for r in rs)}/{len(rs)} | {gap} "
-                     f"| {_fmt_t(ent[0])} / {_fmt_t(ent[1])} |")
+                     f"{len(rs)} | {sum(bool(r.same_sequence) for r in rs)}/{len(rs)} | "
+                     f"{sum(bool(r.same_timed_sequence) for r in rs)}/{len(rs)} | {dev} | "
+                     f"{gap} | {_fmt_t(ent[0])} / {_fmt_t(ent[1])} |")
     return lines
 
 
