@@ -19,7 +19,7 @@ See ``docs/plugins.md`` for one screen per kind.
 from __future__ import annotations
 
 from hmpc_cli.core.drawing import Ball, Drawing, Polyline, Rgba, circle
-from hmpc_cli.core.kinds import KindSettings, MPCKindSettings, PlannerSettings
+from hmpc_cli.core.kinds import KindSettings, MarginsSettings, MPCKindSettings, PlannerSettings
 from hmpc_cli.core.hybrid import (
     RESERVED_NAMES, Guard, HybridSystem, Mode, NumericSystem, Terrain, rk4_expr)
 from hmpc_cli.core.messages import (
@@ -34,8 +34,9 @@ from hmpc_cli.core.tasks import ReachGoal
 __all__ = [
     "CAPABILITIES", "RESERVED_NAMES", "Ball", "BoundedInt", "ConstraintMargins", "Drawing",
     "FiniteFloat", "FixedModeMPC", "Guard", "GuardEvent", "HybridSystem", "KindSettings",
-    "LargeFloat", "MPCKindSettings", "MPCSpec", "Mode", "ModeSchedule", "NumericSystem", "Plan",
-    "Planner", "PlannerResult", "PlannerSettings", "PlannerSpec", "PluginError", "Polyline",
-    "ReachGoal", "Requirement", "Rgba", "SolveFn", "SolveStats", "StrictBool", "SystemSpec",
-    "Task", "Terrain", "Trajectory", "Verdict", "circle", "compile_numpy", "rk4_expr",
+    "LargeFloat", "MPCKindSettings", "MPCSpec", "MarginsSettings", "Mode", "ModeSchedule",
+    "NumericSystem", "Plan", "Planner", "PlannerResult", "PlannerSettings", "PlannerSpec",
+    "PluginError", "Polyline", "ReachGoal", "Requirement", "Rgba", "SolveFn", "SolveStats",
+    "StrictBool", "SystemSpec", "Task", "Terrain", "Trajectory", "Verdict", "circle",
+    "compile_numpy", "rk4_expr",
 ]

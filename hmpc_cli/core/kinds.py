@@ -13,7 +13,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict
 
-__all__ = ["KindSettings", "MPCKindSettings", "PlannerSettings"]
+__all__ = ["KindSettings", "MPCKindSettings", "MarginsSettings", "PlannerSettings"]
 
 
 class KindSettings(BaseModel):
@@ -75,3 +75,23 @@ class MPCKindSettings(KindSettings):
     def resolves_on_impact(self) -> bool:
         """Whether the loop re-solves right after a guard event."""
         return True
+
+
+class MarginsSettings(MPCKindSettings):
+    """An MPC kind with a ``margins`` field: ``"hand"``, ``"tube"`` or a margins file.
+
+    The kind declares the field (its default and description are its own).
+    """
+
+    def margins_source(self) -> str:
+        """``mpc.margins``: "hand", "tube" or a margins file."""
+        return self.margins
+
+    def resolve_margins_file(self, base: Path) -> Path | None:
+        """A margins file named relative to ``base`` made absolute (None: hand or tube)."""
+        if self.margins in ("hand", "tube"):
+            return None
+        file = Path(self.margins).expanduser()
+        file = (file if file.is_absolute() else base / file).resolve()
+        self.margins = str(file)
+        return file

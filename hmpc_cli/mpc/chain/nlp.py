@@ -46,12 +46,10 @@ from typing import Literal
 
 import casadi as ca
 import numpy as np
-from pathlib import Path
-
 from pydantic import ConfigDict, Field, model_validator
 
 from hmpc_cli.core.hybrid import HybridSystem
-from hmpc_cli.core.kinds import MPCKindSettings
+from hmpc_cli.core.kinds import MarginsSettings
 from hmpc_cli.core.messages import ConstraintMargins, Trajectory
 from hmpc_cli.mpc import cache
 from hmpc_cli.mpc.backends import OCPStructure
@@ -74,7 +72,7 @@ NODE_MIB, NODE_MS = 0.85, 18.0
 SWITCH_MIB, SWITCH_MS = 0.3, 10.0
 
 
-class MPCSettings(MPCKindSettings):
+class MPCSettings(MarginsSettings):
     """Fixed-mode MPC settings."""
 
     model_config = ConfigDict(extra="forbid")
@@ -146,19 +144,6 @@ class MPCSettings(MPCKindSettings):
                                  'input_hold = "zoh" (a first-order hold couples each '
                                  'interval to the next input)')
         return self
-
-    def margins_source(self) -> str:
-        """``mpc.margins``: "hand", "tube" or a margins file."""
-        return self.margins
-
-    def resolve_margins_file(self, base: Path) -> Path | None:
-        """A margins file named relative to ``base`` made absolute (None: hand or tube)."""
-        if self.margins in ("hand", "tube"):
-            return None
-        file = Path(self.margins).expanduser()
-        file = (file if file.is_absolute() else base / file).resolve()
-        self.margins = str(file)
-        return file
 
     def input_margin_key(self) -> str:
         """The hand-set input margin's key path."""

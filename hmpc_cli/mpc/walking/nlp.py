@@ -55,12 +55,10 @@ from typing import Literal
 
 import casadi as ca
 import numpy as np
-from pathlib import Path
-
 from pydantic import ConfigDict, Field, model_validator
 
 from hmpc_cli.core.hybrid import HybridSystem
-from hmpc_cli.core.kinds import MPCKindSettings
+from hmpc_cli.core.kinds import MarginsSettings
 from hmpc_cli.core.messages import ConstraintMargins
 from hmpc_cli.mpc import cache
 from hmpc_cli.mpc.builder import Bounds, NLPBuilder
@@ -76,7 +74,7 @@ WARM_START = WarmStart(mu_init=1e-4, bound_push=1e-6)  # the warm IPOPT instance
 NODE_MIB, NODE_MS = 2.2, 27.0
 
 
-class WalkingMPCSettings(MPCKindSettings):
+class WalkingMPCSettings(MarginsSettings):
     """Fixed-mode walking MPC settings (reference values)."""
 
     model_config = ConfigDict(extra="forbid")
@@ -139,19 +137,6 @@ class WalkingMPCSettings(MPCKindSettings):
             raise ValueError(f"apex_node {self.apex_node} must be below nodes_per_swing "
                              f"{self.nodes_per_swing}")
         return self
-
-    def margins_source(self) -> str:
-        """``mpc.margins``: "hand", "tube" or a margins file."""
-        return self.margins
-
-    def resolve_margins_file(self, base: Path) -> Path | None:
-        """A margins file named relative to ``base`` made absolute (None: hand or tube)."""
-        if self.margins in ("hand", "tube"):
-            return None
-        file = Path(self.margins).expanduser()
-        file = (file if file.is_absolute() else base / file).resolve()
-        self.margins = str(file)
-        return file
 
     def input_margin_key(self) -> str:
         """The hand-set torque margin's key path."""
