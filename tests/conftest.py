@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -122,3 +123,14 @@ def write_finished_log(run_dir: Path, summary: dict | None = None) -> Path:
         w.add_message(cid, 0, json.dumps(summary or {"success": True}).encode(), 0)
         w.finish()
     return path
+
+
+def signal_handlers_installed(pid: int) -> bool:
+    """Whether process ``pid`` catches SIGTERM and SIGHUP (hmpc's handlers are in place)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return False
+    caught = int(next(ln.split()[1] for ln in status.splitlines()
+                      if ln.startswith("SigCgt:")), 16)
+    return all(caught & (1 << (int(s) - 1)) for s in (signal.SIGTERM, signal.SIGHUP))

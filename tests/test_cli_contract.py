@@ -11,7 +11,7 @@ import tomllib
 
 import pytest
 
-from conftest import BALL, REPO, cli_env, hmpc_command
+from conftest import BALL, REPO, cli_env, hmpc_command, signal_handlers_installed
 
 COMMANDS = ["run", "schema", "sweep", "plot", "report", "tube", "replay"]
 
@@ -251,7 +251,9 @@ def test_sigint_while_the_controllers_are_built_says_so_and_exits_130(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "hmpc_cli", "run", str(BALL), "--out",
                              str(tmp_path / "run"), "-q"], cwd=tmp_path, env=cli_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    time.sleep(2.0)  # imports done, the NLPs are being built (about 3 s)
+    deadline = time.monotonic() + 60  # hmpc's handlers in place: it is setting up
+    while time.monotonic() < deadline and not signal_handlers_installed(proc.pid):
+        time.sleep(0.01)
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err

@@ -21,7 +21,7 @@ import pytest
 from typer.testing import CliRunner
 
 import hmpc_cli.run.runner
-from conftest import BALL, cli_env, hmpc_command
+from conftest import BALL, cli_env, hmpc_command, signal_handlers_installed
 from hmpc_cli.cli.app import app
 from hmpc_cli.core import cbuild, signals
 from hmpc_cli.run.scenario import ScenarioError, load_scenario
@@ -363,17 +363,6 @@ def test_batched_rollouts_are_the_whole_batch_cut_in_pieces(planner, monkeypatch
 
 
 # ------------------------------------------------------- 1. stop signals, subprocesses
-def _handlers_installed(pid: int) -> bool:
-    """Whether process ``pid`` catches SIGTERM and SIGHUP (hmpc's handlers are in place)."""
-    try:
-        status = Path(f"/proc/{pid}/status").read_text()
-    except OSError:
-        return False
-    caught = int(next(ln.split()[1] for ln in status.splitlines()
-                      if ln.startswith("SigCgt:")), 16)
-    return all(caught & (1 << (int(s) - 1)) for s in (signal.SIGTERM, signal.SIGHUP))
-
-
 def _start(args: list[str], cwd: Path) -> subprocess.Popen:
     return subprocess.Popen([*hmpc_command(), *args], cwd=cwd, env=cli_env(), text=True,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -447,7 +436,7 @@ COMMANDS = [
 def test_other_commands_keep_the_exit_contract(tmp_path: Path, args, sig: int,
                                                needs_run: bool):
     proc = _start(args(_ball_run(tmp_path) if needs_run else None), tmp_path)
-    _wait(proc, lambda: _handlers_installed(proc.pid))
+    _wait(proc, lambda: signal_handlers_installed(proc.pid))
     err = _stop(proc, sig)
     name = signal.Signals(sig).name
     assert proc.returncode == CODES[sig], err

@@ -356,3 +356,25 @@ def test_results_rows_are_in_grid_order_not_completion_order(tmp_path):
     assert [(r["mpc.rate_hz"], r["case"], r["seed"]) for r in rows] == [
         (rate, case, seed) for rate in ("20", "10") for case in ("b", "a")
         for seed in ("0", "1", "2")]
+
+
+@pytest.mark.parametrize("case, message", [
+    ("directory", "is a directory, not a sweep file"),
+    ("fifo", "not a regular file"),
+    ("deep", "tables or arrays nested too deeply (more than 32 levels)"),
+    ("binary", "not a UTF-8 text file"),
+])
+def test_a_sweep_file_that_cannot_be_read_is_one_line(tmp_path, case, message):
+    """The sweep file's reader is the scenario file's: same checks, same messages."""
+    path = tmp_path / "s.toml"
+    if case == "directory":
+        path.mkdir()
+    elif case == "fifo":
+        os.mkfifo(path)  # reading it would block: refused before it is opened
+    elif case == "deep":
+        path.write_text('name = "s"\na = ' + "[" * 100 + "1" + "]" * 100 + "\n")
+    else:
+        path.write_bytes(b"name = \xff\xfe\n")
+    with pytest.raises(ScenarioError) as err:
+        plan_sweep(path)
+    assert err.value.lines == [f"{path}: {message}"]

@@ -512,31 +512,45 @@ def _problems(data: dict, source: str) -> list[str]:
     return []
 
 
+def read_toml_file(path: Path, what: str = "scenario file", src: str | None = None
+                   ) -> tuple[str, dict]:
+    """A TOML file's text and table, or one :class:`ScenarioError` line saying why not.
+
+    Args:
+        path: the file.
+        what: what it should be, for the messages ("scenario file", "sweep file").
+        src: how the messages name it (default: the path).
+    """
+    src = str(path) if src is None else src
+    if path.is_dir():
+        raise ScenarioError([f"{src}: is a directory, not a {what}"])
+    if not path.exists():
+        raise ScenarioError([f"{src}: file not found"])
+    if not path.is_file():  # a FIFO or a device: reading it may block forever
+        raise ScenarioError([f"{src}: not a regular file"])
+    deep = f"{src}: tables or arrays nested too deeply (more than {MAX_DEPTH} levels)"
+    try:
+        text = path.read_text(encoding="utf-8")
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError([f"{src}: TOML syntax error: {exc}"]) from None
+    except UnicodeDecodeError:
+        raise ScenarioError([f"{src}: not a UTF-8 text file"]) from None
+    except RecursionError:
+        raise ScenarioError([deep]) from None
+    except OSError as exc:  # unreadable (permissions), a FIFO's error, an I/O error
+        raise ScenarioError([f"{src}: cannot read it: {exc.strerror or exc}"]) from None
+    if nesting(data) > MAX_DEPTH:
+        raise ScenarioError([deep])
+    return text, data
+
+
 def _read_toml(path: Path) -> dict:
     """A scenario file's TOML table (raises :class:`ScenarioError`)."""
-    if path.is_dir():
-        raise ScenarioError([f"{path}: is a directory, not a scenario file"])
-    if not path.exists():
-        raise ScenarioError([f"{path}: file not found"])
-    if not path.is_file():  # a FIFO or a device: reading it may block forever
-        raise ScenarioError([f"{path}: not a regular file"])
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError([f"{path}: TOML syntax error: {exc}"]) from None
-    except UnicodeDecodeError:
-        raise ScenarioError([f"{path}: not a UTF-8 text file"]) from None
-    except RecursionError:
-        raise ScenarioError([f"{path}: tables or arrays nested too deeply (more than "
-                             f"{MAX_DEPTH} levels)"]) from None
-    except OSError as exc:  # unreadable (permissions), a FIFO's error, an I/O error
-        raise ScenarioError([f"{path}: cannot read it: {exc.strerror or exc}"]) from None
+    _, data = read_toml_file(path)
     if not data:
         raise ScenarioError([f"{path}: file is empty (no settings; write at least "
                              f"[system] name = \"{DEFAULT_SYSTEM}\")"])
-    if nesting(data) > MAX_DEPTH:
-        raise ScenarioError([f"{path}: tables or arrays nested too deeply (more than "
-                             f"{MAX_DEPTH} levels)"])
     return data
 
 

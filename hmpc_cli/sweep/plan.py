@@ -18,7 +18,6 @@ import itertools
 import json
 import math
 import re
-import tomllib
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,7 +25,8 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from hmpc_cli.run.scenario import ScenarioError, format_errors, load_scenario, scenario_model
+from hmpc_cli.run.scenario import (
+    ScenarioError, format_errors, load_scenario, read_toml_file, scenario_model)
 from hmpc_cli.core.settings_types import MAX_INT
 from hmpc_cli.sweep.table import METRICS, cell_text, toml_value
 
@@ -266,17 +266,10 @@ def _read_spec(path: Path, src: str) -> tuple[str, SweepSpec]:
     """The sweep file's text and validated spec (its name defaults to the file's stem).
 
     Raises:
-        ScenarioError: the file is missing, not UTF-8 TOML, or not a valid sweep.
+        ScenarioError: the file is missing, a directory, unreadable, not UTF-8 TOML,
+            nested too deeply, or not a valid sweep.
     """
-    if not path.is_file():
-        raise ScenarioError([f"{src}: file not found"])
-    try:
-        text = path.read_text(encoding="utf-8")
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError([f"{src}: TOML syntax error: {exc}"]) from None
-    except UnicodeDecodeError:
-        raise ScenarioError([f"{src}: not a UTF-8 text file"]) from None
+    text, data = read_toml_file(path, "sweep file", src)
     data.setdefault("name", re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem))
     try:
         return text, SweepSpec.model_validate(data)
