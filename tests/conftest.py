@@ -134,3 +134,26 @@ def signal_handlers_installed(pid: int) -> bool:
     caught = int(next(ln.split()[1] for ln in status.splitlines()
                       if ln.startswith("SigCgt:")), 16)
     return all(caught & (1 << (int(s) - 1)) for s in (signal.SIGTERM, signal.SIGHUP))
+
+
+def file_tree(root: Path) -> set[str]:
+    """Every path under ``root``, relative to it."""
+    return {str(p.relative_to(root)) for p in root.rglob("*")}
+
+
+def bad_input(work: Path, args: list[str]) -> list[str]:
+    """``hmpc ARGS`` in-process expecting bad input: exit 2 by SystemExit, no traceback and
+    no usage box, nothing written under ``work``, only ``error: `` lines (returned)."""
+    from typer.testing import CliRunner
+
+    from hmpc_cli.cli.app import app
+
+    before = file_tree(work)
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 2, (args, res.output, res.exception)
+    assert isinstance(res.exception, SystemExit), repr(res.exception)
+    assert "Traceback" not in res.output and "Usage:" not in res.output
+    assert file_tree(work) == before, "bad input must not create any file or directory"
+    lines = res.stderr.splitlines()
+    assert lines and all(line.startswith("error: ") for line in lines), lines
+    return lines

@@ -18,11 +18,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
 
 import hmpc_cli.run.runner
-from conftest import BALL, cli_env, hmpc_command, signal_handlers_installed
-from hmpc_cli.cli.app import app
+from conftest import BALL, bad_input, cli_env, hmpc_command, signal_handlers_installed
 from hmpc_cli.core import cbuild, signals
 from hmpc_cli.run.scenario import ScenarioError, load_scenario
 
@@ -44,21 +42,8 @@ def work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     return tmp_path
 
 
-def _tree(root: Path) -> set[str]:
-    return {str(p.relative_to(root)) for p in root.rglob("*")}
-
-
 def _bad(work: Path, args: list[str]) -> list[str]:
-    """``hmpc ARGS`` in-process expecting bad input: exit 2, one-line errors, nothing written."""
-    before = _tree(work)
-    res = CliRunner().invoke(app, args)
-    assert res.exit_code == 2, (args, res.output, res.exception)
-    assert isinstance(res.exception, SystemExit), repr(res.exception)
-    assert "Traceback" not in res.output and "Usage:" not in res.output
-    assert _tree(work) == before, "bad input must not create any file or directory"
-    lines = res.stderr.splitlines()
-    assert lines and all(line.startswith("error: ") for line in lines), lines
-    return lines
+    return bad_input(work, args)
 
 
 # ------------------------------------------------------------------ 2. sizes that hang

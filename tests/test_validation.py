@@ -4,10 +4,9 @@ The cases are generated from the scenario's JSON schema (both systems with their
 planner and MPC): every numeric field, and every number inside a tuple or list field, gets
 NaN, inf, -inf, 1e300, a negative value where the field has a lower bound, and the wrong
 types "1" and true. Each must end with exit 2, one ``source: key.path: reason`` line naming
-the key and where the value came from, no traceback and nothing written. Runs go through a
-click ``CliRunner`` in-process (the Typer app's click command built once: milliseconds a
-call); ``prepare`` is replaced so that a value that slips through fails at once instead of
-running a simulation.
+the key and where the value came from, no traceback and nothing written. Runs go through
+Typer's ``CliRunner`` in-process (``conftest.bad_input``); ``prepare`` is replaced so that
+a value that slips through fails at once instead of running a simulation.
 """
 
 from __future__ import annotations
@@ -17,18 +16,15 @@ import time
 from pathlib import Path
 
 import pytest
-import typer
-from click.testing import CliRunner
 
 import hmpc_cli.run.runner
-from hmpc_cli.cli.app import app
+from conftest import bad_input
 from hmpc_cli.run.scenario import dump_toml, scenario_model
 
 #: system -> (planner kind, MPC kind): the plug-in sections validated with it
 STACKS = {"ball": ("cem", "fixed_mode"), "biped": ("footholds", "walking")}
 #: fields that are finite but deliberately unbounded ("huge" means "never")
 UNBOUNDED = {"sim.divergence_bound"}
-COMMAND = typer.main.get_command(app)
 BAD = {"nan": math.nan, "inf": math.inf, "-inf": -math.inf, "huge": 1e300,
        "string": "1", "bool": True}
 
@@ -141,21 +137,9 @@ def work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     return tmp_path
 
 
-def _tree(root: Path) -> set[str]:
-    return {str(p.relative_to(root)) for p in root.rglob("*")}
-
-
 def bad_run(work: Path, args: list[str]) -> list[str]:
-    """``hmpc ARGS`` expecting bad input: exit 2, no traceback, nothing written; the lines."""
-    before = _tree(work)
-    res = CliRunner().invoke(COMMAND, args)
-    assert res.exit_code == 2, (args, res.output, res.exception)
-    assert isinstance(res.exception, SystemExit), repr(res.exception)
-    assert "Traceback" not in res.output
-    assert _tree(work) == before, "bad input must not create any file or directory"
-    lines = res.stderr.splitlines()
-    assert lines and all(line.startswith("error: ") for line in lines), lines
-    return lines
+    """``hmpc ARGS`` expecting bad input (:func:`conftest.bad_input`); the lines."""
+    return bad_input(work, args)
 
 
 def _scenario(work: Path, system: str, data: dict | None = None, name: str = "") -> Path:
