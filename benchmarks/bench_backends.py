@@ -28,7 +28,7 @@ import numpy as np
 from hmpc_cli.mpc.chain.nlp import FixedModeNLP
 from hmpc_cli.mpc.solver import SolverSession, plugin_options
 from hmpc_cli.core.registry import build_system
-from hmpc_cli.run.runner import prepare
+from hmpc_cli.run.runner import prepare, run_unlogged
 from hmpc_cli.run.scenario import load_scenario
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -46,7 +46,7 @@ def record(trial: int) -> list[tuple[str, tuple]]:
             out.append((_label, args))
             return type(_nlp).solve(_nlp, *args)
         nlp.solve = solve
-    loop.run()
+    run_unlogged(loop)
     return out
 
 
@@ -152,7 +152,7 @@ def closed_loop(trials: list[int]) -> None:
             sc, _ = load_scenario(SCENARIO, ZOH + [f"disturbance.trial={trial}",
                                                    f'mpc.solver="{solver}"'])
             start = time.perf_counter()
-            r = prepare(sc).run()
+            r = run_unlogged(prepare(sc))
             print(f"  trial {trial:2d} {solver:10s} success {r.success!s:5s} final error "
                   f"{r.final_error:.4f} solves {r.solves} failures {r.solver_failures} "
                   f"fallbacks {r.fallbacks} median {1e3 * r.solve_time_median:.2f} ms "

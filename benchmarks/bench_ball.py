@@ -16,10 +16,9 @@ import time
 import numpy as np
 
 from hmpc_cli.planner.cem import CrossEntropyPlanner
-from hmpc_cli.log.recorder import Recorder
 from hmpc_cli.log.reader import read_log
 from hmpc_cli.core.registry import build_system
-from hmpc_cli.run.runner import prepare
+from hmpc_cli.run.runner import prepare, run_to_log
 from hmpc_cli.run.scenario import load_scenario
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -33,12 +32,7 @@ def closed_loop_solves(overrides: list[str], runs: int) -> dict[str, np.ndarray]
     for r in range(runs):
         sc, _ = load_scenario(SCENARIO, overrides + [f"disturbance.trial={r % 10 + 1}"])
         with tempfile.TemporaryDirectory() as tmp:
-            loop = prepare(sc)
-            loop.log.rec = rec = Recorder(os.path.join(tmp, "run.mcap"))
-            try:
-                loop.run()
-            finally:
-                rec.close()
+            run_to_log(prepare(sc), os.path.join(tmp, "run.mcap"))
             for m in read_log(os.path.join(tmp, "run.mcap")).topic("/mpc/solve"):
                 t = m.data["wall_time"]
                 out["all"].append(t)

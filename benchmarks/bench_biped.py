@@ -19,9 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hmpc_cli.log.recorder import Recorder
 from hmpc_cli.log.reader import read_log
-from hmpc_cli.run.runner import prepare
+from hmpc_cli.run.runner import prepare, run_to_log
 from hmpc_cli.run.scenario import load_scenario
 
 SCENARIO = Path(__file__).resolve().parent.parent / "scenarios" / "biped_stairs.toml"
@@ -53,11 +52,7 @@ def main() -> None:
         loop = prepare(sc)  # the NLP is built once per process (seed 0 pays it)
         build = time.perf_counter() - start
         with tempfile.TemporaryDirectory() as tmp:
-            loop.log.rec = rec = Recorder(Path(tmp) / "run.mcap")
-            try:
-                res = loop.run()
-            finally:
-                rec.close()
+            res = run_to_log(loop, Path(tmp) / "run.mcap")
             log = read_log(Path(tmp) / "run.mcap")
         for m in log.topic("/mpc/solve"):
             if m.data["reason"] == "period":

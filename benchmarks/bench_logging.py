@@ -31,13 +31,13 @@ from pathlib import Path
 
 from hmpc_cli.log import scene
 from hmpc_cli.log.recorder import Recorder
-from hmpc_cli.log.runlog import RunLog
-from hmpc_cli.run.runner import execute_run, prepare
+from hmpc_cli.log.runlog import TopicWriter
+from hmpc_cli.run.runner import execute_run, prepare, run_unlogged
 from hmpc_cli.run.scenario import load_scenario
 
-#: the calls that log: RunLog's topics, the recorder's open (header, attachment) and
+#: the calls that log: TopicWriter's topics, the recorder's open (header, attachment) and
 #: close (the queued messages, the last chunk, summary and footer), the scene's set-up
-LOGGED = ((RunLog, ("step", "state", "event", "planner", "solve", "summary", "open",
+LOGGED = ((TopicWriter, ("step", "state", "event", "planner", "solve", "summary", "open",
                     "flush_held")),
           (Recorder, ("__init__", "add_attachment", "close")), (scene, ("open_scene",)))
 
@@ -88,7 +88,7 @@ def one_run(scenario: str, log: bool, sets: tuple[str, ...] = ()) -> tuple[float
         if log:
             execute_run(loop, toml_text, Path(tmp))
         else:
-            loop.run()
+            run_unlogged(loop)
         wall, cpu = time.perf_counter() - start, time.thread_time() - cpu
         return wall, cpu, os.path.getsize(Path(tmp) / "run.mcap") if log else 0
 

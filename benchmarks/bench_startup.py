@@ -90,10 +90,10 @@ def solve_split(scenario: str, cache: Path, passes: int = 5) -> dict[str, tuple]
     """
     import numpy as np
 
-    from hmpc_cli.run.loop import build
+    from hmpc_cli.run.compose import build
+    from hmpc_cli.run.runner import run_unlogged
     from hmpc_cli.mpc.chain.nlp import FixedModeNLPs
     from hmpc_cli.core.registry import build_system
-    from hmpc_cli.log.runlog import RunLog
     from hmpc_cli.run.scenario import load_scenario
 
     os.environ["HMPC_CACHE_DIR"] = str(cache)
@@ -103,7 +103,7 @@ def solve_split(scenario: str, cache: Path, passes: int = 5) -> dict[str, tuple]
     sx = FixedModeNLPs(system, sc.mpc)
     os.environ["HMPC_BUILD_CACHE"] = "background"
     compiled = FixedModeNLPs(system, sc.mpc)
-    loop = build(sc, RunLog(None))  # records the solve calls of one run
+    loop = build(sc)  # records the solve calls of one run
     calls: list[tuple[str, tuple]] = []
     for label in ("switching", "final"):
         nlp = getattr(loop.mpc.chain.nlps, label)
@@ -111,7 +111,7 @@ def solve_split(scenario: str, cache: Path, passes: int = 5) -> dict[str, tuple]
             continue
         solve = nlp.session.solve
         nlp.session.solve = (lambda *a, _s=solve, _l=label: calls.append((_l, a)) or _s(*a))
-    loop.run()
+    run_unlogged(loop)
     out = {}
     for label in ("switching", "final"):
         args = [a for lab, a in calls if lab == label]

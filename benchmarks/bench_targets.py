@@ -103,9 +103,9 @@ def phases() -> dict[str, float]:
         t = time.perf_counter()
         execute_run(loop, text, Path(tmp))
         out["run"] = time.perf_counter() - t
-    out["run: MPC solves"] = sum(loop.log.solve_times)
-    out["run: planner"] = sum(loop.log.plan_times)
-    out["build cache"] = json.dumps(loop.log.info.get("build"))
+    out["run: MPC solves"] = sum(loop.books.solve_times)
+    out["run: planner"] = sum(loop.books.plan_times)
+    out["build cache"] = json.dumps(loop.identity.build)
     return out
 
 
@@ -147,7 +147,7 @@ def biped_calls() -> tuple[list[dict], float, dict]:
     """
     from hmpc_cli.mpc import solver as solver_mod
     from hmpc_cli.planner.footholds import FootholdPlanner
-    from hmpc_cli.run.runner import prepare
+    from hmpc_cli.run.runner import prepare, run_unlogged
     from hmpc_cli.run.scenario import load_scenario
 
     calls: list[dict] = []
@@ -176,12 +176,12 @@ def biped_calls() -> tuple[list[dict], float, dict]:
         start = time.perf_counter()
         loop = prepare(sc)
         build = time.perf_counter() - start
-        loop.run()
+        run_unlogged(loop)
     finally:
         solver_mod._run, FootholdPlanner.plan = run, plan
     nlp = getattr(loop.mpc, "nlp", None)
     size = {"variables": getattr(nlp, "nw", None), "constraints": getattr(nlp, "ng", None)}
-    return calls, build, {"plan_times": list(loop.log.plan_times), **size}
+    return calls, build, {"plan_times": list(loop.books.plan_times), **size}
 
 
 def _split(calls: list[dict]) -> str:

@@ -60,7 +60,7 @@ from hmpc_cli.mpc.chain.layout import ChainLayout, NodeSchedule  # noqa: E402
 from hmpc_cli.mpc.chain.nlp import WARM_START, FixedModeNLP  # noqa: E402
 from hmpc_cli.mpc.chain.problem_data import problem_data  # noqa: E402
 from hmpc_cli.mpc.solver import SolverSession, WarmStart, warm_options  # noqa: E402
-from hmpc_cli.run.runner import prepare  # noqa: E402
+from hmpc_cli.run.runner import prepare, run_unlogged  # noqa: E402
 from hmpc_cli.run.scenario import load_scenario  # noqa: E402
 
 SCENARIO = str(HERE.parent / "scenarios" / "ball.toml")
@@ -183,7 +183,7 @@ def record(label: str, overrides=()) -> tuple[list[Problem], RunInfo]:
             return res
         nlp.solve = solve
     try:
-        result = loop.run()
+        result = run_unlogged(loop)
     finally:  # the NLPs are shared by the process's runs: unhook them
         for _, nlp in hooked:
             nlp.__dict__.pop("solve", None)

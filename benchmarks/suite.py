@@ -47,7 +47,7 @@ import suite_report as report
 from hmpc_cli.core.messages import SolveStats
 from hmpc_cli.mpc.chain.nlp import FixedModeNLP
 from hmpc_cli.core.registry import build_system
-from hmpc_cli.run.runner import prepare
+from hmpc_cli.run.runner import prepare, run_unlogged
 from hmpc_cli.run.scenario import load_scenario
 
 TRIALS = (1, 2, 3, 5, 7)
@@ -117,7 +117,7 @@ def record(trial: int, overrides: list[str]) -> tuple[list[Problem], list[float]
             return res
 
         nlp.solve, nlp.problem_data = solve, pack
-    loop.run()
+    run_unlogged(loop)
     return out, packing
 
 

@@ -95,16 +95,9 @@ def full_run(tmp_path_factory: pytest.TempPathFactory) -> FullRun:
 
 def run_loop(scenario, path: Path):
     """Runs a validated scenario's closed loop in this process into the log ``path``."""
-    from hmpc_cli.log.recorder import Recorder
-    from hmpc_cli.run.runner import prepare
+    from hmpc_cli.run.runner import prepare, run_to_log
 
-    loop = prepare(scenario)
-    rec = Recorder(path)
-    loop.log.rec = rec
-    try:
-        return loop.run()
-    finally:
-        rec.close()
+    return run_to_log(prepare(scenario), path)
 
 
 def write_finished_log(run_dir: Path, summary: dict | None = None) -> Path:

@@ -12,7 +12,7 @@ from hmpc_cli.mpc.chain.controller import FixedModeMPC
 from hmpc_cli.mpc.chain.layout import ChainLayout, NodeSchedule
 from hmpc_cli.mpc.chain.nlp import FixedModeNLP, MPCSettings
 from hmpc_cli.planner.cem import CEMSettings, CrossEntropyPlanner
-from hmpc_cli.log.runlog import RunLog
+from hmpc_cli.log.books import RunBooks
 from hmpc_cli.run.scenario import ScenarioError, load_scenario
 from hmpc_cli.systems.ball import BallParams, build_ball
 
@@ -114,12 +114,12 @@ def test_failed_backend_solve_falls_back_to_ipopt_and_is_counted(ball, problems)
     assert res.stats.fallback and res.stats.success
     assert "fallback" in res.stats.status
     assert res.stats.cost == pytest.approx(ref.stats.cost, rel=1e-6)
-    log = RunLog(None)
+    books = RunBooks("ball", 0)
     ns = NodeSchedule((ball.mode_index(ball.final_mode),), (), (nlp.N,))
     traj = nlp.trajectory(res.x, ns, ChainLayout.build(ns, nlp.L))
     for stats in (res.stats, replace(res.stats, fallback=False)):
-        log.solve(0.0, Plan(0.0, traj, stats, None), "period", ball)
-    assert log.result.fallbacks == 1 and log.result.solver_failures == 0
+        books.solve(0.0, Plan(0.0, traj, stats, None))
+    assert books.result.fallbacks == 1 and books.result.solver_failures == 0
 
 
 def test_sqp_backend_needs_stagewise_dynamics():
@@ -133,13 +133,13 @@ def test_sqp_backend_needs_stagewise_dynamics():
 @pytest.mark.slow
 def test_sqp_closed_loop_matches_ipopt():
     """Figure 3, trial 5 (zero-order hold): same outcome with either back-end."""
-    from hmpc_cli.run.runner import prepare
+    from hmpc_cli.run.runner import prepare, run_unlogged
 
     out = {}
     for solver in ("ipopt", "sqp_hpipm"):
         sc, _ = load_scenario("scenarios/ball_disturbed.toml", [
             'mpc.input_hold="zoh"', f'mpc.solver="{solver}"'])
-        out[solver] = prepare(sc).run()
+        out[solver] = run_unlogged(prepare(sc))
     ipopt, sqp = out["ipopt"], out["sqp_hpipm"]
     assert sqp.success == ipopt.success
     assert (sqp.contacts, sqp.solves, sqp.solver_failures) == \

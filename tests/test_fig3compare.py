@@ -12,8 +12,7 @@ from figcheck import assert_legible
 from hmpc_cli.analysis.authors import AuthorsTrace, Contact, read_panels
 from hmpc_cli.analysis.fig3compare import Side, TrialComparison, compare_sweep, sequence_text
 from hmpc_cli.figures.common import TEXT_WIDTH_IN, figure_style
-from hmpc_cli.log.recorder import Recorder
-from hmpc_cli.run.runner import prepare
+from hmpc_cli.run.runner import prepare, run_to_log
 from hmpc_cli.run.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -24,13 +23,8 @@ SHORT = ["sim.duration=0.6", "mpc.horizon=1.0"]  # wall, floor, circle: all befo
 def _run(out: Path, overrides: list[str]) -> bool:
     """A short real ball run logged to out/run.mcap; its success."""
     sc, _ = load_scenario(BALL, [*SHORT, *overrides])
-    loop = prepare(sc)
     out.mkdir(parents=True)
-    loop.log.rec = rec = Recorder(out / "run.mcap")
-    try:
-        return loop.run().success
-    finally:
-        rec.close()
+    return run_to_log(prepare(sc), out / "run.mcap").success
 
 
 def _authors_csv(path: Path, trials: dict[str, np.ndarray], t: np.ndarray) -> None:

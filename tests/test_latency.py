@@ -5,10 +5,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hmpc_cli.log.recorder import Recorder
 from hmpc_cli.log.reader import read_log
 from hmpc_cli.log.rundata import read_run
-from hmpc_cli.run.runner import prepare
+from hmpc_cli.run.runner import prepare, run_to_log
 from hmpc_cli.run.scenario import ScenarioError, load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,12 +33,7 @@ def _run(tmp_path, name, overrides):
         return command(t, x, mode, plan, span)
 
     loop.mpc.solve, loop.plant.command = spy_solve, spy_command
-    rec = Recorder(tmp_path / f"{name}.mcap")
-    loop.log.rec = rec
-    try:
-        result = loop.run()
-    finally:
-        rec.close()
+    result = run_to_log(loop, tmp_path / f"{name}.mcap")
     return result, tmp_path / f"{name}.mcap", solves, used
 
 

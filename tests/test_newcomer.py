@@ -88,14 +88,11 @@ def test_summary_lists_every_guard_zeros_included(quiet_run):
 
 
 def test_run_log_counts_start_at_zero_for_every_guard():
-    from types import SimpleNamespace
 
-    from hmpc_cli.log.runlog import RunLog
+    from hmpc_cli.log.books import RunBooks
 
-    guards = [SimpleNamespace(name=n) for n in ("floor", "wall", "circle_in", "circle_out")]
-    log = RunLog(None)
-    log.open(SimpleNamespace(guards=guards))
-    assert log.result.contacts_by_guard == {"floor": 0, "wall": 0, "circle_in": 0,
+    books = RunBooks("ball", 0, ("floor", "wall", "circle_in", "circle_out"))
+    assert books.result.contacts_by_guard == {"floor": 0, "wall": 0, "circle_in": 0,
                                             "circle_out": 0}
 
 

@@ -5,9 +5,8 @@ from pathlib import Path
 import pytest
 
 from hmpc_cli.mpc.chain.nlp import MPCSettings
-from hmpc_cli.log.recorder import Recorder
 from hmpc_cli.log.rundata import read_run
-from hmpc_cli.run.runner import prepare
+from hmpc_cli.run.runner import prepare, run_to_log
 from hmpc_cli.run.scenario import ScenarioError, load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -35,12 +34,7 @@ def _counts(tmp_path: Path, name: str, overrides: list[str]) -> list[tuple[int, 
     """(shifted, counts) of every periodic /mpc/solve of a 0.1 s ball run at 100 Hz."""
     sc, _ = load_scenario(BALL, ["sim.duration=0.1", "mpc.rate_hz=100", "mpc.horizon=1.2",
                                  *overrides])
-    loop = prepare(sc)
-    loop.log.rec = rec = Recorder(tmp_path / f"{name}.mcap")
-    try:
-        loop.run()
-    finally:
-        rec.close()
+    run_to_log(prepare(sc), tmp_path / f"{name}.mcap")
     run = read_run(tmp_path / f"{name}.mcap")
     return [(s.detail["shifted"], s.detail["counts"]) for s in run.solves
             if s.reason == "period"]

@@ -472,19 +472,19 @@ def test_failed_walking_solves_are_counted(tmp_path):
 def test_a_failed_candidate_solve_is_counted_once():
     from types import SimpleNamespace
 
-    from hmpc_cli.log.runlog import RunLog
+    from hmpc_cli.log.books import RunBooks
 
-    log = RunLog(None)
+    log = RunBooks("biped", 0)
     bad = {"segment": 3, "status": "Maximum_Iterations_Exceeded", "success": False}
     ok = {"segment": 4, "status": "Solve_Succeeded", "success": True}
-    log.planner(1.0, "contact", SimpleNamespace(wall_time=0.1, extra={"candidates": [bad, ok]}),
-                False, "", None)
+    log.planner_call(1.0, SimpleNamespace(wall_time=0.1, extra={"candidates": [bad, ok]}),
+                     False, "")
     assert log.result.solver_failures == 1
     stats = SimpleNamespace(success=False, status=bad["status"], wall_time=0.0,
                             fallback=False, slack=0.0)
-    log.solve(1.0, SimpleNamespace(t=1.0, stats=stats, extra={"segment": 3}), "replan", None)
+    log.solve(1.0, SimpleNamespace(t=1.0, stats=stats, extra={"segment": 3}))
     assert log.result.solver_failures == 1  # the same solve, returned again: not twice
-    log.solve(1.1, SimpleNamespace(t=1.1, stats=stats, extra={"segment": 3}), "period", None)
+    log.solve(1.1, SimpleNamespace(t=1.1, stats=stats, extra={"segment": 3}))
     assert log.result.solver_failures == 2
     assert log.result.failure_statuses == {bad["status"]: 2}
 

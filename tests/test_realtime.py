@@ -5,12 +5,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import hmpc_cli.run.loop as loop_module
+import hmpc_cli.run.layers as layers_module
 from hmpc_cli.analysis.replay import _settings_added_since, compare_logs
 from hmpc_cli.log.reader import LogMessage, read_log
-from hmpc_cli.log.recorder import Recorder
 from hmpc_cli.run.realtime import Latency
-from hmpc_cli.run.runner import prepare
+from hmpc_cli.run.runner import prepare, run_to_log
 from hmpc_cli.run.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -35,12 +34,7 @@ def _run(tmp_path, name, overrides, spy_predict=None):
         return command(t, x, mode, plan, span)
 
     loop.mpc.solve, loop.plant.command = spy_solve, spy_command
-    rec = Recorder(tmp_path / f"{name}.mcap")
-    loop.log.rec = rec
-    try:
-        result = loop.run()
-    finally:
-        rec.close()
+    result = run_to_log(loop, tmp_path / f"{name}.mcap")
     return result, tmp_path / f"{name}.mcap", solves, steps
 
 
@@ -65,14 +59,14 @@ def test_delay_compensation_solves_from_the_state_at_the_plans_arrival(tmp_path,
     plant's state at the step its plan reaches the plant, a contact inside the delay
     included (the prediction flies the same simulator through the reset)."""
     predictions = []
-    real_predict = loop_module.predict
+    real_predict = layers_module.predict
 
     def spy(plant, t, x, mode, delay, plan_at):
         pred = real_predict(plant, t, x, mode, delay, plan_at)
         predictions.append((t, delay, pred))
         return pred
 
-    monkeypatch.setattr(loop_module, "predict", spy)
+    monkeypatch.setattr(layers_module, "predict", spy)
     res, _, solves, steps = _run(tmp_path, "comp", [
         "sim.duration=1.5", "sim.latency=0.02", 'sim.latency_first="paused"',
         "sim.delay_compensation=true", "mpc.rate_hz=20"])

@@ -7,7 +7,7 @@ counts are computed by hand below from the planned durations and the rule.
 
 from pathlib import Path
 
-from hmpc_cli.run.runner import prepare
+from hmpc_cli.run.runner import prepare, run_unlogged
 from hmpc_cli.run.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -30,7 +30,7 @@ def _counts(overrides: list[str], duration: float) -> list[tuple[float, str, lis
         return plan
 
     loop.mpc.solve = spy
-    loop.run()
+    run_unlogged(loop)
     return out
 
 

@@ -14,7 +14,7 @@ from hmpc_cli.log.recorder import Recorder
 from hmpc_cli.log.reader import read_log
 from hmpc_cli.core.registry import build_system
 from hmpc_cli.analysis.replay import _ignored
-from hmpc_cli.log.runlog import RunLog
+from hmpc_cli.log.runlog import RunIdentity, TopicWriter
 from hmpc_cli.run.runner import execute_run, prepare
 from hmpc_cli.run.scenario import load_scenario
 from hmpc_cli.systems.ball import BallParams
@@ -62,9 +62,8 @@ def test_a_held_solve_is_logged_as_it_was_when_solved(tmp_path):
     """The plan's arrays (and extra) may change after solve(): the log keeps the solve."""
     model = build_system(BallParams())
     rec = Recorder(tmp_path / "run.mcap")
-    log = RunLog(rec)
-    log.set_info("ball", 0, {}, 1, kinds=("none", "fixed_mode"),
-                 details={"mpc": ChainDetail})
+    log = TopicWriter(rec, RunIdentity("ball", 0, kinds=("none", "fixed_mode"),
+                                       details={"mpc": ChainDetail}))
     log.open(model)
     plan = _plan(model)
     log.solve(0.3, plan, "test", model)

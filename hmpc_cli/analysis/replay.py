@@ -448,13 +448,13 @@ def verify(replay: Replay, workdir: Path) -> tuple[Divergence | None, int, int]:
     toml.write_text(replay.scenario_text, encoding="utf-8")
     try:
         sc, text = load_scenario(toml)
-        loop = prepare(sc)
+        prepared = prepare(sc)
     except ScenarioError as exc:
         detail = "; ".join(line.replace(str(toml), "scenario.toml") for line in exc.lines)
         raise ReplayError(f"the attached scenario cannot be rebuilt: {detail}") from None
     except (PluginError, ValueError, RuntimeError) as exc:
         raise ReplayError(f"the attached scenario cannot be rebuilt: {exc}") from None
-    execute_run(loop, text, workdir / "rerun")
+    execute_run(prepared, text, workdir / "rerun")
     rerun = read_log(workdir / "rerun" / "run.mcap").messages
     recorded = replay.log.messages
     with guarded(replay.path, "comparing it with the re-run"):

@@ -86,7 +86,7 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
         _err([f"{shown}: {problem}" if out is not None else f"{check.parent}: {problem}"])
         raise typer.Exit(EXIT_BAD_INPUT)
     try:
-        loop = prepare(sc)
+        prepared = prepare(sc)
     except (PluginError, ValueError) as exc:
         from hmpc_cli.run.scenario import attribute_to_sets
 
@@ -102,10 +102,10 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
         raise
     from hmpc_cli.log.runlog import Provenance
 
-    loop.log.provenance = Provenance(overrides=tuple(
+    provenance = Provenance(overrides=tuple(
         [*sets, *([f"seed={seed}"] if seed is not None else [])]))
     try:
-        result = _execute(loop, sc, toml_text, out, quiet, sink)
+        result = _execute(prepared, sc, toml_text, out, quiet, sink, provenance)
     finally:
         if sink is not None:
             sink.close()
@@ -160,7 +160,8 @@ def _live_sink(port: int):
     return sink
 
 
-def _execute(loop, sc, toml_text: str, out: Path, quiet: bool, sink=None):
+def _execute(prepared, sc, toml_text: str, out: Path, quiet: bool, sink=None,
+             provenance=None):
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from hmpc_cli.run.runner import execute_run
@@ -178,20 +179,20 @@ def _execute(loop, sc, toml_text: str, out: Path, quiet: bool, sink=None):
                     desc = f"{sc.name} [yellow]({note})[/]" if note else sc.name
                     progress.update(task, completed=i / n, t=i / n * dur, description=desc)
 
-            return execute_run(loop, toml_text, out, tick, sink)
+            return execute_run(prepared, toml_text, out, tick, sink, provenance)
     except KeyboardInterrupt as exc:
         from hmpc_cli.core.signals import as_interrupted
 
         stop = as_interrupted(exc)
-        typer.echo(f"interrupted ({stop.name}) at t = {loop.res.t_end:.3f} s; partial log "
+        typer.echo(f"interrupted ({stop.name}) at t = {prepared.result.t_end:.3f} s; partial log "
                    f"in {out / 'run.mcap'}", err=True)
         stop.reported = True
         raise stop from None
     except Exception as exc:  # a crash inside the loop: the log and summary are written
-        _crashed(exc, loop, out)
+        _crashed(exc, prepared.result.t_end, out)
 
 
-def _crashed(exc: Exception, loop, out: Path) -> None:
+def _crashed(exc: Exception, t_end: float, out: Path) -> None:
     """Reports a run that crashed: one line, the traceback in ``out/error.txt``; exit 1."""
     import contextlib
     import traceback
@@ -202,7 +203,7 @@ def _crashed(exc: Exception, loop, out: Path) -> None:
     with contextlib.suppress(OSError):  # the one-line report does not depend on it
         (out / "error.txt").write_text(trace, encoding="utf-8")
     msg = " ".join(str(exc).split())[:300]
-    _err([f"the run crashed at t = {loop.res.t_end:.3f} s: {type(exc).__name__}: {msg}",
+    _err([f"the run crashed at t = {t_end:.3f} s: {type(exc).__name__}: {msg}",
           f"its log, summary.json and the traceback (error.txt) are in {out}"])
     if VERBOSITY[0] >= 1:
         typer.echo(trace.rstrip(), err=True)

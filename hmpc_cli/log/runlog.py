@@ -1,11 +1,11 @@
-"""The run's books and its log topics: what a closed-loop run writes, in one place.
+"""The run's log topics: what a closed-loop run writes, in one place.
 
-:class:`RunLog` wraps an open MCAP writer (:class:`hmpc_cli.log.recorder.Recorder` or
-anything with ``add_topic``/``add_metadata``/``write``/``write_many``), which the caller
-opens and closes; it writes the typed topics of :mod:`hmpc_cli.log.topics` (their JSON
-schemas generated from the types, with the system's names and the plug-ins' detail types)
-and keeps the :class:`RunResult` counts (contacts, solves, failures, planner calls) that
-become ``summary.json``.
+:class:`TopicWriter` writes over an open MCAP writer (:class:`hmpc_cli.log.recorder.Recorder`
+or anything with ``add_topic``/``add_metadata``/``write``/``write_many``), which the
+caller opens, passes in and closes: the typed topics of :mod:`hmpc_cli.log.topics` (their
+JSON schemas generated from the types, with the system's names and the plug-ins' detail
+types) and the 3D scene. :class:`NullWriter` is the writer of a run without a log. The
+counts (``summary.json``) are the books' (:mod:`hmpc_cli.log.books`).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import json
 import platform
 import shlex
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -45,39 +45,8 @@ from hmpc_cli.log.topics import (
 from hmpc_cli.log.schema import convert, flat_keys
 from hmpc_cli.log.geometry import record_maker
 from hmpc_cli.core.messages import GuardEvent, ModeSchedule, Plan, PlannerResult, Trajectory
+from hmpc_cli.log.books import RunResult
 
-SOFTENED_TOL = 1e-6  # a solve whose hybrid-constraint slack exceeds this is "softened"
-
-
-@dataclass
-class RunResult:
-    """Outcome of one closed-loop run (what summary.json holds)."""
-
-    scenario: str
-    seed: int
-    success: bool = False
-    final_error: float = float("nan")
-    t_end: float = 0.0
-    x_end: list = field(default_factory=list)
-    mode_end: str = ""
-    contacts: int = 0
-    contacts_by_guard: dict = field(default_factory=dict)
-    solves: int = 0
-    solver_failures: int = 0
-    failure_statuses: dict = field(default_factory=dict)
-    softened_solves: int = 0
-    max_slack: float = 0.0
-    fallbacks: int = 0
-    solve_time_median: float = float("nan")
-    solve_time_p95: float = float("nan")
-    solve_time_max: float = float("nan")
-    planner_calls: int = 0
-    planner_rejected: int = 0
-    plan_time_median: float = float("nan")
-    diverged: bool = False
-    reason: str = ""
-    wall_time: float = 0.0
-    warnings: list = field(default_factory=list)
 
 
 def versions() -> dict[str, str]:
@@ -110,66 +79,77 @@ class Provenance:
 #: as the dataclass does, without a frozen dataclass per sample)
 _STATE_KEYS = tuple(f.name for f in dataclasses.fields(StateSample))
 #: messages (/sim/state samples, MPC solves, disturbances) held before they are written
-#: (see :meth:`RunLog.flush_held`)
+#: (see :meth:`TopicWriter.flush_held`)
 HELD = 64
 
 
-class RunLog:
-    """Topics and books of one run.
+@dataclass(frozen=True)
+class RunIdentity:
+    """What /run/info says of a run besides the model's names, and how densely it logs.
 
-    Args:
-        recorder: an open MCAP writer (closed by the caller), or None to log nothing.
+    Attributes:
+        scenario_name: the scenario's name; seed: the run's seed.
+        scenario: the validated scenario (JSON-ready).
         per_state: simulator steps per /sim/state sample.
+        margins: the MPC's margins (source, radius, per guard, per mode), if it has any.
+        kinds: (planner kind, MPC kind).
+        details: ``planner``/``mpc`` -> the plug-ins' log detail dataclasses.
+        build: how the MPC's NLPs were built (``cache``, ``compiled``, ``reason``).
+        plan_stride: every k-th node of a plan is logged (:func:`thinned`).
     """
 
-    def __init__(self, recorder, per_state: int = 1) -> None:
+    scenario_name: str = "scenario"
+    seed: int = 0
+    scenario: Mapping = field(default_factory=dict)
+    per_state: int = 1
+    margins: Mapping | None = None
+    kinds: tuple[str, str] = ("", "")
+    details: Mapping[str, type | None] = field(default_factory=dict)
+    build: Mapping | None = None
+    plan_stride: int = 1
+
+
+class NullWriter:
+    """The topic writer of a run without a log: every call writes nothing."""
+
+    def open(self, model: HybridSystem, plant: HybridSystem | None = None) -> None:
+        """Nothing to register."""
+
+    def step(self, *args) -> None:
+        """Nothing to log."""
+
+    state = event = planner = solve = summary = step
+
+    def flush_held(self) -> None:
+        """Nothing held."""
+
+
+class TopicWriter:
+    """The topics of one run over an open recorder.
+
+    Args:
+        recorder: an open MCAP writer (closed by the caller).
+        identity: the run's identity (/run/info) and logging densities.
+        provenance: the command line and overrides that started the run.
+        scene: the run's 3D scene writer (:func:`hmpc_cli.log.scene.open_scene`), or None.
+    """
+
+    def __init__(self, recorder, identity: RunIdentity, provenance: Provenance | None = None,
+                 scene=None) -> None:
         self.rec = recorder
-        self.per_state = per_state
-        self.plan_stride = 1  # every k-th plan node is logged (see thinned)
-        self.result = RunResult("scenario", 0)
-        self.info: dict = {}
-        self.provenance = Provenance()
-        self.details: dict[str, type | None] = {}
-        self.solve_times: list[float] = []
-        self.plan_times: list[float] = []
-        #: failed solves counted from a planner call's candidates: (t, segment, status)
-        self._counted: set[tuple] = set()
+        self.identity = identity
+        self.provenance = provenance if provenance is not None else Provenance()
+        self.scene = scene
         self._last_w: bytes | None = None  # the last logged disturbance's bytes
         self._model: HybridSystem | None = None
         self._body = None  # x -> the plant's body points (None: no body logged)
-        self.scene = None  # 3D scene writer (hmpc_cli.log.scene.SceneWriter), set by the runner
         #: messages not yet written, in order: (None, /sim/state sample) or (writer, args)
         self._held: list[tuple] = []
 
-    def set_info(self, name: str, seed: int, scenario: dict, per_state: int,
-                 margins: dict | None = None, kinds: tuple[str, str] = ("", ""),
-                 details: dict[str, type | None] | None = None,
-                 build: dict | None = None, plan_stride: int = 1) -> None:
-        """The run's identity for /run/info and the summary.
-
-        Args:
-            name: scenario name.
-            seed: run seed.
-            scenario: the validated scenario (JSON-ready).
-            per_state: simulator steps per /sim/state sample.
-            margins: the MPC's margins (source, radius, per guard, per mode), if it has any.
-            kinds: (planner kind, MPC kind).
-            details: ``planner``/``mpc`` -> the plug-ins' log detail dataclasses.
-            build: how the MPC's NLPs were built (``cache``, ``compiled``, ``reason``).
-            plan_stride: every k-th node of a plan is logged (:func:`thinned`).
-        """
-        self.result.scenario, self.result.seed = name, seed
-        self.info = {"scenario_name": name, "seed": seed, "scenario": scenario,
-                     "margins": margins, "kinds": kinds, "build": build}
-        self.details = dict(details or {})
-        self.per_state = per_state
-        self.plan_stride = plan_stride
-
     def _write(self, topic: str, t: float, payload) -> None:
-        if self.rec is not None:
-            if self._held:
-                self.flush_held()
-            self.rec.write(topic, t, payload)
+        if self._held:
+            self.flush_held()
+        self.rec.write(topic, t, payload)
 
     def _hold(self, writer, args: tuple) -> None:
         """Holds one message: ``writer(*args)`` writes it (None: a /sim/state sample)."""
@@ -186,12 +166,6 @@ class RunLog:
                 points are logged (:mod:`hmpc_cli.log.geometry`).
         """
         self._model = model
-        # every guard of the model in summary.json's contact counts, zeros included (as
-        # /run/summary), in the model's order; a guard of the plant only is added when hit
-        self.result.contacts_by_guard = {
-            g.name: 0 for g in model.guards} | self.result.contacts_by_guard
-        if self.rec is None:
-            return
         plant = model if plant is None else plant
         geometry = geometry_record(plant)
         self._body = body_logger(plant)
@@ -199,24 +173,23 @@ class RunLog:
                  "disturbance": model.disturbance_names,
                  "guard": [g.name for g in model.guards],
                  "body": body_names(geometry.point_names)}
-        for topic, (schema_name, schema) in topic_schemas(names, self.details).items():
+        for topic, (schema_name, schema) in topic_schemas(names,
+                                                          dict(self.identity.details)).items():
             self.rec.add_topic(topic, schema_name, schema)
         vers = versions()
-        info = self.info
+        idn = self.identity
         self._write("/run/info", 0.0, RunInfo(
-            LOG_VERSION, info.get("scenario_name", ""), int(info.get("seed", 0)), model.name,
-            info.get("kinds", ("", ""))[1], info.get("kinds", ("", ""))[0],
-            self.provenance.command, tuple(self.provenance.overrides), Versions(**vers),
-            json.dumps(info.get("scenario", {}), sort_keys=True), tuple(model.state_names),
-            tuple(model.input_names), tuple(model.disturbance_names),
-            tuple(m.name for m in model.modes), tuple(g.name for g in model.guards),
-            convert(MarginsRec, info["margins"]) if info.get("margins") else None, geometry,
-            self.provenance.sweep,
-            convert(BuildRec, info["build"]) if info.get("build") else None))
+            LOG_VERSION, idn.scenario_name, int(idn.seed), model.name, idn.kinds[1],
+            idn.kinds[0], self.provenance.command, tuple(self.provenance.overrides),
+            Versions(**vers), json.dumps(dict(idn.scenario), sort_keys=True),
+            tuple(model.state_names), tuple(model.input_names),
+            tuple(model.disturbance_names), tuple(m.name for m in model.modes),
+            tuple(g.name for g in model.guards),
+            convert(MarginsRec, dict(idn.margins)) if idn.margins else None, geometry,
+            self.provenance.sweep, convert(BuildRec, dict(idn.build)) if idn.build else None))
         if hasattr(self.rec, "flush"):
             self.rec.flush()  # the run's identity on disk at once (a killed run keeps it)
-        self.rec.add_metadata("run", {"scenario": self.result.scenario,
-                                      "seed": str(self.result.seed),
+        self.rec.add_metadata("run", {"scenario": idn.scenario_name, "seed": str(idn.seed),
                                       "log_version": str(LOG_VERSION),
                                       **{f"version.{k}": v for k, v in vers.items()}})
 
@@ -226,12 +199,11 @@ class RunLog:
 
         /sim/state every ``per_state`` steps, /disturbance whenever w changes.
         """
-        if i % self.per_state == 0:
+        if i % self.identity.per_state == 0:
             self.state(t, x, mode, u, x_ref, w)
         key = np.asarray(w, dtype=float).tobytes()
         if key != self._last_w:
-            if self.rec is not None:
-                self._hold(self._write_w, (t, np.array(w, dtype=float)))
+            self._hold(self._write_w, (t, np.array(w, dtype=float)))
             self._last_w = key
 
     def _write_w(self, t: float, w: np.ndarray) -> None:
@@ -240,8 +212,6 @@ class RunLog:
     def state(self, t: float, x: np.ndarray, mode: int, u: np.ndarray, x_ref: np.ndarray,
               w: np.ndarray) -> None:
         """One /sim/state sample (with its scene body), held (copied): see :meth:`flush_held`."""
-        if self.rec is None:
-            return
         self._hold(None, (t, int(mode), *(None if v is None else np.array(v, dtype=float)
                                           for v in (x, u, x_ref, w))))
 
@@ -254,8 +224,6 @@ class RunLog:
         samples are written by :meth:`_write_samples` in one batch.
         """
         held, self._held = self._held, []
-        if self.rec is None:
-            return
         samples: list[tuple] = []
         for writer, args in held:
             if writer is None:
@@ -289,30 +257,16 @@ class RunLog:
             self.scene.states(ts, np.stack(xs))
 
     def event(self, ev: GuardEvent, system: HybridSystem, scheduled: bool) -> None:
-        """Counts and logs a guard event of the simulated system."""
+        """Logs a guard event of the simulated system."""
         g = system.guards[ev.guard]
-        r = self.result
-        r.contacts += 1
-        r.contacts_by_guard[g.name] = r.contacts_by_guard.get(g.name, 0) + 1
-        if self.rec is not None:
-            self._write("/sim/event", ev.t, GuardEventRec(
-                ev.t, int(ev.guard), g.name, g.source, g.target,
-                named(system.state_names, ev.x_before), named(system.state_names, ev.x_after),
-                bool(scheduled), self._body(ev.x_before) if self._body is not None else {}))
+        self._write("/sim/event", ev.t, GuardEventRec(
+            ev.t, int(ev.guard), g.name, g.source, g.target,
+            named(system.state_names, ev.x_before), named(system.state_names, ev.x_after),
+            bool(scheduled), self._body(ev.x_before) if self._body is not None else {}))
 
     def planner(self, t: float, reason: str, result: PlannerResult, accepted: bool,
                 note: str, model: HybridSystem) -> None:
-        """Logs one planner call (counted by the loop) and counts its failed MPC solves.
-
-        A planner that solves the MPC itself (the biped's foothold planner solves the
-        walking MPC per candidate) reports each solve in its detail's ``candidates``
-        (``status``, ``success``): the failed ones count as solver failures, as a failed
-        /mpc/solve does (:meth:`solve`), once each.
-        """
-        self.plan_times.append(result.wall_time)
-        self._count_candidate_failures(t, result)
-        if self.rec is None:
-            return
+        """Logs one planner call to /planner/plan (and its rollout to the scene)."""
         rollout = ()
         if result.trajectory is not None and len(result.trajectory.t):
             keys = flat_keys(RolloutNode, {"state": model.state_names})
@@ -323,52 +277,24 @@ class RunLog:
             t, reason, bool(accepted), bool(result.reached_final), float(result.cost),
             float(result.wall_time), int(result.iterations), note,
             _schedule(result.schedule, model), rollout,
-            _detail(self.details.get("planner"), result.extra)))
+            _detail(self.identity.details.get("planner"), result.extra)))
         if self.scene is not None:
             self.scene.rollout(t, result.trajectory)
 
-    def _count_candidate_failures(self, t: float, result: PlannerResult) -> None:
-        """Counts the failed MPC solves a planner call reports (:meth:`planner`)."""
-        rows = (result.extra or {}).get("candidates") if isinstance(result.extra, dict) \
-            else None
-        r = self.result
-        for row in rows or ():
-            if not isinstance(row, dict) or "success" not in row or row.get("success"):
-                continue
-            status = str(row.get("status", "failed"))
-            r.solver_failures += 1
-            r.failure_statuses[status] = r.failure_statuses.get(status, 0) + 1
-            self._counted.add((float(t), row.get("segment"), status))
-
     def solve(self, t: float, plan: Plan, reason: str, model: HybridSystem,
               latency: float = 0.0) -> None:
-        """Counts one fixed-mode MPC solve and logs it to /mpc/solve.
+        """Logs one fixed-mode MPC solve to /mpc/solve (held: a snapshot of the plan).
 
         ``latency`` [s]: how long after t the plan reaches the plant (0: time paused).
         """
-        st, r = plan.stats, self.result
-        r.solves += 1
-        self.solve_times.append(st.wall_time)
-        r.fallbacks += bool(st.fallback)
-        if not st.success:
-            key = (float(t), (plan.extra or {}).get("segment"), st.status)
-            if key in self._counted:  # the planner's candidate solve, counted there
-                self._counted.discard(key)
-            else:
-                r.solver_failures += 1
-                r.failure_statuses[st.status] = r.failure_statuses.get(st.status, 0) + 1
-        elif st.slack > SOFTENED_TOL:
-            r.softened_solves += 1
-            r.max_slack = max(r.max_slack, st.slack)
-        if self.rec is None:
-            return
-        traj = plan.traj  # a snapshot: the solve is written at the next flush_held
-        traj = thinned(traj, self.plan_stride) if self.plan_stride > 1 else dataclasses.replace(
+        stride = self.identity.plan_stride
+        traj = plan.traj
+        traj = thinned(traj, stride) if stride > 1 else dataclasses.replace(
             traj, t=np.array(traj.t, dtype=float), x=np.array(traj.x, dtype=float),
             u=np.array(traj.u, dtype=float), mode=np.array(traj.mode), seg=np.array(traj.seg))
         self._hold(self._write_solve, (t, dataclasses.replace(plan, traj=traj, extra={}),
                                        reason, model, latency,
-                                       _detail(self.details.get("mpc"), plan.extra)))
+                                       _detail(self.identity.details.get("mpc"), plan.extra)))
 
     def _write_solve(self, t: float, plan: Plan, reason: str, model: HybridSystem,
                      latency: float, detail) -> None:
@@ -383,15 +309,8 @@ class RunLog:
             self.scene.plan(t, plan)
 
     def summary(self, r: RunResult) -> None:
-        """Fills the timing statistics and writes /run/summary."""
-        if self.solve_times:
-            st = np.array(self.solve_times)
-            r.solve_time_median = float(np.median(st))
-            r.solve_time_p95 = float(np.percentile(st, 95))
-            r.solve_time_max = float(st.max())
-        if self.plan_times:
-            r.plan_time_median = float(np.median(self.plan_times))
-        if self.rec is not None and self._model is not None:
+        """Writes /run/summary (the books' result)."""
+        if self._model is not None:
             self._write("/run/summary", r.t_end, summary_record(r, self._model))
 
 

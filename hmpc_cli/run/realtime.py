@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from hmpc_cli.core.messages import OFF_SCHEDULE, GuardEvent, ModeSchedule, Plan
 
-__all__ = ["Latency", "Prediction", "advance", "predict"]
+__all__ = ["Latency", "Prediction", "SolverClock", "advance", "predict", "prediction_plant"]
 
 GRID_TOL = 1e-9  #: a time within this of a simulator step [s] is on the grid
 
@@ -95,6 +95,84 @@ class Latency:
         return self.budget is not None and delay > self.budget + GRID_TOL
 
 
+@dataclass
+class SolverClock:
+    """The one solver's time line when compute time is charged (:class:`Latency`).
+
+    Attributes:
+        latency: how compute time is charged.
+        pending: plans computed but not yet at the plant: (due [s], plan), in order.
+        free_at: sim time [s] the solver is free again.
+        last_delay: the last charged delay [s] (what a prediction expects).
+        planner_wall: wall time [s] of the planner call the next solve follows (0: none).
+        told: guards of predicted events told the MPC at its last solve, in order.
+        over_budget: solves dropped for their budget.
+    """
+
+    latency: Latency = field(default_factory=Latency)
+    pending: list[tuple[float, Plan]] = field(default_factory=list)
+    free_at: float = 0.0
+    last_delay: float = 0.0
+    planner_wall: float = 0.0
+    told: list[int] = field(default_factory=list)
+    over_budget: int = 0
+
+    def free(self, t: float) -> bool:
+        """Whether the solver is done with its last solve at sim time t [s]."""
+        return t >= self.free_at - GRID_TOL
+
+    def charge(self, t: float, plan: Plan) -> tuple[str, float]:
+        """Charges a plan solved at t [s]: it waits for the plant, or is dropped.
+
+        Returns:
+            (what the solve's logged reason gets appended, the latency logged [s]).
+        """
+        lat = self.latency
+        delay = lat.charge(plan.stats.iterations, plan.stats.wall_time, self.planner_wall,
+                           self.planner_wall > 0.0)
+        self.last_delay = delay
+        if lat.over_budget(delay):
+            self.over_budget += 1
+            self.free_at = t + lat.budget
+            return " (over budget: dropped)", lat.budget
+        self.free_at = t + delay
+        if plan.adopt:
+            self.pending.append((t + delay, plan))
+        return "", delay
+
+    def plan_at(self, t: float, current: Plan | None) -> Plan | None:
+        """The plan the plant tracks over the step at t [s] (``current`` or a due one)."""
+        due = [p for t_due, p in self.pending if t_due <= t + GRID_TOL]
+        return due[-1] if due else current
+
+    def due(self, t: float) -> Plan | None:
+        """The newest pending plan due at step time t [s], taken; older ones dropped.
+
+        A plan is due at the first simulator step at or after its solve time + latency
+        (:data:`GRID_TOL` of rounding allowed: t is a step count times the step).
+        """
+        due = [k for k, (t_due, _) in enumerate(self.pending) if t_due <= t + GRID_TOL]
+        if not due:
+            return None
+        plan = self.pending[due[-1]][1]
+        del self.pending[: due[-1] + 1]
+        return plan
+
+    def heard(self, guard: int) -> bool:
+        """Whether an event of ``guard`` was predicted and told the MPC (then forgotten)."""
+        if self.told and self.told[0] == guard:
+            self.told.pop(0)
+            return True
+        return False
+
+    def warning(self) -> str:
+        """The summary's warning about dropped solves ('' when none was dropped)."""
+        if not self.over_budget:
+            return ""
+        return (f"{self.over_budget} solves charged more than the budget sim.solve_budget = "
+                f"{self.latency.budget:g} s were dropped (the previous plan tracked on)")
+
+
 @dataclass(frozen=True)
 class Prediction:
     """The model's state at the time a plan will reach the plant.
@@ -154,3 +232,13 @@ def advance(schedule: ModeSchedule, events: Sequence[GuardEvent]) -> ModeSchedul
         if outcome == OFF_SCHEDULE:
             return None
     return schedule
+
+
+def prediction_plant(plant):
+    """The plant a prediction flies: the controllers' model, no disturbance."""
+    from hmpc_cli.sim.simulator import HybridSimulator
+
+    sim = plant.sim if plant.system is plant.model else HybridSimulator(
+        plant.model, plant.sim.max_events, plant.sim.time_tol)
+    zeros = np.zeros(plant.model.n_w)
+    return replace(plant, system=plant.model, sim=sim, disturbance=lambda t: zeros)

@@ -2,7 +2,7 @@
 
 Shared by ``hmpc run``, ``hmpc report`` and the sweep workers. The loop is built first
 (:func:`prepare`: bad plug-ins and settings fail before anything is written); the MPC's
-NLPs are built once per process per (system, MPC settings) by :func:`hmpc_cli.run.loop.build`.
+NLPs are built once per process per (system, MPC settings) by :func:`hmpc_cli.run.compose.build`.
 """
 
 from __future__ import annotations
@@ -17,26 +17,46 @@ from collections.abc import Callable
 from pathlib import Path
 
 from hmpc_cli.core import signals
-from hmpc_cli.run.loop import ClosedLoop, build
-from hmpc_cli.log.runlog import RunResult
+from hmpc_cli.log.books import RunResult
 from hmpc_cli.log.recorder import Recorder
-from hmpc_cli.log.runlog import RunLog
+from hmpc_cli.log.runlog import NullWriter, Provenance, TopicWriter
+from hmpc_cli.run.compose import PreparedRun, build
+from hmpc_cli.run.loop import ClosedLoop
 
 INTERRUPTED = "interrupted"  # a summary reason's prefix: the run was stopped
 
 __all__ = ["RunDirTakenError", "claim_run_dir", "execute_run", "jsonable", "out_problem", "prepare",
-           "run_one", "run_scenario"]
+           "run_one", "run_scenario", "run_to_log",
+           "run_unlogged"]
 
 
-def prepare(scenario) -> ClosedLoop:
-    """The scenario's closed loop, with a run log not yet attached to a file.
+def prepare(scenario) -> PreparedRun:
+    """The scenario's run, built and checked; nothing is written yet.
 
     Raises:
         hmpc_cli.core.registry.PluginError: a plug-in fails to build.
         ValueError: settings that do not fit the built system.
         RuntimeError: CasADi rejects the solver settings.
     """
-    return build(scenario, RunLog(None))
+    return build(scenario)
+
+
+def run_unlogged(prepared: PreparedRun) -> RunResult:
+    """Runs a prepared run without a log (benchmarks); returns its result."""
+    return ClosedLoop(prepared, NullWriter()).run()
+
+
+def run_to_log(prepared: PreparedRun, path: Path) -> RunResult:
+    """Runs a prepared run into the one MCAP file ``path`` (no run directory, no scene)."""
+    rec = Recorder(path)
+    log = TopicWriter(rec, prepared.identity)
+    try:
+        return ClosedLoop(prepared, log).run()
+    finally:
+        try:
+            log.flush_held()
+        finally:
+            rec.close()
 
 
 def out_problem(out: Path) -> str | None:
@@ -87,47 +107,46 @@ def jsonable(value):
     return finite(value)
 
 
-def execute_run(loop: ClosedLoop, toml_text: str, out: Path,
+def execute_run(prepared: PreparedRun, toml_text: str, out: Path,
                 progress: Callable[[int, int, str], None] | None = None,
-                mirror=None) -> RunResult:
-    """Runs ``loop`` into directory ``out``.
+                mirror=None, provenance: Provenance | None = None) -> RunResult:
+    """Runs ``prepared`` into directory ``out``: its recorder opened here, and closed.
 
     The log is closed and the summary written even when the run is interrupted or
     crashes (``reason``: ``interrupted (SIGTERM)``, or the exception's type and message;
     the exception propagates after that: :class:`hmpc_cli.core.signals.Interrupted` for a stop
-    signal). ``mirror`` (e.g. a
-    :class:`hmpc_cli.log.live.LiveSink`) also gets every topic and message of the log.
+    signal; ``prepared.result`` holds the run's result then). ``mirror`` (e.g. a
+    :class:`hmpc_cli.log.live.LiveSink`) also gets every topic and message of the log;
+    ``provenance``: the command line and overrides recorded (default: this process's).
     """
     out.mkdir(parents=True, exist_ok=True)
     (out / "scenario.toml").write_text(toml_text, encoding="utf-8")
     with signals.deferred():  # a signal stops the loop at its next check, not the writes
         rec = Recorder(out / "run.mcap", mirror=mirror)
-        loop.log.rec = rec
-        loop.log.scene = None
-        loop.progress = progress
-        result = None
+        res, log = prepared.result, None
         try:
             rec.add_attachment("scenario.toml", toml_text.encode(), "application/toml")
-            loop.log.scene = _open_scene(loop, rec)
+            log = TopicWriter(rec, prepared.identity, provenance, _open_scene(prepared, rec))
             signals.check()
-            result = loop.run()
+            res = ClosedLoop(prepared, log, progress).run()
         except KeyboardInterrupt as exc:
-            if not loop.res.reason.startswith(INTERRUPTED):
-                loop.res.reason = f"{INTERRUPTED} ({signals.as_interrupted(exc).name})"
+            if not res.reason.startswith(INTERRUPTED):
+                res.reason = f"{INTERRUPTED} ({signals.as_interrupted(exc).name})"
             raise
         except Exception as exc:
-            if not loop.res.reason:
-                loop.res.reason = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+            if not res.reason:
+                res.reason = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
             raise
         finally:
             try:
-                loop.log.flush_held()
+                if log is not None:
+                    log.flush_held()
             finally:
                 try:
                     rec.close()
                 finally:  # the summary also when the last writes fail (e.g. a full disk)
-                    _write_summary(out, result if result is not None else loop.res)
-    return result
+                    _write_summary(out, res)
+    return res
 
 
 def _write_summary(out: Path, res: RunResult) -> None:
@@ -138,11 +157,12 @@ def _write_summary(out: Path, res: RunResult) -> None:
                  json.dumps(jsonable(res.__dict__), indent=2, allow_nan=False) + "\n")
 
 
-def _open_scene(loop: ClosedLoop, rec: Recorder):
+def _open_scene(prepared: PreparedRun, rec: Recorder):
     """The run's 3D scene writer (the simulated system's drawing), or None."""
     from hmpc_cli.log.scene import open_scene
 
-    return open_scene(rec, loop.plant.system, loop.log.info.get("margins"))
+    margins = prepared.identity.margins
+    return open_scene(rec, prepared.plant.system, dict(margins) if margins else None)
 
 
 def run_scenario(scenario, toml_text: str, out: Path,
@@ -160,7 +180,7 @@ def run_one(toml_text: str, run_dir: str, provenance=None) -> dict:
 
     An exception becomes a failed run: ``reason`` is the exception type and message and
     ``error.txt`` holds the traceback. Runs in one process are serialized (IPOPT is not
-    thread-safe); NLPs are cached per process (:func:`hmpc_cli.run.loop.build`).
+    thread-safe); NLPs are cached per process (:func:`hmpc_cli.run.compose.build`).
     ``provenance`` (:class:`hmpc_cli.log.runlog.Provenance`, see :func:`run_provenance`) is
     recorded in the run's log; None records this process's command line only.
     """
@@ -170,15 +190,13 @@ def run_one(toml_text: str, run_dir: str, provenance=None) -> dict:
     with _LOCK:
         if out.exists():
             shutil.rmtree(out)
-        loop, sc = None, None
+        prepared, sc = None, None
         try:
             sc = scenario_model().model_validate(tomllib.loads(toml_text))
-            loop = prepare(sc)
-            if provenance is not None:
-                loop.log.provenance = provenance
-            execute_run(loop, toml_text, out)
+            prepared = prepare(sc)
+            execute_run(prepared, toml_text, out, provenance=provenance)
         except Exception as exc:  # broad on purpose: a failed run is a result
-            res = loop.res if loop is not None else RunResult(
+            res = prepared.result if prepared is not None else RunResult(
                 sc.name if sc else "?", sc.seed if sc else -1)
             res.success = False
             res.reason = f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:500]

@@ -1,6 +1,6 @@
 """Set-up checks: what only the built system can tell about a scenario, before any NLP.
 
-:func:`hmpc_cli.run.loop.build` runs them once the controllers' model is built (and before
+:func:`hmpc_cli.run.compose.build` runs them once the controllers' model is built (and before
 its NLPs are); :func:`setup_problems` runs them alone (``hmpc sweep`` checks every cell
 with it before a run starts). Every problem is a ``key.path: reason`` line.
 """
@@ -13,7 +13,7 @@ __all__ = ["built_problems", "margins_of", "setup_problems"]
 
 
 def setup_problems(scenario) -> list[str]:
-    """The set-up checks :func:`hmpc_cli.run.loop.build` makes on the built model, and no more.
+    """The set-up checks :func:`hmpc_cli.run.compose.build` makes on the built model, and no more.
 
     ``key.path: reason`` lines (none: the scenario sets up): margins that do not fit the
     system (a margins file, an input shrink beyond half an input box), solver options

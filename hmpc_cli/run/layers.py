@@ -1,0 +1,202 @@
+"""The paper's two MPC layers at run time: when each works, and what it costs.
+
+:class:`MPCLayers` holds the hybrid MPC (the planner: the domain/guard schedule) and the
+fixed-mode MPC (the plan over it) between simulator steps: the schedule's bookkeeping at
+each guard event (the paper's impact rule,
+:meth:`~hmpc_cli.core.messages.ModeSchedule.after_event`), the triggers (an off-schedule
+event, a contact under ``replanning.policy = "on_contact"``, a replanning period, an
+impact, an MPC period), and, when compute time is charged, the solver's time line
+(:class:`~hmpc_cli.run.realtime.SolverClock`) with delay compensation. It counts in the
+run's books and writes the planner's and the MPC's topics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hmpc_cli.core import signals
+from hmpc_cli.core.messages import OFF_SCHEDULE, SCHEDULED, GuardEvent, ModeSchedule, Plan
+from hmpc_cli.log.runlog import NullWriter, TopicWriter
+from hmpc_cli.run.compose import PreparedRun
+from hmpc_cli.run.realtime import SolverClock, advance, predict, prediction_plant
+
+__all__ = ["MPCLayers"]
+
+
+@dataclass
+class _State:
+    """What the layers hold between steps."""
+
+    schedule: ModeSchedule | None = None
+    usable: bool = False  # the MPC can solve ``schedule``
+    guess: object = None
+    plan: Plan | None = None
+    events: list[GuardEvent] = field(default_factory=list)
+    since_solve: int = 0
+    need_replan: bool = False
+    impact: bool = False
+
+
+class MPCLayers:
+    """The hybrid MPC and the fixed-mode MPC of one run, with their triggers.
+
+    Args:
+        run: the prepared run (planner, MPC, timing, the plant's model and system, books).
+        log: the run's topic writer.
+    """
+
+    def __init__(self, run: PreparedRun, log: TopicWriter | NullWriter) -> None:
+        self.planner, self.mpc, self.timing = run.planner, run.mpc, run.timing
+        self.model, self.system = run.plant.model, run.plant.system
+        self.at_events = run.plant.recompute_at_events  # react at the event time
+        self.books, self.log = run.books, log
+        self.final_mode = self.model.mode_index(self.model.final_mode)
+        self.st, self.clock = _State(), SolverClock(run.timing.latency)
+        self._predictor = prediction_plant(run.plant) if run.timing.latency.compensate \
+            else None
+
+    @property
+    def plan(self) -> Plan | None:
+        """The plan the plant tracks."""
+        return self.st.plan
+
+    def arrive(self, t: float) -> None:
+        """Step time t [s]: the newest pending plan due now reaches the plant."""
+        due = self.clock.due(t)
+        if due is not None:
+            self.st.plan = due
+
+    def note(self) -> str:
+        """Why the layers hold no schedule, if so (for the progress line)."""
+        note = self.books.last_note
+        if self.st.usable or self.books.result.planner_calls == 0:
+            return ""
+        return f"no schedule: {note}" if note else "no schedule"
+
+    def start(self, x: np.ndarray, mode: int) -> None:
+        """The first schedule (the planner's, unless x starts in the final domain) and plan."""
+        final = ModeSchedule.final(mode, 0.0)
+        if mode == self.final_mode and not self.mpc.check(final):
+            self.st.schedule, self.st.usable = final, True
+        else:
+            self._replan(0.0, x, mode, "initial")
+        self._solve(0.0, x, mode, "initial")
+
+    def on_event(self, ev: GuardEvent) -> None:
+        """Schedule bookkeeping and contact triggers at a guard event (time ev.t)."""
+        st = self.st
+        if not self.clock.heard(ev.guard):  # else predicted and told the MPC already
+            st.events.append(ev)
+        scheduled = False
+        if st.schedule is None:
+            st.need_replan |= ev.mode_after != self.final_mode
+        else:
+            after, outcome = st.schedule.after_event(ev.guard, ev.mode_after)
+            scheduled = outcome == SCHEDULED
+            final = ModeSchedule.final(ev.mode_after, ev.t)
+            if outcome != OFF_SCHEDULE:
+                st.schedule = after
+            elif ev.mode_after == self.final_mode and not self.mpc.check(final):
+                st.schedule = final
+            else:
+                st.need_replan = True
+            st.usable = not self.mpc.check(st.schedule)
+        st.impact = True
+        st.need_replan |= ev.guard in self.timing.on_contact
+        self.books.contact(self.system.guards[ev.guard].name)
+        self.log.event(ev, self.system, scheduled)
+        if self.at_events:
+            self.react(ev.t, ev.x_after, ev.mode_after)
+
+    def after_step(self, i: int, t: float, x: np.ndarray, mode: int, last: bool) -> None:
+        """After simulator step i (at t [s], state x in ``mode``): triggers and the period."""
+        st, tm = self.st, self.timing
+        st.since_solve += 1
+        if tm.per_replan is not None and (i + 1) % tm.per_replan == 0:
+            st.need_replan = True
+        if not st.usable and st.since_solve >= tm.per_solve:
+            st.need_replan = True  # no schedule the MPC can solve: retry every period
+        if last:  # the run ends here: no more controller work
+            return
+        if (not self.react(t, x, mode) and st.since_solve >= tm.per_solve
+                and self.clock.free(t)):
+            self._solve(t, x, mode, "period")
+            st.since_solve = 0
+
+    def react(self, t: float, x: np.ndarray, mode: int) -> bool:
+        """Replans and/or re-solves after events or a replanning trigger.
+
+        Returns:
+            Whether the stack worked (the MPC period restarts then).
+        """
+        st = self.st
+        if not self.clock.free(t):
+            return False  # the triggers wait for the solver
+        need_replan, impact = st.need_replan, st.impact
+        st.need_replan = st.impact = False
+        if need_replan:
+            why = "contact" if impact else ("periodic" if st.usable else "retry")
+            self._replan(t, x, mode, why)
+            self._solve(t, x, mode, "replan")
+        elif impact and self.timing.resolve_on_impact:
+            self._solve(t, x, mode, "impact")
+        else:
+            return False
+        st.since_solve = 0
+        return True
+
+    def _replan(self, t: float, x: np.ndarray, mode: int, reason: str) -> None:
+        st = self.st
+        result = self.planner.plan(
+            t, x, mode, lambda sched: self.mpc.solve(t, x, mode, sched, st.events))
+        self.clock.planner_wall = result.wall_time
+        note = result.note
+        if result.schedule is not None:
+            note = self.mpc.check(result.schedule)
+        accepted = result.schedule is not None and not note
+        if accepted:
+            st.schedule, st.guess, st.usable = result.schedule, result.trajectory, True
+        else:
+            note += "; previous schedule kept" if st.usable else "; no schedule yet"
+        self.books.planner_call(t, result, accepted, note)
+        self.log.planner(t, reason, result, accepted, note, self.model)
+
+    def _solve(self, t: float, x: np.ndarray, mode: int, reason: str) -> None:
+        st, clock = self.st, self.clock
+        if not st.usable:
+            return
+        charged = clock.latency.charged(reason)
+        plan = self._solve_ahead(t, x, mode, reason) if charged else self.mpc.solve(
+            t, x, mode, st.schedule, st.events, st.guess)
+        st.events = []
+        self.books.solve(t, plan)
+        if charged:
+            dropped, latency = clock.charge(t, plan)
+            self.log.solve(t, plan, reason + dropped, self.model, latency)
+        else:
+            self.log.solve(t, plan, reason, self.model)
+            st.plan = plan if plan.adopt else st.plan
+        clock.planner_wall = 0.0
+        signals.check()
+
+    def _solve_ahead(self, t: float, x: np.ndarray, mode: int, reason: str) -> Plan:
+        """A charged solve, from the state predicted at the plan's arrival if compensating.
+
+        A replan's solves start from the measured state (the planner's schedule starts at
+        t); so does a solve whose prediction leaves the schedule or starts off the grid.
+        """
+        st, clock = self.st, self.clock
+        pred = sched = None
+        if self._predictor is not None and reason in ("period", "impact"):
+            pred = predict(self._predictor, t, x, mode,
+                           clock.latency.expected(clock.last_delay),
+                           lambda s: clock.plan_at(s, st.plan))
+            sched = advance(st.schedule, pred.events) if pred is not None else None
+        if pred is None or sched is None:
+            clock.told = []
+            return self.mpc.solve(t, x, mode, st.schedule, st.events, st.guess)
+        clock.told = [ev.guard for ev in pred.events]
+        return self.mpc.solve(pred.t, pred.x, pred.mode, sched, [*st.events, *pred.events],
+                              st.guess)
