@@ -44,7 +44,10 @@ def _run(scenario: str, cache: Path, mode: str, out: Path) -> tuple[float, dict]
 def _build_info(run_dir: Path) -> dict:
     from hmpc_cli.log.rundata import read_run
 
-    return read_run(run_dir / "run.mcap").info.get("build") or {}
+    import dataclasses
+
+    build = read_run(run_dir / "run.mcap").info.build
+    return dataclasses.asdict(build) if build is not None else {}
 
 
 def split(scenario: str, cache: Path) -> dict[str, float]:

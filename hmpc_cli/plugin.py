@@ -5,7 +5,8 @@ names below keep their meaning across releases, wherever hmpc keeps them inside.
 registers an object under an entry-point group of ``pyproject.toml``:
 
 * ``hmpc.systems``: a :class:`SystemSpec` (settings model, ``build`` -> :class:`HybridSystem`,
-  its :class:`Task`, a :class:`Drawing` for the log's 3D scene);
+  its :class:`Task`, a :class:`Drawing` for the log's 3D scene; a walker's
+  :class:`WalkerModel`);
 * ``hmpc.planners``: a :class:`PlannerSpec` (settings: a :class:`PlannerSettings`,
   ``make`` -> a :class:`Planner` returning :class:`PlannerResult` with a
   :class:`ModeSchedule`);
@@ -30,6 +31,7 @@ from hmpc_cli.core.registry import (
 from hmpc_cli.core.settings_types import BoundedInt, FiniteFloat, LargeFloat, StrictBool
 from hmpc_cli.core.stack import FixedModeMPC, Planner, SolveFn, Task, Verdict
 from hmpc_cli.core.tasks import ReachGoal
+from hmpc_cli.core.walker import WalkerModel
 
 __all__ = [
     "CAPABILITIES", "RESERVED_NAMES", "Ball", "BoundedInt", "ConstraintMargins", "Drawing",
@@ -37,6 +39,6 @@ __all__ = [
     "LargeFloat", "MPCKindSettings", "MPCSpec", "MarginsSettings", "Mode", "ModeSchedule",
     "NumericSystem", "Plan", "Planner", "PlannerResult", "PlannerSettings", "PlannerSpec",
     "PluginError", "Polyline", "ReachGoal", "Requirement", "Rgba", "SolveFn", "SolveStats",
-    "StrictBool", "SystemSpec", "Task", "Terrain", "Trajectory", "Verdict", "circle",
-    "compile_numpy", "rk4_expr",
+    "StrictBool", "SystemSpec", "Task", "Terrain", "Trajectory", "Verdict", "WalkerModel",
+    "circle", "compile_numpy", "rk4_expr",
 ]

@@ -150,3 +150,14 @@ def bad_input(work: Path, args: list[str]) -> list[str]:
     lines = res.stderr.splitlines()
     assert lines and all(line.startswith("error: ") for line in lines), lines
     return lines
+
+
+def standard_schema_errors(log) -> list[str]:
+    """Every message of a read log (:func:`hmpc_cli.log.reader.read_log`) checked against
+    its own channel's JSON schema by ``jsonschema`` (Draft 2020-12): one line per error."""
+    import jsonschema
+
+    checkers = {topic: jsonschema.Draft202012Validator(schema)
+                for topic, schema in log.schemas.items()}
+    return [f"{m.topic} t={m.t:.4f} {'/'.join(map(str, e.absolute_path))}: {e.message}"
+            for m in log.messages for e in checkers[m.topic].iter_errors(m.data)]

@@ -214,9 +214,9 @@ def test_run_log_names_the_build(tiny, filled, use, run_hmpc, tmp_path):
                     "--quiet", "--set", "sim.duration=0.2",
                     *[a for t in TINY for a in ("--set", t)]], REPO)
     assert res.returncode in (0, 1), res.stderr
-    build = read_run(out / "run.mcap").info["build"]
-    assert build["cache"] == "hit" and build["compiled"] is True
-    assert build["reason"].startswith("loaded nlp-")
+    build = read_run(out / "run.mcap").info.build
+    assert build.cache == "hit" and build.compiled is True
+    assert build.reason.startswith("loaded nlp-")
 
 
 def test_sweep_says_when_its_nlps_are_not_compiled(tiny, filled, use, run_hmpc, tmp_path,

@@ -84,10 +84,14 @@ def test_overlay_figure_is_legible_at_text_width():
     from hmpc_cli.figures.fig3overlay import HEIGHT_PER_ROW_IN, overlay_figure
 
     s = np.linspace(0.0, 1.0, 200)[:, None]
-    geometry = {"static": [{"a": [0.0, 8.0], "b": [0.0, 0.0]},
-                           {"a": [0.0, 0.0], "b": [0.0, 8.0]},
-                           {"a": list(3 + np.cos(np.linspace(0, 6.2, 40))),
-                            "b": list(3 + np.sin(np.linspace(0, 6.2, 40))), "closed": True}]}
+    from hmpc_cli.log.geometry import GeometryRec, PolylineRec
+
+    circle = np.linspace(0, 6.2, 40)
+    geometry = GeometryRec((), (3.0, 3.0), (
+        PolylineRec("floor", (0.0, 8.0), (0.0, 0.0), False),
+        PolylineRec("wall", (0.0, 0.0), (0.0, 8.0), False),
+        PolylineRec("circle", tuple(3 + np.cos(circle)), tuple(3 + np.sin(circle)), True)),
+        (), ())
     rows = [TrialComparison("10 Hz fixed", label, _side((1 - s) * [1, 1] + s * [3, 3], True),
                             None, _side((1 - s) * [1, 1] + s * [0.2, 0.3], k != 5), (), "",
                             geometry)

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import BALL, SCENARIOS
+from conftest import BALL, SCENARIOS, standard_schema_errors
 from hmpc_cli.log.topics import LOG_VERSION, TOPICS, named, topic_schemas
 from hmpc_cli.log.schema import convert, validate, viewer_problems
 from hmpc_cli.log.recorder import Recorder
@@ -55,6 +55,39 @@ def test_every_logged_message_validates_against_its_schema(logs, system):
     assert counts["/sim/event"] >= 1 and counts["/run/summary"] == 1
 
 
+@pytest.mark.parametrize("system", ["ball", "biped"])
+def test_every_message_validates_with_a_standard_validator(logs, system):
+    """jsonschema, not only the project's validator: no null where the schema says object
+    (the ball's terrain, a planner without detail) or number."""
+    log = read_log(logs[system])
+    assert log.schemas.keys() >= set(TOPICS)
+    assert standard_schema_errors(log) == []
+    assert b"null" not in b"".join(m.data for m in log.raw if m.topic in TOPICS)
+
+
+def test_none_nan_and_inf_are_left_out_and_the_message_still_validates(tmp_path):
+    """A failed solve (NaN cost, inf violation, no schedule, no detail) as written."""
+    import jsonschema
+
+    from hmpc_cli.log.topics import MpcSolve
+
+    names = {**NAMES, "body": ()}
+    schema = topic_schemas(names)["/mpc/solve"][1]
+    solve = MpcSolve(0.1, "period", "error: NaN", False, 0, 0.01, float("nan"),
+                     float("inf"), 0.0, False, None, ())
+    rec = Recorder(tmp_path / "run.mcap")
+    rec.add_topic("/mpc/solve", "hmpc.MpcSolve", schema)
+    rec.write("/mpc/solve", 0.1, solve)
+    rec.close()
+    (m,) = read_log(tmp_path / "run.mcap").topic("/mpc/solve")
+    assert "cost" not in m.data and "max_violation" not in m.data
+    assert "schedule" not in m.data and "detail" not in m.data
+    assert list(jsonschema.Draft202012Validator(schema).iter_errors(m.data)) == []
+    assert validate(schema, m.data) == []
+    assert validate(schema, {**m.data, "schedule": None}) == [
+        "schedule: null where the schema says object"]
+
+
 def test_states_plans_and_details_are_named(logs):
     log = read_log(logs["biped"])
     info = log.topic("/run/info")[0].data
@@ -74,17 +107,40 @@ def test_states_plans_and_details_are_named(logs):
     assert list(rollout["properties"]) == ["t", *info["state_names"]]
 
 
-def test_read_run_gives_arrays_per_topic(logs):
+def test_read_run_gives_the_topic_types_back(logs):
+    """One type per message both ways: what was written is what read_run returns."""
+    from hmpc_cli.core.messages import BuildInfo
+    from hmpc_cli.log.geometry import GeometryRec
+    from hmpc_cli.log.topics import (
+        MpcSolve, PlanArrays, PlannerCall, RolloutArrays, RunInfo, ScheduleRec,
+        Summary, Versions)
+
     for system, n in (("ball", 4), ("biped", 12)):
         run = read_run(logs[system])
         assert run.complete and run.log_version == LOG_VERSION
         assert run.x.shape == (len(run.t), n) and np.all(np.isfinite(run.x))
         assert run.u.shape[0] == len(run.t) and run.events
+        assert isinstance(run.info, RunInfo) and isinstance(run.info.versions, Versions)
+        assert run.info.system == system and run.info.state_names == run.state_names
+        assert isinstance(run.info.build, BuildInfo) and run.info.build.cache
+        assert isinstance(run.geometry, GeometryRec)
+        assert (run.geometry.terrain is None) == (system == "ball")  # left out, read None
         s = run.solves[0]
-        assert s.x_plan.shape == (len(s.t_plan), n) and s.u_plan.shape[0] == len(s.t_plan)
-        assert s.t_plan[0] == pytest.approx(s.t)
-        assert run.summary["contacts"] == len(run.events)
+        assert isinstance(s, MpcSolve) and isinstance(s.plan, PlanArrays)
+        assert isinstance(s.schedule, ScheduleRec) and s.schedule.guard_names
+        assert s.plan.x.shape == (len(s.plan.t), n) and s.plan.u.shape[0] == len(s.plan.t)
+        assert s.plan.t[0] == pytest.approx(s.t) and s.plan.mode.shape == s.plan.t.shape
+        p = run.planner[0]
+        assert isinstance(p, PlannerCall) and isinstance(p.rollout, RolloutArrays)
+        assert isinstance(run.summary, Summary) and run.summary.contacts == len(run.events)
+        assert run.summary.x_end.keys() == set(run.state_names)
         assert run.system["name"] == system
+    ball, biped = read_run(logs["ball"]), read_run(logs["biped"])
+    # a plug-in's detail comes back as a record typed from the log's own schema
+    assert type(ball.solves[0].detail).__name__ == "ChainDetail"
+    assert ball.solves[0].detail.counts and ball.planner[0].detail is None
+    cand = biped.planner[0].detail.candidates[0]
+    assert cand.guard_name.startswith("stair_") and isinstance(cand.success, bool)
 
 
 def test_the_generator_refuses_what_the_viewers_reject():
@@ -105,8 +161,10 @@ def test_the_generator_refuses_what_the_viewers_reject():
 def test_validate_names_drift():
     schema = topic_schemas(NAMES)["/sim/state"][1]
     good = {"t": 0.0, "mode": 0, "mode_name": "a", "x": named(("px", "py"), [1, 2]),
-            "u": {"u": 0.0}, "x_ref": {"px": None, "py": 1.0}, "w": {"w": 0.0}}
-    assert validate(schema, good) == []
+            "u": {"u": 0.0}, "x_ref": {"py": 1.0}, "w": {"w": 0.0}}
+    assert validate(schema, good) == []  # a value left out (NaN when written)
+    assert validate(schema, {**good, "x_ref": {"px": None, "py": 1.0}}) == [
+        "x_ref.px: null where the schema says number"]
     assert validate(schema, {**good, "extra": 1}) == ["(root): unknown field 'extra'"]
     assert validate(schema, {**good, "mode": "zero"}) == ["mode: expected integer, got str"]
     assert validate(schema, {**good, "x": {"px": 1.0, "pz": 2.0}}) == [
@@ -131,9 +189,10 @@ def test_read_run_reads_the_older_untyped_layout(tmp_path):
     run = read_run(path)
     assert run.log_version == 1 and run.system == {"name": "ball"}
     assert run.x.tolist() == [[0, 0], [1, -1], [2, -2]] and np.isnan(run.w).all()
-    assert run.solves[0].x_plan.shape == (2, 2) and run.solves[0].detail == {"shifted": 2}
+    assert run.solves[0].plan.x.shape == (2, 2) and run.solves[0].detail.shifted == 2
     assert run.summary is None
-    assert json.dumps(run.info)  # plain JSON
+    assert run.info.seed == 3 and run.info.state_names == ("px", "py")
+    assert json.loads(run.info.scenario_json) == {"system": {"name": "ball"}}
 
 
 def test_plan_nodes_are_the_schemas_records_node_by_node():

@@ -36,7 +36,7 @@ def _counts(tmp_path: Path, name: str, overrides: list[str]) -> list[tuple[int, 
                                  *overrides])
     run_to_log(prepare(sc), tmp_path / f"{name}.mcap")
     run = read_run(tmp_path / f"{name}.mcap")
-    return [(s.detail["shifted"], s.detail["counts"]) for s in run.solves
+    return [(s.detail.shifted, list(s.detail.counts)) for s in run.solves
             if s.reason == "period"]
 
 

@@ -470,23 +470,24 @@ def test_failed_walking_solves_are_counted(tmp_path):
 
 
 def test_a_failed_candidate_solve_is_counted_once():
-    from types import SimpleNamespace
-
+    from hmpc_cli.core.messages import ModeSchedule, Plan, PlannerResult, SolveStats
     from hmpc_cli.log.books import RunBooks
 
+    def plan(t: float, guard: int, ok: bool) -> Plan:
+        status = "Solve_Succeeded" if ok else "Maximum_Iterations_Exceeded"
+        return Plan(t, None, SolveStats(status, ok, 9, 0.0, 1.0, 0.0),
+                    ModeSchedule((0, 0), (guard,), (0.3,), t))
+
     log = RunBooks("biped", 0)
-    bad = {"segment": 3, "status": "Maximum_Iterations_Exceeded", "success": False}
-    ok = {"segment": 4, "status": "Solve_Succeeded", "success": True}
-    log.planner_call(1.0, SimpleNamespace(wall_time=0.1, extra={"candidates": [bad, ok]}),
-                     False, "")
+    bad, ok = plan(1.0, 3, False), plan(1.0, 4, True)
+    log.planner_call(1.0, PlannerResult(None, None, 1.0, False, 0.1, 18, "",
+                                        mpc_solves=(bad, ok)), False, "")
     assert log.result.solver_failures == 1
-    stats = SimpleNamespace(success=False, status=bad["status"], wall_time=0.0,
-                            fallback=False, slack=0.0)
-    log.solve(1.0, SimpleNamespace(t=1.0, stats=stats, extra={"segment": 3}))
+    log.solve(1.0, bad)
     assert log.result.solver_failures == 1  # the same solve, returned again: not twice
-    log.solve(1.1, SimpleNamespace(t=1.1, stats=stats, extra={"segment": 3}))
+    log.solve(1.1, plan(1.1, 3, False))
     assert log.result.solver_failures == 2
-    assert log.result.failure_statuses == {bad["status"]: 2}
+    assert log.result.failure_statuses == {bad.stats.status: 2}
 
 
 # ----------------------------------------------------------------- scene

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import BALL, REPO, cli_env, hmpc_command
+from conftest import BALL, REPO, cli_env, hmpc_command, standard_schema_errors
 from hmpc_cli.log.reader import read_log
 
 PLUGINS = REPO / "tests" / "plugins"
@@ -91,6 +91,7 @@ def test_dock_runs_through_the_cli(tmp_path):
     assert plan.data["schedule"]["guard_names"] == ["bumper", "dock"]
     events = [(m.data["guard_name"], m.data["scheduled"]) for m in log.topic("/sim/event")]
     assert events == [("bumper", True), ("dock", True)]
+    assert standard_schema_errors(log) == []  # the plug-in's log, by jsonschema too
 
 
 def test_schema_lists_the_plugin_only_when_it_is_installed(tmp_path):
@@ -209,8 +210,7 @@ def test_a_planner_that_does_not_fit_names_planner_kind(tmp_path):
     lines = error_lines(proc)
     # the --set that chose the kind is named as the source
     assert lines == ["error: --set planner.kind=footholds: planner.kind: 'footholds' does not "
-                     "fit system 'dock': it needs guard_surfaces, hip_world, stance_foot (use "
-                     "'cem')"]
+                     "fit system 'dock': it needs WalkerModel, guard_surfaces (use 'cem')"]
     assert not out.exists()
 
 

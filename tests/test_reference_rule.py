@@ -26,7 +26,7 @@ def _counts(overrides: list[str], duration: float) -> list[tuple[float, str, lis
 
     def spy(t, *args, **kw):
         plan = solve(t, *args, **kw)
-        out.append((t, list(plan.extra["counts"])))
+        out.append((t, list(plan.detail.counts)))
         return plan
 
     loop.mpc.solve = spy

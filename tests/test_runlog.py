@@ -55,11 +55,12 @@ def _plan(model) -> Plan:
     traj = Trajectory(t=np.linspace(0.0, 0.4, n), x=np.ones((n, 4)), u=np.zeros((n, 2)),
                       mode=np.zeros(n, dtype=int), seg=np.zeros(n, dtype=int))
     return Plan(0.3, traj, SolveStats("Solve_Succeeded", True, 2, 0.01, 1.5, 0.0),
-                ModeSchedule((0,), (), (), 0.0), {"shifted": 1, "counts": [5]})
+                ModeSchedule((0,), (), (), 0.0), ChainDetail(1, (5,)))
 
 
 def test_a_held_solve_is_logged_as_it_was_when_solved(tmp_path):
-    """The plan's arrays (and extra) may change after solve(): the log keeps the solve."""
+    """The plan's arrays may change after solve(): the log keeps the solve (its detail is
+    a frozen record)."""
     model = build_system(BallParams())
     rec = Recorder(tmp_path / "run.mcap")
     log = TopicWriter(rec, RunIdentity("ball", 0, kinds=("none", "fixed_mode"),
@@ -70,8 +71,6 @@ def test_a_held_solve_is_logged_as_it_was_when_solved(tmp_path):
     assert log._held  # not written yet
     plan.traj.x[:] = -7.0
     plan.traj.t[:] = 9.0
-    plan.extra["shifted"] = 99
-    plan.extra["counts"].append(3)  # a shallow copy would not keep this
     log.flush_held()
     rec.close()
     solve = read_log(tmp_path / "run.mcap").topic("/mpc/solve")[0].data

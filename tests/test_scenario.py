@@ -440,9 +440,9 @@ def test_bundled_scenario(path: Path, tmp_path: Path) -> None:
      "walking transcription"),
     ("biped_stairs.toml", 'planner.kind="cem"', "planner.kind: the biped's hybrid problem"),
     ("ball.toml", 'mpc.kind="walking"', "mpc.kind: 'walking' does not fit system 'ball': it "
-     "needs contact_reset"),
+     "needs WalkerModel, guard_surfaces, terrain (use 'fixed_mode')"),
     ("ball.toml", 'planner.kind="footholds"', "planner.kind: 'footholds' does not fit system "
-     "'ball': it needs guard_surfaces, hip_world, stance_foot (use 'cem')"),
+     "'ball': it needs WalkerModel, guard_surfaces (use 'cem')"),
 ])
 def test_a_kind_the_system_cannot_use_is_one_keyed_line(system, override, expected):
     """Reported before the section's other keys are checked against the wrong kind."""

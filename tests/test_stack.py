@@ -59,21 +59,21 @@ def _event(t, guard, before, after, x):
 def test_chain_mpc_owns_its_node_schedule(chain, ball, planned):
     sched = planned.schedule
     first = chain.solve(0.0, ball.x0, OUTSIDE, sched, (), planned.trajectory)
-    assert first.stats.success and first.adopt and first.extra["shifted"] == 0
-    counts = first.extra["counts"]
+    assert first.stats.success and first.adopt and first.detail.shifted == 0
+    counts = first.detail.counts
     # one MPC period later (6 nodes at 60 Hz): the elapsed nodes move to the final domain
     second = chain.solve(0.1, first.traj.x[6], OUTSIDE, sched)
-    assert second.extra["shifted"] == 6
-    assert second.extra["counts"][0] == counts[0] - 6
-    assert second.extra["counts"][-1] == counts[-1] + 6
+    assert second.detail.shifted == 6
+    assert second.detail.counts[0] == counts[0] - 6
+    assert second.detail.counts[-1] == counts[-1] + 6
     # the scheduled guard fires: the MPC drops the domain itself, events apply once
     ev = _event(0.15, sched.guards[0], OUTSIDE, sched.modes[1], first.traj.x[9])
     advanced, _ = sched.after_event(ev.guard, ev.mode_after)
     third = chain.solve(0.16, first.traj.x[9], sched.modes[1], advanced, [ev])
     # the new domain began at the event: 0.01 s before this solve, round(0.6) = 1 node
-    assert len(third.extra["counts"]) == len(counts) - 1 and third.extra["shifted"] == 1
+    assert len(third.detail.counts) == len(counts) - 1 and third.detail.shifted == 1
     again = chain.solve(0.26, third.traj.x[6], sched.modes[1], advanced, [ev])
-    assert len(again.extra["counts"]) == len(counts) - 1 and again.extra["shifted"] == 6
+    assert len(again.detail.counts) == len(counts) - 1 and again.detail.shifted == 6
 
 
 def test_a_schedule_the_chain_cannot_hold_is_a_rejected_plan_not_an_exception(chain, ball):

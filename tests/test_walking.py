@@ -95,10 +95,10 @@ def test_plan_satisfies_every_constraint_recomputed_from_the_trajectory(plan, mp
     assert fy == pytest.approx(height - s.touchdown_depth, abs=TOL)
     assert start + s.segment_margin - TOL <= fx <= end - s.segment_margin + TOL
     assert tr.x[n + 1] == pytest.approx(arr(m.reset(tr.x[n])), abs=TOL)
-    assert plan.extra["touchdown"] == pytest.approx((fx, fy))
-    assert plan.extra["final_hip"] == pytest.approx(arr(m.hip_world(tr.x[-1])))
+    assert plan.detail.touchdown == pytest.approx((fx, fy))
+    assert plan.detail.final_hip == pytest.approx(arr(m.hip_world(tr.x[-1])))
     # the robot moves towards the goal
-    assert plan.extra["final_hip"][0] > arr(m.hip_world(tr.x[0]))[0] + 0.5
+    assert plan.detail.final_hip[0] > arr(m.hip_world(tr.x[0]))[0] + 0.5
 
 
 def test_low_level_tracks_the_first_swing_only(plan, mpc):
@@ -116,7 +116,7 @@ def test_warm_resolve_after_a_shift_needs_fewer_iterations(plan, mpc):
     warm = mpc.solve_segment(t, x, SEGMENT, elapsed=t)
     cold = WalkingMPC(SYS, mpc.s, nlp=mpc.nlp).solve_segment(t, x, SEGMENT, elapsed=t)
     assert warm.stats.success and cold.stats.success
-    assert warm.extra["warm"] == "primal-dual" and cold.extra["warm"] == "cold"
+    assert warm.detail.warm == "primal-dual" and cold.detail.warm == "cold"
     assert warm.stats.iterations < cold.stats.iterations
     assert warm.stats.cost == pytest.approx(cold.stats.cost, rel=1e-4)
     assert warm.traj.t[mpc.nlp.N] == pytest.approx(mpc.s.swing_time - t)
@@ -130,15 +130,15 @@ def test_second_candidate_of_a_step_starts_from_the_first(mpc):
     first = fresh.solve_segment(0.0, x0, SEGMENT - 1)
     second = fresh.solve_segment(0.0, x0, SEGMENT)
     cold = WalkingMPC(SYS, mpc.s, nlp=mpc.nlp).solve_segment(0.0, x0, SEGMENT)
-    assert first.extra["warm"] == "cold" and cold.extra["warm"] == "cold"
-    assert second.extra["warm"] == "neighbour"
+    assert first.detail.warm == "cold" and cold.detail.warm == "cold"
+    assert second.detail.warm == "neighbour"
     assert second.stats.success and cold.stats.success
     assert second.stats.iterations < cold.stats.iterations / 2
     assert second.stats.cost == pytest.approx(cold.stats.cost, rel=1e-6)
     np.testing.assert_allclose(second.traj.x, cold.traj.x, atol=1e-5)
     # another state: no neighbour, a cold start
     other = fresh.solve_segment(0.0, x0 + 1e-3, SEGMENT + 1)
-    assert other.extra["warm"] == "cold"
+    assert other.detail.warm == "cold"
 
 
 def test_next_swing_after_touchdown_starts_from_the_executed_plan(plan, mpc):
@@ -149,9 +149,9 @@ def test_next_swing_after_touchdown_starts_from_the_executed_plan(plan, mpc):
     mpc.on_impact(SEGMENT)
     nxt = mpc.solve_segment(0.3, x_post, SEGMENT, 0.0)
     assert nxt.stats.success and cold.stats.success
-    assert nxt.extra["warm"] == "primal-dual"
+    assert nxt.detail.warm == "primal-dual"
     assert nxt.stats.iterations < cold.stats.iterations
-    assert nxt.extra["touchdown"][0] > plan.extra["touchdown"][0] + 0.2
+    assert nxt.detail.touchdown[0] > plan.detail.touchdown[0] + 0.2
     # liftoff: the new swing foot (old stance foot) accelerates upwards at once
     m = MODEL
     x0 = nxt.traj.x[0]
@@ -233,19 +233,25 @@ def test_candidates_reference_rule_and_errors():
 
 
 def _fake(success: bool, hip_x: float, cost: float) -> Plan:
-    tr = Trajectory(np.zeros(1), np.zeros((1, 12)), np.zeros((1, 5)), np.zeros(1, int),
-                    np.zeros(1, int))
+    tr = Trajectory(np.zeros(1), np.full((1, 12), hip_x), np.zeros((1, 5)), np.zeros(1, int),
+                    np.zeros(1, int))  # its "hip x": every state entry, read by hip_x
     return Plan(0.0, tr, SolveStats("x", success, 1, 0.0, cost, 0.0),
-                ModeSchedule((0, 0), (0,), (0.3,)), {"final_hip": (hip_x, 0.7)})
+                ModeSchedule((0, 0), (0,), (0.3,)))
+
+
+def hip_x(plan: Plan) -> float:
+    return float(plan.traj.x[-1, 0])
 
 
 def test_choose_keeps_the_largest_final_hip_x_among_successes():
     plans = [_fake(True, 1.0, 5.0), _fake(False, 3.0, 1.0), None, _fake(True, 1.5, 9.0)]
-    assert choose(plans) == 3
+    assert choose(plans, hip_x=hip_x) == 3
     assert choose(plans, FootholdSettings(criterion="min_cost")) == 0
-    assert choose([_fake(False, 1.0, 1.0), None]) is None
-    assert choose([]) is None
-    assert choose([replace(plans[0]), plans[0]]) == 0  # ties keep the first
+    assert choose([_fake(False, 1.0, 1.0), None], hip_x=hip_x) is None
+    assert choose([], hip_x=hip_x) is None
+    assert choose([replace(plans[0]), plans[0]], hip_x=hip_x) == 0  # ties keep the first
+    with pytest.raises(ValueError, match="max_hip_x criterion needs hip_x"):
+        choose(plans)
 
 
 def test_walking_mpc_behind_the_contract(mpc):
@@ -264,9 +270,9 @@ def test_walking_mpc_behind_the_contract(mpc):
     assert first.stats.success and first.adopt
     assert walker.solve(0.0, x0, 0, first.schedule).stats is first.stats  # not solved again
     later = walker.solve(0.1, first.traj.x[8], 0, first.schedule)
-    assert later.extra["elapsed"] == pytest.approx(0.1)
+    assert later.detail.elapsed == pytest.approx(0.1)
     ev = GuardEvent(0.25, SEGMENT, 0, 0, first.traj.x[25], first.traj.x[26])
     after = walker.solve(0.25, ev.x_after, 0, sched, [ev])
-    assert after.extra["elapsed"] == 0.0 and after.extra["warm"] == "primal-dual"
+    assert after.detail.elapsed == 0.0 and after.detail.warm == "primal-dual"
     again = walker.solve(0.35, ev.x_after, 0, sched, [ev])  # the event applies once
-    assert again.extra["elapsed"] == pytest.approx(0.1)
+    assert again.detail.elapsed == pytest.approx(0.1)

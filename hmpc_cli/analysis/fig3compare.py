@@ -19,6 +19,7 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -81,7 +82,7 @@ class TrialComparison:
     theirs: Side | None
     their_plan: tuple[Contact, ...] = ()
     note: str = ""
-    geometry: dict = field(default_factory=dict)  # our log's geometry (guards to draw)
+    geometry: Any = None  # our log's GeometryRec (guards to draw; None: none logged)
     why: str = field(init=False, default="")
 
     def __post_init__(self) -> None:
@@ -294,17 +295,15 @@ def _our_side(run, success: bool, geo: BallGeometry) -> tuple[Side, RunFacts]:
     plan: tuple[Contact, ...] = ()
     first = next((p for p in run.planner if p.accepted and p.schedule), None)
     if first is not None:
-        times = float(first.schedule.get("t0", first.t)) + np.cumsum(
-            first.schedule.get("durations") or [])
+        times = float(first.schedule.t0) + np.cumsum(first.schedule.durations)
         plan = tuple(Contact(float(t), str(g)) for t, g in
-                     zip(times, first.schedule.get("guard_names") or [], strict=False))
-    summary = run.summary or {}
+                     zip(times, first.schedule.guard_names, strict=False))
+    shifted = [getattr(s.detail, "shifted", None) for s in run.solves if s.reason == "period"]
     facts = RunFacts(plan, len(run.solves),
                      sum(1 for s in run.solves if s.success and s.slack > SOFTENED_TOL),
                      sum(1 for s in run.solves if not s.success),
-                     str(summary.get("reason", "unfinished")),
-                     tuple(int(s.detail["shifted"]) for s in run.solves
-                           if s.reason == "period" and "shifted" in s.detail))
+                     run.summary.reason if run.summary is not None else "unfinished",
+                     tuple(int(k) for k in shifted if k is not None))
     return side, facts
 
 
@@ -336,10 +335,10 @@ def compare_sweep(table: Path, authors: Mapping[str, Mapping[str, AuthorsTrace]]
     for line, row in enumerate(rows, start=2):
         panel, trial = row["controller"].strip(), row["disturbance"].strip()
         key = authors_panel(panel, list(authors))
-        geo, ours, facts, note, radius, drawing = BallGeometry(), None, None, "", None, {}
+        geo, ours, facts, note, radius, drawing = BallGeometry(), None, None, "", None, None
         try:
             run = read_run(resolve_log(table, row["log"], f"{table}:{line}"))
-            geo, drawing = BallGeometry.from_params(run.system), dict(run.geometry)
+            geo, drawing = BallGeometry.from_params(run.system), run.geometry
             radius = run.system.get("success_radius")
             ours, facts = _our_side(run, parse_bool(row["success"], f"{table}:{line}"), geo)
         except (FigureInputError, ValueError) as exc:

@@ -139,7 +139,7 @@ def _array(value, where: str, ndim: int) -> np.ndarray:
 
 def _crosses(solve) -> bool:
     """Whether a logged solve's plan has two segments or more."""
-    return solve.seg_plan.size > 0 and int(solve.seg_plan.max()) >= 1
+    return solve.plan.seg.size > 0 and int(solve.plan.seg.max()) >= 1
 
 
 def _pick(solves: list, solve: int | None, path: Path):
@@ -309,11 +309,11 @@ def pass_through_geometry(log_path: str | Path, *, solve: int | None = None,
     path, run, system, plane, scenario = _open(log_path)
     index, msg = _pick(run.solves, solve, path)
     where = f"{path}: solve {index}"
-    t = _array(msg.t_plan, f"{where}: t_plan", 1)
-    x = _array(msg.x_plan, f"{where}: x_plan", 2)
-    u = _array(msg.u_plan, f"{where}: u_plan", 2)
-    seg = msg.seg_plan
-    guards = list((msg.schedule or {}).get("guards") or [])
+    t = _array(msg.plan.t, f"{where}: plan t", 1)
+    x = _array(msg.plan.x, f"{where}: plan x", 2)
+    u = _array(msg.plan.u, f"{where}: plan u", 2)
+    seg = msg.plan.seg
+    guards = list(msg.schedule.guards) if msg.schedule is not None else []
     if not (len(t) == len(x) == len(u) == len(seg)) or x.shape[1] != system.n_x \
             or u.shape[1] != system.n_u:
         raise PassThroughError(f"{where}: the plan's arrays do not fit the system")

@@ -365,8 +365,14 @@ def _differs(a: Any, b: Any) -> bool:
 
 
 def first_difference(a: Any, b: Any, path: str = "") -> tuple[str, Any, Any] | None:
-    """The first differing field of two JSON values: (path, value in a, value in b)."""
+    """The first differing field of two JSON values: (path, value in a, value in b).
+
+    A key whose value is null counts as absent (logs before version 4 wrote null where
+    later ones leave the key out).
+    """
     if isinstance(a, dict) and isinstance(b, dict):
+        a = {k: v for k, v in a.items() if v is not None}
+        b = {k: v for k, v in b.items() if v is not None}
         for key in list(a) + [k for k in b if k not in a]:
             if _ignored(str(key)):
                 continue

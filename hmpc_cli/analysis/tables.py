@@ -106,7 +106,7 @@ class RunTrace:
     logged_success: bool | None = None  # the log's own /run/summary verdict, if any
     complete: bool = True
     damage: str = ""  # why reading stopped at a damaged chunk ('' if it did not)
-    geometry: dict = field(default_factory=dict)  # the log's geometry (loggeometry)
+    geometry: Any = None  # the log's GeometryRec (None: none logged)
 
     @property
     def system(self) -> dict:
@@ -137,7 +137,7 @@ def load_trace(path: Path) -> RunTrace:
 
 def trace_of(run: Any, path: Path) -> RunTrace:
     """The positions of a run already read by ``read_run``, as :func:`load_trace` gives them."""
-    plane = list(run.geometry.get("plane") or ())
+    plane = list(run.geometry.plane) if run.geometry is not None else []
     i, j = (run.state_names.index(plane[0]), run.state_names.index(plane[1])) \
         if len(plane) == 2 and set(plane) <= set(run.state_names) else (0, 1)
     points: list[tuple[float, int, int, float, float]] = []  # (t, kind, seq, a, b)
@@ -152,7 +152,6 @@ def trace_of(run: Any, path: Path) -> RunTrace:
                 points.append((ev.t, 0, 2 * k + m, _num(x[i]), _num(x[j])))
     points.sort(key=lambda p: (p[0], p[1], p[2]))
     arr = np.array([(p[0], p[3], p[4]) for p in points], dtype=float)
-    ok = run.summary.get("success") if run.summary else None
-    return RunTrace(Path(path), arr[:, 0], arr[:, 1:3], run.scenario,
-                    ok if isinstance(ok, bool) else None, run.complete, run.damage,
-                    dict(run.geometry))
+    ok = run.summary.success if run.summary is not None else None
+    return RunTrace(Path(path), arr[:, 0], arr[:, 1:3], run.scenario, ok, run.complete,
+                    run.damage, run.geometry)

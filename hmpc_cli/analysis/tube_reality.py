@@ -156,7 +156,7 @@ def read_run(path: Path) -> RunData:
     run.full_plans("tube vs reality (the plan at every logged state)")
     if not run.t.size:
         raise ValueError(f"{run.path}: no /sim/state")
-    solves = [(s.t, s.t_plan, np.atleast_2d(s.x_plan), s.seg_plan) for s in run.adopted()]
+    solves = [(s.t, s.plan.t, np.atleast_2d(s.plan.x), s.plan.seg) for s in run.adopted()]
     if not solves:
         raise ValueError(f"{run.path}: no adopted /mpc/solve")
     return RunData(run.name, run.system, run.t, run.x, np.array([e.t for e in run.events]),

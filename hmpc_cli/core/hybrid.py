@@ -22,6 +22,7 @@ import numpy as np
 
 from hmpc_cli.core.drawing import Drawing
 from hmpc_cli.core.numeric import compile_numpy
+from hmpc_cli.core.walker import WalkerModel
 
 
 #: fields of a logged plan node besides the state and input names
@@ -180,6 +181,8 @@ class HybridSystem:
             it models [m] (contact-planning systems: the foothold candidates).
         drawing: how the run log's 3D scene draws the system (static geometry, body,
             plan trace; :mod:`hmpc_cli.core.drawing`), or None (no scene).
+        walker: what walking MPCs and foothold planners need of a walker
+            (:class:`~hmpc_cli.core.walker.WalkerModel`, checked here), or None.
     """
 
     name: str
@@ -205,6 +208,7 @@ class HybridSystem:
     state_box: tuple[np.ndarray, np.ndarray] | None = None
     guard_surfaces: Mapping[int, tuple[float, float, float]] = field(default_factory=dict)
     drawing: Drawing | None = None
+    walker: WalkerModel | None = None
 
     def __post_init__(self) -> None:
         names = [m.name for m in self.modes]
@@ -233,6 +237,15 @@ class HybridSystem:
             raise ValueError(f"{self.name}: state and input names must be distinct and not "
                              f"{sorted(RESERVED_NAMES)} (a logged plan node holds them all): "
                              f"{clash}")
+        self._check_walker()
+
+    def _check_walker(self) -> None:
+        """Checks ``walker`` against this system (:meth:`WalkerModel.check`), if any."""
+        if self.walker is not None:
+            try:
+                self.walker.check(self.x0, self.n_u, self.n_w, [m.name for m in self.modes])
+            except ValueError as exc:
+                raise ValueError(f"{self.name}: {exc}") from None
 
     def output(self, name: str) -> ca.Function:
         """The named output ``name``.

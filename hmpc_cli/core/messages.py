@@ -5,7 +5,8 @@ Times are seconds; arrays are NumPy with the shapes given per field.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -136,7 +137,11 @@ class PlannerResult:
         wall_time: measured computation time [s].
         iterations: iterations run (sampling iterations, or solver iterations summed).
         note: why no schedule was found ('' otherwise).
-        extra: planner-specific fields for the log (e.g. the ranked candidates).
+        detail: the planner's log detail, an instance of the frozen dataclass its spec
+            declares (``PlannerSpec.detail``), or None.
+        mpc_solves: the fixed-mode MPC solves the planner made itself (e.g. one per
+            foothold candidate), in order: their failures count as solver failures,
+            once each.
     """
 
     schedule: ModeSchedule | None
@@ -146,7 +151,8 @@ class PlannerResult:
     wall_time: float
     iterations: int
     note: str = ""
-    extra: dict = field(default_factory=dict)
+    detail: Any = None
+    mpc_solves: tuple[Plan, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -184,7 +190,8 @@ class Plan:
         traj: planned trajectory (times relative to t0).
         stats: solver statistics.
         schedule: the schedule it was solved for.
-        extra: MPC-specific fields for the log (e.g. nodes shifted, warm start kind).
+        detail: the MPC's log detail (e.g. nodes shifted, warm start kind), an instance
+            of the frozen dataclass its spec declares (``MPCSpec.detail``), or None.
         adopt: whether the low level should track this plan; a failed solve's plan
             may still be a usable fallback (the shifted previous plan), else the low
             level keeps the plan it has.
@@ -194,7 +201,7 @@ class Plan:
     traj: Trajectory
     stats: SolveStats
     schedule: ModeSchedule
-    extra: dict = field(default_factory=dict)
+    detail: Any = None
     adopt: bool = True
 
 
@@ -274,3 +281,19 @@ class ConstraintMargins:
                                               strict=True)],
                 "inputs": [{"mode": m.name, "per_side": list(v)}
                            for m, v in zip(system.modes, self.inputs, strict=True)]}
+
+
+@dataclass(frozen=True)
+class BuildInfo:
+    """How an MPC's NLPs were built (the build cache's verdict, logged in /run/info).
+
+    Attributes:
+        cache: ``"hit"`` (loaded from the cache), ``"miss"`` (built in SX, the cache
+            filled) or ``"disabled"`` (built in SX, no cache).
+        compiled: the solver calls compiled code (else the SX virtual machine).
+        reason: why, in one line.
+    """
+
+    cache: str
+    compiled: bool
+    reason: str

@@ -8,26 +8,58 @@ are assembled from what is registered (:mod:`hmpc_cli.run.scenario`).
 
 An entry point that fails to load is remembered with its reason: using it raises
 :class:`PluginError` naming the entry point; the others still work.
+
+Capabilities (``SystemSpec.provides``, ``needs`` of planners and MPCs) are names (a named
+output, or a field of :data:`CAPABILITIES`) or capability types (:data:`CAPABILITY_TYPES`,
+e.g. :class:`~hmpc_cli.core.walker.WalkerModel`), kept by their class name.
 """
 
 from __future__ import annotations
 
 import re
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
 from importlib.metadata import EntryPoint, entry_points
+from types import MappingProxyType
 from typing import Any
 
 from pydantic import BaseModel
 
 from hmpc_cli.core.kinds import MPCKindSettings, PlannerSettings
+from hmpc_cli.core.walker import WalkerModel
 
 GROUPS = {"system": "hmpc.systems", "planner": "hmpc.planners", "mpc": "hmpc.mpcs"}
 
 
 class PluginError(Exception):
     """A registered plug-in cannot be loaded, built or combined (message names it)."""
+
+
+#: capabilities that are HybridSystem fields rather than named outputs
+CAPABILITIES = frozenset({"terrain", "guard_surfaces", "state_box"})
+
+#: capability types: a system provides one as an instance in the HybridSystem field named
+CAPABILITY_TYPES: Mapping[type, str] = MappingProxyType({WalkerModel: "walker"})
+
+
+def capability_names(items: Iterable[str | type]) -> frozenset[str]:
+    """Capabilities by name: a name as given, a :data:`CAPABILITY_TYPES` type by its name.
+
+    Raises:
+        TypeError: neither a string nor a capability type.
+    """
+    out = set()
+    for c in items:
+        if not isinstance(c, str) and c not in CAPABILITY_TYPES:
+            raise TypeError(f"a capability is a name or one of the types "
+                            f"{', '.join(t.__name__ for t in CAPABILITY_TYPES)}, not {c!r}")
+        out.add(c if isinstance(c, str) else c.__name__)
+    return frozenset(out)
+
+
+def _names_capabilities(spec: Any, attr: str) -> None:
+    object.__setattr__(spec, attr, capability_names(getattr(spec, attr)))
 
 
 @dataclass(frozen=True)
@@ -55,8 +87,9 @@ class SystemSpec:
             plant's parameters and system (success is judged on the world).
         planner: default planner kind.
         mpc: default fixed-mode MPC kind.
-        provides: capabilities planners and MPCs may need (named outputs, ``terrain``,
-            ``guard_surfaces``).
+        provides: capabilities planners and MPCs may need: named outputs, fields of
+            :data:`CAPABILITIES`, capability types (e.g. ``WalkerModel``, then the built
+            system's ``walker``); stored by name (:func:`capability_names`).
         requires: settings the system needs (and their defaults).
         defaults: default settings per section for this system: keys ``sim``,
             ``replanning``, ``lowlevel``, ``disturbance`` or ``planner.<kind>`` /
@@ -69,9 +102,12 @@ class SystemSpec:
     task: Callable[[Any, Any], Any]
     planner: str
     mpc: str
-    provides: frozenset[str] = frozenset()
+    provides: frozenset[str | type] = frozenset()
     requires: tuple[Requirement, ...] = ()
     defaults: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        _names_capabilities(self, "provides")
 
 
 @dataclass(frozen=True)
@@ -82,7 +118,8 @@ class PlannerSpec:
         kind: ``planner.kind`` in a scenario.
         settings: pydantic model with a field ``kind: Literal[kind]``.
         make: (system, settings, run_seed) -> :class:`~hmpc_cli.core.stack.Planner`.
-        needs: system capabilities it uses (checked against ``SystemSpec.provides``).
+        needs: system capabilities it uses (names or capability types, stored by name;
+            checked against ``SystemSpec.provides``).
         requires: settings it needs (and their defaults).
         detail: the frozen dataclass its ``PlannerResult.extra`` is logged as (the
             /planner/plan ``detail`` field; its JSON schema is generated from it), or
@@ -92,9 +129,12 @@ class PlannerSpec:
     kind: str
     settings: type[BaseModel]
     make: Callable[[Any, Any, int], Any]
-    needs: frozenset[str] = frozenset()
+    needs: frozenset[str | type] = frozenset()
     requires: tuple[Requirement, ...] = ()
     detail: type | None = None
+
+    def __post_init__(self) -> None:
+        _names_capabilities(self, "needs")
 
 
 @dataclass(frozen=True)
@@ -109,7 +149,7 @@ class MPCSpec:
             When ``settings.margins`` names a margins file, the loop passes its values as
             a third argument (a :class:`~hmpc_cli.core.messages.ConstraintMargins`).
         make: (system, settings, problem) -> :class:`~hmpc_cli.core.stack.FixedModeMPC`.
-        needs: system capabilities it uses.
+        needs: system capabilities it uses (as for :class:`PlannerSpec`).
         requires: settings it needs (and their defaults).
         hand_margins: (system, settings) -> the hand-set
             :class:`~hmpc_cli.core.messages.ConstraintMargins` (``margins = "hand"``; logged
@@ -122,10 +162,13 @@ class MPCSpec:
     settings: type[BaseModel]
     problem: Callable[..., Any]
     make: Callable[[Any, Any, Any], Any]
-    needs: frozenset[str] = frozenset()
+    needs: frozenset[str | type] = frozenset()
     requires: tuple[Requirement, ...] = ()
     hand_margins: Callable[[Any, Any], Any] | None = None
     detail: type | None = None
+
+    def __post_init__(self) -> None:
+        _names_capabilities(self, "needs")
 
 
 @dataclass(frozen=True)
@@ -240,16 +283,32 @@ def _build_cached(model: type[BaseModel], params_json: str) -> Any:
     params = model.model_validate_json(params_json)
     spec = registry().system(params.name)
     system = plugin_call(f"system: {spec.name!r} failed to build", spec.build, params)
-    missing = sorted(c for c in spec.provides - CAPABILITIES if c not in system.outputs)
-    missing += sorted(c for c in spec.provides & CAPABILITIES if not getattr(system, c))
+    missing = missing_capabilities(spec.provides, system)
     if missing:
         raise PluginError(f"system: {spec.name!r} declares that it provides "
                           f"{', '.join(missing)}, but its HybridSystem has none")
     return system
 
 
-#: capabilities that are HybridSystem fields rather than named outputs
-CAPABILITIES = frozenset({"terrain", "guard_surfaces", "state_box"})
+def missing_capabilities(names: Iterable[str], system: Any) -> list[str]:
+    """The capabilities of ``names`` the built HybridSystem ``system`` lacks, sorted.
+
+    A named output must be in ``system.outputs``; a :data:`CAPABILITIES` field must be
+    non-empty; a capability type's field must hold an instance of it.
+    """
+    typed = {t.__name__: (t, f) for t, f in CAPABILITY_TYPES.items()}
+    out = []
+    for c in sorted(names):
+        if c in typed:
+            kind, attr = typed[c]
+            ok = isinstance(getattr(system, attr, None), kind)
+        elif c in CAPABILITIES:
+            ok = bool(getattr(system, c))
+        else:
+            ok = c in system.outputs
+        if not ok:
+            out.append(c)
+    return out
 
 
 def plugin_call(what: str, fn: Callable[..., Any], *args: Any) -> Any:

@@ -187,3 +187,20 @@ def page_link(path: Path, base: Path) -> str:
         return Path(path).resolve().relative_to(Path(base).resolve()).as_posix()
     except ValueError:
         return Path(path).resolve().as_posix()
+
+
+def static_polylines(geo) -> list[tuple[Any, Any]]:
+    """A logged geometry's static polylines as (a (K,), b (K,)) [m], closed ones closed.
+
+    ``geo``: a :class:`~hmpc_cli.log.geometry.GeometryRec` (None: no polylines).
+    """
+    import numpy as np
+
+    out = []
+    for line in geo.static if geo is not None else ():
+        a, b = np.asarray(line.a, dtype=float), np.asarray(line.b, dtype=float)
+        if a.size >= 2 and a.size == b.size:
+            if line.closed:
+                a, b = np.append(a, a[0]), np.append(b, b[0])
+            out.append((a, b))
+    return out

@@ -20,7 +20,7 @@ from hmpc_cli.analysis.tables import (
     FigureInputError, RunTrace, load_trace, parse_bool, read_table, resolve_log, resolve_table)
 from hmpc_cli.figures.common import (
     COLUMN_WIDTH_IN, OKABE_ITO, check_size, figure_style, make_out_dir, parse_formats,
-    save_figure, write_csv)
+    save_figure, static_polylines, write_csv)
 
 __all__ = ["PAPER_GEOMETRY", "REFERENCE_COUNTS", "PanelCounts", "fig3", "not_the_paper"]
 
@@ -164,28 +164,20 @@ def _load_runs(table: Path, groups: dict, trace_axis: str, nominal: str | None,
     return out
 
 
-def _geometry(runs: list[_Run]) -> dict:
-    """The logged geometry of the first run that has one (``{}``: none, e.g. an old log)."""
-    return next((r.trace.geometry for r in runs if r.trace.geometry), {})
+def _geometry(runs: list[_Run]):
+    """The logged GeometryRec of the first run that has one (None: none, e.g. an old log)."""
+    return next((r.trace.geometry for r in runs if r.trace.geometry is not None), None)
 
 
-def _goal(geo: dict) -> np.ndarray | None:
+def _goal(geo) -> np.ndarray | None:
     """The goal point if it lives in the drawing plane (two coordinates), else None."""
-    goal = np.asarray(geo.get("goal") or [], dtype=float).ravel()
+    goal = np.asarray(geo.goal if geo is not None else (), dtype=float).ravel()
     return goal if goal.size == 2 else None
 
 
-def _polylines(geo: dict) -> list[tuple[np.ndarray, np.ndarray]]:
+def _polylines(geo) -> list[tuple[np.ndarray, np.ndarray]]:
     """The drawing's static polylines as (a (K,), b (K,)) [m], closed ones closed."""
-    out = []
-    for line in geo.get("static") or ():
-        a = np.asarray(line.get("a") or [], dtype=float)
-        b = np.asarray(line.get("b") or [], dtype=float)
-        if a.size >= 2 and a.size == b.size:
-            if line.get("closed"):
-                a, b = np.append(a, a[0]), np.append(b, b[0])
-            out.append((a, b))
-    return out
+    return static_polylines(geo)
 
 
 def _view(runs: dict[str, list[_Run]], geos) -> tuple[tuple[float, float], ...]:
@@ -206,9 +198,9 @@ def _view(runs: dict[str, list[_Run]], geos) -> tuple[tuple[float, float], ...]:
     box = ((min(xs) - 0.6 * span, max(xs) + 0.6 * span),
            (min(ys) - 0.6 * span, max(ys) + 0.6 * span))
     for geo in geos:  # closed guard curves near the data (a circle) are shown whole
-        for line in geo.get("static") or ():
-            a, b = np.asarray(line.get("a") or [0.0]), np.asarray(line.get("b") or [0.0])
-            if line.get("closed") and box[0][0] <= a.min() and a.max() <= box[0][1] \
+        for line in geo.static if geo is not None else ():
+            a, b = np.asarray(line.a or [0.0]), np.asarray(line.b or [0.0])
+            if line.closed and box[0][0] <= a.min() and a.max() <= box[0][1] \
                     and box[1][0] <= b.min() and b.max() <= box[1][1]:
                 xs += [float(a.min()), float(a.max())]
                 ys += [float(b.min()), float(b.max())]

@@ -20,7 +20,8 @@ from hmpc_cli.figures.common import (
     figure_style,
     make_out_dir,
     parse_formats,
-    save_figure)
+    save_figure,
+    static_polylines)
 from hmpc_cli.analysis.tables import FigureInputError
 
 __all__ = ["COLUMNS", "HEIGHT_PER_ROW_IN", "fig3_overlay", "overlay_figure"]
@@ -33,15 +34,7 @@ THEIRS = OKABE_ITO["vermillion"]
 
 def _polylines(rows) -> list[tuple[np.ndarray, np.ndarray]]:
     """The first logged geometry's static polylines (closed ones closed) [m]."""
-    geo = next((r.geometry for r in rows if r.geometry), {})
-    out = []
-    for line in geo.get("static") or ():
-        a, b = np.asarray(line.get("a") or [], float), np.asarray(line.get("b") or [], float)
-        if a.size >= 2 and a.size == b.size:
-            if line.get("closed"):
-                a, b = np.append(a, a[0]), np.append(b, b[0])
-            out.append((a, b))
-    return out
+    return static_polylines(next((r.geometry for r in rows if r.geometry is not None), None))
 
 
 def _limits(rows, closed: list[np.ndarray]) -> tuple[tuple[float, float], tuple[float, float]]:

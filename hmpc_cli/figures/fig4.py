@@ -81,8 +81,8 @@ def load_walk(path: str | Path) -> WalkLog:
     except ValueError as exc:
         raise FigureInputError(f"{path}: cannot read log ({exc})") from None
     geo = run.geometry
-    names = list(geo.get("point_names") or ())
-    if not geo.get("terrain") or not {"hip", "swing_foot"} <= set(names):
+    names = list(geo.point_names) if geo is not None else []
+    if geo is None or geo.terrain is None or not {"hip", "swing_foot"} <= set(names):
         why = f"log version {run.log_version} has no geometry; re-run it with this hmpc" \
             if run.log_version < 3 else \
             f"system {run.system.get('name', '?')!r} logs no body points and terrain"
@@ -91,12 +91,12 @@ def load_walk(path: str | Path) -> WalkLog:
     if not np.any(keep):
         raise FigureInputError(f"{path}: log has no finite /sim/state samples")
     points = run.body[keep]
-    terrain = geo["terrain"]
+    terrain = geo.terrain
     return WalkLog(path, run.t[keep], points, points[:, names.index("hip"), :],
                    _contacts(run, names.index("swing_foot")), _force(run),
-                   [(s["x0"], s["x1"], s["height"]) for s in terrain["segments"]],
-                   float(terrain["ground"]), *_outcome(run),
-                   [[names.index(n) for n in line["points"]] for line in geo["skeleton"]])
+                   [(s.x0, s.x1, s.height) for s in terrain.segments],
+                   float(terrain.ground), *_outcome(run),
+                   [[names.index(n) for n in line.points] for line in geo.skeleton])
 
 
 def _contacts(run, foot: int) -> list[tuple[float, str, float, float]]:
@@ -121,8 +121,7 @@ def _outcome(run) -> tuple[bool | None, str]:
     """The logged success (None if the run has no summary) and reason."""
     if run.summary is None:
         return None, "no summary (killed?)"
-    ok = run.summary.get("success")
-    return ok if isinstance(ok, bool) else None, str(run.summary.get("reason", ""))
+    return bool(run.summary.success), run.summary.reason
 
 
 def _stairs_xy(walk: WalkLog, x_min: float) -> tuple[list[float], list[float]]:

@@ -66,7 +66,7 @@ class RunBooks:
         self.plan_times: list[float] = []
         self.accepted_plans = 0
         self.last_note = ""  # the last planner call's note
-        #: failed solves counted from a planner call's candidates: (t, segment, status)
+        #: failed solves counted from a planner call's own MPC solves (:func:`_solve_key`)
         self._counted: set[tuple] = set()
 
     def contact(self, guard: str) -> None:
@@ -80,9 +80,9 @@ class RunBooks:
         """Counts a planner call, its verdict and the failed MPC solves it reports.
 
         A planner that solves the MPC itself (the biped's foothold planner solves the
-        walking MPC per candidate) reports each solve in its detail's ``candidates``
-        (``status``, ``success``): the failed ones count as solver failures, as a failed
-        /mpc/solve does (:meth:`solve`), once each.
+        walking MPC per candidate) returns those solves (``result.mpc_solves``): the
+        failed ones count as solver failures, as a failed /mpc/solve does
+        (:meth:`solve`), once each.
         """
         r = self.result
         r.planner_calls += 1
@@ -90,14 +90,10 @@ class RunBooks:
         self.accepted_plans += bool(accepted)
         self.last_note = note
         self.plan_times.append(result.wall_time)
-        rows = (result.extra or {}).get("candidates") if isinstance(result.extra, dict) \
-            else None
-        for row in rows or ():
-            if not isinstance(row, dict) or "success" not in row or row.get("success"):
-                continue
-            status = str(row.get("status", "failed"))
-            self._fail(status)
-            self._counted.add((float(t), row.get("segment"), status))
+        for plan in result.mpc_solves:
+            if plan is not None and not plan.stats.success:
+                self._fail(plan.stats.status)
+                self._counted.add(_solve_key(t, plan))
 
     def solve(self, t: float, plan: Plan) -> None:
         """Counts one fixed-mode MPC solve (a planner's candidate solve only once)."""
@@ -106,7 +102,7 @@ class RunBooks:
         self.solve_times.append(st.wall_time)
         r.fallbacks += bool(st.fallback)
         if not st.success:
-            key = (float(t), (plan.extra or {}).get("segment"), st.status)
+            key = _solve_key(t, plan)
             if key in self._counted:  # the planner's candidate solve, counted there
                 self._counted.discard(key)
             else:
@@ -159,3 +155,9 @@ class RunBooks:
         if self.plan_times:
             r.plan_time_median = float(np.median(self.plan_times))
         return r
+
+
+def _solve_key(t: float, plan: Plan) -> tuple:
+    """What identifies a failed solve: (t [s], the schedule's guards, the status)."""
+    guards = tuple(plan.schedule.guards) if plan.schedule is not None else None
+    return float(t), guards, plan.stats.status

@@ -66,20 +66,38 @@ def _jsonable(obj: Any) -> Any:
     raise TypeError(f"cannot encode object of type {type(obj).__name__} as JSON")
 
 
-def to_json_bytes(payload: Any) -> bytes:
-    """Encodes `payload` as compact UTF-8 JSON (numpy and dataclasses ok, NaN/inf -> null).
+def _left_out(obj: Any) -> Any:
+    """``obj`` (decoded JSON) with every object key whose value is null left out."""
+    if isinstance(obj, dict):
+        return {k: _left_out(v) for k, v in obj.items() if v is not None}
+    if isinstance(obj, list):
+        return [_left_out(v) for v in obj]
+    return obj
 
-    orjson encodes dataclasses, numpy arrays and scalars natively and writes NaN and inf
-    as null; anything it refuses (e.g. non-string keys) takes the recursive conversion.
+
+def to_json_bytes(payload: Any) -> bytes:
+    """Encodes `payload` as compact UTF-8 JSON (numpy and dataclasses ok).
+
+    A field that is None, NaN or +-inf is left out of its object, never written as null:
+    a JSON schema's ``"type": "object"`` or ``"number"`` admits no null, and the viewers
+    cannot parse ``["object", "null"]`` (readers take an absent number as NaN, an
+    absent object as None). orjson encodes dataclasses, numpy arrays and scalars
+    natively; a message with a null in it (rare) is decoded and encoded again without
+    those keys; anything orjson refuses (e.g. non-string keys) takes the recursive
+    conversion.
     """
     import orjson
 
+    opts = orjson.OPT_SERIALIZE_NUMPY
     try:
-        return orjson.dumps(payload, option=orjson.OPT_SERIALIZE_NUMPY)
+        data = orjson.dumps(payload, option=opts)
     except TypeError:
-        obj = _jsonable(payload)
+        obj = _left_out(_jsonable(payload))
         return json.dumps(obj, separators=(",", ":"), allow_nan=False,
                           ensure_ascii=False).encode()
+    if b"null" in data:
+        return orjson.dumps(_left_out(orjson.loads(data)), option=opts)
+    return data
 
 
 def file_descriptor_set(message_type: Any) -> bytes:

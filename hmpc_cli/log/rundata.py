@@ -1,13 +1,19 @@
-"""A run log read back as arrays per topic, for any system: :func:`read_run`.
+"""A run log read back as the types it was written from, for any system: :func:`read_run`.
 
 The one reader of the run log's payloads: figures, ``hmpc tube --runs`` and ``hmpc
-replay`` read through it. It understands the typed log (:mod:`hmpc_cli.log.topics`,
-vectors as named objects, plans as arrays of nodes) and the older untyped layout (log
-version 1: plain arrays), and a log cut short (``complete`` False).
+replay`` read through it. /run/info, /run/summary, /mpc/solve and /planner/plan come
+back as their topic types (:mod:`hmpc_cli.log.topics`: :class:`RunInfo`,
+:class:`Summary`, :class:`MpcSolve` with its plan as :class:`PlanArrays`,
+:class:`PlannerCall`), /sim/state and /disturbance as arrays; a plug-in's detail as a
+record typed from the log's own schema (:func:`~hmpc_cli.log.schema.record_type`, no
+plug-in imported). It understands the typed log (vectors as named objects, plans as
+arrays of nodes), the older untyped layout (log version 1: plain arrays), and a log cut
+short (``complete`` False).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,10 +21,12 @@ from pathlib import Path
 import numpy as np
 
 from hmpc_cli.log.damage import DamagedLogError, reading
-from hmpc_cli.log.geometry import body_names
+from hmpc_cli.log.geometry import GeometryRec, body_names
+from hmpc_cli.log.schema import read_record, record_type
+from hmpc_cli.log.topics import (
+    MpcSolve, PlanArrays, PlannerCall, RolloutArrays, RunInfo, Summary)
 
-__all__ = ["DamagedLogError", "Event", "PlannerCallData", "RunData", "SolveData", "read_run",
-           "resolve_log"]
+__all__ = ["DamagedLogError", "Event", "RunData", "read_run", "resolve_log"]
 
 
 def resolve_log(path: Path) -> Path:
@@ -49,48 +57,6 @@ class Event:
     body_before: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
-@dataclass(frozen=True)
-class SolveData:
-    """An MPC solve: its stats, schedule, plan and the MPC's detail (a dict).
-
-    The plan: absolute times t_plan (N,) [s], x_plan (N, n), u_plan (N, m), seg_plan (N,).
-    """
-
-    t: float
-    reason: str
-    status: str
-    success: bool
-    iterations: int
-    wall_time: float
-    cost: float
-    slack: float
-    adopted: bool
-    schedule: dict | None
-    t_plan: np.ndarray
-    x_plan: np.ndarray
-    u_plan: np.ndarray
-    seg_plan: np.ndarray
-    detail: dict
-    latency: float = 0.0  # [s] before the plan reached the plant (old logs: 0, paused)
-
-
-@dataclass(frozen=True)
-class PlannerCallData:
-    """A planner call: stats, schedule, rollout (t (R,) [s], x (R, n)) and detail."""
-
-    t: float
-    reason: str
-    accepted: bool
-    reached_final: bool
-    cost: float
-    wall_time: float
-    note: str
-    schedule: dict | None
-    t_rollout: np.ndarray
-    x_rollout: np.ndarray
-    detail: dict
-
-
 @dataclass
 class RunData:
     """Everything a run log holds, as arrays.
@@ -98,8 +64,9 @@ class RunData:
     Attributes:
         path: the log file.
         complete: False when the file was cut short (no footer).
-        log_version: the log layout (1: untyped arrays, 2: typed, 3: with geometry).
-        info: /run/info as a dict (empty when missing).
+        log_version: the log layout (1: untyped arrays, 2: typed, 3: with geometry, 4: no
+            nulls).
+        info: /run/info (None when missing; an older log's missing fields empty).
         scenario: the scenario as run (a dict).
         state_names, input_names, mode_names, guard_names: the system's names.
         t (K,) [s], x (K, n), u (K, m), x_ref (K, n), w (K, n_w), mode (K,): /sim/state.
@@ -108,8 +75,7 @@ class RunData:
         solves: /mpc/solve in time order; planner: /planner/plan.
         summary: /run/summary (None: the run did not finish).
         damage: why reading stopped early at a damaged chunk ('' if it did not).
-        geometry: /run/info's ``geometry`` (:class:`~hmpc_cli.log.geometry.GeometryRec` as
-            a dict; empty for logs before version 3).
+        geometry: /run/info's ``geometry`` (None for logs before version 3).
         body: the body points of each /sim/state sample (K, P, 2) [m] (P = 0: none logged;
             names in ``geometry["point_names"]``).
     """
@@ -117,7 +83,7 @@ class RunData:
     path: Path
     complete: bool
     log_version: int
-    info: dict
+    info: RunInfo | None
     scenario: dict
     state_names: tuple[str, ...]
     input_names: tuple[str, ...]
@@ -132,11 +98,11 @@ class RunData:
     events: list[Event] = field(default_factory=list)
     t_w: np.ndarray = field(default_factory=lambda: np.zeros(0))
     w_changes: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
-    solves: list[SolveData] = field(default_factory=list)
-    planner: list[PlannerCallData] = field(default_factory=list)
-    summary: dict | None = None
+    solves: list[MpcSolve] = field(default_factory=list)
+    planner: list[PlannerCall] = field(default_factory=list)
+    summary: Summary | None = None
     damage: str = ""
-    geometry: dict = field(default_factory=dict)
+    geometry: GeometryRec | None = None
     body: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 2)))
 
     @property
@@ -165,7 +131,7 @@ class RunData:
                 f"{self.plan_stride}: one node in {self.plan_stride}); {use} needs every "
                 "plan node: run the scenario again with --set sim.log_plan_stride=1")
 
-    def adopted(self) -> list[SolveData]:
+    def adopted(self) -> list[MpcSolve]:
         """The solves whose plan the loop adopted."""
         return [s for s in self.solves if s.adopted]
 
@@ -197,18 +163,20 @@ def _mat(rows: list[np.ndarray], width: int) -> np.ndarray:
     return np.vstack(rows) if rows else np.zeros((0, width))
 
 
-def _plan(d: dict, names: tuple, inputs: tuple) -> tuple:
-    """(t_plan, x_plan, u_plan, seg_plan) of a solve record (typed or untyped)."""
+def _plan(d: dict, names: tuple, inputs: tuple) -> PlanArrays:
+    """The plan of a solve record (typed or untyped)."""
     if "plan" in d:
         nodes = d.get("plan") or []
-        return (np.array([float(n["t"]) for n in nodes]),
-                _mat([_vec(_part(n, "x"), names) for n in nodes], len(names)),
-                _mat([_vec(_part(n, "u"), inputs) for n in nodes], len(inputs)),
-                np.array([int(n["seg"]) for n in nodes], dtype=int))
+        return PlanArrays(np.array([float(n["t"]) for n in nodes]),
+                          np.array([int(n["seg"]) for n in nodes], dtype=int),
+                          np.array([int(n.get("mode", -1)) for n in nodes], dtype=int),
+                          _mat([_vec(_part(n, "x"), names) for n in nodes], len(names)),
+                          _mat([_vec(_part(n, "u"), inputs) for n in nodes], len(inputs)))
     x = np.atleast_2d(np.asarray(d.get("x_plan") or np.zeros((0, len(names))), dtype=float))
     u = np.atleast_2d(np.asarray(d.get("u_plan") or np.zeros((0, len(inputs))), dtype=float))
-    return (np.asarray(d.get("t_plan") or [], dtype=float), x, u,
-            np.asarray(d.get("seg_plan") or [], dtype=int))
+    t = np.asarray(d.get("t_plan") or [], dtype=float)
+    return PlanArrays(t, np.asarray(d.get("seg_plan") or [], dtype=int),
+                      np.full(len(t), -1, dtype=int), x, u)
 
 
 _SOLVE_KEYS = ("t", "reason", "status", "success", "iterations", "wall_time", "cost", "slack",
@@ -216,20 +184,25 @@ _SOLVE_KEYS = ("t", "reason", "status", "success", "iterations", "wall_time", "c
                "max_violation", "detail", "latency")
 
 
-def _solve(d: dict, names: tuple, inputs: tuple) -> SolveData:
-    detail = d.get("detail") or {k: v for k, v in d.items() if k not in _SOLVE_KEYS}
-    return SolveData(float(d["t"]), str(d.get("reason", "")), str(d.get("status", "")),
-                     bool(d.get("success")), int(d.get("iterations") or 0),
-                     _f(d.get("wall_time")), _f(d.get("cost")), _f(d.get("slack")),
-                     bool(d.get("adopted", True)), d.get("schedule"),
-                     *_plan(d, names, inputs), dict(detail), _f(d.get("latency", 0.0)))
+def _detail(d: dict, schema: dict | None, old: dict, title: str):
+    """A record's plug-in detail, typed from the log's schema (older logs: its keys)."""
+    value = d.get("detail") or old
+    if not value:
+        return None
+    props = (schema or {}).get("properties", {}).get("detail")
+    if not props or not props.get("properties"):
+        props = {"type": "object", "properties": {k: {} for k in value}}
+    return read_record(record_type(props, title), value)
 
 
-def _f(v) -> float:
-    return float("nan") if v is None else float(v)
+def _solve(d: dict, names: tuple, inputs: tuple, schema: dict | None) -> MpcSolve:
+    rec = read_record(MpcSolve, {k: v for k, v in d.items() if k not in ("plan", "detail")})
+    old = {k: v for k, v in d.items() if k not in _SOLVE_KEYS}  # log version 1
+    return dataclasses.replace(rec, plan=_plan(d, names, inputs),
+                               detail=_detail(d, schema, old, "MPCDetail"))
 
 
-def _planner(d: dict, names: tuple) -> PlannerCallData:
+def _planner(d: dict, names: tuple, schema: dict | None) -> PlannerCall:
     if "rollout" in d:
         nodes = d.get("rollout") or []
         t_r = np.array([float(n["t"]) for n in nodes])
@@ -238,11 +211,11 @@ def _planner(d: dict, names: tuple) -> PlannerCallData:
         t_r = np.asarray(d.get("t_rollout") or [], dtype=float)
         x_r = np.atleast_2d(np.asarray(d.get("x_rollout") or np.zeros((0, len(names))),
                                        dtype=float))
-    detail = d.get("detail") or ({"candidates": d["candidates"]} if "candidates" in d else {})
-    return PlannerCallData(float(d["t"]), str(d.get("reason", "")), bool(d.get("accepted")),
-                           bool(d.get("reached_final")), _f(d.get("cost")),
-                           _f(d.get("wall_time")), str(d.get("note", "")), d.get("schedule"),
-                           t_r, x_r, dict(detail))
+    rec = read_record(PlannerCall, {k: v for k, v in d.items()
+                                    if k not in ("rollout", "detail")})
+    old = {"candidates": d["candidates"]} if "candidates" in d else {}
+    return dataclasses.replace(rec, rollout=RolloutArrays(t_r, x_r),
+                               detail=_detail(d, schema, old, "PlannerDetail"))
 
 
 def _points(value, coords: tuple[str, ...]) -> np.ndarray:
@@ -264,6 +237,7 @@ def _body(states: list[dict], coords: tuple[str, ...]) -> np.ndarray:
 
 
 def _scenario(info: dict) -> dict:
+    """The scenario as run (an older log's object, else the JSON text's)."""
     if "scenario_json" in info:
         try:
             return dict(json.loads(info["scenario_json"] or "{}"))
@@ -305,6 +279,7 @@ def _run_data(log_path: Path, log) -> RunData:
     """:func:`read_run` of a decoded log (its content trusted: the caller guards it)."""
     infos = log.topic("/run/info")
     info = dict(infos[0].data) if infos else {}
+    schemas = getattr(log, "schemas", {}) or {}
     states = [{"t": m.t, **m.data} for m in log.topic("/sim/state")]
     width = len(states[0]["x"]) if states else 0
     names = _names(info, "state_names", [s["x"] for s in states[:1]], width)
@@ -313,11 +288,12 @@ def _run_data(log_path: Path, log) -> RunData:
     dist = _names(info, "disturbance_names", [s.get("w") for s in states[:1]],
                   len(states[0].get("w") or []) if states else 0)
     w_msgs = [{"t": m.t, **m.data} for m in log.topic("/disturbance")]
-    geometry = dict(info.get("geometry") or {})
-    coords = body_names(tuple(geometry.get("point_names") or ()))  # once, not per sample
+    geometry = read_record(GeometryRec, info["geometry"]) if info.get("geometry") else None
+    coords = body_names(geometry.point_names if geometry else ())  # once, not per sample
     summaries = log.topic("/run/summary")
     return RunData(
-        log_path, log.complete, int(info.get("log_version", 1)), info, _scenario(info),
+        log_path, log.complete, int(info.get("log_version", 1)),
+        _run_info(info) if infos else None, _scenario(info),
         names, inputs, tuple(info.get("mode_names") or ()),
         tuple(info.get("guard_names") or ()),
         np.array([float(s["t"]) for s in states]),
@@ -333,9 +309,16 @@ def _run_data(log_path: Path, log) -> RunData:
                 for d in (m.data for m in log.topic("/sim/event"))), key=lambda e: e.t),
         np.array([float(d["t"]) for d in w_msgs]),
         _mat([_vec(d.get("w"), dist) for d in w_msgs], len(dist)),
-        sorted((_solve(m.data, names, inputs) for m in log.topic("/mpc/solve")),
-               key=lambda s: s.t),
-        sorted((_planner(m.data, names) for m in log.topic("/planner/plan")),
-               key=lambda p: p.t),
-        dict(summaries[-1].data) if summaries else None, getattr(log, "damage", ""),
-        geometry, _body(states, coords))
+        sorted((_solve(m.data, names, inputs, schemas.get("/mpc/solve"))
+                for m in log.topic("/mpc/solve")), key=lambda s: s.t),
+        sorted((_planner(m.data, names, schemas.get("/planner/plan"))
+                for m in log.topic("/planner/plan")), key=lambda p: p.t),
+        read_record(Summary, summaries[-1].data) if summaries else None,
+        getattr(log, "damage", ""), geometry, _body(states, coords))
+
+
+def _run_info(info: dict) -> RunInfo:
+    """/run/info typed (an older layout's scenario object as its JSON text)."""
+    if "scenario_json" not in info and isinstance(info.get("scenario"), dict):
+        info = {**info, "scenario_json": json.dumps(info["scenario"], sort_keys=True)}
+    return read_record(RunInfo, info)

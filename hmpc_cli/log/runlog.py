@@ -26,12 +26,13 @@ from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.log.geometry import body_logger, body_names, geometry_record
 from hmpc_cli.log.topics import (
     LOG_VERSION,
-    BuildRec,
     GuardEventRec,
     MarginsRec,
     MpcSolve,
+    PlanArrays,
     PlanNode,
     PlannerCall,
+    RolloutArrays,
     RolloutNode,
     RunInfo,
     ScheduleRec,
@@ -44,7 +45,8 @@ from hmpc_cli.log.topics import (
     topic_schemas)
 from hmpc_cli.log.schema import convert, flat_keys
 from hmpc_cli.log.geometry import record_maker
-from hmpc_cli.core.messages import GuardEvent, ModeSchedule, Plan, PlannerResult, Trajectory
+from hmpc_cli.core.messages import (
+    BuildInfo, GuardEvent, ModeSchedule, Plan, PlannerResult, Trajectory)
 from hmpc_cli.log.books import RunResult
 
 
@@ -94,7 +96,7 @@ class RunIdentity:
         margins: the MPC's margins (source, radius, per guard, per mode), if it has any.
         kinds: (planner kind, MPC kind).
         details: ``planner``/``mpc`` -> the plug-ins' log detail dataclasses.
-        build: how the MPC's NLPs were built (``cache``, ``compiled``, ``reason``).
+        build: how the MPC's NLPs were built.
         plan_stride: every k-th node of a plan is logged (:func:`thinned`).
     """
 
@@ -105,7 +107,7 @@ class RunIdentity:
     margins: Mapping | None = None
     kinds: tuple[str, str] = ("", "")
     details: Mapping[str, type | None] = field(default_factory=dict)
-    build: Mapping | None = None
+    build: BuildInfo | None = None
     plan_stride: int = 1
 
 
@@ -186,7 +188,7 @@ class TopicWriter:
             tuple(model.disturbance_names), tuple(m.name for m in model.modes),
             tuple(g.name for g in model.guards),
             convert(MarginsRec, dict(idn.margins)) if idn.margins else None, geometry,
-            self.provenance.sweep, convert(BuildRec, dict(idn.build)) if idn.build else None))
+            self.provenance.sweep, idn.build))
         if hasattr(self.rec, "flush"):
             self.rec.flush()  # the run's identity on disk at once (a killed run keeps it)
         self.rec.add_metadata("run", {"scenario": idn.scenario_name, "seed": str(idn.seed),
@@ -267,17 +269,16 @@ class TopicWriter:
     def planner(self, t: float, reason: str, result: PlannerResult, accepted: bool,
                 note: str, model: HybridSystem) -> None:
         """Logs one planner call to /planner/plan (and its rollout to the scene)."""
-        rollout = ()
-        if result.trajectory is not None and len(result.trajectory.t):
-            keys = flat_keys(RolloutNode, {"state": model.state_names})
-            traj = result.trajectory
-            rollout = tuple(map(record_maker(keys), np.asarray(traj.t, dtype=float).tolist(),
-                                *np.asarray(traj.x, dtype=float).T.tolist()))
-        self._write("/planner/plan", t, PlannerCall(
+        traj = result.trajectory
+        rollout = RolloutArrays(np.zeros(0), np.zeros((0, model.n_x))) if traj is None else \
+            RolloutArrays(np.asarray(traj.t, dtype=float), np.asarray(traj.x, dtype=float))
+        msg = PlannerCall(
             t, reason, bool(accepted), bool(result.reached_final), float(result.cost),
             float(result.wall_time), int(result.iterations), note,
             _schedule(result.schedule, model), rollout,
-            _detail(self.identity.details.get("planner"), result.extra)))
+            _detail(self.identity.details.get("planner"), result.detail, "planner"))
+        self._write("/planner/plan", t, dataclasses.replace(  # on the wire: node records
+            msg, rollout=rollout_nodes(rollout, model)))
         if self.scene is not None:
             self.scene.rollout(t, result.trajectory)
 
@@ -292,19 +293,23 @@ class TopicWriter:
         traj = thinned(traj, stride) if stride > 1 else dataclasses.replace(
             traj, t=np.array(traj.t, dtype=float), x=np.array(traj.x, dtype=float),
             u=np.array(traj.u, dtype=float), mode=np.array(traj.mode), seg=np.array(traj.seg))
-        self._hold(self._write_solve, (t, dataclasses.replace(plan, traj=traj, extra={}),
-                                       reason, model, latency,
-                                       _detail(self.identity.details.get("mpc"), plan.extra)))
+        self._hold(self._write_solve, (t, dataclasses.replace(plan, traj=traj), reason, model,
+                                       latency, _detail(self.identity.details.get("mpc"),
+                                                        plan.detail, "mpc")))
 
     def _write_solve(self, t: float, plan: Plan, reason: str, model: HybridSystem,
                      latency: float, detail) -> None:
         """Writes one /mpc/solve message and its scene plan (``detail``: the MPC's)."""
-        st = plan.stats
-        self.rec.write("/mpc/solve", t, MpcSolve(
+        st, traj = plan.stats, plan.traj
+        msg = MpcSolve(
             t, reason, st.status, bool(st.success), int(st.iterations), float(st.wall_time),
             float(st.cost), float(st.max_violation), float(st.slack), bool(plan.adopt),
-            _schedule(plan.schedule, model), plan_nodes(plan.traj, t, model), detail,
-            float(latency)))
+            _schedule(plan.schedule, model),
+            PlanArrays(np.asarray(traj.t, dtype=float) + t, np.asarray(traj.seg),
+                       np.asarray(traj.mode), np.asarray(traj.x, dtype=float),
+                       np.asarray(traj.u, dtype=float)), detail, float(latency))
+        self.rec.write("/mpc/solve", t, dataclasses.replace(  # on the wire: node records
+            msg, plan=plan_nodes(msg.plan, 0.0, model)))
         if self.scene is not None:
             self.scene.plan(t, plan)
 
@@ -342,8 +347,17 @@ def thinned(traj: Trajectory, stride: int) -> Trajectory:
                                seg=seg[keep])
 
 
-def plan_nodes(traj: Trajectory, t0: float, model: HybridSystem) -> tuple[dict, ...]:
-    """A plan's nodes as :class:`PlanNode` records (absolute times: t0 + traj.t)."""
+def rollout_nodes(rollout: RolloutArrays, model: HybridSystem) -> tuple[dict, ...]:
+    """A rollout's nodes as :class:`RolloutNode` records (its wire form)."""
+    if len(rollout.t) == 0:
+        return ()
+    keys = flat_keys(RolloutNode, {"state": model.state_names})
+    return tuple(map(record_maker(keys), rollout.t.tolist(), *rollout.x.T.tolist()))
+
+
+def plan_nodes(traj: Trajectory | PlanArrays, t0: float,
+               model: HybridSystem) -> tuple[dict, ...]:
+    """A plan's nodes as :class:`PlanNode` records (its wire form; times t0 + traj.t)."""
     if len(traj.t) == 0:
         return ()
     keys = flat_keys(PlanNode, {"state": model.state_names, "input": model.input_names})
@@ -366,9 +380,18 @@ def _schedule(schedule: ModeSchedule | None, model: HybridSystem) -> ScheduleRec
                        tuple(d["guard_names"]), tuple(d["durations"]), d["t0"])
 
 
-def _detail(cls: type | None, extra: dict):
-    """A plug-in's ``extra`` as its declared detail type (None without one)."""
-    return convert(cls, extra) if cls is not None and extra else None
+def _detail(cls: type | None, detail, of: str):
+    """A plug-in's detail to log: None without a declared type (or a detail).
+
+    Raises:
+        TypeError: the detail is not an instance of the type the plug-in's spec declares.
+    """
+    if cls is None or detail is None:
+        return None
+    if not isinstance(detail, cls):
+        raise TypeError(f"the {of} plug-in's detail is a {type(detail).__name__}; its spec "
+                        f"declares {cls.__name__} (detail=)")
+    return detail
 
 
 def summary_record(r: RunResult, model: HybridSystem) -> Summary:

@@ -18,12 +18,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Annotated, Any
 
-__all__ = ["Detail", "Names", "convert", "flat_keys", "type_schema", "validate",
-           "viewer_problems"]
-
-
-
-
+__all__ = ["Detail", "Names", "Nodes", "convert", "flat_keys", "read_record", "record_type",
+           "type_schema", "validate", "viewer_problems"]
 
 
 @dataclass(frozen=True)
@@ -48,6 +44,11 @@ class Detail:
     of: str
 
 
+@dataclass(frozen=True)
+class Nodes:
+    """Arrays in memory (one row per node), written as an array of ``node`` records."""
+
+    node: type
 
 
 _SCALARS = {float: "number", int: "integer", str: "string", bool: "boolean"}
@@ -78,10 +79,12 @@ def type_schema(tp, names: Mapping[str, typing.Sequence[str]],
             if isinstance(m, Names):
                 return {"type": "object", "properties": {
                     n: {"type": m.value} for n in names.get(m.kind, ())}}
-            if isinstance(m, Detail):  # no declared detail: an empty object (always null)
+            if isinstance(m, Detail):  # no declared detail: an empty object (left out)
                 cls = details.get(m.of)
                 return {"type": "object", "properties": {}} if cls is None else \
                     type_schema(cls, names, details)
+            if isinstance(m, Nodes):
+                return {"type": "array", "items": type_schema(m.node, names, details)}
         return type_schema(base, names, details)
     if tp in _SCALARS:
         return {"type": _SCALARS[tp]}
@@ -157,6 +160,96 @@ def _convert_field(tp, v):
     return v
 
 
+_EMPTY = {float: float("nan"), int: 0, str: "", bool: False}
+
+
+def read_record(cls: type, value: Mapping):
+    """A logged object (decoded JSON) as dataclass ``cls``, as the log's reader sees it.
+
+    A field left out of the message gets its default, else NaN for a number, 0, "",
+    False, () or {} by its type, None for an optional or nested record (a field that was
+    None or NaN is left out when written; an older log lacks newer fields). Keys ``cls``
+    does not know are dropped (an older layout's). Nested records and tuples of records
+    are read the same way; a field typed :class:`Detail` or :class:`Nodes` is the
+    caller's to fill (it is passed through).
+    """
+    hints, kwargs = _hints(cls), {}
+    for f in dataclasses.fields(cls):
+        if f.name in value and value[f.name] is not None:
+            kwargs[f.name] = _read_field(hints[f.name], value[f.name])
+        elif f.default is not dataclasses.MISSING:
+            kwargs[f.name] = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            kwargs[f.name] = f.default_factory()
+        else:
+            kwargs[f.name] = _empty(hints[f.name])
+    return cls(**kwargs)
+
+
+def _read_field(tp, v):
+    tp, _ = _strip_optional(tp)
+    if typing.get_origin(tp) is Annotated:
+        tp = typing.get_args(tp)[0]
+    if dataclasses.is_dataclass(tp) and isinstance(v, Mapping):
+        return read_record(tp, v)
+    if typing.get_origin(tp) in (tuple, list) and isinstance(v, list):
+        item = typing.get_args(tp)[0]
+        return tuple(_read_field(item, x) for x in v)
+    if tp is float and isinstance(v, int):
+        return float(v)
+    return v
+
+
+def _empty(tp):
+    tp, optional = _strip_optional(tp)
+    if optional:
+        return None
+    if typing.get_origin(tp) is Annotated:
+        tp = typing.get_args(tp)[0]
+    if typing.get_origin(tp) in (tuple, list):
+        return ()
+    if tp is dict or typing.get_origin(tp) is dict:
+        return {}
+    return _EMPTY.get(tp)
+
+
+_JSON_TYPES = {"number": float, "integer": int, "string": str, "boolean": bool}
+
+
+@functools.lru_cache(maxsize=256)
+def _record_type(title: str, schema_json: str) -> type:
+    import json
+
+    schema = json.loads(schema_json)
+    fields = []
+    for name, sub in schema.get("properties", {}).items():
+        fields.append((name, _schema_type(name, sub) | None,
+                       dataclasses.field(default=None)))
+    return dataclasses.make_dataclass(title, fields, frozen=True)
+
+
+def _schema_type(name: str, sub: dict):
+    t = sub.get("type")
+    if t == "object":
+        return record_type(sub, name.title().replace("_", ""))
+    if t == "array":
+        return tuple[_schema_type(name, sub.get("items") or {}), ...]
+    return _JSON_TYPES.get(t, Any)
+
+
+def record_type(schema: dict, title: str = "Record") -> type:
+    """A frozen dataclass for a logged object schema (its ``title`` names it).
+
+    How a log's reader types a record whose class it does not import (a plug-in's
+    detail): one field per property (default None), nested objects and arrays of
+    objects typed the same way.
+    """
+    import json
+
+    return _record_type(str(schema.get("title") or title),
+                        json.dumps(schema, sort_keys=True))
+
+
 def viewer_problems(schema: dict, path: str = "") -> list[str]:
     """Where ``schema`` leaves the viewers' subset (empty: Foxglove/Lichtblick parse it)."""
     out = []
@@ -182,15 +275,15 @@ _PY = {"number": (int, float), "integer": (int,), "string": (str,), "boolean": (
 
 
 def validate(schema: dict, value, path: str = "") -> list[str]:
-    """Where a decoded JSON ``value`` does not match ``schema`` (null allowed anywhere).
+    """Where a decoded JSON ``value`` does not match ``schema``, as a JSON-schema validator.
 
-    Objects must have exactly the schema's properties (no unknown keys; absent ones are
-    allowed only for null-able fields written as null).
+    Objects may leave properties out (an optional or non-finite value is left out, never
+    null) but hold no unknown keys; null matches no type.
     """
     where = path or "(root)"
-    if value is None:
-        return []
     t = schema["type"]
+    if value is None:
+        return [f"{where}: null where the schema says {t}"]
     if t == "object":
         if not isinstance(value, dict):
             return [f"{where}: expected an object"]

@@ -17,6 +17,8 @@ CasADi's HPIPM interface has no control at the last stage (the last stage's vari
 are states only), so a last stage with a control (the fixed-mode NLP's slack sigma_L)
 is given a trailing empty stage (nx = nu = ng = 0): the last real stage then has no gap
 rows and keeps its control.
+
+The back-ends of ``mpc.solver`` are the entries of :mod:`hmpc_cli.mpc.solver_table`.
 """
 
 from __future__ import annotations
@@ -26,8 +28,6 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-#: back-ends of the MPC NLPs (``mpc.solver``)
-BACKENDS = ("ipopt", "sqp_hpipm", "fatrop", "sqpmethod")
 #: a bounded SQP run (real-time iterations) counts as a success below this violation
 RTI_VIOLATION = 1e-6
 #: added to the Gauss-Newton Hessian's diagonal (variables without cost curvature)

@@ -34,7 +34,8 @@ for the ball's switching NLP minutes of CPU and GBs of memory at -O1.
 ``HMPC_BUILD_CACHE`` (:func:`mode`): ``off`` (or ``0``) disables the cache; ``use`` (the
 default) loads compiled NLPs but never compiles (the user asks for the cost, once);
 ``background`` compiles a missing one at exit, ``sync`` in the foreground. No
-compiler, a cache directory writable by others, a non-IPOPT solver or a failed
+compiler, a cache directory writable by others, a solver the table does not mark
+``compilable`` (:mod:`hmpc_cli.mpc.solver_table`; IPOPT only) or a failed
 compilation: the NLP is built in SX, and :class:`BuildInfo` says why (it goes to the run
 log's ``/run/info``).
 """
@@ -63,7 +64,9 @@ import numpy as np
 
 from hmpc_cli import __version__
 from hmpc_cli.core import cbuild
+from hmpc_cli.core.messages import BuildInfo
 from hmpc_cli.mpc.builder import NLPLayout
+from hmpc_cli.mpc.solver_table import SOLVERS, backend_of
 
 ENV = "HMPC_BUILD_CACHE"
 CFLAGS = ("-O1", "-shared", "-fPIC", "-ffp-contract=off", "-fno-fast-math")
@@ -76,22 +79,6 @@ NON_STRUCTURAL = frozenset({"rate_hz", "tube_margin", "input_margin", "margins",
                             "resolve_on_impact", "final_domain_nlp", "node_shift"})
 _LOG = logging.getLogger(__name__)
 _QUEUE: list[Entry] = []  # entries this process compiles in the background at exit
-
-
-@dataclass(frozen=True)
-class BuildInfo:
-    """How an NLP was built.
-
-    Attributes:
-        cache: ``"hit"`` (loaded from the cache), ``"miss"`` (built in SX, the cache
-            filled) or ``"disabled"`` (built in SX, no cache).
-        compiled: the solver calls compiled code (else the SX virtual machine).
-        reason: why, in one line.
-    """
-
-    cache: str
-    compiled: bool
-    reason: str
 
 
 @dataclass(frozen=True)
@@ -227,8 +214,9 @@ def open_entry(key: str, plugin: str) -> tuple[Entry | None, Hit | None]:
     """The entry of ``key``, or None and why the cache is not used."""
     if mode() == "off":
         return None, _disabled(f"{ENV}=off: the NLPs are built in SX")
-    if plugin != "ipopt":
-        return None, _disabled(f"solver {plugin!r}: compiled NLPs are for ipopt only")
+    if not backend_of(plugin).compilable:
+        able = " or ".join(b.name for b in SOLVERS.values() if b.compilable)
+        return None, _disabled(f"solver {plugin!r}: compiled NLPs are for {able} only")
     cc = cbuild.compiler()
     if cc is None:
         why = cbuild.compiler_problem() or "no C compiler found (set CC or install cc/gcc)"

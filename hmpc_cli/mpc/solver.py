@@ -1,12 +1,13 @@
 """One solver session of a parametric NLP: options, cold and warm instances, solves.
 
-Both MPC NLPs solve through a :class:`SolverSession`: it builds the plugin's options
-(:func:`plugin_options`), a cold instance and, for IPOPT, a warm-start instance
-(:class:`WarmStart`), and turns every solve into a :class:`SolveResult` with the
-:class:`~hmpc_cli.core.messages.SolveStats` of the closed loop. The back-end ``sqp_hpipm``
-(:mod:`hmpc_cli.mpc.backends`: SQP, Gauss-Newton Hessian, HPIPM on the NLP's stage
-structure) runs a bounded number of iterations from the primal-dual warm start; a solve
-it fails is solved again by IPOPT (built on first use) and marked ``fallback``. A solve
+Both MPC NLPs solve through a :class:`SolverSession` of one back-end of the table
+:data:`~hmpc_cli.mpc.solver_table.SOLVERS`: it builds the entry's options, a cold
+instance and, if the entry has one, a warm-start instance (IPOPT's: :class:`WarmStart`),
+and turns every solve into a :class:`SolveResult` with the
+:class:`~hmpc_cli.core.messages.SolveStats` of the closed loop. A back-end with a
+fallback (``sqp_hpipm``: SQP, Gauss-Newton Hessian, HPIPM on the NLP's stage structure,
+a bounded number of iterations from the primal-dual warm start) has a solve it fails
+solved again by the fallback (IPOPT, built on first use), marked ``fallback``. A solve
 never raises on a solver failure (CasADi's ``RuntimeError`` on NaN evaluations becomes a
 failed solve with status ``"error: ..."``); it does raise ``KeyboardInterrupt`` when the
 user interrupted IPOPT: CasADi catches the interrupt inside IPOPT's callbacks and returns
@@ -25,22 +26,17 @@ import numpy as np
 
 from hmpc_cli.core import signals
 from hmpc_cli.core.messages import SolveStats
-from hmpc_cli.mpc.backends import OCPStructure, rti_success, sqp_options
+from hmpc_cli.mpc.backends import OCPStructure, rti_success
+from hmpc_cli.mpc.solver_table import (
+    SolverArgs, WarmStart, backend_of, split_options, warm_options)
+
+__all__ = ["DERIVATIVES", "FALLBACK_WARM", "INTERRUPTED", "LINEAR_SOLVERS", "SolveResult",
+           "SolverSession", "WarmStart", "derivatives_of", "failed", "option_problems",
+           "plugin_options", "warm_options"]
 
 INTERRUPTED = "NonIpopt_Exception_Thrown"
-
-
-@dataclass(frozen=True)
-class WarmStart:
-    """Options of the warm IPOPT instance (primal-dual warm starts).
-
-    Attributes:
-        mu_init: initial barrier parameter.
-        bound_push: ``warm_start_{bound,mult_bound,slack_bound}_push``.
-    """
-
-    mu_init: float
-    bound_push: float
+#: the fallback's warm start when its session was given none
+FALLBACK_WARM = WarmStart(mu_init=1e-6, bound_push=1e-9)
 
 
 @dataclass(frozen=True)
@@ -70,57 +66,25 @@ def failed(w0: np.ndarray, message: str, wall: float = 0.0) -> SolveResult:
 def plugin_options(plugin: str, max_iter: int, tol: float = 1e-8,
                    max_wall_time: float | None = None, equality: list[bool] | None = None,
                    extra: dict | None = None) -> dict:
-    """CasADi ``nlpsol`` options of the cold instance.
+    """CasADi ``nlpsol`` options of the cold instance of back-end ``plugin``.
 
     Args:
-        plugin: "ipopt", "sqpmethod" or "fatrop" ("sqp_hpipm": see
-            :func:`hmpc_cli.mpc.backends.sqp_options`).
+        plugin: a back-end of :data:`~hmpc_cli.mpc.solver_table.SOLVERS` that needs no
+            NLP to build its options ("ipopt", "sqpmethod", "fatrop").
         max_iter: iteration limit.
         tol: IPOPT ``tol``.
         max_wall_time: IPOPT ``max_wall_time`` [s] (None: none).
         equality: fatrop: per row, True for equality rows, shape (ng,).
-        extra: user options: ``"ipopt"`` (IPOPT options), ``"ipopt_warm"`` (warm
-            instance only), ``"hpipm"`` (``sqp_hpipm`` only, dropped here), the rest
-            ``nlpsol`` options.
+        extra: user options: the back-ends' sections (``"ipopt"``, ``"ipopt_warm"``
+            (warm instance only), ``"hpipm"``), the rest ``nlpsol`` options.
+
+    Raises:
+        ValueError: an unknown back-end.
     """
-    opts: dict = {"expand": True}
-    extra = dict(extra or {})
-    extra.pop("ipopt_warm", None)
-    extra.pop("hpipm", None)  # the sqp_hpipm back-end's (shared settings)
-    if plugin == "ipopt":
-        ipopt = {"print_level": 0, "sb": "yes", "max_iter": max_iter, "tol": tol,
-                 "constr_viol_tol": 1e-8, "mu_strategy": "adaptive"}
-        if max_wall_time is not None:
-            ipopt["max_wall_time"] = max_wall_time
-        ipopt.update(extra.pop("ipopt", {}))
-        opts.update({"ipopt": ipopt, "print_time": False})
-    elif plugin == "sqpmethod":
-        opts.update({"max_iter": max_iter, "print_time": False, "print_header": False,
-                     "print_iteration": False, "qpsol": "qrqp",
-                     "qpsol_options": {"print_iter": False, "print_header": False,
-                                       "error_on_fail": False}})
-    elif plugin == "fatrop":
-        opts.update({"structure_detection": "auto", "print_time": False})
-        if equality is not None:
-            opts["equality"] = list(equality)
-        opts["fatrop"] = {"print_level": 0, "max_iter": max_iter}
-    else:
-        raise ValueError(f"unknown NLP solver plugin {plugin!r}")
-    opts.update(extra)
-    return opts
-
-
-def warm_options(cold: dict, warm: WarmStart, extra: dict | None = None) -> dict:
-    """Options of the warm IPOPT instance.
-
-    Returns:
-        ``cold`` with the warm-start IPOPT options and the user's ``extra["ipopt_warm"]``.
-    """
-    push = warm.bound_push
-    ipopt = {**cold["ipopt"], "warm_start_init_point": "yes", "mu_init": warm.mu_init,
-             "warm_start_bound_push": push, "warm_start_mult_bound_push": push,
-             "warm_start_slack_bound_push": push, **(extra or {}).get("ipopt_warm", {})}
-    return {**cold, "ipopt": ipopt}
+    backend = backend_of(plugin)
+    nlpsol, sections = split_options(backend, extra)
+    return backend.options(SolverArgs(max_iter, tol, max_wall_time, equality, nlpsol,
+                                      sections))
 
 
 #: IPOPT's derivative options -> the functions nlpsol generates for them
@@ -186,20 +150,26 @@ class SolverSession:
 
     Args:
         name: instance name (the warm one gets ``_warm`` appended).
-        nlp: ``{"x", "p", "f", "g"}`` (e.g. from :meth:`NLPBuilder.build`), or (IPOPT,
-            fatrop, sqpmethod) the path of a shared library of the functions an
+        nlp: ``{"x", "p", "f", "g"}`` (e.g. from :meth:`NLPBuilder.build`), or (a
+            compilable back-end) the path of a shared library of the functions an
             ``nlpsol`` of that NLP generates (``generate_dependencies``; see
             :mod:`hmpc_cli.mpc.cache`).
-        plugin: "ipopt", "sqpmethod", "fatrop" or "sqp_hpipm".
-        max_iter, tol, max_wall_time, equality, extra: see :func:`plugin_options`
-            (``sqp_hpipm``: ``max_iter`` and ``tol`` are those of the IPOPT fallback,
-            ``extra["hpipm"]`` HPIPM options, ``extra["ipopt"]`` the fallback's).
-        warm: warm IPOPT instance options (None, or another plugin: warm starts run on
-            the cold instance).
-        structure: ``sqp_hpipm``: the NLP's stage structure (required).
+        plugin: the back-end's name in :data:`~hmpc_cli.mpc.solver_table.SOLVERS`.
+        max_iter, tol, max_wall_time, equality: see
+            :class:`~hmpc_cli.mpc.solver_table.SolverArgs` (``sqp_hpipm``: ``max_iter``
+            is its fallback's; it runs ``sqp_iter``).
+        extra: user options: the back-ends' sections (``"ipopt"``, ``"ipopt_warm"``,
+            ``"hpipm"``; a fallback gets its own), the rest ``nlpsol`` options.
+        warm: warm instance options (None, or a back-end without a warm instance: warm
+            starts run on the cold instance).
+        structure: stage-wise back-ends: the NLP's stage structure.
         sqp_iter: ``sqp_hpipm``: SQP iterations per solve (real-time iterations).
         residuals: ``sqp_hpipm``: least-squares residuals of the cost (see
             :func:`hmpc_cli.mpc.backends.gauss_newton_hessian`).
+
+    Raises:
+        ValueError: an unknown back-end, or a compiled library for a back-end that
+            cannot load one.
     """
 
     def __init__(self, name: str, nlp: dict, plugin: str = "ipopt", *, max_iter: int,
@@ -207,33 +177,27 @@ class SolverSession:
                  equality: list[bool] | None = None, extra: dict | None = None,
                  warm: WarmStart | None = None, structure: OCPStructure | None = None,
                  sqp_iter: int = 10, residuals=None) -> None:
-        """Builds the cold and (IPOPT with ``warm``) the warm instance."""
+        """Builds the cold and (a back-end with a warm instance, ``warm``) the warm one."""
+        self.backend = backend = backend_of(plugin)
         self.plugin, self._nlp, self._name = plugin, nlp, name
-        ipopt_extra = {k: v for k, v in (extra or {}).items() if k in ("ipopt", "ipopt_warm")}
-        self._ipopt_args = (max_iter, tol, max_wall_time, ipopt_extra, warm)
-        self._fallback: tuple | None = None
+        self._args = dict(max_iter=max_iter, tol=tol, max_wall_time=max_wall_time,
+                          equality=equality, extra=extra, warm=warm, structure=structure,
+                          sqp_iter=sqp_iter, residuals=residuals)
+        self._fallback: SolverSession | None = None
         compiled = isinstance(nlp, str)  # a library of nlpsol's generated functions
-        if plugin == "sqp_hpipm":
-            if structure is None or compiled:
-                raise ValueError("solver sqp_hpipm needs the NLP's expressions and its stage "
-                                 "structure")
-            extra = dict(extra or {})
-            hpipm = extra.pop("hpipm", {})
-            extra.pop("ipopt", None)
-            extra.pop("ipopt_warm", None)
-            self.options = {**sqp_options(nlp, structure, sqp_iter, tol, residuals, hpipm),
-                            **extra}
-            self.cold = self.warm = ca.nlpsol(name, "sqpmethod", nlp, self.options)
-        else:
-            self.options = plugin_options(plugin, max_iter, tol, max_wall_time, equality,
-                                          extra)
-            load = {k: v for k, v in self.options.items() if k != "expand"} if compiled \
-                else self.options
-            self.cold = self.warm = ca.nlpsol(name, plugin, nlp, load)
-            if plugin == "ipopt" and warm is not None:
-                self.warm = ca.nlpsol(f"{name}_warm", plugin, nlp, {
-                    **warm_options(load, warm, extra),
-                    **({} if compiled else derivatives_of(self.cold))})
+        if compiled and not backend.compilable:
+            raise ValueError(f"solver {plugin!r} cannot load a compiled NLP")
+        nlpsol, sections = split_options(backend, extra)
+        self.options = backend.options(SolverArgs(
+            max_iter, tol, max_wall_time, equality, nlpsol, sections, nlp, structure,
+            sqp_iter, residuals))
+        load = {k: v for k, v in self.options.items() if k != "expand"} if compiled \
+            else self.options
+        self.cold = self.warm = ca.nlpsol(name, backend.plugin, nlp, load)
+        if backend.warm is not None and warm is not None:
+            self.warm = ca.nlpsol(f"{name}_warm", backend.plugin, nlp, {
+                **backend.warm(load, warm, sections),
+                **({} if compiled else derivatives_of(self.cold))})
         self._g = ca.external("nlp_g", nlp) if compiled else \
             ca.Function("g", [nlp["x"], nlp["p"]], [nlp["g"]])
 
@@ -241,35 +205,37 @@ class SolverSession:
         """One solve from ``w0``; never raises on a solver failure.
 
         With both multiplier guesses the warm instance runs (multipliers of rows and
-        variables without finite bounds zeroed), else the cold one. ``sqp_hpipm``: a
-        failed solve is solved again by IPOPT (``stats.fallback`` True).
+        variables without finite bounds zeroed), else the cold one. A back-end with a
+        fallback: a failed solve is solved again by the fallback (``stats.fallback``).
 
         Raises:
             KeyboardInterrupt: the solve was interrupted (Ctrl-C inside IPOPT);
                 :class:`hmpc_cli.core.signals.Interrupted` when a stop signal is pending.
         """
         args = (w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0)
-        res = _run((self.cold, self.warm), *args, rti=self.plugin == "sqp_hpipm")
-        if self.plugin != "sqp_hpipm" or res.stats.success:
+        res = _run((self.cold, self.warm), *args, rti=self.backend.bounded)
+        if self.backend.fallback is None or res.stats.success:
             return res
-        again = _run(self.fallback_instances(), *args)
+        again = self.fallback_session().solve(*args)
         st = again.stats
-        status = f"{st.status} (fallback; sqp_hpipm: {res.stats.status})"
+        status = f"{st.status} (fallback; {self.plugin}: {res.stats.status})"
         stats = SolveStats(status, st.success, res.stats.iterations + st.iterations,
                            res.stats.wall_time + st.wall_time, st.cost, st.max_violation,
                            fallback=True)
         return SolveResult(again.x, again.lam_x, again.lam_g, stats)
 
-    def fallback_instances(self) -> tuple:
-        """The (cold, warm) IPOPT instances of the fallback (built on first use)."""
+    def fallback_session(self) -> SolverSession:
+        """The session of the back-end's fallback (built on first use).
+
+        It gets the fallback's own option sections and, if this session has none, the
+        warm start :data:`FALLBACK_WARM`.
+        """
         if self._fallback is None:
-            max_iter, tol, wall, extra, warm = self._ipopt_args
-            cold = plugin_options("ipopt", max_iter, tol, wall, extra=extra)
-            first = ca.nlpsol(f"{self._name}_ipopt", "ipopt", self._nlp, cold)
-            self._fallback = (first, ca.nlpsol(
-                f"{self._name}_ipopt_warm", "ipopt", self._nlp,
-                {**warm_options(cold, warm or WarmStart(1e-6, 1e-9), extra),
-                 **derivatives_of(first)}))
+            fallback = backend_of(self.backend.fallback)
+            args = {**self._args, "warm": self._args["warm"] or FALLBACK_WARM,
+                    "extra": split_options(fallback, self._args["extra"])[1]}
+            self._fallback = SolverSession(f"{self._name}_{fallback.name}", self._nlp,
+                                           fallback.name, **args)
         return self._fallback
 
     def constraints(self, w, p) -> np.ndarray:
@@ -298,23 +264,26 @@ def option_problems(plugin: str, extra: dict, key: str = "mpc.solver_options") -
     CasADi rejects unknown ``nlpsol`` options when the solver is built; IPOPT reports an
     unknown option or an unavailable linear solver only when it solves (status
     ``Invalid_Option``), so one tiny problem is solved with the same options.
+    Only back-ends with ``probe`` are tried (the others' options fail when the NLP is
+    built, a PluginError); a back-end's fallback is tried with its own sections.
     """
     import json
 
-    if plugin == "sqp_hpipm":  # its IPOPT fallback's options (the rest fail at build)
-        plugin, extra = "ipopt", {k: v for k, v in extra.items()
-                                  if k in ("ipopt", "ipopt_warm")}
-    if plugin != "ipopt":  # their options fail when the NLP is built (a PluginError)
-        return []
-    return list(_option_problems(plugin, json.dumps(extra, sort_keys=True), key))
+    backend = backend_of(plugin)
+    checks = [(backend, extra)]
+    if backend.fallback is not None:
+        fallback = backend_of(backend.fallback)
+        checks.append((fallback, split_options(fallback, extra)[1]))
+    return [line for b, opts in checks if b.probe
+            for line in _option_problems(b.name, json.dumps(opts, sort_keys=True), key)]
 
 
 @lru_cache(maxsize=64)
-def _option_problems(plugin: str, extra_json: str, key: str) -> tuple[str, ...]:
+def _option_problems(name: str, extra_json: str, key: str) -> tuple[str, ...]:
     import json
 
-    extra = json.loads(extra_json)
-    for instance, opts in _probe_options(plugin, extra):
+    extra, plugin = json.loads(extra_json), backend_of(name).plugin
+    for instance, opts in _probe_options(name, extra):
         solver = opts.get("ipopt", {}).get("linear_solver")
         # a linear solver is tried in a child process: some HSL stubs crash the process
         status = _probe(plugin, opts) if solver is None else _probe_isolated([(plugin, opts)])[0]
@@ -364,12 +333,13 @@ def _probe_isolated(cases: list[tuple[str, dict]]) -> list[str | None]:
     return out
 
 
-def _probe_options(plugin: str, extra: dict) -> list[tuple[str, dict]]:
-    """(instance, nlpsol options) of the cold and (IPOPT) warm instances."""
-    cold = plugin_options(plugin, 5, extra=extra)
-    if plugin != "ipopt":
+def _probe_options(name: str, extra: dict) -> list[tuple[str, dict]]:
+    """(instance, nlpsol options) of back-end ``name``'s cold and (if any) warm instances."""
+    backend, cold = backend_of(name), plugin_options(name, 5, extra=extra)
+    if backend.warm is None:
         return [("cold", cold)]
-    return [("cold", cold), ("warm", warm_options(cold, WarmStart(1e-4, 1e-6), extra))]
+    warm = backend.warm(cold, WarmStart(1e-4, 1e-6), split_options(backend, extra)[1])
+    return [("cold", cold), ("warm", warm)]
 
 
 def _probe(plugin: str, opts: dict) -> str | None:

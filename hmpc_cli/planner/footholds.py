@@ -5,8 +5,9 @@ after each contact the fixed-mode MPC is solved once per candidate surface (thro
 ``solve`` callback the loop hands the planner, so this module never imports an MPC) and
 the best solution is kept (the reference: the largest final hip x). A candidate is a
 guard with a contact surface (``HybridSystem.guard_surfaces``: (start, end, height) [m]);
-its schedule is one switch through that guard. Needs the system outputs ``stance_foot``
-(x -> (2,)) and, for ``max_hip_x``, ``hip_world``.
+its schedule is one switch through that guard. Needs the system's
+:class:`~hmpc_cli.core.walker.WalkerModel`: the stance foot x[stance_index] and, for
+``max_hip_x``, ``hip_world``.
 """
 
 from __future__ import annotations
@@ -23,9 +24,11 @@ from pydantic import ConfigDict, Field
 from hmpc_cli.core.kinds import PlannerSettings
 from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.core.messages import ModeSchedule, Plan, PlannerResult
+from hmpc_cli.core.numeric import compile_numpy
 from hmpc_cli.core.registry import PlannerSpec, Requirement
 from hmpc_cli.core.settings_types import FiniteFloat, StrictBool
 from hmpc_cli.core.stack import SolveFn
+from hmpc_cli.core.walker import WalkerModel
 
 Segment = tuple[float, float, float]
 
@@ -81,14 +84,17 @@ def choose(plans: Sequence[Plan | None], settings: FootholdSettings | None = Non
     Args:
         plans: candidate plans (None: not solved).
         settings: the selection criterion.
-        hip_x: plan -> its last hip x in the world [m] (``max_hip_x``; default: the
-            plan's ``extra["final_hip"][0]``).
+        hip_x: plan -> its last hip x in the world [m] (needed for ``max_hip_x``).
 
     ``min_cost`` reads ``plan.stats.cost``. Ties keep the first. None tells the caller
     to keep its previous plan.
+
+    Raises:
+        ValueError: ``max_hip_x`` without ``hip_x``.
     """
     s = settings or FootholdSettings()
-    hip_x = hip_x or (lambda plan: float(plan.extra["final_hip"][0]))
+    if s.criterion == "max_hip_x" and hip_x is None:
+        raise ValueError("choose: the max_hip_x criterion needs hip_x (plan -> hip x [m])")
     best, best_score = None, None
     for i, plan in enumerate(plans):
         if plan is None or not plan.stats.success:
@@ -103,16 +109,23 @@ class FootholdPlanner:
     """Ranks the contact surfaces within reach by the fixed-mode MPC's solutions.
 
     Args:
-        system: the controllers' model (``guard_surfaces``, ``stance_foot``, ``hip_world``).
+        system: the controllers' model (``guard_surfaces`` and ``walker``).
         settings: candidate enumeration and selection.
+
+    Raises:
+        ValueError: the system has no :class:`~hmpc_cli.core.walker.WalkerModel`.
     """
 
     def __init__(self, system: HybridSystem, settings: FootholdSettings) -> None:
+        if not isinstance(system.walker, WalkerModel):
+            raise ValueError(f"the footholds planner needs a WalkerModel: system "
+                             f"{system.name!r} has none (HybridSystem.walker)")
         self.system, self.s = system, settings
         self.guards = sorted(system.guard_surfaces)
         self.surfaces = [system.guard_surfaces[g] for g in self.guards]
-        self._stance = system.numeric.output("stance_foot")
-        self._hip = system.numeric.output("hip_world") \
+        self.walker = system.walker
+        self._stance_x = system.walker.stance_index.start
+        self._hip = compile_numpy(system.walker.hip_world) \
             if settings.criterion == "max_hip_x" else None
 
     def _hip_x(self, plan: Plan) -> float:
@@ -122,31 +135,42 @@ class FootholdPlanner:
         """Solves every candidate from (t, x, mode) and keeps the best plan's schedule.
 
         The result's schedule is the chosen plan's (one switch through the chosen guard,
-        planned at t); ``extra["candidates"]`` lists every candidate's solve.
+        planned at t); its detail (:class:`FootholdsDetail`) lists every candidate's
+        solve, with the planned touchdown and final hip from the plan's trajectory.
         """
         start = time.perf_counter()
-        stance_x = float(self._stance(np.asarray(x, dtype=float))[0][0])
+        stance_x = float(np.asarray(x, dtype=float)[self._stance_x])
         try:
             cand = [self.guards[i] for i in candidates(stance_x, self.surfaces, self.s)]
         except ValueError as exc:
             return PlannerResult(None, None, math.nan, False, time.perf_counter() - start, 0,
-                                 str(exc), {"candidates": []})
+                                 str(exc), FootholdsDetail(()))
         plans = [solve(ModeSchedule((mode, mode), (g,), (math.nan,), t)) for g in cand]
         best = choose(plans, self.s, self._hip_x)
-        rows = [{"segment": g, "guard_name": self.system.guards[g].name,
-                 "status": p.stats.status, "success": p.stats.success,
-                 "iterations": p.stats.iterations, "wall_time": p.stats.wall_time,
-                 "cost": p.stats.cost, **{k: list(v) for k, v in p.extra.items()
-                                          if k in ("final_hip", "touchdown")}}
-                for g, p in zip(cand, plans, strict=True)]
+        detail = FootholdsDetail(tuple(self._candidate(g, p)
+                                       for g, p in zip(cand, plans, strict=True)))
+        solved = tuple(plans)
         chosen = plans[best] if best is not None else None
         iters = int(sum(p.stats.iterations for p in plans))
         wall = time.perf_counter() - start
         if chosen is None:
             return PlannerResult(None, None, math.nan, False, wall, iters,
-                                 "every candidate failed", {"candidates": rows})
+                                 "every candidate failed", detail, solved)
         return PlannerResult(chosen.schedule, chosen.traj, chosen.stats.cost, True, wall,
-                             iters, "", {"candidates": rows})
+                             iters, "", detail, solved)
+
+    def _candidate(self, guard: int, plan: Plan) -> Candidate:
+        """One candidate's row: its solve, planned touchdown and final hip (x, y) [m].
+
+        The touchdown is the swing foot at the last node before the impact (segment 0).
+        """
+        st, x = plan.stats, plan.traj.x
+        pre = int(np.flatnonzero(np.asarray(plan.traj.seg) == 0)[-1])
+        touchdown = np.asarray(self.walker.swing_foot_world(x[pre])).ravel()
+        hip = np.asarray(self.walker.hip_world(x[-1])).ravel()
+        return Candidate(guard, self.system.guards[guard].name, st.status, st.success,
+                         st.iterations, st.wall_time, st.cost,
+                         tuple(float(v) for v in hip), tuple(float(v) for v in touchdown))
 
 
 @dataclass(frozen=True)
@@ -174,7 +198,7 @@ class FootholdsDetail:
 PLANNER = PlannerSpec(
     kind="footholds", settings=FootholdSettings,
     make=lambda system, settings, seed: FootholdPlanner(system, settings),
-    needs=frozenset({"guard_surfaces", "stance_foot", "hip_world"}), detail=FootholdsDetail,
+    needs=frozenset({"guard_surfaces", WalkerModel}), detail=FootholdsDetail,
     requires=(Requirement("replanning.policy", "on_contact",
                           "the foothold of every swing is chosen at its contact"),),
 )

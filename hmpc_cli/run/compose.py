@@ -8,11 +8,10 @@ log: the runner opens the recorder and hands the loop a topic writer over it.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from dataclasses import dataclass, field
 
-from hmpc_cli.core.messages import ConstraintMargins
+from hmpc_cli.core.messages import BuildInfo, ConstraintMargins
 from hmpc_cli.core.stack import FixedModeMPC, Planner, Task
 from hmpc_cli.log.books import RunBooks, RunResult
 from hmpc_cli.log.runlog import RunIdentity
@@ -130,10 +129,10 @@ def build(scenario) -> PreparedRun:
                        identity, books)
 
 
-def _build_info(problem) -> dict | None:
-    """How an MPC problem's NLPs were built (its ``build_info``), JSON-ready, if it says."""
+def _build_info(problem) -> BuildInfo | None:
+    """How an MPC problem's NLPs were built (its ``build_info``), if it says."""
     info = getattr(problem, "build_info", None)
-    return dataclasses.asdict(info) if dataclasses.is_dataclass(info) else None
+    return info if isinstance(info, BuildInfo) else None
 
 
 def _mpc(sc, model, margins: ConstraintMargins | None) -> tuple[FixedModeMPC, object]:

@@ -41,7 +41,7 @@ def rejected_plan(t: float, x: np.ndarray, mode: int, schedule: ModeSchedule,
     traj = Trajectory(np.zeros(1), x[None], np.zeros((1, 0)), np.array([mode]),
                       np.zeros(1, dtype=int))
     stats = SolveStats(f"schedule rejected: {reason}", False, 0, 0.0, math.nan, math.inf)
-    return Plan(t, traj, stats, schedule, {}, adopt=False)
+    return Plan(t, traj, stats, schedule, adopt=False)
 
 
 class ChainMPC:
@@ -83,7 +83,7 @@ class ChainMPC:
         """Solves over ``schedule`` from x (n,) at time t [s] (see the module docstring).
 
         Returns:
-            The plan; ``extra``: ``shifted`` (nodes moved by time), ``counts`` (flow
+            The plan; its detail a :class:`ChainDetail` (nodes moved by time, flow
             intervals per domain). A schedule the chain cannot hold gives a rejected,
             unsolved plan (``adopt`` False) and leaves the previous one in place.
         """
@@ -102,9 +102,8 @@ class ChainMPC:
             shifted = self._shift(self.s.shifted_nodes(t - self._t_shift))
         self._t_shift = t
         plan = self.chain.solve(t, x)
-        counts = list(self.chain.node_schedule.counts)
-        return replace(plan, schedule=self._schedule,
-                       extra={"shifted": shifted, "counts": counts})
+        return replace(plan, schedule=self._schedule, detail=ChainDetail(
+            int(shifted), tuple(int(c) for c in self.chain.node_schedule.counts)))
 
     def _new_plan(self, schedule: ModeSchedule) -> bool:
         """Whether ``schedule`` is a newly planned one (else the one the nodes follow).

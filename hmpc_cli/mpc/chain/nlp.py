@@ -57,6 +57,7 @@ from hmpc_cli.mpc.builder import Blocks, NLPBuilder, NLPLayout
 from hmpc_cli.mpc.chain.layout import FLOW, ChainLayout, NodeSchedule
 from hmpc_cli.mpc.chain.problem_data import INF, ChainShape, problem_data
 from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart
+from hmpc_cli.mpc.solver_table import SOLVERS, SolverName, describe
 from hmpc_cli.core.settings_types import (
     MAX_NLP_NODES, BoundedInt, FiniteFloat, StrictBool, nlp_estimate)
 
@@ -100,18 +101,14 @@ class MPCSettings(MarginsSettings):
         "low level (as hmpc tube computes them; cached), so each MPC rate gets its own; else "
         "a margins file of hmpc tube --write (relative to the scenario file's directory): "
         "its guard-avoid, pass-through and input margins at mpc.rate_hz replace them")
-    solver: Literal["ipopt", "sqp_hpipm", "fatrop", "sqpmethod"] = Field(
-        "ipopt", description='NLP back-end: "ipopt" (interior point, MUMPS), "sqp_hpipm" '
-        "(SQP with a Gauss-Newton Hessian and HPIPM's Riccati QP solver, IPOPT fallback on "
-        'failure; needs input_hold = "zoh"), "fatrop" (needs "zoh"), "sqpmethod" (exact '
-        "Hessian, sparse active-set QP)")
+    solver: SolverName = Field("ipopt", description=f"NLP back-end: {describe()}")
     solver_options: dict = Field(default_factory=dict, description="passed to the plugin")
     max_iter: BoundedInt = Field(200, gt=0, description="iteration limit (sqp_hpipm: of "
                                  "its IPOPT fallback)")
     max_sqp_iter: BoundedInt = Field(3, gt=0, description="sqp_hpipm: SQP iterations per "
                                      "solve (real-time iterations; a feasible point at the "
                                      "limit is accepted)")
-    switching_solver: Literal["ipopt", "sqp_hpipm", "fatrop", "sqpmethod"] | None = Field(
+    switching_solver: SolverName | None = Field(
         None, description="back-end of the switching chain NLP (None: mpc.solver, but "
         '"ipopt" when mpc.solver is "sqp_hpipm": the SQP converges only linearly on its '
         "degenerate guard-hit rows)")
@@ -139,7 +136,7 @@ class MPCSettings(MarginsSettings):
     @model_validator(mode="after")
     def _stagewise_for_fatrop(self) -> MPCSettings:
         for solver in (self.solver, self.switching_solver):
-            if solver in ("fatrop", "sqp_hpipm") and self.input_hold == "foh":
+            if solver is not None and SOLVERS[solver].stagewise and self.input_hold == "foh":
                 raise ValueError(f'solver "{solver}" needs stage-wise dynamics: set '
                                  'input_hold = "zoh" (a first-order hold couples each '
                                  'interval to the next input)')
@@ -163,7 +160,7 @@ class MPCSettings(MarginsSettings):
             return self.solver
         if self.switching_solver is not None:
             return self.switching_solver
-        return "ipopt" if self.solver == "sqp_hpipm" else self.solver
+        return SOLVERS[self.solver].switching or self.solver
 
     def period_steps(self) -> list[tuple[str, int]]:
         """Step rates the MPC period must be a whole number of (key path, rate [Hz])."""
@@ -323,16 +320,15 @@ class FixedModeNLP:
 
     def _session(self, nlp: dict | str) -> SolverSession:
         """The solver session of the NLP (an SX dict or a compiled library's path)."""
-        equality, solver = None, self.s.solver_of(self.S)
-        if solver == "fatrop":
+        equality, structure, solver = None, None, self.s.solver_of(self.S)
+        if SOLVERS[solver].stagewise:
             eq = np.zeros(self.layout.g.size, dtype=bool)
             eq[self.layout.g["dynamics"]] = True
-            equality = eq.tolist()
+            equality, structure = eq.tolist(), self.structure()
         return SolverSession(
             "fixed_mode_mpc", nlp, solver, max_iter=self.s.max_iter, tol=1e-8,
             equality=equality, extra=self.s.solver_options, warm=WARM_START,
-            structure=self.structure() if solver == "sqp_hpipm" else None,
-            sqp_iter=self.s.max_sqp_iter)
+            structure=structure, sqp_iter=self.s.max_sqp_iter)
 
     def _transcription(self) -> tuple[dict, NLPLayout]:
         """The NLP ``{"x", "p", "f", "g"}`` in SX and its layout."""

@@ -37,6 +37,7 @@ from hmpc_cli.mpc.chain.kind import rejected_plan
 from hmpc_cli.mpc.solver import failed
 from hmpc_cli.mpc.walking.nlp import WalkingMPCSettings, WalkingNLP, hand_margins
 from hmpc_cli.core.registry import MPCSpec
+from hmpc_cli.core.walker import WalkerModel
 
 __all__ = ["MPC", "WalkingMPC", "WalkingMPCSettings", "WalkingNLP"]
 
@@ -231,10 +232,8 @@ class WalkingMPC:
 
         Returns:
             The plan; ``stats.success`` False on any solver failure or a segment too
-            short for the margin (never raises for those). ``extra``: segment, elapsed,
-            warm ("primal-dual", "primal", "neighbour": another surface's solution
-            from the same state, or "cold"), touchdown (x, y) and final_hip
-            (x, y) in the world [m].
+            short for the margin (never raises for those); its detail a
+            :class:`WalkingDetail` (segment, elapsed, warm start, touchdown, final hip).
 
         Raises:
             IndexError: no such surface.
@@ -261,13 +260,13 @@ class WalkingMPC:
         finite = bool(np.all(np.isfinite(res.x)))
         traj = self.trajectory(res.x if finite else w0, p, segment)
         remaining = nlp.N * nlp.dt0(elapsed)
-        td = np.asarray(self.system.output("swing_foot_world")(traj.x[nlp.N])).ravel()
-        hip = np.asarray(self.system.output("hip_world")(traj.x[-1])).ravel()
-        extra = {"segment": segment, "elapsed": float(elapsed), "warm": kind,
-                 "touchdown": tuple(float(v) for v in td),
-                 "final_hip": tuple(float(v) for v in hip)}
-        return Plan(t, traj, res.stats, ModeSchedule((0, 0), (segment,), (remaining,), t),
-                    extra)
+        td = np.asarray(nlp.walker.swing_foot_world(traj.x[nlp.N])).ravel()
+        hip = np.asarray(nlp.walker.hip_world(traj.x[-1])).ravel()
+        detail = WalkingDetail(int(segment), float(elapsed), kind,
+                               tuple(float(v) for v in td), tuple(float(v) for v in hip))
+        stance = (nlp.mode, nlp.mode)
+        return Plan(t, traj, res.stats, ModeSchedule(stance, (segment,), (remaining,), t),
+                    detail)
 
     # ------------------------------------------------------------- trajectory
     def trajectory(self, w: np.ndarray, p: np.ndarray, segment: int) -> Trajectory:
@@ -275,7 +274,8 @@ class WalkingMPC:
 
         Times relative to t0; x rows (q, qd, p_st); u rows the inverse-dynamics torques
         of the interval starting at each node (the last node of a swing repeats the
-        previous one); seg 0 up to the pre-impact node, 1 from the post-reset node.
+        previous one); every node in the stance mode; seg 0 up to the pre-impact node, 1
+        from the post-reset node.
         """
         nlp, N = self.nlp, self.nlp.N
         xs, us = nlp.states_inputs(w, p)
@@ -283,7 +283,8 @@ class WalkingMPC:
         t = np.r_[np.arange(N + 1) * dt0, N * dt0 + np.arange(N + 1) * self.s.dt]
         u = np.vstack([us[:N], us[N - 1:N], us[N:], us[-1:]])
         seg = np.r_[np.zeros(N + 1, dtype=int), np.ones(N + 1, dtype=int)]
-        return Trajectory(t, xs, u, np.zeros(2 * N + 2, dtype=int), seg, (segment,), "zoh")
+        mode = np.full(2 * N + 2, nlp.mode, dtype=int)
+        return Trajectory(t, xs, u, mode, seg, (segment,), "zoh")
 
 
 @dataclass(frozen=True)
@@ -292,7 +293,8 @@ class WalkingDetail:
 
     Attributes:
         segment: the target guard's index; ``elapsed``: time spent in the swing [s].
-        warm: the warm start (primal-dual, primal, neighbour or cold).
+        warm: the warm start ("primal-dual", "primal", "neighbour": another surface's
+            solution from the same state, or "cold").
         touchdown: planned touchdown (x, y) [m]; ``final_hip``: final hip (x, y) [m].
     """
 
@@ -311,6 +313,4 @@ def _problem(system: HybridSystem, settings: WalkingMPCSettings,
 MPC = MPCSpec(
     kind="walking", settings=WalkingMPCSettings, problem=_problem, make=WalkingMPC,
     hand_margins=hand_margins, detail=WalkingDetail,
-    needs=frozenset({"terrain", "guard_surfaces", "points", "swing_foot_world",
-                     "inverse_dynamics", "swing_foot_velocity", "swing_foot_jacobian",
-                     "contact_reset"}))
+    needs=frozenset({"terrain", "guard_surfaces", WalkerModel}))

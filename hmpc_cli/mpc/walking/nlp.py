@@ -41,11 +41,10 @@ Cost: sum_j sum_k dt_j [l(x_{k+1}) + r_torque |u_k|^2] with l = q_hip |hip - goa
 (``HybridSystem.stage_cost`` at (x_{k+1}, u_k)) plus the torso-top posture term of the
 settings.
 
-The transcription needs the system's named outputs ``points`` (with ``point_names``
-holding ``stance_knee``, ``torso_top``, ``swing_knee``, ``swing_foot``),
-``inverse_dynamics``, ``swing_foot_world``, ``swing_foot_velocity``,
-``swing_foot_jacobian`` and ``contact_reset``, its ``terrain`` and ``state_box``, and a
-state x = (q[n_q], qd[n_q], p_st[2]) (n_q from ``inverse_dynamics``; the biped's is 5).
+The transcription needs the system's :class:`~hmpc_cli.core.walker.WalkerModel`
+(``HybridSystem.walker``: the state layout x = (q[n_q], qd[n_q], p_st[2]), the functions
+above, the stance mode whose input box and margins bound the torques), its ``terrain``
+and ``state_box``.
 """
 
 from __future__ import annotations
@@ -60,6 +59,7 @@ from pydantic import ConfigDict, Field, model_validator
 from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.core.kinds import MarginsSettings
 from hmpc_cli.core.messages import ConstraintMargins
+from hmpc_cli.core.walker import WalkerModel
 from hmpc_cli.mpc import cache
 from hmpc_cli.mpc.builder import Bounds, NLPBuilder
 from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart
@@ -204,21 +204,25 @@ class WalkingNLP:
         ``margins``: the tightenings (default :func:`hand_margins` of the settings); the
         NLP uses the largest guard-avoid offset as ``terrain_margin``, the largest
         pass-through offset of a guard with a contact surface as ``segment_margin`` [m]
-        and the first mode's input shrink as ``torque_margin`` [N m] per joint.
+        and the stance mode's input shrink as ``torque_margin`` [N m] per joint.
+
+        Raises:
+            ValueError: the system has no :class:`~hmpc_cli.core.walker.WalkerModel`.
         """
-        self.system, self.s = system, settings
+        if not isinstance(system.walker, WalkerModel):
+            raise ValueError(f"the walking MPC needs a WalkerModel: system {system.name!r} "
+                             f"has none (HybridSystem.walker)")
+        self.system, self.s, self.walker = system, settings, system.walker
+        self.mode = system.mode_index(self.walker.stance_mode)  # the stance mode's index
         self.margins = margins or hand_margins(system, settings)
         surfaces = list(system.guard_surfaces) or range(len(system.guards))
         self.terrain_margin = max(self.margins.avoid, default=0.0)
         self.segment_margin = max((self.margins.pass_through[g] for g in surfaces),
                                   default=0.0)
-        self.torque_margin = np.asarray(self.margins.inputs[0], dtype=float)
-        self.model = _Outputs(system)
-        self.nq = self.model.inverse_dynamics.size1_in(0)
+        self.torque_margin = np.asarray(self.margins.inputs[self.mode], dtype=float)
+        self.model = _Outputs(self.walker)
+        self.nq = self.walker.n_q
         self.nx = 2 * self.nq  # (q, qd) per node; p_st is a parameter or an expression
-        if system.n_x != self.nx + 2:
-            raise ValueError(f"the walking MPC needs a state (q[{self.nq}], qd[{self.nq}], "
-                             f"p_st[2]); system {system.name!r} has {system.n_x} states")
         self.N = settings.nodes_per_swing
         self.E = len(system.terrain.segments)
         self._build()
@@ -382,7 +386,7 @@ class WalkingNLP:
         s = self.s
         clear = self._clearances(x0, elapsed)
         h0, e, d = self.terrain()
-        p = self.layout.p.pack({"x0": x0[:self.nx], "stance": x0[self.nx:],
+        p = self.layout.p.pack({"x0": x0[:self.nx], "stance": x0[self.walker.stance_index],
                                 "dt0": self.dt0(elapsed), "h0": h0, "edges": e, "jumps": d,
                                 "clear": clear})
         bounds = self.layout.bounds()
@@ -403,7 +407,7 @@ class WalkingNLP:
         clear = np.zeros((2, self.N + 1))
         tau = self.swing_times(elapsed)
         foot0 = np.asarray(self.model.swing_foot_world(x0)).ravel()
-        starts = (foot0, x0[self.nx:])  # swing 1 lifts the current stance foot
+        starts = (foot0, x0[self.walker.stance_index])  # swing 1 lifts the stance foot
         for j in range(2):
             lift = tau[j] < s.liftoff_time - 1e-12
             clear[j, lift] = min(0.0, starts[j][1] - float(self.floor(starts[j][0])))
@@ -419,7 +423,8 @@ class WalkingNLP:
         lower, upper = self.system.state_box
         bounds.lbx["x"][:], bounds.ubx["x"][:] = lower[:self.nx], upper[:self.nx]
         lbg, ubg = bounds.lbg, bounds.ubg
-        umax = np.maximum(np.asarray(self.system.modes[0].u_upper) - self.torque_margin, 0.0)
+        umax = np.maximum(np.asarray(self.system.modes[self.mode].u_upper)
+                          - self.torque_margin, 0.0)
         lbg["dynamics"][:] = ubg["dynamics"][:] = 0.0
         lbg["torque"][:], ubg["torque"][:] = -umax, umax
         lbg["knees"][:] = s.knee_clearance
@@ -464,15 +469,14 @@ class WalkingNLP:
 
 
 class _Outputs:
-    """The system outputs the transcription uses, with the joint-point columns by name."""
+    """The walker's functions the transcription uses, with the joint-point columns by name."""
 
-    def __init__(self, system: HybridSystem) -> None:
-        names = system.point_names
-        self.points = system.output("points")
-        self.inverse_dynamics = system.output("inverse_dynamics")
-        self.swing_foot_world = system.output("swing_foot_world")
-        self.swing_foot_velocity = system.output("swing_foot_velocity")
-        self.swing_foot_jacobian = system.output("swing_foot_jacobian")
-        self.reset = system.output("contact_reset")
-        self.stance_knee, self.torso_top = names.index("stance_knee"), names.index("torso_top")
-        self.swing_knee, self.swing_foot = names.index("swing_knee"), names.index("swing_foot")
+    def __init__(self, walker: WalkerModel) -> None:
+        self.points = walker.points
+        self.inverse_dynamics = walker.inverse_dynamics
+        self.swing_foot_world = walker.swing_foot_world
+        self.swing_foot_velocity = walker.swing_foot_velocity
+        self.swing_foot_jacobian = walker.swing_foot_jacobian
+        self.reset = walker.contact_reset
+        self.stance_knee, self.torso_top = walker.point("stance_knee"), walker.point("torso_top")
+        self.swing_knee, self.swing_foot = walker.point("swing_knee"), walker.point("swing_foot")

@@ -3,15 +3,11 @@
 A plug-in in three parts: :mod:`.params` (validated parameters and the stairs),
 :mod:`.model` (Lagrangian dynamics, kinematics, impact and leg swap, derived once in
 CasADi), :mod:`.terrain` (the stairs as a terrain) and :mod:`.task` (falls, success).
-:func:`build_biped` assembles the :class:`~hmpc_cli.core.hybrid.HybridSystem` with the named
-outputs the walking MPC, the foothold planner and the figures use:
-
-* ``points`` q -> (2, 6) and ``points_world`` x -> (2, 6): the joint points
-  (``POINT_NAMES``) relative to the stance foot / in the world [m];
-* ``hip_world``, ``swing_foot_world``, ``stance_foot``: x -> (2,) [m];
-* ``inverse_dynamics`` (q, qd, qdd, w) -> u [N m]; ``swing_foot_velocity`` (q, qd) ->
-  (2,) [m/s]; ``swing_foot_jacobian`` q -> (2, 5) [m];
-* ``contact_reset`` x -> x+: the reset of every guard (plastic impact, leg swap).
+:func:`build_biped` assembles the :class:`~hmpc_cli.core.hybrid.HybridSystem` with its
+:class:`~hmpc_cli.core.walker.WalkerModel` (``walker``: what the walking MPC and the
+foothold planner use; n_q = 5, stance mode ``single_support``) and the named outputs
+tests and figures use: the walker's functions, ``points_world`` x -> (2, 6) (the joint
+points ``POINT_NAMES`` in the world [m]) and ``stance_foot`` x -> (2,) [m].
 
 State x = (q[5], qd[5], p_st[2]), one mode ``single_support``, one guard per stair
 segment (``stair_1``..) plus ``ground``; each stair guard's contact surface is its
@@ -27,6 +23,7 @@ from hmpc_cli.core.drawing import Ball, Drawing, Polyline
 from hmpc_cli.core.numeric import compile_numpy
 from hmpc_cli.core.hybrid import Guard, HybridSystem, Mode, Terrain
 from hmpc_cli.core.registry import Requirement, SystemSpec
+from hmpc_cli.core.walker import WalkerModel
 from hmpc_cli.systems.biped.kinematics import N_Q, POINT_NAMES, STANCE_X
 from hmpc_cli.systems.biped.model import BipedModel, make_biped_model, state_box
 from hmpc_cli.systems.biped.params import BipedParams, Stair
@@ -70,6 +67,16 @@ def _foot_height_lipschitz(p: BipedParams) -> float:
     S = np.tril(np.ones((N_Q, N_Q)))
     arm = np.linalg.norm(S, 2) * np.sqrt(2.0 * (p.calf_length**2 + p.thigh_length**2))
     return float(np.hypot(arm, 1.0))
+
+
+def _walker(model: BipedModel) -> WalkerModel:
+    """The biped as a walker: the walking MPC's and the foothold planner's view of it."""
+    return WalkerModel(
+        n_q=N_Q, stance_mode=MODE, point_names=POINT_NAMES, points=model.points,
+        inverse_dynamics=model.inverse_dynamics, swing_foot_world=model.swing_foot_world,
+        swing_foot_velocity=model.swing_foot_velocity,
+        swing_foot_jacobian=model.swing_foot_jacobian, contact_reset=model.reset,
+        hip_world=model.hip_world)
 
 
 def _outputs(model: BipedModel, x: ca.SX) -> dict[str, ca.Function]:
@@ -154,6 +161,7 @@ def build_biped(p: BipedParams) -> HybridSystem:
         state_box=state_box(p),
         guard_surfaces={i: seg for i, seg in enumerate(stair_edges(p))},
         drawing=biped_drawing(model, terrain),
+        walker=_walker(model),
     )
 
 
@@ -165,9 +173,7 @@ def climb_task(p: BipedParams, system: HybridSystem) -> ClimbStairs:
 SYSTEM = SystemSpec(
     name="biped", params=BipedParams, build=build_biped, task=climb_task,
     planner="footholds", mpc="walking",
-    provides=frozenset({"terrain", "guard_surfaces", *(
-        "points", "points_world", "hip_world", "swing_foot_world", "stance_foot",
-        "inverse_dynamics", "swing_foot_velocity", "swing_foot_jacobian", "contact_reset")}),
+    provides=frozenset({"terrain", "guard_surfaces", WalkerModel}),
     requires=(
         Requirement("sim.input_at_events", "recompute", "the biped's reset swaps the legs, "
                     "so the torque held before it would act on the other leg"),
