@@ -135,8 +135,23 @@ def _compare(hi, lo, what_hi: str, what_lo: str) -> str:
             f"{100 * lo.rate:.0f} %; intervals {'separate' if separated(hi, lo) else 'overlap'})")
 
 
+def trend_text(cells) -> str:
+    """The Cochran-Armitage trend of one series' cells across rates (scores log f)."""
+    from hmpc_cli.analysis.trend import cochran_armitage
+
+    tr = cochran_armitage([c.runs for c in cells], [c.successes for c in cells],
+                          [math.log(c.x) for c in cells])
+    if not math.isfinite(tr.p):
+        return "trend across rates (Cochran-Armitage, scores log f): undefined (every run alike)"
+    verdict = (f"success {tr.direction} with the MPC rate at the 5 % level" if tr.p < 0.05
+               else f"no trend at the 5 % level (direction: {tr.direction})")
+    return (f"trend across rates (Cochran-Armitage, scores log f): z = {tr.z:+.2f}, "
+            f"p = {tr.p:.3g}: {verdict}")
+
+
 def findings(cells) -> list[str]:
-    """Per (size, policy): fastest vs slowest rate; per (size, rate): replanning vs once."""
+    """Per (size, policy): fastest vs slowest rate and the trend across rates; per (size,
+    rate): replanning vs once."""
     out = []
     panels = list(dict.fromkeys(c.panel for c in cells))
     series = list(dict.fromkeys(c.series for c in cells))
@@ -145,7 +160,8 @@ def findings(cells) -> list[str]:
             sel = sorted((c for c in cells if c.panel == p and c.series == s), key=lambda c: c.x)
             if len(sel) >= 2:
                 out.append(f"- ±{p}, {s}: " + _compare(sel[-1], sel[0], f"{sel[-1].x:g} Hz",
-                                                       f"{sel[0].x:g} Hz") + ".")
+                                                       f"{sel[0].x:g} Hz") + "; "
+                           + trend_text(sel) + ".")
         if len(series) == 2:
             a, b = series
             for x in sorted({c.x for c in cells if c.panel == p}):
