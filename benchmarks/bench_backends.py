@@ -42,10 +42,10 @@ def record(trial: int) -> list[tuple[str, tuple]]:
     loop = prepare(sc)
     nlps, out = loop.mpc.chain.nlps, []
     for label, nlp in (("switching", nlps.switching), ("final", nlps.final)):
-        def solve(*args, _nlp=nlp, _label=label):
+        def optimize(*args, _nlp=nlp, _label=label):
             out.append((_label, args))
-            return type(_nlp).solve(_nlp, *args)
-        nlp.solve = solve
+            return type(_nlp).optimize(_nlp, *args)
+        nlp.optimize = optimize
     run_unlogged(loop)
     return out
 
@@ -92,7 +92,7 @@ def _caller(nlp: FixedModeNLP, label: str):
         if label == "ipopt_defaults" or label == "fatrop":
             lam_x = lam_g = None  # cold (fatrop: no dual warm start through CasADi)
         start = time.perf_counter()
-        stats = nlp.solve(w0, p, lbx, ubx, lbg, ubg, lam_x, lam_g).stats
+        stats = nlp.optimize(w0, p, lbx, ubx, lbg, ubg, lam_x, lam_g).stats
         total = time.perf_counter() - start
         inner = nlp.session.warm.stats() if lam_x is not None else nlp.session.cold.stats()
         split = {k[7:]: v for k, v in inner.items() if k.startswith("t_wall_") and v}

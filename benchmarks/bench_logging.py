@@ -37,7 +37,7 @@ from hmpc_cli.run.scenario import load_scenario
 
 #: the calls that log: TopicWriter's topics, the recorder's open (header, attachment) and
 #: close (the queued messages, the last chunk, summary and footer), the scene's set-up
-LOGGED = ((TopicWriter, ("step", "state", "event", "planner", "solve", "summary", "open",
+LOGGED = ((TopicWriter, ("step", "state", "event", "planner", "mpc_solve", "summary", "open",
                     "flush_held")),
           (Recorder, ("__init__", "add_attachment", "close")), (scene, ("open_scene",)))
 

@@ -112,8 +112,8 @@ def solve_split(scenario: str, cache: Path, passes: int = 5) -> dict[str, tuple]
         nlp = getattr(loop.mpc.chain.nlps, label)
         if nlp is None:
             continue
-        solve = nlp.session.solve
-        nlp.session.solve = (lambda *a, _s=solve, _l=label: calls.append((_l, a)) or _s(*a))
+        run = nlp.session.run
+        nlp.session.run = (lambda *a, _s=run, _l=label: calls.append((_l, a)) or _s(*a))
     run_unlogged(loop)
     out = {}
     for label in ("switching", "final"):
@@ -124,7 +124,7 @@ def solve_split(scenario: str, cache: Path, passes: int = 5) -> dict[str, tuple]
             order = (("sx", sx), ("compiled", compiled))
             for name, nlps in order if i % 2 == 0 else order[::-1]:
                 start = time.perf_counter()
-                res = [getattr(nlps, label).solve(*a) for a in args]
+                res = [getattr(nlps, label).optimize(*a) for a in args]
                 times[name].append(time.perf_counter() - start)
                 xs[name] = [r.x for r in res]
         same = all(np.array_equal(a, b) for a, b in zip(xs["sx"], xs["compiled"], strict=True))

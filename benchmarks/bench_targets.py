@@ -152,10 +152,10 @@ def biped_calls() -> tuple[list[dict], float, dict]:
 
     calls: list[dict] = []
     state = {"planning": False}
-    run, plan = solver_mod._run, FootholdPlanner.plan
+    call, plan = solver_mod._call_instance, FootholdPlanner.plan
 
-    def traced_run(instances, *args, **kw):
-        res = run(instances, *args, **kw)
+    def traced_call(instances, *args, **kw):
+        res = call(instances, *args, **kw)
         warm = args[6] is not None and args[7] is not None
         st = instances[1 if warm else 0].stats()
         calls.append({"planning": state["planning"], "wall": res.stats.wall_time,
@@ -170,7 +170,7 @@ def biped_calls() -> tuple[list[dict], float, dict]:
         finally:
             state["planning"] = False
 
-    solver_mod._run, FootholdPlanner.plan = traced_run, traced_plan
+    solver_mod._call_instance, FootholdPlanner.plan = traced_call, traced_plan
     try:
         sc, _ = load_scenario(str(ROOT / BIPED))
         start = time.perf_counter()
@@ -178,7 +178,7 @@ def biped_calls() -> tuple[list[dict], float, dict]:
         build = time.perf_counter() - start
         run_unlogged(loop)
     finally:
-        solver_mod._run, FootholdPlanner.plan = run, plan
+        solver_mod._call_instance, FootholdPlanner.plan = call, plan
     nlp = getattr(loop.mpc, "nlp", None)
     size = {"variables": getattr(nlp, "nw", None), "constraints": getattr(nlp, "ng", None)}
     return calls, build, {"plan_times": list(loop.books.plan_times), **size}

@@ -154,19 +154,19 @@ def record(label: str, overrides=()) -> tuple[list[Problem], RunInfo]:
     chain, out = loop.mpc.chain, []
     nlps = chain.nlps
     ctx: dict = {"t": float("nan"), "prev": {}, "guards": None}
-    chain_solve = chain.solve
+    reoptimize = chain.reoptimize
 
-    def timed_solve(t, x):
+    def timed_reoptimize(t, x):
         ctx["t"] = t
-        return chain_solve(t, x)
+        return reoptimize(t, x)
 
-    chain.solve = timed_solve
+    chain.reoptimize = timed_reoptimize
     hooked = [(k, n) for k, n in (("switching", nlps.switching), ("final", nlps.final))
               if n is not None]
     for which, nlp in hooked:
-        def solve(*args, _nlp=nlp, _which=which):
+        def optimize(*args, _nlp=nlp, _which=which):
             args = _copy(args)
-            res = type(_nlp).solve(_nlp, *args)
+            res = type(_nlp).optimize(_nlp, *args)
             ns = chain.node_schedule
             if args[6] is None:
                 context = "cold (new plan)"
@@ -181,12 +181,12 @@ def record(label: str, overrides=()) -> tuple[list[Problem], RunInfo]:
             ctx["prev"][_which] = (res.x.copy(), res.lam_x.copy(), res.lam_g.copy()) \
                 if res.stats.success else None
             return res
-        nlp.solve = solve
+        nlp.optimize = optimize
     try:
         result = run_unlogged(loop)
     finally:  # the NLPs are shared by the process's runs: unhook them
         for _, nlp in hooked:
-            nlp.__dict__.pop("solve", None)
+            nlp.__dict__.pop("optimize", None)
     solves = {k: sum(p.nlp == k for p in out) for k in ("switching", "final")}
     return out, RunInfo(label, bool(result.success), float(result.final_error), solves)
 
@@ -239,7 +239,7 @@ class Meas:
 def measure(session: SolverSession, args: tuple) -> Meas:
     """Solves ``args`` on ``session`` and reads the instance's timers."""
     start = time.perf_counter()
-    res = session.solve(*args)
+    res = session.run(*args)
     wall = time.perf_counter() - start
     inst = session.warm if args[6] is not None and args[7] is not None else session.cold
     st = inst.stats()

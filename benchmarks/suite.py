@@ -106,9 +106,9 @@ def record(trial: int, overrides: list[str]) -> tuple[list[Problem], list[float]
         if nlp is None:
             continue
 
-        def solve(*args, _nlp=nlp, _label=label):
+        def optimize(*args, _nlp=nlp, _label=label):
             out.append(Problem(trial, _label, args, args[0][_nlp.z_idx[0]].copy()))
-            return type(_nlp).solve(_nlp, *args)
+            return type(_nlp).optimize(_nlp, *args)
 
         def pack(*args, _nlp=nlp):
             start = time.perf_counter()
@@ -116,7 +116,7 @@ def record(trial: int, overrides: list[str]) -> tuple[list[Problem], list[float]
             packing.append(time.perf_counter() - start)
             return res
 
-        nlp.solve, nlp.problem_data = solve, pack
+        nlp.optimize, nlp.problem_data = optimize, pack
     run_unlogged(loop)
     return out, packing
 

@@ -1,5 +1,6 @@
 """House rules: packages import downward only (one table), no import cycle at all, peers never
-import each other, nothing imports a system plug-in, no system-name dispatch."""
+import each other, nothing imports a system plug-in, no system-name dispatch, one class per
+name."""
 
 from __future__ import annotations
 
@@ -211,6 +212,17 @@ def test_no_code_outside_systems_tests_a_system_name():
         tree = ast.parse(path.read_text())
         bad = [n.lineno for n in ast.walk(tree) if _compares_a_system_name(n)]
         assert not bad, f"{path.relative_to(ROOT)}:{bad} compares with a system name"
+
+
+def test_no_two_classes_share_a_name():
+    """Every class in the package, private and nested ones included, has a name of its own."""
+    where: dict[str, list[str]] = {}
+    for m, path in MODULES.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ClassDef):
+                where.setdefault(node.name, []).append(f"{m}:{node.lineno}")
+    shared = {name: places for name, places in sorted(where.items()) if len(places) > 1}
+    assert not shared, f"classes sharing a name: {shared}"
 
 
 def test_figures_read_logs_only_and_never_rebuild_a_model():

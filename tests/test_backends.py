@@ -8,7 +8,7 @@ import pytest
 
 from hmpc_cli.core.messages import Plan
 from hmpc_cli.mpc.backends import OCPStructure, rti_success
-from hmpc_cli.mpc.chain.controller import FixedModeMPC
+from hmpc_cli.mpc.chain.controller import ChainSolver
 from hmpc_cli.mpc.chain.layout import ChainLayout, NodeSchedule
 from hmpc_cli.mpc.chain.nlp import FixedModeNLP, MPCSettings
 from hmpc_cli.planner.cem import CEMSettings, CrossEntropyPlanner
@@ -34,10 +34,10 @@ def problems(ball):
     """
     planned = CrossEntropyPlanner(ball, CEMSettings(init_mean=-20.0, horizon=1.5)).plan(
         0.0, ball.x0, 0)
-    mpc = FixedModeMPC(ball, MPCSettings(**SMALL))
+    mpc = ChainSolver(ball, MPCSettings(**SMALL))
     ns = NodeSchedule.from_schedule(planned.schedule, mpc.N, mpc.dt)
     mpc.set_schedule(ns, planned.trajectory)
-    first = mpc.solve(0.0, ball.x0)
+    first = mpc.reoptimize(0.0, ball.x0)
     assert first.stats.success and len(ns.guards) > 0
     out = {}
     mpc.shift(6)
@@ -49,14 +49,14 @@ def problems(ball):
     return out
 
 
-def _record(mpc: FixedModeMPC, x0: np.ndarray, duals: bool):
+def _record(mpc: ChainSolver, x0: np.ndarray, duals: bool):
     nlp = mpc.nlp
     p, lbx, ubx, lbg, ubg = nlp.problem_data(mpc.node_schedule, mpc.layout, x0)
     w0 = mpc.solution.copy()
     w0[nlp.z_idx[0]] = x0
     lam = (mpc._lam_x, mpc._lam_g) if duals else (None, None)
     args = (w0, p, lbx, ubx, lbg, ubg, *lam)
-    res = nlp.solve(*args)
+    res = nlp.optimize(*args)
     assert res.stats.success, res.stats.status
     return args, res
 
@@ -84,7 +84,7 @@ def test_backend_reaches_ipopts_optimum(ball, problems, which, solver):
     args, ref = problems[which]
     nlp = _nlp(ball, which, solver=solver, switching_solver=solver, max_sqp_iter=200)
     lam = args[6:] if solver == "sqp_hpipm" else (None, None)
-    res = nlp.solve(*args[:6], *lam)
+    res = nlp.optimize(*args[:6], *lam)
     assert res.stats.success and not res.stats.fallback, res.stats.status
     assert res.stats.max_violation < 1e-6
     # IPOPT relaxes the slacks' bounds by 1e-8 (x the 1e4 penalty per node): compare
@@ -110,7 +110,7 @@ def test_failed_backend_solve_falls_back_to_ipopt_and_is_counted(ball, problems)
     args, ref = problems["final"]
     nlp = _nlp(ball, "final", solver="sqp_hpipm",
                solver_options={"hpipm": {"iter_max": 1}})
-    res = nlp.solve(*args)
+    res = nlp.optimize(*args)
     assert res.stats.fallback and res.stats.success
     assert "fallback" in res.stats.status
     assert res.stats.cost == pytest.approx(ref.stats.cost, rel=1e-6)
@@ -118,7 +118,7 @@ def test_failed_backend_solve_falls_back_to_ipopt_and_is_counted(ball, problems)
     ns = NodeSchedule((ball.mode_index(ball.final_mode),), (), (nlp.N,))
     traj = nlp.trajectory(res.x, ns, ChainLayout.build(ns, nlp.L))
     for stats in (res.stats, replace(res.stats, fallback=False)):
-        books.solve(0.0, Plan(0.0, traj, stats, None))
+        books.count_solve(0.0, Plan(0.0, traj, stats, None))
     assert books.result.fallbacks == 1 and books.result.solver_failures == 0
 
 

@@ -70,8 +70,8 @@ def _problem(nlp: FixedModeNLP, ball):
 def _solve_twice(nlp: FixedModeNLP, ball):
     """A cold solve and a warm re-solve from its result."""
     data = _problem(nlp, ball)
-    cold = nlp.solve(np.zeros(nlp.nx_var), *data)
-    warm = nlp.solve(cold.x, *data, cold.lam_x, cold.lam_g)
+    cold = nlp.optimize(np.zeros(nlp.nx_var), *data)
+    warm = nlp.optimize(cold.x, *data, cold.lam_x, cold.lam_g)
     return cold, warm
 
 

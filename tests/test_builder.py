@@ -118,19 +118,19 @@ def test_tiny_nlp_solved_by_the_session():
     session, lay = _scalar_session(warm=WarmStart(1e-6, 1e-9))
     bd = lay.bounds()
     bd.lbg["lower"][()] = 2.0  # x >= 2 as a row
-    res = session.solve(np.zeros(1), np.zeros(0), *bd.arrays())
+    res = session.run(np.zeros(1), np.zeros(0), *bd.arrays())
     assert res.stats.success and res.stats.status == "Solve_Succeeded"
     assert res.x[lay.x["x"]] == pytest.approx(2.0, abs=1e-7)
     assert res.stats.cost == pytest.approx(1.0, abs=1e-6)
     assert res.stats.max_violation <= 1e-8 and res.stats.iterations > 0
     assert res.lam_g[lay.g["lower"]] == pytest.approx(-2.0, abs=1e-6)  # df/dx = 2
-    warm = session.solve(res.x, np.zeros(0), *bd.arrays(), res.lam_x, res.lam_g)
+    warm = session.run(res.x, np.zeros(0), *bd.arrays(), res.lam_x, res.lam_g)
     assert warm.stats.success and warm.x[0] == pytest.approx(2.0, abs=1e-7)
     assert session.warm is not session.cold
     # as a bound instead of a row; violation is measured on rows and bounds
     bd = lay.bounds()
     bd.lbx["x"][()] = 2.0
-    res = session.solve(np.zeros(1), np.zeros(0), *bd.arrays())
+    res = session.run(np.zeros(1), np.zeros(0), *bd.arrays())
     assert res.x[0] == pytest.approx(2.0, abs=1e-7)
     assert session.violation(np.array([1.5]), np.zeros(0), *bd.arrays()) == 0.5
 
@@ -150,7 +150,7 @@ def test_interrupt_inside_ipopt_is_re_raised_not_a_failed_solve():
 
     session.cold = Interrupted(session.cold)
     with pytest.raises(KeyboardInterrupt):
-        session.solve(np.zeros(1), np.zeros(0), *lay.bounds().arrays())
+        session.run(np.zeros(1), np.zeros(0), *lay.bounds().arrays())
 
 
 def test_solver_errors_become_failed_solves():
@@ -160,7 +160,7 @@ def test_solver_errors_become_failed_solves():
         raise RuntimeError("Error in Function::call\n  .../x.cpp:12: NaN detected for output f")
 
     session.cold = raising
-    res = session.solve(np.array([3.0]), np.zeros(0), *lay.bounds().arrays())
+    res = session.run(np.array([3.0]), np.zeros(0), *lay.bounds().arrays())
     assert not res.stats.success and res.stats.status == "error: .../x.cpp:12: NaN detected " \
                                                          "for output f"
     assert res.x.tolist() == [3.0] and res.lam_x is None and res.stats.max_violation == np.inf

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from hmpc_cli.core.messages import ModeSchedule
-from hmpc_cli.mpc.chain.controller import FixedModeMPC
+from hmpc_cli.mpc.chain.controller import ChainSolver
 from hmpc_cli.mpc.chain.layout import FLOW, HOLD, RESET, ChainLayout, NodeSchedule
 from hmpc_cli.mpc.chain.nlp import MPCSettings
 from hmpc_cli.planner.cem import CEMSettings, CrossEntropyPlanner
@@ -28,13 +28,13 @@ def planned(ball):
 
 @pytest.fixture(scope="module")
 def mpc(ball):
-    return FixedModeMPC(ball, MPCSettings(horizon=1.5, max_switches=6))
+    return ChainSolver(ball, MPCSettings(horizon=1.5, max_switches=6))
 
 
 def test_solved_plan_satisfies_every_constraint_and_reset_map(ball, planned, mpc):
     ns = NodeSchedule.from_schedule(planned.schedule, mpc.nlp.N, mpc.nlp.dt)
     mpc.set_schedule(ns, planned.trajectory)
-    plan = mpc.solve(0.0, ball.x0)
+    plan = mpc.reoptimize(0.0, ball.x0)
     assert plan.stats.success, plan.stats.status
     nlp, lay = mpc.nlp, mpc.layout
     p, lbx, ubx, lbg, ubg = nlp.problem_data(ns, lay, ball.x0)
@@ -115,11 +115,11 @@ def test_schedule_rounding_and_horizon_check():
 def test_warm_start_resolve_after_shift_is_fast_and_feasible(ball, planned, mpc):
     ns = NodeSchedule.from_schedule(planned.schedule, mpc.nlp.N, mpc.nlp.dt)
     mpc.set_schedule(ns, planned.trajectory)
-    first = mpc.solve(0.0, ball.x0)
+    first = mpc.reoptimize(0.0, ball.x0)
     assert first.stats.success
     moved = mpc.shift(3)
     assert moved == 3
-    second = mpc.solve(0.05, first.traj.x[3])
+    second = mpc.reoptimize(0.05, first.traj.x[3])
     assert second.stats.success
     assert second.stats.iterations <= first.stats.iterations
     np.testing.assert_allclose(second.traj.x[0], first.traj.x[3])

@@ -6,7 +6,7 @@ import pytest
 
 from hmpc_cli.lowlevel import LowLevelController, LowLevelSettings
 from hmpc_cli.core.messages import Plan
-from hmpc_cli.mpc.chain.controller import FixedModeMPC
+from hmpc_cli.mpc.chain.controller import ChainSolver
 from hmpc_cli.mpc.chain.layout import NodeSchedule
 from hmpc_cli.mpc.chain.nlp import MPCSettings
 from hmpc_cli.planner.cem import CEMSettings, CrossEntropyPlanner
@@ -29,11 +29,11 @@ def planned(ball):
     return planner.plan(0.0, ball.x0, 0)
 
 
-def _solve(ball, planned, **settings) -> tuple[FixedModeMPC, Plan]:
-    mpc = FixedModeMPC(ball, MPCSettings(horizon=1.5, max_switches=6, **settings))
+def _solve(ball, planned, **settings) -> tuple[ChainSolver, Plan]:
+    mpc = ChainSolver(ball, MPCSettings(horizon=1.5, max_switches=6, **settings))
     ns = NodeSchedule.from_schedule(planned.schedule, mpc.N, mpc.dt)
     mpc.set_schedule(ns, planned.trajectory)
-    plan = mpc.solve(0.0, ball.x0)
+    plan = mpc.reoptimize(0.0, ball.x0)
     assert plan.stats.success, plan.stats.status
     return mpc, plan
 
@@ -89,10 +89,10 @@ def test_an_unreachable_guard_time_is_softened_not_failed(ball, planned):
     ns = NodeSchedule((0, 0, 1), (1, 2), (3, 40, 47))
     results = {}
     for penalty in (0.0, 1e4):
-        mpc = FixedModeMPC(ball, MPCSettings(horizon=1.5, max_switches=6,
-                                             soft_penalty=penalty, max_iter=300))
+        mpc = ChainSolver(ball, MPCSettings(horizon=1.5, max_switches=6,
+                                            soft_penalty=penalty, max_iter=300))
         mpc.set_schedule(ns)
-        results[penalty] = mpc.solve(0.0, ball.x0).stats
+        results[penalty] = mpc.reoptimize(0.0, ball.x0).stats
     assert not results[0.0].success
     soft = results[1e4]
     assert soft.success, soft.status
@@ -104,11 +104,11 @@ def test_final_domain_nlp_solves_the_same_problem(ball):
     x0 = np.array([3.5, 3.2, 1.0, -0.5])
     plans = []
     for own in (True, False):
-        mpc = FixedModeMPC(ball, MPCSettings(horizon=1.5, max_switches=6,
-                                             final_domain_nlp=own))
+        mpc = ChainSolver(ball, MPCSettings(horizon=1.5, max_switches=6,
+                                            final_domain_nlp=own))
         mpc.set_schedule(NodeSchedule((1,), (), (mpc.N,)))
         assert (mpc.nlp.S == 0) is own
-        plan = mpc.solve(0.0, x0)
+        plan = mpc.reoptimize(0.0, x0)
         assert plan.stats.success, plan.stats.status
         plans.append(plan)
     assert plans[0].traj.x.shape == plans[1].traj.x.shape

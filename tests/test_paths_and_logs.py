@@ -85,7 +85,7 @@ COMMANDS = {  # name -> args with the path as {P}, the check's kind
     "plot --out": ["plot", "fig4", "{LOG}", "--out", "{P}"],
     "tube --write": ["tube", BALL, "--write", "{P}", "--samples", "10"],
     "tube --out": ["tube", BALL, "--out", "{P}", "--samples", "10"],
-    "report --results": ["report", "--results", "{P}", "--biped", ""],
+    "report --results": ["report", "--results", "{P}", "--biped", "", "--biped-push", ""],
     "replay --export": ["replay", "{LOG}", "--export", "{P}"],
     "replay --figures": ["replay", "{LOG}", "--figures", "{P}"],
 }
@@ -483,9 +483,9 @@ def test_a_failed_candidate_solve_is_counted_once():
     log.planner_call(1.0, PlannerResult(None, None, 1.0, False, 0.1, 18, "",
                                         mpc_solves=(bad, ok)), False, "")
     assert log.result.solver_failures == 1
-    log.solve(1.0, bad)
+    log.count_solve(1.0, bad)
     assert log.result.solver_failures == 1  # the same solve, returned again: not twice
-    log.solve(1.1, plan(1.1, 3, False))
+    log.count_solve(1.1, plan(1.1, 3, False))
     assert log.result.solver_failures == 2
     assert log.result.failure_statuses == {bad.stats.status: 2}
 

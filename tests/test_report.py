@@ -178,7 +178,7 @@ seeds = 2
     res = tmp_path / "results"
     args = ["report", "--run", "--results", str(res), "--fig3", "", "--fig3-extra", "",
             "--fig3-reference", "", "--fig3-reference-extra", "", "--fig3-schedule", "",
-            "--biped", "",
+            "--biped", "", "--biped-push", "",
             "--robustness", str(sweep), "--workers", "1"]
     proc = run_hmpc(args, tmp_path, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -214,7 +214,8 @@ def test_report_without_results_is_a_clear_error(tmp_path, run_hmpc):
     proc = run_hmpc(["report", "--no-run", "--results", str(tmp_path / "r"),
                      "--fig3", str(REPO / "sweeps" / "fig3.toml"), "--fig3-extra", "",
                      "--fig3-reference", "", "--fig3-reference-extra", "",
-                     "--fig3-schedule", "", "--robustness", "", "--biped", ""], tmp_path)
+                     "--fig3-schedule", "", "--robustness", "", "--biped", "",
+                     "--biped-push", ""], tmp_path)
     assert "no such table" in proc.stderr
     assert proc.returncode == 2
     assert "error:" in proc.stderr and "Traceback" not in proc.stderr
@@ -341,6 +342,36 @@ def test_report_with_a_missing_authors_directory_is_a_clear_error(tmp_path, run_
     proc = run_hmpc(["report", "--no-run", "--results", str(tmp_path / "r"),
                      "--fig3", str(tmp_path), "--fig3-extra", "", "--fig3-reference", "",
                      "--fig3-reference-extra", "", "--fig3-schedule", "", "--robustness", "",
-                     "--biped", "", "--authors", str(tmp_path / "nowhere")], tmp_path)
+                     "--biped", "", "--biped-push", "", "--authors",
+                     str(tmp_path / "nowhere")], tmp_path)
     assert proc.returncode == 2
     assert proc.stderr.strip() == f"error: --authors: {tmp_path / 'nowhere'}: no such directory"
+
+
+def test_the_push_study_section_maps_where_the_walker_fails(tmp_path):
+    """From a push sweep's results.csv alone: the table with intervals, the boundary per
+    rate, the trends (counts exact; no log, so no Figure 4 is redrawn)."""
+    from hmpc_cli.report.push import push_section
+
+    truth = {(10, 0.0): 20, (10, 900.0): 20, (10, 1200.0): 9, (10, 1500.0): 0,
+             (20, 0.0): 20, (20, 900.0): 20, (20, 1200.0): 14, (20, 1500.0): 3}
+    d = tmp_path / "biped_push"
+    d.mkdir()
+    with open(d / "results.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["run_id", "seed", "disturbance.magnitude", "mpc.rate_hz", "success", "log"])
+        for (rate, push), k in truth.items():
+            for s in range(20):
+                w.writerow([f"{rate}-{push}-{s}", s, push, rate, "true" if s < k else "false",
+                            ""])
+    text = "\n".join(push_section(d, tmp_path / "fig", tmp_path))
+    assert (tmp_path / "fig" / "biped_push.png").is_file()
+    lo, hi = wilson(9, 20)
+    assert f"| ±1200 N | 9/20 ({100 * lo:.0f}-{100 * hi:.0f} %) |" in text
+    assert ("- 10 Hz: every run walked up to ±900 N; the first failure at ±1200 N; none "
+            "walked at ±1500 N.") in text
+    assert "- 20 Hz: every run walked up to ±900 N; the first failure at ±1200 N." in text
+    assert "- 10 Hz, across push sizes (scores: push [N]): z = -" in text
+    assert "success falls with the push at the 5 % level." in text
+    assert "- ±1500 N, across MPC rates (scores: log f): z = +" in text
+    assert "Figure 4 at the boundary" not in text  # no run log to draw it from

@@ -67,7 +67,7 @@ def test_a_held_solve_is_logged_as_it_was_when_solved(tmp_path):
                                        details={"mpc": ChainDetail}))
     log.open(model)
     plan = _plan(model)
-    log.solve(0.3, plan, "test", model)
+    log.mpc_solve(0.3, plan, "test", model)
     assert log._held  # not written yet
     plan.traj.x[:] = -7.0
     plan.traj.t[:] = 9.0

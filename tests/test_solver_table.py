@@ -120,7 +120,7 @@ def test_the_session_dispatches_through_the_entry(twin):
     assert len(twin) == 1 and twin[0].nlp is nlp and twin[0].max_iter == 20
     assert twin[0].nlpsol == {"print_time": False} and twin[0].sections == {}
     assert session.warm is session.cold  # no WarmStart given
-    res = session.solve(np.zeros(1), np.zeros(0), -np.inf * np.ones(1), np.inf * np.ones(1),
+    res = session.run(np.zeros(1), np.zeros(0), -np.inf * np.ones(1), np.inf * np.ones(1),
                         np.array([2.0]), np.array([10.0]))
     assert res.stats.success and res.x[0] == pytest.approx(2.0, abs=1e-7)
     with pytest.raises(ValueError, match="cannot load a compiled NLP"):

@@ -23,7 +23,7 @@ from hmpc_cli.core.registry import build_system, registry
 from hmpc_cli.tube import Region, analyse, margins, trivial_tube
 from hmpc_cli.tube.bounds import integrated_tube
 from hmpc_cli.tube.structure import ZERO, guard_states, kinematic_rates
-from hmpc_cli.analysis.tube_reality import RunData, run_periods
+from hmpc_cli.analysis.tube_reality import RecordedRun, run_periods
 
 
 def _system(name: str):
@@ -80,9 +80,9 @@ def test_hermite_interpolation_is_exact_on_a_constant_acceleration_plan():
         return np.array([v0 * t + 0.5 * acc * t**2, v0 + acc * t])
 
     t_plan = np.array([0.0, 0.013, 0.029, 0.041, 0.06])
-    run = RunData("r", {}, np.array([0.005, 0.02, 0.035, 0.05]),
-                  np.array([x(t) for t in (0.005, 0.02, 0.035, 0.05)]), np.zeros(0),
-                  [(0.0, t_plan, np.array([x(t) for t in t_plan]), np.zeros(5, dtype=int))])
+    run = RecordedRun("r", {}, np.array([0.005, 0.02, 0.035, 0.05]),
+                      np.array([x(t) for t in (0.005, 0.02, 0.035, 0.05)]), np.zeros(0),
+                      [(0.0, t_plan, np.array([x(t) for t in t_plan]), np.zeros(5, dtype=int))])
     (p,), skipped, unmatched = run_periods(run, {0: 1}, interpolate=True)
     assert skipped == unmatched == 0 and len(p.tau) == 4
     assert np.max(p.dev_kin) < 1e-12 and np.max(p.dev) < 1e-12  # the velocity: linear

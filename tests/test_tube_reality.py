@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hmpc_cli.analysis.tube_reality import Period, RunData, check_bounds, read_run, run_periods
+from hmpc_cli.analysis.tube_reality import Period, RecordedRun, check_bounds, read_run, run_periods
 
 ROOT = Path(__file__).resolve().parents[1]
 SC = ROOT / "scenarios"
@@ -85,10 +85,10 @@ def test_plan_nodes_domains_and_skips():
     t_plan = np.array([0.0, 0.5, 0.5, 1.0])   # a reset node pair at 0.5
     x_plan = np.array([[0.0], [1.0], [-1.0], [2.0]])
     seg = np.array([0, 0, 1, 1])
-    run = RunData("r", {}, np.array([0.25, 0.5, 0.75]), np.array([[9.0], [-1.5], [9.0]]),
-                  np.array([0.4]),
-                  [(0.0, t_plan, x_plan, seg), (1.0, t_plan + 1.0, x_plan + 3.0, seg),
-                   (1.7, np.array([1.7, 2.7]), np.zeros((2, 1)), np.array([0, 0]))])
+    run = RecordedRun("r", {}, np.array([0.25, 0.5, 0.75]), np.array([[9.0], [-1.5], [9.0]]),
+                      np.array([0.4]),
+                      [(0.0, t_plan, x_plan, seg), (1.0, t_plan + 1.0, x_plan + 3.0, seg),
+                       (1.7, np.array([1.7, 2.7]), np.zeros((2, 1)), np.array([0, 0]))])
     periods, skipped, unmatched = run_periods(run)
     # period 0: sample at 0.5 after one reset -> segment 1 node -1; end at 1.0 vs node 2
     assert len(periods) == 1 and skipped == 2 and unmatched == 0

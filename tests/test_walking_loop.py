@@ -123,6 +123,9 @@ def test_figure_4_from_the_log_is_deterministic(short_walk, tmp_path):
     assert len(a.contacts) == 2 and a.contacts[0][1] == "stair_2"
     hip0 = load_walk(short_walk / "run.mcap").hip[0]
     np.testing.assert_allclose(hip0, [0.2334, 0.6815], atol=1e-3)
+    # the F_x step trace holds its last value to the run's end (the last state sample)
+    t_f, f_x = a.force
+    assert t_f[-1] == pytest.approx(a.t[-1], abs=1e-9) and f_x[-1] == f_x[-2]
 
 
 @pytest.mark.parametrize("width,height", [(None, None), (7.16, 4.2)])

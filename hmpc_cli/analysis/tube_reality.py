@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["BoundCheck", "Period", "RealityReport", "RunData", "Violation", "check_bounds",
+__all__ = ["BoundCheck", "Period", "RealityReport", "RecordedRun", "Violation", "check_bounds",
            "read_run", "reality", "run_periods"]
 
 #: bound names checked against the kinematic deviation
@@ -38,7 +38,7 @@ TIME_TOL = 1e-9
 
 
 @dataclass(frozen=True)
-class RunData:
+class RecordedRun:
     """What a recorded run contributes.
 
     Attributes:
@@ -142,7 +142,7 @@ class RealityReport:
     interpolated: list[str] = field(default_factory=list)
 
 
-def read_run(path: Path) -> RunData:
+def read_run(path: Path) -> RecordedRun:
     """Reads a run directory or run.mcap (through :func:`hmpc_cli.log.rundata.read_run`).
 
     Raises:
@@ -159,8 +159,8 @@ def read_run(path: Path) -> RunData:
     solves = [(s.t, s.plan.t, np.atleast_2d(s.plan.x), s.plan.seg) for s in run.adopted()]
     if not solves:
         raise ValueError(f"{run.path}: no adopted /mpc/solve")
-    return RunData(run.name, run.system, run.t, run.x, np.array([e.t for e in run.events]),
-                   sorted(solves, key=lambda s: s[0]))
+    return RecordedRun(run.name, run.system, run.t, run.x, np.array([e.t for e in run.events]),
+                       sorted(solves, key=lambda s: s[0]))
 
 
 def _node(t_plan: np.ndarray, x_plan: np.ndarray, seg_plan: np.ndarray, t: float,
@@ -204,7 +204,7 @@ def _interpolator(rates: Mapping[int, int]):
     return at
 
 
-def _samples(run: RunData, j: int, interpolate: bool) -> list[tuple[float, np.ndarray]]:
+def _samples(run: RecordedRun, j: int, interpolate: bool) -> list[tuple[float, np.ndarray]]:
     """The (t, x) samples of solve j's period (the period's end only with nodes)."""
     t0 = run.solves[j][0]
     nxt = run.solves[j + 1] if j + 1 < len(run.solves) else None
@@ -219,7 +219,7 @@ def _samples(run: RunData, j: int, interpolate: bool) -> list[tuple[float, np.nd
     return pts
 
 
-def run_periods(run: RunData, kinematic: Mapping[int, int] | None = None,
+def run_periods(run: RecordedRun, kinematic: Mapping[int, int] | None = None,
                 interpolate: bool = False) -> tuple[list[Period], int, int]:
     """The periods of one run: (periods, skipped periods, unmatched samples).
 
@@ -292,7 +292,7 @@ def check_bounds(periods: Iterable[Period],
     return list(checks.values())
 
 
-def reality(runs: Iterable[RunData],
+def reality(runs: Iterable[RecordedRun],
             bounds: Callable[[np.ndarray], dict[str, np.ndarray]],
             kinematic: Mapping[int, int] | None = None) -> RealityReport:
     """The periods of all runs and each bound's check.

@@ -15,7 +15,8 @@ EXIT_INTERRUPTED = 130
 DEFAULT_AUTHORS = Path("../shared/reference")  # the authors' data beside the repository
 #: the robustness study's sweeps: paper geometry, a moved geometry, solve latency charged
 #: (0.05 s: about one solve here; 0.03 s: the largest the undisturbed ball survives)
-ROBUSTNESS = (Path("sweeps/robustness.toml"), Path("sweeps/robustness_moved.toml"),
+ROBUSTNESS = (Path("sweeps/robustness.toml"), Path("sweeps/robustness_tube.toml"),
+              Path("sweeps/robustness_moved.toml"), Path("sweeps/robustness_moved_tube.toml"),
               Path("sweeps/robustness_latency.toml"), Path("sweeps/robustness_latency_30ms.toml"))
 
 
@@ -43,12 +44,15 @@ def report_command(
         "out)")] = None,
     robustness: Annotated[list[Path] | None, typer.Option(
         "--robustness", help="robustness study sweep file or output directory, repeatable "
-        "(default: sweeps/robustness.toml, robustness_moved.toml, robustness_latency.toml and "
-        "robustness_latency_30ms.toml; "
-        "'' to leave out)")] = None,
+        "(default: sweeps/robustness.toml, robustness_tube.toml, robustness_moved.toml, "
+        "robustness_moved_tube.toml, robustness_latency.toml and robustness_latency_30ms.toml;"
+        " '' to leave out)")] = None,
     biped: Annotated[Path | None, typer.Option(
         "--biped", help="biped scenario for Figure 4 ('' to leave out)")
     ] = Path("scenarios/biped_stairs.toml"),
+    biped_push: Annotated[Path | None, typer.Option(
+        "--biped-push", help="the biped's push study: sweep file or output directory ('' to "
+        "leave out)")] = Path("sweeps/biped_push.toml"),
     run: Annotated[bool, typer.Option(
         "--run/--no-run", help="run the missing sweep runs first (finished ones are skipped; "
         "default: run nothing, print what is missing)")] = False,
@@ -69,7 +73,7 @@ def report_command(
     plans, dirs = _sweeps(results, seeds, biped, fig3=fig3, fig3_extra=fig3_extra,
                           fig3_reference=fig3_reference,
                           fig3_reference_extra=fig3_reference_extra,
-                          fig3_schedule=fig3_schedule,
+                          fig3_schedule=fig3_schedule, biped_push=biped_push,
                           **{f"robustness:{i}": p for i, p in enumerate(
                               ROBUSTNESS if robustness is None else robustness)})
     from hmpc_cli.cli.common import is_quiet
@@ -248,7 +252,7 @@ def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None,
     inputs = ReportInputs(dirs.get("fig3"), dirs.get("fig3_extra"), studies or None,
                           biped_dir, dirs.get("fig3_reference"),
                           dirs.get("fig3_reference_extra"), *authors,
-                          dirs.get("fig3_schedule"))
+                          dirs.get("fig3_schedule"), dirs.get("biped_push"))
     try:
         page = write_report(results, inputs, shlex.join(["hmpc", *sys.argv[1:]]))
     except FigureInputError as exc:

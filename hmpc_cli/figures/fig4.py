@@ -111,10 +111,18 @@ def _contacts(run, foot: int) -> list[tuple[float, str, float, float]]:
 
 
 def _force(run) -> tuple[np.ndarray, np.ndarray]:
-    """The first disturbance channel's samples (t, w_0)."""
+    """The first disturbance channel as a step trace (t, w_0) to the run's end.
+
+    The disturbance is logged when it changes; its last value holds until the run ends
+    (the summary's ``t_end``, else the last state sample), which closes the trace.
+    """
+    end = run.summary.t_end if run.summary is not None else (run.t[-1] if run.t.size else 0.0)
     if not run.t_w.size or not run.w_changes.shape[1]:
-        return np.array([0.0]), np.array([0.0])
-    return run.t_w, run.w_changes[:, 0]
+        return np.array([0.0, end]), np.array([0.0, 0.0])
+    t, w = run.t_w, run.w_changes[:, 0]
+    if end > t[-1]:
+        t, w = np.append(t, end), np.append(w, w[-1])
+    return t, w
 
 
 def _outcome(run) -> tuple[bool | None, str]:

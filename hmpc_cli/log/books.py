@@ -82,7 +82,7 @@ class RunBooks:
         A planner that solves the MPC itself (the biped's foothold planner solves the
         walking MPC per candidate) returns those solves (``result.mpc_solves``): the
         failed ones count as solver failures, as a failed /mpc/solve does
-        (:meth:`solve`), once each.
+        (:meth:`count_solve`), once each.
         """
         r = self.result
         r.planner_calls += 1
@@ -95,7 +95,7 @@ class RunBooks:
                 self._fail(plan.stats.status)
                 self._counted.add(_solve_key(t, plan))
 
-    def solve(self, t: float, plan: Plan) -> None:
+    def count_solve(self, t: float, plan: Plan) -> None:
         """Counts one fixed-mode MPC solve (a planner's candidate solve only once)."""
         st, r = plan.stats, self.result
         r.solves += 1

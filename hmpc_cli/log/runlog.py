@@ -120,7 +120,7 @@ class NullWriter:
     def step(self, *args) -> None:
         """Nothing to log."""
 
-    state = event = planner = solve = summary = step
+    state = event = planner = mpc_solve = summary = step
 
     def flush_held(self) -> None:
         """Nothing held."""
@@ -282,8 +282,8 @@ class TopicWriter:
         if self.scene is not None:
             self.scene.rollout(t, result.trajectory)
 
-    def solve(self, t: float, plan: Plan, reason: str, model: HybridSystem,
-              latency: float = 0.0) -> None:
+    def mpc_solve(self, t: float, plan: Plan, reason: str, model: HybridSystem,
+                  latency: float = 0.0) -> None:
         """Logs one fixed-mode MPC solve to /mpc/solve (held: a snapshot of the plan).
 
         ``latency`` [s]: how long after t the plan reaches the plant (0: time paused).
@@ -293,12 +293,12 @@ class TopicWriter:
         traj = thinned(traj, stride) if stride > 1 else dataclasses.replace(
             traj, t=np.array(traj.t, dtype=float), x=np.array(traj.x, dtype=float),
             u=np.array(traj.u, dtype=float), mode=np.array(traj.mode), seg=np.array(traj.seg))
-        self._hold(self._write_solve, (t, dataclasses.replace(plan, traj=traj), reason, model,
-                                       latency, _detail(self.identity.details.get("mpc"),
-                                                        plan.detail, "mpc")))
+        detail = _detail(self.identity.details.get("mpc"), plan.detail, "mpc")
+        self._hold(self._write_mpc_solve,
+                   (t, dataclasses.replace(plan, traj=traj), reason, model, latency, detail))
 
-    def _write_solve(self, t: float, plan: Plan, reason: str, model: HybridSystem,
-                     latency: float, detail) -> None:
+    def _write_mpc_solve(self, t: float, plan: Plan, reason: str, model: HybridSystem,
+                         latency: float, detail) -> None:
         """Writes one /mpc/solve message and its scene plan (``detail``: the MPC's)."""
         st, traj = plan.stats, plan.traj
         msg = MpcSolve(

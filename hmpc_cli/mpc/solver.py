@@ -101,11 +101,12 @@ def derivatives_of(solver: ca.Function) -> dict:
     return {opt: solver.get_function(fn) for opt, fn in DERIVATIVES.items()}
 
 
-def _run(instances: tuple, w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0,
-         rti: bool = False) -> SolveResult:
-    """One solve on the (cold, warm) instances (see :meth:`SolverSession.solve`).
+def _call_instance(instances: tuple, w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0,
+                   rti: bool = False) -> SolveResult:
+    """Calls the cold or (with both multiplier guesses) the warm instance once.
 
-    ``rti``: a bounded SQP run (success by :func:`~hmpc_cli.mpc.backends.rti_success`).
+    See :meth:`SolverSession.run`. ``rti``: a bounded SQP run (success by
+    :func:`~hmpc_cli.mpc.backends.rti_success`).
     """
     start = time.perf_counter()
     args = {"x0": w0, "p": p, "lbx": lbx, "ubx": ubx, "lbg": lbg, "ubg": ubg}
@@ -146,7 +147,7 @@ def _iterations(stats: dict) -> int:
 
 
 class SolverSession:
-    """The solver instances of one NLP and its solve, violation and constraint calls.
+    """The solver instances of one NLP and its run, violation and constraint calls.
 
     Args:
         name: instance name (the warm one gets ``_warm`` appended).
@@ -201,8 +202,8 @@ class SolverSession:
         self._g = ca.external("nlp_g", nlp) if compiled else \
             ca.Function("g", [nlp["x"], nlp["p"]], [nlp["g"]])
 
-    def solve(self, w0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None) -> SolveResult:
-        """One solve from ``w0``; never raises on a solver failure.
+    def run(self, w0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None) -> SolveResult:
+        """Runs the solver once from ``w0``; never raises on a solver failure.
 
         With both multiplier guesses the warm instance runs (multipliers of rows and
         variables without finite bounds zeroed), else the cold one. A back-end with a
@@ -213,10 +214,10 @@ class SolverSession:
                 :class:`hmpc_cli.core.signals.Interrupted` when a stop signal is pending.
         """
         args = (w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0)
-        res = _run((self.cold, self.warm), *args, rti=self.backend.bounded)
+        res = _call_instance((self.cold, self.warm), *args, rti=self.backend.bounded)
         if self.backend.fallback is None or res.stats.success:
             return res
-        again = self.fallback_session().solve(*args)
+        again = self.fallback_session().run(*args)
         st = again.stats
         status = f"{st.status} (fallback; {self.plugin}: {res.stats.status})"
         stats = SolveStats(status, st.success, res.stats.iterations + st.iterations,

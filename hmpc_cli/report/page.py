@@ -36,6 +36,7 @@ class ReportInputs:
     authors: Path | None = None
     authors_note: str = ""
     fig3_schedule: Path | None = None  # the authors' plan flown (schedule planner)
+    biped_push: Path | None = None  # the biped's push sweep (sweeps/biped_push.toml)
 
 
 def _settings(*dirs: Path | None) -> str:
@@ -135,8 +136,12 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
         lines += _robustness_section(inputs, fig_dir, results)
     if inputs.biped is not None:
         lines += _biped_section(inputs, fig_dir, results)
+    if inputs.biped_push is not None:
+        from hmpc_cli.report.push import push_section
+
+        lines += push_section(inputs.biped_push, fig_dir, results)
     if inputs.fig3 is None and inputs.fig3_reference is None and inputs.robustness is None \
-            and inputs.biped is None:
+            and inputs.biped is None and inputs.biped_push is None:
         raise FigureInputError("nothing to report: no Figure 3, robustness sweep or biped run")
     lines += ["## Layout", "",
               "* `<scenario>/<UTC time>-seed<N>/`: one `hmpc run` (`run.mcap`, `summary.json`, "

@@ -55,14 +55,36 @@ def fixed_settings(directory: Path) -> str:
     return _fixed(sweep_spec(directory))
 
 
-def tube_diameters(table: Path, rows: list[dict], size_column: str = SIZE
-                   ) -> dict[float, dict[str, list]]:
+def _effective(table: Path, row: dict, sweep_file: Path | None, scratch: Path) -> Path:
+    """A run's effective ``scenario.toml``: in its run directory, else from its sweep file.
+
+    A committed sweep table has no run directories: the sweep file (which made the
+    table) gives every run's scenario again, by run id.
+    """
+    path = table.parent / Path(row.get("log", "")).parent / "scenario.toml"
+    if path.is_file() or sweep_file is None:
+        return path
+    from hmpc_cli.sweep.plan import plan_sweep
+
+    run = next((r for r in plan_sweep(sweep_file).runs if r.run_id == row.get("run_id")), None)
+    if run is None or not run.toml:
+        return path
+    out = scratch / f"{run.run_id}.toml"
+    out.write_text(run.toml, encoding="utf-8")
+    return out
+
+
+def tube_diameters(table: Path, rows: list[dict], size_column: str = SIZE,
+                   sweep_file: Path | None = None) -> dict[float, dict[str, list]]:
     """Diam T(1/f) per disturbance size of a sweep: size -> bound -> [(rate, diam)].
 
     Computed by Step 5's tube analysis (``hmpc tube``'s, default samples) for the
-    effective scenario of the first finished run of each size (its ``scenario.toml``);
-    bounds ``trivial`` (Prop. 2) and ``kinematic``; {} when no run can be read.
+    effective scenario of the first finished run of each size (its ``scenario.toml``, or
+    the ``sweep_file``'s for a table without run directories); bounds ``trivial``
+    (Prop. 2) and ``kinematic``; {} when no run can be read.
     """
+    import tempfile
+
     from hmpc_cli.core.registry import build_system
     from hmpc_cli.run.scenario import ScenarioError, load_scenario
     from hmpc_cli.tube import TubeError, analyse, region_from_scenario
@@ -71,9 +93,10 @@ def tube_diameters(table: Path, rows: list[dict], size_column: str = SIZE
     out: dict[float, dict[str, list]] = {}
     for size in sorted({float(r[size_column]) for r in rows if r.get(size_column)}):
         first = next(r for r in rows if r.get(size_column) and float(r[size_column]) == size)
-        scenario = table.parent / Path(first.get("log", "")).parent / "scenario.toml"
         try:
-            sc, _ = load_scenario(scenario, check_margins=False)
+            with tempfile.TemporaryDirectory() as scratch:
+                scenario = _effective(table, first, sweep_file, Path(scratch))
+                sc, _ = load_scenario(scenario, check_margins=False)
             system = build_system(sc.system)
             rep = analyse(system, region=region_from_scenario(system), kind=sc.disturbance.kind,
                           magnitude=sc.disturbance.magnitude, kp=sc.lowlevel.kp,
@@ -135,23 +158,26 @@ def _compare(hi, lo, what_hi: str, what_lo: str) -> str:
             f"{100 * lo.rate:.0f} %; intervals {'separate' if separated(hi, lo) else 'overlap'})")
 
 
-def trend_text(cells) -> str:
-    """The Cochran-Armitage trend of one series' cells across rates (scores log f)."""
+def trend_text(cells, scores=None,
+               what: str = "trend across rates (Cochran-Armitage, scores log f)",
+               along: str = "with the MPC rate") -> str:
+    """The Cochran-Armitage trend of cells (default: one series across rates, log f)."""
     from hmpc_cli.analysis.trend import cochran_armitage
 
-    tr = cochran_armitage([c.runs for c in cells], [c.successes for c in cells],
-                          [math.log(c.x) for c in cells])
+    scores = [math.log(c.x) for c in cells] if scores is None else scores
+    tr = cochran_armitage([c.runs for c in cells], [c.successes for c in cells], scores)
     if not math.isfinite(tr.p):
-        return "trend across rates (Cochran-Armitage, scores log f): undefined (every run alike)"
-    verdict = (f"success {tr.direction} with the MPC rate at the 5 % level" if tr.p < 0.05
+        return f"{what}: undefined (every run alike)"
+    verdict = (f"success {tr.direction} {along} at the 5 % level" if tr.p < 0.05
                else f"no trend at the 5 % level (direction: {tr.direction})")
-    return (f"trend across rates (Cochran-Armitage, scores log f): z = {tr.z:+.2f}, "
-            f"p = {tr.p:.3g}: {verdict}")
+    return f"{what}: z = {tr.z:+.2f}, p = {tr.p:.3g}: {verdict}"
 
 
 def findings(cells) -> list[str]:
-    """Per (size, policy): fastest vs slowest rate and the trend across rates; per (size,
-    rate): replanning vs once."""
+    """Per (size, policy): fastest vs slowest rate, the trend across rates.
+
+    Per (size, rate): replanning vs once.
+    """
     out = []
     panels = list(dict.fromkeys(c.panel for c in cells))
     series = list(dict.fromkeys(c.series for c in cells))
@@ -283,7 +309,7 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
     spec = sweep_spec(study.directory)
     name = str(spec.get("name") or study.directory.name)
     size = _size_column(rows)
-    diam = tube_diameters(table, rows, size)
+    diam = tube_diameters(table, rows, size, study.sweep_file)
     cells = robustness(table, fig_dir, "pdf,svg,png", name=name, diameters=diam,
                        panel_axis=size, width=min(TEXT_WIDTH_IN, 3.5 * max(1, len(diam))))
     seeds = len({r["seed"] for r in rows})

@@ -26,7 +26,7 @@ __all__ = ["MPCLayers"]
 
 
 @dataclass
-class _State:
+class _LayerState:
     """What the layers hold between steps."""
 
     schedule: ModeSchedule | None = None
@@ -53,7 +53,7 @@ class MPCLayers:
         self.at_events = run.plant.recompute_at_events  # react at the event time
         self.books, self.log = run.books, log
         self.final_mode = self.model.mode_index(self.model.final_mode)
-        self.st, self.clock = _State(), SolverClock(run.timing.latency)
+        self.st, self.clock = _LayerState(), SolverClock(run.timing.latency)
         self._predictor = prediction_plant(run.plant) if run.timing.latency.compensate \
             else None
 
@@ -171,12 +171,12 @@ class MPCLayers:
         plan = self._solve_ahead(t, x, mode, reason) if charged else self.mpc.solve(
             t, x, mode, st.schedule, st.events, st.guess)
         st.events = []
-        self.books.solve(t, plan)
+        self.books.count_solve(t, plan)
         if charged:
             dropped, latency = clock.charge(t, plan)
-            self.log.solve(t, plan, reason + dropped, self.model, latency)
+            self.log.mpc_solve(t, plan, reason + dropped, self.model, latency)
         else:
-            self.log.solve(t, plan, reason, self.model)
+            self.log.mpc_solve(t, plan, reason, self.model)
             st.plan = plan if plan.adopt else st.plan
         clock.planner_wall = 0.0
         signals.check()

@@ -27,7 +27,7 @@ class ZenoError(RuntimeError):
 
 
 @dataclass(frozen=True)
-class Event:
+class StepEvent:
     """A guard event of sample ``sample`` at ``tau`` seconds into the step.
 
     Attributes:
@@ -59,7 +59,7 @@ class StepResult:
 
     x: np.ndarray
     mode: np.ndarray
-    events: list[Event]
+    events: list[StepEvent]
     zeno: np.ndarray
     remaining: np.ndarray | None = None
 
@@ -102,7 +102,7 @@ class HybridSimulator:
             u: inputs (B, m), held over the step.
             w: disturbances (B, n_w), held over the step.
             dt: step [s].
-            record: collect :class:`Event` records (the planner switches this off).
+            record: collect :class:`StepEvent` records (the planner switches this off).
             raise_zeno: raise :class:`ZenoError`; otherwise freeze and flag the sample.
             stop_at_event: a sample stops right after its first reset (post-reset state)
                 and reports the time left in ``remaining``, so the caller can compute a
@@ -144,7 +144,7 @@ class HybridSimulator:
         b = x.shape[0]
         zeno = np.zeros(b, dtype=bool)
         n_events = np.zeros(b, dtype=int)
-        events: list[Event] = []
+        events: list[StepEvent] = []
         todo = np.arange(b)
         while True:
             hit = guard >= 0
@@ -169,7 +169,7 @@ class HybridSimulator:
         events.sort(key=lambda e: (e.sample, e.tau))
         return StepResult(x, mode, events, zeno, rem)
 
-    def _reset(self, x, mode, idx, guard, x_hit, t_event, events: list[Event]) -> None:
+    def _reset(self, x, mode, idx, guard, x_hit, t_event, events: list[StepEvent]) -> None:
         """Applies the reset maps in place: sample idx[i] hit guard[i] in state x_hit[i].
 
         Args:
@@ -179,7 +179,7 @@ class HybridSimulator:
             guard: guard index per hit (k,).
             x_hit: states on the guards before the reset (k, n).
             t_event: event times from the start of the step (k,) [s], or None to record
-                no :class:`Event`.
+                no :class:`StepEvent`.
             events: the events so far; one is appended per hit unless ``t_event`` is None.
         """
         for g in np.unique(guard):
@@ -191,7 +191,7 @@ class HybridSimulator:
             mode[rows] = self.num.target[g]
             if t_event is not None:
                 for j, r in enumerate(rows):
-                    events.append(Event(int(r), float(t_event[sel][j]), int(g),
+                    events.append(StepEvent(int(r), float(t_event[sel][j]), int(g),
                                         before[j].copy(), after[j].copy()))
 
     def _count_events(self, idx, n_events, zeno, rem, dt, raise_zeno) -> None:

@@ -1,4 +1,4 @@
-"""The fixed-mode MPC in closed loop: schedules, node shifting, warm starts, solves."""
+"""The chain MPC's node-chain solver: node schedules, node shifting, warm starts."""
 
 from __future__ import annotations
 
@@ -12,11 +12,11 @@ from hmpc_cli.mpc.chain.layout import ChainLayout, NodeSchedule, remap
 from hmpc_cli.mpc.chain.nlp import FixedModeNLP, FixedModeNLPs, MPCSettings
 
 
-class FixedModeMPC:
-    """Fixed-mode MPC over a node schedule, re-solved with warm starts.
+class ChainSolver:
+    """The chain MPC's node chain: its NLP over a node schedule, re-optimized with warm starts.
 
-    Usage: :meth:`set_schedule` (with an initial guess), then :meth:`solve` every period
-    after :meth:`shift` (and after :meth:`on_impact` when the scheduled guard fires).
+    Usage: :meth:`set_schedule` (with an initial guess), then :meth:`reoptimize` every
+    period after :meth:`shift` (and after :meth:`on_impact` when the scheduled guard fires).
     Each schedule is solved on the NLP that fits it (:class:`FixedModeNLPs`); ``nlp`` is
     the one in use.
     """
@@ -81,9 +81,9 @@ class FixedModeMPC:
                                    for i in range(nlp.m)]
         return w
 
-    # ---------------------------------------------------------------- solve
-    def solve(self, t: float, x0: np.ndarray) -> Plan:
-        """Solves from state ``x0`` at simulated time t; never raises on solver failure."""
+    # ----------------------------------------------------------- reoptimize
+    def reoptimize(self, t: float, x0: np.ndarray) -> Plan:
+        """Re-optimizes from state ``x0`` at simulated time t; never raises on solver failure."""
         nlp, ns, lay = self.nlp, self.node_schedule, self.layout
         p, lbx, ubx, lbg, ubg = nlp.problem_data(ns, lay, x0)
         if self._w is None:  # no guess: hold the current state
@@ -92,8 +92,8 @@ class FixedModeMPC:
         w0 = self._w.copy()
         w0[nlp.z_idx[0]] = x0
         warm = self.s.warm_start and self._lam_g is not None
-        res = nlp.solve(w0, p, lbx, ubx, lbg, ubg, self._lam_x if warm else None,
-                        self._lam_g if warm else None)
+        res = nlp.optimize(w0, p, lbx, ubx, lbg, ubg, self._lam_x if warm else None,
+                           self._lam_g if warm else None)
         ok = res.stats.success
         slack = float(np.max(res.x[nlp.s_idx], initial=0.0)) if ok else float("nan")
         if ok:

@@ -28,7 +28,7 @@ from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.core.messages import (
     AHEAD, SCHEDULED, ConstraintMargins, GuardEvent, ModeSchedule, Plan, SolveStats,
     Trajectory)
-from hmpc_cli.mpc.chain.controller import FixedModeMPC as ChainSolver
+from hmpc_cli.mpc.chain.controller import ChainSolver
 from hmpc_cli.mpc.chain.layout import ChainLayout, NodeSchedule
 from hmpc_cli.mpc.chain.nlp import FixedModeNLPs, MPCSettings
 from hmpc_cli.core.registry import MPCSpec
@@ -101,7 +101,7 @@ class ChainMPC:
         else:
             shifted = self._shift(self.s.shifted_nodes(t - self._t_shift))
         self._t_shift = t
-        plan = self.chain.solve(t, x)
+        plan = self.chain.reoptimize(t, x)
         return replace(plan, schedule=self._schedule, detail=ChainDetail(
             int(shifted), tuple(int(c) for c in self.chain.node_schedule.counts)))
 

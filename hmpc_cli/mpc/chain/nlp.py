@@ -434,10 +434,10 @@ class FixedModeNLP:
         mid = 0.5 * (np.array(md.u_lower) + np.array(md.u_upper))
         return np.minimum(lo, mid), np.maximum(hi, mid)
 
-    # ------------------------------------------------------------------ solve
-    def solve(self, w0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None) -> SolveResult:
-        """One solve (see :meth:`SolverSession.solve`); never raises on solver failure."""
-        return self.session.solve(w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0)
+    # --------------------------------------------------------------- optimize
+    def optimize(self, w0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None) -> SolveResult:
+        """One solve from ``w0`` (see :meth:`SolverSession.run`); never raises on solver failure."""
+        return self.session.run(w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0)
 
     def violation(self, w, p, lbx, ubx, lbg, ubg) -> float:
         """Largest constraint or bound violation at primal point w."""

@@ -252,7 +252,7 @@ class WalkingMPC:
             res = failed(w0, f"segment {segment} ({b - a:g} m) is shorter than twice "
                              f"the segment margin ({nlp.segment_margin:g} m)")
         else:
-            res = nlp.solve(w0, p, lbx, ubx, lbg, ubg, lam_x, lam_g)
+            res = nlp.optimize(w0, p, lbx, ubx, lbg, ubg, lam_x, lam_g)
         if res.stats.success:
             self._memory[segment] = _Memory(res.x, res.lam_x, res.lam_g, x0, elapsed)
         else:

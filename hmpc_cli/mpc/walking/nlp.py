@@ -460,12 +460,12 @@ class WalkingNLP:
         xs, us = self._traj_fun(w, p)
         return np.asarray(xs), np.asarray(us)
 
-    def solve(self, w0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None) -> SolveResult:
-        """One IPOPT solve (see :meth:`SolverSession.solve`); never raises on failure.
+    def optimize(self, w0, p, lbx, ubx, lbg, ubg, lam_x0=None, lam_g0=None) -> SolveResult:
+        """One IPOPT solve from ``w0`` (see :meth:`SolverSession.run`); never raises on failure.
 
         With both multiplier guesses the warm instance runs, else the cold one.
         """
-        return self.session.solve(w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0)
+        return self.session.run(w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0)
 
 
 class _Outputs:

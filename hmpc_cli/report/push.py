@@ -1,0 +1,154 @@
+"""The biped's push study on the results page: where the walker starts to fail.
+
+Reads the push sweep's results.csv only (``sweeps/biped_push.toml``: torso push
+magnitude x walking-MPC rate, seeds): success per cell with Wilson 95 % intervals, the
+boundary (per rate, the largest push at which every run succeeded and the smallest at
+which none did), a Cochran-Armitage trend of success across push sizes per rate and
+across rates per push size, and a figure (success vs push, one line per rate). Figure 4
+is drawn again from the log of a run at the boundary: the largest push the default rate
+still walked through.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from hmpc_cli.analysis.tables import FigureInputError, parse_bool, read_table, resolve_table
+from hmpc_cli.figures.robustness import Cell, wilson
+from hmpc_cli.figures.common import page_link
+from hmpc_cli.report.robustness import trend_text
+
+__all__ = ["PUSH", "RATE", "push_cells", "push_section"]
+
+PUSH, RATE = "disturbance.magnitude", "mpc.rate_hz"
+
+
+def push_cells(rows: list[dict], where: str) -> list[Cell]:
+    """Cells (panel "", series: the rate in Hz, x: the push [N]) of the push sweep's runs."""
+    counts: dict[tuple[float, float], list[int]] = {}
+    for i, row in enumerate(rows, start=2):
+        try:
+            key = (float(row[RATE]), float(row[PUSH]))
+        except (KeyError, ValueError):
+            raise FigureInputError(f"{where}:{i}: columns {RATE} and {PUSH} must be numbers "
+                                   "(is this the push sweep's results.csv?)") from None
+        c = counts.setdefault(key, [0, 0])
+        c[0] += 1
+        c[1] += parse_bool(row.get("success"), f"{where}:{i}: column success")
+    return [Cell("", f"{rate:g}", push, n, k)
+            for (rate, push), (n, k) in sorted(counts.items())]
+
+
+def _boundary(cells: list[Cell]) -> list[str]:
+    """Per rate: the largest push with no failure and the smallest with no success."""
+    out = []
+    for rate in dict.fromkeys(c.series for c in cells):
+        sel = [c for c in cells if c.series == rate]
+        safe = [c.x for c in sel if c.successes == c.runs]
+        lost = [c.x for c in sel if c.successes == 0]
+        first_fail = min((c.x for c in sel if c.successes < c.runs), default=None)
+        out.append(
+            f"- {rate} Hz: every run walked up to ±{max(safe):g} N" if safe else
+            f"- {rate} Hz: failures at every push size")
+        out[-1] += (f"; the first failure at ±{first_fail:g} N" if first_fail is not None
+                    else "; no failure up to the largest push")
+        out[-1] += (f"; none walked at ±{min(lost):g} N." if lost else ".")
+    return out
+
+
+def _table(cells: list[Cell]) -> list[str]:
+    rates = list(dict.fromkeys(c.series for c in cells))
+    pushes = sorted({c.x for c in cells})
+    by = {(c.series, c.x): c for c in cells}
+    lines = ["| push | " + " | ".join(f"{r} Hz" for r in rates) + " |",
+             "| --- | " + " | ".join("---" for _ in rates) + " |"]
+    for p in pushes:
+        parts = []
+        for r in rates:
+            c = by.get((r, p))
+            lo, hi = wilson(c.successes, c.runs) if c else (0.0, 1.0)
+            parts.append("-" if c is None else
+                         f"{c.successes}/{c.runs} ({100 * lo:.0f}-{100 * hi:.0f} %)")
+        lines.append(f"| ±{p:g} N | " + " | ".join(parts) + " |")
+    return lines
+
+
+def _draw(cells: list[Cell], out: Path) -> None:
+    """Success rate vs push [N], one line per rate, Wilson bars: ``out`` (png, pdf)."""
+    from matplotlib.figure import Figure
+
+    from hmpc_cli.figures.common import (
+        COLUMN_WIDTH_IN, figure_style, make_out_dir, save_figure)
+    from hmpc_cli.figures.robustness import SERIES_STYLE
+
+    with figure_style():
+        fig = Figure(figsize=(COLUMN_WIDTH_IN, 2.0), layout="constrained")
+        ax = fig.add_subplot()
+        for k, rate in enumerate(dict.fromkeys(c.series for c in cells)):
+            sel = [c for c in cells if c.series == rate]
+            xs = [c.x for c in sel]
+            ys = [c.rate for c in sel]
+            lo = [c.rate - c.interval[0] for c in sel]
+            hi = [c.interval[1] - c.rate for c in sel]
+            ax.errorbar(xs, ys, yerr=[lo, hi], capsize=2, lw=1.0, ms=3.5,
+                        label=f"{rate} Hz", **SERIES_STYLE[k % len(SERIES_STYLE)])
+        ax.set_xlabel("torso push magnitude (N)")
+        ax.set_ylabel("success rate (Wilson 95 %)")
+        ax.set_ylim(-0.05, 1.05)
+        ax.legend(loc="lower left", title="walking MPC")
+        save_figure(fig, make_out_dir(out.parent), out.name, ("pdf", "png"))
+
+
+def _boundary_run(rows: list[dict], rate: str) -> dict | None:
+    """The run of ``rate`` [Hz] at the largest push any of its seeds walked through."""
+    ok = [r for r in rows if r.get(RATE) and f"{float(r[RATE]):g}" == rate
+          and parse_bool(r.get("success"), "results.csv: success") and r.get("log")]
+    return max(ok, key=lambda r: (float(r[PUSH]), -int(r.get("seed") or 0)), default=None)
+
+
+def push_section(directory: Path, fig_dir: Path, base: Path, default_rate: str = "10"
+                 ) -> list[str]:
+    """The page's push-study section (markdown lines); figures into ``fig_dir``.
+
+    Raises:
+        FigureInputError: no such table, or not the push sweep's.
+    """
+    from hmpc_cli.figures.fig4 import fig4
+
+    table = resolve_table(directory)
+    rows = read_table(table, [PUSH, RATE, "success"])
+    cells = push_cells(rows, str(table))
+    if not cells:
+        raise FigureInputError(f"{table}: no finished run")
+    _draw(cells, fig_dir / "biped_push")
+    seeds = len({r.get("seed") for r in rows})
+    lines = ["## The biped under pushes that matter", "",
+             f"![biped push study]({page_link(fig_dir / 'biped_push.png', base)})", "",
+             f"{len(rows)} finished runs of `sweeps/biped_push.toml`, {seeds} seeds (each its "
+             "own push sequence: uniform in ±magnitude, held 0.1 s, at the torso) per cell; "
+             "the Figure 4 stairs and 1.1x heavier robot; Wilson 95 % intervals. The "
+             "paper's ±25 N (and up to ±800 N) never make it fail: its joints may give "
+             "3 kN m.", "", *_table(cells), "", "Where it starts to fail:", "",
+             *_boundary(cells), "", "Trends (Cochran-Armitage):", ""]
+    for rate in dict.fromkeys(c.series for c in cells):
+        sel = [c for c in cells if c.series == rate]
+        if len(sel) >= 2:
+            lines.append("- " + trend_text(sel, [c.x for c in sel],
+                                           f"{rate} Hz, across push sizes (scores: push [N])",
+                                           "with the push") + ".")
+    for push in sorted({c.x for c in cells}):
+        sel = [c for c in cells if c.x == push]
+        if len(sel) >= 2:
+            lines.append("- " + trend_text(sel, [math.log(float(c.series)) for c in sel],
+                                           f"±{push:g} N, across MPC rates (scores: log f)")
+                         + ".")
+    run = _boundary_run(rows, default_rate)
+    if run is not None:
+        walk = fig4(table.parent / Path(run["log"]).parent, fig_dir / "fig4_push", "pdf,png")
+        lines += ["", f"Figure 4 at the boundary: the {default_rate} Hz walk through the "
+                  f"largest push it survived (±{float(run[PUSH]):g} N, seed {run['seed']}); "
+                  f"F_x to the run's end ({walk.t[-1]:.2f} s):", "",
+                  f"![Figure 4 at ±{float(run[PUSH]):g} N]"
+                  f"({page_link(fig_dir / 'fig4_push' / 'fig4.png', base)})"]
+    return lines + [""]
