@@ -333,7 +333,7 @@ class Hold:
 
 
 PLANNER = PlannerSpec("stay", StaySettings, lambda system, settings, seed: Stay())
-MPC = MPCSpec("hold", HoldSettings, lambda system, settings: None,
+MPC = MPCSpec("hold", HoldSettings, lambda system, settings, margins: None,
               lambda system, settings, problem: Hold(system, settings))
 '''
 

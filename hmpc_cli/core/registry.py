@@ -144,10 +144,10 @@ class MPCSpec:
     Attributes:
         kind: ``mpc.kind`` in a scenario.
         settings: pydantic model with fields ``kind: Literal[kind]`` and ``rate_hz``.
-        problem: (system, settings) -> the built NLP(s): expensive, built once per
-            process per (system, settings) and shared by the controllers made from it.
-            When ``settings.margins`` names a margins file, the loop passes its values as
-            a third argument (a :class:`~hmpc_cli.core.messages.ConstraintMargins`).
+        problem: (system, settings, margins) -> the built NLP(s): expensive, built once
+            per process per (system, settings, margins) and shared by the controllers
+            made from it; ``margins``: a margins file's or the tube's
+            :class:`~hmpc_cli.core.messages.ConstraintMargins`, or None (hand margins).
         make: (system, settings, problem) -> :class:`~hmpc_cli.core.stack.FixedModeMPC`.
         needs: system capabilities it uses (as for :class:`PlannerSpec`).
         requires: settings it needs (and their defaults).
@@ -160,7 +160,7 @@ class MPCSpec:
 
     kind: str
     settings: type[BaseModel]
-    problem: Callable[..., Any]
+    problem: Callable[[Any, Any, Any], Any]
     make: Callable[[Any, Any, Any], Any]
     needs: frozenset[str | type] = frozenset()
     requires: tuple[Requirement, ...] = ()

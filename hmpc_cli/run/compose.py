@@ -138,8 +138,9 @@ def _build_info(problem) -> BuildInfo | None:
 def _mpc(sc, model, margins: ConstraintMargins | None) -> tuple[FixedModeMPC, object]:
     """The MPC controller and its problem (built once per process per system and settings).
 
-    The problem is shared by the runs of one (system, MPC settings, margins). A margins
-    file's values go to the plug-in's ``problem`` as a third argument.
+    The problem is shared by the runs of one (system, MPC settings, margins): the
+    plug-in's ``problem(system, settings, margins)`` gets a margins file's or the tube's
+    values, or None for the kind's hand margins.
     """
     from hmpc_cli.core.registry import plugin_call, registry
 
@@ -150,8 +151,8 @@ def _mpc(sc, model, margins: ConstraintMargins | None) -> tuple[FixedModeMPC, ob
                       margins.to_dict(model) if from_file else None], sort_keys=True)
     what = f"mpc: {sc.mpc.kind!r} failed to build for system {sc.system.name!r}"
     if key not in _PROBLEMS:
-        extra = (margins,) if from_file else ()
-        _PROBLEMS[key] = plugin_call(what, mpc_spec.problem, model, sc.mpc, *extra)
+        _PROBLEMS[key] = plugin_call(what, mpc_spec.problem, model, sc.mpc,
+                                     margins if from_file else None)
     return plugin_call(what, mpc_spec.make, model, sc.mpc, _PROBLEMS[key]), _PROBLEMS[key]
 
 
