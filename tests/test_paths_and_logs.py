@@ -85,7 +85,8 @@ COMMANDS = {  # name -> args with the path as {P}, the check's kind
     "plot --out": ["plot", "fig4", "{LOG}", "--out", "{P}"],
     "tube --write": ["tube", BALL, "--write", "{P}", "--samples", "10"],
     "tube --out": ["tube", BALL, "--out", "{P}", "--samples", "10"],
-    "report --results": ["report", "--results", "{P}", "--biped", "", "--biped-push", ""],
+    "report --results": ["report", "--results", "{P}", "--biped", "", "--biped-push", "",
+                         "--fig3-trials", ""],
     "replay --export": ["replay", "{LOG}", "--export", "{P}"],
     "replay --figures": ["replay", "{LOG}", "--figures", "{P}"],
 }

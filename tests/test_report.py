@@ -178,7 +178,7 @@ seeds = 2
     res = tmp_path / "results"
     args = ["report", "--run", "--results", str(res), "--fig3", "", "--fig3-extra", "",
             "--fig3-reference", "", "--fig3-reference-extra", "", "--fig3-schedule", "",
-            "--biped", "", "--biped-push", "",
+            "--biped", "", "--biped-push", "", "--fig3-trials", "",
             "--robustness", str(sweep), "--workers", "1"]
     proc = run_hmpc(args, tmp_path, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -215,7 +215,7 @@ def test_report_without_results_is_a_clear_error(tmp_path, run_hmpc):
                      "--fig3", str(REPO / "sweeps" / "fig3.toml"), "--fig3-extra", "",
                      "--fig3-reference", "", "--fig3-reference-extra", "",
                      "--fig3-schedule", "", "--robustness", "", "--biped", "",
-                     "--biped-push", ""], tmp_path)
+                     "--biped-push", "", "--fig3-trials", ""], tmp_path)
     assert "no such table" in proc.stderr
     assert proc.returncode == 2
     assert "error:" in proc.stderr and "Traceback" not in proc.stderr
@@ -342,7 +342,8 @@ def test_report_with_a_missing_authors_directory_is_a_clear_error(tmp_path, run_
     proc = run_hmpc(["report", "--no-run", "--results", str(tmp_path / "r"),
                      "--fig3", str(tmp_path), "--fig3-extra", "", "--fig3-reference", "",
                      "--fig3-reference-extra", "", "--fig3-schedule", "", "--robustness", "",
-                     "--biped", "", "--biped-push", "", "--authors",
+                     "--biped", "", "--biped-push", "", "--fig3-trials", "",
+                     "--authors",
                      str(tmp_path / "nowhere")], tmp_path)
     assert proc.returncode == 2
     assert proc.stderr.strip() == f"error: --authors: {tmp_path / 'nowhere'}: no such directory"
@@ -409,3 +410,45 @@ def test_the_campaigns_page_regenerates_from_what_the_repository_holds(tmp_path,
                                if p.is_file())
     for rel in committed:
         assert (out / rel).read_bytes() == (CAMPAIGNS / rel).read_bytes(), rel
+
+
+def test_figure_3_trial_by_trial_from_a_table_alone(tmp_path):
+    """The reference rule's table: per controller, the counts, each side's failures, which
+    of the authors' failures appear, and the verdict (exact)."""
+    from hmpc_cli.report.fig3_trials import fig3_trials_section
+
+    d = tmp_path / "fig3_rule"
+    d.mkdir()
+    (d / "sweep.toml").write_text('name = "fig3_rule"\ndescription = "rule"\n'
+                                  '[set]\n"mpc.schedule_rule" = "reference"\n')
+    trials = ["nominal", *(f"trial {k}" for k in range(1, 11))]
+    failed = {"10 Hz fixed": {"trial 5"}, "100 Hz fixed": set(trials)}
+    with open(d / "results.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["run_id", "controller", "disturbance", "seed", "success", "log"])
+        for c in ("10 Hz fixed", "20 Hz fixed", "100 Hz fixed"):
+            for t in trials:
+                w.writerow([f"{c}-{t}", c, t, 0, str(t not in failed.get(c, ())).lower(), ""])
+    text = "\n".join(fig3_trials_section(d))
+    assert ("| 10 Hz fixed | 10/11 | 9/11 | trial 5, trial 7 | trial 5 | 1 of 2 (not: trial 7) |"
+            in text)
+    assert "| 20 Hz fixed | 11/11 | 11/11 | none | none | - |" in text
+    assert "- 10 Hz fixed: not reproduced (10/11 vs the paper's 9/11; of the authors' 2 " \
+        "failures 1 fail here)." in text
+    assert "- 20 Hz fixed: reproduced (11/11 vs the paper's 11/11; of the authors' 0 failures " \
+        "0 fail here)." in text
+    assert "- 100 Hz fixed: not reproduced (0/11 vs the paper's 4/11; of the authors' 7 " \
+        "failures 7 fail here, and 4 more)." in text
+
+
+def test_the_authors_failures_are_their_data():
+    """AUTHORS_FAILED against the authors' CSVs (where this machine has them)."""
+    from hmpc_cli.analysis.authors import end_distance, read_panels
+    from hmpc_cli.report.fig3_trials import AUTHORS_FAILED
+
+    ref = REPO.parent / "shared" / "reference"
+    if not (ref / "fig3_left_10hz_fixed.csv").is_file():
+        pytest.skip("the authors' Figure 3 CSVs are not on this machine")
+    panels = read_panels(ref)
+    assert {p: tuple(t for t, tr in trials.items() if end_distance(tr.xy) > 1.0)
+            for p, trials in panels.items()} == AUTHORS_FAILED

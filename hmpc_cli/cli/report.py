@@ -50,6 +50,10 @@ def report_command(
     biped: Annotated[Path | None, typer.Option(
         "--biped", help="biped scenario for Figure 4 ('' to leave out)")
     ] = Path("scenarios/biped_stairs.toml"),
+    fig3_trials: Annotated[Path | None, typer.Option(
+        "--fig3-trials", help="a Figure 3 sweep tabled trial by trial against the authors' "
+        "failures, from its table alone ('' to leave out)")
+    ] = Path("sweeps/fig3_reference_rule.toml"),
     biped_push: Annotated[Path | None, typer.Option(
         "--biped-push", help="the biped's push study: sweep file or output directory ('' to "
         "leave out)")] = Path("sweeps/biped_push.toml"),
@@ -74,6 +78,7 @@ def report_command(
                           fig3_reference=fig3_reference,
                           fig3_reference_extra=fig3_reference_extra,
                           fig3_schedule=fig3_schedule, biped_push=biped_push,
+                          fig3_trials=fig3_trials,
                           **{f"robustness:{i}": p for i, p in enumerate(
                               ROBUSTNESS if robustness is None else robustness)})
     from hmpc_cli.cli.common import is_quiet
@@ -252,7 +257,8 @@ def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None,
     inputs = ReportInputs(dirs.get("fig3"), dirs.get("fig3_extra"), studies or None,
                           biped_dir, dirs.get("fig3_reference"),
                           dirs.get("fig3_reference_extra"), *authors,
-                          dirs.get("fig3_schedule"), dirs.get("biped_push"))
+                          dirs.get("fig3_schedule"), dirs.get("biped_push"),
+                          dirs.get("fig3_trials"))
     try:
         page = write_report(results, inputs, shlex.join(["hmpc", *sys.argv[1:]]))
     except FigureInputError as exc:

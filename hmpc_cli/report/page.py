@@ -37,6 +37,7 @@ class ReportInputs:
     authors_note: str = ""
     fig3_schedule: Path | None = None  # the authors' plan flown (schedule planner)
     biped_push: Path | None = None  # the biped's push sweep (sweeps/biped_push.toml)
+    fig3_trials: Path | None = None  # a Figure 3 sweep tabled trial by trial (table only)
 
 
 def _settings(*dirs: Path | None) -> str:
@@ -132,6 +133,10 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
              "with the same command.", ""]
     if any(d is not None for d in (inputs.fig3, inputs.fig3_reference, inputs.fig3_schedule)):
         lines += _fig3_section(inputs, fig_dir, results)
+    if inputs.fig3_trials is not None:
+        from hmpc_cli.report.fig3_trials import fig3_trials_section
+
+        lines += fig3_trials_section(inputs.fig3_trials)
     if inputs.robustness is not None:
         lines += _robustness_section(inputs, fig_dir, results)
     if inputs.biped is not None:
@@ -141,7 +146,8 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
 
         lines += push_section(inputs.biped_push, fig_dir, results)
     if inputs.fig3 is None and inputs.fig3_reference is None and inputs.robustness is None \
-            and inputs.biped is None and inputs.biped_push is None:
+            and inputs.biped is None and inputs.biped_push is None \
+            and inputs.fig3_trials is None:
         raise FigureInputError("nothing to report: no Figure 3, robustness sweep or biped run")
     lines += ["## Layout", "",
               "* `<scenario>/<UTC time>-seed<N>/`: one `hmpc run` (`run.mcap`, `summary.json`, "
