@@ -51,6 +51,13 @@ def test_disturbed_runs_stay_inside_the_trivial_tube(campaign):
     cells = [c.strip() for c in row.split("│")[1:-1]]
     assert int(cells[1]) >= 15 and cells[2] == "1.000" and cells[5] == "0"
     assert (campaign / "tout" / "tube_reality.png").is_file()
+    # tube.json holds the table as printed (README: everything printed)
+    import json
+
+    doc = json.loads((campaign / "tout" / "tube.json").read_text())["reality"]
+    kin = next(b for b in doc["bounds"] if b["bound"] == "kinematic")
+    assert kin["periods"] == int(cells[1]) and f"{kin['fraction_inside']:.3f}" == cells[2]
+    assert kin["violations"] == [] and doc["periods"] >= 15
 
 
 def test_nominal_run_follows_its_plan_nodes(campaign):

@@ -154,8 +154,12 @@ def _print(report, sc_name: str) -> None:
         con.print(f"[bold yellow]warning[/]: {escape(line)}")
 
 
-def _write(report, system, out: Path, formats: str, title: str) -> list[str]:
-    """Writes tube.json and the figures into ``out``; returns the file names."""
+def _write(report, system, out: Path, formats: str, title: str, reality=None) -> list[str]:
+    """Writes tube.json and the figures into ``out``; returns the file names.
+
+    tube.json holds everything printed: the analysis and, with ``--runs``, the tube vs
+    reality table (``reality``: a :class:`~hmpc_cli.analysis.tube_reality.RealityReport`).
+    """
     import numpy as np
 
     from hmpc_cli.figures.common import parse_formats
@@ -167,7 +171,10 @@ def _write(report, system, out: Path, formats: str, title: str) -> list[str]:
     out.mkdir(parents=True, exist_ok=True)
     from hmpc_cli.core.paths import write_atomic
 
-    write_atomic(out / "tube.json", dumps(report.to_dict(), indent=2) + "\n")
+    doc = report.to_dict()
+    if reality is not None:
+        doc["reality"] = _reality_dict(reality)
+    write_atomic(out / "tube.json", dumps(doc, indent=2) + "\n")
     periods = [r.dt for r in report.rows]
     t = np.linspace(0.0, max(periods), 401)[1:]
     cert = report.certificate
@@ -259,14 +266,16 @@ def tube_command(
     else:
         _print(report, sc.name)
     out = out if out is not None else Path("results") / sc.name / "tube"
+    reality = _reality_report(report, observed) if observed else None
     try:
-        names = _write(report, system, out, formats, f"{sc.name}: tubes")
+        names = _write(report, system, out, formats, f"{sc.name}: tubes", reality)
     except (OSError, FigureInputError) as exc:
         _fail([f"{out}: cannot write ({exc})"])
     if not quiet:
         typer.echo(f"wrote {', '.join(names)} to {out}")
-    if observed:
-        _reality(report, observed, out, formats, f"{sc.name}: tube vs reality", quiet)
+    if reality is not None:
+        _reality(report, reality, len(observed), out, formats, f"{sc.name}: tube vs reality",
+                 quiet)
     if quiet:
         typer.echo(str(out))
     if write is not None:
@@ -319,7 +328,28 @@ def _read_runs(runs: list[Path], params) -> list:
     return out
 
 
-def _reality(report, runs: list, out: Path, formats: str, title: str,
+def _reality_report(report, runs: list):
+    """The observed deviations of ``runs`` against the tube of ``report``."""
+    from hmpc_cli.analysis.tube_reality import reality
+    from hmpc_cli.tube import diameter_curves
+
+    return reality(runs, lambda tau: diameter_curves(report, tau),
+                   dict(zip(report.kinematic_states, report.kinematic_rates, strict=True)))
+
+
+def _reality_dict(rep) -> dict:
+    """The tube vs reality table as tube.json's ``reality`` (what the table prints)."""
+    return {"periods": len(rep.periods), "skipped": rep.skipped, "unmatched": rep.unmatched,
+            "interpolated": list(rep.interpolated),
+            "bounds": [{"bound": c.bound, "periods": c.periods, "inside": c.inside,
+                        "fraction_inside": c.fraction, "median_ratio": c.median_ratio,
+                        "worst_ratio": c.worst_ratio,
+                        "violations": [{"run": v.run, "t": v.t, "observed": v.observed,
+                                        "predicted": v.predicted} for v in c.violations]}
+                       for c in rep.checks]}
+
+
+def _reality(report, rep, n_runs: int, out: Path, formats: str, title: str,
              quiet: bool = False) -> None:
     """Prints the "tube vs reality" table and writes tube_reality.<fmt> into ``out``."""
     import numpy as np
@@ -331,13 +361,10 @@ def _reality(report, runs: list, out: Path, formats: str, title: str,
     from hmpc_cli.figures.common import parse_formats
     from hmpc_cli.figures.tube import draw_reality
     from hmpc_cli.tube import diameter_curves
-    from hmpc_cli.analysis.tube_reality import reality
 
-    rep = reality(runs, lambda tau: diameter_curves(report, tau),
-                  dict(zip(report.kinematic_states, report.kinematic_rates, strict=True)))
     how = (f"; {len(rep.interpolated)} against the interpolated plan (no sample at a node "
            "time)" if rep.interpolated else "")
-    t = Table(title=escape(f"tube vs reality: {len(runs)} runs, {len(rep.periods)} periods "
+    t = Table(title=escape(f"tube vs reality: {n_runs} runs, {len(rep.periods)} periods "
                            f"({rep.skipped} skipped: no sample; {rep.unmatched} samples "
                            f"with no node in the plant's domain{how})"))
     for col in ("bound", "periods", "inside", "median ratio", "worst ratio", "violations"):
