@@ -452,3 +452,16 @@ def test_the_authors_failures_are_their_data():
     panels = read_panels(ref)
     assert {p: tuple(t for t, tr in trials.items() if end_distance(tr.xy) > 1.0)
             for p, trials in panels.items()} == AUTHORS_FAILED
+
+
+def test_a_table_only_section_without_its_table_is_not_drawn(tmp_path):
+    """A push or trial-by-trial sweep not run yet: its section says so; the page is written."""
+    write_study(tmp_path / "results" / "sweeps" / "robustness" / "results.csv")
+    page = write_report(tmp_path / "results", ReportInputs(
+        None, None, tmp_path / "results" / "sweeps" / "robustness",
+        biped_push=tmp_path / "results" / "sweeps" / "biped_push",
+        fig3_trials=tmp_path / "results" / "sweeps" / "fig3_reference_rule"), "hmpc report")
+    text = page.read_text()
+    assert "## Figure 3 trial by trial\n\nNot drawn: " in text
+    assert "## The biped under pushes that matter\n\nNot drawn: " in text
+    assert "no such table" in text.split("## The biped under pushes that matter")[1]

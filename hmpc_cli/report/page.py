@@ -117,6 +117,21 @@ def _biped_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]
     return lines + [""]
 
 
+def _or_not_drawn(title: str, directory: Path, section) -> list[str]:
+    """A table-only section, or its title and why it is not drawn (no table yet)."""
+    try:
+        return section()
+    except FigureInputError as exc:
+        if _no_table(directory):
+            return [f"## {title}", "", f"Not drawn: {portable_text(str(exc))}", ""]
+        raise
+
+
+def _no_table(directory: Path) -> bool:
+    """Whether a sweep directory has no results.csv yet (not run: not an error)."""
+    return not (Path(directory) / "results.csv").is_file()
+
+
 def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
     """Draws the figures into ``results/report`` and writes ``results/README.md``.
 
@@ -136,7 +151,8 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
     if inputs.fig3_trials is not None:
         from hmpc_cli.report.fig3_trials import fig3_trials_section
 
-        lines += fig3_trials_section(inputs.fig3_trials)
+        lines += _or_not_drawn("Figure 3 trial by trial", inputs.fig3_trials,
+                               lambda: fig3_trials_section(inputs.fig3_trials))
     if inputs.robustness is not None:
         lines += _robustness_section(inputs, fig_dir, results)
     if inputs.biped is not None:
@@ -144,7 +160,8 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
     if inputs.biped_push is not None:
         from hmpc_cli.report.push import push_section
 
-        lines += push_section(inputs.biped_push, fig_dir, results)
+        lines += _or_not_drawn("The biped under pushes that matter", inputs.biped_push,
+                               lambda: push_section(inputs.biped_push, fig_dir, results))
     if inputs.fig3 is None and inputs.fig3_reference is None and inputs.robustness is None \
             and inputs.biped is None and inputs.biped_push is None \
             and inputs.fig3_trials is None:
