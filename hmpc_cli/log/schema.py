@@ -145,18 +145,26 @@ def convert(cls, value):
     if dataclasses.is_dataclass(value):
         value = {f.name: getattr(value, f.name) for f in dataclasses.fields(value)}
     hints = _hints(cls)
-    return cls(**{k: _convert_field(hints.get(k, Any), v) for k, v in dict(value).items()})
+    return cls(**{k: _field_value(hints.get(k, Any), v, convert)
+                   for k, v in dict(value).items()})
 
 
-def _convert_field(tp, v):
+def _field_value(tp, v, record, floats: bool = False):
+    """A field's value as its type says.
+
+    Nested records by ``record(cls, value)``, sequences item by item (as tuples), the
+    integers of a float field as floats if ``floats``.
+    """
     tp, _ = _strip_optional(tp)
     if typing.get_origin(tp) is Annotated:
         tp = typing.get_args(tp)[0]
     if dataclasses.is_dataclass(tp) and isinstance(v, Mapping):
-        return convert(tp, v)
-    if typing.get_origin(tp) in (tuple, list) and v is not None:
+        return record(tp, v)
+    if typing.get_origin(tp) in (tuple, list) and isinstance(v, (list, tuple)):
         item = typing.get_args(tp)[0]
-        return tuple(_convert_field(item, x) for x in v)
+        return tuple(_field_value(item, x, record, floats) for x in v)
+    if floats and tp is float and isinstance(v, int) and not isinstance(v, bool):
+        return float(v)
     return v
 
 
@@ -176,7 +184,7 @@ def read_record(cls: type, value: Mapping):
     hints, kwargs = _hints(cls), {}
     for f in dataclasses.fields(cls):
         if f.name in value and value[f.name] is not None:
-            kwargs[f.name] = _read_field(hints[f.name], value[f.name])
+            kwargs[f.name] = _field_value(hints[f.name], value[f.name], read_record, True)
         elif f.default is not dataclasses.MISSING:
             kwargs[f.name] = f.default
         elif f.default_factory is not dataclasses.MISSING:
@@ -184,20 +192,6 @@ def read_record(cls: type, value: Mapping):
         else:
             kwargs[f.name] = _empty(hints[f.name])
     return cls(**kwargs)
-
-
-def _read_field(tp, v):
-    tp, _ = _strip_optional(tp)
-    if typing.get_origin(tp) is Annotated:
-        tp = typing.get_args(tp)[0]
-    if dataclasses.is_dataclass(tp) and isinstance(v, Mapping):
-        return read_record(tp, v)
-    if typing.get_origin(tp) in (tuple, list) and isinstance(v, list):
-        item = typing.get_args(tp)[0]
-        return tuple(_read_field(item, x) for x in v)
-    if tp is float and isinstance(v, int):
-        return float(v)
-    return v
 
 
 def _empty(tp):
