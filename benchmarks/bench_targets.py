@@ -24,6 +24,7 @@ the machine's description. Measured, never asserted.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import statistics
@@ -105,7 +106,8 @@ def phases() -> dict[str, float]:
         out["run"] = time.perf_counter() - t
     out["run: MPC solves"] = sum(loop.books.solve_times)
     out["run: planner"] = sum(loop.books.plan_times)
-    out["build cache"] = json.dumps(loop.identity.build)
+    build = loop.identity.build
+    out["build cache"] = json.dumps(dataclasses.asdict(build) if build is not None else None)
     return out
 
 
