@@ -205,7 +205,7 @@ def test_results_page_figure_4_section(short_walk, tmp_path):
 
 @pytest.mark.slow
 def test_a_biped_sweep_reuses_one_nlp_per_worker(tmp_path):
-    from hmpc_cli.run import loop
+    from hmpc_cli.run import compose
     from hmpc_cli.sweep.execute import execute_sweep
     from hmpc_cli.sweep.plan import plan_sweep
 
@@ -213,10 +213,10 @@ def test_a_biped_sweep_reuses_one_nlp_per_worker(tmp_path):
     sweep.write_text(f'name = "biped_tiny"\nscenario = "{STAIRS.as_posix()}"\nseeds = 2\n'
                      '[set]\n"sim.duration" = 0.35\n'
                      '[grid]\n"disturbance.magnitude" = [0.0, 25.0]\n')
-    loop._PROBLEMS.clear()  # NLPs built by earlier tests in this process
+    compose._PROBLEMS.clear()  # NLPs built by earlier tests in this process
     outcome = execute_sweep(plan_sweep(sweep), tmp_path / "out", workers=1)
     assert outcome.done == 4 and not outcome.lost
-    assert len(loop._PROBLEMS) == 1  # one walking NLP served all four runs
+    assert len(compose._PROBLEMS) == 1  # one walking NLP served all four runs
     import csv
 
     with open(tmp_path / "out" / "results.csv", newline="") as f:
