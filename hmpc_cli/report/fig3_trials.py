@@ -13,6 +13,7 @@ from pathlib import Path
 
 from hmpc_cli.analysis.tables import FigureInputError, parse_bool, read_table, resolve_table
 from hmpc_cli.analysis.tables import sweep_spec
+from hmpc_cli.report.robustness import wall_text
 
 __all__ = ["AUTHORS_FAILED", "PAPER_COUNTS", "fig3_trials_section"]
 
@@ -51,8 +52,8 @@ def fig3_trials_section(directory: Path) -> list[str]:
         raise FigureInputError(f"{table}: no finished run")
     lines = [f"## Figure 3 trial by trial: {spec.get('description', name)}", "",
              f"From `sweeps/{name}.toml`'s per-run table ({len(rows)} runs; settings of every "
-             f"run: {_settings(spec)}). The authors' failures: their own data (the trials "
-             "that end outside the circle at t = 3 s).", "",
+             f"run: {_settings(spec)}; {wall_text(rows)}). The authors' failures: their own "
+             "data (the trials that end outside the circle at t = 3 s).", "",
              "| controller | hmpc | paper | authors' failures | hmpc's failures | "
              "the authors' failures in hmpc |", "| --- | --- | --- | --- | --- | --- |"]
     verdicts = []

@@ -17,7 +17,7 @@ from pathlib import Path
 from hmpc_cli.analysis.tables import FigureInputError, parse_bool, read_table, resolve_table
 from hmpc_cli.figures.robustness import Cell, wilson
 from hmpc_cli.figures.common import page_link
-from hmpc_cli.report.robustness import trend_text
+from hmpc_cli.report.robustness import trend_text, wall_text
 
 __all__ = ["PUSH", "RATE", "push_cells", "push_section"]
 
@@ -132,7 +132,7 @@ def push_section(directory: Path, fig_dir: Path, base: Path, default_rate: str =
              "own push sequence: uniform in ±magnitude, held 0.1 s, at the torso) per cell; "
              "the Figure 4 stairs and 1.1x heavier robot; Wilson 95 % intervals. The "
              "paper's Figure 4 run is pushed with ±25 N; this robot's joints may give "
-             "3 kN m.", "", *_table(cells), "", "Where it starts to fail:", "",
+             f"3 kN m; {wall_text(rows)}.", "", *_table(cells), "", "Where it starts to fail:", "",
              *_boundary(cells), "", "Trends (Cochran-Armitage):", ""]
     for rate in dict.fromkeys(c.series for c in cells):
         sel = [c for c in cells if c.series == rate]

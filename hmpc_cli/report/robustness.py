@@ -198,7 +198,7 @@ def findings(cells) -> list[str]:
     return out
 
 
-def _wall(rows: list[dict]) -> str:
+def wall_text(rows: list[dict]) -> str:
     """The runs' summed wall time (core hours) and mean per run."""
     walls = [float(r["wall_time"]) for r in rows if r.get("wall_time") not in (None, "")]
     if not walls:
@@ -334,7 +334,7 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
     return ([f"### {spec.get('description', name)}", "", f"![{name}]({png})", "",
              f"{len(rows)} finished runs, {seeds} seeds{partial}, {n[0]}"
              f"{'' if len(n) == 1 else f'-{n[-1]}'} runs per cell; settings of every run: "
-             f"{_fixed(spec)}; Wilson 95 % intervals; {_wall(rows)}. Table: [{csv}]({csv})."
+             f"{_fixed(spec)}; Wilson 95 % intervals; {wall_text(rows)}. Table: [{csv}]({csv})."
              + resume, "", *_pivot(cells), "",
              *(["Tube diameter diam T(1/f) at each rate (Step 5, sampled constants; the "
                 "lower panels):", "", *_diam_lines(diam), ""] if diam else []),
