@@ -465,3 +465,28 @@ def test_a_table_only_section_without_its_table_is_not_drawn(tmp_path):
     assert "## Figure 3 trial by trial\n\nNot drawn: " in text
     assert "## The biped under pushes that matter\n\nNot drawn: " in text
     assert "no such table" in text.split("## The biped under pushes that matter")[1]
+
+
+def test_a_tube_margins_study_sits_beside_its_hand_margin_twin(tmp_path):
+    """The tube study is paired with the study of the same settings but mpc.margins, cell by
+    cell (tube | hand), separated cells named, and the reading counts (exact)."""
+    from hmpc_cli.report.robustness import Study, robustness_sections
+
+    def study(name: str, fixed: str, truth: dict) -> Path:
+        d = tmp_path / name
+        write_study(d / "results.csv", truth, seeds=20)
+        (d / "sweep.toml").write_text(f'name = "{name}"\nseeds = 20\n[set]\n{fixed}\n')
+        return d
+
+    hand = {(5, "once", 15.0): 2, (50, "once", 15.0): 20}
+    tube = {(5, "once", 15.0): 16, (50, "once", 15.0): 19}
+    dirs = [study("hand", '"disturbance.kind" = "box"', hand),
+            study("tube", '"disturbance.kind" = "box"\n"mpc.margins" = "tube"', tube)]
+    text = "\n".join(robustness_sections([Study(d) for d in dirs], tmp_path / "fig", tmp_path))
+    assert "### Each rate's tube margins vs one hand margin: `tube` beside `hand`" in text
+    assert "| ±15.0 | once | 16/20 \\| 2/20 | 19/20 \\| 20/20 |" in text
+    assert ("- ±15.0, once, 5 Hz: tube margins is higher than the hand margin (80 % vs 10 %; "
+            "intervals separate).") in text
+    assert "50 Hz: tube margins" not in text  # 19/20 vs 20/20: intervals overlap
+    assert ("- Each rate's tube margins vs one hand margin (`tube`): better in 1 of 2 cells "
+            "with separated intervals, worse in 0; 1 unresolved.") in text

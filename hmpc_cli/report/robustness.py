@@ -390,13 +390,16 @@ def _pairs(cells) -> tuple[list, list]:
 
 
 def reading(results: list[tuple[dict, list]],
-            latency: list[tuple[tuple[str, ...], list, list[tuple]]]) -> list[str]:
+            latency: list[tuple[tuple[str, ...], list, list[tuple]]],
+            margins: list[tuple[dict, list[tuple]]] = ()) -> list[str]:
     """What the evidence does and does not support, counted from the intervals.
 
     Args:
         results: every study's (``sweep.toml``, cells).
         latency: per latency study compared with its paused twin: (its latency in words,
             :func:`_latency_words`; its cells; :func:`twin_pairs` with the paused twin).
+        margins: per tube-margins study, (its ``sweep.toml``, :func:`twin_pairs` with its
+            hand-margin twin).
     """
     rate_pairs, plan_pairs = [], []
     for spec, cells in results:
@@ -413,6 +416,11 @@ def reading(results: list[tuple[dict, list]],
         lines.append(f"- Replanning at contacts vs planning once (time paused): better in {up} "
                      f"of {len(plan_pairs)} cells with separated intervals, worse in {down}; "
                      f"{tie} unresolved.")
+    for spec, pairs in margins:
+        better, worse, tie = _tally(pairs)
+        lines.append(f"- Each rate's tube margins vs one hand margin (`{spec.get('name')}`): "
+                     f"better in {better} of {len(pairs)} cells with separated intervals, "
+                     f"worse in {worse}; {tie} unresolved.")
     for words, cells, twins in latency:
         better, worse, _ = _tally(twins)
         lines.append(f"- Solve time charged ({', '.join(words)}): {worse} of {len(twins)} "
@@ -435,6 +443,33 @@ def _rate_reading(what: str, pairs: list[tuple], series: str) -> str:
     return (f"- {what}: in {up} of {len(pairs)} series ({series}) the fastest rate succeeds "
             f"more often than the slowest with separated intervals, in {down} less often; "
             f"{tie} unresolved at this sample size.")
+
+
+def side_by_side(pairs: list[tuple]) -> list[str]:
+    """Markdown table of (cell, twin) pairs: one row per (size, policy), a column per rate."""
+    xs = sorted({c.x for c, _ in pairs})
+    rows: dict[tuple[str, str], dict[float, tuple]] = {}
+    for c, t in pairs:
+        rows.setdefault((c.panel, c.series), {})[c.x] = (c, t)
+    lines = ["| disturbance | policy | " + " | ".join(f"{x:g} Hz" for x in xs) + " |",
+             "| --- | --- | " + " | ".join("---" for _ in xs) + " |"]
+    for (panel, series), by_x in rows.items():
+        parts = [f"{by_x[x][0].successes}/{by_x[x][0].runs} \\| {by_x[x][1].successes}/"
+                 f"{by_x[x][1].runs}" if x in by_x else "-" for x in xs]
+        lines.append(f"| ±{panel} | {series} | " + " | ".join(parts) + " |")
+    return lines
+
+
+def _hand_twin(spec: dict, paused: list[tuple[dict, list]]) -> tuple[dict, list] | None:
+    """The hand-margin study with a tube-margins study's settings, else None."""
+    if spec.get("set", {}).get("mpc.margins") != "tube":
+        return None
+
+    def key(s: dict) -> dict:
+        return {k: v for k, v in s.get("set", {}).items() if k != "mpc.margins"}
+
+    return next((p for p in paused if p[0].get("set", {}).get("mpc.margins", "hand") == "hand"
+                 and key(p[0]) == key(spec)), None)
 
 
 #: the [set] keys in which a latency study and its time-paused twin may differ
@@ -495,6 +530,21 @@ def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list
         lines += section
         results.append((spec, cells))
     paused = [r for r in results if charged(r[0]) is None]
+    margins: list[tuple[dict, list[tuple]]] = []
+    for spec, cells in paused:
+        twin = _hand_twin(spec, paused)
+        if twin is not None:
+            pairs = twin_pairs(twin[1], cells)
+            margins.append((spec, pairs))
+            lines += [f"### Each rate's tube margins vs one hand margin: `{spec.get('name')}` "
+                      f"beside `{twin[0].get('name')}`", "",
+                      "The same cells (seeds, disturbance draws) with the paper's mechanism, "
+                      "every MPC rate tightening its constraints by its own tube diam T(1/f), "
+                      "and with one hand margin at every rate; each cell: tube | hand.", "",
+                      *side_by_side(pairs), "",
+                      *[f"- ±{c.panel}, {c.series}, {c.x:g} Hz: "
+                        + _compare(c, h, "tube margins", "the hand margin") + "."
+                        for c, h in pairs if separated(c, h)], ""]
     latency: list[tuple[tuple[str, ...], list, list[tuple]]] = []
     for spec, cells in results:
         lat = charged(spec)
@@ -512,4 +562,4 @@ def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list
         lines += [f"### {latency_text(lat)} charged vs time paused", "",
                   f"`{spec.get('name')}` beside the same cells of `{twin[0].get('name')}`. "
                   + _first_plan(spec, lat) + _solver_pace(lat), "", *mine, ""]
-    return lines + reading(results, latency)
+    return lines + reading(results, latency, margins)
