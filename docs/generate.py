@@ -565,7 +565,8 @@ in `hmpc_cli/log/topics.py`, its JSON schema generated from it by `hmpc_cli/log/
 inside the subset Foxglove and Lichtblick parse (a test holds every topic's schema to the
 viewers' rules and every logged message to its schema). The MCAP writer is
 `hmpc_cli/log/recorder.py` (chunk compression: `hmpc_cli/log/codecs.py`, zstd at level 1),
-the run's topics `hmpc_cli/log/runlog.py` (its counts: `hmpc_cli/log/books.py`), the reader `hmpc_cli/log/reader.py`.
+the run's topics `hmpc_cli/log/runlog.py` (its counts: `hmpc_cli/log/books.py`), the
+reader `hmpc_cli/log/reader.py`.
 
 A system's vectors are objects with one number per name: the state `x` of a ball run is
 `{{"px": ..., "py": ..., "vx": ..., "vy": ...}}`, so the tables below write the name sets
