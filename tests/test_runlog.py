@@ -78,3 +78,13 @@ def test_a_held_solve_is_logged_as_it_was_when_solved(tmp_path):
     assert solve["plan"][-1]["t"] == 0.3 + 0.4
     assert solve["detail"] == {"shifted": 1, "counts": [5]}
     assert dataclasses.asdict(_plan(model).stats)["iterations"] == solve["iterations"]
+
+
+def test_the_null_writer_answers_every_call_of_the_topic_writer():
+    """A run without a log (benchmarks) calls the same methods: none may be missing."""
+    from hmpc_cli.log.runlog import NullWriter, TopicWriter
+
+    def public(cls):
+        return {n for n in dir(cls) if not n.startswith("_") and callable(getattr(cls, n))}
+
+    assert public(TopicWriter) == public(NullWriter)
