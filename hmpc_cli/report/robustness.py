@@ -538,9 +538,11 @@ def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list
             margins.append((spec, pairs))
             lines += [f"### Each rate's tube margins vs one hand margin: `{spec.get('name')}` "
                       f"beside `{twin[0].get('name')}`", "",
-                      "The same cells (seeds, disturbance draws) with the paper's mechanism, "
-                      "every MPC rate tightening its constraints by its own tube diam T(1/f), "
-                      "and with one hand margin at every rate; each cell: tube | hand.", "",
+                      "The same grid cells with the paper's mechanism, every MPC rate "
+                      "tightening its constraints by its own tube diam T(1/f), and with one "
+                      "hand margin at every rate; each cell: tube k/n | hand k/n (each the "
+                      "first n seeds of its sweep, so the smaller count's seeds and "
+                      "disturbance draws are shared).", "",
                       *side_by_side(pairs), "",
                       *[f"- ±{c.panel}, {c.series}, {c.x:g} Hz: "
                         + _compare(c, h, "tube margins", "the hand margin") + "."
