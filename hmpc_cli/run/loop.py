@@ -11,7 +11,8 @@
 * the stack reacts after the step (or at the event time when the simulator stops at
   events): replan if needed, else re-solve after an impact, else every MPC period.
   Policy ``periodic`` replans every ``replanning.period``; while no schedule the MPC can
-  solve is held, the planner is retried every MPC period.
+  solve is held, the planner is retried every MPC period. The schedule's bookkeeping and
+  these triggers are :class:`~hmpc_cli.run.layers.MPCLayers`'.
 
 ``sim.latency`` says how the controllers' compute time is charged
 (:class:`~hmpc_cli.run.realtime.Latency`): ``"paused"`` (the default, the paper's runs)
