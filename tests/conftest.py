@@ -161,3 +161,43 @@ def standard_schema_errors(log) -> list[str]:
                 for topic, schema in log.schemas.items()}
     return [f"{m.topic} t={m.t:.4f} {'/'.join(map(str, e.absolute_path))}: {e.message}"
             for m in log.messages for e in checkers[m.topic].iter_errors(m.data)]
+
+
+def mounted_tmpfs(path: Path, options: str, why: str):
+    """Mounts a tmpfs (``mount -o options``) on the new directory ``path``, yields it and
+    unmounts it (a generator for a fixture); skips with ``why`` without root or mount."""
+    path.mkdir()
+    if os.geteuid() != 0 or subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(path)],
+            capture_output=True).returncode != 0:
+        pytest.skip(f"needs root and a tmpfs mount for {why}")
+    yield path
+    subprocess.run(["umount", str(path)], check=False)
+
+
+def forbid_prepare(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Makes building a loop fail the test: bad input must be refused before it."""
+    import hmpc_cli.run.runner
+
+    def prepare(scenario):
+        raise AssertionError("invalid input reached prepare()")
+
+    monkeypatch.setattr(hmpc_cli.run.runner, "prepare", prepare)
+
+
+def stop_process(proc: subprocess.Popen, sig: int, timeout: float) -> tuple[float, str]:
+    """Sends ``sig``; returns (seconds until the process exited, its stderr).
+
+    Hang guard: a process still running after ``timeout`` s is killed (communicate raises).
+    """
+    import time
+
+    sent = time.monotonic()
+    os.kill(proc.pid, sig)
+    try:
+        _, err = proc.communicate(timeout=timeout)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return time.monotonic() - sent, err

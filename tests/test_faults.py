@@ -19,8 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import hmpc_cli.run.runner
-from conftest import BALL, bad_input, cli_env, hmpc_command, signal_handlers_installed
+from conftest import (
+    BALL, bad_input, cli_env, forbid_prepare, hmpc_command, signal_handlers_installed,
+    stop_process)
 from hmpc_cli.core import cbuild, signals
 from hmpc_cli.run.scenario import ScenarioError, load_scenario
 
@@ -34,11 +35,7 @@ def work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     """A scratch current directory with ball.toml; building a loop fails the test."""
     shutil.copy(BALL, tmp_path / "ball.toml")
     monkeypatch.chdir(tmp_path)
-
-    def prepare(scenario):
-        raise AssertionError("invalid input reached prepare()")
-
-    monkeypatch.setattr(hmpc_cli.run.runner, "prepare", prepare)
+    forbid_prepare(monkeypatch)
     return tmp_path
 
 
@@ -365,14 +362,7 @@ def _wait(proc: subprocess.Popen, ready, timeout: float = 120.0) -> None:
 
 def _stop(proc: subprocess.Popen, sig: int) -> str:
     """Sends ``sig``; returns stderr (hang guard: the process must end within 60 s)."""
-    os.kill(proc.pid, sig)
-    try:
-        _, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    return err
+    return stop_process(proc, sig, 60)[1]
 
 
 def test_sigterm_while_the_cem_plans_a_huge_plan(tmp_path: Path):

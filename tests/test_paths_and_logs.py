@@ -14,12 +14,11 @@ import os
 import random
 import shutil
 import struct
-import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REPO
+from conftest import REPO, mounted_tmpfs
 from typer.testing import CliRunner
 
 from hmpc_cli.cli.app import app
@@ -47,20 +46,22 @@ def listing(root: Path) -> list[str]:
     return sorted(str(p.relative_to(root)) for p in root.rglob("*"))
 
 
-@pytest.fixture(scope="module")
-def ball_run(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("ball") / "run"
-    res = hmpc(["run", BALL, "--set", "sim.duration=0.3", "--out", out, "-q"])
+def _short_run(tmp_path_factory, name: str, scenario, duration: float) -> Path:
+    """A run of ``scenario`` cut to ``duration`` [s]; its directory."""
+    out = tmp_path_factory.mktemp(name) / "run"
+    res = hmpc(["run", scenario, "--set", f"sim.duration={duration}", "--out", out, "-q"])
     assert res.exit_code == 0, res.stderr
     return out
+
+
+@pytest.fixture(scope="module")
+def ball_run(tmp_path_factory) -> Path:
+    return _short_run(tmp_path_factory, "ball", BALL, 0.3)
 
 
 @pytest.fixture(scope="module")
 def biped_run(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("biped") / "run"
-    res = hmpc(["run", BIPED, "--set", "sim.duration=0.8", "--out", out, "-q"])
-    assert res.exit_code == 0, res.stderr
-    return out
+    return _short_run(tmp_path_factory, "biped", BIPED, 0.8)
 
 
 # ----------------------------------------------------------------- output paths
@@ -114,14 +115,7 @@ def test_every_writing_command_refuses_a_bad_output_path(tmp_path, ball_run, com
 
 @pytest.fixture
 def readonly_dir(tmp_path):
-    ro = tmp_path / "ro"
-    ro.mkdir()
-    if os.geteuid() != 0 or subprocess.run(
-            ["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(ro)],
-            capture_output=True).returncode != 0:
-        pytest.skip("needs root and a tmpfs mount for a read-only directory")
-    yield ro
-    subprocess.run(["umount", str(ro)], check=False)
+    yield from mounted_tmpfs(tmp_path / "ro", "ro,size=64k", "a read-only directory")
 
 
 @pytest.mark.parametrize("command", ["run --out", "sweep --out", "tube --write",
@@ -209,14 +203,7 @@ def test_a_full_disk_is_bad_environment_not_an_internal_error(tmp_path, ball_run
 
 @pytest.fixture
 def small_disk(tmp_path):
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    if os.geteuid() != 0 or subprocess.run(
-            ["mount", "-t", "tmpfs", "-o", "size=200k", "tmpfs", str(disk)],
-            capture_output=True).returncode != 0:
-        pytest.skip("needs root and a tmpfs mount for a full disk")
-    yield disk
-    subprocess.run(["umount", str(disk)], check=False)
+    yield from mounted_tmpfs(tmp_path / "disk", "size=200k", "a full disk")
 
 
 @pytest.mark.slow

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import signal
 import subprocess
 import sys
@@ -15,7 +14,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from conftest import BALL, cli_env
+from conftest import BALL, cli_env, stop_process
 from hmpc_cli.log.reader import read_log
 
 CODES = {signal.SIGINT: 130, signal.SIGTERM: 143, signal.SIGHUP: 129}
@@ -43,15 +42,7 @@ def _wait_for_log(proc: subprocess.Popen, mcap: Path, timeout: float = 60.0) -> 
 
 def _stop(proc: subprocess.Popen, sig: int) -> tuple[float, str]:
     """Sends ``sig``; returns (seconds until the process exited, its stderr)."""
-    sent = time.monotonic()
-    os.kill(proc.pid, sig)
-    try:
-        _, err = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    return time.monotonic() - sent, err
+    return stop_process(proc, sig, 30)
 
 
 def _check_interrupted(out: Path, sig: int, proc: subprocess.Popen, err: str) -> dict:

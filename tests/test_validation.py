@@ -17,8 +17,7 @@ from pathlib import Path
 
 import pytest
 
-import hmpc_cli.run.runner
-from conftest import bad_input
+from conftest import bad_input, forbid_prepare
 from hmpc_cli.run.scenario import dump_toml, scenario_model
 
 #: system -> (planner kind, MPC kind): the plug-in sections validated with it
@@ -129,11 +128,7 @@ TABLE = [(s, k, p, d, n, v) for s, k, p, d, n in CASES for v in _values(n)]
 def work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     """A scratch current directory; building a loop fails the test (input slipped through)."""
     monkeypatch.chdir(tmp_path)
-
-    def prepare(scenario):
-        raise AssertionError("invalid input reached prepare()")
-
-    monkeypatch.setattr(hmpc_cli.run.runner, "prepare", prepare)
+    forbid_prepare(monkeypatch)
     return tmp_path
 
 
