@@ -13,10 +13,8 @@ from hmpc_cli.analysis.authors import (
     BallGeometry, circle_entry, contacts, end_distance, read_authors, read_panels)
 
 ROOT = Path(__file__).resolve().parents[1]
-#: the authors' data beside the repository (as hmpc report looks for it)
-AUTHORS = Path(os.environ.get("HMPC_AUTHORS_DATA", ROOT.parent / "shared" / "reference"))
-needs_data = pytest.mark.skipif(not (AUTHORS / "fig3_left_10hz_fixed.csv").is_file(),
-                                reason=f"the authors' Figure 3 CSVs are not in {AUTHORS}")
+#: the authors' data as the repository holds it (where hmpc report looks for it)
+AUTHORS = Path(os.environ.get("HMPC_AUTHORS_DATA", ROOT / "results" / "authors"))
 
 
 def _guards(cs) -> list[str]:
@@ -51,7 +49,6 @@ def test_contacts_of_a_synthetic_bounce_and_crossing():
     assert contacts(t, xy, BallGeometry(floor_extent=(0.0, 4.0))) == []
 
 
-@needs_data
 def test_the_authors_contacts_as_counted_by_hand():
     panels = read_panels(AUTHORS)
     assert list(panels) == ["10 Hz fixed", "20 Hz fixed", "10 Hz replan", "100 Hz fixed"]
@@ -76,7 +73,6 @@ def test_the_authors_contacts_as_counted_by_hand():
         "floor", "wall", "floor", "circle_in", "circle_out", "wall", "floor", "circle_in"]
 
 
-@needs_data
 def test_the_authors_counts_follow_from_their_end_points():
     stable = {panel: sorted(k for k, tr in trials.items() if end_distance(tr.xy) <= 1.0)
               for panel, trials in read_panels(AUTHORS).items()}

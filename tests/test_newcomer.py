@@ -144,6 +144,8 @@ def test_committed_results_pages_hold_no_absolute_paths():
              for i, line in enumerate(p.read_text(encoding="utf-8").splitlines(), start=1)
              for m in ABSOLUTE.finditer(line)]
     assert found == []
+    # the page regenerates from the repository alone: it names no path outside it either
+    assert "<...>" not in (REPO / "results" / "README.md").read_text(encoding="utf-8")
 
 
 def test_portable_paths(tmp_path):

@@ -298,12 +298,19 @@ def _our_side(run, success: bool, geo: BallGeometry) -> tuple[Side, RunFacts]:
         times = float(first.schedule.t0) + np.cumsum(first.schedule.durations)
         plan = tuple(Contact(float(t), str(g)) for t, g in
                      zip(times, first.schedule.guard_names, strict=False))
-    shifted = [getattr(s.detail, "shifted", None) for s in run.solves if s.reason == "period"]
-    facts = RunFacts(plan, len(run.solves),
-                     sum(1 for s in run.solves if s.success and s.slack > SOFTENED_TOL),
-                     sum(1 for s in run.solves if not s.success),
-                     run.summary.reason if run.summary is not None else "unfinished",
-                     tuple(int(k) for k in shifted if k is not None))
+    shifted = [k for s in run.solves if s.reason == "period"
+               and (k := getattr(s.detail, "shifted", None)) is not None]
+    if not run.solves:  # a trajectory log: the shifts are in its metadata
+        from hmpc_cli.log.trace import period_shifts
+
+        shifted = list(period_shifts(run.path))
+    sm = run.summary  # the books' counts: the same from a run log and its trajectory log
+    facts = RunFacts(plan, sm.solves if sm else len(run.solves),
+                     sm.softened_solves if sm else sum(
+                         1 for s in run.solves if s.success and s.slack > SOFTENED_TOL),
+                     sm.solver_failures if sm else sum(1 for s in run.solves if not s.success),
+                     sm.reason if sm is not None else "unfinished",
+                     tuple(int(k) for k in shifted))
     return side, facts
 
 

@@ -28,9 +28,17 @@ class FigureInputError(ValueError):
 
 
 def resolve_run_log(path: str | Path) -> Path:
-    """The log itself, or run.mcap when ``path`` is a run directory holding one."""
-    path = Path(path)
-    return path / "run.mcap" if path.is_dir() and (path / "run.mcap").is_file() else path
+    """The log itself, or run.mcap when ``path`` is a run directory holding one.
+
+    A run.mcap that is not there is its trajectory log (``trace.mcap`` beside it) if there
+    is one (:func:`hmpc_cli.log.rundata.resolve_log`).
+    """
+    from hmpc_cli.log.rundata import resolve_log
+
+    try:
+        return resolve_log(Path(path))
+    except ValueError:
+        return Path(path)
 
 
 def sweep_spec(directory: str | Path) -> dict:
@@ -90,6 +98,7 @@ def resolve_log(table_path: Path, log: str | None, where: str) -> Path:
     path = Path(text)
     if not path.is_absolute():
         path = Path(table_path).parent / path
+    path = resolve_run_log(path)
     if not path.is_file():
         raise FigureInputError(f"{where}: log {path} does not exist")
     return path

@@ -12,7 +12,7 @@ from hmpc_cli.core.paths import path_option
 EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
-DEFAULT_AUTHORS = Path("../shared/reference")  # the authors' data beside the repository
+DEFAULT_AUTHORS = Path("results/authors")  # the authors' Figure 3 data, committed
 #: the robustness study's sweeps: paper geometry, a moved geometry, solve latency charged
 #: (0.05 s: about one solve here; 0.03 s: the largest the undisturbed ball survives)
 ROBUSTNESS = (Path("sweeps/robustness.toml"), Path("sweeps/robustness_tube.toml"),
@@ -40,7 +40,7 @@ def report_command(
     ] = Path("sweeps/fig3_reference_schedule.toml"),
     authors: Annotated[Path | None, typer.Option(
         "--authors", help="directory of the authors' Figure 3 CSVs (fig3_*.csv) for the "
-        "trial-by-trial comparison (default: ../shared/reference if it exists; '' to leave "
+        "trial-by-trial comparison (default: results/authors if it exists; '' to leave "
         "out)")] = None,
     robustness: Annotated[list[Path] | None, typer.Option(
         "--robustness", help="robustness study sweep file or output directory, repeatable "
@@ -117,8 +117,8 @@ def _sweeps(results: Path, seeds: int | None, biped: Path | None,
 def _print_missing(plans: dict, dirs: dict[str, Path]) -> None:
     """Prints, per sweep, how many runs are missing and their simulated time (an estimate).
 
-    A run is there when its run directory is finished, or when it has no run directory
-    and its sweep's table lists it (a committed table has no run directories).
+    A run is there when its run directory is finished, or when it has no run log and its
+    sweep's table lists it (a committed table has no run logs, at most trajectory logs).
     """
     import csv
     import tomllib
@@ -134,7 +134,8 @@ def _print_missing(plans: dict, dirs: dict[str, Path]) -> None:
         except (OSError, UnicodeDecodeError, csv.Error):
             tabled = set()
         missing = [r for r in plan.selected if finished(dirs[key].resolve(), r) is None
-                   and (r.run_id not in tabled or (dirs[key] / "runs" / r.run_id).exists())]
+                   and (r.run_id not in tabled
+                        or (dirs[key] / "runs" / r.run_id / "run.mcap").exists())]
         if not missing:
             continue
         total += len(missing)

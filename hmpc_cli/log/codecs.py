@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import struct
 import threading
 import types
+from collections.abc import Iterator
 from typing import Any
 
 from mcap.writer import CompressionType
 
-__all__ = ["ZSTD_LEVEL", "codec_errors", "compression", "zstd_chunks_at_level"]
+__all__ = ["ZSTD_LEVEL", "codec_errors", "compression", "zstd_chunks_at_level", "zstd_level"]
 
 
 def codec_errors() -> tuple[type[BaseException], ...]:
@@ -53,13 +55,33 @@ class _ZstdAtLevel:
         self._local = threading.local()
 
     def compress(self, data: bytes) -> bytes:
-        compressor = getattr(self._local, "compressor", None)
-        if compressor is None:
-            compressor = self._local.compressor = self.module.ZstdCompressor(level=ZSTD_LEVEL)
-        return compressor.compress(data)
+        level = getattr(_LEVEL, "level", ZSTD_LEVEL)
+        compressors = self._local.__dict__.setdefault("compressors", {})
+        if level not in compressors:
+            compressors[level] = self.module.ZstdCompressor(level=level)
+        return compressors[level].compress(data)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.module, name)
+
+
+#: this thread's zstd level while :func:`zstd_level` is active
+_LEVEL = threading.local()
+
+
+@contextlib.contextmanager
+def zstd_level(level: int) -> Iterator[None]:
+    """Within the block, this thread's MCAP chunks are compressed at zstd ``level``."""
+    zstd_chunks_at_level()
+    before = getattr(_LEVEL, "level", None)
+    _LEVEL.level = level
+    try:
+        yield
+    finally:
+        if before is None:
+            del _LEVEL.level
+        else:
+            _LEVEL.level = before
 
 
 def zstd_chunks_at_level() -> None:

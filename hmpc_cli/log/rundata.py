@@ -30,10 +30,18 @@ __all__ = ["DamagedLogError", "Event", "RunData", "read_run", "resolve_log"]
 
 
 def resolve_log(path: Path) -> Path:
-    """``path`` itself, or ``path/run.mcap`` for a run directory (ValueError: neither)."""
+    """``path`` itself, or ``path/run.mcap`` for a run directory (ValueError: neither).
+
+    A run log that is not there is read from the trajectory log beside it
+    (:data:`~hmpc_cli.log.trace.TRACE_NAME`, a committed results page's copy) if there is one.
+    """
+    from hmpc_cli.log.trace import TRACE_NAME
+
     path = Path(path)
     if path.is_dir():
         path = path / "run.mcap"
+    if not path.is_file() and path.name == "run.mcap" and (path.parent / TRACE_NAME).is_file():
+        path = path.parent / TRACE_NAME
     if not path.is_file():
         raise ValueError(f"{path}: no such run log")
     return path

@@ -60,7 +60,11 @@ def _count(successes: int, runs: int, failed: Sequence[str]) -> str:
 def _draw(mode: Fig3Mode, fig_dir: Path) -> tuple[dict, list[str]]:
     """Figure 3 of one mode (and its extra panel): counts by panel, notes on the logs."""
     from hmpc_cli.figures.fig3 import fig3
+    from hmpc_cli.report.traces import keep_traces, sweep_logs
 
+    for directory in (mode.main, mode.extra):
+        if directory is not None:
+            keep_traces(sweep_logs(directory))
     main_dir = fig_dir / (f"fig3_{mode.stem}" if mode.stem != "hmpc" else "")
     counts = dict(fig3(mode.main, main_dir, "pdf,svg,png")) if mode.main else {}
     if mode.extra is not None:

@@ -151,12 +151,16 @@ def push_section(directory: Path, fig_dir: Path, base: Path, default_rate: str =
         what = (f"Figure 4 at the boundary: the {default_rate} Hz walk through the largest "
                 f"push it survived (±{float(run[PUSH]):g} N, seed {run['seed']}, run "
                 f"{run.get('run_id', '?')})")
-        log = table.parent / Path(run["log"])
+        from hmpc_cli.analysis.tables import resolve_run_log
+        from hmpc_cli.report.traces import keep_traces
+
+        keep_traces([table.parent / Path(run["log"])])
+        log = resolve_run_log(table.parent / Path(run["log"]))
         if not log.is_file():
             lines += ["", f"{what}: its log is not here (`hmpc sweep sweeps/biped_push.toml` "
                       "writes it), so it is not drawn."]
         else:
-            walk = fig4(log.parent, fig_dir / "fig4_push", "pdf,png")
+            walk = fig4(log, fig_dir / "fig4_push", "pdf,png")
             lines += ["", f"{what}; F_x to the run's end ({walk.t[-1]:.2f} s):", "",
                       f"![Figure 4 at ±{float(run[PUSH]):g} N]"
                       f"({page_link(fig_dir / 'fig4_push' / 'fig4.png', base)})"]

@@ -522,10 +522,15 @@ def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list
         try:
             section, cells, spec = study_section(study, fig_dir, base)
         except FigureInputError as exc:
-            from hmpc_cli.report.paths import portable_text
+            from hmpc_cli.report.paths import portable_path, portable_text
 
-            lines += [f"### {study.directory.name}", "", f"Not drawn: {portable_text(str(exc))}",
-                      ""]
+            if not (study.directory / "results.csv").is_file() and study.sweep_file:
+                why = (f"Not run yet: no run of `{portable_path(study.sweep_file)}` is in this "
+                       f"repository (`hmpc sweep {portable_path(study.sweep_file)}` runs it, "
+                       "resumably).")
+            else:
+                why = f"Not drawn: {portable_text(str(exc))}"
+            lines += [f"### {study.directory.name}", "", why, ""]
             continue
         lines += section
         results.append((spec, cells))
