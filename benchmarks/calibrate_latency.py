@@ -1,16 +1,26 @@
-"""Fits sim.latency_model (overhead + per_iteration x iterations) to measured MPC solves.
+"""Fits sim.latency_model to measured MPC solves of one MPC configuration.
 
-Runs the given scenarios with time paused, reads each /mpc/solve's IPOPT iterations and
-measured wall time, and fits wall = overhead + per_iteration x iterations by least squares
-(non-negative), side by side with the medians per iteration count. Prints the TOML to
-paste under [sim.latency_model] and, with --write, a Markdown report.
+Runs the given scenarios with time paused (with ``--set`` overrides: the configuration
+to fit, e.g. the real-time iterations), reads each /mpc/solve's iterations, measured
+wall time and whether its schedule has a switch left, and fits by least squares
+(non-negative) either
+
+* wall = overhead + per_iteration x iterations (default), or
+* with ``--switching``: per_iteration for the final-domain NLP and per_switching_iteration
+  for a solve with a switch left (the larger NLP),
+
+side by side with the medians per (switching, iterations). Prints the TOML to paste under
+[sim.latency_model] and, with --write, a Markdown report.
 
     python benchmarks/calibrate_latency.py --write results/bench/latency_model.md
+    python benchmarks/calibrate_latency.py --switching --scenario scenarios/ball_realtime.toml \
+        --write results/bench/latency_model_rti.md
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import tempfile
 from pathlib import Path
@@ -25,54 +35,77 @@ ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ["scenarios/ball.toml", "scenarios/ball_disturbed.toml"]
 
 
-def solves_of(scenario: Path, runs: int, work: Path) -> list[tuple[int, float]]:
-    """(iterations, wall time [s]) of every MPC solve of ``runs`` paused runs."""
+def solves_of(scenario: Path, runs: int, work: Path, sets: list[str]
+              ) -> list[tuple[int, float, bool]]:
+    """(iterations, wall time [s], a switch left) of every MPC solve of ``runs`` paused runs."""
     out = []
     for k in range(runs):
-        sc, text = load_scenario(scenario, [f"seed={k}"])
+        sc, text = load_scenario(scenario, [f"seed={k}", 'sim.latency="paused"', *sets])
         run_dir = work / f"{scenario.stem}-{k}"
         execute_run(prepare(sc), text, run_dir)
         for m in read_log(run_dir / "run.mcap").messages:
             if m.topic == "/mpc/solve" and m.data.get("iterations", 0) > 0:
-                out.append((int(m.data["iterations"]), float(m.data["wall_time"])))
+                guards = (m.data.get("schedule") or {}).get("guards") or ()
+                out.append((int(m.data["iterations"]), float(m.data["wall_time"]),
+                            len(guards) > 0))
     return out
 
 
-def fit(points: list[tuple[int, float]]) -> tuple[float, float]:
-    """(overhead, per_iteration) [s] of the least-squares line, both clipped at 0."""
+def fit(points: list[tuple[int, float, bool]], switching: bool) -> dict[str, float]:
+    """The model's constants [s]: least squares, each clipped at 0 (refit without it)."""
     it = np.array([p[0] for p in points], dtype=float)
     wall = np.array([p[1] for p in points])
-    A = np.column_stack([np.ones_like(it), it])
-    (a, b), *_ = np.linalg.lstsq(A, wall, rcond=None)
-    if a < 0:
-        a, b = 0.0, float(wall @ it / (it @ it))
-    return max(float(a), 0.0), max(float(b), 0.0)
+    sw = np.array([p[2] for p in points], dtype=bool)
+    names = ["overhead", "per_iteration"] + (["per_switching_iteration"] if switching else [])
+    cols = [np.ones_like(it), np.where(sw, 0.0, it) if switching else it] + \
+        ([np.where(sw, it, 0.0)] if switching else [])
+    keep = list(range(len(names)))
+    while True:
+        coef, *_ = np.linalg.lstsq(np.column_stack([cols[i] for i in keep]), wall, rcond=None)
+        if (coef >= 0).all():
+            break
+        keep.pop(int(np.argmin(coef)))
+    out = dict.fromkeys(names, 0.0)
+    out.update({names[i]: float(c) for i, c in zip(keep, coef, strict=True)})
+    return out
+
+
+def predict(model: dict[str, float], it: np.ndarray, sw: np.ndarray) -> np.ndarray:
+    """The model's charge [s] of solves with ``it`` iterations, ``sw`` a switch left."""
+    per = np.where(sw, model.get("per_switching_iteration", model["per_iteration"]),
+                   model["per_iteration"])
+    return model["overhead"] + per * it
 
 
 def machine() -> str:
-    model = next((line.split(":", 1)[1].strip() for line in
-                  Path("/proc/cpuinfo").read_text().splitlines()
+    """The CPU model, logical CPUs and OS of this machine."""
+    cpuinfo = Path("/proc/cpuinfo")
+    model = next((line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines()
                   if line.startswith("model name")), platform.processor() or "?") \
-        if Path("/proc/cpuinfo").is_file() else platform.processor()
-    import os
+        if cpuinfo.is_file() else platform.processor()
     return f"{model}, {os.cpu_count()} logical CPUs, {platform.system()}"
 
 
-def report(points, overhead, per_it) -> str:
+def report(points, model: dict[str, float], scenarios: list[str], sets: list[str]) -> str:
+    """The Markdown report: the TOML, medians per iteration count beside the model."""
     it = np.array([p[0] for p in points])
     wall = np.array([p[1] for p in points])
-    pred = overhead + per_it * it
+    sw = np.array([p[2] for p in points], dtype=bool)
+    pred = predict(model, it, sw)
+    config = f" with `{'`, `'.join(sets)}`" if sets else ""
     lines = ["# The latency model, fitted to measured MPC solves", "",
              f"Machine: {machine()} (machine dependent: re-fit on yours).", "",
-             f"{len(points)} solves of {', '.join(SCENARIOS)} with time paused.", "",
-             "```toml", "[sim.latency_model]", f"overhead = {overhead:.4f}",
-             f"per_iteration = {per_it:.4f}", "```", "",
-             "| iterations | solves | measured median [ms] | measured p95 [ms] | model [ms] |",
-             "|---|---|---|---|---|"]
-    for k in sorted(set(it.tolist())):
-        w = wall[it == k] * 1e3
-        lines.append(f"| {k} | {len(w)} | {np.median(w):.1f} | {np.percentile(w, 95):.1f} | "
-                     f"{(overhead + per_it * k) * 1e3:.1f} |")
+             f"{len(points)} solves of {', '.join(scenarios)}{config}, time paused.", "",
+             "```toml", "[sim.latency_model]",
+             *(f"{k} = {v:.4f}" for k, v in model.items()), "```", "",
+             "| switch left | iterations | solves | measured median [ms] | measured p95 [ms] "
+             "| model [ms] |", "|---|---|---|---|---|---|"]
+    for s in sorted(set(sw.tolist())):
+        for k in sorted(set(it[sw == s].tolist())):
+            sel = (it == k) & (sw == s)
+            w = wall[sel] * 1e3
+            lines.append(f"| {'yes' if s else 'no'} | {k} | {len(w)} | {np.median(w):.1f} | "
+                         f"{np.percentile(w, 95):.1f} | {pred[sel][0] * 1e3:.1f} |")
     err = np.abs(pred - wall) * 1e3
     lines += ["", f"Absolute error of the model: median {np.median(err):.1f} ms, "
               f"p95 {np.percentile(err, 95):.1f} ms.", ""]
@@ -82,12 +115,25 @@ def report(points, overhead, per_it) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=3, help="seeds per scenario")
+    ap.add_argument("--scenario", action="append", help="scenario (repeatable; default: "
+                    + ", ".join(SCENARIOS) + ")")
+    ap.add_argument("--set", action="append", default=[], dest="sets",
+                    help="KEY=VALUE override of every run (repeatable)")
+    ap.add_argument("--trials", default="", help="also Figure 3 trials K,K,... of each "
+                    "scenario (disturbance.trial, paper_fig3)")
+    ap.add_argument("--switching", action="store_true",
+                    help="fit per_switching_iteration for solves with a switch left")
     ap.add_argument("--write", type=Path, help="write the Markdown report here")
     args = ap.parse_args()
+    scenarios = args.scenario or SCENARIOS
+    cases = [(s, []) for s in scenarios]
+    cases += [(s, ['disturbance.kind="paper_fig3"', f"disturbance.trial={k}"])
+              for s in scenarios for k in (int(x) for x in args.trials.split(",") if x)]
     with tempfile.TemporaryDirectory() as tmp:
-        points = [p for s in SCENARIOS for p in solves_of(ROOT / s, args.runs, Path(tmp))]
-    overhead, per_it = fit(points)
-    text = report(points, overhead, per_it)
+        points = [p for n, (s, extra) in enumerate(cases) for p in solves_of(
+            ROOT / s, args.runs, Path(tmp) / str(n), [*args.sets, *extra])]
+    model = fit(points, args.switching)
+    text = report(points, model, scenarios, args.sets)
     print(text)
     if args.write:
         args.write.parent.mkdir(parents=True, exist_ok=True)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hmpc_cli.core.messages import Plan
-from hmpc_cli.mpc.backends import OCPStructure, rti_success
+from hmpc_cli.mpc.backends import OCPStructure, rti_step_kept, rti_success
 from hmpc_cli.mpc.chain.controller import ChainSolver
 from hmpc_cli.mpc.chain.layout import ChainLayout, NodeSchedule
 from hmpc_cli.mpc.chain.nlp import FixedModeNLP, MPCSettings
@@ -103,6 +103,37 @@ def test_real_time_iterations_accept_a_feasible_point_only():
     assert rti_success("Maximum_Iterations_Exceeded", False, 1e-9)
     assert not rti_success("Maximum_Iterations_Exceeded", False, 1e-3)
     assert not rti_success("Search_Direction_Becomes_Too_Small", False, 0.0)
+
+
+def test_a_real_time_iteration_keeps_every_finite_step():
+    assert rti_step_kept("Solve_Succeeded", True, 1.0)
+    assert rti_step_kept("Maximum_Iterations_Exceeded", False, 1e-3)
+    assert not rti_step_kept("Maximum_Iterations_Exceeded", False, float("inf"))
+    assert not rti_step_kept("QP solver failed", False, 0.0)
+
+
+@pytest.mark.parametrize("which", ["final", "switching"])
+def test_one_real_time_iteration_is_one_full_step_kept(ball, problems, which):
+    """rti on IPOPT's recorded problem: warm-started (multipliers given), one SQP step,
+    kept although it has not converged, no fallback, and repeated from its own result it
+    moves toward the optimum; cold (a new plan's first solve), up to RTI_COLD_ITER steps."""
+    from hmpc_cli.mpc.solver_table import RTI_COLD_ITER
+
+    args, ref = problems[which]
+    nlp = _nlp(ball, which, solver="rti", switching_solver="rti", max_sqp_iter=1)
+    lam = args[6:] if args[6] is not None else (np.zeros(len(args[2])), np.zeros(len(args[4])))
+    first = nlp.optimize(*args[:6], *lam)
+    assert first.stats.success and not first.stats.fallback
+    assert first.stats.iterations == 1
+    x, lam = first.x, (first.lam_x, first.lam_g)
+    for _ in range(4):
+        res = nlp.optimize(x, *args[1:6], *lam)
+        assert res.stats.iterations <= 1  # 0: converged already (the final-domain QP)
+        x, lam = res.x, (res.lam_x, res.lam_g)
+    ref_z = ref.x[nlp.z_idx]
+    assert np.abs(x[nlp.z_idx] - ref_z).max() < np.abs(args[0][nlp.z_idx] - ref_z).max()
+    cold = nlp.optimize(*args[:6], None, None)
+    assert cold.stats.success and 1 <= cold.stats.iterations <= RTI_COLD_ITER
 
 
 def test_failed_backend_solve_falls_back_to_ipopt_and_is_counted(ball, problems):

@@ -52,6 +52,11 @@ def test_the_latency_kinds_charge_what_they_say():
     assert budget.over_budget(0.06) and not budget.over_budget(0.05)
     assert Latency("fixed", 0.02).expected(0.3) == 0.02
     assert Latency("model").expected(0.3) == 0.3
+    # a solve with a switch left is charged its own cost per iteration (its NLP is larger)
+    two = Latency("model", overhead=0.001, per_iteration=0.002, per_switching_iteration=0.009)
+    assert two.charge(1, 5.0, 7.0, False, switching=True) == pytest.approx(0.010)
+    assert two.charge(5, 5.0, 7.0, False, switching=False) == pytest.approx(0.011)
+    assert model.charge(2, 5.0, 7.0, False, switching=True) == pytest.approx(0.018)
 
 
 def test_delay_compensation_solves_from_the_state_at_the_plans_arrival(tmp_path, monkeypatch):
@@ -114,6 +119,30 @@ def test_the_model_latency_is_deterministic(tmp_path):
     charged = [m.data["latency"] for m in read_log(a).messages if m.topic == "/mpc/solve"]
     iters = [m.data["iterations"] for m in read_log(a).messages if m.topic == "/mpc/solve"]
     assert charged[1:] == pytest.approx([0.002 + 0.008 * k for k in iters[1:]])
+
+
+def test_the_model_charges_a_solve_with_a_switch_left_its_own_cost(tmp_path):
+    """scenarios/ball_realtime.toml (real-time iterations) with the model latency: every
+    charged solve costs overhead + its iterations x the per-iteration cost of its NLP (the
+    switching one while the schedule has a switch left); the first plan is paused; two
+    runs are identical."""
+    sets = ["sim.duration=1.0", 'sim.latency="model"']
+    logs = []
+    for name in ("a", "b"):
+        sc, _ = load_scenario(ROOT / "scenarios" / "ball_realtime.toml", sets)
+        run_to_log(prepare(sc), tmp_path / f"{name}.mcap")
+        logs.append(read_log(tmp_path / f"{name}.mcap"))
+    assert compare_logs(logs[0].messages, logs[1].messages) is None
+    m = load_scenario(ROOT / "scenarios" / "ball_realtime.toml", sets)[0].sim.latency_model
+    solves = [d.data for d in logs[0].messages if d.topic == "/mpc/solve"]
+    assert solves[0]["reason"] == "initial" and solves[0]["latency"] == 0.0
+    want = [m.overhead + k * (m.per_switching_iteration if sw else m.per_iteration)
+            for k, sw in ((s["iterations"], bool((s.get("schedule") or {}).get("guards")))
+                          for s in solves[1:])]
+    assert [s["latency"] for s in solves[1:]] == pytest.approx(want)
+    kinds = {bool((s.get("schedule") or {}).get("guards")) for s in solves[1:]}
+    assert kinds == {True, False}  # both costs were charged
+    assert {s["iterations"] for s in solves[1:] if s["reason"] == "period"} == {1}
 
 
 def test_verify_forgives_a_setting_added_since_the_run_and_nothing_else():

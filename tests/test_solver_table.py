@@ -11,6 +11,7 @@ from typer.testing import CliRunner
 
 from hmpc_cli.cli.app import app
 from hmpc_cli.mpc import cache
+from hmpc_cli.mpc.backends import rti_step_kept, rti_success
 from hmpc_cli.mpc.solver import SolverSession, option_problems, plugin_options
 from hmpc_cli.mpc.solver_table import (
     SOLVERS, Backend, SolverArgs, ipopt_options, register_backend, warm_options)
@@ -21,7 +22,7 @@ from conftest import bad_input
 ROOT = Path(__file__).resolve().parents[1]
 BALL = ROOT / "scenarios" / "ball.toml"
 SHORT = ["sim.duration=0.3", "mpc.horizon=1.0"]
-BUILT_IN = ["ipopt", "sqp_hpipm", "fatrop", "sqpmethod"]
+BUILT_IN = ["ipopt", "sqp_hpipm", "rti", "fatrop", "sqpmethod"]
 
 
 @pytest.fixture
@@ -48,14 +49,16 @@ def twin(table):
 
 
 def test_the_built_in_entries_and_their_flags():
-    assert list(SOLVERS)[:4] == BUILT_IN
-    assert [n for n, b in SOLVERS.items() if b.stagewise] == ["sqp_hpipm", "fatrop"]
+    assert list(SOLVERS)[:5] == BUILT_IN
+    assert [n for n, b in SOLVERS.items() if b.stagewise] == ["sqp_hpipm", "rti", "fatrop"]
     assert [n for n, b in SOLVERS.items() if b.compilable] == ["ipopt"]
-    assert [n for n, b in SOLVERS.items() if b.warm is not None] == ["ipopt"]
-    assert SOLVERS["sqp_hpipm"].fallback == "ipopt" and SOLVERS["sqp_hpipm"].bounded
+    assert [n for n, b in SOLVERS.items() if b.warm is not None] == ["ipopt", "rti"]
+    assert SOLVERS["sqp_hpipm"].fallback == "ipopt" and SOLVERS["sqp_hpipm"].judge is rti_success
+    assert SOLVERS["rti"].fallback is None and SOLVERS["rti"].judge is rti_step_kept
+    assert SOLVERS["rti"].switching is None
     assert {n: b.plugin for n, b in SOLVERS.items()} == {
         "ipopt": "ipopt", "sqp_hpipm": "sqpmethod", "fatrop": "fatrop",
-        "sqpmethod": "sqpmethod"}
+        "sqpmethod": "sqpmethod", "rti": "sqpmethod"}
 
 
 def test_the_schema_lists_the_table(table):
@@ -75,12 +78,12 @@ def test_an_unknown_solver_is_one_clear_line(tmp_path: Path):
                                  "--set", "mpc.solver=sqp_hpmip"])
     assert lines == ["error: --set mpc.solver=sqp_hpmip: mpc.solver: unknown NLP back-end "
                      "'sqp_hpmip' (did you mean 'sqp_hpipm'?); known: ipopt, sqp_hpipm, "
-                     "fatrop, sqpmethod"]
+                     "rti, fatrop, sqpmethod"]
     with pytest.raises(ScenarioError) as err:
         load_scenario(BALL, ['mpc.switching_solver="knitro"'])
     assert err.value.lines == ['--set mpc.switching_solver="knitro": mpc.switching_solver: '
                                "unknown NLP back-end 'knitro'; known: ipopt, sqp_hpipm, "
-                               "fatrop, sqpmethod"]
+                               "rti, fatrop, sqpmethod"]
     with pytest.raises(ValueError, match="unknown NLP back-end 'snopt'"):
         plugin_options("snopt", 5)
 

@@ -133,6 +133,17 @@ def sqp_options(nlp: dict, structure: OCPStructure, max_iter: int, tol: float = 
             "qpsol": "hpipm", "qpsol_options": qp}
 
 
+def rti_step_kept(status: str, converged: bool, violation: float) -> bool:
+    """Whether a real-time iteration's result is kept as the plan.
+
+    It is if it converged, or stopped at its iteration limit with a finite iterate: its
+    remaining violation is what the next periods' steps reduce (a failed QP is not kept).
+    """
+    if converged:
+        return True
+    return status == "Maximum_Iterations_Exceeded" and bool(np.isfinite(violation))
+
+
 def rti_success(status: str, converged: bool, violation: float) -> bool:
     """Whether a bounded SQP run succeeded.
 

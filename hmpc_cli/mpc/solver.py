@@ -26,7 +26,7 @@ import numpy as np
 
 from hmpc_cli.core import signals
 from hmpc_cli.core.messages import SolveStats
-from hmpc_cli.mpc.backends import OCPStructure, rti_success
+from hmpc_cli.mpc.backends import OCPStructure
 from hmpc_cli.mpc.solver_table import (
     SolverArgs, WarmStart, backend_of, split_options, warm_options)
 
@@ -102,11 +102,11 @@ def derivatives_of(solver: ca.Function) -> dict:
 
 
 def _call_instance(instances: tuple, w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0,
-                   rti: bool = False) -> SolveResult:
+                   judge=None) -> SolveResult:
     """Calls the cold or (with both multiplier guesses) the warm instance once.
 
-    See :meth:`SolverSession.run`. ``rti``: a bounded SQP run (success by
-    :func:`~hmpc_cli.mpc.backends.rti_success`).
+    See :meth:`SolverSession.run`. ``judge``: a bounded SQP run's success from (status,
+    converged, max violation) (:attr:`~hmpc_cli.mpc.solver_table.Backend.judge`).
     """
     start = time.perf_counter()
     args = {"x0": w0, "p": p, "lbx": lbx, "ubx": ubx, "lbg": lbg, "ubg": ubg}
@@ -131,8 +131,8 @@ def _call_instance(instances: tuple, w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0,
     # the rows at w come with the solution (no second evaluation)
     viol = _violation(w, np.asarray(sol["g"]).ravel(), lbx, ubx, lbg, ubg) if finite else np.inf
     ok = bool(st.get("success", False))
-    if rti:
-        ok = rti_success(status, ok, viol)
+    if judge is not None:
+        ok = judge(status, ok, viol)
     stats = SolveStats(status, ok and finite, _iterations(st), time.perf_counter() - start,
                        cost, float(viol))
     return SolveResult(w, np.asarray(sol["lam_x"]).ravel(), np.asarray(sol["lam_g"]).ravel(),
@@ -189,16 +189,17 @@ class SolverSession:
         if compiled and not backend.compilable:
             raise ValueError(f"solver {plugin!r} cannot load a compiled NLP")
         nlpsol, sections = split_options(backend, extra)
-        self.options = backend.options(SolverArgs(
-            max_iter, tol, max_wall_time, equality, nlpsol, sections, nlp, structure,
-            sqp_iter, residuals))
+        args = SolverArgs(max_iter, tol, max_wall_time, equality, nlpsol, sections, nlp,
+                          structure, sqp_iter, residuals)
+        self.options = backend.options(args)
         load = {k: v for k, v in self.options.items() if k != "expand"} if compiled \
             else self.options
         self.cold = self.warm = ca.nlpsol(name, backend.plugin, nlp, load)
         if backend.warm is not None and warm is not None:
             self.warm = ca.nlpsol(f"{name}_warm", backend.plugin, nlp, {
-                **backend.warm(load, warm, sections),
-                **({} if compiled else derivatives_of(self.cold))})
+                **backend.warm(load, warm, sections, args),
+                **({} if compiled or backend.plugin != "ipopt"
+                   else derivatives_of(self.cold))})
         self._g = ca.external("nlp_g", nlp) if compiled else \
             ca.Function("g", [nlp["x"], nlp["p"]], [nlp["g"]])
 
@@ -214,7 +215,7 @@ class SolverSession:
                 :class:`hmpc_cli.core.signals.Interrupted` when a stop signal is pending.
         """
         args = (w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0)
-        res = _call_instance((self.cold, self.warm), *args, rti=self.backend.bounded)
+        res = _call_instance((self.cold, self.warm), *args, judge=self.backend.judge)
         if self.backend.fallback is None or res.stats.success:
             return res
         again = self.fallback_session().run(*args)
@@ -339,7 +340,8 @@ def _probe_options(name: str, extra: dict) -> list[tuple[str, dict]]:
     backend, cold = backend_of(name), plugin_options(name, 5, extra=extra)
     if backend.warm is None:
         return [("cold", cold)]
-    warm = backend.warm(cold, WarmStart(1e-4, 1e-6), split_options(backend, extra)[1])
+    warm = backend.warm(cold, WarmStart(1e-4, 1e-6), split_options(backend, extra)[1],
+                        SolverArgs(5))
     return [("cold", cold), ("warm", warm)]
 
 

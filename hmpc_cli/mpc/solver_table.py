@@ -18,7 +18,7 @@ from typing import Annotated, Any
 
 from pydantic import AfterValidator, Strict
 
-from hmpc_cli.mpc.backends import OCPStructure, sqp_options
+from hmpc_cli.mpc.backends import OCPStructure, rti_step_kept, rti_success, sqp_options
 
 
 @dataclass(frozen=True)
@@ -76,12 +76,12 @@ class Backend:
         summary: one phrase for the settings' description.
         stagewise: needs stage-wise dynamics (refuses ``input_hold = "foh"``); its
             session gets the NLP's equality rows and stage structure.
-        warm: (cold options, :class:`WarmStart`, own sections) -> the warm instance's
-            options (None: warm starts run on the cold instance).
+        warm: (cold options, :class:`WarmStart`, own sections, :class:`SolverArgs`) ->
+            the warm instance's options (None: warm starts run on the cold instance).
         compilable: loads the build cache's compiled NLP (IPOPT's generated functions).
-        bounded: a bounded run (real-time iterations): a solve stopped at its iteration
-            limit at a feasible point succeeds
-            (:func:`~hmpc_cli.mpc.backends.rti_success`).
+        judge: (status, converged, max violation) -> success, for a bounded run (a
+            fixed number of SQP iterations): :func:`~hmpc_cli.mpc.backends.rti_success`
+            or :func:`~hmpc_cli.mpc.backends.rti_step_kept` (None: the solver's own flag).
         fallback: the back-end that solves again a solve this one failed (None: none).
         switching: back-end of the switching chain NLP when ``mpc.switching_solver`` is
             unset (None: this one).
@@ -96,9 +96,9 @@ class Backend:
     options: Callable[[SolverArgs], dict]
     summary: str = ""
     stagewise: bool = False
-    warm: Callable[[dict, WarmStart, dict], dict] | None = None
+    warm: Callable[[dict, WarmStart, dict, SolverArgs], dict] | None = None
     compilable: bool = False
-    bounded: bool = False
+    judge: Callable[[str, bool, float], bool] | None = None
     fallback: str | None = None
     switching: str | None = None
     sections: tuple[str, ...] = ()
@@ -186,8 +186,9 @@ def ipopt_options(a: SolverArgs) -> dict:
     return {"expand": True, "ipopt": ipopt, "print_time": False, **a.nlpsol}
 
 
-def warm_options(cold: dict, warm: WarmStart, extra: dict | None = None) -> dict:
-    """Options of the warm IPOPT instance.
+def warm_options(cold: dict, warm: WarmStart, extra: dict | None = None,
+                 args: SolverArgs | None = None) -> dict:
+    """Options of the warm IPOPT instance (``args`` unused).
 
     Returns:
         ``cold`` with the warm-start IPOPT options and the user's ``ipopt_warm`` section
@@ -236,7 +237,51 @@ register_backend(Backend(
 register_backend(Backend(
     "sqp_hpipm", "sqpmethod", sqp_hpipm_options, summary="SQP with a Gauss-Newton Hessian "
     "and HPIPM's Riccati QP solver, IPOPT fallback on failure; needs input_hold = \"zoh\"",
-    stagewise=True, bounded=True, fallback="ipopt", switching="ipopt", sections=("hpipm",)))
+    stagewise=True, judge=rti_success, fallback="ipopt", switching="ipopt",
+    sections=("hpipm",)))
+
+
+#: rti: SQP iterations of a solve without a warm start (a new plan's first solve, whose
+#: guess is the planner's rollout: one step from it is not yet a plan to fly)
+RTI_COLD_ITER = 5
+#: rti: HPIPM's residual tolerances (stationarity, equalities, inequalities,
+#: complementarity): a real-time step's QP needs no 1e-8 (its default), and at these it
+#: stops in about a third of the IPM iterations (results/bench/realtime.md)
+RTI_HPIPM = {"res_g_max": 1e-4, "res_b_max": 1e-6, "res_d_max": 1e-6, "res_m_max": 1e-5}
+
+
+def rti_options(a: SolverArgs) -> dict:
+    """Real-time iterations, cold instance: :data:`RTI_COLD_ITER` full SQP steps.
+
+    :func:`~hmpc_cli.mpc.backends.sqp_options` with every step taken in full (no line
+    search) and the QP solved to :data:`RTI_HPIPM` (the user's ``hpipm`` section over it).
+
+    Raises:
+        ValueError: no NLP expressions or no stage structure.
+    """
+    if a.structure is None or not isinstance(a.nlp, dict):
+        raise ValueError("solver rti needs the NLP's expressions and its stage structure")
+    return {**sqp_options(a.nlp, a.structure, max(a.sqp_iter, RTI_COLD_ITER), a.tol,
+                          a.residuals, {**RTI_HPIPM, **a.sections.get("hpipm", {})}),
+            "max_iter_ls": 0, **a.nlpsol}
+
+
+def rti_warm_options(cold: dict, warm: WarmStart, extra: dict | None = None,
+                     args: SolverArgs | None = None) -> dict:
+    """Real-time iterations, warm instance: ``args.sqp_iter`` full SQP steps.
+
+    ``args.sqp_iter`` is ``mpc.max_sqp_iter``; the steps start from the previous plan's
+    primal-dual solution, shifted.
+    """
+    return {**cold, "max_iter": args.sqp_iter if args is not None else 1}
+
+
+register_backend(Backend(
+    "rti", "sqpmethod", rti_options, summary="real-time iterations: mpc.max_sqp_iter SQP "
+    "steps per warm-started solve (a new plan's first solve: up to 5), Gauss-Newton "
+    "Hessian, HPIPM's Riccati QP, each step taken in full and kept, the switching NLP "
+    "too, no fallback; needs input_hold = \"zoh\"",
+    stagewise=True, warm=rti_warm_options, judge=rti_step_kept, sections=("hpipm",)))
 register_backend(Backend("fatrop", "fatrop", fatrop_options, summary='needs "zoh"',
                          stagewise=True))
 register_backend(Backend("sqpmethod", "sqpmethod", sqpmethod_options,

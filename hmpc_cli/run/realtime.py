@@ -6,9 +6,10 @@
 * ``fixed``: a constant delay L [s];
 * ``measured``: the measured wall time of the planner call it follows plus the MPC solve
   (machine dependent: runs are not reproducible);
-* ``model``: ``overhead + per_iteration x iterations`` of the MPC solve, plus ``planner``
-  per planner call: a deterministic charge from a calibrated cost per iteration
-  (``benchmarks/calibrate_latency.py`` fits the two constants to measured solves).
+* ``model``: ``overhead + per_iteration x iterations`` of the MPC solve (a solve with a
+  switch left: ``per_switching_iteration``, its NLP being larger, if set), plus
+  ``planner`` per planner call: a deterministic charge from a calibrated cost per
+  iteration (``benchmarks/calibrate_latency.py`` fits the constants to measured solves).
 
 A ``budget`` [s] bounds a solve: a solve charged more is abandoned at t + budget, its
 plan dropped and the previous plan (time-indexed, hence shifted) tracked on.
@@ -42,6 +43,8 @@ class Latency:
         delay: the fixed delay [s] (kind ``fixed``).
         overhead: per MPC solve [s] (kind ``model``).
         per_iteration: per NLP iteration [s] (kind ``model``).
+        per_switching_iteration: per NLP iteration of a solve with a switch left [s]
+            (kind ``model``; None: ``per_iteration``).
         planner: per planner call [s] (kind ``model``).
         first: ``charged`` (the first plan waits its delay too) or ``paused``.
         budget: a solve charged more than this [s] is dropped (None: no budget).
@@ -56,6 +59,7 @@ class Latency:
     first: str = "charged"
     budget: float | None = None
     compensate: bool = False
+    per_switching_iteration: float | None = None
 
     @classmethod
     def of(cls, latency: str | float, first: str = "charged", model=None,
@@ -68,22 +72,28 @@ class Latency:
         return cls(latency, overhead=m.overhead if m else 0.0,
                    per_iteration=m.per_iteration if m else 0.0,
                    planner=m.planner if m else 0.0, first=first, budget=budget,
-                   compensate=compensate)
+                   compensate=compensate,
+                   per_switching_iteration=m.per_switching_iteration if m else None)
 
     def charged(self, reason: str) -> bool:
         """Whether a solve for ``reason`` is charged (``initial`` may be paused)."""
         return self.kind != "paused" and not (reason == "initial" and self.first == "paused")
 
     def charge(self, iterations: int, solve_wall: float, planner_wall: float,
-               planned: bool) -> float:
-        """The delay [s] of one solve (and of the planner call it follows, if ``planned``)."""
+               planned: bool, switching: bool = False) -> float:
+        """The delay [s] of one solve (and of the planner call it follows, if ``planned``).
+
+        ``switching``: the solve's schedule has a switch left (kind ``model``).
+        """
         if self.kind == "fixed":
             return self.delay
         if self.kind == "measured":
             return planner_wall + solve_wall
         if self.kind == "model":
+            per = self.per_switching_iteration if switching and \
+                self.per_switching_iteration is not None else self.per_iteration
             return (self.planner if planned else 0.0) + self.overhead \
-                + self.per_iteration * max(int(iterations), 0)
+                + per * max(int(iterations), 0)
         return 0.0
 
     def expected(self, last: float) -> float:
@@ -128,8 +138,9 @@ class SolverClock:
             (what the solve's logged reason gets appended, the latency logged [s]).
         """
         lat = self.latency
+        switching = plan.schedule is not None and plan.schedule.n_switches > 0
         delay = lat.charge(plan.stats.iterations, plan.stats.wall_time, self.planner_wall,
-                           self.planner_wall > 0.0)
+                           self.planner_wall > 0.0, switching)
         self.last_delay = delay
         if lat.over_budget(delay):
             self.over_budget += 1

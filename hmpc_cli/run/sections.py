@@ -25,6 +25,9 @@ class LatencyModelSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
     overhead: FiniteFloat = Field(0.0015, ge=0.0, description="per MPC solve [s]")
     per_iteration: FiniteFloat = Field(0.0041, ge=0.0, description="per NLP iteration [s]")
+    per_switching_iteration: FiniteFloat | None = Field(
+        None, ge=0.0, description="per NLP iteration of a solve with a switch left [s] "
+        "(its NLP is larger; None: per_iteration)")
     planner: FiniteFloat = Field(0.01, ge=0.0, description="per planner call [s]")
 
 

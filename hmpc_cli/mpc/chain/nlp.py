@@ -105,9 +105,9 @@ class MPCSettings(MarginsSettings):
     solver_options: dict = Field(default_factory=dict, description="passed to the plugin")
     max_iter: BoundedInt = Field(200, gt=0, description="iteration limit (sqp_hpipm: of "
                                  "its IPOPT fallback)")
-    max_sqp_iter: BoundedInt = Field(3, gt=0, description="sqp_hpipm: SQP iterations per "
-                                     "solve (real-time iterations; a feasible point at the "
-                                     "limit is accepted)")
+    max_sqp_iter: BoundedInt = Field(3, gt=0, description="sqp_hpipm and rti: SQP "
+                                     "iterations per solve (sqp_hpipm accepts a feasible "
+                                     "point at the limit, rti any finite one)")
     switching_solver: SolverName | None = Field(
         None, description="back-end of the switching chain NLP (None: mpc.solver, but "
         '"ipopt" when mpc.solver is "sqp_hpipm": the SQP converges only linearly on its '
