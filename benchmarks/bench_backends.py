@@ -57,7 +57,8 @@ def backends(system, settings) -> dict[str, dict[str, object]]:
                 "sqp_hpipm_rti1": ("sqp_hpipm", {"max_sqp_iter": 1}),
                 "sqp_hpipm_rti3": ("sqp_hpipm", {"max_sqp_iter": 3}),
                 "sqp_hpipm_conv": ("sqp_hpipm", {"max_sqp_iter": 50}),
-                "fatrop": ("fatrop", {})}
+                "fatrop": ("fatrop", {}),
+                "rti": ("rti", {"max_sqp_iter": 1})}
     for label, (solver, extra) in variants.items():
         s = settings.model_copy(update={"solver": solver, "switching_solver": solver, **extra})
         nlps = {"switching": FixedModeNLP(system, s),

@@ -17,6 +17,7 @@ Run:  python benchmarks/suite.py            (trials 1 2 3 5 7: 160 problems, ~6 
    * ``sqp_hpipm_rti1`` / ``_rti3`` / ``_conv``: SQP + Gauss-Newton + HPIPM with 1, 3 and
      50 iterations (a solve it fails falls back to IPOPT: counted);
    * ``fatrop`` (cold: no dual warm start through CasADi);
+   * ``rti``: the real-time iterations, one SQP step from the warm start (kept as it is);
    * ``do_mpc``: do-mpc's default MPC (orthogonal collocation) on the final-domain
      problems only (optional: ``pip install -e '.[bench]'``).
 
@@ -180,7 +181,7 @@ def configurations(system, settings, run: SuiteRun, with_dompc: bool = True) -> 
             session.warm = cold if session.warm is session.cold else TimedSolver(session.warm)
             session.cold = cold
         configs[label] = lambda prob, _f=by_nlp: _f[prob.nlp](prob.args)
-    run.build["hmpc back-ends (6 x 2 NLPs)"] = time.perf_counter() - start
+    run.build["hmpc back-ends (7 x 2 NLPs)"] = time.perf_counter() - start
     dm = dompc_config(templates["final"], run, with_dompc)
     if dm is not None:
         configs["do_mpc"] = dm

@@ -27,10 +27,12 @@ LEGEND = {
     "sqp_hpipm_rti3": "SQP + Gauss-Newton + HPIPM, 3 iterations (hmpc's default for it)",
     "sqp_hpipm_conv": "SQP + Gauss-Newton + HPIPM, converged (50 iterations)",
     "fatrop": "fatrop, stage structure detected, cold (no dual warm start via CasADi)",
+    "rti": "real-time iterations (mpc.solver = \"rti\"): one SQP step from the warm start, "
+           "kept, no fallback (not a converged solve: the closed loop's next steps go on)",
     "do_mpc": "do-mpc default MPC (orthogonal collocation), final-domain problem only",
 }
 #: hmpc's own back-ends (the fastest one is profiled)
-HMPC = ("hmpc_ipopt", "sqp_hpipm_rti1", "sqp_hpipm_rti3", "sqp_hpipm_conv", "fatrop")
+HMPC = ("hmpc_ipopt", "sqp_hpipm_rti1", "sqp_hpipm_rti3", "sqp_hpipm_conv", "fatrop", "rti")
 NLPS = ("final", "switching", "all")
 MS = 1e3
 #: the parts of one solve call (see :func:`profile`)

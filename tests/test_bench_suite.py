@@ -20,7 +20,7 @@ from hmpc_cli.core.messages import SolveStats
 #: a short horizon (15 nodes) and chain keep every NLP small
 SHORT = ["mpc.horizon=0.5", "mpc.nodes_per_second=30", "mpc.max_switches=3"]
 CONFIGS = {"authors", "ipopt_defaults", "hmpc_ipopt", "sqp_hpipm_rti1", "sqp_hpipm_rti3",
-           "sqp_hpipm_conv", "fatrop"}
+           "sqp_hpipm_conv", "fatrop", "rti"}
 
 
 @pytest.fixture(scope="module")

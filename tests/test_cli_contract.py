@@ -92,7 +92,8 @@ def test_report_runs_nothing_without_run(tmp_path):
                      '[set]\n"sim.duration" = 0.5\n')
     proc = _hmpc(["report", "--results", str(tmp_path / "r"), "--fig3", "", "--fig3-extra",
                   "", *NO_REFERENCE, "--biped", "",
-                  "--biped-push", "", "--fig3-trials", "", "--robustness", str(sweep)],
+                  "--biped-push", "", "--fig3-trials", "", "--realtime", "",
+                  "--robustness", str(sweep)],
                  tmp_path)
     assert "3 of 3 runs missing (1.5 s of simulated time" in proc.stderr, proc.stderr
     assert "hmpc report --run" in proc.stderr

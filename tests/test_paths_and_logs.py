@@ -87,7 +87,7 @@ COMMANDS = {  # name -> args with the path as {P}, the check's kind
     "tube --write": ["tube", BALL, "--write", "{P}", "--samples", "10"],
     "tube --out": ["tube", BALL, "--out", "{P}", "--samples", "10"],
     "report --results": ["report", "--results", "{P}", "--biped", "", "--biped-push", "",
-                         "--fig3-trials", ""],
+                         "--fig3-trials", "", "--realtime", ""],
     "replay --export": ["replay", "{LOG}", "--export", "{P}"],
     "replay --figures": ["replay", "{LOG}", "--figures", "{P}"],
 }

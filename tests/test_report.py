@@ -178,7 +178,7 @@ seeds = 2
     res = tmp_path / "results"
     args = ["report", "--run", "--results", str(res), "--fig3", "", "--fig3-extra", "",
             "--fig3-reference", "", "--fig3-reference-extra", "", "--fig3-schedule", "",
-            "--biped", "", "--biped-push", "", "--fig3-trials", "",
+            "--biped", "", "--biped-push", "", "--fig3-trials", "", "--realtime", "",
             "--robustness", str(sweep), "--workers", "1"]
     proc = run_hmpc(args, tmp_path, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -215,7 +215,7 @@ def test_report_without_results_is_a_clear_error(tmp_path, run_hmpc):
                      "--fig3", str(REPO / "sweeps" / "fig3.toml"), "--fig3-extra", "",
                      "--fig3-reference", "", "--fig3-reference-extra", "",
                      "--fig3-schedule", "", "--robustness", "", "--biped", "",
-                     "--biped-push", "", "--fig3-trials", ""], tmp_path)
+                     "--biped-push", "", "--fig3-trials", "", "--realtime", ""], tmp_path)
     assert "no such table" in proc.stderr
     assert proc.returncode == 2
     assert "error:" in proc.stderr and "Traceback" not in proc.stderr
@@ -342,7 +342,7 @@ def test_report_with_a_missing_authors_directory_is_a_clear_error(tmp_path, run_
     proc = run_hmpc(["report", "--no-run", "--results", str(tmp_path / "r"),
                      "--fig3", str(tmp_path), "--fig3-extra", "", "--fig3-reference", "",
                      "--fig3-reference-extra", "", "--fig3-schedule", "", "--robustness", "",
-                     "--biped", "", "--biped-push", "", "--fig3-trials", "",
+                     "--biped", "", "--biped-push", "", "--fig3-trials", "", "--realtime", "",
                      "--authors",
                      str(tmp_path / "nowhere")], tmp_path)
     assert proc.returncode == 2
@@ -498,3 +498,31 @@ def test_a_tube_margins_study_sits_beside_its_hand_margin_twin(tmp_path):
     assert "50 Hz: tube margins" not in text  # 19/20 vs 20/20: intervals overlap
     assert ("- Each rate's tube margins vs one hand margin (`tube`): better in 1 of 2 cells "
             "with separated intervals, worse in 0; 1 unresolved.") in text
+
+
+def test_the_real_time_section_from_a_table_alone(tmp_path):
+    """Successes per controller and latency, and the measured runs' solve times (exact)."""
+    from hmpc_cli.report.realtime import realtime_section
+
+    d = tmp_path / "rt"
+    d.mkdir()
+    (d / "sweep.toml").write_text('name = "rt"\nscenario = "../scenarios/ball_realtime.toml"\n')
+    with open(d / "results.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["run_id", "latency", "controller", "disturbance", "seed", "success",
+                    "solve_time_median", "solve_time_p95", "wall_time", "log"])
+        for k, (lat, ctrl, ok, med, p95) in enumerate([
+                ("paused", "60 Hz once", "true", 0.002, 0.010),
+                ("measured", "60 Hz once", "true", 0.003, 0.012),
+                ("measured", "60 Hz once", "false", 0.005, 0.020),
+                ("measured", "20 Hz once", "true", 0.001, "nan")]):
+            w.writerow([k, lat, ctrl, "nominal", 0, ok, med, p95, 1.0, ""])
+    text = "\n".join(realtime_section(d))
+    assert "From `sweeps/rt.toml`'s per-run table (4 runs of `scenarios/ball_realtime.toml`" \
+        in text
+    assert "| controller | paused | measured |" in text
+    assert "| 60 Hz once | 1/1 | 1/2 |" in text and "| 20 Hz once | - | 1/1 |" in text
+    assert "| 60 Hz once | 4.0 | 20.0 |" in text and "| 20 Hz once | 1.0 | - |" in text
+    with pytest.raises(FigureInputError, match="missing column"):
+        (d / "results.csv").write_text("run_id,success\n1,true\n")
+        realtime_section(d)

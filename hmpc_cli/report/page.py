@@ -38,6 +38,7 @@ class ReportInputs:
     fig3_schedule: Path | None = None  # the authors' plan flown (schedule planner)
     biped_push: Path | None = None  # the biped's push sweep (sweeps/biped_push.toml)
     fig3_trials: Path | None = None  # a Figure 3 sweep tabled trial by trial (table only)
+    realtime: Path | None = None  # the real-time sweep (sweeps/realtime_rti.toml; table only)
 
 
 def _settings(*dirs: Path | None) -> str:
@@ -155,6 +156,11 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
 
         lines += _or_not_drawn("Figure 3 trial by trial", inputs.fig3_trials,
                                lambda: fig3_trials_section(inputs.fig3_trials))
+    if inputs.realtime is not None:
+        from hmpc_cli.report.realtime import realtime_section
+
+        lines += _or_not_drawn("Real time: does the controller keep up?", inputs.realtime,
+                               lambda: realtime_section(inputs.realtime))
     if inputs.robustness is not None:
         lines += _robustness_section(inputs, fig_dir, results)
     if inputs.biped is not None:
@@ -166,7 +172,7 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
                                lambda: push_section(inputs.biped_push, fig_dir, results))
     if inputs.fig3 is None and inputs.fig3_reference is None and inputs.robustness is None \
             and inputs.biped is None and inputs.biped_push is None \
-            and inputs.fig3_trials is None:
+            and inputs.fig3_trials is None and inputs.realtime is None:
         raise FigureInputError("nothing to report: no Figure 3, robustness sweep or biped run")
     lines += ["## Layout", "",
               "* `<scenario>/<UTC time>-seed<N>/`: one `hmpc run` (`run.mcap`, `summary.json`, "
