@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-import platform
 import shlex
 import sys
 import tempfile
@@ -25,6 +23,7 @@ import numpy as np
 from hmpc_cli.log.reader import read_log
 from hmpc_cli.run.runner import prepare, run_to_log
 from hmpc_cli.run.scenario import load_scenario
+from realtime import machine  # benchmarks/realtime.py (this script's directory)
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIO = ROOT / "scenarios" / "ball_realtime.toml"
@@ -61,16 +60,6 @@ def run_case(overrides: list[str], trial: int, work: Path) -> tuple[bool, list]:
 
 def _ms(values: list[float], q: float) -> str:
     return f"{np.percentile(values, q) * 1e3:.1f}" if values else "-"
-
-
-def machine() -> str:
-    """The CPU model, logical CPUs and the load average of this machine."""
-    cpu = platform.processor() or "?"
-    info = Path("/proc/cpuinfo")
-    if info.is_file():
-        cpu = next((ln.split(":", 1)[1].strip() for ln in info.read_text().splitlines()
-                    if ln.startswith("model name")), cpu)
-    return f"{cpu}, {os.cpu_count()} logical CPUs, load {os.getloadavg()[0]:.1f}"
 
 
 def main() -> None:
