@@ -110,8 +110,8 @@ def test_computed_margins_do_as_well_as_the_hand_set_ones_at_20_hz(tmp_path, run
 def test_the_ball_keeps_up_in_real_time_with_the_model_latency(tmp_path, run_hmpc):
     """scenarios/ball_realtime.toml (real-time iterations, compute time charged by its
     fitted model, deterministic) over Figure 3's nominal run and ten trials: at 60 Hz all
-    11 hold, planning once and replanning at contacts; at 20 Hz trial 5 fails (one SQP
-    step per 50 ms period is too little there)."""
+    11 hold, planning once and replanning at contacts, and at 20 Hz planning once (with
+    the compute time measured here, 20 Hz loses trial 5: results/bench/realtime_rti.md)."""
     trials = "\n".join(f'  {{ label = "trial {k}", "disturbance.kind" = "paper_fig3", '
                        f'"disturbance.trial" = {k} }},' for k in range(1, 11))
     (tmp_path / "rt.toml").write_text(f'''name = "rt"
@@ -136,5 +136,5 @@ disturbance = [
     with open(tmp_path / "rt" / "results.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     failed = sorted((r["controller"], r["disturbance"]) for r in rows if r["success"] != "true")
-    assert len(rows) == 33 and failed == [("20 Hz once", "trial 5")]
+    assert len(rows) == 33 and failed == []
     assert all(int(r["solver_failures"]) == 0 for r in rows)

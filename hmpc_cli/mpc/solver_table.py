@@ -242,8 +242,9 @@ register_backend(Backend(
 
 
 #: rti: SQP iterations of a solve without a warm start (a new plan's first solve, whose
-#: guess is the planner's rollout: one step from it is not yet a plan to fly)
-RTI_COLD_ITER = 5
+#: guess is the planner's rollout: one step from it is not yet a plan to fly; 2 lose a
+#: replanning trial in real time, 5 double the switching p95: results/bench/rti_levers.md)
+RTI_COLD_ITER = 3
 #: rti: HPIPM's residual tolerances (stationarity, equalities, inequalities,
 #: complementarity): a real-time step's QP needs no 1e-8 (its default), and at these it
 #: stops in about a third of the IPM iterations (results/bench/realtime.md)
@@ -278,7 +279,7 @@ def rti_warm_options(cold: dict, warm: WarmStart, extra: dict | None = None,
 
 register_backend(Backend(
     "rti", "sqpmethod", rti_options, summary="real-time iterations: mpc.max_sqp_iter SQP "
-    "steps per warm-started solve (a new plan's first solve: up to 5), Gauss-Newton "
+    "steps per warm-started solve (a new plan's first solve: up to 3), Gauss-Newton "
     "Hessian, HPIPM's Riccati QP, each step taken in full and kept, the switching NLP "
     "too, no fallback; needs input_hold = \"zoh\"",
     stagewise=True, warm=rti_warm_options, judge=rti_step_kept, sections=("hpipm",)))
