@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import difflib
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Annotated, Any
 
 from pydantic import AfterValidator, Strict
@@ -225,8 +225,8 @@ def sqp_hpipm_options(a: SolverArgs) -> dict:
         ValueError: no NLP expressions or no stage structure.
     """
     if a.structure is None or not isinstance(a.nlp, dict):
-        raise ValueError("solver sqp_hpipm needs the NLP's expressions and its stage "
-                         "structure")
+        raise ValueError("the SQP back-ends (sqp_hpipm, rti) need the NLP's expressions and "
+                         "its stage structure")
     return {**sqp_options(a.nlp, a.structure, a.sqp_iter, a.tol, a.residuals,
                           a.sections.get("hpipm", {})), **a.nlpsol}
 
@@ -254,16 +254,15 @@ RTI_HPIPM = {"res_g_max": 1e-4, "res_b_max": 1e-6, "res_d_max": 1e-6, "res_m_max
 def rti_options(a: SolverArgs) -> dict:
     """Real-time iterations, cold instance: :data:`RTI_COLD_ITER` full SQP steps.
 
-    :func:`~hmpc_cli.mpc.backends.sqp_options` with every step taken in full (no line
-    search) and the QP solved to :data:`RTI_HPIPM` (the user's ``hpipm`` section over it).
+    :func:`sqp_hpipm_options` with every step taken in full (no line search) and the QP
+    solved to :data:`RTI_HPIPM` (the user's ``hpipm`` section over it).
 
     Raises:
         ValueError: no NLP expressions or no stage structure.
     """
-    if a.structure is None or not isinstance(a.nlp, dict):
-        raise ValueError("solver rti needs the NLP's expressions and its stage structure")
-    return {**sqp_options(a.nlp, a.structure, max(a.sqp_iter, RTI_COLD_ITER), a.tol,
-                          a.residuals, {**RTI_HPIPM, **a.sections.get("hpipm", {})}),
+    hpipm = {**RTI_HPIPM, **a.sections.get("hpipm", {})}
+    return {**sqp_hpipm_options(replace(a, sqp_iter=max(a.sqp_iter, RTI_COLD_ITER),
+                                        sections={**a.sections, "hpipm": hpipm})),
             "max_iter_ls": 0, **a.nlpsol}
 
 
