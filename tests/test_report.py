@@ -338,6 +338,35 @@ def test_latency_study_with_the_first_plan_paused_or_measured_latency_is_said(tm
     assert text.count("rates above 1/L") == 1  # not for measured latency, not for `alone`
 
 
+def test_a_modelled_latency_study_pairs_with_the_paused_study_of_its_own_scenario(tmp_path):
+    """``sim.latency = "model"`` reads as words, and the paused twin is the study of the
+    same scenario file, not another controller's study with the same [set]."""
+    from hmpc_cli.report.robustness import Study, robustness_sections
+
+    def study(name: str, scenario: str, fixed: str, truth: dict) -> Path:
+        d = tmp_path / name
+        write_study(d / "results.csv", truth, seeds=20)
+        (d / "sweep.toml").write_text(f'name = "{name}"\nscenario = "{scenario}"\n'
+                                      f'seeds = 20\n[set]\n{fixed}\n')
+        return d
+
+    box = '"disturbance.kind" = "box"'
+    dirs = [study("ipopt", "../scenarios/ball.toml", box,
+                  {(5, "once", 15.0): 20, (60, "once", 15.0): 20}),
+            study("rti", "../scenarios/ball_realtime.toml", box,
+                  {(5, "once", 15.0): 4, (60, "once", 15.0): 20}),
+            study("rti_model", "../scenarios/ball_realtime.toml",
+                  f'{box}\n"sim.latency" = "model"', {(5, "once", 15.0): 3, (60, "once", 15.0): 9})]
+    text = "\n".join(robustness_sections([Study(d) for d in dirs], tmp_path / "fig", tmp_path))
+    assert "### modelled latency charged vs time paused" in text
+    assert "`rti_model` beside the same cells of `rti`." in text
+    assert "reaches the plant its modelled compute time after the state" in text
+    assert ("- ±15.0, once, 60 Hz: modelled latency is lower than time paused (45 % vs 100 %; "
+            "intervals separate).") in text
+    assert "- Solve time charged (modelled latency): 1 of 2 cells succeed less often" in text
+    assert "model s" not in text and "rates above 1/L" not in text
+
+
 def test_report_with_a_missing_authors_directory_is_a_clear_error(tmp_path, run_hmpc):
     proc = run_hmpc(["report", "--no-run", "--results", str(tmp_path / "r"),
                      "--fig3", str(tmp_path), "--fig3-extra", "", "--fig3-reference", "",

@@ -14,10 +14,13 @@ EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 DEFAULT_AUTHORS = Path("results/authors")  # the authors' Figure 3 data, committed
 #: the robustness study's sweeps: paper geometry, a moved geometry, solve latency charged
-#: (0.05 s: about one solve here; 0.03 s: the largest the undisturbed ball survives)
+#: (0.05 s: about one solve here; 0.03 s: the largest the undisturbed ball survives), and
+#: the real-time iterations with time paused and with their modelled compute time charged
 ROBUSTNESS = (Path("sweeps/robustness.toml"), Path("sweeps/robustness_tube.toml"),
               Path("sweeps/robustness_moved.toml"), Path("sweeps/robustness_moved_tube.toml"),
-              Path("sweeps/robustness_latency.toml"), Path("sweeps/robustness_latency_30ms.toml"))
+              Path("sweeps/robustness_latency.toml"), Path("sweeps/robustness_latency_30ms.toml"),
+              Path("sweeps/robustness_realtime_paused.toml"),
+              Path("sweeps/robustness_realtime.toml"))
 
 
 def report_command(
@@ -45,8 +48,9 @@ def report_command(
     robustness: Annotated[list[Path] | None, typer.Option(
         "--robustness", help="robustness study sweep file or output directory, repeatable "
         "(default: sweeps/robustness.toml, robustness_tube.toml, robustness_moved.toml, "
-        "robustness_moved_tube.toml, robustness_latency.toml and robustness_latency_30ms.toml;"
-        " '' to leave out)")] = None,
+        "robustness_moved_tube.toml, robustness_latency.toml, robustness_latency_30ms.toml, "
+        "robustness_realtime_paused.toml and robustness_realtime.toml; '' to leave out)")
+    ] = None,
     biped: Annotated[Path | None, typer.Option(
         "--biped", help="biped scenario for Figure 4 ('' to leave out)")
     ] = Path("scenarios/biped_stairs.toml"),

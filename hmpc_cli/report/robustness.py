@@ -358,8 +358,14 @@ def latency_lines(pairs: list[tuple], latency: object) -> list[str]:
 
 
 def latency_text(latency: object) -> str:
-    """``sim.latency`` in words: "0.05 s latency" or "measured latency" (the solve time)."""
-    return "measured latency" if latency == "measured" else f"{latency} s latency"
+    """``sim.latency`` in words: "0.05 s latency", "measured latency" or "modelled latency".
+
+    Measured: the solve's own time; modelled: charged from the solver's iterations
+    (``sim.latency_model``).
+    """
+    if latency in ("measured", "model"):
+        return "measured latency" if latency == "measured" else "modelled latency"
+    return f"{latency} s latency"
 
 
 def charged(spec: dict) -> object | None:
@@ -432,8 +438,9 @@ def reading(results: list[tuple[dict, list]],
             lines.append(_rate_reading(f"Faster MPC ({what})", rates, "policy"))
     lines += ["- Not supported by this study: rates outside the tested grid, other systems, "
               "other disturbance shapes than a held uniform box, and real-time behaviour "
-              "beyond a fixed charged latency; the tube diameters are bounds from sampled "
-              "constants (Step 5), an explanation of the trend, not a certificate of it.", ""]
+              "beyond a charged latency (fixed, or modelled from the solver's iterations); "
+              "the tube diameters are bounds from sampled constants (Step 5), an "
+              "explanation of the trend, not a certificate of it.", ""]
     return lines
 
 
@@ -478,8 +485,9 @@ _LATENCY_KEYS = ("sim.latency", "sim.latency_first", SIZE)
 
 def _twin(spec: dict, paused: list[tuple[dict, list]]) -> tuple[dict, list] | None:
     """The paused study with the latency study's settings but the latency (and size)."""
-    def key(s: dict) -> dict:
-        return {k: v for k, v in s.get("set", {}).items() if k not in _LATENCY_KEYS}
+    def key(s: dict) -> tuple:
+        return s.get("scenario"), {k: v for k, v in s.get("set", {}).items()
+                                   if k not in _LATENCY_KEYS}
 
     return next((p for p in paused if key(p[0]) == key(spec)), None)
 
@@ -489,7 +497,8 @@ def _first_plan(spec: dict, latency: object) -> str:
     if spec.get("set", {}).get("sim.latency_first") == "paused":
         return ("The first plan is computed with time paused at t = 0 "
                 "(`sim.latency_first = \"paused\"`); every later plan is charged.")
-    wait = "its solve time" if latency == "measured" else f"{latency} s"
+    wait = {"measured": "its solve time", "model": "its modelled compute time"}.get(
+        str(latency), f"{latency} s")
     return (f"The first plan, too, reaches the plant {wait} after the state it was computed "
             "from: until then the input is zero (`sim.latency_first = \"paused\"` would "
             "compute it with time paused).")
