@@ -155,3 +155,25 @@ def test_verify_forgives_a_setting_added_since_the_run_and_nothing_else():
                                             '{"sim": {"rate_hz": 500, "new": 1}}'}, 0)
     (kept,) = _settings_added_since([old], [changed])
     assert kept.data == changed.data
+
+
+def test_a_compensated_walking_solve_past_the_touchdown_is_a_logged_rejection(tmp_path):
+    """Biped, modelled latency, delay compensation: a period solve whose prediction crosses
+    the touchdown leaves no foothold in the schedule; the walking MPC rejects it, and the
+    log holds that solve with no plan nodes (writing it crashed the run)."""
+    from hmpc_cli.log.schema import validate
+
+    sc, _ = load_scenario(ROOT / "scenarios" / "biped_stairs.toml", [
+        "sim.duration=0.3", 'sim.latency="model"', "sim.delay_compensation=true"])
+    result = run_to_log(prepare(sc), tmp_path / "biped.mcap")
+    # the run reaches its end and is judged there (not on the stairs' top yet)
+    assert result.t_end == pytest.approx(0.3), result.reason
+    assert result.reason.startswith("stance foot at x = "), result.reason
+    log = read_log(tmp_path / "biped.mcap")
+    rejected = [m for m in log.topic("/mpc/solve")
+                if m.data["status"] == "schedule rejected: no foothold target: the schedule "
+                                       "has no guard left"]
+    assert [round(m.t, 3) for m in rejected] == [0.19]
+    assert rejected[0].data["plan"] == [] and not rejected[0].data["adopted"]
+    for m in log.messages:
+        assert validate(log.schemas[m.topic], m.data) == [], (m.topic, m.t)

@@ -357,8 +357,12 @@ def rollout_nodes(rollout: RolloutArrays, model: HybridSystem) -> tuple[dict, ..
 
 def plan_nodes(traj: Trajectory | PlanArrays, t0: float,
                model: HybridSystem) -> tuple[dict, ...]:
-    """A plan's nodes as :class:`PlanNode` records (its wire form; times t0 + traj.t)."""
-    if len(traj.t) == 0:
+    """A plan's nodes as :class:`PlanNode` records (its wire form; times t0 + traj.t).
+
+    A plan with no input columns (a rejected schedule's: the state alone, see
+    :func:`~hmpc_cli.mpc.chain.kind.rejected_plan`) has none.
+    """
+    if len(traj.t) == 0 or (np.shape(traj.u)[-1] == 0 and model.input_names):
         return ()
     keys = flat_keys(PlanNode, {"state": model.state_names, "input": model.input_names})
     modes = [m.name for m in model.modes]
