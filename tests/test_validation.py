@@ -320,6 +320,26 @@ def test_contradictory_settings_fail_at_set_up(real_prepare: Path, system: str, 
     assert len(lines) == 1 and lines[0].startswith(f"error: --set {item}: {message}"), lines
 
 
+def test_a_misspelt_hpipm_option_is_named_with_its_key_path(real_prepare: Path):
+    """CasADi's HPIPM interface says "Unknown option." without the name: hmpc names it."""
+    item = 'mpc.solver_options={hpipm={iter_maxx=3}}'
+    lines = bad_run(real_prepare, ["run", _scenario(real_prepare, "ball").name,
+                                   "--set", 'mpc.solver="rti"', "--set", 'mpc.input_hold="zoh"',
+                                   "--set", item, "--out", "out"])
+    assert lines == [f"error: --set {item}: mpc.solver_options.hpipm.iter_maxx: HPIPM has no "
+                     "option 'iter_maxx' (did you mean 'iter_max'?)"], lines
+    assert not (real_prepare / "out").exists()
+
+
+def test_the_hpipm_options_named_in_that_error_exist():
+    from hmpc_cli.mpc.solver import HPIPM_EXAMPLES, option_problems
+
+    known = {k: "speed" if k == "mode" else 1 for k in HPIPM_EXAMPLES}
+    assert option_problems("rti", {"hpipm": known}) == []
+    assert option_problems("rti", {"hpipm": {"mu0": "x"}})[0].startswith(
+        'mpc.solver_options.hpipm.mu0: HPIPM refuses "x": ')
+
+
 @pytest.mark.parametrize("dry", [True, False])
 def test_a_cell_the_built_system_refuses_stops_the_sweep_before_any_run(work: Path, dry: bool):
     """An input margin beyond half the ball's input box: only the built system knows."""

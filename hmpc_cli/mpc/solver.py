@@ -267,7 +267,9 @@ def option_problems(plugin: str, extra: dict, key: str = "mpc.solver_options") -
     unknown option or an unavailable linear solver only when it solves (status
     ``Invalid_Option``), so one tiny problem is solved with the same options.
     Only back-ends with ``probe`` are tried (the others' options fail when the NLP is
-    built, a PluginError); a back-end's fallback is tried with its own sections.
+    built, a PluginError); a back-end's fallback is tried with its own sections. Each
+    option of an ``hpipm`` section is tried alone on a tiny QP (HPIPM's error does not
+    name it).
     """
     import json
 
@@ -276,8 +278,47 @@ def option_problems(plugin: str, extra: dict, key: str = "mpc.solver_options") -
     if backend.fallback is not None:
         fallback = backend_of(backend.fallback)
         checks.append((fallback, split_options(fallback, extra)[1]))
-    return [line for b, opts in checks if b.probe
-            for line in _option_problems(b.name, json.dumps(opts, sort_keys=True), key)]
+    lines = [line for b, opts in checks if b.probe
+             for line in _option_problems(b.name, json.dumps(opts, sort_keys=True), key)]
+    section = extra.get("hpipm") if "hpipm" in backend.sections else None
+    if isinstance(section, dict):
+        lines += [line for name, value in section.items()
+                  for line in _hpipm_problem(name, json.dumps(value), key)]
+    return lines
+
+
+#: HPIPM options CasADi's interface accepts (named in the error of a misspelt one)
+HPIPM_EXAMPLES = ("iter_max", "mu0", "alpha_min", "res_g_max", "res_b_max", "res_d_max",
+                  "res_m_max", "warm_start", "pred_corr", "reg_prim", "lam_min", "t_min",
+                  "mode")
+
+
+@lru_cache(maxsize=64)
+def _hpipm_problem(name: str, value_json: str, key: str) -> tuple[str, ...]:
+    """``key.hpipm.name: reason`` if HPIPM refuses the option alone on a tiny QP, else ().
+
+    CasADi's HPIPM interface says "Unknown option." without the name; one QP per option
+    names it.
+    """
+    import difflib
+    import json
+
+    from hmpc_cli.core.registry import one_line
+
+    x = ca.SX.sym("x", 2)
+    qp = {"x": x, "f": ca.sumsqr(x), "g": x[0] + x[1]}
+    try:
+        ca.qpsol("probe", "hpipm", qp, {"hpipm": {name: json.loads(value_json)},
+                                        "print_problem": False})
+    except RuntimeError as exc:
+        text = one_line(exc)
+        if "Unknown option" not in text:
+            return (f"{key}.hpipm.{name}: HPIPM refuses {value_json}: {text}",)
+        near = difflib.get_close_matches(name, HPIPM_EXAMPLES, n=1)
+        hint = f"did you mean {near[0]!r}?" if near else \
+            f"HPIPM's options are e.g. {', '.join(HPIPM_EXAMPLES)}"
+        return (f"{key}.hpipm.{name}: HPIPM has no option {name!r} ({hint})",)
+    return ()
 
 
 @lru_cache(maxsize=64)
