@@ -138,3 +138,27 @@ disturbance = [
     failed = sorted((r["controller"], r["disturbance"]) for r in rows if r["success"] != "true")
     assert len(rows) == 33 and failed == []
     assert all(int(r["solver_failures"]) == 0 for r in rows)
+
+
+@pytest.mark.slow
+def test_the_real_time_robustness_table_is_what_the_code_gives(tmp_path, run_hmpc):
+    """The committed table of sweeps/robustness_realtime.toml (real-time iterations, compute
+    time charged by the latency model: the same on any machine) holds what its first two
+    seeds give when run again: outcome, contacts and solves of all 20 runs."""
+    sweep = ROOT / "sweeps" / "robustness_realtime.toml"
+    proc = run_hmpc(["sweep", str(sweep), "--seeds", "2", "--out", str(tmp_path / "rt")],
+                    cwd=tmp_path, timeout=1800)
+    assert proc.returncode == 0, proc.stderr
+
+    def rows(path: Path) -> dict:
+        with open(path, newline="") as f:
+            return {r["run_id"]: r for r in csv.DictReader(f) if int(r["seed"]) < 2}
+
+    again = rows(tmp_path / "rt" / "results.csv")
+    committed = rows(ROOT / "results" / "sweeps" / "robustness_realtime" / "results.csv")
+    assert len(again) == 20 and again.keys() == committed.keys()
+    for run_id, r in again.items():
+        c = committed[run_id]
+        assert [r[k] for k in ("success", "contacts", "solves", "reason")] == \
+            [c[k] for k in ("success", "contacts", "solves", "reason")], run_id
+        assert float(r["final_error"]) == pytest.approx(float(c["final_error"]), rel=1e-6)

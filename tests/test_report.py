@@ -361,6 +361,13 @@ def test_a_modelled_latency_study_pairs_with_the_paused_study_of_its_own_scenari
     assert "### modelled latency charged vs time paused" in text
     assert "`rti_model` beside the same cells of `rti`." in text
     assert "reaches the plant its modelled compute time after the state" in text
+    # the first plan paused by the runs' scenario, not by the sweep's [set]: said so
+    (dirs[2] / "scenario.toml").write_text(
+        (REPO / "scenarios" / "ball_realtime.toml").read_text())
+    again = "\n".join(robustness_sections([Study(d) for d in dirs], tmp_path / "f2", tmp_path))
+    assert ("`rti_model` beside the same cells of `rti`. The first plan is computed with time "
+            "paused at t = 0") in again
+    assert "- Solve time charged (modelled latency, first plan paused): 1 of 2 cells" in again
     assert ("- ±15.0, once, 60 Hz: modelled latency is lower than time paused (45 % vs 100 %; "
             "intervals separate).") in text
     assert "- Solve time charged (modelled latency): 1 of 2 cells succeed less often" in text

@@ -10,6 +10,7 @@ made only where intervals separate.
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 import statistics
@@ -64,14 +65,20 @@ def _effective(table: Path, row: dict, sweep_file: Path | None, scratch: Path) -
     path = table.parent / Path(row.get("log", "")).parent / "scenario.toml"
     if path.is_file() or sweep_file is None:
         return path
-    from hmpc_cli.sweep.plan import plan_sweep
-
-    run = next((r for r in plan_sweep(sweep_file).runs if r.run_id == row.get("run_id")), None)
+    run = _planned(Path(sweep_file).resolve()).get(row.get("run_id"))
     if run is None or not run.toml:
         return path
     out = scratch / f"{run.run_id}.toml"
     out.write_text(run.toml, encoding="utf-8")
     return out
+
+
+@functools.lru_cache(maxsize=16)
+def _planned(sweep_file: Path) -> dict:
+    """The runs of a sweep file by run id (planned once per file and process)."""
+    from hmpc_cli.sweep.plan import plan_sweep
+
+    return {r.run_id: r for r in plan_sweep(sweep_file).runs}
 
 
 def tube_diameters(table: Path, rows: list[dict], size_column: str = SIZE,
@@ -109,6 +116,26 @@ def tube_diameters(table: Path, rows: list[dict], size_column: str = SIZE,
                      "kinematic": [(r.rate_hz, r.kinematic) for r in picked
                                    if r.kinematic is not None]}
     return out
+
+
+def _effective_value(table: Path, rows: list[dict], sweep_file: Path | None, get):
+    """``get(scenario)`` of the first run's effective scenario (None if it cannot be read).
+
+    For settings a sweep takes from its scenario file rather than its ``[set]``.
+    """
+    import tempfile
+
+    from hmpc_cli.run.scenario import ScenarioError, load_scenario
+
+    if not rows:
+        return None
+    try:
+        with tempfile.TemporaryDirectory() as scratch:
+            path = _effective(table, rows[0], sweep_file, Path(scratch))
+            sc, _ = load_scenario(path, check_margins=False)
+    except (OSError, ScenarioError, ValueError):
+        return None
+    return get(sc)
 
 
 def _pivot(cells) -> list[str]:
@@ -310,6 +337,9 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
     name = str(spec.get("name") or study.directory.name)
     size = _size_column(rows)
     diam = tube_diameters(table, rows, size, study.sweep_file)
+    first = _effective_value(table, rows, study.sweep_file, lambda sc: sc.sim.latency_first)
+    if first is not None:
+        spec = {**spec, "effective": {"sim.latency_first": first}}
     cells = robustness(table, fig_dir, "pdf,svg,png", name=name, diameters=diam,
                        panel_axis=size, width=min(TEXT_WIDTH_IN, 3.5 * max(1, len(diam))))
     seeds = len({r["seed"] for r in rows})
@@ -492,9 +522,20 @@ def _twin(spec: dict, paused: list[tuple[dict, list]]) -> tuple[dict, list] | No
     return next((p for p in paused if key(p[0]) == key(spec)), None)
 
 
+def _first_paused(spec: dict) -> bool:
+    """Whether a study computes the first plan with time paused.
+
+    Its ``[set]`` says, else the effective scenario of its runs (``spec["effective"]``,
+    see :func:`study_section`).
+    """
+    value = spec.get("set", {}).get("sim.latency_first",
+                                    spec.get("effective", {}).get("sim.latency_first"))
+    return value == "paused"
+
+
 def _first_plan(spec: dict, latency: object) -> str:
     """How a latency study treats the first plan (``sim.latency_first``), in a sentence."""
-    if spec.get("set", {}).get("sim.latency_first") == "paused":
+    if _first_paused(spec):
         return ("The first plan is computed with time paused at t = 0 "
                 "(`sim.latency_first = \"paused\"`); every later plan is charged.")
     wait = {"measured": "its solve time", "model": "its modelled compute time"}.get(
@@ -506,8 +547,7 @@ def _first_plan(spec: dict, latency: object) -> str:
 
 def _latency_words(spec: dict, latency: object) -> tuple[str, ...]:
     """A latency study in a few words: ("0.03 s latency", "first plan paused")."""
-    first = spec.get("set", {}).get("sim.latency_first") == "paused"
-    return (latency_text(latency), *(["first plan paused"] if first else []))
+    return (latency_text(latency), *(["first plan paused"] if _first_paused(spec) else []))
 
 
 def _solver_pace(latency: object) -> str:
