@@ -447,7 +447,7 @@ def test_the_results_page_regenerates_from_what_the_repository_holds(tmp_path, r
             shutil.copy2(REPO / rel, root / rel)
     args = shlex.split(command)
     assert args[:2] == ["hmpc", "report"] and "--run" not in args
-    proc = run_hmpc(args[1:], cwd=root)
+    proc = run_hmpc(args[1:], cwd=root, timeout=900)  # about a minute on 2 idle cores
     assert proc.returncode == 0, proc.stderr
     out = root / "results"
     assert (out / "README.md").read_text() == page
