@@ -40,6 +40,26 @@ def _wait_for_log(proc: subprocess.Popen, mcap: Path, timeout: float = 60.0) -> 
     raise AssertionError("the run did not start its log")
 
 
+def _main_thread_cpu(pid: int) -> float:
+    """CPU time [s] the process's main thread has used (utime + stime)."""
+    import os
+
+    fields = Path(f"/proc/{pid}/task/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _wait_for_cpu(proc: subprocess.Popen, seconds: float, timeout: float = 300.0) -> None:
+    """Waits until the run's main thread has used ``seconds`` more of CPU time: its
+    progress, whatever the machine's load (a fixed sleep on a busy machine stopped it
+    before its first solve; other threads, e.g. a BLAS pool's, are not counted)."""
+    start, deadline = _main_thread_cpu(proc.pid), time.monotonic() + timeout
+    while time.monotonic() < deadline and proc.poll() is None:
+        if _main_thread_cpu(proc.pid) - start >= seconds:
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"the run did not use {seconds} s of CPU in {timeout} s")
+
+
 def _stop(proc: subprocess.Popen, sig: int) -> tuple[float, str]:
     """Sends ``sig``; returns (seconds until the process exited, its stderr)."""
     return stop_process(proc, sig, 30)
@@ -74,7 +94,7 @@ def test_signal_stops_run_cleanly(tmp_path, sig):
     out = tmp_path / "run"
     proc = _start(tmp_path, out, ["--set", "sim.duration=60.0"])
     _wait_for_log(proc, out / "run.mcap")
-    time.sleep(2.0)
+    _wait_for_cpu(proc, 2.0)
     _, err = _stop(proc, sig)
     _check_interrupted(out, sig, proc, err)
 
@@ -87,7 +107,7 @@ def test_signal_inside_an_ipopt_solve_stops_it(tmp_path, sig):
     out = tmp_path / "run"
     proc = _start(tmp_path, out, ["--set", "sim.duration=20.0", *LONG_SOLVES])
     _wait_for_log(proc, out / "run.mcap")
-    time.sleep(3.5)  # the initial solve and a few more are done
+    _wait_for_cpu(proc, 3.5)  # the initial solve and a few more are done
     latency, err = _stop(proc, sig)
     summary = _check_interrupted(out, sig, proc, err)
     assert summary["solve_time_median"] > 0.2
