@@ -90,26 +90,23 @@ def tube_diameters(table: Path, rows: list[dict], size_column: str = SIZE,
     the ``sweep_file``'s for a table without run directories); bounds ``trivial``
     (Prop. 2) and ``kinematic``; {} when no run can be read.
     """
-    import tempfile
-
     from hmpc_cli.core.registry import build_system
-    from hmpc_cli.run.scenario import ScenarioError, load_scenario
     from hmpc_cli.tube import TubeError, analyse, region_from_scenario
 
     rates = sorted({float(r[RATE]) for r in rows if r.get(RATE)})
     out: dict[float, dict[str, list]] = {}
     for size in sorted({float(r[size_column]) for r in rows if r.get(size_column)}):
         first = next(r for r in rows if r.get(size_column) and float(r[size_column]) == size)
+        sc = _effective_scenario(table, first, sweep_file)
+        if sc is None:
+            continue
         try:
-            with tempfile.TemporaryDirectory() as scratch:
-                scenario = _effective(table, first, sweep_file, Path(scratch))
-                sc, _ = load_scenario(scenario, check_margins=False)
             system = build_system(sc.system)
             rep = analyse(system, region=region_from_scenario(system), kind=sc.disturbance.kind,
                           magnitude=sc.disturbance.magnitude, kp=sc.lowlevel.kp,
                           kd=sc.lowlevel.kd, rate_hz=sc.mpc.rate_hz, rates=rates,
                           seed=sc.seed)
-        except (OSError, ScenarioError, TubeError, ValueError):
+        except (OSError, TubeError, ValueError):
             continue
         picked = [r for r in rep.rows if any(math.isclose(r.rate_hz, x) for x in rates)]
         out[size] = {"trivial": [(r.rate_hz, r.trivial) for r in picked],
@@ -118,24 +115,18 @@ def tube_diameters(table: Path, rows: list[dict], size_column: str = SIZE,
     return out
 
 
-def _effective_value(table: Path, rows: list[dict], sweep_file: Path | None, get):
-    """``get(scenario)`` of the first run's effective scenario (None if it cannot be read).
-
-    For settings a sweep takes from its scenario file rather than its ``[set]``.
-    """
+def _effective_scenario(table: Path, row: dict, sweep_file: Path | None):
+    """The run's effective scenario (see :func:`_effective`), or None if it cannot be read."""
     import tempfile
 
     from hmpc_cli.run.scenario import ScenarioError, load_scenario
 
-    if not rows:
-        return None
     try:
         with tempfile.TemporaryDirectory() as scratch:
-            path = _effective(table, rows[0], sweep_file, Path(scratch))
-            sc, _ = load_scenario(path, check_margins=False)
+            return load_scenario(_effective(table, row, sweep_file, Path(scratch)),
+                                 check_margins=False)[0]
     except (OSError, ScenarioError, ValueError):
         return None
-    return get(sc)
 
 
 def _pivot(cells) -> list[str]:
@@ -337,9 +328,9 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
     name = str(spec.get("name") or study.directory.name)
     size = _size_column(rows)
     diam = tube_diameters(table, rows, size, study.sweep_file)
-    first = _effective_value(table, rows, study.sweep_file, lambda sc: sc.sim.latency_first)
-    if first is not None:
-        spec = {**spec, "effective": {"sim.latency_first": first}}
+    sc = _effective_scenario(table, rows[0], study.sweep_file) if rows else None
+    if sc is not None:  # a setting the runs take from their scenario file
+        spec = {**spec, "effective": {"sim.latency_first": sc.sim.latency_first}}
     cells = robustness(table, fig_dir, "pdf,svg,png", name=name, diameters=diam,
                        panel_axis=size, width=min(TEXT_WIDTH_IN, 3.5 * max(1, len(diam))))
     seeds = len({r["seed"] for r in rows})
