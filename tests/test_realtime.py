@@ -1,5 +1,6 @@
 """Real-time machinery: the latency model, the per-solve budget and delay compensation."""
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -7,6 +8,7 @@ import pytest
 
 import hmpc_cli.run.layers as layers_module
 from hmpc_cli.analysis.replay import _settings_added_since, compare_logs
+from hmpc_cli.core.messages import ModeSchedule, Plan, PlannerResult, SolveStats, Trajectory
 from hmpc_cli.log.reader import LogMessage, read_log
 from hmpc_cli.run.realtime import Latency
 from hmpc_cli.run.runner import prepare, run_to_log
@@ -38,13 +40,27 @@ def _run(tmp_path, name, overrides, spy_predict=None):
     return result, tmp_path / f"{name}.mcap", solves, steps
 
 
+def _plan(iterations: int, wall: float, switches: int = 0, t0: float = 0.0) -> Plan:
+    """A plan with these solve statistics over a schedule with ``switches`` switches."""
+    traj = Trajectory(np.zeros(1), np.zeros((1, 1)), np.zeros((1, 1)), np.zeros(1, int),
+                      np.zeros(1, int))
+    sched = ModeSchedule((0,) * (switches + 1), (0,) * switches, (0.1,) * switches, t0)
+    return Plan(t0, traj, SolveStats("Solve_Succeeded", True, iterations, wall, 1.0, 0.0),
+                sched)
+
+
+def _planned(wall: float, *solves: Plan) -> PlannerResult:
+    """A planner call of measured ``wall`` [s] that made these MPC solves itself."""
+    return PlannerResult(None, None, 0.0, True, wall, 0, mpc_solves=solves)
+
+
 def test_the_latency_kinds_charge_what_they_say():
     model = Latency("model", overhead=0.002, per_iteration=0.008, planner=0.01)
-    assert model.charge(12, 5.0, 7.0, planned=False) == pytest.approx(0.002 + 12 * 0.008)
-    assert model.charge(3, 5.0, 7.0, planned=True) == pytest.approx(0.01 + 0.002 + 0.024)
-    assert Latency("fixed", 0.02).charge(40, 5.0, 7.0, True) == 0.02
-    assert Latency("measured").charge(40, 0.05, 0.03, True) == pytest.approx(0.08)
-    assert Latency("paused").charge(40, 0.05, 0.03, True) == 0.0
+    assert model.charge(_plan(12, 5.0)) == pytest.approx(0.002 + 12 * 0.008)
+    assert model.charge(_plan(3, 5.0), _planned(7.0)) == pytest.approx(0.01 + 0.002 + 0.024)
+    assert Latency("fixed", 0.02).charge(_plan(40, 5.0), _planned(7.0)) == 0.02
+    assert Latency("measured").charge(_plan(40, 0.05), _planned(0.03)) == pytest.approx(0.08)
+    assert Latency("paused").charge(_plan(40, 0.05), _planned(0.03)) == 0.0
     assert not Latency("paused").charged("period")
     assert not Latency("fixed", 0.02, first="paused").charged("initial")
     assert Latency("fixed", 0.02, first="paused").charged("period")
@@ -54,9 +70,24 @@ def test_the_latency_kinds_charge_what_they_say():
     assert Latency("model").expected(0.3) == 0.3
     # a solve with a switch left is charged its own cost per iteration (its NLP is larger)
     two = Latency("model", overhead=0.001, per_iteration=0.002, per_switching_iteration=0.009)
-    assert two.charge(1, 5.0, 7.0, False, switching=True) == pytest.approx(0.010)
-    assert two.charge(5, 5.0, 7.0, False, switching=False) == pytest.approx(0.011)
-    assert model.charge(2, 5.0, 7.0, False, switching=True) == pytest.approx(0.018)
+    assert two.charge(_plan(1, 5.0, switches=1)) == pytest.approx(0.010)
+    assert two.charge(_plan(5, 5.0)) == pytest.approx(0.011)
+    assert model.charge(_plan(2, 5.0, switches=1)) == pytest.approx(0.018)
+
+
+def test_a_planner_that_solves_mpc_problems_is_charged_them_once():
+    """A foothold planner's candidate solves are its cost; the loop's solve of the chosen
+    candidate returns that plan again and adds nothing (not twice, not never)."""
+    model = Latency("model", overhead=0.002, per_iteration=0.008, planner=0.01)
+    a, b = _plan(30, 0.2, switches=1, t0=0.3), _plan(12, 0.1, switches=1, t0=0.3)
+    call = _planned(0.31, a, b)
+    assert model.planner_cost(call) == pytest.approx(0.01 + 0.002 + 0.24 + 0.002 + 0.096)
+    assert model.charge(replace(a, adopt=False), call) == pytest.approx(model.planner_cost(call))
+    other = _plan(7, 0.05, switches=1, t0=0.3)  # a solve the planner did not make
+    assert model.charge(other, call) == pytest.approx(model.planner_cost(call) + 0.058)
+    measured = Latency("measured")
+    assert measured.charge(a, call) == pytest.approx(0.31)  # the candidate's 0.2 s is in it
+    assert measured.charge(other, call) == pytest.approx(0.36)
 
 
 def test_delay_compensation_solves_from_the_state_at_the_plans_arrival(tmp_path, monkeypatch):
@@ -158,13 +189,15 @@ def test_verify_forgives_a_setting_added_since_the_run_and_nothing_else():
 
 
 def test_a_compensated_walking_solve_past_the_touchdown_is_a_logged_rejection(tmp_path):
-    """Biped, modelled latency, delay compensation: a period solve whose prediction crosses
-    the touchdown leaves no foothold in the schedule; the walking MPC rejects it, and the
+    """Biped, modelled latency (8 ms per iteration, the first plan paused), delay
+    compensation: a period solve whose prediction crosses the touchdown leaves no
+    foothold in the schedule; the walking MPC rejects it, and the
     log holds that solve with no plan nodes (writing it crashed the run)."""
     from hmpc_cli.log.schema import validate
 
     sc, _ = load_scenario(ROOT / "scenarios" / "biped_stairs.toml", [
-        "sim.duration=0.3", 'sim.latency="model"', "sim.delay_compensation=true"])
+        "sim.duration=0.3", 'sim.latency="model"', "sim.delay_compensation=true",
+        'sim.latency_first="paused"', "sim.latency_model.per_iteration=0.008"])
     result = run_to_log(prepare(sc), tmp_path / "biped.mcap")
     # the run reaches its end and is judged there (not on the stairs' top yet)
     assert result.t_end == pytest.approx(0.3), result.reason
@@ -173,7 +206,47 @@ def test_a_compensated_walking_solve_past_the_touchdown_is_a_logged_rejection(tm
     rejected = [m for m in log.topic("/mpc/solve")
                 if m.data["status"] == "schedule rejected: no foothold target: the schedule "
                                        "has no guard left"]
-    assert [round(m.t, 3) for m in rejected] == [0.19]
+    assert [round(m.t, 3) for m in rejected] == [0.214]
     assert rejected[0].data["plan"] == [] and not rejected[0].data["adopted"]
     for m in log.messages:
         assert validate(log.schemas[m.topic], m.data) == [], (m.topic, m.t)
+
+
+def test_the_foothold_planners_candidates_are_charged_once(tmp_path):
+    """Biped, modelled latency, the first plan charged: its planning step solves two
+    candidates cold; the first plan reaches the plant after the planner's constant and
+    both candidates' solves, each charged as a solve, and the loop's solve of the chosen
+    candidate (the same plan returned) adds nothing."""
+    sc, _ = load_scenario(ROOT / "scenarios" / "biped_stairs.toml",
+                          ["sim.duration=0.05", 'sim.latency="model"'])
+    run_to_log(prepare(sc), tmp_path / "biped.mcap")
+    log, m = read_log(tmp_path / "biped.mcap"), sc.sim.latency_model
+    (call,) = log.topic("/planner/plan")
+    iters = [c["iterations"] for c in call.data["detail"]["candidates"]]
+    assert len(iters) == 2 and min(iters) > 0
+    (solve,) = log.topic("/mpc/solve")
+    assert solve.data["reason"] == "initial" and solve.data["iterations"] in iters
+    assert solve.data["latency"] == pytest.approx(
+        m.planner + sum(m.overhead + m.per_iteration * k for k in iters))
+
+
+def test_a_planner_call_that_finds_no_schedule_keeps_the_solver_busy(tmp_path):
+    """Ball, modelled latency with a planner call charged 0.25 s: when the first call
+    returns no schedule (injected), the retry waits for the solver: at 0.25 s, not at the
+    next MPC period (0.1 s)."""
+    sc, _ = load_scenario(BALL, ["sim.duration=0.4", 'sim.latency="model"',
+                                 "sim.latency_model.planner=0.25"])
+    run = prepare(sc)
+    plan, calls = run.planner.plan, []
+
+    def first_finds_nothing(t, *args):
+        result = plan(t, *args)
+        calls.append(t)
+        return replace(result, schedule=None, note="injected") if len(calls) == 1 else result
+
+    run.planner.plan = first_finds_nothing
+    run_to_log(run, tmp_path / "ball.mcap")
+    log = read_log(tmp_path / "ball.mcap")
+    assert [round(p.t, 6) for p in log.topic("/planner/plan")] == [0.0, 0.25]
+    assert not log.topic("/planner/plan")[0].data["accepted"]
+    assert [round(s.t, 6) for s in log.topic("/mpc/solve")][:1] == [0.25]

@@ -151,7 +151,7 @@ class MPCLayers:
         st = self.st
         result = self.planner.plan(
             t, x, mode, lambda sched: self.mpc.solve(t, x, mode, sched, st.events))
-        self.clock.planner_wall = result.wall_time
+        self.clock.planner = result
         note = result.note
         if result.schedule is not None:
             note = self.mpc.check(result.schedule)
@@ -165,9 +165,12 @@ class MPCLayers:
 
     def _solve(self, t: float, x: np.ndarray, mode: int, reason: str) -> None:
         st, clock = self.st, self.clock
-        if not st.usable:
-            return
         charged = clock.latency.charged(reason)
+        if not st.usable:  # no schedule: a planner call that found none still took its time
+            if charged and clock.planner is not None:
+                clock.busy(t, clock.latency.planner_cost(clock.planner))
+            clock.planner = None
+            return
         plan = self._solve_ahead(t, x, mode, reason) if charged else self.mpc.solve(
             t, x, mode, st.schedule, st.events, st.guess)
         st.events = []
@@ -178,7 +181,7 @@ class MPCLayers:
         else:
             self.log.mpc_solve(t, plan, reason, self.model)
             st.plan = plan if plan.adopt else st.plan
-        clock.planner_wall = 0.0
+        clock.planner = None
         signals.check()
 
     def _solve_ahead(self, t: float, x: np.ndarray, mode: int, reason: str) -> Plan:

@@ -7,9 +7,14 @@
 * ``measured``: the measured wall time of the planner call it follows plus the MPC solve
   (machine dependent: runs are not reproducible);
 * ``model``: ``overhead + per_iteration x iterations`` of the MPC solve (a solve with a
-  switch left: ``per_switching_iteration``, its NLP being larger, if set), plus
-  ``planner`` per planner call: a deterministic charge from a calibrated cost per
-  iteration (``benchmarks/calibrate_latency.py`` fits the constants to measured solves).
+  switch left: ``per_switching_iteration``, its NLP being larger, if set), plus, for the
+  planner call it follows, ``planner`` and each fixed-mode MPC solve the planner made
+  itself (a foothold candidate) charged as a solve: a deterministic charge from a
+  calibrated cost per iteration (``benchmarks/calibrate_latency.py`` fits the constants
+  to measured solves).
+
+A solve that returns a plan the planner has just solved (the foothold planner's chosen
+candidate) costs nothing more: its compute time is the planner's.
 
 A ``budget`` [s] bounds a solve: a solve charged more is abandoned at t + budget, its
 plan dropped and the previous plan (time-indexed, hence shifted) tracked on.
@@ -27,7 +32,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from hmpc_cli.core.messages import OFF_SCHEDULE, GuardEvent, ModeSchedule, Plan
+from hmpc_cli.core.messages import OFF_SCHEDULE, GuardEvent, ModeSchedule, Plan, PlannerResult
 
 __all__ = ["Latency", "Prediction", "SolverClock", "advance", "predict", "prediction_plant"]
 
@@ -79,22 +84,46 @@ class Latency:
         """Whether a solve for ``reason`` is charged (``initial`` may be paused)."""
         return self.kind != "paused" and not (reason == "initial" and self.first == "paused")
 
-    def charge(self, iterations: int, solve_wall: float, planner_wall: float,
-               planned: bool, switching: bool = False) -> float:
-        """The delay [s] of one solve (and of the planner call it follows, if ``planned``).
+    def solve_cost(self, plan: Plan) -> float:
+        """The compute time [s] one fixed-mode MPC solve is charged (``measured``, ``model``).
 
-        ``switching``: the solve's schedule has a switch left (kind ``model``).
+        ``model``: a schedule with a switch left is charged ``per_switching_iteration``
+        per iteration, if set.
+        """
+        st = plan.stats
+        if self.kind == "measured":
+            return st.wall_time
+        if self.kind != "model":
+            return 0.0
+        switching = plan.schedule is not None and plan.schedule.n_switches > 0
+        per = self.per_switching_iteration if switching and \
+            self.per_switching_iteration is not None else self.per_iteration
+        return self.overhead + per * max(int(st.iterations), 0)
+
+    def planner_cost(self, result: PlannerResult) -> float:
+        """The compute time [s] one planner call is charged (``measured``, ``model``).
+
+        ``measured``: its wall time (the MPC solves it made included); ``model``:
+        ``planner`` plus each of its own MPC solves (``result.mpc_solves``) as a solve.
+        """
+        if self.kind == "measured":
+            return result.wall_time
+        if self.kind != "model":
+            return 0.0
+        return self.planner + sum(self.solve_cost(p) for p in result.mpc_solves)
+
+    def charge(self, plan: Plan, planner: PlannerResult | None = None) -> float:
+        """The delay [s] of one solve's plan, and of the planner call it follows, if any.
+
+        A plan the planner has already solved (one of ``planner.mpc_solves``: same start
+        time and statistics) adds no solve cost: it was returned, not computed again.
         """
         if self.kind == "fixed":
             return self.delay
-        if self.kind == "measured":
-            return planner_wall + solve_wall
-        if self.kind == "model":
-            per = self.per_switching_iteration if switching and \
-                self.per_switching_iteration is not None else self.per_iteration
-            return (self.planner if planned else 0.0) + self.overhead \
-                + per * max(int(iterations), 0)
-        return 0.0
+        if planner is None:
+            return self.solve_cost(plan)
+        reused = any(p.t0 == plan.t0 and p.stats == plan.stats for p in planner.mpc_solves)
+        return self.planner_cost(planner) + (0.0 if reused else self.solve_cost(plan))
 
     def expected(self, last: float) -> float:
         """The delay [s] a prediction assumes: the fixed delay, else the last one charged."""
@@ -114,7 +143,7 @@ class SolverClock:
         pending: plans computed but not yet at the plant: (due [s], plan), in order.
         free_at: sim time [s] the solver is free again.
         last_delay: the last charged delay [s] (what a prediction expects).
-        planner_wall: wall time [s] of the planner call the next solve follows (0: none).
+        planner: the planner call the next solve follows (None: none).
         told: guards of predicted events told the MPC at its last solve, in order.
         over_budget: solves dropped for their budget.
     """
@@ -123,7 +152,7 @@ class SolverClock:
     pending: list[tuple[float, Plan]] = field(default_factory=list)
     free_at: float = 0.0
     last_delay: float = 0.0
-    planner_wall: float = 0.0
+    planner: PlannerResult | None = None
     told: list[int] = field(default_factory=list)
     over_budget: int = 0
 
@@ -138,9 +167,7 @@ class SolverClock:
             (what the solve's logged reason gets appended, the latency logged [s]).
         """
         lat = self.latency
-        switching = plan.schedule is not None and plan.schedule.n_switches > 0
-        delay = lat.charge(plan.stats.iterations, plan.stats.wall_time, self.planner_wall,
-                           self.planner_wall > 0.0, switching)
+        delay = lat.charge(plan, self.planner)
         self.last_delay = delay
         if lat.over_budget(delay):
             self.over_budget += 1
@@ -150,6 +177,10 @@ class SolverClock:
         if plan.adopt:
             self.pending.append((t + delay, plan))
         return "", delay
+
+    def busy(self, t: float, cost: float) -> None:
+        """Work at t [s] that yields no plan (a planner call that found no schedule)."""
+        self.free_at = t + cost
 
     def plan_at(self, t: float, current: Plan | None) -> Plan | None:
         """The plan the plant tracks over the step at t [s] (``current`` or a due one)."""

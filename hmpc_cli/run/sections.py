@@ -28,7 +28,9 @@ class LatencyModelSettings(BaseModel):
     per_switching_iteration: FiniteFloat | None = Field(
         None, ge=0.0, description="per NLP iteration of a solve with a switch left [s] "
         "(its NLP is larger; None: per_iteration)")
-    planner: FiniteFloat = Field(0.01, ge=0.0, description="per planner call [s]")
+    planner: FiniteFloat = Field(0.01, ge=0.0, description="per planner call [s]; the "
+                                 "fixed-mode MPC solves a planner makes itself (foothold "
+                                 "candidates) are charged beside it as solves")
 
 
 class SimSettings(BaseModel):
