@@ -250,3 +250,16 @@ def test_a_planner_call_that_finds_no_schedule_keeps_the_solver_busy(tmp_path):
     assert [round(p.t, 6) for p in log.topic("/planner/plan")] == [0.0, 0.25]
     assert not log.topic("/planner/plan")[0].data["accepted"]
     assert [round(s.t, 6) for s in log.topic("/mpc/solve")][:1] == [0.25]
+
+
+def test_a_prediction_that_chatters_falls_back_to_the_measured_state(tmp_path):
+    """Biped, 0.02 s latency, delay compensation: at 1.312 s the model's flight to the
+    plan's arrival chatters (Zeno) where the plant does not; the solve starts from the
+    measured state instead (it crashed the run)."""
+    sc, _ = load_scenario(ROOT / "scenarios" / "biped_stairs.toml", [
+        "sim.duration=1.35", "sim.latency=0.02", 'sim.latency_first="paused"',
+        "sim.delay_compensation=true"])
+    result = run_to_log(prepare(sc), tmp_path / "biped.mcap")
+    assert result.t_end == pytest.approx(1.35) and not result.diverged, result.reason
+    solves = read_log(tmp_path / "biped.mcap").topic("/mpc/solve")
+    assert any(1.31 <= m.t <= 1.313 for m in solves)

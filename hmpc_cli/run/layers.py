@@ -188,7 +188,8 @@ class MPCLayers:
         """A charged solve, from the state predicted at the plan's arrival if compensating.
 
         A replan's solves start from the measured state (the planner's schedule starts at
-        t); so does a solve whose prediction leaves the schedule or starts off the grid.
+        t); so does a solve whose prediction leaves the schedule or starts off the grid
+        or chatters.
         """
         st, clock = self.st, self.clock
         pred = sched = None

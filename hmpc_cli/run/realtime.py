@@ -249,8 +249,12 @@ def predict(plant, t: float, x: np.ndarray, mode: int, delay: float,
 
     Returns:
         The prediction, or None when t is not on the grid (a solve at an event time
-        inside a step: nothing to predict on the grid from there).
+        inside a step: nothing to predict on the grid from there) or when the model's
+        flight chatters (more guard events in a step than ``sim.max_events_per_step``:
+        no state to predict).
     """
+    from hmpc_cli.sim.simulator import ZenoError
+
     h = plant.h
     i0 = round(t / h)
     if abs(i0 * h - t) > GRID_TOL:
@@ -263,7 +267,10 @@ def predict(plant, t: float, x: np.ndarray, mode: int, delay: float,
         s = i * h
         plan = plan_at(s)
         u, _ = plant.command(s, xs, m, plan, h)
-        xs, m, _ = plant.step(s, xs, m, u, w, events.append, lambda p=plan: p)
+        try:
+            xs, m, _ = plant.step(s, xs, m, u, w, events.append, lambda p=plan: p)
+        except ZenoError:
+            return None
     return Prediction(end * h, xs, m, tuple(events))
 
 
