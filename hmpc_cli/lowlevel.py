@@ -3,14 +3,24 @@
 u(t) = u_ff(t) + K (x_ref(t) - x), K = system.tracking_gain(kp, kd). The feed-forward
 interpolates the plan's inputs as the plan was computed with (``feedforward = "plan"``:
 the plan's ``input_hold``, first-order or zero-order hold) or as forced by the setting;
-the reference is the linear interpolation of the plan's states, both over the plan's
-current domain only: past its guard node the reference holds the guard node and its
-virtual input, until the loop re-solves after the impact. Evaluated every simulator step
-and held over it: the feed-forward is its mean over the step (same impulse as the plan).
+the reference is the linear interpolation of the plan's states, both over one domain of
+the plan. Evaluated every simulator step and held over it: the feed-forward is its mean
+over the step (same impulse as the plan).
+
+Which domain (``past_guard``): with ``"hold"`` (the default, the paper's runs) always the
+plan's first: past its guard node the reference holds the guard node and its virtual
+input until the loop re-solves after the impact. With ``"next_domain"`` the low level
+follows the plant's contacts (:meth:`LowLevelController.contact`): once the plant has
+crossed the plan's next k guards, in the plan's order, since the plan's start, the
+reference is the plan's domain k, re-timed to begin at the k-th contact's time (when a
+plan arrives its latency after an impact, it is tracked across it instead of held at its
+pre-impact guard node); a contact the plan does not schedule next falls back to
+``"hold"``.
 """
 
 from __future__ import annotations
 
+from bisect import bisect_right
 from typing import Literal
 
 import numpy as np
@@ -19,6 +29,11 @@ from pydantic import BaseModel, ConfigDict, Field
 from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.core.messages import Plan
 from hmpc_cli.core.settings_types import FiniteFloat
+
+
+#: a contact within this of a time [s] counts as at that time (the input recomputed at an
+#: event's time, or a plan solved at it: both times are the event's up to rounding)
+TIME_TOL = 1e-9
 
 
 class LowLevelSettings(BaseModel):
@@ -30,6 +45,11 @@ class LowLevelSettings(BaseModel):
     feedforward: Literal["plan", "foh", "zoh"] = Field(
         "plan", description="input interpolation: as the plan was computed ('plan'), or "
                             "forced first-order ('foh') or zero-order ('zoh') hold")
+    past_guard: Literal["hold", "next_domain"] = Field(
+        "hold", description="after the plant crosses the plan's guard and before a new plan "
+        "arrives: 'hold' the guard node and its input (the paper's runs, where the loop "
+        "re-solves at the impact with time paused), or track the plan's 'next_domain' from "
+        "the contact's time (real time: a plan arrives its latency after the impact)")
 
 
 class LowLevelController:
@@ -38,13 +58,42 @@ class LowLevelController:
     def __init__(self, system: HybridSystem, settings: LowLevelSettings) -> None:
         self.settings = settings
         self.K = np.asarray(system.tracking_gain(settings.kp, settings.kd), dtype=float)
-        self._memo: tuple | None = None  # (plan, its domain's arrays): see _domain
+        self._memo: tuple | None = None  # (plan, k, its domain k's arrays): see _domain
+        self._follow = settings.past_guard == "next_domain"
+        #: the plant's guard events so far, in time order: their times [s] and guards
+        self.contact_times: list[float] = []
+        self.contact_guards: list[int] = []
+
+    def contact(self, t: float, guard: int) -> None:
+        """The plant crossed ``guard`` at t [s] (events arrive in time order)."""
+        self.contact_times.append(t)
+        self.contact_guards.append(guard)
+
+    def _where(self, t: float, plan: Plan) -> tuple[int, float]:
+        """(k, tau): the plan's domain k the reference is on at t [s] and the plan time there.
+
+        k counts the plan's guards the plant crossed after the plan's start and up to t,
+        in the plan's order; 0 (the first domain, tau = t - t0) with ``past_guard =
+        "hold"``, before any such contact, or after a contact the plan does not schedule.
+        """
+        tau = t - plan.t0
+        if not self._follow or not self.contact_times:
+            return 0, tau
+        i = bisect_right(self.contact_times, plan.t0 + TIME_TOL)
+        j = bisect_right(self.contact_times, t + TIME_TOL)
+        k, guards = j - i, plan.traj.guards
+        if k == 0 or k > len(guards) or tuple(self.contact_guards[i:j]) != tuple(guards[:k]):
+            return 0, tau
+        nodes = np.flatnonzero(plan.traj.seg == plan.traj.seg[0] + k)
+        if not len(nodes):
+            return 0, tau
+        return k, float(plan.traj.t[nodes[0]] + (t - self.contact_times[j - 1]))
 
     def reference(self, t: float, plan: Plan, span: float = 0.0
                   ) -> tuple[np.ndarray, np.ndarray]:
         """Reference state and feed-forward input of ``plan`` at simulated time ``t``.
 
-        Both are taken from the plan's current domain only (see the module docstring).
+        Both are taken from one domain of the plan (see the module docstring).
 
         Args:
             t: simulated time [s].
@@ -57,32 +106,32 @@ class LowLevelController:
             span <= 0), the held input that gives the plant over the step the same impulse
             as the plan's interpolated input.
         """
-        ts, xs, us, zoh, cum = self._domain(plan)
-        tau = t - plan.t0
+        k, tau = self._where(t, plan)
+        ts, xs, us, zoh, cum = self._domain(plan, k)
         x_ref = _interp(ts, xs, tau, zoh=False)
         if span <= 0.0:
             return x_ref, _interp(ts, us, tau, zoh)
         return x_ref, (_integral(ts, us, tau + span, zoh, cum)
                        - _integral(ts, us, tau, zoh, cum)) / span
 
-    def _domain(self, plan: Plan) -> tuple:
-        """(ts (K,), xs (K, n), us (K, m), zoh, cum (K, m)) of the plan's current domain.
+    def _domain(self, plan: Plan, k: int = 0) -> tuple:
+        """(ts (K,), xs (K, n), us (K, m), zoh, cum (K, m)) of the plan's domain k.
 
-        ``cum[k]``: the integral of the interpolated input from ts[0] to ts[k]. Made once
-        per plan (the simulator asks for the reference at every step, the plan changes at
-        the MPC's rate).
+        ``cum[i]``: the integral of the interpolated input from ts[0] to ts[i]. Made once
+        per plan and domain (the simulator asks for the reference at every step, the plan
+        changes at the MPC's rate).
         """
-        if self._memo is not None and self._memo[0] is plan:
-            return self._memo[1]
+        if self._memo is not None and self._memo[0] is plan and self._memo[1] == k:
+            return self._memo[2]
         tr = plan.traj
-        first = np.nonzero(tr.seg == tr.seg[0])[0]
-        ts, xs, us = tr.t[first], tr.x[first], tr.u[first]
+        nodes = np.nonzero(tr.seg == tr.seg[0] + k)[0]
+        ts, xs, us = tr.t[nodes], tr.x[nodes], tr.u[nodes]
         hold = self.settings.feedforward
         zoh = (tr.input_hold if hold == "plan" else hold) == "zoh"
         pieces = np.diff(ts)[:, None] * (us[:-1] if zoh else 0.5 * (us[:-1] + us[1:]))
         cum = np.concatenate([np.zeros((1, us.shape[1])), np.cumsum(pieces, axis=0)])
-        self._memo = (plan, (ts, xs, us, zoh, cum))
-        return self._memo[1]
+        self._memo = (plan, k, (ts, xs, us, zoh, cum))
+        return self._memo[2]
 
     def command(self, t: float, x: np.ndarray, plan: Plan | None, span: float = 0.0):
         """Input to hold over [t, t + span] and the reference state at t.

@@ -52,3 +52,41 @@ def test_held_input_is_the_plan_input_mean_over_the_step(hold):
     k = np.searchsorted(plans[1].traj.t[:12], 0.3) - 1
     w = (0.3 - plans[1].traj.t[k]) / (plans[1].traj.t[k + 1] - plans[1].traj.t[k])
     np.testing.assert_allclose(x_ref, (1 - w) * plans[1].traj.x[k] + w * plans[1].traj.x[k + 1])
+
+
+def _x_at(plan: Plan, nodes: slice, tau: float) -> np.ndarray:
+    """The plan's state at plan time tau, interpolated over the given nodes."""
+    tr = plan.traj
+    return np.array([np.interp(tau, tr.t[nodes], tr.x[nodes, j]) for j in range(4)])
+
+
+def test_past_the_guard_the_reference_holds_or_follows_the_plans_next_domain():
+    """``past_guard``: 'hold' keeps to the plan's first domain after a contact (its guard
+    node held past the planned 0.55 s); 'next_domain' tracks the
+    plan's domain after its guard, re-timed to start at the contact (0.04 s before the
+    planned 0.55 s here); contacts at or before the plan's start and contacts through a
+    guard the plan does not schedule next leave the reference on its first domain."""
+    system = build_system(BallParams())
+    plan = _plan(1.0, 2, "foh")
+    hold = LowLevelController(system, LowLevelSettings())
+    follow = LowLevelController(system, LowLevelSettings(past_guard="next_domain"))
+    for ctl in (hold, follow):
+        ctl.contact(0.7, 1)  # before the plan started: not its guard event
+        ctl.contact(1.0, 0)  # at its start: the plan was solved after it
+        ctl.contact(1.51, 0)  # the plan's guard, planned at 1.55
+    for t in (1.2, 1.5099):  # before the contact both track domain 0
+        for ctl in (hold, follow):
+            np.testing.assert_allclose(ctl.reference(t, plan)[0],
+                                       _x_at(plan, slice(0, 12), t - 1.0))
+    for t in (1.51, 1.6, 1.75):
+        np.testing.assert_allclose(hold.reference(t, plan)[0],  # on time, then held
+                                   _x_at(plan, slice(0, 12), t - 1.0))
+        x_ref, u_ff = follow.reference(t, plan)
+        tau = 0.55 + (t - 1.51)
+        np.testing.assert_allclose(x_ref, _x_at(plan, slice(12, 17), tau))
+        np.testing.assert_allclose(
+            u_ff, [np.interp(tau, plan.traj.t[12:], plan.traj.u[12:, j]) for j in range(2)])
+    other = LowLevelController(system, LowLevelSettings(past_guard="next_domain"))
+    other.contact(1.51, 1)  # a guard the plan does not schedule: held as with 'hold'
+    np.testing.assert_allclose(other.reference(1.6, plan)[0], plan.traj.x[11])
+    assert hold.reference(1.75, plan)[0].tolist() == plan.traj.x[11].tolist()

@@ -97,8 +97,8 @@ def test_delay_compensation_solves_from_the_state_at_the_plans_arrival(tmp_path,
     predictions = []
     real_predict = layers_module.predict
 
-    def spy(plant, t, x, mode, delay, plan_at):
-        pred = real_predict(plant, t, x, mode, delay, plan_at)
+    def spy(plant, t, x, mode, delay, plan_at, contacts):
+        pred = real_predict(plant, t, x, mode, delay, plan_at, contacts)
         predictions.append((t, delay, pred))
         return pred
 
@@ -263,3 +263,49 @@ def test_a_prediction_that_chatters_falls_back_to_the_measured_state(tmp_path):
     assert result.t_end == pytest.approx(1.35) and not result.diverged, result.reason
     solves = read_log(tmp_path / "biped.mcap").topic("/mpc/solve")
     assert any(1.31 <= m.t <= 1.313 for m in solves)
+
+
+def test_the_low_level_following_the_plan_across_impacts_keeps_the_ball_up(tmp_path):
+    """The default controller (IPOPT, 10 Hz) with its compute time charged by the model
+    and the first plan paused: holding the plan's pre-impact guard node until the next
+    plan arrives loses the ball; following the plan's next domain from the contact keeps
+    it on the plan (every later solve is warm and short)."""
+    sets = ["sim.duration=3.0", 'sim.latency="model"', 'sim.latency_first="paused"']
+    results = {}
+    for past in ("hold", "next_domain"):
+        results[past], log, _, _ = _run(tmp_path, past, [*sets, f'lowlevel.past_guard="{past}"'])
+    assert not results["hold"].success and results["hold"].reason.startswith("final error 3.5")
+    assert results["next_domain"].success and results["next_domain"].final_error < 1e-3
+    assert results["next_domain"].solver_failures == 0
+
+
+def test_a_contact_stops_the_solve_in_flight(tmp_path):
+    """Biped, modelled latency, first plan paused: the MPC period's solve at 0.3 s is in
+    flight when the swing foot lands at 0.3002 s. Without ``sim.preempt_at_contact`` the
+    contact's foothold planning waits until that solve is done (0.372 s); with it the
+    planning starts at the contact, the solve in flight is dropped and counted."""
+    planned = {}
+    for preempt in (False, True):
+        sc, _ = load_scenario(ROOT / "scenarios" / "biped_stairs.toml", [
+            "sim.duration=0.4", 'sim.latency="model"', 'sim.latency_first="paused"',
+            f"sim.preempt_at_contact={str(preempt).lower()}"])
+        result = run_to_log(prepare(sc), tmp_path / f"{preempt}.mcap")
+        log = read_log(tmp_path / f"{preempt}.mcap")
+        (contact,) = log.topic("/sim/event")
+        assert contact.t == pytest.approx(0.3002, abs=1e-4)
+        planned[preempt] = [p.t for p in log.topic("/planner/plan")][1]
+        stopped = [w for w in result.warnings if "stopped by a contact" in w]
+        assert stopped == (["1 solves in flight were stopped by a contact "
+                            "(sim.preempt_at_contact; their plans dropped)"] if preempt else [])
+    assert planned[True] == contact.t
+    assert planned[False] == pytest.approx(0.372)
+
+
+def test_the_real_time_biped_climbs_with_its_modelled_compute_time(tmp_path):
+    """scenarios/biped_realtime.toml with the fitted model charged: it climbs the stairs
+    (the same run holding the guard node after impacts falls)."""
+    for past, climbs in (("next_domain", True), ("hold", False)):
+        sc, _ = load_scenario(ROOT / "scenarios" / "biped_realtime.toml", [
+            'sim.latency="model"', f'lowlevel.past_guard="{past}"'])
+        result = run_to_log(prepare(sc), tmp_path / f"{past}.mcap")
+        assert result.success is climbs, (past, result.reason)

@@ -172,6 +172,6 @@ def _timing(sc, model) -> StackTiming:
     per_replan = int(round(rp.period * sc.sim.rate_hz)) if rp.policy == "periodic" else None
     s = sc.sim
     latency = Latency.of(s.latency, s.latency_first, s.latency_model, s.solve_budget,
-                         s.delay_compensation)
+                         s.delay_compensation, s.preempt_at_contact)
     return StackTiming(s.rate_hz // sc.mpc.rate_hz, per_replan, contact,
                        sc.mpc.resolves_on_impact(), latency)

@@ -56,6 +56,7 @@ class MPCLayers:
         self.st, self.clock = _LayerState(), SolverClock(run.timing.latency)
         self._predictor = prediction_plant(run.plant) if run.timing.latency.compensate \
             else None
+        self._lowlevel = run.plant.lowlevel
 
     @property
     def plan(self) -> Plan | None:
@@ -131,9 +132,12 @@ class MPCLayers:
         Returns:
             Whether the stack worked (the MPC period restarts then).
         """
-        st = self.st
-        if not self.clock.free(t):
-            return False  # the triggers wait for the solver
+        st, clock = self.st, self.clock
+        if not clock.free(t):
+            works = st.need_replan or (st.impact and self.timing.resolve_on_impact)
+            if not (st.impact and works and clock.latency.preempt):
+                return False  # the triggers wait for the solver
+            clock.preempt(t)  # a contact: the solve in flight is from the state before it
         need_replan, impact = st.need_replan, st.impact
         st.need_replan = st.impact = False
         if need_replan:
@@ -194,9 +198,11 @@ class MPCLayers:
         st, clock = self.st, self.clock
         pred = sched = None
         if self._predictor is not None and reason in ("period", "impact"):
+            low = self._lowlevel
             pred = predict(self._predictor, t, x, mode,
                            clock.latency.expected(clock.last_delay),
-                           lambda s: clock.plan_at(s, st.plan))
+                           lambda s: clock.plan_at(s, st.plan),
+                           (low.contact_times, low.contact_guards))
             sched = advance(st.schedule, pred.events) if pred is not None else None
         if pred is None or sched is None:
             clock.told = []

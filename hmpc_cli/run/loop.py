@@ -27,6 +27,8 @@ solver: a solve that falls due while it is still computing (a period, an impact,
 replanning) waits until it is free and then starts from the state of that moment, so an
 MPC rate faster than 1 / L runs at the solver's pace. A solve charged more than
 ``sim.solve_budget`` is dropped at t + budget (the previous plan tracked on); with
+``sim.preempt_at_contact`` a contact that makes the stack work stops the solve in flight
+(its plan dropped) and the stack works at once; with
 ``sim.delay_compensation`` the period's and impacts' solves start from the state
 predicted at the plan's arrival (:func:`~hmpc_cli.run.realtime.predict`). The solver's
 time line is a :class:`~hmpc_cli.run.realtime.SolverClock`.
@@ -149,8 +151,8 @@ class ClosedLoop:
         raise exc
 
     def _finish(self, x: np.ndarray, mode: int, stopped: bool, start: float) -> RunResult:
-        if self.layers.clock.warning():
-            self.books.warn(self.layers.clock.warning())
+        for warning in self.layers.clock.warnings():
+            self.books.warn(warning)
         r = self.books.close(x, self.model.modes[mode].name,
                              self.prepared.task.verdict(x, mode), stopped,
                              time.perf_counter() - start)

@@ -83,6 +83,7 @@ class Plant:
                 g = ev.guard
                 gev = GuardEvent(t0 + (h - left) + ev.tau, g, int(self.sim.num.source[g]),
                                  int(self.sim.num.target[g]), ev.x_before, ev.x_after)
+                self.lowlevel.contact(gev.t, g)
                 on_event(gev)
                 events.append(gev)
             left = float(step.remaining[0])

@@ -17,7 +17,9 @@ A solve that returns a plan the planner has just solved (the foothold planner's 
 candidate) costs nothing more: its compute time is the planner's.
 
 A ``budget`` [s] bounds a solve: a solve charged more is abandoned at t + budget, its
-plan dropped and the previous plan (time-indexed, hence shifted) tracked on.
+plan dropped and the previous plan (time-indexed, hence shifted) tracked on. With
+``preempt`` a contact that makes the stack work stops the solve in flight (solved from
+the state before the contact): its plan is dropped and the stack works at the contact.
 
 Delay compensation (:func:`predict`) solves from the state predicted at the time the
 plan will reach the plant: the model (never the true plant) flown with w = 0 through
@@ -54,6 +56,7 @@ class Latency:
         first: ``charged`` (the first plan waits its delay too) or ``paused``.
         budget: a solve charged more than this [s] is dropped (None: no budget).
         compensate: solve from the state predicted at the plan's arrival.
+        preempt: a contact that makes the stack work stops the solve in flight.
     """
 
     kind: str = "paused"
@@ -65,20 +68,23 @@ class Latency:
     budget: float | None = None
     compensate: bool = False
     per_switching_iteration: float | None = None
+    preempt: bool = False
 
     @classmethod
     def of(cls, latency: str | float, first: str = "charged", model=None,
-           budget: float | None = None, compensate: bool = False) -> Latency:
+           budget: float | None = None, compensate: bool = False,
+           preempt: bool = False) -> Latency:
         """From the scenario's ``sim.latency`` (a kind or a delay [s]) and its model."""
         if not isinstance(latency, str):
             return cls("fixed", float(latency), first=first, budget=budget,
-                       compensate=compensate)
+                       compensate=compensate, preempt=preempt)
         m = model if latency == "model" else None
         return cls(latency, overhead=m.overhead if m else 0.0,
                    per_iteration=m.per_iteration if m else 0.0,
                    planner=m.planner if m else 0.0, first=first, budget=budget,
                    compensate=compensate,
-                   per_switching_iteration=m.per_switching_iteration if m else None)
+                   per_switching_iteration=m.per_switching_iteration if m else None,
+                   preempt=preempt)
 
     def charged(self, reason: str) -> bool:
         """Whether a solve for ``reason`` is charged (``initial`` may be paused)."""
@@ -146,6 +152,7 @@ class SolverClock:
         planner: the planner call the next solve follows (None: none).
         told: guards of predicted events told the MPC at its last solve, in order.
         over_budget: solves dropped for their budget.
+        preempted: solves in flight stopped by a contact.
     """
 
     latency: Latency = field(default_factory=Latency)
@@ -155,6 +162,7 @@ class SolverClock:
     planner: PlannerResult | None = None
     told: list[int] = field(default_factory=list)
     over_budget: int = 0
+    preempted: int = 0
 
     def free(self, t: float) -> bool:
         """Whether the solver is done with its last solve at sim time t [s]."""
@@ -177,6 +185,12 @@ class SolverClock:
         if plan.adopt:
             self.pending.append((t + delay, plan))
         return "", delay
+
+    def preempt(self, t: float) -> None:
+        """A contact at t [s] stops the solve in flight: its plan (due after t) is dropped."""
+        self.pending = [(due, plan) for due, plan in self.pending if due <= t + GRID_TOL]
+        self.free_at = t
+        self.preempted += 1
 
     def busy(self, t: float, cost: float) -> None:
         """Work at t [s] that yields no plan (a planner call that found no schedule)."""
@@ -207,12 +221,17 @@ class SolverClock:
             return True
         return False
 
-    def warning(self) -> str:
-        """The summary's warning about dropped solves ('' when none was dropped)."""
-        if not self.over_budget:
-            return ""
-        return (f"{self.over_budget} solves charged more than the budget sim.solve_budget = "
-                f"{self.latency.budget:g} s were dropped (the previous plan tracked on)")
+    def warnings(self) -> list[str]:
+        """The summary's warnings about dropped solves (none when none was dropped)."""
+        out = []
+        if self.over_budget:
+            out.append(f"{self.over_budget} solves charged more than the budget "
+                       f"sim.solve_budget = {self.latency.budget:g} s were dropped (the "
+                       "previous plan tracked on)")
+        if self.preempted:
+            out.append(f"{self.preempted} solves in flight were stopped by a contact "
+                       "(sim.preempt_at_contact; their plans dropped)")
+        return out
 
 
 @dataclass(frozen=True)
@@ -233,7 +252,8 @@ class Prediction:
 
 
 def predict(plant, t: float, x: np.ndarray, mode: int, delay: float,
-            plan_at: Callable[[float], Plan | None]) -> Prediction | None:
+            plan_at: Callable[[float], Plan | None],
+            contacts: tuple[Sequence[float], Sequence[int]] = ((), ())) -> Prediction | None:
     """Flies ``plant`` (the model's plant: w = 0) from (t, x, mode) to the plan's arrival.
 
     The arrival is the first simulator step at or after t + ``delay``, where the loop
@@ -246,6 +266,8 @@ def predict(plant, t: float, x: np.ndarray, mode: int, delay: float,
         mode: the mode at t.
         delay: the delay [s] the plan is expected to take.
         plan_at: step time [s] -> the plan the plant tracks over that step.
+        contacts: the plant's guard events up to t, (times [s], guards), for the
+            prediction's low level (``lowlevel.past_guard``).
 
     Returns:
         The prediction, or None when t is not on the grid (a solve at an event time
@@ -256,6 +278,8 @@ def predict(plant, t: float, x: np.ndarray, mode: int, delay: float,
     from hmpc_cli.sim.simulator import ZenoError
 
     h = plant.h
+    plant.lowlevel.contact_times = list(contacts[0])
+    plant.lowlevel.contact_guards = list(contacts[1])
     i0 = round(t / h)
     if abs(i0 * h - t) > GRID_TOL:
         return None
@@ -285,9 +309,11 @@ def advance(schedule: ModeSchedule, events: Sequence[GuardEvent]) -> ModeSchedul
 
 def prediction_plant(plant):
     """The plant a prediction flies: the controllers' model, no disturbance."""
+    from hmpc_cli.lowlevel import LowLevelController
     from hmpc_cli.sim.simulator import HybridSimulator
 
     sim = plant.sim if plant.system is plant.model else HybridSimulator(
         plant.model, plant.sim.max_events, plant.sim.time_tol)
     zeros = np.zeros(plant.model.n_w)
-    return replace(plant, system=plant.model, sim=sim, disturbance=lambda t: zeros)
+    return replace(plant, system=plant.model, sim=sim, disturbance=lambda t: zeros,
+                   lowlevel=LowLevelController(plant.model, plant.lowlevel.settings))

@@ -71,7 +71,11 @@ class SimSettings(BaseModel):
         False, description="with a latency: solve from the state the model predicts (w = 0, "
         "through its resets) at the step the plan will reach the plant, for the MPC "
         "period's and impacts' solves (a replan's solves start from the measured state)")
-
+    preempt_at_contact: StrictBool = Field(
+        False, description="with a latency: a contact that makes the stack work (a replan, "
+        "or the impact's re-solve) stops the solve in flight, solved from the state before "
+        "the contact: its plan is dropped and the stack works at the contact (default: the "
+        "contact waits until the solver is free)")
     latency_first: Literal["charged", "paused"] = Field(
         "charged", description="with a latency: 'charged' (default) lets the first plan, too, "
         "reach the plant only after the latency (no plan and zero input until then); "
