@@ -318,7 +318,9 @@ def test_latency_study_with_the_first_plan_paused_or_measured_latency_is_said(tm
             study("first", f'{box}\n"sim.latency" = 0.03\n"sim.latency_first" = "paused"'),
             study("meas", f'{box}\n"sim.latency" = "measured"'),
             study("alone", '"disturbance.kind" = "box"\n"sim.latency" = 0.02\n'
-                  '"system.circle_radius" = 0.6')]
+                  '"system.circle_radius" = 0.6'),
+            study("follow", f'{box}\n"sim.latency" = 0.05\n"sim.latency_first" = "paused"\n'
+                  '"lowlevel.past_guard" = "next_domain"')]
     text = "\n".join(robustness_sections([Study(d) for d in dirs], tmp_path / "fig", tmp_path))
     assert "### 0.03 s latency charged vs time paused" in text
     assert ("`first` beside the same cells of `paper`. The first plan is computed with time "
@@ -330,12 +332,21 @@ def test_latency_study_with_the_first_plan_paused_or_measured_latency_is_said(tm
     assert ("### 0.02 s latency charged\n\n`alone`: no study on this page has its settings "
             "with time paused, so its cells are not compared.") in text
     assert "measured s" not in text
+    # the low level past the guard does not keep a latency study from its paused twin
+    assert ("`follow` beside the same cells of `paper`. The first plan is computed with time "
+            "paused at t = 0 (`sim.latency_first = \"paused\"`); every later plan is charged. "
+            "After an impact the low level follows the plan's next domain until the next plan "
+            "arrives (`lowlevel.past_guard = \"next_domain\"`; the paused study holds the "
+            "guard node, which differs only where an impact's re-solve fails).") in text
+    assert ("- Solve time charged (0.05 s latency, first plan paused, low level following "
+            "the plan): 0 of 2 cells") in text
     # one reading line per latency study, named by its latency and first plan
     assert "- Solve time charged (0.03 s latency, first plan paused): 0 of 2 cells" in text
     assert "- Solve time charged (measured latency): 0 of 2 cells" in text
     assert "rates above 1/L = 33.3 Hz run at 33.3 Hz." in text
     assert "- Faster MPC (0.03 s latency charged, first plan paused): in 1 of 1 series" in text
-    assert text.count("rates above 1/L") == 1  # not for measured latency, not for `alone`
+    # for `first` and `follow`; not for measured latency, not for `alone`
+    assert text.count("rates above 1/L") == 2
 
 
 def test_a_modelled_latency_study_pairs_with_the_paused_study_of_its_own_scenario(tmp_path):
@@ -554,11 +565,42 @@ def test_the_real_time_section_from_a_table_alone(tmp_path):
                 ("measured", "20 Hz once", "true", 0.001, "nan")]):
             w.writerow([k, lat, ctrl, "nominal", 0, ok, med, p95, 1.0, ""])
     text = "\n".join(realtime_section(d))
-    assert "From `sweeps/rt.toml`'s per-run table (4 runs of `scenarios/ball_realtime.toml`" \
-        in text
+    assert "### `sweeps/rt.toml`: rt\n\nFrom its per-run table (4 runs of " \
+        "`scenarios/ball_realtime.toml`" in text
     assert "| controller | paused | measured |" in text
     assert "| 60 Hz once | 1/1 | 1/2 |" in text and "| 20 Hz once | - | 1/1 |" in text
     assert "| 60 Hz once | 4.0 | 20.0 |" in text and "| 20 Hz once | 1.0 | - |" in text
+    assert "machine: `results/bench/rt.md`" in text
     with pytest.raises(FigureInputError, match="missing column"):
         (d / "results.csv").write_text("run_id,success\n1,true\n")
         realtime_section(d)
+
+
+def test_the_real_time_section_says_what_each_latency_entry_sets(tmp_path):
+    """Latency entries that also set the low level past the guard (sweeps/realtime_ipopt.toml):
+    their meaning comes from the sweep file, and every measured entry gets its solve times."""
+    from hmpc_cli.report.realtime import realtime_section
+
+    d = tmp_path / "rt"
+    d.mkdir()
+    (d / "sweep.toml").write_text(
+        'name = "rt"\ndescription = "two low levels"\nscenario = "../scenarios/ball.toml"\n'
+        "[grid]\nlatency = [\n"
+        '  { label = "measured, hold", "sim.latency" = "measured", '
+        '"lowlevel.past_guard" = "hold" },\n'
+        '  { label = "measured, next", "sim.latency" = "measured", '
+        '"lowlevel.past_guard" = "next_domain" },\n]\n')
+    with open(d / "results.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["run_id", "latency", "controller", "disturbance", "seed", "success",
+                    "solve_time_median", "solve_time_p95", "wall_time", "log"])
+        w.writerow([0, "measured, hold", "10 Hz once", "nominal", 0, "false", 0.1, 0.8, 1, ""])
+        w.writerow([1, "measured, next", "10 Hz once", "nominal", 0, "true", 0.009, 0.03, 1, ""])
+    text = "\n".join(realtime_section(d))
+    assert text.startswith("### `sweeps/rt.toml`: two low levels\n")
+    assert ("- `measured, hold`: each solve charged its measured wall time on the machine "
+            "that ran the table (not reproducible elsewhere); the low level holds the plan's "
+            "guard node after an impact until the next plan arrives.") in text
+    assert "; the low level follows the plan's next domain from the contact's time." in text
+    assert "| 10 Hz once | 0/1 | 1/1 |" in text
+    assert "| 10 Hz once | 100.0 | 800.0 | 9.0 | 30.0 |" in text

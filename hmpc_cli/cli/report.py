@@ -21,6 +21,7 @@ ROBUSTNESS = (Path("sweeps/robustness.toml"), Path("sweeps/robustness_tube.toml"
               Path("sweeps/robustness_latency.toml"), Path("sweeps/robustness_latency_30ms.toml"),
               Path("sweeps/robustness_realtime_paused.toml"),
               Path("sweeps/robustness_realtime.toml"))
+REALTIME = (Path("sweeps/realtime_rti.toml"), Path("sweeps/realtime_ipopt.toml"))
 
 
 def report_command(
@@ -61,9 +62,9 @@ def report_command(
     biped_push: Annotated[Path | None, typer.Option(
         "--biped-push", help="the biped's push study: sweep file or output directory ('' to "
         "leave out)")] = Path("sweeps/biped_push.toml"),
-    realtime: Annotated[Path | None, typer.Option(
-        "--realtime", help="the real-time sweep: sweep file or output directory ('' to "
-        "leave out)")] = Path("sweeps/realtime_rti.toml"),
+    realtime: Annotated[list[Path] | None, typer.Option(
+        "--realtime", help="real-time sweep file or output directory, repeatable (default: "
+        "sweeps/realtime_rti.toml and realtime_ipopt.toml; '' to leave out)")] = None,
     run: Annotated[bool, typer.Option(
         "--run/--no-run", help="run the missing sweep runs first (finished ones are skipped; "
         "default: run nothing, print what is missing)")] = False,
@@ -85,7 +86,9 @@ def report_command(
                           fig3_reference=fig3_reference,
                           fig3_reference_extra=fig3_reference_extra,
                           fig3_schedule=fig3_schedule, biped_push=biped_push,
-                          fig3_trials=fig3_trials, realtime=realtime,
+                          fig3_trials=fig3_trials,
+                          **{f"realtime:{i}": p for i, p in enumerate(
+                              REALTIME if realtime is None else realtime)},
                           **{f"robustness:{i}": p for i, p in enumerate(
                               ROBUSTNESS if robustness is None else robustness)})
     from hmpc_cli.cli.common import is_quiet
@@ -278,7 +281,8 @@ def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None,
                           biped_dir, dirs.get("fig3_reference"),
                           dirs.get("fig3_reference_extra"), *authors,
                           dirs.get("fig3_schedule"), dirs.get("biped_push"),
-                          dirs.get("fig3_trials"), dirs.get("realtime"))
+                          dirs.get("fig3_trials"),
+                          tuple(d for k, d in dirs.items() if k.startswith("realtime:")))
     try:
         page = write_report(results, inputs, shlex.join(["hmpc", *sys.argv[1:]]))
     except FigureInputError as exc:

@@ -38,7 +38,7 @@ class ReportInputs:
     fig3_schedule: Path | None = None  # the authors' plan flown (schedule planner)
     biped_push: Path | None = None  # the biped's push sweep (sweeps/biped_push.toml)
     fig3_trials: Path | None = None  # a Figure 3 sweep tabled trial by trial (table only)
-    realtime: Path | None = None  # the real-time sweep (sweeps/realtime_rti.toml; table only)
+    realtime: tuple[Path, ...] | None = None  # real-time sweeps (sweeps/realtime_*.toml)
 
 
 def _settings(*dirs: Path | None) -> str:
@@ -119,13 +119,13 @@ def _biped_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]
     return lines + [""]
 
 
-def _or_not_drawn(title: str, directory: Path, section) -> list[str]:
+def _or_not_drawn(title: str, directory: Path, section, level: str = "##") -> list[str]:
     """A table-only section, or its title and why it is not drawn (no table yet)."""
     try:
         return section()
     except FigureInputError as exc:
         if _no_table(directory):
-            return [f"## {title}", "", f"Not drawn: {portable_text(str(exc))}", ""]
+            return [f"{level} {title}", "", f"Not drawn: {portable_text(str(exc))}", ""]
         raise
 
 
@@ -156,11 +156,13 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
 
         lines += _or_not_drawn("Figure 3 trial by trial", inputs.fig3_trials,
                                lambda: fig3_trials_section(inputs.fig3_trials))
-    if inputs.realtime is not None:
-        from hmpc_cli.report.realtime import realtime_section
+    if inputs.realtime:
+        from hmpc_cli.report.realtime import HEADING, realtime_section
 
-        lines += _or_not_drawn("Real time: does the controller keep up?", inputs.realtime,
-                               lambda: realtime_section(inputs.realtime))
+        lines += [HEADING, ""]
+        for d in inputs.realtime:
+            lines += _or_not_drawn(f"`{Path(d).name}`", d, lambda d=d: realtime_section(d),
+                                   level="###")
     if inputs.robustness is not None:
         lines += _robustness_section(inputs, fig_dir, results)
     if inputs.biped is not None:
@@ -172,7 +174,7 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
                                lambda: push_section(inputs.biped_push, fig_dir, results))
     if inputs.fig3 is None and inputs.fig3_reference is None and inputs.robustness is None \
             and inputs.biped is None and inputs.biped_push is None \
-            and inputs.fig3_trials is None and inputs.realtime is None:
+            and inputs.fig3_trials is None and not inputs.realtime:
         raise FigureInputError("nothing to report: no Figure 3, robustness sweep or biped run")
     lines += ["## Layout", "",
               "* `<scenario>/<UTC time>-seed<N>/`: one `hmpc run` (`run.mcap`, `summary.json`, "

@@ -500,8 +500,9 @@ def _hand_twin(spec: dict, paused: list[tuple[dict, list]]) -> tuple[dict, list]
                  and key(p[0]) == key(spec)), None)
 
 
-#: the [set] keys in which a latency study and its time-paused twin may differ
-_LATENCY_KEYS = ("sim.latency", "sim.latency_first", SIZE)
+#: the [set] keys in which a latency study and its time-paused twin may differ (the low
+#: level past the guard acts with time paused only where an impact's re-solve fails)
+_LATENCY_KEYS = ("sim.latency", "sim.latency_first", "lowlevel.past_guard", SIZE)
 
 
 def _twin(spec: dict, paused: list[tuple[dict, list]]) -> tuple[dict, list] | None:
@@ -524,21 +525,34 @@ def _first_paused(spec: dict) -> bool:
     return value == "paused"
 
 
+def _follows(spec: dict) -> bool:
+    """Whether a study's low level follows the plan across impacts (its ``[set]``)."""
+    return spec.get("set", {}).get("lowlevel.past_guard") == "next_domain"
+
+
 def _first_plan(spec: dict, latency: object) -> str:
-    """How a latency study treats the first plan (``sim.latency_first``), in a sentence."""
+    """A latency study's first plan and low level past the guard, in a sentence or two.
+
+    ``sim.latency_first`` and ``lowlevel.past_guard``.
+    """
+    follow = (" After an impact the low level follows the plan's next domain until the "
+              "next plan arrives (`lowlevel.past_guard = \"next_domain\"`; the paused "
+              "study holds the guard node, which differs only where an impact's re-solve "
+              "fails).") if _follows(spec) else ""
     if _first_paused(spec):
         return ("The first plan is computed with time paused at t = 0 "
-                "(`sim.latency_first = \"paused\"`); every later plan is charged.")
+                "(`sim.latency_first = \"paused\"`); every later plan is charged." + follow)
     wait = {"measured": "its solve time", "model": "its modelled compute time"}.get(
         str(latency), f"{latency} s")
     return (f"The first plan, too, reaches the plant {wait} after the state it was computed "
             "from: until then the input is zero (`sim.latency_first = \"paused\"` would "
-            "compute it with time paused).")
+            "compute it with time paused)." + follow)
 
 
 def _latency_words(spec: dict, latency: object) -> tuple[str, ...]:
     """A latency study in a few words: ("0.03 s latency", "first plan paused")."""
-    return (latency_text(latency), *(["first plan paused"] if _first_paused(spec) else []))
+    return (latency_text(latency), *(["first plan paused"] if _first_paused(spec) else []),
+            *(["low level following the plan"] if _follows(spec) else []))
 
 
 def _solver_pace(latency: object) -> str:

@@ -134,8 +134,8 @@ class MPCLayers:
         """
         st, clock = self.st, self.clock
         if not clock.free(t):
-            works = st.need_replan or (st.impact and self.timing.resolve_on_impact)
-            if not (st.impact and works and clock.latency.preempt):
+            if not (clock.latency.preempt and st.impact
+                    and (st.need_replan or self.timing.resolve_on_impact)):
                 return False  # the triggers wait for the solver
             clock.preempt(t)  # a contact: the solve in flight is from the state before it
         need_replan, impact = st.need_replan, st.impact

@@ -66,7 +66,8 @@ class Plant:
         """One simulator step from time t0 [s].
 
         ``on_event`` is called for each event in time order (before the input is
-        recomputed); ``plan()`` gives the plan to track.
+        recomputed), after the low level is told of it (:meth:`LowLevelController.contact`);
+        ``plan()`` gives the plan to track.
 
         Raises:
             ZenoError: more than ``max_events`` events in the step.
