@@ -566,7 +566,7 @@ def test_the_real_time_section_from_a_table_alone(tmp_path):
             w.writerow([k, lat, ctrl, "nominal", 0, ok, med, p95, 1.0, ""])
     text = "\n".join(realtime_section(d))
     assert "### `sweeps/rt.toml`: rt\n\nFrom its per-run table (4 runs of " \
-        "`scenarios/ball_realtime.toml`" in text
+        "`scenarios/ball_realtime.toml`; " in text
     assert "| controller | paused | measured |" in text
     assert "| 60 Hz once | 1/1 | 1/2 |" in text and "| 20 Hz once | - | 1/1 |" in text
     assert "| 60 Hz once | 4.0 | 20.0 |" in text and "| 20 Hz once | 1.0 | - |" in text

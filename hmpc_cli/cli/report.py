@@ -21,7 +21,8 @@ ROBUSTNESS = (Path("sweeps/robustness.toml"), Path("sweeps/robustness_tube.toml"
               Path("sweeps/robustness_latency.toml"), Path("sweeps/robustness_latency_30ms.toml"),
               Path("sweeps/robustness_realtime_paused.toml"),
               Path("sweeps/robustness_realtime.toml"))
-REALTIME = (Path("sweeps/realtime_rti.toml"), Path("sweeps/realtime_ipopt.toml"))
+REALTIME = (Path("sweeps/realtime_rti.toml"), Path("sweeps/realtime_ipopt.toml"),
+            Path("sweeps/realtime_biped.toml"))
 
 
 def report_command(
@@ -64,7 +65,8 @@ def report_command(
         "leave out)")] = Path("sweeps/biped_push.toml"),
     realtime: Annotated[list[Path] | None, typer.Option(
         "--realtime", help="real-time sweep file or output directory, repeatable (default: "
-        "sweeps/realtime_rti.toml and realtime_ipopt.toml; '' to leave out)")] = None,
+        "sweeps/realtime_rti.toml, realtime_ipopt.toml and realtime_biped.toml; '' to leave "
+        "out)")] = None,
     run: Annotated[bool, typer.Option(
         "--run/--no-run", help="run the missing sweep runs first (finished ones are skipped; "
         "default: run nothing, print what is missing)")] = False,

@@ -1,8 +1,8 @@
 """The results page's real-time section: does the controller keep up, from a sweep table alone.
 
 For a sweep with grid axes ``latency`` (entries setting ``sim.latency``: paused, model,
-measured, and possibly more, e.g. ``lowlevel.past_guard``), ``controller`` (MPC rate and
-replanning) and ``disturbance`` (e.g. ``sweeps/realtime_rti.toml``) it tables the
+measured, and possibly more, e.g. ``lowlevel.past_guard``) and ``controller`` (e.g. MPC
+rate and replanning; ``sweeps/realtime_rti.toml``, ``realtime_biped.toml``) it tables the
 successes per controller and latency entry and the per-run solve times of the runs whose
 compute time was measured (machine dependent). It reads the table and the sweep file only
 (no log), so a committed table regenerates it.
@@ -82,10 +82,10 @@ def realtime_section(directory: Path) -> list[str]:
     name = spec.get("name", table.parent.name)
     entries = _latency_entries(spec)
     lines = [f"### `sweeps/{name}.toml`: {spec.get('description', name)}", "",
-             f"From its per-run table ({len(rows)} runs of `scenarios/{scenario}`: the "
-             f"nominal ball and the Figure 3 trials; {wall_text(rows)}). A plan reaches "
-             "the plant its charged compute time after the state it was solved from; until "
-             "then the previous plan is tracked. Latency:", ""]
+             f"From its per-run table ({len(rows)} runs of `scenarios/{scenario}`; "
+             f"{wall_text(rows)}). A plan reaches the plant its charged compute time after "
+             "the state it was solved from; until then the previous plan is tracked. "
+             "Latency:", ""]
     lines += [f"- `{lat}`: {_meaning(lat, entries)}." for lat in lats]
     lines += ["", "| controller | " + " | ".join(lats) + " |", "|---|" + "---|" * len(lats)]
     for c in ctrls:
