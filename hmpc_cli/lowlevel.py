@@ -15,7 +15,8 @@ crossed the plan's next k guards, in the plan's order, since the plan's start, t
 reference is the plan's domain k, re-timed to begin at the k-th contact's time (when a
 plan arrives its latency after an impact, it is tracked across it instead of held at its
 pre-impact guard node); a contact the plan does not schedule next falls back to
-``"hold"``.
+``"hold"``. With ``"hold"`` the run's summary warns after how many contacts a plan was
+tracked past its guard (:meth:`LowLevelController.warning`).
 """
 
 from __future__ import annotations
@@ -63,6 +64,7 @@ class LowLevelController:
         #: the plant's guard events so far, in time order: their times [s] and guards
         self.contact_times: list[float] = []
         self.contact_guards: list[int] = []
+        self._held: set[int] = set()  # contacts after which "hold" kept a pre-impact node
 
     def contact(self, t: float, guard: int) -> None:
         """The plant crossed ``guard`` at t [s] (events arrive in time order)."""
@@ -77,17 +79,29 @@ class LowLevelController:
         "hold"``, before any such contact, or after a contact the plan does not schedule.
         """
         tau = t - plan.t0
-        if not self._follow or not self.contact_times:
+        if not self.contact_times:
             return 0, tau
         i = bisect_right(self.contact_times, plan.t0 + TIME_TOL)
         j = bisect_right(self.contact_times, t + TIME_TOL)
         k, guards = j - i, plan.traj.guards
-        if k == 0 or k > len(guards) or tuple(self.contact_guards[i:j]) != tuple(guards[:k]):
+        if k and not self._follow:
+            self._held.add(j - 1)
+        if not self._follow or k == 0 or k > len(guards) \
+                or tuple(self.contact_guards[i:j]) != tuple(guards[:k]):
             return 0, tau
         nodes = np.flatnonzero(plan.traj.seg == plan.traj.seg[0] + k)
         if not len(nodes):
             return 0, tau
         return k, float(plan.traj.t[nodes[0]] + (t - self.contact_times[j - 1]))
+
+    def warning(self) -> str:
+        """The summary's warning when ``hold`` tracked a plan past a contact ('' if never)."""
+        if not self._held:
+            return ""
+        return (f"after {len(self._held)} of {len(self.contact_times)} contacts the low level "
+                "held the plan's pre-impact guard node until a new plan arrived "
+                "(lowlevel.past_guard = \"hold\"); \"next_domain\" follows the plan "
+                "across the impact")
 
     def reference(self, t: float, plan: Plan, span: float = 0.0
                   ) -> tuple[np.ndarray, np.ndarray]:

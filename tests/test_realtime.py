@@ -277,6 +277,12 @@ def test_the_low_level_following_the_plan_across_impacts_keeps_the_ball_up(tmp_p
     assert not results["hold"].success and results["hold"].reason.startswith("final error 3.5")
     assert results["next_domain"].success and results["next_domain"].final_error < 1e-3
     assert results["next_domain"].solver_failures == 0
+    # the summary says when holding mattered, and how to follow the plan instead
+    assert results["hold"].warnings == [
+        "after 10 of 10 contacts the low level held the plan's pre-impact guard node until "
+        "a new plan arrived (lowlevel.past_guard = \"hold\"); \"next_domain\" follows the "
+        "plan across the impact"]
+    assert results["next_domain"].warnings == []
 
 
 def test_a_contact_stops_the_solve_in_flight(tmp_path):

@@ -151,8 +151,9 @@ class ClosedLoop:
         raise exc
 
     def _finish(self, x: np.ndarray, mode: int, stopped: bool, start: float) -> RunResult:
-        for warning in self.layers.clock.warnings():
-            self.books.warn(warning)
+        for warning in [*self.layers.clock.warnings(), self.plant.lowlevel.warning()]:
+            if warning:
+                self.books.warn(warning)
         r = self.books.close(x, self.model.modes[mode].name,
                              self.prepared.task.verdict(x, mode), stopped,
                              time.perf_counter() - start)
