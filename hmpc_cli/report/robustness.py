@@ -330,7 +330,8 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
     diam = tube_diameters(table, rows, size, study.sweep_file)
     sc = _effective_scenario(table, rows[0], study.sweep_file) if rows else None
     if sc is not None:  # a setting the runs take from their scenario file
-        spec = {**spec, "effective": {"sim.latency_first": sc.sim.latency_first}}
+        spec = {**spec, "effective": {"sim.latency_first": sc.sim.latency_first,
+                                      "lowlevel.past_guard": sc.lowlevel.past_guard}}
     cells = robustness(table, fig_dir, "pdf,svg,png", name=name, diameters=diam,
                        panel_axis=size, width=min(TEXT_WIDTH_IN, 3.5 * max(1, len(diam))))
     seeds = len({r["seed"] for r in rows})
@@ -526,8 +527,13 @@ def _first_paused(spec: dict) -> bool:
 
 
 def _follows(spec: dict) -> bool:
-    """Whether a study's low level follows the plan across impacts (its ``[set]``)."""
-    return spec.get("set", {}).get("lowlevel.past_guard") == "next_domain"
+    """Whether a study's low level follows the plan across impacts.
+
+    Its ``[set]`` says, else the effective scenario of its runs (as :func:`_first_paused`).
+    """
+    value = spec.get("set", {}).get("lowlevel.past_guard",
+                                    spec.get("effective", {}).get("lowlevel.past_guard"))
+    return value == "next_domain"
 
 
 def _first_plan(spec: dict, latency: object) -> str:
