@@ -30,6 +30,7 @@ the machine's description. Measured, never asserted.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
@@ -38,6 +39,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -195,20 +197,41 @@ def run_section(runs: int, compiled: str | None) -> tuple[list[str], dict]:
 
 
 # ------------------------------------------------------------------ biped
+@contextlib.contextmanager
+def planning_flag(state: dict) -> Iterator[None]:
+    """Inside, the foothold planner sets ``state["planning"]`` while it plans (restored)."""
+    from hmpc_cli.planner.footholds import FootholdPlanner
+
+    plan = FootholdPlanner.plan
+
+    def traced_plan(self, *a, **kw):
+        state["planning"] = True
+        try:
+            return plan(self, *a, **kw)
+        finally:
+            state["planning"] = False
+
+    FootholdPlanner.plan = traced_plan
+    try:
+        yield
+    finally:
+        FootholdPlanner.plan = plan
+
+
 def biped_calls() -> dict:
     """Every IPOPT call of one biped_stairs run, the build time and the NLP's size.
 
     Each call: ``planning`` (inside the foothold planner) or not, wall [s], iterations,
-    and the time IPOPT's statistics give its function evaluations [s].
+    and the time IPOPT's statistics give its function evaluations [s]. Then the charged
+    runs (``model`` latency), whose calls are not recorded.
     """
     from hmpc_cli.mpc import solver as solver_mod
-    from hmpc_cli.planner.footholds import FootholdPlanner
     from hmpc_cli.run.runner import prepare, run_unlogged
     from hmpc_cli.run.scenario import load_scenario
 
     calls: list[dict] = []
     state = {"planning": False}
-    call, plan = solver_mod._call_instance, FootholdPlanner.plan
+    call = solver_mod._call_instance
 
     def traced_call(instances, *args, **kw):
         res = call(instances, *args, **kw)
@@ -219,19 +242,16 @@ def biped_calls() -> dict:
                       "evals": sum(st.get(k, 0.0) for k in EVALS)})
         return res
 
-    def traced_plan(self, *a, **kw):
-        state["planning"] = True
-        try:
-            return plan(self, *a, **kw)
-        finally:
-            state["planning"] = False
-
-    solver_mod._call_instance, FootholdPlanner.plan = traced_call, traced_plan
     sc, _ = load_scenario(str(ROOT / BIPED))
     start = time.perf_counter()
     loop = prepare(sc)
     build = time.perf_counter() - start
-    run_unlogged(loop)
+    solver_mod._call_instance = traced_call
+    try:
+        with planning_flag(state):
+            run_unlogged(loop)
+    finally:
+        solver_mod._call_instance = call
     nlp = getattr(loop.mpc, "nlp", None)
     charged = {}
     for key, scenario in (("stairs", BIPED), ("realtime", BIPED_RT)):

@@ -15,6 +15,8 @@ side by side with the medians per (switching, iterations). Prints the TOML to pa
     python benchmarks/calibrate_latency.py --write results/bench/latency_model.md
     python benchmarks/calibrate_latency.py --switching --scenario scenarios/ball_realtime.toml \
         --write results/bench/latency_model_rti.md
+    python benchmarks/calibrate_latency.py --scenario scenarios/biped_stairs.toml \
+        --set 'mpc.solver="rti"' --candidates --write results/bench/latency_model_biped_rti.md
 """
 
 from __future__ import annotations
@@ -35,9 +37,12 @@ ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ["scenarios/ball.toml", "scenarios/ball_disturbed.toml"]
 
 
-def solves_of(scenario: Path, runs: int, work: Path, sets: list[str]
-              ) -> list[tuple[int, float, bool]]:
-    """(iterations, wall time [s], a switch left) of every MPC solve of ``runs`` paused runs."""
+def solves_of(scenario: Path, runs: int, work: Path, sets: list[str],
+              candidates: bool = False) -> list[tuple[int, float, bool]]:
+    """(iterations, wall time [s], a switch left) of every MPC solve of ``runs`` paused runs.
+
+    ``candidates``: also the foothold planner's candidate solves (each has its guard).
+    """
     out = []
     for k in range(runs):
         sc, text = load_scenario(scenario, [f"seed={k}", 'sim.latency="paused"', *sets])
@@ -48,7 +53,16 @@ def solves_of(scenario: Path, runs: int, work: Path, sets: list[str]
                 guards = (m.data.get("schedule") or {}).get("guards") or ()
                 out.append((int(m.data["iterations"]), float(m.data["wall_time"]),
                             len(guards) > 0))
+            elif m.topic == "/planner/plan" and candidates:
+                cands = (m.data.get("detail") or {}).get("candidates", [])
+                out += [(int(c["iterations"]), float(c["wall_time"]), True)
+                        for c in cands if c.get("iterations", 0) > 0]
+                OWN.append(float(m.data["wall_time"]) - sum(c["wall_time"] for c in cands))
     return out
+
+
+#: per planner call, its wall time beyond its candidate solves [s] (``--candidates``)
+OWN: list[float] = []
 
 
 def fit(points: list[tuple[int, float, bool]], switching: bool) -> dict[str, float]:
@@ -86,7 +100,8 @@ def machine() -> str:
     return f"{model}, {os.cpu_count()} logical CPUs, {platform.system()}"
 
 
-def report(points, model: dict[str, float], scenarios: list[str], sets: list[str]) -> str:
+def report(points, model: dict[str, float], scenarios: list[str], sets: list[str],
+           candidates: bool = False) -> str:
     """The Markdown report: the TOML, medians per iteration count beside the model."""
     it = np.array([p[0] for p in points])
     wall = np.array([p[1] for p in points])
@@ -95,7 +110,9 @@ def report(points, model: dict[str, float], scenarios: list[str], sets: list[str
     config = f" with `{'`, `'.join(sets)}`" if sets else ""
     lines = ["# The latency model, fitted to measured MPC solves", "",
              f"Machine: {machine()} (machine dependent: re-fit on yours).", "",
-             f"{len(points)} solves of {', '.join(scenarios)}{config}, time paused.", "",
+             f"{len(points)} solves of {', '.join(scenarios)}{config}, time paused"
+             + (" (with the foothold planner's candidate solves)" if candidates else "")
+             + ".", "",
              "```toml", "[sim.latency_model]",
              *(f"{k} = {v:.4f}" for k, v in model.items()), "```", "",
              "| switch left | iterations | solves | measured median [ms] | measured p95 [ms] "
@@ -109,6 +126,10 @@ def report(points, model: dict[str, float], scenarios: list[str], sets: list[str
     err = np.abs(pred - wall) * 1e3
     lines += ["", f"Absolute error of the model: median {np.median(err):.1f} ms, "
               f"p95 {np.percentile(err, 95):.1f} ms.", ""]
+    if "planner" in model:
+        lines[-1:] = ["", f"`planner`: the median of a planner call's wall time beyond its "
+                      f"candidate solves, {len(OWN)} calls (max "
+                      f"{max(OWN) * 1e3:.1f} ms).", ""]
     return "\n".join(lines)
 
 
@@ -123,6 +144,9 @@ def main() -> None:
                     "scenario (disturbance.trial, paper_fig3)")
     ap.add_argument("--switching", action="store_true",
                     help="fit per_switching_iteration for solves with a switch left")
+    ap.add_argument("--candidates", action="store_true",
+                    help="also the foothold planner's candidate solves (the model charges "
+                    "each as a solve)")
     ap.add_argument("--write", type=Path, help="write the Markdown report here")
     args = ap.parse_args()
     scenarios = args.scenario or SCENARIOS
@@ -131,9 +155,11 @@ def main() -> None:
               for s in scenarios for k in (int(x) for x in args.trials.split(",") if x)]
     with tempfile.TemporaryDirectory() as tmp:
         points = [p for n, (s, extra) in enumerate(cases) for p in solves_of(
-            ROOT / s, args.runs, Path(tmp) / str(n), [*args.sets, *extra])]
+            ROOT / s, args.runs, Path(tmp) / str(n), [*args.sets, *extra], args.candidates)]
     model = fit(points, args.switching)
-    text = report(points, model, scenarios, args.sets)
+    if args.candidates and OWN:
+        model["planner"] = float(np.median(OWN))  # the planner's own time, median
+    text = report(points, model, scenarios, args.sets, args.candidates)
     print(text)
     if args.write:
         args.write.parent.mkdir(parents=True, exist_ok=True)

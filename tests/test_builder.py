@@ -135,6 +135,19 @@ def test_tiny_nlp_solved_by_the_session():
     assert session.violation(np.array([1.5]), np.zeros(0), *bd.arrays()) == 0.5
 
 
+def test_warm_instance_with_a_limited_memory_hessian():
+    """IPOPT generates no Hessian under L-BFGS: the warm instance is built without one."""
+    session, lay = _scalar_session(warm=WarmStart(1e-6, 1e-9), extra={
+        "ipopt": {"hessian_approximation": "limited-memory"}})
+    bd = lay.bounds()
+    bd.lbg["lower"][()] = 2.0
+    res = session.run(np.zeros(1), np.zeros(0), *bd.arrays())
+    warm = session.run(res.x, np.zeros(0), *bd.arrays(), res.lam_x, res.lam_g)
+    assert res.stats.success and warm.stats.success
+    assert warm.x[0] == pytest.approx(2.0, abs=1e-7)
+    assert not session.cold.has_function("nlp_hess_l")
+
+
 def test_interrupt_inside_ipopt_is_re_raised_not_a_failed_solve():
     session, lay = _scalar_session()
 

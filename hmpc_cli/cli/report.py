@@ -22,7 +22,7 @@ ROBUSTNESS = (Path("sweeps/robustness.toml"), Path("sweeps/robustness_tube.toml"
               Path("sweeps/robustness_realtime_paused.toml"),
               Path("sweeps/robustness_realtime.toml"))
 REALTIME = (Path("sweeps/realtime_rti.toml"), Path("sweeps/realtime_ipopt.toml"),
-            Path("sweeps/realtime_biped.toml"))
+            Path("sweeps/realtime_biped.toml"), Path("sweeps/realtime_biped_rti.toml"))
 
 
 def report_command(
@@ -65,8 +65,8 @@ def report_command(
         "leave out)")] = Path("sweeps/biped_push.toml"),
     realtime: Annotated[list[Path] | None, typer.Option(
         "--realtime", help="real-time sweep file or output directory, repeatable (default: "
-        "sweeps/realtime_rti.toml, realtime_ipopt.toml and realtime_biped.toml; '' to leave "
-        "out)")] = None,
+        "sweeps/realtime_rti.toml, realtime_ipopt.toml, realtime_biped.toml and "
+        "realtime_biped_rti.toml; '' to leave out)")] = None,
     run: Annotated[bool, typer.Option(
         "--run/--no-run", help="run the missing sweep runs first (finished ones are skipped; "
         "default: run nothing, print what is missing)")] = False,

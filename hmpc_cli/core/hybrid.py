@@ -183,6 +183,9 @@ class HybridSystem:
             plan trace; :mod:`hmpc_cli.core.drawing`), or None (no scene).
         walker: what walking MPCs and foothold planners need of a walker
             (:class:`~hmpc_cli.core.walker.WalkerModel`, checked here), or None.
+        stage_residuals: CasADi function (x[n], u[m]) -> r with ``stage_cost`` = |r|^2,
+            every entry reading x or u only (Gauss-Newton back-ends: the walking MPC's
+            ``sqp_hpipm`` and ``rti``), or None; checked against ``stage_cost`` here.
     """
 
     name: str
@@ -209,6 +212,7 @@ class HybridSystem:
     guard_surfaces: Mapping[int, tuple[float, float, float]] = field(default_factory=dict)
     drawing: Drawing | None = None
     walker: WalkerModel | None = None
+    stage_residuals: ca.Function | None = None
 
     def __post_init__(self) -> None:
         names = [m.name for m in self.modes]
@@ -238,6 +242,23 @@ class HybridSystem:
                              f"{sorted(RESERVED_NAMES)} (a logged plan node holds them all): "
                              f"{clash}")
         self._check_walker()
+        self._check_residuals()
+
+    def _check_residuals(self) -> None:
+        """|stage_residuals|^2 equals ``stage_cost`` at x0 and at a fixed other point."""
+        r = self.stage_residuals
+        if r is None:
+            return
+        n, m = self.n_x, self.n_u
+        if r.n_in() != 2 or r.size1_in(0) != n or r.size1_in(1) != m:
+            raise ValueError(f"{self.name}: stage_residuals must map (x[{n}], u[{m}]) -> r")
+        rng = np.random.default_rng(0)
+        for x, u in ((self.x0, np.zeros(m)), (self.x0 + rng.normal(0, 0.1, n),
+                                              rng.normal(0, 1.0, m))):
+            cost, res = float(self.stage_cost(x, u)), np.asarray(r(x, u)).ravel()
+            if not np.isclose(res @ res, cost, rtol=1e-9, atol=1e-12):
+                raise ValueError(f"{self.name}: |stage_residuals(x, u)|^2 = {res @ res:.9g} "
+                                 f"but stage_cost(x, u) = {cost:.9g}")
 
     def _check_walker(self) -> None:
         """Checks ``walker`` against this system (:meth:`WalkerModel.check`), if any."""

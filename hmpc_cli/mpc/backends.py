@@ -90,7 +90,8 @@ def gauss_newton_hessian(nlp: dict, residuals=None) -> ca.Function:
             the Gauss-Newton Hessian of affine residuals).
 
     Returns:
-        (x, p, lam_f, lam_g) -> upper triangle of H, shape (nx, nx).
+        (x, p, lam_f, lam_g) -> H, shape (nx, nx) (symmetric: ``sqpmethod`` wants the
+        whole matrix).
     """
     x, p = nlp["x"], nlp["p"]
     lam_f = ca.SX.sym("lam_f")
@@ -101,7 +102,7 @@ def gauss_newton_hessian(nlp: dict, residuals=None) -> ca.Function:
         jr = ca.jacobian(residuals, x)
         h = 2 * ca.mtimes(jr.T, jr)
     h = lam_f * h + HESSIAN_REGULARIZATION * ca.SX.eye(x.size1())
-    return ca.Function("nlp_hess_l", [x, p, lam_f, lam_g], [ca.triu(h)],
+    return ca.Function("nlp_hess_l", [x, p, lam_f, lam_g], [h],
                        ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
 
 

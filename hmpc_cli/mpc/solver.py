@@ -96,9 +96,11 @@ def derivatives_of(solver: ca.Function) -> dict:
 
     Another instance of the same NLP given them skips their symbolic generation (a large
     part of an instance's start-up); they are the same SX graphs, so its iterates
-    are the same bit for bit.
+    are the same bit for bit. A function the instance did not generate (no Hessian
+    with ``hessian_approximation = "limited-memory"``) is left out.
     """
-    return {opt: solver.get_function(fn) for opt, fn in DERIVATIVES.items()}
+    return {opt: solver.get_function(fn) for opt, fn in DERIVATIVES.items()
+            if solver.has_function(fn)}
 
 
 def _call_instance(instances: tuple, w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0,

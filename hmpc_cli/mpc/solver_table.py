@@ -210,11 +210,11 @@ def sqpmethod_options(a: SolverArgs) -> dict:
 
 
 def fatrop_options(a: SolverArgs) -> dict:
-    """fatrop: structure detected from the equality rows."""
+    """fatrop: structure detected from the equality rows; ``tol`` its tolerance."""
     opts: dict = {"expand": True, "structure_detection": "auto", "print_time": False}
     if a.equality is not None:
         opts["equality"] = list(a.equality)
-    opts["fatrop"] = {"print_level": 0, "max_iter": a.max_iter}
+    opts["fatrop"] = {"print_level": 0, "max_iter": a.max_iter, "tol": a.tol}
     return {**opts, **a.nlpsol}
 
 

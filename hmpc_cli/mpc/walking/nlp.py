@@ -62,13 +62,17 @@ from hmpc_cli.core.messages import ConstraintMargins
 from hmpc_cli.core.walker import WalkerModel
 from hmpc_cli.mpc import cache
 from hmpc_cli.mpc.builder import Bounds, NLPBuilder
+from hmpc_cli.mpc.backends import OCPStructure
 from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart
+from hmpc_cli.mpc.solver_table import backend_of
 from hmpc_cli.core.settings_types import (
     MAX_NLP_NODES, BoundedInt, FiniteFloat, Pair, StrictBool, nlp_estimate)
 
 INF = np.inf
 _LOG = logging.getLogger(__name__)
 WARM_START = WarmStart(mu_init=1e-4, bound_push=1e-6)  # the warm IPOPT instance
+#: back-ends whose Hessian is the Gauss-Newton one of the cost's residuals
+GAUSS_NEWTON = ("sqp_hpipm", "rti")
 
 #: measured cost of one walking-NLP node (cold and warm solvers; biped, 2 cores)
 NODE_MIB, NODE_MS = 2.2, 27.0
@@ -122,7 +126,17 @@ class WalkingMPCSettings(MarginsSettings):
                                                   "relative to the stance foot [m]")
     torso_top_weights: Pair = Field((50.0, 5.0), description="cost weights "
                                                    "on the torso-top error [1/(m^2 s)]")
-    max_iter: BoundedInt = Field(200, gt=0, description="IPOPT iterations")
+    solver: Literal["ipopt", "fatrop", "sqp_hpipm", "rti"] = Field(
+        "ipopt", description='NLP back-end: "ipopt" (interior point, MUMPS); on the '
+        "stage-wise transcription (explicit stage dynamics, every row at the stage of the "
+        "variables it reads, swing 1 carrying the stance foot as a state): \"fatrop\" "
+        "(stage-wise interior point), \"sqp_hpipm\" (SQP, Gauss-Newton Hessian from the "
+        "system's stage_residuals, HPIPM's Riccati QP, IPOPT fallback) and \"rti\" (real-"
+        "time iterations: mpc.max_sqp_iter such SQP steps per warm-started solve, up to 3 "
+        "from a cold start, each kept)")
+    max_sqp_iter: BoundedInt = Field(1, gt=0, description="sqp_hpipm and rti: SQP "
+                                     "iterations per warm-started solve")
+    max_iter: BoundedInt = Field(200, gt=0, description="solver iterations")
     tol: FiniteFloat = Field(1e-6, gt=0.0, description="IPOPT tol")
     max_wall_time: FiniteFloat | None = Field(None, gt=0.0, description="IPOPT wall-time cap [s]")
     warm_start: StrictBool = Field(True, description="primal-dual warm start from the previous "
@@ -143,8 +157,8 @@ class WalkingMPCSettings(MarginsSettings):
         return "mpc.torque_margin"
 
     def solver_choice(self) -> tuple[str, dict]:
-        """IPOPT with ``mpc.solver_options`` for the set-up checks."""
-        return "ipopt", self.solver_options
+        """(``mpc.solver``, ``mpc.solver_options``) for the set-up checks."""
+        return self.solver, self.solver_options
 
     def size_problems(self) -> list[str]:
         """``mpc.nodes_per_swing`` beyond :data:`MAX_NLP_NODES` nodes (two swings)."""
@@ -225,38 +239,56 @@ class WalkingNLP:
         self.nx = 2 * self.nq  # (q, qd) per node; p_st is a parameter or an expression
         self.N = settings.nodes_per_swing
         self.E = len(system.terrain.segments)
+        self.stagewise = backend_of(settings.solver).stagewise
+        self.gauss_newton = settings.solver in GAUSS_NEWTON
+        if self.gauss_newton and system.stage_residuals is None:
+            raise ValueError(f"mpc.solver = {settings.solver!r} needs the system's "
+                             f"stage_residuals (its stage cost as least squares): system "
+                             f"{system.name!r} has none; use \"ipopt\" or \"fatrop\"")
+        self._residuals: list = []
         self._build()
 
     # ------------------------------------------------------------------ build
     def _build(self) -> None:
-        b, N = NLPBuilder(), self.N
-        xs, acc = {}, {}
+        b, N, sw = NLPBuilder(), self.N, self.stagewise
+        xs, acc, pst = {}, {}, {}
         for j in range(2):
             if j == 1:
                 with b.stage((1, 0)):
                     xs[1, 0] = b.variable("x", self.nx)
+                    if sw:
+                        pst[0] = b.variable("stance", 2)
             for k in range(N):
                 with b.stage((j, k)):
                     acc[j, k] = b.variable("a", self.nq)
                 with b.stage((j, k + 1)):
                     xs[j, k + 1] = b.variable("x", self.nx)
+                    if sw and j == 1:
+                        pst[k + 1] = b.variable("stance", 2)
         shapes = {"x0": self.nx, "stance": 2, "dt0": (), "h0": (), "edges": self.E,
                   "jumps": self.E, "clear": (2, N + 1)}
         par = {name: b.parameter(name, shape) for name, shape in shapes.items()}
         xs[0, 0] = par["x0"]
-        J, xs_out, us_out = self._transcribe(b, xs, acc, par)
+        J, xs_out, us_out = self._transcribe(b, xs, acc, pst, par)
         nlp, self.layout = b.build(J)
+        X, g = self.layout.x, self.layout.g
+        self.nw, self.ng, self.n_par = X.size, g.size, self.layout.p.size
+        self.x_idx, self.a_idx = X.grid("x"), X.grid("a")
+        self.interval_rows = np.array([[self._interval(j, k) for k in range(N)]
+                                       for j in range(2)])
         self.session, self.build_info = self._session(nlp)
         self._traj_fun = ca.Function("traj", [nlp["x"], nlp["p"]],
                                      [ca.horzcat(*xs_out).T, ca.horzcat(*us_out).T])
         self._f_fun = ca.Function("f", [nlp["x"], nlp["p"]], [J])
-        X, g = self.layout.x, self.layout.g
-        self.nw, self.ng, self.n_par = X.size, g.size, self.layout.p.size
-        self.x_idx, self.a_idx = X.grid("x"), X.grid("a")
-        self.interval_rows = np.array([[g.at((j, k)) for k in range(N)] for j in range(2)])
+
+    def _interval(self, j: int, k: int) -> np.ndarray:
+        """Rows of interval k of swing j: dynamics, torque, then node k + 1's rows (18)."""
+        g = self.layout.g
+        return np.concatenate([g[name][g.stages(name).index((j, k))].ravel()
+                               for name in ("dynamics", "torque", "guard_avoid", "knees")])
 
     def _session(self, nlp: dict) -> tuple[SolverSession, cache.BuildInfo]:
-        """IPOPT on the NLP's compiled functions when the build cache holds them, else SX.
+        """The solver on the NLP's compiled functions if the build cache holds them, else SX.
 
         The graph is transcribed either way (the plan and cost functions need it); a
         cached library is used only if its layout is this NLP's.
@@ -266,12 +298,18 @@ class WalkingNLP:
             "kind": "walking", "terrain_margin": float(self.terrain_margin),
             "segment_margin": float(self.segment_margin),
             "torque_margin": self.torque_margin.tolist()})
-        hit = cache.lookup(key, "ipopt")
+        hit = cache.lookup(key, s.solver)
+        equality, structure = (self.equality_rows().tolist(), self.structure()) \
+            if self.stagewise else (None, None)
+
+        residuals = ca.vertcat(*self._residuals) if self.gauss_newton else None
 
         def session(source: dict | str) -> SolverSession:
-            return SolverSession("walking_mpc", source, "ipopt", max_iter=s.max_iter,
+            return SolverSession("walking_mpc", source, s.solver, max_iter=s.max_iter,
                                  tol=s.tol, max_wall_time=s.max_wall_time,
-                                 extra=s.solver_options, warm=WARM_START)
+                                 extra=s.solver_options, warm=WARM_START,
+                                 equality=equality, structure=structure,
+                                 sqp_iter=s.max_sqp_iter, residuals=residuals)
 
         if hit.library is not None:
             if hit.layout.to_dict() != self.layout.to_dict():
@@ -285,11 +323,54 @@ class WalkingNLP:
                                  hit.library, str(exc).strip().splitlines()[-1:])
             return session(nlp), cache.BuildInfo("miss", False, "unloadable")
         return session(nlp), hit.info if hit.info.cache == "disabled" else \
-            cache.store(key, "ipopt", nlp, self.layout)
+            cache.store(key, s.solver, nlp, self.layout)
 
-    def _transcribe(self, b: NLPBuilder, xs: dict, acc: dict, par: dict):
-        """Registers the rows; returns the cost and the plan's node states and torques."""
-        N, s, mdl, nq = self.N, self.s, self.model, self.nq
+    def equality_rows(self) -> np.ndarray:
+        """Per row, True for the equality rows (dynamics, reset, touchdown height), (ng,)."""
+        g = self.layout.g
+        eq = np.zeros(g.size, dtype=bool)
+        for name in ("dynamics", "stance_foot", "reset"):
+            if name in g:
+                eq[g[name].ravel()] = True
+        eq[g["touchdown"][1]] = True
+        return eq
+
+    def structure(self) -> OCPStructure:
+        """The stage structure of the stage-wise transcription.
+
+        Stages: swing 0's nodes 0..N (node 0 the parameter x0: no state), then swing 1's
+        nodes 0..N with the stance foot appended to (q, qd); controls a at every node
+        but a swing's last; path rows per stage as :meth:`_transcribe` orders them.
+
+        Raises:
+            ValueError: the NLP is not the stage-wise transcription.
+        """
+        if not self.stagewise:
+            raise ValueError("the walking NLP has a stage structure only with a stage-wise "
+                             "back-end (mpc.solver = \"fatrop\", \"sqp_hpipm\" or \"rti\")")
+        N, nx, nq = self.N, self.nx, self.nq
+        node = 1 + 2  # guard-avoid, knees
+        nxs = (0,) + (nx,) * N + (nx + 2,) * (N + 1)
+        nus = ((nq,) * N + (0,)) * 2
+        ngs = ((nq + 1,) + (nq + node,) * (N - 1) + (node + 2,)
+               + (nq,) + (nq + node,) * (N - 1) + (node,))
+        st = OCPStructure(nxs, nus, ngs)
+        if st.sizes() != (self.nw, self.ng):
+            raise ValueError(f"walking NLP: {st.sizes()} (variables, rows) in the stage "
+                             f"structure, {(self.nw, self.ng)} in the NLP")
+        return st
+
+    def _transcribe(self, b: NLPBuilder, xs: dict, acc: dict, pst1: dict, par: dict):
+        """Registers the rows; returns the cost and the plan's node states and torques.
+
+        ``pst1``: swing 1's stance-foot variables per node (stage-wise transcription),
+        else empty (swing 1's stance foot is the reset's expression). The stage-wise
+        order puts, per stage, the rows closing the gap to the next stage first (the
+        explicit dynamics; after swing 0 the reset), then the rows of the stage's own
+        node (torque, liftoff; guard-avoid and knees of node k >= 1; swing 0's
+        touchdown); node rows keep their interval's stage label either way.
+        """
+        N, s, mdl = self.N, self.s, self.model
         fx = ca.SX.sym("fx")
         h0, edges, jumps = par["h0"], par["edges"], par["jumps"]
         floor = h0 + sum(jumps[i] * _smooth_step((fx - edges[i]) / s.terrain_smoothing)
@@ -297,36 +378,99 @@ class WalkingNLP:
         floor_fn = ca.Function("floor", [fx, h0, edges, jumps], [floor])
         J, pst = 0, par["stance"]
         xs_out, us_out = [ca.vertcat(par["x0"], pst)], []
-        for j in range(2):
-            dt = par["dt0"] if j == 0 else s.dt
-            for k in range(N):
-                xk, xn, a = xs[j, k], xs[j, k + 1], acc[j, k]
-                q, qd, qn, qdn = xk[:nq], xk[nq:], xn[:nq], xn[nq:]
-                u = mdl.inverse_dynamics(q, qd, a, 0)
-                pts = mdl.points(qn)
-                foot = pts[:, mdl.swing_foot] + pst
+        pending: list = []  # stage-wise: a node's rows wait for its stage's gap rows
+
+        def flush() -> None:  # the waiting rows of node k + 1 of swing j
+            while pending:
+                j, k, pts, foot = pending.pop()
                 with b.stage((j, k)):
-                    b.rows("dynamics", [qdn - qd - dt * a, qn - q - dt * qdn])
-                    b.rows("torque", u)
                     b.rows("guard_avoid", foot[1] - floor_fn(foot[0], h0, edges, jumps)
                            - par["clear"][j, k + 1], shape=())
                     b.rows("knees", [pts[1, mdl.stance_knee], pts[1, mdl.swing_knee]])
+
+        for j in range(2):
+            dt = par["dt0"] if j == 0 else s.dt
+            for k in range(N):
+                if self.stagewise and j == 1:
+                    pst = pst1[k + 1]
+                u = self._interval_rows(b, j, k, xs, acc, pst1, par, dt)
+                flush()
+                xn = xs[j, k + 1]
+                pts = mdl.points(xn[:self.nq])
+                pending.append((j, k, pts, pts[:, mdl.swing_foot] + pst))
+                if not self.stagewise:
+                    flush()
                 J += dt * self._stage_cost(xn, pst, u)
+                if self.gauss_newton:
+                    self._residuals.append(ca.sqrt(dt) * self._stage_residual(xn, pst, u))
                 xs_out.append(ca.vertcat(xn, pst))
                 us_out.append(u)
             if j == 0:
-                x_td = ca.vertcat(xs[0, N], pst)
-                foot = mdl.swing_foot_world(x_td)
-                x_plus = mdl.reset(x_td)
-                b.rows("touchdown", [foot[0], foot[1]])
-                b.rows("reset", xs[1, 0] - x_plus[:self.nx])
-                pst = x_plus[self.nx:]
+                pst = self._junction(b, xs, pst1, pst, flush)
                 xs_out.append(ca.vertcat(xs[1, 0], pst))
+        flush()
+        if not self.stagewise:
+            self._liftoff_row(b, par, acc)
+        return J, xs_out, us_out
+
+    def _interval_rows(self, b: NLPBuilder, j: int, k: int, xs: dict, acc: dict,
+                       pst1: dict, par: dict, dt):
+        """Interval k of swing j's dynamics and torque rows; returns its torques u (nq,).
+
+        Stage-wise: explicit dynamics (q first, then qd), swing 1's stance foot kept, and
+        the liftoff row in the first stage.
+        """
+        nq = self.nq
+        xk, xn, a = xs[j, k], xs[j, k + 1], acc[j, k]
+        q, qd, qn, qdn = xk[:nq], xk[nq:], xn[:nq], xn[nq:]
+        u = self.model.inverse_dynamics(q, qd, a, 0)
+        with b.stage((j, k)):
+            if self.stagewise:
+                b.rows("dynamics", [qn - q - dt * (qd + dt * a), qdn - qd - dt * a])
+                if j == 1:
+                    b.rows("stance_foot", pst1[k + 1] - pst1[k])
+            else:
+                b.rows("dynamics", [qdn - qd - dt * a, qn - q - dt * qdn])
+            b.rows("torque", u)
+            if self.stagewise and (j, k) == (0, 0):
+                self._liftoff_row(b, par, acc)
+        return u
+
+    def _junction(self, b: NLPBuilder, xs: dict, pst1: dict, pst, flush):
+        """Swing 0's touchdown rows and the reset to swing 1's node 0.
+
+        ``flush`` registers the waiting rows of swing 0's last node (stage-wise order).
+        Returns swing 1's stance foot (2,).
+        """
+        mdl = self.model
+        x_td = ca.vertcat(xs[0, self.N], pst)
+        foot = mdl.swing_foot_world(x_td)
+        x_plus = mdl.reset(x_td)
+        if self.stagewise:
+            b.rows("reset", ca.vertcat(xs[1, 0], pst1[0]) - x_plus)
+            flush()
+            b.rows("touchdown", [foot[0], foot[1]])
+            return pst1[0]
+        b.rows("touchdown", [foot[0], foot[1]])
+        b.rows("reset", xs[1, 0] - x_plus[:self.nx])
+        return x_plus[self.nx:]
+
+    def _liftoff_row(self, b: NLPBuilder, par: dict, acc: dict) -> None:
+        """The swing foot's vertical acceleration at node 0 (one row)."""
+        mdl, nq = self.model, self.nq
         q0, qd0 = par["x0"][:nq], par["x0"][nq:]
         vel = mdl.swing_foot_velocity(q0, qd0)
         lift = ca.jtimes(vel, q0, qd0) + ca.mtimes(mdl.swing_foot_jacobian(q0), acc[0, 0])
-        b.rows("liftoff", lift[1], shape=())
-        return J, xs_out, us_out
+        with b.stage(None):  # one row, unstaged in either order
+            b.rows("liftoff", lift[1], shape=())
+
+    def _stage_residual(self, xq, pst, u):
+        """Residuals r with |r|^2 = :meth:`_stage_cost` (the system's stage_residuals)."""
+        s, mdl = self.s, self.model
+        pts = mdl.points(xq[:self.nq])
+        top_t, top_w = ca.DM(s.torso_top_target), np.sqrt(np.asarray(s.torso_top_weights))
+        return ca.vertcat(self.system.stage_residuals(ca.vertcat(xq, pst), u),
+                          top_w * (pts[:, mdl.torso_top] - top_t))
 
     def _stage_cost(self, xq, pst, u):
         """The system's stage cost at (xq (nx), pst (2), u) plus the torso-top term."""
@@ -426,6 +570,8 @@ class WalkingNLP:
         umax = np.maximum(np.asarray(self.system.modes[self.mode].u_upper)
                           - self.torque_margin, 0.0)
         lbg["dynamics"][:] = ubg["dynamics"][:] = 0.0
+        if "stance_foot" in self.layout.g:
+            lbg["stance_foot"][:] = ubg["stance_foot"][:] = 0.0
         lbg["torque"][:], ubg["torque"][:] = -umax, umax
         lbg["knees"][:] = s.knee_clearance
         stages = self.layout.g.stages("guard_avoid")

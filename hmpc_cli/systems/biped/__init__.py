@@ -130,6 +130,9 @@ def build_biped(p: BipedParams) -> HybridSystem:
     pose_err = x[0:N_Q] - ca.DM(p.q_nominal)
     cost = (p.q_hip * ca.sumsqr(hip - ca.DM(p.goal))
             + ca.dot(ca.DM(p.pose_weights), pose_err**2) + p.r_torque * ca.sumsqr(u))
+    residuals = ca.vertcat(np.sqrt(p.q_hip) * (hip - ca.DM(p.goal)),
+                           np.sqrt(np.asarray(p.pose_weights)) * pose_err,
+                           np.sqrt(p.r_torque) * u)
 
     def gain(kp: float, kd: float) -> np.ndarray:
         return np.hstack([kp * np.eye(N_Q), kd * np.eye(N_Q), np.zeros((N_Q, 2))])
@@ -162,6 +165,7 @@ def build_biped(p: BipedParams) -> HybridSystem:
         guard_surfaces={i: seg for i, seg in enumerate(stair_edges(p))},
         drawing=biped_drawing(model, terrain),
         walker=_walker(model),
+        stage_residuals=ca.Function("r_biped", [x, u], [residuals]),
     )
 
 
