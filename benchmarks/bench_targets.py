@@ -18,7 +18,8 @@ the ball's and the biped's NLPs compiled (made once with ``HMPC_BUILD_CACHE=sync
   rate): every IPOPT call's wall time, iterations and its split into function
   evaluations and IPOPT's own work, the planning steps, and the runs with the modelled
   compute time charged (``scenarios/biped_realtime.toml``, and ``biped_stairs.toml``
-  with the paper's settings);
+  with the paper's settings); the same for the walking MPC on real-time iterations
+  (``mpc.solver = "rti"``; charged run ``scenarios/biped_rti.toml``);
 * the Figure 3 campaign (``sweeps/fig3.toml``, 33 runs, 2 workers, time paused; target
   <= 15 s): wall time and how much of it the runs themselves account for;
 * the ball's CEM plan (Step 8's target <= 5 ms): plan time, the rollout kernel's share.
@@ -49,6 +50,12 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 BALL, BIPED, FIG3 = "scenarios/ball.toml", "scenarios/biped_stairs.toml", "sweeps/fig3.toml"
 BIPED_RT = "scenarios/biped_realtime.toml"
+BIPED_RTI = "scenarios/biped_rti.toml"
+#: the walking MPC's configurations: (overrides of BIPED, the charged runs, its steps)
+BIPED_VARIANTS = {
+    "ipopt": ([], (("stairs", BIPED), ("realtime", BIPED_RT)), "IPOPT iterations"),
+    "rti": (['mpc.solver="rti"'], (("rti", BIPED_RTI),), "SQP steps"),
+}
 #: IPOPT's timing statistics of the function evaluations (CasADi's ``stats()`` keys)
 EVALS = ("t_wall_nlp_f", "t_wall_nlp_g", "t_wall_nlp_grad_f", "t_wall_nlp_jac_g",
          "t_wall_nlp_hess_l")
@@ -218,11 +225,12 @@ def planning_flag(state: dict) -> Iterator[None]:
         FootholdPlanner.plan = plan
 
 
-def biped_calls() -> dict:
-    """Every IPOPT call of one biped_stairs run, the build time and the NLP's size.
+def biped_calls(variant: str = "ipopt") -> dict:
+    """Every NLP solver call of one biped_stairs run, the build time and the NLP's size.
 
-    Each call: ``planning`` (inside the foothold planner) or not, wall [s], iterations,
-    and the time IPOPT's statistics give its function evaluations [s]. Then the charged
+    ``variant``: a key of :data:`BIPED_VARIANTS` (the walking MPC's back-end). Each call:
+    ``planning`` (inside the foothold planner) or not, wall [s], iterations, and the time
+    the solver's statistics give its function evaluations [s]. Then the variant's charged
     runs (``model`` latency), whose calls are not recorded.
     """
     from hmpc_cli.mpc import solver as solver_mod
@@ -242,7 +250,8 @@ def biped_calls() -> dict:
                       "evals": sum(st.get(k, 0.0) for k in EVALS)})
         return res
 
-    sc, _ = load_scenario(str(ROOT / BIPED))
+    sets, charged_runs, unit = BIPED_VARIANTS[variant]
+    sc, _ = load_scenario(str(ROOT / BIPED), sets)
     start = time.perf_counter()
     loop = prepare(sc)
     build = time.perf_counter() - start
@@ -254,7 +263,7 @@ def biped_calls() -> dict:
         solver_mod._call_instance = call
     nlp = getattr(loop.mpc, "nlp", None)
     charged = {}
-    for key, scenario in (("stairs", BIPED), ("realtime", BIPED_RT)):
+    for key, scenario in charged_runs:
         model, _ = load_scenario(str(ROOT / scenario), ['sim.latency="model"'])
         r = run_unlogged(prepare(model))
         charged[key] = {"success": r.success, "reason": r.reason, "t_end": r.t_end}
@@ -262,7 +271,7 @@ def biped_calls() -> dict:
     return {"calls": calls, "build": build, "plan_times": list(loop.books.plan_times),
             "variables": getattr(nlp, "nw", None), "constraints": getattr(nlp, "ng", None),
             "build cache": dataclasses.asdict(info) if info is not None else None,
-            "model": charged}
+            "model": charged, "unit": unit}
 
 
 def _split(calls: list[dict]) -> str:
@@ -282,10 +291,19 @@ def _biped_lines(label: str, info: dict) -> list[str]:
     med = _median(c["wall"] * 1e3 for c in periodic)
     per = _median(c["wall"] * 1e3 / max(1, c["iterations"]) for c in periodic)
     iters = _median(c["iterations"] for c in periodic)
-    model = info["model"]
+    model, unit = info["model"], info.get("unit", "IPOPT iterations")
+    if "rti" in model:
+        climbs = (f"{'met' if model['rti']['success'] else 'NOT met'} with `{BIPED_RTI}` "
+                  f"(ends at t = {model['rti']['t_end']:.3f} s: {model['rti']['reason']}).")
+    else:
+        climbs = (f"{'met' if model['realtime']['success'] else 'NOT met'} with `{BIPED_RT}` "
+                  f"(ends at t = {model['realtime']['t_end']:.3f} s: "
+                  f"{model['realtime']['reason']}; `{BIPED}`, the first plan charged and the "
+                  f"guard node held after impacts: ends at t = {model['stairs']['t_end']:.3f} "
+                  f"s: {model['stairs']['reason']}).")
     return [f"### {label}", "",
             f"Walking NLP: {info['variables']} variables, {info['constraints']} "
-            f"constraints; built in {info['build']:.2f} s (`{info['build cache']}`). IPOPT "
+            f"constraints; built in {info['build']:.2f} s (`{info['build cache']}`). Solver "
             "calls of one run:", "",
             "| calls | n | median ms | p95 ms | max ms | median iter | ms / iter | "
             "evaluations share |", "|---|--:|--:|--:|--:|--:|--:|--:|",
@@ -295,18 +313,15 @@ def _biped_lines(label: str, info: dict) -> list[str]:
             f"{max(steps, default=float('nan')):.0f} ms (the first, at t = 0: "
             f"{steps[0] if steps else float('nan'):.0f} ms).", "",
             f"* walking MPC <= 15 ms median: {'met' if med <= 15 else 'NOT met'} "
-            f"({med:.1f} ms: {iters:.0f} IPOPT iterations x {per:.1f} ms; 15 ms needs "
+            f"({med:.1f} ms: {iters:.0f} {unit[:-1] if iters == 1 else unit} x {per:.1f} "
+            f"ms; 15 ms needs "
             f"{15 / max(iters, 1):.1f} ms per iteration at that count, or "
             f"{15 / per:.1f} iterations at this cost).",
             f"* every foothold planning step <= 100 ms, the first included: "
             f"{'met' if max(steps, default=1e9) <= 100 else 'NOT met'} "
             f"({sum(x <= 100 for x in steps)} of {len(steps)} steps within it; a step "
             f"solves the walking NLP once per candidate surface in reach).",
-            f"* climbs with `sim.latency = \"model\"` at its default rate: "
-            f"{'met' if model['realtime']['success'] else 'NOT met'} with `{BIPED_RT}` "
-            f"(ends at t = {model['realtime']['t_end']:.3f} s: {model['realtime']['reason']}; "
-            f"`{BIPED}`, the first plan charged and the guard node held after impacts: "
-            f"ends at t = {model['stairs']['t_end']:.3f} s: {model['stairs']['reason']})."]
+            f"* climbs with `sim.latency = \"model\"` at its default rate: {climbs}"]
 
 
 def biped_section(compiled: str | None) -> tuple[list[str], dict]:
@@ -315,6 +330,9 @@ def biped_section(compiled: str | None) -> tuple[list[str], dict]:
         runs = {"Fresh install (NLP in SX)": _child("--biped", cache)}
     if compiled:
         runs["The walking NLP compiled"] = _child("--biped", compiled)
+    with tempfile.TemporaryDirectory() as cache:
+        runs['The walking MPC on real-time iterations (`mpc.solver = "rti"`, NLP in SX)'] = \
+            _child("--biped-rti", cache)
     lines = ["## Biped (`scenarios/biped_stairs.toml`; targets: walking MPC <= 15 ms median, "
              "every foothold planning step <= 100 ms, climbs with modelled latency)", ""]
     for label, info in runs.items():
@@ -424,9 +442,11 @@ def main() -> None:
     ap.add_argument("--out", default=str(ROOT / "results" / "bench"))
     ap.add_argument("--phases", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--biped", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--biped-rti", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
-    if args.phases or args.biped:  # a child: one section's measurements as JSON
-        print(json.dumps(phases() if args.phases else biped_calls()))
+    if args.phases or args.biped or args.biped_rti:  # a child: one section's measurements
+        print(json.dumps(phases() if args.phases else
+                         biped_calls("rti" if args.biped_rti else "ipopt")))
         return
     compiled = str(Path(args.compiled).resolve()) if args.compiled else None
     git, load0, start = suite_report.git_describe(), os.getloadavg(), time.perf_counter()
