@@ -58,7 +58,8 @@ BIPED_VARIANTS = {
 }
 #: IPOPT's timing statistics of the function evaluations (CasADi's ``stats()`` keys)
 EVALS = ("t_wall_nlp_f", "t_wall_nlp_g", "t_wall_nlp_grad_f", "t_wall_nlp_jac_g",
-         "t_wall_nlp_hess_l")
+         "t_wall_nlp_hess_l", "t_wall_nlp_grad",
+         "t_wall_nlp_fg", "t_wall_nlp_jac_fg")  # the last two: sqpmethod's (rti)
 
 
 def _median(xs) -> float:

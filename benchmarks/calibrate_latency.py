@@ -41,15 +41,18 @@ def solves_of(scenario: Path, runs: int, work: Path, sets: list[str],
               candidates: bool = False) -> list[tuple[int, float, bool]]:
     """(iterations, wall time [s], a switch left) of every MPC solve of ``runs`` paused runs.
 
-    ``candidates``: also the foothold planner's candidate solves (each has its guard).
+    ``candidates``: also the foothold planner's candidate solves (each has its guard); the
+    loop's solve that returns a candidate's stored plan (its stats) is counted once.
     """
     out = []
     for k in range(runs):
+        chosen: set[float] = set()  # the candidates' wall times: a replan reuses one
         sc, text = load_scenario(scenario, [f"seed={k}", 'sim.latency="paused"', *sets])
         run_dir = work / f"{scenario.stem}-{k}"
         execute_run(prepare(sc), text, run_dir)
         for m in read_log(run_dir / "run.mcap").messages:
-            if m.topic == "/mpc/solve" and m.data.get("iterations", 0) > 0:
+            if m.topic == "/mpc/solve" and m.data.get("iterations", 0) > 0 \
+                    and float(m.data["wall_time"]) not in chosen:
                 guards = (m.data.get("schedule") or {}).get("guards") or ()
                 out.append((int(m.data["iterations"]), float(m.data["wall_time"]),
                             len(guards) > 0))
@@ -57,6 +60,7 @@ def solves_of(scenario: Path, runs: int, work: Path, sets: list[str],
                 cands = (m.data.get("detail") or {}).get("candidates", [])
                 out += [(int(c["iterations"]), float(c["wall_time"]), True)
                         for c in cands if c.get("iterations", 0) > 0]
+                chosen |= {float(c["wall_time"]) for c in cands}
                 OWN.append(float(m.data["wall_time"]) - sum(c["wall_time"] for c in cands))
     return out
 

@@ -159,6 +159,10 @@ class WalkingMPC:
         In order: its own memory shifted, the template after a contact, a neighbour's
         solution of the same state, or the held state (cold).
         """
+        start = self._start_of(segment, x0, elapsed)
+        return (self._stance_guess(start[0], x0), *start[1:])
+
+    def _start_of(self, segment: int, x0: np.ndarray, elapsed: float) -> tuple:
         if not self.s.warm_start:
             return self._hold(x0), None, None, "cold"
         mem = self._memory.get(segment)
@@ -173,6 +177,19 @@ class WalkingMPC:
         if near is not None:
             return near.w.copy(), near.lam_x, near.lam_g, "neighbour"
         return self._hold(x0), None, None, "cold"
+
+    def _stance_guess(self, w: np.ndarray, x0: np.ndarray) -> np.ndarray:
+        """Sets swing 1's stance-foot variables of w (stage-wise transcription) and returns w.
+
+        Their value is the touchdown of w's swing-0 end state on x0's stance foot: the
+        reset's value at w.
+        """
+        nlp = self.nlp
+        if not nlp.stagewise:
+            return w
+        end = np.concatenate([w[nlp.x_idx[0, nlp.N]], x0[nlp.walker.stance_index]])
+        w[nlp.layout.x["stance"]] = np.asarray(nlp.walker.swing_foot_world(end)).ravel()
+        return w
 
     def _neighbour(self, x0: np.ndarray, elapsed: float) -> _Memory | None:
         """Another surface's solution from this very state and swing time, if any.

@@ -73,6 +73,8 @@ _LOG = logging.getLogger(__name__)
 WARM_START = WarmStart(mu_init=1e-4, bound_push=1e-6)  # the warm IPOPT instance
 #: back-ends whose Hessian is the Gauss-Newton one of the cost's residuals
 GAUSS_NEWTON = ("sqp_hpipm", "rti")
+#: SQP steps per solve when mpc.max_sqp_iter is unset (rti: per warm-started solve)
+SQP_ITER = {"rti": 1, "sqp_hpipm": 10}
 
 #: measured cost of one walking-NLP node (cold and warm solvers; biped, 2 cores)
 NODE_MIB, NODE_MS = 2.2, 27.0
@@ -134,16 +136,23 @@ class WalkingMPCSettings(MarginsSettings):
         "system's stage_residuals, HPIPM's Riccati QP, IPOPT fallback) and \"rti\" (real-"
         "time iterations: mpc.max_sqp_iter such SQP steps per warm-started solve, up to 3 "
         "from a cold start, each kept)")
-    max_sqp_iter: BoundedInt = Field(1, gt=0, description="sqp_hpipm and rti: SQP "
-                                     "iterations per warm-started solve")
-    max_iter: BoundedInt = Field(200, gt=0, description="solver iterations")
-    tol: FiniteFloat = Field(1e-6, gt=0.0, description="IPOPT tol")
-    max_wall_time: FiniteFloat | None = Field(None, gt=0.0, description="IPOPT wall-time cap [s]")
+    max_sqp_iter: BoundedInt | None = Field(
+        None, gt=0, description="SQP steps per solve: rti: per warm-started solve (None: 1; "
+        "a cold one takes up to 3); sqp_hpipm: per solve before its IPOPT fallback (None: "
+        "10)")
+    max_iter: BoundedInt = Field(200, gt=0, description="iteration limit of IPOPT and fatrop "
+                                 "(sqp_hpipm: of its IPOPT fallback; rti: unused)")
+    tol: FiniteFloat = Field(1e-6, gt=0.0, description="convergence tolerance (IPOPT's and "
+                             "fatrop's tol; sqp_hpipm: primal and dual)")
+    max_wall_time: FiniteFloat | None = Field(None, gt=0.0, description="IPOPT's wall-time "
+                                              "cap [s] (not applied by the other back-ends)")
     warm_start: StrictBool = Field(True, description="primal-dual warm start from the previous "
                              "solution of the same candidate")
     impact_duals: StrictBool = Field(True, description="after a contact, also shift the "
                                "executed plan's multipliers (warm IPOPT instance)")
-    solver_options: dict = Field(default_factory=dict, description="extra IPOPT options")
+    solver_options: dict = Field(default_factory=dict, description="extra solver options: "
+                                 "sections ipopt, ipopt_warm (IPOPT) and hpipm (the SQP "
+                                 "back-ends' QP), other keys nlpsol options of mpc.solver")
 
     @model_validator(mode="after")
     def _apex_inside(self) -> WalkingMPCSettings:
@@ -209,6 +218,12 @@ class WalkingNLP:
            ``liftoff`` (scalar: the swing foot's vertical acceleration at node 0).
         p: ``x0`` (10) and ``stance`` (2) = the state x0 (12), ``dt0``, ``h0``,
            shifted ``edges`` (E), ``jumps`` (E), clearances ``clear`` (2, N + 1).
+
+    The stage-wise transcription (``stagewise``: fatrop, sqp_hpipm, rti) adds a variable
+    block ``stance`` (2) after each of swing 1's ``x`` and rows ``stance_foot`` (2) after
+    each swing-1 interval's dynamics; its ``reset`` has 12 rows (with the stance foot).
+    Its rows run stage by stage (see :meth:`_transcribe`); the blocks keep their names
+    and stage labels, so ``interval_rows`` names the same 18 rows in both.
     """
 
     def __init__(self, system: HybridSystem, settings: WalkingMPCSettings,
@@ -241,6 +256,7 @@ class WalkingNLP:
         self.E = len(system.terrain.segments)
         self.stagewise = backend_of(settings.solver).stagewise
         self.gauss_newton = settings.solver in GAUSS_NEWTON
+        self.sqp_iter = settings.max_sqp_iter or SQP_ITER.get(settings.solver, 1)
         if self.gauss_newton and system.stage_residuals is None:
             raise ValueError(f"mpc.solver = {settings.solver!r} needs the system's "
                              f"stage_residuals (its stage cost as least squares): system "
@@ -294,10 +310,12 @@ class WalkingNLP:
         cached library is used only if its layout is this NLP's.
         """
         s = self.s
-        key = cache.structure_key(self.system, s, 0, {
-            "kind": "walking", "terrain_margin": float(self.terrain_margin),
-            "segment_margin": float(self.segment_margin),
-            "torque_margin": self.torque_margin.tolist()})
+        variant = {"kind": "walking", "terrain_margin": float(self.terrain_margin),
+                   "segment_margin": float(self.segment_margin),
+                   "torque_margin": self.torque_margin.tolist()}
+        if self.stagewise:  # another graph than IPOPT's (its key stays as it was)
+            variant["stagewise"] = True
+        key = cache.structure_key(self.system, s, 0, variant)
         hit = cache.lookup(key, s.solver)
         equality, structure = (self.equality_rows().tolist(), self.structure()) \
             if self.stagewise else (None, None)
@@ -309,7 +327,7 @@ class WalkingNLP:
                                  tol=s.tol, max_wall_time=s.max_wall_time,
                                  extra=s.solver_options, warm=WARM_START,
                                  equality=equality, structure=structure,
-                                 sqp_iter=s.max_sqp_iter, residuals=residuals)
+                                 sqp_iter=self.sqp_iter, residuals=residuals)
 
         if hit.library is not None:
             if hit.layout.to_dict() != self.layout.to_dict():
@@ -326,7 +344,10 @@ class WalkingNLP:
             cache.store(key, s.solver, nlp, self.layout)
 
     def equality_rows(self) -> np.ndarray:
-        """Per row, True for the equality rows (dynamics, reset, touchdown height), (ng,)."""
+        """Per row, True for the equality rows, shape (ng,).
+
+        They are the dynamics, the stance foot kept, the reset and the touchdown height.
+        """
         g = self.layout.g
         eq = np.zeros(g.size, dtype=bool)
         for name in ("dynamics", "stance_foot", "reset"):
