@@ -18,7 +18,6 @@ planning steps and the footholds against IPOPT's.
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 import sys
 import tempfile
@@ -33,6 +32,7 @@ from hmpc_cli.mpc.solver import SolverSession
 from hmpc_cli.mpc.walking import nlp as walking_nlp
 from hmpc_cli.run.runner import prepare, run_to_log, run_unlogged
 from hmpc_cli.run.scenario import load_scenario
+from hmpc_cli.sweep.table import toml_value
 from bench_targets import EVALS, planning_flag  # this script's directory
 from realtime import machine
 
@@ -127,7 +127,7 @@ def closed_loop(extra: dict, duration: float) -> dict:
     """The scenario flown with the lever's options: outcome and period-solve times."""
     sets = [f"sim.duration={duration}"]
     if extra:
-        sets.append(f"mpc.solver_options={_inline(extra)}")
+        sets.append(f"mpc.solver_options={toml_value(extra)}")
     sc, _ = load_scenario(SCENARIO, sets)
     run = prepare(sc)
     start = time.perf_counter()
@@ -197,13 +197,6 @@ def backend_lines(duration: float) -> list[str]:
                      f"{steps[0] * 1e3 if steps else float('nan'):.1f} | "
                      f"{max(steps, default=float('nan')) * 1e3:.1f} | {feet} |")
     return lines
-
-
-def _inline(value) -> str:
-    """``value`` as a TOML inline value (a nested dict of strings and numbers)."""
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{k} = {_inline(v)}" for k, v in value.items()) + "}"
-    return json.dumps(value)
 
 
 def _ms(values, q: float) -> str:
