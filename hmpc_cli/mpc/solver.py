@@ -27,6 +27,7 @@ import numpy as np
 from hmpc_cli.core import signals
 from hmpc_cli.core.messages import SolveStats
 from hmpc_cli.mpc.backends import OCPStructure
+from hmpc_cli.mpc.buffered import BufferedSolver
 from hmpc_cli.mpc.solver_table import (
     SolverArgs, WarmStart, backend_of, split_options, warm_options)
 
@@ -129,7 +130,7 @@ def _call_instance(instances: tuple, w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0,
             raise KeyboardInterrupt(f"solver interrupted ({status})")
     w = np.asarray(sol["x"]).ravel()
     finite = bool(np.all(np.isfinite(w)))
-    cost = float(sol["f"]) if finite else np.nan
+    cost = float(np.ravel(sol["f"])[0]) if finite else np.nan
     # the rows at w come with the solution (no second evaluation)
     viol = _violation(w, np.asarray(sol["g"]).ravel(), lbx, ubx, lbg, ubg) if finite else np.inf
     ok = bool(st.get("success", False))
@@ -193,15 +194,15 @@ class SolverSession:
         nlpsol, sections = split_options(backend, extra)
         args = SolverArgs(max_iter, tol, max_wall_time, equality, nlpsol, sections, nlp,
                           structure, sqp_iter, residuals)
-        self.options = backend.options(args)
+        self.options = {"calc_lam_p": False, **backend.options(args)}
         load = {k: v for k, v in self.options.items() if k != "expand"} if compiled \
             else self.options
-        self.cold = self.warm = ca.nlpsol(name, backend.plugin, nlp, load)
+        self.cold = self.warm = BufferedSolver(ca.nlpsol(name, backend.plugin, nlp, load))
         if backend.warm is not None and warm is not None:
-            self.warm = ca.nlpsol(f"{name}_warm", backend.plugin, nlp, {
+            self.warm = BufferedSolver(ca.nlpsol(f"{name}_warm", backend.plugin, nlp, {
                 **backend.warm(load, warm, sections, args),
                 **({} if compiled or backend.plugin != "ipopt"
-                   else derivatives_of(self.cold))})
+                   else derivatives_of(self.cold))}))
         self._g = ca.external("nlp_g", nlp) if compiled else \
             ca.Function("g", [nlp["x"], nlp["p"]], [nlp["g"]])
 
