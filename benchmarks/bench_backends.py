@@ -25,6 +25,7 @@ import time
 
 import numpy as np
 
+from hmpc_cli.mpc.buffered import BufferedSolver
 from hmpc_cli.mpc.chain.nlp import FixedModeNLP
 from hmpc_cli.mpc.solver import SolverSession, plugin_options
 from hmpc_cli.core.registry import build_system
@@ -77,7 +78,8 @@ def _default_ipopt(nlp: FixedModeNLP) -> SolverSession:
     opts["ipopt"] = {"print_level": 0, "sb": "yes"}
     import casadi as ca
 
-    session.cold = session.warm = ca.nlpsol("ipopt_defaults", "ipopt", session._nlp, opts)
+    session.cold = session.warm = BufferedSolver(ca.nlpsol("ipopt_defaults", "ipopt",
+                                                           session._nlp, opts))
     return session
 
 

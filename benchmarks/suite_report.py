@@ -39,7 +39,7 @@ MS = 1e3
 PARTS = ("QP solve (HPIPM via CasADi)", "function evaluations (nlp_*)",
          "line search (net of its nlp_fg)",
          "rest of the solver (IPOPT: linear algebra; SQP: steps)",
-         "CasADi call around the solver", "hmpc's Python around the call")
+         "the buffered call around the solver", "hmpc's Python around the call")
 
 
 @dataclass(frozen=True)
@@ -110,8 +110,8 @@ def profile(splits: list[dict], stats: list, packing: list[float]) -> list[tuple
     The parts (:data:`PARTS`) of the mean add up to the mean call: the QP (CasADi's HPIPM
     interface and HPIPM), function evaluations (all ``nlp_*``), the line search net of
     its ``nlp_fg`` calls, the rest of the solver's ``total`` (IPOPT: its linear algebra
-    and algorithm; SQP: its own steps), the CasADi call around the solver (argument
-    conversion, ``casadi_call`` - ``total``) and hmpc's Python around that call.
+    and algorithm; SQP: its own steps), the buffered call around the solver (copying
+    the arrays in and out, ``casadi_call`` - ``total``) and hmpc's Python around that call.
     Below them, not parts: the CasADi call's process (CPU) time (wall above it: the
     process waited for a core), one QP's time (QP time / SQP iterations) and the
     parameter packing, which runs in the closed loop outside the solve timer.
