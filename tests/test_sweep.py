@@ -153,6 +153,54 @@ def test_resume_skips_finished_runs(tiny):
     assert table(out3) == table(out)
 
 
+def _as_committed(out: Path, to: Path) -> Path:
+    """A copy of sweep directory ``out`` as a repository holds it: no run directories."""
+    shutil.copytree(out, to, ignore=shutil.ignore_patterns("runs"))
+    return to
+
+
+def test_a_committed_table_resumes_without_its_run_directories(tiny):
+    """A fresh clone holds results.csv, sweep.toml and scenario.toml, no run logs (at
+    most a drawn run's trace.mcap): its rows are finished runs; rows taken out of the
+    table are run again, and the table comes back in grid order."""
+    base, path, out, _ = tiny
+    committed = _as_committed(out, base / "committed")
+    assert (committed / "scenario.toml").is_file()
+    drawn = next(r["run_id"] for r in table(out)[2:] if r["log"])  # a drawn run: its trace
+    (committed / "runs" / drawn).mkdir(parents=True)
+    shutil.copy(out / "runs" / drawn / "run.mcap", committed / "runs" / drawn / "trace.mcap")
+    proc = sweep([str(path), "--workers", "1", "--out", str(committed)], base)
+    assert proc.returncode == 0, proc.stderr
+    assert "12 runs, 12 skipped (already done), 0 to run" in proc.stdout
+    assert (committed / "results.csv").read_bytes() == (out / "results.csv").read_bytes()
+    lines = (committed / "results.csv").read_text().splitlines(keepends=True)
+    (committed / "results.csv").write_text("".join([lines[0], *lines[3:]]))  # 2 rows out
+    proc = sweep([str(path), "--workers", "1", "--out", str(committed)], base)
+    assert proc.returncode == 0, proc.stderr
+    assert "12 runs, 10 skipped (already done), 2 to run" in proc.stdout
+    assert table(committed) == table(out)
+    assert sorted(p.name for p in (committed / "runs").iterdir()) == sorted(
+        [drawn, *(r["run_id"] for r in table(out)[:2])])
+
+
+@pytest.mark.parametrize("case", ["another scenario", "no scenario.toml"])
+def test_a_table_of_another_or_an_unknown_scenario_counts_for_nothing(tiny, case):
+    base, path, out, _ = tiny
+    committed = _as_committed(out, base / f"other-{case.replace(' ', '-')}")
+    side = committed / "scenario.toml"
+    if case == "no scenario.toml":
+        side.unlink()
+    else:
+        text = side.read_text()
+        assert "rate_hz = 10\n" in text
+        side.write_text(text.replace("rate_hz = 10\n", "rate_hz = 20\n", 1))
+    proc = sweep([str(path), "--workers", "1", "--out", str(committed), "--seeds", "1"],
+                 base)
+    assert proc.returncode == 0, proc.stderr
+    assert "0 skipped (already done), 6 to run" in proc.stdout
+    assert {r["seed"] for r in table(committed)} == {"0"}  # the untrusted rows are gone
+
+
 @pytest.mark.slow
 def test_dask_matches_local(tiny):
     import distributed  # in the `test` extra

@@ -129,25 +129,17 @@ def _sweeps(results: Path, seeds: int | None, biped: Path | None,
 def _print_missing(plans: dict, dirs: dict[str, Path]) -> None:
     """Prints, per sweep, how many runs are missing and their simulated time (an estimate).
 
-    A run is there when its run directory is finished, or when it has no run log and its
-    sweep's table lists it (a committed table has no run logs, at most trajectory logs).
+    A run is there when its run directory is finished or its sweep's table stands for it
+    (:func:`hmpc_cli.sweep.table.finished_runs`: a committed table has no run logs).
     """
-    import csv
     import tomllib
 
-    from hmpc_cli.sweep.table import finished
+    from hmpc_cli.sweep.table import finished_runs
 
     total = 0
     for key, plan in plans.items():
-        table = dirs[key] / "results.csv"
-        try:
-            with open(table, newline="", encoding="utf-8") as f:
-                tabled = {row.get("run_id") for row in csv.DictReader(f)}
-        except (OSError, UnicodeDecodeError, csv.Error):
-            tabled = set()
-        missing = [r for r in plan.selected if finished(dirs[key].resolve(), r) is None
-                   and (r.run_id not in tabled
-                        or (dirs[key] / "runs" / r.run_id / "run.mcap").exists())]
+        done = finished_runs(plan, dirs[key].resolve())
+        missing = [r for r in plan.selected if done[r.run_id] is None]
         if not missing:
             continue
         total += len(missing)

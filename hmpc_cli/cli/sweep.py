@@ -265,12 +265,13 @@ def _print_cells(plan, out: Path) -> None:
 
 def cell_stats(plan, out: Path) -> list[tuple[tuple[str, ...], int, int]]:
     """Per grid cell (all axes, seeds pooled): (cell, finished runs, successes)."""
-    from hmpc_cli.sweep.table import cell_text, finished
+    from hmpc_cli.sweep.table import cell_text, finished_runs
 
     stats: dict[tuple[str, ...], list[int]] = {}
+    done = finished_runs(plan, out.resolve(), plan.runs)
     for run in plan.runs:
         s = stats.setdefault(tuple(cell_text(v) for v in run.cell), [0, 0])
-        summary = finished(out.resolve(), run)
+        summary = done[run.run_id]
         if summary is not None:
             s[0] += 1
             s[1] += bool(summary.get("success"))

@@ -8,10 +8,16 @@ floating point and avoids CasADi's per-call conversion overhead for small batche
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import casadi as ca
 import numpy as np
+
+#: the C library's tanh, element by element (CasADi's): NumPy's float64 tanh runs a SIMD
+#: kernel chosen by the CPU (on AVX2 it differs from the C library's in the last bit for a
+#: quarter of arguments), so a result would depend on the machine that computed it
+tanh = np.vectorize(math.tanh, otypes=[float])
 
 _BINARY = {
     ca.OP_ADD: "({a} + {b})",
@@ -54,7 +60,7 @@ _UNARY = {
     ca.OP_ATAN: "np.arctan({a})",
     ca.OP_SINH: "np.sinh({a})",
     ca.OP_COSH: "np.cosh({a})",
-    ca.OP_TANH: "np.tanh({a})",
+    ca.OP_TANH: "tanh({a})",
     ca.OP_EXP: "np.exp({a})",
     ca.OP_LOG: "np.log({a})",
     ca.OP_LOG1P: "np.log1p({a})",
@@ -107,6 +113,6 @@ def compile_numpy(fun: ca.Function) -> Callable[..., list[np.ndarray]]:
     lines += [f"    o{j} = np.zeros(bshape + ({n},))" for j, n in enumerate(n_out)]
     lines += ["    " + s for s in body]
     lines.append("    return [" + ", ".join(f"o{j}" for j in range(len(n_out))) + "]")
-    namespace: dict = {"np": np}
+    namespace: dict = {"np": np, "tanh": tanh}
     exec(compile("\n".join(lines), f"<numpy:{fun.name()}>", "exec"), namespace)  # our own source
     return namespace["_f"]

@@ -23,7 +23,7 @@ from hmpc_cli.core.paths import write_atomic
 from hmpc_cli.run.runner import run_one
 from hmpc_cli.sweep.plan import Run, SweepPlan
 from hmpc_cli.sweep.pool import run_pool
-from hmpc_cli.sweep.table import finished, is_interrupted, toml_value, write_results
+from hmpc_cli.sweep.table import finished_runs, is_interrupted, toml_value, write_results
 
 
 def run_provenance(plan: SweepPlan, run: Run, command: str | None = None):
@@ -64,6 +64,8 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
                   on_done: Callable[[Run, dict], None] | None = None) -> Outcome:
     """Runs every unfinished run (in-process, process pool or Dask ``client``).
 
+    Finished: a finished run directory or a tabled run (:mod:`hmpc_cli.sweep.table`).
+
     ``on_start(total, skipped, successes_skipped)`` and ``on_done(run, summary)`` report
     progress. Ctrl-C stops cleanly (``Outcome.interrupted``); results.csv is always
     rewritten (``Outcome.done`` rows). ``lost`` lists runs whose worker failed or whose
@@ -74,7 +76,7 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
     (out / "runs").mkdir(parents=True, exist_ok=True)
     write_atomic(out / "sweep.toml", plan.text)
     selected = plan.selected
-    done = {r.run_id: finished(out, r) for r in selected}
+    done = finished_runs(plan, out, selected)  # run directories and tabled runs
     pending = [r for r in selected if done[r.run_id] is None]
     res = Outcome(len(selected), skipped=len(selected) - len(pending))
     if on_start:

@@ -1,4 +1,11 @@
-"""A sweep's results table: finished runs (their summary.json) -> ``<out>/results.csv``."""
+"""A sweep's results table: finished runs -> ``<out>/results.csv``.
+
+A run is finished when its run directory says so (:func:`finished`), or when it is a
+*tabled* run: a row of the existing results.csv whose run id is planned, written beside
+``<out>/scenario.toml`` (the sweep's scenario as its runs read it) that is the planned
+scenario (:func:`tabled_rows`). Committed tables carry no run directories; their rows still
+count, so a campaign resumes from the table alone (a fresh clone, another machine).
+"""
 
 from __future__ import annotations
 
@@ -14,6 +21,8 @@ TIMING = ("solve_time_median", "solve_time_p95", "solve_time_max", "plan_time_me
 METRICS = ("success", "final_error", "contacts", "solves", "solver_failures", "softened_solves",
            "planner_calls", "planner_rejected", "diverged", "reason", *TIMING)
 INTERRUPTED = "interrupted"
+#: beside results.csv: the sweep's scenario file as its runs read it (no override, seed 0)
+BASE_SCENARIO = "scenario.toml"
 
 
 def is_interrupted(summary: dict) -> bool:
@@ -103,15 +112,85 @@ def grid_order(plan) -> list:
     return sorted(plan.runs, key=lambda r: (cells[tuple(map(repr, r.cell))], r.seed))
 
 
+def base_scenario(plan) -> str:
+    """The sweep's scenario file as every run reads it before its overrides (seed 0)."""
+    from hmpc_cli.run.scenario import load_scenario
+
+    return load_scenario(plan.scenario, [], 0, check_margins=False)[1]
+
+
+def tabled_rows(plan, out: Path) -> dict[str, dict[str, str]]:
+    """The rows of ``<out>/results.csv`` that stand for finished runs of ``plan``, by run id.
+
+    A row counts when ``<out>/scenario.toml`` is the planned base scenario
+    (:func:`base_scenario`, compared by :func:`same_scenario`), its run id is one of the
+    plan's (the id hashes the run's overrides and seed, so the run's effective scenario is
+    the planned one) and its reason is not ``interrupted...``. A table written without
+    ``scenario.toml`` (before hmpc recorded it), unreadable, or of another scenario counts
+    for nothing: its runs are redone.
+    """
+    try:
+        stored = (out / BASE_SCENARIO).read_text(encoding="utf-8")
+        with open(out / "results.csv", newline="", encoding="utf-8") as f:
+            rows = list(csv.DictReader(f))
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return {}
+    from hmpc_cli.run.scenario import ScenarioError
+
+    try:
+        if not same_scenario(stored, base_scenario(plan)):
+            return {}
+    except ScenarioError:  # the scenario file no longer loads: nothing is known to match
+        return {}
+    planned = {r.run_id for r in plan.runs}
+    return {r["run_id"]: r for r in rows
+            if r.get("run_id") in planned and not str(r.get("reason", "")).startswith(
+                INTERRUPTED) and r.get("success") in ("true", "false")}
+
+
+def started(d: Path) -> bool:
+    """Whether run directory ``d`` holds a run started here: its log or its summary.
+
+    A directory with neither is a committed one (at most the trajectory extract
+    ``trace.mcap`` the page draws) or none at all.
+    """
+    return any((d / f).exists() or (d / f).is_symlink() for f in ("run.mcap", "summary.json"))
+
+
+def finished_runs(plan, out: Path, runs=None) -> dict[str, dict | None]:
+    """Per run of ``runs`` (default: the plan's selected ones): what shows it finished.
+
+    The run directory's summary (:func:`finished`); else, for a run never started here
+    (:func:`started`), its tabled row's values as a summary (``success`` a bool;
+    :func:`tabled_rows`); else None. A run started here and not finished (a log deleted,
+    a run killed) is redone whatever the table says.
+    """
+    tabled = tabled_rows(plan, out)
+    done = {}
+    for run in plan.selected if runs is None else runs:
+        summary = finished(out, run)
+        row = tabled.get(run.run_id) if summary is None else None
+        if row is not None and not started(out / "runs" / run.run_id):
+            summary = {**{k: row.get(k, "") for k in METRICS}, "success": row["success"] ==
+                       "true", "tabled": True}
+        done[run.run_id] = summary
+    return done
+
+
 def result_rows(plan, out: Path) -> list[dict[str, str]]:
     """One row per finished run, in grid order (:func:`grid_order`), however they finished.
 
-    Columns: :attr:`SweepPlan.columns`.
+    A run whose directory is finished gets its row from its summary; a tabled run never
+    started here (:func:`finished_runs`) keeps its row as it was. Columns:
+    :attr:`SweepPlan.columns`.
     """
     rows = []
+    tabled = tabled_rows(plan, out)
     for run in grid_order(plan):
         summary = finished(out, run)
         if summary is None:
+            if run.run_id in tabled and not started(out / "runs" / run.run_id):
+                rows.append({c: tabled[run.run_id].get(c, "") for c in plan.columns})
             continue
         row = {"run_id": run.run_id, "seed": str(run.seed)}
         cell = zip(plan.axes, run.cell, strict=True)  # one label per axis
@@ -125,7 +204,11 @@ def result_rows(plan, out: Path) -> list[dict[str, str]]:
 
 
 def write_results(plan, out: Path) -> int:
-    """Rewrites ``<out>/results.csv`` from the runs' summary.json files; returns its rows."""
+    """Rewrites ``<out>/results.csv`` (:func:`result_rows`) and ``<out>/scenario.toml``.
+
+    Returns:
+        The table's rows.
+    """
     buf, rows = io.StringIO(), result_rows(plan, out)
     writer = csv.DictWriter(buf, plan.columns, lineterminator="\n")
     writer.writeheader()
@@ -133,6 +216,7 @@ def write_results(plan, out: Path) -> int:
     from hmpc_cli.core.paths import write_atomic
 
     write_atomic(out / "results.csv", buf.getvalue())
+    write_atomic(out / BASE_SCENARIO, base_scenario(plan))
     return len(rows)
 
 

@@ -59,6 +59,7 @@ from pydantic import ConfigDict, Field, model_validator
 from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.core.kinds import MarginsSettings
 from hmpc_cli.core.messages import ConstraintMargins
+from hmpc_cli.core.numeric import tanh
 from hmpc_cli.core.walker import WalkerModel
 from hmpc_cli.mpc import cache
 from hmpc_cli.mpc.builder import Bounds, NLPBuilder
@@ -531,7 +532,7 @@ class WalkingNLP:
         """The guard-avoid floor (inflated smooth terrain) at world x [m]."""
         h0, e, d = self.terrain()
         z = (np.asarray(x, dtype=float)[..., None] - e) / self.s.terrain_smoothing
-        return h0 + (d * 0.5 * (1.0 + np.tanh(0.5 * z))).sum(axis=-1)
+        return h0 + (d * 0.5 * (1.0 + tanh(0.5 * z))).sum(axis=-1)
 
     def apex_nodes(self, elapsed: float) -> tuple[int | None, int]:
         """Apex node of swing 0 (None if already past) and of swing 1."""
