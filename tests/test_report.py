@@ -157,6 +157,21 @@ def test_failure_lines_say_how_failed_runs_ended():
                     "reasons: `d` (1)."]
 
 
+def test_the_wall_time_line_names_the_cpus_that_ran_the_runs():
+    from hmpc_cli.report.robustness import wall_text
+
+    rows = [{"wall_time": "2.0", "cpu": "AMD EPYC"}, {"wall_time": "4.0", "cpu": ""},
+            {"wall_time": "3.0"}, {"wall_time": "3.0", "cpu": "AMD EPYC"},
+            {"wall_time": "1.0", "cpu": "Intel(R) Xeon(R) Processor"}]
+    assert wall_text(rows) == (
+        "the runs took 0.0 core-hours (2.6 s per run on average; divide by the worker "
+        "processes for the elapsed time); run on AMD EPYC (2 runs), Intel(R) Xeon(R) "
+        "Processor (1 runs), a CPU not recorded (2 runs)")
+    # a table written before hmpc recorded the CPU: the line as it was
+    assert wall_text(rows[1:3]) == ("the runs took 0.0 core-hours (3.5 s per run on average; "
+                                    "divide by the worker processes for the elapsed time)")
+
+
 @pytest.mark.slow
 def test_report_command_runs_a_tiny_study_then_writes_the_page(tmp_path, run_hmpc):
     sweep = tmp_path / "tiny_study.toml"

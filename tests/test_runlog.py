@@ -88,3 +88,22 @@ def test_the_null_writer_answers_every_call_of_the_topic_writer():
         return {n for n in dir(cls) if not n.startswith("_") and callable(getattr(cls, n))}
 
     assert public(TopicWriter) == public(NullWriter)
+
+
+def test_a_run_records_the_cpu_it_ran_on(tmp_path):
+    """The CPU can move a run's last bits (docs/running.md): /run/info's versions, the
+    summary and summary.json name it; replay --verify skips it (another machine is no
+    divergence)."""
+    import json
+
+    from hmpc_cli.core.machine import cpu_model
+
+    sc, text = load_scenario(SCENARIOS / "ball.toml", ["sim.duration=0.05"])
+    execute_run(prepare(sc), text, tmp_path / "run")
+    log = read_log(tmp_path / "run" / "run.mcap")
+    cpu = cpu_model()
+    assert cpu and cpu != "unknown"
+    assert log.topic("/run/info")[0].data["versions"]["cpu"] == cpu
+    assert log.topic("/run/summary")[0].data["cpu"] == cpu
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["cpu"] == cpu
+    assert _ignored("cpu")

@@ -34,7 +34,7 @@ SOFTENED_TOL = 1e-6  # as hmpc_cli.log.runlog.SOFTENED_TOL (not imported: it pul
 RTOL, ATOL = 1e-9, 1e-12
 # fields that are measurements or the command line, not results: never compared by verify
 _IGNORED = {"wall_time", "versions", "command", "argv", "overrides", "sweep", "log_version",
-            "build"}
+            "build", "cpu"}
 _IGNORED_RE = re.compile(r"(wall_time|_time_(median|mean|p\d+|max|min))$")
 
 
@@ -352,7 +352,7 @@ def disturbance_stats(messages: list, t_end: float) -> dict:
 
 
 def _ignored(key: str) -> bool:
-    """Whether a field is a measurement or the command line (skipped by verify)."""
+    """Whether a field is a measurement, the machine or the command line (skipped by verify)."""
     return key in _IGNORED or bool(_IGNORED_RE.search(key))
 
 

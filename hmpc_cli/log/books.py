@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hmpc_cli.core.machine import cpu_model
 from hmpc_cli.core.messages import Plan, PlannerResult
 
 __all__ = ["SOFTENED_TOL", "RunBooks", "RunResult"]
@@ -49,6 +50,7 @@ class RunResult:
     reason: str = ""
     wall_time: float = 0.0
     warnings: list = field(default_factory=list)
+    cpu: str = field(default_factory=cpu_model)  # the machine's (hmpc_cli.core.machine)
 
 
 class RunBooks:

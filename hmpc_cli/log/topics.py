@@ -51,6 +51,7 @@ class Versions:
     pydantic: str
     mcap: str
     platform: str
+    cpu: str = ""
 
 
 @dataclass(frozen=True)
@@ -280,6 +281,7 @@ class Summary:
     reason: str
     wall_time: float
     warnings: tuple[str, ...]
+    cpu: str = ""
 
 
 #: topic -> (schema name, message type)

@@ -217,12 +217,26 @@ def findings(cells) -> list[str]:
 
 
 def wall_text(rows: list[dict]) -> str:
-    """The runs' summed wall time (core hours) and mean per run."""
+    """The runs' summed wall time (core hours), mean per run and the machines' CPUs."""
     walls = [float(r["wall_time"]) for r in rows if r.get("wall_time") not in (None, "")]
     if not walls:
-        return "wall time not recorded"
+        return "wall time not recorded" + machines_text(rows)
     return (f"the runs took {sum(walls) / 3600:.1f} core-hours ({sum(walls) / len(walls):.1f} s "
-            "per run on average; divide by the worker processes for the elapsed time)")
+            "per run on average; divide by the worker processes for the elapsed time)"
+            + machines_text(rows))
+
+
+def machines_text(rows: list[dict]) -> str:
+    """``; run on CPU (n runs), ...`` when any row records its CPU, else ''.
+
+    Rows of a table written before hmpc recorded the CPU count as not recorded.
+    """
+    cpus = Counter(r.get("cpu") or "" for r in rows)
+    if not any(cpus):
+        return ""
+    parts = [f"{cpu or 'a CPU not recorded'} ({n} runs)"
+             for cpu, n in sorted(cpus.items(), key=lambda kv: (not kv[0], -kv[1], kv[0]))]
+    return "; run on " + ", ".join(parts)
 
 
 def _number(value) -> float:

@@ -19,7 +19,7 @@ from typing import Any
 TIMING = ("solve_time_median", "solve_time_p95", "solve_time_max", "plan_time_median",
           "wall_time")
 METRICS = ("success", "final_error", "contacts", "solves", "solver_failures", "softened_solves",
-           "planner_calls", "planner_rejected", "diverged", "reason", *TIMING)
+           "planner_calls", "planner_rejected", "diverged", "reason", *TIMING, "cpu")
 INTERRUPTED = "interrupted"
 #: beside results.csv: the sweep's scenario file as its runs read it (no override, seed 0)
 BASE_SCENARIO = "scenario.toml"
