@@ -387,8 +387,10 @@ def test_a_modelled_latency_study_pairs_with_the_paused_study_of_its_own_scenari
     assert "### modelled latency charged vs time paused" in text
     assert "`rti_model` beside the same cells of `rti`." in text
     assert "reaches the plant its modelled compute time after the state" in text
-    # the first plan paused by the runs' scenario, not by the sweep's [set]: said so
-    (dirs[2] / "scenario.toml").write_text(
+    # the first plan paused by the runs' scenario, not by the sweep's [set]: said so (the
+    # first run's effective scenario, in its run directory)
+    (dirs[2] / "runs" / "0-0").mkdir(parents=True)
+    (dirs[2] / "runs" / "0-0" / "scenario.toml").write_text(
         (REPO / "scenarios" / "ball_realtime.toml").read_text())
     again = "\n".join(robustness_sections([Study(d) for d in dirs], tmp_path / "f2", tmp_path))
     assert ("`rti_model` beside the same cells of `rti`. The first plan is computed with time "

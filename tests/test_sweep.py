@@ -160,12 +160,12 @@ def _as_committed(out: Path, to: Path) -> Path:
 
 
 def test_a_committed_table_resumes_without_its_run_directories(tiny):
-    """A fresh clone holds results.csv, sweep.toml and scenario.toml, no run logs (at
+    """A fresh clone holds results.csv, sweep.toml and base_scenario.toml, no run logs (at
     most a drawn run's trace.mcap): its rows are finished runs; rows taken out of the
     table are run again, and the table comes back in grid order."""
     base, path, out, _ = tiny
     committed = _as_committed(out, base / "committed")
-    assert (committed / "scenario.toml").is_file()
+    assert (committed / "base_scenario.toml").is_file()
     drawn = next(r["run_id"] for r in table(out)[2:] if r["log"])  # a drawn run: its trace
     (committed / "runs" / drawn).mkdir(parents=True)
     shutil.copy(out / "runs" / drawn / "run.mcap", committed / "runs" / drawn / "trace.mcap")
@@ -183,12 +183,12 @@ def test_a_committed_table_resumes_without_its_run_directories(tiny):
         [drawn, *(r["run_id"] for r in table(out)[:2])])
 
 
-@pytest.mark.parametrize("case", ["another scenario", "no scenario.toml"])
+@pytest.mark.parametrize("case", ["another scenario", "no base_scenario.toml"])
 def test_a_table_of_another_or_an_unknown_scenario_counts_for_nothing(tiny, case):
     base, path, out, _ = tiny
     committed = _as_committed(out, base / f"other-{case.replace(' ', '-')}")
-    side = committed / "scenario.toml"
-    if case == "no scenario.toml":
+    side = committed / "base_scenario.toml"
+    if case == "no base_scenario.toml":
         side.unlink()
     else:
         text = side.read_text()

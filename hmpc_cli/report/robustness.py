@@ -62,7 +62,7 @@ def _effective(table: Path, row: dict, sweep_file: Path | None, scratch: Path) -
     A committed sweep table has no run directories: the sweep file (which made the
     table) gives every run's scenario again, by run id.
     """
-    path = table.parent / Path(row.get("log", "")).parent / "scenario.toml"
+    path = table.parent / "runs" / row.get("run_id", "") / "scenario.toml"
     if path.is_file() or sweep_file is None:
         return path
     run = _planned(Path(sweep_file).resolve()).get(row.get("run_id"))

@@ -2,7 +2,7 @@
 
 A run is finished when its run directory says so (:func:`finished`), or when it is a
 *tabled* run: a row of the existing results.csv whose run id is planned, written beside
-``<out>/scenario.toml`` (the sweep's scenario as its runs read it) that is the planned
+``<out>/base_scenario.toml`` (the sweep's scenario as its runs read it) that is the planned
 scenario (:func:`tabled_rows`). Committed tables carry no run directories; their rows still
 count, so a campaign resumes from the table alone (a fresh clone, another machine).
 """
@@ -22,7 +22,7 @@ METRICS = ("success", "final_error", "contacts", "solves", "solver_failures", "s
            "planner_calls", "planner_rejected", "diverged", "reason", *TIMING, "cpu")
 INTERRUPTED = "interrupted"
 #: beside results.csv: the sweep's scenario file as its runs read it (no override, seed 0)
-BASE_SCENARIO = "scenario.toml"
+BASE_SCENARIO = "base_scenario.toml"
 
 
 def is_interrupted(summary: dict) -> bool:
@@ -122,11 +122,11 @@ def base_scenario(plan) -> str:
 def tabled_rows(plan, out: Path) -> dict[str, dict[str, str]]:
     """The rows of ``<out>/results.csv`` that stand for finished runs of ``plan``, by run id.
 
-    A row counts when ``<out>/scenario.toml`` is the planned base scenario
+    A row counts when ``<out>/base_scenario.toml`` is the planned base scenario
     (:func:`base_scenario`, compared by :func:`same_scenario`), its run id is one of the
     plan's (the id hashes the run's overrides and seed, so the run's effective scenario is
     the planned one) and its reason is not ``interrupted...``. A table written without
-    ``scenario.toml`` (before hmpc recorded it), unreadable, or of another scenario counts
+    ``base_scenario.toml`` (before hmpc recorded it), unreadable, or of another scenario counts
     for nothing: its runs are redone.
     """
     try:
@@ -204,7 +204,7 @@ def result_rows(plan, out: Path) -> list[dict[str, str]]:
 
 
 def write_results(plan, out: Path) -> int:
-    """Rewrites ``<out>/results.csv`` (:func:`result_rows`) and ``<out>/scenario.toml``.
+    """Rewrites ``<out>/results.csv`` (:func:`result_rows`) and ``<out>/base_scenario.toml``.
 
     Returns:
         The table's rows.
