@@ -92,7 +92,10 @@ def test_tiny_sweep_table_and_failures(tiny):
         "set.replanning.contact_guards", "set.sim.divergence_bound", "set.sim.duration",
         "success", "final_error", "contacts", "solves", "solver_failures", "softened_solves",
         "planner_calls", "planner_rejected", "diverged", "reason", "solve_time_median",
-        "solve_time_p95", "solve_time_max", "plan_time_median", "wall_time", "log"]
+        "solve_time_p95", "solve_time_max", "plan_time_median", "wall_time", "cpu", "log"]
+    from hmpc_cli.core.machine import cpu_model
+
+    assert {r["cpu"] for r in rows} == {cpu_model()}  # crashed runs too
     by_case = {c: [r for r in rows if r["case"] == c] for c in ("ok", "diverge", "crash")}
     assert all(len(v) == 4 for v in by_case.values())
     assert {(r["lowlevel.kp"], r["seed"]) for r in by_case["ok"]} == {
