@@ -166,7 +166,7 @@ def test_the_wall_time_line_names_the_cpus_that_ran_the_runs():
     assert wall_text(rows) == (
         "the runs took 0.0 core-hours (2.6 s per run on average; divide by the worker "
         "processes for the elapsed time); run on AMD EPYC (2 runs), Intel(R) Xeon(R) "
-        "Processor (1 runs), a CPU not recorded (2 runs)")
+        "Processor (1 run), a CPU not recorded (2 runs)")
     # a table written before hmpc recorded the CPU: the line as it was
     assert wall_text(rows[1:3]) == ("the runs took 0.0 core-hours (3.5 s per run on average; "
                                     "divide by the worker processes for the elapsed time)")

@@ -204,6 +204,39 @@ def test_a_table_of_another_or_an_unknown_scenario_counts_for_nothing(tiny, case
     assert {r["seed"] for r in table(committed)} == {"0"}  # the untrusted rows are gone
 
 
+def test_a_tabled_run_takes_its_labels_from_the_plan_and_a_bom_keeps_its_rows(tiny):
+    """A label renamed in the sweep file (same overrides, so the same run ids) renames the
+    committed rows' cell; a results.csv re-saved with a byte-order mark still counts."""
+    base, path, out, _ = tiny
+    committed = _as_committed(out, base / "relabelled")
+    (committed / "results.csv").write_bytes(b"\xef\xbb\xbf" + (out / "results.csv").read_bytes())
+    renamed = write_sweep(base, TINY.replace('label = "ok"', 'label = "fine"'), "renamed.toml")
+    proc = sweep([str(renamed), "--workers", "1", "--out", str(committed)], base)
+    assert proc.returncode == 0, proc.stderr
+    assert "12 runs, 12 skipped (already done), 0 to run" in proc.stdout
+    old = table(out)
+    assert table(committed) == [{**r, "case": "fine" if r["case"] == "ok" else r["case"]}
+                                for r in old]
+
+
+def test_the_recorded_base_scenario_is_the_one_the_runs_were_planned_with(tmp_path):
+    """A scenario file edited while the sweep runs: base_scenario.toml is the planned one,
+    so a later clone does not take the old rows for runs of the edited file."""
+    from hmpc_cli.sweep.table import BASE_SCENARIO, write_results
+
+    scenario = tmp_path / "ball.toml"
+    scenario.write_text(BALL.read_text())
+    path = tmp_path / "s.toml"
+    path.write_text('name = "s"\nscenario = "ball.toml"\n' + TINY_SET)
+    plan = plan_sweep(path)
+    scenario.write_text(BALL.read_text().replace("rate_hz = 10\n", "rate_hz = 20\n", 1))
+    (tmp_path / "out").mkdir()
+    write_results(plan, tmp_path / "out")
+    recorded = (tmp_path / "out" / BASE_SCENARIO).read_text()
+    assert recorded == plan.base_toml and "rate_hz = 10\n" in recorded
+    assert plan_sweep(path).base_toml != recorded
+
+
 @pytest.mark.slow
 def test_dask_matches_local(tiny):
     import distributed  # in the `test` extra

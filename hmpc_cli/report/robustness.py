@@ -234,7 +234,7 @@ def machines_text(rows: list[dict]) -> str:
     cpus = Counter(r.get("cpu") or "" for r in rows)
     if not any(cpus):
         return ""
-    parts = [f"{cpu or 'a CPU not recorded'} ({n} runs)"
+    parts = [f"{cpu or 'a CPU not recorded'} ({n} run{'' if n == 1 else 's'})"
              for cpu, n in sorted(cpus.items(), key=lambda kv: (not kv[0], -kv[1], kv[0]))]
     return "; run on " + ", ".join(parts)
 

@@ -3,7 +3,8 @@
 Runs go to ``<out>/runs/<run_id>/`` (see :mod:`hmpc_cli.run.runner`), in-process, in spawned
 worker processes (:mod:`hmpc_cli.sweep.pool`) or on a Dask cluster whose workers return
 their files through the futures (:mod:`hmpc_cli.sweep.dask`); ``<out>/results.csv`` is
-rebuilt from their ``summary.json`` files (:mod:`hmpc_cli.sweep.table`).
+rebuilt from their ``summary.json`` files and the committed table's rows that still stand
+for runs (:mod:`hmpc_cli.sweep.table`).
 """
 
 from __future__ import annotations

@@ -113,6 +113,9 @@ class SweepPlan:
     runs: list[Run]
     keys: list[str] = field(default_factory=list)
     only_seeds: frozenset[int] | None = None  # run only these seeds (the table keeps all)
+    #: the scenario file as every run read it when planned (no override, seed 0); "" when
+    #: it is valid only with the sweep's overrides (then no committed row counts as a run)
+    base_toml: str = ""
 
     @property
     def selected(self) -> list[Run]:
@@ -259,7 +262,11 @@ def plan_sweep(path: str | Path) -> SweepPlan:
     if errors:
         raise ScenarioError(list(dict.fromkeys(errors)))
     keys = sorted({k for r in runs for k in r.overrides})
-    return SweepPlan(path, text, spec, scenario, axes, runs, keys)
+    try:
+        base = load_scenario(scenario, [], 0, check_margins=False)[1]
+    except ScenarioError:
+        base = ""
+    return SweepPlan(path, text, spec, scenario, axes, runs, keys, base_toml=base)
 
 
 def _read_spec(path: Path, src: str) -> tuple[str, SweepSpec]:

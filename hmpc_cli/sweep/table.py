@@ -112,35 +112,27 @@ def grid_order(plan) -> list:
     return sorted(plan.runs, key=lambda r: (cells[tuple(map(repr, r.cell))], r.seed))
 
 
-def base_scenario(plan) -> str:
-    """The sweep's scenario file as every run reads it before its overrides (seed 0)."""
-    from hmpc_cli.run.scenario import load_scenario
-
-    return load_scenario(plan.scenario, [], 0, check_margins=False)[1]
-
-
 def tabled_rows(plan, out: Path) -> dict[str, dict[str, str]]:
     """The rows of ``<out>/results.csv`` that stand for finished runs of ``plan``, by run id.
 
-    A row counts when ``<out>/base_scenario.toml`` is the planned base scenario
-    (:func:`base_scenario`, compared by :func:`same_scenario`), its run id is one of the
+    A row counts when ``<out>/base_scenario.toml`` is the plan's base scenario
+    (``plan.base_toml``, compared by :func:`same_scenario`), its run id is one of the
     plan's (the id hashes the run's overrides and seed, so the run's effective scenario is
-    the planned one) and its reason is not ``interrupted...``. A table written without
-    ``base_scenario.toml`` (before hmpc recorded it), unreadable, or of another scenario counts
-    for nothing: its runs are redone.
+    the planned one), its ``success`` is ``true`` or ``false`` and its reason is not
+    ``interrupted...``. A table written without ``base_scenario.toml`` (before hmpc
+    recorded it), unreadable, or of another scenario counts for nothing: its runs are
+    redone. Not seen: defaults that only a run's overrides bring in (a plug-in kind chosen
+    by a grid axis) changed since the row was written; the run directory's check sees them.
     """
+    if not plan.base_toml:
+        return {}
     try:
         stored = (out / BASE_SCENARIO).read_text(encoding="utf-8")
-        with open(out / "results.csv", newline="", encoding="utf-8") as f:
+        with open(out / "results.csv", newline="", encoding="utf-8-sig") as f:
             rows = list(csv.DictReader(f))
     except (OSError, UnicodeDecodeError, csv.Error):
         return {}
-    from hmpc_cli.run.scenario import ScenarioError
-
-    try:
-        if not same_scenario(stored, base_scenario(plan)):
-            return {}
-    except ScenarioError:  # the scenario file no longer loads: nothing is known to match
+    if not same_scenario(stored, plan.base_toml):
         return {}
     planned = {r.run_id for r in plan.runs}
     return {r["run_id"]: r for r in rows
@@ -181,21 +173,24 @@ def result_rows(plan, out: Path) -> list[dict[str, str]]:
     """One row per finished run, in grid order (:func:`grid_order`), however they finished.
 
     A run whose directory is finished gets its row from its summary; a tabled run never
-    started here (:func:`finished_runs`) keeps its row as it was. Columns:
-    :attr:`SweepPlan.columns`.
+    started here (:func:`finished_runs`) keeps its outcome (the metrics and ``log``) as
+    tabled. The run id, labels, seed and ``set.*`` columns come from the plan (an axis or
+    a label renamed since is renamed in the table too). Columns: :attr:`SweepPlan.columns`.
     """
     rows = []
     tabled = tabled_rows(plan, out)
     for run in grid_order(plan):
         summary = finished(out, run)
-        if summary is None:
-            if run.run_id in tabled and not started(out / "runs" / run.run_id):
-                rows.append({c: tabled[run.run_id].get(c, "") for c in plan.columns})
-            continue
         row = {"run_id": run.run_id, "seed": str(run.seed)}
         cell = zip(plan.axes, run.cell, strict=True)  # one label per axis
         row |= {a.name: cell_text(v) for a, v in cell}
         row |= {f"set.{k}": cell_text(run.overrides.get(k)) for k in plan.keys}
+        if summary is None:
+            if run.run_id in tabled and not started(out / "runs" / run.run_id):
+                was = tabled[run.run_id]
+                row |= {k: was.get(k, "") for k in (*METRICS, "log")}
+                rows.append({c: row[c] for c in plan.columns})
+            continue
         row |= {k: cell_text(summary.get(k)) for k in METRICS}
         log = out / "runs" / run.run_id / "run.mcap"
         row["log"] = log.relative_to(out).as_posix() if log.exists() else ""
@@ -216,7 +211,10 @@ def write_results(plan, out: Path) -> int:
     from hmpc_cli.core.paths import write_atomic
 
     write_atomic(out / "results.csv", buf.getvalue())
-    write_atomic(out / BASE_SCENARIO, base_scenario(plan))
+    if plan.base_toml:
+        write_atomic(out / BASE_SCENARIO, plan.base_toml)
+    else:  # no base to record: a sidecar of an earlier plan would vouch for these rows
+        (out / BASE_SCENARIO).unlink(missing_ok=True)
     return len(rows)
 
 
