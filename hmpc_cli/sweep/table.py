@@ -149,6 +149,12 @@ def started(d: Path) -> bool:
     return any((d / f).exists() or (d / f).is_symlink() for f in ("run.mcap", "summary.json"))
 
 
+def _standing_row(tabled: dict, out: Path, run) -> dict[str, str] | None:
+    """The tabled row of ``run`` if it stands for the run: the run was never started here."""
+    row = tabled.get(run.run_id)
+    return row if row is not None and not started(out / "runs" / run.run_id) else None
+
+
 def finished_runs(plan, out: Path, runs=None) -> dict[str, dict | None]:
     """Per run of ``runs`` (default: the plan's selected ones): what shows it finished.
 
@@ -161,10 +167,10 @@ def finished_runs(plan, out: Path, runs=None) -> dict[str, dict | None]:
     done = {}
     for run in plan.selected if runs is None else runs:
         summary = finished(out, run)
-        row = tabled.get(run.run_id) if summary is None else None
-        if row is not None and not started(out / "runs" / run.run_id):
+        row = _standing_row(tabled, out, run) if summary is None else None
+        if row is not None:
             summary = {**{k: row.get(k, "") for k in METRICS}, "success": row["success"] ==
-                       "true", "tabled": True}
+                       "true"}
         done[run.run_id] = summary
     return done
 
@@ -186,8 +192,8 @@ def result_rows(plan, out: Path) -> list[dict[str, str]]:
         row |= {a.name: cell_text(v) for a, v in cell}
         row |= {f"set.{k}": cell_text(run.overrides.get(k)) for k in plan.keys}
         if summary is None:
-            if run.run_id in tabled and not started(out / "runs" / run.run_id):
-                was = tabled[run.run_id]
+            was = _standing_row(tabled, out, run)
+            if was is not None:
                 row |= {k: was.get(k, "") for k in (*METRICS, "log")}
                 rows.append({c: row[c] for c in plan.columns})
             continue
