@@ -149,22 +149,51 @@ def profile(splits: list[dict], stats: list, packing: list[float]) -> list[tuple
     return out
 
 
-def targets(table: list[Row], best: str) -> list[str]:
-    """The issue's targets for the fastest back-end, each with its measured value."""
+#: Step 11's solve-time targets [ms]: (NLP, statistic, bound)
+TIME_TARGETS = (("switching", "median_ms", 15.0), ("switching", "p95_ms", 30.0),
+                ("all", "median_ms", 3.0), ("all", "p95_ms", 15.0))
+#: Step 11's speed-up targets: over IPOPT's defaults (all solves), over do-mpc (final NLP)
+X_IPOPT_DEFAULTS, X_DO_MPC = 5.0, 20.0
+
+
+def targets(table: list[Row], config: str) -> list[str]:
+    """Step 11's solve-time targets for one configuration, each with its measured value.
+
+    Switching solves median <= 15 ms and p95 <= 30 ms, all solves median <= 3 ms and p95
+    <= 15 ms, >= 5x IPOPT's defaults (medians of all solves), >= 20x do-mpc (medians of
+    the final-domain NLP, the one do-mpc solves), no failure.
+    """
     get = {(r.nlp, r.config): r for r in table}
-    a = get[("all", best)]
-    lines = [f"median {a.median_ms:.2f} ms (target <= 2 ms): {_met(a.median_ms <= 2.0)}",
-             f"p95 {a.p95_ms:.2f} ms (target <= 10 ms): {_met(a.p95_ms <= 10.0)}"]
+    lines = []
+    for nlp, stat, bound in TIME_TARGETS:
+        row = get.get((nlp, config))
+        if row is not None:
+            value = getattr(row, stat)
+            lines.append(f"{nlp} solves {stat[:-3]} {value:.2f} ms (target <= {bound:g} ms): "
+                         f"{_met(value <= bound)}")
+    a = get[("all", config)]
     if ("all", "ipopt_defaults") in get:
         x = get[("all", "ipopt_defaults")].median_ms / a.median_ms
-        lines.append(f"{x:.1f}x faster than IPOPT defaults (target >= 5x): {_met(x >= 5)}")
-    f = get.get(("final", best))
+        lines.append(f"{x:.1f}x faster than IPOPT defaults, all solves (target >= "
+                     f"{X_IPOPT_DEFAULTS:g}x): {_met(x >= X_IPOPT_DEFAULTS)}")
+    f = get.get(("final", config))
     if f is not None and np.isfinite(f.dompc_x):
-        lines.append(f"{f.dompc_x:.1f}x faster than do-mpc, final NLP (target >= 20x): "
-                     f"{_met(f.dompc_x >= 20)}")
+        lines.append(f"{f.dompc_x:.1f}x faster than do-mpc, final NLP (target >= "
+                     f"{X_DO_MPC:g}x): {_met(f.dompc_x >= X_DO_MPC)}")
     lines.append(f"failures {a.failures}, fallbacks {a.fallbacks} (target 0 failures): "
                  f"{_met(a.failures == 0)}")
     return lines
+
+
+def target_sections(table: list[Row], best: str) -> list[tuple[str, list[str]]]:
+    """(heading, target lines) for the default configuration and the fastest back-end."""
+    configs = {r.config for r in table}
+    out = []
+    if "hmpc_ipopt" in configs:
+        out.append(("hmpc_ipopt, the default configuration", targets(table, "hmpc_ipopt")))
+    if best != "hmpc_ipopt":
+        out.append((f"{best}, the fastest back-end", targets(table, best)))
+    return out
 
 
 def _met(ok: bool) -> str:
@@ -300,8 +329,8 @@ def write(run, desc: dict, out: str) -> tuple[str, list[str]]:
     text = [text_table(table, run), *profile_lines(run, best)]
     if best != "hmpc_ipopt":
         text += profile_lines(run, "hmpc_ipopt")
-    text += [f"\nissue targets, fastest back-end {best}:"]
-    text += [f"  {t}" for t in targets(table, best)]
+    for heading, lines in target_sections(table, best):
+        text += [f"\nissue targets, {heading}:"] + [f"  {t}" for t in lines]
     text += [f"\nnote: {n}" for n in run.notes]
     text += [f"\nload average {desc['load_average_start']} at start, "
              f"{desc['load_average_end']} at end ({desc['cores']} cores)"]
@@ -349,7 +378,8 @@ def markdown(table: list[Row], run, desc: dict, best: str) -> list[str]:
             *profile_lines(run, best, markdown=True)]
     if best != "hmpc_ipopt":
         out += ["", "For comparison, hmpc's IPOPT:", *profile_lines(run, "hmpc_ipopt", True)]
-    out += ["", f"## Issue targets ({best})", ""] + [f"* {t}" for t in targets(table, best)]
+    for heading, lines in target_sections(table, best):
+        out += ["", f"## Issue targets: {heading}", ""] + [f"* {t}" for t in lines]
     if run.notes:
         out += ["", "## Notes", ""] + [f"* {n}" for n in run.notes]
     return out

@@ -99,6 +99,29 @@ def test_failures_are_counted_and_ratios_are_of_medians():
     assert np.isnan(rows["fatrop"].dompc_x)
 
 
+def test_step_11_targets_are_stated_for_the_default_and_the_fastest_configuration():
+    def st(ms):
+        return SolveStats("x", True, 3, ms / 1e3, 0.0, 0.0)
+
+    stats = {("hmpc_ipopt", "final"): [st(8)] * 5, ("hmpc_ipopt", "switching"): [st(40)] * 3,
+             ("rti", "final"): [st(2)] * 5, ("rti", "switching"): [st(9)] * 3,
+             ("ipopt_defaults", "final"): [st(16)] * 5,
+             ("ipopt_defaults", "switching"): [st(60)] * 3,
+             ("do_mpc", "final"): [st(42)] * 5}  # all solves: the final NLP's median
+    table = suite_report.rows(stats)
+    sections = dict(suite_report.target_sections(table, suite_report.fastest(table)))
+    assert list(sections) == ["hmpc_ipopt, the default configuration", "rti, the fastest back-end"]
+    rti = sections["rti, the fastest back-end"]
+    assert "switching solves median 9.00 ms (target <= 15 ms): met" in rti
+    assert "switching solves p95 9.00 ms (target <= 30 ms): met" in rti
+    assert "all solves median 2.00 ms (target <= 3 ms): met" in rti
+    assert "8.0x faster than IPOPT defaults, all solves (target >= 5x): met" in rti
+    assert "21.0x faster than do-mpc, final NLP (target >= 20x): met" in rti
+    ipopt = sections["hmpc_ipopt, the default configuration"]
+    assert "switching solves median 40.00 ms (target <= 15 ms): NOT met" in ipopt
+    assert "5.2x faster than do-mpc, final NLP (target >= 20x): NOT met" in ipopt
+
+
 def test_the_profile_parts_add_up_to_the_call():
     split = {"QP": 0.002, "nlp_fg": 0.0005, "nlp_jac_fg": 0.001, "linesearch": 0.0007,
              "total": 0.004, "casadi_call": 0.0045, "cpu_casadi_call": 0.003,
