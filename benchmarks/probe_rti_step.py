@@ -14,8 +14,9 @@ multipliers bit for bit, and both median wall times.
 
 CasADi's HPIPM conic is called on a fresh ``FunctionBuffer`` (and so fresh memory) per
 QP: on one buffer reused, its second call with the same inputs returns another step (the
-probe prints whether it does). A fresh memory per QP costs more than the ``nlp_jac_fg``
-evaluation saved; results: docs/performance.md, "Real time: the real-time iterations".
+probe prints whether it does). Inside hmpc's solver session (branch
+``exp/rti-python-steps``) the Python around the calls spends what the evaluation saves:
+docs/performance.md, "Real time: the real-time iterations".
 Timing is measured, never asserted.
 """
 

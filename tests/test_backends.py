@@ -136,6 +136,32 @@ def test_one_real_time_iteration_is_one_full_step_kept(ball, problems, which):
     assert cold.stats.success and 1 <= cold.stats.iterations <= RTI_COLD_ITER
 
 
+@pytest.mark.parametrize("which", ["final", "switching"])
+def test_the_warm_rti_instance_reuses_the_cold_ones_derivatives_bit_for_bit(ball, problems,
+                                                                            which):
+    """The warm instance is given the cold one's nlp_jac_fg and Hessian (no second
+    symbolic generation at start-up): its steps equal those of a warm sqpmethod that
+    generated its own, bit for bit."""
+    import casadi as ca
+
+    from hmpc_cli.mpc.buffered import BufferedSolver
+    from hmpc_cli.mpc.solver import derivatives_of
+
+    args, _ = problems[which]
+    nlp = _nlp(ball, which, solver="rti", switching_solver="rti", max_sqp_iter=1)
+    session = nlp.session
+    shared = derivatives_of(session.cold, "sqpmethod")
+    assert set(shared) == {"jac_fg", "hess_lag"}
+    own = BufferedSolver(ca.nlpsol("own", "sqpmethod", session._nlp,
+                                   {**session.options, "max_iter": 1}))
+    lam_x = np.zeros(len(args[2])) if args[6] is None else args[6]
+    lam_g = np.zeros(len(args[4])) if args[7] is None else args[7]
+    inputs = dict(x0=args[0], p=args[1], lbx=args[2], ubx=args[3], lbg=args[4], ubg=args[5],
+                  lam_x0=lam_x, lam_g0=lam_g)
+    ours, ref = session.warm(**inputs), own(**inputs)
+    assert all(np.array_equal(ours[k], ref[k]) for k in ("x", "f", "g", "lam_x", "lam_g"))
+
+
 def test_failed_backend_solve_falls_back_to_ipopt_and_is_counted(ball, problems):
     """HPIPM cut to one iteration fails every QP: IPOPT solves instead, counted."""
     args, ref = problems["final"]

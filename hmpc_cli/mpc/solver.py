@@ -88,19 +88,23 @@ def plugin_options(plugin: str, max_iter: int, tol: float = 1e-8,
                                       sections))
 
 
-#: IPOPT's derivative options -> the functions nlpsol generates for them
-DERIVATIVES = {"grad_f": "nlp_grad_f", "jac_g": "nlp_jac_g", "hess_lag": "nlp_hess_l"}
+#: per nlpsol plugin, its derivative options -> the functions it generates for them
+DERIVATIVES = {
+    "ipopt": {"grad_f": "nlp_grad_f", "jac_g": "nlp_jac_g", "hess_lag": "nlp_hess_l"},
+    "sqpmethod": {"jac_fg": "nlp_jac_fg", "hess_lag": "nlp_hess_l"},
+}
 
 
-def derivatives_of(solver: ca.Function) -> dict:
-    """The gradient, Jacobian and Hessian functions an IPOPT instance generated, as options.
+def derivatives_of(solver: ca.Function, plugin: str = "ipopt") -> dict:
+    """The derivative functions an ``nlpsol`` instance of ``plugin`` generated, as options.
 
     Another instance of the same NLP given them skips their symbolic generation (a large
     part of an instance's start-up); they are the same SX graphs, so its iterates
     are the same bit for bit. A function the instance did not generate (no Hessian
-    with ``hessian_approximation = "limited-memory"``) is left out.
+    with ``hessian_approximation = "limited-memory"``) is left out; a plugin without
+    an entry in :data:`DERIVATIVES` gets none.
     """
-    return {opt: solver.get_function(fn) for opt, fn in DERIVATIVES.items()
+    return {opt: solver.get_function(fn) for opt, fn in DERIVATIVES.get(plugin, {}).items()
             if solver.has_function(fn)}
 
 
@@ -201,8 +205,7 @@ class SolverSession:
         if backend.warm is not None and warm is not None:
             self.warm = BufferedSolver(ca.nlpsol(f"{name}_warm", backend.plugin, nlp, {
                 **backend.warm(load, warm, sections, args),
-                **({} if compiled or backend.plugin != "ipopt"
-                   else derivatives_of(self.cold))}))
+                **({} if compiled else derivatives_of(self.cold, backend.plugin))}))
         self._g = ca.external("nlp_g", nlp) if compiled else \
             ca.Function("g", [nlp["x"], nlp["p"]], [nlp["g"]])
 
