@@ -33,8 +33,6 @@ from hmpc_cli.mpc.chain.nlp import FixedModeNLP
 from hmpc_cli.run.runner import prepare
 from hmpc_cli.run.scenario import load_scenario
 
-#: sqpmethod's step-size test (its ``min_step_size``)
-MIN_STEP = 1e-10
 OUTPUTS = ("x", "f", "g", "lam_x", "lam_g")
 
 
@@ -55,25 +53,26 @@ class HandRolledStep:
     """One full Gauss-Newton SQP step on ``sqpmethod``'s own functions (see the module)."""
 
     def __init__(self, sqp: ca.Function, qp_options: dict, tol: float = 1e-8) -> None:
-        self.jac = _buffer(sqp.get_function("nlp_jac_fg"))
+        jac_fg = sqp.get_function("nlp_jac_fg")
+        self.jac = _buffer(jac_fg)
         self.hess = _buffer(sqp.get_function("nlp_hess_l"))
         self.fg = _buffer(sqp.oracle())
         q = sqp.find_function("qpsol")
         self.conic = ca.conic("rti_qp", "hpipm", {"h": q.sparsity_in(0),
                                                   "a": q.sparsity_in(2)}, qp_options)
-        jac = sqp.get_function("nlp_jac_fg").sparsity_out(3)
+        jac = jac_fg.sparsity_out(3)
         self.col = np.repeat(np.arange(jac.size2()), np.diff(jac.colind()))
         self.row = np.asarray(jac.row())
         self.tol = tol
-        self.last_qp: list = []  # the last QP's inputs
+        self.last_qp: list[np.ndarray] = []  # the last QP's input arrays (its own buffer's)
 
     def qp(self, ins: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(dx, lam_x, lam_a) of the QP with inputs ``ins`` (conic's order), fresh memory."""
-        self.last_qp = [np.array(v, dtype=float) for v in ins]
         evaluate, arr_in, out, _buf = _buffer(self.conic)
         for a, v in zip(arr_in, ins, strict=True):
             a[:] = v
         evaluate()
+        self.last_qp = arr_in  # a fresh buffer's arrays: kept without a copy in the timing
         return out[0].copy(), out[3].copy(), out[2].copy()
 
     def __call__(self, x0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0) -> dict:
