@@ -335,6 +335,26 @@ def test_fig3_expands_to_33_valid_runs(tmp_path):
                                         for r in fast.runs)
 
 
+@pytest.mark.parametrize("name", ["robustness_moved_tube", "biped_push", "robustness_realtime"])
+def test_each_runs_scenario_is_the_one_loaded_for_it_alone(name):
+    """A cell's scenario is validated once for all its seeds: every run's recorded TOML is
+    still what loading the scenario with that run's overrides and seed gives."""
+    from hmpc_cli.run.scenario import load_scenario
+    from hmpc_cli.sweep.table import toml_value
+
+    plan = plan_sweep(REPO / "sweeps" / f"{name}.toml")
+    firsts = {}
+    for run in plan.runs:
+        firsts.setdefault(run.cell, []).append(run)
+    picked = [r for runs in firsts.values() for r in (runs[0], runs[-1])][:40]
+    assert len({r.seed for r in picked}) > 1
+    for run in picked:
+        items = [f"{k}={toml_value(v)}" for k, v in run.overrides.items()]
+        assert run.toml == load_scenario(plan.scenario, items, run.seed,
+                                         attribute_sets=False)[1], run.cell
+        assert f"seed = {run.seed}\n" in run.toml
+
+
 @pytest.mark.slow
 def test_ctrl_c_stops_cleanly_and_resumes(tmp_path):
     path = write_sweep(tmp_path, 'name = "stop"\nscenario = "{scenario}"\nseeds = 4\n'

@@ -499,7 +499,12 @@ def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None 
     if problems:
         raise ScenarioError(attribute_to_sets([f"{path}: mpc.margins: {p}" for p in problems],
                                               str(path), overrides, attribute_sets))
-    return scenario, dump_toml(scenario.model_dump(mode="json", exclude_none=True))
+    return scenario, effective_toml(scenario)
+
+
+def effective_toml(scenario: ScenarioBase) -> str:
+    """A validated scenario as the TOML text a run records (unset optional keys left out)."""
+    return dump_toml(scenario.model_dump(mode="json", exclude_none=True))
 
 
 def _problems(data: dict, source: str) -> list[str]:

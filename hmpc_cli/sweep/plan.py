@@ -26,7 +26,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from hmpc_cli.run.scenario import (
-    ScenarioError, format_errors, load_scenario, read_toml_file, scenario_model)
+    ScenarioError, effective_toml, format_errors, load_scenario, read_toml_file, scenario_model)
 from hmpc_cli.core.settings_types import MAX_INT
 from hmpc_cli.sweep.table import METRICS, cell_text, toml_value
 
@@ -253,11 +253,18 @@ def plan_sweep(path: str | Path) -> SweepPlan:
         raise ScenarioError([*errors, f"{src}: seeds: {cells} grid cells x {len(spec.seeds)} "
                              f"seeds = {total} runs exceeds the limit {MAX_RUNS}"])
     runs = _expand(spec, base, axes, src, errors)
+    # a cell's scenario is validated once; its other seeds differ from it in the seed only
+    cells: dict[tuple[str, ...], Any] = {}
     for run in runs if scenario.is_file() else []:
+        items = tuple(f"{k}={toml_value(v)}" for k, v in run.overrides.items())
         try:
-            items = [f"{k}={toml_value(v)}" for k, v in run.overrides.items()]
-            _, run.toml = load_scenario(scenario, items, run.seed, attribute_sets=False)
+            if items not in cells:
+                cells[items], run.toml = load_scenario(scenario, list(items), run.seed,
+                                                       attribute_sets=False)
+            elif cells[items] is not None:
+                run.toml = effective_toml(cells[items].model_copy(update={"seed": run.seed}))
         except ScenarioError as exc:
+            cells[items] = None
             errors += [_rewrite(line, scenario, src, run) for line in exc.lines]
     if errors:
         raise ScenarioError(list(dict.fromkeys(errors)))
