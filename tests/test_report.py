@@ -172,6 +172,22 @@ def test_the_wall_time_line_names_the_cpus_that_ran_the_runs():
                                     "divide by the worker processes for the elapsed time)")
 
 
+def test_a_comparison_shows_the_digits_that_make_its_verdict_visible():
+    """27/40 against 34/50 is lower, so the rates are not both printed as 68 %."""
+    from hmpc_cli.figures.robustness import Cell
+    from hmpc_cli.report.robustness import _compare
+
+    def cell(k, n):
+        return Cell("p", "s", 5.0, n, k)
+
+    assert _compare(cell(27, 40), cell(34, 50), "100 Hz", "5 Hz") == (
+        "100 Hz is lower than 5 Hz (67.5 % vs 68.0 %; intervals overlap)")
+    assert _compare(cell(20, 40), cell(25, 50), "a", "b") == (
+        "a is the same as b (50 % vs 50 %; intervals overlap)")
+    assert _compare(cell(0, 40), cell(18, 50), "a", "b") == (
+        "a is lower than b (0 % vs 36 %; intervals separate)")
+
+
 @pytest.mark.slow
 def test_report_command_runs_a_tiny_study_then_writes_the_page(tmp_path, run_hmpc):
     sweep = tmp_path / "tiny_study.toml"

@@ -172,8 +172,12 @@ def _compare(hi, lo, what_hi: str, what_lo: str) -> str:
     """'<hi> is higher than / lower than / the same as <lo> (rates; intervals ...)'."""
     verdict = ("higher than" if hi.rate > lo.rate else "lower than" if hi.rate < lo.rate
                else "the same as")
-    return (f"{what_hi} is {verdict} {what_lo} ({100 * hi.rate:.0f} % vs "
-            f"{100 * lo.rate:.0f} %; intervals {'separate' if separated(hi, lo) else 'overlap'})")
+    digits = next(d for d in (0, 1, 2, 3)  # as many as it takes to show a difference
+                  if d == 3 or f"{100 * hi.rate:.{d}f}" != f"{100 * lo.rate:.{d}f}"
+                  or hi.rate == lo.rate)
+    return (f"{what_hi} is {verdict} {what_lo} ({100 * hi.rate:.{digits}f} % vs "
+            f"{100 * lo.rate:.{digits}f} %; intervals "
+            f"{'separate' if separated(hi, lo) else 'overlap'})")
 
 
 def trend_text(cells, scores=None,
