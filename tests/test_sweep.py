@@ -343,10 +343,10 @@ def test_each_runs_scenario_is_the_one_loaded_for_it_alone(name):
     from hmpc_cli.sweep.table import toml_value
 
     plan = plan_sweep(REPO / "sweeps" / f"{name}.toml")
-    firsts = {}
+    by_cell = {}
     for run in plan.runs:
-        firsts.setdefault(run.cell, []).append(run)
-    picked = [r for runs in firsts.values() for r in (runs[0], runs[-1])][:40]
+        by_cell.setdefault(run.cell, []).append(run)
+    picked = [r for runs in by_cell.values() for r in (runs[0], runs[-1])][:40]
     assert len({r.seed for r in picked}) > 1
     for run in picked:
         items = [f"{k}={toml_value(v)}" for k, v in run.overrides.items()]

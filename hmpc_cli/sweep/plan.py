@@ -26,7 +26,8 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from hmpc_cli.run.scenario import (
-    ScenarioError, effective_toml, format_errors, load_scenario, read_toml_file, scenario_model)
+    ScenarioBase, ScenarioError, effective_toml, format_errors, load_scenario, read_toml_file,
+    scenario_model)
 from hmpc_cli.core.settings_types import MAX_INT
 from hmpc_cli.sweep.table import METRICS, cell_text, toml_value
 
@@ -254,7 +255,7 @@ def plan_sweep(path: str | Path) -> SweepPlan:
                              f"seeds = {total} runs exceeds the limit {MAX_RUNS}"])
     runs = _expand(spec, base, axes, src, errors)
     # a cell's scenario is validated once; its other seeds differ from it in the seed only
-    cells: dict[tuple[str, ...], Any] = {}
+    cells: dict[tuple[str, ...], ScenarioBase | None] = {}  # None: the cell is invalid
     for run in runs if scenario.is_file() else []:
         items = tuple(f"{k}={toml_value(v)}" for k, v in run.overrides.items())
         try:
