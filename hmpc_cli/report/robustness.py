@@ -172,9 +172,10 @@ def _compare(hi, lo, what_hi: str, what_lo: str) -> str:
     """'<hi> is higher than / lower than / the same as <lo> (rates; intervals ...)'."""
     verdict = ("higher than" if hi.rate > lo.rate else "lower than" if hi.rate < lo.rate
                else "the same as")
-    digits = next(d for d in (0, 1, 2, 3)  # as many as it takes to show a difference
-                  if d == 3 or f"{100 * hi.rate:.{d}f}" != f"{100 * lo.rate:.{d}f}"
-                  or hi.rate == lo.rate)
+    digits = 0  # as many decimals as it takes to show a difference (up to 3)
+    while (digits < 3 and hi.rate != lo.rate
+           and f"{100 * hi.rate:.{digits}f}" == f"{100 * lo.rate:.{digits}f}"):
+        digits += 1
     return (f"{what_hi} is {verdict} {what_lo} ({100 * hi.rate:.{digits}f} % vs "
             f"{100 * lo.rate:.{digits}f} %; intervals "
             f"{'separate' if separated(hi, lo) else 'overlap'})")
