@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import math
 import shlex
 from pathlib import Path
 
@@ -114,7 +115,7 @@ def test_report_page_tables_the_study(tmp_path):
     assert f"| ±10.0 | once | 3/10 ({100 * lo:.0f}-{100 * hi:.0f} %) |" in text
     # 50 Hz beats 5 Hz with separate intervals only where the data say so
     assert "±10.0, once: 50 Hz is higher than 5 Hz (100 % vs 30 %; intervals separate)" in text
-    assert "±30.0, once: 50 Hz is higher than 5 Hz (20 % vs 0 %; intervals overlap)" in text
+    assert "±30.0, once: 50 Hz vs 5 Hz: 20 % vs 0 %, intervals overlap; trend" in text
     # 38 of the 80 runs succeed; seeds 0-2 at +-10 succeed in all four cells, seeds 5-9 at
     # +-30 fail in all four, the other 12 draws differ between cells
     assert "How the runs failed (each run's summary):\n\n- Failed runs: 42 of 80.\n" in text
@@ -181,9 +182,9 @@ def test_a_comparison_shows_the_digits_that_make_its_verdict_visible():
         return Cell("p", "s", 5.0, n, k)
 
     assert _compare(cell(27, 40), cell(34, 50), "100 Hz", "5 Hz") == (
-        "100 Hz is lower than 5 Hz (67.5 % vs 68.0 %; intervals overlap)")
+        "100 Hz vs 5 Hz: 67.5 % vs 68.0 %, intervals overlap")  # no direction claimed
     assert _compare(cell(20, 40), cell(25, 50), "a", "b") == (
-        "a is the same as b (50 % vs 50 %; intervals overlap)")
+        "a vs b: 50 % vs 50 %, intervals overlap")
     assert _compare(cell(0, 40), cell(18, 50), "a", "b") == (
         "a is lower than b (0 % vs 36 %; intervals separate)")
 
@@ -316,7 +317,8 @@ def test_latency_study_sits_beside_its_paused_twin_and_the_reading_counts(tmp_pa
         "0.05 s after the state it was computed from" in text  # not the moved geometry
     assert ("- ±15.0, once, 50 Hz: 0.05 s latency is lower than time paused (15 % vs 100 %; "
             "intervals separate).") in text
-    assert "- ±15.0, once, 5 Hz: 0.05 s latency is the same as time paused" in text
+    assert "- ±15.0, once, 5 Hz: 0.05 s latency vs time paused: 10 % vs 10 %, intervals " \
+        "overlap." in text
     # paused series: paper once (up), paper on_contact (overlap), moved once (overlap)
     assert "in 1 of 3 series" in text and "in 0 less often; 2 unresolved" in text
     assert "better in 1 of 2 cells with separated intervals, worse in 0; 1 unresolved" in text
@@ -359,7 +361,7 @@ def test_latency_study_with_the_first_plan_paused_or_measured_latency_is_said(tm
             "charged.") in text
     assert "### measured latency charged vs time paused" in text
     assert "reaches the plant its solve time after the state" in text
-    assert "- ±15.0, once, 50 Hz: measured latency is the same as time paused" in text
+    assert "- ±15.0, once, 50 Hz: measured latency vs time paused: " in text
     assert ("### 0.02 s latency charged\n\n`alone`: no study on this page has its settings "
             "with time paused, so its cells are not compared.") in text
     assert "measured s" not in text
@@ -637,3 +639,56 @@ def test_the_real_time_section_says_what_each_latency_entry_sets(tmp_path):
     assert "; the low level follows the plan's next domain from the contact's time." in text
     assert "| 10 Hz once | 0/1 | 1/1 |" in text
     assert "| 10 Hz once | 100.0 | 800.0 | 9.0 | 30.0 |" in text
+
+
+def test_rates_whose_margins_were_refused_are_named_not_read_as_control_failures(tmp_path):
+    """Every 5 Hz run of one series refused at set-up for its tube margins (the runner's
+    reason): the table, figure and findings say so, the comparison and a second trend
+    use the rates set up, the reading counts the series (exact)."""
+    from hmpc_cli.analysis.trend import cochran_armitage
+    from hmpc_cli.report.robustness import Study, margins_refused, robustness_sections
+
+    refused = ("ValueError: mpc.margins: the tube's margins at 5 Hz do not fit: at 5 Hz the "
+               "tightened guard-avoid row of floor (kappa = 0.2) exceeds its NLP gap")
+    truth = {(5, "once", 30.0): 0, (10, "once", 30.0): 14, (50, "once", 30.0): 13,
+             (100, "once", 30.0): 12}
+    d = tmp_path / "tube"
+    table = write_study(d / "results.csv", truth, seeds=20)
+    with open(table, newline="") as f:
+        rows = list(csv.DictReader(f))
+    for r in rows:
+        r["reason"] = refused if r["mpc.rate_hz"] == "5" else (
+            "success" if r["success"] == "true" else "final error 2 > 0.6")
+    with open(table, "w", newline="") as f:
+        w = csv.DictWriter(f, [*COLUMNS, "reason"])
+        w.writeheader()
+        w.writerows(rows)
+    (d / "sweep.toml").write_text('name = "tube"\nseeds = 20\n[set]\n"mpc.margins" = "tube"\n')
+    text = "\n".join(robustness_sections([Study(d)], tmp_path / "fig", tmp_path))
+
+    assert "| ±30.0 | once | 0/20, margins refused | 14/20 (" in text
+    everywhere = cochran_armitage([20] * 4, [0, 14, 13, 12], [math.log(x) for x in
+                                                              (5, 10, 50, 100)])
+    set_up = cochran_armitage([20] * 3, [14, 13, 12], [math.log(x) for x in (10, 50, 100)])
+    assert everywhere.z > 0 > set_up.z  # the refused rate alone makes the rise
+    assert ("- ±30.0, once: at 5 Hz every run's margins were refused at set-up (none ran); "
+            "of the rates set up, 100 Hz vs 10 Hz: 60 % vs 70 %, intervals overlap; trend "
+            "across all rates (a refused run counts as failed; Cochran-Armitage, scores "
+            f"log f): z = {everywhere.z:+.2f}, p = {everywhere.p:.3g}: success rises with "
+            f"the MPC rate at the 5 % level; across the rates set up (10-100 Hz): z = "
+            f"{set_up.z:+.2f}, p = {set_up.p:.3g}: no trend at the 5 % level (direction: "
+            "falls).") in text
+    assert ("- Faster MPC (time paused): in 0 of 1 series (study x disturbance size x "
+            "policy) the fastest rate succeeds more often than the slowest with separated "
+            "intervals, in 0 less often; 1 unresolved at this sample size. In 1 of these "
+            "series a slower rate's margins were refused at set-up") in text
+    with open(tmp_path / "fig" / "tube_table.csv", newline="") as f:
+        by_rate = {r["mpc.rate_hz"]: r["not_set_up"] for r in csv.DictReader(f)}
+    assert by_rate == {"5": "20", "10": "0", "50": "0", "100": "0"}
+    assert (tmp_path / "fig" / "tube.png").is_file()
+    # the committed tube study: its refused runs are the ones the runner wrote so
+    with open(REPO / "results" / "sweeps" / "robustness_tube" / "results.csv",
+              newline="") as f:
+        committed = list(csv.DictReader(f))
+    assert sum(map(margins_refused, committed)) == 200
+    assert {r["mpc.rate_hz"] for r in committed if margins_refused(r)} == {"5"}

@@ -8,7 +8,7 @@ cell (x value, series, panel) gets its success rate with a Wilson score interval
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,13 +51,23 @@ def wilson(k: int, n: int, z: float = Z95) -> tuple[float, float]:
 
 @dataclass(frozen=True)
 class Cell:
-    """Success statistics of one (x, series, panel) cell over its seeds."""
+    """Success statistics of one (x, series, panel) cell over its seeds.
+
+    ``not_set_up``: of its ``runs``, those whose controller was never set up (counted as
+    failed; which runs is the caller's test, e.g. margins that do not fit the NLP).
+    """
 
     panel: str
     series: str
     x: float
     runs: int
     successes: int
+    not_set_up: int = 0
+
+    @property
+    def ran(self) -> bool:
+        """Whether any of its runs got a controller (not every one failed at set-up)."""
+        return self.not_set_up < self.runs
 
     @property
     def rate(self) -> float:
@@ -103,8 +113,12 @@ def _order(values: list[str], listed: Sequence[str] = ()) -> list[str]:
         return sorted(values, key=lambda v: rank.get(v, len(rank)))
 
 
-def cells(table: str | Path, x_axis: str, series_axis: str, panel_axis: str) -> list[Cell]:
-    """Pools the table's runs into cells, ordered by panel, series, x."""
+def cells(table: str | Path, x_axis: str, series_axis: str, panel_axis: str,
+          not_set_up: Callable[[dict], bool] | None = None) -> list[Cell]:
+    """Pools the table's runs into cells, ordered by panel, series, x.
+
+    ``not_set_up(row)``: whether a row's run never got a controller (default: none).
+    """
     path = resolve_table(table)
     rows = read_table(path, [x_axis, series_axis, panel_axis, "success"])
     counts: dict[tuple[str, str, float], list[int]] = {}
@@ -117,23 +131,24 @@ def cells(table: str | Path, x_axis: str, series_axis: str, panel_axis: str) -> 
         key = (row[panel_axis], row[series_axis], x)
         panels += [key[0]] if key[0] not in panels else []
         series += [key[1]] if key[1] not in series else []
-        c = counts.setdefault(key, [0, 0])
+        c = counts.setdefault(key, [0, 0, 0])
         c[0] += 1
         c[1] += ok
+        c[2] += bool(not_set_up and not_set_up(row))
     out = []
     for p in _order(panels, grid_order(path, panel_axis)):
         for s in _order(series, grid_order(path, series_axis)):
             for x in sorted({k[2] for k in counts if k[0] == p and k[1] == s}):
-                n, k = counts[(p, s, x)]
-                out.append(Cell(p, s, x, n, k))
+                out.append(Cell(p, s, x, *counts[(p, s, x)]))
     return out
 
 
 def _write_table(path: Path, data: list[Cell], names: tuple[str, str, str]) -> None:
     write_csv(path, [*names, "runs", "successes", "success_rate", "wilson95_lo",
-                     "wilson95_hi"],
+                     "wilson95_hi", "not_set_up"],
               ([c.panel, c.series, f"{c.x:g}", c.runs, c.successes, f"{c.rate:.4f}",
-                f"{c.interval[0]:.4f}", f"{c.interval[1]:.4f}"] for c in data))
+                f"{c.interval[0]:.4f}", f"{c.interval[1]:.4f}", c.not_set_up]
+               for c in data))
 
 
 #: axis labels of the bundled study's columns (others: the key's last part)
@@ -166,19 +181,21 @@ def robustness(table: str | Path, out_dir: str | Path | None = None,
                panel_axis: str = "disturbance.magnitude", width: float = TEXT_WIDTH_IN,
                height: float = 1.9, name: str = "robustness",
                diameters: Mapping[float, Mapping[str, Sequence[tuple[float, float]]]]
-               | None = None) -> list[Cell]:
+               | None = None,
+               not_set_up: Callable[[dict], bool] | None = None) -> list[Cell]:
     """Draws success rate vs ``x_axis`` (log scale) with Wilson 95 % intervals.
 
-    One panel per ``panel_axis`` value, one line per ``series_axis`` value. With
-    ``diameters`` (panel value -> bound name -> [(x, diam T(1/x))]) a second row draws the
-    tube diameters on the same x axis (log y). Writes ``<name>.<fmt>`` and
+    One panel per ``panel_axis`` value, one line per ``series_axis`` value; a cell none of
+    whose runs was set up (``not_set_up``, see :func:`cells`) is a cross at 0, off the
+    line. With ``diameters`` (panel value -> bound name -> [(x, diam T(1/x))]) a second
+    row draws the tube diameters on the same x axis (log y). Writes ``<name>.<fmt>`` and
     ``<name>_table.csv`` to ``out_dir`` (default: the table's directory) and returns the
     cells.
     """
     fmts = parse_formats(formats)
     rows = 2 if diameters else 1
     check_size(width, height * (1.0 + 0.75 * (rows - 1)))
-    data = cells(table, x_axis, series_axis, panel_axis)
+    data = cells(table, x_axis, series_axis, panel_axis, not_set_up)
     out = Path(out_dir) if out_dir is not None else resolve_table(table).parent
     make_out_dir(out)
     import matplotlib.pyplot as plt
@@ -191,7 +208,15 @@ def robustness(table: str | Path, out_dir: str | Path | None = None,
         for ax, p in zip(axes[0], panels, strict=True):
             _success_panel(ax, data, p, panel_axis, series_axis)
         axes[0][0].set_ylabel("success rate (Wilson 95 %)")
-        axes[0][-1].legend(loc="best", title=_axis_label(series_axis))
+        marks = {lb: h for ax in axes[0] for h, lb in zip(*ax.get_legend_handles_labels(),
+                                                          strict=True)}
+        if not all(c.ran for c in data):
+            from matplotlib.lines import Line2D
+
+            marks["not set up (no run)"] = Line2D([], [], color="0.25", marker="x",
+                                                  linestyle="none", markersize=4)
+        axes[0][-1].legend(marks.values(), marks.keys(), loc="best",
+                           title=_axis_label(series_axis))
         if diameters:
             for ax, p in zip(axes[1], panels, strict=True):
                 if ax is not axes[1][0]:
@@ -224,12 +249,17 @@ def _success_panel(ax, data: list[Cell], panel: str, panel_axis: str,
     series = list(dict.fromkeys(c.series for c in data))
     for j, s in enumerate(series):
         sel = [c for c in data if c.panel == panel and c.series == s]
-        lo = [c.rate - c.interval[0] for c in sel]
-        hi = [c.interval[1] - c.rate for c in sel]
+        lo = [c.rate - c.interval[0] for c in sel if c.ran]
+        hi = [c.interval[1] - c.rate for c in sel if c.ran]
         style = SERIES_STYLE[j % len(SERIES_STYLE)]
         dodge = 1.06 ** (j - (len(series) - 1) / 2)  # keep the bars apart (log x)
-        ax.errorbar([c.x * dodge for c in sel], [c.rate for c in sel], yerr=[lo, hi],
-                    capsize=1.5, elinewidth=0.6, markersize=2.5, label=s, **style)
+        ax.errorbar([c.x * dodge for c in sel if c.ran], [c.rate for c in sel if c.ran],
+                    yerr=[lo, hi], capsize=1.5, elinewidth=0.6, markersize=2.5, label=s,
+                    **style)
+        unset = [c.x * dodge for c in sel if not c.ran]
+        if unset:
+            ax.plot(unset, [0.0] * len(unset), linestyle="none", marker="x", markersize=4,
+                    color=style["color"])
     n = sorted({c.runs for c in data if c.panel == panel})
     runs = f"{n[0]}" if len(n) == 1 else f"{n[0]}-{n[-1]}"
     ax.set_title(f"{_panel_title(panel_axis, panel)}  (n = {runs})")

@@ -25,10 +25,16 @@ from hmpc_cli.analysis.tables import (
     resolve_table,
     sweep_spec)
 from hmpc_cli.figures.common import page_link
+from hmpc_cli.tube.margins_file import REFUSED
 
 __all__ = ["Study", "robustness_sections"]
 
 RATE, POLICY, SIZE = "mpc.rate_hz", "replanning.policy", "disturbance.magnitude"
+
+
+def margins_refused(row: dict) -> bool:
+    """Whether a table row's run was refused at set-up for its margins: never controlled."""
+    return str(row.get("reason") or "").startswith(f"ValueError: {REFUSED}")
 
 
 @dataclass(frozen=True)
@@ -142,6 +148,7 @@ def _pivot(cells) -> list[str]:
         for x in xs:
             c = by_x.get(x)
             parts.append("-" if c is None else
+                         f"{c.successes}/{c.runs}, margins refused" if not c.ran else
                          f"{c.successes}/{c.runs} ({100 * c.interval[0]:.0f}-"
                          f"{100 * c.interval[1]:.0f} %)")
         lines.append(f"| ±{panel} | {series} | " + " | ".join(parts) + " |")
@@ -169,16 +176,20 @@ def separated(a, b) -> bool:
 
 
 def _compare(hi, lo, what_hi: str, what_lo: str) -> str:
-    """'<hi> is higher than / lower than / the same as <lo> (rates; intervals ...)'."""
-    verdict = ("higher than" if hi.rate > lo.rate else "lower than" if hi.rate < lo.rate
-               else "the same as")
+    """How two cells' success rates compare, a direction only where intervals separate.
+
+    '<hi> is higher / lower than <lo> (rates; intervals separate)', else '<hi> vs <lo>:
+    rates, intervals overlap'.
+    """
     digits = 0  # as many decimals as it takes to show a difference (up to 3)
     while (digits < 3 and hi.rate != lo.rate
            and f"{100 * hi.rate:.{digits}f}" == f"{100 * lo.rate:.{digits}f}"):
         digits += 1
-    return (f"{what_hi} is {verdict} {what_lo} ({100 * hi.rate:.{digits}f} % vs "
-            f"{100 * lo.rate:.{digits}f} %; intervals "
-            f"{'separate' if separated(hi, lo) else 'overlap'})")
+    rates = f"{100 * hi.rate:.{digits}f} % vs {100 * lo.rate:.{digits}f} %"
+    if not separated(hi, lo):
+        return f"{what_hi} vs {what_lo}: {rates}, intervals overlap"
+    verdict = "higher than" if hi.rate > lo.rate else "lower than"
+    return f"{what_hi} is {verdict} {what_lo} ({rates}; intervals separate)"
 
 
 def trend_text(cells, scores=None,
@@ -199,7 +210,7 @@ def trend_text(cells, scores=None,
 def findings(cells) -> list[str]:
     """Per (size, policy): fastest vs slowest rate, the trend across rates.
 
-    Per (size, rate): replanning vs once.
+    Per (size, rate): replanning vs once, where both ran and their intervals separate.
     """
     out = []
     panels = list(dict.fromkeys(c.panel for c in cells))
@@ -208,17 +219,41 @@ def findings(cells) -> list[str]:
         for s in series:
             sel = sorted((c for c in cells if c.panel == p and c.series == s), key=lambda c: c.x)
             if len(sel) >= 2:
-                out.append(f"- ±{p}, {s}: " + _compare(sel[-1], sel[0], f"{sel[-1].x:g} Hz",
-                                                       f"{sel[0].x:g} Hz") + "; "
-                           + trend_text(sel) + ".")
+                out.append(f"- ±{p}, {s}: " + _series_finding(sel) + ".")
         if len(series) == 2:
             a, b = series
             for x in sorted({c.x for c in cells if c.panel == p}):
-                ca = [c for c in cells if (c.panel, c.series, c.x) == (p, a, x)]
-                cb = [c for c in cells if (c.panel, c.series, c.x) == (p, b, x)]
+                ca = [c for c in cells if (c.panel, c.series, c.x) == (p, a, x) and c.ran]
+                cb = [c for c in cells if (c.panel, c.series, c.x) == (p, b, x) and c.ran]
                 if ca and cb and separated(ca[0], cb[0]):
                     out.append(f"- ±{p}, {x:g} Hz: " + _compare(cb[0], ca[0], b, a) + ".")
     return out
+
+
+def _series_finding(sel: list) -> str:
+    """One series (cells by ascending rate): fastest vs slowest rate and the trend.
+
+    Rates whose runs were all refused at set-up (their margins) are named; the comparison
+    is then between the rates set up, and the trend is given over all rates (a refused run
+    counts as failed) and over the rates set up.
+    """
+    ran = [c for c in sel if c.ran]
+    if len(ran) == len(sel):
+        return (_compare(sel[-1], sel[0], f"{sel[-1].x:g} Hz", f"{sel[0].x:g} Hz") + "; "
+                + trend_text(sel))
+    refused = [f"{c.x:g}" for c in sel if not c.ran]
+    where = (f"{refused[0]} Hz" if len(refused) == 1
+             else f"{', '.join(refused[:-1])} and {refused[-1]} Hz")
+    text = f"at {where} every run's margins were refused at set-up (none ran)"
+    if len(ran) >= 2:
+        text += ("; of the rates set up, "
+                 + _compare(ran[-1], ran[0], f"{ran[-1].x:g} Hz", f"{ran[0].x:g} Hz"))
+    text += "; " + trend_text(sel, what="trend across all rates (a refused run counts as "
+                              "failed; Cochran-Armitage, scores log f)")
+    if len(ran) >= 2:
+        text += "; " + trend_text(ran, what=f"across the rates set up ({ran[0].x:g}-"
+                                  f"{ran[-1].x:g} Hz)")
+    return text
 
 
 def wall_text(rows: list[dict]) -> str:
@@ -352,7 +387,8 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
         spec = {**spec, "effective": {"sim.latency_first": sc.sim.latency_first,
                                       "lowlevel.past_guard": sc.lowlevel.past_guard}}
     cells = robustness(table, fig_dir, "pdf,svg,png", name=name, diameters=diam,
-                       panel_axis=size, width=min(TEXT_WIDTH_IN, 3.5 * max(1, len(diam))))
+                       panel_axis=size, width=min(TEXT_WIDTH_IN, 3.5 * max(1, len(diam))),
+                       not_set_up=margins_refused)
     seeds = len({r["seed"] for r in rows})
     n = sorted({c.runs for c in cells})
     seeds_spec = spec.get("seeds")
@@ -423,8 +459,11 @@ def _tally(pairs: list[tuple]) -> tuple[int, int, int]:
 
 
 def _pairs(cells) -> tuple[list, list]:
-    """(fastest vs slowest rate per size and policy, replanning vs once per size and rate)."""
-    by: dict[tuple, object] = {(c.panel, c.series, c.x): c for c in cells}
+    """(fastest vs slowest rate per size and policy, replanning vs once per size and rate).
+
+    Of the cells whose runs were set up (not every run refused for its margins).
+    """
+    by: dict[tuple, object] = {(c.panel, c.series, c.x): c for c in cells if c.ran}
     rate_pairs, plan_pairs = [], []
     for p, s in dict.fromkeys((c.panel, c.series) for c in cells):
         xs = sorted(x for (pp, ss, x) in by if (pp, ss) == (p, s))
@@ -434,6 +473,11 @@ def _pairs(cells) -> tuple[list, list]:
         if (p, "once", x) in by and (p, "on_contact", x) in by:
             plan_pairs.append((by[(p, "on_contact", x)], by[(p, "once", x)]))
     return rate_pairs, plan_pairs
+
+
+def _refused_series(cells) -> int:
+    """How many (size, policy) series have a rate none of whose runs was set up."""
+    return len({(c.panel, c.series) for c in cells if not c.ran})
 
 
 def reading(results: list[tuple[dict, list]],
@@ -448,16 +492,22 @@ def reading(results: list[tuple[dict, list]],
         margins: per tube-margins study, (its ``sweep.toml``, :func:`twin_pairs` with its
             hand-margin twin).
     """
-    rate_pairs, plan_pairs = [], []
+    rate_pairs, plan_pairs, refused = [], [], 0
     for spec, cells in results:
         if charged(spec) is None:
             r, p = _pairs(cells)
             rate_pairs += r
             plan_pairs += p
+            refused += _refused_series(cells)
     lines = ["### Reading", ""]
     if rate_pairs:
-        lines.append(_rate_reading("Faster MPC (time paused)", rate_pairs, "geometry x "
+        lines.append(_rate_reading("Faster MPC (time paused)", rate_pairs, "study x "
                                    "disturbance size x policy"))
+        if refused:
+            lines[-1] += (f" In {refused} of these series a slower rate's margins were "
+                          "refused at set-up, so none of its runs ran: the slowest rate "
+                          "compared is the slowest set up (each study's findings give the "
+                          "trend both ways).")
     if plan_pairs:
         up, down, tie = _tally(plan_pairs)
         lines.append(f"- Replanning at contacts vs planning once (time paused): better in {up} "
@@ -465,9 +515,12 @@ def reading(results: list[tuple[dict, list]],
                      f"{tie} unresolved.")
     for spec, pairs in margins:
         better, worse, tie = _tally(pairs)
+        unset = sum(not c.ran and separated(c, h) and c.rate < h.rate for c, h in pairs)
         lines.append(f"- Each rate's tube margins vs one hand margin (`{spec.get('name')}`): "
                      f"better in {better} of {len(pairs)} cells with separated intervals, "
-                     f"worse in {worse}; {tie} unresolved.")
+                     f"worse in {worse}" + (f" ({unset} of them cells whose tube margins "
+                                             "were refused at set-up)" if unset else "")
+                     + f"; {tie} unresolved.")
     for words, cells, twins in latency:
         better, worse, _ = _tally(twins)
         lines.append(f"- Solve time charged ({', '.join(words)}): {worse} of {len(twins)} "

@@ -88,7 +88,7 @@ def _read(path: Path) -> str | None:
 def _compute(sc, model, rate: float) -> str:
     """The margins file text of the scenario's tube at ``rate`` [Hz]."""
     from hmpc_cli.tube import TubeError, analyse, region_from_scenario
-    from hmpc_cli.tube.margins_file import margins_text
+    from hmpc_cli.tube.margins_file import REFUSED, margins_text
 
     try:
         report = analyse(model, region=region_from_scenario(model), kind=sc.disturbance.kind,
@@ -96,9 +96,9 @@ def _compute(sc, model, rate: float) -> str:
                          kd=sc.lowlevel.kd, rate_hz=rate, rates=(), samples=SAMPLES,
                          seed=SEED)
     except TubeError as exc:
-        raise ValueError(f"mpc.margins: no tube at {rate:g} Hz: {exc}") from None
+        raise ValueError(f"{REFUSED}no tube at {rate:g} Hz: {exc}") from None
     if report.warnings:
-        raise ValueError(f"mpc.margins: the tube's margins at {rate:g} Hz do not fit: "
+        raise ValueError(f"{REFUSED}the tube's margins at {rate:g} Hz do not fit: "
                          f"{report.warnings[0]}")
     return margins_text(report, scenario=sc.name, params=sc.system, kind=sc.disturbance.kind,
                         magnitude=sc.disturbance.magnitude, samples=SAMPLES)

@@ -37,9 +37,14 @@ from hmpc_cli import __version__
 from hmpc_cli.core.messages import ConstraintMargins
 from hmpc_cli.tube.report import TubeReport, TubeRow
 
-__all__ = ["FORMAT", "GuardOffsets", "MarginsFile", "RateMargins", "constraint_margins",
-           "margins_problems",
-           "margins_text", "params_hash", "read_margins", "write_margins"]
+__all__ = ["FORMAT", "GuardOffsets", "MarginsFile", "REFUSED", "RateMargins",
+           "constraint_margins", "margins_problems", "margins_text", "params_hash",
+           "read_margins", "write_margins"]
+
+#: how the message of margins refused at a run's set-up begins (a margins file or a tube
+#: that does not fit the scenario, its rate or its NLP); a sweep's table holds the run's
+#: reason as ``ValueError: <message>``
+REFUSED = "mpc.margins: "
 
 FORMAT = 1
 _BARE = re.compile(r"^[A-Za-z0-9_-]+$")
@@ -251,11 +256,11 @@ def constraint_margins(path: Path, system, params: BaseModel,
     """
     problems = margins_problems(path, params, rate_hz)
     if problems:
-        raise ValueError(f"mpc.margins: {problems[0]}")
+        raise ValueError(f"{REFUSED}{problems[0]}")
     row = read_margins(path).at(rate_hz)
     try:
         return ConstraintMargins.by_name(
             system, str(path), row.radius,
             {k: (g.avoid, g.pass_through) for k, g in row.guards.items()}, row.inputs)
     except ValueError as exc:
-        raise ValueError(f"mpc.margins: {path}: {exc}") from None
+        raise ValueError(f"{REFUSED}{path}: {exc}") from None
