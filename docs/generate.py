@@ -448,8 +448,10 @@ SWEEP_TEXT = """
   summary's metrics, the log), rebuilt from the runs' `summary.json` files.
 
 The bundled sweeps: `sweeps/fig3*.toml` (Figure 3 in hmpc and reference mode, at 10/20 Hz
-and 100 Hz, the authors' schedule), `sweeps/margins.toml` (computed vs hand-set margins),
-`sweeps/robustness*.toml` (the robustness study); see `sweeps-and-report.md`.
+and 100 Hz, the authors' schedule, the reference rule emulated), `sweeps/margins.toml`
+(computed vs hand-set margins), `sweeps/robustness*.toml` (the robustness study),
+`sweeps/realtime_*.toml` (the ball and the biped in real time), `sweeps/biped_push.toml`
+(the biped under pushes); see `sweeps-and-report.md`.
 """
 
 
