@@ -575,8 +575,8 @@ def test_a_tube_margins_study_sits_beside_its_hand_margin_twin(tmp_path):
     text = "\n".join(robustness_sections([Study(d) for d in dirs], tmp_path / "fig", tmp_path))
     assert "### Each rate's tube margins vs one hand margin: `tube` beside `hand`" in text
     assert "| ±15.0 | once | 16/20 \\| 2/20 | 19/20 \\| 20/20 |" in text
-    assert ("- ±15.0, once, 5 Hz: tube margins is higher than the hand margin (80 % vs 10 %; "
-            "intervals separate).") in text
+    assert ("- ±15.0, once, 5 Hz: success with tube margins is higher than with the hand "
+            "margin (80 % vs 10 %; intervals separate).") in text
     assert "50 Hz: tube margins" not in text  # 19/20 vs 20/20: intervals overlap
     assert ("- Each rate's tube margins vs one hand margin (`tube`): better in 1 of 2 cells "
             "with separated intervals, worse in 0; 1 unresolved.") in text
@@ -664,7 +664,10 @@ def test_rates_whose_margins_were_refused_are_named_not_read_as_control_failures
         w.writeheader()
         w.writerows(rows)
     (d / "sweep.toml").write_text('name = "tube"\nseeds = 20\n[set]\n"mpc.margins" = "tube"\n')
-    text = "\n".join(robustness_sections([Study(d)], tmp_path / "fig", tmp_path))
+    hand = tmp_path / "hand"
+    write_study(hand / "results.csv", {**truth, (5, "once", 30.0): 15}, seeds=20)
+    (hand / "sweep.toml").write_text('name = "hand"\nseeds = 20\n')
+    text = "\n".join(robustness_sections([Study(hand), Study(d)], tmp_path / "fig", tmp_path))
 
     assert "| ±30.0 | once | 0/20, margins refused | 14/20 (" in text
     everywhere = cochran_armitage([20] * 4, [0, 14, 13, 12], [math.log(x) for x in
@@ -678,10 +681,16 @@ def test_rates_whose_margins_were_refused_are_named_not_read_as_control_failures
             f"the MPC rate at the 5 % level; across the rates set up (10-100 Hz): z = "
             f"{set_up.z:+.2f}, p = {set_up.p:.3g}: no trend at the 5 % level (direction: "
             "falls).") in text
-    assert ("- Faster MPC (time paused): in 0 of 1 series (study x disturbance size x "
+    assert ("- Faster MPC (time paused): in 0 of 2 series (study x disturbance size x "
             "policy) the fastest rate succeeds more often than the slowest with separated "
-            "intervals, in 0 less often; 1 unresolved at this sample size. In 1 of these "
+            "intervals, in 0 less often; 2 unresolved at this sample size. In 1 of these "
             "series a slower rate's margins were refused at set-up") in text
+    # beside its hand-margin twin: the refused cell is marked and said, not compared
+    assert "| ±30.0 | once | 0/20 refused \\| 15/20 | 14/20 \\| 14/20 |" in text
+    assert ("- ±30.0, once, 5 Hz: the tube margins were refused at set-up (none of its 20 "
+            "runs ran); with the hand margin 75 % (15/20).") in text
+    assert ("(`tube`): better in 0 of 4 cells with separated intervals, worse in 1 (1 of them "
+            "cells whose tube margins were refused at set-up); 3 unresolved.") in text
     with open(tmp_path / "fig" / "tube_table.csv", newline="") as f:
         by_rate = {r["mpc.rate_hz"]: r["not_set_up"] for r in csv.DictReader(f)}
     assert by_rate == {"5": "20", "10": "0", "50": "0", "100": "0"}

@@ -555,10 +555,21 @@ def side_by_side(pairs: list[tuple]) -> list[str]:
     lines = ["| disturbance | policy | " + " | ".join(f"{x:g} Hz" for x in xs) + " |",
              "| --- | --- | " + " | ".join("---" for _ in xs) + " |"]
     for (panel, series), by_x in rows.items():
-        parts = [f"{by_x[x][0].successes}/{by_x[x][0].runs} \\| {by_x[x][1].successes}/"
-                 f"{by_x[x][1].runs}" if x in by_x else "-" for x in xs]
+        parts = ["-" if x not in by_x else " \\| ".join(
+            f"{c.successes}/{c.runs}" + ("" if c.ran else " refused") for c in by_x[x])
+            for x in xs]
         lines.append(f"| ±{panel} | {series} | " + " | ".join(parts) + " |")
     return lines
+
+
+def _margins_line(tube, hand) -> str:
+    """A cell with tube margins against its hand-margin twin, for the list under the table."""
+    where = f"- ±{tube.panel}, {tube.series}, {tube.x:g} Hz: "
+    if not tube.ran:
+        return (where + f"the tube margins were refused at set-up (none of its {tube.runs} "
+                f"runs ran); with the hand margin {100 * hand.rate:.0f} % "
+                f"({hand.successes}/{hand.runs}).")
+    return where + _compare(tube, hand, "success with tube margins", "with the hand margin") + "."
 
 
 def _hand_twin(spec: dict, paused: list[tuple[dict, list]]) -> tuple[dict, list] | None:
@@ -679,11 +690,11 @@ def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list
                       "tightening its constraints by its own tube diam T(1/f), and with one "
                       "hand margin at every rate; each cell: tube k/n | hand k/n (each the "
                       "first n seeds of its sweep, so the smaller count's seeds and "
-                      "disturbance draws are shared).", "",
+                      "disturbance draws are shared; `refused`: the tube margins were "
+                      "refused at set-up, no run ran).", "",
                       *side_by_side(pairs), "",
-                      *[f"- ±{c.panel}, {c.series}, {c.x:g} Hz: "
-                        + _compare(c, h, "tube margins", "the hand margin") + "."
-                        for c, h in pairs if separated(c, h)], ""]
+                      *[_margins_line(c, h) for c, h in pairs
+                        if separated(c, h) or not c.ran], ""]
     latency: list[tuple[tuple[str, ...], list, list[tuple]]] = []
     for spec, cells in results:
         lat = charged(spec)
