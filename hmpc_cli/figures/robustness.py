@@ -208,23 +208,14 @@ def robustness(table: str | Path, out_dir: str | Path | None = None,
         for ax, p in zip(axes[0], panels, strict=True):
             _success_panel(ax, data, p, panel_axis, series_axis)
         axes[0][0].set_ylabel("success rate (Wilson 95 %)")
-        marks = {lb: h for ax in axes[0] for h, lb in zip(*ax.get_legend_handles_labels(),
-                                                          strict=True)}
-        if not all(c.ran for c in data):
-            from matplotlib.lines import Line2D
-
-            marks["not set up (no run)"] = Line2D([], [], color="0.25", marker="x",
-                                                  linestyle="none", markersize=4)
-        axes[0][-1].legend(marks.values(), marks.keys(), loc="best",
-                           title=_axis_label(series_axis))
+        _success_legend(axes[0], data, series_axis)
         if diameters:
             for ax, p in zip(axes[1], panels, strict=True):
                 if ax is not axes[1][0]:
                     ax.sharey(axes[1][0])
                 _diameter_panel(ax, diameters, p)
             axes[1][0].set_ylabel("diam $T(1/f)$")
-            found = {lb: h for ax in axes[1] for h, lb in zip(*ax.get_legend_handles_labels(),
-                                                              strict=True)}
+            found = _handles(axes[1])
             if found:
                 axes[1][-1].legend(found.values(), found.keys(), loc="lower left",
                                    title="tube bound")
@@ -241,6 +232,22 @@ def robustness(table: str | Path, out_dir: str | Path | None = None,
         save_figure(fig, out, name, fmts)
     _write_table(out / f"{name}_table.csv", data, (panel_axis, series_axis, x_axis))
     return data
+
+
+def _handles(row) -> dict:
+    """Legend handles of a row of axes by label (one per label, the last one drawn)."""
+    return {lb: h for ax in row for h, lb in zip(*ax.get_legend_handles_labels(), strict=True)}
+
+
+def _success_legend(row, data: list[Cell], series_axis: str) -> None:
+    """The series legend on the row's last panel, a cross for cells never set up if any."""
+    marks = _handles(row)
+    if not all(c.ran for c in data):
+        from matplotlib.lines import Line2D
+
+        marks["not set up (no run)"] = Line2D([], [], color="0.25", marker="x",
+                                              linestyle="none", markersize=4)
+    row[-1].legend(marks.values(), marks.keys(), loc="best", title=_axis_label(series_axis))
 
 
 def _success_panel(ax, data: list[Cell], panel: str, panel_axis: str,

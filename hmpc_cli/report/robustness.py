@@ -237,17 +237,18 @@ def _series_finding(sel: list) -> str:
     is then between the rates set up, and the trend is given over all rates (a refused run
     counts as failed) and over the rates set up.
     """
+    def fastest_vs_slowest(cells: list) -> str:
+        return _compare(cells[-1], cells[0], f"{cells[-1].x:g} Hz", f"{cells[0].x:g} Hz")
+
     ran = [c for c in sel if c.ran]
     if len(ran) == len(sel):
-        return (_compare(sel[-1], sel[0], f"{sel[-1].x:g} Hz", f"{sel[0].x:g} Hz") + "; "
-                + trend_text(sel))
+        return fastest_vs_slowest(sel) + "; " + trend_text(sel)
     refused = [f"{c.x:g}" for c in sel if not c.ran]
     where = (f"{refused[0]} Hz" if len(refused) == 1
              else f"{', '.join(refused[:-1])} and {refused[-1]} Hz")
     text = f"at {where} every run's margins were refused at set-up (none ran)"
     if len(ran) >= 2:
-        text += ("; of the rates set up, "
-                 + _compare(ran[-1], ran[0], f"{ran[-1].x:g} Hz", f"{ran[0].x:g} Hz"))
+        text += "; of the rates set up, " + fastest_vs_slowest(ran)
     text += "; " + trend_text(sel, what="trend across all rates (a refused run counts as "
                               "failed; Cochran-Armitage, scores log f)")
     if len(ran) >= 2:
