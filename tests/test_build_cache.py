@@ -104,7 +104,22 @@ def test_the_default_mode_loads_but_never_compiles(tiny, filled, use, monkeypatc
     built = FixedModeNLP(*tiny)
     assert built.build_info.cache == "miss" and not built.build_info.compiled
     assert built.build_info.reason.startswith("not compiled: HMPC_BUILD_CACHE=background")
-    assert not list(folder.iterdir()), "a miss in the default mode writes nothing"
+    # a miss in the default mode stores the transcription and its layout, never a library
+    stem = f"nlp-{cache.structure_key(*tiny, 1)[:32]}"
+    assert sorted(p.name for p in folder.iterdir()) == [
+        f"{stem}.casadi", f"{stem}.casadi.sha256", f"{stem}.json", f"{stem}.json.sha256"]
+    stored = {p: p.read_bytes() for p in folder.iterdir()}
+    loaded = FixedModeNLP(*tiny)  # the next build loads the transcription instead
+    assert loaded.build_info.cache == "miss" and not loaded.build_info.compiled
+    assert loaded.build_info.reason == f"{cache.TRANSCRIPTION_LOADED}; {cache.NOT_COMPILED}"
+    assert {p: p.read_bytes() for p in folder.iterdir()} == stored  # nothing rewritten
+    assert loaded.layout.to_dict() == built.layout.to_dict()
+    _, first = filled  # transcribed: its solves are the loaded NLP's bit for bit
+    for a, b in zip(_solve_twice(first, tiny[0]), _solve_twice(loaded, tiny[0]), strict=True):
+        assert a.stats.success and a.stats.iterations == b.stats.iterations
+        np.testing.assert_array_equal(a.x, b.x)
+        np.testing.assert_array_equal(a.lam_g, b.lam_g)
+        np.testing.assert_array_equal(a.lam_x, b.lam_x)
     shutil.rmtree(folder)
     use(filled[0])  # a compiled entry is used in the default mode
     monkeypatch.delenv(cache.ENV)
@@ -169,6 +184,33 @@ def test_damaged_layout_is_detected(tiny, filled, use, caplog):
         hit = cache.lookup(key, "ipopt")
     assert hit.library is None and hit.info.cache == "miss"
     assert "does not match its recorded sha256" in caplog.text and not meta.exists()
+
+
+@pytest.mark.parametrize("damage", ["flip", "foreign"])
+def test_damaged_transcription_is_detected_and_transcribed_again(tiny, filled, use, caplog,
+                                                                 damage):
+    folder = use(filled[0], mode="use")
+    for lib in folder.glob("nlp-*.so"):  # no library: the stored transcription is read
+        lib.unlink()
+    stem = f"nlp-{cache.structure_key(tiny[0], tiny[1], 1)[:32]}"
+    target = folder / f"{stem}.casadi"
+    if damage == "flip":
+        raw = bytearray(target.read_bytes())
+        raw[len(raw) // 2] ^= 0x01
+        target.write_bytes(bytes(raw))
+    else:  # the final domain's function with its own (valid) record
+        other = next(p for p in folder.glob("nlp-*.casadi") if p != target)
+        shutil.copy(other, target)
+        shutil.copy(cbuild.hash_path(other), cbuild.hash_path(target))
+    with caplog.at_level(logging.WARNING, logger="hmpc_cli.mpc.cache"):
+        nlp = FixedModeNLP(*tiny)
+    assert "does not match its recorded sha256" in caplog.text
+    assert "transcribing the NLP again" in caplog.text
+    assert nlp.build_info.reason == cache.NOT_COMPILED  # transcribed, not loaded
+    assert _solve_twice(nlp, tiny[0])[0].stats.success
+    assert cbuild.verified(target) and cbuild.recorded(target)[2] == \
+        cache.structure_key(tiny[0], tiny[1], 1)  # stored again, for its own key
+    assert FixedModeNLP(*tiny).build_info.reason.startswith(cache.TRANSCRIPTION_LOADED)
 
 
 def test_cache_writable_by_others_is_refused(tiny, filled, use):

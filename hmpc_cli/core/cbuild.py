@@ -174,10 +174,14 @@ def atomic_write(path: Path, data: str | bytes) -> None:
             os.unlink(tmp)
 
 
-def write_verified(path: Path, data: str | bytes) -> None:
-    """Writes ``data``'s sha256 next to ``path``, then ``data`` (both atomically)."""
+def write_verified(path: Path, data: str | bytes, note: str = "") -> None:
+    """Writes ``data``'s sha256 next to ``path``, then ``data`` (both atomically).
+
+    ``note`` (one word, e.g. a cache key) follows the sha256 in its record.
+    """
     raw = data.encode() if isinstance(data, str) else data
-    atomic_write(hash_path(path), f"{hashlib.sha256(raw).hexdigest()}  {path.name}\n")
+    record = f"{hashlib.sha256(raw).hexdigest()}  {path.name}  {note}".rstrip() + "\n"
+    atomic_write(hash_path(path), record)
     atomic_write(path, raw)
 
 

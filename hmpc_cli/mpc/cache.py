@@ -19,17 +19,24 @@ when the library is loaded), in the directory of the C rollouts
 (:func:`hmpc_cli.core.cbuild.cache_dir`):
 
 * ``nlp-<key>.json``: the layout (block names, stages, offsets, shapes);
-* ``nlp-<key>.casadi``: the NLP's ``(x, p) -> (f, g)`` function, serialized;
+* ``nlp-<key>.casadi``: the NLP's ``(x, p) -> (f, g)`` function, serialized (the
+  transcription);
 * ``nlp-<key>-<compiler>.so``: the library, its name also keyed by the compiler's identity
   and the flags.
 
 Each file is written atomically with its sha256 beside it and used only when its bytes
-match; a damaged file is reported, removed and rebuilt. A miss builds the NLP in SX as
-before, stores the layout and the function, and compiles the library in a detached
+match; a damaged file is reported, removed and rebuilt. A miss transcribes the NLP in SX,
+stores the layout and the function, and compiles the library in a detached
 background process started when the process exits (``python -m hmpc_cli.mpc.cache``;
 one entry is compiled by one process at a time: a lock file), so a run never waits for
 the compiler nor competes with it; the next run loads it. The compile is the price:
 for the ball's switching NLP minutes of CPU and GBs of memory at -O1.
+
+Without a library a later run still skips the transcription: it loads the stored function
+and calls it on fresh symbols (:func:`load_transcription`), the graph the compiler is
+given too, and ``nlpsol`` derives the same functions from it: the solves are the
+transcribed NLP's bit for bit (``tests/test_build_cache.py``). The cache is still a miss
+(the NLP is solved in SX); its reason says the transcription was loaded.
 
 ``HMPC_BUILD_CACHE`` (:func:`mode`): ``off`` (or ``0``) disables the cache; ``use`` (the
 default) loads compiled NLPs but never compiles (the user asks for the cost, once);
@@ -83,11 +90,16 @@ _QUEUE: list[Entry] = []  # entries this process compiles in the background at e
 
 @dataclass(frozen=True)
 class Hit:
-    """A lookup: the library and layout on a hit (else None), and the build info."""
+    """A lookup: the library and layout on a hit (else None), and the build info.
+
+    ``transcription``: on a miss whose function and layout are stored, the NLP
+    ``{"x", "p", "f", "g"}`` loaded from them (with ``layout``), else None.
+    """
 
     library: str | None
     layout: NLPLayout | None
     info: BuildInfo
+    transcription: dict | None = None
 
 
 #: ``$HMPC_BUILD_CACHE`` values: off, use (default), background, sync
@@ -97,8 +109,9 @@ MODES = ("off", "use", "background", "sync")
 def mode() -> str:
     """The cache mode from ``$HMPC_BUILD_CACHE`` (default ``"use"``).
 
-    ``off``: no cache; ``use``: load compiled NLPs, never compile (a compile costs minutes
-    of CPU and GBs of memory once per problem structure: the user asks for it);
+    ``off``: no cache; ``use``: load compiled NLPs (else a stored transcription, stored on
+    a miss), never compile (a compile costs minutes of CPU and GBs of memory once per
+    problem structure: the user asks for it);
     ``background``: also compile a missing one in a detached process at exit; ``sync``:
     compile it in the foreground.
     """
@@ -111,6 +124,10 @@ def mode() -> str:
 #: why a miss is not compiled in the default mode
 NOT_COMPILED = (f"not compiled: {ENV}=background (at exit) or {ENV}=sync (now) compiles it, "
                 "once per problem structure (minutes of CPU, ~3 GB for the ball)")
+
+
+#: the reason of a miss whose transcription was loaded (before what happens to the library)
+TRANSCRIPTION_LOADED = "transcription loaded from the cache"
 
 
 #: the sources that turn a system and settings into the NLP's graph and code
@@ -231,27 +248,82 @@ def open_entry(key: str, plugin: str) -> tuple[Entry | None, Hit | None]:
     return Entry(folder, key, identity), None
 
 
+def _layout(entry: Entry) -> NLPLayout:
+    """The layout in the entry's (verified) meta file.
+
+    Raises:
+        ValueError: the file cannot be read or belongs to another entry.
+    """
+    try:
+        meta = json.loads(entry.meta.read_text())
+        if meta.get("format") != FORMAT or meta.get("key") != entry.key:
+            raise ValueError(f"{entry.meta} belongs to another entry")
+        return NLPLayout.from_dict(meta["layout"])
+    except (OSError, KeyError, TypeError) as e:
+        raise ValueError(str(e)) from e
+
+
+def load_transcription(entry: Entry) -> dict:
+    """The entry's NLP ``{"x", "p", "f", "g"}``: its stored function called on new symbols.
+
+    Raises:
+        ValueError: the function is missing, damaged or not a CasADi function.
+    """
+    if not entry.check(entry.function, entry.key):
+        raise ValueError(f"{entry.function} is missing or damaged")
+    try:
+        fun = ca.Function.deserialize(entry.function.read_bytes().decode())
+    except (OSError, RuntimeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{entry.function}: {e}") from e
+    if fun.n_in() != 2 or fun.n_out() != 2:
+        raise ValueError(f"{entry.function} is not an NLP's (x, p) -> (f, g)")
+    x = ca.SX.sym("x", fun.size1_in(0))
+    p = ca.SX.sym("p", fun.size1_in(1))
+    f, g = fun(x, p)
+    return {"x": x, "p": p, "f": f, "g": g}
+
+
 def lookup(key: str, plugin: str) -> Hit:
-    """The compiled library and layout of ``key`` if cached and verified, else why not."""
+    """The compiled library and layout of ``key`` if cached and verified, else why not.
+
+    On a miss, the stored transcription and layout if they are verified.
+    """
     entry, off = open_entry(key, plugin)
     if entry is None:
         return off
-    if entry.check(entry.meta) and entry.check(entry.library, entry.key):
-        try:
-            meta = json.loads(entry.meta.read_text())
-            if meta.get("format") != FORMAT or meta.get("key") != entry.key:
-                raise ValueError(f"{entry.meta} belongs to another entry")
-            layout = NLPLayout.from_dict(meta["layout"])
-        except (OSError, ValueError, KeyError, TypeError) as e:
-            _LOG.warning("%s is unusable (%s): rebuilding it", entry.meta, e)
-            return Hit(None, None, BuildInfo("miss", False, f"unusable entry: {e}"))
+    if not entry.check(entry.meta):
+        return Hit(None, None, BuildInfo("miss", False, "not in the cache"))
+    try:
+        layout = _layout(entry)
+    except ValueError as e:
+        _LOG.warning("%s is unusable (%s): rebuilding it", entry.meta, e)
+        return Hit(None, None, BuildInfo("miss", False, f"unusable entry: {e}"))
+    if entry.check(entry.library, entry.key):
         return Hit(str(entry.library), layout,
                    BuildInfo("hit", True, f"loaded {entry.library.name}"))
-    return Hit(None, None, BuildInfo("miss", False, "not in the cache"))
+    try:
+        nlp = load_transcription(entry)
+        sizes = (nlp["x"].numel(), nlp["p"].numel(), nlp["g"].numel())
+        if sizes != (layout.x.size, layout.p.size, layout.g.size):
+            raise ValueError(f"{entry.function}: sizes {sizes} are not its layout's")
+    except ValueError as e:
+        _LOG.warning("%s: transcribing the NLP again", e)
+        return Hit(None, None, BuildInfo("miss", False, "not in the cache"))
+    return Hit(None, layout, BuildInfo("miss", False, TRANSCRIPTION_LOADED), nlp)
 
 
-def store(key: str, plugin: str, nlp: dict, layout: NLPLayout) -> BuildInfo:
+def store(key: str, plugin: str, nlp: dict, layout: NLPLayout, *,
+          keep_transcription: bool = False, stored: bool = False) -> BuildInfo:
     """Stores a freshly built NLP's layout and function, and starts its compilation.
+
+    Args:
+        key: the entry's structure key.
+        plugin: the solver back-end's name.
+        nlp: the NLP ``{"x", "p", "f", "g"}``.
+        layout: its layout.
+        keep_transcription: store the function and layout in the default mode (``use``)
+            too, for later runs to load (:func:`lookup`).
+        stored: they are stored already (the NLP was loaded from them).
 
     Returns:
         The build info of this (SX) build: ``miss`` and what happens to the library.
@@ -259,18 +331,21 @@ def store(key: str, plugin: str, nlp: dict, layout: NLPLayout) -> BuildInfo:
     entry, off = open_entry(key, plugin)
     if entry is None:
         return off.info
+    if mode() == "use" and (stored or not keep_transcription):
+        return BuildInfo("miss", False, NOT_COMPILED)
+    if not stored:
+        fun = ca.Function("nlp", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]],
+                          ["x", "p"], ["f", "g"])
+        try:
+            cbuild.write_verified(entry.function, fun.serialize(), entry.key)
+            cbuild.write_verified(entry.meta, json.dumps(
+                {"format": FORMAT, "key": key, "layout": layout.to_dict()}, sort_keys=True))
+        except OSError as e:
+            return BuildInfo("miss", False, f"cannot write the cache: {e}")
     if mode() == "use":
         return BuildInfo("miss", False, NOT_COMPILED)
     if entry.failed.exists():
         return BuildInfo("miss", False, f"compilation failed before (see {entry.failed})")
-    fun = ca.Function("nlp", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]],
-                      ["x", "p"], ["f", "g"])
-    try:
-        cbuild.write_verified(entry.function, fun.serialize())
-        cbuild.write_verified(entry.meta, json.dumps(
-            {"format": FORMAT, "key": key, "layout": layout.to_dict()}, sort_keys=True))
-    except OSError as e:
-        return BuildInfo("miss", False, f"cannot write the cache: {e}")
     if mode() == "sync":
         try:
             seconds = compile_entry(entry)
@@ -394,15 +469,12 @@ def generate(entry: Entry, folder: Path) -> Path:
     Raises:
         cbuild.CBuildError: the stored function is damaged or the code cannot be made.
     """
-    if not entry.check(entry.function):
-        raise cbuild.CBuildError(f"{entry.function} is missing or damaged")
     try:
-        fun = ca.Function.deserialize(entry.function.read_bytes().decode())
-        x = ca.SX.sym("x", fun.size1_in(0))
-        p = ca.SX.sym("p", fun.size1_in(1))
-        f, g = fun(x, p)
-        solver = ca.nlpsol("nlp", "ipopt", {"x": x, "p": p, "f": f, "g": g},
-                           {"expand": True})
+        nlp = load_transcription(entry)
+    except ValueError as e:
+        raise cbuild.CBuildError(str(e)) from e
+    try:
+        solver = ca.nlpsol("nlp", "ipopt", nlp, {"expand": True})
         with contextlib.chdir(folder):
             solver.generate_dependencies("nlp.c", {"with_header": False})
     except RuntimeError as e:
