@@ -169,10 +169,8 @@ def main() -> None:
     print(f"warm / target ({TARGET_S} s): {statistics.median(walls[warm]) / TARGET_S:.2f}")
     for name, seconds in split(args.scenario, cache, warm).items():
         print(f"  {name:40s} {seconds:6.3f} s")
-    if args.no_compile:
-        print(f"machine: {os.cpu_count()} cores")
-        return
-    for label, (n, t_sx, t_c, same) in solve_split(args.scenario, cache).items():
+    replays = {} if args.no_compile else solve_split(args.scenario, cache)
+    for label, (n, t_sx, t_c, same) in replays.items():
         print(f"{label} NLP, {n} solves of one run replayed: SX {t_sx:.3f} s, compiled "
               f"{t_c:.3f} s ({t_c / t_sx:.2f}x); {'bit-identical' if same else 'DIFFERENT'}")
     print(f"machine: {os.cpu_count()} cores")

@@ -326,33 +326,46 @@ def store(key: str, plugin: str, nlp: dict, layout: NLPLayout, *,
         stored: they are stored already (the NLP was loaded from them).
 
     Returns:
-        The build info of this (SX) build: ``miss`` and what happens to the library.
+        The build info of this (SX) build: ``miss``, whether the transcription was loaded,
+        and what happens to the library.
     """
     entry, off = open_entry(key, plugin)
     if entry is None:
         return off.info
+    fate = _library_fate(entry, nlp, layout, keep_transcription, stored)
+    return BuildInfo("miss", False, f"{TRANSCRIPTION_LOADED}; {fate}" if stored else fate)
+
+
+def _library_fate(entry: Entry, nlp: dict, layout: NLPLayout, keep_transcription: bool,
+                  stored: bool) -> str:
+    """What happens to the entry's library, after storing its function and layout.
+
+    Stores them as :func:`store` is asked to and compiles (``sync``) or queues
+    (``background``) the library as the mode says.
+    """
     if mode() == "use" and (stored or not keep_transcription):
-        return BuildInfo("miss", False, NOT_COMPILED)
+        return NOT_COMPILED
     if not stored:
         fun = ca.Function("nlp", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]],
                           ["x", "p"], ["f", "g"])
         try:
             cbuild.write_verified(entry.function, fun.serialize(), entry.key)
             cbuild.write_verified(entry.meta, json.dumps(
-                {"format": FORMAT, "key": key, "layout": layout.to_dict()}, sort_keys=True))
+                {"format": FORMAT, "key": entry.key, "layout": layout.to_dict()},
+                sort_keys=True))
         except OSError as e:
-            return BuildInfo("miss", False, f"cannot write the cache: {e}")
+            return f"cannot write the cache: {e}"
     if mode() == "use":
-        return BuildInfo("miss", False, NOT_COMPILED)
+        return NOT_COMPILED
     if entry.failed.exists():
-        return BuildInfo("miss", False, f"compilation failed before (see {entry.failed})")
+        return f"compilation failed before (see {entry.failed})"
     if mode() == "sync":
         try:
             seconds = compile_entry(entry)
         except cbuild.CBuildError as e:
-            return BuildInfo("miss", False, f"compilation failed: {e}")
-        return BuildInfo("miss", False, f"compiled {entry.library.name} in {seconds:.1f} s")
-    return BuildInfo("miss", False, _spawn(entry))
+            return f"compilation failed: {e}"
+        return f"compiled {entry.library.name} in {seconds:.1f} s"
+    return _spawn(entry)
 
 
 #: [s] a lock file without a readable owner is taken over after this (its creator

@@ -40,7 +40,6 @@ S_max) and re-solved with parameters, bounds and a primal-dual warm start.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 from typing import Literal
@@ -317,9 +316,6 @@ class FixedModeNLP:
             self.build_info = hit.info if hit.info.cache == "disabled" else \
                 cache.store(key, self.s.solver_of(self.S), nlp, self.layout,
                             keep_transcription=True, stored=loaded)
-            if loaded:
-                self.build_info = dataclasses.replace(
-                    self.build_info, reason=f"{hit.info.reason}; {self.build_info.reason}")
         X, g = self.layout.x, self.layout.g
         self.nx_var, self.ng, self.np = X.size, g.size, self.layout.p.size
         self.z_idx, self.u_idx, self.s_idx = X["z"], X["u"], X["sigma"]
