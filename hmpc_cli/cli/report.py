@@ -143,8 +143,12 @@ def _print_missing(plans: dict, dirs: dict[str, Path]) -> None:
         if not missing:
             continue
         total += len(missing)
-        sim = sum(float(tomllib.loads(r.toml).get("sim", {}).get("duration", 0.0) or 0.0)
-                  for r in missing if r.toml)
+        duration: dict[tuple, float] = {}  # per cell: its runs differ in the seed only
+        for r in missing:
+            if r.toml and (cell := tuple(map(repr, r.cell))) not in duration:
+                duration[cell] = float(
+                    tomllib.loads(r.toml).get("sim", {}).get("duration", 0.0) or 0.0)
+        sim = sum(duration[tuple(map(repr, r.cell))] for r in missing if r.toml)
         typer.echo(f"note: {plan.path}: {len(missing)} of {len(plan.selected)} runs missing "
                    f"({sim:g} s of simulated time, several times that in wall time)",
                    err=True)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import difflib
+import json
 import re
 import tomllib
 import types
@@ -507,6 +508,18 @@ def effective_toml(scenario: ScenarioBase) -> str:
     return dump_toml(scenario.model_dump(mode="json", exclude_none=True))
 
 
+def seeded_toml(scenario: ScenarioBase) -> Callable[[int], str]:
+    """``seed -> effective_toml(scenario with that seed)``, its tables written once.
+
+    A sweep cell's runs differ in the seed only, a top-level key, so each run's text is
+    the cell's top-level lines with its seed, then the cell's tables, unchanged.
+    """
+    data = scenario.model_dump(mode="json", exclude_none=True)
+    tables = _toml_tables(data)
+    top = {k: v for k, v in data.items() if not isinstance(v, dict)}
+    return lambda seed: _toml_top({**top, "seed": seed}) + tables
+
+
 def _problems(data: dict, source: str) -> list[str]:
     """The ``source: key: reason`` lines of scenario data ([] if it is valid)."""
     try:
@@ -736,24 +749,32 @@ def _resolve_margins(scenario: ScenarioBase, path: Path, check: bool) -> list[st
 
 def dump_toml(data: dict) -> str:
     """Minimal TOML writer for scenario dictionaries (tables, scalars, arrays)."""
-    import json
+    return _toml_top(data) + _toml_tables(data)
 
-    def value(v) -> str:
-        if isinstance(v, bool):
-            return "true" if v else "false"
-        if isinstance(v, (int, float)):
-            return repr(v)
-        if isinstance(v, str):  # TOML basic string (no surrogate-pair \u escapes, DEL escaped)
-            return json.dumps(v, ensure_ascii=False).replace("\x7f", "\\u007f")
-        if isinstance(v, (list, tuple)):
-            return "[" + ", ".join(value(x) for x in v) + "]"
-        if isinstance(v, dict):
-            return "{" + ", ".join(f"{value(str(k))} = {value(x)}" for k, x in v.items()) + "}"
-        raise TypeError(f"cannot write {type(v).__name__} to TOML")
 
-    top = [f"{k} = {value(v)}" for k, v in data.items() if not isinstance(v, dict)]
-    out = "\n".join(top) + "\n"
-    for k, v in data.items():
-        if isinstance(v, dict):
-            out += f"\n[{k}]\n" + "".join(f"{kk} = {value(vv)}\n" for kk, vv in v.items())
-    return out
+def _toml_value(v) -> str:
+    """One value as TOML (inline tables for dictionaries)."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):  # TOML basic string (no surrogate-pair \u escapes, DEL escaped)
+        return json.dumps(v, ensure_ascii=False).replace("\x7f", "\\u007f")
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{_toml_value(str(k))} = {_toml_value(x)}"
+                               for k, x in v.items()) + "}"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def _toml_top(data: dict) -> str:
+    """The top-level (non-table) keys of :func:`dump_toml`'s text."""
+    return "\n".join(f"{k} = {_toml_value(v)}" for k, v in data.items()
+                     if not isinstance(v, dict)) + "\n"
+
+
+def _toml_tables(data: dict) -> str:
+    """The ``[table]`` sections of :func:`dump_toml`'s text, in the data's order."""
+    return "".join(f"\n[{k}]\n" + "".join(f"{kk} = {_toml_value(vv)}\n" for kk, vv in v.items())
+                   for k, v in data.items() if isinstance(v, dict))

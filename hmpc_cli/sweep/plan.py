@@ -19,6 +19,7 @@ import json
 import math
 import re
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,8 +27,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from hmpc_cli.run.scenario import (
-    ScenarioBase, ScenarioError, effective_toml, format_errors, load_scenario, read_toml_file,
-    scenario_model)
+    ScenarioError, format_errors, load_scenario, read_toml_file, scenario_model, seeded_toml)
 from hmpc_cli.core.settings_types import MAX_INT
 from hmpc_cli.sweep.table import METRICS, cell_text, toml_value
 
@@ -255,15 +255,16 @@ def plan_sweep(path: str | Path) -> SweepPlan:
                              f"seeds = {total} runs exceeds the limit {MAX_RUNS}"])
     runs = _expand(spec, base, axes, src, errors)
     # a cell's scenario is validated once; its other seeds differ from it in the seed only
-    cells: dict[tuple[str, ...], ScenarioBase | None] = {}  # None: the cell is invalid
+    cells: dict[tuple[str, ...], Callable[[int], str] | None] = {}  # None: the cell is invalid
     for run in runs if scenario.is_file() else []:
         items = tuple(f"{k}={toml_value(v)}" for k, v in run.overrides.items())
         try:
             if items not in cells:
-                cells[items], run.toml = load_scenario(scenario, list(items), run.seed,
-                                                       attribute_sets=False)
+                cell, run.toml = load_scenario(scenario, list(items), run.seed,
+                                               attribute_sets=False)
+                cells[items] = seeded_toml(cell)
             elif cells[items] is not None:
-                run.toml = effective_toml(cells[items].model_copy(update={"seed": run.seed}))
+                run.toml = cells[items](run.seed)
         except ScenarioError as exc:
             cells[items] = None
             errors += [_rewrite(line, scenario, src, run) for line in exc.lines]
