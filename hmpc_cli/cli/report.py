@@ -144,11 +144,13 @@ def _print_missing(plans: dict, dirs: dict[str, Path]) -> None:
             continue
         total += len(missing)
         duration: dict[tuple, float] = {}  # per cell: its runs differ in the seed only
-        for r in missing:
-            if r.toml and (cell := tuple(map(repr, r.cell))) not in duration:
+        sim = 0.0
+        for r in (r for r in missing if r.toml):
+            cell = tuple(map(repr, r.cell))
+            if cell not in duration:
                 duration[cell] = float(
                     tomllib.loads(r.toml).get("sim", {}).get("duration", 0.0) or 0.0)
-        sim = sum(duration[tuple(map(repr, r.cell))] for r in missing if r.toml)
+            sim += duration[cell]
         typer.echo(f"note: {plan.path}: {len(missing)} of {len(plan.selected)} runs missing "
                    f"({sim:g} s of simulated time, several times that in wall time)",
                    err=True)

@@ -82,13 +82,13 @@ def same_scenario(stored: str, planned: str) -> bool:
     import tomllib
 
     from hmpc_cli.core.registry import PluginError
-    from hmpc_cli.run.scenario import dump_toml, scenario_model
+    from hmpc_cli.run.scenario import effective_toml, scenario_model
 
     try:
         scenario = scenario_model().model_validate(tomllib.loads(stored))
     except (ValueError, TypeError, KeyError, PluginError):  # not a scenario today: differs
         return False
-    return dump_toml(scenario.model_dump(mode="json", exclude_none=True)) == planned
+    return effective_toml(scenario) == planned
 
 
 def cell_text(v: Any) -> str:
