@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import os
 import shutil
 import signal
@@ -100,6 +101,27 @@ def run_loop(scenario, path: Path):
     from hmpc_cli.run.runner import prepare, run_to_log
 
     return run_to_log(prepare(scenario), path)
+
+
+def assert_runs_match_the_committed_table(results: Path, sweep: str,
+                                          keep=lambda row: True) -> int:
+    """The rows of ``results`` (a results.csv just made) against the committed
+    ``results/sweeps/<sweep>/results.csv``, run by run: the same runs (those ``keep``
+    selects), each with the same outcome, reason, contacts, solves and solver failures,
+    and its final error to 1e-6 relative. Returns the number of runs compared."""
+    def rows(path: Path) -> dict:
+        with open(path, newline="") as f:
+            return {r["run_id"]: r for r in csv.DictReader(f) if keep(r)}
+
+    again, committed = rows(results), rows(REPO / "results" / "sweeps" / sweep / "results.csv")
+    assert again.keys() == committed.keys(), (sweep, sorted(again.keys() ^ committed.keys()))
+    same = ("success", "reason", "contacts", "solves", "solver_failures")
+    for run_id, r in again.items():
+        c = committed[run_id]
+        assert [r[k] for k in same] == [c[k] for k in same], (sweep, run_id)
+        assert float(r["final_error"]) == pytest.approx(float(c["final_error"]), rel=1e-6), \
+            (sweep, run_id)
+    return len(again)
 
 
 def write_finished_log(run_dir: Path, summary: dict | None = None) -> Path:

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from conftest import assert_runs_match_the_committed_table
 from hmpc_cli.log.reader import read_log
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -149,16 +150,6 @@ def test_the_real_time_robustness_table_is_what_the_code_gives(tmp_path, run_hmp
     proc = run_hmpc(["sweep", str(sweep), "--seeds", "2", "--out", str(tmp_path / "rt")],
                     cwd=tmp_path, timeout=1800)
     assert proc.returncode == 0, proc.stderr
-
-    def rows(path: Path) -> dict:
-        with open(path, newline="") as f:
-            return {r["run_id"]: r for r in csv.DictReader(f) if int(r["seed"]) < 2}
-
-    again = rows(tmp_path / "rt" / "results.csv")
-    committed = rows(ROOT / "results" / "sweeps" / "robustness_realtime" / "results.csv")
-    assert len(again) == 20 and again.keys() == committed.keys()
-    for run_id, r in again.items():
-        c = committed[run_id]
-        assert [r[k] for k in ("success", "contacts", "solves", "reason")] == \
-            [c[k] for k in ("success", "contacts", "solves", "reason")], run_id
-        assert float(r["final_error"]) == pytest.approx(float(c["final_error"]), rel=1e-6)
+    assert assert_runs_match_the_committed_table(tmp_path / "rt" / "results.csv",
+                                                 "robustness_realtime",
+                                                 keep=lambda r: int(r["seed"]) < 2) == 20
