@@ -343,11 +343,13 @@ not reproduce.
 
 Bad input (missing, unreadable or empty file, a directory, TOML syntax, wrong type,
 unknown key, unknown system, non-finite, out-of-range or non-commensurate numbers,
-settings that contradict each other) prints one `source: key.path: reason` line per
-problem, all problems at once (field and cross-field problems together), and exits with
-code 2 before anything is written. An unknown key names the closest known key of its
-level: `mpc.rate: unknown key (did you mean 'rate_hz'?)`. The source is the scenario
-file, `--set key=value` for an overridden key, or the sweep file and its entry
+settings that contradict each other, an initial state `system.x0` past a guard of its
+initial mode) prints one `source: key.path: reason` line per problem, all problems at
+once (field and cross-field problems together), and exits with code 2 before anything is
+written. An unknown key names the closest known key of its level: `mpc.rate: unknown key
+(did you mean 'rate_hz'?)`. The source is the scenario file, `--set key=value` for a
+problem the override made (its key, a key inside it, or a key its reason names), `--seed
+N` for the seed given on the command line, or the sweep file and its entry
 (`sweep.toml: grid.axis[i]: key: ...`).
 
 Columns below: *unit* is taken from the description's brackets, *bounds* from the model's
@@ -374,8 +376,9 @@ The fixed-mode MPC (fast layer): `fixed_mode` is the paper's chain transcription
 SET_SYNTAX = """
 ## `--set key.path=value`
 
-`hmpc run`, `hmpc tube` and `hmpc replay --verify` take `--set key.path=value`
-(repeatable, applied in order, after the file and before `--seed`;
+`hmpc run` and `hmpc tube` take `--set key.path=value` (`hmpc replay --verify` takes
+none: it re-runs the recorded scenario as it was), repeatable, applied in order
+(after the file and before `--seed`;
 `hmpc_cli.run.scenario.apply_overrides`). The key is the dotted path of the table above
 (`mpc.rate_hz`, `system.circle_radius`); a missing table on the way is created. The value
 is parsed as a TOML value (`tomllib.loads("v = " + value)`), and when that fails it is

@@ -21,7 +21,7 @@ BALL = SCENARIOS / "ball.toml"
 
 # "error: <file>: <key.path>: <reason>" as printed by the CLI
 # (a problem with a key a --set override set is attributed to "--set key=value")
-KEYED = re.compile(r"^error: (?P<file>--set \S+|[^:\s]+): (?P<key>[A-Za-z_][\w.\[\]]*): "
+KEYED = re.compile(r"^error: (?P<file>--(?:set|seed) \S+|[^:\s]+): (?P<key>[A-Za-z_][\w.\[\]]*): "
                    r"(?P<reason>\S.*)$")
 
 
@@ -260,7 +260,8 @@ def test_two_bad_sets_two_lines(work: Path) -> None:
 
 
 def test_negative_seed(work: Path) -> None:
-    one_keyed(cli_bad(work, ["ball.toml", "--seed", "-1"]), "ball.toml", "seed")
+    """The --seed is at fault, not the file."""
+    one_keyed(cli_bad(work, ["ball.toml", "--seed", "-1"]), "--seed -1", "seed")
 
 
 def test_bad_solver_options_no_traceback(work: Path) -> None:

@@ -218,15 +218,31 @@ def test_bool_and_string_are_not_numbers(work: Path):
                      'integer']
 
 
+def test_a_problem_made_on_the_command_line_names_the_option_not_the_file(work: Path):
+    """--seed's own problem and a --set inside a value that is not a table."""
+    ball = _scenario(work, "ball").name
+    assert bad_run(work, ["run", ball, "--seed", "-1"]) == [
+        "error: --seed -1: seed: Input should be greater than or equal to 0"]
+    assert bad_run(work, ["run", ball, "--set", "system.x0.0=1"]) == [
+        "error: --set system.x0.0=1: system.x0: Input should be a valid tuple"]
+
+
 @pytest.mark.parametrize("item,message", [
-    ("mpc.horizon=1e6", "mpc.horizon: 1e+06 s x 60 nodes/s = 6e+07 NLP nodes exceeds the "
-                        "limit 20000 (it would need about 4.98e+04 GiB of memory"),
-    ("sim.duration=1e6", "sim.duration: 1e+06 s x 600 steps/s = 6e+08 simulator steps "
-                         "exceeds the limit 1e+07"),
+    ("mpc.horizon=1e6", "mpc.horizon: 1e+06 s x 60 nodes/s (mpc.nodes_per_second) = "
+                        "6e+07 NLP nodes exceeds the limit 20000 (it would need about "
+                        "4.98e+04 GiB of memory"),
+    ("sim.duration=1e6", "sim.duration: 1e+06 s x 600 steps/s (sim.rate_hz) = 6e+08 "
+                         "simulator steps exceeds the limit 1e+07"),
+    # the other factor set: the --set is named, not the file
+    ("sim.rate_hz=100000000", "sim.duration: 3 s x 100000000 steps/s (sim.rate_hz) = 3e+08 "
+                              "simulator steps exceeds the limit 1e+07"),
+    ("mpc.nodes_per_second=600000", "mpc.horizon: 3 s x 600000 nodes/s "
+                                    "(mpc.nodes_per_second) = 1.8e+06 NLP nodes exceeds"),
     ("planner.samples=100000000", "planner.iterations x planner.samples: 15 iterations x "
                                   "(100000000 + 1) samples = 1.5e+09 rollouts of 180 steps"),
     ("planner.samples=1e10", "planner.samples: Input should be a valid integer"),
-    ("mpc.horizon=1e9", "mpc.horizon: 1e+09 s x 60 nodes/s = 6e+10 NLP nodes exceeds"),
+    ("mpc.horizon=1e9", "mpc.horizon: 1e+09 s x 60 nodes/s (mpc.nodes_per_second) = 6e+10 "
+                        "NLP nodes exceeds"),
 ])
 def test_size_limits_are_checked_before_anything_is_built(work: Path, item: str, message: str):
     lines = bad_run(work, ["run", _scenario(work, "ball").name, "--set", item])
@@ -318,6 +334,46 @@ def test_contradictory_settings_fail_at_set_up(real_prepare: Path, system: str, 
     lines = bad_run(real_prepare, ["run", _scenario(real_prepare, system).name, "--set", item,
                                    "--out", "out"])
     assert len(lines) == 1 and lines[0].startswith(f"error: --set {item}: {message}"), lines
+
+
+X0_PAST_CIRCLE = ("system.x0: (1, 1, 0, 0) lies past {}guard 'circle_in' of its initial mode "
+                  "'outside' (gap -0.2929 < 0), so the run would start outside that mode's "
+                  "domain; move system.x0 or the guard")
+
+
+def test_an_initial_state_past_a_guard_of_its_mode_is_refused(real_prepare: Path):
+    """x0 = (1, 1) inside a circle centred at (0.5, 0.5): it starts in mode 'outside', whose
+    guard circle_in it has crossed (a crossed guard never fires), so hmpc run, hmpc tube and
+    a sweep refuse it before anything is built or written."""
+    name = _scenario(real_prepare, "ball", {"system": {"circle_center": [0.5, 0.5]}}).name
+    message = X0_PAST_CIRCLE.format("")
+    assert bad_run(real_prepare, ["run", name, "--out", "out"]) == [f"error: {name}: {message}"]
+    assert bad_run(real_prepare, ["tube", name, "--out", "t"]) == [f"error: {name}: {message}"]
+    (real_prepare / "x.toml").write_text(f'name = "x"\nscenario = "{name}"\nseeds = 1\n')
+    assert bad_run(real_prepare, ["sweep", "x.toml"]) == [f"error: x.toml: cell the base "
+                                                            f"scenario: {message}"]
+    # the state set by --set is the --set's fault; the plant's own circle is checked too
+    fine = _scenario(real_prepare, "ball", name="fine").name
+    item = "system.x0=[3.0,3.0,0.0,0.0]"
+    lines = bad_run(real_prepare, ["run", fine, "--set", item, "--out", "out"])
+    assert len(lines) == 1 and lines[0].startswith(
+        f"error: --set {item}: system.x0: (3, 3, 0, 0) lies past guard 'circle_in'"), lines
+    lines = bad_run(real_prepare, ["run", fine, "--set", "plant.circle_center=[0.5,0.5]",
+                                   "--out", "out"])
+    assert lines == [f"error: {fine}: {X0_PAST_CIRCLE.format('the plant' + chr(39) + 's ')}"]
+
+
+def test_every_scenario_starts_inside_its_initial_mode():
+    """The shipped scenarios pass the initial-state check (the biped's swing foot starts
+    above the stair it stands before; the other stairs' gaps are negative outside their
+    regions)."""
+    from hmpc_cli.core.registry import build_system
+    from hmpc_cli.run.scenario import load_scenario
+    from hmpc_cli.run.setup_checks import initial_state_problems
+
+    for path in sorted((Path(__file__).resolve().parents[1] / "scenarios").glob("*.toml")):
+        sc, _ = load_scenario(path)
+        assert initial_state_problems(build_system(sc.system)) == [], path.name
 
 
 def test_a_misspelt_hpipm_option_is_named_with_its_key_path(real_prepare: Path):

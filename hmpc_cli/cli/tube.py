@@ -28,6 +28,24 @@ def _fail(lines: list[str]) -> None:
     raise typer.Exit(EXIT_BAD_INPUT)
 
 
+def _system(scenario: Path, sc):
+    """The scenario's built system; exits 2 when x0 lies outside its initial mode's domain.
+
+    A tube region spanned from such an x0 would start in a domain x0 is not in.
+
+    Raises:
+        hmpc_cli.core.registry.PluginError: the system fails to build.
+    """
+    from hmpc_cli.core.registry import build_system
+    from hmpc_cli.run.setup_checks import initial_state_problems
+
+    system = build_system(sc.system)
+    outside = initial_state_problems(system)
+    if outside:
+        _fail([f"{scenario}: {line}" for line in outside])
+    return system
+
+
 def _check_samples(samples: int) -> None:
     """Exits 2 when --samples asks for more than the sampling limit (with its cost)."""
     from hmpc_cli.tube.sampling import samples_problem
@@ -236,7 +254,7 @@ def tube_command(
     """Tracking-error tubes of a scenario: L_x, L_u, eta, zeta, Prop. 3, diam T(dt), margins."""
     from hmpc_cli.analysis.tables import FigureInputError
     from hmpc_cli.figures.common import parse_formats
-    from hmpc_cli.core.registry import PluginError, build_system
+    from hmpc_cli.core.registry import PluginError
     from hmpc_cli.run.scenario import ScenarioError, load_scenario
     from hmpc_cli.tube import TubeError
 
@@ -250,7 +268,7 @@ def tube_command(
         _fail([f"--formats: {exc}"])
     _check_outputs(out, write, sc.name)
     try:
-        system = build_system(sc.system)
+        system = _system(scenario, sc)
         observed = _read_runs(runs or [], sc.system)
         report = _analyse(sc, system, observed, states, pad, samples)
     except TubeError as exc:

@@ -16,7 +16,7 @@ from hmpc_cli.core.stack import FixedModeMPC, Planner, Task
 from hmpc_cli.log.books import RunBooks, RunResult
 from hmpc_cli.log.runlog import RunIdentity
 from hmpc_cli.run.realtime import Latency
-from hmpc_cli.run.setup_checks import built_problems, margins_of
+from hmpc_cli.run.setup_checks import built_problems, initial_state_problems, margins_of
 
 __all__ = ["PreparedRun", "StackTiming", "build"]
 
@@ -106,6 +106,8 @@ def build(scenario) -> PreparedRun:
                   s.input_at_events == "recompute", s.max_events_per_step)
     margins = margins_of(sc, model)
     problems = built_problems(sc, model, margins)
+    if sc.plant:
+        problems += initial_state_problems(system, model.x0, "the plant's ")
     if problems:  # before the NLPs are built
         raise ValueError("\n".join(problems))
     mpc, problem = _mpc(sc, model, margins)

@@ -150,7 +150,8 @@ class ScenarioBase(BaseModel):
         steps = s.duration * s.rate_hz
         out = []
         if steps > MAX_SIM_STEPS:
-            out.append(f"sim.duration: {s.duration:g} s x {s.rate_hz} steps/s = {steps:.3g} "
+            out.append(f"sim.duration: {s.duration:g} s x {s.rate_hz} steps/s (sim.rate_hz) "
+                       f"= {steps:.3g} "
                        f"simulator steps exceeds the limit {MAX_SIM_STEPS:.0e}")
         out += list(self.planner.size_problems())
         out += list(self.mpc.size_problems())
@@ -454,7 +455,8 @@ def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None 
     directory's copy finds it) and, with ``check_margins``, checked against the scenario
     (its system, parameters and MPC rate; ``hmpc tube`` skips the check: it writes them).
     Every problem is reported at once; with ``attribute_sets`` a problem with a key an
-    override set is attributed to ``--set key=value`` rather than to the file.
+    override set is attributed to ``--set key=value`` rather than to the file, and one
+    with the seed given here to ``--seed N``.
 
     Returns:
         The scenario and the effective TOML text (after overrides).
@@ -485,21 +487,27 @@ def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None 
         keys = {line.removeprefix(f"{path}: ").partition(": ")[0] for line in lines}
         return key not in keys and not keys & set(_set_keys(item))
 
+    def blame(lines: list[str], confirm=None) -> list[str]:
+        """The lines with a --set's or --seed's problems attributed to it."""
+        lines = attribute_to_sets(lines, str(path), overrides, attribute_sets, confirm)
+        if seed is None or not attribute_sets:
+            return lines
+        own = f"{path}: seed: "
+        return [f"--seed {seed}: " + line.removeprefix(f"{path}: ")
+                if line.startswith(own) else line for line in lines]
+
     data = effective(list(overrides))
     try:
         scenario = scenario_model().model_validate(data)
     except ValidationError as exc:
         lines = (format_errors(exc, str(path)) + _hidden_problems(data, str(path))
                  + _cross_field_problems(data, exc, str(path)))
-        raise ScenarioError(attribute_to_sets(list(dict.fromkeys(lines)), str(path), overrides,
-                                              attribute_sets, caused)) from None
+        raise ScenarioError(blame(list(dict.fromkeys(lines)), caused)) from None
     except PluginError as exc:
-        raise ScenarioError(attribute_to_sets([f"{path}: {exc}"], str(path), overrides,
-                                              attribute_sets)) from None
+        raise ScenarioError(blame([f"{path}: {exc}"])) from None
     problems = _resolve_margins(scenario, path, check_margins)
     if problems:
-        raise ScenarioError(attribute_to_sets([f"{path}: mpc.margins: {p}" for p in problems],
-                                              str(path), overrides, attribute_sets))
+        raise ScenarioError(blame([f"{path}: mpc.margins: {p}" for p in problems]))
     return scenario, effective_toml(scenario)
 
 
@@ -688,13 +696,14 @@ def attribute_to_sets(lines: list[str], source: str, overrides: list[str], on: b
     """Re-attributes ``source: key: reason`` lines caused by a ``--set`` to that ``--set``.
 
     A line is the ``--set``'s when its key is the overridden key or inside it (or, for an
-    unknown key, a table the ``--set`` made); when its key is the table of the overridden
-    key and the reason names the key's last part (``planner: Input tag 'x' found using
-    'kind'``); or when its key or reason names the overridden key (``mpc.rate_hz: 10 must
-    divide sim.rate_hz = 7`` after ``--set sim.rate_hz=7``). The last such ``--set`` wins.
-    For the last two, ``caused(item, key)`` (if given) must confirm it: the problem with
-    ``key`` goes away without that ``--set`` (a ``--set`` that fixed one rate is not
-    blamed for the file's other rate).
+    unknown key, a table the ``--set`` made); when the overridden key is inside the line's
+    key (``system.x0: Input should be a valid tuple`` after ``--set system.x0.0=1``;
+    without ``caused``, only a direct child the reason names: ``planner: Input tag 'x'
+    found using 'kind'``); or when its key or reason names the overridden key
+    (``mpc.rate_hz: 10 must divide sim.rate_hz = 7`` after ``--set sim.rate_hz=7``). The
+    last such ``--set`` wins. For the last two, ``caused(item, key)`` (if given) must
+    confirm it: the problem with ``key`` goes away without that ``--set`` (a ``--set``
+    that fixed one rate is not blamed for the file's other rate).
     """
     if not on or not overrides:
         return lines
@@ -707,10 +716,10 @@ def attribute_to_sets(lines: list[str], source: str, overrides: list[str], on: b
         unknown = reason.startswith("unknown key")  # an unknown section the --set made
         hit = [item for k, item in keys if key == k or key.startswith((f"{k}.", f"{k}["))
                or (unknown and k.startswith(f"{key}."))]
-        if not hit:
-            hit = [item for k, item in keys if k.startswith(f"{key}.") and "." not in
-                   k.removeprefix(f"{key}.") and re.search(
-                       rf"(?<![\w.]){re.escape(k.rpartition('.')[2])}(?!\w)", reason)]
+        if not hit:  # a --set inside the key's table: confirmed by caused, else named
+            hit = [item for k, item in keys if k.startswith(f"{key}.") and (
+                caused is not None or ("." not in k.removeprefix(f"{key}.") and re.search(
+                    rf"(?<![\w.]){re.escape(k.rpartition('.')[2])}(?!\w)", reason)))]
             if not hit:
                 named = set(_KEY_IN_TEXT.findall(f"{key} {reason}"))
                 hit = [item for k, item in keys if k in named]

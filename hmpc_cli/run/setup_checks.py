@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from hmpc_cli.core.messages import ConstraintMargins
 
-__all__ = ["built_problems", "margins_of", "setup_problems"]
+__all__ = ["built_problems", "initial_state_problems", "margins_of", "setup_problems"]
 
 
 def setup_problems(scenario) -> list[str]:
@@ -32,9 +32,37 @@ def setup_problems(scenario) -> list[str]:
 
 
 def built_problems(sc, model, margins: ConstraintMargins | None) -> list[str]:
-    """The checks of a scenario against its built model: margins, solver, planner."""
-    return (_margin_problems(sc, model, margins) + _solver_problems(sc)
-            + _planner_problems(sc, model))
+    """The checks of a scenario against its built model: x0, margins, solver, planner."""
+    return (initial_state_problems(model) + _margin_problems(sc, model, margins)
+            + _solver_problems(sc) + _planner_problems(sc, model))
+
+
+def initial_state_problems(system, x0=None, whose: str = "") -> list[str]:
+    """``system.x0: reason`` when x0 lies past a guard of its initial mode.
+
+    x0 (default ``system.x0``) must lie in the domain of ``system.initial_mode``: every
+    guard out of that mode whose activity region holds x0 has a gap >= 0 there. A guard
+    already crossed never fires (it fires when its gap goes from > 0 to <= 0), so the run
+    would start in a mode its state has left. ``whose`` names another system checked
+    with the controllers' x0 (``"the plant's "``).
+    """
+    import casadi as ca
+    import numpy as np
+
+    x0 = np.asarray(system.x0 if x0 is None else x0, dtype=float)
+    x = ca.SX.sym("x", system.n_x)
+    mode = system.initial_mode
+    out = []
+    for i in system.guards_of(system.mode_index(mode)):
+        g = system.guards[i]
+        gap = float(ca.Function("gap", [x], [g.gap_expr(x)])(x0))
+        inside = g.region is None or bool(np.all(np.asarray(g.region(x0)) >= 0.0))
+        if inside and gap < 0.0:
+            point = ", ".join(f"{v:g}" for v in x0)
+            out.append(f"system.x0: ({point}) lies past {whose}guard {g.name!r} of its "
+                       f"initial mode {mode!r} (gap {gap:.4g} < 0), so the run would start "
+                       f"outside that mode's domain; move system.x0 or the guard")
+    return out
 
 
 def _planner_problems(sc, model) -> list[str]:

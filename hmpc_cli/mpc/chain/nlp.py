@@ -182,7 +182,8 @@ class MPCSettings(MarginsSettings):
         """
         n = self.horizon * self.nodes_per_second
         if n > MAX_NLP_NODES:
-            return [f"mpc.horizon: {self.horizon:g} s x {self.nodes_per_second} nodes/s = "
+            return [f"mpc.horizon: {self.horizon:g} s x {self.nodes_per_second} nodes/s "
+                    f"(mpc.nodes_per_second) = "
                     f"{n:.3g} NLP nodes exceeds the limit {MAX_NLP_NODES} (it would need "
                     f"{nlp_estimate(n, NODE_MIB, NODE_MS)})"]
         S = self.max_switches
