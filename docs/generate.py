@@ -183,7 +183,9 @@ TABLE_HEAD = ["| key | type | unit | default | bounds | description |",
 
 def _model_section(title: str, intro: str, model, prefix: str, note_prefix: str,
                    used: set[str]) -> list[str]:
-    schema = model.model_json_schema()
+    from hmpc_cli.run.schema import standard_schema
+
+    schema = standard_schema(model.model_json_schema())
     defs = schema.get("$defs", {})
     doc = inspect.cleandoc(model.__doc__ or "").split("\n\n")[0].replace("\n", " ")
     out = [f"### {title}", ""]
@@ -208,11 +210,12 @@ def scenarios_md() -> str:
     """The text of docs/scenarios.md."""
     from hmpc_cli.core.registry import registry
     from hmpc_cli.run import scenario as sc
+    from hmpc_cli.run.schema import scenario_json_schema
     from hmpc_cli.sweep import plan as sweep_plan
 
     reg = registry()
     model = sc.scenario_model()
-    schema = model.model_json_schema()
+    schema = scenario_json_schema()
     defs = schema["$defs"]
     used: set[str] = set()
     systems, planners, mpcs = _bundled(reg.systems), _bundled(reg.planners), _bundled(reg.mpcs)

@@ -13,6 +13,7 @@ from typer.testing import CliRunner
 
 from hmpc_cli.cli.app import app
 from hmpc_cli.log.reader import read_log
+from hmpc_cli.run.schema import scenario_json_schema
 from hmpc_cli.run.scenario import Scenario, ScenarioError, dump_toml, load_scenario
 
 REPO = Path(__file__).resolve().parents[1]
@@ -409,7 +410,7 @@ def test_schema_command() -> None:
     res = CliRunner().invoke(app, ["schema"])
     assert res.exit_code == 0, res.output
     schema = json.loads(res.stdout)
-    assert schema == Scenario.model_json_schema()
+    assert schema == scenario_json_schema()
     props = schema["properties"]
     for key in ("system", "sim", "mpc", "planner", "lowlevel", "disturbance", "replanning"):
         assert key in props, key
@@ -417,6 +418,27 @@ def test_schema_command() -> None:
     assert props["sim"]["$ref"].startswith("#/$defs/")
     sim_def = schema["$defs"][props["sim"]["$ref"].rsplit("/", 1)[1]]
     assert sim_def["properties"]["rate_hz"]["type"] == "integer"
+
+
+def test_a_standard_validator_accepts_what_hmpc_accepts_and_rejects_its_bounds(
+        tmp_path: Path) -> None:
+    """The schema an editor reads (Draft 2020-12): every bundled scenario and a table
+    without its kind are valid (a kind left out is the system's default); a number past
+    a field's bound or the magnitude limit, an unknown kind and an unknown key are not."""
+    import jsonschema
+
+    validator = jsonschema.Draft202012Validator(scenario_json_schema())
+    for path in sorted(SCENARIOS.glob("*.toml")):
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        assert list(validator.iter_errors(data)) == [], path.name
+    for good in ({"mpc": {"rate_hz": 20}}, {"planner": {"iterations": 3}},
+                 {"system": {"name": "biped"}, "mpc": {"kind": "walking"}}):
+        assert list(validator.iter_errors(good)) == [], good
+        load_scenario(_write(tmp_path / "good.toml", dump_toml(good)))  # hmpc accepts it
+    for bad in ({"system": {"terminal_radius": 0.0}}, {"system": {"radius": 2e9}},
+                {"sim": {"duration": -1e10}}, {"mpc": {"kind": "nope"}},
+                {"mpc": {"rate": 20}}):
+        assert list(validator.iter_errors(bad)), bad
 
 
 BUNDLED = sorted(SCENARIOS.glob("*.toml"))

@@ -36,9 +36,9 @@ def _main(
 
 def schema() -> None:
     """Print the scenario JSON Schema."""
-    from hmpc_cli.run.scenario import scenario_model
+    from hmpc_cli.run.schema import scenario_json_schema
 
-    typer.echo(json.dumps(scenario_model().model_json_schema(), indent=2))
+    typer.echo(json.dumps(scenario_json_schema(), indent=2))
 
 
 def _register() -> None:

@@ -31,9 +31,26 @@ def _int_magnitude(v: int) -> int:
     return v
 
 
+class _MagnitudeInSchema:
+    """The magnitude bound in a field's JSON Schema: ``minimum`` and ``maximum``.
+
+    Only on a side where the field sets no bound of its own (its Field(ge=...) wins).
+    """
+
+    def __init__(self, bound: float) -> None:
+        self.bound = bound
+
+    def __get_pydantic_json_schema__(self, core_schema, handler):
+        schema = handler(core_schema)
+        schema.setdefault("minimum", -self.bound)
+        schema.setdefault("maximum", self.bound)
+        return schema
+
+
 # (a validator, not ge/le: a field's own Field(ge=...) must keep its bound)
-FiniteFloat = Annotated[float, Strict(), AllowInfNan(False), AfterValidator(_float_magnitude)]
-BoundedInt = Annotated[int, Strict(), AfterValidator(_int_magnitude)]
+FiniteFloat = Annotated[float, Strict(), AllowInfNan(False), AfterValidator(_float_magnitude),
+                        _MagnitudeInSchema(MAX_FLOAT)]
+BoundedInt = Annotated[int, Strict(), AfterValidator(_int_magnitude), _MagnitudeInSchema(MAX_INT)]
 #: a finite float without the magnitude bound (a threshold where "huge" means "never")
 LargeFloat = Annotated[float, Strict(), AllowInfNan(False)]
 
