@@ -589,7 +589,10 @@ and written in order at the next message of another topic, and the writer flushe
 every {flush} messages: a killed run leaves a file whose completed chunks read back (it
 loses at most its last chunk). `sim.log_rate_hz` sets the /sim/state rate;
 `sim.log_plan_stride = k` logs every k-th plan node (the nodes either side of a reset and
-the plan's last node are always kept, and the 3D scene draws the same nodes).
+the plan's last node are always kept, and the 3D scene draws the same nodes). A
+/sim/state sample's `u`, `x_ref` and `w` are those applied over the simulator step that
+starts at its `t`; the last sample (the run's end, or where it stopped) repeats those of
+the last step, since no step follows it.
 """
 
 DETAIL_INTRO = """

@@ -91,3 +91,31 @@ def test_a_schedule_the_nlp_cannot_hold_is_rejected_not_fatal(tmp_path):
     notes = [m.data["note"] for m in log.topic("/planner/plan")]
     assert all("raise mpc.max_switches" in n and "no schedule yet" in n for n in notes)
     assert not log.topic("/mpc/solve")  # nothing to solve without a schedule
+
+
+@pytest.mark.parametrize("duration", ["0.25", "0.255"])
+def test_the_last_state_sample_holds_the_last_steps_input_reference_and_disturbance(
+        tmp_path, duration):
+    """The sample at the run's end (on the log grid or off it) repeats what was applied
+    over the last simulator step: no zero input, no reference equal to the state, no
+    disturbance that never acted."""
+    from hmpc_cli.run.runner import prepare, run_to_log
+
+    sc, _ = load_scenario(ROOT / "scenarios" / "ball_disturbed.toml",
+                          [f"sim.duration={duration}", "disturbance.trial=7"])
+    loop = prepare(sc)
+    steps, command = [], loop.plant.command
+
+    def spy(t, x, mode, plan, span):
+        u, x_ref = command(t, x, mode, plan, span)
+        steps.append((t, u, x_ref, loop.plant.disturbance(t)))
+        return u, x_ref
+
+    loop.plant.command = spy
+    run_to_log(loop, tmp_path / "r.mcap")
+    last = read_log(tmp_path / "r.mcap").topic("/sim/state")[-1].data
+    t, u, x_ref, w = steps[-1]
+    assert last["t"] == pytest.approx(float(duration)) and t < last["t"]
+    assert list(last["u"].values()) == u.tolist() and np.any(u != 0.0)
+    assert list(last["x_ref"].values()) == x_ref.tolist()
+    assert list(last["w"].values()) == w.tolist()

@@ -65,6 +65,8 @@ class ClosedLoop:
         self.plant, self.books, self.model = run.plant, run.books, run.plant.model
         self.n_steps = int(round(run.duration * run.plant.rate_hz))
         self.layers = MPCLayers(run, log)
+        #: the input, reference and disturbance of the last step begun (None before it)
+        self._applied: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def run(self) -> RunResult:
         """Runs to the end of the scenario (or a failure); the log is the caller's.
@@ -100,6 +102,7 @@ class ClosedLoop:
             self.layers.arrive(t)
             u, x_ref = self.plant.command(t, x, mode, self.layers.plan, self.plant.h)
             w = self.plant.disturbance(t)
+            self._applied = (u, x_ref, w)
             self.log.step(i, t, x, mode, u, x_ref, w)
             x, mode, stopped = self._step(t, x, mode, u, w)
             if stopped:  # the failure set the end time (the step's start for Zeno)
@@ -129,7 +132,15 @@ class ClosedLoop:
         return x, mode, bool(why) and self._fail(t1, why, diverged=False)
 
     def _last_state(self, t: float, x: np.ndarray, mode: int) -> None:
-        self.log.state(t, x, mode, np.zeros(self.model.n_u), x, self.plant.disturbance(t))
+        """The /sim/state sample at the end: the state reached, with the step's values.
+
+        The input, reference and disturbance of the last step (none is applied after
+        it); before any step, no input, the state as its reference and the disturbance
+        at t.
+        """
+        u, x_ref, w = self._applied if self._applied is not None else (
+            np.zeros(self.model.n_u), x, self.plant.disturbance(t))
+        self.log.state(t, x, mode, u, x_ref, w)
 
     def _fail(self, t: float, reason: str, diverged: bool = True) -> bool:
         """Ends the run early as failed (``diverged``: numerically, else by the task)."""
