@@ -406,3 +406,16 @@ def test_a_cell_the_built_system_refuses_stops_the_sweep_before_any_run(work: Pa
     assert lines == ["error: x.toml: cell mpc.input_margin=60.0: mpc.input_margin: 60 per "
                      "side exceeds half the input box of mode 'outside' input 0 ([-100, 0]: "
                      "half-width 50)"]
+
+
+@pytest.mark.parametrize("window,lines", [
+    (["--from", "-5", "--to", "nan"],
+     ["error: --from -5: a time in seconds from the run's start (finite, >= 0)",
+      "error: --to nan: a time in seconds from the run's start (finite, >= 0)"]),
+    (["--to", "inf"], ["error: --to inf: a time in seconds from the run's start (finite, >= 0)"]),
+    (["--from", "2", "--to", "1"], ["error: --from 2 is after --to 1"]),
+])
+def test_replay_refuses_a_time_window_that_is_not_one(work: Path, window: list[str],
+                                                        lines: list[str]):
+    """Checked before the log is read (the log named here does not exist)."""
+    assert bad_run(work, ["replay", "no_such_run", *window]) == lines

@@ -238,6 +238,7 @@ def replay_command(
     from hmpc_cli.core.paths import OutputPathError, check_output
     from hmpc_cli.log.damage import DamagedLogError
 
+    _check_window(t_from, t_to)
     try:  # the outputs first: a bad path writes nothing and reads nothing
         for option, where in (("--export", export), ("--figures", figures)):
             if where is not None:
@@ -255,6 +256,19 @@ def replay_command(
         _fail([str(exc)])
 
 
+def _check_window(t_from: float | None, t_to: float | None) -> None:
+    """Exits 2 unless --from and --to are finite times >= 0 s, --from not after --to."""
+    import math
+
+    bad = [f"{option} {t:g}: a time in seconds from the run's start (finite, >= 0)"
+           for option, t in (("--from", t_from), ("--to", t_to))
+           if t is not None and not (math.isfinite(t) and t >= 0.0)]
+    if bad:
+        _fail(bad)
+    if t_from is not None and t_to is not None and t_from > t_to:
+        _fail([f"--from {t_from:g} is after --to {t_to:g}"])
+
+
 def _replay(rp, topics, t_from, t_to, show_all, export, fmt, check, figures) -> None:
     """The body of ``hmpc replay`` for a loaded log (its odd content reported as damage)."""
     from rich.console import Console
@@ -268,8 +282,6 @@ def _replay(rp, topics, t_from, t_to, show_all, export, fmt, check, figures) -> 
             check_format(fmt.lower())
         except ExportError as exc:
             _fail([str(exc)])
-    if t_from is not None and t_to is not None and t_from > t_to:
-        _fail([f"--from {t_from:g} is after --to {t_to:g}"])
     selected = select(rp.log.messages, t_from, t_to, topics or None)
     window = "" if t_from is None and t_to is None else (
         f" from {'start' if t_from is None else f'{t_from:g} s'}"
