@@ -99,8 +99,30 @@ def test_radius_options_and_the_verdict(run, tmp_path):
     assert not geo.disc_past and geo.nlp_row < 0  # a tube this large does not pass
     assert (tmp_path / "fig2.png").is_file() and not (tmp_path / "fig2.pdf").exists()
     tube = fig2_geometry(run, from_tube=True)  # nominal: no disturbance, zero tube
-    assert tube.radius == 0.0 and tube.radius_source.startswith("diam T(dt) at 10 Hz")
+    assert tube.radius == 0.0 and tube.radius_source == (
+        f"the kinematic tube at 10 Hz, the radius of guard {tube.guard_name!r}'s margins")
     assert tube.disc_gap == pytest.approx(tube.virtual_gap)
+
+
+def test_from_tube_draws_the_radius_the_guards_margins_use(tmp_path):
+    """The disturbed ball at 10 Hz: the guard sees positions only, so --from-tube draws
+    the kinematic tube hmpc tube gives its margins, not the full-state diam T(dt)."""
+    from conftest import run_loop
+    from hmpc_cli.core.registry import build_system
+    from hmpc_cli.run.scenario import load_scenario
+    from hmpc_cli.tube import analyse, region_from_scenario
+
+    sc, _ = load_scenario(BALL.with_name("ball_disturbed.toml"), ["sim.duration=0.3"])
+    run_loop(sc, tmp_path / "run.mcap")
+    geo = fig2_geometry(tmp_path / "run.mcap", from_tube=True)
+    system = build_system(sc.system)
+    report = analyse(system, region=region_from_scenario(system), kind=sc.disturbance.kind,
+                     magnitude=sc.disturbance.magnitude, kp=sc.lowlevel.kp,
+                     kd=sc.lowlevel.kd, rate_hz=10.0, seed=sc.seed)
+    row = report.row(10.0)
+    assert geo.radius == row.margins.guards[geo.guard].radius == row.kinematic
+    assert 0.0 < geo.radius < row.diam
+    assert geo.kappa == row.margins.guards[geo.guard].pass_through
 
 
 def bad_cases(run, tmp_path) -> dict[str, list[str]]:

@@ -187,8 +187,12 @@ def _node_step(t: np.ndarray, where: str) -> float:
     return float(np.median(steps))
 
 
-def _tube_radius(system, scenario: dict, where: str) -> tuple[float, str]:
-    """The tube radius diam T(dt) at the scenario's MPC rate (hmpc tube's defaults)."""
+def _tube_radius(system, scenario: dict, where: str, guard: int) -> tuple[float, str]:
+    """The guard's tube radius at the scenario's MPC rate (hmpc tube's defaults).
+
+    The radius the guard's margins are computed from: the kinematic tube for a guard
+    whose gap sees kinematic states only, else diam T(dt) (:func:`hmpc_cli.tube.bounds.margins`).
+    """
     from hmpc_cli.tube import TubeError, analyse, region_from_scenario
 
     mpc, dist = scenario.get("mpc") or {}, scenario.get("disturbance") or {}
@@ -205,14 +209,19 @@ def _tube_radius(system, scenario: dict, where: str) -> tuple[float, str]:
         raise PassThroughError(f"{where}: tube: {exc.quantity}: {exc.reason}") from None
     except (TypeError, ValueError) as exc:
         raise PassThroughError(f"{where}: --from-tube: {exc}") from None
-    d = report.row(rate).diam
+    row = report.row(rate)
+    d = row.margins.guards[guard].radius
+    kinematic = row.kinematic is not None and bool(report.kinematic_guards) \
+        and report.kinematic_guards[guard]
+    what = "the kinematic tube" if kinematic else f"diam T(dt) ({row.bound} bound)"
     if not math.isfinite(d):
-        raise PassThroughError(f"{where}: diam T(dt) at {rate:g} Hz is not finite")
-    return float(d), f"diam T(dt) at {rate:g} Hz ({report.row(rate).bound} bound)"
+        raise PassThroughError(f"{where}: {what} at {rate:g} Hz is not finite")
+    return float(d), f"{what} at {rate:g} Hz, the radius of guard " \
+                     f"{system.guards[guard].name!r}'s margins"
 
 
 def _radius(system, scenario: dict, radius: float | None, from_tube: bool,
-            where: str) -> tuple[float, str]:
+            where: str, guard: int) -> tuple[float, str]:
     """The tube radius d and where it comes from."""
     if radius is not None and from_tube:
         raise PassThroughError("give either --radius or --from-tube, not both")
@@ -221,7 +230,7 @@ def _radius(system, scenario: dict, radius: float | None, from_tube: bool,
             raise PassThroughError(f"--radius must be a finite number >= 0, got {radius}")
         return float(radius), "given radius"
     if from_tube:
-        return _tube_radius(system, scenario, where)
+        return _tube_radius(system, scenario, where, guard)
     d = (scenario.get("mpc") or {}).get("tube_margin")
     if not isinstance(d, (int, float)) or not math.isfinite(d) or d < 0:
         raise PassThroughError(f"{where}: the logged scenario has no mpc.tube_margin "
@@ -298,7 +307,8 @@ def pass_through_geometry(log_path: str | Path, *, solve: int | None = None,
         solve: 1-based index of the ``/mpc/solve`` to draw (default: the first whose plan
             crosses a guard).
         radius: tube radius d (default: the logged ``mpc.tube_margin``).
-        from_tube: d = diam T(dt) at the scenario's MPC rate from :mod:`hmpc_cli.tube`.
+        from_tube: d = the guard's tube radius at the scenario's MPC rate from
+            :mod:`hmpc_cli.tube` (the kinematic tube for a guard of kinematic states).
 
     Raises:
         PassThroughError: no such log, no solve crossing a guard, ``solve`` out of range,
@@ -327,7 +337,7 @@ def pass_through_geometry(log_path: str | Path, *, solve: int | None = None,
     k = int(src[-1])
     dt = _node_step(t, where)
     euler = (scenario.get("mpc") or {}).get("integrator") == "euler"
-    d, d_source = _radius(system, scenario, radius, from_tube, str(path))
+    d, d_source = _radius(system, scenario, radius, from_tube, str(path), gi)
     xv = _interval(system.modes[system.mode_index(g.source)], x[k], u[k], system.n_w, dt,
                    euler)
     xs = ca.SX.sym("x", system.n_x)

@@ -208,7 +208,9 @@ def plot_command(
     radius: Annotated[float | None, typer.Option(
         "--radius", help="fig2: tube radius d (default: the run's mpc.tube_margin)")] = None,
     from_tube: Annotated[bool, typer.Option(
-        "--from-tube", help="fig2: d = diam T(dt) at the run's MPC rate (hmpc tube)")
+        "--from-tube", help="fig2: d = the guard's tube radius at the run's MPC rate, "
+        "as its margins use it (hmpc tube: the kinematic tube for a guard of positions, "
+        "else diam T(dt))")
     ] = False,
 ) -> None:
     """Draw a paper figure from recorded runs (a sweep table and the logs it points to)."""
