@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import re
 from pathlib import Path
@@ -177,10 +178,36 @@ def test_parquet_export(ball, tmp_path) -> None:
 
 
 def test_verify_identical(ball, ball_log) -> None:
+    """Every message of every topic is compared, the 3D scene's protobuf ones too."""
     res = replay(ball, "--verify")
     assert res.exit_code == 0, res.output
-    topics = {m.topic for m in ball_log.messages}
-    assert f"identical ({len(ball_log.messages)} messages on {len(topics)} topics)" in res.output
+    topics = {m.topic for m in ball_log.messages} | {m.topic for m in ball_log.raw}
+    assert {t for t in topics if t.startswith("/scene/")} == {
+        "/scene/static", "/scene/body", "/scene/plan", "/scene/rollout"}
+    n = len(ball_log.messages) + len(ball_log.raw)
+    assert f"identical ({n} messages on {len(topics)} topics)" in res.output
+
+
+def test_verify_finds_a_changed_scene_message(ball, ball_log, tmp_path) -> None:
+    """One byte of one /scene/plan message changed: the scene is compared byte for byte."""
+    from hmpc_cli.analysis.replay import scene_divergence
+
+    raw = list(ball_log.raw)
+    k = next(i for i, m in enumerate(raw) if m.topic == "/scene/plan")
+    edited = [*raw[:k], dataclasses.replace(raw[k], data=raw[k].data[:-1] + b"\x00"),
+              *raw[k + 1:]]
+    div = scene_divergence(raw, edited)
+    assert (div.topic, div.path, div.t) == ("/scene/plan", "(protobuf message)", raw[k].t)
+    assert scene_divergence(raw, raw) is None
+    short = scene_divergence(raw, raw[:-1])
+    assert short.path == "(message count)" and scene_divergence(raw[:-1], raw, True) is None
+
+
+def test_a_scene_topic_is_named_as_one(ball) -> None:
+    res = replay(ball, "--topic", "/scene/plan")
+    assert res.exit_code == 2
+    assert "'/scene/plan' is a 3D-scene topic (protobuf, for Foxglove or Lichtblick): " \
+        "--topic selects the JSON topics" in res.output, res.output
 
 
 def _rewrite(src: Path, dst: Path, scenario: str | None) -> Path:

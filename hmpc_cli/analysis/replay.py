@@ -181,14 +181,15 @@ def guarded(path: Path, what: str = ""):
     return reading(path, what)
 
 
-def resolve_topics(names: list[str], present: list[str]) -> list[str]:
+def resolve_topics(names: list[str], present: list[str], scene: list[str] = ()) -> list[str]:
     """Full topic names for ``--topic`` values.
 
     A value is a full name (``/mpc/solve``), the name without its slash (``mpc/solve``) or
     its last part when that is unique (``solve``, ``event``, ``plan``, ``state``, ...).
+    ``scene`` are the log's undecoded (protobuf) topics, which are not filtered.
 
     Raises:
-        ReplayError: an unknown topic (the message lists the known ones).
+        ReplayError: an unknown topic (the message lists the known ones), or a scene topic.
     """
     known = list(TOPICS) + sorted(set(present) - set(TOPICS))
     out: list[str] = []
@@ -196,6 +197,10 @@ def resolve_topics(names: list[str], present: list[str]) -> list[str]:
         key = name.strip().strip("/")
         hits = [t for t in known if t.strip("/") == key] or \
                [t for t in known if t.rsplit("/", 1)[-1] == key]
+        if not hits and key in {t.strip("/") for t in scene}:
+            raise ReplayError(f"{name!r} is a 3D-scene topic (protobuf, for Foxglove or "
+                              f"Lichtblick): --topic selects the JSON topics "
+                              f"({', '.join(known)})")
         if len(hits) != 1:
             raise ReplayError(f"unknown topic {name!r} (known: {', '.join(known)})")
         if hits[0] not in out:
@@ -461,12 +466,42 @@ def verify(replay: Replay, workdir: Path) -> tuple[Divergence | None, int, int]:
     except (PluginError, ValueError, RuntimeError) as exc:
         raise ReplayError(f"the attached scenario cannot be rebuilt: {exc}") from None
     execute_run(prepared, text, workdir / "rerun")
-    rerun = read_log(workdir / "rerun" / "run.mcap").messages
+    again = read_log(workdir / "rerun" / "run.mcap")
     recorded = replay.log.messages
     with guarded(replay.path, "comparing it with the re-run"):
-        rerun = _settings_added_since(recorded, rerun)
-        div = compare_logs(recorded, rerun, prefix_only=not replay.complete)
-    return div, len(recorded), len({m.topic for m in recorded})
+        rerun = _settings_added_since(recorded, again.messages)
+        found = [compare_logs(recorded, rerun, prefix_only=not replay.complete)]
+        if replay.log.raw:  # a log written without its 3D scene (run_to_log) has none
+            found.append(scene_divergence(replay.log.raw, again.raw,
+                                          prefix_only=not replay.complete))
+    found = [d for d in found if d is not None]
+    div = min(found, key=lambda d: d.t) if found else None
+    n = len(recorded) + len(replay.log.raw)
+    return div, n, len({m.topic for m in recorded} | {m.topic for m in replay.log.raw})
+
+
+def scene_divergence(recorded: list, rerun: list, prefix_only: bool = False
+                     ) -> Divergence | None:
+    """The earliest divergence of the undecoded (3D-scene, protobuf) messages, or None.
+
+    Topic by topic, message by message: the count, the time and the encoded bytes (the
+    scene is drawn from the logged states, so a re-run writes the same bytes).
+    """
+    found = []
+    for topic in sorted({m.topic for m in recorded} | {m.topic for m in rerun}):
+        rec = [m for m in recorded if m.topic == topic]
+        new = [m for m in rerun if m.topic == topic]
+        for m, n in zip(rec, new, strict=False):
+            if m.t != n.t or m.data != n.data:
+                found.append(Divergence(m.t, topic, "(protobuf message)",
+                                        f"{len(m.data)} bytes at t = {m.t:.6g} s",
+                                        f"{len(n.data)} bytes at t = {n.t:.6g} s"))
+                break
+        else:
+            if len(rec) > len(new) or (len(new) > len(rec) and not prefix_only):
+                at = (rec if len(rec) > len(new) else new)[min(len(rec), len(new))]
+                found.append(Divergence(at.t, topic, "(message count)", len(rec), len(new)))
+    return min(found, key=lambda d: d.t) if found else None
 
 
 def _settings_added_since(recorded: list, rerun: list) -> list:

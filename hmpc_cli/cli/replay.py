@@ -247,7 +247,8 @@ def replay_command(
         _fail([str(exc)])
     try:
         rp = load_replay(log)
-        topics = resolve_topics(topic or [], [m.topic for m in rp.log.messages])
+        topics = resolve_topics(topic or [], [m.topic for m in rp.log.messages],
+                                sorted({m.topic for m in rp.log.raw}))
     except ReplayError as exc:
         _fail([f"{log}: {exc}"])
     try:
