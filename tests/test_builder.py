@@ -266,3 +266,22 @@ def test_walking_row_groups_by_name_and_size():
     assert lbg[g["touchdown"][1]] == ubg[g["touchdown"][1]] == pytest.approx(0.095)
     assert np.isinf(lbg[g["guard_avoid"][N - 1]]) and lbg[g["guard_avoid"][N]] == 0.0
     assert lbg[g["liftoff"]] == nlp.s.liftoff_accel
+
+
+def test_the_cost_is_the_objective_inside_the_bounds():
+    """Soft-constraint slacks s >= 0 with weight 1e4 that need no relaxation: IPOPT returns
+    them 1e-8 below 0 (its bound relaxation), the objective there is negative; the
+    session reports the (nonnegative) objective at the solution projected onto its bounds."""
+    b = NLPBuilder()
+    x, s = b.variable("x"), b.variable("s", 181)
+    nlp, lay = b.build((x - 1) ** 2 + 1e4 * ca.sum1(s))
+    bd = lay.bounds()
+    bd.lbx["s"][:] = 0.0
+    res = SolverSession("slack", nlp, "ipopt", max_iter=50).run(
+        np.zeros(182), np.zeros(0), *bd.arrays())
+    slack = res.x[lay.x["s"]]
+    assert res.stats.success and slack.min() < 0.0  # IPOPT's relaxed bound, as returned
+    inside = np.clip(res.x, *bd.arrays()[:2])
+    objective = ca.Function("f", [nlp["x"], nlp["p"]], [nlp["f"]])
+    assert res.stats.cost == float(objective(inside, np.zeros(0)))
+    assert 0.0 <= res.stats.cost < 1e-12

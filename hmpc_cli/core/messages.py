@@ -164,7 +164,8 @@ class SolveStats:
         success: the solver converged to a finite point.
         iterations: solver iterations.
         wall_time: measured solve time [s].
-        cost: optimal cost (NaN if none).
+        cost: optimal cost (NaN if none), the objective at the solution projected onto
+            the variables' bounds (IPOPT may return a slack 1e-8 below its bound 0).
         max_violation: largest violation of the solved NLP's rows and bounds.
         slack: largest relaxation of the hybrid (guard, virtual-node, region, terminal)
             constraints by the soft-constraint slacks; 0 when they hold exactly.

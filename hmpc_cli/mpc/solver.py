@@ -134,7 +134,8 @@ def _call_instance(instances: tuple, w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0,
             raise KeyboardInterrupt(f"solver interrupted ({status})")
     w = np.asarray(sol["x"]).ravel()
     finite = bool(np.all(np.isfinite(w)))
-    cost = float(np.ravel(sol["f"])[0]) if finite else np.nan
+    cost = _cost_in_bounds(solver, w, p, lbx, ubx, float(np.ravel(sol["f"])[0])) \
+        if finite else np.nan
     # the rows at w come with the solution (no second evaluation)
     viol = _violation(w, np.asarray(sol["g"]).ravel(), lbx, ubx, lbg, ubg) if finite else np.inf
     ok = bool(st.get("success", False))
@@ -144,6 +145,19 @@ def _call_instance(instances: tuple, w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0,
                        cost, float(viol))
     return SolveResult(w, np.asarray(sol["lam_x"]).ravel(), np.asarray(sol["lam_g"]).ravel(),
                        stats)
+
+
+def _cost_in_bounds(solver: ca.Function, w: np.ndarray, p, lbx, ubx, f: float) -> float:
+    """The objective at ``w`` projected onto its bounds (``f``, the solver's, if inside).
+
+    IPOPT's bound relaxation (1e-8) returns a variable up to that far outside its bound:
+    a soft constraint's slack at -1e-8 times its weight (1e4), over every node, made the
+    reported cost of a plan at rest at the goal negative. The plan itself is unchanged.
+    """
+    inside = np.clip(w, lbx, ubx)
+    if np.array_equal(inside, w) or not solver.has_function("nlp_f"):
+        return f
+    return float(solver.get_function("nlp_f")(inside, p))
 
 
 def _iterations(stats: dict) -> int:
