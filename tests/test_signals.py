@@ -177,3 +177,26 @@ def test_a_crashed_run_summary_has_the_exception_and_the_state_reached(tmp_path)
     assert summary["t_end"] == pytest.approx(99 / 600) and summary["solves"] > 0
     assert len(summary["x_end"]) == 4 and math.isfinite(summary["solve_time_median"])
     assert read_log(tmp_path / "run" / "run.mcap").complete
+
+
+def test_a_signal_after_the_run_finished_says_so(tmp_path, monkeypatch):
+    """A stop signal while the summary is printed: the run and its log are complete, and
+    the one stderr line says that (not "while setting up; no run was started")."""
+    from typer.testing import CliRunner
+
+    import hmpc_cli.cli.run
+    from hmpc_cli.cli.app import app
+    from hmpc_cli.core.signals import Interrupted
+
+    def stopped(result, out):
+        raise Interrupted(signal.SIGTERM)
+
+    monkeypatch.setattr(hmpc_cli.cli.run, "_print_summary", stopped)
+    out = tmp_path / "r"
+    res = CliRunner().invoke(app, ["run", str(BALL), "--set", "sim.duration=0.05",
+                                   "--out", str(out)])
+    assert res.exit_code == 143, res.output
+    assert res.stderr.splitlines() == [
+        f"interrupted (SIGTERM) after the run finished; its log is complete: {out / 'run.mcap'}"]
+    assert json.loads((out / "summary.json").read_text())["t_end"] == pytest.approx(0.05)
+    assert read_log(out / "run.mcap").complete

@@ -109,12 +109,21 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
     finally:
         if sink is not None:
             sink.close()
-    if quiet:  # errors and the log's path only
-        typer.echo(str(out / "run.mcap"))
-    else:
-        _print_summary(result, out)
-        if not sys.stdout.isatty():
+    try:
+        if quiet:  # errors and the log's path only
             typer.echo(str(out / "run.mcap"))
+        else:
+            _print_summary(result, out)
+            if not sys.stdout.isatty():
+                typer.echo(str(out / "run.mcap"))
+    except KeyboardInterrupt as exc:  # the run and its log are complete: say so
+        from hmpc_cli.core.signals import as_interrupted
+
+        stop = as_interrupted(exc)
+        typer.echo(f"interrupted ({stop.name}) after the run finished; its log is complete: "
+                   f"{out / 'run.mcap'}", err=True)
+        stop.reported = True
+        raise stop from None
     if strict and not result.success:
         raise typer.Exit(EXIT_FAILED)
 
