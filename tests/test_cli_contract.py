@@ -70,6 +70,11 @@ def test_completion_of_figures_and_set_keys(tmp_path):
            "COMP_CWORD": "2"}
     proc = _hmpc([], tmp_path, env=env)
     assert {"fig2", "fig3", "fig4"} <= set(proc.stdout.split()), proc.stdout + proc.stderr
+    for command in ("run", "tube"):  # both commands that take --set complete its keys
+        env.update(COMP_WORDS=f"hmpc {command} scenarios/ball.toml --set sim.dur",
+                   COMP_CWORD="4")
+        proc = _hmpc([], tmp_path, env=env)
+        assert "sim.duration=" in proc.stdout.split(), (command, proc.stdout + proc.stderr)
 
 
 @pytest.mark.slow

@@ -152,7 +152,8 @@ def load_replay(path: Path) -> Replay:
             raise ReplayError(f"damaged log: no message could be read: {log.damage}")
         raise ReplayError("no message could be read: the run was stopped before anything "
                           f"was logged ({path.stat().st_size} bytes: "
-                          + ("closed with no message)" if log.complete else "its header only)"))
+                          + ("closed with no message)" if log.complete else
+                             "its header only), or the file was cut short after its header"))
     infos = log.topic("/run/info")
     if not infos:
         topics = sorted({m.topic for m in log.messages})

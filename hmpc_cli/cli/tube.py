@@ -12,6 +12,7 @@ from typing import Annotated
 
 import typer
 
+from hmpc_cli.cli.common import complete_set_key
 from hmpc_cli.core.paths import path_option
 
 __all__ = ["tube_command"]
@@ -229,7 +230,8 @@ def _analyse(sc, system, observed: list, states: Path | None, pad: float | None,
 def tube_command(
     scenario: Annotated[Path, typer.Argument(help="scenario TOML file")],
     set_: Annotated[list[str] | None, typer.Option(
-        "--set", help="override a setting: key.path=value (repeatable)")] = None,
+        "--set", help="override a setting: key.path=value (repeatable)",
+        autocompletion=complete_set_key)] = None,
     out: Annotated[Path | None, typer.Option(
         "--out", help="output directory (default results/<scenario>/tube)",
         parser=path_option)] = None,

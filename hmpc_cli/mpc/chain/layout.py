@@ -64,7 +64,9 @@ class NodeSchedule:
         final = n - sum(counts)
         if final < 1:
             raise ValueError(f"schedule of {sum(schedule.durations):.3f} s before the final "
-                             f"domain does not fit in the MPC horizon of {n * dt:.3f} s")
+                             f"domain, {sum(counts)} node intervals of {dt:.4g} s once each "
+                             f"domain is rounded up to whole intervals, leaves the final "
+                             f"domain none of the MPC horizon's {n} ({n * dt:.3f} s)")
         return cls(schedule.modes, schedule.guards, tuple(counts) + (final,))
 
     def shift(self, elapsed: int) -> tuple[NodeSchedule, int]:
