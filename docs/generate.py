@@ -151,7 +151,7 @@ def field_rows(model_schema: dict, defs: dict, prefix: str, note_prefix: str,
     from pydantic_core import to_jsonable_python
 
     rows = []
-    fields = getattr(model, "model_fields", {})
+    fields = {f.alias or n: f for n, f in getattr(model, "model_fields", {}).items()}
     for name, p in model_schema.get("properties", {}).items():
         fld = fields.get(name)
         if "default" not in p and "$ref" not in p and fld is not None and not fld.is_required():

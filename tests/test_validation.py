@@ -419,3 +419,31 @@ def test_replay_refuses_a_time_window_that_is_not_one(work: Path, window: list[s
                                                         lines: list[str]):
     """Checked before the log is read (the log named here does not exist)."""
     assert bad_run(work, ["replay", "no_such_run", *window]) == lines
+
+
+def test_a_set_value_every_cell_overrides_is_refused(work: Path):
+    """[set] "mpc.rate_hz" = 20 beside an axis over mpc.rate_hz never applies: refused.
+    An axis of tables that leaves the key out of some entries keeps [set] as their value."""
+    _scenario(work, "ball")
+    (work / "x.toml").write_text('name = "x"\nscenario = "ball.toml"\n[set]\n'
+                                 '"mpc.rate_hz" = 20\n[grid]\n"mpc.rate_hz" = [10, 20]\n')
+    assert bad_run(work, ["sweep", "x.toml", "--dry-run"]) == [
+        "error: x.toml: set.mpc.rate_hz: never applied: every cell of grid.mpc.rate_hz sets "
+        "mpc.rate_hz (remove it from [set], or leave it out of some of the axis's entries)"]
+    from hmpc_cli.sweep.plan import plan_sweep
+
+    (work / "y.toml").write_text('name = "y"\nscenario = "ball.toml"\n[set]\n'
+                                 '"mpc.rate_hz" = 20\n[grid]\nc = [{ label = "fast", '
+                                 '"mpc.rate_hz" = 60 }, { label = "set", "sim.duration" = 1.0 '
+                                 '}]\n')
+    rates = sorted(r.overrides["mpc.rate_hz"] for r in plan_sweep(work / "y.toml").runs)
+    assert rates == [20, 60]
+
+
+def test_a_dry_run_checks_the_output_directory_as_the_run_would(work: Path):
+    _scenario(work, "ball")
+    (work / "x.toml").write_text('name = "x"\nscenario = "ball.toml"\n')
+    (work / "other").mkdir()
+    (work / "other" / "sweep.toml").write_text('name = "other"\n')
+    lines = bad_run(work, ["sweep", "x.toml", "--out", "other", "--dry-run"])
+    assert len(lines) == 1 and lines[0].startswith("error: --out other: "), lines

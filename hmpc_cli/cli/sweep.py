@@ -51,6 +51,8 @@ def sweep_command(
     from hmpc_cli.cli.common import is_quiet
 
     plan = _checked_plan(sweep_file, seeds)
+    out = out if out is not None else Path("results") / "sweeps" / plan.spec.name
+    _check_out(out, plan)  # a dry run too: it says whether the real one would start
     if dry_run:
         _list_runs(plan)
         return
@@ -63,9 +65,7 @@ def sweep_command(
         except ScenarioError as exc:
             _err(exc.lines)
             raise typer.Exit(EXIT_BAD_INPUT) from None
-    out = out if out is not None else Path("results") / "sweeps" / plan.spec.name
     try:
-        _check_out(out, plan)
         outcome = _locked_execute(plan, out, workers or os.cpu_count() or 1, client)
     finally:
         if client is not None:

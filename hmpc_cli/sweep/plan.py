@@ -48,8 +48,12 @@ class SweepSpec(BaseModel):
     description: str = ""
     scenario: str = Field(min_length=1, description="scenario file, relative to the sweep file")
     seeds: list[int] = Field(default_factory=lambda: [0], description="list, or N for 0..N-1")
-    set_: dict[str, Any] = Field(default_factory=dict, alias="set")
-    grid: dict[str, Any] = Field(default_factory=dict)
+    set_: dict[str, Any] = Field(default_factory=dict, alias="set", description=(
+        "overrides of every run, key.path = value (an axis entry that sets the same key "
+        "wins in its cells)"))
+    grid: dict[str, Any] = Field(default_factory=dict, description=(
+        "axes: key.path = a list of values, or name = a list of override tables; the "
+        "runs are every combination of their values x the seeds"))
 
     @field_validator("name")
     @classmethod
@@ -172,6 +176,16 @@ def _axes(spec: SweepSpec, src: str, errors: list[str]) -> list[Axis]:
     return axes
 
 
+def _dead_sets(base: dict, axes: list[Axis], src: str) -> list[str]:
+    """``set.key`` lines for a [set] value every cell of an axis overrides (never applied).
+
+    A key only some of an axis's tables set keeps the [set] value in the others: a default.
+    """
+    return [f"{src}: set.{k}: never applied: every cell of grid.{ax.name} sets {k} "
+            f"(remove it from [set], or leave it out of some of the axis's entries)"
+            for k in base for ax in axes if all(k in ov for ov in ax.overrides)]
+
+
 def _axis_problem(name: str, values: Any) -> str | None:
     """Why grid entry ``name = values`` is not an axis, or None if it is one."""
     if name in RESERVED or name.startswith("set.") or name == "seed":
@@ -244,6 +258,7 @@ def plan_sweep(path: str | Path) -> SweepPlan:
         errors.append(f"{src}: scenario: file not found: {scenario}")
     base = _flatten(spec.set_, scenario_model())
     axes = _axes(spec, src, errors)  # broken axes are left out; their runs still checked
+    errors += _dead_sets(base, axes, src)
     bad_keys = _bad_keys(src, [(k, v, "set") for k, v in base.items()] + [
         (k, v, f"grid.{a.name}") for a in axes for ov in a.overrides for k, v in ov.items()])
     if bad_keys:
