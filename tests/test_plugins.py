@@ -174,7 +174,19 @@ def _fail(p):
     raise ValueError("dock_at must lie inside the track")
 
 
+class BadShape(DockParams):
+    name: Literal["badshape"] = "badshape"
+
+
+def _three_states(p):
+    import numpy as np
+
+    dock = build_dock(DockParams(**{**p.model_dump(), "name": "dock"}))
+    return replace(dock, x0=np.zeros(3), tracking_gain=lambda kp, kd: np.zeros((1, 3)))
+
+
 BAD_BUILD = replace(SYSTEM, name="badbuild", params=BadBuild, build=_fail)
+BAD_SHAPE = replace(SYSTEM, name="badshape", params=BadShape, build=_three_states)
 LIAR = replace(SYSTEM, name="liar", params=Liar,
                build=lambda p: build_dock(DockParams(**{**p.model_dump(), "name": "dock"})),
                provides=frozenset({"stance_foot"}))
@@ -186,11 +198,16 @@ LIAR = replace(SYSTEM, name="liar", params=Liar,
                  "the track"),
     ("liar", "system: 'liar' declares that it provides stance_foot, but its HybridSystem "
              "has none"),
+    # a part of the wrong size is named when the system is built, not inside a run
+    ("badshape", "system: 'badshape' failed to build: ValueError: dock: x0 has shape (3,), "
+                 "expected (2,) (one entry per state ['p', 'v']); tracking_gain(kp, kd) "
+                 "must be 1 x 2 (inputs x states), not 1 x 3"),
 ])
 def test_a_plugin_that_fails_to_build_is_one_error_line(tmp_path, name, reason):
     site = write_dist(tmp_path / "site", "hmpc-faulty",
                       "[hmpc.systems]\nbadbuild = hmpc_faulty:BAD_BUILD\n"
-                      "liar = hmpc_faulty:LIAR\n", {"hmpc_faulty": FAULTY})
+                      "liar = hmpc_faulty:LIAR\nbadshape = hmpc_faulty:BAD_SHAPE\n",
+                      {"hmpc_faulty": FAULTY})
     scenario = tmp_path / f"{name}.toml"
     scenario.write_text(f'[system]\nname = "{name}"\n')
     out = tmp_path / "out"

@@ -22,6 +22,7 @@ import numpy as np
 
 from hmpc_cli.core.drawing import Drawing
 from hmpc_cli.core.numeric import compile_numpy
+from hmpc_cli.core.shapes import shape_problems
 from hmpc_cli.core.walker import WalkerModel
 
 
@@ -215,6 +216,15 @@ class HybridSystem:
     stage_residuals: ca.Function | None = None
 
     def __post_init__(self) -> None:
+        self._check_names()
+        shapes = shape_problems(self)
+        if shapes:
+            raise ValueError(f"{self.name}: " + "; ".join(shapes))
+        self._check_walker()
+        self._check_residuals()
+
+    def _check_names(self) -> None:
+        """Modes, guards, points, plane and vector names: unique and known."""
         names = [m.name for m in self.modes]
         if len(set(names)) != len(names):
             raise ValueError(f"{self.name}: duplicate mode names {names}")
@@ -241,8 +251,6 @@ class HybridSystem:
             raise ValueError(f"{self.name}: state and input names must be distinct and not "
                              f"{sorted(RESERVED_NAMES)} (a logged plan node holds them all): "
                              f"{clash}")
-        self._check_walker()
-        self._check_residuals()
 
     def _check_residuals(self) -> None:
         """|stage_residuals|^2 equals ``stage_cost`` at x0 and at a fixed other point."""
