@@ -701,3 +701,42 @@ def test_rates_whose_margins_were_refused_are_named_not_read_as_control_failures
         committed = list(csv.DictReader(f))
     assert sum(map(margins_refused, committed)) == 200
     assert {r["mpc.rate_hz"] for r in committed if margins_refused(r)} == {"5"}
+
+
+def test_a_users_sweep_without_policy_or_size_columns_is_drawn(tmp_path, monkeypatch):
+    """A sweep over the rate and a labelled axis of policy tables, the size left at the
+    scenario's: the section takes the policy from each run's label and the size from the
+    scenario, and its resume line names no sweep file that does not exist."""
+    from hmpc_cli.report.robustness import Study, robustness_sections
+    from hmpc_cli.sweep.plan import plan_sweep
+
+    monkeypatch.chdir(tmp_path)  # no sweeps/<name>.toml here
+    d = tmp_path / "out_mine"
+    d.mkdir()
+    spec = (f'name = "mine"\nscenario = "{BALL.as_posix()}"\nseeds = 4\n[grid]\n'
+            '"mpc.rate_hz" = [10, 60]\npolicy = [\n'
+            '  { label = "plan once", "replanning.policy" = "once" },\n'
+            '  { label = "replan", replanning = { policy = "on_contact" } },\n]\n')
+    (d / "sweep.toml").write_text(spec)
+    (tmp_path / "mine.toml").write_text(spec)
+    runs = plan_sweep(tmp_path / "mine.toml").runs
+    with open(d / "results.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["run_id", "seed", "mpc.rate_hz", "policy", "success", "log"])
+        for r in runs:  # replanning at 60 Hz always holds, the rest half the time
+            (d / "runs" / r.run_id).mkdir(parents=True)  # as a sweep leaves each run
+            (d / "runs" / r.run_id / "scenario.toml").write_text(r.toml)
+            rate, label = r.cell
+            ok = (rate == 60 and label == "replan") or r.seed % 2 == 0
+            w.writerow([r.run_id, r.seed, rate, label, "true" if ok else "false", ""])
+    text = "\n".join(robustness_sections([Study(d)], tmp_path / "fig", tmp_path))
+    assert "Not drawn" not in text, text
+    assert "| ±10.0 | once | 2/4 (15-85 %) | 2/4 (15-85 %) |" in text, text
+    assert "| ±10.0 | on_contact | 2/4 (15-85 %) | 4/4 (51-100 %) |" in text, text
+    assert ("Resume or complete: `hmpc sweep` on the sweep file of `mine` with `--out "
+            "out_mine` (finished runs are skipped).") in text
+    # an axis of tables that sets the policy in some entries only cannot be read
+    (d / "sweep.toml").write_text(spec.replace('"replanning.policy" = "once" ', 'x = 1 '))
+    text = "\n".join(robustness_sections([Study(d)], tmp_path / "fig", tmp_path))
+    assert "Not drawn: grid.policy: its entries set replanning.policy, but not every entry " \
+        "does, under a label of its own" in text, text

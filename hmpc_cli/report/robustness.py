@@ -363,6 +363,83 @@ def _draw_lines(rows: list[dict], ok: list[bool], size: str) -> list[str]:
             f"{nowhere}, differs between cells for {len(full) - everywhere - nowhere}."]
 
 
+def _with_study_columns(table: Path, rows: list[dict], spec: dict, sweep_file: Path | None,
+                        scratch: Path) -> tuple[Path, list[dict]]:
+    """The table with a column for the MPC rate, the policy and the disturbance size.
+
+    A sweep names each by its key (a grid axis of values) or ``set.<key>`` (its
+    ``[set]``); otherwise the value comes from a grid axis of tables whose entries set
+    it (by the run's label on that axis), else from each run's effective scenario.
+    Returns ``table`` itself when nothing is missing, else a completed copy in
+    ``scratch`` (with the sweep's ``sweep.toml`` beside it, for the grid's order).
+    """
+    import csv
+    import shutil
+
+    have = set(rows[0]) if rows else set()
+    fills = {}
+    for key in (RATE, POLICY, SIZE):
+        if key in have or (key == SIZE and f"set.{key}" in have):
+            continue
+        fills[key] = _column_source(key, have, spec, table, sweep_file)
+    if not fills or not rows:
+        return table, rows
+    done = [{**r, **{k: f(r) for k, f in fills.items()}} for r in rows]
+    out = scratch / "results.csv"
+    with open(out, "w", newline="", encoding="utf-8") as f:
+        writer = csv.DictWriter(f, fieldnames=[*rows[0], *fills])
+        writer.writeheader()
+        writer.writerows(done)
+    if (table.parent / "sweep.toml").is_file():
+        shutil.copyfile(table.parent / "sweep.toml", scratch / "sweep.toml")
+    return out, done
+
+
+def _column_source(key: str, have: set, spec: dict, table: Path, sweep_file: Path | None):
+    """``row -> value`` of ``key`` for a table without its column (see above).
+
+    Raises:
+        FigureInputError: an axis of tables sets the key in some entries only, or a run's
+            scenario cannot be read (no run directory and no sweep file).
+    """
+    if f"set.{key}" in have:
+        return lambda row: row[f"set.{key}"]
+    for axis, entries in (spec.get("grid") or {}).items():
+        sets = [_entry_value(e, key) for e in entries] \
+            if isinstance(entries, list) and all(isinstance(e, dict) for e in entries) else []
+        if not any(v is not None for v in sets):
+            continue
+        labels = [e.get("label") for e in entries]
+        if axis not in have or None in sets or not all(isinstance(b, str) for b in labels):
+            raise FigureInputError(f"grid.{axis}: its entries set {key}, but not every entry "
+                                   f"does, under a label of its own (label = \"...\")")
+        by_label = dict(zip(labels, (str(v) for v in sets), strict=True))
+        return lambda row: by_label.get(row[axis], "")
+    section, _, field = key.partition(".")
+
+    def of_run(row: dict) -> str:
+        sc = _effective_scenario(table, row, sweep_file)
+        if sc is None:
+            raise FigureInputError(f"{table}: no {key} column, and the scenario of run "
+                                   f"{row.get('run_id')!r} cannot be read (no run directory; "
+                                   "pass the sweep file)")
+        return str(getattr(getattr(sc, section), field))
+
+    return of_run
+
+
+def _entry_value(entry: dict, key: str):
+    """A grid table entry's value of a dotted key (quoted or nested), or None."""
+    if key in entry:
+        return entry[key]
+    node = entry
+    for part in key.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
 def _size_column(rows: list[dict]) -> str:
     """The table's disturbance-size column: the grid's, else the sweep's fixed ``[set]``."""
     return SIZE if rows and SIZE in rows[0] else f"set.{SIZE}"
@@ -377,19 +454,23 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
     from hmpc_cli.figures.common import TEXT_WIDTH_IN
     from hmpc_cli.figures.robustness import robustness
 
+    import tempfile
+
     table = resolve_table(study.directory)
     rows = read_table(table, ["seed"])
     spec = sweep_spec(study.directory)
     name = str(spec.get("name") or study.directory.name)
-    size = _size_column(rows)
-    diam = tube_diameters(table, rows, size, study.sweep_file)
     sc = _effective_scenario(table, rows[0], study.sweep_file) if rows else None
-    if sc is not None:  # a setting the runs take from their scenario file
-        spec = {**spec, "effective": {"sim.latency_first": sc.sim.latency_first,
-                                      "lowlevel.past_guard": sc.lowlevel.past_guard}}
-    cells = robustness(table, fig_dir, "pdf,svg,png", name=name, diameters=diam,
-                       panel_axis=size, width=min(TEXT_WIDTH_IN, 3.5 * max(1, len(diam))),
-                       not_set_up=margins_refused)
+    with tempfile.TemporaryDirectory() as scratch:
+        drawn, rows = _with_study_columns(table, rows, spec, study.sweep_file, Path(scratch))
+        size = _size_column(rows)
+        diam = tube_diameters(table, rows, size, study.sweep_file)
+        if sc is not None:  # a setting the runs take from their scenario file
+            spec = {**spec, "effective": {"sim.latency_first": sc.sim.latency_first,
+                                          "lowlevel.past_guard": sc.lowlevel.past_guard}}
+        cells = robustness(drawn, fig_dir, "pdf,svg,png", name=name, diameters=diam,
+                           panel_axis=size, width=min(TEXT_WIDTH_IN, 3.5 * max(1, len(diam))),
+                           not_set_up=margins_refused)
     seeds = len({r["seed"] for r in rows})
     n = sorted({c.runs for c in cells})
     seeds_spec = spec.get("seeds")
@@ -403,10 +484,15 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
         partial += f"; {len(cells)} of its {planned_cells} cells have runs so far"
     from hmpc_cli.report.paths import portable_command
 
-    resume = portable_command(f"hmpc sweep {study.sweep_file}" if study.sweep_file else
-                              f"hmpc sweep sweeps/{name}.toml --out {study.directory}")
-    resume = f"`{resume}`"
-    resume = f" Resume or complete: {resume} (finished runs are skipped)."
+    guess = Path("sweeps") / f"{name}.toml"  # the repository's layout, where it holds
+    if study.sweep_file or guess.is_file():
+        resume = portable_command(f"hmpc sweep {study.sweep_file}" if study.sweep_file else
+                                  f"hmpc sweep {guess.as_posix()} --out {study.directory}")
+        resume = f" Resume or complete: `{resume}` (finished runs are skipped)."
+    else:
+        resume = (f" Resume or complete: `hmpc sweep` on the sweep file of `{name}` with "
+                  f"`--out {portable_command(str(study.directory))}` (finished runs are "
+                  "skipped).")
     png = page_link(fig_dir / f"{name}.png", base)
     csv = page_link(fig_dir / f"{name}_table.csv", base)
     return ([f"### {spec.get('description', name)}", "", f"![{name}]({png})", "",
@@ -658,9 +744,10 @@ def _solver_pace(latency: object) -> str:
 def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list[str]:
     """The page's robustness part: every study, the latency comparison, the reading."""
     lines = ["## Robustness study: success rate vs MPC rate", "",
-             "Each run draws a uniform box disturbance held 0.05 s from its seed; success = "
-             "ending inside the circle at t = 3 s. Lower panels: the tube diameter "
-             "diam T(1/f) of the same scenario and disturbance size at each MPC rate f.", ""]
+             "Each run draws its disturbance from its seed (each study lists the settings "
+             "of its runs); success = the task's verdict at the run's end (the ball: ending "
+             "inside the circle). Lower panels: the tube diameter diam T(1/f) of the same "
+             "scenario and disturbance size at each MPC rate f.", ""]
     results: list[tuple[dict, list]] = []
     for study in studies:
         try:
