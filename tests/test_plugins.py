@@ -386,3 +386,19 @@ def test_a_kind_whose_settings_skip_the_base_is_refused_by_name(tmp_path):
     proc = hmpc(["run", str(toy), "--out", str(tmp_path / "run")], dist, cwd=tmp_path)
     assert proc.returncode == 2, proc.stderr
     assert "must subclass hmpc_cli.plugin.MPCKindSettings" in proc.stderr
+
+
+def test_a_plugin_registered_under_another_name_is_named_where_its_own_is_asked(tmp_path):
+    """The dock's spec registered as 'dock2': a scenario naming 'dock' gets the entry point
+    at fault, not 'unknown system'."""
+    site = write_dist(tmp_path / "site", "hmpc-misnamed", "[hmpc.systems]\n"
+                      "dock2 = hmpc_dock:SYSTEM\n",
+                      {"hmpc_dock": (PLUGINS / "hmpc_dock.py").read_text()})
+    scenario = tmp_path / "dock.toml"
+    scenario.write_text('[system]\nname = "dock"\n')
+    proc = hmpc(["run", str(scenario), "--out", str(tmp_path / "out"), "-q"], site,
+                cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert error_lines(proc) == [
+        f"error: {scenario}: system.name: entry point 'dock2' = 'hmpc_dock:SYSTEM' (group "
+        "hmpc.systems) registers name 'dock': the entry point must be named after it"]

@@ -199,10 +199,23 @@ class Registry:
     def _get(self, what: str, table: Mapping[str, Any], name: str) -> Any:
         if name in table:
             return table[name]
-        if name in self.failed[what]:
-            raise PluginError(self.failed[what][name])
+        why = self.failure(what, name)
+        if why is not None:
+            raise PluginError(why)
         raise PluginError(f"unknown {what} {name!r} (registered: "
                           f"{', '.join(map(repr, sorted(table))) or 'none'})")
+
+    def failure(self, what: str, name: str) -> str | None:
+        """Why the plug-in ``name`` of kind ``what`` failed to load, or None.
+
+        Also an entry point under another name whose object is named ``name`` (it must be
+        registered under its own name).
+        """
+        if name in self.failed[what]:
+            return self.failed[what][name]
+        field = "name" if what == "system" else "kind"
+        return next((why for why in self.failed[what].values()
+                     if f" registers {field} {name!r}:" in why), None)
 
 
 def _load(group: str, kind_field: str, spec_type: type) -> tuple[dict, dict]:

@@ -187,8 +187,9 @@ class ScenarioBase(BaseModel):
 
 def _unknown(reg, name: Any) -> str:
     """'unknown system ...' with the choices, or why that plug-in failed to load."""
-    if isinstance(name, str) and name in reg.failed["system"]:
-        return reg.failed["system"][name]
+    why = reg.failure("system", name) if isinstance(name, str) else None
+    if why is not None:
+        return why
     choices = ", ".join(repr(k) for k in sorted(reg.systems))
     return f"unknown system {name!r} (choose from {choices})"
 
