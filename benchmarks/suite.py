@@ -162,6 +162,10 @@ class TimedSolver:
         return {**self.solver.stats(), "t_wall_casadi_call": self.last[0],
                 "t_wall_cpu_casadi_call": self.last[1]}
 
+    def __getattr__(self, name: str):
+        """Any other attribute is the solver's (``has_function``, ``get_function``, ...)."""
+        return getattr(self.solver, name)
+
 
 def configurations(system, settings, run: SuiteRun, with_dompc: bool = True) -> dict:
     """Per configuration label, a callable ``(Problem) -> SolveStats | None`` (None: n/a)."""

@@ -134,15 +134,15 @@ def _call_instance(instances: tuple, w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0,
             raise KeyboardInterrupt(f"solver interrupted ({status})")
     w = np.asarray(sol["x"]).ravel()
     finite = bool(np.all(np.isfinite(w)))
-    cost = _cost_in_bounds(solver, w, p, lbx, ubx, float(np.ravel(sol["f"])[0])) \
-        if finite else np.nan
     # the rows at w come with the solution (no second evaluation)
     viol = _violation(w, np.asarray(sol["g"]).ravel(), lbx, ubx, lbg, ubg) if finite else np.inf
+    wall = time.perf_counter() - start  # the cost's evaluation below is not the solve's
+    cost = _cost_in_bounds(solver, w, p, lbx, ubx, float(np.ravel(sol["f"])[0])) \
+        if finite else np.nan
     ok = bool(st.get("success", False))
     if judge is not None:
         ok = judge(status, ok, viol)
-    stats = SolveStats(status, ok and finite, _iterations(st), time.perf_counter() - start,
-                       cost, float(viol))
+    stats = SolveStats(status, ok and finite, _iterations(st), wall, cost, float(viol))
     return SolveResult(w, np.asarray(sol["lam_x"]).ravel(), np.asarray(sol["lam_g"]).ravel(),
                        stats)
 
@@ -155,7 +155,8 @@ def _cost_in_bounds(solver: ca.Function, w: np.ndarray, p, lbx, ubx, f: float) -
     reported cost of a plan at rest at the goal negative. The plan itself is unchanged.
     """
     inside = np.clip(w, lbx, ubx)
-    if np.array_equal(inside, w) or not solver.has_function("nlp_f"):
+    has = getattr(solver, "has_function", None)  # a wrapper without it keeps the solver's
+    if np.array_equal(inside, w) or has is None or not has("nlp_f"):
         return f
     return float(solver.get_function("nlp_f")(inside, p))
 
