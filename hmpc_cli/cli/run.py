@@ -109,6 +109,16 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
     finally:
         if sink is not None:
             sink.close()
+    _report_finished(result, out, quiet)
+    if strict and not result.success:
+        raise typer.Exit(EXIT_FAILED)
+
+
+def _report_finished(result, out: Path, quiet: bool) -> None:
+    """Prints a finished run's summary (or, with -q, its log's path).
+
+    A stop signal meanwhile says that the run and its log are complete, then stops.
+    """
     try:
         if quiet:  # errors and the log's path only
             typer.echo(str(out / "run.mcap"))
@@ -116,7 +126,7 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
             _print_summary(result, out)
             if not sys.stdout.isatty():
                 typer.echo(str(out / "run.mcap"))
-    except KeyboardInterrupt as exc:  # the run and its log are complete: say so
+    except KeyboardInterrupt as exc:
         from hmpc_cli.core.signals import as_interrupted
 
         stop = as_interrupted(exc)
@@ -124,8 +134,6 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
                    f"{out / 'run.mcap'}", err=True)
         stop.reported = True
         raise stop from None
-    if strict and not result.success:
-        raise typer.Exit(EXIT_FAILED)
 
 
 def _run_dir(out: Path | None, sc) -> Path:

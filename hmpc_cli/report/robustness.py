@@ -363,6 +363,28 @@ def _draw_lines(rows: list[dict], ok: list[bool], size: str) -> list[str]:
             f"{nowhere}, differs between cells for {len(full) - everywhere - nowhere}."]
 
 
+def _drawn(study: Study, table: Path, rows: list[dict], spec: dict, name: str,
+           fig_dir: Path) -> tuple[list[dict], str, dict, list]:
+    """The study's figure and cells.
+
+    Returns:
+        (rows with the study's columns, the size column, the tube diameters, the cells).
+    """
+    import tempfile
+
+    from hmpc_cli.figures.common import TEXT_WIDTH_IN
+    from hmpc_cli.figures.robustness import robustness
+
+    with tempfile.TemporaryDirectory() as scratch:
+        drawn, rows = _with_study_columns(table, rows, spec, study.sweep_file, Path(scratch))
+        size = _size_column(rows)
+        diam = tube_diameters(table, rows, size, study.sweep_file)
+        cells = robustness(drawn, fig_dir, "pdf,svg,png", name=name, diameters=diam,
+                           panel_axis=size, width=min(TEXT_WIDTH_IN, 3.5 * max(1, len(diam))),
+                           not_set_up=margins_refused)
+    return rows, size, diam, cells
+
+
 def _with_study_columns(table: Path, rows: list[dict], spec: dict, sweep_file: Path | None,
                         scratch: Path) -> tuple[Path, list[dict]]:
     """The table with a column for the MPC rate, the policy and the disturbance size.
@@ -451,26 +473,15 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
     Returns:
         (markdown lines, the cells, the sweep's ``sweep.toml`` as it ran).
     """
-    from hmpc_cli.figures.common import TEXT_WIDTH_IN
-    from hmpc_cli.figures.robustness import robustness
-
-    import tempfile
-
     table = resolve_table(study.directory)
     rows = read_table(table, ["seed"])
     spec = sweep_spec(study.directory)
     name = str(spec.get("name") or study.directory.name)
     sc = _effective_scenario(table, rows[0], study.sweep_file) if rows else None
-    with tempfile.TemporaryDirectory() as scratch:
-        drawn, rows = _with_study_columns(table, rows, spec, study.sweep_file, Path(scratch))
-        size = _size_column(rows)
-        diam = tube_diameters(table, rows, size, study.sweep_file)
-        if sc is not None:  # a setting the runs take from their scenario file
-            spec = {**spec, "effective": {"sim.latency_first": sc.sim.latency_first,
-                                          "lowlevel.past_guard": sc.lowlevel.past_guard}}
-        cells = robustness(drawn, fig_dir, "pdf,svg,png", name=name, diameters=diam,
-                           panel_axis=size, width=min(TEXT_WIDTH_IN, 3.5 * max(1, len(diam))),
-                           not_set_up=margins_refused)
+    if sc is not None:  # a setting the runs take from their scenario file
+        spec = {**spec, "effective": {"sim.latency_first": sc.sim.latency_first,
+                                      "lowlevel.past_guard": sc.lowlevel.past_guard}}
+    rows, size, diam, cells = _drawn(study, table, rows, spec, name, fig_dir)
     seeds = len({r["seed"] for r in rows})
     n = sorted({c.runs for c in cells})
     seeds_spec = spec.get("seeds")

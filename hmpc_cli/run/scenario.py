@@ -489,13 +489,8 @@ def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None 
         return key not in keys and not keys & set(_set_keys(item))
 
     def blame(lines: list[str], confirm=None) -> list[str]:
-        """The lines with a --set's or --seed's problems attributed to it."""
         lines = attribute_to_sets(lines, str(path), overrides, attribute_sets, confirm)
-        if seed is None or not attribute_sets:
-            return lines
-        own = f"{path}: seed: "
-        return [f"--seed {seed}: " + line.removeprefix(f"{path}: ")
-                if line.startswith(own) else line for line in lines]
+        return _attribute_to_seed(lines, str(path), seed if attribute_sets else None)
 
     data = effective(list(overrides))
     try:
@@ -510,6 +505,14 @@ def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None 
     if problems:
         raise ScenarioError(blame([f"{path}: mpc.margins: {p}" for p in problems]))
     return scenario, effective_toml(scenario)
+
+
+def _attribute_to_seed(lines: list[str], source: str, seed: int | None) -> list[str]:
+    """``source: seed: reason`` lines as ``--seed N: seed: reason`` (the option's fault)."""
+    if seed is None:
+        return lines
+    return [f"--seed {seed}: " + line.removeprefix(f"{source}: ")
+            if line.startswith(f"{source}: seed: ") else line for line in lines]
 
 
 def effective_toml(scenario: ScenarioBase) -> str:
