@@ -613,8 +613,12 @@ LOG_HAND = """
   goal, the drawing's static polylines (guards, walls, stairs), body point names,
   skeleton, terrain.
 * `/mpc/solve`: every solve: status, iterations, wall time, cost, constraint violation,
-  slack, whether the plan was adopted, the schedule, the plan as an array of nodes, the
-  `latency` applied (`sim.latency`; older logs read as 0) and the MPC's `detail`.
+  slack, whether the plan was adopted (false: the low level never tracks it, e.g. a
+  failed solve without a fallback or a solve dropped over `sim.solve_budget`), the
+  schedule, the plan as an array of nodes (times absolute [s], from the plan's start:
+  the solve's t, or the predicted arrival under `sim.delay_compensation`), the compute
+  time charged as `latency` [s] (`sim.latency`; 0 with time paused; older logs read as
+  0) and the MPC's `detail`.
 * `/planner/plan`: every planner call: schedule, cost, wall time, accepted or not and why
   (`note`), the rollout, the planner's `detail` (e.g. the biped's foothold candidates).
 * `/sim/event`: every guard event: time, guard, state before and after, scheduled or not,

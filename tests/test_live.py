@@ -6,6 +6,7 @@ import sys
 
 import pytest
 from conftest import BALL
+from mcap.reader import make_reader
 from typer.testing import CliRunner
 
 from hmpc_cli.cli.app import app
@@ -48,3 +49,94 @@ def test_live_mirrors_every_topic_and_message(tmp_path):
     logged = sorted([(m.topic, m.log_time_ns) for m in log.messages]
                     + [(m.topic, m.log_time_ns) for m in log.raw])
     assert sorted(sent) == logged
+
+
+def test_pacing_never_runs_ahead_of_the_wall_clock_and_does_not_burst_after_a_stall():
+    """Sim time 0, 0.1, 0.2, 0.3 s at speed 1; the run stalls 1.5 s (an NLP build) after
+    its first message: the next goes out at once, and the pace resumes from there."""
+    from hmpc_cli.log.live import Pacing
+
+    wall, slept = [0.0], []
+
+    def sleep(dt):
+        slept.append(round(dt, 9))
+        wall[0] += dt
+
+    pacing = Pacing(1.0, clock=lambda: wall[0], sleep=sleep)
+    sent = []
+    for sim, work in ((0.0, 1.5), (0.1, 0.02), (0.2, 0.0), (0.3, 0.0)):
+        pacing.wait(sim)
+        sent.append(round(wall[0], 9))
+        wall[0] += work
+    assert sent == [0.0, 1.5, 1.6, 1.7]
+    assert slept == [0.08, 0.1]
+    Pacing(0.0, clock=lambda: 1 / 0, sleep=lambda dt: 1 / 0).wait(5.0)  # speed 0: no pacing
+
+
+def _foxglove_client(url: str, want: set[str], timeout: float = 20.0) -> dict[str, bytes]:
+    """A Foxglove WebSocket client: subscribes to every channel; the first payload of each
+    topic in ``want`` (returns when all came, or at ``timeout`` [s])."""
+    import json
+    import struct
+    import time
+
+    from websockets.sync.client import connect
+
+    got: dict[str, bytes] = {}
+    topics: dict[int, str] = {}
+    end = time.monotonic() + timeout
+    with connect(url, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],
+                 max_size=None) as ws:
+        while set(got) < want and time.monotonic() < end:
+            try:
+                msg = ws.recv(timeout=max(end - time.monotonic(), 0.01))
+            except TimeoutError:
+                break
+            if isinstance(msg, str):
+                op = json.loads(msg)
+                if op.get("op") == "advertise":
+                    subs = []
+                    for ch in op["channels"]:
+                        sub = len(topics) + 1
+                        topics[sub] = ch["topic"]
+                        subs.append({"id": sub, "channelId": ch["id"]})
+                    ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+            elif msg[0] == 1:  # message data: opcode, subscription id, log time, payload
+                (sub,) = struct.unpack_from("<I", msg, 1)
+                got.setdefault(topics[sub], bytes(msg[13:]))
+    return got
+
+
+def test_a_client_that_connects_after_the_start_gets_the_run_info_and_static_scene(tmp_path):
+    """The run is over before the client connects: its description and static scene are
+    still sent to it, byte for byte the log's."""
+    pytest.importorskip("foxglove")
+    pytest.importorskip("websockets")
+    from hmpc_cli.log.live import LATCHED, LiveSink
+    from hmpc_cli.run.runner import execute_run, prepare
+    from hmpc_cli.run.scenario import load_scenario
+
+    sc, text = load_scenario(BALL, ["sim.duration=0.05"])
+    sink = LiveSink(port=0, speed=0.0)
+    try:
+        execute_run(prepare(sc), text, tmp_path / "r", mirror=sink)
+        got = _foxglove_client(sink.url, set(LATCHED))
+    finally:
+        sink.close()
+    assert set(got) >= set(LATCHED), sorted(got)
+    with open(tmp_path / "r" / "run.mcap", "rb") as f:
+        logged = {ch.topic: msg.data for _, ch, msg in
+                  make_reader(f).iter_messages(topics=list(LATCHED))}
+    assert {topic: got[topic] for topic in LATCHED} == logged
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--live-port", "9000"], "error: --live-port 9000: needs --live"),
+    (["--live", "--live-port", "70000"],
+     "error: --live-port 70000: not a TCP port (1-65535, or 0: any free port)"),
+])
+def test_a_live_port_without_live_or_out_of_range_exits_2(tmp_path, args, message):
+    res = CliRunner().invoke(app, ["run", str(BALL), "--out", str(tmp_path / "r"), *args])
+    assert res.exit_code == 2, res.output
+    assert res.stderr.strip() == message and "Traceback" not in res.output
+    assert not (tmp_path / "r").exists()

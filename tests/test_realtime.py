@@ -103,7 +103,7 @@ def test_delay_compensation_solves_from_the_state_at_the_plans_arrival(tmp_path,
         return pred
 
     monkeypatch.setattr(layers_module, "predict", spy)
-    res, _, solves, steps = _run(tmp_path, "comp", [
+    res, log, solves, steps = _run(tmp_path, "comp", [
         "sim.duration=1.5", "sim.latency=0.02", 'sim.latency_first="paused"',
         "sim.delay_compensation=true", "mpc.rate_hz=20"])
     assert not res.diverged, res.reason
@@ -117,6 +117,11 @@ def test_delay_compensation_solves_from_the_state_at_the_plans_arrival(tmp_path,
         assert solved and np.array_equal(solved[0][1], pred.x)
     across = [pred for _, pred in made if pred.events]
     assert across, "no prediction crossed a contact: the case is not exercised"
+    # the log stamps each plan from where it starts: the predicted arrival, not t
+    logged = {round(m.log_time_ns / 1e9, 9): m.data for m in read_log(log).messages
+              if m.topic == "/mpc/solve"}
+    for t, pred in made:
+        assert logged[round(t, 9)]["plan"][0]["t"] == pytest.approx(pred.t, abs=1e-12)
 
 
 def test_a_solve_over_its_budget_is_dropped_and_the_previous_plan_tracked_on(tmp_path):
@@ -129,7 +134,10 @@ def test_a_solve_over_its_budget_is_dropped_and_the_previous_plan_tracked_on(tmp
     kept = [m for m in msgs if "over budget" not in m["reason"]]
     assert dropped and kept
     assert all(m["iterations"] * 0.01 > 0.05 for m in dropped)
-    assert all(m["latency"] == pytest.approx(0.05) for m in dropped)
+    # logged not adopted, with the compute time they were charged (not the budget)
+    assert all(m["adopted"] is False for m in dropped)
+    assert all(m["latency"] == pytest.approx(m["iterations"] * 0.01) for m in dropped)
+    assert all(m["reason"].endswith(" (over budget: dropped)") for m in dropped)
     used = {id(p) for _, _, p in steps.values() if p is not None}
     plans = {round(t, 9): plan for t, _, _, plan in solves}
     for m in dropped:
@@ -139,6 +147,17 @@ def test_a_solve_over_its_budget_is_dropped_and_the_previous_plan_tracked_on(tmp
         before = steps[k0][2]
         assert all(steps[k][2] is before for k in range(k0, k1) if k in steps)
     assert any("solve_budget" in w for w in res.warnings)
+
+
+def test_real_time_settings_with_time_paused_are_named_in_a_warning(tmp_path):
+    res, log, _, _ = _run(tmp_path, "paused", [
+        "sim.duration=0.1", "sim.solve_budget=0.001", "sim.delay_compensation=true"])
+    assert res.warnings == [
+        "sim.solve_budget, sim.delay_compensation: no effect with sim.latency = \"paused\" "
+        "(no compute time is charged); set sim.latency to \"model\", \"measured\" or a "
+        "delay [s]"]
+    assert all(m.data["latency"] == 0.0 and "over budget" not in m.data["reason"]
+               for m in read_log(log).messages if m.topic == "/mpc/solve")
 
 
 def test_the_model_latency_is_deterministic(tmp_path):
@@ -329,8 +348,12 @@ def test_a_contact_stops_the_solve_in_flight(tmp_path):
         assert contact.t == pytest.approx(0.3002, abs=1e-4)
         planned[preempt] = [p.t for p in log.topic("/planner/plan")][1]
         stopped = [w for w in result.warnings if "stopped by a contact" in w]
-        assert stopped == (["1 solves in flight were stopped by a contact "
+        assert stopped == (["1 solve in flight was stopped by a contact "
                             "(sim.preempt_at_contact; their plans dropped)"] if preempt else [])
+        noted = [(s.t, s.data["reason"]) for s in log.topic("/mpc/solve")
+                 if "stopped" in s.data["reason"]]
+        assert noted == ([(contact.t, "replan (after a contact stopped the solve of "
+                           "t = 0.3000 s: dropped)")] if preempt else [])
     assert planned[True] == contact.t
     assert planned[False] == pytest.approx(0.372)
 

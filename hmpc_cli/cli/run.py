@@ -39,8 +39,9 @@ def run_command(
     live: Annotated[bool, typer.Option(
         "--live", help="also stream the log's topics to a Foxglove WebSocket server on "
         "127.0.0.1 (needs foxglove-sdk), paced to real time")] = False,
-    live_port: Annotated[int, typer.Option(
-        "--live-port", help="port of the --live server")] = 8765,
+    live_port: Annotated[int | None, typer.Option(
+        "--live-port", help="port of the --live server (default 8765; 0: any free "
+        "port)")] = None,
     strict: Annotated[bool, typer.Option(
         "--strict", help="exit 1 when the run's task fails (success false)")] = False,
 ) -> None:
@@ -53,9 +54,14 @@ def run_command(
     """
     from hmpc_cli.core.signals import as_interrupted, handle_signals
 
+    if live_port is not None and not (live and 0 <= live_port <= 65535):
+        _err([f"--live-port {live_port}: " + ("not a TCP port (1-65535, or 0: any free "
+                                              "port)" if live else "needs --live")])
+        raise typer.Exit(EXIT_BAD_INPUT)
     try:
         with handle_signals():
-            _run(scenario, out, set_ or [], seed, quiet, live, live_port, strict)
+            _run(scenario, out, set_ or [], seed, quiet, live,
+                 8765 if live_port is None else live_port, strict)
     except KeyboardInterrupt as exc:
         stop = as_interrupted(exc)
         if not getattr(exc, "reported", False):  # stopped while setting up: say so

@@ -3,30 +3,64 @@
 A :class:`LiveSink` mirrors a :class:`~hmpc_cli.log.recorder.Recorder`: every topic the
 recorder registers (JSON or protobuf, same schemas) becomes a channel of a Foxglove
 WebSocket server on 127.0.0.1 (``foxglove-sdk``, the optional extra ``live``), and every
-message written to the log is also sent there with the same log time, paced so that
-simulated time runs no faster than ``speed`` times the wall clock. Connect Foxglove or
-Lichtblick with Open connection → Foxglove WebSocket → ``ws://127.0.0.1:8765``.
+message written to the log is also sent there with the same log time, paced
+(:class:`Pacing`) so that simulated time runs no faster than ``speed`` times the wall
+clock. The run's description and static scene (:data:`LATCHED`) are sent again to each
+client that subscribes to them later. Connect Foxglove or Lichtblick with Open
+connection → Foxglove WebSocket → ``ws://127.0.0.1:8765``.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Any
 
-__all__ = ["LiveSink", "LiveError"]
+from hmpc_cli.log.scene import STATIC
+
+__all__ = ["LATCHED", "LiveSink", "LiveError", "Pacing"]
 
 _NS_PER_S = 1_000_000_000
+#: topics written once at the start that a client subscribing later still needs
+LATCHED = ("/run/info", STATIC)
 
 
 class LiveError(RuntimeError):
     """The optional ``foxglove-sdk`` package is not installed, or the server cannot start."""
 
 
+class Pacing:
+    """Holds messages back so that simulated time never runs ahead of the wall clock.
+
+    The first message anchors sim time 0 to the wall clock; a message that is late (the
+    run was slower than ``speed``, e.g. while it built its NLPs) moves the anchor, so
+    the stream goes on at ``speed`` from there instead of catching up in a burst.
+
+    Args:
+        speed: simulated seconds per wall-clock second (<= 0: no pacing).
+        clock: the wall clock [s]. sleep: waits that many seconds.
+    """
+
+    def __init__(self, speed: float, clock: Callable[[], float] = time.perf_counter,
+                 sleep: Callable[[float], None] = time.sleep) -> None:
+        self.speed, self._clock, self._sleep = float(speed), clock, sleep
+        self._anchor: float | None = None  # wall time [s] of sim time 0
+
+    def wait(self, sim_time: float) -> None:
+        """Returns when a message at ``sim_time`` [s] is due."""
+        if self.speed <= 0:
+            return
+        now, due = self._clock(), sim_time / self.speed
+        self._anchor = now - due if self._anchor is None else max(self._anchor, now - due)
+        if self._anchor + due > now:
+            self._sleep(self._anchor + due - now)
+
+
 class LiveSink:
     """A Foxglove WebSocket server the run log mirrors its messages to.
 
     Args:
-        port: TCP port on 127.0.0.1 (0: any free port).
+        port: TCP port on 127.0.0.1 (1-65535, or 0: any free port).
         speed: simulated seconds per wall-clock second (<= 0: no pacing).
 
     Raises:
@@ -38,19 +72,22 @@ class LiveSink:
             import foxglove
         except ImportError:
             raise LiveError("--live needs the foxglove-sdk package: pip install "
-                                  "'hmpc[live]' (or pip install foxglove-sdk)") from None
+                            "'hmpc[live]' (or pip install foxglove-sdk)") from None
+        if not 0 <= port <= 65535:
+            raise LiveError(f"--live-port: {port} is not a TCP port (1-65535, or 0 for "
+                            "any free port)")
         self._fg = foxglove
         self.context = foxglove.Context()
+        self._channels: dict[str, Any] = {}
+        self._held: dict[str, tuple[int, bytes]] = {}  # latched topic -> (ns, data)
         try:
             self.server = foxglove.start_server(
                 name="hmpc", host="127.0.0.1", port=port, context=self.context,
-                capabilities=[foxglove.Capability.Time])
+                capabilities=[foxglove.Capability.Time], server_listener=self)
         except Exception as exc:  # the SDK raises its own error types
             raise LiveError(f"--live: cannot start the server on port {port}: "
-                                  f"{exc}") from None
-        self.speed = float(speed)
-        self._channels: dict[str, Any] = {}
-        self._start = time.perf_counter()
+                            f"{exc}") from None
+        self.pacing = Pacing(speed)
 
     @property
     def url(self) -> str:
@@ -67,12 +104,23 @@ class LiveSink:
 
     def write(self, topic: str, log_time_ns: int, data: bytes) -> None:
         """Sends one encoded message at sim time `log_time_ns`, paced to the wall clock."""
-        if self.speed > 0:
-            ahead = log_time_ns / _NS_PER_S / self.speed - (time.perf_counter() - self._start)
-            if ahead > 0:
-                time.sleep(ahead)
+        self.pacing.wait(log_time_ns / _NS_PER_S)
+        if topic in LATCHED:  # held before it is sent: a subscriber gets it either way
+            self._held[topic] = (log_time_ns, data)
         self._channels[topic].log(data, log_time=log_time_ns)
         self.server.broadcast_time(log_time_ns)
+
+    def on_subscribe(self, client: Any, channel: Any) -> None:
+        """The server's callback: a latched topic's message, again, to a new subscriber.
+
+        Clients subscribed before get it once more (a description, the same one).
+        """
+        held = self._held.get(channel.topic)
+        if held is not None:
+            self._channels[channel.topic].log(held[1], log_time=held[0])
+
+    def on_unsubscribe(self, client: Any, channel: Any) -> None:
+        """The server's callback: nothing to do."""
 
     def close(self) -> None:
         """Stops the server (clients keep what they received)."""

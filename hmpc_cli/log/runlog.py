@@ -301,13 +301,17 @@ class TopicWriter:
 
     def _write_mpc_solve(self, t: float, plan: Plan, reason: str, model: HybridSystem,
                          latency: float, detail) -> None:
-        """Writes one /mpc/solve message and its scene plan (``detail``: the MPC's)."""
+        """Writes one /mpc/solve message and its scene plan (``detail``: the MPC's).
+
+        The plan's node times are absolute: ``plan.t0`` + its relative times (t0 is the
+        predicted arrival when the solve started from a predicted state, else t).
+        """
         st, traj = plan.stats, plan.traj
         msg = MpcSolve(
             t, reason, st.status, bool(st.success), int(st.iterations), float(st.wall_time),
             float(st.cost), float(st.max_violation), float(st.slack), bool(plan.adopt),
             _schedule(plan.schedule, model),
-            PlanArrays(np.asarray(traj.t, dtype=float) + t, np.asarray(traj.seg),
+            PlanArrays(np.asarray(traj.t, dtype=float) + plan.t0, np.asarray(traj.seg),
                        np.asarray(traj.mode), np.asarray(traj.x, dtype=float),
                        np.asarray(traj.u, dtype=float)), detail, float(latency))
         self.rec.write("/mpc/solve", t, dataclasses.replace(  # on the wire: node records

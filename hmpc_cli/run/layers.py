@@ -12,6 +12,7 @@ run's books and writes the planner's and the MPC's topics.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -37,6 +38,13 @@ class _LayerState:
     since_solve: int = 0
     need_replan: bool = False
     impact: bool = False
+    preempted: list[float] = field(default_factory=list)  # solve times [s] a contact stopped
+
+
+#: appended to the reason of a solve dropped for its budget (``sim.solve_budget``)
+OVER_BUDGET = " (over budget: dropped)"
+#: appended to the reason of the solve a contact started after stopping solves in flight
+PREEMPTED = " (after a contact stopped the solve of t = {} s: dropped)"
 
 
 class MPCLayers:
@@ -137,7 +145,8 @@ class MPCLayers:
             if not (clock.latency.preempt and st.impact
                     and (st.need_replan or self.timing.resolve_on_impact)):
                 return False  # the triggers wait for the solver
-            clock.preempt(t)  # a contact: the solve in flight is from the state before it
+            # a contact: the solve in flight is from the state before it
+            st.preempted = clock.preempt(t)
         need_replan, impact = st.need_replan, st.impact
         st.need_replan = st.impact = False
         if need_replan:
@@ -170,6 +179,9 @@ class MPCLayers:
     def _solve(self, t: float, x: np.ndarray, mode: int, reason: str) -> None:
         st, clock = self.st, self.clock
         charged = clock.latency.charged(reason)
+        note = PREEMPTED.format(", ".join(f"{v:.4f}" for v in st.preempted)) \
+            if st.preempted else ""
+        st.preempted = []
         if not st.usable:  # no schedule: a planner call that found none still took its time
             if charged and clock.planner is not None:
                 clock.busy(t, clock.latency.planner_cost(clock.planner))
@@ -181,7 +193,9 @@ class MPCLayers:
         self.books.count_solve(t, plan)
         if charged:
             dropped, latency = clock.charge(t, plan)
-            self.log.mpc_solve(t, plan, reason + dropped, self.model, latency)
+            if dropped:  # never reaches the plant: logged not adopted
+                plan, note = dataclasses.replace(plan, adopt=False), note + OVER_BUDGET
+            self.log.mpc_solve(t, plan, reason + note, self.model, latency)
         else:
             self.log.mpc_solve(t, plan, reason, self.model)
             st.plan = plan if plan.adopt else st.plan

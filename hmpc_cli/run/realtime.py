@@ -146,7 +146,8 @@ class SolverClock:
 
     Attributes:
         latency: how compute time is charged.
-        pending: plans computed but not yet at the plant: (due [s], plan), in order.
+        pending: plans computed but not yet at the plant: (due [s], solve time [s], plan),
+            in order.
         free_at: sim time [s] the solver is free again.
         last_delay: the last charged delay [s] (what a prediction expects).
         planner: the planner call the next solve follows (None: none).
@@ -156,7 +157,7 @@ class SolverClock:
     """
 
     latency: Latency = field(default_factory=Latency)
-    pending: list[tuple[float, Plan]] = field(default_factory=list)
+    pending: list[tuple[float, float, Plan]] = field(default_factory=list)
     free_at: float = 0.0
     last_delay: float = 0.0
     planner: PlannerResult | None = None
@@ -168,11 +169,12 @@ class SolverClock:
         """Whether the solver is done with its last solve at sim time t [s]."""
         return t >= self.free_at - GRID_TOL
 
-    def charge(self, t: float, plan: Plan) -> tuple[str, float]:
+    def charge(self, t: float, plan: Plan) -> tuple[bool, float]:
         """Charges a plan solved at t [s]: it waits for the plant, or is dropped.
 
         Returns:
-            (what the solve's logged reason gets appended, the latency logged [s]).
+            (whether it is dropped for its budget: the solver stops at t + budget, the
+            compute time it was charged [s]).
         """
         lat = self.latency
         delay = lat.charge(plan, self.planner)
@@ -180,17 +182,24 @@ class SolverClock:
         if lat.over_budget(delay):
             self.over_budget += 1
             self.free_at = t + lat.budget
-            return " (over budget: dropped)", lat.budget
+            return True, delay
         self.free_at = t + delay
         if plan.adopt:
-            self.pending.append((t + delay, plan))
-        return "", delay
+            self.pending.append((t + delay, t, plan))
+        return False, delay
 
-    def preempt(self, t: float) -> None:
-        """A contact at t [s] stops the solve in flight: its plan (due after t) is dropped."""
-        self.pending = [(due, plan) for due, plan in self.pending if due <= t + GRID_TOL]
+    def preempt(self, t: float) -> list[float]:
+        """A contact at t [s] stops the solve in flight: its plan (due after t) is dropped.
+
+        Returns:
+            The solve times [s] of the plans dropped (empty: the solver was busy with
+            work that had no plan for the plant).
+        """
+        dropped = [t_solve for due, t_solve, _ in self.pending if due > t + GRID_TOL]
+        self.pending = [p for p in self.pending if p[0] <= t + GRID_TOL]
         self.free_at = t
         self.preempted += 1
+        return dropped
 
     def busy(self, t: float, cost: float) -> None:
         """Work at t [s] that yields no plan (a planner call that found no schedule)."""
@@ -198,7 +207,7 @@ class SolverClock:
 
     def plan_at(self, t: float, current: Plan | None) -> Plan | None:
         """The plan the plant tracks over the step at t [s] (``current`` or a due one)."""
-        due = [p for t_due, p in self.pending if t_due <= t + GRID_TOL]
+        due = [p for t_due, _, p in self.pending if t_due <= t + GRID_TOL]
         return due[-1] if due else current
 
     def due(self, t: float) -> Plan | None:
@@ -207,10 +216,10 @@ class SolverClock:
         A plan is due at the first simulator step at or after its solve time + latency
         (:data:`GRID_TOL` of rounding allowed: t is a step count times the step).
         """
-        due = [k for k, (t_due, _) in enumerate(self.pending) if t_due <= t + GRID_TOL]
+        due = [k for k, (t_due, _, _) in enumerate(self.pending) if t_due <= t + GRID_TOL]
         if not due:
             return None
-        plan = self.pending[due[-1]][1]
+        plan = self.pending[due[-1]][2]
         del self.pending[: due[-1] + 1]
         return plan
 
@@ -222,16 +231,31 @@ class SolverClock:
         return False
 
     def warnings(self) -> list[str]:
-        """The summary's warnings about dropped solves (none when none was dropped)."""
-        out = []
+        """The summary's warnings: dropped solves, and real-time settings time paused ignores."""
+        lat, out = self.latency, []
         if self.over_budget:
-            out.append(f"{self.over_budget} solves charged more than the budget "
-                       f"sim.solve_budget = {self.latency.budget:g} s were dropped (the "
-                       "previous plan tracked on)")
+            out.append(f"{_solves(self.over_budget)} charged more than the budget "
+                       f"sim.solve_budget = {lat.budget:g} s {_were(self.over_budget)} "
+                       "dropped (the previous plan tracked on)")
         if self.preempted:
-            out.append(f"{self.preempted} solves in flight were stopped by a contact "
-                       "(sim.preempt_at_contact; their plans dropped)")
+            out.append(f"{_solves(self.preempted)} in flight {_were(self.preempted)} stopped "
+                       "by a contact (sim.preempt_at_contact; their plans dropped)")
+        unused = [key for key, on in (("sim.solve_budget", lat.budget is not None),
+                                      ("sim.delay_compensation", lat.compensate),
+                                      ("sim.preempt_at_contact", lat.preempt)) if on]
+        if lat.kind == "paused" and unused:
+            out.append(f"{', '.join(unused)}: no effect with sim.latency = \"paused\" (no "
+                       "compute time is charged); set sim.latency to \"model\", "
+                       "\"measured\" or a delay [s]")
         return out
+
+
+def _solves(n: int) -> str:
+    return f"{n} solve" if n == 1 else f"{n} solves"
+
+
+def _were(n: int) -> str:
+    return "was" if n == 1 else "were"
 
 
 @dataclass(frozen=True)
