@@ -173,3 +173,24 @@ def test_agreement_counts_contact_times_and_the_whole_path():
     same = TrialComparison("10 Hz fixed", "trial 2", ours, None, near)
     assert same.same_timed_sequence and same.path_deviation == (0.0, 0.0)
     assert TrialComparison("10 Hz fixed", "trial 3", None, None, near).path_deviation is None
+
+
+def test_the_papers_counts_are_called_reproduced_only_where_a_mode_gets_them_exactly():
+    from types import SimpleNamespace as Count
+
+    from hmpc_cli.report.fig3 import Fig3Mode, _entry_text, _verdicts
+
+    modes = [Fig3Mode("hmpc", "hmpc", None, None), Fig3Mode("reference", "ref", None, None)]
+    counts = {"hmpc": {"10 Hz fixed": Count(successes=11, runs=11),
+                       "20 Hz fixed": Count(successes=11, runs=11),
+                       "100 Hz fixed": Count(successes=11, runs=11)},
+              "reference": {"10 Hz fixed": Count(successes=11, runs=11),
+                            "20 Hz fixed": Count(successes=10, runs=11)}}
+    authors = {"100 Hz fixed": "4/11 (trial 3, trial 4)"}
+    assert _verdicts(modes, counts, authors) == [
+        "- 10 Hz fixed (the paper: 9/11): **not reproduced** by any mode (hmpc 11/11, "
+        "reference 11/11).",
+        "- 20 Hz fixed (the paper: 11/11): reproduced by hmpc (hmpc 11/11, reference 10/11).",
+        "- 100 Hz fixed: not in the paper (the authors' data: 4/11)."]
+    assert _entry_text([1.2, None, 1.4, 1.3]) == "1.30 (3 of 4 entered)"
+    assert _entry_text([1.2, 1.4]) == "1.30" and _entry_text([None]) == "never"

@@ -96,7 +96,8 @@ def _biped_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]
         raise FigureInputError(str(exc)) from None
     sc, summary = run.scenario, run.summary
     d = sc.get("disturbance", {})
-    setup = (f"plant vs model: {sc.get('plant') or 'identical'}; torso force: "
+    setup = (f"Run: scenario `{sc.get('name', '?')}`, seed {sc.get('seed', '?')}; "
+             f"plant vs model: {sc.get('plant') or 'identical'}; torso force: "
              + (f"{d.get('kind')} ±{d.get('magnitude')} N held {d.get('hold')} s"
                 if d.get("kind", "none") != "none" else "none"))
     verdict = {True: "success", False: "failed", None: "unfinished"}[walk.success]

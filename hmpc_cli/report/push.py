@@ -131,8 +131,10 @@ def push_section(directory: Path, fig_dir: Path, base: Path, default_rate: str =
              f"{len(rows)} finished runs of `sweeps/biped_push.toml`, {seeds} seeds (each its "
              "own push sequence: uniform in ±magnitude, held 0.1 s, at the torso) per cell; "
              "the Figure 4 stairs and 1.1x heavier robot; Wilson 95 % intervals. The "
-             "paper's Figure 4 run is pushed with ±25 N; this robot's joints may give "
-             f"3 kN m; {wall_text(rows)}.", "", *_table(cells), "", "Where it starts to fail:", "",
+             "paper gives no push size for its Figure 4; `scenarios/biped_stairs.toml` "
+             "pushes with ±25 N (the reference notes' example); this robot's joints may "
+             f"give 3 kN m; {wall_text(rows)}.", "", *_table(cells), "",
+             "Where it starts to fail:", "",
              *_boundary(cells), "", "Trends (Cochran-Armitage):", ""]
     for rate in dict.fromkeys(c.series for c in cells):
         sel = [c for c in cells if c.series == rate]
