@@ -54,8 +54,9 @@ class Study:
 
 
 def _fixed(spec: dict) -> str:
-    """The sweep's ``[set]`` overrides as text ("-" if none)."""
-    return ", ".join(f"`{k} = {v}`" for k, v in spec.get("set", {}).items()) or "-"
+    """The sweep's ``[set]`` overrides as text ("-" if none; booleans as TOML writes them)."""
+    return ", ".join(f"`{k} = {str(v).lower() if isinstance(v, bool) else v}`"
+                     for k, v in spec.get("set", {}).items()) or "-"
 
 
 def fixed_settings(directory: Path) -> str:
