@@ -614,7 +614,9 @@ LOG_HAND = """
   skeleton, terrain.
 * `/mpc/solve`: every solve: status, iterations, wall time, cost, constraint violation,
   slack, whether the plan was adopted (false: the low level never tracks it, e.g. a
-  failed solve without a fallback or a solve dropped over `sim.solve_budget`), the
+  failed solve without a fallback or a solve dropped over `sim.solve_budget`; a solve
+  that a contact stops later, `sim.preempt_at_contact`, was logged adopted before it was
+  stopped: the reason of the solve made at that contact names it), the
   schedule, the plan as an array of nodes (times absolute [s], from the plan's start:
   the solve's t, or the predicted arrival under `sim.delay_compensation`), the compute
   time charged as `latency` [s] (`sim.latency`; 0 with time paused; older logs read as

@@ -73,6 +73,23 @@ def test_pacing_never_runs_ahead_of_the_wall_clock_and_does_not_burst_after_a_st
     Pacing(0.0, clock=lambda: 1 / 0, sleep=lambda dt: 1 / 0).wait(5.0)  # speed 0: no pacing
 
 
+def test_pacing_sends_a_message_no_later_than_one_sent_at_once_and_keeps_the_pace():
+    """The log writes a batch of states, then their scene at the same times: the scene's
+    messages go out at once, and the next new time is due where it was (no slow-down)."""
+    from hmpc_cli.log.live import Pacing
+
+    wall = [0.0]
+
+    def sleep(dt):
+        wall[0] += dt
+
+    pacing, sent = Pacing(1.0, clock=lambda: wall[0], sleep=sleep), []
+    for sim in (0.0, 1.0, 0.5, 1.0, 1.5):
+        pacing.wait(sim)
+        sent.append(wall[0])
+    assert sent == [0.0, 1.0, 1.0, 1.0, 1.5]
+
+
 def _foxglove_client(url: str, want: set[str], timeout: float = 20.0) -> dict[str, bytes]:
     """A Foxglove WebSocket client: subscribes to every channel; the first payload of each
     topic in ``want`` (returns when all came, or at ``timeout`` [s])."""

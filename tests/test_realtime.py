@@ -149,6 +149,23 @@ def test_a_solve_over_its_budget_is_dropped_and_the_previous_plan_tracked_on(tmp
     assert any("solve_budget" in w for w in res.warnings)
 
 
+def test_a_contact_counts_and_names_only_the_plans_it_stops():
+    """A plan due after the contact is dropped and named; one already due is kept; work
+    that had no plan for the plant (a planner call that found nothing) is no preemption."""
+    from hmpc_cli.run.realtime import SolverClock
+
+    clock = SolverClock(Latency("fixed", 0.05, preempt=True))
+    assert clock.charge(0.10, _plan(3, 0.0)) == (False, 0.05)  # due at 0.15
+    assert clock.charge(0.20, _plan(3, 0.0)) == (False, 0.05)  # due at 0.25
+    assert clock.preempt(0.22) == [0.20] and clock.preempted == 1
+    assert [due for due, _, _ in clock.pending] == [0.15000000000000002]
+    clock.busy(0.30, 0.04)
+    assert clock.preempt(0.32) == [] and clock.preempted == 1
+    assert clock.free(0.32)
+    assert clock.warnings() == ["1 solve in flight was stopped by a contact "
+                                "(sim.preempt_at_contact; their plans dropped)"]
+
+
 def test_real_time_settings_with_time_paused_are_named_in_a_warning(tmp_path):
     res, log, _, _ = _run(tmp_path, "paused", [
         "sim.duration=0.1", "sim.solve_budget=0.001", "sim.delay_compensation=true"])

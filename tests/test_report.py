@@ -533,6 +533,14 @@ def test_figure_3_trial_by_trial_from_a_table_alone(tmp_path):
     assert "| 100 Hz fixed | 0/11 | - | trial 3, trial 4," in text
     assert "- 100 Hz fixed: not reproduced (0/11 vs the authors' data's (not in the paper) " \
         "4/11; of the authors' 7 failures 7 fail here, and 4 more)." in text
+    # a partial table: the authors' count is still theirs, over their 11 runs
+    with open(d / "results.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["run_id", "controller", "disturbance", "seed", "success", "log"])
+        for t in trials[:5]:
+            w.writerow([t, "100 Hz fixed", t, 0, "true", ""])
+    assert "- 100 Hz fixed: not reproduced (5/5 vs the authors' data's (not in the paper) " \
+        "4/11; of the authors' 7 failures 0 fail here)." in "\n".join(fig3_trials_section(d))
 
 
 def test_the_authors_failures_are_their_data():
@@ -622,6 +630,7 @@ def test_the_real_time_section_says_what_each_latency_entry_sets(tmp_path):
     d.mkdir()
     (d / "sweep.toml").write_text(
         'name = "rt"\ndescription = "two low levels"\nscenario = "../scenarios/ball.toml"\n'
+        '[set]\n"sim.latency_first" = "paused"\n"sim.delay_compensation" = false\n'
         "[grid]\nlatency = [\n"
         '  { label = "measured, hold", "sim.latency" = "measured", '
         '"lowlevel.past_guard" = "hold" },\n'
@@ -635,6 +644,8 @@ def test_the_real_time_section_says_what_each_latency_entry_sets(tmp_path):
         w.writerow([1, "measured, next", "10 Hz once", "nominal", 0, "true", 0.009, 0.03, 1, ""])
     text = "\n".join(realtime_section(d))
     assert text.startswith("### `sweeps/rt.toml`: two low levels\n")
+    assert ("settings of every run: `sim.latency_first = \"paused\"`, "
+            "`sim.delay_compensation = false`;") in text
     assert ("- `measured, hold`: each solve charged its measured wall time on the machine "
             "that ran the table (not reproducible elsewhere); the low level holds the plan's "
             "guard node after an impact until the next plan arrives.") in text
@@ -771,4 +782,11 @@ def test_a_trend_is_tested_again_without_the_slowest_rate_and_tallied_both_ways(
     assert ("Trend tests across the rates set up (Cochran-Armitage, scores log f): success "
             "rises with the rate in 1 of these 2 series and falls in 1 at the 5 % level; at "
             "the Bonferroni level 0.05/2 = 0.025, it rises in 0 and falls in 1.") in text
-    assert "the trends above point both ways." in text
+    assert "not a certificate of one, and the trends above (time paused) point both " \
+        "ways." in text
+    # one direction only: the reading does not say both
+    write_study(d / "results.csv", {k: v for k, v in truth.items() if k[1] == "on_contact"},
+                seeds=20)
+    text = "\n".join(robustness_sections([Study(d)], tmp_path / "fig", tmp_path))
+    assert "rises with the rate in 0 of these 1 series and falls in 1" in text
+    assert "not a certificate of one.\n" in text

@@ -53,10 +53,11 @@ def run_command(
     with -q it is the only line printed on stdout.
     """
     from hmpc_cli.core.signals import as_interrupted, handle_signals
+    from hmpc_cli.log.live import port_problem
 
-    if live_port is not None and not (live and 0 <= live_port <= 65535):
-        _err([f"--live-port {live_port}: " + ("not a TCP port (1-65535, or 0: any free "
-                                              "port)" if live else "needs --live")])
+    if live_port is not None and (problem := "needs --live" if not live else
+                                  port_problem(live_port)) is not None:
+        _err([f"--live-port {live_port}: {problem}"])
         raise typer.Exit(EXIT_BAD_INPUT)
     try:
         with handle_signals():

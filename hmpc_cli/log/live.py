@@ -12,17 +12,23 @@ connection → Foxglove WebSocket → ``ws://127.0.0.1:8765``.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from typing import Any
 
 from hmpc_cli.log.scene import STATIC
 
-__all__ = ["LATCHED", "LiveSink", "LiveError", "Pacing"]
+__all__ = ["LATCHED", "LiveSink", "LiveError", "Pacing", "port_problem"]
 
 _NS_PER_S = 1_000_000_000
 #: topics written once at the start that a client subscribing later still needs
 LATCHED = ("/run/info", STATIC)
+
+
+def port_problem(port: int) -> str | None:
+    """What is wrong with a --live-port value (None: a TCP port, or 0 for any free one)."""
+    return None if 0 <= port <= 65535 else "not a TCP port (1-65535, or 0: any free port)"
 
 
 class LiveError(RuntimeError):
@@ -34,7 +40,9 @@ class Pacing:
 
     The first message anchors sim time 0 to the wall clock; a message that is late (the
     run was slower than ``speed``, e.g. while it built its NLPs) moves the anchor, so
-    the stream goes on at ``speed`` from there instead of catching up in a burst.
+    the stream goes on at ``speed`` from there instead of catching up in a burst. A
+    message no later than one already sent (the log writes a batch of states, then their
+    scene) goes out at once and moves nothing.
 
     Args:
         speed: simulated seconds per wall-clock second (<= 0: no pacing).
@@ -45,11 +53,13 @@ class Pacing:
                  sleep: Callable[[float], None] = time.sleep) -> None:
         self.speed, self._clock, self._sleep = float(speed), clock, sleep
         self._anchor: float | None = None  # wall time [s] of sim time 0
+        self._latest = -math.inf  # the latest sim time [s] paced
 
     def wait(self, sim_time: float) -> None:
         """Returns when a message at ``sim_time`` [s] is due."""
-        if self.speed <= 0:
+        if self.speed <= 0 or sim_time <= self._latest:
             return
+        self._latest = sim_time
         now, due = self._clock(), sim_time / self.speed
         self._anchor = now - due if self._anchor is None else max(self._anchor, now - due)
         if self._anchor + due > now:
@@ -73,9 +83,8 @@ class LiveSink:
         except ImportError:
             raise LiveError("--live needs the foxglove-sdk package: pip install "
                             "'hmpc[live]' (or pip install foxglove-sdk)") from None
-        if not 0 <= port <= 65535:
-            raise LiveError(f"--live-port: {port} is not a TCP port (1-65535, or 0 for "
-                            "any free port)")
+        if (problem := port_problem(port)) is not None:
+            raise LiveError(f"--live-port {port}: {problem}")
         self._fg = foxglove
         self.context = foxglove.Context()
         self._channels: dict[str, Any] = {}

@@ -288,7 +288,9 @@ class TopicWriter:
                   latency: float = 0.0) -> None:
         """Logs one fixed-mode MPC solve to /mpc/solve (held: a snapshot of the plan).
 
-        ``latency`` [s]: how long after t the plan reaches the plant (0: time paused).
+        ``latency`` [s]: the compute time charged (``sim.latency``; 0: time paused): a plan
+        reaches the plant that long after t, unless it is dropped (over budget: not
+        adopted; or stopped by a contact, which the next solve's reason names).
         """
         stride = self.identity.plan_stride
         traj = plan.traj

@@ -215,7 +215,8 @@ class MpcSolve:
     schedule: ScheduleRec | None
     plan: Annotated[PlanArrays, Nodes(PlanNode)]
     detail: Annotated[Any, Detail("mpc")] = None
-    #: delay [s] before the plan reaches the plant (``sim.latency``; 0: time paused)
+    #: compute time charged [s] (``sim.latency``; 0: time paused): the plan reaches the
+    #: plant that long after t unless dropped (over budget: adopted false)
     latency: float = 0.0
 
 

@@ -245,7 +245,11 @@ def _settings_line(modes: Sequence[Fig3Mode]) -> list[str]:
 
 
 def _verdicts(modes: Sequence[Fig3Mode], counts: dict, authors: dict) -> list[str]:
-    """Per panel: the paper's count reproduced by which modes (exactly), or by none."""
+    """Per panel: the paper's count reproduced by which modes (exactly), or by none.
+
+    The count only: which trials fail is the trial-by-trial sections' (the paper names
+    none; the authors' data do).
+    """
     out = []
     for p in dict.fromkeys(p for m in modes for p in counts[m.name]):
         got = {m.name: f"{c.successes}/{c.runs}" for m in modes
@@ -258,8 +262,8 @@ def _verdicts(modes: Sequence[Fig3Mode], counts: dict, authors: dict) -> list[st
             continue
         same = [name for name, c in got.items() if c == paper]
         out.append(f"- {p} (the paper: {paper}): " + (
-            f"reproduced by {', '.join(same)}" if same else "**not reproduced** by any "
-            "mode") + " (" + ", ".join(f"{name} {c}" for name, c in got.items()) + ").")
+            f"count reproduced by {', '.join(same)}" if same else "**not reproduced** by "
+            "any mode") + " (" + ", ".join(f"{name} {c}" for name, c in got.items()) + ").")
     return out
 
 

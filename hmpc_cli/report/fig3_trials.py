@@ -13,7 +13,7 @@ from pathlib import Path
 
 from hmpc_cli.analysis.tables import FigureInputError, parse_bool, read_table, resolve_table
 from hmpc_cli.analysis.tables import sweep_spec
-from hmpc_cli.report.robustness import fixed_settings, wall_text
+from hmpc_cli.report.robustness import settings_text, wall_text
 
 __all__ = ["AUTHORS_FAILED", "PAPER_COUNTS", "fig3_trials_section"]
 
@@ -24,6 +24,8 @@ AUTHORS_FAILED: dict[str, tuple[str, ...]] = {
     "10 Hz fixed": ("trial 5", "trial 7"), "20 Hz fixed": (), "10 Hz replan": (),
     "100 Hz fixed": ("trial 3", "trial 4", "trial 5", "trial 6", "trial 7", "trial 9",
                      "trial 10")}
+#: how many runs each of the authors' Figure 3 panels has (nominal + 10 disturbances)
+AUTHORS_TRIALS = 11
 #: the paper's Figure 3 counts (stable / runs), its three panels; the reference code's
 #: 100 Hz panel is not in the paper (its count: the authors' data, :data:`AUTHORS_FAILED`)
 PAPER_COUNTS: dict[str, str] = {"10 Hz fixed": "9/11", "20 Hz fixed": "11/11",
@@ -53,7 +55,7 @@ def fig3_trials_section(directory: Path) -> list[str]:
         raise FigureInputError(f"{table}: no finished run")
     lines = [f"## Figure 3 trial by trial: {spec.get('description', name)}", "",
              f"From `sweeps/{name}.toml`'s per-run table ({len(rows)} runs; settings of every "
-             f"run: {fixed_settings(table.parent)}; {wall_text(rows)}). The authors' "
+             f"run: {settings_text(spec)}; {wall_text(rows)}). The authors' "
              "failures: their own data (the trials that end outside the circle at t = 3 s).",
              "",
              "| controller | hmpc | paper | authors' failures | hmpc's failures | "
@@ -73,7 +75,7 @@ def fig3_trials_section(directory: Path) -> list[str]:
                      f"{_names(ours)} | {seen} |")
         paper, source = PAPER_COUNTS.get(controller), "the paper's"
         if paper is None and controller in AUTHORS_FAILED:
-            paper = f"{len(trials) - len(theirs)}/{len(trials)}"
+            paper = f"{AUTHORS_TRIALS - len(theirs)}/{AUTHORS_TRIALS}"
             source = "the authors' data's (not in the paper)"
         if paper is not None:
             same = paper == f"{ok}/{len(trials)}" and set(ours) == set(theirs)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from hmpc_cli.analysis.tables import (
     FigureInputError, parse_bool, read_table, resolve_table, sweep_spec)
-from hmpc_cli.report.robustness import fixed_settings, wall_text
+from hmpc_cli.report.robustness import settings_text, wall_text
 
 __all__ = ["realtime_section"]
 
@@ -83,7 +83,7 @@ def realtime_section(directory: Path) -> list[str]:
     entries = _latency_entries(spec)
     lines = [f"### `sweeps/{name}.toml`: {spec.get('description', name)}", "",
              f"From its per-run table ({len(rows)} runs of `scenarios/{scenario}`; "
-             f"settings of every run: {fixed_settings(table.parent)}; "
+             f"settings of every run: {settings_text(spec)}; "
              f"{wall_text(rows)}). A plan reaches the plant its charged compute time after "
              "the state it was solved from; until then the previous plan is tracked. "
              "Latency:", ""]

@@ -53,15 +53,17 @@ class Study:
     planned_seeds: int | None = None
 
 
-def _fixed(spec: dict) -> str:
-    """The sweep's ``[set]`` overrides as text ("-" if none; booleans as TOML writes them)."""
-    return ", ".join(f"`{k} = {str(v).lower() if isinstance(v, bool) else v}`"
+def settings_text(spec: dict) -> str:
+    """A sweep's ``[set]`` overrides as text, values as TOML writes them ("-" if none)."""
+    from hmpc_cli.sweep.table import toml_value
+
+    return ", ".join(f"`{k} = {toml_value(v)}`"
                      for k, v in spec.get("set", {}).items()) or "-"
 
 
 def fixed_settings(directory: Path) -> str:
     """A sweep output directory's ``[set]`` overrides as text ("-" if none)."""
-    return _fixed(sweep_spec(directory))
+    return settings_text(sweep_spec(directory))
 
 
 def _effective(table: Path, row: dict, sweep_file: Path | None, scratch: Path) -> Path:
@@ -531,7 +533,8 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
     return ([f"### {spec.get('description', name)}", "", f"![{name}]({png})", "",
              f"{len(rows)} finished runs, {seeds} seeds{partial}, {n[0]}"
              f"{'' if len(n) == 1 else f'-{n[-1]}'} runs per cell; settings of every run: "
-             f"{_fixed(spec)}; Wilson 95 % intervals; {wall_text(rows)}. Table: [{csv}]({csv})."
+             f"{settings_text(spec)}; Wilson 95 % intervals; {wall_text(rows)}. "
+             f"Table: [{csv}]({csv})."
              + resume, "", *_pivot(cells), "",
              *(["Tube diameter diam T(1/f) at each rate (Step 5, sampled constants; the "
                 "lower panels):", "", *_diam_lines(diam), ""] if diam else []),
@@ -608,20 +611,22 @@ def _series_set_up(cells) -> list[list]:
     return out
 
 
+def _trend_counts(series: list[list], level: float = 0.05) -> tuple[int, int]:
+    """(rising, falling) trends across the rates set up that hold at ``level``."""
+    trs = [_trend(sel) for sel in series]
+    hold = [t for t in trs if math.isfinite(t.p) and t.p < level]
+    return (sum(t.direction == "rises" for t in hold),
+            sum(t.direction == "falls" for t in hold))
+
+
 def _trend_tally(series: list[list]) -> str:
-    """How many series' trends across the rates set up rise, fall or hold neither way.
+    """How many series' trends across the rates set up rise or fall.
 
     At the 5 % level, and at the Bonferroni level 0.05 / (the number of series).
     """
-    def count(level: float) -> tuple[int, int]:
-        trs = [_trend(sel) for sel in series]
-        hold = [t for t in trs if math.isfinite(t.p) and t.p < level]
-        return (sum(t.direction == "rises" for t in hold),
-                sum(t.direction == "falls" for t in hold))
-
     n = len(series)
-    up, down = count(0.05)
-    up_b, down_b = count(0.05 / n)
+    up, down = _trend_counts(series)
+    up_b, down_b = _trend_counts(series, 0.05 / n)
     return (f" Trend tests across the rates set up (Cochran-Armitage, scores log f): "
             f"success rises with the rate in {up} of these {n} series and falls in {down} "
             f"at the 5 % level; at the Bonferroni level 0.05/{n} = {0.05 / n:.2g}, it rises "
@@ -686,12 +691,14 @@ def reading(results: list[tuple[dict, list]],
             what = ", ".join([f"{words[0]} charged", *words[1:]])
             lines.append(_rate_reading(f"Faster MPC ({what})", rates, "policy")
                          + _trend_tally(_series_set_up(cells)))
+    up, down = _trend_counts(series) if series else (0, 0)
     lines += ["- Not supported by this study: rates outside the tested grid, other systems, "
               "other disturbance shapes than a held uniform box, and real-time behaviour "
               "beyond a charged latency (fixed, or modelled from the solver's iterations); "
               "the tube diameters are bounds from sampled constants (Step 5): the paper's "
-              "mechanism for a trend, not a certificate of one, and the trends above "
-              "point both ways.", ""]
+              "mechanism for a trend, not a certificate of one"
+              + (", and the trends above (time paused) point both ways." if up and down
+                 else "."), ""]
     return lines
 
 

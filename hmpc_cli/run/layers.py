@@ -181,8 +181,9 @@ class MPCLayers:
         charged = clock.latency.charged(reason)
         note = PREEMPTED.format(", ".join(f"{v:.4f}" for v in st.preempted)) \
             if st.preempted else ""
-        st.preempted = []
-        if not st.usable:  # no schedule: a planner call that found none still took its time
+        # no schedule: a planner call that found none still took its time (a preemption's
+        # note waits for the solve that logs it)
+        if not st.usable:
             if charged and clock.planner is not None:
                 clock.busy(t, clock.latency.planner_cost(clock.planner))
             clock.planner = None
@@ -196,6 +197,7 @@ class MPCLayers:
             if dropped:  # never reaches the plant: logged not adopted
                 plan, note = dataclasses.replace(plan, adopt=False), note + OVER_BUDGET
             self.log.mpc_solve(t, plan, reason + note, self.model, latency)
+            st.preempted = []
         else:
             self.log.mpc_solve(t, plan, reason, self.model)
             st.plan = plan if plan.adopt else st.plan

@@ -153,7 +153,8 @@ class SolverClock:
         planner: the planner call the next solve follows (None: none).
         told: guards of predicted events told the MPC at its last solve, in order.
         over_budget: solves dropped for their budget.
-        preempted: solves in flight stopped by a contact.
+        preempted: solves in flight stopped by a contact with their plan not yet at the
+            plant (a solve over budget, or a planner call that found nothing, is not one).
     """
 
     latency: Latency = field(default_factory=Latency)
@@ -198,7 +199,7 @@ class SolverClock:
         dropped = [t_solve for due, t_solve, _ in self.pending if due > t + GRID_TOL]
         self.pending = [p for p in self.pending if p[0] <= t + GRID_TOL]
         self.free_at = t
-        self.preempted += 1
+        self.preempted += len(dropped)
         return dropped
 
     def busy(self, t: float, cost: float) -> None:
