@@ -650,29 +650,8 @@ def reading(results: list[tuple[dict, list]],
         margins: per tube-margins study, (its ``sweep.toml``, :func:`twin_pairs` with its
             hand-margin twin).
     """
-    rate_pairs, plan_pairs, refused, series = [], [], 0, []
-    for spec, cells in results:
-        if charged(spec) is None:
-            r, p = _pairs(cells)
-            rate_pairs += r
-            plan_pairs += p
-            refused += _refused_series(cells)
-            series += _series_set_up(cells)
-    lines = ["### Reading", ""]
-    if rate_pairs:
-        lines.append(_rate_reading("Faster MPC (time paused)", rate_pairs, "study x "
-                                   "disturbance size x policy"))
-        if refused:
-            lines[-1] += (f" In {refused} of these series a slower rate's margins were "
-                          "refused at set-up, so none of its runs ran: the slowest rate "
-                          "compared is the slowest set up (each study's findings give the "
-                          "trend both ways).")
-        lines[-1] += _trend_tally(series)
-    if plan_pairs:
-        up, down, tie = _tally(plan_pairs)
-        lines.append(f"- Replanning at contacts vs planning once (time paused): better in {up} "
-                     f"of {len(plan_pairs)} cells with separated intervals, worse in {down}; "
-                     f"{tie} unresolved.")
+    paused, series = _paused_reading(results)
+    lines = ["### Reading", "", *paused]
     for spec, pairs in margins:
         better, worse, tie = _tally(pairs)
         unset = sum(not c.ran and separated(c, h) and c.rate < h.rate for c, h in pairs)
@@ -691,15 +670,50 @@ def reading(results: list[tuple[dict, list]],
             what = ", ".join([f"{words[0]} charged", *words[1:]])
             lines.append(_rate_reading(f"Faster MPC ({what})", rates, "policy")
                          + _trend_tally(_series_set_up(cells)))
+    return lines + [_limits(series), ""]
+
+
+def _paused_reading(results: list[tuple[dict, list]]) -> tuple[list[str], list[list]]:
+    """The reading's time-paused lines and the series set up whose trends they tally.
+
+    Faster MPC (fastest vs slowest rate, the trend tally); replanning vs planning once.
+    """
+    rate_pairs, plan_pairs, refused, series = [], [], 0, []
+    for spec, cells in results:
+        if charged(spec) is None:
+            r, p = _pairs(cells)
+            rate_pairs += r
+            plan_pairs += p
+            refused += _refused_series(cells)
+            series += _series_set_up(cells)
+    lines = []
+    if rate_pairs:
+        lines.append(_rate_reading("Faster MPC (time paused)", rate_pairs, "study x "
+                                   "disturbance size x policy"))
+        if refused:
+            lines[-1] += (f" In {refused} of these series a slower rate's margins were "
+                          "refused at set-up, so none of its runs ran: the slowest rate "
+                          "compared is the slowest set up (each study's findings give the "
+                          "trend both ways).")
+        lines[-1] += _trend_tally(series)
+    if plan_pairs:
+        up, down, tie = _tally(plan_pairs)
+        lines.append(f"- Replanning at contacts vs planning once (time paused): better in {up} "
+                     f"of {len(plan_pairs)} cells with separated intervals, worse in {down}; "
+                     f"{tie} unresolved.")
+    return lines, series
+
+
+def _limits(series: list[list]) -> str:
+    """The reading's last line: what the studies do not support."""
     up, down = _trend_counts(series) if series else (0, 0)
-    lines += ["- Not supported by this study: rates outside the tested grid, other systems, "
-              "other disturbance shapes than a held uniform box, and real-time behaviour "
-              "beyond a charged latency (fixed, or modelled from the solver's iterations); "
-              "the tube diameters are bounds from sampled constants (Step 5): the paper's "
-              "mechanism for a trend, not a certificate of one"
-              + (", and the trends above (time paused) point both ways." if up and down
-                 else "."), ""]
-    return lines
+    return ("- Not supported by this study: rates outside the tested grid, other systems, "
+            "other disturbance shapes than a held uniform box, and real-time behaviour "
+            "beyond a charged latency (fixed, or modelled from the solver's iterations); "
+            "the tube diameters are bounds from sampled constants (Step 5): the paper's "
+            "mechanism for a trend, not a certificate of one"
+            + (", and the trends above (time paused) point both ways." if up and down
+               else "."))
 
 
 def _rate_reading(what: str, pairs: list[tuple], series: str) -> str:
