@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from hmpc_cli.mpc.builder import NLPBuilder
-from hmpc_cli.mpc.solver import INTERRUPTED, SolverSession, WarmStart, plugin_options
+from hmpc_cli.mpc.solver import (INTERRUPTED, SolverSession, WarmStart, plugin_options,
+                                  without_nlp_grad)
 
 
 def _chain(links=3, n=2, m=1):
@@ -133,6 +134,32 @@ def test_tiny_nlp_solved_by_the_session():
     res = session.run(np.zeros(1), np.zeros(0), *bd.arrays())
     assert res.x[0] == pytest.approx(2.0, abs=1e-7)
     assert session.violation(np.array([1.5]), np.zeros(0), *bd.arrays()) == 0.5
+
+
+def test_sessions_skip_nlpsols_post_solve_gradient_and_solve_alike():
+    """No instance generates ``nlp_grad`` (a reverse sweep of the whole graph, used only
+    for post-solve quantities hmpc does not ask for); the iterates are those of an
+    instance that has it, bit for bit; asking for such a quantity keeps it."""
+    session, lay = _scalar_session(warm=WarmStart(1e-6, 1e-9))
+    other = SolverSession("tiny", session._nlp, "sqpmethod", max_iter=50)
+    for inst in (session.cold, session.warm, other.cold):
+        assert "nlp_grad" not in inst.get_function()
+        assert "nlp_hess_l" in inst.get_function()
+    bd = lay.bounds()
+    bd.lbg["lower"][()] = 2.0
+    args = (np.zeros(1), np.zeros(0), *bd.arrays())
+    with_grad = ca.nlpsol("with", "ipopt", session._nlp,
+                          {**session.options, "no_nlp_grad": False})
+    assert "nlp_grad" in with_grad.get_function()
+    ours = session.cold(x0=args[0], p=args[1], lbx=args[2], ubx=args[3], lbg=args[4],
+                        ubg=args[5])
+    theirs = with_grad(x0=args[0], p=args[1], lbx=args[2], ubx=args[3], lbg=args[4],
+                       ubg=args[5])
+    for key in ("x", "f", "g", "lam_x", "lam_g"):
+        assert np.array_equal(np.ravel(ours[key]), theirs[key].full().ravel()), key
+    assert without_nlp_grad({"calc_lam_x": True}) == {"calc_lam_x": True}
+    assert without_nlp_grad({"calc_lam_p": False}) == {"calc_lam_p": False,
+                                                       "no_nlp_grad": True}
 
 
 def test_warm_instance_with_a_limited_memory_hessian():

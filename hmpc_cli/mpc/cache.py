@@ -487,7 +487,7 @@ def generate(entry: Entry, folder: Path) -> Path:
     except ValueError as e:
         raise cbuild.CBuildError(str(e)) from e
     try:
-        solver = ca.nlpsol("nlp", "ipopt", nlp, {"expand": True})
+        solver = ca.nlpsol("nlp", "ipopt", nlp, {"expand": True, "no_nlp_grad": True})
         with contextlib.chdir(folder):
             solver.generate_dependencies("nlp.c", {"with_header": False})
     except RuntimeError as e:

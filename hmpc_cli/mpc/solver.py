@@ -95,6 +95,23 @@ DERIVATIVES = {
 }
 
 
+#: ``nlpsol`` options whose post-solve quantities need its ``nlp_grad`` function
+NLP_GRAD_USERS = ("calc_lam_p", "calc_lam_x", "calc_f", "calc_g", "calc_multipliers")
+
+
+def without_nlp_grad(options: dict) -> dict:
+    """``options`` with ``no_nlp_grad`` set unless one of :data:`NLP_GRAD_USERS` is on.
+
+    ``nlpsol`` otherwise generates ``nlp_grad`` (f, g and the Lagrangian's gradient in x
+    and p: a reverse sweep of the whole graph) in every instance, only to compute those
+    quantities after the solve. No solver iteration calls it, so leaving it out changes
+    no iterate.
+    """
+    if any(options.get(k) for k in NLP_GRAD_USERS):
+        return options
+    return {**options, "no_nlp_grad": True}
+
+
 def derivatives_of(solver: ca.Function, plugin: str = "ipopt") -> dict:
     """The derivative functions an ``nlpsol`` instance of ``plugin`` generated, as options.
 
@@ -213,7 +230,7 @@ class SolverSession:
         nlpsol, sections = split_options(backend, extra)
         args = SolverArgs(max_iter, tol, max_wall_time, equality, nlpsol, sections, nlp,
                           structure, sqp_iter, residuals)
-        self.options = {"calc_lam_p": False, **backend.options(args)}
+        self.options = without_nlp_grad({"calc_lam_p": False, **backend.options(args)})
         load = {k: v for k, v in self.options.items() if k != "expand"} if compiled \
             else self.options
         self.cold = self.warm = BufferedSolver(ca.nlpsol(name, backend.plugin, nlp, load))
