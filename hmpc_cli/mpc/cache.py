@@ -487,7 +487,8 @@ def generate(entry: Entry, folder: Path) -> Path:
     except ValueError as e:
         raise cbuild.CBuildError(str(e)) from e
     try:
-        solver = ca.nlpsol("nlp", "ipopt", nlp, {"expand": True, "no_nlp_grad": True})
+        solver = ca.nlpsol("nlp", "ipopt", nlp, {"expand": True, "calc_lam_p": False,
+                                                  "no_nlp_grad": True})
         with contextlib.chdir(folder):
             solver.generate_dependencies("nlp.c", {"with_header": False})
     except RuntimeError as e:
