@@ -158,6 +158,7 @@ def test_sessions_skip_nlpsols_post_solve_gradient_and_solve_alike():
     for key in ("x", "f", "g", "lam_x", "lam_g"):
         assert np.array_equal(np.ravel(ours[key]), theirs[key].full().ravel()), key
     assert without_nlp_grad({"calc_lam_x": True}) == {"calc_lam_x": True}
+    assert without_nlp_grad({}, "fatrop") == {}  # fatrop calls it
     assert without_nlp_grad({"calc_lam_p": False}) == {"calc_lam_p": False,
                                                        "no_nlp_grad": True}
 

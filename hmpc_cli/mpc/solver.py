@@ -97,17 +97,19 @@ DERIVATIVES = {
 
 #: ``nlpsol`` options whose post-solve quantities need its ``nlp_grad`` function
 NLP_GRAD_USERS = ("calc_lam_p", "calc_lam_x", "calc_f", "calc_g", "calc_multipliers")
+#: plug-ins that never call ``nlp_grad`` themselves (fatrop does: it aborts without it)
+NLP_GRAD_FREE = ("ipopt", "sqpmethod")
 
 
-def without_nlp_grad(options: dict) -> dict:
-    """``options`` with ``no_nlp_grad`` set unless one of :data:`NLP_GRAD_USERS` is on.
+def without_nlp_grad(options: dict, plugin: str = "ipopt") -> dict:
+    """``options`` with ``no_nlp_grad`` for a plug-in of :data:`NLP_GRAD_FREE`.
 
-    ``nlpsol`` otherwise generates ``nlp_grad`` (f, g and the Lagrangian's gradient in x
-    and p: a reverse sweep of the whole graph) in every instance, only to compute those
-    quantities after the solve. No solver iteration calls it, so leaving it out changes
-    no iterate.
+    Not set when one of :data:`NLP_GRAD_USERS` is on. ``nlpsol`` otherwise generates
+    ``nlp_grad`` (f, g and the Lagrangian's gradient in x and p: a reverse sweep of the
+    whole graph) in every instance, only to compute those quantities after the solve. No
+    iteration of these plug-ins calls it, so leaving it out changes no iterate.
     """
-    if any(options.get(k) for k in NLP_GRAD_USERS):
+    if plugin not in NLP_GRAD_FREE or any(options.get(k) for k in NLP_GRAD_USERS):
         return options
     return {**options, "no_nlp_grad": True}
 
@@ -230,7 +232,8 @@ class SolverSession:
         nlpsol, sections = split_options(backend, extra)
         args = SolverArgs(max_iter, tol, max_wall_time, equality, nlpsol, sections, nlp,
                           structure, sqp_iter, residuals)
-        self.options = without_nlp_grad({"calc_lam_p": False, **backend.options(args)})
+        self.options = without_nlp_grad({"calc_lam_p": False, **backend.options(args)},
+                                         backend.plugin)
         load = {k: v for k, v in self.options.items() if k != "expand"} if compiled \
             else self.options
         self.cold = self.warm = BufferedSolver(ca.nlpsol(name, backend.plugin, nlp, load))
