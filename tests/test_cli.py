@@ -222,3 +222,40 @@ def test_help(run_hmpc, tmp_path: Path) -> None:
     for word in ("SCENARIO", "--out", "--set", "--seed", "--quiet", "-q"):
         assert word.lower() in sub.stdout.lower(), word
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("code, status, err", [("3", 3, ""), ("None", 0, ""),
+                                               ("'stopped'", 1, "stopped\n")])
+def test_the_process_ends_like_sys_exit_after_its_atexit_handlers(tmp_path, code, status,
+                                                                   err) -> None:
+    """``end_process`` (the console script's last step): the status, the atexit handlers
+    and both streams' buffered text, as ``sys.exit`` would give them."""
+    import subprocess
+    import sys
+
+    script = ("import atexit, sys\n"
+              "from hmpc_cli.cli.app import end_process\n"
+              "atexit.register(lambda: print('atexit ran'))\n"
+              "sys.stdout.write('partial line')\n"
+              f"end_process({code})\n"
+              "print('never')\n")
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=60)
+    assert (proc.returncode, proc.stdout, proc.stderr) == (status, "partial lineatexit ran\n",
+                                                           err)
+
+
+def test_a_live_non_daemon_thread_is_waited_for(tmp_path) -> None:
+    import subprocess
+    import sys
+
+    done = tmp_path / "done"
+    script = ("import threading, time\n"
+              "from hmpc_cli.cli.app import end_process\n"
+              f"t = threading.Thread(target=lambda: (time.sleep(0.3), open({str(done)!r}, 'w')"
+              ".write('x')))\n"
+              "t.start()\n"
+              "end_process(4)\n")
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 4 and done.read_text() == "x", proc.stderr
