@@ -159,6 +159,12 @@ def test_sessions_skip_nlpsols_post_solve_gradient_and_solve_alike():
         assert np.array_equal(np.ravel(ours[key]), theirs[key].full().ravel()), key
     assert without_nlp_grad({"calc_lam_x": True}) == {"calc_lam_x": True}
     assert without_nlp_grad({}, "fatrop") == {}  # fatrop calls it
+    assert without_nlp_grad({"no_nlp_grad": False}) == {"no_nlp_grad": False}  # the user's
+    # a compiled library has no nlp_grad: a calc_* option is refused before it is loaded
+    # (the chain and walking NLPs then build in SX, with a warning naming the reason)
+    with pytest.raises(RuntimeError, match=r"\['calc_lam_x'\] need nlp_grad"):
+        SolverSession("lib", "/nonexistent/nlp.so", "ipopt", max_iter=5,
+                      extra={"calc_lam_x": True})
     assert without_nlp_grad({"calc_lam_p": False}) == {"calc_lam_p": False,
                                                        "no_nlp_grad": True}
 

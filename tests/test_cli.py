@@ -245,6 +245,24 @@ def test_the_process_ends_like_sys_exit_after_its_atexit_handlers(tmp_path, code
                                                            err)
 
 
+def test_output_that_cannot_be_written_is_an_error_not_a_silent_success() -> None:
+    """stdout on a full device: said on stderr, status 120 (as CPython's own exit)."""
+    import os
+    import subprocess
+    import sys
+
+    script = ("import sys\n"
+              "from hmpc_cli.cli.app import end_process\n"
+              "sys.stdout.write('result')\n"
+              "end_process(0)\n")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run([sys.executable, "-c", script], stdout=full, env=env,
+                              stderr=subprocess.PIPE, text=True, timeout=60)
+    assert proc.returncode == 120
+    assert "the output could not be written" in proc.stderr and "No space" in proc.stderr
+
+
 def test_a_live_non_daemon_thread_is_waited_for(tmp_path) -> None:
     import subprocess
     import sys

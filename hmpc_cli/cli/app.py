@@ -82,7 +82,9 @@ def end_process(code: object) -> None:
     """Ends the process with ``code`` as ``sys.exit`` would, without the interpreter's teardown.
 
     The atexit handlers run (log handlers, temporary directories, worker pools, the build
-    cache's compile at exit) and the standard streams are flushed; then ``os._exit``. The
+    cache's compile at exit) and the standard streams are flushed (stdout failing, e.g. a
+    full disk or a closed pipe: said on stderr, status 120 as CPython gives it unless the
+    status is already an error); then ``os._exit``. The
     teardown it skips frees CasADi's and the plug-ins' objects one by one (about a fifth of
     a second after a run) and writes nothing. While another non-daemon thread is alive it
     exits the ordinary way, which waits for that thread.
@@ -97,9 +99,14 @@ def end_process(code: object) -> None:
         print(code, file=sys.stderr)
         status = 1
     atexit._run_exitfuncs()
-    for stream in (sys.stdout, sys.stderr):
+    try:
+        sys.stdout.flush()
+    except (OSError, ValueError) as exc:  # ValueError: stdout was closed
         with contextlib.suppress(Exception):
-            stream.flush()
+            print(f"hmpc: the output could not be written: {exc}", file=sys.stderr)
+        status = status or 120
+    with contextlib.suppress(Exception):
+        sys.stderr.flush()
     os._exit(status & 0xFF)
 
 

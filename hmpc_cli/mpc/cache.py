@@ -6,7 +6,7 @@ and Hessian of the Lagrangian and their sparsity), which the cold and the warm I
 instance of both NLPs repeat: most of a short run (results/bench/). A serialized
 ``nlpsol`` does not help (tens of MB for the switching NLP, slower to read than to rebuild), so
 the cache keeps what IPOPT calls, compiled: the C that ``nlpsol.generate_dependencies``
-writes (``nlp_f``, ``nlp_g``, ``nlp_grad_f``, ``nlp_jac_g``, ``nlp_hess_l``, ``nlp_grad``),
+writes (``nlp_f``, ``nlp_g``, ``nlp_grad_f``, ``nlp_jac_g``, ``nlp_hess_l``; no ``nlp_grad``),
 built into a shared library that ``ca.nlpsol(name, "ipopt", library)`` loads in
 milliseconds, with the NLP's block layout beside it. Compiled this way the solves are the
 SX virtual machine's bit for bit (same operations, ``-ffp-contract=off``).
