@@ -84,10 +84,9 @@ def end_process(code: object) -> None:
     The atexit handlers run (log handlers, temporary directories, worker pools, the build
     cache's compile at exit) and the standard streams are flushed (stdout failing, e.g. a
     full disk or a closed pipe: said on stderr, status 120 as CPython gives it unless the
-    status is already an error); then ``os._exit``. The
-    teardown it skips frees CasADi's and the plug-ins' objects one by one (about a fifth of
-    a second after a run) and writes nothing. While another non-daemon thread is alive it
-    exits the ordinary way, which waits for that thread.
+    status is already an error); then ``os._exit``. The teardown it skips frees CasADi's
+    and the plug-ins' objects one by one and writes nothing. While another non-daemon
+    thread is alive it exits the ordinary way, which waits for that thread.
     """
     others = [t for t in threading.enumerate()
               if t is not threading.main_thread() and t.is_alive() and not t.daemon]
