@@ -165,6 +165,9 @@ def test_sessions_skip_nlpsols_post_solve_gradient_and_solve_alike():
     with pytest.raises(RuntimeError, match=r"\['calc_lam_x'\] need nlp_grad"):
         SolverSession("lib", "/nonexistent/nlp.so", "ipopt", max_iter=5,
                       extra={"calc_lam_x": True})
+    with pytest.raises(RuntimeError, match=r"\['no_nlp_grad=False'\] need nlp_grad"):
+        SolverSession("lib", "/nonexistent/nlp.so", "ipopt", max_iter=5,
+                      extra={"no_nlp_grad": False})
     assert without_nlp_grad({"calc_lam_p": False}) == {"calc_lam_p": False,
                                                        "no_nlp_grad": True}
 

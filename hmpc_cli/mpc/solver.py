@@ -104,11 +104,11 @@ NLP_GRAD_FREE = ("ipopt", "sqpmethod")
 def without_nlp_grad(options: dict, plugin: str = "ipopt") -> dict:
     """``options`` with ``no_nlp_grad`` for a plug-in of :data:`NLP_GRAD_FREE`.
 
-    Not set when one of :data:`NLP_GRAD_USERS` is on or ``no_nlp_grad`` is given. ``nlpsol``
-    otherwise generates
-    ``nlp_grad`` (f, g and the Lagrangian's gradient in x and p: a reverse sweep of the
-    whole graph) in every instance, only to compute those quantities after the solve. No
-    iteration of these plug-ins calls it, so leaving it out changes no iterate.
+    Not set when one of :data:`NLP_GRAD_USERS` is on or ``no_nlp_grad`` is given.
+    ``nlpsol`` otherwise generates ``nlp_grad`` (f, g and the Lagrangian's gradient in x
+    and p: a reverse sweep of the whole graph) in every instance, only to compute those
+    quantities after the solve. No iteration of these plug-ins calls it, so leaving it
+    out changes no iterate.
     """
     if plugin not in NLP_GRAD_FREE or "no_nlp_grad" in options or \
             any(options.get(k) for k in NLP_GRAD_USERS):
@@ -237,8 +237,8 @@ class SolverSession:
         self.options = without_nlp_grad({"calc_lam_p": False, **backend.options(args)},
                                          backend.plugin)
         if compiled and not self.options.get("no_nlp_grad"):
-            raise RuntimeError(f"options {[k for k in NLP_GRAD_USERS if self.options.get(k)]} "
-                               "need nlp_grad, which a compiled NLP leaves out")
+            asked = [k for k in NLP_GRAD_USERS if self.options.get(k)] or ["no_nlp_grad=False"]
+            raise RuntimeError(f"options {asked} need nlp_grad, which a compiled NLP leaves out")
         load = {k: v for k, v in self.options.items() if k != "expand"} if compiled \
             else self.options
         self.cold = self.warm = BufferedSolver(ca.nlpsol(name, backend.plugin, nlp, load))
