@@ -73,6 +73,10 @@ def _p95(xs) -> float:
 
 
 # ----------------------------------------------------------------- hmpc run, ball
+#: the build step of the CEM's C rollout kernel, as :func:`phases` names it
+KERNEL = "CEM's C rollout kernel"
+
+
 def _env(cache: str) -> dict:
     """This process's environment with ``HMPC_CACHE_DIR`` = cache (default cache mode)."""
     # without PYTHONDONTWRITEBYTECODE: imports from cached bytecode, as a user's run has them
@@ -109,7 +113,7 @@ def phases() -> dict[str, float]:
     from hmpc_cli.run.scenario import load_scenario
     from hmpc_cli.sim import rollout
     out = {"imports": time.perf_counter() - t0}
-    spent = {"nlpsol": 0.0, "transcription": 0.0, "CEM's C rollout kernel": 0.0}
+    spent = {"nlpsol": 0.0, "transcription": 0.0, KERNEL: 0.0}
 
     def timed(fn, key):
         def wrapper(*a, **kw):
@@ -123,7 +127,7 @@ def phases() -> dict[str, float]:
     ca.nlpsol = timed(ca.nlpsol, "nlpsol")
     cls = nlp_mod.FixedModeNLP
     cls._transcription = timed(cls._transcription, "transcription")
-    rollout.build_library = timed(rollout.build_library, "CEM's C rollout kernel")
+    rollout.build_library = timed(rollout.build_library, KERNEL)
     t = time.perf_counter()
     sc, text = load_scenario(str(ROOT / BALL))
     out["scenario"] = time.perf_counter() - t
@@ -175,7 +179,7 @@ def _walls_text(walls: list[float]) -> str:
 
 
 #: the phase of the CEM's C rollout kernel build (a fresh cache compiles it)
-ROLLOUT = "build: CEM's C rollout kernel"
+ROLLOUT = f"build: {KERNEL}"
 _COLUMNS = ("fresh install", "warm", "NLPs compiled")
 
 

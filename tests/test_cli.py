@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import platform
+import subprocess
+import sys
 from pathlib import Path
 
 import casadi
@@ -230,9 +233,6 @@ def test_the_process_ends_like_sys_exit_after_its_atexit_handlers(tmp_path, code
                                                                    err) -> None:
     """``end_process`` (the console script's last step): the status, the atexit handlers
     and both streams' buffered text, as ``sys.exit`` would give them."""
-    import subprocess
-    import sys
-
     script = ("import atexit, sys\n"
               "from hmpc_cli.cli.app import end_process\n"
               "atexit.register(lambda: print('atexit ran'))\n"
@@ -247,10 +247,6 @@ def test_the_process_ends_like_sys_exit_after_its_atexit_handlers(tmp_path, code
 
 def test_output_that_cannot_be_written_is_an_error_not_a_silent_success() -> None:
     """stdout on a full device: said on stderr, status 120 (as CPython's own exit)."""
-    import os
-    import subprocess
-    import sys
-
     script = ("import sys\n"
               "from hmpc_cli.cli.app import end_process\n"
               "sys.stdout.write('result')\n"
@@ -264,9 +260,6 @@ def test_output_that_cannot_be_written_is_an_error_not_a_silent_success() -> Non
 
 
 def test_a_live_non_daemon_thread_is_waited_for(tmp_path) -> None:
-    import subprocess
-    import sys
-
     done = tmp_path / "done"
     script = ("import threading, time\n"
               "from hmpc_cli.cli.app import end_process\n"

@@ -73,6 +73,7 @@ from hmpc_cli import __version__
 from hmpc_cli.core import cbuild
 from hmpc_cli.core.messages import BuildInfo
 from hmpc_cli.mpc.builder import NLPLayout
+from hmpc_cli.mpc.solver import without_nlp_grad
 from hmpc_cli.mpc.solver_table import SOLVERS, backend_of
 
 ENV = "HMPC_BUILD_CACHE"
@@ -487,8 +488,8 @@ def generate(entry: Entry, folder: Path) -> Path:
     except ValueError as e:
         raise cbuild.CBuildError(str(e)) from e
     try:
-        solver = ca.nlpsol("nlp", "ipopt", nlp, {"expand": True, "calc_lam_p": False,
-                                                  "no_nlp_grad": True})
+        solver = ca.nlpsol("nlp", "ipopt", nlp,
+                           without_nlp_grad({"expand": True, "calc_lam_p": False}))
         with contextlib.chdir(folder):
             solver.generate_dependencies("nlp.c", {"with_header": False})
     except RuntimeError as e:
