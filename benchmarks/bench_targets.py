@@ -75,6 +75,8 @@ def _p95(xs) -> float:
 # ----------------------------------------------------------------- hmpc run, ball
 #: the build step of the CEM's C rollout kernel, as :func:`phases` names it
 KERNEL = "CEM's C rollout kernel"
+#: the kernel's compile, in a thread beside the NLP build (not a phase of the command)
+BACKGROUND = f"beside the build: {KERNEL} compiled in the background"
 
 
 def _env(cache: str) -> dict:
@@ -127,7 +129,9 @@ def phases() -> dict[str, float]:
     ca.nlpsol = timed(ca.nlpsol, "nlpsol")
     cls = nlp_mod.FixedModeNLP
     cls._transcription = timed(cls._transcription, "transcription")
-    rollout.build_library = timed(rollout.build_library, KERNEL)
+    # the command's own time for the kernel: starting its compile and waiting for it
+    rollout.start_library = timed(rollout.start_library, KERNEL)
+    rollout.LibraryBuild.result = timed(rollout.LibraryBuild.result, KERNEL)
     t = time.perf_counter()
     sc, text = load_scenario(str(ROOT / BALL))
     out["scenario"] = time.perf_counter() - t
@@ -141,6 +145,8 @@ def phases() -> dict[str, float]:
         out["run"] = time.perf_counter() - t
     out["run: MPC solves"] = sum(loop.books.solve_times)
     out["run: planner"] = sum(loop.books.plan_times)
+    c_rollout = getattr(loop.planner, "_c", None)
+    out[BACKGROUND] = float(getattr(c_rollout, "compile_seconds", None) or 0.0)
     build = loop.identity.build
     out["build cache"] = json.dumps(dataclasses.asdict(build) if build is not None else None)
     return out
@@ -178,7 +184,8 @@ def _walls_text(walls: list[float]) -> str:
             f"{max(walls):.2f}, {len(walls)} processes)")
 
 
-#: the phase of the CEM's C rollout kernel build (a fresh cache compiles it)
+#: the phase of the CEM's C rollout kernel build (a fresh cache compiles it): the
+#: command's own time (starting the compile, waiting for it)
 ROLLOUT = f"build: {KERNEL}"
 _COLUMNS = ("fresh install", "warm", "NLPs compiled")
 
@@ -236,7 +243,8 @@ def run_section(runs: int, compiled: str | None) -> tuple[list[str], dict]:
               f"({_median(fresh):.2f} s; its build: {fph['build']:.2f} s, of which the "
               f"transcription {fph['build: transcription']:.2f} s, `nlpsol` "
               f"{fph['build: nlpsol']:.2f} s and the CEM's C rollout kernel "
-              f"{fph[ROLLOUT]:.2f} s). Without the transcription it would take "
+              f"{fph[ROLLOUT]:.2f} s: compiled in {fph[BACKGROUND]:.2f} s beside the NLP "
+              f"build). Without the transcription it would take "
               f"{no_tr:.2f} s: {_verdict(no_tr, 2.0)}.",
               f"* warm <= 1.0 s: {'met' if _median(warm) <= 1.0 else 'NOT met'} by default "
               f"({_median(warm):.2f} s)"

@@ -225,3 +225,74 @@ def test_numpy_setting_does_not_build(tmp_path, monkeypatch):
     monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path))
     _, planner = _planner("numpy")
     assert planner.backend == "numpy" and list(tmp_path.iterdir()) == []
+
+
+@needs_cc
+def test_a_background_compile_is_waited_for_at_the_first_rollout(tmp_path, monkeypatch):
+    """rollout_backend = "auto" compiles while the run builds: the planner is made before
+    the library is there, and its first rollout waits for it (the same costs as NumPy's)."""
+    monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path))
+    before = rollout_c.COMPILES
+    ball, planner = _planner("auto", BallParams(radius=0.105))
+    assert planner.backend == "c" and not planner._c.ready
+    assert planner._c.compile_seconds is None
+    knots = _knots(np.random.default_rng(3), 8)
+    cost, reached = planner.rollout_cost(ball.x0, 0, knots)
+    ref, ref_reached = planner.rollout_cost_numpy(ball.x0, 0, knots)
+    assert np.array_equal(cost, ref) and np.array_equal(reached, ref_reached)
+    assert planner._c.ready and planner._c.compile_seconds is not None
+    assert rollout_c.COMPILES - before == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == [planner._c.path.name,
+                                                          planner._c.path.name + ".sha256"]
+
+
+@needs_cc
+def test_builds_of_one_source_under_way_share_one_compile(tmp_path, monkeypatch):
+    monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path))
+    source = rollout_c.generate_source(build_ball(BallParams(radius=0.115)))
+    before = rollout_c.COMPILES
+    first, second = rollout_c.start_library(source), rollout_c.start_library(source)
+    assert first is second
+    lib, path, seconds = second.result()
+    assert first.result() == (lib, path, seconds) and seconds is not None
+    assert rollout_c.COMPILES - before == 1 and rollout_c.start_library(source).result()[0] is lib
+
+
+@needs_cc
+def test_a_background_compile_that_fails_falls_back_to_numpy(tmp_path, monkeypatch):
+    """A compiler that answers --version but cannot compile: "auto" plans with NumPy (one
+    warning, at the first rollout), "c" is an error when the planner is made."""
+    cc = tmp_path / "cc"
+    cc.write_text('#!/bin/sh\n[ "$1" = --version ] && echo "broken 1.0" && exit 0\n'
+                  'echo "cc: internal error" >&2\nexit 1\n')
+    cc.chmod(0o755)
+    monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("CC", str(cc))
+    ball, planner = _planner("auto", BallParams(radius=0.125))
+    assert planner.backend == "c"
+    knots = _knots(np.random.default_rng(4), 6)
+    with pytest.warns(RuntimeWarning, match="C rollouts unavailable, using NumPy: .*failed"):
+        cost, reached = planner.rollout_cost(ball.x0, 0, knots)
+    assert planner.backend == "numpy"
+    ref, ref_reached = planner.rollout_cost_numpy(ball.x0, 0, knots)
+    assert np.array_equal(cost, ref) and np.array_equal(reached, ref_reached)
+    with pytest.raises(RolloutBuildError, match="planner.rollout_backend = 'c'.*failed"):
+        _planner("c", BallParams(radius=0.125))
+    assert [p.name for p in (tmp_path / "cache").iterdir()] == []  # no temporary files
+
+
+@needs_cc
+def test_an_exit_during_a_background_compile_leaves_the_library_whole(tmp_path):
+    """The process ends right after starting the compile: it waits for it, so the cache
+    holds the library and its sha256, and no temporary file."""
+    code = ("from hmpc_cli.sim.rollout import CRollout; "
+            "from hmpc_cli.systems.ball import BallParams, build_ball; "
+            "c = CRollout(build_ball(BallParams(radius=0.135)), wait=False); "
+            "print(c.path.name, c.ready)")
+    env = {**os.environ, "HMPC_CACHE_DIR": str(tmp_path)}
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    name, ready = proc.stdout.split()
+    assert ready == "False"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name, name + ".sha256"]

@@ -125,7 +125,10 @@ class CrossEntropyPlanner:
     """Plans a mode schedule from a hybrid state by the cross-entropy method.
 
     Attributes:
-        backend: "c" or "numpy", the rollout implementation in use.
+        backend: "c" or "numpy", the rollout implementation in use. With
+            ``rollout_backend = "auto"`` the C library compiles while the rest of the run
+            is built; the first rollout waits for it (a failed compile: "numpy", with a
+            warning, the same numbers bit for bit on IEEE +, -, *, /, sqrt).
 
     Raises:
         RolloutBuildError: ``rollout_backend="c"`` and the C rollout cannot be built.
@@ -151,18 +154,33 @@ class CrossEntropyPlanner:
         self._previous_t = 0.0
         self.backend, self._c = "numpy", None
         if settings.rollout_backend != "numpy":
-            try:
-                self._c = CRollout(system, self.sim.max_events, self.sim.time_tol)
+            try:  # "auto": compiled while the stack builds, waited for at the first plan
+                self._c = CRollout(system, self.sim.max_events, self.sim.time_tol,
+                                   wait=settings.rollout_backend == "c")
                 self.backend = "c"
             except RolloutBuildError as e:
-                first = (str(e).splitlines() or [""])[0]
-                if settings.rollout_backend == "c":
-                    raise RolloutBuildError(
-                        f"planner.rollout_backend = 'c': the C rollouts cannot be built "
-                        f"({first}); set it to 'auto' or 'numpy'") from e
-                if not compiler_problem():  # an unusable $CC has had its one warning
-                    warnings.warn(f"C rollouts unavailable, using NumPy: {first}",
-                                  RuntimeWarning, stacklevel=2)
+                self._without_c(e)
+
+    def _compiled(self) -> CRollout | None:
+        """The C rollouts once compiled, or None (NumPy: not built, or their build failed)."""
+        if self._c is not None and not self._c.ready:
+            try:
+                self._c.wait()
+            except RolloutBuildError as e:
+                self._without_c(e)
+        return self._c
+
+    def _without_c(self, error: RolloutBuildError) -> None:
+        """The C rollouts failed to build: an error for "c", NumPy for "auto" (a warning)."""
+        first = (str(error).splitlines() or [""])[0]
+        if self.s.rollout_backend == "c":
+            raise RolloutBuildError(
+                f"planner.rollout_backend = 'c': the C rollouts cannot be built "
+                f"({first}); set it to 'auto' or 'numpy'") from error
+        self.backend, self._c = "numpy", None
+        if not compiler_problem():  # an unusable $CC has had its one warning
+            warnings.warn(f"C rollouts unavailable, using NumPy: {first}",
+                          RuntimeWarning, stacklevel=3)
 
     def _inputs(self, knots: np.ndarray) -> np.ndarray:
         """Knot values (B, knots, m) -> step inputs (B, n_steps, m), linear interpolation."""
@@ -201,10 +219,11 @@ class CrossEntropyPlanner:
 
     def _batch_cost(self, x0: np.ndarray, mode0: int, knots: np.ndarray, bound: float):
         """:meth:`rollout_cost` of one batch, in C or NumPy."""
-        if self._c is None:
+        c = self._compiled()
+        if c is None:
             return self.rollout_cost_numpy(x0, mode0, knots, bound)
-        return self._c.cost(np.asarray(x0, dtype=float), mode0, self._inputs(knots), self.dt,
-                            self.final_mode, bound, self.penalty, self.absorbing)
+        return c.cost(np.asarray(x0, dtype=float), mode0, self._inputs(knots), self.dt,
+                      self.final_mode, bound, self.penalty, self.absorbing)
 
     @property
     def absorbing(self) -> bool:
@@ -271,6 +290,7 @@ class CrossEntropyPlanner:
         ``solve`` (the stack contract's MPC callback) is not used: rollouts rank the
         samples. A best rollout that never reaches the final domain gives no schedule.
         """
+        self._compiled()  # waits for a background compile: build time, not the plan's
         start = time.perf_counter()
         s, m = self.s, self.system.n_u
         rng = np.random.default_rng([s.seed, self.run_seed, int(round(t * 1e6))])
@@ -306,8 +326,9 @@ class CrossEntropyPlanner:
     def trajectory(self, x0: np.ndarray, mode0: int, knots: np.ndarray) -> Trajectory:
         """The recorded rollout of one knot sequence (resets appear as two nodes)."""
         u = self._inputs(knots[None])[0]
-        if self._c is not None:
-            steps = self._c.trajectory(x0, mode0, u, self.dt, self.final_mode)
+        c = self._compiled()
+        if c is not None:
+            steps = c.trajectory(x0, mode0, u, self.dt, self.final_mode)
         else:
             steps = self._steps_numpy(x0, mode0, u)
         num = self.sim.num

@@ -110,10 +110,12 @@ def build(scenario) -> PreparedRun:
         problems += initial_state_problems(system, model.x0, "the plant's ")
     if problems:  # before the NLPs are built
         raise ValueError("\n".join(problems))
-    mpc, problem = _mpc(sc, model, margins)
+    # the planner first: what it compiles in the background (the CEM's C rollouts)
+    # overlaps the MPC's NLP build
     planner = plugin_call(f"planner: {sc.planner.kind!r} failed to build for system "
                           f"{spec.name!r}", reg.planner(sc.planner.kind).make, model,
                           sc.planner, sc.seed)
+    mpc, problem = _mpc(sc, model, margins)
     task = plugin_call(f"system: the task of {spec.name!r} failed to build", spec.task, world,
                        system)
     identity = RunIdentity(

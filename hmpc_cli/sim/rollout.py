@@ -8,7 +8,8 @@ written) runs the planner's rollouts with the event location of
 one event search iterate together until all converge), so its results are NumPy's bit for
 bit when both evaluate the elementary operations alike (IEEE +, -, *, /, sqrt; libm and
 NumPy may differ in the last bit of sin, exp, ...). The shared library is compiled once per
-machine and source, cached under a hash of source, flags and the compiler's identity (its
+machine and source (in a thread, so a caller can build other things meanwhile:
+:func:`start_library`), cached under a hash of source, flags and the compiler's identity (its
 path and ``--version`` output) in ``$HMPC_CACHE_DIR`` (default ``~/.cache/hmpc``), written
 atomically with its sha256 next to it (``.sha256``), and loaded with ctypes only when that
 hash matches (a truncated or replaced library is rebuilt, never executed). A cache directory
@@ -22,6 +23,7 @@ import ctypes
 import hashlib
 import logging
 import tempfile
+import threading
 from importlib import resources
 from pathlib import Path
 
@@ -45,6 +47,7 @@ ABI = 4  # must equal HM_ABI of rollout_kernel.c
 COMPILES = 0  # compilations done by this process (the cache makes repeats free)
 _LIBS: dict[str, ctypes.CDLL] = {}  # loaded libraries by path
 _FAILED: dict[tuple[str, tuple[str, ...]], str] = {}  # failed builds by path and compiler
+_PENDING: dict[str, LibraryBuild] = {}  # compiles under way in this process, by path
 _D = ctypes.POINTER(ctypes.c_double)
 _LOG = logging.getLogger(__name__)
 
@@ -182,6 +185,19 @@ def build_library(source: str) -> tuple[ctypes.CDLL, Path, float | None]:
     Raises:
         RolloutBuildError: no compiler, the compilation failed, or the library won't load.
     """
+    return start_library(source).result()
+
+
+def start_library(source: str) -> LibraryBuild:
+    """The library of ``source``: loaded if a verified copy is cached, else compiling.
+
+    The compile runs in a thread (the compiler is a child process), so the caller can
+    build other things meanwhile; :meth:`LibraryBuild.result` waits for it. A library of
+    the same source already compiling in this process is shared, not compiled twice.
+
+    Raises:
+        RolloutBuildError: no usable compiler, or this build already failed in this process.
+    """
     cc = compiler()
     if cc is None:
         raise RolloutBuildError(compiler_problem() or
@@ -193,11 +209,11 @@ def build_library(source: str) -> tuple[ctypes.CDLL, Path, float | None]:
     key = hashlib.sha256("\0".join([source, *CFLAGS, identity]).encode())
     path = _safe_cache_dir() / f"rollout-{key.hexdigest()[:24]}.so"
     if str(path) in _LIBS:
-        return _LIBS[str(path)], path, None
+        return LibraryBuild(path, _LIBS[str(path)])
     if verified(path):
         try:
             _LIBS[str(path)] = _load(path)
-            return _LIBS[str(path)], path, None
+            return LibraryBuild(path, _LIBS[str(path)])
         except (OSError, AttributeError):
             pass  # stale: rebuild
     elif path.exists():
@@ -205,15 +221,67 @@ def build_library(source: str) -> tuple[ctypes.CDLL, Path, float | None]:
     failed = _FAILED.get((str(path), tuple(cc)))
     if failed:
         raise RolloutBuildError(failed)
-    try:
-        seconds = _compile(cc, source, path)
-        _LIBS[str(path)] = _load(path)
-    except RolloutBuildError as e:
-        _FAILED[(str(path), tuple(cc))] = str(e)
-        raise
-    except (OSError, AttributeError) as e:
-        raise RolloutBuildError(f"cannot load {path}: {e}") from e
-    return _LIBS[str(path)], path, seconds
+    if str(path) not in _PENDING:
+        _PENDING[str(path)] = LibraryBuild(path, compile_with=(cc, source))
+    return _PENDING[str(path)]
+
+
+class LibraryBuild:
+    """A rollout library, loaded or being compiled (:func:`start_library` makes them).
+
+    Args:
+        path: the library's cache path.
+        lib: the loaded library (nothing to compile), or None.
+        compile_with: (compiler command, C source): compiled in a new thread.
+    """
+
+    def __init__(self, path: Path, lib: ctypes.CDLL | None = None,
+                 compile_with: tuple[list[str], str] | None = None) -> None:
+        self.path = path
+        self._result = None if lib is None else (lib, path, None)
+        self._seconds: float | None = None
+        self._error: RolloutBuildError | None = None
+        self._cc: list[str] = []
+        self._thread: threading.Thread | None = None
+        if compile_with is not None:
+            self._cc, source = compile_with
+            # not a daemon: an exit during the compile waits for it (no half-written files)
+            self._thread = threading.Thread(target=self._compile, args=(source,),
+                                            name="hmpc-rollout-compile")
+            self._thread.start()
+
+    def _compile(self, source: str) -> None:
+        try:
+            self._seconds = _compile(self._cc, source, self.path)
+        except RolloutBuildError as e:
+            self._error = e
+        except Exception as e:  # any other failure: raised by result(), in its caller
+            self._error = RolloutBuildError(f"compiling {self.path.name} failed: {e}")
+
+    def result(self) -> tuple[ctypes.CDLL, Path, float | None]:
+        """(library, path, compile seconds or None if cached), once the compile is done.
+
+        Raises:
+            RolloutBuildError: the compilation failed, or the library won't load.
+        """
+        if self._result is not None:
+            return self._result
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+            _PENDING.pop(str(self.path), None)
+        key = str(self.path)
+        if self._error is not None:
+            _FAILED[(key, tuple(self._cc))] = str(self._error)
+            raise self._error
+        if key not in _LIBS:
+            try:
+                _LIBS[key] = _load(self.path)
+            except (OSError, AttributeError) as e:
+                self._error = RolloutBuildError(f"cannot load {self.path}: {e}")
+                raise self._error from e
+        self._result = (_LIBS[key], self.path, self._seconds)
+        return self._result
 
 
 def _compile(cc: list[str], source: str, path: Path) -> float:
@@ -238,22 +306,52 @@ class CRollout:
         system: the hybrid system.
         max_events: events per step before Zeno (as the simulator's).
         time_tol: event time bracket [s] (as the simulator's).
+        wait: wait for the library here; else it may still be compiling
+            (:meth:`wait`, or the first call, waits for it).
 
     Attributes:
-        path: the shared library. compile_seconds: compile time, None if cached.
+        path: the shared library. compile_seconds: compile time, None if cached (or not
+            waited for yet).
 
     Raises:
-        RolloutBuildError: code generation, compilation or loading failed.
+        RolloutBuildError: code generation, compilation or loading failed (with
+            ``wait=False``, a failed compilation is raised by :meth:`wait` instead).
     """
 
-    def __init__(self, system: HybridSystem, max_events: int = 10, time_tol: float = 1e-10):
+    def __init__(self, system: HybridSystem, max_events: int = 10, time_tol: float = 1e-10,
+                 *, wait: bool = True):
         self.n_x, self.n_u = system.n_x, system.n_u
         self.max_events, self.time_tol = int(max_events), float(time_tol)
         try:
             source = generate_source(system)
         except Exception as e:  # any code generation failure means: no C backend
             raise RolloutBuildError(f"C code generation failed: {e}") from e
-        self.lib, self.path, self.compile_seconds = build_library(source)
+        self._build = start_library(source)
+        self.path = self._build.path
+        self._lib: ctypes.CDLL | None = None
+        self.compile_seconds: float | None = None
+        if wait:
+            self.wait()
+
+    @property
+    def ready(self) -> bool:
+        """Whether the library is loaded (:meth:`wait` returns at once)."""
+        return self._lib is not None
+
+    def wait(self) -> None:
+        """Waits for the library to be compiled and loads it.
+
+        Raises:
+            RolloutBuildError: the compilation failed, or the library won't load.
+        """
+        if self._lib is None:
+            self._lib, _, self.compile_seconds = self._build.result()
+
+    @property
+    def lib(self) -> ctypes.CDLL:
+        """The loaded library (waits for its compilation)."""
+        self.wait()
+        return self._lib
 
     def cost(self, x0: np.ndarray, mode0: int, u: np.ndarray, dt: float, final_mode: int,
              bound: float, penalty: float, absorbing: bool = True
