@@ -2,9 +2,14 @@
 
 import casadi as ca
 import numpy as np
+import pytest
 
-from hmpc_cli.core.numeric import compile_numpy
+from hmpc_cli.core.hybrid import rk4_expr
+from hmpc_cli.core.numeric import compile_numpy, compile_one
+from hmpc_cli.sim.simulator import HybridSimulator
 from hmpc_cli.systems.ball import BallParams, build_ball
+from hmpc_cli.systems.biped import build_biped
+from hmpc_cli.systems.biped.params import BipedParams
 
 
 def test_numpy_matches_casadi_on_every_ball_function():
@@ -42,3 +47,87 @@ def test_tanh_is_the_c_librarys_bit_for_bit_on_any_cpu():
     a = np.random.default_rng(1).uniform(-10.0, 10.0, 20_000)
     ref = np.array(f.map(a.size)(a)).ravel()
     assert np.array_equal(compile_numpy(f)(a[:, None])[0][:, 0], ref)
+
+
+def _simulator_functions(system):
+    """(name, SX function) of what the simulator evaluates per step: RK4 and the gaps."""
+    x, u = ca.SX.sym("x", system.n_x), ca.SX.sym("u", system.n_u)
+    w, h = ca.SX.sym("w", system.n_w), ca.SX.sym("h")
+    out = []
+    for i, mode in enumerate(system.modes):
+        out.append((f"rk4_{mode.name}", ca.Function("rk4", [x, u, w, h],
+                                                    [rk4_expr(mode, x, u, w, h)])))
+        gaps = [system.guards[g].gap_expr(x) for g in system.guards_of(i)]
+        out.append((f"gaps_{mode.name}", ca.Function("gaps", [x], [ca.vertcat(*gaps)])))
+    return out
+
+
+@pytest.mark.parametrize("which", ["ball", "biped"])
+def test_single_sample_evaluator_equals_the_batch_one_bit_for_bit(which):
+    """compile_one on Python floats gives compile_numpy's numbers on a batch of one, also
+    at signed zeros, NaN and infinite inputs (fmin and fmax as NumPy's, sin and cos
+    NumPy's own)."""
+    system = build_ball(BallParams()) if which == "ball" else build_biped(BipedParams())
+    rng = np.random.default_rng(7)
+    x0 = np.asarray(system.x0, dtype=float)
+    for name, fun in _simulator_functions(system):
+        batch, one = compile_numpy(fun), compile_one(fun)
+        assert one is not None, name
+        sizes = [fun.size1_in(i) for i in range(fun.n_in())]
+        for k in range(400):
+            args = [x0 + rng.normal(0.0, 0.5, sizes[0])]
+            args += [rng.normal(0.0, 80.0, n) for n in sizes[1:3]]
+            args += [np.array([1e-3])] * (len(sizes) - 3)
+            if k % 5 == 0:  # an input exactly at a bound's sign change, and a signed zero
+                args[min(1, len(args) - 1)][0] = -0.0 if k % 10 else 0.0
+            if k == 7:
+                args[-1][0] = np.nan
+            if k == 11:
+                args[0][0] = np.inf
+            args = [a[None] for a in args]
+            with np.errstate(all="ignore"):
+                ref = batch(*args)
+                got = one(*args)
+            for r, g in zip(ref, got, strict=True):
+                assert r.shape == g.shape and np.array_equal(r, g, equal_nan=True), (name, k)
+                assert np.array_equal(np.signbit(r), np.signbit(g)), (name, k)
+
+
+def test_single_sample_evaluator_falls_back_where_python_floats_raise():
+    """Division by zero and the square root of a negative number give NumPy's inf and NaN
+    (the batch evaluator runs instead); fmin and fmax are NumPy's at signed zeros and NaN;
+    an operation outside the exact set: no evaluator."""
+    a = ca.SX.sym("a", 2)
+    f = ca.Function("f", [a], [ca.vertcat(1.0 / a[0], ca.sqrt(a[1]), ca.fmin(a[0], a[1]),
+                                          ca.fmax(a[0], a[1]), ca.fmin(a[1], a[0]))])
+    one = compile_one(f)
+    nan, inf = np.nan, np.inf
+    with np.errstate(all="ignore"):
+        for point in ([0.0, 4.0], [-0.0, -1.0], [2.0, 9.0], [0.0, -0.0], [-0.0, 0.0],
+                      [nan, 1.0], [1.0, nan], [inf, -inf], [-inf, nan]):
+            arg = np.array([point])
+            got, ref = one(arg)[0], compile_numpy(f)(arg)[0]
+            assert np.array_equal(got, ref, equal_nan=True), point
+            assert np.array_equal(np.signbit(got), np.signbit(ref)), point
+    assert compile_one(ca.Function("g", [a], [ca.exp(a[0])])) is None
+
+
+def test_the_biped_steps_alone_as_in_a_batch():
+    """The plant steps one sample (single-sample evaluators); the same states in a batch
+    (NumPy evaluators) reach the same states, modes and event times, touchdowns included."""
+    system = build_biped(BipedParams())
+    sim = HybridSimulator(system)
+    rng = np.random.default_rng(3)
+    x = np.asarray(system.x0, dtype=float) + rng.normal(0.0, 0.05, (12, system.n_x))
+    x[:, system.n_x // 2:] += rng.normal(0.0, 1.0, (12, system.n_x - system.n_x // 2))
+    u = rng.normal(0.0, 20.0, (12, system.n_u))
+    w = np.zeros((12, system.n_w))
+    mode = np.zeros(12, dtype=int)
+    batch = sim.step(x, mode, u, w, 0.2, raise_zeno=False)
+    assert batch.events  # some samples touch down within the step
+    for b in range(12):
+        single = sim.step(x[b:b + 1], mode[b:b + 1], u[b:b + 1], w[b:b + 1], 0.2,
+                          raise_zeno=False)
+        assert np.array_equal(single.x[0], batch.x[b], equal_nan=True)
+        assert single.mode[0] == batch.mode[b]
+        assert [e.tau for e in single.events] == [e.tau for e in batch.events if e.sample == b]

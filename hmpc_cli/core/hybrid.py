@@ -21,7 +21,7 @@ import casadi as ca
 import numpy as np
 
 from hmpc_cli.core.drawing import Drawing
-from hmpc_cli.core.numeric import compile_numpy
+from hmpc_cli.core.numeric import compile_numpy, compile_one
 from hmpc_cli.core.shapes import shape_problems
 from hmpc_cli.core.walker import WalkerModel
 
@@ -337,7 +337,12 @@ def rk4_expr(mode: Mode, x, u, w, h):
 
 
 class NumericSystem:
-    """Batched NumPy evaluators of a :class:`HybridSystem` (same SX graphs)."""
+    """Batched NumPy evaluators of a :class:`HybridSystem` (same SX graphs).
+
+    ``rk4_one`` and ``mode_gaps_one`` are the single-sample evaluators of ``rk4`` and
+    ``mode_gaps`` (:func:`~hmpc_cli.core.numeric.compile_one`: the same numbers on a batch
+    of one), None for a mode whose expressions have no exact Python-float form.
+    """
 
     def __init__(self, system: HybridSystem) -> None:
         n = system.n_x
@@ -361,15 +366,17 @@ class NumericSystem:
         u = ca.SX.sym("u", system.n_u)
         w = ca.SX.sym("w", system.n_w)
         h = ca.SX.sym("h")
-        self.rk4 = []
+        self.rk4, self.rk4_one = [], []
         for mode in system.modes:
-            step = rk4_expr(mode, x, u, w, h)
-            self.rk4.append(compile_numpy(ca.Function(f"rk4_{mode.name}", [x, u, w, h],
-                                                      [step])))
-        self.mode_gaps = [
-            compile_numpy(ca.Function(f"gaps_{m.name}", [x], [ca.vertcat(
-                *[system.guards[g].gap_expr(x) for g in self.guards_of[i]], ca.SX(0, 1))]))
-            for i, m in enumerate(system.modes)]
+            step = ca.Function(f"rk4_{mode.name}", [x, u, w, h], [rk4_expr(mode, x, u, w, h)])
+            self.rk4.append(compile_numpy(step))
+            self.rk4_one.append(compile_one(step, self.rk4[-1]))
+        self.mode_gaps, self.mode_gaps_one = [], []
+        for i, m in enumerate(system.modes):
+            gaps = ca.Function(f"gaps_{m.name}", [x], [ca.vertcat(
+                *[system.guards[g].gap_expr(x) for g in self.guards_of[i]], ca.SX(0, 1))])
+            self.mode_gaps.append(compile_numpy(gaps))
+            self.mode_gaps_one.append(compile_one(gaps, self.mode_gaps[-1]))
         self.gaps_along = []
         for i, mode in enumerate(system.modes):
             # gap along the RK4 sub-step and its rate dgap/dx . f(x_tau) (the exact

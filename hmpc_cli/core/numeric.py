@@ -116,3 +116,112 @@ def compile_numpy(fun: ca.Function) -> Callable[..., list[np.ndarray]]:
     namespace: dict = {"np": np, "tanh": tanh}
     exec(compile("\n".join(lines), f"<numpy:{fun.name()}>", "exec"), namespace)  # our own source
     return namespace["_f"]
+
+
+def _fmin(a: float, b: float) -> float:
+    return float(np.minimum(a, b))
+
+
+def _fmax(a: float, b: float) -> float:
+    return float(np.maximum(a, b))
+
+
+def _sin(a: float) -> float:  # NumPy's loop on one element, as the batch evaluator runs it
+    return float(np.sin(np.array((a,)))[0])
+
+
+def _cos(a: float) -> float:
+    return float(np.cos(np.array((a,)))[0])
+
+
+#: the operations :func:`compile_one` evaluates on Python floats: IEEE-exact like NumPy's
+#: (+, -, *, /, sqrt, comparisons), NumPy's own on one element (fmin, fmax, sin, cos) or
+#: the C library's tanh (as :data:`tanh`). A function with any other operation has no
+#: single-sample evaluator.
+_ONE_BINARY = {
+    ca.OP_ADD: "({a} + {b})",
+    ca.OP_SUB: "({a} - {b})",
+    ca.OP_MUL: "({a} * {b})",
+    ca.OP_DIV: "({a} / {b})",
+    ca.OP_FMIN: "_fmin({a}, {b})",
+    ca.OP_FMAX: "_fmax({a}, {b})",
+    ca.OP_LT: "(({a}) < ({b})) * 1.0",
+    ca.OP_LE: "(({a}) <= ({b})) * 1.0",
+    ca.OP_EQ: "(({a}) == ({b})) * 1.0",
+    ca.OP_NE: "(({a}) != ({b})) * 1.0",
+    ca.OP_AND: "(1.0 if ({a}) != 0 and ({b}) != 0 else 0.0)",
+    ca.OP_OR: "(1.0 if ({a}) != 0 or ({b}) != 0 else 0.0)",
+    ca.OP_IF_ELSE_ZERO: "({b} if ({a}) != 0 else 0.0)",
+}
+_ONE_UNARY = {
+    ca.OP_ASSIGN: "{a}",
+    ca.OP_NEG: "(-{a})",
+    ca.OP_SQ: "({a} * {a})",
+    ca.OP_TWICE: "(2.0 * {a})",
+    ca.OP_INV: "(1.0 / {a})",
+    ca.OP_SQRT: "_sqrt({a})",
+    ca.OP_FABS: "abs({a})",
+    ca.OP_NOT: "(({a}) == 0) * 1.0",
+    ca.OP_TANH: "_tanh({a})",
+    ca.OP_SIN: "_sin({a})",
+    ca.OP_COS: "_cos({a})",
+}
+
+
+def compile_one(fun: ca.Function, batch: Callable[..., list[np.ndarray]] | None = None
+                ) -> Callable[..., list[np.ndarray]] | None:
+    """A single-sample evaluator of an SX function on Python floats, or None.
+
+    The same results as :func:`compile_numpy`'s evaluator on a batch of one, bit for bit,
+    without NumPy's per-operation overhead. A function with an operation outside the
+    exact set above gets None (use the batch evaluator).
+
+    Args:
+        fun: CasADi SX function with dense vector inputs and outputs.
+        batch: the batch evaluator of ``fun`` (default: compiled here); called instead
+            where Python floats raise and NumPy gives inf or NaN (a division by zero, the
+            square root of a negative number).
+
+    Returns:
+        ``call(*args)``, each arg of shape ``(1, n_in_i)``; returns a list of arrays of
+        shape ``(1, n_out_j)``.
+    """
+    if not fun.is_a("SXFunction"):
+        fun = fun.expand()
+    if any(op not in _ONE_BINARY and op not in _ONE_UNARY and
+           op not in (ca.OP_INPUT, ca.OP_OUTPUT, ca.OP_CONST)
+           for op in (fun.instruction_id(k) for k in range(fun.n_instructions()))):
+        return None
+    n_out = [fun.size1_out(j) * fun.size2_out(j) for j in range(fun.n_out())]
+    out_nz = [fun.sparsity_out(j).find() for j in range(fun.n_out())]
+    body: list[str] = []
+    for k in range(fun.n_instructions()):
+        op = fun.instruction_id(k)
+        args = fun.instruction_input(k)
+        res = fun.instruction_output(k)
+        if op == ca.OP_INPUT:
+            body.append(f"w{res[0]} = v{args[0]}[{args[1]}]")
+        elif op == ca.OP_OUTPUT:
+            body.append(f"o{res[0]}[{out_nz[res[0]][res[1]]}] = w{args[0]}")
+        elif op == ca.OP_CONST:
+            body.append(f"w{res[0]} = {float(fun.instruction_constant(k))!r}")
+        elif op in _ONE_BINARY:
+            body.append(f"w{res[0]} = " + _ONE_BINARY[op].format(a=f"w{args[0]}",
+                                                                 b=f"w{args[1]}"))
+        else:
+            body.append(f"w{res[0]} = " + _ONE_UNARY[op].format(a=f"w{args[0]}"))
+    n_in = fun.n_in()
+    names = ", ".join(f"a{i}" for i in range(n_in))
+    lines = [f"def _one({names}):", "    try:",
+             *[f"        v{i} = a{i}[0].tolist()" for i in range(n_in)],
+             *[f"        o{j} = [0.0] * {n}" for j, n in enumerate(n_out)],
+             *["        " + s for s in body],
+             "    except (ZeroDivisionError, ValueError, OverflowError):",
+             f"        return _batch({names})",
+             "    return [" + ", ".join(f"_array([o{j}])" for j in range(len(n_out))) + "]"]
+    namespace: dict = {"_fmin": _fmin, "_fmax": _fmax, "_sin": _sin, "_cos": _cos,
+                       "_sqrt": math.sqrt,
+                       "_tanh": math.tanh, "_array": np.array,
+                       "_batch": batch if batch is not None else compile_numpy(fun)}
+    exec(compile("\n".join(lines), f"<one:{fun.name()}>", "exec"), namespace)  # our own source
+    return namespace["_one"]
