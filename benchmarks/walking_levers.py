@@ -7,7 +7,8 @@ parameters, bounds and multiplier guesses) and whether the foothold planner made
 session built as the walking MPC builds its own (SX, cold and warm IPOPT instances), so
 the levers compare like with like. Then each lever flies the scenario in closed loop.
 The shipped session's solves are split into IPOPT's own time and its function
-evaluations (CasADi's per-function statistics). Last, the scenario flies on each NLP
+evaluations (CasADi's per-function statistics). With ``--compiled DIR`` every lever also
+solves on the walking NLP's compiled library. Last, the scenario flies on each NLP
 back-end of the walking MPC (``mpc.solver``; the stage-wise ones on their own
 transcription, so not on the recorded problems): period re-solves, foothold candidates,
 planning steps and the footholds against IPOPT's.
@@ -18,10 +19,10 @@ planning steps and the footholds against IPOPT's.
 from __future__ import annotations
 
 import argparse
+import os
 import shlex
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +52,12 @@ LEVERS: list[tuple[str, str, dict]] = [
      {"ipopt": {"hessian_approximation": "limited-memory"}}),
     ("3 iterations", "max_iter = 3 (what 15 ms allows at the shipped cost per iteration)",
      {"ipopt": {"max_iter": 3}}),
+    ("MUMPS without matching", "mumps_permuting_scaling = 0 (MUMPS's scaling kept)",
+     {"ipopt": {"mumps_permuting_scaling": 0}}),
+    ("probing barrier", 'mu_oracle = "probing" (adaptive barrier)',
+     {"ipopt": {"mu_oracle": "probing"}}),
+    ("both", "mumps_permuting_scaling = 0 and mu_oracle = \"probing\"",
+     {"ipopt": {"mumps_permuting_scaling": 0, "mu_oracle": "probing"}}),
 ]
 def record(duration: float) -> tuple[dict, list[tuple[bool, tuple]], dict]:
     """(the NLP in SX, [(a candidate, solve arguments)], the run's outcome)."""
@@ -60,7 +67,10 @@ def record(duration: float) -> tuple[dict, list[tuple[bool, tuple]], dict]:
 
     def kept_session(self, nlp):
         keep["nlp"], keep["settings"] = nlp, self.s
-        return session(self, nlp)
+        built = session(self, nlp)
+        source = built[0]._nlp  # the library's path when the build cache held it compiled
+        keep["library"] = source if isinstance(source, str) else None
+        return built
 
     walking_nlp.WalkingNLP._session = kept_session
     try:
@@ -85,55 +95,56 @@ def record(duration: float) -> tuple[dict, list[tuple[bool, tuple]], dict]:
     return keep, problems, {"success": result.success, "t_end": result.t_end}
 
 
-def session_of(keep: dict, extra: dict) -> SolverSession:
-    """A session built as the walking MPC builds its own, with ``extra`` options."""
+def session_of(keep: dict, extra: dict, compiled: bool = False) -> SolverSession:
+    """A session built as the walking MPC builds its own, with ``extra`` options.
+
+    ``compiled``: on the compiled library the recorded run loaded, else in SX.
+    """
     s = keep["settings"]
-    return SolverSession("walking_lever", keep["nlp"], "ipopt", max_iter=s.max_iter,
+    source = keep["library"] if compiled else keep["nlp"]
+    return SolverSession("walking_lever", source, "ipopt", max_iter=s.max_iter,
                          tol=s.tol, max_wall_time=s.max_wall_time,
                          extra={**s.solver_options, **extra}, warm=walking_nlp.WARM_START)
 
 
-def replay(session: SolverSession, problems: list, reps: int) -> list[dict]:
-    """Every recorded problem solved ``reps`` times: the fastest wall time of each."""
-    out: list[dict] = []
-    evals: dict[int, float] = {}
+def replay(sessions: dict[str, SolverSession], problems: list, reps: int
+           ) -> dict[str, list[dict]]:
+    """Every recorded problem solved ``reps`` times by every session, interleaved (one
+    problem by each session in turn): per session, the fastest wall time of each."""
+    out: dict[str, list[dict]] = {name: [] for name in sessions}
+    evals: list[float] = []
     call = solver_mod._call_instance
 
     def traced(instances, *args, **kw):
         res = call(instances, *args, **kw)
         st = instances[1 if args[6] is not None and args[7] is not None else 0].stats()
-        evals[len(evals)] = sum(st.get(k, 0.0) for k in EVALS)
+        evals.append(sum(st.get(k, 0.0) for k in EVALS))
         return res
 
     solver_mod._call_instance = traced
     try:
         for rep in range(reps):
             for i, (cand, args) in enumerate(problems):
-                evals.clear()
-                res = session.run(*args)
-                row = {"candidate": cand, "wall": res.stats.wall_time,
-                       "iterations": res.stats.iterations, "success": res.stats.success,
-                       "evals": sum(evals.values()), "x": res.x}
-                if rep == 0:
-                    out.append(row)
-                elif row["wall"] < out[i]["wall"]:
-                    out[i] = row
+                for name, session in sessions.items():
+                    evals.clear()
+                    res = session.run(*args)
+                    row = {"candidate": cand, "wall": res.stats.wall_time,
+                           "iterations": res.stats.iterations,
+                           "success": res.stats.success, "evals": sum(evals), "x": res.x}
+                    if rep == 0:
+                        out[name].append(row)
+                    elif row["wall"] < out[name][i]["wall"]:
+                        out[name][i] = row
     finally:
         solver_mod._call_instance = call
     return out
 
 
 def closed_loop(extra: dict, duration: float) -> dict:
-    """The scenario flown with the lever's options: outcome and period-solve times."""
-    sets = [f"sim.duration={duration}"]
-    if extra:
-        sets.append(f"mpc.solver_options={toml_value(extra)}")
-    sc, _ = load_scenario(SCENARIO, sets)
-    run = prepare(sc)
-    start = time.perf_counter()
-    result = run_unlogged(run)
-    return {"success": result.success, "t_end": result.t_end, "reason": result.reason,
-            "wall": time.perf_counter() - start}
+    """The scenario flown with the lever's options: outcome and footholds (its log)."""
+    sets = [f"mpc.solver_options={toml_value(extra)}"] if extra else []
+    with tempfile.TemporaryDirectory() as tmp:
+        return backend_run(sets, duration, Path(tmp))
 
 
 #: (back-end, the walking MPC's overrides): the same scenario on each NLP back-end
@@ -199,11 +210,35 @@ def backend_lines(duration: float) -> list[str]:
     return lines
 
 
+def _shown(argv: list[str]) -> list[str]:
+    """The command line as the report shows it: ``--compiled``'s directory as DIR."""
+    out = list(argv)
+    for i, a in enumerate(out):
+        if a == "--compiled" and i + 1 < len(out):
+            out[i + 1] = "DIR"
+        elif a.startswith("--compiled="):
+            out[i] = "--compiled=DIR"
+    return out
+
+
 def _ms(values, q: float) -> str:
     return f"{np.percentile(values, q) * 1e3:.1f}" if len(values) else "-"
 
 
-def lever_row(name: str, what: str, rows: list[dict], ref: list[dict], loop: dict) -> str:
+def _loop_text(loop: dict, shipped: dict) -> str:
+    """A closed loop's outcome and its footholds against the shipped options' flight."""
+    if not loop["success"]:
+        return f"{loop['reason']} (t = {loop['t_end']:.2f} s)"
+    feet, ref = loop["footholds"], shipped["footholds"]
+    if loop is shipped:
+        return f"climbs: surfaces {' '.join(str(g) for g, _ in feet)}"
+    if [g for g, _ in feet] != [g for g, _ in ref]:
+        return f"climbs, other footholds: surfaces {' '.join(str(g) for g, _ in feet)}"
+    gap = max(abs(a[1] - b[1]) for a, b in zip(feet, ref, strict=True))
+    return f"climbs, the shipped surfaces (touchdowns within {gap:.1e} m)"
+
+
+def lever_row(name: str, what: str, rows: list[dict], ref: list[dict], loop: str) -> str:
     period = [r for r in rows if not r["candidate"]]
     cands = [r for r in rows if r["candidate"]]
     pw = [r["wall"] for r in period]
@@ -213,10 +248,22 @@ def lever_row(name: str, what: str, rows: list[dict], ref: list[dict], loop: dic
     ok = sum(r["success"] for r in rows)
     both = [(r, s) for r, s in zip(rows, ref, strict=True) if r["success"] and s["success"]]
     dev = max((float(np.abs(r["x"] - s["x"]).max()) for r, s in both), default=float("nan"))
-    outcome = "climbs" if loop["success"] else f"{loop['reason']} (t = {loop['t_end']:.2f} s)"
     return (f"| {name} | {what} | {ok}/{len(rows)} | {_ms(pw, 50)} | {_ms(pw, 95)} | "
-            f"{np.median(its):.0f} | {per * 1e3:.2f} | {_ms(cw, 50)} | {_ms(cw, 95)} | "
-            f"{dev:.1e} | {outcome} |")
+            f"{np.median(its):g} | {per * 1e3:.2f} | {_ms(cw, 50)} | {_ms(cw, 95)} | "
+            f"{dev:.1e} | {loop} |")
+
+
+def _where_time_goes(label: str, rows: list[dict]) -> str:
+    period = [r for r in rows if not r["candidate"]]
+    wall = sum(r["wall"] for r in period)
+    ev = sum(r["evals"] for r in period)
+    its = sum(r["iterations"] for r in period)
+    return (f"Where the {label} period re-solves' time goes: {wall * 1e3:.0f} ms over "
+            f"{len(period)} solves and {its} iterations; function evaluations "
+            f"{ev * 1e3:.0f} ms ({ev / wall * 100:.0f} %), IPOPT's own work (MUMPS, the "
+            f"barrier update, the line search) and CasADi's call {(wall - ev) * 1e3:.0f} ms "
+            f"({(wall - ev) / wall * 100:.0f} %): {(wall - ev) / max(its, 1) * 1e3:.2f} ms "
+            "per iteration before any evaluation.")
 
 
 def main() -> None:
@@ -226,41 +273,49 @@ def main() -> None:
     ap.add_argument("--levers", default="", help="comma-separated lever names (default: all)")
     ap.add_argument("--no-backends", action="store_true",
                     help="leave out the closed-loop runs on the other NLP back-ends")
+    ap.add_argument("--compiled", metavar="DIR", help="a cache directory holding the "
+                    "walking NLP compiled (HMPC_BUILD_CACHE=sync once): every lever solves "
+                    "on it too, and the closed loops fly on it (the same numbers as SX)")
     ap.add_argument("--write", type=Path, help="write the Markdown report here")
     args = ap.parse_args()
+    if args.compiled:
+        os.environ["HMPC_CACHE_DIR"] = str(Path(args.compiled).resolve())
     chosen = [lv for lv in LEVERS if not args.levers or lv[0] in args.levers.split(",")]
     keep, problems, outcome = record(args.duration)
-    results = {name: replay(session_of(keep, extra), problems, args.reps)
-               for name, _, extra in chosen}
+    if args.compiled and keep["library"] is None:
+        ap.error(f"--compiled {args.compiled}: no compiled walking NLP there for these "
+                 "sources (make it with HMPC_BUILD_CACHE=sync hmpc run "
+                 "scenarios/biped_stairs.toml)")
+    sources = [("", False)] + ([(", compiled", True)] if args.compiled else [])
+    sessions = {name + tag: session_of(keep, extra, comp)
+                for name, _, extra in chosen for tag, comp in sources}
+    results = replay(sessions, problems, args.reps)
     loops = {name: closed_loop(extra, args.duration) for name, _, extra in chosen}
-    ref = results[chosen[0][0]]
+    shipped = chosen[0][0]
     n_period = sum(not c for c, _ in problems)
     lines = ["# The walking MPC's IPOPT levers, side by side", "",
              "Generated by "
-             f"`{shlex.join(['python', 'benchmarks/walking_levers.py', *sys.argv[1:]])}` "
+             f"`{shlex.join(['python', 'benchmarks/walking_levers.py', *_shown(sys.argv[1:])])}` "
              f"on {machine()} (solve times are machine dependent).", "",
              f"`scenarios/biped_stairs.toml`, {args.duration:g} s, recorded once "
              f"({'climbs' if outcome['success'] else 'fails'}): {len(problems)} walking-NLP "
              f"solves, {n_period} period re-solves and {len(problems) - n_period} foothold "
-             "candidates. Every lever solves the same recorded problems (NLP in SX, the "
-             f"fastest of {args.reps}), then flies the scenario in closed loop. Target: the "
-             "period re-solves' median <= 15 ms.", "",
+             "candidates. Every lever solves the same recorded problems (NLP in SX"
+             + (", and on its compiled library: the rows marked compiled" if args.compiled
+                else "") + f"; the fastest of {args.reps}, the levers taking turns on each "
+             "problem), then flies the scenario in closed loop (the footholds compared "
+             "with the shipped options' flight). Target: the period re-solves' median "
+             "<= 15 ms.", "",
              "| lever | what | solved | period median ms | period p95 ms | period median "
              "iter | ms / iter | candidate median ms | candidate p95 ms | max abs(x - "
              "shipped x) | closed loop |",
              "|---|---|--:|--:|--:|--:|--:|--:|--:|--:|---|"]
-    lines += [lever_row(name, what, results[name], ref, loops[name])
-              for name, what, _ in chosen]
-    period = [r for r in ref if not r["candidate"]]
-    wall = sum(r["wall"] for r in period)
-    ev = sum(r["evals"] for r in period)
-    its = sum(r["iterations"] for r in period)
-    lines += ["", f"Where the shipped period re-solves' time goes: {wall * 1e3:.0f} ms over "
-              f"{len(period)} solves and {its} iterations; function evaluations "
-              f"{ev * 1e3:.0f} ms ({ev / wall * 100:.0f} %), IPOPT's own work (MUMPS, the "
-              f"barrier update, the line search) and CasADi's call {(wall - ev) * 1e3:.0f} ms "
-              f"({(wall - ev) / wall * 100:.0f} %): {(wall - ev) / max(its, 1) * 1e3:.2f} ms "
-              "per iteration before any evaluation."]
+    lines += [lever_row(name + tag, what, results[name + tag], results[shipped + tag],
+                        _loop_text(loops[name], loops[shipped]))
+              for tag, _ in sources for name, what, _ in chosen]
+    lines += ["", _where_time_goes("shipped", results[shipped])]
+    if args.compiled:
+        lines += ["", _where_time_goes("compiled shipped", results[shipped + ", compiled"])]
     if not args.no_backends:
         lines += backend_lines(args.duration)
     text = "\n".join(lines) + "\n"
