@@ -131,3 +131,19 @@ def test_the_biped_steps_alone_as_in_a_batch():
         assert np.array_equal(single.x[0], batch.x[b], equal_nan=True)
         assert single.mode[0] == batch.mode[b]
         assert [e.tau for e in single.events] == [e.tau for e in batch.events if e.sample == b]
+
+
+def test_single_sample_evaluator_hands_other_arguments_to_numpy():
+    """Integers are floats, another batch shape gets the batch evaluator's answer, an
+    output that overflows is NumPy's with its warning, and infinite constants evaluate."""
+    a = ca.SX.sym("a", 2)
+    f = ca.Function("f", [a], [ca.vertcat(a[0] * a[1], ca.fmin(a[0], ca.inf),
+                                          ca.fmax(a[1], -ca.inf))])
+    one, batch = compile_one(f), compile_numpy(f)
+    for arg in (np.array([[2, 3]]), np.array([[1.5, -2.0], [0.5, 4.0]]), np.array([1.0, 2.0])):
+        got, ref = one(arg)[0], batch(arg)[0]
+        assert got.dtype == ref.dtype == float and got.shape == ref.shape
+        assert np.array_equal(got, ref)
+    with pytest.warns(RuntimeWarning, match="overflow"):
+        got = one(np.array([[1e308, 10.0]]))[0]
+    assert np.array_equal(got, [[np.inf, 1e308, 10.0]])

@@ -4,6 +4,7 @@ import os
 import shutil
 import subprocess
 import sys
+import threading
 
 import numpy as np
 import pytest
@@ -227,35 +228,57 @@ def test_numpy_setting_does_not_build(tmp_path, monkeypatch):
     assert planner.backend == "numpy" and list(tmp_path.iterdir()) == []
 
 
+def _slow_cc(tmp_path, seconds: float = 1.5):
+    """A compiler that takes ``seconds`` longer than cc (its --version answers at once)."""
+    cc = tmp_path / "slow-cc"
+    cc.write_text('#!/bin/sh\n[ "$1" = --version ] && exec cc --version\n'
+                  f'sleep {seconds}\nexec cc "$@"\n')
+    cc.chmod(0o755)
+    return str(cc)
+
+
 @needs_cc
 def test_a_background_compile_is_waited_for_at_the_first_rollout(tmp_path, monkeypatch):
-    """rollout_backend = "auto" compiles while the run builds: the planner is made before
-    the library is there, and its first rollout waits for it (the same costs as NumPy's)."""
-    monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path))
+    """rollout_backend = "auto" compiles while the run builds: the planner is made while
+    the compiler still runs, and its first rollout waits for the library (the same costs
+    as NumPy's)."""
+    monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("CC", _slow_cc(tmp_path))
     before = rollout_c.COMPILES
     ball, planner = _planner("auto", BallParams(radius=0.105))
-    assert planner.backend == "c" and not planner._c.ready
-    assert planner._c.compile_seconds is None
+    assert planner.backend == "c" and not planner._c._build.done  # still compiling
+    assert not planner._c.ready and planner._c.compile_seconds is None
     knots = _knots(np.random.default_rng(3), 8)
     cost, reached = planner.rollout_cost(ball.x0, 0, knots)
     ref, ref_reached = planner.rollout_cost_numpy(ball.x0, 0, knots)
     assert np.array_equal(cost, ref) and np.array_equal(reached, ref_reached)
-    assert planner._c.ready and planner._c.compile_seconds is not None
+    assert planner._c.ready and planner._c.compile_seconds >= 1.5
     assert rollout_c.COMPILES - before == 1
-    assert sorted(p.name for p in tmp_path.iterdir()) == [planner._c.path.name,
-                                                          planner._c.path.name + ".sha256"]
+    name = planner._c.path.name
+    assert sorted(p.name for p in (tmp_path / "cache").iterdir()) == [name, name + ".sha256"]
 
 
 @needs_cc
 def test_builds_of_one_source_under_way_share_one_compile(tmp_path, monkeypatch):
-    monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path))
+    """Two builds started while the first compiles (another planner, another thread of a
+    threaded worker) share it: one compile, one library."""
+    monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("CC", _slow_cc(tmp_path))
     source = rollout_c.generate_source(build_ball(BallParams(radius=0.115)))
     before = rollout_c.COMPILES
-    first, second = rollout_c.start_library(source), rollout_c.start_library(source)
-    assert first is second
-    lib, path, seconds = second.result()
-    assert first.result() == (lib, path, seconds) and seconds is not None
-    assert rollout_c.COMPILES - before == 1 and rollout_c.start_library(source).result()[0] is lib
+    first = rollout_c.start_library(source)
+    assert not first.done
+    results = []
+    threads = [threading.Thread(target=lambda: results.append(
+        rollout_c.start_library(source).result())) for _ in range(2)]
+    for t in threads:
+        t.start()
+    lib, path, seconds = first.result()
+    for t in threads:
+        t.join()
+    assert seconds is not None and results == [(lib, path, seconds)] * 2
+    assert rollout_c.COMPILES - before == 1
+    assert rollout_c.start_library(source).result()[0] is lib
 
 
 @needs_cc

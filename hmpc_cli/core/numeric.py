@@ -68,6 +68,10 @@ _UNARY = {
 }
 
 
+#: the names a constant's repr may use (``inf``, ``nan``) in the generated code
+_SPECIAL = {"inf": math.inf, "nan": math.nan}
+
+
 def compile_numpy(fun: ca.Function) -> Callable[..., list[np.ndarray]]:
     """Generates a NumPy evaluator of an SX function.
 
@@ -113,7 +117,7 @@ def compile_numpy(fun: ca.Function) -> Callable[..., list[np.ndarray]]:
     lines += [f"    o{j} = np.zeros(bshape + ({n},))" for j, n in enumerate(n_out)]
     lines += ["    " + s for s in body]
     lines.append("    return [" + ", ".join(f"o{j}" for j in range(len(n_out))) + "]")
-    namespace: dict = {"np": np, "tanh": tanh}
+    namespace: dict = {"np": np, "tanh": tanh, **_SPECIAL}
     exec(compile("\n".join(lines), f"<numpy:{fun.name()}>", "exec"), namespace)  # our own source
     return namespace["_f"]
 
@@ -134,10 +138,12 @@ def _cos(a: float) -> float:
     return float(np.cos(np.array((a,)))[0])
 
 
-#: the operations :func:`compile_one` evaluates on Python floats: IEEE-exact like NumPy's
-#: (+, -, *, /, sqrt, comparisons), NumPy's own on one element (fmin, fmax, sin, cos) or
-#: the C library's tanh (as :data:`tanh`). A function with any other operation has no
-#: single-sample evaluator.
+#: the operations :func:`compile_one` evaluates on Python floats, each as exact as the
+#: batch evaluator's: IEEE arithmetic (+, -, *, /, 1/x, x^2, 2x, sqrt, |x|, negation),
+#: comparisons and logic giving 0.0 or 1.0 (if_else_zero included), NumPy's own fmin and
+#: fmax (on the two floats), sin and cos (on a one-element array) and the C library's
+#: tanh (as :data:`tanh`). A function with any other operation gets no single-sample
+#: evaluator.
 _ONE_BINARY = {
     ca.OP_ADD: "({a} + {b})",
     ca.OP_SUB: "({a} - {b})",
@@ -174,23 +180,26 @@ def compile_one(fun: ca.Function, batch: Callable[..., list[np.ndarray]] | None 
 
     The same results as :func:`compile_numpy`'s evaluator on a batch of one, bit for bit,
     without NumPy's per-operation overhead. A function with an operation outside the
-    exact set above gets None (use the batch evaluator).
+    exact set above, or without inputs, gets None (use the batch evaluator).
 
     Args:
         fun: CasADi SX function with dense vector inputs and outputs.
-        batch: the batch evaluator of ``fun`` (default: compiled here); called instead
-            where Python floats raise and NumPy gives inf or NaN (a division by zero, the
-            square root of a negative number).
+        batch: the batch evaluator of ``fun`` (default: compiled here). It runs instead
+            for arguments that are not one sample, where Python floats raise and NumPy
+            gives inf or NaN (a division by zero, the square root of a negative number),
+            and where an output is not finite (so NumPy's overflow and invalid-value
+            warnings are given as before).
 
     Returns:
-        ``call(*args)``, each arg of shape ``(1, n_in_i)``; returns a list of arrays of
-        shape ``(1, n_out_j)``.
+        ``call(*args)``, each arg of shape ``(1, n_in_i)`` (another shape: the batch
+        evaluator's answer); returns a list of arrays of shape ``(1, n_out_j)``.
     """
     if not fun.is_a("SXFunction"):
         fun = fun.expand()
-    if any(op not in _ONE_BINARY and op not in _ONE_UNARY and
-           op not in (ca.OP_INPUT, ca.OP_OUTPUT, ca.OP_CONST)
-           for op in (fun.instruction_id(k) for k in range(fun.n_instructions()))):
+    if fun.n_in() == 0 or any(
+            op not in _ONE_BINARY and op not in _ONE_UNARY and
+            op not in (ca.OP_INPUT, ca.OP_OUTPUT, ca.OP_CONST)
+            for op in (fun.instruction_id(k) for k in range(fun.n_instructions()))):
         return None
     n_out = [fun.size1_out(j) * fun.size2_out(j) for j in range(fun.n_out())]
     out_nz = [fun.sparsity_out(j).find() for j in range(fun.n_out())]
@@ -212,16 +221,23 @@ def compile_one(fun: ca.Function, batch: Callable[..., list[np.ndarray]] | None 
             body.append(f"w{res[0]} = " + _ONE_UNARY[op].format(a=f"w{args[0]}"))
     n_in = fun.n_in()
     names = ", ".join(f"a{i}" for i in range(n_in))
-    lines = [f"def _one({names}):", "    try:",
-             *[f"        v{i} = a{i}[0].tolist()" for i in range(n_in)],
+    outs = [f"o{j}" for j in range(len(n_out))]
+    lines = [f"def _one({names}):",
+             *[f"    v{i} = _asarray(a{i}, dtype=float)" for i in range(n_in)],
+             "    if " + " or ".join(f"v{i}.shape[:-1] != (1,)" for i in range(n_in)) + ":",
+             f"        return _batch({names})",
+             "    try:",
+             *[f"        v{i} = v{i}[0].tolist()" for i in range(n_in)],
              *[f"        o{j} = [0.0] * {n}" for j, n in enumerate(n_out)],
              *["        " + s for s in body],
              "    except (ZeroDivisionError, ValueError, OverflowError):",
              f"        return _batch({names})",
-             "    return [" + ", ".join(f"_array([o{j}])" for j in range(len(n_out))) + "]"]
+             *([f"    if not all(map(_isfinite, {' + '.join(outs)})):",
+                f"        return _batch({names})"] if outs else []),
+             "    return [" + ", ".join(f"_array([{o}])" for o in outs) + "]"]
     namespace: dict = {"_fmin": _fmin, "_fmax": _fmax, "_sin": _sin, "_cos": _cos,
-                       "_sqrt": math.sqrt,
-                       "_tanh": math.tanh, "_array": np.array,
+                       "_sqrt": math.sqrt, "_tanh": math.tanh, "_isfinite": math.isfinite,
+                       "_array": np.array, "_asarray": np.asarray, **_SPECIAL,
                        "_batch": batch if batch is not None else compile_numpy(fun)}
     exec(compile("\n".join(lines), f"<one:{fun.name()}>", "exec"), namespace)  # our own source
     return namespace["_one"]

@@ -121,6 +121,11 @@ ROLLOUT_BATCH = 4096
 MAX_INPUTS = 4
 
 
+def _warn_numpy(why: str) -> None:
+    """The fallback's warning, from this one line: Python's filter says it once a process."""
+    warnings.warn(f"C rollouts unavailable, using NumPy: {why}", RuntimeWarning, stacklevel=1)
+
+
 class CrossEntropyPlanner:
     """Plans a mode schedule from a hybrid state by the cross-entropy method.
 
@@ -179,8 +184,7 @@ class CrossEntropyPlanner:
                 f"({first}); set it to 'auto' or 'numpy'") from error
         self.backend, self._c = "numpy", None
         if not compiler_problem():  # an unusable $CC has had its one warning
-            warnings.warn(f"C rollouts unavailable, using NumPy: {first}",
-                          RuntimeWarning, stacklevel=3)
+            _warn_numpy(first)
 
     def _inputs(self, knots: np.ndarray) -> np.ndarray:
         """Knot values (B, knots, m) -> step inputs (B, n_steps, m), linear interpolation."""

@@ -78,7 +78,10 @@ def build(scenario) -> PreparedRun:
     """Composes the parts of a validated scenario's run (the only reader of a Scenario).
 
     The MPC's NLPs are built once per process per (system, MPC settings, margins) and
-    shared.
+    shared. The planner is built before them: what it compiles in the background (the
+    CEM's C rollouts) overlaps their build, and its first plan waits for what is left
+    (in the run's loop, outside the plan's own time). A planner that fails to build is
+    reported before the MPC is built.
 
     Raises:
         hmpc_cli.core.registry.PluginError: a plug-in fails to build (message names it).

@@ -48,6 +48,7 @@ COMPILES = 0  # compilations done by this process (the cache makes repeats free)
 _LIBS: dict[str, ctypes.CDLL] = {}  # loaded libraries by path
 _FAILED: dict[tuple[str, tuple[str, ...]], str] = {}  # failed builds by path and compiler
 _PENDING: dict[str, LibraryBuild] = {}  # compiles under way in this process, by path
+_LOCK = threading.Lock()  # _LIBS, _FAILED and _PENDING (a process's threads share builds)
 _D = ctypes.POINTER(ctypes.c_double)
 _LOG = logging.getLogger(__name__)
 
@@ -208,22 +209,24 @@ def start_library(source: str) -> LibraryBuild:
         raise RolloutBuildError(str(e)) from e
     key = hashlib.sha256("\0".join([source, *CFLAGS, identity]).encode())
     path = _safe_cache_dir() / f"rollout-{key.hexdigest()[:24]}.so"
-    if str(path) in _LIBS:
-        return LibraryBuild(path, _LIBS[str(path)])
-    if verified(path):
-        try:
-            _LIBS[str(path)] = _load(path)
+    with _LOCK:
+        if str(path) in _LIBS:
             return LibraryBuild(path, _LIBS[str(path)])
-        except (OSError, AttributeError):
-            pass  # stale: rebuild
-    elif path.exists():
-        _LOG.warning("%s does not match its recorded sha256: rebuilding it", path)
-    failed = _FAILED.get((str(path), tuple(cc)))
-    if failed:
-        raise RolloutBuildError(failed)
-    if str(path) not in _PENDING:
+        if str(path) in _PENDING:
+            return _PENDING[str(path)]
+        if verified(path):
+            try:
+                _LIBS[str(path)] = _load(path)
+                return LibraryBuild(path, _LIBS[str(path)])
+            except (OSError, AttributeError):
+                pass  # stale: rebuild
+        elif path.exists():
+            _LOG.warning("%s does not match its recorded sha256: rebuilding it", path)
+        failed = _FAILED.get((str(path), tuple(cc)))
+        if failed:
+            raise RolloutBuildError(failed)
         _PENDING[str(path)] = LibraryBuild(path, compile_with=(cc, source))
-    return _PENDING[str(path)]
+        return _PENDING[str(path)]
 
 
 class LibraryBuild:
@@ -245,10 +248,16 @@ class LibraryBuild:
         self._thread: threading.Thread | None = None
         if compile_with is not None:
             self._cc, source = compile_with
-            # not a daemon: an exit during the compile waits for it (no half-written files)
+            # not a daemon: an ordinary exit during the compile waits for it (the library
+            # is then cached, and no temporary file is left beside it)
             self._thread = threading.Thread(target=self._compile, args=(source,),
                                             name="hmpc-rollout-compile")
             self._thread.start()
+
+    @property
+    def done(self) -> bool:
+        """Whether the compile (if any) has finished: :meth:`result` returns at once."""
+        return self._thread is None or not self._thread.is_alive()
 
     def _compile(self, source: str) -> None:
         try:
@@ -266,22 +275,24 @@ class LibraryBuild:
         """
         if self._result is not None:
             return self._result
-        if self._thread is not None:
-            self._thread.join()
-            self._thread = None
-            _PENDING.pop(str(self.path), None)
+        thread = self._thread
+        if thread is not None:
+            thread.join()
         key = str(self.path)
-        if self._error is not None:
-            _FAILED[(key, tuple(self._cc))] = str(self._error)
-            raise self._error
-        if key not in _LIBS:
-            try:
-                _LIBS[key] = _load(self.path)
-            except (OSError, AttributeError) as e:
-                self._error = RolloutBuildError(f"cannot load {self.path}: {e}")
-                raise self._error from e
-        self._result = (_LIBS[key], self.path, self._seconds)
-        return self._result
+        with _LOCK:
+            if _PENDING.get(key) is self:
+                del _PENDING[key]
+            if self._error is not None:
+                _FAILED[(key, tuple(self._cc))] = str(self._error)
+                raise self._error
+            if key not in _LIBS:
+                try:
+                    _LIBS[key] = _load(self.path)
+                except (OSError, AttributeError) as e:
+                    self._error = RolloutBuildError(f"cannot load {self.path}: {e}")
+                    raise self._error from e
+            self._result = (_LIBS[key], self.path, self._seconds)
+            return self._result
 
 
 def _compile(cc: list[str], source: str, path: Path) -> float:
