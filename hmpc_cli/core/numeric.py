@@ -3,7 +3,9 @@
 A system is written once as CasADi SX expressions. The NLP uses them symbolically; the
 simulator and the sampling planner evaluate the very same expression graph through the
 NumPy code generated here (one Python statement per SX instruction), which is exact to
-floating point and avoids CasADi's per-call conversion overhead for small batches.
+floating point and avoids CasADi's per-call conversion overhead for small batches. For a
+single sample (the simulated plant) :func:`compile_one` generates the same statements on
+Python floats, with the same numbers.
 """
 
 from __future__ import annotations
