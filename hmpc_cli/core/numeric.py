@@ -74,6 +74,38 @@ _UNARY = {
 _SPECIAL = {"inf": math.inf, "nan": math.nan}
 
 
+def _statements(fun: ca.Function, binary: dict, unary: dict, read: str, write: str
+                ) -> list[str]:
+    """One Python statement per SX instruction of ``fun`` (work variables ``w<k>``).
+
+    ``read`` and ``write`` format an input element and an output nonzero from ``i``/``j``
+    (the argument) and ``k`` (the element); ``binary`` and ``unary`` map operations to
+    expressions of ``a`` and ``b``.
+
+    Raises:
+        NotImplementedError: an operation with no entry in ``binary`` or ``unary``.
+    """
+    out_nz = [fun.sparsity_out(j).find() for j in range(fun.n_out())]
+    body: list[str] = []
+    for k in range(fun.n_instructions()):
+        op = fun.instruction_id(k)
+        args = fun.instruction_input(k)
+        res = fun.instruction_output(k)
+        if op == ca.OP_INPUT:
+            body.append(f"w{res[0]} = " + read.format(i=args[0], k=args[1]))
+        elif op == ca.OP_OUTPUT:
+            body.append(write.format(j=res[0], k=out_nz[res[0]][res[1]]) + f" = w{args[0]}")
+        elif op == ca.OP_CONST:
+            body.append(f"w{res[0]} = {float(fun.instruction_constant(k))!r}")
+        elif op in binary:
+            body.append(f"w{res[0]} = " + binary[op].format(a=f"w{args[0]}", b=f"w{args[1]}"))
+        elif op in unary:
+            body.append(f"w{res[0]} = " + unary[op].format(a=f"w{args[0]}"))
+        else:
+            raise NotImplementedError(f"{fun.name()}: CasADi operation {op} has no NumPy mapping")
+    return body
+
+
 def compile_numpy(fun: ca.Function) -> Callable[..., list[np.ndarray]]:
     """Generates a NumPy evaluator of an SX function.
 
@@ -90,24 +122,7 @@ def compile_numpy(fun: ca.Function) -> Callable[..., list[np.ndarray]]:
     if not fun.is_a("SXFunction"):
         fun = fun.expand()
     n_out = [fun.size1_out(j) * fun.size2_out(j) for j in range(fun.n_out())]
-    out_nz = [fun.sparsity_out(j).find() for j in range(fun.n_out())]
-    body: list[str] = []
-    for k in range(fun.n_instructions()):
-        op = fun.instruction_id(k)
-        args = fun.instruction_input(k)
-        res = fun.instruction_output(k)
-        if op == ca.OP_INPUT:
-            body.append(f"w{res[0]} = a{args[0]}[..., {args[1]}]")
-        elif op == ca.OP_OUTPUT:
-            body.append(f"o{res[0]}[..., {out_nz[res[0]][res[1]]}] = w{args[0]}")
-        elif op == ca.OP_CONST:
-            body.append(f"w{res[0]} = {float(fun.instruction_constant(k))!r}")
-        elif op in _BINARY:
-            body.append(f"w{res[0]} = " + _BINARY[op].format(a=f"w{args[0]}", b=f"w{args[1]}"))
-        elif op in _UNARY:
-            body.append(f"w{res[0]} = " + _UNARY[op].format(a=f"w{args[0]}"))
-        else:
-            raise NotImplementedError(f"{fun.name()}: CasADi operation {op} has no NumPy mapping")
+    body = _statements(fun, _BINARY, _UNARY, "a{i}[..., {k}]", "o{j}[..., {k}]")
     n_in = fun.n_in()
     arg_names = ", ".join(f"a{i}" for i in range(n_in))
     lines = [f"def _f({arg_names}):"]
@@ -204,23 +219,7 @@ def compile_one(fun: ca.Function, batch: Callable[..., list[np.ndarray]] | None 
             for op in (fun.instruction_id(k) for k in range(fun.n_instructions()))):
         return None
     n_out = [fun.size1_out(j) * fun.size2_out(j) for j in range(fun.n_out())]
-    out_nz = [fun.sparsity_out(j).find() for j in range(fun.n_out())]
-    body: list[str] = []
-    for k in range(fun.n_instructions()):
-        op = fun.instruction_id(k)
-        args = fun.instruction_input(k)
-        res = fun.instruction_output(k)
-        if op == ca.OP_INPUT:
-            body.append(f"w{res[0]} = v{args[0]}[{args[1]}]")
-        elif op == ca.OP_OUTPUT:
-            body.append(f"o{res[0]}[{out_nz[res[0]][res[1]]}] = w{args[0]}")
-        elif op == ca.OP_CONST:
-            body.append(f"w{res[0]} = {float(fun.instruction_constant(k))!r}")
-        elif op in _ONE_BINARY:
-            body.append(f"w{res[0]} = " + _ONE_BINARY[op].format(a=f"w{args[0]}",
-                                                                 b=f"w{args[1]}"))
-        else:
-            body.append(f"w{res[0]} = " + _ONE_UNARY[op].format(a=f"w{args[0]}"))
+    body = _statements(fun, _ONE_BINARY, _ONE_UNARY, "v{i}[{k}]", "o{j}[{k}]")
     n_in = fun.n_in()
     names = ", ".join(f"a{i}" for i in range(n_in))
     outs = [f"o{j}" for j in range(len(n_out))]
