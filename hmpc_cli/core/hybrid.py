@@ -21,7 +21,7 @@ import casadi as ca
 import numpy as np
 
 from hmpc_cli.core.drawing import Drawing
-from hmpc_cli.core.numeric import compile_numpy, compile_one
+from hmpc_cli.core.numeric import compile_evaluator
 from hmpc_cli.core.shapes import shape_problems
 from hmpc_cli.core.walker import WalkerModel
 
@@ -339,9 +339,9 @@ def rk4_expr(mode: Mode, x, u, w, h):
 class NumericSystem:
     """Batched NumPy evaluators of a :class:`HybridSystem` (same SX graphs).
 
-    ``rk4_one`` and ``mode_gaps_one`` are the single-sample evaluators of ``rk4`` and
-    ``mode_gaps`` (:func:`~hmpc_cli.core.numeric.compile_one`: the same numbers on a batch
-    of one), None for a mode whose expressions have no exact Python-float form.
+    A batch of one (the simulated plant) is evaluated on Python floats where the
+    expressions allow it (:func:`~hmpc_cli.core.numeric.compile_evaluator`), with the same
+    numbers.
     """
 
     def __init__(self, system: HybridSystem) -> None:
@@ -349,34 +349,32 @@ class NumericSystem:
         x = ca.SX.sym("x", n)
         self.system = system
         self._outputs: dict[str, Callable[..., list[np.ndarray]]] = {}
-        self.flows = [compile_numpy(m.flow) for m in system.modes]
+        self.flows = [compile_evaluator(m.flow) for m in system.modes]
         self.u_lower = np.array([m.u_lower for m in system.modes], dtype=float)
         self.u_upper = np.array([m.u_upper for m in system.modes], dtype=float)
         self.gaps = [
-            compile_numpy(ca.Function(f"gap_{g.name}", [x], [g.gap_expr(x)]))
+            compile_evaluator(ca.Function(f"gap_{g.name}", [x], [g.gap_expr(x)]))
             for g in system.guards
         ]
-        self.regions = [compile_numpy(g.region) if g.region is not None else None
+        self.regions = [compile_evaluator(g.region) if g.region is not None else None
                         for g in system.guards]
-        self.resets = [compile_numpy(g.reset) for g in system.guards]
+        self.resets = [compile_evaluator(g.reset) for g in system.guards]
         self.target = np.array([system.mode_index(g.target) for g in system.guards])
         self.source = np.array([system.mode_index(g.source) for g in system.guards])
         self.guards_of = [system.guards_of(i) for i in range(len(system.modes))]
-        self._goal_map = compile_numpy(system.goal_map)
+        self._goal_map = compile_evaluator(system.goal_map)
         u = ca.SX.sym("u", system.n_u)
         w = ca.SX.sym("w", system.n_w)
         h = ca.SX.sym("h")
-        self.rk4, self.rk4_one = [], []
+        self.rk4 = []
         for mode in system.modes:
-            step = ca.Function(f"rk4_{mode.name}", [x, u, w, h], [rk4_expr(mode, x, u, w, h)])
-            self.rk4.append(compile_numpy(step))
-            self.rk4_one.append(compile_one(step, self.rk4[-1]))
-        self.mode_gaps, self.mode_gaps_one = [], []
-        for i, m in enumerate(system.modes):
-            gaps = ca.Function(f"gaps_{m.name}", [x], [ca.vertcat(
-                *[system.guards[g].gap_expr(x) for g in self.guards_of[i]], ca.SX(0, 1))])
-            self.mode_gaps.append(compile_numpy(gaps))
-            self.mode_gaps_one.append(compile_one(gaps, self.mode_gaps[-1]))
+            step = rk4_expr(mode, x, u, w, h)
+            self.rk4.append(compile_evaluator(ca.Function(f"rk4_{mode.name}", [x, u, w, h],
+                                                          [step])))
+        self.mode_gaps = [
+            compile_evaluator(ca.Function(f"gaps_{m.name}", [x], [ca.vertcat(
+                *[system.guards[g].gap_expr(x) for g in self.guards_of[i]], ca.SX(0, 1))]))
+            for i, m in enumerate(system.modes)]
         self.gaps_along = []
         for i, mode in enumerate(system.modes):
             # gap along the RK4 sub-step and its rate dgap/dx . f(x_tau) (the exact
@@ -388,13 +386,13 @@ class NumericSystem:
             rate = ca.jtimes(gaps, x, mode.flow(x, u_sat, w))
             at_tau = ca.Function("at_tau", [x, u, w], [gaps, rate])
             phi, dphi = at_tau(x_tau, u, w)
-            self.gaps_along.append(compile_numpy(ca.Function(
+            self.gaps_along.append(compile_evaluator(ca.Function(
                 f"phi_{mode.name}", [x, u, w, h], [phi, dphi, x_tau])))
 
     def output(self, name: str) -> Callable[..., list[np.ndarray]]:
         """The named output ``name`` compiled for NumPy (batched; compiled once)."""
         if name not in self._outputs:
-            self._outputs[name] = compile_numpy(self.system.output(name))
+            self._outputs[name] = compile_evaluator(self.system.output(name))
         return self._outputs[name]
 
     def flow(self, mode: int, x: np.ndarray, u: np.ndarray, w: np.ndarray) -> np.ndarray:

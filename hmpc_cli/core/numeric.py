@@ -242,3 +242,13 @@ def compile_one(fun: ca.Function, batch: Callable[..., list[np.ndarray]] | None 
                        "_batch": batch if batch is not None else compile_numpy(fun)}
     exec(compile("\n".join(lines), f"<one:{fun.name()}>", "exec"), namespace)  # our own source
     return namespace["_one"]
+
+
+def compile_evaluator(fun: ca.Function) -> Callable[..., list[np.ndarray]]:
+    """The evaluator of ``fun`` for any batch, the same numbers as :func:`compile_numpy`'s.
+
+    A batch of one runs on Python floats (:func:`compile_one`) where ``fun``'s operations
+    allow it; every other call is NumPy's.
+    """
+    batch = compile_numpy(fun)
+    return compile_one(fun, batch) or batch

@@ -83,8 +83,6 @@ class HybridSimulator:
             h: np.ndarray) -> np.ndarray:
         """One RK4 step of length h (B,) per sample in its mode; inputs saturated."""
         m0 = int(mode[0])
-        if len(mode) == 1 and self.num.rk4_one[m0] is not None:  # the plant: one sample
-            return self.num.rk4_one[m0](x, u, w, h[:, None])[0]
         if (mode == m0).all():
             return self.num.rk4[m0](x, u, w, h[:, None])[0]
         out = np.empty_like(x)
@@ -230,10 +228,8 @@ class HybridSimulator:
             if not guards:
                 continue
             cand = np.arange(b) if single else np.nonzero(mode == m)[0]
-            gaps = self.num.mode_gaps_one[m] if b == 1 else None
-            gaps = gaps or self.num.mode_gaps[m]
-            g0 = gaps(x[cand])[0]
-            g1 = gaps(x_end[cand])[0]
+            g0 = self.num.mode_gaps[m](x[cand])[0]
+            g1 = self.num.mode_gaps[m](x_end[cand])[0]
             cross = (g0 > 0.0) & (g1 <= 0.0)
             while True:
                 rows = np.nonzero(cross.any(axis=1))[0]

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hmpc_cli.core.hybrid import HybridSystem
-from hmpc_cli.core.numeric import compile_numpy, compile_one
+from hmpc_cli.core.numeric import compile_evaluator
 from hmpc_cli.core.stack import Verdict
 
 #: body points that must stay above the terrain (a knee, the hip or the torso top down
@@ -33,9 +33,8 @@ class ClimbStairs:
     _points: object = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:  # judged at every simulator step: one state at a time
-        fun = self.system.output("points_world")
-        batch = compile_numpy(fun)
-        object.__setattr__(self, "_points", compile_one(fun, batch) or batch)
+        object.__setattr__(self, "_points",
+                           compile_evaluator(self.system.output("points_world")))
 
     @property
     def goal(self) -> np.ndarray:
