@@ -129,7 +129,7 @@ class LowLevelController:
                        - _integral(ts, us, tau, zoh, cum)) / span
 
     def _domain(self, plan: Plan, k: int = 0) -> tuple:
-        """(ts (K,), xs (K, n), us (K, m), zoh, cum (K, m)) of the plan's domain k.
+        """(ts (K floats), xs (K, n), us (K, m), zoh, cum (K, m)) of the plan's domain k.
 
         ``cum[i]``: the integral of the interpolated input from ts[0] to ts[i]. Made once
         per plan and domain (the simulator asks for the reference at every step, the plan
@@ -144,7 +144,7 @@ class LowLevelController:
         zoh = (tr.input_hold if hold == "plan" else hold) == "zoh"
         pieces = np.diff(ts)[:, None] * (us[:-1] if zoh else 0.5 * (us[:-1] + us[1:]))
         cum = np.concatenate([np.zeros((1, us.shape[1])), np.cumsum(pieces, axis=0)])
-        self._memo = (plan, k, (ts, xs, us, zoh, cum))
+        self._memo = (plan, k, (ts.tolist(), xs, us, zoh, cum))
         return self._memo[2]
 
     def command(self, t: float, x: np.ndarray, plan: Plan | None, span: float = 0.0):
@@ -166,34 +166,38 @@ class LowLevelController:
         return u_ff + self.K @ (x_ref - x), x_ref
 
 
-def _interp(ts: np.ndarray, vs: np.ndarray, tau: float, zoh: bool) -> np.ndarray:
-    """Value (d,) at tau of samples vs (K, d) taken at increasing times ts (K,).
+def _interp(tl: list[float], vs: np.ndarray, tau: float, zoh: bool) -> np.ndarray:
+    """Value (d,) at tau of samples vs (K, d) taken at increasing times tl (K floats).
 
     Linear interpolation, or held from the left if ``zoh``; the first and last samples are
-    held outside [ts[0], ts[-1]].
+    held outside [tl[0], tl[-1]].
     """
-    if tau >= ts[-1] or len(ts) == 1:
+    if tau >= tl[-1] or len(tl) == 1:
         return vs[-1]
-    if tau <= ts[0]:
+    if tau <= tl[0]:
         return vs[0]
-    k = int(np.searchsorted(ts, tau, side="right")) - 1
+    return _between(tl, vs, tau, zoh, bisect_right(tl, tau) - 1)
+
+
+def _between(tl: list[float], vs: np.ndarray, tau: float, zoh: bool, k: int) -> np.ndarray:
+    """Value (d,) at tau in [tl[k], tl[k + 1]) of the samples vs (K, d) at the times tl."""
     if zoh:
         return vs[k]
-    a = (tau - ts[k]) / (ts[k + 1] - ts[k])
+    a = (tau - tl[k]) / (tl[k + 1] - tl[k])
     return (1.0 - a) * vs[k] + a * vs[k + 1]
 
 
-def _integral(ts: np.ndarray, vs: np.ndarray, tau: float, zoh: bool,
+def _integral(tl: list[float], vs: np.ndarray, tau: float, zoh: bool,
               cum: np.ndarray) -> np.ndarray:
-    """Integral from ts[0] to tau of the interpolated samples (constant outside).
+    """Integral from tl[0] to tau of the interpolated samples (constant outside).
 
     ``cum`` (K, d): the integral up to each sample time (see ``LowLevelController._domain``).
     """
-    if tau <= ts[0] or len(ts) == 1:
-        return (tau - ts[0]) * vs[0]
-    k = min(int(np.searchsorted(ts, tau, side="right")) - 1, len(ts) - 1)
+    if tau <= tl[0] or len(tl) == 1:
+        return (tau - tl[0]) * vs[0]
+    k = bisect_right(tl, tau) - 1
     done = cum[k]
-    if k == len(ts) - 1:
-        return done + (tau - ts[-1]) * vs[-1]
-    v_tau = _interp(ts, vs, tau, zoh)
-    return done + (tau - ts[k]) * (vs[k] if zoh else 0.5 * (vs[k] + v_tau))
+    if k == len(tl) - 1:
+        return done + (tau - tl[-1]) * vs[-1]
+    v_tau = _between(tl, vs, tau, zoh, k)
+    return done + (tau - tl[k]) * (vs[k] if zoh else 0.5 * (vs[k] + v_tau))

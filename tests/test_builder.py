@@ -1,10 +1,12 @@
 """The structured-NLP builder and the solver session."""
 
+import json
+
 import casadi as ca
 import numpy as np
 import pytest
 
-from hmpc_cli.mpc.builder import NLPBuilder
+from hmpc_cli.mpc.builder import NLPBuilder, NLPLayout
 from hmpc_cli.mpc.solver import (INTERRUPTED, SolverSession, WarmStart, plugin_options,
                                   without_nlp_grad)
 
@@ -105,6 +107,30 @@ def test_staged_grid_and_registration_errors():
         b.variable("x", 3)
     with pytest.raises(ValueError, match="twice"):
         b.variable("x", 2)
+
+
+def test_staged_matrix_blocks_index_their_symbols_in_casadi_order():
+    """A matrix block registered per stage: its index array (stages, rows, columns) holds
+    each entry's place in the flat x, and the layout survives the build cache's JSON."""
+    b = NLPBuilder()
+    syms = []
+    for k in range(3):
+        with b.stage(k):
+            syms.append(b.variable("M", (2, 3)))
+            b.variable("s")
+    nlp, lay = b.build(0)
+    idx = lay.x["M"]
+    assert idx.shape == (3, 2, 3) and lay.x["s"].tolist() == [6, 13, 20]
+    for k in range(3):
+        for i in range(2):
+            for j in range(3):
+                assert ca.is_equal(nlp["x"][int(idx[k, i, j])], syms[k][i, j])
+        assert lay.x.at(k).tolist() == list(range(7 * k, 7 * k + 7))
+    back = NLPLayout.from_dict(json.loads(json.dumps(lay.to_dict())))
+    for name in ("M", "s"):
+        assert back.x[name].tolist() == lay.x[name].tolist()
+        assert back.x.stages(name) == (0, 1, 2) and not back.x[name].flags.writeable
+    assert back.x.at(2).tolist() == lay.x.at(2).tolist()
 
 
 def _scalar_session(**kw):

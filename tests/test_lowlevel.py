@@ -90,3 +90,26 @@ def test_past_the_guard_the_reference_holds_or_follows_the_plans_next_domain():
     other.contact(1.51, 1)  # a guard the plan does not schedule: held as with 'hold'
     np.testing.assert_allclose(other.reference(1.6, plan)[0], plan.traj.x[11])
     assert hold.reference(1.75, plan)[0].tolist() == plan.traj.x[11].tolist()
+
+
+def test_at_a_node_time_the_reference_is_that_node_and_the_held_input_switches_to_it():
+    """Node times are exact: the reference state is the node's, bit for bit; a zero-order
+    hold is continuous from the right (the node's input at its time, the one before
+    just ahead of it); before the first node and after the last the ends are held."""
+    ctl = LowLevelController(build_system(BallParams()), LowLevelSettings())
+    for hold in ("zoh", "foh"):
+        plan = _plan(0.0, 3, hold)
+        tr = plan.traj
+        for k in (1, 5, 10):
+            x_ref, u_ff = ctl.reference(float(tr.t[k]), plan)
+            assert x_ref.tolist() == tr.x[k].tolist() and u_ff.tolist() == tr.u[k].tolist()
+            _, u_before = ctl.reference(float(np.nextafter(tr.t[k], 0.0)), plan)
+            if hold == "zoh":
+                assert u_before.tolist() == tr.u[k - 1].tolist()
+        assert ctl.reference(-0.1, plan)[0].tolist() == tr.x[0].tolist()
+        x_end, u_end = ctl.reference(0.6, plan)  # past domain 0's last node (0.55 s)
+        assert x_end.tolist() == tr.x[11].tolist() and u_end.tolist() == tr.u[11].tolist()
+        # a step over the last node (0.54 to 0.56 s): half of it before, half held after
+        before = tr.u[10] if hold == "zoh" else tr.u[10] + 0.9 * (tr.u[11] - tr.u[10])
+        np.testing.assert_allclose(ctl.reference(0.54, plan, 0.02)[1],
+                                   0.5 * (before + tr.u[11]), rtol=1e-12)

@@ -27,6 +27,7 @@ Example::
 
 from __future__ import annotations
 
+import math
 from collections.abc import Hashable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -50,7 +51,7 @@ class _Entry:
     shape: tuple[int, ...]
 
     def indices(self) -> np.ndarray:
-        size = int(np.prod(self.shape, dtype=int))
+        size = math.prod(self.shape)
         return np.arange(self.offset, self.offset + size).reshape(self.shape, order="F")
 
 
@@ -89,12 +90,17 @@ class Blocks:
         self._idx: dict[str, np.ndarray] = {}
         by_stage: dict[Hashable, list[np.ndarray]] = {}
         for name, es in self._entries.items():
-            idx = es[0].indices() if es[0].stage is None else \
-                np.stack([e.indices() for e in es])
+            if es[0].stage is None:
+                idx = es[0].indices()
+            else:  # the entries share one shape: each is its offset plus the first's cells
+                cells = _Entry(None, 0, es[0].shape).indices()
+                offsets = np.fromiter((e.offset for e in es), dtype=int, count=len(es))
+                idx = offsets.reshape((-1,) + (1,) * cells.ndim) + cells
+                flat = offsets[:, None] + np.arange(cells.size)
+                for e, row in zip(es, flat, strict=True):
+                    by_stage.setdefault(e.stage, []).append(row)
             idx.flags.writeable = False
             self._idx[name] = idx
-            for e in es if es[0].stage is not None else ():
-                by_stage.setdefault(e.stage, []).append(e.indices().ravel(order="F"))
         self._by_stage = {stage: np.sort(np.concatenate(parts))
                           for stage, parts in by_stage.items()}
 

@@ -124,11 +124,11 @@ class HybridSimulator:
         rem = np.full(b, float(dt))
         # first pass over the whole batch without copies; most steps end here
         x_end = self.rk4(mode, x, u, w, rem)
-        tau, guard, x_hit = self._first_crossing(x, mode, u, w, rem, x_end)
-        if (guard < 0).all():
+        crossing = self._first_crossing(x, mode, u, w, rem, x_end)
+        if crossing is None or (crossing[1] < 0).all():
             return StepResult(x_end, mode, [], np.zeros(b, dtype=bool), np.zeros(b))
         return self._step_through_events(
-            x.copy(), mode, u, w, dt, rem, (x_end, tau, guard, x_hit),
+            x.copy(), mode, u, w, dt, rem, (x_end, *crossing),
             record=record, raise_zeno=raise_zeno, stop_at_event=stop_at_event)
 
     def _step_through_events(self, x, mode, u, w, dt, rem, first_pass, *, record,
@@ -165,7 +165,8 @@ class HybridSimulator:
                 break
             xa, ma, ua, wa, ha = x[todo], mode[todo], u[todo], w[todo], rem[todo]
             x_end = self.rk4(ma, xa, ua, wa, ha)
-            tau, guard, x_hit = self._first_crossing(xa, ma, ua, wa, ha, x_end)
+            tau, guard, x_hit = self._first_crossing(xa, ma, ua, wa, ha, x_end) or (
+                ha, np.full(len(todo), -1), x_end)
         events.sort(key=lambda e: (e.sample, e.tau))
         return StepResult(x, mode, events, zeno, rem)
 
@@ -217,20 +218,30 @@ class HybridSimulator:
         All guards of a mode are located together: for each sample, the root of the
         smallest gap among the guards it crosses in this step. A crossing outside the
         guard's activity region is dropped and the sample searched again without it.
+        None when no sample's gaps cross (most steps).
         """
         b = x.shape[0]
-        tau = h.copy()
-        guard = np.full(b, -1)
-        x_hit = x_end.copy()
+        found = None  # (tau, guard, x_hit), made at the first crossing
         single = bool((mode == mode[0]).all())
         for m in ((int(mode[0]),) if single else np.unique(mode)):
             guards = self.num.guards_of[m]
             if not guards:
                 continue
-            cand = np.arange(b) if single else np.nonzero(mode == m)[0]
-            g0 = self.num.mode_gaps[m](x[cand])[0]
-            g1 = self.num.mode_gaps[m](x_end[cand])[0]
+            if single:
+                cand, g0 = None, self.num.mode_gaps[m](x)[0]
+                g1 = self.num.mode_gaps[m](x_end)[0]
+            else:
+                cand = np.nonzero(mode == m)[0]
+                g0 = self.num.mode_gaps[m](x[cand])[0]
+                g1 = self.num.mode_gaps[m](x_end[cand])[0]
             cross = (g0 > 0.0) & (g1 <= 0.0)
+            if not cross.any():  # most steps: no guard of this mode crossed
+                continue
+            if cand is None:
+                cand = np.arange(b)
+            if found is None:
+                found = h.copy(), np.full(b, -1), x_end.copy()
+            tau, guard, x_hit = found
             while True:
                 rows = np.nonzero(cross.any(axis=1))[0]
                 if rows.size == 0:
@@ -248,7 +259,7 @@ class HybridSimulator:
                 x_hit[idx[active]] = x_g[active]
                 cross[rows[active]] = False
                 cross[rows[~active], c_g[~active]] = False
-        return tau, guard, x_hit
+        return found
 
     def _locate(self, m, x, u, w, h, cross, f0, f1):
         """First root of phi(tau) = min over crossing guards of gap(RK4(x, tau)) on (0, h].
