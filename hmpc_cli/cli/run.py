@@ -186,14 +186,16 @@ def _live_sink(port: int):
 
 def _execute(prepared, sc, toml_text: str, out: Path, quiet: bool, sink=None,
              provenance=None):
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
     from hmpc_cli.run.runner import execute_run
 
-    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(),
-                        TextColumn("t = {task.fields[t]:.2f} s"), TimeElapsedColumn(),
-                        disable=quiet, transient=True)
     try:
+        if quiet:  # no progress bar: nothing to draw, nothing of rich's to import
+            return execute_run(prepared, toml_text, out, None, sink, provenance)
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+        progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(),
+                            TextColumn("t = {task.fields[t]:.2f} s"), TimeElapsedColumn(),
+                            transient=True)
         with progress:
             task = progress.add_task(sc.name, total=1.0, t=0.0)
             dur = sc.sim.duration
