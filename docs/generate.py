@@ -11,8 +11,10 @@
   (``--set`` syntax, sweep files).
 * ``docs/log-format.md``: every topic's fields from the topic types of
   :mod:`hmpc_cli.log.topics` through the schema engine :mod:`hmpc_cli.log.schema`
-  (``topic_schemas`` with placeholder name sets), the plug-ins' typed ``detail`` records,
-  and the hand-written sections on the viewers, ``read_run``, replay and export.
+  (``topic_schemas`` with placeholder name sets), each described by its dataclass's
+  ``Attributes:`` section (:func:`hmpc_cli.log.schema.field_docs`), the plug-ins' typed
+  ``detail`` records, and the hand-written sections on the viewers, ``read_run``, replay
+  and export.
 
 The output depends on the code only (no time, no machine, no installed third-party
 plug-in: plug-ins outside ``hmpc_cli`` are left out), so it is the same on every machine.
@@ -468,31 +470,78 @@ PLACEHOLDERS = {"state": ["<state>"], "input": ["<input>"], "disturbance": ["<w>
                 "guard": ["<guard>"], "body": ["<point>_x", "<point>_y"]}
 
 
+#: what one entry of a vector of names is (a :class:`~hmpc_cli.log.schema.Names` kind)
+NAME_ROWS = {
+    "state": "a state component, by the system's state names (/run/info `state_names`)",
+    "input": "an input component, by the system's input names (/run/info `input_names`)",
+    "disturbance": "a disturbance channel, by the system's disturbance names "
+                   "(/run/info `disturbance_names`)",
+    "guard": "one entry per guard, by the system's guard names (/run/info `guard_names`)",
+    "body": "a body point's coordinate in the drawing plane [m], `_x` to the right, `_y` up, "
+            "per point of /run/info `geometry.point_names`",
+}
+
+
 def _doc_line(cls) -> str:
-    return inspect.cleandoc(cls.__doc__ or "").split("\n\n")[0].replace("\n", " ")
+    return _md(inspect.cleandoc(cls.__doc__ or "").split("\n\n")[0].replace("\n", " "))
 
 
-def _schema_rows(schema: dict, path: str, out: list[str]) -> None:
+def _md(text: str) -> str:
+    """Inline reST markup as Markdown: ``x`` and :role:`~a.b` as code (the last part for ~)."""
+    text = re.sub(r":\w+:`(~?)([^`]+)`",
+                  lambda m: f"`{m[2].rsplit('.', 1)[-1] if m[1] else m[2]}`", text)
+    return text.replace("``", "`")
+
+
+def _fields(cls) -> dict[str, tuple[str, Any]]:
+    """A dataclass's JSON keys -> (its field's description, the field's Names or None).
+
+    A flat name field (a plan node's ``<state>``) gives one key per placeholder name.
+    """
+    import typing
+
+    from hmpc_cli.log.schema import Names, field_docs
+
+    if cls is None:
+        return {}
+    docs, hints, out = field_docs(cls), typing.get_type_hints(cls, include_extras=True), {}
+    for f in dataclasses.fields(cls):
+        names = next((m for m in getattr(hints[f.name], "__metadata__", ())
+                      if isinstance(m, Names)), None)
+        keys = PLACEHOLDERS[names.kind] if names is not None and names.flat else [f.name]
+        out.update({k: (_md(docs.get(f.name, "")), names) for k in keys})
+    return out
+
+
+def _schema_rows(schema: dict, path: str, out: list[str], kind: str | None = None) -> None:
+    """One row per property of ``schema`` (nested objects and arrays of objects inlined).
+
+    The "what" of a field is its description (its class's ``Attributes:``), of a
+    record field without one its record's first docstring line, of a vector's entry
+    ``NAME_ROWS[kind]``.
+    """
+    fields = _fields(_CLASSES.get(schema.get("title", "")))
     for name, p in schema.get("properties", {}).items():
         key = f"{path}{name}"
+        what, names = (NAME_ROWS[kind], None) if kind else fields.get(name, ("", None))
         t = p["type"]
         if t == "array":
             item = p["items"]
             if item["type"] == "object":
                 out.append(f"| `{key}` | array of {item.get('title', 'object')} | "
-                           f"{_cell(_title_doc(item))} |")
+                           f"{_cell(what or _title_doc(item))} |")
                 _schema_rows(item, f"{key}[:].", out)
             else:
-                out.append(f"| `{key}` | array of {item['type']} | |")
+                out.append(f"| `{key}` | array of {item['type']} | {_cell(what)} |")
         elif t == "object":
-            doc = _title_doc(p)
+            doc = what or _title_doc(p)
             if not p.get("properties"):
                 doc = doc or "empty (no typed detail)"
             out.append(f"| `{key}` | object{' ' + p['title'] if 'title' in p else ''} | "
                        f"{_cell(doc)} |")
-            _schema_rows(p, f"{key}.", out)
+            _schema_rows(p, f"{key}.", out, names.kind if names is not None else None)
         else:
-            out.append(f"| `{key}` | {t} | |")
+            out.append(f"| `{key}` | {t} | {_cell(what)} |")
 
 
 _CLASSES: dict[str, Any] = {}
@@ -504,18 +553,11 @@ def _title_doc(p: dict) -> str:
 
 
 def _collect_classes(cls) -> None:
-    import typing
+    """Remembers by name the records of ``cls``'s schema (itself included)."""
+    from hmpc_cli.log.schema import schema_classes
 
-    if not (isinstance(cls, type) and dataclasses.is_dataclass(cls)) or cls.__name__ in _CLASSES:
-        return
-    _CLASSES[cls.__name__] = cls
-    for tp in typing.get_type_hints(cls, include_extras=True).values():
-        stack = [tp]
-        while stack:
-            t = stack.pop()
-            if isinstance(t, type) and dataclasses.is_dataclass(t):
-                _collect_classes(t)
-            stack += list(typing.get_args(t))
+    for c in schema_classes(cls):
+        _CLASSES.setdefault(c.__name__, c)
 
 
 def log_format_md() -> str:
@@ -581,8 +623,9 @@ A system's vectors are objects with one number per name: the state `x` of a ball
 as placeholders: `<state>`, `<input>`, `<w>` (disturbance), `<guard>` and the body points'
 coordinates `<point>_x`, `<point>_y` (a system drawn with a skeleton). A plan node carries
 its state's and input's names as its own fields (`plan[:].px`, `plan[:].ux`): state and
-input names are distinct and never `t`, `seg`, `mode` or `mode_name`. Values are written
-as they are; NaN and inf as `null` (the viewers do not validate values).
+input names are distinct and never `t`, `seg`, `mode` or `mode_name`. A field that is
+None, NaN or ±inf is left out of its message, never `null` ("absent" below): `read_run`
+gives an absent field its default, else NaN for a number and None for a record.
 
 Writing: /sim/state samples, MPC solves and disturbance changes are held (at most {held})
 and written in order at the next message of another topic, and the writer flushes a chunk

@@ -94,3 +94,13 @@ def test_docs_links_resolve():
             if target.endswith("profile_switching.md"):
                 continue  # written by the benchmark that profiles the switching NLP
             assert (doc.parent / target).exists(), f"{doc.name}: broken link {target}"
+
+
+def test_log_format_describes_every_field():
+    """Every field row of docs/log-format.md's topic and detail tables says what it is."""
+    rows = [m for line in (DOCS / "log-format.md").read_text().splitlines()
+            if (m := re.fullmatch(r"\| `([^`]+)` \| ((?:array of |object)?[A-Za-z ]*) \| (.*) \|",
+                                  line))]
+    assert len(rows) > 150 and any(m[1] == "plan[:].<state>" for m in rows)
+    empty = [m[1] for m in rows if not m[3].strip()]
+    assert not empty, f"log-format.md: fields without a description: {empty}"

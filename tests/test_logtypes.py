@@ -222,3 +222,110 @@ def test_plan_nodes_are_the_schemas_records_node_by_node():
                        mode=np.zeros(0, int), seg=np.zeros(0, int))
     assert plan_nodes(empty, 0.0, model) == ()
     assert record_maker(("a", "b c", "'q'"))(1, 2.5, "x") == {"a": 1, "b c": 2.5, "'q'": "x"}
+
+
+def _logged_classes() -> list[type]:
+    """Every dataclass a topic's or a bundled plug-in's detail schema is made of, and the
+    other dataclasses of topics.py and geometry.py (a plan's and a rollout's arrays)."""
+    import dataclasses
+    import inspect
+
+    from hmpc_cli.core.registry import registry
+    from hmpc_cli.log import geometry, topics
+    from hmpc_cli.log.schema import schema_classes
+
+    reg = registry()
+    roots = [cls for _, cls in TOPICS.values()]
+    roots += [s.detail for specs in (reg.planners, reg.mpcs) for s in specs.values()
+              if s.detail is not None and s.detail.__module__.startswith("hmpc_cli.")]
+    out = dict.fromkeys(c for root in roots for c in schema_classes(root))
+    out.update(dict.fromkeys(
+        v for mod in (topics, geometry) for v in vars(mod).values()
+        if inspect.isclass(v) and dataclasses.is_dataclass(v) and v.__module__ == mod.__name__))
+    return list(out)
+
+
+def test_every_logged_field_is_described():
+    """Each field of a logged record has a description in its class's ``Attributes:``
+    (docs/log-format.md's "what"), and none names a field the class does not have;
+    the logged schemas carry no descriptions (the logs do not depend on the wording)."""
+    import dataclasses
+
+    from hmpc_cli.core.registry import registry
+    from hmpc_cli.log.schema import field_docs
+
+    classes = _logged_classes()
+    assert {"RunInfo", "Versions", "GeometryRec", "BuildInfo", "PlanNode", "RolloutNode",
+            "PlanArrays", "ChainDetail", "WalkingDetail", "FootholdsDetail",
+            "Candidate"} <= {c.__name__ for c in classes}
+    missing, stale = [], []
+    for cls in classes:
+        docs, names = field_docs(cls), [f.name for f in dataclasses.fields(cls)]
+        missing += [f"{cls.__module__}.{cls.__name__}.{n}" for n in names if not docs.get(n)]
+        stale += [f"{cls.__name__}.{n}" for n in docs if n not in names]
+    assert not missing, f"fields without a description in their class's Attributes: {missing}"
+    assert not stale, f"Attributes: entries of no field: {stale}"
+    reg = registry()
+    for p in reg.planners.values():
+        for m in reg.mpcs.values():
+            schemas = topic_schemas(NAMES, {"planner": p.detail, "mpc": m.detail})
+            assert "description" not in json.dumps(schemas)
+
+
+def test_field_docs_reads_the_attributes_section():
+    from hmpc_cli.log.schema import field_docs
+
+    @dataclass(frozen=True)
+    class Rec:
+        """A record.
+
+        Attributes:
+            a: the first line
+                and its continuation [s].
+
+            b (int): a typed entry.
+            d:
+                on the next line only.
+
+        Note:
+            not an attribute: the section ended.
+        """
+
+        a: float
+        b: int
+        c: str
+        d: str
+
+    @dataclass(frozen=True)
+    class Sub(Rec):
+        """A sub-record (its own entry wins).
+
+        Attributes:
+            b: overridden.
+            e: new.
+        """
+
+        e: int = 0
+
+    assert field_docs(Rec) == {"a": "the first line and its continuation [s].",
+                               "b": "a typed entry.", "d": "on the next line only."}
+    assert "c" not in field_docs(Rec)  # a field without a description: not there
+    assert field_docs(Sub) == {**field_docs(Rec), "b": "overridden.", "e": "new."}
+
+    @dataclass
+    class Bare:
+        x: int
+
+    @dataclass
+    class Bad:
+        """Bad.
+
+        Attributes:
+            x is the value.
+        """
+
+        x: int
+
+    assert field_docs(Bare) == {}
+    with pytest.raises(ValueError, match="Bad: Attributes: entry 'x is the value.'"):
+        field_docs(Bad)

@@ -289,10 +289,11 @@ class BuildInfo:
     """How an MPC's NLPs were built (the build cache's verdict, logged in /run/info).
 
     Attributes:
-        cache: ``"hit"`` (loaded from the cache), ``"miss"`` (built in SX, the cache
-            filled) or ``"disabled"`` (built in SX, no cache).
+        cache: ``"hit"`` (every NLP loaded compiled from the build cache), ``"miss"``
+            (an NLP built in SX; ``reason`` says what the cache keeps of it) or
+            ``"disabled"`` (built in SX, no cache).
         compiled: the solver calls compiled code (else the SX virtual machine).
-        reason: why, in one line.
+        reason: why, in one line (one clause per NLP where they differ).
     """
 
     cache: str

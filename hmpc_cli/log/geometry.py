@@ -26,7 +26,14 @@ __all__ = ["GeometryRec", "LineRec", "PolylineRec", "SegmentRec", "TerrainRec", 
 
 @dataclass(frozen=True)
 class PolylineRec:
-    """A static polyline of the drawing: name, vertices a (K,), b (K,) [m], closed."""
+    """A static polyline of the drawing: name, vertices a (K,), b (K,) [m], closed.
+
+    Attributes:
+        name: what it draws, e.g. a guard's name.
+        a: the vertices' first plane coordinate (K,) [m] (to the right).
+        b: the vertices' second plane coordinate (K,) [m] (up).
+        closed: the last vertex joins the first (a loop).
+    """
 
     name: str
     a: tuple[float, ...]
@@ -36,14 +43,24 @@ class PolylineRec:
 
 @dataclass(frozen=True)
 class LineRec:
-    """A polyline through named body points (a skeleton line)."""
+    """A polyline through named body points (a skeleton line).
+
+    Attributes:
+        points: the body points it joins, in order (names of ``point_names``).
+    """
 
     points: tuple[str, ...]
 
 
 @dataclass(frozen=True)
 class SegmentRec:
-    """A flat terrain segment from x0 to x1 [m] at height [m]."""
+    """A flat terrain segment from x0 to x1 [m] at height [m].
+
+    Attributes:
+        x0: where the segment starts [m].
+        x1: where the segment ends [m].
+        height: the segment's height [m].
+    """
 
     x0: float
     x1: float
@@ -52,7 +69,12 @@ class SegmentRec:
 
 @dataclass(frozen=True)
 class TerrainRec:
-    """A piecewise-flat terrain: the ground height for x <= 0 [m] and its segments."""
+    """A piecewise-flat terrain: the ground height for x <= 0 [m] and its segments.
+
+    Attributes:
+        ground: the height for x <= 0 [m].
+        segments: consecutive flat segments from x = 0, ascending.
+    """
 
     ground: float
     segments: tuple[SegmentRec, ...]
@@ -63,12 +85,13 @@ class GeometryRec:
     """The system's geometry as the run's figures draw it (see the module docstring).
 
     Attributes:
-        plane: two state names spanning the drawing plane ((): none declared).
-        goal: the goal vector (in the system's goal coordinates).
-        static: the drawing's static polylines.
-        point_names: names of the logged body points ((): no body is logged).
-        skeleton: polylines through body points.
-        terrain: the walking surface, if any.
+        plane: two state names spanning the plane figures draw trajectories in
+            (``HybridSystem.plane``; empty: none declared).
+        goal: the goal point, in the coordinates of the system's ``goal_map``.
+        static: the drawing's static polylines (guards, walls, stairs; empty: no drawing).
+        point_names: names of the logged body points (empty: no body is logged).
+        skeleton: polylines through body points (empty: no body is logged).
+        terrain: the walking surface (absent: the system walks on none).
     """
 
     plane: tuple[str, ...]

@@ -5,21 +5,25 @@ string, every object with ``properties``, array items scalars or objects
 (:func:`viewer_problems` checks a schema against that subset). Vectors of a system are
 objects with one number per name (:class:`Names`); a plug-in's typed detail is a field
 whose dataclass the plug-in declares (:class:`Detail`). :func:`convert` builds a dataclass
-from decoded JSON; :func:`validate` checks a message against its schema.
+from decoded JSON; :func:`validate` checks a message against its schema. :func:`field_docs`
+reads a dataclass's field descriptions (its docstring's ``Attributes:`` section) for the
+manual; the schemas carry none (the logs' schema records do not depend on the wording).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import inspect
+import re
 import types
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Annotated, Any
 
-__all__ = ["Detail", "Names", "Nodes", "convert", "flat_keys", "read_record", "record_type",
-           "type_schema", "validate", "viewer_problems"]
+__all__ = ["Detail", "Names", "Nodes", "convert", "field_docs", "flat_keys", "read_record",
+           "record_type", "schema_classes", "type_schema", "validate", "viewer_problems"]
 
 
 @dataclass(frozen=True)
@@ -116,6 +120,40 @@ def _object_schema(tp: type, names: Mapping[str, typing.Sequence[str]],
     return {"title": tp.__name__, "type": "object", "properties": props}
 
 
+def schema_classes(tp, details: Mapping[str, type | None] | None = None) -> tuple[type, ...]:
+    """The dataclasses whose fields make up the JSON schema of ``tp``, each once, in order.
+
+    As :func:`type_schema` nests them: ``tp`` itself, its fields' records (tuples of
+    records too), a :class:`Nodes` field's node record (not its in-memory arrays) and a
+    :class:`Detail` field's declared type (``details``); not a :class:`Names` vector.
+    """
+    out: dict[type, None] = {}
+    _collect(tp, dict(details or {}), out)
+    return tuple(out)
+
+
+def _collect(tp, details: Mapping[str, type | None], out: dict[type, None]) -> None:
+    tp, _ = _strip_optional(tp)
+    if typing.get_origin(tp) is Annotated:
+        base, *meta = typing.get_args(tp)
+        for m in meta:
+            if isinstance(m, Names):
+                return
+            if isinstance(m, (Detail, Nodes)):
+                sub = details.get(m.of) if isinstance(m, Detail) else m.node
+                if sub is not None:
+                    _collect(sub, details, out)
+                return
+        _collect(base, details, out)
+    elif typing.get_origin(tp) in (tuple, list):
+        _collect(typing.get_args(tp)[0], details, out)
+    elif dataclasses.is_dataclass(tp) and tp not in out:
+        out[tp] = None
+        hints = _hints(tp)
+        for f in dataclasses.fields(tp):
+            _collect(hints[f.name], details, out)
+
+
 def _flat(tp) -> Names | None:
     """The flat :class:`Names` of a field annotation, or None."""
     if typing.get_origin(tp) is Annotated:
@@ -131,6 +169,63 @@ def flat_keys(cls: type, names: Mapping[str, typing.Sequence[str]]) -> tuple[str
         flat = _flat(hints[f.name])
         out += list(names.get(flat.kind, ())) if flat is not None else [f.name]
     return tuple(out)
+
+
+#: an ``Attributes:`` entry's first line: ``name: text`` or ``name (type): text``
+_ENTRY = re.compile(r"(\w+)(?:\s*\([^()]*\))?:(?:\s+(.*))?")
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """Field name -> description, from the ``Attributes:`` sections of ``cls`` and its bases.
+
+    A Google-style section: the line ``Attributes:``, then one entry per field, indented,
+    ``name: text`` (or ``name (type): text``), its continuation lines indented further;
+    the section ends at the first non-blank line indented no deeper than ``Attributes:``.
+    A description is its lines joined by single spaces. A field the sections do not name
+    is not in the result; a class without the section gives {}. A base's entry is
+    overridden by the subclass's entry of the same name.
+
+    Raises:
+        ValueError: an entry line that is not ``name: text``.
+    """
+    out: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if klass is not object:
+            out.update(_attributes(inspect.cleandoc(vars(klass).get("__doc__") or ""),
+                                   klass.__name__))
+    return out
+
+
+def _attributes(doc: str, owner: str) -> dict[str, str]:
+    """The entries of one docstring's ``Attributes:`` section (see :func:`field_docs`)."""
+    lines = doc.splitlines()
+    head = next((i for i, line in enumerate(lines) if line.strip() == "Attributes:"), None)
+    if head is None:
+        return {}
+    top = _indent(lines[head])
+    entries: list[list[str]] = []
+    at = None  # the entries' indentation
+    for line in lines[head + 1:]:
+        if not line.strip():
+            continue
+        ind = _indent(line)
+        if ind <= top:
+            break
+        if at is None:
+            at = ind
+        if ind <= at:
+            m = _ENTRY.fullmatch(line.strip())
+            if m is None:
+                raise ValueError(f"{owner}: Attributes: entry {line.strip()!r} is not "
+                                 "'name: description'")
+            entries.append([m.group(1), m.group(2) or ""])
+        else:
+            entries[-1][1] += " " + line.strip()
+    return {name: text.strip() for name, text in entries}
+
+
+def _indent(line: str) -> int:
+    return len(line) - len(line.lstrip())
 
 
 def convert(cls, value):

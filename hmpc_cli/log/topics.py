@@ -42,7 +42,19 @@ Body = Annotated[dict, Names("body")]
 
 @dataclass(frozen=True)
 class Versions:
-    """Versions of everything that can change a trajectory."""
+    """Versions of everything that can change a trajectory.
+
+    Attributes:
+        hmpc: hmpc's version (``hmpc_cli.__version__``).
+        python: the Python version, e.g. "3.12.3".
+        numpy: NumPy's version.
+        casadi: CasADi's version.
+        pydantic: pydantic's version.
+        mcap: the ``mcap`` package's version ("?" if it does not say).
+        platform: the operating system, as ``platform.platform()`` says.
+        cpu: the CPU's model name (/proc/cpuinfo's ``model name``, elsewhere the
+            platform's processor or machine type; absent in older logs).
+    """
 
     hmpc: str
     python: str
@@ -56,7 +68,14 @@ class Versions:
 
 @dataclass(frozen=True)
 class GuardMarginRec:
-    """A guard's row offsets (NLP row units)."""
+    """A guard's row offsets (NLP row units).
+
+    Attributes:
+        guard: the guard's name.
+        avoid: the guard-avoid offset, kappa(d, past=False) (NLP row units).
+        pass_through: the virtual-node (pass-through) offset, kappa(d, past=True) (NLP
+            row units).
+    """
 
     guard: str
     avoid: float
@@ -65,7 +84,13 @@ class GuardMarginRec:
 
 @dataclass(frozen=True)
 class InputMarginRec:
-    """A mode's input-box shrink per side."""
+    """A mode's input-box shrink per side.
+
+    Attributes:
+        mode: the mode's name.
+        per_side: how far each bound of the mode's input box moves inward, one value per
+            input, in the system's input order (input units).
+    """
 
     mode: str
     per_side: tuple[float, ...]
@@ -73,7 +98,15 @@ class InputMarginRec:
 
 @dataclass(frozen=True)
 class MarginsRec:
-    """The MPC's margins: hand-set or a margins file's."""
+    """The MPC's margins: hand-set or a margins file's.
+
+    Attributes:
+        source: "hand" (the MPC kind's hand-set margins), "tube at <rate> Hz" (the
+            scenario's own tube, ``mpc.margins = "tube"``) or the margins file's path.
+        radius: the tube radius d the offsets come from [state norm].
+        guards: the offsets per guard, in the system's guard order.
+        inputs: the input-box shrinks per mode, in the system's mode order.
+    """
 
     source: str
     radius: float
@@ -83,7 +116,33 @@ class MarginsRec:
 
 @dataclass(frozen=True)
 class RunInfo:
-    """/run/info: the run's identity (written first)."""
+    """/run/info: the run's identity (written first).
+
+    Attributes:
+        log_version: the log layout (:data:`LOG_VERSION` of the hmpc that wrote it).
+        scenario_name: the scenario's ``name``.
+        seed: the run's seed (``seed``; seeds the disturbance and the planner's samples).
+        system: the controllers' model's name (``HybridSystem.name``).
+        mpc_kind: the fixed-mode MPC's kind (``mpc.kind``).
+        planner_kind: the planner's kind (``planner.kind``).
+        command: the command line that started the run.
+        overrides: the ``key=value`` overrides applied to the scenario file (``--set``, a
+            sweep cell's, ``seed=``), in order.
+        versions: versions of everything that can change a trajectory.
+        scenario_json: the validated scenario as run (every default filled in), as JSON
+            text with sorted keys.
+        state_names: the model's state names, in state order (the ``<state>`` keys).
+        input_names: the model's input names, in input order (the ``<input>`` keys).
+        disturbance_names: the model's disturbance names, in order (the ``<w>`` keys).
+        mode_names: the model's mode names; a mode index elsewhere indexes this.
+        guard_names: the model's guard names; a guard index elsewhere indexes this.
+        margins: the tightenings the MPC applies, hand-set ones included (absent: the MPC
+            applies none).
+        geometry: the simulated system's geometry, for figures and the 3D scene.
+        sweep: the sweep file of a sweep's run, as given on the command line ("": a
+            single run).
+        build: how the MPC's NLPs were built (absent: the MPC does not say).
+    """
 
     log_version: int
     scenario_name: str
@@ -102,13 +161,29 @@ class RunInfo:
     guard_names: tuple[str, ...]
     margins: MarginsRec | None = None
     geometry: GeometryRec | None = None
-    sweep: str = ""  # the sweep file of a sweep's run, "" for a single run
+    sweep: str = ""
     build: BuildInfo | None = None
 
 
 @dataclass(frozen=True)
 class StateSample:
-    """/sim/state: the simulated state, the applied input, the reference, the disturbance."""
+    """/sim/state: the simulated state, the applied input, the reference, the disturbance.
+
+    ``u``, ``x_ref`` and ``w`` are those of the simulator step that starts at ``t``; the
+    last sample (the run's end) repeats those of the last step.
+
+    Attributes:
+        t: simulated time of the sample [s] (every ``sim.log_rate_hz``, and the run's end).
+        mode: the simulated system's mode index (/run/info ``mode_names``).
+        mode_name: that mode's name.
+        x: the simulated state.
+        u: the input applied over the step, as the low level commands it, saturated to
+            the mode's input box.
+        x_ref: the reference state the low level tracks at t, from the plan it tracks
+            (empty before the first plan: no reference).
+        w: the disturbance applied over the step.
+        body: the simulated system's body points at x (empty: the system logs no body).
+    """
 
     t: float
     mode: int
@@ -122,7 +197,20 @@ class StateSample:
 
 @dataclass(frozen=True)
 class GuardEventRec:
-    """/sim/event: a guard crossing of the simulated system."""
+    """/sim/event: a guard crossing of the simulated system.
+
+    Attributes:
+        t: simulated time of the crossing [s] (located exactly within the step).
+        guard: the guard's index (/run/info ``guard_names``).
+        guard_name: the guard's name.
+        mode_before: the name of the guard's source mode (the mode before the reset).
+        mode_after: the name of the guard's target mode (the mode after the reset).
+        x_before: the state on the guard, before the reset.
+        x_after: the state after the reset.
+        scheduled: the guard was the next one of the schedule the layers hold (false: no
+            schedule, an unscheduled guard, or a later guard of the schedule).
+        body_before: the body points at ``x_before`` (empty: the system logs no body).
+    """
 
     t: float
     guard: int
@@ -137,7 +225,13 @@ class GuardEventRec:
 
 @dataclass(frozen=True)
 class WRec:
-    """/disturbance: the disturbance from this time on."""
+    """/disturbance: the disturbance from this time on.
+
+    Attributes:
+        t: simulated time of the change [s] (the start of the first step it applies to;
+            the first message is at the first step).
+        w: the disturbance, held until the next /disturbance message.
+    """
 
     t: float
     w: Dist
@@ -145,7 +239,18 @@ class WRec:
 
 @dataclass(frozen=True)
 class ScheduleRec:
-    """A domain/guard sequence: modes, the guards between them, their durations [s]."""
+    """A domain/guard sequence: modes, the guards between them, their durations [s].
+
+    Attributes:
+        modes: the domains D_0..D_S as mode indices (/run/info ``mode_names``).
+        mode_names: their names.
+        guards: the guards G_1..G_S as guard indices (G_j leads from D_{j-1} to D_j).
+        guard_names: their names.
+        durations: the planned time in D_0..D_{S-1} [s] (D_S takes the rest of the
+            horizon).
+        t0: simulated time the schedule was planned at [s]; the schedules an event
+            advances keep it.
+    """
 
     modes: tuple[int, ...]
     mode_names: tuple[str, ...]
@@ -160,7 +265,19 @@ class PlanNode:
     """One node of an MPC plan: absolute time [s], domain segment, mode, values.
 
     The state's and the input's named values are fields of the node itself
-    (``plan[:].px``).
+    (``plan[:].px``). A reset is two nodes with the same time: on the guard, then after
+    the reset.
+
+    Attributes:
+        t: the node's simulated time [s]: the plan's start (the solve's t, or the
+            predicted arrival under ``sim.delay_compensation``) plus the node's offset.
+        seg: the node's domain segment: 0 in the schedule's first domain, one more after
+            each reset.
+        mode: the node's mode index (/run/info ``mode_names``).
+        mode_name: that mode's name.
+        x: the planned state, one field per state name.
+        u: the planned input at the node, one field per input name (held to the next
+            node or interpolated to its input, as the MPC's input hold says).
     """
 
     t: float
@@ -192,7 +309,12 @@ class PlanArrays:
 
 @dataclass(frozen=True)
 class RolloutArrays:
-    """A planner rollout's R nodes as arrays: absolute times t (R,) [s], states x (R, n)."""
+    """A planner rollout's R nodes as arrays (written as :class:`RolloutNode` records).
+
+    Attributes:
+        t: times from the planner call's t (R,) [s] (the rollout starts at 0).
+        x: states (R, n).
+    """
 
     t: np.ndarray
     x: np.ndarray
@@ -200,7 +322,39 @@ class RolloutArrays:
 
 @dataclass(frozen=True)
 class MpcSolve:
-    """/mpc/solve: one fixed-mode MPC solve and its plan."""
+    """/mpc/solve: one fixed-mode MPC solve and its plan.
+
+    Attributes:
+        t: simulated time the solve was made at [s]; its plan starts here, or at the
+            predicted arrival under ``sim.delay_compensation``.
+        reason: why it was made: "initial", "period", "impact" (after a contact) or
+            "replan" (after a planner call); " (over budget: dropped)" appended when it
+            was dropped over ``sim.solve_budget``, " (after a contact stopped the solve
+            of t = ... s: dropped)" when a contact stopped solves in flight first.
+        status: the solver's return status ("schedule rejected: <why>": the MPC cannot
+            solve the schedule, nothing was solved).
+        success: the solver converged to a finite point.
+        iterations: solver iterations (0 for a rejected schedule).
+        wall_time: measured solve time [s].
+        cost: the optimal cost, the objective at the solution projected onto the
+            variables' bounds (absent: none).
+        max_violation: the largest violation of the solved NLP's rows and bounds (NLP row
+            units; absent: not finite, e.g. a rejected schedule).
+        slack: the largest relaxation of the hybrid (guard, virtual-node, region,
+            terminal) constraints by the soft-constraint slacks (0: they hold exactly).
+        adopted: the low level tracks this plan (false: a failed solve without a usable
+            fallback plan, a rejected schedule, or a solve dropped over budget; the
+            previous plan is tracked on).
+        schedule: the schedule the plan was solved for, as the MPC holds it (absent:
+            none).
+        plan: the plan's nodes: every ``sim.log_plan_stride``-th, the nodes either side
+            of a reset and the last one kept (empty: a rejected schedule).
+        detail: the MPC's typed detail, its spec's ``detail`` (absent: none, e.g. a
+            rejected schedule's, or the MPC declares no detail type).
+        latency: compute time charged [s] (``sim.latency``; 0: time paused): the plan
+            reaches the plant that long after t unless dropped (over budget: adopted
+            false).
+    """
 
     t: float
     reason: str
@@ -215,14 +369,17 @@ class MpcSolve:
     schedule: ScheduleRec | None
     plan: Annotated[PlanArrays, Nodes(PlanNode)]
     detail: Annotated[Any, Detail("mpc")] = None
-    #: compute time charged [s] (``sim.latency``; 0: time paused): the plan reaches the
-    #: plant that long after t unless dropped (over budget: adopted false)
     latency: float = 0.0
 
 
 @dataclass(frozen=True)
 class RolloutNode:
-    """One node of a planner's rollout: absolute time [s] and the state's named values."""
+    """One node of a planner's rollout: time from the call [s] and the state's named values.
+
+    Attributes:
+        t: the node's time from the planner call's t [s] (the rollout starts at 0).
+        x: the rollout's state, one field per state name.
+    """
 
     t: float
     x: Annotated[dict, Names("state", flat=True)]
@@ -230,7 +387,30 @@ class RolloutNode:
 
 @dataclass(frozen=True)
 class PlannerCall:
-    """/planner/plan: one hybrid-planner call."""
+    """/planner/plan: one hybrid-planner call.
+
+    Attributes:
+        t: simulated time of the call [s].
+        reason: why the planner ran: "initial", "contact" (a replan due at a contact:
+            off the schedule, or ``replanning.policy = "on_contact"``), "periodic"
+            (``replanning.period``) or "retry" (no schedule the MPC can solve is held:
+            retried every MPC period).
+        accepted: the planner found a schedule and the MPC can solve it (the layers
+            follow it from now on).
+        reached_final: the best candidate reached the final domain (or the target).
+        cost: the best candidate's cost (absent: none, e.g. no candidate succeeded or a
+            planner without a cost).
+        wall_time: the call's measured computation time [s] (a planner's own MPC solves
+            included).
+        iterations: iterations run (sampling iterations, or solver iterations summed).
+        note: why the schedule was not accepted, then "; previous schedule kept" or
+            "; no schedule yet" ("": accepted).
+        schedule: the planner's schedule, logged even when not accepted (absent: none
+            found).
+        rollout: the best rollout or plan (the MPC's initial guess; empty: none).
+        detail: the planner's typed detail, its spec's ``detail`` (absent: none, or the
+            planner declares no detail type).
+    """
 
     t: float
     reason: str
@@ -247,7 +427,12 @@ class PlannerCall:
 
 @dataclass(frozen=True)
 class StatusCount:
-    """How often a solver status occurred."""
+    """How often a solver status occurred.
+
+    Attributes:
+        status: a failed solve's solver status.
+        count: how many failed solves ended with it.
+    """
 
     status: str
     count: int
@@ -255,7 +440,42 @@ class StatusCount:
 
 @dataclass(frozen=True)
 class Summary:
-    """/run/summary: the run's outcome (summary.json, typed)."""
+    """/run/summary: the run's outcome (summary.json, typed).
+
+    Attributes:
+        scenario: the scenario's ``name``.
+        seed: the run's seed.
+        success: the task was achieved at the end and the run was not stopped early.
+        final_error: the task's error at the final state, e.g. the distance to the goal
+            in the system's goal coordinates (absent: NaN, e.g. a non-finite state).
+        t_end: simulated time the run ended at [s]: the scenario's end, or where it
+            stopped.
+        x_end: the final state (empty: its size is not the model's).
+        mode_end: the final mode's name.
+        contacts: guard events of the simulated system.
+        contacts_by_guard: guard events per guard name of the model (zeros included).
+        solves: fixed-mode MPC solves (one /mpc/solve each).
+        solver_failures: failed solves: the /mpc/solve ones with success false and the
+            failed solves a planner made itself (the foothold candidates), once each.
+        failure_statuses: the failed solves per solver status, by status.
+        softened_solves: successful solves whose slack exceeds 1e-6.
+        max_slack: the largest slack of a softened solve (0: none).
+        fallbacks: solves whose back-end failed and that IPOPT solved instead.
+        solve_time_median: median wall time of the solves [s] (absent: no solve).
+        solve_time_p95: 95th percentile of the solves' wall times [s] (absent: no solve).
+        solve_time_max: the longest solve's wall time [s] (absent: no solve).
+        planner_calls: planner calls.
+        planner_rejected: planner calls whose schedule was not accepted.
+        plan_time_median: median wall time of the planner calls [s] (absent: no call).
+        diverged: the run stopped numerically: a non-finite state, one beyond
+            ``sim.divergence_bound``, or Zeno chattering (false for the task's failures).
+        reason: why the run stopped early (a failure, "interrupted (<signal>)" or the
+            exception), else the task's verdict ("success" or why not).
+        wall_time: wall-clock time of the closed loop [s] (the run's set-up, e.g. the
+            NLPs' build, excluded).
+        warnings: warnings of the run, e.g. a planner that never found a schedule.
+        cpu: the CPU's model name (as ``Versions.cpu``).
+    """
 
     scenario: str
     seed: int

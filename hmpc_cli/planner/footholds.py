@@ -175,7 +175,22 @@ class FootholdPlanner:
 
 @dataclass(frozen=True)
 class Candidate:
-    """One foothold candidate's solve (the /planner/plan detail)."""
+    """One foothold candidate's solve (the /planner/plan detail).
+
+    Attributes:
+        segment: the candidate's guard index (/run/info ``guard_names``), whose contact
+            surface the swing lands on.
+        guard_name: that guard's name.
+        status: the fixed-mode MPC's solver status.
+        success: the solver converged to a finite point.
+        iterations: solver iterations.
+        wall_time: measured solve time [s].
+        cost: the solve's optimal cost (absent: none).
+        final_hip: the hip's (x, y) in the world at the plan's last node [m] (absent
+            only in older logs).
+        touchdown: the swing foot's (x, y) in the world at the plan's last node before
+            the impact [m] (absent only in older logs).
+    """
 
     segment: int
     guard_name: str
@@ -190,7 +205,12 @@ class Candidate:
 
 @dataclass(frozen=True)
 class FootholdsDetail:
-    """/planner/plan detail: every candidate's solve."""
+    """/planner/plan detail: every candidate's solve.
+
+    Attributes:
+        candidates: one per candidate surface within reach, in guard order (empty: none
+            within reach, the call's ``note`` says why).
+    """
 
     candidates: tuple[Candidate, ...]
 

@@ -172,7 +172,16 @@ def _problem(system: HybridSystem, settings: MPCSettings,
 
 @dataclass(frozen=True)
 class ChainDetail:
-    """/mpc/solve detail of the chain MPC: nodes shifted by time, flow nodes per domain."""
+    """/mpc/solve detail of the chain MPC: nodes shifted by time, flow intervals per domain.
+
+    Attributes:
+        shifted: flow intervals this solve moved from the current domain to the final
+            one for the time elapsed since the previous solve or impact (node shifting;
+            under ``mpc.schedule_rule = "reference"`` the intervals of the domains it
+            dropped too; 0: a newly installed schedule).
+        counts: flow intervals per domain D_0..D_S of the node schedule solved on (final
+            domain last; their sum is the horizon's N).
+    """
 
     shifted: int
     counts: tuple[int, ...]

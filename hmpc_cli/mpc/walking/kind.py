@@ -309,10 +309,15 @@ class WalkingDetail:
     """/mpc/solve detail of the walking MPC.
 
     Attributes:
-        segment: the target guard's index; ``elapsed``: time spent in the swing [s].
+        segment: the target guard's index (/run/info ``guard_names``), whose contact
+            surface the first swing lands on.
+        elapsed: time already spent in the current swing [s] (since the last contact, or
+            the run's start).
         warm: the warm start ("primal-dual", "primal", "neighbour": another surface's
             solution from the same state, or "cold").
-        touchdown: planned touchdown (x, y) [m]; ``final_hip``: final hip (x, y) [m].
+        touchdown: the planned touchdown, the swing foot's (x, y) in the world at the
+            first swing's last node [m].
+        final_hip: the hip's (x, y) in the world at the plan's last node [m].
     """
 
     segment: int
