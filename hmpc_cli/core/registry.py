@@ -121,7 +121,7 @@ class PlannerSpec:
         needs: system capabilities it uses (names or capability types, stored by name;
             checked against ``SystemSpec.provides``).
         requires: settings it needs (and their defaults).
-        detail: the frozen dataclass its ``PlannerResult.extra`` is logged as (the
+        detail: the frozen dataclass its ``PlannerResult.detail`` is logged as (the
             /planner/plan ``detail`` field; its JSON schema is generated from it), or
             None (no detail logged).
     """
@@ -154,7 +154,7 @@ class MPCSpec:
         hand_margins: (system, settings) -> the hand-set
             :class:`~hmpc_cli.core.messages.ConstraintMargins` (``margins = "hand"``; logged
             in /run/info); None: the MPC applies no tube margins.
-        detail: the frozen dataclass its ``Plan.extra`` is logged as (the /mpc/solve
+        detail: the frozen dataclass its ``Plan.detail`` is logged as (the /mpc/solve
             ``detail`` field), or None.
     """
 
