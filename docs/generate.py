@@ -623,9 +623,11 @@ A system's vectors are objects with one number per name: the state `x` of a ball
 as placeholders: `<state>`, `<input>`, `<w>` (disturbance), `<guard>` and the body points'
 coordinates `<point>_x`, `<point>_y` (a system drawn with a skeleton). A plan node carries
 its state's and input's names as its own fields (`plan[:].px`, `plan[:].ux`): state and
-input names are distinct and never `t`, `seg`, `mode` or `mode_name`. A field that is
-None, NaN or ±inf is left out of its message, never `null` ("absent" below): `read_run`
-gives an absent field its default, else NaN for a number and None for a record.
+input names are distinct and never `t`, `seg`, `mode` or `mode_name`. An object's field
+that is None, NaN or ±inf is left out of its message, never `null` ("absent" below):
+`read_run` gives an absent field its default, else NaN for a number and None for a record.
+A NaN or ±inf inside an array of numbers (e.g. `schedule.durations`) is written as
+`null`.
 
 Writing: /sim/state samples, MPC solves and disturbance changes are held (at most {held})
 and written in order at the next message of another topic, and the writer flushes a chunk

@@ -131,6 +131,8 @@ class LowLevelController:
     def _domain(self, plan: Plan, k: int = 0) -> tuple:
         """(ts (K floats), xs (K, n), us (K, m), zoh, cum (K, m)) of the plan's domain k.
 
+        In float64 whatever the plan's dtype (a plug-in's float32 plan is tracked alike).
+
         ``cum[i]``: the integral of the interpolated input from ts[0] to ts[i]. Made once
         per plan and domain (the simulator asks for the reference at every step, the plan
         changes at the MPC's rate).
@@ -139,7 +141,7 @@ class LowLevelController:
             return self._memo[2]
         tr = plan.traj
         nodes = np.nonzero(tr.seg == tr.seg[0] + k)[0]
-        ts, xs, us = tr.t[nodes], tr.x[nodes], tr.u[nodes]
+        ts, xs, us = (np.asarray(a[nodes], dtype=float) for a in (tr.t, tr.x, tr.u))
         hold = self.settings.feedforward
         zoh = (tr.input_hold if hold == "plan" else hold) == "zoh"
         pieces = np.diff(ts)[:, None] * (us[:-1] if zoh else 0.5 * (us[:-1] + us[1:]))

@@ -131,6 +131,10 @@ def test_staged_matrix_blocks_index_their_symbols_in_casadi_order():
         assert back.x[name].tolist() == lay.x[name].tolist()
         assert back.x.stages(name) == (0, 1, 2) and not back.x[name].flags.writeable
     assert back.x.at(2).tolist() == lay.x.at(2).tolist()
+    data = lay.to_dict()
+    data["x"]["entries"]["M"][1][2] = [3, 2]  # a stage of another shape: refused
+    with pytest.raises(ValueError, match="shapes differ"):
+        NLPLayout.from_dict(data)
 
 
 def _scalar_session(**kw):

@@ -113,3 +113,20 @@ def test_at_a_node_time_the_reference_is_that_node_and_the_held_input_switches_t
         before = tr.u[10] if hold == "zoh" else tr.u[10] + 0.9 * (tr.u[11] - tr.u[10])
         np.testing.assert_allclose(ctl.reference(0.54, plan, 0.02)[1],
                                    0.5 * (before + tr.u[11]), rtol=1e-12)
+
+
+def test_a_float32_plan_is_tracked_in_float64_as_the_same_plan_cast():
+    """A plug-in may hand over a float32 plan: the low level computes in float64."""
+    ctl = LowLevelController(build_system(BallParams()), LowLevelSettings())
+    plan = _plan(0.0, 4, "foh")
+    tr = plan.traj
+    narrow = Plan(0.0, Trajectory(tr.t.astype(np.float32), tr.x.astype(np.float32),
+                                  tr.u.astype(np.float32), tr.mode, tr.seg, tr.guards,
+                                  tr.input_hold), plan.stats, plan.schedule)
+    wide = Plan(0.0, Trajectory(*(a.astype(np.float32).astype(float)
+                                  for a in (tr.t, tr.x, tr.u)), tr.mode, tr.seg, tr.guards,
+                                tr.input_hold), plan.stats, plan.schedule)
+    for t, span in ((0.123, 0.01), (0.3, 0.0), (0.549, 0.002)):
+        got, want = ctl.reference(t, narrow, span), ctl.reference(t, wide, span)
+        assert [g.dtype for g in got] == [np.float64, np.float64]
+        assert [g.tolist() for g in got] == [w.tolist() for w in want]

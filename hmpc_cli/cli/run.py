@@ -188,14 +188,16 @@ def _execute(prepared, sc, toml_text: str, out: Path, quiet: bool, sink=None,
              provenance=None):
     from hmpc_cli.run.runner import execute_run
 
-    try:
-        if quiet:  # no progress bar: nothing to draw, nothing of rich's to import
-            return execute_run(prepared, toml_text, out, None, sink, provenance)
+    progress = None  # -q: no progress bar, nothing of rich's to import
+    if not quiet:
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
         progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(),
                             TextColumn("t = {task.fields[t]:.2f} s"), TimeElapsedColumn(),
                             transient=True)
+    try:
+        if progress is None:
+            return execute_run(prepared, toml_text, out, None, sink, provenance)
         with progress:
             task = progress.add_task(sc.name, total=1.0, t=0.0)
             dur = sc.sim.duration

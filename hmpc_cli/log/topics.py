@@ -200,7 +200,8 @@ class GuardEventRec:
     """/sim/event: a guard crossing of the simulated system.
 
     Attributes:
-        t: simulated time of the crossing [s] (located exactly within the step).
+        t: simulated time of the crossing [s], located within the step to a bracket of
+            ``sim.event_time_tol`` (its near side, before the guard).
         guard: the guard's index (/run/info ``guard_names``).
         guard_name: the guard's name.
         mode_before: the name of the guard's source mode (the mode before the reset).
@@ -462,7 +463,8 @@ class Summary:
         failure_statuses: the failed solves per solver status, by status.
         softened_solves: successful solves whose slack exceeds 1e-6.
         max_slack: the largest slack of a softened solve (0: none).
-        fallbacks: solves whose back-end failed and that IPOPT solved instead.
+        fallbacks: solves whose back-end failed so that its IPOPT fallback ran (whether
+            or not IPOPT then succeeded).
         solve_time_median: median wall time of the solves [s] (absent: no solve).
         solve_time_p95: 95th percentile of the solves' wall times [s] (absent: no solve).
         solve_time_max: the longest solve's wall time [s] (absent: no solve).

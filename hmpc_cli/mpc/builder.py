@@ -93,6 +93,9 @@ class Blocks:
             if es[0].stage is None:
                 idx = es[0].indices()
             else:  # the entries share one shape: each is its offset plus the first's cells
+                if any(e.shape != es[0].shape for e in es):
+                    raise ValueError(f"block {name!r}: its stages' shapes differ "
+                                     f"({sorted({e.shape for e in es})})")
                 cells = _Entry(None, 0, es[0].shape).indices()
                 offsets = np.fromiter((e.offset for e in es), dtype=int, count=len(es))
                 idx = offsets.reshape((-1,) + (1,) * cells.ndim) + cells
