@@ -242,18 +242,20 @@ class _Flat:
     def __init__(self) -> None:
         self.parts: list[ca.SX] = []
         self.entries: dict[str, list[_Entry]] = {}
+        self._stages: dict[str, set] = {}  # the stages each block is registered in
         self.size = 0
 
     def add(self, name: str, stage: Hashable | None, expr: ca.SX, shape: tuple) -> None:
         entries = self.entries.setdefault(name, [])
-        if entries and (stage is None or entries[0].stage is None
-                        or any(e.stage == stage for e in entries)):
+        stages = self._stages.setdefault(name, set())
+        if entries and (stage is None or entries[0].stage is None or stage in stages):
             raise ValueError(f"block {name!r} registered twice (stage {stage!r})")
         if entries and entries[0].shape != shape:
             raise ValueError(f"block {name!r}: shape {shape} != {entries[0].shape}")
-        if expr.numel() != int(np.prod(shape, dtype=int)):
+        if expr.numel() != math.prod(shape):
             raise ValueError(f"block {name!r}: {expr.numel()} entries for shape {shape}")
         entries.append(_Entry(stage, self.size, shape))
+        stages.add(stage)
         self.parts.append(ca.vec(expr))
         self.size += expr.numel()
 
