@@ -134,3 +134,24 @@ def test_fatrop_solves_the_zero_order_hold_problem_like_ipopt(ball, planned):
     np.testing.assert_allclose(fatrop.traj.x, ipopt.traj.x, atol=1e-3)
     with pytest.raises(ValueError, match="zoh"):
         MPCSettings(solver="fatrop")
+
+
+@pytest.mark.parametrize("hold, integrator", [("foh", "rk4"), ("zoh", "rk4"), ("foh", "euler")])
+def test_the_interval_functions_give_the_graph_written_out_node_by_node(ball, hold, integrator):
+    """Each mode's interval is one SX function called on every node's symbols: the NLP's
+    graph is the one the operations written out at each node give, byte for byte."""
+    import casadi as ca
+
+    from hmpc_cli.mpc.chain.nlp import FixedModeNLPs
+
+    nlps = FixedModeNLPs(ball, MPCSettings(horizon=0.5, max_switches=3, input_hold=hold,
+                                           integrator=integrator))
+    for nlp in (nlps.switching, nlps.final):
+        graphs = []
+        for written_out in (False, True):
+            if written_out:
+                nlp._interval = nlp._interval_expr  # the operations at each node
+            x, _ = nlp._transcription()
+            graphs.append(ca.Function("nlp", [x["x"], x["p"]], [x["f"], x["g"]]).serialize())
+            nlp.__dict__.pop("_interval", None)
+        assert graphs[0] == graphs[1]

@@ -283,7 +283,34 @@ class FixedModeNLP:
 
     # ------------------------------------------------------------------ build
     def _interval(self, mode: int, z, u, u_end):
-        """One interval of ``mode`` from z with the input going linearly from u to u_end."""
+        """One interval of ``mode`` from z with the input going linearly from u to u_end.
+
+        On symbols (a node's z, u, u_end in SX) it calls the mode's interval function
+        (:meth:`_interval_function`): the same graph as the expression built in place, in
+        a few Python calls instead of dozens per node and mode. On numeric inputs (the
+        last node's zero inputs) the expression is built in place, as before.
+        """
+        if isinstance(u, ca.SX) and isinstance(u_end, ca.SX):
+            return self._interval_function(mode)(z, u, u_end)
+        return self._interval_expr(mode, z, u, u_end)
+
+    def _interval_function(self, mode: int) -> ca.Function:
+        """``mode``'s interval as an SX function (z, u, u_end) -> z_next, made once per mode.
+
+        Called on SX arguments, CasADi replays its instructions on them with the same
+        simplifications as the operations written out, so the NLP's graph is the same
+        node for node (its serialization, and so every iterate, unchanged).
+        """
+        made = self.__dict__.setdefault("_intervals", {})
+        if mode not in made:
+            z, u, u_end = (ca.SX.sym(n, d) for n, d in (("z", self.n), ("u", self.m),
+                                                          ("u_end", self.m)))
+            made[mode] = ca.Function(f"interval_{mode}", [z, u, u_end],
+                                     [self._interval_expr(mode, z, u, u_end)])
+        return made[mode]
+
+    def _interval_expr(self, mode: int, z, u, u_end):
+        """The interval of :meth:`_interval` written out in operations on its arguments."""
         f = self.system.modes[mode].flow
         w = ca.DM.zeros(self.system.n_w)
         h = self.dt
