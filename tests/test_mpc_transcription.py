@@ -136,10 +136,36 @@ def test_fatrop_solves_the_zero_order_hold_problem_like_ipopt(ball, planned):
         MPCSettings(solver="fatrop")
 
 
+def _path_rows_written_out(nlp, b, k, z, flows, sk):
+    """Node k's path rows written out from the parameter vector, as the NLP's docstring
+    states them (the reference the node function must reproduce)."""
+    import casadi as ca
+
+    P, q, G, switching = nlp._par, nlp._q, nlp.G, nlp.S > 0
+    qz = {i: q[i](z) for i in (range(G) if switching else nlp.row_guards)}
+    b.rows("guard_avoid", [P["s"][k, c] * qz[i] - P["kappa"][k, c] + sk
+                           for c, i in enumerate(nlp.row_guards)])
+    if not switching:
+        return
+    b.rows("guard_hit", sum(P["hit"][k, i] * qz[i] for i in range(G)) - sk, shape=())
+    virt = 0
+    for i in range(G):
+        virt += P["beta"][k, i] * (-q[i](flows[nlp._src[i]]))
+    b.rows("virtual_node", virt - P["kappa_v"][k] + sk, shape=())
+    reg = ca.SX.zeros(nlp.R)
+    for i in range(G):
+        reg += P["beta"][k, i] * nlp._regions[i](z)
+    if nlp.R:
+        b.rows("region", reg + sk)
+
+
 @pytest.mark.parametrize("hold, integrator", [("foh", "rk4"), ("zoh", "rk4"), ("foh", "euler")])
-def test_the_interval_functions_give_the_graph_written_out_node_by_node(ball, hold, integrator):
-    """Each mode's interval is one SX function called on every node's symbols: the NLP's
-    graph is the one the operations written out at each node give, byte for byte."""
+def test_the_node_functions_give_the_graph_written_out_node_by_node(ball, hold, integrator):
+    """Each mode's interval and the node's path rows are SX functions called on every
+    node's symbols: the NLP's graph is the one the operations written out at each node
+    give, byte for byte (so no iterate depends on how the NLP was transcribed)."""
+    import functools
+
     import casadi as ca
 
     from hmpc_cli.mpc.chain.nlp import FixedModeNLPs
@@ -149,9 +175,11 @@ def test_the_interval_functions_give_the_graph_written_out_node_by_node(ball, ho
     for nlp in (nlps.switching, nlps.final):
         graphs = []
         for written_out in (False, True):
-            if written_out:
-                nlp._interval = nlp._interval_expr  # the operations at each node
+            if written_out:  # the operations at each node
+                nlp._interval = nlp._interval_expr
+                nlp._path_rows = functools.partial(_path_rows_written_out, nlp)
             x, _ = nlp._transcription()
             graphs.append(ca.Function("nlp", [x["x"], x["p"]], [x["f"], x["g"]]).serialize())
-            nlp.__dict__.pop("_interval", None)
+            for name in ("_interval", "_path_rows"):
+                nlp.__dict__.pop(name, None)
         assert graphs[0] == graphs[1]

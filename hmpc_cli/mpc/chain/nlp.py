@@ -434,23 +434,65 @@ class FixedModeNLP:
         return J + self.s.soft_penalty * ca.sum1(ca.vertcat(*sigmas))
 
     def _path_rows(self, b: NLPBuilder, k: int, z, flows: list, sk) -> None:
-        """Node k's guard-avoid, guard-hit, virtual-node and region rows."""
-        P, q, G, switching = self._par, self._q, self.G, self.S > 0
-        qz = {i: q[i](z) for i in (range(G) if switching else self.row_guards)}
-        b.rows("guard_avoid", [P["s"][k, c] * qz[i] - P["kappa"][k, c] + sk
-                               for c, i in enumerate(self.row_guards)])
+        """Node k's guard-avoid, guard-hit, virtual-node and region rows.
+
+        Made by the node function (:meth:`_path_function`) called on node k's symbols: the
+        graph the rows written out at the node give (see :meth:`_interval_function`).
+        """
+        P, switching, C = self._par, self.S > 0, len(self.row_guards)
+        params = [ca.vertcat(*(P[name][k, c] for c in range(C))) for name in ("s", "kappa")]
+        if switching:
+            params += [ca.vertcat(*(P[name][k, i] for i in range(self.G)))
+                       for name in ("hit", "beta")] + [P["kappa_v"][k]]
+        rows = self._path_function()(z, sk, *(flows if switching else ()), *params)
+        b.rows("guard_avoid", rows[0])
         if not switching:
             return
-        b.rows("guard_hit", sum(P["hit"][k, i] * qz[i] for i in range(G)) - sk, shape=())
+        b.rows("guard_hit", rows[1], shape=())
+        b.rows("virtual_node", rows[2], shape=())
+        if self.R:
+            b.rows("region", rows[3])
+
+    def _path_function(self) -> ca.Function:
+        """The node's path rows as an SX function, made once per NLP.
+
+        (z, sigma, the M flows (switching NLP), s, kappa (C each), hit, beta (G each),
+        kappa_v) -> (guard_avoid (C), guard_hit, virtual_node, region (R)); without
+        switches only (z, sigma, s, kappa) -> guard_avoid.
+        """
+        if "_path" not in self.__dict__:
+            switching, C, G = self.S > 0, len(self.row_guards), self.G
+            z, sk = ca.SX.sym("z", self.n), ca.SX.sym("sigma")
+            flows = [ca.SX.sym(f"flow_{c}", self.n) for c in range(self.M)] if switching \
+                else []
+            s, kappa = ca.SX.sym("s", C), ca.SX.sym("kappa", C)
+            ins = [z, sk, *flows, s, kappa]
+            if switching:
+                hit, beta, kappa_v = ca.SX.sym("hit", G), ca.SX.sym("beta", G), \
+                    ca.SX.sym("kappa_v")
+                ins += [hit, beta, kappa_v]
+                outs = self._path_exprs(z, flows, sk, s, kappa, hit, beta, kappa_v)
+            else:
+                outs = self._path_exprs(z, flows, sk, s, kappa)
+            self._path = ca.Function("path_rows", ins, outs)
+        return self._path
+
+    def _path_exprs(self, z, flows, sk, s, kappa, hit=None, beta=None, kappa_v=None) -> list:
+        """The rows of :meth:`_path_function` written out in operations on its arguments."""
+        q, G = self._q, self.G
+        qz = {i: q[i](z) for i in (range(G) if hit is not None else self.row_guards)}
+        avoid = ca.vertcat(*[s[c] * qz[i] - kappa[c] + sk
+                             for c, i in enumerate(self.row_guards)])
+        if hit is None:
+            return [avoid]
+        hit_row = sum(hit[i] * qz[i] for i in range(G)) - sk
         virt = 0
         for i in range(G):
-            virt += P["beta"][k, i] * (-q[i](flows[self._src[i]]))
-        b.rows("virtual_node", virt - P["kappa_v"][k] + sk, shape=())
+            virt += beta[i] * (-q[i](flows[self._src[i]]))
         reg = ca.SX.zeros(self.R)
         for i in range(G):
-            reg += P["beta"][k, i] * self._regions[i](z)
-        if self.R:
-            b.rows("region", reg + sk)
+            reg += beta[i] * self._regions[i](z)
+        return [avoid, hit_row, virt - kappa_v + sk, reg + sk]
 
     # ------------------------------------------------------------ problem data
     def problem_data(self, ns: NodeSchedule, lay: ChainLayout, x0: np.ndarray):
