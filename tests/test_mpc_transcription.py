@@ -159,19 +159,27 @@ def _path_rows_written_out(nlp, b, k, z, flows, sk):
         b.rows("region", reg + sk)
 
 
-@pytest.mark.parametrize("hold, integrator", [("foh", "rk4"), ("zoh", "rk4"), ("foh", "euler")])
-def test_the_node_functions_give_the_graph_written_out_node_by_node(ball, hold, integrator):
+@pytest.mark.parametrize("hold, integrator, final", [
+    ("foh", "rk4", "inside"), ("zoh", "rk4", "inside"), ("foh", "euler", "inside"),
+    ("foh", "rk4", "outside")])
+def test_the_node_functions_give_the_graph_written_out_node_by_node(ball, hold, integrator,
+                                                                     final):
     """Each mode's interval and the node's path rows are SX functions called on every
     node's symbols: the NLP's graph is the one the operations written out at each node
-    give, byte for byte (so no iterate depends on how the NLP was transcribed)."""
+    give, byte for byte (so no iterate depends on how the NLP was transcribed). The
+    final-domain NLP guards 1 row ("inside") or 3 ("outside": the ball's final mode
+    moved to the free flight, whose floor, wall and circle are all avoided)."""
+    import dataclasses
     import functools
 
     import casadi as ca
 
     from hmpc_cli.mpc.chain.nlp import FixedModeNLPs
 
-    nlps = FixedModeNLPs(ball, MPCSettings(horizon=0.5, max_switches=3, input_hold=hold,
-                                           integrator=integrator))
+    system = dataclasses.replace(ball, final_mode=final)
+    nlps = FixedModeNLPs(system, MPCSettings(horizon=0.5, max_switches=3, input_hold=hold,
+                                             integrator=integrator))
+    assert len(nlps.final.row_guards) == (1 if final == "inside" else 3)
     for nlp in (nlps.switching, nlps.final):
         graphs = []
         for written_out in (False, True):

@@ -444,7 +444,8 @@ class FixedModeNLP:
         if switching:
             params += [ca.vertcat(*(P[name][k, i] for i in range(self.G)))
                        for name in ("hit", "beta")] + [P["kappa_v"][k]]
-        rows = self._path_function()(z, sk, *(flows if switching else ()), *params)
+        # call(): a list of outputs even for one (calling it directly returns a lone SX)
+        rows = self._path_function().call([z, sk, *(flows if switching else ()), *params])
         b.rows("guard_avoid", rows[0])
         if not switching:
             return
