@@ -159,16 +159,42 @@ def _path_rows_written_out(nlp, b, k, z, flows, sk):
         b.rows("region", reg + sk)
 
 
-@pytest.mark.parametrize("hold, integrator, final", [
-    ("foh", "rk4", "inside"), ("zoh", "rk4", "inside"), ("foh", "euler", "inside"),
-    ("foh", "rk4", "outside")])
-def test_the_node_functions_give_the_graph_written_out_node_by_node(ball, hold, integrator,
-                                                                     final):
+def _lag_system():
+    """Two modes of a first-order lag (time constant 0.1 s) whose Euler step at 10 nodes/s
+    cancels the state: flows of negated terms, which CasADi simplifies (-(-a) = a)."""
+    import casadi as ca
+
+    from hmpc_cli.core.hybrid import Guard, HybridSystem, Mode
+
+    x, u, w = ca.SX.sym("x", 2), ca.SX.sym("u", 1), ca.SX.sym("w", 0)
+    f = ca.Function("f", [x, u, w], [ca.vertcat(x[1], (-u[0] - x[1]) / 0.1)])
+
+    def fn(name, e):
+        return ca.Function(name, [x], [e])
+
+    return HybridSystem(
+        name="lag", state_names=("p", "a"), input_names=("u",), disturbance_names=(),
+        modes=(Mode("A", f, (-1.0,), (1.0,)), Mode("B", f, (-1.0,), (1.0,))),
+        guards=(Guard("g0", "A", "B", fn("h0", x[1]), 0.0, -1, reset=fn("R", x)),
+                Guard("g1", "A", "B", fn("h1", x[0]), 1.0, +1, reset=fn("R", x))),
+        initial_mode="A", final_mode="B", x0=np.zeros(2), goal=np.zeros(2),
+        goal_map=fn("gm", x), stage_cost=ca.Function("L", [x, u], [ca.sumsqr(x) + ca.sumsqr(u)]),
+        terminal_set=None, tracking_gain=lambda kp, kd: np.zeros((1, 2)))
+
+
+@pytest.mark.parametrize("system, hold, integrator", [
+    ("ball", "foh", "rk4"), ("ball", "zoh", "rk4"), ("ball", "foh", "euler"),
+    ("ball, final outside", "foh", "rk4"), ("ball, mass 0.5", "zoh", "rk4"),
+    ("ball, mass 0.5", "foh", "rk4"), ("lag", "foh", "euler")])
+def test_the_node_functions_give_the_graph_written_out_node_by_node(ball, system, hold,
+                                                                     integrator):
     """Each mode's interval and the node's path rows are SX functions called on every
     node's symbols: the NLP's graph is the one the operations written out at each node
-    give, byte for byte (so no iterate depends on how the NLP was transcribed). The
-    final-domain NLP guards 1 row ("inside") or 3 ("outside": the ball's final mode
-    moved to the free flight, whose floor, wall and circle are all avoided)."""
+    give, byte for byte (so no iterate depends on how the NLP was transcribed). Cases
+    CasADi simplifies differently unless the functions are made with care: a final
+    domain of 3 guard-avoid rows (the ball's final mode moved to the free flight), a
+    held input (u_end the same node as u) in a flow that scales its input by 2 (mass
+    0.5), and flows of negated terms (the lag's Euler step)."""
     import dataclasses
     import functools
 
@@ -176,10 +202,14 @@ def test_the_node_functions_give_the_graph_written_out_node_by_node(ball, hold, 
 
     from hmpc_cli.mpc.chain.nlp import FixedModeNLPs
 
-    system = dataclasses.replace(ball, final_mode=final)
-    nlps = FixedModeNLPs(system, MPCSettings(horizon=0.5, max_switches=3, input_hold=hold,
-                                             integrator=integrator))
-    assert len(nlps.final.row_guards) == (1 if final == "inside" else 3)
+    model = {"ball": ball, "ball, final outside": dataclasses.replace(ball, final_mode="outside"),
+             "ball, mass 0.5": build_ball(BallParams(mass=0.5)), "lag": _lag_system()}[system]
+    fast = {"nodes_per_second": 10} if system == "lag" else {}
+    nlps = FixedModeNLPs(model, MPCSettings(horizon=0.5, max_switches=2 if system == "lag"
+                                            else 3, input_hold=hold, integrator=integrator,
+                                            **fast))
+    if system == "ball, final outside":
+        assert len(nlps.final.row_guards) == 3
     for nlp in (nlps.switching, nlps.final):
         graphs = []
         for written_out in (False, True):

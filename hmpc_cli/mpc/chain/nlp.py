@@ -290,24 +290,30 @@ class FixedModeNLP:
         a few Python calls instead of dozens per node and mode. On numeric inputs (the
         last node's zero inputs) the expression is built in place, as before.
         """
-        if isinstance(u, ca.SX) and isinstance(u_end, ca.SX):
-            return self._interval_function(mode)(z, u, u_end)
-        return self._interval_expr(mode, z, u, u_end)
+        if not (isinstance(u, ca.SX) and isinstance(u_end, ca.SX)):
+            return self._interval_expr(mode, z, u, u_end)
+        if u_end is u:  # zero-order hold (and a first-order hold's last link)
+            return self._interval_function(mode, held=True)(z, u)
+        return self._interval_function(mode, held=False)(z, u, u_end)
 
-    def _interval_function(self, mode: int) -> ca.Function:
-        """``mode``'s interval as an SX function (z, u, u_end) -> z_next, made once per mode.
+    def _interval_function(self, mode: int, held: bool) -> ca.Function:
+        """``mode``'s interval as an SX function, made once per mode and hold.
 
-        Called on SX arguments, CasADi replays its instructions on them with the same
-        simplifications as the operations written out, so the NLP's graph is the same
-        node for node (its serialization, and so every iterate, unchanged).
+        (z, u, u_end) -> z_next, or with ``held`` (z, u) -> z_next, the input held (its
+        u_end the same symbol as u, as the caller's: CasADi simplifies 0.5 (u + u) to u
+        there, and a function of two symbols would keep the sum). Called on SX arguments,
+        CasADi replays the instructions with the simplifications the operations written
+        out get, so the NLP's graph is the same node for node; the arguments are the
+        node's symbols (and u_end an expression of them), never an operation's result the
+        function's own simplifications could have seen through.
         """
         made = self.__dict__.setdefault("_intervals", {})
-        if mode not in made:
-            z, u, u_end = (ca.SX.sym(n, d) for n, d in (("z", self.n), ("u", self.m),
-                                                          ("u_end", self.m)))
-            made[mode] = ca.Function(f"interval_{mode}", [z, u, u_end],
-                                     [self._interval_expr(mode, z, u, u_end)])
-        return made[mode]
+        if (mode, held) not in made:
+            z, u = ca.SX.sym("z", self.n), ca.SX.sym("u", self.m)
+            ins = [z, u] if held else [z, u, ca.SX.sym("u_end", self.m)]
+            made[mode, held] = ca.Function(f"interval_{mode}", ins,
+                                           [self._interval_expr(mode, z, u, ins[-1])])
+        return made[mode, held]
 
     def _interval_expr(self, mode: int, z, u, u_end):
         """The interval of :meth:`_interval` written out in operations on its arguments."""
@@ -444,8 +450,12 @@ class FixedModeNLP:
         if switching:
             params += [ca.vertcat(*(P[name][k, i] for i in range(self.G)))
                        for name in ("hit", "beta")] + [P["kappa_v"][k]]
+            # the virtual node's guard terms, written out here: they are operations on the
+            # flows (expressions), which CasADi may simplify (e.g. -(-a) = a)
+            params.append(ca.vertcat(*(-self._q[i](flows[self._src[i]])
+                                       for i in range(self.G))))
         # call(): a list of outputs even for one (calling it directly returns a lone SX)
-        rows = self._path_function().call([z, sk, *(flows if switching else ()), *params])
+        rows = self._path_function().call([z, sk, *params])
         b.rows("guard_avoid", rows[0])
         if not switching:
             return
@@ -457,28 +467,30 @@ class FixedModeNLP:
     def _path_function(self) -> ca.Function:
         """The node's path rows as an SX function, made once per NLP.
 
-        (z, sigma, the M flows (switching NLP), s, kappa (C each), hit, beta (G each),
-        kappa_v) -> (guard_avoid (C), guard_hit, virtual_node, region (R)); without
-        switches only (z, sigma, s, kappa) -> guard_avoid.
+        (z, sigma, s, kappa (C each), hit, beta (G each), kappa_v, vq (G)) ->
+        (guard_avoid (C), guard_hit, virtual_node, region (R)), vq_i = -q_i(flow of guard
+        i's source) at the node; without switches only (z, sigma, s, kappa) ->
+        guard_avoid. Every argument is a node's symbol or parameter, or enters the rows only
+        through a product with one (vq), so the replay sees what the rows written out see.
         """
         if "_path" not in self.__dict__:
             switching, C, G = self.S > 0, len(self.row_guards), self.G
             z, sk = ca.SX.sym("z", self.n), ca.SX.sym("sigma")
-            flows = [ca.SX.sym(f"flow_{c}", self.n) for c in range(self.M)] if switching \
-                else []
             s, kappa = ca.SX.sym("s", C), ca.SX.sym("kappa", C)
-            ins = [z, sk, *flows, s, kappa]
+            ins = [z, sk, s, kappa]
             if switching:
                 hit, beta, kappa_v = ca.SX.sym("hit", G), ca.SX.sym("beta", G), \
                     ca.SX.sym("kappa_v")
-                ins += [hit, beta, kappa_v]
-                outs = self._path_exprs(z, flows, sk, s, kappa, hit, beta, kappa_v)
+                vq = ca.SX.sym("vq", G)
+                ins += [hit, beta, kappa_v, vq]
+                outs = self._path_exprs(z, sk, s, kappa, hit, beta, kappa_v, vq)
             else:
-                outs = self._path_exprs(z, flows, sk, s, kappa)
+                outs = self._path_exprs(z, sk, s, kappa)
             self._path = ca.Function("path_rows", ins, outs)
         return self._path
 
-    def _path_exprs(self, z, flows, sk, s, kappa, hit=None, beta=None, kappa_v=None) -> list:
+    def _path_exprs(self, z, sk, s, kappa, hit=None, beta=None, kappa_v=None,
+                    vq=None) -> list:
         """The rows of :meth:`_path_function` written out in operations on its arguments."""
         q, G = self._q, self.G
         qz = {i: q[i](z) for i in (range(G) if hit is not None else self.row_guards)}
@@ -489,7 +501,7 @@ class FixedModeNLP:
         hit_row = sum(hit[i] * qz[i] for i in range(G)) - sk
         virt = 0
         for i in range(G):
-            virt += beta[i] * (-q[i](flows[self._src[i]]))
+            virt += beta[i] * vq[i]
         reg = ca.SX.zeros(self.R)
         for i in range(G):
             reg += beta[i] * self._regions[i](z)
