@@ -303,9 +303,11 @@ class FixedModeNLP:
         u_end the same symbol as u, as the caller's: CasADi simplifies 0.5 (u + u) to u
         there, and a function of two symbols would keep the sum). Called on SX arguments,
         CasADi replays the instructions with the simplifications the operations written
-        out get, so the NLP's graph is the same node for node; the arguments are the
-        node's symbols (and u_end an expression of them), never an operation's result the
-        function's own simplifications could have seen through.
+        out get, so the NLP's graph is the same node for node as long as the function's
+        own simplifications on its placeholder symbols match those the written-out
+        operations get on the node's arguments: here the node's symbols and, with a
+        first-order hold, u_end = u_k + foh_k (u_k+1 - u_k) (tests compare the graphs,
+        random systems included).
         """
         made = self.__dict__.setdefault("_intervals", {})
         if (mode, held) not in made:
