@@ -8,9 +8,9 @@ processes, cache off and warm interleaved, and prints the medians, the build-tim
 measured in this process (transcription, ``nlpsol``, cache lookup and load), the median
 MPC solve time of both runs, and one run's solve calls replayed in this process on the SX
 and the compiled NLPs, interleaved (compiled vs SX virtual machine, and whether the
-solutions are bit-identical). ``--no-compile``: the cache filled in the default mode (the
-transcription stored, nothing compiled; a new cache directory), warm = the transcription
-loaded; no compiled replay. Measured, never asserted.
+solutions are bit-identical). ``--no-compile``: the default mode on a new cache directory,
+which it leaves empty (it compiles nothing and stores no transcription: every run builds
+its NLPs in SX); no compiled replay. Measured, never asserted.
 """
 
 from __future__ import annotations
@@ -142,7 +142,7 @@ def main() -> None:
     ap.add_argument("--cache", default=None, help="cache directory (default: under the "
                     "system temp dir; with --no-compile a new one)")
     ap.add_argument("--no-compile", action="store_true",
-                    help="warm = the transcription loaded (default mode), nothing compiled")
+                    help="warm = the default mode on a new cache: nothing compiled or stored")
     args = ap.parse_args()
     fill, warm = ("use", "use") if args.no_compile else ("sync", "background")
     cache = Path(args.cache or (tempfile.mkdtemp(prefix="hmpc-bench-cache-") if args.no_compile
@@ -150,7 +150,7 @@ def main() -> None:
     cache.mkdir(mode=0o700, parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         wall, _ = _run(args.scenario, cache, fill, Path(tmp) / "fill")
-        print(f"fill ({'store the transcription' if args.no_compile else 'compile'} if not "
+        print(f"fill ({'nothing to store' if args.no_compile else 'compile'} if not "
               f"cached): {wall:.1f} s; {_build_info(Path(tmp) / 'fill').get('reason', '?')}")
         walls: dict[str, list[float]] = {"off": [], warm: []}
         solves: dict[str, list[float]] = {"off": [], warm: []}

@@ -109,6 +109,33 @@ def test_staged_grid_and_registration_errors():
         b.variable("x", 2)
 
 
+def test_rows_placed_give_the_layout_of_rows_made():
+    """Rows registered by place only lay g out as the same rows registered by expression;
+    such an NLP has no build (its g is made elsewhere, in the layout's order)."""
+    _, made = _chain()
+    L, n = 3, 2
+    b = NLPBuilder()
+    b.parameter("a", (L, 2))
+    b.parameter("c")
+    for k in range(L + 1):
+        with b.stage(k):
+            b.variable("z", n)
+            if k < L:
+                b.variable("u", 1)
+    for k in range(L):
+        with b.stage(k):
+            b.place_rows("dynamics", n)
+            b.place_rows("box", ())
+    b.place_rows("terminal", n)
+    assert b.layout().to_dict() == made.to_dict()
+    x, p = b.symbols()
+    assert (x.numel(), p.numel()) == (made.x.size, made.p.size) and x.is_symbolic()
+    with pytest.raises(ValueError, match="place_rows"):
+        b.build(0)
+    with b.stage(L), pytest.raises(ValueError, match="shape"):
+        b.place_rows("dynamics", n + 1)
+
+
 def test_staged_matrix_blocks_index_their_symbols_in_casadi_order():
     """A matrix block registered per stage: its index array (stages, rows, columns) holds
     each entry's place in the flat x, and the layout survives the build cache's JSON."""

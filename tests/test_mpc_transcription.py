@@ -138,7 +138,7 @@ def test_fatrop_solves_the_zero_order_hold_problem_like_ipopt(ball, planned):
 
 def _path_rows_written_out(nlp, b, k, z, flows, sk):
     """Node k's path rows written out from the parameter vector, as the NLP's docstring
-    states them (the reference the node function must reproduce)."""
+    states them."""
     import casadi as ca
 
     P, q, G, switching = nlp._par, nlp._q, nlp.G, nlp.S > 0
@@ -157,6 +157,60 @@ def _path_rows_written_out(nlp, b, k, z, flows, sk):
         reg += P["beta"][k, i] * nlp._regions[i](z)
     if nlp.R:
         b.rows("region", reg + sk)
+
+
+def _transcription_written_out(nlp):
+    """The NLP and its layout with every operation written out at each node, as the
+    NLP's module docstring states it (the reference the staged transcription must
+    reproduce instruction for instruction)."""
+    import casadi as ca
+
+    from hmpc_cli.mpc.builder import NLPBuilder
+
+    b, zs, us, sigmas = NLPBuilder(), [], [], []
+    L, m, sysm, switching = nlp.L, nlp.m, nlp.system, nlp.S > 0
+    for k in range(L + 1):
+        with b.stage(k):
+            zs.append(b.variable("z", nlp.n))
+            if k < L:
+                us.append(b.variable("u", m))
+            sigmas.append(b.variable("sigma"))
+    nlp._par = P = nlp._parameters(b)
+    nlp._guard_functions()
+    J = 0
+    for k in range(L):
+        foh = nlp.s.input_hold == "foh" and k + 1 < L
+        u_end = us[k] + P["foh"][k] * (us[k + 1] - us[k]) if foh else us[k]
+        flows = [nlp._interval_expr(i, zs[k], us[k], u_end) for i in nlp.modes_in]
+        nxt = P["e"][k] * zs[k]
+        for c in range(nlp.M):
+            nxt += P["a"][k, c] * flows[c]
+        for i, g in enumerate(sysm.guards if switching else ()):
+            nxt += P["b"][k, i] * g.reset(zs[k])
+        with b.stage(k):
+            b.rows("dynamics", zs[k + 1] - nxt)
+            _path_rows_written_out(nlp, b, k, zs[k], flows, sigmas[k])
+        J += P["w"][k] * sysm.stage_cost(zs[k], us[k]) + P["v"][k] * ca.sumsqr(us[k])
+    last_flows = [nlp._interval_expr(i, zs[L], ca.DM.zeros(m), ca.DM.zeros(m))
+                  for i in nlp.modes_in] if switching else []
+    with b.stage(L):
+        _path_rows_written_out(nlp, b, L, zs[L], last_flows, sigmas[L])
+    if nlp.T:
+        b.rows("terminal", sysm.terminal_set(zs[L]) + sigmas[L])
+    return b.build(J + nlp.s.soft_penalty * ca.sum1(ca.vertcat(*sigmas)))
+
+
+def _graphs(nlp) -> list:
+    """The serialized (x, p) -> (f, g) and the layout of the staged transcription and of
+    the written-out one."""
+    import casadi as ca
+
+    out = []
+    for transcribe in (type(nlp)._transcription, _transcription_written_out):
+        x, layout = transcribe(nlp)
+        out.append((ca.Function("nlp", [x["x"], x["p"]], [x["f"], x["g"]]).serialize(),
+                    layout.to_dict()))
+    return out
 
 
 def _lag_system():
@@ -186,19 +240,16 @@ def _lag_system():
     ("ball", "foh", "rk4"), ("ball", "zoh", "rk4"), ("ball", "foh", "euler"),
     ("ball, final outside", "foh", "rk4"), ("ball, mass 0.5", "zoh", "rk4"),
     ("ball, mass 0.5", "foh", "rk4"), ("lag", "foh", "euler")])
-def test_the_node_functions_give_the_graph_written_out_node_by_node(ball, system, hold,
-                                                                     integrator):
-    """Each mode's interval and the node's path rows are SX functions called on every
-    node's symbols: the NLP's graph is the one the operations written out at each node
-    give, byte for byte (so no iterate depends on how the NLP was transcribed). Cases
-    CasADi simplifies differently unless the functions are made with care: a final
-    domain of 3 guard-avoid rows (the ball's final mode moved to the free flight), a
-    held input (u_end the same node as u) in a flow that scales its input by 2 (mass
-    0.5), and flows of negated terms (the lag's Euler step)."""
+def test_the_staged_transcription_gives_the_graph_written_out_node_by_node(ball, system, hold,
+                                                                          integrator):
+    """The links' and the last node's rows and costs are SX functions mapped over the
+    stages in MX and expanded: the NLP's graph and layout are the ones the operations
+    written out at each node give, byte for byte (so no iterate depends on how the NLP
+    was transcribed). Cases CasADi could simplify differently: a final domain of 3
+    guard-avoid rows (the ball's final mode moved to the free flight), a held input
+    (u_end the same node as u) in a flow that scales its input by 2 (mass 0.5), and
+    flows of negated terms (the lag's Euler step)."""
     import dataclasses
-    import functools
-
-    import casadi as ca
 
     from hmpc_cli.mpc.chain.nlp import FixedModeNLPs
 
@@ -211,16 +262,8 @@ def test_the_node_functions_give_the_graph_written_out_node_by_node(ball, system
     if system == "ball, final outside":
         assert len(nlps.final.row_guards) == 3
     for nlp in (nlps.switching, nlps.final):
-        graphs = []
-        for written_out in (False, True):
-            if written_out:  # the operations at each node
-                nlp._interval = nlp._interval_expr
-                nlp._path_rows = functools.partial(_path_rows_written_out, nlp)
-            x, _ = nlp._transcription()
-            graphs.append(ca.Function("nlp", [x["x"], x["p"]], [x["f"], x["g"]]).serialize())
-            for name in ("_interval", "_path_rows"):
-                nlp.__dict__.pop(name, None)
-        assert graphs[0] == graphs[1]
+        staged, written_out = _graphs(nlp)
+        assert staged == written_out
 
 
 def _random_expr(rng, leaves, depth):
@@ -282,28 +325,18 @@ def _random_system(seed):
 
 @pytest.mark.parametrize("seed", range(40))
 def test_random_systems_transcribe_to_the_graph_written_out(seed):
-    """Random flows, guards, regions, resets, holds, integrators and switch counts: the
-    node functions give the graph the operations written out at each node give (seeds 9
-    and 24 differed before the held input had a function of its own: 6 of the first
-    200 did)."""
-    import functools
-
-    import casadi as ca
-
+    """Random flows, guards, regions, resets, holds, integrators, switch counts and
+    penalties: the staged transcription gives the graph and layout the operations
+    written out at each node give."""
     from hmpc_cli.mpc.chain.nlp import FixedModeNLP
 
     system, rng = _random_system(seed)
     settings = MPCSettings(horizon=0.3, nodes_per_second=rng.choice([10, 20]),
                            max_switches=rng.choice([1, 2, 3]),
                            integrator=rng.choice(["rk4", "euler"]),
-                           input_hold=rng.choice(["foh", "zoh"]))
+                           input_hold=rng.choice(["foh", "zoh"]),
+                           soft_penalty=rng.choice([0.0, 1e4]))
     for switches in (settings.max_switches, 0):
         nlp = FixedModeNLP(system, settings, switches=switches)
-        graphs = []
-        for written_out in (False, True):
-            if written_out:
-                nlp._interval = nlp._interval_expr
-                nlp._path_rows = functools.partial(_path_rows_written_out, nlp)
-            x, _ = nlp._transcription()
-            graphs.append(ca.Function("nlp", [x["x"], x["p"]], [x["f"], x["g"]]).serialize())
-        assert graphs[0] == graphs[1], (seed, switches, settings)
+        staged, written_out = _graphs(nlp)
+        assert staged == written_out, (seed, switches, settings)

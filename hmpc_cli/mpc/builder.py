@@ -244,20 +244,26 @@ class _Flat:
         self.entries: dict[str, list[_Entry]] = {}
         self._stages: dict[str, set] = {}  # the stages each block is registered in
         self.size = 0
+        self.placed = 0  # entries registered by their place only (no expression)
 
-    def add(self, name: str, stage: Hashable | None, expr: ca.SX, shape: tuple) -> None:
+    def add(self, name: str, stage: Hashable | None, expr: ca.SX | None,
+            shape: tuple) -> None:
         entries = self.entries.setdefault(name, [])
         stages = self._stages.setdefault(name, set())
         if entries and (stage is None or entries[0].stage is None or stage in stages):
             raise ValueError(f"block {name!r} registered twice (stage {stage!r})")
         if entries and entries[0].shape != shape:
             raise ValueError(f"block {name!r}: shape {shape} != {entries[0].shape}")
-        if expr.numel() != math.prod(shape):
-            raise ValueError(f"block {name!r}: {expr.numel()} entries for shape {shape}")
+        numel = math.prod(shape) if expr is None else expr.numel()
+        if numel != math.prod(shape):
+            raise ValueError(f"block {name!r}: {numel} entries for shape {shape}")
         entries.append(_Entry(stage, self.size, shape))
         stages.add(stage)
-        self.parts.append(ca.vec(expr))
-        self.size += expr.numel()
+        if expr is None:
+            self.placed += 1
+        else:
+            self.parts.append(expr if expr.size2() == 1 else ca.vec(expr))
+        self.size += numel
 
     def blocks(self) -> tuple[ca.SX, Blocks]:
         flat = ca.vertcat(*self.parts) if self.parts else ca.SX(0, 1)
@@ -310,7 +316,29 @@ class NLPBuilder:
         self._flat["g"].add(name, self._stage, expr,
                             (expr.numel(),) if shape is None else _shape(shape))
 
+    def place_rows(self, name: str, shape: Shape) -> None:
+        """Next constraint-row block by its place only.
+
+        The rows are made elsewhere, in the flat order of :meth:`layout`; an NLP with
+        placed rows has no :meth:`build`.
+        """
+        self._flat["g"].add(name, self._stage, None, _shape(shape))
+
+    def symbols(self) -> tuple[ca.SX, ca.SX]:
+        """The flat (x, p) of the blocks registered so far."""
+        return self._flat["x"].blocks()[0], self._flat["p"].blocks()[0]
+
+    def layout(self) -> NLPLayout:
+        """The layout of the blocks registered so far."""
+        return NLPLayout(*(Blocks(self._flat[k].entries, self._flat[k].size) for k in "xpg"))
+
     def build(self, f) -> tuple[dict, NLPLayout]:
-        """The NLP ``{"x", "p", "f", "g"}`` with objective ``f``, and its layout."""
+        """The NLP ``{"x", "p", "f", "g"}`` with objective ``f``, and its layout.
+
+        Raises:
+            ValueError: a row block was registered by :meth:`place_rows`.
+        """
+        if self._flat["g"].placed:
+            raise ValueError("build: rows registered by place_rows: make g from layout()")
         (x, lx), (p, lp), (g, lg) = (self._flat[k].blocks() for k in "xpg")
         return {"x": x, "p": p, "f": f, "g": g}, NLPLayout(lx, lp, lg)

@@ -32,11 +32,12 @@ one entry is compiled by one process at a time: a lock file), so a run never wai
 the compiler nor competes with it; the next run loads it. The compile is the price:
 for the ball's switching NLP minutes of CPU and GBs of memory at -O1.
 
-Without a library a later run still skips the transcription: it loads the stored function
-and calls it on fresh symbols (:func:`load_transcription`), the graph the compiler is
-given too, and ``nlpsol`` derives the same functions from it: the solves are the
-transcribed NLP's bit for bit (``tests/test_build_cache.py``). The cache is still a miss
-(the NLP is solved in SX); its reason says the transcription was loaded.
+Until its library is made a later run loads the stored function and calls it on fresh
+symbols (:func:`load_transcription`), the graph the compiler is given too, and ``nlpsol``
+derives the same functions from it: the solves are the transcribed NLP's bit for bit
+(``tests/test_build_cache.py``). The cache is still a miss (the NLP is solved in SX); its
+reason says the transcription was loaded. The default mode stores nothing: transcribing
+costs what loading does.
 
 ``HMPC_BUILD_CACHE`` (:func:`mode`): ``off`` (or ``0``) disables the cache; ``use`` (the
 default) loads compiled NLPs but never compiles (the user asks for the cost, once);
@@ -314,16 +315,17 @@ def lookup(key: str, plugin: str) -> Hit:
 
 
 def store(key: str, plugin: str, nlp: dict, layout: NLPLayout, *,
-          keep_transcription: bool = False, stored: bool = False) -> BuildInfo:
+          stored: bool = False) -> BuildInfo:
     """Stores a freshly built NLP's layout and function, and starts its compilation.
+
+    In the default mode (``use``) nothing is stored: transcribing the NLP again costs
+    what loading its function does.
 
     Args:
         key: the entry's structure key.
         plugin: the solver back-end's name.
         nlp: the NLP ``{"x", "p", "f", "g"}``.
         layout: its layout.
-        keep_transcription: store the function and layout in the default mode (``use``)
-            too, for later runs to load (:func:`lookup`).
         stored: they are stored already (the NLP was loaded from them).
 
     Returns:
@@ -333,18 +335,17 @@ def store(key: str, plugin: str, nlp: dict, layout: NLPLayout, *,
     entry, off = open_entry(key, plugin)
     if entry is None:
         return off.info
-    fate = _library_fate(entry, nlp, layout, keep_transcription, stored)
+    fate = _library_fate(entry, nlp, layout, stored)
     return BuildInfo("miss", False, f"{TRANSCRIPTION_LOADED}; {fate}" if stored else fate)
 
 
-def _library_fate(entry: Entry, nlp: dict, layout: NLPLayout, keep_transcription: bool,
-                  stored: bool) -> str:
-    """What happens to the entry's library, after storing its function and layout.
+def _library_fate(entry: Entry, nlp: dict, layout: NLPLayout, stored: bool) -> str:
+    """What happens to the entry's library.
 
-    Stores them as :func:`store` is asked to and compiles (``sync``) or queues
-    (``background``) the library as the mode says.
+    ``sync`` compiles it now and ``background`` queues it, after storing the function and
+    layout (unless ``stored``); ``use`` does neither.
     """
-    if mode() == "use" and (stored or not keep_transcription):
+    if mode() == "use":
         return NOT_COMPILED
     if not stored:
         fun = ca.Function("nlp", [nlp["x"], nlp["p"]], [nlp["f"], nlp["g"]],
@@ -356,8 +357,6 @@ def _library_fate(entry: Entry, nlp: dict, layout: NLPLayout, keep_transcription
                 sort_keys=True))
         except OSError as e:
             return f"cannot write the cache: {e}"
-    if mode() == "use":
-        return NOT_COMPILED
     if entry.failed.exists():
         return f"compilation failed before (see {entry.failed})"
     if mode() == "sync":

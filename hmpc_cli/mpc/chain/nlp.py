@@ -65,6 +65,8 @@ __all__ = ["INF", "FixedModeNLP", "FixedModeNLPs", "MPCSettings"]
 
 WARM_START = WarmStart(mu_init=1e-6, bound_push=1e-9)  # the warm IPOPT instance
 _LOG = logging.getLogger(__name__)
+#: row groups registered as vectors (the others are scalar rows)
+_VECTOR_ROWS = ("dynamics", "guard_avoid", "region")
 
 #: measured cost of one chain-NLP node (both NLPs, cold and warm solvers; ball, 2 cores)
 NODE_MIB, NODE_MS = 0.85, 18.0
@@ -282,43 +284,8 @@ class FixedModeNLP:
             avoid_offsets=self.avoid_offsets)
 
     # ------------------------------------------------------------------ build
-    def _interval(self, mode: int, z, u, u_end):
-        """One interval of ``mode`` from z with the input going linearly from u to u_end.
-
-        On symbols (a node's z, u, u_end in SX) it calls the mode's interval function
-        (:meth:`_interval_function`): the same graph as the expression built in place, in
-        a few Python calls instead of dozens per node and mode. On numeric inputs (the
-        last node's zero inputs) the expression is built in place, as before.
-        """
-        if not (isinstance(u, ca.SX) and isinstance(u_end, ca.SX)):
-            return self._interval_expr(mode, z, u, u_end)
-        if u_end is u:  # zero-order hold (and a first-order hold's last link)
-            return self._interval_function(mode, held=True)(z, u)
-        return self._interval_function(mode, held=False)(z, u, u_end)
-
-    def _interval_function(self, mode: int, held: bool) -> ca.Function:
-        """``mode``'s interval as an SX function, made once per mode and hold.
-
-        (z, u, u_end) -> z_next, or with ``held`` (z, u) -> z_next, the input held (its
-        u_end the same symbol as u, as the caller's: CasADi simplifies 0.5 (u + u) to u
-        there, and a function of two symbols would keep the sum). Called on SX arguments,
-        CasADi replays the instructions with the simplifications the operations written
-        out get, so the NLP's graph is the same node for node as long as the function's
-        own simplifications on its placeholder symbols match those the written-out
-        operations get on the node's arguments: here the node's symbols and, with a
-        first-order hold, u_end = u_k + foh_k (u_k+1 - u_k) (tests compare the graphs,
-        random systems included).
-        """
-        made = self.__dict__.setdefault("_intervals", {})
-        if (mode, held) not in made:
-            z, u = ca.SX.sym("z", self.n), ca.SX.sym("u", self.m)
-            ins = [z, u] if held else [z, u, ca.SX.sym("u_end", self.m)]
-            made[mode, held] = ca.Function(f"interval_{mode}", ins,
-                                           [self._interval_expr(mode, z, u, ins[-1])])
-        return made[mode, held]
-
     def _interval_expr(self, mode: int, z, u, u_end):
-        """The interval of :meth:`_interval` written out in operations on its arguments."""
+        """One interval of ``mode`` from z, the input going linearly from u to u_end."""
         f = self.system.modes[mode].flow
         w = ca.DM.zeros(self.system.n_w)
         h = self.dt
@@ -350,8 +317,7 @@ class FixedModeNLP:
                 self._transcription()
             self.session = self._session(nlp)
             self.build_info = hit.info if hit.info.cache == "disabled" else \
-                cache.store(key, self.s.solver_of(self.S), nlp, self.layout,
-                            keep_transcription=True, stored=loaded)
+                cache.store(key, self.s.solver_of(self.S), nlp, self.layout, stored=loaded)
         X, g = self.layout.x, self.layout.g
         self.nx_var, self.ng, self.np = X.size, g.size, self.layout.p.size
         self.z_idx, self.u_idx, self.s_idx = X["z"], X["u"], X["sigma"]
@@ -370,19 +336,145 @@ class FixedModeNLP:
             structure=structure, sqp_iter=self.s.max_sqp_iter)
 
     def _transcription(self) -> tuple[dict, NLPLayout]:
-        """The NLP ``{"x", "p", "f", "g"}`` in SX and its layout."""
+        """The NLP ``{"x", "p", "f", "g"}`` in SX and its layout.
+
+        The builder lays out x, p and g stage by stage (the rows by place only);
+        :meth:`_staged_nlp` makes the cost and the rows, evaluated on the builder's
+        symbols.
+        """
         b = NLPBuilder()
-        zs, us, sigmas = [], [], []
         for k in range(self.L + 1):
             with b.stage(k):
-                zs.append(b.variable("z", self.n))
+                b.variable("z", self.n)
                 if k < self.L:
-                    us.append(b.variable("u", self.m))
-                sigmas.append(b.variable("sigma"))
+                    b.variable("u", self.m)
+                b.variable("sigma")
         self._par = self._parameters(b)
         self._guard_functions()
-        J = self._transcribe(b, zs, us, sigmas)
-        return b.build(J)
+        for k in range(self.L + 1):
+            with b.stage(k):
+                for name, size in self._row_blocks(link=k < self.L):
+                    b.place_rows(name, size if name in _VECTOR_ROWS else ())
+        if self.T:
+            b.place_rows("terminal", self.T)
+        (x, p), layout = b.symbols(), b.layout()
+        f, g = self._staged_nlp(layout).call([x, p])
+        return {"x": x, "p": p, "f": f, "g": g}, layout
+
+    def _row_blocks(self, link: bool) -> list[tuple[str, int]]:
+        """(row group, rows) of a stage in registration order: a link's, or the last node's."""
+        blocks = [("dynamics", self.n)] if link else []
+        blocks.append(("guard_avoid", self.Gr))
+        if self.S:
+            blocks += [("guard_hit", 1), ("virtual_node", 1)] + \
+                ([("region", self.R)] if self.R else [])
+        return blocks
+
+    def _staged_nlp(self, layout: NLPLayout, expand: bool = True) -> ca.Function:
+        """(x, p) -> (f, g) in SX: each kind of stage one SX function, mapped over its stages.
+
+        The stage functions (:meth:`_stage_functions`) take a stage's variables and its
+        parameters as symbols; mapped over the links in MX on gathers of the flat x and p,
+        then expanded, their instructions are replayed on every stage's entries. As x, p
+        and g keep the builder's order, the result is the graph the operations written
+        out stage by stage give, instruction for instruction (so no iterate depends on
+        how the NLP was transcribed; tests compare the graphs, random systems included),
+        in a fraction of the Python calls. ``expand=False`` keeps the map in MX
+        (``benchmarks/probe_stagewise.py`` measures both).
+        """
+        X, P, L, foh = layout.x, layout.p, self.L, self.s.input_hold == "foh"
+        link_par, node_par = self._stage_parameters()
+        x, p = ca.MX.sym("x", X.size), ca.MX.sym("p", P.size)
+
+        def cols(v: ca.MX, idx: np.ndarray, stages: slice) -> ca.MX:
+            """Entries idx[stages] of v as columns, one per stage: shape (width, stages)."""
+            idx = (idx[:, None] if idx.ndim == 1 else idx)[stages]
+            return ca.reshape(v[idx.ravel().tolist()], idx.shape[1], idx.shape[0])
+
+        def pars(names: tuple[str, ...], stages: slice) -> ca.MX:
+            return ca.vertcat(*[cols(p, P[name], stages) for name in names])
+
+        link, held, last = self._stage_functions(link_par, node_par)
+        z, u, sig = X["z"], X["u"], X["sigma"]
+        n_foh = L - 1 if foh else 0  # a first-order hold's links; the rest hold their input
+        rows, costs = [], []
+        for fn, ks, extra in ((link, slice(0, n_foh), [cols(x, u, slice(1, n_foh + 1))]),
+                              (held, slice(n_foh, L), [])):
+            count = len(range(L)[ks])
+            if count == 0:
+                continue
+            zn = slice(ks.start + 1, ks.stop + 1)
+            r, j = fn.map(count)(cols(x, z, ks), cols(x, u, ks), cols(x, sig, ks),
+                                 cols(x, z, zn), *extra, pars(link_par, ks))
+            rows.append(ca.vec(r))
+            costs.append(ca.sum2(j))
+        rows.append(last(cols(x, z, slice(L, L + 1)), cols(x, sig, slice(L, L + 1)),
+                         pars(node_par, slice(L, L + 1))))
+        cost = costs[0] if len(costs) == 1 else costs[0] + costs[1]
+        f = cost + self.s.soft_penalty * ca.sum1(x[sig.ravel().tolist()])
+        fn = ca.Function("nlp", [x, p], [f, ca.vertcat(*rows)])
+        return fn.expand() if expand else fn
+
+    def _stage_parameters(self) -> tuple[tuple[str, ...], tuple[str, ...]]:
+        """The parameter blocks a link's and a node's rows read (see :meth:`_parameters`)."""
+        node = ("s", "kappa") + (("hit", "beta", "kappa_v") if self.S else ())
+        return ("a", "b", "e", "w", "v", "foh") + node, node
+
+    def _stage_functions(self, link_par, node_par) -> tuple[ca.Function, ...]:
+        """SX functions of one stage: (link with a first-order hold, held link, last node).
+
+        Links: (z_k, u_k, sigma_k, z_k+1[, u_k+1], p_k) -> (rows, cost): link k's dynamics
+        rows then node k's path rows, and its stage cost; the held link's interval holds u_k
+        (its u_end the same symbol as u_k: CasADi simplifies 0.5 (u + u) to u as it does
+        written out). The last node: (z_L, sigma_L, p_L) -> its path rows, then the terminal
+        rows. p_k holds the blocks of ``link_par`` (``node_par``) at stage k, in order.
+        """
+        n, m, sysm, switching = self.n, self.m, self.system, self.S > 0
+        z, z1, sk = ca.SX.sym("z", n), ca.SX.sym("z_next", n), ca.SX.sym("sigma")
+        u, u1 = ca.SX.sym("u", m), ca.SX.sym("u_next", m)
+        widths = {"a": self.M, "b": self.G if switching else 0, "s": self.Gr,
+                  "kappa": self.Gr, "hit": self.G, "beta": self.G}
+
+        def split(names):
+            pk = ca.SX.sym("p", sum(widths.get(name, 1) for name in names))
+            out, at = {}, 0
+            for name in names:
+                out[name] = pk[at:at + widths.get(name, 1)]
+                at += widths.get(name, 1)
+            return pk, out
+
+        def node_rows(zk, sig, flows, par) -> list:
+            if not switching:
+                return self._path_exprs(zk, sig, par["s"], par["kappa"])
+            vq = ca.vertcat(*(-self._q[i](flows[self._src[i]]) for i in range(self.G)))
+            rows = self._path_exprs(zk, sig, par["s"], par["kappa"], par["hit"],
+                                    par["beta"], par["kappa_v"], vq)
+            return rows if self.R else rows[:3]
+
+        def link_function(name, u_end, ins):
+            pk, par = split(link_par)
+            end = u_end(par)  # one expression for every mode's interval, as written out
+            flows = [self._interval_expr(i, z, u, end) for i in self.modes_in]
+            nxt = par["e"] * z
+            for c in range(self.M):
+                nxt += par["a"][c] * flows[c]
+            for i, g in enumerate(sysm.guards if switching else ()):
+                nxt += par["b"][i] * g.reset(z)
+            rows = ca.vertcat(z1 - nxt, *node_rows(z, sk, flows, par))
+            cost = par["w"] * sysm.stage_cost(z, u) + par["v"] * ca.sumsqr(u)
+            return ca.Function(name, [*ins, pk], [rows, cost])
+
+        link = link_function("link_foh", lambda par: u + par["foh"] * (u1 - u),
+                             [z, u, sk, z1, u1])
+        held = link_function("link_held", lambda par: u, [z, u, sk, z1])
+        pk, par = split(node_par)
+        zero = ca.DM.zeros(m)
+        flows = [self._interval_expr(i, z, zero, zero) for i in self.modes_in] \
+            if switching else []
+        rows = node_rows(z, sk, flows, par)
+        if self.T:
+            rows.append(sysm.terminal_set(z) + sk)
+        return link, held, ca.Function("last_node", [z, sk, pk], [ca.vertcat(*rows)])
 
     def structure(self) -> OCPStructure:
         """The HPIPM stage structure (zero-order hold only).
@@ -416,84 +508,14 @@ class FixedModeNLP:
             pad = ca.vertcat(r, ca.SX.zeros(self.R - r.size1()))
             self._regions.append(ca.Function(f"r_{g.name}", [zs], [pad]))
 
-    def _transcribe(self, b: NLPBuilder, zs: list, us: list, sigmas: list):
-        """Registers the rows stage by stage; returns the cost."""
-        L, m, P, sysm = self.L, self.m, self._par, self.system
-        switching, J = self.S > 0, 0
-        for k in range(L):
-            foh = self.s.input_hold == "foh" and k + 1 < L  # structural: zoh keeps stages
-            u_end = us[k] + P["foh"][k] * (us[k + 1] - us[k]) if foh else us[k]
-            flows = [self._interval(i, zs[k], us[k], u_end) for i in self.modes_in]
-            nxt = P["e"][k] * zs[k]
-            for c in range(self.M):
-                nxt += P["a"][k, c] * flows[c]
-            for i, g in enumerate(sysm.guards if switching else ()):
-                nxt += P["b"][k, i] * g.reset(zs[k])
-            with b.stage(k):
-                b.rows("dynamics", zs[k + 1] - nxt)
-                self._path_rows(b, k, zs[k], flows, sigmas[k])
-            J += P["w"][k] * sysm.stage_cost(zs[k], us[k]) + P["v"][k] * ca.sumsqr(us[k])
-        last_flows = [self._interval(i, zs[L], ca.DM.zeros(m), ca.DM.zeros(m))
-                      for i in self.modes_in] if switching else []
-        with b.stage(L):
-            self._path_rows(b, L, zs[L], last_flows, sigmas[L])
-        if self.T:
-            b.rows("terminal", sysm.terminal_set(zs[L]) + sigmas[L])
-        return J + self.s.soft_penalty * ca.sum1(ca.vertcat(*sigmas))
-
-    def _path_rows(self, b: NLPBuilder, k: int, z, flows: list, sk) -> None:
-        """Node k's guard-avoid, guard-hit, virtual-node and region rows.
-
-        Made by the node function (:meth:`_path_function`) called on node k's symbols: the
-        graph the rows written out at the node give (see :meth:`_interval_function`).
-        """
-        P, switching, C = self._par, self.S > 0, len(self.row_guards)
-        params = [ca.vertcat(*(P[name][k, c] for c in range(C))) for name in ("s", "kappa")]
-        if switching:
-            params += [ca.vertcat(*(P[name][k, i] for i in range(self.G)))
-                       for name in ("hit", "beta")] + [P["kappa_v"][k]]
-            # the virtual node's guard terms, written out here: they are operations on the
-            # flows (expressions), which CasADi may simplify (e.g. -(-a) = a)
-            params.append(ca.vertcat(*(-self._q[i](flows[self._src[i]])
-                                       for i in range(self.G))))
-        # call(): a list of outputs even for one (calling it directly returns a lone SX)
-        rows = self._path_function().call([z, sk, *params])
-        b.rows("guard_avoid", rows[0])
-        if not switching:
-            return
-        b.rows("guard_hit", rows[1], shape=())
-        b.rows("virtual_node", rows[2], shape=())
-        if self.R:
-            b.rows("region", rows[3])
-
-    def _path_function(self) -> ca.Function:
-        """The node's path rows as an SX function, made once per NLP.
-
-        (z, sigma, s, kappa (C each), hit, beta (G each), kappa_v, vq (G)) ->
-        (guard_avoid (C), guard_hit, virtual_node, region (R)), vq_i = -q_i(flow of guard
-        i's source) at the node; without switches only (z, sigma, s, kappa) ->
-        guard_avoid. Every argument is a node's symbol or parameter, or enters the rows only
-        through a product with one (vq), so the replay sees what the rows written out see.
-        """
-        if "_path" not in self.__dict__:
-            switching, C, G = self.S > 0, len(self.row_guards), self.G
-            z, sk = ca.SX.sym("z", self.n), ca.SX.sym("sigma")
-            s, kappa = ca.SX.sym("s", C), ca.SX.sym("kappa", C)
-            ins = [z, sk, s, kappa]
-            if switching:
-                hit, beta, kappa_v = ca.SX.sym("hit", G), ca.SX.sym("beta", G), \
-                    ca.SX.sym("kappa_v")
-                vq = ca.SX.sym("vq", G)
-                ins += [hit, beta, kappa_v, vq]
-                outs = self._path_exprs(z, sk, s, kappa, hit, beta, kappa_v, vq)
-            else:
-                outs = self._path_exprs(z, sk, s, kappa)
-            self._path = ca.Function("path_rows", ins, outs)
-        return self._path
-
     def _path_exprs(self, z, sk, s, kappa, hit=None, beta=None, kappa_v=None,
                     vq=None) -> list:
-        """The rows of :meth:`_path_function` written out in operations on its arguments."""
+        """Node rows written out in operations on the arguments.
+
+        (z, sigma, s, kappa (C each), hit, beta (G each), kappa_v, vq (G)) -> [guard_avoid
+        (C), guard_hit, virtual_node, region (R)], vq_i = -q_i(flow of guard i's source) at
+        the node; without switches (z, sigma, s, kappa) -> [guard_avoid].
+        """
         q, G = self._q, self.G
         qz = {i: q[i](z) for i in (range(G) if hit is not None else self.row_guards)}
         avoid = ca.vertcat(*[s[c] * qz[i] - kappa[c] + sk
