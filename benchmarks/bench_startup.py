@@ -9,8 +9,8 @@ measured in this process (transcription, ``nlpsol``, cache lookup and load), the
 MPC solve time of both runs, and one run's solve calls replayed in this process on the SX
 and the compiled NLPs, interleaved (compiled vs SX virtual machine, and whether the
 solutions are bit-identical). ``--no-compile``: the default mode on a new cache directory,
-which it leaves empty (it compiles nothing and stores no transcription: every run builds
-its NLPs in SX); no compiled replay. Measured, never asserted.
+where it compiles and stores no NLP (only the CEM's C rollout kernel, made by the first
+run: every run builds its NLPs in SX); no compiled replay. Measured, never asserted.
 """
 
 from __future__ import annotations
@@ -142,7 +142,7 @@ def main() -> None:
     ap.add_argument("--cache", default=None, help="cache directory (default: under the "
                     "system temp dir; with --no-compile a new one)")
     ap.add_argument("--no-compile", action="store_true",
-                    help="warm = the default mode on a new cache: nothing compiled or stored")
+                    help="warm = the default mode on a new cache: no NLP compiled or stored")
     args = ap.parse_args()
     fill, warm = ("use", "use") if args.no_compile else ("sync", "background")
     cache = Path(args.cache or (tempfile.mkdtemp(prefix="hmpc-bench-cache-") if args.no_compile

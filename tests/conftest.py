@@ -24,9 +24,8 @@ if "HMPC_CACHE_DIR" not in os.environ:
     os.environ["HMPC_CACHE_DIR"] = tempfile.mkdtemp(prefix="hmpc-test-cache-")
     atexit.register(shutil.rmtree, os.environ["HMPC_CACHE_DIR"], ignore_errors=True)
 # the build cache's default mode, in that private cache (in $HMPC_CACHE_DIR if the caller
-# set it): a structure's NLP is transcribed once per session and later builds load it;
-# never compiled (minutes of CPU per structure: tests/test_build_cache.py compiles where
-# it tests it)
+# set it): every build transcribes its NLP, nothing is stored or compiled (minutes of CPU
+# per structure: tests/test_build_cache.py compiles where it tests it)
 os.environ.setdefault("HMPC_BUILD_CACHE", "use")
 SCENARIOS = REPO / "scenarios"
 BALL = SCENARIOS / "ball.toml"

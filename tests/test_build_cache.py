@@ -122,6 +122,12 @@ def test_the_default_mode_writes_nothing_and_loads_a_stored_transcription(tiny, 
     for a, b in zip(_solve_twice(first, tiny[0]), _solve_twice(loaded, tiny[0]), strict=True):
         assert a.stats.success and a.stats.iterations == b.stats.iterations
         np.testing.assert_array_equal(a.x, b.x)
+        np.testing.assert_array_equal(a.lam_g, b.lam_g)
+        np.testing.assert_array_equal(a.lam_x, b.lam_x)
+    shutil.rmtree(folder)
+    use(filled[0])  # a compiled entry is used in the default mode
+    monkeypatch.delenv(cache.ENV)
+    assert FixedModeNLP(*tiny).build_info.cache == "hit"
 
 
 def test_changed_setting_misses_solver_option_hits(tiny):
@@ -207,6 +213,10 @@ def test_damaged_transcription_is_detected_and_transcribed_again(tiny, filled, u
     assert nlp.build_info.reason == cache.NOT_COMPILED  # transcribed, not loaded
     assert _solve_twice(nlp, tiny[0])[0].stats.success
     assert not target.exists()  # removed, and the default mode stores no transcription
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="hmpc_cli.mpc.cache"):
+        again = FixedModeNLP(*tiny)  # its layout left without a function: a quiet miss
+    assert again.build_info.reason == cache.NOT_COMPILED and not caplog.text
 
 
 def test_cache_writable_by_others_is_refused(tiny, filled, use):

@@ -134,6 +134,8 @@ def test_rows_placed_give_the_layout_of_rows_made():
         b.build(0)
     with b.stage(L), pytest.raises(ValueError, match="shape"):
         b.place_rows("dynamics", n + 1)
+    with pytest.raises(ValueError, match="made and rows placed"):
+        b.rows("extra", x[0])
 
 
 def test_staged_matrix_blocks_index_their_symbols_in_casadi_order():

@@ -254,6 +254,8 @@ class _Flat:
             raise ValueError(f"block {name!r} registered twice (stage {stage!r})")
         if entries and entries[0].shape != shape:
             raise ValueError(f"block {name!r}: shape {shape} != {entries[0].shape}")
+        if (expr is None and self.parts) or (expr is not None and self.placed):
+            raise ValueError(f"block {name!r}: rows made and rows placed in one vector")
         numel = math.prod(shape) if expr is None else expr.numel()
         if numel != math.prod(shape):
             raise ValueError(f"block {name!r}: {numel} entries for shape {shape}")
@@ -265,9 +267,11 @@ class _Flat:
             self.parts.append(expr if expr.size2() == 1 else ca.vec(expr))
         self.size += numel
 
+    def flat(self) -> ca.SX:
+        return ca.vertcat(*self.parts) if self.parts else ca.SX(0, 1)
+
     def blocks(self) -> tuple[ca.SX, Blocks]:
-        flat = ca.vertcat(*self.parts) if self.parts else ca.SX(0, 1)
-        return flat, Blocks(self.entries, self.size)
+        return self.flat(), Blocks(self.entries, self.size)
 
 
 class NLPBuilder:
@@ -326,7 +330,7 @@ class NLPBuilder:
 
     def symbols(self) -> tuple[ca.SX, ca.SX]:
         """The flat (x, p) of the blocks registered so far."""
-        return self._flat["x"].blocks()[0], self._flat["p"].blocks()[0]
+        return self._flat["x"].flat(), self._flat["p"].flat()
 
     def layout(self) -> NLPLayout:
         """The layout of the blocks registered so far."""

@@ -111,9 +111,9 @@ MODES = ("off", "use", "background", "sync")
 def mode() -> str:
     """The cache mode from ``$HMPC_BUILD_CACHE`` (default ``"use"``).
 
-    ``off``: no cache; ``use``: load compiled NLPs (else a stored transcription, stored on
-    a miss), never compile (a compile costs minutes of CPU and GBs of memory once per
-    problem structure: the user asks for it);
+    ``off``: no cache; ``use``: load compiled NLPs (else a transcription the other modes
+    stored), never store or compile (a compile costs minutes of CPU and GBs of memory
+    once per problem structure: the user asks for it);
     ``background``: also compile a missing one in a detached process at exit; ``sync``:
     compile it in the foreground.
     """
@@ -303,6 +303,8 @@ def lookup(key: str, plugin: str) -> Hit:
     if entry.check(entry.library, entry.key):
         return Hit(str(entry.library), layout,
                    BuildInfo("hit", True, f"loaded {entry.library.name}"))
+    if not entry.function.exists():  # removed as damaged, or by hand: nothing to report
+        return Hit(None, None, BuildInfo("miss", False, "not in the cache"))
     try:
         nlp = load_transcription(entry)
         sizes = (nlp["x"].numel(), nlp["p"].numel(), nlp["g"].numel())

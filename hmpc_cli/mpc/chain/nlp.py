@@ -349,7 +349,7 @@ class FixedModeNLP:
                 if k < self.L:
                     b.variable("u", self.m)
                 b.variable("sigma")
-        self._par = self._parameters(b)
+        self._parameters(b)
         self._guard_functions()
         for k in range(self.L + 1):
             with b.stage(k):
@@ -394,18 +394,18 @@ class FixedModeNLP:
         def pars(names: tuple[str, ...], stages: slice) -> ca.MX:
             return ca.vertcat(*[cols(p, P[name], stages) for name in names])
 
-        link, held, last = self._stage_functions(link_par, node_par)
+        widths = {name: math.prod(P[name].shape[1:]) for name in link_par}
+        link, held, last = self._stage_functions(link_par, node_par, widths)
         z, u, sig = X["z"], X["u"], X["sigma"]
         n_foh = L - 1 if foh else 0  # a first-order hold's links; the rest hold their input
         rows, costs = [], []
-        for fn, ks, extra in ((link, slice(0, n_foh), [cols(x, u, slice(1, n_foh + 1))]),
-                              (held, slice(n_foh, L), [])):
-            count = len(range(L)[ks])
-            if count == 0:
+        for fn, start, stop in ((link, 0, n_foh), (held, n_foh, L)):
+            if stop == start:
                 continue
-            zn = slice(ks.start + 1, ks.stop + 1)
-            r, j = fn.map(count)(cols(x, z, ks), cols(x, u, ks), cols(x, sig, ks),
-                                 cols(x, z, zn), *extra, pars(link_par, ks))
+            ks, zn = slice(start, stop), slice(start + 1, stop + 1)
+            u_next = [cols(x, u, zn)] if fn is link else []
+            r, j = fn.map(stop - start)(cols(x, z, ks), cols(x, u, ks), cols(x, sig, ks),
+                                        cols(x, z, zn), *u_next, pars(link_par, ks))
             rows.append(ca.vec(r))
             costs.append(ca.sum2(j))
         rows.append(last(cols(x, z, slice(L, L + 1)), cols(x, sig, slice(L, L + 1)),
@@ -420,27 +420,26 @@ class FixedModeNLP:
         node = ("s", "kappa") + (("hit", "beta", "kappa_v") if self.S else ())
         return ("a", "b", "e", "w", "v", "foh") + node, node
 
-    def _stage_functions(self, link_par, node_par) -> tuple[ca.Function, ...]:
+    def _stage_functions(self, link_par, node_par, widths) -> tuple[ca.Function, ...]:
         """SX functions of one stage: (link with a first-order hold, held link, last node).
 
         Links: (z_k, u_k, sigma_k, z_k+1[, u_k+1], p_k) -> (rows, cost): link k's dynamics
         rows then node k's path rows, and its stage cost; the held link's interval holds u_k
         (its u_end the same symbol as u_k: CasADi simplifies 0.5 (u + u) to u as it does
         written out). The last node: (z_L, sigma_L, p_L) -> its path rows, then the terminal
-        rows. p_k holds the blocks of ``link_par`` (``node_par``) at stage k, in order.
+        rows. p_k holds the blocks of ``link_par`` (``node_par``) at stage k, in order, each
+        of its ``widths`` entry's size.
         """
         n, m, sysm, switching = self.n, self.m, self.system, self.S > 0
         z, z1, sk = ca.SX.sym("z", n), ca.SX.sym("z_next", n), ca.SX.sym("sigma")
         u, u1 = ca.SX.sym("u", m), ca.SX.sym("u_next", m)
-        widths = {"a": self.M, "b": self.G if switching else 0, "s": self.Gr,
-                  "kappa": self.Gr, "hit": self.G, "beta": self.G}
 
         def split(names):
-            pk = ca.SX.sym("p", sum(widths.get(name, 1) for name in names))
+            pk = ca.SX.sym("p", sum(widths[name] for name in names))
             out, at = {}, 0
             for name in names:
-                out[name] = pk[at:at + widths.get(name, 1)]
-                at += widths.get(name, 1)
+                out[name] = pk[at:at + widths[name]]
+                at += widths[name]
             return pk, out
 
         def node_rows(zk, sig, flows, par) -> list:
