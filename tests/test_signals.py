@@ -110,6 +110,8 @@ def test_signal_inside_an_ipopt_solve_stops_it(tmp_path, sig):
     _wait_for_cpu(proc, 3.5)  # the initial solve and a few more are done
     latency, err = _stop(proc, sig)
     summary = _check_interrupted(out, sig, proc, err)
+    # the one line, not CasADi's warning about the interrupt it caught inside IPOPT too
+    assert len(err.strip().splitlines()) == 1, err
     assert summary["solve_time_median"] > 0.2
     assert latency < 0.5 * summary["solve_time_max"] + 0.3, (latency, summary)
 
@@ -200,3 +202,27 @@ def test_a_signal_after_the_run_finished_says_so(tmp_path, monkeypatch):
         f"interrupted (SIGTERM) after the run finished; its log is complete: {out / 'run.mcap'}"]
     assert json.loads((out / "summary.json").read_text())["t_end"] == pytest.approx(0.05)
     assert read_log(out / "run.mcap").complete
+
+
+def test_casadis_interrupt_warning_is_left_out_of_stderr_inside_a_solve(monkeypatch):
+    """Inside an abortable section (an IPOPT solve) with a stop signal pending, the line
+    CasADi writes in pieces about the interrupt it caught is dropped; every other line,
+    and all text before a signal, reaches stderr whole."""
+    import io
+
+    from hmpc_cli.core import signals
+
+    err = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", err)
+    signals.reset()
+    with signals.abortable():
+        sys.stderr.write("before the signal\n")
+    warning = ["CasADi - ", "2026", "-", "11", " WARNING(\"", "KeyboardInterruptException",
+               "\") [", ".../ipopt_nlp.cpp:114", "]", "\n"]
+    with pytest.raises(signals.Interrupted), signals.abortable():
+        signals._STATE.signum = int(signal.SIGINT)  # as the handler records it
+        for piece in ["another ", "line\n", *warning, "a partial", " line"]:
+            sys.stderr.write(piece)
+    signals.reset()
+    assert sys.stderr is err
+    assert err.getvalue() == "before the signal\nanother line\na partial line"

@@ -8,13 +8,14 @@ stop may interrupt the work at once (outside :func:`deferred` sections, or insid
 calls :func:`check` at safe points (after every step, after every solve). CasADi swallows
 exceptions raised in IPOPT's callbacks and returns ``NonIpopt_Exception_Thrown``; the
 solver session turns that status back into :class:`Interrupted` (:func:`check` after the
-solve). Nothing happens at import.
+solve), and CasADi's warning about it is left out of stderr. Nothing happens at import.
 """
 
 from __future__ import annotations
 
 import contextlib
 import signal
+import sys
 import threading
 from collections.abc import Iterator
 
@@ -111,6 +112,46 @@ def deferred() -> Iterator[None]:
         yield
 
 
+class _Unreported:
+    """``sys.stderr`` inside :func:`abortable`, without CasADi's interrupt warning.
+
+    Forwards everything but CasADi's warning about the interrupt it caught in an IPOPT
+    callback (the command reports the stop in its own one line). Once a stop signal is
+    pending, text is forwarded a whole line at a time (CasADi writes its warning in
+    pieces).
+    """
+
+    def __init__(self, stream) -> None:
+        self._stream = stream
+        self._line = ""
+
+    def write(self, text: str) -> int:
+        if _STATE.signum is None and not self._line:
+            return self._stream.write(text)
+        self._line += text
+        while "\n" in self._line:
+            line, self._line = self._line.split("\n", 1)
+            self._forward(line + "\n")
+        return len(text)
+
+    def _forward(self, text: str) -> None:
+        if CASADI_INTERRUPT not in text:
+            self._stream.write(text)
+
+    def close_section(self) -> None:
+        """Forwards a partial line left at the section's end (unless CasADi's warning)."""
+        line, self._line = self._line, ""
+        if line:
+            self._forward(line)
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+
+#: the text of CasADi's warning when a callback of IPOPT raised KeyboardInterrupt
+CASADI_INTERRUPT = 'WARNING("KeyboardInterruptException")'
+
+
 @contextlib.contextmanager
 def abortable() -> Iterator[None]:
     """A long computation a signal may cut (an IPOPT solve); checks on entry and exit.
@@ -119,8 +160,14 @@ def abortable() -> Iterator[None]:
         Interrupted: a stop signal is pending, or arrives during the section.
     """
     check()
-    with _raising(True):
-        yield
+    stream = sys.stderr
+    sys.stderr = quiet = _Unreported(stream)
+    try:
+        with _raising(True):
+            yield
+    finally:
+        sys.stderr = stream
+        quiet.close_section()
     check()
 
 
