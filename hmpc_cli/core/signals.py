@@ -55,6 +55,8 @@ class _State:
         self.signum: int | None = None
         self.raise_now = True  # the handler may raise (False inside deferred sections)
         self.installed = False
+        self.solving = False  # inside an abortable section (an IPOPT solve)
+        self.quiet: _Unreported | None = None  # sys.stderr's filter after a signal in one
 
 
 _STATE = _State()
@@ -65,6 +67,9 @@ def _handler(signum: int, frame) -> None:
         _STATE.signum = int(signum)
     if _STATE.raise_now:
         _STATE.raise_now = False  # raise once; the code then checks the flag
+        if _STATE.solving and _STATE.quiet is None:  # inside a solve CasADi catches the
+            # interrupt and warns about it: that line is left out of stderr
+            _STATE.quiet = sys.stderr = _Unreported(sys.stderr)
         raise Interrupted(_STATE.signum)
 
 
@@ -113,36 +118,43 @@ def deferred() -> Iterator[None]:
 
 
 class _Unreported:
-    """``sys.stderr`` inside :func:`abortable`, without CasADi's interrupt warning.
+    """``sys.stderr`` from a stop signal inside a solve to the section's end.
 
-    Forwards everything but CasADi's warning about the interrupt it caught in an IPOPT
-    callback (the command reports the stop in its own one line). Once a stop signal is
-    pending, text is forwarded a whole line at a time (CasADi writes its warning in
-    pieces).
+    Forwards whole lines, but CasADi's warning about the interrupt it caught in an IPOPT
+    callback (written in pieces; the command reports the stop in its own one line).
     """
 
     def __init__(self, stream) -> None:
         self._stream = stream
         self._line = ""
+        self._lock = threading.Lock()
 
     def write(self, text: str) -> int:
-        if _STATE.signum is None and not self._line:
-            return self._stream.write(text)
-        self._line += text
-        while "\n" in self._line:
-            line, self._line = self._line.split("\n", 1)
-            self._forward(line + "\n")
+        with self._lock:
+            *lines, self._line = (self._line + text).split("\n")
+            for line in lines:
+                self._forward(line + "\n")
         return len(text)
+
+    def writelines(self, lines) -> None:
+        for line in lines:
+            self.write(line)
 
     def _forward(self, text: str) -> None:
         if CASADI_INTERRUPT not in text:
             self._stream.write(text)
 
-    def close_section(self) -> None:
-        """Forwards a partial line left at the section's end (unless CasADi's warning)."""
-        line, self._line = self._line, ""
-        if line:
-            self._forward(line)
+    def release(self) -> None:
+        """Forwards a partial line left (unless CasADi's warning) and flushes.
+
+        A broken stream is left for its next user to find, not made this section's error.
+        """
+        with self._lock:
+            line, self._line = self._line, ""
+            with contextlib.suppress(OSError, ValueError):
+                if line:
+                    self._forward(line)
+                self._stream.flush()
 
     def __getattr__(self, name: str):
         return getattr(self._stream, name)
@@ -156,19 +168,33 @@ CASADI_INTERRUPT = 'WARNING("KeyboardInterruptException")'
 def abortable() -> Iterator[None]:
     """A long computation a signal may cut (an IPOPT solve); checks on entry and exit.
 
+    A stop signal inside it leaves CasADi's warning about the interrupt out of stderr
+    (:class:`_Unreported`, from the signal to the end of the outermost section).
+
     Raises:
         Interrupted: a stop signal is pending, or arrives during the section.
     """
     check()
-    stream = sys.stderr
-    sys.stderr = quiet = _Unreported(stream)
+    outer = _STATE.solving
     try:
+        _STATE.solving = True
         with _raising(True):
             yield
     finally:
-        sys.stderr = stream
-        quiet.close_section()
+        _STATE.solving = outer
+        if not outer:
+            _release_stderr()
     check()
+
+
+def _release_stderr() -> None:
+    """Ends :class:`_Unreported` (if a signal installed it): sys.stderr back, its rest out."""
+    quiet, _STATE.quiet = _STATE.quiet, None
+    if quiet is None:
+        return
+    if sys.stderr is quiet:
+        sys.stderr = quiet._stream
+    quiet.release()
 
 
 def install_deferred() -> None:
