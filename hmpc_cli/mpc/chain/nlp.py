@@ -65,8 +65,6 @@ __all__ = ["INF", "FixedModeNLP", "FixedModeNLPs", "MPCSettings"]
 
 WARM_START = WarmStart(mu_init=1e-6, bound_push=1e-9)  # the warm IPOPT instance
 _LOG = logging.getLogger(__name__)
-#: row groups registered as vectors (the others are scalar rows)
-_VECTOR_ROWS = ("dynamics", "guard_avoid", "region")
 
 #: measured cost of one chain-NLP node (both NLPs, cold and warm solvers; ball, 2 cores)
 NODE_MIB, NODE_MS = 0.85, 18.0
@@ -353,20 +351,23 @@ class FixedModeNLP:
         self._guard_functions()
         for k in range(self.L + 1):
             with b.stage(k):
-                for name, size in self._row_blocks(link=k < self.L):
-                    b.place_rows(name, size if name in _VECTOR_ROWS else ())
+                for name, shape in self._row_blocks(link=k < self.L):
+                    b.place_rows(name, shape)
         if self.T:
             b.place_rows("terminal", self.T)
         (x, p), layout = b.symbols(), b.layout()
         f, g = self._staged_nlp(layout).call([x, p])
         return {"x": x, "p": p, "f": f, "g": g}, layout
 
-    def _row_blocks(self, link: bool) -> list[tuple[str, int]]:
-        """(row group, rows) of a stage in registration order: a link's, or the last node's."""
+    def _row_blocks(self, link: bool) -> list[tuple[str, int | tuple]]:
+        """(row group, shape) of a stage's rows in registration order.
+
+        A link's, or the last node's; shape () is a scalar row.
+        """
         blocks = [("dynamics", self.n)] if link else []
         blocks.append(("guard_avoid", self.Gr))
         if self.S:
-            blocks += [("guard_hit", 1), ("virtual_node", 1)] + \
+            blocks += [("guard_hit", ()), ("virtual_node", ())] + \
                 ([("region", self.R)] if self.R else [])
         return blocks
 
