@@ -296,6 +296,42 @@ def test_bit_flip_inside_a_chunk(ball, ball_log, tmp_path) -> None:
     assert "no message could be read" in _error_line(replay(path))
 
 
+def test_a_log_read_for_some_topics_is_the_whole_read_of_those(ball, tmp_path) -> None:
+    """read_log(topics=...) keeps those topics' messages, as the whole read has them, and
+    still CRC-checks every chunk; read_run(with_plans=False) is the whole read without the
+    plans."""
+    import pickle
+
+    from mcap.reader import make_reader
+
+    from hmpc_cli.log.rundata import TRAJECTORY_TOPICS, read_run
+
+    def kept(log):
+        return [(m.topic, m.log_time_ns, m.data) for m in log.messages
+                if m.topic in TRAJECTORY_TOPICS]
+
+    whole, part = read_log(ball / "run.mcap"), read_log(ball / "run.mcap", TRAJECTORY_TOPICS)
+    assert {m.topic for m in whole.messages} > TRAJECTORY_TOPICS >= {m.topic for m in
+                                                                     part.messages}
+    assert kept(part) == kept(whole) and part.messages and not part.raw
+    assert part.complete and part.schemas == whole.schemas and part.metadata == whole.metadata
+    full, light = read_run(ball), read_run(ball, with_plans=False)
+    assert full.solves and full.planner and not light.solves and not light.planner
+    for f in dataclasses.fields(full):  # arrays, records and lists of them: their pickles
+        if f.name not in ("solves", "planner"):
+            assert pickle.dumps(getattr(full, f.name)) == pickle.dumps(getattr(light, f.name))
+    # a damaged chunk is found whichever topics are read
+    data = bytearray((ball / "run.mcap").read_bytes())
+    with open(ball / "run.mcap", "rb") as f:
+        second = make_reader(f).get_summary().chunk_indexes[1]
+    data[second.chunk_start_offset + second.chunk_length // 2] ^= 0x10
+    path = tmp_path / "flipped.mcap"
+    path.write_bytes(bytes(data))
+    whole, part = read_log(path), read_log(path, TRAJECTORY_TOPICS)
+    assert not part.complete and part.damage == whole.damage != ""
+    assert kept(part) == kept(whole) and part.messages
+
+
 def test_bad_files(ball, tmp_path) -> None:
     import random
 

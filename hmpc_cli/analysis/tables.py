@@ -138,7 +138,7 @@ def load_trace(path: Path) -> RunTrace:
     from hmpc_cli.log.rundata import read_run
 
     try:
-        run = read_run(path)
+        run = read_run(path, with_plans=False)
     except ValueError as exc:
         raise FigureInputError(f"{path}: cannot read log ({exc})") from None
     return trace_of(run, Path(path))

@@ -36,6 +36,7 @@ STAIR_COLOR = "#555555"
 CONTACT_COLOR = OKABE_ITO["vermillion"]
 HEIGHT_IN = 4.2  # default height at one-column width
 MIN_MOVE_M = 0.03  # a snapshot is drawn only if some body point moved this far [m]
+GIF_DPI = 150  # the animation's resolution [dots per inch]: a page's width at 5 in
 
 
 @dataclass
@@ -77,7 +78,7 @@ def load_walk(path: str | Path) -> WalkLog:
     if not path.is_file():
         raise FigureInputError(f"{path}: no such log")
     try:
-        run = read_run(path)
+        run = read_run(path, with_plans=False)
     except ValueError as exc:
         raise FigureInputError(f"{path}: cannot read log ({exc})") from None
     geo = run.geometry
@@ -257,11 +258,13 @@ def fig4(log: str | Path | WalkLog, out_dir: str | Path | None = None,
 
 
 def animate_walk(log: str | Path | WalkLog, out_path: str | Path, fps: int = 25,
-                 speed: float = 1.0, width: float = 5.0, height: float = 2.6) -> Path:
+                 speed: float = 1.0, width: float = 5.0, height: float = 2.6,
+                 dpi: int = GIF_DPI) -> Path:
     """Writes a GIF of the walk.
 
     ``fps`` frames per second of playback, each advancing ``speed / fps`` seconds of
-    simulated time (speed 1: real time).
+    simulated time (speed 1: real time); ``width`` x ``height`` [in] at ``dpi`` [dots per
+    inch] (the default: 750 x 390 pixels).
     """
     if fps < 1 or not speed > 0.0:
         raise FigureInputError(f"need fps >= 1 and speed > 0, got {fps}, {speed}")
@@ -303,7 +306,7 @@ def animate_walk(log: str | Path | WalkLog, out_path: str | Path, fps: int = 25,
         tmp = out_path.with_name(f".{out_path.name}.tmp.gif")
         try:
             try:
-                anim.save(tmp, writer=PillowWriter(fps=fps))
+                anim.save(tmp, writer=PillowWriter(fps=fps), dpi=dpi)
                 tmp.replace(out_path)
             except BaseException:
                 tmp.unlink(missing_ok=True)  # no half-written temporary left behind

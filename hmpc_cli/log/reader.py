@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Collection
 from pathlib import Path
 from typing import Any
 
@@ -91,8 +92,14 @@ class Log:
         return [m for m in self.raw if m.topic == name]
 
     def _add(self, channel: Channel, schema: Schema | None, msg: Message,
-             out: list[LogMessage], raw: list[RawMessage]) -> None:
-        """Files one message: JSON ones decoded into `out`, others into `raw`."""
+             out: list[LogMessage], raw: list[RawMessage],
+             topics: Collection[str] | None = None) -> None:
+        """Files one message: JSON ones decoded into `out`, others into `raw`.
+
+        A message whose topic is not in `topics` (None: every topic) is skipped.
+        """
+        if topics is not None and channel.topic not in topics:
+            return
         if channel.message_encoding == "json":
             out.append(_message(channel, msg))
         else:
@@ -122,7 +129,7 @@ def _schema_dict(schema: Schema | None) -> dict:
     return data
 
 
-def _read_indexed(path: Path) -> Log:
+def _read_indexed(path: Path, topics: Collection[str] | None = None) -> Log:
     """Reads a finished file through its summary section (SeekingReader)."""
     with open(path, "rb") as f:
         reader = make_reader(f, validate_crcs=True)
@@ -134,7 +141,7 @@ def _read_indexed(path: Path) -> Log:
         for schema, channel, msg in reader.iter_messages(log_time_order=False):
             if channel.topic not in log.schemas and channel.topic not in log.raw_schemas:
                 log._add_channel(channel, schema)
-            log._add(channel, schema, msg, log.messages, log.raw)
+            log._add(channel, schema, msg, log.messages, log.raw, topics)
         log.metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
         log.attachments = {a.name: a.data for a in reader.iter_attachments()}
     return log
@@ -146,7 +153,7 @@ def _damage_text(what: str, exc: BaseException) -> str:
     return f"{what} ({detail[:120]})"
 
 
-def _read_stream(path: Path) -> Log:
+def _read_stream(path: Path, topics: Collection[str] | None = None) -> Log:
     """Reads records front to back, keeping every fully written chunk."""
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
@@ -160,7 +167,7 @@ def _read_stream(path: Path) -> Log:
             log._add_channel(record, schemas.get(record.schema_id))
         elif isinstance(record, Message):
             channel = channels[record.channel_id]
-            log._add(channel, schemas.get(channel.schema_id), record, out, raw)
+            log._add(channel, schemas.get(channel.schema_id), record, out, raw, topics)
         elif isinstance(record, Metadata):
             log.metadata[record.name] = dict(record.metadata)
         elif isinstance(record, Attachment):
@@ -192,8 +199,13 @@ def _read_stream(path: Path) -> Log:
     return log
 
 
-def read_log(path: str | Path) -> Log:
-    """Reads a run log; truncated files yield the completed chunks with complete=False."""
+def read_log(path: str | Path, topics: Collection[str] | None = None) -> Log:
+    """Reads a run log; truncated files yield the completed chunks with complete=False.
+
+    ``topics``: only these topics' messages are kept (None: every topic). Every chunk is
+    still read and CRC-checked; the messages of other topics are not decoded, so damage
+    inside one of them alone goes unseen.
+    """
     path = Path(path)
     with open(path, "rb") as f:
         head = f.read(8)
@@ -205,10 +217,10 @@ def read_log(path: str | Path) -> Log:
         raise ValueError(f"{path} is not an MCAP file (bad magic {head!r})")
     if tail == MCAP_MAGIC:
         try:
-            return _read_indexed(path)
+            return _read_indexed(path, topics)
         except (*_DAMAGE_ERRORS, OSError):
             pass  # footer present but file damaged: fall back to a linear scan
-    return _read_stream(path)
+    return _read_stream(path, topics)
 
 
 def first_message(path: str | Path, topic: str) -> dict | None:

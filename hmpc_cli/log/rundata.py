@@ -26,7 +26,7 @@ from hmpc_cli.log.schema import read_record, record_type
 from hmpc_cli.log.topics import (
     MpcSolve, PlanArrays, PlannerCall, RolloutArrays, RunInfo, Summary)
 
-__all__ = ["DamagedLogError", "Event", "RunData", "read_run", "resolve_log"]
+__all__ = ["DamagedLogError", "Event", "RunData", "TRAJECTORY_TOPICS", "read_run", "resolve_log"]
 
 
 def resolve_log(path: Path) -> Path:
@@ -263,8 +263,16 @@ def _names(info: dict, key: str, first: list, width: int) -> tuple[str, ...]:
     return tuple(f"{key[0]}{i}" for i in range(width))
 
 
-def read_run(path: Path) -> RunData:
+#: the topics :func:`read_run` reads without the plans (``with_plans=False``)
+TRAJECTORY_TOPICS = frozenset({"/run/info", "/sim/state", "/sim/event", "/disturbance",
+                               "/run/summary"})
+
+
+def read_run(path: Path, with_plans: bool = True) -> RunData:
     """Reads a run log (a run.mcap or its run directory) into arrays.
+
+    ``with_plans=False`` leaves /mpc/solve and /planner/plan (most of a log's bytes) and
+    the scene unread: ``solves`` and ``planner`` are then empty, the rest as with them.
 
     Raises:
         ValueError: missing, not an MCAP file, or not readable at all (the message says
@@ -276,7 +284,7 @@ def read_run(path: Path) -> RunData:
 
     log_path = resolve_log(path)
     try:
-        log = read_log(log_path)
+        log = read_log(log_path, None if with_plans else TRAJECTORY_TOPICS)
     except (OSError, ValueError) as exc:
         raise ValueError(f"{log_path}: cannot read the log ({exc})") from None
     with reading(log_path):  # wrongly typed or missing fields: damage, not a bug

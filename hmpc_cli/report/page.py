@@ -91,7 +91,7 @@ def _biped_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]
     walk = fig4(log, fig_dir, "pdf,png")
     animate_walk(walk, fig_dir / "walk.gif")
     try:
-        run = read_run(log)
+        run = read_run(log, with_plans=False)
     except ValueError as exc:
         raise FigureInputError(str(exc)) from None
     sc, summary = run.scenario, run.summary
