@@ -88,7 +88,7 @@ def test_a_run_is_bit_for_bit_reproducible(tmp_path):
 def test_a_fall_ends_the_run_cleanly_as_failed(tmp_path, run_hmpc):
     out = tmp_path / "fall"
     proc = run_hmpc(["run", str(STAIRS), "--out", str(out), "-q", "--set",
-                     "disturbance.magnitude=2000", "--set", "sim.duration=1.2"], tmp_path,
+                     "disturbance.magnitude=5000", "--set", "sim.duration=1.2"], tmp_path,
                     timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     summary = json.loads((out / "summary.json").read_text())
