@@ -266,3 +266,46 @@ def test_bad_input_exits_2_and_writes_nothing(table, tmp_path):
     # Without --out the table's own directory stays untouched as well.
     res = CliRunner().invoke(app, ["plot", "fig9", str(table)])
     assert res.exit_code == 2 and not (table.parent / "fig3.png").exists()
+
+
+@pytest.mark.parametrize("layout", [None, "constrained"])
+def test_save_gif_is_matplotlibs_pillow_animation(tmp_path, layout):
+    """save_gif writes the bytes Animation.save writes with PillowWriter (axes and title
+    changing per frame, with and without a layout engine), at the resolution asked; a
+    stop inside a frame leaves no file."""
+    from matplotlib.animation import FuncAnimation, PillowWriter
+    from PIL import Image
+
+    from hmpc_cli.figures.common import figure_style, save_gif
+
+    def make():
+        fig, ax = plt.subplots(figsize=(2.0, 1.5), layout=layout)
+
+        def draw(k: int) -> None:
+            ax.clear()
+            ax.plot([0, 1], [0, k])
+            ax.set_title(f"t = {k / 10:.2f} s")
+        return fig, draw
+
+    with figure_style():
+        import matplotlib.pyplot as plt
+
+        fig, draw = make()
+        FuncAnimation(fig, draw, frames=4).save(tmp_path / "ref.gif", writer=PillowWriter(fps=10),
+                                                dpi=80)
+        plt.close(fig)
+        fig, draw = make()
+        save_gif(fig, draw, range(4), tmp_path / "ours.gif", 10, dpi=80)
+        assert (tmp_path / "ours.gif").read_bytes() == (tmp_path / "ref.gif").read_bytes()
+        with Image.open(tmp_path / "ours.gif") as im:
+            assert im.size == (160, 120) and im.n_frames == 4 and im.info["duration"] == 100
+
+        def stopped(k: int) -> None:
+            if k == 2:
+                raise KeyboardInterrupt
+            draw(k)
+
+        with pytest.raises(KeyboardInterrupt):
+            save_gif(fig, stopped, range(4), tmp_path / "stopped.gif", 10)
+        plt.close(fig)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ours.gif", "ref.gif"]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -12,12 +12,14 @@ from typing import Any
 from hmpc_cli.analysis.tables import FigureInputError
 
 __all__ = [
-    "COLUMN_WIDTH_IN", "FORMATS", "OKABE_ITO", "TEXT_WIDTH_IN", "check_size", "figure_style",
-    "ieee_rc", "page_link", "parse_formats", "save_figure", "write_csv",
+    "COLUMN_WIDTH_IN", "FORMATS", "GIF_DPI", "OKABE_ITO", "TEXT_WIDTH_IN", "check_size",
+    "figure_style", "ieee_rc", "page_link", "parse_formats", "save_figure", "save_gif",
+    "write_csv",
 ]
 
 TEXT_WIDTH_IN = 7.16  # IEEE two-column: full text width (in)
 COLUMN_WIDTH_IN = 3.5  # IEEE two-column: one column (in)
+GIF_DPI = 150  # animations' resolution (dots per inch): 750 pixels across 5 in
 FORMATS = ("pdf", "svg", "png")
 # Okabe-Ito colour-blind-safe palette (Okabe & Ito 2008); every series also has its own
 # marker or line style, so the figures read in grey too.
@@ -179,6 +181,44 @@ def save_figure(fig: Any, out_dir: Path, stem: str, formats: Iterable[str],
 
             plt.close(fig)
     return paths
+
+
+def save_gif(fig: Any, draw: Callable[[Any], object], frames: Iterable[Any], path: Path,
+             fps: float, dpi: int = GIF_DPI) -> Path:
+    """Writes ``fig`` after ``draw(f)`` for each f of ``frames`` as a looping GIF.
+
+    The file is the one Matplotlib's ``Animation.save`` writes with its ``PillowWriter`` at
+    ``dpi`` [dots per inch], ``fps`` frames per second of playback, but a figure without a
+    layout engine is drawn once per frame, not twice (the second draw places the axes of a
+    constrained layout). It is written under a temporary name and renamed: ``draw``
+    raising (a stop signal) or a failed write leaves no file behind.
+
+    Raises:
+        OSError: the file cannot be written.
+    """
+    import io
+
+    from PIL import Image
+
+    from hmpc_cli.core.paths import atomic_file
+
+    layout = fig.get_layout_engine() is not None
+    images = []
+    for f in frames:
+        draw(f)
+        if layout:
+            fig.canvas.draw()
+        buf = io.BytesIO()
+        fig.savefig(buf, format="rgba", dpi=dpi)
+        w, h = fig.get_size_inches()
+        im = Image.frombuffer("RGBA", (int(w * dpi), int(h * dpi)), buf.getbuffer(), "raw",
+                              "RGBA", 0, 1)
+        # opaque frames as RGB, which Pillow turns into a palette better (as PillowWriter)
+        images.append(im if im.getextrema()[3][0] < 255 else im.convert("RGB"))
+    with atomic_file(path) as tmp:
+        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:],
+                       duration=int(1000 / fps), loop=0)
+    return Path(path)
 
 
 def page_link(path: Path, base: Path) -> str:

@@ -21,12 +21,14 @@ import numpy as np
 from hmpc_cli.core import signals
 from hmpc_cli.figures.common import (
     COLUMN_WIDTH_IN,
+    GIF_DPI,
     OKABE_ITO,
     check_size,
     figure_style,
     make_out_dir,
     parse_formats,
-    save_figure)
+    save_figure,
+    save_gif)
 from hmpc_cli.analysis.tables import FigureInputError, resolve_run_log
 
 __all__ = ["WalkLog", "animate_walk", "fig4", "load_walk", "resolve_run_log"]
@@ -36,7 +38,6 @@ STAIR_COLOR = "#555555"
 CONTACT_COLOR = OKABE_ITO["vermillion"]
 HEIGHT_IN = 4.2  # default height at one-column width
 MIN_MOVE_M = 0.03  # a snapshot is drawn only if some body point moved this far [m]
-GIF_DPI = 150  # the animation's resolution [dots per inch]: a page's width at 5 in
 
 
 @dataclass
@@ -276,7 +277,6 @@ def animate_walk(log: str | Path | WalkLog, out_path: str | Path, fps: int = 25,
     idx = np.minimum(np.searchsorted(walk.t, frames), len(walk.t) - 1)
     with figure_style():
         import matplotlib.pyplot as plt
-        from matplotlib.animation import FuncAnimation, PillowWriter
 
         fig, ax = plt.subplots(figsize=(width, height))
         x_min = min(-0.2, float(walk.points[:, :, 0].min()) - 0.05)
@@ -290,9 +290,8 @@ def animate_walk(log: str | Path | WalkLog, out_path: str | Path, fps: int = 25,
         trail, = ax.plot([], [], color="0.5", lw=0.5, ls="--")
         label = ax.text(0.01, 0.95, "", transform=ax.transAxes, va="top")
 
-        def draw(i: int):
+        def frame(k: int) -> None:
             signals.check()  # a stop signal ends the animation between frames
-            k = idx[i]
             p = walk.points[k]
             legs.set_data(p[walk.skeleton[0], 0], p[walk.skeleton[0], 1])
             rest = [i for line in walk.skeleton[1:] for i in (*line, None)]
@@ -300,20 +299,11 @@ def animate_walk(log: str | Path | WalkLog, out_path: str | Path, fps: int = 25,
                            [np.nan if i is None else p[i, 1] for i in rest])
             trail.set_data(walk.hip[: k + 1, 0], walk.hip[: k + 1, 1])
             label.set_text(f"t = {walk.t[k]:.2f} s")
-            return legs, torso, trail, label
 
-        anim = FuncAnimation(fig, draw, frames=len(frames), blit=True)
-        tmp = out_path.with_name(f".{out_path.name}.tmp.gif")
         try:
-            try:
-                anim.save(tmp, writer=PillowWriter(fps=fps), dpi=dpi)
-                tmp.replace(out_path)
-            except BaseException:
-                tmp.unlink(missing_ok=True)  # no half-written temporary left behind
-                raise
+            save_gif(fig, frame, idx, out_path, fps, dpi)
         except OSError as exc:
             raise FigureInputError(f"{out_path}: cannot write the animation ({exc})") from None
         finally:
             plt.close(fig)
-            tmp.unlink(missing_ok=True)
     return out_path

@@ -17,7 +17,7 @@ import numpy as np
 
 from hmpc_cli.analysis.tables import FigureInputError
 from hmpc_cli.core import signals
-from hmpc_cli.figures.common import figure_style
+from hmpc_cli.figures.common import figure_style, save_gif
 
 __all__ = ["SceneFrames", "animate_scene", "read_scene"]
 
@@ -118,7 +118,7 @@ def animate_scene(log, out_dir: Path, title: str, fps: int = 20) -> list[Path]:
         FigureInputError: the log has no scene.
     """
     import matplotlib.pyplot as plt
-    from matplotlib.animation import FFMpegWriter, FuncAnimation, PillowWriter
+    from matplotlib.animation import FFMpegWriter, FuncAnimation
 
     frames = read_scene(log)
     t0, t1 = frames.body[0][0], frames.body[0][-1]
@@ -141,14 +141,15 @@ def animate_scene(log, out_dir: Path, title: str, fps: int = 20) -> list[Path]:
             ax.set_aspect("equal")
             ax.set_title(f"{title}  t = {times[k]:.2f} s")
 
-        anim = FuncAnimation(fig, draw, frames=n)
         rate = max(1, round(n / max(t1 - t0, 1e-9)))
         paths = [Path(out_dir) / "scene.gif"]
-        _save(anim, paths[0], PillowWriter(fps=rate))
-        if shutil.which("ffmpeg"):
-            paths.append(Path(out_dir) / "scene.mp4")
-            _save(anim, paths[1], FFMpegWriter(fps=rate))
-        plt.close(fig)
+        try:
+            save_gif(fig, draw, range(n), paths[0], rate)
+            if shutil.which("ffmpeg"):
+                paths.append(Path(out_dir) / "scene.mp4")
+                _save(FuncAnimation(fig, draw, frames=n), paths[1], FFMpegWriter(fps=rate))
+        finally:
+            plt.close(fig)
     return paths
 
 
