@@ -307,5 +307,7 @@ def test_save_gif_is_matplotlibs_pillow_animation(tmp_path, layout):
 
         with pytest.raises(KeyboardInterrupt):
             save_gif(fig, stopped, range(4), tmp_path / "stopped.gif", 10)
+        with pytest.raises(ValueError, match="at least one frame"):
+            save_gif(fig, draw, [], tmp_path / "empty.gif", 10)
         plt.close(fig)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ours.gif", "ref.gif"]

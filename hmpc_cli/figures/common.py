@@ -194,6 +194,7 @@ def save_gif(fig: Any, draw: Callable[[Any], object], frames: Iterable[Any], pat
     raising (a stop signal) or a failed write leaves no file behind.
 
     Raises:
+        ValueError: no frames.
         OSError: the file cannot be written.
     """
     import io
@@ -215,6 +216,8 @@ def save_gif(fig: Any, draw: Callable[[Any], object], frames: Iterable[Any], pat
                               "RGBA", 0, 1)
         # opaque frames as RGB, which Pillow turns into a palette better (as PillowWriter)
         images.append(im if im.getextrema()[3][0] < 255 else im.convert("RGB"))
+    if not images:
+        raise ValueError(f"{path}: an animation needs at least one frame")
     with atomic_file(path) as tmp:
         images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:],
                        duration=int(1000 / fps), loop=0)
