@@ -268,18 +268,19 @@ def test_bad_input_exits_2_and_writes_nothing(table, tmp_path):
     assert res.exit_code == 2 and not (table.parent / "fig3.png").exists()
 
 
-@pytest.mark.parametrize("layout", [None, "constrained"])
-def test_save_gif_is_matplotlibs_pillow_animation(tmp_path, layout):
+@pytest.mark.parametrize("layout,size", [(None, (2.0, 1.5)), ("constrained", (2.0, 1.5)),
+                                         (None, (2.26, 1.5))])
+def test_save_gif_is_matplotlibs_pillow_animation(tmp_path, layout, size, monkeypatch):
     """save_gif writes the bytes Animation.save writes with PillowWriter (axes and title
-    changing per frame, with and without a layout engine), at the resolution asked; a
-    stop inside a frame leaves no file."""
+    changing per frame, with and without a layout engine; a width whose pixels round up),
+    at the resolution asked; a stop inside a frame or a failed write leaves no file."""
     from matplotlib.animation import FuncAnimation, PillowWriter
     from PIL import Image
 
     from hmpc_cli.figures.common import figure_style, save_gif
 
     def make():
-        fig, ax = plt.subplots(figsize=(2.0, 1.5), layout=layout)
+        fig, ax = plt.subplots(figsize=size, layout=layout)
 
         def draw(k: int) -> None:
             ax.clear()
@@ -290,15 +291,17 @@ def test_save_gif_is_matplotlibs_pillow_animation(tmp_path, layout):
     with figure_style():
         import matplotlib.pyplot as plt
 
+        dpi = 80 if size[0] == 2.0 else 150  # 2.26 in x 150 dpi = 338.99999999999994
         fig, draw = make()
         FuncAnimation(fig, draw, frames=4).save(tmp_path / "ref.gif", writer=PillowWriter(fps=10),
-                                                dpi=80)
+                                                dpi=dpi)
         plt.close(fig)
         fig, draw = make()
-        save_gif(fig, draw, range(4), tmp_path / "ours.gif", 10, dpi=80)
+        save_gif(fig, draw, range(4), tmp_path / "ours.gif", 10, dpi=dpi)
         assert (tmp_path / "ours.gif").read_bytes() == (tmp_path / "ref.gif").read_bytes()
         with Image.open(tmp_path / "ours.gif") as im:
-            assert im.size == (160, 120) and im.n_frames == 4 and im.info["duration"] == 100
+            assert im.size == ((160, 120) if dpi == 80 else (339, 225))
+            assert im.n_frames == 4 and im.info["duration"] == 100
 
         def stopped(k: int) -> None:
             if k == 2:
@@ -309,5 +312,13 @@ def test_save_gif_is_matplotlibs_pillow_animation(tmp_path, layout):
             save_gif(fig, stopped, range(4), tmp_path / "stopped.gif", 10)
         with pytest.raises(ValueError, match="at least one frame"):
             save_gif(fig, draw, [], tmp_path / "empty.gif", 10)
+
+        def half_written(self, fp, *args, **kwargs):  # a disk that fills up mid-file
+            Path(fp).write_bytes(b"GIF89a")
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(Image.Image, "save", half_written)
+        with pytest.raises(OSError, match="No space"):
+            save_gif(fig, draw, range(2), tmp_path / "full.gif", 10)
         plt.close(fig)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ours.gif", "ref.gif"]

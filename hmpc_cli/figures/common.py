@@ -211,9 +211,12 @@ def save_gif(fig: Any, draw: Callable[[Any], object], frames: Iterable[Any], pat
             fig.canvas.draw()
         buf = io.BytesIO()
         fig.savefig(buf, format="rgba", dpi=dpi)
-        w, h = fig.get_size_inches()
-        im = Image.frombuffer("RGBA", (int(w * dpi), int(h * dpi)), buf.getbuffer(), "raw",
-                              "RGBA", 0, 1)
+        w, h = fig.get_size_inches()  # in pixels as the canvas rounds them (PillowWriter's)
+        size = int(w * dpi + 1e-8), int(h * dpi + 1e-8)
+        if len(buf.getbuffer()) != 4 * size[0] * size[1]:
+            raise RuntimeError(f"{path}: a frame of {len(buf.getbuffer())} bytes is not "
+                               f"{size[0]} x {size[1]} RGBA pixels")
+        im = Image.frombuffer("RGBA", size, buf.getbuffer(), "raw", "RGBA", 0, 1)
         # opaque frames as RGB, which Pillow turns into a palette better (as PillowWriter)
         images.append(im if im.getextrema()[3][0] < 255 else im.convert("RGB"))
     if not images:

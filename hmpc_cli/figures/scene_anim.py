@@ -107,6 +107,9 @@ def _bounds(frames: SceneFrames) -> tuple[float, float, float, float]:
 def animate_scene(log, out_dir: Path, title: str, fps: int = 20) -> list[Path]:
     """Writes ``scene.gif`` (and ``scene.mp4`` with ffmpeg) into ``out_dir``.
 
+    The figure is 6 in wide: the GIF at :data:`~hmpc_cli.figures.common.GIF_DPI` (900
+    pixels), the MP4 at the figure files' 300 dpi.
+
     Args:
         log: a read log (:func:`hmpc_cli.log.reader.read_log`) with /scene/* topics.
         out_dir: existing output directory.

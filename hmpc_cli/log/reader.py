@@ -71,7 +71,8 @@ class Log:
     `messages` and `schemas` hold the JSON channels (decoded); `raw` the messages of the
     other channels undecoded, `raw_schemas` their schema records by topic. `damage` says
     why reading stopped at a chunk that failed its CRC, decompression or decoding (""
-    otherwise, also for a file that merely ends early).
+    otherwise, also for a file that merely ends early); damaged in what was read (see
+    :func:`read_log`'s ``topics``).
     """
 
     messages: list[LogMessage]
@@ -203,8 +204,9 @@ def read_log(path: str | Path, topics: Collection[str] | None = None) -> Log:
     """Reads a run log; truncated files yield the completed chunks with complete=False.
 
     ``topics``: only these topics' messages are kept (None: every topic). Every chunk is
-    still read and CRC-checked; the messages of other topics are not decoded, so damage
-    inside one of them alone goes unseen.
+    still read, CRC-checked and decompressed; the messages of other topics are not
+    decoded, so a malformed one of them inside a chunk whose CRC holds (a writer's bug, a
+    foreign file) is not seen: such a log reads complete here and damaged in full.
     """
     path = Path(path)
     with open(path, "rb") as f:

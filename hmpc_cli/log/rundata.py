@@ -271,8 +271,10 @@ TRAJECTORY_TOPICS = frozenset({"/run/info", "/sim/state", "/sim/event", "/distur
 def read_run(path: Path, with_plans: bool = True) -> RunData:
     """Reads a run log (a run.mcap or its run directory) into arrays.
 
-    ``with_plans=False`` leaves /mpc/solve and /planner/plan (most of a log's bytes) and
-    the scene unread: ``solves`` and ``planner`` are then empty, the rest as with them.
+    ``with_plans=False`` decodes only :data:`TRAJECTORY_TOPICS`, not /mpc/solve and
+    /planner/plan (most of a log's bytes) nor the scene: ``solves`` and ``planner`` are
+    then empty and the rest as with them, but for a message of the undecoded topics that
+    is malformed inside an intact chunk (see :func:`~hmpc_cli.log.reader.read_log`).
 
     Raises:
         ValueError: missing, not an MCAP file, or not readable at all (the message says
