@@ -4,6 +4,7 @@ log, found where the run log is not, refused cleanly when the source is not a lo
 from __future__ import annotations
 
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +14,8 @@ from hmpc_cli.analysis.tables import resolve_run_log
 from hmpc_cli.log.reader import read_log
 from hmpc_cli.log.rundata import read_run
 from hmpc_cli.log.trace import TRACE_NAME, TRACE_TOPICS, period_shifts, write_trace
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -35,6 +38,27 @@ def test_the_trace_keeps_its_topics_message_for_message(traced):
     assert [(m.topic, m.t, m.data) for m in kept.messages] == want
     assert kept.schemas == {t: s for t, s in full.schemas.items() if t in TRACE_TOPICS}
     assert trace.stat().st_size < log.stat().st_size / 5
+
+
+def test_the_traces_summary_names_its_channels_for_an_indexed_reader(traced):
+    """A viewer (Lichtblick, Foxglove) lists a file's topics from its summary section: the
+    trace repeats its schemas and channels there, and reads through its index (the
+    committed traces too)."""
+    from mcap.reader import make_reader
+
+    from hmpc_cli.log.reader import _read_indexed
+
+    _, trace = traced
+    committed = sorted((ROOT / "results" / "sweeps").glob("*/runs/*/" + TRACE_NAME))
+    assert len(committed) > 100
+    for path in (trace, *committed):
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+        channels = summary.channels.values()
+        assert {c.topic for c in channels} <= set(TRACE_TOPICS), path
+        assert {c.schema_id for c in channels} <= set(summary.schemas), path
+        assert summary.statistics.channel_count == len(summary.channels) > 0, path
+    assert len(_read_indexed(trace).messages) == len(read_log(trace).messages)
 
 
 def test_the_trace_reads_back_as_the_run_did(traced):

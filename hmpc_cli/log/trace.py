@@ -51,7 +51,7 @@ def write_trace(log: str | Path, out: str | Path | None = None) -> Path:
     try:
         with open(log, "rb") as src, open(tmp, "wb") as dst, zstd_level(TRACE_ZSTD_LEVEL):
             writer = Writer(dst, chunk_size=1024 * 1024, compression=CompressionType.ZSTD,
-                            repeat_schemas=False, repeat_channels=False)
+                            repeat_schemas=True, repeat_channels=True)
             writer.start(profile="", library="hmpc trace")
             schemas: dict[int, int] = {}
             channels: dict[int, int] = {}
