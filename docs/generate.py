@@ -678,7 +678,10 @@ LOG_HAND = """
 ## Hand-written: opening a log in Foxglove or Lichtblick
 
 Open `run.mcap` with File → Open local file (or drag it into the window); simulated time
-is the log time, so the playback bar replays the run. Useful panels:
+is the log time, so the playback bar replays the run. A committed run's trajectory log
+(`trace.mcap`, see `sweeps-and-report.md`) opens the same way, with its six topics (its
+summary section names its schemas and channels, which the viewers list topics from).
+Useful panels:
 
 * **3D**: the topics `/scene/static`, `/scene/body`, `/scene/plan`, `/scene/rollout`,
   display frame `{frame}`. The system's plane stands upright: plane (a, b) is world
