@@ -204,6 +204,8 @@ def save_gif(fig: Any, draw: Callable[[Any], object], frames: Iterable[Any], pat
     from hmpc_cli.core.paths import atomic_file
 
     layout = fig.get_layout_engine() is not None
+    w, h = fig.get_size_inches()  # in pixels as the canvas rounds them (PillowWriter's)
+    size = int(w * dpi + 1e-8), int(h * dpi + 1e-8)
     images = []
     for f in frames:
         draw(f)
@@ -211,8 +213,6 @@ def save_gif(fig: Any, draw: Callable[[Any], object], frames: Iterable[Any], pat
             fig.canvas.draw()
         buf = io.BytesIO()
         fig.savefig(buf, format="rgba", dpi=dpi)
-        w, h = fig.get_size_inches()  # in pixels as the canvas rounds them (PillowWriter's)
-        size = int(w * dpi + 1e-8), int(h * dpi + 1e-8)
         if len(buf.getbuffer()) != 4 * size[0] * size[1]:
             raise RuntimeError(f"{path}: a frame of {len(buf.getbuffer())} bytes is not "
                                f"{size[0]} x {size[1]} RGBA pixels")

@@ -23,6 +23,7 @@ import numpy as np
 from hmpc_cli.log.damage import DamagedLogError, reading
 from hmpc_cli.log.geometry import GeometryRec, body_names
 from hmpc_cli.log.schema import read_record, record_type
+from hmpc_cli.log.trace import TRACE_NAME, TRACE_TOPICS
 from hmpc_cli.log.topics import (
     MpcSolve, PlanArrays, PlannerCall, RolloutArrays, RunInfo, Summary)
 
@@ -35,8 +36,6 @@ def resolve_log(path: Path) -> Path:
     A run log that is not there is read from the trajectory log beside it
     (:data:`~hmpc_cli.log.trace.TRACE_NAME`, a committed results page's copy) if there is one.
     """
-    from hmpc_cli.log.trace import TRACE_NAME
-
     path = Path(path)
     if path.is_dir():
         path = path / "run.mcap"
@@ -263,9 +262,9 @@ def _names(info: dict, key: str, first: list, width: int) -> tuple[str, ...]:
     return tuple(f"{key[0]}{i}" for i in range(width))
 
 
-#: the topics :func:`read_run` reads without the plans (``with_plans=False``)
-TRAJECTORY_TOPICS = frozenset({"/run/info", "/sim/state", "/sim/event", "/disturbance",
-                               "/run/summary"})
+#: the topics :func:`read_run` reads without the plans (``with_plans=False``): a trajectory
+#: log's, but for the planner's
+TRAJECTORY_TOPICS = frozenset(TRACE_TOPICS) - {"/planner/plan"}
 
 
 def read_run(path: Path, with_plans: bool = True) -> RunData:
