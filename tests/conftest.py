@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+import typer.testing
 
 REPO = Path(__file__).resolve().parents[1]
 # compiled rollout kernels of this test session go to a private cache (inherited by the
@@ -29,6 +30,26 @@ if "HMPC_CACHE_DIR" not in os.environ:
 os.environ.setdefault("HMPC_BUILD_CACHE", "use")
 SCENARIOS = REPO / "scenarios"
 BALL = SCENARIOS / "ball.toml"
+
+
+def _click_command_built_once(get_command):
+    """Typer's ``get_command`` made once per app and its registered commands and groups:
+    ``CliRunner.invoke`` otherwise builds the whole command tree, every option's parameter
+    and its type adapter, on every call (most of an in-process bad-input test). A process
+    of the real ``hmpc`` builds it once too."""
+    built: dict = {}
+
+    def command(app):
+        key = (id(app), tuple(map(id, app.registered_commands)),
+               tuple(map(id, app.registered_groups)), id(app.registered_callback))
+        if key not in built:
+            built[key] = (app, get_command(app))  # the app kept: its id is not reused
+        return built[key][1]
+
+    return command
+
+
+typer.testing._get_command = _click_command_built_once(typer.testing._get_command)
 
 
 @pytest.fixture(autouse=True)
