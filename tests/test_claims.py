@@ -165,15 +165,15 @@ def test_the_ball_keeps_up_in_real_time_with_the_model_latency(tmp_path, run_hmp
 @pytest.mark.slow
 def test_the_real_time_robustness_table_is_what_the_code_gives(tmp_path, run_hmpc):
     """The committed table of sweeps/robustness_realtime.toml (real-time iterations, compute
-    time charged by the latency model: the same on any machine) holds what its first two
-    seeds give when run again: outcome, contacts and solves of all 20 runs."""
+    time charged by the latency model: the same on any machine) holds what its first seed
+    gives when run again in each of its 10 cells: outcome, contacts and solves."""
     sweep = ROOT / "sweeps" / "robustness_realtime.toml"
-    proc = run_hmpc(["sweep", str(sweep), "--seeds", "2", "--out", str(tmp_path / "rt")],
+    proc = run_hmpc(["sweep", str(sweep), "--seeds", "1", "--out", str(tmp_path / "rt")],
                     cwd=tmp_path, timeout=1800)
     assert proc.returncode == 0, proc.stderr
     assert assert_runs_match_the_committed_table(tmp_path / "rt" / "results.csv",
                                                  "robustness_realtime",
-                                                 keep=lambda r: int(r["seed"]) < 2) == 20
+                                                 keep=lambda r: int(r["seed"]) < 1) == 10
 
 
 def test_the_readmes_real_time_ipopt_sentence_is_the_committed_table():
