@@ -40,10 +40,11 @@ def _click_command_built_once(get_command):
     built: dict = {}
 
     def command(app):
-        key = (id(app), tuple(map(id, app.registered_commands)),
-               tuple(map(id, app.registered_groups)), id(app.registered_callback))
-        if key not in built:
-            built[key] = (app, get_command(app))  # the app kept: its id is not reused
+        parts = (app, *app.registered_commands, None, *app.registered_groups, None,
+                 app.registered_callback)
+        key = tuple(map(id, parts))
+        if key not in built:  # the parts kept alive with it: their ids are not reused
+            built[key] = (parts, get_command(app))
         return built[key][1]
 
     return command

@@ -85,6 +85,27 @@ def test_every_configuration_has_a_finite_row_per_nlp(measured, tmp_path):
         assert any("do-mpc not installed" in note for note in run.notes)
 
 
+def test_the_quick_command_end_to_end(recorded, tmp_path, monkeypatch, capsys):
+    """``python benchmarks/suite.py --quick`` through its ``main`` (CI leaves the command
+    itself to ``pytest -m campaign``): trial 1 recorded (the short NLPs' recording, 2
+    problems), its report printed and written to results/bench/quick."""
+    def record(trial, overrides):
+        assert (trial, overrides) == (suite.QUICK_TRIALS[0], SHORT)
+        return recorded
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(suite, "record", record)
+    sets = [a for s in SHORT for a in ("--set", s)]
+    assert suite.main(["--quick", "--problems", "2", "--no-do-mpc", *sets]) == 0
+    out = tmp_path / "results" / "bench" / "quick"
+    printed = capsys.readouterr().out
+    assert "trial 1: " in printed and f"wrote {out.relative_to(tmp_path)}" in printed
+    assert sorted(p.name for p in out.iterdir()) == ["backends.csv", "backends.md",
+                                                     "machine.json"]
+    with open(out / "backends.csv", newline="") as f:
+        assert {r["config"] for r in csv.DictReader(f)} == CONFIGS
+
+
 def test_failures_are_counted_and_ratios_are_of_medians():
     def st(ms, ok=True, fallback=False):
         return SolveStats("x", ok, 3, ms / 1e3, 0.0, 0.0, fallback=fallback)

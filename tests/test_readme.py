@@ -1,7 +1,9 @@
 """Every command the README and the manual (docs/*.md) show in a ``console`` block is run here.
 
 Each document's ``$ `` lines run in order in a fresh directory of their own (the scenarios,
-benchmarks and sweeps linked in); install and the default run are run by CI.
+benchmarks and sweeps linked in); install and the default run are run by CI. The
+campaign-only commands run apart, under ``pytest -m campaign``: in order, their committed
+results stand in for theirs.
 """
 
 import csv
