@@ -116,10 +116,11 @@ def _model_latency_runs(path: Path, controllers: set[str]) -> None:
     for line in (ROOT / "sweeps" / "realtime_rti.toml").read_text().splitlines():
         if opened := re.fullmatch(r"(\w+) = \[", line):
             axis = opened.group(1)
-        entry = re.match(r'\s*\{ label = "([^"]+)"', line)
-        if entry and {"latency": entry.group(1) == "model",
-                      "controller": entry.group(1) in controllers}.get(axis, True) is False:
-            continue
+        if entry := re.match(r'\s*\{ label = "([^"]+)"', line):
+            label = entry.group(1)
+            if not {"latency": label == "model", "controller": label in controllers}.get(
+                    axis, True):
+                continue
         if line.startswith("scenario = "):
             line = f'scenario = "{(ROOT / "scenarios" / "ball_realtime.toml").as_posix()}"'
         lines.append(line)
