@@ -235,3 +235,39 @@ def test_casadis_interrupt_warning_is_left_out_of_stderr_inside_a_solve(monkeypa
         signals._handler(signal.SIGINT, None)  # outside a solve: nothing to filter
     signals.reset()
     assert sys.stderr is err
+
+
+@pytest.mark.parametrize("verbose", [0, 1])
+def test_an_exception_after_a_stop_signal_is_the_stop(capsys, verbose):
+    """The handler's KeyboardInterrupt raised where C code runs Python can come out as
+    another exception (a SIGINT to `hmpc replay` in CI ended in ``TypeError: expected a
+    message argument``, CPython 3.11.2's import machinery): with a stop signal received, the
+    command reports the stop, exit 128 + signal, not an internal error; the exception's
+    traceback with -v. Without a signal the same exception is an internal error."""
+    import os
+
+    import typer
+
+    from hmpc_cli.cli.common import EXIT_INTERNAL, with_verbosity
+    from hmpc_cli.core.signals import deferred
+
+    def body(signalled: bool):
+        if signalled:
+            with deferred():  # the handler only records the signal
+                os.kill(os.getpid(), signal.SIGTERM)
+        raise TypeError("expected a message argument")
+
+    command = with_verbosity(body)
+    with pytest.raises(typer.Exit) as stop:
+        command(signalled=True, verbose=verbose)
+    assert stop.value.exit_code == 143
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == "interrupted (SIGTERM)"
+    if verbose:
+        assert err[-1] == "TypeError: expected a message argument"
+    else:
+        assert err[1:] == []
+    with pytest.raises(typer.Exit) as failed:
+        command(signalled=False)
+    assert failed.value.exit_code == EXIT_INTERNAL
+    assert capsys.readouterr().err.startswith("error: internal error: TypeError: expected a")

@@ -91,6 +91,7 @@ def with_verbosity(fn):
         except Exception as exc:  # a bug, not bad input: one line, exit 1, trace with -v
             if _is_cli_exception(exc):
                 raise
+            stopped_meanwhile(exc)
             environment_error(exc)
             internal_error(exc)
 
@@ -107,6 +108,27 @@ EXIT_INTERNAL = 1
 def _is_cli_exception(exc: BaseException) -> bool:
     """Whether ``exc`` is the command-line framework's own (usage errors and exits)."""
     return any(cls.__name__ == "ClickException" for cls in type(exc).__mro__)
+
+
+def stopped_meanwhile(exc: BaseException) -> None:
+    """Exits 128 + signal with one line when a stop signal came before ``exc``; else returns.
+
+    The handler's KeyboardInterrupt, raised where C code runs Python, can come out as
+    another exception: a SIGINT to ``hmpc replay`` once ended in ``TypeError: expected a
+    message argument`` (CPython 3.11.2; the text of ``PyErr_SetImportError``, the import
+    machinery's). The stop is what ended the command; ``exc``'s traceback with -v.
+    """
+    import traceback
+
+    from hmpc_cli.core.signals import Interrupted, pending
+
+    if pending() is None:
+        return
+    stop = Interrupted(pending())
+    typer.echo(f"interrupted ({stop.name})", err=True)
+    if VERBOSITY[0] >= 1:
+        typer.echo("".join(traceback.format_exception(exc)).rstrip(), err=True)
+    raise typer.Exit(stop.exit_code) from None
 
 
 def environment_error(exc: BaseException) -> None:
