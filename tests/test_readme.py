@@ -2,8 +2,8 @@
 
 Each document's ``$ `` lines run in order in a fresh directory of their own (the scenarios,
 benchmarks and sweeps linked in); install and the default run are run by CI. The
-campaign-only commands run apart, under ``pytest -m campaign``: in order, their committed
-results stand in for theirs.
+campaign-only commands (``CAMPAIGN_ONLY``) run apart, under ``pytest -m campaign``; in
+their documents' order their committed results stand in for theirs.
 """
 
 import csv
