@@ -118,8 +118,6 @@ def stopped_meanwhile(exc: BaseException) -> None:
     message argument`` (CPython 3.11.2; the text of ``PyErr_SetImportError``, the import
     machinery's). The stop is what ended the command; ``exc``'s traceback with -v.
     """
-    import traceback
-
     from hmpc_cli.core.signals import Interrupted, pending
 
     if pending() is None:
@@ -127,8 +125,14 @@ def stopped_meanwhile(exc: BaseException) -> None:
     stop = Interrupted(pending())
     typer.echo(f"interrupted ({stop.name})", err=True)
     if VERBOSITY[0] >= 1:
-        typer.echo("".join(traceback.format_exception(exc)).rstrip(), err=True)
+        _echo_traceback(exc)
     raise typer.Exit(stop.exit_code) from None
+
+
+def _echo_traceback(exc: BaseException) -> None:
+    import traceback
+
+    typer.echo("".join(traceback.format_exception(exc)).rstrip(), err=True)
 
 
 def environment_error(exc: BaseException) -> None:
@@ -157,13 +161,11 @@ EXIT_BAD_INPUT = 2
 
 def internal_error(exc: BaseException) -> None:
     """Reports an unexpected exception in one line (the traceback with -v) and exits 1."""
-    import traceback
-
     first = " ".join(str(exc).split())[:300]
     typer.echo(f"error: internal error: {type(exc).__name__}" + (f": {first}" if first else ""),
                err=True)
     if VERBOSITY[0] >= 1:
-        typer.echo("".join(traceback.format_exception(exc)).rstrip(), err=True)
+        _echo_traceback(exc)
     else:
         typer.echo("(run again with -v for the traceback; please report it)", err=True)
     raise typer.Exit(EXIT_INTERNAL) from None
