@@ -35,12 +35,13 @@ import contextlib
 import dataclasses
 import json
 import os
+import shlex
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -60,6 +61,18 @@ BIPED_VARIANTS = {
 EVALS = ("t_wall_nlp_f", "t_wall_nlp_g", "t_wall_nlp_grad_f", "t_wall_nlp_jac_g",
          "t_wall_nlp_hess_l", "t_wall_nlp_grad",
          "t_wall_nlp_fg", "t_wall_nlp_jac_fg")  # the last two: sqpmethod's (rti)
+
+
+def shown_command(script: str, argv: Sequence[str]) -> str:
+    """``python benchmarks/<script> <argv>`` as a report shows it: ``--compiled``'s
+    directory as DIR."""
+    out = list(argv)
+    for i, a in enumerate(out):
+        if a == "--compiled" and i + 1 < len(out):
+            out[i + 1] = "DIR"
+        elif a.startswith("--compiled="):
+            out[i] = "--compiled=DIR"
+    return shlex.join(["python", f"benchmarks/{script}", *out])
 
 
 def _median(xs) -> float:
@@ -106,8 +119,12 @@ def command_walls(runs: int, cache: str | None) -> list[float]:
     return walls
 
 
-def phases() -> dict[str, float]:
-    """One ``hmpc run`` of the ball in this (fresh) process, split into phases [s]."""
+def phases(sets: Sequence[str] = ()) -> dict[str, float]:
+    """One ``hmpc run`` of the ball in this (fresh) process, split into phases [s].
+
+    ``sets``: scenario overrides (``key=value``, as ``--set``). The timers wrapped around
+    CasADi's and hmpc's functions are taken off again before it returns.
+    """
     t0 = time.perf_counter()
     import casadi as ca
 
@@ -128,26 +145,31 @@ def phases() -> dict[str, float]:
                 spent[key] += time.perf_counter() - start
         return wrapper
 
-    ca.nlpsol = timed(ca.nlpsol, "nlpsol")
     cls = nlp_mod.FixedModeNLP
-    cls._transcription = timed(cls._transcription, "transcription")
     # the command's own time for the kernel: starting its compile (and loading a cached
     # one) in the build, waiting for it at the first plan in the run
-    rollout.start_library = timed(rollout.start_library, KERNEL)
-    rollout.LibraryBuild.result = timed(rollout.LibraryBuild.result, KERNEL)
-    t = time.perf_counter()
-    sc, text = load_scenario(str(ROOT / BALL))
-    out["scenario"] = time.perf_counter() - t
-    t = time.perf_counter()
-    loop = prepare(sc)
-    out["build"] = time.perf_counter() - t
-    out.update({f"build: {k}": v for k, v in spent.items()})
-    with tempfile.TemporaryDirectory() as tmp:
+    wrapped = [(ca, "nlpsol", "nlpsol"), (cls, "_transcription", "transcription"),
+               (rollout, "start_library", KERNEL), (rollout.LibraryBuild, "result", KERNEL)]
+    originals = [(owner, name, getattr(owner, name)) for owner, name, _ in wrapped]
+    for owner, name, key in wrapped:
+        setattr(owner, name, timed(getattr(owner, name), key))
+    try:
         t = time.perf_counter()
-        execute_run(loop, text, Path(tmp))
-        out["run"] = time.perf_counter() - t
-    out["run: MPC solves"] = sum(loop.books.solve_times)
-    out["run: planner"] = sum(loop.books.plan_times)
+        sc, text = load_scenario(str(ROOT / BALL), list(sets))
+        out["scenario"] = time.perf_counter() - t
+        t = time.perf_counter()
+        loop = prepare(sc)
+        out["build"] = time.perf_counter() - t
+        out.update({f"build: {k}": v for k, v in spent.items()})
+        with tempfile.TemporaryDirectory() as tmp:
+            t = time.perf_counter()
+            execute_run(loop, text, Path(tmp))
+            out["run"] = time.perf_counter() - t
+    finally:
+        for owner, name, original in originals:
+            setattr(owner, name, original)
+    out["run: MPC solves"] = float(sum(loop.books.solve_times))
+    out["run: planner"] = float(sum(loop.books.plan_times))
     # the first plan waits for a kernel still compiling (outside its own timer)
     out[WAIT] = spent[KERNEL] - out[ROLLOUT]
     c_rollout = getattr(loop.planner, "_c", None)
@@ -294,13 +316,14 @@ def planning_flag(state: dict) -> Iterator[None]:
         FootholdPlanner.plan = plan
 
 
-def biped_calls(variant: str = "ipopt") -> dict:
+def biped_calls(variant: str = "ipopt", sets: Sequence[str] = ()) -> dict:
     """Every NLP solver call of one biped_stairs run, the build time and the NLP's size.
 
     ``variant``: a key of :data:`BIPED_VARIANTS` (the walking MPC's back-end). Each call:
     ``planning`` (inside the foothold planner) or not, wall [s], iterations, and the time
     the solver's statistics give its function evaluations [s]. Then the variant's charged
-    runs (``model`` latency), whose calls are not recorded.
+    runs (``model`` latency), whose calls are not recorded. ``sets``: scenario overrides
+    (``key=value``) of every run, after the variant's.
     """
     from hmpc_cli.mpc import solver as solver_mod
     from hmpc_cli.run.runner import prepare, run_unlogged
@@ -319,8 +342,8 @@ def biped_calls(variant: str = "ipopt") -> dict:
                       "evals": sum(st.get(k, 0.0) for k in EVALS)})
         return res
 
-    sets, charged_runs, unit = BIPED_VARIANTS[variant]
-    sc, _ = load_scenario(str(ROOT / BIPED), sets)
+    variant_sets, charged_runs, unit = BIPED_VARIANTS[variant]
+    sc, _ = load_scenario(str(ROOT / BIPED), [*variant_sets, *sets])
     start = time.perf_counter()
     loop = prepare(sc)
     build = time.perf_counter() - start
@@ -333,7 +356,7 @@ def biped_calls(variant: str = "ipopt") -> dict:
     nlp = getattr(loop.mpc, "nlp", None)
     charged = {}
     for key, scenario in charged_runs:
-        model, _ = load_scenario(str(ROOT / scenario), ['sim.latency="model"'])
+        model, _ = load_scenario(str(ROOT / scenario), ['sim.latency="model"', *sets])
         r = run_unlogged(prepare(model))
         charged[key] = {"success": r.success, "reason": r.reason, "t_end": r.t_end}
     info = loop.identity.build
@@ -509,8 +532,9 @@ def campaign_section(compiled: str | None) -> tuple[list[str], dict]:
     return lines, out
 
 
-def main() -> None:
-    """Runs the sections and writes ``targets.md``."""
+def main(argv: Sequence[str] | None = None) -> None:
+    """Runs the sections and writes ``targets.md`` (``argv``: the arguments; None: the
+    command line's)."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=5, help="`hmpc run` processes per case")
     ap.add_argument("--no-campaign", action="store_true", help="skip the Figure 3 campaign")
@@ -520,7 +544,8 @@ def main() -> None:
     ap.add_argument("--phases", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--biped", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--biped-rti", action="store_true", help=argparse.SUPPRESS)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    argv = [sys.argv[0], *(sys.argv[1:] if argv is None else argv)]
     if args.phases or args.biped or args.biped_rti:  # a child: one section's measurements
         print(json.dumps(phases() if args.phases else
                          biped_calls("rti" if args.biped_rti else "ipopt")))
@@ -530,10 +555,10 @@ def main() -> None:
     sections = [run_section(args.runs, compiled), biped_section(compiled), cem_section()]
     if not args.no_campaign:
         sections.append(campaign_section(compiled))
-    desc = suite_report.machine(sys.argv, load0, time.perf_counter() - start, (), (), git)
+    desc = suite_report.machine(argv, load0, time.perf_counter() - start, (), (), git)
     head = ["# Step 11 targets beyond the ball's MPC solves: measured and profiled", "",
-            f"Generated by `python benchmarks/bench_targets.py"
-            f"{' --compiled DIR' if compiled else ''}` on {desc['date_utc']} "
+            f"Generated by `{shown_command('bench_targets.py', argv[1:])}` on "
+            f"{desc['date_utc']} "
             f"(hmpc {desc['hmpc']}, git {git}); {desc['cpu']}, {desc['cores']} cores, "
             f"CasADi {desc['casadi']}; load average {desc['load_average_start']} at start, "
             f"{desc['load_average_end']} at end; {desc['suite_seconds']} s. The ball's MPC "

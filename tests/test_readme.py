@@ -28,9 +28,12 @@ RUN_BY_CI = {"pip install -e '.[test]'", "hmpc run scenarios/ball.toml"}
 #: later commands read them: the reference-mode Figure 3 campaign (the hmpc-mode one's
 #: machinery in the other transcription, about a minute of both cores more), and the
 #: benchmark suite's quick form (its machinery runs on short NLPs in
-#: tests/test_bench_suite.py)
+#: tests/test_bench_suite.py), and the targets benchmark's (its sections run on short runs
+#: in tests/test_bench_targets.py)
 CAMPAIGN_ONLY = {"hmpc sweep sweeps/fig3_reference.toml": "results/sweeps/fig3_reference",
-                 "python benchmarks/suite.py --quick": None}
+                 "python benchmarks/suite.py --quick": None,
+                 "python benchmarks/bench_targets.py --runs 1 --no-campaign --out bench-quick":
+                 None}
 DOCUMENTS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 
 
@@ -110,9 +113,11 @@ def test_readme_commands_run_in_order(tmp_path):
 @pytest.mark.campaign
 def test_campaign_only_commands(tmp_path):
     """The documented commands CI leaves to the campaigns: the reference-mode Figure 3
-    campaign gives the committed table; the benchmark suite's quick form runs."""
-    assert list(CAMPAIGN_ONLY) == ["hmpc sweep sweeps/fig3_reference.toml",
-                                   "python benchmarks/suite.py --quick"]
+    campaign gives the committed table; the quick forms of the benchmark suite and of the
+    targets benchmark run."""
+    assert list(CAMPAIGN_ONLY) == [
+        "hmpc sweep sweeps/fig3_reference.toml", "python benchmarks/suite.py --quick",
+        "python benchmarks/bench_targets.py --runs 1 --no-campaign --out bench-quick"]
     _run_commands(list(CAMPAIGN_ONLY), tmp_path, campaign=True)
     _assert_the_committed_figure_3_table(tmp_path, "fig3_reference")
 
