@@ -112,15 +112,16 @@ def test_bad_latency_is_a_keyed_error(value):
 def test_one_solver_a_rate_beyond_its_pace_runs_at_its_pace(tmp_path):
     """With L = 0.05 s a solve falling due while the solver computes waits for it: solves
     are at least L apart, and 100 Hz solves exactly when 20 Hz (period L) does."""
-    grid = "mpc.nodes_per_second=100"  # every rate a whole number of node steps
+    # every rate a whole number of node steps; a 1 s horizon keeps that grid's NLPs small
+    grid = ["mpc.nodes_per_second=100", "mpc.horizon=1.0"]
     _, _, solves_fast, _ = _run(tmp_path, "fast", [f"sim.latency={L}", "mpc.rate_hz=100",
-                                                   grid])
+                                                   *grid])
     _, _, solves_20, _ = _run(tmp_path, "twenty", [f"sim.latency={L}", "mpc.rate_hz=20",
-                                                   grid])
+                                                   *grid])
     times = [t for t, _ in solves_fast]
     assert len(times) > 5
     assert min(np.diff(times)) >= L - 1e-9
     assert times == [t for t, _ in solves_20]
     # time paused, 100 Hz really solves every 0.01 s
-    _, _, solves_p, _ = _run(tmp_path, "paused100", ["mpc.rate_hz=100", grid])
+    _, _, solves_p, _ = _run(tmp_path, "paused100", ["mpc.rate_hz=100", *grid])
     assert len(solves_p) > 2 * len(solves_fast)

@@ -126,7 +126,7 @@ def test_delay_compensation_solves_from_the_state_at_the_plans_arrival(tmp_path,
 
 def test_a_solve_over_its_budget_is_dropped_and_the_previous_plan_tracked_on(tmp_path):
     res, log, solves, steps = _run(tmp_path, "budget", [
-        "sim.duration=1.0", 'sim.latency="model"', 'sim.latency_first="paused"',
+        "sim.duration=0.5", 'sim.latency="model"', 'sim.latency_first="paused"',
         "sim.latency_model.overhead=0.0", "sim.latency_model.per_iteration=0.01",
         "sim.latency_model.planner=0.0", "sim.solve_budget=0.05"])
     msgs = [m.data for m in read_log(log).messages if m.topic == "/mpc/solve"]
