@@ -26,9 +26,9 @@ RUN_BY_CI = {"pip install -e '.[test]'", "hmpc run scenarios/ball.toml"}
 #: documented commands CI's slow run leaves to ``pytest -m campaign`` (CI keeps within its
 #: time), each with the committed results that stand in for its own where the document's
 #: later commands read them: the reference-mode Figure 3 campaign (the hmpc-mode one's
-#: machinery in the other transcription, about a minute of both cores more), and the
+#: machinery in the other transcription, about a minute of both cores more), the
 #: benchmark suite's quick form (its machinery runs on short NLPs in
-#: tests/test_bench_suite.py), and the targets benchmark's (its sections run on short runs
+#: tests/test_bench_suite.py) and the targets benchmark's (its sections run on short runs
 #: in tests/test_bench_targets.py)
 CAMPAIGN_ONLY = {"hmpc sweep sweeps/fig3_reference.toml": "results/sweeps/fig3_reference",
                  "python benchmarks/suite.py --quick": None,
