@@ -120,9 +120,10 @@ def stopped_meanwhile(exc: BaseException) -> None:
     """
     from hmpc_cli.core.signals import Interrupted, pending
 
-    if pending() is None:
+    signum = pending()
+    if signum is None:
         return
-    stop = Interrupted(pending())
+    stop = Interrupted(signum)
     typer.echo(f"interrupted ({stop.name})", err=True)
     if VERBOSITY[0] >= 1:
         _echo_traceback(exc)
