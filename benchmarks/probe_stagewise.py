@@ -13,6 +13,11 @@ Hessian of the Lagrangian and the constraint Jacobian that IPOPT calls every ite
 * the map kept in MX (a faster set-up, slower evaluations in the MX virtual machine,
   and other derivative graphs: other iterates).
 
+Then, for either input hold, both NLPs' Hessian of the Lagrangian assembled stage by stage
+(:func:`staged_hessian`, given to ``nlpsol`` as ``hess_lag``) against the one ``nlpsol``
+generates from the whole graph: set-up, evaluation, and how many of its entries differ
+bit for bit at random points (:func:`hessian_rows`; a lever tried, not adopted).
+
 Measured, never asserted; the findings are in docs/performance.md.
 """
 
@@ -26,8 +31,13 @@ import casadi as ca
 import numpy as np
 
 from hmpc_cli.core.registry import build_system
-from hmpc_cli.mpc.chain.nlp import FixedModeNLP
+from hmpc_cli.mpc.builder import NLPLayout
+from hmpc_cli.mpc.chain.nlp import FixedModeNLP, MPCSettings
 from hmpc_cli.run.scenario import load_scenario
+
+#: nlpsol options of every build here: hmpc's (no ``nlp_grad``, no ``lam_p``), silent
+QUIET = {"print_time": False, "no_nlp_grad": True, "calc_lam_p": False,
+         "ipopt.print_level": 0}
 
 
 def evaluation_ms(solver: ca.Function, reps: int = 30) -> dict[str, float]:
@@ -44,6 +54,135 @@ def evaluation_ms(solver: ca.Function, reps: int = 30) -> dict[str, float]:
             f(*args)
         out[fn] = (time.perf_counter() - start) / reps * 1e3
     return out
+
+
+def staged_hessian(nlp: FixedModeNLP, layout: NLPLayout, expand: bool = False) -> ca.Function:
+    """The Lagrangian's Hessian assembled from each kind of stage's own, as ``hess_lag``.
+
+    Each stage function of :meth:`FixedModeNLP._stage_functions` gets the SX Hessian of
+    lam_f * cost + lam^T rows (in this order) in its own variables: (z, u, sigma, z_next
+    [, u_next]) of a link, (z, sigma) of the last node. It is mapped over its stages in MX
+    on gathers of x, p and lam_g, and its nonzeros are summed into the upper triangle by a
+    constant 0/1 matrix (with a first-order hold, u_k is in links k-1 and k). ``expand``
+    makes the whole of it SX.
+
+    Returns:
+        (x, p, lam_f, lam_g) -> triu(H), shape (nx, nx): ``nlpsol``'s ``nlp_hess_l``.
+    """
+    X, P, L = layout.x, layout.p, nlp.L
+    link_par, node_par = nlp._stage_parameters()
+    widths = {name: int(np.prod(P[name].shape[1:])) for name in link_par}
+    link, held, last = nlp._stage_functions(link_par, node_par, widths)
+    x, p, lam_f = ca.MX.sym("x", X.size), ca.MX.sym("p", P.size), ca.MX.sym("lam_f")
+    lam_g = ca.MX.sym("lam_g", layout.g.size)
+
+    def cols(v: ca.MX, idx: np.ndarray, stages: slice) -> tuple[ca.MX, np.ndarray]:
+        """Entries idx[stages] of v, one column per stage, and their indices (stage, width)."""
+        idx = (idx[:, None] if idx.ndim == 1 else idx)[stages]
+        return ca.reshape(v[idx.ravel().tolist()], idx.shape[1], idx.shape[0]), idx
+
+    def pars(names: tuple[str, ...], stages: slice) -> ca.MX:
+        return ca.vertcat(*[cols(p, P[name], stages)[0] for name in names])
+
+    n_foh = L - 1 if nlp.s.input_hold == "foh" else 0
+    kinds = [(link, slice(0, n_foh), link_par), (held, slice(n_foh, L), link_par),
+             (last, slice(L, L + 1), node_par)]
+    values, rows, columns, row = [], [], [], 0
+    for fn, ks, names in kinds:
+        n = ks.stop - ks.start
+        if n == 0:
+            continue
+        zn = slice(ks.start + 1, ks.stop + 1)
+        if fn is last:
+            variables = [cols(x, X["z"], ks), cols(x, X["sigma"], ks)]
+        else:
+            variables = [cols(x, X["z"], ks), cols(x, X["u"], ks), cols(x, X["sigma"], ks),
+                         cols(x, X["z"], zn)] + ([cols(x, X["u"], zn)] if fn is link else [])
+        sym = [ca.SX.sym(f"v{i}", fn.size1_in(i)) for i in range(fn.n_in())]
+        n_rows = fn.size1_out(0)
+        lam, lf = ca.SX.sym("lam", n_rows), ca.SX.sym("lam_f")
+        out = fn(*sym)
+        lag = lf * out[1] + ca.dot(lam, out[0]) if fn.n_out() == 2 else ca.dot(lam, out)
+        h = ca.hessian(lag, ca.vertcat(*sym[:len(variables)]))[0]
+        hk = ca.Function("h", [*sym, lam, lf], [h.nz[:]])
+        v = hk.map(n)(*[c for c, _ in variables], pars(names, ks),
+                      ca.reshape(lam_g[row:row + n_rows * n], n_rows, n), ca.repmat(lam_f, 1, n))
+        row += n_rows * n
+        idx = np.hstack([i for _, i in variables])  # (stages, stage variables)
+        r, c = h.sparsity().get_triplet()
+        values.append(ca.vec(v))
+        rows.append(idx[:, r].ravel())
+        columns.append(idx[:, c].ravel())
+    r, c = np.concatenate(rows), np.concatenate(columns)
+    upper = np.flatnonzero(r <= c)
+    entry, which = np.unique(c[upper] * X.size + r[upper], return_inverse=True)  # column-major
+    total = ca.DM(ca.Sparsity.triplet(entry.size, r.size, which.tolist(), upper.tolist()), 1.0)
+    sparsity = ca.Sparsity.triplet(X.size, X.size, (entry % X.size).tolist(),
+                                   (entry // X.size).tolist())
+    hess = ca.MX(sparsity, ca.mtimes(total, ca.vertcat(*values)))
+    fn = ca.Function("nlp_hess_l", [x, p, lam_f, lam_g], [hess],
+                     ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
+    return fn.expand() if expand else fn
+
+
+def hessian_rows(system, settings: MPCSettings, points: int = 3) -> list[dict]:
+    """Per NLP (switching, final domain): ``nlpsol``'s Hessian against :func:`staged_hessian`.
+
+    Keys: ``nlp``; ``nnz`` (upper triangle) and ``same_sparsity``; ``differing`` (the most
+    entries not equal bit for bit at one of ``points`` random points (x, p, lam_f, lam_g),
+    either staged Hessian), ``max_diff`` and ``max_abs`` (the largest |difference| and
+    |entry| at any of them), ``blocks`` (the pairs of variable blocks, sorted names of
+    z, u, sigma, of the entries that differ); set-up [s]: ``nlpsol`` (generating the
+    Hessian), ``staged_mx`` and ``staged_sx`` (the Hessian, then ``nlpsol`` given it); one
+    Hessian call [ms]: ``eval_nlpsol``, ``eval_mx``, ``eval_sx``.
+    """
+    out = []
+    for label, switches in (("switching", None), ("final", 0)):
+        nlp = FixedModeNLP(system, settings, switches=switches)
+        whole, layout = nlp._transcription()
+        row: dict = {"nlp": label}
+        start = time.perf_counter()
+        reference = ca.nlpsol("whole", "ipopt", whole, QUIET).get_function("nlp_hess_l")
+        row["nlpsol"] = time.perf_counter() - start
+        staged = {}
+        for kind in ("mx", "sx"):
+            start = time.perf_counter()
+            staged[kind] = staged_hessian(nlp, layout, expand=kind == "sx")
+            ca.nlpsol("staged", "ipopt", whole, {**QUIET, "hess_lag": staged[kind]})
+            row[f"staged_{kind}"] = time.perf_counter() - start
+        row["nnz"] = reference.sparsity_out(0).nnz()
+        row["same_sparsity"] = all(reference.sparsity_out(0) == f.sparsity_out(0)
+                                   for f in staged.values())
+        rng = np.random.default_rng(0)
+        row.update(differing=0, max_diff=0.0, max_abs=0.0, blocks=set())
+        block = np.empty(layout.x.size, dtype=object)
+        for name in ("z", "u", "sigma"):
+            block[layout.x[name].ravel()] = name
+        for _ in range(points):
+            args = [rng.standard_normal(whole["x"].numel()), rng.uniform(size=whole["p"].numel()),
+                    rng.standard_normal(), rng.standard_normal(whole["g"].numel())]
+            ref = reference(*args).full()
+            for f in staged.values():
+                diff = np.abs(f(*args).full() - ref)
+                row["differing"] = max(row["differing"], int(np.count_nonzero(diff)))
+                row["max_diff"] = max(row["max_diff"], float(diff.max()))
+                row["blocks"] |= {tuple(sorted(block[[i, j]]))
+                                  for i, j in np.argwhere(diff)}
+            row["max_abs"] = max(row["max_abs"], float(np.abs(ref).max()))
+        for key, f in (("eval_nlpsol", reference), ("eval_mx", staged["mx"]),
+                       ("eval_sx", staged["sx"])):
+            row[key] = call_ms(f, args)
+        out.append(row)
+    return out
+
+
+def call_ms(f: ca.Function, args: list, reps: int = 30) -> float:
+    """Mean time [ms] of one call of f on args (after one call)."""
+    f(*args)
+    start = time.perf_counter()
+    for _ in range(reps):
+        f(*args)
+    return (time.perf_counter() - start) / reps * 1e3
 
 
 def main() -> None:
@@ -74,6 +213,18 @@ def main() -> None:
         ev = evaluation_ms(solver)
         print(f"{label}: set-up {setup:.3f} s; Hessian {ev['nlp_hess_l']:.2f} ms, "
               f"Jacobian {ev['nlp_jac_g']:.2f} ms")
+    system = build_system(sc.system)
+    print("\nthe Hessian of the Lagrangian, nlpsol's (whole graph) against the stage by stage "
+          "one (nlpsol given it; stage Hessians mapped in MX / expanded to SX):")
+    for hold in ("foh", "zoh"):
+        settings = sc.mpc.model_copy(update={"input_hold": hold})
+        for r in hessian_rows(system, settings):
+            print(f"{hold} {r['nlp']:9s}: set-up {r['nlpsol']:.3f} s / {r['staged_mx']:.3f} s / "
+                  f"{r['staged_sx']:.3f} s; one call {r['eval_nlpsol']:.2f} / "
+                  f"{r['eval_mx']:.2f} / {r['eval_sx']:.2f} ms; up to {r['differing']} of "
+                  f"{r['nnz']} entries differ bit for bit at a random point, by up to "
+                  f"{r['max_diff']:.1e} (largest entry {r['max_abs']:.1e}), in the "
+                  f"blocks {sorted(r['blocks'])}")
 
 
 if __name__ == "__main__":
