@@ -60,11 +60,12 @@ def staged_hessian(nlp: FixedModeNLP, layout: NLPLayout, expand: bool = False) -
     """The Lagrangian's Hessian assembled from each kind of stage's own, as ``hess_lag``.
 
     Each stage function of :meth:`FixedModeNLP._stage_functions` gets the SX Hessian of
-    lam_f * cost + lam^T rows (in this order) in its own variables: (z, u, sigma, z_next
-    [, u_next]) of a link, (z, sigma) of the last node. It is mapped over its stages in MX
-    on gathers of x, p and lam_g, and its nonzeros are summed into the upper triangle by a
-    constant 0/1 matrix (with a first-order hold, u_k is in links k-1 and k). ``expand``
-    makes the whole of it SX.
+    lam_f * cost + lam^T rows in its own variables: (z, u, sigma, z_next[, u_next]) of a
+    link, (z, sigma) of the last node (the cost first, as ``nlpsol`` forms the Lagrangian:
+    the other order gives other roundings). It is mapped over its stages in MX on gathers
+    of x and p and on slices of lam_g, and its nonzeros are summed into the upper triangle
+    by a constant 0/1 matrix (with a first-order hold, u_k is in links k-1 and k).
+    ``expand`` makes the whole of it SX.
 
     Returns:
         (x, p, lam_f, lam_g) -> triu(H), shape (nx, nx): ``nlpsol``'s ``nlp_hess_l``.
@@ -125,16 +126,18 @@ def staged_hessian(nlp: FixedModeNLP, layout: NLPLayout, expand: bool = False) -
     return fn.expand() if expand else fn
 
 
-def hessian_rows(system, settings: MPCSettings, points: int = 3) -> list[dict]:
+def hessian_rows(system, settings: MPCSettings, points: int = 3,
+                 reps: int = 30) -> list[dict]:
     """Per NLP (switching, final domain): ``nlpsol``'s Hessian against :func:`staged_hessian`.
 
     Keys: ``nlp``; ``nnz`` (upper triangle) and ``same_sparsity``; ``differing`` (the most
     entries not equal bit for bit at one of ``points`` random points (x, p, lam_f, lam_g),
     either staged Hessian), ``max_diff`` and ``max_abs`` (the largest |difference| and
-    |entry| at any of them), ``blocks`` (the pairs of variable blocks, sorted names of
-    z, u, sigma, of the entries that differ); set-up [s]: ``nlpsol`` (generating the
-    Hessian), ``staged_mx`` and ``staged_sx`` (the Hessian, then ``nlpsol`` given it); one
-    Hessian call [ms]: ``eval_nlpsol``, ``eval_mx``, ``eval_sx``.
+    |entry| at any of them; a NaN difference counts as inf), ``blocks`` (the pairs of
+    variable blocks, sorted names of z, u, sigma, of the entries that differ); set-up [s]:
+    ``nlpsol`` (all of it, its own Hessian included), ``staged_mx`` and ``staged_sx`` (the
+    Hessian, then ``nlpsol`` given it); one Hessian call [ms], mean of ``reps``:
+    ``eval_nlpsol``, ``eval_mx``, ``eval_sx``.
     """
     out = []
     for label, switches in (("switching", None), ("final", 0)):
@@ -163,7 +166,7 @@ def hessian_rows(system, settings: MPCSettings, points: int = 3) -> list[dict]:
                     rng.standard_normal(), rng.standard_normal(whole["g"].numel())]
             ref = reference(*args).full()
             for f in staged.values():
-                diff = np.abs(f(*args).full() - ref)
+                diff = np.nan_to_num(np.abs(f(*args).full() - ref), nan=np.inf)
                 row["differing"] = max(row["differing"], int(np.count_nonzero(diff)))
                 row["max_diff"] = max(row["max_diff"], float(diff.max()))
                 row["blocks"] |= {tuple(sorted(block[[i, j]]))
@@ -171,7 +174,7 @@ def hessian_rows(system, settings: MPCSettings, points: int = 3) -> list[dict]:
             row["max_abs"] = max(row["max_abs"], float(np.abs(ref).max()))
         for key, f in (("eval_nlpsol", reference), ("eval_mx", staged["mx"]),
                        ("eval_sx", staged["sx"])):
-            row[key] = call_ms(f, args)
+            row[key] = call_ms(f, args, reps)
         out.append(row)
     return out
 
