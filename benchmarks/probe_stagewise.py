@@ -48,12 +48,17 @@ def evaluation_ms(solver: ca.Function, reps: int = 30) -> dict[str, float]:
         rng = np.random.default_rng(0)
         args = [ca.DM(f.sparsity_in(i), rng.standard_normal(f.sparsity_in(i).nnz()))
                 for i in range(f.n_in())]
-        f(*args)
-        start = time.perf_counter()
-        for _ in range(reps):
-            f(*args)
-        out[fn] = (time.perf_counter() - start) / reps * 1e3
+        out[fn] = call_ms(f, args, reps)
     return out
+
+
+def call_ms(f: ca.Function, args: list, reps: int = 30) -> float:
+    """Mean time [ms] of one call of f on args (after one call)."""
+    f(*args)
+    start = time.perf_counter()
+    for _ in range(reps):
+        f(*args)
+    return (time.perf_counter() - start) / reps * 1e3
 
 
 def staged_hessian(nlp: FixedModeNLP, layout: NLPLayout, expand: bool = False) -> ca.Function:
@@ -177,15 +182,6 @@ def hessian_rows(system, settings: MPCSettings, points: int = 3,
             row[key] = call_ms(f, args, reps)
         out.append(row)
     return out
-
-
-def call_ms(f: ca.Function, args: list, reps: int = 30) -> float:
-    """Mean time [ms] of one call of f on args (after one call)."""
-    f(*args)
-    start = time.perf_counter()
-    for _ in range(reps):
-        f(*args)
-    return (time.perf_counter() - start) / reps * 1e3
 
 
 def main() -> None:
