@@ -30,11 +30,13 @@ import csv
 import math
 import os
 import platform
+import tomllib
 from pathlib import Path
 
 import numpy as np
 
 from hmpc_cli.log.reader import read_log
+from hmpc_cli.run.sections import SimSettings
 from hmpc_cli.sweep.execute import execute_sweep
 from hmpc_cli.sweep.plan import plan_sweep
 
@@ -122,6 +124,25 @@ SOLVE_HEAD = ["| {} | solves | all median | all p95 | switching median | switchi
               "| charged median | charged p95 |", "|---|---|---|---|---|---|---|---|"]
 
 
+def run_settings(plan) -> str:
+    """What the planned runs' effective scenarios say of delay compensation and the first
+    plan: one value for all, or the values found (the controllers' labels say which)."""
+    found: dict[str, set] = {"sim.delay_compensation": set(), "sim.latency_first": set()}
+    for run in plan.runs:
+        sim = tomllib.loads(run.toml).get("sim", {})
+        for key, values in found.items():
+            name = key.split(".", 1)[1]
+            values.add(sim.get(name, SimSettings.model_fields[name].default))
+    comp = found["sim.delay_compensation"]
+    first = found["sim.latency_first"]
+    comp_text = (f"Delay compensation {'on' if comp.pop() else 'off'}" if len(comp) == 1
+                 else "Delay compensation on in some runs, off in others")
+    first_text = (f"first plan {first.pop()}" if len(first) == 1
+                  else f"first plan {' or '.join(sorted(first))} (as each controller's "
+                  "label says)")
+    return f"{comp_text}, {first_text}"
+
+
 def report(counts: dict, solves: dict, args, cpu: float) -> str:
     """The Markdown report: success per controller and latency, solve percentiles."""
     lats = [lat for lat in args.latency if any(k[0] == lat for k in counts)]
@@ -133,7 +154,7 @@ def report(counts: dict, solves: dict, args, cpu: float) -> str:
              f"Machine: {machine()}. `measured` rows are machine (and load) dependent; "
              "`model` charges `sim.latency_model` (deterministic); `paused` is the paper's "
              "setting.", "",
-             f"Delay compensation {'on' if args.compensate else 'off'}, first plan paused; "
+             f"{args.settings}; "
              f"the runs took {cpu / 60:.1f} min in all ({args.workers} workers).", "",
              "| controller | " + " | ".join(lats) + " |",
              "|---|" + "---|" * len(lats)]
@@ -180,7 +201,6 @@ def main() -> None:
         axes = {a.name: a for a in plan.axes}
         args.latency = [str(label) for label in axes["latency"].labels]
         args.scenario = plan.scenario
-        args.compensate = bool(plan.spec.set_.get("sim.delay_compensation", False))
         args.title = plan.spec.description or plan.spec.name
         args.grid_says = f"the grid of `{args.sweep.as_posix()}` sets the rest"
     else:
@@ -193,6 +213,7 @@ def main() -> None:
         spec = args.out / "realtime.toml"
         spec.write_text(text, encoding="utf-8")
         plan = plan_sweep(spec)
+    args.settings = run_settings(plan)
     args.scenario_name = args.scenario.resolve().relative_to(ROOT).as_posix() \
         if args.scenario.resolve().is_relative_to(ROOT) else args.scenario.name
     args.out.mkdir(parents=True, exist_ok=True)

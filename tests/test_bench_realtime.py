@@ -26,3 +26,22 @@ def test_the_yardstick_grid_plans(tmp_path):
     assert {r.overrides["mpc.nodes_per_second"] for r in at_100} == {100}
     assert all(r.overrides["sim.delay_compensation"] is True for r in plan.runs)
     assert {r.overrides["sim.latency"] for r in plan.runs} == set(rt.LATENCIES)
+
+
+def test_the_report_says_what_the_runs_set():
+    """The header states delay compensation and the first plan from the runs' effective
+    scenarios: one value when all agree, the values found when a grid varies them."""
+    rt = _module()
+    assert rt.run_settings(plan_sweep(ROOT / "sweeps" / "realtime_biped_rti.toml")) == (
+        "Delay compensation off, first plan charged or paused (as each controller's label "
+        "says)")
+    assert rt.run_settings(plan_sweep(ROOT / "sweeps" / "realtime_ipopt.toml")) == (
+        "Delay compensation off, first plan paused")
+
+
+def test_the_yardstick_grid_states_its_settings(tmp_path):
+    rt = _module()
+    text = rt.sweep_text(["paused"], [10], ["once"], 1, True)
+    (tmp_path / "realtime.toml").write_text(text)
+    assert rt.run_settings(plan_sweep(tmp_path / "realtime.toml")) == (
+        "Delay compensation on, first plan paused")

@@ -247,7 +247,7 @@ register_backend(Backend(
 RTI_COLD_ITER = 3
 #: rti: HPIPM's residual tolerances (stationarity, equalities, inequalities,
 #: complementarity): a real-time step's QP needs no 1e-8 (its default), and at these it
-#: stops in about a third of the IPM iterations (results/bench/realtime.md)
+#: stops in about a third of the IPM iterations (docs/performance.md, "Real time")
 RTI_HPIPM = {"res_g_max": 1e-4, "res_b_max": 1e-6, "res_d_max": 1e-6, "res_m_max": 1e-5}
 
 
