@@ -176,6 +176,10 @@ def field_rows(model_schema: dict, defs: dict, prefix: str, note_prefix: str,
         if p.get("type") == "array" and "$ref" in items:
             sub = _ref(items, defs)
             rows += field_rows(sub, defs, f"{key}[].", f"{note_key}[].", used)
+        elif "$ref" in p and _ref(p, defs).get("properties"):  # a nested table: its keys
+            inner = getattr(fld, "annotation", None)
+            rows += field_rows(_ref(p, defs), defs, f"{key}.", f"{note_key}.", used,
+                               inner if isinstance(inner, type) else None)
     return rows
 
 

@@ -85,6 +85,37 @@ def test_run_prints_its_log_path_and_strict_exits_1_on_failure(tmp_path):
     assert proc.returncode == 1, proc.stderr[-2000:]  # 0.2 s does not reach the goal
     assert proc.stdout.splitlines()[-1] == str(out / "run.mcap")
     assert (out / "run.mcap").is_file()
+    reason = json.loads((out / "summary.json").read_text())["reason"]
+    assert proc.stderr.splitlines()[-1] == (
+        f"error: --strict: the run failed ({reason}); its log: {out / 'run.mcap'}")
+    assert "final error" in proc.stderr.splitlines()[-1]
+
+
+def test_run_refuses_a_directory_that_holds_anything(tmp_path):
+    """--out must be new, empty or a run's own: a run never overwrites the user's files
+    (a scenario.toml of their own) nor mixes with another tool's (a sweep's table)."""
+    own = tmp_path / "exp1"
+    own.mkdir()
+    mine = "# my notes\n" + BALL.read_text()
+    (own / "scenario.toml").write_text(mine)
+    proc = _hmpc(["run", "scenario.toml", "--out", ".", "-q"], own)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr == ("error: .: is not empty (scenario.toml): a run writes run.mcap, "
+                           "scenario.toml and summary.json into a directory of its own "
+                           "(choose a new or empty --out)\n")
+    assert (own / "scenario.toml").read_text() == mine
+    assert sorted(p.name for p in own.iterdir()) == ["scenario.toml"]
+
+
+def test_tube_write_refuses_to_overwrite_a_file_that_is_not_a_margins_file(tmp_path):
+    scenario = tmp_path / "s2.toml"
+    text = BALL.read_text()
+    scenario.write_text(text)
+    proc = _hmpc(["tube", str(scenario), "--write", str(scenario), "-q"], tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr == (f"error: --write {scenario}: exists and is not an hmpc margins "
+                           "file: it would be overwritten (choose another path)\n")
+    assert scenario.read_text() == text and sorted(tmp_path.iterdir()) == [scenario]
 
 
 #: hmpc report's Figure 3 in reference mode and with the authors' plan flown, left out

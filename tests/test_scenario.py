@@ -493,3 +493,19 @@ def test_a_cross_field_problem_about_a_wrong_key_is_not_guessed(tmp_path: Path) 
                   "log_rate_hz = 0\nduration = 0.0001\n")
     assert load_error(path) == [f"{path}: sim.rate_hz: Input should be greater than 0",
                                 f"{path}: sim.log_rate_hz: Input should be greater than 0"]
+
+
+def test_a_sweep_file_given_as_a_scenario_and_back_says_which_command_takes_it():
+    from hmpc_cli.sweep.plan import plan_sweep
+
+    sweep = REPO / "sweeps" / "fig3.toml"
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(sweep)
+    assert err.value.lines[-1] == (f"{sweep}: this looks like a sweep file (it has scenario, "
+                                   f"seeds and a grid or set): run it with `hmpc sweep {sweep}`")
+    ball = BALL
+    with pytest.raises(ScenarioError) as err:
+        plan_sweep(ball)
+    assert err.value.lines[-1] == (
+        f"{ball}: this looks like a scenario file (it has system and mpc, no scenario): run "
+        f"it with `hmpc run {ball}`, or name it in a sweep file's `scenario`")

@@ -23,7 +23,7 @@ VERBOSITY = [0]
 
 _QUIET = Annotated[bool, typer.Option(
     "--quiet", "-q", help="print only errors and the path of what was written (no "
-    "progress, no tables)")]
+    "progress, no tables; replay writing nothing: the run's summary)")]
 _VERBOSE = Annotated[int, typer.Option(
     "--verbose", "-v", count=True, help="more detail on stderr (-vv: debug)")]
 

@@ -79,8 +79,8 @@ def _identity_table(rp, size: int):
         t.add_row("plans", f"thinned: sim.log_plan_stride = {stride} (one node in {stride}, "
                   "both nodes of each reset and the last)")
     if rp.log.damage:
-        t.add_row("file", f"[red]damaged[/]: {escape(rp.log.damage)}; cut short at t = "
-                  f"{rp.t_last:.3f} s (the chunks before it are shown)")
+        t.add_row("file", f"[red]damaged[/]: {escape(rp.log.damage)}; read up to t = "
+                  f"{rp.t_last:.3f} s (the chunks before the damage are shown)")
     elif rp.complete:
         t.add_row("file", "complete")
     else:
@@ -143,13 +143,21 @@ def _counts_line(messages: list) -> str:
     return ", ".join(f"{k} {n}" for k, n in sorted(counts.items())) or "none"
 
 
+def _no_summary(rp) -> str:
+    """Why a log shows no /run/summary: a damaged log was read only up to the damage."""
+    if rp.log.damage:
+        return ("no summary read (the log is damaged before it: whether the run finished "
+                "is not known)")
+    return "no summary (the run did not finish)"
+
+
 def _print_report(console, rp, selected: list, show_all: bool, window: str) -> None:
     """Identity, summary, timeline and disturbance statistics."""
     from hmpc_cli.analysis.replay import disturbance_stats, timeline
 
     console.print(_identity_table(rp, rp.path.stat().st_size))
     if rp.summary is None:
-        console.print("[yellow]no summary (the run did not finish)[/]")
+        console.print(f"[yellow]{_no_summary(rp)}[/]")
     else:
         console.print(_summary_table(rp.summary))
     console.print(_timeline_table(timeline(selected, show_all), len(selected), window))
@@ -296,7 +304,7 @@ def _replay(rp, topics, t_from, t_to, show_all, export, fmt, check, figures) -> 
             _print_report(console, rp, selected, show_all, window)
         elif export is None and figures is None and not check:  # the summary is the result
             console.print(_summary_table(rp.summary) if rp.summary is not None
-                          else "no summary (the run did not finish)")
+                          else _no_summary(rp))
         if export is not None:
             _export(console, rp, selected, export, fmt.lower(),
                     {"from": t_from, "to": t_to, "topics": topics or "all"})

@@ -118,6 +118,8 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
             sink.close()
     _report_finished(result, out, quiet)
     if strict and not result.success:
+        _err([f"--strict: the run failed ({result.reason or 'task not achieved'}); its log: "
+              f"{out / 'run.mcap'}"])
         raise typer.Exit(EXIT_FAILED)
 
 

@@ -309,6 +309,23 @@ def _check_outputs(out: Path | None, write: Path | None, name: str) -> None:
     checked_output(out if out is not None else Path("results") / name / "tube", "--out")
     if write is not None:
         checked_output(write, "--write", "file")
+        if _foreign_file(write):
+            _fail([f"--write {write}: exists and is not an hmpc margins file: it would be "
+                   "overwritten (choose another path)"])
+
+
+def _foreign_file(path: Path) -> bool:
+    """Whether ``path`` is an existing file whose first line is not a margins file's."""
+    from hmpc_cli.tube.margins_file import MARK
+
+    try:
+        with open(path, "rb") as f:
+            first = f.readline(len(MARK))
+    except FileNotFoundError:
+        return False
+    except OSError:  # a directory or an unreadable file: the write reports it
+        return False
+    return first != MARK.encode()
 
 
 def _stack(arrays: list) -> object:

@@ -64,8 +64,9 @@ def out_problem(out: Path) -> str | None:
 
     Checked before anything is built: the shared output-path check
     (:func:`hmpc_cli.core.paths.output_problem`: an empty or too long name, a file in the
-    way, a dangling link, /proc, a directory that cannot be created or written) and an
-    existing run.
+    way, a dangling link, /proc, a directory that cannot be created or written), an
+    existing run and a directory that holds anything else (the run would overwrite or mix
+    with it).
     """
     from hmpc_cli.core.paths import output_problem
 
@@ -75,6 +76,13 @@ def out_problem(out: Path) -> str | None:
     try:
         if (out / "run.mcap").exists() or (out / "run.mcap").is_symlink():
             return "already holds a run (choose another --out)"
+        if out.is_dir():
+            names = sorted(entry.name for entry in os.scandir(out))
+            if names:
+                shown = ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
+                return (f"is not empty ({shown}): a run writes run.mcap, scenario.toml and "
+                        "summary.json into a directory of its own (choose a new or empty "
+                        "--out)")
     except OSError as exc:
         return f"not a usable path: {exc}"
     return None

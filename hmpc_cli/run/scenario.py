@@ -498,6 +498,9 @@ def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None 
     except ValidationError as exc:
         lines = (format_errors(exc, str(path)) + _hidden_problems(data, str(path))
                  + _cross_field_problems(data, exc, str(path)))
+        if {"scenario", "seeds"} <= set(raw) and ({"grid", "set"} & set(raw)):
+            lines.append(f"{path}: this looks like a sweep file (it has scenario, seeds and "
+                         f"a grid or set): run it with `hmpc sweep {path}`")
         raise ScenarioError(blame(list(dict.fromkeys(lines)), caused)) from None
     except PluginError as exc:
         raise ScenarioError(blame([f"{path}: {exc}"])) from None

@@ -305,7 +305,11 @@ def _read_spec(path: Path, src: str) -> tuple[str, SweepSpec]:
     try:
         return text, SweepSpec.model_validate(data)
     except ValidationError as exc:
-        raise ScenarioError(format_errors(exc, src, SweepSpec)) from None
+        hint = ([f"{src}: this looks like a scenario file (it has system and mpc, no "
+                 f"scenario): run it with `hmpc run {src}`, or name it in a sweep file's "
+                 "`scenario`"] if {"system", "mpc"} <= set(data) and "scenario" not in data
+                else [])
+        raise ScenarioError(format_errors(exc, src, SweepSpec) + hint) from None
 
 
 def _expand(spec: SweepSpec, base: dict[str, Any], axes: list[Axis], src: str,

@@ -47,6 +47,9 @@ __all__ = ["FORMAT", "GuardOffsets", "MarginsFile", "REFUSED", "RateMargins",
 REFUSED = "mpc.margins: "
 
 FORMAT = 1
+#: the first line of every margins file starts so (``hmpc tube --write`` rewrites only such
+#: a file)
+MARK = "# hmpc margins file"
 _BARE = re.compile(r"^[A-Za-z0-9_-]+$")
 
 
@@ -159,7 +162,7 @@ def margins_text(report: TubeReport, *, scenario: str, params: BaseModel, kind: 
         samples: uniform samples per estimated constant.
     """
     h = params_hash(params)
-    lines = [f"# hmpc margins file, written by hmpc {__version__} (hmpc tube --write)",
+    lines = [f"{MARK}, written by hmpc {__version__} (hmpc tube --write)",
              f"# scenario {scenario}: system {report.system} (parameters {h})",
              f"# disturbance {kind}, magnitude {magnitude:g}; low level kp = {report.kp:g}, "
              f"kd = {report.kd:g}",
