@@ -116,6 +116,13 @@ def test_tube_write_refuses_to_overwrite_a_file_that_is_not_a_margins_file(tmp_p
     assert proc.stderr == (f"error: --write {scenario}: exists and is not an hmpc margins "
                            "file: it would be overwritten (choose another path)\n")
     assert scenario.read_text() == text and sorted(tmp_path.iterdir()) == [scenario]
+    # an empty file (mktemp's) holds nothing to lose: written over, as a margins file is
+    empty = tmp_path / "m.toml"
+    empty.write_text("")
+    proc = _hmpc(["tube", str(scenario), "--samples", "200", "--formats", "png", "--out",
+                  str(tmp_path / "t"), "--write", str(empty), "-q"], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert empty.read_text().startswith("# hmpc margins file, written by hmpc ")
 
 
 #: hmpc report's Figure 3 in reference mode and with the authors' plan flown, left out

@@ -315,17 +315,15 @@ def _check_outputs(out: Path | None, write: Path | None, name: str) -> None:
 
 
 def _foreign_file(path: Path) -> bool:
-    """Whether ``path`` is an existing file whose first line is not a margins file's."""
+    """Whether ``path`` is an existing, non-empty file whose first line is not a margins file's."""
     from hmpc_cli.tube.margins_file import MARK
 
     try:
         with open(path, "rb") as f:
             first = f.readline(len(MARK))
-    except FileNotFoundError:
+    except OSError:  # none there, a directory or an unreadable file: the write reports it
         return False
-    except OSError:  # a directory or an unreadable file: the write reports it
-        return False
-    return first != MARK.encode()
+    return first not in (b"", MARK.encode())
 
 
 def _stack(arrays: list) -> object:

@@ -37,7 +37,7 @@ from hmpc_cli import __version__
 from hmpc_cli.core.messages import ConstraintMargins
 from hmpc_cli.tube.report import TubeReport, TubeRow
 
-__all__ = ["FORMAT", "GuardOffsets", "MarginsFile", "REFUSED", "RateMargins",
+__all__ = ["FORMAT", "GuardOffsets", "MARK", "MarginsFile", "REFUSED", "RateMargins",
            "constraint_margins", "margins_problems", "margins_text", "params_hash",
            "read_margins", "write_margins"]
 
