@@ -509,3 +509,17 @@ def test_a_sweep_file_given_as_a_scenario_and_back_says_which_command_takes_it()
     assert err.value.lines[-1] == (
         f"{ball}: this looks like a scenario file (it has system and mpc, no scenario): run "
         f"it with `hmpc run {ball}`, or name it in a sweep file's `scenario`")
+
+
+def test_a_set_up_problem_a_set_causes_is_the_sets(work):
+    """Problems the set-up checks find on the built model (after validation) are the
+    ``--set``'s when they go away without it, whatever key they name."""
+    circle = "system.circle_center=[1.0,1.0]"
+    assert cli_bad(work, ["ball.toml", "--set", circle]) == [
+        f"error: --set {circle}: system.x0: (1, 1, 0, 0) lies past guard 'circle_in' of its "
+        "initial mode 'outside' (gap -1 < 0), so the run would start outside that mode's "
+        "domain; move system.x0 or the guard"]
+    option = "mpc.solver_options.ipopt.nosuch_option=1"
+    lines = cli_bad(work, ["ball.toml", "--set", "sim.duration=1", "--set", option])
+    assert len(lines) == 1 and lines[0].startswith(
+        f"error: --set {option}: mpc.solver_options: the solver rejects these options")

@@ -98,7 +98,8 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
         from hmpc_cli.run.scenario import attribute_to_sets
 
         _err(attribute_to_sets([f"{scenario}: {line}" for line in str(exc).splitlines()],
-                               str(scenario), sets, True))
+                               str(scenario), sets, True, _setup_caused(scenario, sets, seed),
+                               anywhere=True))
         raise typer.Exit(EXIT_BAD_INPUT) from None
     sink = _live_sink(live_port) if live else None  # before the run directory is made
     try:
@@ -121,6 +122,33 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
         _err([f"--strict: the run failed ({result.reason or 'task not achieved'}); its log: "
               f"{out / 'run.mcap'}"])
         raise typer.Exit(EXIT_FAILED)
+
+
+def _setup_caused(scenario: Path, sets: list[str], seed: int | None):
+    """``caused(item, key)`` for a set-up problem of ``hmpc run``.
+
+    True when the set-up checks report ``key`` with every ``--set`` and not without
+    ``item``; a problem they do not reproduce is never a ``--set``'s.
+    """
+    from hmpc_cli.run.scenario import ScenarioError, load_scenario
+    from hmpc_cli.run.setup_checks import setup_problems
+
+    def keys(items: list[str]) -> set[str] | None:
+        try:
+            sc, _ = load_scenario(scenario, items, seed)
+        except ScenarioError:
+            return None
+        return {line.partition(": ")[0] for line in setup_problems(sc)}
+
+    full = keys(sets)
+
+    def caused(item: str, key: str) -> bool:
+        if full is None or key not in full:
+            return False
+        without = keys([o for o in sets if o is not item])
+        return without is not None and key not in without
+
+    return caused
 
 
 def _report_finished(result, out: Path, quiet: bool) -> None:

@@ -699,7 +699,8 @@ _KEY_IN_TEXT = re.compile(r"(?<![\w.])[A-Za-z_]\w*(?:\.\w+)+")
 
 
 def attribute_to_sets(lines: list[str], source: str, overrides: list[str], on: bool,
-                      caused: Callable[[str, str], bool] | None = None) -> list[str]:
+                      caused: Callable[[str, str], bool] | None = None,
+                      anywhere: bool = False) -> list[str]:
     """Re-attributes ``source: key: reason`` lines caused by a ``--set`` to that ``--set``.
 
     A line is the ``--set``'s when its key is the overridden key or inside it (or, for an
@@ -710,7 +711,10 @@ def attribute_to_sets(lines: list[str], source: str, overrides: list[str], on: b
     (``mpc.rate_hz: 10 must divide sim.rate_hz = 7`` after ``--set sim.rate_hz=7``). The
     last such ``--set`` wins. For the last two, ``caused(item, key)`` (if given) must
     confirm it: the problem with ``key`` goes away without that ``--set`` (a ``--set``
-    that fixed one rate is not blamed for the file's other rate).
+    that fixed one rate is not blamed for the file's other rate). With ``anywhere`` (and
+    ``caused``), a line none of these match is the last ``--set`` it confirms (the set-up
+    checks' ``system.x0: ... lies past guard`` after ``--set system.circle_center=...``);
+    without, the file keeps it (its value is at fault, the ``--set`` only made it count).
     """
     if not on or not overrides:
         return lines
@@ -731,6 +735,8 @@ def attribute_to_sets(lines: list[str], source: str, overrides: list[str], on: b
                 named = set(_KEY_IN_TEXT.findall(f"{key} {reason}"))
                 hit = [item for k, item in keys if k in named]
             hit = [item for item in dict.fromkeys(hit) if caused is None or caused(item, key)]
+            if not hit and anywhere and caused is not None:  # the --set it goes away without
+                hit = [item for item in dict.fromkeys(i for _, i in keys) if caused(item, key)]
         out.append(f"--set {hit[-1]}: " + line.removeprefix(f"{source}: ") if hit else line)
     return out
 
