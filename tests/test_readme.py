@@ -30,7 +30,8 @@ RUN_BY_CI = {"pip install -e '.[test]'", "hmpc run scenarios/ball.toml"}
 #: benchmark suite's quick form (its machinery runs on short NLPs in
 #: tests/test_bench_suite.py) and the targets benchmark's (its sections run on short runs
 #: in tests/test_bench_targets.py)
-CAMPAIGN_ONLY = {"hmpc sweep sweeps/fig3_reference.toml": "results/sweeps/fig3_reference",
+CAMPAIGN_ONLY = {"hmpc sweep sweeps/fig3_reference.toml --out repro/sweeps/fig3_reference":
+                 ("results/sweeps/fig3_reference", "repro/sweeps/fig3_reference"),
                  "python benchmarks/suite.py --quick": None,
                  "python benchmarks/bench_targets.py --runs 1 --no-campaign --out bench-quick":
                  None}
@@ -73,7 +74,8 @@ def _run_commands(cmds: list[str], cwd: Path, campaign: bool = False) -> None:
     for cmd in [c for c in cmds if c not in RUN_BY_CI]:
         if cmd in CAMPAIGN_ONLY and not campaign:
             if CAMPAIGN_ONLY[cmd]:
-                shutil.copytree(ROOT / CAMPAIGN_ONLY[cmd], cwd / CAMPAIGN_ONLY[cmd])
+                committed, there = CAMPAIGN_ONLY[cmd]
+                shutil.copytree(ROOT / committed, cwd / there)
             continue
         argv = shlex.split(cmd)
         if argv[0] == "hmpc":
@@ -86,11 +88,12 @@ def _run_commands(cmds: list[str], cwd: Path, campaign: bool = False) -> None:
         assert proc.stdout.strip(), cmd
 
 
-def _assert_the_committed_figure_3_table(cwd: Path, sweep: str) -> None:
-    """The campaign's table just made gives the committed one run for run, hence the
-    page's counts: 11/11 for every controller (the paper's 10 Hz plan-once 9/11 is not
-    reproduced)."""
-    table = cwd / "results" / "sweeps" / sweep / "results.csv"
+def _assert_the_committed_figure_3_table(cwd: Path, sweep: str, results: str = "results"
+                                         ) -> None:
+    """The campaign's table just made (in ``cwd/results``) gives the committed one run for
+    run, hence the page's counts: 11/11 for every controller (the paper's 10 Hz plan-once
+    9/11 is not reproduced)."""
+    table = cwd / results / "sweeps" / sweep / "results.csv"
     assert assert_runs_match_the_committed_table(table, sweep) == 33
     with open(table, newline="") as f:
         held = Counter(r["controller"] for r in csv.DictReader(f) if r["success"] == "true")
@@ -103,10 +106,11 @@ def test_readme_commands_run_in_order(tmp_path):
     in); the hmpc-mode Figure 3 campaign gives the committed table, its figure and the
     page are written."""
     _run_commands(readme_commands(), tmp_path)
-    _assert_the_committed_figure_3_table(tmp_path, "fig3")
-    assert (tmp_path / "fig3" / "fig3.pdf").is_file()
-    page = (tmp_path / "results" / "README.md").read_text()
-    assert "| 10 Hz fixed |" in page and (tmp_path / "results" / "report" / "fig3.png").is_file()
+    _assert_the_committed_figure_3_table(tmp_path, "fig3", "repro")
+    assert (tmp_path / "repro" / "fig3" / "fig3.pdf").is_file()
+    page = (tmp_path / "repro" / "README.md").read_text()
+    assert "| 10 Hz fixed |" in page and (tmp_path / "repro" / "report" / "fig3.png").is_file()
+    assert not (tmp_path / "results" / "README.md").exists()  # the committed page untouched
 
 
 @pytest.mark.slow
@@ -116,10 +120,11 @@ def test_campaign_only_commands(tmp_path):
     campaign gives the committed table; the quick forms of the benchmark suite and of the
     targets benchmark run."""
     assert list(CAMPAIGN_ONLY) == [
-        "hmpc sweep sweeps/fig3_reference.toml", "python benchmarks/suite.py --quick",
+        "hmpc sweep sweeps/fig3_reference.toml --out repro/sweeps/fig3_reference",
+        "python benchmarks/suite.py --quick",
         "python benchmarks/bench_targets.py --runs 1 --no-campaign --out bench-quick"]
     _run_commands(list(CAMPAIGN_ONLY), tmp_path, campaign=True)
-    _assert_the_committed_figure_3_table(tmp_path, "fig3_reference")
+    _assert_the_committed_figure_3_table(tmp_path, "fig3_reference", "repro")
 
 
 @pytest.mark.slow
