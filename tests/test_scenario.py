@@ -523,3 +523,16 @@ def test_a_set_up_problem_a_set_causes_is_the_sets(work):
     lines = cli_bad(work, ["ball.toml", "--set", "sim.duration=1", "--set", option])
     assert len(lines) == 1 and lines[0].startswith(
         f"error: --set {option}: mpc.solver_options: the solver rejects these options")
+
+
+def test_a_hand_margin_that_fails_at_x0_is_refused(work):
+    """A hand-set tube margin whose guard-avoid tightening x0 already violates is refused
+    as the tube's own margins are (every solve would be softened from the first node)."""
+    assert cli_bad(work, ["ball.toml", "--set", "mpc.tube_margin=0.95"]) == [
+        "error: --set mpc.tube_margin=0.95: mpc.tube_margin: 0.95 tightens the guard-avoid "
+        "row of floor by kappa = 0.95, more than its gap at x0 (0.9): the tightened problem "
+        "is infeasible at the initial state (choose a smaller mpc.tube_margin)"]
+    _write(work / "wide.toml", BALL.read_text().replace("tube_margin = 0.025",
+                                                        "tube_margin = 0.95"))
+    assert cli_bad(work, ["wide.toml"])[0].startswith(
+        "error: wide.toml: mpc.tube_margin: 0.95 tightens the guard-avoid row of floor")

@@ -315,6 +315,23 @@ class HybridSystem:
         name = self.modes[mode].name
         return [i for i, g in enumerate(self.guards) if g.source == name]
 
+    def initial_avoid_violations(self, avoid) -> list[tuple[str, float, float]]:
+        """Tightened guard-avoid rows x0 violates: (guard, q(x0), kappa) per guard.
+
+        ``avoid``: per guard (system order) its guard-avoid offset kappa (NLP row units).
+        Only the initial mode's guards that are active at x0 (inside their region) and
+        that x0 is before (q(x0) >= 0, so the untightened row holds).
+        """
+        x = ca.SX.sym("x", self.n_x)
+        out = []
+        for gi in self.guards_of(self.mode_index(self.initial_mode)):
+            g = self.guards[gi]
+            q = float(ca.Function("q", [x], [g.q_expr(x)])(self.x0))
+            active = g.region is None or bool(np.all(np.asarray(g.region(self.x0)) >= 0))
+            if active and 0.0 <= q < float(avoid[gi]):
+                out.append((g.name, q, float(avoid[gi])))
+        return out
+
     @property
     def transitions(self) -> set[tuple[str, str]]:
         """The transition graph Gamma as (source, target) mode-name pairs."""

@@ -12,7 +12,6 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-import casadi as ca
 import numpy as np
 
 from hmpc_cli.core.hybrid import HybridSystem
@@ -207,15 +206,7 @@ def initial_violations(system: HybridSystem, m: Margins) -> list[tuple[str, floa
     """Tightened guard-avoid rows x0 violates: (guard, q(x0), kappa) per guard.
 
     Only the initial mode's guards that are active at x0 (inside their region) and that
-    x0 is before (q(x0) >= 0, so the untightened row holds): the violation is the tube's.
+    x0 is before (q(x0) >= 0, so the untightened row holds): the violation is the tube's
+    (:meth:`~hmpc_cli.core.hybrid.HybridSystem.initial_avoid_violations`).
     """
-    x = ca.SX.sym("x", system.n_x)
-    out = []
-    for gi in system.guards_of(system.mode_index(system.initial_mode)):
-        g = system.guards[gi]
-        q = float(ca.Function("q", [x], [g.q_expr(x)])(system.x0))
-        active = g.region is None or bool(np.all(np.asarray(g.region(system.x0)) >= 0))
-        kappa = m.guards[gi].avoid
-        if active and 0.0 <= q < kappa:
-            out.append((g.name, q, kappa))
-    return out
+    return system.initial_avoid_violations([g.avoid for g in m.guards])

@@ -188,7 +188,19 @@ class ChainDetail:
 
 
 def _hand_margins(system: HybridSystem, settings: MPCSettings) -> ConstraintMargins:
-    return ConstraintMargins.hand(system, settings.tube_margin, settings.input_margin)
+    """The hand-set margins of ``mpc.tube_margin`` and ``mpc.input_margin``.
+
+    Raises:
+        ValueError: ``mpc.tube_margin: ...`` when a guard-avoid row tightened by it fails
+            at x0 already (the NLP's first node: every solve would be softened).
+    """
+    margins = ConstraintMargins.hand(system, settings.tube_margin, settings.input_margin)
+    for name, q, kappa in system.initial_avoid_violations(margins.avoid):
+        raise ValueError(
+            f"mpc.tube_margin: {settings.tube_margin:g} tightens the guard-avoid row of "
+            f"{name} by kappa = {kappa:.4g}, more than its gap at x0 ({q:.4g}): the tightened "
+            "problem is infeasible at the initial state (choose a smaller mpc.tube_margin)")
+    return margins
 
 
 MPC = MPCSpec(kind="fixed_mode", settings=MPCSettings, problem=_problem, make=ChainMPC,
