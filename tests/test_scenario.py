@@ -354,7 +354,8 @@ def test_override_creates_missing_table(tmp_path: Path) -> None:
 def test_override_value_is_toml_not_string() -> None:
     # 123 is a TOML integer, not the string "123": the str field rejects it
     lines = load_error(BALL, ["description=123"])
-    assert lines == ["--set description=123: description: Input should be a valid string"]
+    assert lines == ["--set description=123: description: Input should be a valid string "
+                     "(a number here; text is quoted in TOML: '123')"]
     assert load_scenario(BALL, ['description="123"'])[0].description == "123"
 
 
@@ -536,3 +537,18 @@ def test_a_hand_margin_that_fails_at_x0_is_refused(work):
                                                         "tube_margin = 0.95"))
     assert cli_bad(work, ["wide.toml"])[0].startswith(
         "error: wide.toml: mpc.tube_margin: 0.95 tightens the guard-avoid row of floor")
+
+
+def test_common_slips_in_a_set_get_a_way_out():
+    """A key in the wrong case, an unknown kind, malformed TOML syntax: each says what to
+    write instead (the bare-word text value stays a string)."""
+    assert load_error(BALL, ["MPC.rate_hz=20"]) == [
+        "--set MPC.rate_hz=20: MPC: unknown key (did you mean 'mpc'?)"]
+    assert load_error(BALL, ["planner.kind=cme"]) == [
+        "--set planner.kind=cme: planner: unknown kind 'cme' (did you mean 'cem'?); choose "
+        "from 'cem', 'footholds', 'schedule'"]
+    (line,) = load_error(BALL, ["system.x0=[1,1,0"])  # the parser's words vary by Python
+    assert line.startswith("--set 'system.x0=[1,1,0': the value is not valid TOML (")
+    assert line.endswith("); a text value needs no quotes, an array [a, b], a table {k = v}")
+    sc, _ = load_scenario(BALL, ["description=a bare word"])
+    assert sc.description == "a bare word"

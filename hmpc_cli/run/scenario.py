@@ -285,7 +285,12 @@ def apply_overrides(data: dict, overrides: list[str], source: str) -> dict:
             continue
         try:
             value = tomllib.loads(f"v = {raw}")["v"]
-        except tomllib.TOMLDecodeError:
+        except tomllib.TOMLDecodeError as exc:
+            if raw.strip()[:1] in ("[", "{", '"', "'"):  # TOML syntax, not a bare word
+                errors.append(f"--set {_shown(item)}: the value is not valid TOML ({exc}); "
+                              "a text value needs no quotes, an array [a, b], a table "
+                              "{k = v}")
+                continue
             value = raw
         except RecursionError:
             errors.append(f"--set {_shown(item)}: the value is nested too deeply (more "
@@ -350,7 +355,8 @@ def nesting(value: Any) -> int:
 
 def unknown_key(key: Any, allowed: list[str]) -> str:
     """``unknown key``, with ``(did you mean 'x'?)`` when an allowed key is close to it."""
-    close = difflib.get_close_matches(str(key), allowed, n=1)
+    same = [a for a in allowed if a.casefold() == str(key).casefold()]
+    close = same or difflib.get_close_matches(str(key), allowed, n=1)
     return f"unknown key (did you mean {close[0]!r}?)" if close else "unknown key"
 
 
@@ -425,8 +431,11 @@ def format_errors(exc: ValidationError, source: str, model: Any = None) -> list[
         loc = key_path(parts) or "(top)"
         msg = err["msg"].removeprefix("Value error, ")
         if err["type"] == "union_tag_invalid":  # a kind that failed to load says why
+            ctx = err.get("ctx") or {}
             failed = registry().failed.get(str(parts[0]) if parts else "", {})
-            msg = failed.get(str((err.get("ctx") or {}).get("tag")), msg)
+            msg = failed.get(str(ctx.get("tag")), None) or _tag_text(ctx, msg)
+        if err["type"] == "string_type" and isinstance(err.get("input"), int | float):
+            msg += f" (a number here; text is quoted in TOML: '{err['input']}')"
         if err["type"] == "extra_forbidden":
             raw = [p for p in err["loc"] if p not in ("function-after",)]
             allowed = _field_names(models_at(model, raw[:-1])) if model is not None else []
@@ -436,6 +445,17 @@ def format_errors(exc: ValidationError, source: str, model: Any = None) -> list[
             continue
         lines.append(f"{source}: {loc}: {msg}")
     return lines
+
+
+def _tag_text(ctx: dict, msg: str) -> str:
+    """An unknown ``kind`` (a union's tag) with its choices and the closest one."""
+    tag, expected = ctx.get("tag"), ctx.get("expected_tags")
+    if tag is None or not expected:
+        return msg
+    choices = [c.strip().strip("'") for c in str(expected).split(",")]
+    close = difflib.get_close_matches(str(tag), choices, n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return f"unknown kind {str(tag)!r}{hint}; choose from {', '.join(map(repr, choices))}"
 
 
 def key_path(parts: list) -> str:
