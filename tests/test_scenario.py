@@ -552,3 +552,20 @@ def test_common_slips_in_a_set_get_a_way_out():
     assert line.endswith("); a text value needs no quotes, an array [a, b], a table {k = v}")
     sc, _ = load_scenario(BALL, ["description=a bare word"])
     assert sc.description == "a bare word"
+
+
+def test_a_disturbance_setting_its_kind_ignores_is_named():
+    from hmpc_cli.run.scenario import inert_settings
+
+    disturbed = SCENARIOS / "ball_disturbed.toml"
+    assert inert_settings(disturbed) == []
+    assert inert_settings(disturbed, ["disturbance.hold=0.2"]) == [
+        "--set disturbance.hold=0.2: disturbance.hold: no effect with disturbance.kind = "
+        "'paper_fig3' (the paper's sequence holds each value 0.05 s)"]
+    assert inert_settings(BALL, ["disturbance.trial=3", "disturbance.magnitude=5"]) == [
+        "--set disturbance.magnitude=5: disturbance.magnitude: no effect with "
+        "disturbance.kind = 'none'",
+        "--set disturbance.trial=3: disturbance.trial: no effect with disturbance.kind = "
+        "'none' (trial picks a paper_fig3 sequence)"]
+    for scenario in sorted(SCENARIOS.glob("*.toml")):  # the shipped ones set nothing idle
+        assert inert_settings(scenario) == [], scenario

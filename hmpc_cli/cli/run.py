@@ -81,6 +81,10 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
     except ScenarioError as exc:
         _err(exc.lines)
         raise typer.Exit(EXIT_BAD_INPUT) from None
+    from hmpc_cli.run.scenario import inert_settings
+
+    for line in inert_settings(scenario, sets):
+        typer.echo(f"warning: {line}", err=True)
     from hmpc_cli.core.registry import PluginError
     from hmpc_cli.run.runner import out_problem, prepare
 

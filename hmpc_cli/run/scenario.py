@@ -530,6 +530,19 @@ def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None 
     return scenario, effective_toml(scenario)
 
 
+def inert_settings(path: str | Path, overrides: list[str] = ()) -> list[str]:
+    """Settings the file or a ``--set`` gives that the run ignores (a valid scenario's).
+
+    ``source: key: no effect ...`` lines, ``source`` the ``--set`` when one set the key.
+    """
+    from hmpc_cli.sim.disturbance import inert_keys
+
+    data = apply_overrides(_read_toml(Path(path)), list(overrides), str(path))
+    given = data.get("disturbance") if isinstance(data.get("disturbance"), dict) else {}
+    lines = [f"{path}: {line}" for line in inert_keys(given.get("kind", "none"), given)]
+    return attribute_to_sets(lines, str(path), list(overrides), True)
+
+
 def _attribute_to_seed(lines: list[str], source: str, seed: int | None) -> list[str]:
     """``source: seed: reason`` lines as ``--seed N: seed: reason`` (the option's fault)."""
     if seed is None:

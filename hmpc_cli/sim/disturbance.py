@@ -48,6 +48,19 @@ def paper_fig3_sequence(trial: int, magnitude: float = 10.0, n_w: int = 2) -> np
     return 2.0 * magnitude * (uniforms - 0.5)
 
 
+#: the disturbance keys each kind reads (beside ``kind``)
+READS = {"none": (), "box": ("magnitude", "hold"), "paper_fig3": ("magnitude", "trial")}
+
+
+def inert_keys(kind: str, given) -> list[str]:
+    """``disturbance.<key>: no effect ...`` for each key in ``given`` that ``kind`` ignores."""
+    why = {"hold": f"(the paper's sequence holds each value {PAPER_HOLD:g} s)"
+           if kind == "paper_fig3" else "", "trial": "(trial picks a paper_fig3 sequence)"}
+    return [f"disturbance.{key}: no effect with disturbance.kind = {kind!r}"
+            + (f" {why[key]}" if why.get(key) else "")
+            for key in sorted(set(given) - {"kind"}) if key not in READS.get(kind, ())]
+
+
 def make_disturbance(kind: str, *, n_w: int, duration: float, magnitude: float = 0.0,
                      hold: float = PAPER_HOLD, seed: int = 0, trial: int = 1) -> HeldDisturbance:
     """Builds the disturbance process of a scenario.
