@@ -144,10 +144,12 @@ def _setup_caused(scenario: Path, sets: list[str], seed: int | None):
             return None
         return {line.partition(": ")[0] for line in setup_problems(sc)}
 
-    full = keys(sets)
+    full: list = []  # the keys with every --set, found at the first question
 
     def caused(item: str, key: str) -> bool:
-        if full is None or key not in full:
+        if not full:
+            full.append(keys(sets))
+        if full[0] is None or key not in full[0]:
             return False
         without = keys([o for o in sets if o is not item])
         return without is not None and key not in without

@@ -13,7 +13,7 @@ and drawing hints, derived once with the system, for controllers and figures tha
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -315,7 +315,8 @@ class HybridSystem:
         name = self.modes[mode].name
         return [i for i, g in enumerate(self.guards) if g.source == name]
 
-    def initial_avoid_violations(self, avoid) -> list[tuple[str, float, float]]:
+    def initial_avoid_violations(self, avoid: Sequence[float]
+                                 ) -> list[tuple[str, float, float]]:
         """Tightened guard-avoid rows x0 violates: (guard, q(x0), kappa) per guard.
 
         ``avoid``: per guard (system order) its guard-avoid offset kappa (NLP row units).

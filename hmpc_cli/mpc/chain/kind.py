@@ -195,7 +195,9 @@ def _hand_margins(system: HybridSystem, settings: MPCSettings) -> ConstraintMarg
             at x0 already (the NLP's first node: every solve would be softened).
     """
     margins = ConstraintMargins.hand(system, settings.tube_margin, settings.input_margin)
-    for name, q, kappa in system.initial_avoid_violations(margins.avoid):
+    violated = system.initial_avoid_violations(margins.avoid)
+    if violated:
+        name, q, kappa = violated[0]
         raise ValueError(
             f"mpc.tube_margin: {settings.tube_margin:g} tightens the guard-avoid row of "
             f"{name} by kappa = {kappa:.4g}, more than its gap at x0 ({q:.4g}): the tightened "
