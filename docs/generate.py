@@ -409,9 +409,10 @@ So a value that looks like a TOML number, boolean, array or inline table becomes
 get a string that looks like a number, quote it in TOML. A problem with an overridden key
 is reported as `--set key=value: key.path: reason`, and so is a problem whose message names
 the overridden key (`--set sim.rate_hz=7: mpc.rate_hz: 10 must divide sim.rate_hz = 7`)
-or, for a table-level problem, its last part (`--set planner.kind=x: planner: Input tag
-'x' ...`); a `--set` that cannot be applied (no `=`, a key through a value that is not a
-table, nesting deeper than 32 levels) is reported as `--set 'item': reason`. The
+or, for a table-level problem, its last part (`--set planner.kind=x: planner: unknown
+kind 'x'; choose from ...`); a `--set` that cannot be applied (no `=`, a value that starts
+like TOML syntax, `[`, `{` or a quote, but does not parse, a key through a value that is
+not a table, nesting deeper than 32 levels) is reported as `--set 'item': reason`. The
 effective scenario (after `--set` and `--seed`) is written as the run's `scenario.toml`
 and into the log's `/run/info`.
 Shell completion of keys: `hmpc --install-completion`.

@@ -141,7 +141,8 @@ BLAME = [
      ["error: --set sim.rate_hz=7: mpc.rate_hz: 10 must divide sim.rate_hz = 7",
       "error: --set sim.rate_hz=7: sim.log_rate_hz: 100 must divide sim.rate_hz = 7"]),
     ("a union tag", ["run", "ball.toml", "--set", "planner.kind=xxx"],
-     ["error: --set planner.kind=xxx: planner: Input tag 'xxx' found using 'kind'"]),
+     ["error: --set planner.kind=xxx: planner: unknown kind 'xxx'; choose from 'cem', "
+      "'footholds', 'schedule'"]),
     ("a section check", ["run", "ball.toml", "--set", "mpc.solver=fatrop"],
      ['error: --set mpc.solver=fatrop: mpc: solver "fatrop" needs stage-wise dynamics']),
     ("a margins file", ["run", "ball.toml", "--set", "mpc.margins=nope.toml"],

@@ -355,7 +355,7 @@ def test_override_value_is_toml_not_string() -> None:
     # 123 is a TOML integer, not the string "123": the str field rejects it
     lines = load_error(BALL, ["description=123"])
     assert lines == ["--set description=123: description: Input should be a valid string "
-                     "(a number here; text is quoted in TOML: '123')"]
+                     '(a number here; text is quoted in TOML: "123")']
     assert load_scenario(BALL, ['description="123"'])[0].description == "123"
 
 

@@ -437,7 +437,7 @@ def format_errors(exc: ValidationError, source: str, model: Any = None) -> list[
         given = err.get("input")
         if err["type"] == "string_type" and isinstance(given, int | float) \
                 and not isinstance(given, bool):
-            msg += f" (a number here; text is quoted in TOML: '{given}')"
+            msg += f' (a number here; text is quoted in TOML: "{given}")'
         if err["type"] == "extra_forbidden":
             raw = [p for p in err["loc"] if p not in ("function-after",)]
             allowed = _field_names(models_at(model, raw[:-1])) if model is not None else []
