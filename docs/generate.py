@@ -719,7 +719,8 @@ no scene. `hmpc run --live` streams the same topics live (`running.md`).
 
 * `hmpc_cli.log.reader.read_log(path)` decodes the JSON topics into `messages` and keeps
   `/scene/*` undecoded in `raw` (decode with `SceneUpdate.FromString(m.data)`); a damaged
-  file reads up to the damage.
+  file reads its intact chunks (through the chunk index when its summary is intact, else
+  up to the damage) and `damage` names what was left out.
 * `hmpc_cli.log.rundata.read_run(path)` (a run directory or its `run.mcap`) reads any run
   log (also the older untyped layout, log versions 1 and 2, and a log cut short) into
   arrays per topic (`RunData`: states, events, solves with their plans, planner calls,

@@ -289,14 +289,23 @@ def test_bit_flip_inside_a_chunk(ball, ball_log, tmp_path) -> None:
     path.write_bytes(bytes(data))
     res = replay(path)
     assert res.exit_code == 0, res.output
-    assert "damaged" in res.output and "read up to t = " in res.output
-    # the summary lies past the damage: unknown whether the run finished, not "did not"
-    assert "no summary read (the log is damaged before it" in res.output
-    assert "did not finish" not in res.output
+    assert "damaged" in res.output and "the chunks read are shown" in res.output
+    # the footer and chunk index are intact: every other chunk is read, the summary too
+    log, whole = read_log(path), read_log(ball / "run.mcap")
+    assert not log.complete and log.damage.startswith(
+        f"1 of {len(chunks)} chunks left out: chunk 2 (t = ")
+    assert log.topic("/run/summary") == whole.topic("/run/summary")
+    lost = {(m.topic, m.log_time_ns) for m in whole.messages} - {
+        (m.topic, m.log_time_ns) for m in log.messages}
+    assert lost and all(second.message_start_time <= t <= second.message_end_time
+                        for _, t in lost)
+    assert "did not finish" not in res.output and "no summary" not in res.output
     first = chunks[0]
     data[first.chunk_start_offset + first.chunk_length // 2] ^= 0x10
     path.write_bytes(bytes(data))
-    assert "no message could be read" in _error_line(replay(path))
+    assert _error_line(replay(path)).startswith(  # the chunk with /run/info is lost
+        f"error: {path}: damaged log: its /run/info could not be read: 2 of {len(chunks)} "
+        "chunks left out: chunk 1 (t = ")
 
 
 def test_a_log_read_for_some_topics_is_the_whole_read_of_those(ball, tmp_path) -> None:

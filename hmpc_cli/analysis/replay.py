@@ -155,6 +155,8 @@ def load_replay(path: Path) -> Replay:
                           + ("closed with no message)" if log.complete else
                              "its header only), or the file was cut short after its header"))
     infos = log.topic("/run/info")
+    if not infos and log.damage:  # its first chunk, which holds /run/info, is lost
+        raise ReplayError(f"damaged log: its /run/info could not be read: {log.damage}")
     if not infos:
         topics = sorted({m.topic for m in log.messages})
         raise ReplayError("not an hmpc run log (no /run/info; its topics: "

@@ -79,8 +79,8 @@ def _identity_table(rp, size: int):
         t.add_row("plans", f"thinned: sim.log_plan_stride = {stride} (one node in {stride}, "
                   "both nodes of each reset and the last)")
     if rp.log.damage:
-        t.add_row("file", f"[red]damaged[/]: {escape(rp.log.damage)}; read up to t = "
-                  f"{rp.t_last:.3f} s (the chunks before the damage are shown)")
+        t.add_row("file", f"[red]damaged[/]: {escape(rp.log.damage)}; the chunks read "
+                  f"are shown (the last message at t = {rp.t_last:.3f} s)")
     elif rp.complete:
         t.add_row("file", "complete")
     else:
@@ -144,7 +144,7 @@ def _counts_line(messages: list) -> str:
 
 
 def _no_summary(rp) -> str:
-    """Why a log shows no /run/summary: a damaged log was read only up to the damage."""
+    """Why a log shows no /run/summary: a damaged log's may be in what was not read."""
     if rp.log.damage:
         return ("no summary read (the log is damaged before it: whether the run finished "
                 "is not known)")

@@ -135,8 +135,9 @@ def _load_runs(table: Path, groups: dict, trace_axis: str, nominal: str | None,
                notes: dict[str, list[str]]) -> dict[str, list[_Run]]:
     """Loads every run of every panel (all checks happen here, before anything is written).
 
-    An unreadable log is left out and a damaged one kept up to the damage, each with a line
-    in ``notes[label]``; a panel left without runs is dropped (FigureInputError if all are).
+    An unreadable log is left out and a damaged one kept as read (its intact chunks), each
+    with a line in ``notes[label]``; a panel left without runs is dropped
+    (FigureInputError if all are).
     """
     out: dict[str, list[_Run]] = {}
     for label, rows in groups.items():
@@ -150,7 +151,7 @@ def _load_runs(table: Path, groups: dict, trace_axis: str, nominal: str | None,
                 notes[label].append(f"{where}: skipped: {exc}")
                 continue
             if trace.damage:
-                notes[label].append(f"{trace.path}: damaged log, drawn up to the damage "
+                notes[label].append(f"{trace.path}: damaged log, its intact chunks drawn "
                                     f"({trace.damage})")
             tl = (row.get(trace_axis) or "").strip()
             runs.append(_Run(tl, ok, nominal is not None and tl == nominal, trace))

@@ -2,12 +2,14 @@
 
 :func:`read_log` decodes the JSON channels into :attr:`Log.messages` and keeps the other
 channels' messages (the scene's protobuf) undecoded in :attr:`Log.raw`. Logs of killed runs
-stay readable: it keeps every chunk that reached the disk and says why reading stopped.
+stay readable: it keeps every chunk that reached the disk and says why reading stopped; a
+finished log with a damaged chunk keeps every other chunk (through its chunk index).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 from collections.abc import Collection
 from pathlib import Path
@@ -148,6 +150,56 @@ def _read_indexed(path: Path, topics: Collection[str] | None = None) -> Log:
     return log
 
 
+def _read_chunks(path: Path, topics: Collection[str] | None = None) -> Log:
+    """A finished file with damaged chunks: the intact ones, read through the chunk index.
+
+    Every chunk is CRC-checked; a damaged one is left out whole and named in ``damage``.
+
+    Raises:
+        McapError (or a content error): no usable summary or chunk index; or no chunk is
+            damaged (the indexed read failed for another reason: a linear scan says why).
+    """
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+        if summary is None or not summary.chunk_indexes:
+            raise McapError("no chunk index")
+        log = Log([], {}, {}, {}, complete=False)
+        for ch in summary.channels.values():
+            log._add_channel(ch, summary.schemas.get(ch.schema_id))
+        index = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+        bad: list[str] = []
+        for k, entry in enumerate(index):
+            f.seek(entry.chunk_start_offset)
+            pending: list[LogMessage] = []
+            pending_raw: list[RawMessage] = []
+            try:  # a chunk is kept only as a whole, as in a linear scan
+                chunk = next(StreamReader(io.BytesIO(f.read(entry.chunk_length)),
+                                          skip_magic=True, emit_chunks=True).records)
+                if not isinstance(chunk, Chunk):
+                    raise McapError("the chunk index points at no chunk")
+                for r in breakup_chunk(chunk, validate_crc=True):
+                    if isinstance(r, Message):
+                        channel = summary.channels[r.channel_id]
+                        log._add(channel, summary.schemas.get(channel.schema_id), r,
+                                 pending, pending_raw, topics)
+            except (*_DAMAGE_ERRORS, StopIteration) as exc:
+                bad.append(f"chunk {k + 1} (t = {entry.message_start_time / NS_PER_S:.3f}-"
+                           f"{entry.message_end_time / NS_PER_S:.3f} s) "
+                           f"{_damage_text('is damaged', exc)}")
+                continue
+            log.messages.extend(pending)
+            log.raw.extend(pending_raw)
+        if not bad:
+            raise McapError("no damaged chunk")
+        f.seek(0)
+        reader = make_reader(f)
+        log.metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+        log.attachments = {a.name: a.data for a in reader.iter_attachments()}
+    log.damage = (f"{len(bad)} of {len(index)} chunks left out: " + "; ".join(bad[:3])
+                  + ("; ..." if len(bad) > 3 else ""))
+    return log
+
+
 def _damage_text(what: str, exc: BaseException) -> str:
     """Why a linear scan stopped at a chunk, for :attr:`Log.damage`."""
     detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
@@ -221,7 +273,11 @@ def read_log(path: str | Path, topics: Collection[str] | None = None) -> Log:
         try:
             return _read_indexed(path, topics)
         except (*_DAMAGE_ERRORS, OSError):
-            pass  # footer present but file damaged: fall back to a linear scan
+            pass  # footer present but file damaged: the intact chunks through the index
+        try:
+            return _read_chunks(path, topics)
+        except (*_DAMAGE_ERRORS, OSError, StopIteration):
+            pass  # no usable index: a linear scan up to the damage
     return _read_stream(path, topics)
 
 
