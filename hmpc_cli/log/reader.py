@@ -156,8 +156,9 @@ def _read_chunks(path: Path, topics: Collection[str] | None = None) -> Log:
     Every chunk is CRC-checked; a damaged one is left out whole and named in ``damage``.
 
     Raises:
-        McapError (or a content error): no usable summary or chunk index; or no chunk is
-            damaged (the indexed read failed for another reason: a linear scan says why).
+        McapError (or a content error): no usable summary or chunk index; no chunk is
+            damaged (the indexed read failed for another reason) or every one is (the
+            index itself may be wrong): a linear scan says why.
     """
     with open(path, "rb") as f:
         summary = make_reader(f).get_summary()
@@ -189,8 +190,10 @@ def _read_chunks(path: Path, topics: Collection[str] | None = None) -> Log:
                 continue
             log.messages.extend(pending)
             log.raw.extend(pending_raw)
-        if not bad:
-            raise McapError("no damaged chunk")
+        # no chunk damaged, or every one (then the index itself may be wrong): a linear
+        # scan says why
+        if not bad or len(bad) == len(index):
+            raise McapError("the chunk index does not tell the damage apart")
         f.seek(0)
         reader = make_reader(f)
         log.metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
