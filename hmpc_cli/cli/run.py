@@ -134,24 +134,24 @@ def _setup_caused(scenario: Path, sets: list[str], seed: int | None):
     True when the set-up checks report ``key`` with every ``--set`` and not without
     ``item``; a problem they do not reproduce is never a ``--set``'s.
     """
+    from functools import cache
+
     from hmpc_cli.run.scenario import ScenarioError, load_scenario
     from hmpc_cli.run.setup_checks import setup_problems
 
-    def keys(items: list[str]) -> set[str] | None:
+    @cache
+    def keys(items: tuple[str, ...]) -> frozenset[str] | None:
         try:
-            sc, _ = load_scenario(scenario, items, seed)
+            sc, _ = load_scenario(scenario, list(items), seed)
         except ScenarioError:
             return None
-        return {line.partition(": ")[0] for line in setup_problems(sc)}
-
-    full: list = []  # the keys with every --set, found at the first question
+        return frozenset(line.partition(": ")[0] for line in setup_problems(sc))
 
     def caused(item: str, key: str) -> bool:
-        if not full:
-            full.append(keys(sets))
-        if full[0] is None or key not in full[0]:
+        full = keys(tuple(sets))
+        if full is None or key not in full:
             return False
-        without = keys([o for o in sets if o is not item])
+        without = keys(tuple(o for o in sets if o is not item))
         return without is not None and key not in without
 
     return caused

@@ -520,9 +520,7 @@ def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None 
     except ValidationError as exc:
         lines = (format_errors(exc, str(path)) + _hidden_problems(data, str(path))
                  + _cross_field_problems(data, exc, str(path)))
-        if {"scenario", "seeds"} <= set(raw) and ({"grid", "set"} & set(raw)):
-            lines.append(f"{path}: this looks like a sweep file (it has scenario, seeds and "
-                         f"a grid or set): run it with `hmpc sweep {path}`")
+        lines += other_kind_of_file(raw, str(path), "scenario")
         raise ScenarioError(blame(list(dict.fromkeys(lines)), caused)) from None
     except PluginError as exc:
         raise ScenarioError(blame([f"{path}: {exc}"])) from None
@@ -530,6 +528,23 @@ def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None 
     if problems:
         raise ScenarioError(blame([f"{path}: mpc.margins: {p}" for p in problems]))
     return scenario, effective_toml(scenario)
+
+
+def other_kind_of_file(data: dict, source: str, expected: str) -> list[str]:
+    """The line naming the command that takes a file of the other kind, or none.
+
+    ``expected``: ``"scenario"`` (``data`` may be a sweep file's) or ``"sweep"`` (a
+    scenario's).
+    """
+    keys = set(data)
+    if expected == "scenario" and {"scenario", "seeds"} <= keys and keys & {"grid", "set"}:
+        return [f"{source}: this looks like a sweep file (it has scenario, seeds and a grid "
+                f"or set): run it with `hmpc sweep {source}`"]
+    if expected == "sweep" and {"system", "mpc"} <= keys and "scenario" not in keys:
+        return [f"{source}: this looks like a scenario file (it has system and mpc, no "
+                f"scenario): run it with `hmpc run {source}`, or name it in a sweep file's "
+                "`scenario`"]
+    return []
 
 
 def inert_settings(path: str | Path, overrides: list[str] = ()) -> list[str]:

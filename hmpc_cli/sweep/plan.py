@@ -27,7 +27,8 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from hmpc_cli.run.scenario import (
-    ScenarioError, format_errors, load_scenario, read_toml_file, scenario_model, seeded_toml)
+    ScenarioError, format_errors, load_scenario, other_kind_of_file, read_toml_file,
+    scenario_model, seeded_toml)
 from hmpc_cli.core.settings_types import MAX_INT
 from hmpc_cli.sweep.table import METRICS, cell_text, toml_value
 
@@ -305,11 +306,8 @@ def _read_spec(path: Path, src: str) -> tuple[str, SweepSpec]:
     try:
         return text, SweepSpec.model_validate(data)
     except ValidationError as exc:
-        hint = ([f"{src}: this looks like a scenario file (it has system and mpc, no "
-                 f"scenario): run it with `hmpc run {src}`, or name it in a sweep file's "
-                 "`scenario`"] if {"system", "mpc"} <= set(data) and "scenario" not in data
-                else [])
-        raise ScenarioError(format_errors(exc, src, SweepSpec) + hint) from None
+        raise ScenarioError(format_errors(exc, src, SweepSpec)
+                            + other_kind_of_file(data, src, "sweep")) from None
 
 
 def _expand(spec: SweepSpec, base: dict[str, Any], axes: list[Axis], src: str,
