@@ -402,3 +402,132 @@ def test_a_plugin_registered_under_another_name_is_named_where_its_own_is_asked(
     assert error_lines(proc) == [
         f"error: {scenario}: system.name: entry point 'dock2' = 'hmpc_dock:SYSTEM' (group "
         "hmpc.systems) registers name 'dock': the entry point must be named after it"]
+
+
+LOOSE = """
+from dataclasses import dataclass, replace
+from typing import Literal
+
+from pydantic import BaseModel
+
+from hmpc_dock import SYSTEM, DockParams
+
+
+@dataclass
+class PlainParams:
+    name: str = "plain"
+
+
+class LooseParams(BaseModel):  # no extra="forbid": a misspelled key would be ignored
+    name: Literal["loose"] = "loose"
+
+
+PLAIN = replace(SYSTEM, name="plain", params=PlainParams)
+LOOSE = replace(SYSTEM, name="loose", params=LooseParams)
+"""
+
+
+def test_parameters_that_are_not_a_strict_pydantic_model_refuse_that_plugin_only(tmp_path):
+    """A dataclass as parameters, or a pydantic model that lets unknown keys through: that
+    entry point is refused by name (exit 2, nothing written); the other systems run."""
+    site = write_dist(tmp_path / "site", "hmpc-loose", "[hmpc.systems]\n"
+                      "plain = hmpc_loose:PLAIN\nloose = hmpc_loose:LOOSE\n",
+                      {"hmpc_loose": LOOSE})
+    where = "entry point {0!r} = 'hmpc_loose:{1}' (group hmpc.systems): its parameters {2!r}"
+    for name, spec, model, reason in [
+            ("plain", "PLAIN", "PlainParams", "must be a pydantic model (a subclass of "
+                                              "pydantic.BaseModel)"),
+            ("loose", "LOOSE", "LooseParams", "must forbid unknown keys, or a misspelled key "
+                                              "in a scenario is silently ignored: set "
+                                              'model_config = ConfigDict(extra="forbid")')]:
+        scenario = tmp_path / f"{name}.toml"
+        scenario.write_text(f'[system]\nname = "{name}"\n')
+        proc = hmpc(["run", str(scenario), "--out", str(tmp_path / name), "-q"], site,
+                    PLUGINS, cwd=tmp_path)
+        assert proc.returncode == 2, proc.stderr[-3000:]
+        assert error_lines(proc) == [f"error: {scenario}: system.name: "
+                                     f"{where.format(name, spec, model)} {reason}"]
+        assert not (tmp_path / name).exists()
+    schema = hmpc(["schema"], site, PLUGINS, cwd=tmp_path)
+    assert schema.returncode == 0, schema.stderr[-3000:]
+    assert {"ball", "biped", "dock"} <= set(json.loads(schema.stdout)["properties"]["system"][
+        "discriminator"]["mapping"])
+
+
+UNRUNNABLE = """
+from dataclasses import replace
+from typing import Literal
+
+import casadi as ca
+
+from hmpc_dock import SYSTEM, DockParams, build_dock
+
+
+class ErfFlow(DockParams):
+    name: Literal["erfflow"] = "erfflow"
+
+
+class NoTask(DockParams):
+    name: Literal["notask"] = "notask"
+
+
+class TrueVerdict(DockParams):
+    name: Literal["trueverdict"] = "trueverdict"
+
+
+def _dock(p):
+    return build_dock(DockParams(**{**p.model_dump(), "name": "dock"}))
+
+
+def _erf_flow(p):
+    dock = _dock(p)
+    x, u, w = ca.SX.sym("x", 2), ca.SX.sym("u", 1), ca.SX.sym("w", 1)
+    free = replace(dock.modes[0], flow=ca.Function("f_erf", [x, u, w], [
+        ca.vertcat(x[1], ca.erf(u) + w)]))
+    return replace(dock, modes=(free, *dock.modes[1:]))
+
+
+class Agrees:
+    goal = (2.5, 0.0)
+
+    def failure(self, x, mode):
+        return ""
+
+    def verdict(self, x, mode):
+        return True
+
+
+ERF = replace(SYSTEM, name="erfflow", params=ErfFlow, build=_erf_flow)
+NO_TASK = replace(SYSTEM, name="notask", params=NoTask, build=_dock,
+                  task=lambda p, system: None)
+TRUE = replace(SYSTEM, name="trueverdict", params=TrueVerdict, build=_dock,
+               task=lambda p, system: Agrees())
+"""
+
+
+@pytest.mark.parametrize("name, reason", [
+    ("erfflow", "system: 'erfflow' failed to build: ValueError: dock: f_erf uses erf: "
+                "CasADi operations the simulator's and planner's NumPy evaluators cannot "
+                "run (they run acos, add, "),
+    ("notask", "system: the task of 'notask' is a NoneType without a method failure(x, "
+               "mode), a method verdict(x, mode), a goal (a task has goal, failure(x, mode) "
+               "-> str and verdict(x, mode) -> Verdict: docs/plugins.md)"),
+    ("trueverdict", "system: the task of 'trueverdict': verdict(x0, mode) returned a bool, "
+                    "not a Verdict"),
+])
+def test_a_system_hmpc_cannot_run_is_refused_before_the_run(tmp_path, name, reason):
+    """A flow with an operation the NumPy evaluators lack, and a task that is not one, are
+    named when the run is built (exit 2, nothing written), not inside the run."""
+    site = write_dist(tmp_path / "site", "hmpc-unrunnable", "[hmpc.systems]\n"
+                      "erfflow = hmpc_unrunnable:ERF\nnotask = hmpc_unrunnable:NO_TASK\n"
+                      "trueverdict = hmpc_unrunnable:TRUE\n",
+                      {"hmpc_unrunnable": UNRUNNABLE})
+    scenario = tmp_path / f"{name}.toml"
+    scenario.write_text(f'[system]\nname = "{name}"\n')
+    out = tmp_path / "out"
+    proc = hmpc(["run", str(scenario), "--out", str(out), "-q"], site, PLUGINS, cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr
+    (line,) = error_lines(proc)
+    assert line.startswith(f"error: {scenario}: {reason}"), line
+    assert not out.exists()

@@ -305,13 +305,14 @@ ROOT_PLUGIN = '''
 from typing import Literal
 import casadi as ca
 import numpy as np
-from pydantic import BaseModel
+from pydantic import BaseModel, ConfigDict
 from hmpc_cli.core.hybrid import HybridSystem, Mode
 from hmpc_cli.core.registry import SystemSpec
 from hmpc_cli.core.tasks import ReachGoal
 
 
 class RootParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
     name: Literal["root"] = "root"
 
 

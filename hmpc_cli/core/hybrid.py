@@ -21,7 +21,8 @@ import casadi as ca
 import numpy as np
 
 from hmpc_cli.core.drawing import Drawing
-from hmpc_cli.core.numeric import compile_evaluator
+from hmpc_cli.core.numeric import (compile_evaluator, supported_operations,
+                                   unsupported_operations)
 from hmpc_cli.core.shapes import shape_problems
 from hmpc_cli.core.walker import WalkerModel
 
@@ -220,8 +221,25 @@ class HybridSystem:
         shapes = shape_problems(self)
         if shapes:
             raise ValueError(f"{self.name}: " + "; ".join(shapes))
+        self._check_operations()
         self._check_walker()
         self._check_residuals()
+
+    def _check_operations(self) -> None:
+        """The functions evaluated with NumPy use only operations it runs.
+
+        They are the flows, the guards' h, regions and resets, the stage cost and the goal
+        map (the simulator, the CEM and the task: :mod:`hmpc_cli.core.numeric`).
+        """
+        funs = [self.goal_map, self.stage_cost, *(m.flow for m in self.modes),
+                *(f for g in self.guards for f in (g.h, g.reset, g.region) if f is not None)]
+        bad = {f.name(): ops for f in funs if (ops := unsupported_operations(f))}
+        if bad:
+            used = "; ".join(f"{name} uses {', '.join(ops)}" for name, ops in bad.items())
+            raise ValueError(
+                f"{self.name}: {used}: CasADi operations the simulator's and planner's NumPy "
+                f"evaluators cannot run (they run {', '.join(supported_operations())}; "
+                f"'call' is a Function called inside, e.g. an interpolant or a Callback)")
 
     def _check_names(self) -> None:
         """Modes, guards, points, plane and vector names: unique and known."""
@@ -232,8 +250,10 @@ class HybridSystem:
         if len(set(gnames)) != len(gnames):
             raise ValueError(f"{self.name}: duplicate guard names {gnames}")
         for g in self.guards:
-            if g.source not in names or g.target not in names:
-                raise ValueError(f"{self.name}: guard {g.name} links unknown modes")
+            unknown = [m for m in (g.source, g.target) if m not in names]
+            if unknown:
+                raise ValueError(f"{self.name}: guard {g.name} links unknown mode(s) "
+                                 f"{', '.join(map(repr, unknown))} (modes: {names})")
             if g.direction not in (-1, 1):
                 raise ValueError(f"{self.name}: guard {g.name} direction must be -1 or +1")
         for mode in (self.initial_mode, self.final_mode):

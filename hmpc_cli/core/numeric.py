@@ -106,6 +106,31 @@ def _statements(fun: ca.Function, binary: dict, unary: dict, read: str, write: s
     return body
 
 
+#: CasADi's operation codes by name (``OP_ERF`` -> ``"erf"``)
+_OP_NAMES = {getattr(ca, n): n[3:].lower() for n in dir(ca) if n.startswith("OP_")}
+
+
+def unsupported_operations(fun: ca.Function) -> list[str]:
+    """The names of the operations of ``fun`` that the evaluators here cannot run, sorted.
+
+    ``call``: a call of another Function that does not expand into SX (an interpolant,
+    a Callback).
+    """
+    if not fun.is_a("SXFunction"):
+        try:
+            fun = fun.expand()
+        except RuntimeError:
+            return ["call"]
+    known = {ca.OP_INPUT, ca.OP_OUTPUT, ca.OP_CONST, *_BINARY, *_UNARY}
+    ops = {fun.instruction_id(k) for k in range(fun.n_instructions())} - known
+    return sorted(_OP_NAMES.get(op, str(op)) for op in ops)
+
+
+def supported_operations() -> list[str]:
+    """The names of the operations the evaluators here run (sorted)."""
+    return sorted(_OP_NAMES.get(op, str(op)) for op in (*_BINARY, *_UNARY))
+
+
 def compile_numpy(fun: ca.Function) -> Callable[..., list[np.ndarray]]:
     """Generates a NumPy evaluator of an SX function.
 

@@ -259,10 +259,19 @@ def _load_one(ep: EntryPoint, group: str, kind_field: str, spec_type: type) -> A
         raise PluginError(f"{where} registers {kind_field} {name!r}: the entry point "
                           f"must be named after it")
     model = spec.params if kind_field == "name" else spec.settings
+    what = "parameters" if kind_field == "name" else "settings"
+    label = repr(getattr(model, "__name__", model))
     base = {"hmpc.planners": PlannerSettings, "hmpc.mpcs": MPCKindSettings}.get(group)
     if base is not None and not (isinstance(model, type) and issubclass(model, base)):
-        raise PluginError(f"{where}: its settings {getattr(model, '__name__', model)!r} must "
-                          f"subclass hmpc_cli.plugin.{base.__name__} (the hooks hmpc calls)")
+        raise PluginError(f"{where}: its settings {label} must subclass "
+                          f"hmpc_cli.plugin.{base.__name__} (the hooks hmpc calls)")
+    if not (isinstance(model, type) and issubclass(model, BaseModel)):
+        raise PluginError(f"{where}: its {what} {label} must be a pydantic model (a "
+                          f"subclass of pydantic.BaseModel)")
+    if model.model_config.get("extra") != "forbid":
+        raise PluginError(f"{where}: its {what} {label} must forbid unknown keys, or a "
+                          f"misspelled key in a scenario is silently ignored: set "
+                          f"model_config = ConfigDict(extra=\"forbid\")")
     fld = model.model_fields.get(kind_field)
     if fld is None or fld.default != name:
         raise PluginError(f"{where}: {model.__name__} needs a field "

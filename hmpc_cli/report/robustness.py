@@ -399,6 +399,7 @@ def _drawn(study: Study, table: Path, rows: list[dict], spec: dict, name: str,
     from hmpc_cli.figures.common import TEXT_WIDTH_IN
     from hmpc_cli.figures.robustness import robustness
 
+    _refuse_pooled_axes(spec)
     with tempfile.TemporaryDirectory() as scratch:
         drawn, rows = _with_study_columns(table, rows, spec, study.sweep_file, Path(scratch))
         size = _size_column(rows)
@@ -407,6 +408,40 @@ def _drawn(study: Study, table: Path, rows: list[dict], spec: dict, name: str,
                            panel_axis=size, width=min(TEXT_WIDTH_IN, 3.5 * max(1, len(diam))),
                            not_set_up=margins_refused)
     return rows, size, diam, cells
+
+
+def _draw_only(entry: dict) -> bool:
+    """A grid table entry that sets only the disturbance's draw (``disturbance.*``)."""
+    return all(k == "label" or k == "disturbance" or k.startswith("disturbance.")
+               for k in entry)
+
+
+def _refuse_pooled_axes(spec: dict) -> None:
+    """Refuses a grid axis whose entries would be pooled into one cell of the study.
+
+    The cells are (MPC rate, policy, disturbance size); two entries of an axis that set
+    the same ones but differ otherwise would be pooled. Entries that set only the
+    disturbance's draw (``disturbance.*``) are pooled like seeds.
+
+    Raises:
+        FigureInputError: such an axis (named).
+    """
+    for axis, entries in (spec.get("grid") or {}).items():
+        if axis in (RATE, POLICY, SIZE) or not isinstance(entries, list) or len(entries) < 2:
+            continue
+        if all(isinstance(e, dict) for e in entries):
+            if all(map(_draw_only, entries)):
+                continue
+            cells = [tuple(str(_entry_value(e, k)) for k in (RATE, POLICY, SIZE))
+                     for e in entries]
+            if len(set(cells)) == len(cells):
+                continue
+        raise FigureInputError(
+            f"grid.{axis}: a robustness section tells runs apart by MPC rate, replanning "
+            f"policy and disturbance size only, so entries of this axis would be pooled "
+            f"into one cell: report each as a study of its own (a sweep per entry, one "
+            f"--robustness each), or draw it with hmpc plot robustness DIR --series-axis "
+            f"{axis}")
 
 
 def _with_study_columns(table: Path, rows: list[dict], spec: dict, sweep_file: Path | None,
@@ -504,7 +539,8 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
     sc = _effective_scenario(table, rows[0], study.sweep_file) if rows else None
     if sc is not None:  # a setting the runs take from their scenario file
         spec = {**spec, "effective": {"sim.latency_first": sc.sim.latency_first,
-                                      "lowlevel.past_guard": sc.lowlevel.past_guard}}
+                                      "lowlevel.past_guard": sc.lowlevel.past_guard,
+                                      "sim.latency": sc.sim.latency}}
     rows, size, diam, cells = _drawn(study, table, rows, spec, name, fig_dir)
     seeds = len({r["seed"] for r in rows})
     n = sorted({c.runs for c in cells})
@@ -514,7 +550,8 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
     partial = (f" (a prefix: {seeds} of the sweep's {planned} seeds)"
                if planned and seeds < planned else "")
     grid = spec.get("grid", {})
-    planned_cells = math.prod(len(v) for v in grid.values() if isinstance(v, list))
+    planned_cells = math.prod(len(v) for v in grid.values() if isinstance(v, list) and not (
+        all(isinstance(e, dict) for e in v) and all(map(_draw_only, v))))
     if grid and len(cells) < planned_cells:
         partial += f"; {len(cells)} of its {planned_cells} cells have runs so far"
     from hmpc_cli.report.paths import portable_command
@@ -571,8 +608,11 @@ def latency_text(latency: object) -> str:
 
 
 def charged(spec: dict) -> object | None:
-    """A sweep's charged ``sim.latency`` from its ``[set]`` (None: time paused)."""
-    lat = spec.get("set", {}).get("sim.latency")
+    """A sweep's charged ``sim.latency`` (None: time paused).
+
+    Its ``[set]``'s, else its runs' scenario's (``effective``, see :func:`study_section`).
+    """
+    lat = spec.get("set", {}).get("sim.latency", spec.get("effective", {}).get("sim.latency"))
     return None if lat in (None, "paused") else lat
 
 
