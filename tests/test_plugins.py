@@ -531,3 +531,10 @@ def test_a_system_hmpc_cannot_run_is_refused_before_the_run(tmp_path, name, reas
     (line,) = error_lines(proc)
     assert line.startswith(f"error: {scenario}: {reason}"), line
     assert not out.exists()
+    # a sweep checks every cell before its first run
+    (tmp_path / "s.toml").write_text(f'name = "s"\nscenario = "{scenario.name}"\nseeds = 1\n')
+    proc = hmpc(["sweep", "s.toml", "--out", str(out)], site, PLUGINS, cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    (line,) = error_lines(proc)
+    assert line.startswith(f"error: s.toml: cell the base scenario: {reason}"), line
+    assert not out.exists()

@@ -141,18 +141,26 @@ def test_resume_skips_finished_runs(tiny):
     out3 = base / "resume"
     shutil.copytree(out, out3)
     rows = table(out3)
-    gone, stopped = rows[3]["run_id"], rows[7]["run_id"]
+    gone, stopped, other = rows[3]["run_id"], rows[7]["run_id"], rows[9]["run_id"]
     shutil.rmtree(out3 / "runs" / gone)
     s = out3 / "runs" / stopped / "summary.json"
     s.write_text(json.dumps({**json.loads(s.read_text()), "reason": "interrupted"}))
+    # a run finished with another scenario (as after an edit of the scenario file)
+    stored = out3 / "runs" / other / "scenario.toml"
+    stored.write_text("".join('description = "old"\n' if line.startswith("description = ")
+                              else line for line in stored.read_text().splitlines(True)))
     (out3 / "results.csv").unlink()
     kept = {p.parent.name: p.stat().st_mtime_ns for p in out3.glob("runs/*/summary.json")
             if p.parent.name != stopped}
     proc = sweep([str(path), "--workers", "1", "--out", str(out3)], base)
     assert proc.returncode == 0, proc.stderr
-    assert "12 runs, 10 skipped (already done), 2 to run" in proc.stdout
+    assert "12 runs, 9 skipped (already done), 3 to run" in proc.stdout
+    assert proc.stderr.splitlines()[0] == (
+        f"warning: 1 finished run(s) in {out3 / 'runs'} were made with another scenario "
+        f"(their scenario.toml differs from this sweep's now, e.g. run {other}): they are run "
+        "again and their files replaced (a sweep into another --out keeps them)")
     now = {p.parent.name: p.stat().st_mtime_ns for p in out3.glob("runs/*/summary.json")}
-    assert {k for k in now if now[k] != kept.get(k)} == {gone, stopped}
+    assert {k for k in now if now[k] != kept.get(k)} == {gone, stopped, other}
     assert table(out3) == table(out)
 
 

@@ -363,6 +363,18 @@ def test_an_initial_state_past_a_guard_of_its_mode_is_refused(real_prepare: Path
     assert lines == [f"error: {fine}: {X0_PAST_CIRCLE.format('the plant' + chr(39) + 's ')}"]
 
 
+def test_an_initial_state_on_a_guard_of_its_mode_is_refused(real_prepare: Path):
+    """x0 on the floor (gap 0) moving into it: a guard fires when its gap goes from > 0 to
+    <= 0 within a step, so the ball would fall through the floor; refused by the x0 check
+    (not as a tube margin too large for its gap)."""
+    fine = _scenario(real_prepare, "ball", name="fine").name
+    item = "system.x0=[1.0,0.1,0.0,-1.0]"
+    assert bad_run(real_prepare, ["run", fine, "--set", item, "--out", "out"]) == [
+        f"error: --set {item}: system.x0: (1, 0.1, 0, -1) lies on guard 'floor' of its "
+        "initial mode 'outside' (gap 0): a guard fires when its gap goes from > 0 to <= 0 "
+        "within a step, so from there it would never fire; move system.x0 off the guard"]
+
+
 def test_every_scenario_starts_inside_its_initial_mode():
     """The shipped scenarios pass the initial-state check (the biped's swing foot starts
     above the stair it stands before; the other stairs' gaps are negative outside their

@@ -198,8 +198,13 @@ def _execute(plan, out: Path, workers: int, client):
     task = progress.add_task(plan.spec.name, total=len(plan.selected), ok=0)
     state = {"ok": 0}
 
-    def on_start(total: int, skipped: int, ok: int) -> None:
+    def on_start(total: int, skipped: int, ok: int, replaced: list[str]) -> None:
         todo = total - skipped
+        if replaced:  # on stderr, also with -q
+            typer.echo(f"warning: {len(replaced)} finished run(s) in {out / 'runs'} were made "
+                       f"with another scenario (their scenario.toml differs from this sweep's "
+                       f"now, e.g. run {replaced[0]}): they are run again and their files "
+                       f"replaced (a sweep into another --out keeps them)", err=True)
         where = f"Dask {client.scheduler.address}" if client is not None else (
             "in-process" if min(workers, todo) <= 1 else f"{min(workers, todo)} worker processes")
         state["ok"] = ok

@@ -341,7 +341,8 @@ class HybridSystem:
 
         ``avoid``: per guard (system order) its guard-avoid offset kappa (NLP row units).
         Only the initial mode's guards that are active at x0 (inside their region) and
-        that x0 is before (q(x0) >= 0, so the untightened row holds).
+        that x0 is before (q(x0) > 0; one x0 lies on is the x0 check's:
+        :func:`hmpc_cli.run.setup_checks.initial_state_problems`).
         """
         x = ca.SX.sym("x", self.n_x)
         out = []
@@ -349,7 +350,7 @@ class HybridSystem:
             g = self.guards[gi]
             q = float(ca.Function("q", [x], [g.q_expr(x)])(self.x0))
             active = g.region is None or bool(np.all(np.asarray(g.region(self.x0)) >= 0))
-            if active and 0.0 <= q < float(avoid[gi]):
+            if active and 0.0 < q < float(avoid[gi]):
                 out.append((g.name, q, float(avoid[gi])))
         return out
 

@@ -410,10 +410,12 @@ def _drawn(study: Study, table: Path, rows: list[dict], spec: dict, name: str,
     return rows, size, diam, cells
 
 
-def _draw_only(entry: dict) -> bool:
-    """A grid table entry that sets only the disturbance's draw (``disturbance.*``)."""
-    return all(k == "label" or k == "disturbance" or k.startswith("disturbance.")
-               for k in entry)
+def _draws(entries: object) -> bool:
+    """A grid axis of tables that set only the disturbance's draw (``disturbance.*``)."""
+    return isinstance(entries, list) and all(
+        isinstance(e, dict) and all(k == "label" or k == "disturbance"
+                                    or k.startswith("disturbance.") for k in e)
+        for e in entries)
 
 
 def _refuse_pooled_axes(spec: dict) -> None:
@@ -427,11 +429,10 @@ def _refuse_pooled_axes(spec: dict) -> None:
         FigureInputError: such an axis (named).
     """
     for axis, entries in (spec.get("grid") or {}).items():
-        if axis in (RATE, POLICY, SIZE) or not isinstance(entries, list) or len(entries) < 2:
+        if axis in (RATE, POLICY, SIZE) or not isinstance(entries, list) or len(entries) < 2 \
+                or _draws(entries):
             continue
         if all(isinstance(e, dict) for e in entries):
-            if all(map(_draw_only, entries)):
-                continue
             cells = [tuple(str(_entry_value(e, k)) for k in (RATE, POLICY, SIZE))
                      for e in entries]
             if len(set(cells)) == len(cells):
@@ -550,8 +551,8 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
     partial = (f" (a prefix: {seeds} of the sweep's {planned} seeds)"
                if planned and seeds < planned else "")
     grid = spec.get("grid", {})
-    planned_cells = math.prod(len(v) for v in grid.values() if isinstance(v, list) and not (
-        all(isinstance(e, dict) for e in v) and all(map(_draw_only, v))))
+    planned_cells = math.prod(len(v) for v in grid.values()
+                              if isinstance(v, list) and not _draws(v))
     if grid and len(cells) < planned_cells:
         partial += f"; {len(cells)} of its {planned_cells} cells have runs so far"
     from hmpc_cli.report.paths import portable_command

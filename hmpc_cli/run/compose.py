@@ -16,7 +16,8 @@ from hmpc_cli.core.stack import FixedModeMPC, Planner, Task
 from hmpc_cli.log.books import RunBooks, RunResult
 from hmpc_cli.log.runlog import RunIdentity
 from hmpc_cli.run.realtime import Latency
-from hmpc_cli.run.setup_checks import built_problems, initial_state_problems, margins_of
+from hmpc_cli.run.setup_checks import (built_problems, check_task, initial_state_problems,
+                                      margins_of)
 
 __all__ = ["PreparedRun", "StackTiming", "build"]
 
@@ -121,7 +122,7 @@ def build(scenario) -> PreparedRun:
     mpc, problem = _mpc(sc, model, margins)
     task = plugin_call(f"system: the task of {spec.name!r} failed to build", spec.task, world,
                        system)
-    _check_task(task, spec.name, system)
+    check_task(task, spec.name, system)
     identity = RunIdentity(
         sc.name, sc.seed, sc.model_dump(mode="json"), s.rate_hz // s.log_rate_hz,
         margins.to_dict(model) if margins is not None else None,
@@ -135,36 +136,6 @@ def build(scenario) -> PreparedRun:
                    "compute time, so this run is not reproducible")
     return PreparedRun(plant, planner, mpc, timing, task, s.duration, s.divergence_bound,
                        identity, books)
-
-
-def _check_task(task, name: str, system) -> None:
-    """Checks the task a system plug-in built, on the plant's x0 in its initial mode.
-
-    Its ``failure`` must give a str and its ``verdict`` a Verdict there (both pure
-    functions of the state and mode), so a wrong task fails before the run, not in it.
-
-    Raises:
-        hmpc_cli.core.registry.PluginError: a method is missing, raises or returns
-            another type (the message names the system).
-    """
-    from hmpc_cli.core.registry import PluginError, plugin_call
-    from hmpc_cli.core.stack import Verdict
-
-    where = f"system: the task of {name!r}"
-    missing = [m for m in ("failure", "verdict") if not callable(getattr(task, m, None))]
-    if missing or getattr(task, "goal", None) is None:
-        what = ", ".join([*(f"a method {m}(x, mode)" for m in missing),
-                          *([] if getattr(task, "goal", None) is not None else ["a goal"])])
-        raise PluginError(f"{where} is a {type(task).__name__} without {what} "
-                          "(a task has goal, failure(x, mode) -> str and verdict(x, mode) "
-                          "-> Verdict: docs/plugins.md)")
-    x0, mode = system.x0, system.mode_index(system.initial_mode)
-    why = plugin_call(f"{where} failed at x0", task.failure, x0, mode)
-    verdict = plugin_call(f"{where} failed at x0", task.verdict, x0, mode)
-    for method, value, kind in (("failure", why, str), ("verdict", verdict, Verdict)):
-        if not isinstance(value, kind):
-            raise PluginError(f"{where}: {method}(x0, mode) returned a "
-                              f"{type(value).__name__}, not a {kind.__name__}")
 
 
 def _build_info(problem) -> BuildInfo | None:

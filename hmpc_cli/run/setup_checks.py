@@ -9,7 +9,8 @@ from __future__ import annotations
 
 from hmpc_cli.core.messages import ConstraintMargins
 
-__all__ = ["built_problems", "initial_state_problems", "margins_of", "setup_problems"]
+__all__ = ["built_problems", "check_task", "initial_state_problems", "margins_of",
+           "setup_problems"]
 
 
 def setup_problems(scenario) -> list[str]:
@@ -17,18 +18,52 @@ def setup_problems(scenario) -> list[str]:
 
     ``key.path: reason`` lines (none: the scenario sets up): margins that do not fit the
     system (a margins file, an input shrink beyond half an input box), solver options
-    the solver rejects and planner settings that do not fit the system (a schedule).
-    Builds the controllers' model only (no NLP, no planner), so a sweep checks every cell
-    before it starts a run.
+    the solver rejects and planner settings that do not fit the system (a schedule), and
+    a task that is not one (:func:`check_task`). Builds the controllers' model only (no
+    NLP, no planner), so a sweep checks every cell before it starts a run.
     """
-    from hmpc_cli.core.registry import PluginError, build_system
+    from hmpc_cli.core.registry import PluginError, build_system, plugin_call, registry
 
     try:
         model = build_system(scenario.system)
+        name = scenario.system.name
+        check_task(plugin_call(f"system: the task of {name!r} failed to build",
+                               registry().system(name).task, scenario.system, model),
+                   name, model)
         margins = margins_of(scenario, model)
     except (PluginError, ValueError) as exc:
         return str(exc).splitlines()
     return built_problems(scenario, model, margins)
+
+
+def check_task(task, name: str, system) -> None:
+    """Checks the task a system plug-in built, on ``system``'s x0 in its initial mode.
+
+    Its ``failure`` must give a str and its ``verdict`` a Verdict there (both pure
+    functions of the state and mode), so a wrong task fails before the run, not in it.
+
+    Raises:
+        hmpc_cli.core.registry.PluginError: a method is missing, raises or returns
+            another type (the message names the system).
+    """
+    from hmpc_cli.core.registry import PluginError, plugin_call
+    from hmpc_cli.core.stack import Verdict
+
+    where = f"system: the task of {name!r}"
+    missing = [m for m in ("failure", "verdict") if not callable(getattr(task, m, None))]
+    if missing or getattr(task, "goal", None) is None:
+        what = ", ".join([*(f"a method {m}(x, mode)" for m in missing),
+                          *([] if getattr(task, "goal", None) is not None else ["a goal"])])
+        raise PluginError(f"{where} is a {type(task).__name__} without {what} "
+                          "(a task has goal, failure(x, mode) -> str and verdict(x, mode) "
+                          "-> Verdict: docs/plugins.md)")
+    x0, mode = system.x0, system.mode_index(system.initial_mode)
+    why = plugin_call(f"{where} failed at x0", task.failure, x0, mode)
+    verdict = plugin_call(f"{where} failed at x0", task.verdict, x0, mode)
+    for method, value, kind in (("failure", why, str), ("verdict", verdict, Verdict)):
+        if not isinstance(value, kind):
+            raise PluginError(f"{where}: {method}(x0, mode) returned a "
+                              f"{type(value).__name__}, not a {kind.__name__}")
 
 
 def built_problems(sc, model, margins: ConstraintMargins | None) -> list[str]:
@@ -38,13 +73,13 @@ def built_problems(sc, model, margins: ConstraintMargins | None) -> list[str]:
 
 
 def initial_state_problems(system, x0=None, whose: str = "") -> list[str]:
-    """``system.x0: reason`` when x0 lies past a guard of its initial mode.
+    """``system.x0: reason`` when x0 lies on or past a guard of its initial mode.
 
     x0 (default ``system.x0``) must lie in the domain of ``system.initial_mode``: every
-    guard out of that mode whose activity region holds x0 has a gap >= 0 there. A guard
-    already crossed never fires (it fires when its gap goes from > 0 to <= 0), so the run
-    would start in a mode its state has left. ``whose`` names another system checked
-    with the controllers' x0 (``"the plant's "``).
+    guard out of that mode whose activity region holds x0 has a gap > 0 there. A guard
+    already crossed, or one x0 lies on, never fires (it fires when its gap goes from > 0
+    to <= 0), so the run would start in a mode its state has left, or pass through it.
+    ``whose`` names another system checked with the controllers' x0 (``"the plant's "``).
     """
     import casadi as ca
     import numpy as np
@@ -57,11 +92,16 @@ def initial_state_problems(system, x0=None, whose: str = "") -> list[str]:
         g = system.guards[i]
         gap = float(ca.Function("gap", [x], [g.gap_expr(x)])(x0))
         inside = g.region is None or bool(np.all(np.asarray(g.region(x0)) >= 0.0))
+        point = ", ".join(f"{v:g}" for v in x0)
         if inside and gap < 0.0:
-            point = ", ".join(f"{v:g}" for v in x0)
             out.append(f"system.x0: ({point}) lies past {whose}guard {g.name!r} of its "
                        f"initial mode {mode!r} (gap {gap:.4g} < 0), so the run would start "
                        f"outside that mode's domain; move system.x0 or the guard")
+        elif inside and gap == 0.0:
+            out.append(f"system.x0: ({point}) lies on {whose}guard {g.name!r} of its initial "
+                       f"mode {mode!r} (gap 0): a guard fires when its gap goes from > 0 to "
+                       f"<= 0 within a step, so from there it would never fire; move "
+                       f"system.x0 off the guard")
     return out
 
 

@@ -24,7 +24,8 @@ from hmpc_cli.core.paths import write_atomic
 from hmpc_cli.run.runner import run_one
 from hmpc_cli.sweep.plan import Run, SweepPlan
 from hmpc_cli.sweep.pool import run_pool
-from hmpc_cli.sweep.table import finished_runs, is_interrupted, toml_value, write_results
+from hmpc_cli.sweep.table import (finished_runs, is_interrupted, made_otherwise, toml_value,
+                                  write_results)
 
 
 def run_provenance(plan: SweepPlan, run: Run, command: str | None = None):
@@ -61,17 +62,19 @@ class Outcome:
 
 
 def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
-                  on_start: Callable[[int, int, int], None] | None = None,
+                  on_start: Callable[[int, int, int, list[str]], None] | None = None,
                   on_done: Callable[[Run, dict], None] | None = None) -> Outcome:
     """Runs every unfinished run (in-process, process pool or Dask ``client``).
 
     Finished: a finished run directory or a tabled run (:mod:`hmpc_cli.sweep.table`).
 
-    ``on_start(total, skipped, successes_skipped)`` and ``on_done(run, summary)`` report
-    progress. Ctrl-C stops cleanly (``Outcome.interrupted``); results.csv is always
-    rewritten (``Outcome.done`` rows). ``lost`` lists runs whose worker failed or whose
-    results did not arrive from Dask (not recorded, retried on resume). Every run's log
-    records its provenance (:func:`run_provenance`, this process's command line).
+    ``on_start(total, skipped, successes_skipped, replaced)`` and ``on_done(run, summary)``
+    report progress; ``replaced``: the ids of the pending runs whose directory holds a run
+    finished with another scenario (run again, its files replaced). Ctrl-C stops cleanly
+    (``Outcome.interrupted``); results.csv is always rewritten (``Outcome.done`` rows).
+    ``lost`` lists runs whose worker failed or whose results did not arrive from Dask (not
+    recorded, retried on resume). Every run's log records its provenance
+    (:func:`run_provenance`, this process's command line).
     """
     out = out.resolve()
     (out / "runs").mkdir(parents=True, exist_ok=True)
@@ -81,7 +84,8 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
     pending = [r for r in selected if done[r.run_id] is None]
     res = Outcome(len(selected), skipped=len(selected) - len(pending))
     if on_start:
-        on_start(res.total, res.skipped, sum(bool(s and s.get("success")) for s in done.values()))
+        on_start(res.total, res.skipped, sum(bool(s and s.get("success")) for s in done.values()),
+                 made_otherwise(out, pending))
 
     def record(run: Run, summary: dict | None) -> None:
         if summary is not None and not is_interrupted(summary):

@@ -35,6 +35,28 @@ def finished(out: Path, run) -> dict | None:
     return finished_in(out / "runs" / run.run_id, run.toml)
 
 
+def made_otherwise(out: Path, runs) -> list[str]:
+    """The ids of ``runs`` whose directory holds a run finished with another scenario.
+
+    Its scenario.toml differs from the run's effective scenario now: a resume runs it
+    again and replaces its files.
+    """
+    ids = []
+    for run in runs:
+        d = out / "runs" / run.run_id
+        if finished_in(d, run.toml) is not None:
+            continue
+        try:
+            stored = (d / "scenario.toml").read_text(encoding="utf-8")
+            summary = json.loads((d / "summary.json").read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(summary, dict) and not is_interrupted(summary) and \
+                not same_scenario(stored, run.toml) and log_done(d):
+            ids.append(run.run_id)
+    return ids
+
+
 def finished_in(d: Path, toml_text: str) -> dict | None:
     """The summary of the run in directory ``d``, if it finished there; else None.
 

@@ -206,7 +206,7 @@ def initial_violations(system: HybridSystem, m: Margins) -> list[tuple[str, floa
     """Tightened guard-avoid rows x0 violates: (guard, q(x0), kappa) per guard.
 
     Only the initial mode's guards that are active at x0 (inside their region) and that
-    x0 is before (q(x0) >= 0, so the untightened row holds): the violation is the tube's
+    x0 is before (q(x0) > 0, so the untightened row holds): the violation is the tube's
     (:meth:`~hmpc_cli.core.hybrid.HybridSystem.initial_avoid_violations`).
     """
     return system.initial_avoid_violations([g.avoid for g in m.guards])
