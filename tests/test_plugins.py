@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from conftest import BALL, REPO, cli_env, hmpc_command, standard_schema_errors
+from hmpc_cli.core.numeric import supported_operations
 from hmpc_cli.log.reader import read_log
 
 PLUGINS = REPO / "tests" / "plugins"
@@ -161,6 +162,8 @@ from hmpc_dock import SYSTEM, DockParams, build_dock
 from dataclasses import replace
 from typing import Literal
 
+import casadi as ca
+
 
 class BadBuild(DockParams):
     name: Literal["badbuild"] = "badbuild"
@@ -190,7 +193,56 @@ BAD_SHAPE = replace(SYSTEM, name="badshape", params=BadShape, build=_three_state
 LIAR = replace(SYSTEM, name="liar", params=Liar,
                build=lambda p: build_dock(DockParams(**{**p.model_dump(), "name": "dock"})),
                provides=frozenset({"stance_foot"}))
+
+
+class ErfFlow(DockParams):
+    name: Literal["erfflow"] = "erfflow"
+
+
+class NoTask(DockParams):
+    name: Literal["notask"] = "notask"
+
+
+class TrueVerdict(DockParams):
+    name: Literal["trueverdict"] = "trueverdict"
+
+
+def _dock(p):
+    return build_dock(DockParams(**{**p.model_dump(), "name": "dock"}))
+
+
+def _erf_flow(p):
+    dock = _dock(p)
+    x, u, w = ca.SX.sym("x", 2), ca.SX.sym("u", 1), ca.SX.sym("w", 1)
+    free = replace(dock.modes[0], flow=ca.Function("f_erf", [x, u, w], [
+        ca.vertcat(x[1], ca.erf(u) + w)]))
+    return replace(dock, modes=(free, *dock.modes[1:]))
+
+
+class Agrees:
+    goal = (2.5, 0.0)
+
+    def failure(self, x, mode):
+        return ""
+
+    def verdict(self, x, mode):
+        return True
+
+
+ERF = replace(SYSTEM, name="erfflow", params=ErfFlow, build=_erf_flow)
+NO_TASK = replace(SYSTEM, name="notask", params=NoTask, build=_dock,
+                  task=lambda p, system: None)
+TRUE = replace(SYSTEM, name="trueverdict", params=TrueVerdict, build=_dock,
+               task=lambda p, system: Agrees())
 """
+
+
+def _faulty_site(tmp_path: Path) -> Path:
+    """The FAULTY plug-ins installed in ``tmp_path/site``."""
+    names = {"badbuild": "BAD_BUILD", "liar": "LIAR", "badshape": "BAD_SHAPE",
+             "erfflow": "ERF", "notask": "NO_TASK", "trueverdict": "TRUE"}
+    return write_dist(tmp_path / "site", "hmpc-faulty", "[hmpc.systems]\n" + "".join(
+        f"{k} = hmpc_faulty:{v}\n" for k, v in names.items()), {"hmpc_faulty": FAULTY})
 
 
 @pytest.mark.parametrize("name, reason", [
@@ -202,12 +254,21 @@ LIAR = replace(SYSTEM, name="liar", params=Liar,
     ("badshape", "system: 'badshape' failed to build: ValueError: dock: x0 has shape (3,), "
                  "expected (2,) (one entry per state ['p', 'v']); tracking_gain(kp, kd) "
                  "must be 1 x 2 (inputs x states), not 1 x 3"),
+    # an operation the NumPy evaluators lack, a task that is not one: before the run
+    ("erfflow", "system: 'erfflow' failed to build: ValueError: dock: f_erf uses erf: "
+                "CasADi operations the simulator's and planner's NumPy evaluators cannot "
+                f"run (they run {', '.join(supported_operations())}; 'call' is a Function "
+                "called inside, e.g. an interpolant or a Callback)"),
+    ("notask", "system: the task of 'notask' is a NoneType without a method failure(x, "
+               "mode), a method verdict(x, mode), a goal (a task has goal, failure(x, mode) "
+               "-> str and verdict(x, mode) -> Verdict: docs/plugins.md)"),
+    ("trueverdict", "system: the task of 'trueverdict': verdict(x0, mode) returned a bool, "
+                    "not a Verdict"),
 ])
 def test_a_plugin_that_fails_to_build_is_one_error_line(tmp_path, name, reason):
-    site = write_dist(tmp_path / "site", "hmpc-faulty",
-                      "[hmpc.systems]\nbadbuild = hmpc_faulty:BAD_BUILD\n"
-                      "liar = hmpc_faulty:LIAR\nbadshape = hmpc_faulty:BAD_SHAPE\n",
-                      {"hmpc_faulty": FAULTY})
+    """Named when the run is built (exit 2, nothing written), not inside it; a sweep
+    names it in its check of every cell before its first run."""
+    site = _faulty_site(tmp_path)
     scenario = tmp_path / f"{name}.toml"
     scenario.write_text(f'[system]\nname = "{name}"\n')
     out = tmp_path / "out"
@@ -215,6 +276,11 @@ def test_a_plugin_that_fails_to_build_is_one_error_line(tmp_path, name, reason):
     assert proc.returncode == 2, proc.stderr[-3000:]
     assert "Traceback" not in proc.stderr
     assert error_lines(proc) == [f"error: {scenario}: {reason}"]
+    assert not out.exists()
+    (tmp_path / "s.toml").write_text(f'name = "s"\nscenario = "{scenario.name}"\nseeds = 1\n')
+    proc = hmpc(["sweep", "s.toml", "--out", str(out)], site, PLUGINS, cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert error_lines(proc) == [f"error: s.toml: cell the base scenario: {reason}"]
     assert not out.exists()
 
 
@@ -454,87 +520,3 @@ def test_parameters_that_are_not_a_strict_pydantic_model_refuse_that_plugin_only
         "discriminator"]["mapping"])
 
 
-UNRUNNABLE = """
-from dataclasses import replace
-from typing import Literal
-
-import casadi as ca
-
-from hmpc_dock import SYSTEM, DockParams, build_dock
-
-
-class ErfFlow(DockParams):
-    name: Literal["erfflow"] = "erfflow"
-
-
-class NoTask(DockParams):
-    name: Literal["notask"] = "notask"
-
-
-class TrueVerdict(DockParams):
-    name: Literal["trueverdict"] = "trueverdict"
-
-
-def _dock(p):
-    return build_dock(DockParams(**{**p.model_dump(), "name": "dock"}))
-
-
-def _erf_flow(p):
-    dock = _dock(p)
-    x, u, w = ca.SX.sym("x", 2), ca.SX.sym("u", 1), ca.SX.sym("w", 1)
-    free = replace(dock.modes[0], flow=ca.Function("f_erf", [x, u, w], [
-        ca.vertcat(x[1], ca.erf(u) + w)]))
-    return replace(dock, modes=(free, *dock.modes[1:]))
-
-
-class Agrees:
-    goal = (2.5, 0.0)
-
-    def failure(self, x, mode):
-        return ""
-
-    def verdict(self, x, mode):
-        return True
-
-
-ERF = replace(SYSTEM, name="erfflow", params=ErfFlow, build=_erf_flow)
-NO_TASK = replace(SYSTEM, name="notask", params=NoTask, build=_dock,
-                  task=lambda p, system: None)
-TRUE = replace(SYSTEM, name="trueverdict", params=TrueVerdict, build=_dock,
-               task=lambda p, system: Agrees())
-"""
-
-
-@pytest.mark.parametrize("name, reason", [
-    ("erfflow", "system: 'erfflow' failed to build: ValueError: dock: f_erf uses erf: "
-                "CasADi operations the simulator's and planner's NumPy evaluators cannot "
-                "run (they run acos, add, "),
-    ("notask", "system: the task of 'notask' is a NoneType without a method failure(x, "
-               "mode), a method verdict(x, mode), a goal (a task has goal, failure(x, mode) "
-               "-> str and verdict(x, mode) -> Verdict: docs/plugins.md)"),
-    ("trueverdict", "system: the task of 'trueverdict': verdict(x0, mode) returned a bool, "
-                    "not a Verdict"),
-])
-def test_a_system_hmpc_cannot_run_is_refused_before_the_run(tmp_path, name, reason):
-    """A flow with an operation the NumPy evaluators lack, and a task that is not one, are
-    named when the run is built (exit 2, nothing written), not inside the run."""
-    site = write_dist(tmp_path / "site", "hmpc-unrunnable", "[hmpc.systems]\n"
-                      "erfflow = hmpc_unrunnable:ERF\nnotask = hmpc_unrunnable:NO_TASK\n"
-                      "trueverdict = hmpc_unrunnable:TRUE\n",
-                      {"hmpc_unrunnable": UNRUNNABLE})
-    scenario = tmp_path / f"{name}.toml"
-    scenario.write_text(f'[system]\nname = "{name}"\n')
-    out = tmp_path / "out"
-    proc = hmpc(["run", str(scenario), "--out", str(out), "-q"], site, PLUGINS, cwd=tmp_path)
-    assert proc.returncode == 2, proc.stderr[-3000:]
-    assert "Traceback" not in proc.stderr
-    (line,) = error_lines(proc)
-    assert line.startswith(f"error: {scenario}: {reason}"), line
-    assert not out.exists()
-    # a sweep checks every cell before its first run
-    (tmp_path / "s.toml").write_text(f'name = "s"\nscenario = "{scenario.name}"\nseeds = 1\n')
-    proc = hmpc(["sweep", "s.toml", "--out", str(out)], site, PLUGINS, cwd=tmp_path)
-    assert proc.returncode == 2, proc.stderr[-3000:]
-    (line,) = error_lines(proc)
-    assert line.startswith(f"error: s.toml: cell the base scenario: {reason}"), line
-    assert not out.exists()

@@ -168,6 +168,13 @@ def test_unknown_key_suggests_a_key_of_the_selected_kind(work: Path) -> None:
                      "(did you mean 'circle_radius'?)"]
 
 
+def test_an_unknown_system_name_suggests_the_closest(tmp_path: Path) -> None:
+    f = tmp_path / "s.toml"
+    f.write_text('[system]\nname = "balll"\n')
+    assert load_error(f) == [f"{f}: system.name: unknown system 'balll' (did you mean "
+                             "'ball'? choose from 'ball', 'biped')"]
+
+
 def test_unknown_section_via_set_is_the_sets(work: Path) -> None:
     lines = cli_bad(work, ["ball.toml", "--set", "simm.rate_hz=10"])
     assert lines == ["error: --set simm.rate_hz=10: simm: unknown key (did you mean 'sim'?)"]

@@ -191,7 +191,9 @@ def _unknown(reg, name: Any) -> str:
     if why is not None:
         return why
     choices = ", ".join(repr(k) for k in sorted(reg.systems))
-    return f"unknown system {name!r} (choose from {choices})"
+    close = difflib.get_close_matches(str(name), sorted(reg.systems), n=1)
+    hint = f"did you mean {close[0]!r}? " if close else ""
+    return f"unknown system {name!r} ({hint}choose from {choices})"
 
 
 def _kind_problems(reg, spec, data: dict) -> list[str]:
