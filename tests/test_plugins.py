@@ -493,6 +493,23 @@ LOOSE = replace(SYSTEM, name="loose", params=LooseParams)
 """
 
 
+def test_a_plugin_that_raises_shows_its_traceback_with_v(tmp_path):
+    """The one error line; with -v, the plug-in's own traceback after it (where to look)."""
+    site = _faulty_site(tmp_path)
+    scenario = tmp_path / "badbuild.toml"
+    scenario.write_text('[system]\nname = "badbuild"\n')
+    proc = hmpc(["run", str(scenario), "--out", str(tmp_path / "out"), "-v"], site, PLUGINS,
+                cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    lines = proc.stderr.splitlines()
+    assert lines[0] == (f"error: {scenario}: system: 'badbuild' failed to build: ValueError: "
+                        "dock_at must lie inside the track")
+    assert lines[1] == "Traceback (most recent call last):"
+    assert any("hmpc_faulty.py" in line and "in _fail" in line for line in lines)
+    assert lines[-1] == "ValueError: dock_at must lie inside the track"
+    assert not (tmp_path / "out").exists()
+
+
 def test_parameters_that_are_not_a_strict_pydantic_model_refuse_that_plugin_only(tmp_path):
     """A dataclass as parameters, or a pydantic model that lets unknown keys through: that
     entry point is refused by name (exit 2, nothing written); the other systems run."""

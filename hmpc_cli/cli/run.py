@@ -104,6 +104,10 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
         _err(attribute_to_sets([f"{scenario}: {line}" for line in str(exc).splitlines()],
                                str(scenario), sets, True, _setup_caused(scenario, sets, seed),
                                anywhere=True))
+        from hmpc_cli.cli.common import VERBOSITY
+
+        if VERBOSITY[0] >= 1 and getattr(exc, "plugin_traceback", None):
+            typer.echo(exc.plugin_traceback.rstrip("\n"), err=True)  # where in the plug-in
         raise typer.Exit(EXIT_BAD_INPUT) from None
     sink = _live_sink(live_port) if live else None  # before the run directory is made
     try:

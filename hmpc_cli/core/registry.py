@@ -334,13 +334,21 @@ def missing_capabilities(names: Iterable[str], system: Any) -> list[str]:
 
 
 def plugin_call(what: str, fn: Callable[..., Any], *args: Any) -> Any:
-    """``fn(*args)``; any exception becomes a :class:`PluginError` 'what: Type: message'."""
+    """``fn(*args)``; any exception becomes a :class:`PluginError` 'what: Type: message'.
+
+    The plug-in's traceback is kept as the error's ``plugin_traceback`` (``hmpc run -v``
+    prints it).
+    """
     try:
         return fn(*args)
     except PluginError:
         raise
     except Exception as exc:
-        raise PluginError(f"{what}: {type(exc).__name__}: {one_line(exc)}") from None
+        import traceback
+
+        err = PluginError(f"{what}: {type(exc).__name__}: {one_line(exc)}")
+        err.plugin_traceback = "".join(traceback.format_exception(exc))
+        raise err from None
 
 
 def one_line(exc: BaseException) -> str:
