@@ -120,9 +120,8 @@ def build(scenario) -> PreparedRun:
                           f"{spec.name!r}", reg.planner(sc.planner.kind).make, model,
                           sc.planner, sc.seed)
     mpc, problem = _mpc(sc, model, margins)
-    task = plugin_call(f"system: the task of {spec.name!r} failed to build", spec.task, world,
-                       system)
-    check_task(task, spec.name, system)
+    task = check_task(plugin_call(f"system: the task of {spec.name!r} failed to build",
+                                  spec.task, world, system), spec.name, system)
     identity = RunIdentity(
         sc.name, sc.seed, sc.model_dump(mode="json"), s.rate_hz // s.log_rate_hz,
         margins.to_dict(model) if margins is not None else None,

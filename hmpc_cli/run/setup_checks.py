@@ -36,8 +36,8 @@ def setup_problems(scenario) -> list[str]:
     return built_problems(scenario, model, margins)
 
 
-def check_task(task, name: str, system) -> None:
-    """Checks the task a system plug-in built, on ``system``'s x0 in its initial mode.
+def check_task(task, name: str, system):
+    """``task`` (a system plug-in's), once checked on ``system``'s x0 in its initial mode.
 
     Its ``failure`` must give a str and its ``verdict`` a Verdict there (both pure
     functions of the state and mode), so a wrong task fails before the run, not in it.
@@ -64,6 +64,7 @@ def check_task(task, name: str, system) -> None:
         if not isinstance(value, kind):
             raise PluginError(f"{where}: {method}(x0, mode) returned a "
                               f"{type(value).__name__}, not a {kind.__name__}")
+    return task
 
 
 def built_problems(sc, model, margins: ConstraintMargins | None) -> list[str]:
