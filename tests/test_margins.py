@@ -171,3 +171,66 @@ def test_a_sweep_checks_its_margins_files_before_any_run(ball_file: Path, tmp_pa
     sweep.write_text(sweep.read_text().replace(str(ball_file), "missing.toml"))
     with pytest.raises(ScenarioError, match=r"mpc\.margins: file not found: .*missing\.toml"):
         plan_sweep(sweep)
+
+
+FIG3_FILE = BALL.parent / "margins" / "ball_fig3.toml"  # |w_i| <= 10 (paper_fig3), kp = kd = 0
+FIX = ('(hmpc tube SCENARIO --write FILE writes this scenario\'s, or mpc.margins = "tube" '
+       'computes it for each run)')
+
+
+def _margin_warnings(file: Path, sets: list[str]) -> list[str]:
+    from hmpc_cli.run.scenario import margins_file_warnings
+
+    return margins_file_warnings(load_scenario(BALL, [f'mpc.margins="{file}"', *sets])[0])
+
+
+def test_a_margins_file_for_a_smaller_disturbance_or_other_gains_is_named(ball_file: Path):
+    """The file fits the system and rate, but its tube is another setting's: a warning for
+    a larger disturbance box than the file's and for other low-level gains, none for a
+    smaller box (its margins are conservative) or the same setting."""
+    f = ball_file.resolve()
+    assert _margin_warnings(ball_file, []) == []
+    assert _margin_warnings(ball_file, ["disturbance.kind=box", "disturbance.magnitude=3"]) == [
+        f"mpc.margins: {f} was computed for no disturbance (none), this scenario has "
+        f"|w_i| <= 3 (box): its margins do not cover this disturbance {FIX}"]
+    assert _margin_warnings(ball_file, ["disturbance.kind=box", "disturbance.magnitude=0"]) == []
+    assert _margin_warnings(ball_file, ["lowlevel.kd=2"]) == [
+        f"mpc.margins: {f} was computed for the low level's kp = 0, kd = 0, this scenario "
+        f"has kp = 0, kd = 2: its margins are another closed loop's tube {FIX}"]
+    fig3 = ["mpc.rate_hz=20", "disturbance.kind=paper_fig3"]
+    assert _margin_warnings(FIG3_FILE, fig3) == []  # the file's own disturbance
+    assert _margin_warnings(FIG3_FILE, ["mpc.rate_hz=20"]) == []  # none: conservative
+    assert _margin_warnings(FIG3_FILE, [*fig3, "disturbance.magnitude=9.5"]) == []
+    (line,) = _margin_warnings(FIG3_FILE, [*fig3, "disturbance.magnitude=10.5"])
+    assert "computed for |w_i| <= 10 (paper_fig3), this scenario has |w_i| <= 10.5 " \
+           "(paper_fig3): its margins do not cover" in line
+
+
+def test_hmpc_run_and_sweep_warn_of_another_settings_margins_file(ball_file: Path,
+                                                                  tmp_path: Path):
+    """On stderr, before anything runs; a sweep names each reason once with its cells."""
+    taken = tmp_path / "taken"
+    taken.write_text("")  # --out is a file: exit 2 after the warnings, before the build
+    res = CliRunner().invoke(app, ["run", str(BALL), "--out", str(taken), "--set",
+                                   f'mpc.margins="{ball_file}"', "--set", "lowlevel.kp=1",
+                                   *SHORT])
+    assert res.exit_code == 2
+    assert res.output.splitlines()[0] == (
+        f'warning: --set mpc.margins="{ball_file}": mpc.margins: {ball_file.resolve()} was '
+        "computed for the low level's kp = 0, kd = 0, this scenario has kp = 1, kd = 0: its "
+        f"margins are another closed loop's tube {FIX}")
+    sweep = tmp_path / "sweep.toml"
+    sweep.write_text(
+        f'name = "m"\nscenario = "{BALL}"\nseeds = [0, 1]\n[set]\n"mpc.margins" = '
+        f'"{ball_file}"\n"disturbance.kind" = "box"\n[grid]\n"disturbance.magnitude" = '
+        '[0, 2, 4]\n"lowlevel.kp" = [0, 1]\n')
+    res = CliRunner().invoke(app, ["sweep", str(sweep), "--dry-run", "--out",
+                                   str(tmp_path / "out")])
+    assert res.exit_code == 0, res.output
+    warnings = [x for x in res.output.splitlines() if x.startswith("warning: ")]
+    assert [w.split(": mpc.margins: ")[0] for w in warnings] == [
+        f"warning: {sweep}: cell disturbance.magnitude=0, lowlevel.kp=1 (and 2 other cells)",
+        f"warning: {sweep}: cell disturbance.magnitude=2, lowlevel.kp=0 (and 1 other cell)",
+        f"warning: {sweep}: cell disturbance.magnitude=4, lowlevel.kp=0 (and 1 other cell)"]
+    assert "this scenario has |w_i| <= 2 (box)" in warnings[1]
+    assert res.output.splitlines()[-1] == "12 runs, all valid (dry run: nothing started)"

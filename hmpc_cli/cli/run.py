@@ -74,16 +74,17 @@ def run_command(
 def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, quiet: bool,
          live: bool, live_port: int, strict: bool = False) -> None:
     """The body of ``hmpc run`` (signal handlers installed)."""
-    from hmpc_cli.run.scenario import ScenarioError, load_scenario
+    from hmpc_cli.run.scenario import (ScenarioError, attribute_to_sets, inert_settings,
+                                       load_scenario, margins_file_warnings)
 
     try:
         sc, toml_text = load_scenario(scenario, sets, seed)
     except ScenarioError as exc:
         _err(exc.lines)
         raise typer.Exit(EXIT_BAD_INPUT) from None
-    from hmpc_cli.run.scenario import inert_settings
-
-    for line in inert_settings(scenario, sets):
+    for line in [*inert_settings(scenario, sets), *attribute_to_sets(
+            [f"{scenario}: {w}" for w in margins_file_warnings(sc)], str(scenario), sets,
+            True)]:
         typer.echo(f"warning: {line}", err=True)
     from hmpc_cli.core.registry import PluginError
     from hmpc_cli.run.runner import out_problem, prepare
@@ -99,8 +100,6 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
     try:
         prepared = prepare(sc)
     except (PluginError, ValueError) as exc:
-        from hmpc_cli.run.scenario import attribute_to_sets
-
         _err(attribute_to_sets([f"{scenario}: {line}" for line in str(exc).splitlines()],
                                str(scenario), sets, True, _setup_caused(scenario, sets, seed),
                                anywhere=True))

@@ -141,38 +141,57 @@ def _checked_plan(sweep_file: Path, seeds: int | None):
     except ScenarioError as exc:
         _err(exc.lines)
         raise typer.Exit(EXIT_BAD_INPUT) from None
-    problems = setup_problems(plan)
+    problems, warnings = cell_checks(plan)
     if problems:  # what only the built system can tell, for every cell, before any run
         _err(problems)
         raise typer.Exit(EXIT_BAD_INPUT)
+    for line in warnings:  # on stderr, also with -q
+        typer.echo(f"warning: {line}", err=True)
     return plan
 
 
-def setup_problems(plan) -> list[str]:
+def cell_checks(plan) -> tuple[list[str], list[str]]:
     """The set-up checks of every distinct (system, MPC) cell of a sweep, attributed.
 
-    Lines ``SWEEP: cell k=v, ...: key.path: reason``
-    (:func:`hmpc_cli.run.setup_checks.setup_problems`;
-    seeds and settings that cannot change them share one check).
+    Returns ``(problems, warnings)``: lines ``SWEEP: cell axis=label, ...: key.path:
+    reason`` (the cell named by its grid axes).
+    Problems: :func:`hmpc_cli.run.setup_checks.setup_problems` (seeds and settings that
+    cannot change them share one check). Warnings: a margins file computed for another
+    disturbance or low level (:func:`hmpc_cli.run.scenario.margins_file_warnings`), each
+    reason once, with the number of cells it holds for.
     """
     import json
     import tomllib
 
+    from hmpc_cli.run.scenario import margins_file_warnings, scenario_model
     from hmpc_cli.run.setup_checks import setup_problems as scenario_problems
-    from hmpc_cli.run.scenario import scenario_model
 
     seen: set[str] = set()
     out: list[str] = []
+    noted: dict[str, list[str]] = {}  # reason -> the cells it holds for
+    read: dict[str, list[str]] = {}  # the margins file and what it is compared with -> reasons
     for run in plan.selected:
         sc = scenario_model().model_validate(tomllib.loads(run.toml))
+        cell = ", ".join(f"{a.name}={v}" for a, v in zip(plan.axes, run.cell, strict=True)
+                         ) or "the base scenario"
+        margins = json.dumps([sc.mpc.margins_source(), sc.disturbance.kind,
+                              sc.disturbance.magnitude, sc.lowlevel.kp, sc.lowlevel.kd])
+        if margins not in read:
+            read[margins] = margins_file_warnings(sc)
+        for line in read[margins]:
+            if cell not in noted.setdefault(line, []):
+                noted[line].append(cell)
         key = json.dumps([sc.system.model_dump(mode="json"), sc.mpc.model_dump(mode="json")],
                          sort_keys=True)
         if key in seen:
             continue
         seen.add(key)
-        cell = ", ".join(f"{k}={v}" for k, v in run.overrides.items()) or "the base scenario"
         out += [f"{plan.path}: cell {cell}: {line}" for line in scenario_problems(sc)]
-    return out
+    warnings = [f"{plan.path}: cell {cells[0]}"
+                + (f" (and {len(cells) - 1} other cell{'s' * (len(cells) > 2)})"
+                   if len(cells) > 1 else "")
+                + f": {line}" for line, cells in noted.items()]
+    return out, warnings
 
 
 def _list_runs(plan) -> None:

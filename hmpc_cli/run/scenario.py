@@ -821,6 +821,23 @@ def _resolve_margins(scenario: ScenarioBase, path: Path, check: bool) -> list[st
     return margins_problems(file, scenario.system, scenario.mpc.rate_hz)
 
 
+def margins_file_warnings(scenario: ScenarioBase) -> list[str]:
+    """``mpc.margins: reason`` when a loaded scenario's margins file is another setting's tube.
+
+    The file fits (:func:`load_scenario` checked system, parameters and rate) but was
+    computed for a smaller disturbance box or other low-level gains
+    (:func:`hmpc_cli.tube.margins_file.margins_warnings`); [] otherwise.
+    """
+    source = scenario.mpc.margins_source()
+    if source in (None, "hand", "tube"):
+        return []
+    from hmpc_cli.tube.margins_file import margins_warnings
+
+    d, low = scenario.disturbance, scenario.lowlevel
+    return [f"mpc.margins: {line}" for line in
+            margins_warnings(Path(source), d.kind, d.magnitude, low.kp, low.kd)]
+
+
 def dump_toml(data: dict) -> str:
     """Minimal TOML writer for scenario dictionaries (tables, scalars, arrays)."""
     return _toml_top(data) + _toml_tables(data)

@@ -38,8 +38,8 @@ from hmpc_cli.core.messages import ConstraintMargins
 from hmpc_cli.tube.report import TubeReport, TubeRow
 
 __all__ = ["FORMAT", "GuardOffsets", "MARK", "MarginsFile", "REFUSED", "RateMargins",
-           "constraint_margins", "margins_problems", "margins_text", "params_hash",
-           "read_margins", "write_margins"]
+           "constraint_margins", "margins_problems", "margins_text", "margins_warnings",
+           "params_hash", "read_margins", "write_margins"]
 
 #: how the message of margins refused at a run's set-up begins (a margins file or a tube
 #: that does not fit the scenario, its rate or its NLP); a sweep's table holds the run's
@@ -242,6 +242,56 @@ def margins_problems(path: Path, system: BaseModel, rate_hz: float) -> list[str]
     if not all(math.isfinite(v) for v in values):
         return [f"{path}: the tube at {rate_hz:g} Hz is not finite (no usable margins)"]
     return []
+
+
+def margins_warnings(path: Path, kind: str, magnitude: float, kp: float,
+                     kd: float) -> list[str]:
+    """Why a margins file that fits a scenario may not be its tube ([] if it is).
+
+    The tube grows with the disturbance box (every kind draws w from |w_i| <= magnitude;
+    kind none is the zero set) and depends on the low level's gains. A file made for a
+    smaller box does not cover the scenario's disturbance; one made for other gains is
+    another closed loop's tube. A file made for a larger box is conservative: no line.
+    An unreadable file gives none either (:func:`margins_problems` names it).
+
+    Args:
+        path: the margins file.
+        kind: the scenario's ``disturbance.kind``.
+        magnitude: its ``disturbance.magnitude`` (box half-width per channel).
+        kp: the scenario's ``lowlevel.kp``.
+        kd: its ``lowlevel.kd``.
+    """
+    try:
+        mf = read_margins(path)
+    except ValueError:
+        return []
+    fix = ("hmpc tube SCENARIO --write FILE writes this scenario's, or mpc.margins = "
+           "\"tube\" computes it for each run")
+    file_kind = str(mf.disturbance.get("kind", "none"))
+    file_bound = _bound(file_kind, mf.disturbance.get("magnitude", 0.0))
+    out = []
+    if _bound(kind, magnitude) > file_bound:
+        out.append(f"{path} was computed for {_box(file_kind, file_bound)}, this scenario "
+                   f"has {_box(kind, _bound(kind, magnitude))}: its margins do not cover "
+                   f"this disturbance ({fix})")
+    file_gains = (mf.lowlevel.get("kp", 0.0), mf.lowlevel.get("kd", 0.0))
+    if tuple(map(float, file_gains)) != (float(kp), float(kd)):
+        out.append(f"{path} was computed for the low level's kp = {file_gains[0]:g}, kd = "
+                   f"{file_gains[1]:g}, this scenario has kp = {kp:g}, kd = {kd:g}: its "
+                   f"margins are another closed loop's tube ({fix})")
+    return out
+
+
+def _bound(kind: str, magnitude) -> float:
+    """The box half-width |w_i| <= bound a disturbance draws from (0: none; NaN: unreadable)."""
+    try:
+        return 0.0 if kind == "none" else float(magnitude)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _box(kind: str, bound: float) -> str:
+    return f"no disturbance ({kind})" if bound == 0.0 else f"|w_i| <= {bound:g} ({kind})"
 
 
 def constraint_margins(path: Path, system, params: BaseModel,
