@@ -125,6 +125,57 @@ def test_from_tube_draws_the_radius_the_guards_margins_use(tmp_path):
     assert geo.kappa == row.margins.guards[geo.guard].pass_through
 
 
+def _with_margins(run, dst, source: str, row, scenario: dict | None = None):
+    """The run's log as if its NLP had used margins ``row`` (a RateMargins) from ``source``."""
+
+    def edit(topic, data):
+        if topic == "/run/info":
+            data["margins"] = {**data["margins"], "source": source, "radius": row.radius,
+                               "guards": [{"guard": k, "avoid": g.avoid,
+                                           "pass_through": g.pass_through}
+                                          for k, g in row.guards.items()]}
+            if scenario is not None:
+                data["scenario_json"] = json.dumps(scenario)
+        return data
+
+    return rewrite(run / "run.mcap", dst, edit)
+
+
+def test_the_default_radius_is_the_one_the_runs_margins_used(run, tmp_path):
+    """With mpc.margins a file or "tube", the NLP used the guard's offsets from there: the
+    figure draws that guard's radius, and its kappa is the logged pass-through offset; a
+    file that no longer holds the logged offset is refused."""
+    from hmpc_cli.core.registry import build_system
+    from hmpc_cli.run.scenario import scenario_model
+    from hmpc_cli.run.tube_margins import tube_margins_file
+    from hmpc_cli.tube.margins_file import read_margins
+
+    file = BALL.parent / "margins" / "ball_fig3.toml"
+    row = read_margins(file).at(10.0)
+    geo = fig2_geometry(_with_margins(run, tmp_path / "file.mcap", str(file), row))
+    offsets = row.guards[geo.guard_name]
+    assert geo.radius == offsets.radius > 0.0 and geo.kappa == offsets.pass_through
+    assert geo.radius_source == f"the radius of guard {geo.guard_name!r}'s margins in {file}"
+    changed = tmp_path / "changed.toml"
+    changed.write_text(file.read_text().replace(
+        f"pass_through = {offsets.pass_through!r}", "pass_through = 0.5"))
+    with pytest.raises(PassThroughError, match=(
+            f"{changed} no longer holds the pass-through offset the run used for guard "
+            f"'{geo.guard_name}' .*; pass --radius or --from-tube")):
+        fig2_geometry(_with_margins(run, tmp_path / "changed.mcap", str(changed), row))
+    scenario = json.loads(read_log(run / "run.mcap").topic("/run/info")[0].data[
+        "scenario_json"])
+    scenario["disturbance"]["kind"] = "paper_fig3"
+    scenario["mpc"]["margins"] = "tube"
+    sc = scenario_model().model_validate(scenario)
+    tube = tube_margins_file(sc, build_system(sc.system)).at(10.0)
+    geo = fig2_geometry(_with_margins(run, tmp_path / "tube.mcap", "tube at 10 Hz", tube,
+                                      scenario))
+    assert geo.radius == tube.guards[geo.guard_name].radius > 0.0
+    assert geo.kappa == tube.guards[geo.guard_name].pass_through
+    assert geo.radius_source.endswith("margins in the run's tube at 10 Hz")
+
+
 def bad_cases(run, tmp_path) -> dict[str, list[str]]:
     log = run / "run.mcap"
 

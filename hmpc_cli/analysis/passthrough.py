@@ -14,8 +14,9 @@ system's ``plane`` states:
   hold), w = 0, the interval the plan's node step (the positive spacing of ``t_plan``),
   integrated with one classic RK4 step (one Euler step when the logged scenario's
   ``mpc.integrator`` is "euler"), as the NLP's ``virtual_node`` row does;
-* the tube radius d: the scenario's ``mpc.tube_margin`` (what the NLP used), a given
-  radius, or diam T(dt) at the scenario's MPC rate from :func:`hmpc_cli.tube.analyse`;
+* the tube radius d: the one the NLP used (the scenario's ``mpc.tube_margin``, or the
+  guard's radius in the run's margins file or own tube, ``mpc.margins``), a given radius,
+  or diam T(dt) at the scenario's MPC rate from :func:`hmpc_cli.tube.analyse`;
 * whether x_v's disc lies entirely past the guard: the largest signed gap over the disc
   (its point nearest the guard, found on a fine polar grid) must be <= 0; the NLP's own
   test is the ``virtual_node`` row q(x_v) <= -kappa(d, past=True) with the guard's smooth
@@ -220,9 +221,43 @@ def _tube_radius(system, scenario: dict, where: str, guard: int) -> tuple[float,
                      f"{system.guards[guard].name!r}'s margins"
 
 
+def _used_radius(system, scenario: dict, used, where: str, guard: int) -> tuple[float, str]:
+    """The radius d_g behind the pass-through offset the run's NLP used for the guard.
+
+    ``used`` is the logged margins (:class:`~hmpc_cli.log.topics.MarginsRec`) of a margins
+    file or of the run's own tube (``mpc.margins = "tube"``): that file, or the tube
+    (cached, or computed as the run did), is read again and must still hold the logged
+    offset.
+    """
+    from pydantic import ValidationError
+
+    from hmpc_cli.run.scenario import scenario_model
+    from hmpc_cli.run.tube_margins import tube_margins_file
+    from hmpc_cli.tube.margins_file import read_margins
+
+    name = system.guards[guard].name
+    logged = next((g.pass_through for g in used.guards if g.guard == name), math.nan)
+    tube = used.source.startswith("tube at ")
+    what = f"the run's {used.source}" if tube else used.source
+    retry = "pass --radius or --from-tube"
+    try:
+        mf = (tube_margins_file(scenario_model().model_validate(scenario), system) if tube
+              else read_margins(Path(used.source)))
+        row = mf.at(float((scenario.get("mpc") or {})["rate_hz"]))
+    except (KeyError, TypeError, ValueError, ValidationError) as exc:
+        raise PassThroughError(f"{where}: the run's margins ({used.source}) cannot be read "
+                               f"again ({exc}); {retry}") from None
+    offsets = row.guards.get(name) if row is not None else None
+    if offsets is None or offsets.pass_through != logged:
+        raise PassThroughError(f"{where}: {what} no longer holds the pass-through offset "
+                               f"the run used for guard {name!r} ({logged:g}); {retry}")
+    d = offsets.radius if offsets.radius is not None else row.radius
+    return float(d), f"the radius of guard {name!r}'s margins in {what}"
+
+
 def _radius(system, scenario: dict, radius: float | None, from_tube: bool,
-            where: str, guard: int) -> tuple[float, str]:
-    """The tube radius d and where it comes from."""
+            where: str, guard: int, used=None) -> tuple[float, str]:
+    """The tube radius d and where it comes from (``used``: the run's logged margins)."""
     if radius is not None and from_tube:
         raise PassThroughError("give either --radius or --from-tube, not both")
     if radius is not None:
@@ -231,6 +266,8 @@ def _radius(system, scenario: dict, radius: float | None, from_tube: bool,
         return float(radius), "given radius"
     if from_tube:
         return _tube_radius(system, scenario, where, guard)
+    if used is not None and used.source != "hand":
+        return _used_radius(system, scenario, used, where, guard)
     d = (scenario.get("mpc") or {}).get("tube_margin")
     if not isinstance(d, (int, float)) or not math.isfinite(d) or d < 0:
         raise PassThroughError(f"{where}: the logged scenario has no mpc.tube_margin "
@@ -306,7 +343,8 @@ def pass_through_geometry(log_path: str | Path, *, solve: int | None = None,
         log_path: run log (run.mcap, or the run directory holding it).
         solve: 1-based index of the ``/mpc/solve`` to draw (default: the first whose plan
             crosses a guard).
-        radius: tube radius d (default: the logged ``mpc.tube_margin``).
+        radius: tube radius d (default: the one the NLP used: the logged
+            ``mpc.tube_margin``, or the guard's radius in the run's margins file or tube).
         from_tube: d = the guard's tube radius at the scenario's MPC rate from
             :mod:`hmpc_cli.tube` (the kinematic tube for a guard of kinematic states).
 
@@ -337,7 +375,8 @@ def pass_through_geometry(log_path: str | Path, *, solve: int | None = None,
     k = int(src[-1])
     dt = _node_step(t, where)
     euler = (scenario.get("mpc") or {}).get("integrator") == "euler"
-    d, d_source = _radius(system, scenario, radius, from_tube, str(path), gi)
+    d, d_source = _radius(system, scenario, radius, from_tube, str(path), gi,
+                          run.info.margins if run.info is not None else None)
     xv = _interval(system.modes[system.mode_index(g.source)], x[k], u[k], system.n_w, dt,
                    euler)
     xs = ca.SX.sym("x", system.n_x)

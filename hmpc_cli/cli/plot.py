@@ -206,7 +206,8 @@ def plot_command(
         "--solve", help="fig2: draw the K-th logged MPC solve (from 1; default: the "
         "first whose plan crosses a guard)")] = None,
     radius: Annotated[float | None, typer.Option(
-        "--radius", help="fig2: tube radius d (default: the run's mpc.tube_margin)")] = None,
+        "--radius", help="fig2: tube radius d (default: the one the run's NLP used, "
+        "mpc.tube_margin or the guard's in its mpc.margins)")] = None,
     from_tube: Annotated[bool, typer.Option(
         "--from-tube", help="fig2: d = the guard's tube radius at the run's MPC rate, "
         "as its margins use it (hmpc tube: the kinematic tube for a guard of positions, "

@@ -19,7 +19,7 @@ from hmpc_cli import __version__
 from hmpc_cli.core.cbuild import cache_dir
 from hmpc_cli.core.messages import ConstraintMargins
 
-__all__ = ["SAMPLES", "TUBE", "tube_margins", "tube_margins_path"]
+__all__ = ["SAMPLES", "TUBE", "tube_margins", "tube_margins_file", "tube_margins_path"]
 
 TUBE = "tube"  #: the ``mpc.margins`` value
 SAMPLES = 20000  #: samples per estimated constant (``hmpc tube``'s default)
@@ -56,26 +56,38 @@ def tube_margins(sc, model) -> ConstraintMargins:
         ValueError: ``mpc.margins: ...`` when the tube's margins make the tightened problem
             infeasible at x0, or no finite tube exists at that rate.
     """
+    rate = float(sc.mpc.rate_hz)
+    row = tube_margins_file(sc, model).at(rate)
+    return ConstraintMargins.by_name(
+        model, f"tube at {rate:g} Hz", row.radius,
+        {k: (g.avoid, g.pass_through) for k, g in row.guards.items()}, row.inputs)
+
+
+def tube_margins_file(sc, model):
+    """The scenario's tube as a :class:`~hmpc_cli.tube.margins_file.MarginsFile` (cached).
+
+    Read from :func:`tube_margins_path` when a run wrote it, else computed and written
+    there (an unwritable cache: computed again next time).
+
+    Raises:
+        ValueError: as :func:`tube_margins`.
+    """
     import tomllib
 
     from hmpc_cli.tube.margins_file import MarginsFile
 
-    rate = float(sc.mpc.rate_hz)
     path = tube_margins_path(sc)
     text = _read(path)
     if text is None:
-        text = _compute(sc, model, rate)
+        text = _compute(sc, model, float(sc.mpc.rate_hz))
         try:
             from hmpc_cli.core.paths import write_atomic
 
             path.parent.mkdir(parents=True, exist_ok=True)
             write_atomic(path, text)
         except OSError:
-            pass  # an unwritable cache: computed again next time
-    row = MarginsFile.model_validate(tomllib.loads(text)).at(rate)
-    return ConstraintMargins.by_name(
-        model, f"tube at {rate:g} Hz", row.radius,
-        {k: (g.avoid, g.pass_through) for k, g in row.guards.items()}, row.inputs)
+            pass
+    return MarginsFile.model_validate(tomllib.loads(text))
 
 
 def _read(path: Path) -> str | None:
