@@ -8,6 +8,7 @@ import shlex
 from pathlib import Path
 
 import pytest
+from typer.testing import CliRunner
 
 from conftest import BALL, REPO
 from hmpc_cli.analysis.tables import FigureInputError
@@ -101,6 +102,30 @@ def test_robustness_bad_tables_are_clear_errors(tmp_path):
     with pytest.raises(FigureInputError, match="expected a number"):
         robustness(nonnum, tmp_path)
     assert not (tmp_path / "robustness.png").exists()
+
+
+@pytest.mark.parametrize("column", ["set.disturbance.magnitude", None])
+def test_plot_robustness_panels_follow_the_size_set_for_the_whole_sweep_or_are_one(
+        tmp_path, column):
+    """A study whose disturbance size is in its [set] (a set.* column) or in its scenario
+    (no column) is drawn by the default command: panels by that column, else one panel."""
+    from test_plot import make_app
+
+    table = write_study(tmp_path / "study" / "results.csv",
+                        {k: v for k, v in TRUTH.items() if k[2] == 10.0})
+    text = table.read_text().replace("disturbance.magnitude", column or "size", 1)
+    if column is None:
+        text = "\n".join(",".join(c for i, c in enumerate(line.split(",")) if i != 4)
+                         for line in text.splitlines()) + "\n"
+    table.write_text(text)
+    res = CliRunner().invoke(make_app(), ["plot", "robustness", str(table), "--out",
+                                          str(tmp_path / "fig"), "--formats", "png"])
+    assert res.exit_code == 0, res.output
+    with open(tmp_path / "fig" / "robustness_table.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [(r[column or "panel"], r["replanning.policy"], r["mpc.rate_hz"], r["successes"])
+            for r in rows] == [(("10.0" if column else "all runs"), p, x, str(TRUTH[
+                (int(x), p, 10.0)])) for p in ("once", "on_contact") for x in ("5", "50")]
 
 
 def test_report_page_tables_the_study(tmp_path):

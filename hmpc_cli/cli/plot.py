@@ -141,11 +141,13 @@ def _robustness(table: Path, out: Path | None, formats: str, options: dict) -> N
 
     from hmpc_cli.analysis.tables import FigureInputError, resolve_table
     from hmpc_cli.figures.common import parse_formats
-    from hmpc_cli.figures.robustness import robustness
+    from hmpc_cli.figures.robustness import default_panel_axis, robustness
 
     out_dir = out if out is not None else checked_output(resolve_table(table).parent,
                                                          "output directory")
     try:
+        if options["panel_axis"] is None:
+            options = {**options, "panel_axis": default_panel_axis(table)}
         data = robustness(table, out_dir, formats, **options)
     except FigureInputError as exc:
         _fail(str(exc))
@@ -153,7 +155,8 @@ def _robustness(table: Path, out: Path | None, formats: str, options: dict) -> N
     if is_quiet():
         return _wrote(names, out_dir)
     t = Table(title="success rate per cell (Wilson 95 % interval)")
-    for col in (options["panel_axis"], options["series_axis"], options["x_axis"], "runs",
+    for col in (options["panel_axis"] or "panel", options["series_axis"], options["x_axis"],
+                "runs",
                 "success", "95 % interval"):
         t.add_column(col, justify="right")
     for c in data:
@@ -178,7 +181,8 @@ def plot_command(
         "--formats", help="comma-separated output formats: pdf,svg,png")] = "pdf,svg,png",
     panel_axis: Annotated[str | None, typer.Option(
         "--panel-axis", help="table column with one panel per value (fig3: controller, "
-        "robustness: disturbance.magnitude)")] = None,
+        "robustness: disturbance.magnitude, else set.disturbance.magnitude, else one "
+        "panel)")] = None,
     x_axis: Annotated[str, typer.Option(
         "--x-axis", help="robustness: numeric column on the x axis")] = "mpc.rate_hz",
     series_axis: Annotated[str, typer.Option(
@@ -253,7 +257,7 @@ def _dispatch(figure: str, table: Path, out: Path | None, formats: str, o: dict)
     if figure == "robustness":
         return _robustness(table, out, formats, {
             "x_axis": o["x_axis"], "series_axis": o["series_axis"], "width": width,
-            "panel_axis": o["panel_axis"] or "disturbance.magnitude",
+            "panel_axis": o["panel_axis"],
             "height": height or 1.9})
     return _fig3(table, out, formats, {
         "panel_axis": o["panel_axis"] or "controller", "trace_axis": o["trace_axis"],

@@ -113,14 +113,30 @@ def _order(values: list[str], listed: Sequence[str] = ()) -> list[str]:
         return sorted(values, key=lambda v: rank.get(v, len(rank)))
 
 
-def cells(table: str | Path, x_axis: str, series_axis: str, panel_axis: str,
+#: the panel of every run when the table has no panel column (:func:`default_panel_axis`)
+ONE_PANEL = "all runs"
+#: the column a robustness figure's panels follow by default, in order of preference: the
+#: disturbance size as a grid axis, else as a fixed setting of the sweep (``[set]``)
+PANEL_AXES = ("disturbance.magnitude", "set.disturbance.magnitude")
+
+
+def default_panel_axis(table: str | Path) -> str | None:
+    """The first of :data:`PANEL_AXES` the table has; None: one panel (:data:`ONE_PANEL`)."""
+    path = resolve_table(table)
+    columns = read_table(path, ["success"])[0].keys()
+    return next((a for a in PANEL_AXES if a in columns), None)
+
+
+def cells(table: str | Path, x_axis: str, series_axis: str, panel_axis: str | None,
           not_set_up: Callable[[dict], bool] | None = None) -> list[Cell]:
     """Pools the table's runs into cells, ordered by panel, series, x.
 
+    ``panel_axis`` None puts every run in one panel, :data:`ONE_PANEL`.
     ``not_set_up(row)``: whether a row's run never got a controller (default: none).
     """
     path = resolve_table(table)
-    rows = read_table(path, [x_axis, series_axis, panel_axis, "success"])
+    rows = read_table(path, [x_axis, series_axis, *([panel_axis] if panel_axis else []),
+                             "success"])
     counts: dict[tuple[str, str, float], list[int]] = {}
     panels: list[str] = []
     series: list[str] = []
@@ -128,7 +144,7 @@ def cells(table: str | Path, x_axis: str, series_axis: str, panel_axis: str,
         where = f"{path}:{i}"
         x = _number(row[x_axis], f"{where}: column {x_axis}")
         ok = parse_bool(row["success"], f"{where}: column success")
-        key = (row[panel_axis], row[series_axis], x)
+        key = (row[panel_axis] if panel_axis else ONE_PANEL, row[series_axis], x)
         panels += [key[0]] if key[0] not in panels else []
         series += [key[1]] if key[1] not in series else []
         c = counts.setdefault(key, [0, 0, 0])
@@ -160,7 +176,9 @@ def _axis_label(axis: str) -> str:
     return AXIS_LABELS.get(axis, axis.rsplit(".", 1)[-1].replace("_", " "))
 
 
-def _panel_title(axis: str, value: str) -> str:
+def _panel_title(axis: str | None, value: str) -> str:
+    if axis is None:
+        return value
     axis = axis.removeprefix("set.")  # a sweep's fixed setting as a column
     try:
         if axis == "disturbance.magnitude":
@@ -178,14 +196,16 @@ TUBE_STYLE = {"trivial": {"color": "#0072B2", "linestyle": "-", "marker": "v"},
 def robustness(table: str | Path, out_dir: str | Path | None = None,
                formats: str | Sequence[str] = "pdf,svg,png", *,
                x_axis: str = "mpc.rate_hz", series_axis: str = "replanning.policy",
-               panel_axis: str = "disturbance.magnitude", width: float = TEXT_WIDTH_IN,
+               panel_axis: str | None = "disturbance.magnitude",
+               width: float = TEXT_WIDTH_IN,
                height: float = 1.9, name: str = "robustness",
                diameters: Mapping[float, Mapping[str, Sequence[tuple[float, float]]]]
                | None = None,
                not_set_up: Callable[[dict], bool] | None = None) -> list[Cell]:
     """Draws success rate vs ``x_axis`` (log scale) with Wilson 95 % intervals.
 
-    One panel per ``panel_axis`` value, one line per ``series_axis`` value; a cell none of
+    One panel per ``panel_axis`` value (None: one panel, :data:`ONE_PANEL`; see
+    :func:`default_panel_axis`), one line per ``series_axis`` value; a cell none of
     whose runs was set up (``not_set_up``, see :func:`cells`) is a cross at 0, off the
     line. With ``diameters`` (panel value -> bound name -> [(x, diam T(1/x))]) a second
     row draws the tube diameters on the same x axis (log y). Writes ``<name>.<fmt>`` and
@@ -230,7 +250,8 @@ def robustness(table: str | Path, out_dir: str | Path | None = None,
             ax.grid(True, linewidth=0.3, alpha=0.5)
         fig.tight_layout(pad=0.3, w_pad=0.4, h_pad=0.3)
         save_figure(fig, out, name, fmts)
-    _write_table(out / f"{name}_table.csv", data, (panel_axis, series_axis, x_axis))
+    _write_table(out / f"{name}_table.csv", data,
+                 (panel_axis or "panel", series_axis, x_axis))
     return data
 
 
