@@ -66,6 +66,27 @@ def test_nominal_run_follows_its_plan_nodes(campaign):
     assert max(float(p.dev.max()) for p in periods) < 1e-3
 
 
+def test_a_zero_tube_names_what_its_violations_are(campaign):
+    """Undisturbed: every tube is 0, so what the nominal run deviates from its plan (the
+    transcription against the simulator) is a violation, and the note says so, with the
+    largest excess."""
+    r = hmpc("tube", SC / "ball.toml", "--samples", "200", "--formats", "png", "--out",
+             "tnom", "--runs", "nom", cwd=campaign)
+    assert r.returncode == 0, r.stderr
+    text = " ".join(r.stdout.split())
+    import json
+
+    doc = json.loads((campaign / "tnom" / "tube.json").read_text())["reality"]
+    worst = max(v["observed"] - v["predicted"] for b in doc["bounds"] for v in b["violations"])
+    assert 0.0 < worst < 1e-3
+    assert (f"note: the observed deviation also holds the plan's own error against the "
+            f"plant, which no disturbance tube bounds: the NLP's integrator at its node step "
+            f"(mpc.integrator, mpc.nodes_per_second) against the simulator's 1/sim.rate_hz "
+            f"steps and its guard nodes against the plant's exact events; the largest "
+            f"violation exceeds its bound by {worst:.3g} (the disturbance set is {{0}}, so "
+            f"every tube is 0 and each violation here is that error)") in text
+
+
 def test_a_run_of_another_system_is_refused(campaign):
     r = hmpc("tube", SC / "biped_stairs.toml", "--samples", "100", "--formats", "png",
              "--out", "tb", "--runs", "d1", cwd=campaign)

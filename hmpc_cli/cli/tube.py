@@ -384,6 +384,19 @@ def _reality_dict(rep) -> dict:
                        for c in rep.checks]}
 
 
+def _violations_note(zero: bool, worst: float) -> str:
+    """What a violation of the tube vs reality table may be (``worst``: largest excess)."""
+    text = ("note: the observed deviation also holds the plan's own error against the "
+            "plant, which no disturbance tube bounds: the NLP's integrator at its node step "
+            "(mpc.integrator, mpc.nodes_per_second) against the simulator's 1/sim.rate_hz "
+            "steps and its guard nodes against the plant's exact events; the largest "
+            f"violation exceeds its bound by {worst:.3g}")
+    if zero:
+        text += (" (the disturbance set is {0}, so every tube is 0 and each violation here "
+                 "is that error)")
+    return text
+
+
 def _reality(report, rep, n_runs: int, out: Path, formats: str, title: str,
              quiet: bool = False) -> None:
     """Prints the "tube vs reality" table and writes tube_reality.<fmt> into ``out``."""
@@ -413,6 +426,9 @@ def _reality(report, rep, n_runs: int, out: Path, formats: str, title: str,
         for v in c.violations:
             con.print(f"violation: {v.bound}: run {escape(v.run)} t = {v.t:.6g} s: observed "
                       f"{v.observed:.4g} > predicted {v.predicted:.4g}")
+    excess = [v.observed - v.predicted for c in rep.checks for v in c.violations]
+    if excess:
+        con.print(escape(_violations_note(report.disturbance.zero, max(excess))))
     tmax = max((float(p.tau.max()) for p in rep.periods), default=1.0)
     grid = np.linspace(0.0, tmax, 201)[1:]
     try:
