@@ -234,13 +234,31 @@ NO_TASK = replace(SYSTEM, name="notask", params=NoTask, build=_dock,
                   task=lambda p, system: None)
 TRUE = replace(SYSTEM, name="trueverdict", params=TrueVerdict, build=_dock,
                task=lambda p, system: Agrees())
+
+
+class TypoDefault(DockParams):
+    name: Literal["typodefault"] = "typodefault"
+
+
+class TypoRequire(DockParams):
+    name: Literal["typorequire"] = "typorequire"
+
+
+from hmpc_cli.plugin import Requirement
+
+TYPO_DEFAULT = replace(SYSTEM, name="typodefault", params=TypoDefault, build=_dock,
+                       defaults={**SYSTEM.defaults, "sim": {"rat_hz": 600},
+                                 "mpc.chain": {"horizon": 2.0}, "sensor": {"rate": 1}})
+TYPO_REQUIRE = replace(SYSTEM, name="typorequire", params=TypoRequire, build=_dock,
+                       requires=(Requirement("mpc.nodes_per_secnd", 60, "fine grid"),))
 """
 
 
 def _faulty_site(tmp_path: Path) -> Path:
     """The FAULTY plug-ins installed in ``tmp_path/site``."""
     names = {"badbuild": "BAD_BUILD", "liar": "LIAR", "badshape": "BAD_SHAPE",
-             "erfflow": "ERF", "notask": "NO_TASK", "trueverdict": "TRUE"}
+             "erfflow": "ERF", "notask": "NO_TASK", "trueverdict": "TRUE",
+             "typodefault": "TYPO_DEFAULT", "typorequire": "TYPO_REQUIRE"}
     return write_dist(tmp_path / "site", "hmpc-faulty", "[hmpc.systems]\n" + "".join(
         f"{k} = hmpc_faulty:{v}\n" for k, v in names.items()), {"hmpc_faulty": FAULTY})
 
@@ -282,6 +300,32 @@ def test_a_plugin_that_fails_to_build_is_one_error_line(tmp_path, name, reason):
     assert proc.returncode == 2, proc.stderr[-3000:]
     assert error_lines(proc) == [f"error: s.toml: cell the base scenario: {reason}"]
     assert not out.exists()
+
+
+def test_a_plugins_own_misspelled_default_or_requirement_is_blamed_on_it(tmp_path):
+    """A key a plug-in's defaults or requires set that its section lacks is the plug-in's
+    mistake: named at system.name with the fix, not as an unknown key of the scenario."""
+    site = _faulty_site(tmp_path)
+    fix = "the plug-in must be fixed, not the scenario"
+    for name, lines in {
+        "typodefault": [
+            "system.name: the system plug-in 'typodefault' sets sim.rat_hz in its "
+            f"SystemSpec.defaults, which is not a setting of [sim] (did you mean 'rate_hz'?); "
+            f"{fix}",
+            "system.name: the system plug-in 'typodefault' sets [sensor] in its "
+            "SystemSpec.defaults, which is no section a plug-in may set (sections: sim, "
+            f"disturbance, replanning, lowlevel, planner.<kind>, mpc.<kind>); {fix}"],
+        "typorequire": [
+            "system.name: the system plug-in 'typorequire' sets mpc.nodes_per_secnd in its "
+            "SystemSpec.requires, which is not a setting of [mpc] (did you mean "
+            f"'nodes_per_second'?); {fix}"]}.items():
+        scenario = tmp_path / f"{name}.toml"
+        scenario.write_text(f'[system]\nname = "{name}"\n')
+        proc = hmpc(["run", str(scenario), "--out", str(tmp_path / "out"), "-q"], site,
+                    PLUGINS, cwd=tmp_path)
+        assert proc.returncode == 2, proc.stderr[-3000:]
+        assert error_lines(proc) == [f"error: {scenario}: {line}" for line in lines]
+        assert not (tmp_path / "out").exists()
 
 
 def test_a_planner_that_does_not_fit_names_planner_kind(tmp_path):

@@ -93,6 +93,9 @@ class ScenarioBase(BaseModel):
         if not isinstance(system["name"], str) or system["name"] not in reg.systems:
             raise ValueError(f"system.name: {_unknown(reg, system['name'])}")
         spec = reg.system(system["name"])
+        problems = _plugin_key_problems(reg, spec, data)
+        if problems:  # the plug-in's mistake: not blamed on the scenario's own keys
+            raise ValueError("\n".join(problems))
         for section, kind in (("planner", spec.planner), ("mpc", spec.mpc)):
             sec = data.get(section, {})
             if isinstance(sec, dict):
@@ -194,6 +197,53 @@ def _unknown(reg, name: Any) -> str:
     close = difflib.get_close_matches(str(name), sorted(reg.systems), n=1)
     hint = f"did you mean {close[0]!r}? " if close else ""
     return f"unknown system {name!r} ({hint}choose from {choices})"
+
+
+#: the scenario sections a plug-in's defaults and requirements may set beside its kinds
+_SECTIONS = {"sim": SimSettings, "disturbance": DisturbanceSettings,
+             "replanning": ReplanSettings, "lowlevel": LowLevelSettings}
+
+
+def _plugin_key_problems(reg, spec, data: dict) -> list[str]:
+    """Lines for plug-in defaults and requirements that name no scenario setting.
+
+    The system's ``defaults`` (its sections, and ``planner.<kind>`` / ``mpc.<kind>`` of
+    registered kinds) and the ``requires`` of the system and of the scenario's planner and
+    MPC kinds: a key its section's model lacks is the plug-in's mistake, so the line is at
+    the key that chose the plug-in (``system.name``, ``planner.kind``, ``mpc.kind``).
+    """
+    kinds = {"planner": reg.planners, "mpc": reg.mpcs}
+    chosen = {sec: ((data.get(sec) or {}).get("kind") if isinstance(data.get(sec), dict)
+                    else None) or getattr(spec, sec) for sec in kinds}
+    checks = [("system.name", f"system plug-in {spec.name!r}", "SystemSpec.defaults", key, k)
+              for key, values in spec.defaults.items() for k in values]
+    owners = [("system.name", f"system plug-in {spec.name!r}", "SystemSpec", spec)]
+    owners += [(f"{sec}.kind", f"{sec} plug-in {chosen[sec]!r}",
+                f"{type(table[chosen[sec]]).__name__}", table[chosen[sec]])
+               for sec, table in kinds.items() if chosen[sec] in table]
+    for at, who, attr, owner in owners:
+        for req in owner.requires:
+            section, _, name = req.key.partition(".")
+            checks.append((at, who, f"{attr}.requires", section, name))
+    out = []
+    for at, who, attr, section, key in checks:
+        base, _, kind = section.partition(".")
+        kind = kind or (chosen.get(base) if base in kinds else "")
+        if base in kinds and kind not in kinds[base]:
+            continue  # defaults for a kind not installed apply to nothing
+        model = kinds[base][kind].settings if base in kinds else _SECTIONS.get(base)
+        if model is None:
+            out.append(f"{at}: the {who} sets [{section}] in its {attr}, which is no "
+                       f"section a plug-in may set (sections: "
+                       f"{', '.join([*_SECTIONS, 'planner.<kind>', 'mpc.<kind>'])}); the "
+                       f"plug-in must be fixed, not the scenario")
+        elif key not in model.model_fields:
+            close = difflib.get_close_matches(key, list(model.model_fields), n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            out.append(f"{at}: the {who} sets {base}.{key} in its {attr}, which is not a "
+                       f"setting of [{section}]{hint}; the plug-in must be fixed, not the "
+                       f"scenario")
+    return out
 
 
 def _kind_problems(reg, spec, data: dict) -> list[str]:
