@@ -22,12 +22,17 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 from importlib.metadata import EntryPoint, entry_points
 from types import MappingProxyType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel
 
 from hmpc_cli.core.kinds import MPCKindSettings, PlannerSettings
 from hmpc_cli.core.walker import WalkerModel
+
+if TYPE_CHECKING:  # the seams' types (no import at run time: the registry loads first)
+    from hmpc_cli.core.hybrid import HybridSystem
+    from hmpc_cli.core.messages import ConstraintMargins
+    from hmpc_cli.core.stack import FixedModeMPC, Planner, Task
 
 GROUPS = {"system": "hmpc.systems", "planner": "hmpc.planners", "mpc": "hmpc.mpcs"}
 
@@ -98,8 +103,8 @@ class SystemSpec:
 
     name: str
     params: type[BaseModel]
-    build: Callable[[Any], Any]
-    task: Callable[[Any, Any], Any]
+    build: Callable[[Any], HybridSystem]
+    task: Callable[[Any, HybridSystem], Task]
     planner: str
     mpc: str
     provides: frozenset[str | type] = frozenset()
@@ -128,7 +133,7 @@ class PlannerSpec:
 
     kind: str
     settings: type[BaseModel]
-    make: Callable[[Any, Any, int], Any]
+    make: Callable[[HybridSystem, Any, int], Planner]
     needs: frozenset[str | type] = frozenset()
     requires: tuple[Requirement, ...] = ()
     detail: type | None = None
@@ -160,11 +165,11 @@ class MPCSpec:
 
     kind: str
     settings: type[BaseModel]
-    problem: Callable[[Any, Any, Any], Any]
-    make: Callable[[Any, Any, Any], Any]
+    problem: Callable[[HybridSystem, Any, ConstraintMargins | None], Any]
+    make: Callable[[HybridSystem, Any, Any], FixedModeMPC]
     needs: frozenset[str | type] = frozenset()
     requires: tuple[Requirement, ...] = ()
-    hand_margins: Callable[[Any, Any], Any] | None = None
+    hand_margins: Callable[[HybridSystem, Any], ConstraintMargins] | None = None
     detail: type | None = None
 
     def __post_init__(self) -> None:
