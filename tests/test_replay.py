@@ -460,3 +460,22 @@ def test_figures_and_the_scene_animation(system, request, tmp_path) -> None:
     assert not (tmp_path / "f" / f"{skipped}.png").exists()
     gif = (tmp_path / "f" / "scene.gif").read_bytes()
     assert gif[:6] in (b"GIF87a", b"GIF89a") and gif.count(b"\x21\xf9\x04") > 5  # frames
+
+
+def test_a_solves_charged_latency_is_shown_beside_its_wall_time() -> None:
+    """sim.latency charged: the timeline says what the plant waited, not only the solver's
+    wall time; time paused (latency 0): as before."""
+    from hmpc_cli.analysis.replay import _solve, _solves_row
+
+    base = {"t": 0.5, "reason": "period", "status": "Solve_Succeeded", "success": True,
+            "iterations": 3, "wall_time": 0.0125, "slack": 0.0}
+    assert _solve(base).text == "period: Solve_Succeeded, 3 it, 12.5 ms"
+    assert _solve({**base, "latency": 0.0}).text == "period: Solve_Succeeded, 3 it, 12.5 ms"
+    assert _solve({**base, "latency": 0.008}).text == \
+        "period: Solve_Succeeded, 3 it, 12.5 ms, charged 8.0 ms"
+    group = [{**base, "latency": v, "wall_time": w}
+             for v, w in ((0.008, 0.010), (0.012, 0.020), (0.006, 0.011))]
+    assert _solves_row(group).text == ("... 3 solves ok until t = 0.500 s, 3 iterations "
+                                       "median, 11.0 ms median, charged 8.0 ms median "
+                                       "(period 3)")
+    assert "charged" not in _solves_row([{**g, "latency": 0.0} for g in group]).text

@@ -4,9 +4,9 @@ Plain logic for ``hmpc replay`` (the Typer command is :mod:`hmpc_cli.cli.replay`
 messages are read as generic JSON dicts: only the names every log version keeps are used
 (``t``; ``/sim/event``: ``guard_name``, ``mode_before``, ``mode_after``, ``scheduled``;
 ``/mpc/solve``: ``reason``, ``status``, ``success``, ``iterations``, ``wall_time``, ``slack``,
-``adopted``; ``/planner/plan``: ``reason``, ``accepted``, ``reached_final``, ``cost``,
-``wall_time``, ``note``; ``/disturbance``: ``w``, a list of numbers or an object of named
-numbers). The CSV/Parquet export is :mod:`hmpc_cli.analysis.export`.
+``adopted``, ``latency`` (shown when charged); ``/planner/plan``: ``reason``, ``accepted``,
+``reached_final``, ``cost``, ``wall_time``, ``note``; ``/disturbance``: ``w``, a list of
+numbers or an object of named numbers). The CSV/Parquet export is :mod:`hmpc_cli.analysis.export`.
 """
 
 from __future__ import annotations
@@ -270,6 +270,8 @@ def _solve(d: dict) -> TimelineRow:
     ok = bool(d.get("success"))
     text = (f"{d.get('reason', '?')}: {'' if ok else 'FAILED '}{d.get('status', '?')}, "
             f"{d.get('iterations', '?')} it, {_ms(d.get('wall_time'))}")
+    if _num(d.get("latency")):  # compute time charged (sim.latency): what the plant waited
+        text += f", charged {_ms(d.get('latency'))}"
     style = "" if ok else "bold red"
     slack = _num(d.get("slack")) or 0.0
     if ok and slack > SOFTENED_TOL:
@@ -287,13 +289,15 @@ def _solves_row(group: list[dict]) -> TimelineRow:
         return _solve(group[0])
     its = [v for v in (_num(d.get("iterations")) for d in group) if v is not None]
     wall = [v for v in (_num(d.get("wall_time")) for d in group) if v is not None]
+    charged = [v for v in (_num(d.get("latency")) for d in group) if v is not None]
     reasons: dict[str, int] = {}
     for d in group:
         reasons[str(d.get("reason", "?"))] = reasons.get(str(d.get("reason", "?")), 0) + 1
     text = (f"... {len(group)} solves ok until t = {float(group[-1].get('t', 0.0)):.3f} s, "
             f"{_g(statistics.median(its)) if its else '-'} iterations median, "
-            f"{_ms(statistics.median(wall)) if wall else '-'} median ("
-            + ", ".join(f"{k} {n}" for k, n in reasons.items()) + ")")
+            f"{_ms(statistics.median(wall)) if wall else '-'} median"
+            + (f", charged {_ms(statistics.median(charged))} median" if any(charged) else "")
+            + " (" + ", ".join(f"{k} {n}" for k, n in reasons.items()) + ")")
     return TimelineRow(float(group[0].get("t", 0.0)), "solves", text, "dim")
 
 
