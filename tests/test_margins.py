@@ -234,3 +234,33 @@ def test_hmpc_run_and_sweep_warn_of_another_settings_margins_file(ball_file: Pat
         f"warning: {sweep}: cell disturbance.magnitude=4, lowlevel.kp=0 (and 1 other cell)"]
     assert "this scenario has |w_i| <= 2 (box)" in warnings[1]
     assert res.output.splitlines()[-1] == "12 runs, all valid (dry run: nothing started)"
+
+
+def test_a_resumed_sweep_runs_again_what_an_edited_margins_file_made(ball_file: Path,
+                                                                     tmp_path: Path):
+    """/run/info records the margins file's digest; a resume skips a run while the file is
+    unchanged and runs it again, saying so, once the file changed."""
+    from hmpc_cli.core.paths import file_digest
+
+    margins = tmp_path / "m.toml"
+    margins.write_text(ball_file.read_text())
+    sweep = tmp_path / "sweep.toml"
+    sweep.write_text(f'name = "m"\nscenario = "{BALL}"\n[set]\n"mpc.margins" = "{margins}"\n'
+                     '"sim.duration" = 0.1\n')
+    out = tmp_path / "out"
+    args = ["sweep", str(sweep), "--out", str(out), "--workers", "1"]
+    first = CliRunner().invoke(app, args)
+    assert first.exit_code == 0, first.output
+    (run,) = out.glob("runs/*/run.mcap")
+    info = read_log(run).topic("/run/info")[0].data["margins"]
+    assert info["source"] == str(margins) and info["sha256"] == file_digest(margins)
+    made = run.stat().st_mtime_ns
+    again = CliRunner().invoke(app, args)
+    assert "1 runs, 1 skipped" in again.output and run.stat().st_mtime_ns == made
+    margins.write_text(margins.read_text() + "# edited\n")
+    edited = CliRunner().invoke(app, args)
+    assert edited.exit_code == 0, edited.output
+    assert "1 runs, 0 skipped (already done), 1 to run" in edited.output
+    assert "warning: 1 finished run(s) in" in edited.stderr
+    assert read_log(run).topic("/run/info")[0].data["margins"]["sha256"] == \
+        file_digest(margins) != info["sha256"]

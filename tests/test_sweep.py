@@ -157,8 +157,9 @@ def test_resume_skips_finished_runs(tiny):
     assert "12 runs, 9 skipped (already done), 3 to run" in proc.stdout
     assert proc.stderr.splitlines()[0] == (
         f"warning: 1 finished run(s) in {out3 / 'runs'} were made with another scenario "
-        f"(their scenario.toml differs from this sweep's now, e.g. run {other}): they are run "
-        "again and their files replaced (a sweep into another --out keeps them)")
+        f"(their scenario.toml differs from this sweep's now, or the margins file they read "
+        f"has changed since, e.g. run {other}): they are run again and their files replaced "
+        "(a sweep into another --out keeps them)")
     now = {p.parent.name: p.stat().st_mtime_ns for p in out3.glob("runs/*/summary.json")}
     assert {k for k in now if now[k] != kept.get(k)} == {gone, stopped, other}
     assert table(out3) == table(out)

@@ -222,8 +222,9 @@ def _execute(plan, out: Path, workers: int, client):
         if replaced:  # on stderr, also with -q
             typer.echo(f"warning: {len(replaced)} finished run(s) in {out / 'runs'} were made "
                        f"with another scenario (their scenario.toml differs from this sweep's "
-                       f"now, e.g. run {replaced[0]}): they are run again and their files "
-                       f"replaced (a sweep into another --out keeps them)", err=True)
+                       f"now, or the margins file they read has changed since, e.g. run "
+                       f"{replaced[0]}): they are run again and their files replaced (a "
+                       f"sweep into another --out keeps them)", err=True)
         where = f"Dask {client.scheduler.address}" if client is not None else (
             "in-process" if min(workers, todo) <= 1 else f"{min(workers, todo)} worker processes")
         state["ok"] = ok

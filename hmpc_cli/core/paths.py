@@ -8,6 +8,7 @@ written); it creates and removes nothing. Every writing option (``run --out``, `
 --export/--figures``) is checked with it before any work starts (:func:`check_output`,
 :class:`OutputPathError`: exit 2). :func:`atomic_file` writes a file under a temporary name
 and renames it: a failed write (a full disk) leaves neither a temporary nor a half file.
+:func:`file_digest` says what an input file held, for a later run to compare.
 
 Light on purpose (the standard library only): ``hmpc --help`` imports it.
 """
@@ -21,7 +22,7 @@ from collections.abc import Iterator
 from pathlib import Path, PosixPath
 
 __all__ = ["DISK_ERRNOS", "EmptyPath", "OutputPathError", "atomic_file", "check_output",
-           "disk_error", "output_problem", "path_option", "write_atomic"]
+           "disk_error", "file_digest", "output_problem", "path_option", "write_atomic"]
 
 #: errors of a full or read-only disk: bad environment (exit 2), not a bug
 DISK_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG})
@@ -180,3 +181,13 @@ def disk_error_text(exc: OSError) -> str:
     """One line for a disk error: the file and the reason."""
     where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
     return f"{where}{exc.strerror or exc}"
+
+
+def file_digest(path: str | Path) -> str | None:
+    """``sha256:<hex>`` of a file's bytes (None: it cannot be read)."""
+    import hashlib
+
+    try:
+        return "sha256:" + hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return None

@@ -106,12 +106,16 @@ class MarginsRec:
         radius: the tube radius d the offsets come from [state norm].
         guards: the offsets per guard, in the system's guard order.
         inputs: the input-box shrinks per mode, in the system's mode order.
+        sha256: a margins file's contents as the run read them, ``sha256:<hex>`` (absent:
+            hand-set margins or the run's own tube); a resumed sweep runs again a run whose
+            file changed since.
     """
 
     source: str
     radius: float
     guards: tuple[GuardMarginRec, ...]
     inputs: tuple[InputMarginRec, ...]
+    sha256: str | None = None
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from hmpc_cli.core.messages import BuildInfo, ConstraintMargins
 from hmpc_cli.core.stack import FixedModeMPC, Planner, Task
@@ -124,7 +125,7 @@ def build(scenario) -> PreparedRun:
                                   spec.task, world, system), spec.name, system)
     identity = RunIdentity(
         sc.name, sc.seed, sc.model_dump(mode="json"), s.rate_hz // s.log_rate_hz,
-        margins.to_dict(model) if margins is not None else None,
+        _margins_record(sc, model, margins),
         (sc.planner.kind, sc.mpc.kind),
         {"planner": reg.planner(sc.planner.kind).detail, "mpc": reg.mpc(sc.mpc.kind).detail},
         _build_info(problem), s.log_plan_stride)
@@ -135,6 +136,19 @@ def build(scenario) -> PreparedRun:
                    "compute time, so this run is not reproducible")
     return PreparedRun(plant, planner, mpc, timing, task, s.duration, s.divergence_bound,
                        identity, books)
+
+
+def _margins_record(sc, model, margins: ConstraintMargins | None) -> dict | None:
+    """/run/info's margins: :meth:`ConstraintMargins.to_dict`, a margins file's digest too."""
+    if margins is None:
+        return None
+    record = margins.to_dict(model)
+    if sc.mpc.margins_source() not in (None, "hand", "tube"):
+        from hmpc_cli.core.paths import file_digest
+
+        digest = file_digest(Path(sc.mpc.margins_source()))
+        record |= {"sha256": digest} if digest is not None else {}
+    return record
 
 
 def _build_info(problem) -> BuildInfo | None:

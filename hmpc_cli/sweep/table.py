@@ -38,8 +38,8 @@ def finished(out: Path, run) -> dict | None:
 def made_otherwise(out: Path, runs) -> list[str]:
     """The ids of ``runs`` whose directory holds a run finished with another scenario.
 
-    Its scenario.toml differs from the run's effective scenario now: a resume runs it
-    again and replaces its files.
+    Its scenario.toml differs from the run's effective scenario now, or its margins file
+    changed since (:func:`margins_changed`): a resume runs it again and replaces its files.
     """
     ids = []
     for run in runs:
@@ -51,8 +51,8 @@ def made_otherwise(out: Path, runs) -> list[str]:
             summary = json.loads((d / "summary.json").read_text())
         except (OSError, ValueError):
             continue
-        if isinstance(summary, dict) and not is_interrupted(summary) and \
-                not same_scenario(stored, run.toml) and log_done(d):
+        if isinstance(summary, dict) and not is_interrupted(summary) and log_done(d) and \
+                (not same_scenario(stored, run.toml) or margins_changed(d, stored)):
             ids.append(run.run_id)
     return ids
 
@@ -65,7 +65,8 @@ def finished_in(d: Path, toml_text: str) -> dict | None:
     is not finished, whatever summary.json says; a run that raised, recorded with its
     ``error.txt``, finished with no log or a complete one), summary.json holds a JSON
     object whose reason is not ``interrupted...``, and scenario.toml is the effective
-    scenario ``toml_text`` (:func:`same_scenario`). Anything else is redone on resume.
+    scenario ``toml_text`` (:func:`same_scenario`) with its margins file unchanged
+    (:func:`margins_changed`). Anything else is redone on resume.
     """
     try:
         summary = json.loads((d / "summary.json").read_text())
@@ -74,9 +75,37 @@ def finished_in(d: Path, toml_text: str) -> dict | None:
         return None
     if not isinstance(summary, dict) or is_interrupted(summary):
         return None
-    if not same_scenario(stored, toml_text) or not log_done(d):
+    if not same_scenario(stored, toml_text) or not log_done(d) or margins_changed(d, stored):
         return None
     return summary
+
+
+def margins_changed(d: Path, stored: str) -> bool:
+    """Whether the run in ``d`` read a margins file whose contents changed since.
+
+    Its /run/info records the file's digest (``margins.sha256``); a log without one (an
+    older hmpc's, or a run that raised before its log) is trusted.
+
+    Args:
+        d: the run directory.
+        stored: its scenario.toml.
+    """
+    if 'margins = "' not in stored:
+        return False
+    import tomllib
+
+    try:
+        source = (tomllib.loads(stored).get("mpc") or {}).get("margins")
+    except tomllib.TOMLDecodeError:
+        return False
+    if not isinstance(source, str) or source in ("hand", "tube"):
+        return False
+    from hmpc_cli.log.reader import first_message
+    from hmpc_cli.core.paths import file_digest
+
+    recorded = ((first_message(d / "run.mcap", "/run/info") or {}).get("margins") or {}
+                ).get("sha256")
+    return recorded is not None and recorded != file_digest(Path(source))
 
 
 def log_done(d: Path) -> bool:
