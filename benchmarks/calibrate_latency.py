@@ -88,6 +88,10 @@ def fit(points: list[tuple[int, float, bool]], switching: bool) -> dict[str, flo
     return out
 
 
+#: decimals [s] the constants are printed and charged with
+PLACES = 4
+
+
 def predict(model: dict[str, float], it: np.ndarray, sw: np.ndarray) -> np.ndarray:
     """The model's charge [s] of solves with ``it`` iterations, ``sw`` a switch left."""
     per = np.where(sw, model.get("per_switching_iteration", model["per_iteration"]),
@@ -118,7 +122,7 @@ def report(points, model: dict[str, float], scenarios: list[str], sets: list[str
              + (" (with the foothold planner's candidate solves)" if candidates else "")
              + ".", "",
              "```toml", "[sim.latency_model]",
-             *(f"{k} = {v:.4f}" for k, v in model.items()), "```", "",
+             *(f"{k} = {v:.{PLACES}f}" for k, v in model.items()), "```", "",
              "| switch left | iterations | solves | measured median [ms] | measured p95 [ms] "
              "| model [ms] |", "|---|---|---|---|---|---|"]
     for s in sorted(set(sw.tolist())):
@@ -163,6 +167,9 @@ def main() -> None:
     model = fit(points, args.switching)
     if args.candidates and OWN:
         model["planner"] = float(np.median(OWN))  # the planner's own time, median
+    # as printed (0.1 ms): the report's model column is then what sim.latency = "model"
+    # charges with the constants a scenario copies from it
+    model = {k: round(v, PLACES) for k, v in model.items()}
     text = report(points, model, scenarios, args.sets, args.candidates)
     print(text)
     if args.write:

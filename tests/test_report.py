@@ -627,14 +627,19 @@ def test_the_real_time_section_from_a_table_alone(tmp_path):
     with open(d / "results.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["run_id", "latency", "controller", "disturbance", "seed", "success",
-                    "solve_time_median", "solve_time_p95", "wall_time", "log"])
-        for k, (lat, ctrl, ok, med, p95) in enumerate([
-                ("paused", "60 Hz once", "true", 0.002, 0.010),
-                ("measured", "60 Hz once", "true", 0.003, 0.012),
-                ("measured", "60 Hz once", "false", 0.005, 0.020),
-                ("measured", "20 Hz once", "true", 0.001, "nan")]):
-            w.writerow([k, lat, ctrl, "nominal", 0, ok, med, p95, 1.0, ""])
+                    "solves", "solve_time_median", "solve_time_p95", "wall_time", "log"])
+        for k, (lat, ctrl, ok, n, med, p95) in enumerate([
+                ("paused", "60 Hz once", "true", 180, 0.002, 0.010),
+                ("measured", "60 Hz once", "true", 90, 0.003, 0.012),
+                ("measured", "60 Hz once", "false", 40, 0.005, 0.020),
+                ("measured", "20 Hz once", "true", 60, 0.001, "nan")]):
+            w.writerow([k, lat, ctrl, "nominal", 0, ok, n, med, p95, 1.0, ""])
     text = "\n".join(realtime_section(d))
+    # the solves of the successful runs against the time-paused twin's
+    assert "(median; a successful run flies the scenario's whole duration)." in text
+    assert "| 60 Hz once | 180 | 90 (50 %) |" in text and "| 20 Hz once | - | 60 |" in text
+    assert ("- `measured`: as many solves as with time paused (at least 95 %) for 0 of 1 "
+            "controllers; fewer: 60 Hz once 50 %.") in text
     assert "### `sweeps/rt.toml`: rt\n\nFrom its per-run table (4 runs of " \
         "`scenarios/ball_realtime.toml`; " in text
     assert "| controller | paused | measured |" in text
@@ -664,9 +669,11 @@ def test_the_real_time_section_says_what_each_latency_entry_sets(tmp_path):
     with open(d / "results.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["run_id", "latency", "controller", "disturbance", "seed", "success",
-                    "solve_time_median", "solve_time_p95", "wall_time", "log"])
-        w.writerow([0, "measured, hold", "10 Hz once", "nominal", 0, "false", 0.1, 0.8, 1, ""])
-        w.writerow([1, "measured, next", "10 Hz once", "nominal", 0, "true", 0.009, 0.03, 1, ""])
+                    "solves", "solve_time_median", "solve_time_p95", "wall_time", "log"])
+        w.writerow([0, "measured, hold", "10 Hz once", "nominal", 0, "false", 9, 0.1, 0.8, 1,
+                    ""])
+        w.writerow([1, "measured, next", "10 Hz once", "nominal", 0, "true", 31, 0.009, 0.03, 1,
+                    ""])
     text = "\n".join(realtime_section(d))
     assert text.startswith("### `sweeps/rt.toml`: two low levels\n")
     assert ("settings of every run: `sim.latency_first = \"paused\"`, "
@@ -804,9 +811,13 @@ def test_a_trend_is_tested_again_without_the_slowest_rate_and_tallied_both_ways(
             f"without the slowest rate (10-100 Hz): z = {fast.z:+.2f}, p = {fast.p:.3g}: "
             "success falls with the MPC rate at the 5 % level.") in text
     assert everywhere.p > 0.025 and cochran_armitage([20] * 4, contact, logs).p < 0.025
+    rest = cochran_armitage([20] * 3, contact[1:], logs[1:])
+    assert rest.z < 0 and rest.p < 0.05  # both fall without the slowest rate
     assert ("Trend tests across the rates set up (Cochran-Armitage, scores log f): success "
             "rises with the rate in 1 of these 2 series and falls in 1 at the 5 % level; at "
-            "the Bonferroni level 0.05/2 = 0.025, it rises in 0 and falls in 1.") in text
+            "the Bonferroni level 0.05/2 = 0.025, it rises in 0 and falls in 1; without each "
+            "series' slowest rate (2 series of 3 rates or more), it rises in 0 and falls in 2 "
+            "at the 5 % level.") in text
     assert "not a certificate of one, and the trends above (time paused) point both " \
         "ways." in text
     # one direction only: the reading does not say both
@@ -875,3 +886,22 @@ def test_a_grid_axis_whose_entries_would_be_pooled_is_refused_by_name():
     assert charged({"set": {"sim.latency": "paused"}, "effective": {"sim.latency": "model"}}) \
         is None
     assert charged({"effective": {"sim.latency": "paused"}}) is None
+
+
+def test_the_model_latency_entry_says_what_it_charges(tmp_path):
+    """The modelled latency's costs come from the runs' scenario (the sweep's [set] wins),
+    and the page says they are the fitted solves' costs, not the controller's own."""
+    from hmpc_cli.report.realtime import _model_costs
+
+    (tmp_path / "base_scenario.toml").write_text(
+        '[sim]\nlatency_model = {"overhead" = 0.0, "per_iteration" = 0.0024, '
+        '"per_switching_iteration" = 0.008, "planner" = 0.01}\n')
+    table = tmp_path / "results.csv"
+    assert _model_costs(table, {}) == (
+        ": 0 ms per solve + 2.4 ms per iteration (8 ms with a switch left), 10 ms per planner "
+        "call; the costs of the solves it was fitted to (one machine, one node grid), "
+        "whatever the controller's own")
+    assert _model_costs(table, {"set": {"sim.latency_model.per_iteration": 0.003}}).startswith(
+        ": 0 ms per solve + 3 ms per iteration")
+    (tmp_path / "base_scenario.toml").write_text("[sim]\n")
+    assert _model_costs(table, {}) == ""

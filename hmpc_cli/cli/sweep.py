@@ -42,6 +42,9 @@ def sweep_command(
     ] = None,
     dask_timeout: Annotated[float, typer.Option(
         "--dask-timeout", min=0.1, help="seconds to wait for the --dask scheduler")] = 10.0,
+    show: Annotated[str | None, typer.Option(
+        "--show", help="print run RUN_ID's effective scenario (TOML that hmpc run takes: "
+        "one row of the table again), run nothing")] = None,
 ) -> None:
     """Run a grid of scenario overrides x seeds in parallel; resumable; one results table."""
     import os
@@ -51,6 +54,8 @@ def sweep_command(
     from hmpc_cli.cli.common import is_quiet
 
     plan = _checked_plan(sweep_file, seeds)
+    if show is not None:
+        return _show(plan, show)
     out = out if out is not None else Path("results") / "sweeps" / plan.spec.name
     _check_out(out, plan)  # a dry run too: it says whether the real one would start
     if dry_run:
@@ -192,6 +197,21 @@ def cell_checks(plan) -> tuple[list[str], list[str]]:
                    if len(cells) > 1 else "")
                 + f": {line}" for line, cells in noted.items()]
     return out, warnings
+
+
+def _show(plan, run_id: str) -> None:
+    """Prints a planned run's effective scenario; exit 2 naming the closest ids if none."""
+    import difflib
+
+    run = next((r for r in plan.runs if r.run_id == run_id), None)
+    if run is None:
+        ids = [r.run_id for r in plan.runs]
+        close = difflib.get_close_matches(run_id, ids, n=1, cutoff=0.5)
+        hint = f"did you mean {close[0]!r}? " if close else ""
+        _err([f"--show {run_id}: no run of {plan.path} has this id ({hint}`hmpc sweep "
+              f"{plan.path} --dry-run` lists its {len(ids)} runs)"])
+        raise typer.Exit(EXIT_BAD_INPUT)
+    typer.echo(run.toml, nl=False)
 
 
 def _list_runs(plan) -> None:

@@ -3,8 +3,9 @@
 For a sweep with grid axes ``latency`` (entries setting ``sim.latency``: paused, model,
 measured, and possibly more, e.g. ``lowlevel.past_guard``) and ``controller`` (e.g. MPC
 rate and replanning; ``sweeps/realtime_rti.toml``, ``realtime_biped.toml``) it tables the
-successes per controller and latency entry and the per-run solve times of the runs whose
-compute time was measured (machine dependent). It reads the table and the sweep file only
+successes per controller and latency entry, the solves each controller made against its
+time-paused twin (whether it keeps up with its rate), and the per-run solve times of the
+runs whose compute time was measured (machine dependent). It reads the table and the sweep file only
 (no log), so a committed table regenerates it.
 """
 
@@ -47,9 +48,32 @@ def _kind(label: str, entries: dict[str, dict]) -> str:
     return str(entries.get(label, {}).get("sim.latency", label))
 
 
-def _meaning(label: str, entries: dict[str, dict]) -> str:
+def _model_costs(table: Path, spec: dict) -> str:
+    """The runs' ``sim.latency_model`` in words ('' when the base scenario cannot say)."""
+    import tomllib
+
+    try:
+        base = tomllib.loads((table.parent / "base_scenario.toml").read_text())
+        model = dict(base["sim"]["latency_model"])
+    except (OSError, KeyError, TypeError, ValueError, tomllib.TOMLDecodeError):
+        return ""
+    model |= {k.removeprefix("sim.latency_model."): v for k, v in (spec.get("set") or {}).items()
+              if k.startswith("sim.latency_model.")}
+    try:
+        ms = {k: 1e3 * float(v) for k, v in model.items() if v is not None}
+    except (TypeError, ValueError):
+        return ""
+    switching = (f" ({ms['per_switching_iteration']:g} ms with a switch left)"
+                 if "per_switching_iteration" in ms else "")
+    return (f": {ms.get('overhead', 0.0):g} ms per solve + {ms.get('per_iteration', 0.0):g} ms "
+            f"per iteration{switching}, {ms.get('planner', 0.0):g} ms per planner call; the "
+            "costs of the solves it was fitted to (one machine, one node grid), whatever "
+            "the controller's own")
+
+
+def _meaning(label: str, entries: dict[str, dict], costs: str = "") -> str:
     entry, kind = entries.get(label, {}), _kind(label, entries)
-    text = KINDS.get(kind, kind)
+    text = KINDS.get(kind, kind) + (costs if kind == "model" else "")
     past = entry.get("lowlevel.past_guard")
     return f"{text}; {PAST_GUARD.get(past, past)}" if past else text
 
@@ -60,6 +84,87 @@ def _ms(rows: list[dict], key: str, how) -> str:
     return f"{how(values):.1f}" if values else "-"
 
 
+#: a controller solves as often as with time paused when it makes at least this share of
+#: its time-paused twin's solves
+KEEPS_UP = 0.95
+
+
+def _solves(rows: list[dict], lat: str, ctrl: str, table: Path) -> list[int]:
+    """The MPC solves of a cell's successful runs (each flew the scenario's whole duration).
+
+    Raises:
+        FigureInputError: a successful run's ``solves`` is not a count.
+    """
+    out = []
+    for line, r in enumerate(rows, start=2):
+        if r["latency"] == lat and r["controller"] == ctrl and \
+                parse_bool(r["success"], f"{table}:{line}: success"):
+            try:
+                out.append(int(r["solves"]))
+            except (TypeError, ValueError):
+                raise FigureInputError(f"{table}:{line}: solves: expected a count, got "
+                                       f"{r['solves']!r}") from None
+    return out
+
+
+def _duration(table: Path, spec: dict) -> float | None:
+    """The runs' ``sim.duration`` [s]: the sweep's [set], else its base scenario's."""
+    import tomllib
+
+    set_ = spec.get("set") or {}
+    if "sim.duration" in set_:
+        return float(set_["sim.duration"])
+    try:
+        base = tomllib.loads((table.parent / "base_scenario.toml").read_text())
+        return float(base["sim"]["duration"])
+    except (OSError, KeyError, TypeError, ValueError, tomllib.TOMLDecodeError):
+        return None
+
+
+def _keep_up_lines(table: Path, rows: list[dict], lats: list[str], ctrls: list[str],
+                   entries: dict[str, dict], duration: float | None) -> list[str]:
+    """The solves each controller made per latency entry, against its time-paused twin."""
+    paused = next((lat for lat in lats if _kind(lat, entries) == "paused"), None)
+    med = {(lat, c): statistics.median(v) for lat in lats for c in ctrls
+           if (v := _solves(rows, lat, c, table))}
+    span = f"the whole {duration:g} s" if duration is not None else \
+        "the scenario's whole duration"
+    lines = ["", f"Does it keep up: MPC solves per successful run (median; a successful run "
+             f"flies {span}). The solver starts a solve only when its last one is "
+             "done: a period tick or a contact that finds it busy gets no solve, so a "
+             "controller whose charged compute time exceeds its period solves less often "
+             "than its rate"
+             + (f" (in brackets: the share of the `{paused}` runs' count)." if paused is not
+                None else " (in brackets: solves per second of simulated time)."), "",
+             "| controller | " + " | ".join(lats) + " |", "|---|" + "---|" * len(lats)]
+    short: dict[str, list[str]] = {lat: [] for lat in lats if lat != paused}
+    for c in ctrls:
+        cells = []
+        for lat in lats:
+            if (lat, c) not in med:
+                cells.append("-")
+            elif paused is None or lat == paused:
+                rate = f" ({med[(lat, c)] / duration:.0f}/s)" if duration and paused is None \
+                    else ""
+                cells.append(f"{med[(lat, c)]:g}{rate}")
+            elif (paused, c) in med:
+                share = med[(lat, c)] / med[(paused, c)]
+                cells.append(f"{med[(lat, c)]:g} ({100 * share:.0f} %)")
+                if share < KEEPS_UP:
+                    short[lat].append(f"{c} {100 * share:.0f} %")
+            else:
+                cells.append(f"{med[(lat, c)]:g}")
+        lines.append(f"| {c} | " + " | ".join(cells) + " |")
+    if paused is not None:
+        lines.append("")
+        for lat, slow in short.items():
+            n = sum((lat, c) in med and (paused, c) in med for c in ctrls)
+            lines.append(f"- `{lat}`: as many solves as with time paused (at least "
+                         f"{100 * KEEPS_UP:.0f} %) for {n - len(slow)} of {n} controllers"
+                         + (f"; fewer: {', '.join(slow)}." if slow else "."))
+    return lines
+
+
 def realtime_section(directory: Path) -> list[str]:
     """The markdown lines of one real-time sweep's table (a sub-section of :data:`HEADING`).
 
@@ -68,7 +173,7 @@ def realtime_section(directory: Path) -> list[str]:
             controller and success columns).
     """
     table = resolve_table(directory)
-    rows = read_table(table, ["latency", "controller", "success"])
+    rows = read_table(table, ["latency", "controller", "success", "solves"])
     spec = sweep_spec(table.parent)
     lats = list(dict.fromkeys(r["latency"] for r in rows))
     ctrls = list(dict.fromkeys(r["controller"] for r in rows))
@@ -87,11 +192,13 @@ def realtime_section(directory: Path) -> list[str]:
              f"{wall_text(rows)}). A plan reaches the plant its charged compute time after "
              "the state it was solved from; until then the previous plan is tracked. "
              "Latency:", ""]
-    lines += [f"- `{lat}`: {_meaning(lat, entries)}." for lat in lats]
+    costs = _model_costs(table, spec)
+    lines += [f"- `{lat}`: {_meaning(lat, entries, costs)}." for lat in lats]
     lines += ["", "| controller | " + " | ".join(lats) + " |", "|---|" + "---|" * len(lats)]
     for c in ctrls:
         cells = [f"{sum(v)}/{len(v)}" if (v := ok.get((lat, c))) else "-" for lat in lats]
         lines.append(f"| {c} | " + " | ".join(cells) + " |")
+    lines += _keep_up_lines(table, rows, lats, ctrls, entries, _duration(table, spec))
     measured = [lat for lat in lats if _kind(lat, entries) == "measured"]
     if measured:
         lines += ["", "MPC solve times of the measured runs (per run: its median and p95 "

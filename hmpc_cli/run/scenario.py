@@ -602,12 +602,16 @@ def other_kind_of_file(data: dict, source: str, expected: str) -> list[str]:
 def inert_settings(path: str | Path, overrides: list[str] = ()) -> list[str]:
     """Settings the file or a ``--set`` gives that the run ignores (a valid scenario's).
 
-    ``source: key: no effect ...`` lines, ``source`` the ``--set`` when one set the key.
+    ``source: key: no effect ...`` lines, ``source`` the ``--set`` when one set the key. A
+    key set to its default is not one (an effective scenario, as a run records it or
+    ``hmpc sweep --show`` prints it, writes every key out).
     """
     from hmpc_cli.sim.disturbance import inert_keys
 
     data = apply_overrides(_read_toml(Path(path)), list(overrides), str(path))
     given = data.get("disturbance") if isinstance(data.get("disturbance"), dict) else {}
+    fields = DisturbanceSettings.model_fields
+    given = {k: v for k, v in given.items() if k not in fields or v != fields[k].default}
     lines = [f"{path}: {line}" for line in inert_keys(given.get("kind", "none"), given)]
     return attribute_to_sets(lines, str(path), list(overrides), True)
 
