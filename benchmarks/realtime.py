@@ -212,31 +212,7 @@ def main() -> None:
 
     args.command = portable_command(shlex.join(["python", "benchmarks/realtime.py",
                                                 *sys.argv[1:]]), ROOT)
-    from hmpc_cli.sweep.lock import owner_problem
-
-    name = GRID_NAME
-    if args.sweep is not None:
-        plan = plan_sweep(args.sweep)
-        name = plan.spec.name
-    problem = owner_problem(args.out, name)
-    if problem is not None:
-        _refuse(f"--out {args.out}: {problem}")
-    if args.sweep is not None:
-        axes = {a.name: a for a in plan.axes}
-        args.latency = [str(label) for label in axes["latency"].labels]
-        args.scenario = plan.scenario
-        args.title = plan.spec.description or plan.spec.name
-        args.grid_says = f"the grid of `{args.sweep.as_posix()}` sets the rest"
-    else:
-        args.title = "the nominal ball and the 10 Figure 3 trials"
-        args.grid_says = "the grid sets rate, replanning, latency and disturbance"
-        text = sweep_text(args.latency, [int(r) for r in args.rates.split(",")],
-                          args.policies.split(","), args.trials, args.compensate,
-                          args.scenario)
-        args.out.mkdir(parents=True, exist_ok=True)
-        spec = args.out / "realtime.toml"
-        spec.write_text(text, encoding="utf-8")
-        plan = plan_sweep(spec)
+    plan = _plan(args)
     args.settings = run_settings(plan)
     args.scenario_name = args.scenario.resolve().relative_to(ROOT).as_posix() \
         if args.scenario.resolve().is_relative_to(ROOT) else args.scenario.name
@@ -252,6 +228,35 @@ def main() -> None:
                 "new --out to measure every run on this machine")
     if args.write:
         args.write.write_text(out, encoding="utf-8")
+
+
+def _plan(args):
+    """The sweep to run: ``--sweep``'s, or the yardstick's grid written into ``--out``.
+
+    Sets the report's ``title`` and ``grid_says`` (and, for ``--sweep``, its ``latency``
+    and ``scenario``) on ``args``; exit 2 when ``--out`` is another sweep's directory.
+    """
+    from hmpc_cli.sweep.lock import owner_problem
+
+    plan = plan_sweep(args.sweep) if args.sweep is not None else None
+    problem = owner_problem(args.out, plan.spec.name if plan is not None else GRID_NAME)
+    if problem is not None:
+        _refuse(f"--out {args.out}: {problem}")
+    if plan is not None:
+        axes = {a.name: a for a in plan.axes}
+        args.latency = [str(label) for label in axes["latency"].labels]
+        args.scenario = plan.scenario
+        args.title = plan.spec.description or plan.spec.name
+        args.grid_says = f"the grid of `{args.sweep.as_posix()}` sets the rest"
+        return plan
+    args.title = "the nominal ball and the 10 Figure 3 trials"
+    args.grid_says = "the grid sets rate, replanning, latency and disturbance"
+    text = sweep_text(args.latency, [int(r) for r in args.rates.split(",")],
+                      args.policies.split(","), args.trials, args.compensate, args.scenario)
+    args.out.mkdir(parents=True, exist_ok=True)
+    spec = args.out / "realtime.toml"
+    spec.write_text(text, encoding="utf-8")
+    return plan_sweep(spec)
 
 
 def _refuse(line: str) -> None:

@@ -45,3 +45,37 @@ def test_the_yardstick_grid_states_its_settings(tmp_path):
     (tmp_path / "realtime.toml").write_text(text)
     assert rt.run_settings(plan_sweep(tmp_path / "realtime.toml")) == (
         "Delay compensation on, first plan paused")
+
+
+def test_a_report_over_a_committed_table_is_printed_not_written(tmp_path):
+    """A committed table's rows have no logs: the solve percentiles would leave them out, so
+    --write refuses (exit 2, nothing written); the grid form may not take over another
+    sweep's directory; the machine is the runs' when the table names it."""
+    import shutil
+    import subprocess
+    import sys
+
+    rt = _module()
+    out = tmp_path / "realtime_rti"
+    out.mkdir()
+    for name in ("results.csv", "sweep.toml", "base_scenario.toml"):
+        shutil.copy(ROOT / "results" / "sweeps" / "realtime_rti" / name, out / name)
+    counts, solves, _, no_log, cpus = rt.summarise(out)
+    assert sum(c[1] for c in counts.values()) == no_log == 264 and not solves and cpus == []
+    assert rt.machine().endswith("(the machine that wrote this report; the table does not "
+                                 "name the runs')")
+    assert rt.machine(["Intel X"]) == "Intel X (the runs' own, from the table)"
+    bench = [sys.executable, str(ROOT / "benchmarks" / "realtime.py"), "--out", str(out)]
+    written = subprocess.run([*bench, "--sweep", str(ROOT / "sweeps" / "realtime_rti.toml"),
+                              "--write", str(tmp_path / "x.md")], capture_output=True,
+                             text=True, timeout=300)
+    assert written.returncode == 2 and not (tmp_path / "x.md").exists()
+    assert written.stderr.startswith(f"error: --write {tmp_path / 'x.md'}: 264 of 264 runs in "
+                                     f"{out} have no log")
+    assert "| 100 Hz once | 11/11 | 11/11 | 9/11 |" in written.stdout
+    grid = subprocess.run([*bench, "--scenario", str(ROOT / "scenarios" / "ball_realtime.toml")],
+                          capture_output=True, text=True, timeout=300)
+    assert grid.returncode == 2 and grid.stderr == (
+        f"error: --out {out}: belongs to sweep 'realtime_rti' (its sweep.toml), not "
+        "'realtime': choose another --out (the same sweep resumes in its own directory)\n")
+    assert not (out / "realtime.toml").exists()

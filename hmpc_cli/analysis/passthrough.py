@@ -256,8 +256,9 @@ def _used_radius(system, scenario: dict, used, where: str, guard: int) -> tuple[
 
 
 def _radius(system, scenario: dict, radius: float | None, from_tube: bool,
-            where: str, guard: int, used=None) -> tuple[float, str]:
-    """The tube radius d and where it comes from (``used``: the run's logged margins)."""
+            where: str, guard: int, info=None) -> tuple[float, str]:
+    """The tube radius d and where it comes from (``info``: the run's /run/info)."""
+    used = getattr(info, "margins", None)
     if radius is not None and from_tube:
         raise PassThroughError("give either --radius or --from-tube, not both")
     if radius is not None:
@@ -375,15 +376,13 @@ def pass_through_geometry(log_path: str | Path, *, solve: int | None = None,
     k = int(src[-1])
     dt = _node_step(t, where)
     euler = (scenario.get("mpc") or {}).get("integrator") == "euler"
-    d, d_source = _radius(system, scenario, radius, from_tube, str(path), gi,
-                          run.info.margins if run.info is not None else None)
+    d, d_source = _radius(system, scenario, radius, from_tube, str(path), gi, run.info)
     xv = _interval(system.modes[system.mode_index(g.source)], x[k], u[k], system.n_w, dt,
                    euler)
     xs = ca.SX.sym("x", system.n_x)
     q = ca.Function("q", [xs], [g.q_expr(xs)])
     num = system.numeric
     disc_gap, disc_point = _disc_max_gap(num, gi, xv, plane, d)
-    slack = msg.slack
     geo = PassThroughGeometry(
         log=path, solve=index, t=float(msg.t), guard=gi, guard_name=g.name,
         source_mode=g.source, target_mode=g.target, plane=plane,
@@ -394,7 +393,7 @@ def pass_through_geometry(log_path: str | Path, *, solve: int | None = None,
         guard_node_gap=float(num.gap(gi, x[k][None])[0]),
         virtual_gap=float(num.gap(gi, xv[None])[0]), virtual_q=float(q(xv)),
         kappa=float(g.kappa(d, past=True)), disc_gap=disc_gap, disc_point=disc_point,
-        slack=float(slack), state_names=tuple(system.state_names))
+        slack=float(msg.slack), state_names=tuple(system.state_names))
     return _with_grids(system, geo)
 
 

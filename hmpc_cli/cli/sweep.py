@@ -49,8 +49,6 @@ def sweep_command(
     """Run a grid of scenario overrides x seeds in parallel; resumable; one results table."""
     import os
 
-    from hmpc_cli.run.scenario import ScenarioError
-
     from hmpc_cli.cli.common import is_quiet
 
     plan = _checked_plan(sweep_file, seeds)
@@ -61,15 +59,7 @@ def sweep_command(
     if dry_run:
         _list_runs(plan)
         return
-    client = None
-    if dask is not None:
-        if workers is not None:
-            typer.echo("note: --workers is ignored with --dask", err=True)
-        try:
-            client = connect_dask(dask, dask_timeout)
-        except ScenarioError as exc:
-            _err(exc.lines)
-            raise typer.Exit(EXIT_BAD_INPUT) from None
+    client = _dask_client(dask, dask_timeout, workers)
     try:
         outcome = _locked_execute(plan, out, workers or os.cpu_count() or 1, client)
     finally:
@@ -88,6 +78,21 @@ def sweep_command(
         raise typer.Exit(128 + outcome.signum)
     if outcome.lost:
         raise typer.Exit(EXIT_FAILED)
+
+
+def _dask_client(address: str | None, timeout: float, workers: int | None):
+    """The ``--dask`` cluster's client (None: run locally); exit 2 if it does not answer."""
+    if address is None:
+        return None
+    from hmpc_cli.run.scenario import ScenarioError
+
+    if workers is not None:
+        typer.echo("note: --workers is ignored with --dask", err=True)
+    try:
+        return connect_dask(address, timeout)
+    except ScenarioError as exc:
+        _err(exc.lines)
+        raise typer.Exit(EXIT_BAD_INPUT) from None
 
 
 def _check_out(out: Path, plan) -> None:
