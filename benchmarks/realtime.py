@@ -90,8 +90,8 @@ def _pct(values: list[float], q: float) -> float:
 
 def summarise(out: Path) -> tuple[dict, dict, float, int, list[str]]:
     """Success counts and solves per (latency, controller); the runs' summed wall time [s];
-    how many rows have no log in ``out`` (a committed table's rows); the CPUs the rows
-    name (their ``cpu`` column, where the table has one)."""
+    how many rows have no run directory in ``out`` (a committed table's rows); the CPUs the
+    rows name (their ``cpu`` column, where the table has one)."""
     with open(out / "results.csv", newline="", encoding="utf-8") as f:
         rows = list(csv.DictReader(f))
     counts: dict[tuple[str, str], list[int]] = {}
@@ -106,8 +106,8 @@ def summarise(out: Path) -> tuple[dict, dict, float, int, list[str]]:
         log = out / row["log"] if row.get("log") else None
         if log is not None and log.is_file():
             solves.setdefault(key, []).extend(solves_of(log))
-        else:
-            no_log += 1
+        elif not (out / "runs" / row.get("run_id", "")).is_dir():
+            no_log += 1  # a table's row (a run that raised before its log has its directory)
     walls = [float(r["wall_time"]) for r in rows if r.get("wall_time")]
     cpus = sorted({r["cpu"] for r in rows if r.get("cpu")})
     return counts, solves, sum(walls), no_log, cpus
@@ -169,9 +169,8 @@ def report(counts: dict, solves: dict, args, cpu: float, cpus: list[str] = ()) -
              f"Machine: {machine(cpus)}. `measured` rows are machine (and load) dependent; "
              "`model` charges `sim.latency_model` (deterministic); `paused` is the paper's "
              "setting.", "",
-             f"{args.settings}; the runs' wall times sum to {cpu / 60:.1f} min (about "
-             f"{cpu / 60 / max(1, args.workers):.1f} min elapsed with {args.workers} "
-             "workers).", "",
+             f"{args.settings}; the runs' wall times sum to {cpu / 60:.1f} min (summed over "
+             "the runs, not elapsed).", "",
              "| controller | " + " | ".join(lats) + " |",
              "|---|" + "---|" * len(lats)]
     for c in ctrls:
@@ -253,6 +252,11 @@ def _plan(args):
     args.grid_says = "the grid sets rate, replanning, latency and disturbance"
     text = sweep_text(args.latency, [int(r) for r in args.rates.split(",")],
                       args.policies.split(","), args.trials, args.compensate, args.scenario)
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:  # planned before anything is written
+        (Path(tmp) / "realtime.toml").write_text(text, encoding="utf-8")
+        plan_sweep(Path(tmp) / "realtime.toml")
     args.out.mkdir(parents=True, exist_ok=True)
     spec = args.out / "realtime.toml"
     spec.write_text(text, encoding="utf-8")

@@ -191,19 +191,21 @@ def test_a_margins_file_for_a_smaller_disturbance_or_other_gains_is_named(ball_f
     f = ball_file.resolve()
     assert _margin_warnings(ball_file, []) == []
     assert _margin_warnings(ball_file, ["disturbance.kind=box", "disturbance.magnitude=3"]) == [
-        f"mpc.margins: {f} was computed for no disturbance (none), this scenario has "
-        f"|w_i| <= 3 (box): its margins do not cover this disturbance {FIX}"]
+        f"mpc.margins: {f} was computed for no disturbance (none); this scenario's "
+        f"disturbance.magnitude = 3 (disturbance.kind = 'box') is larger: its margins do not "
+        f"cover this disturbance {FIX}"]
     assert _margin_warnings(ball_file, ["disturbance.kind=box", "disturbance.magnitude=0"]) == []
     assert _margin_warnings(ball_file, ["lowlevel.kd=2"]) == [
-        f"mpc.margins: {f} was computed for the low level's kp = 0, kd = 0, this scenario "
-        f"has kp = 0, kd = 2: its margins are another closed loop's tube {FIX}"]
+        f"mpc.margins: {f} was computed for the low level's kp = 0, kd = 0, not this "
+        f"scenario's lowlevel.kp = 0, lowlevel.kd = 2: its margins are another closed loop's "
+        f"tube {FIX}"]
     fig3 = ["mpc.rate_hz=20", "disturbance.kind=paper_fig3"]
     assert _margin_warnings(FIG3_FILE, fig3) == []  # the file's own disturbance
     assert _margin_warnings(FIG3_FILE, ["mpc.rate_hz=20"]) == []  # none: conservative
     assert _margin_warnings(FIG3_FILE, [*fig3, "disturbance.magnitude=9.5"]) == []
     (line,) = _margin_warnings(FIG3_FILE, [*fig3, "disturbance.magnitude=10.5"])
-    assert "computed for |w_i| <= 10 (paper_fig3), this scenario has |w_i| <= 10.5 " \
-           "(paper_fig3): its margins do not cover" in line
+    assert "computed for |w_i| <= 10 (paper_fig3); this scenario's disturbance.magnitude " \
+           "= 10.5 (disturbance.kind = 'paper_fig3') is larger: its margins do not cover" in line
 
 
 def test_hmpc_run_and_sweep_warn_of_another_settings_margins_file(ball_file: Path,
@@ -217,8 +219,15 @@ def test_hmpc_run_and_sweep_warn_of_another_settings_margins_file(ball_file: Pat
     assert res.exit_code == 2
     assert res.output.splitlines()[0] == (
         f'warning: --set mpc.margins="{ball_file}": mpc.margins: {ball_file.resolve()} was '
-        "computed for the low level's kp = 0, kd = 0, this scenario has kp = 1, kd = 0: its "
-        f"margins are another closed loop's tube {FIX}")
+        "computed for the low level's kp = 0, kd = 0, not this scenario's lowlevel.kp = 1, "
+        f"lowlevel.kd = 0: its margins are another closed loop's tube {FIX}")
+    own = tmp_path / "own.toml"  # the file in the scenario: the --set that changed kp is named
+    own.write_text(BALL.read_text().replace("tube_margin = 0.025",
+                                            f'margins = "{ball_file.resolve()}"'))
+    res = CliRunner().invoke(app, ["run", str(own), "--out", str(taken), "--set",
+                                   "lowlevel.kp=1", *SHORT])
+    assert res.output.splitlines()[0].startswith(
+        "warning: --set lowlevel.kp=1: mpc.margins: ")
     sweep = tmp_path / "sweep.toml"
     sweep.write_text(
         f'name = "m"\nscenario = "{BALL}"\nseeds = [0, 1]\n[set]\n"mpc.margins" = '
@@ -232,7 +241,7 @@ def test_hmpc_run_and_sweep_warn_of_another_settings_margins_file(ball_file: Pat
         f"warning: {sweep}: cell disturbance.magnitude=0, lowlevel.kp=1 (and 2 other cells)",
         f"warning: {sweep}: cell disturbance.magnitude=2, lowlevel.kp=0 (and 1 other cell)",
         f"warning: {sweep}: cell disturbance.magnitude=4, lowlevel.kp=0 (and 1 other cell)"]
-    assert "this scenario has |w_i| <= 2 (box)" in warnings[1]
+    assert "this scenario's disturbance.magnitude = 2 (disturbance.kind = 'box')" in warnings[1]
     assert res.output.splitlines()[-1] == "12 runs, all valid (dry run: nothing started)"
 
 

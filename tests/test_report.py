@@ -352,7 +352,7 @@ def test_latency_study_sits_beside_its_paused_twin_and_the_reading_counts(tmp_pa
     assert ("- Faster MPC (0.05 s latency charged): in 0 of 1 series (policy) the fastest "
             "rate succeeds more often than the slowest with separated intervals, in 0 less "
             "often; 1 unresolved") in text
-    assert "rates above 1/L = 20 Hz run at 20 Hz." in text
+    assert "rates above 1/L = 20 Hz solve at most 20 times a second." in text
     for name in ("paper", "moved", "lat"):
         assert (tmp_path / "fig" / f"{name}.png").is_file()
         assert (tmp_path / "fig" / f"{name}_table.csv").is_file()
@@ -401,7 +401,7 @@ def test_latency_study_with_the_first_plan_paused_or_measured_latency_is_said(tm
     # one reading line per latency study, named by its latency and first plan
     assert "- Solve time charged (0.03 s latency, first plan paused): 0 of 2 cells" in text
     assert "- Solve time charged (measured latency): 0 of 2 cells" in text
-    assert "rates above 1/L = 33.3 Hz run at 33.3 Hz." in text
+    assert "rates above 1/L = 33.3 Hz solve at most 33.3 times a second." in text
     assert "- Faster MPC (0.03 s latency charged, first plan paused): in 1 of 1 series" in text
     # for `first` and `follow`; not for measured latency, not for `alone`
     assert text.count("rates above 1/L") == 2
@@ -638,8 +638,8 @@ def test_the_real_time_section_from_a_table_alone(tmp_path):
     # the solves of the successful runs against the time-paused twin's
     assert "(median; a successful run flies the scenario's whole duration)." in text
     assert "| 60 Hz once | 180 | 90 (50 %) |" in text and "| 20 Hz once | - | 60 |" in text
-    assert ("- `measured`: as many solves as with time paused (at least 95 %) for 0 of 1 "
-            "controllers; fewer: 60 Hz once 50 %.") in text
+    assert ("- `measured`: as many solves as with time paused (at least 95 %) for 0 of the 1 "
+            "controllers with successful runs both ways; fewer: 60 Hz once 50 %.") in text
     assert "### `sweeps/rt.toml`: rt\n\nFrom its per-run table (4 runs of " \
         "`scenarios/ball_realtime.toml`; " in text
     assert "| controller | paused | measured |" in text
@@ -898,9 +898,9 @@ def test_the_model_latency_entry_says_what_it_charges(tmp_path):
         '"per_switching_iteration" = 0.008, "planner" = 0.01}\n')
     table = tmp_path / "results.csv"
     assert _model_costs(table, {}) == (
-        ": 0 ms per solve + 2.4 ms per iteration (8 ms with a switch left), 10 ms per planner "
-        "call; the costs of the solves it was fitted to (one machine, one node grid), "
-        "whatever the controller's own")
+        ": 0 ms per solve + 2.4 ms per iteration (8 ms with a switch left), the costs of the "
+        "solves they were fitted to (one machine, one node grid) whatever the controller's "
+        "own, and 10 ms per planner call")
     assert _model_costs(table, {"set": {"sim.latency_model.per_iteration": 0.003}}).startswith(
         ": 0 ms per solve + 3 ms per iteration")
     (tmp_path / "base_scenario.toml").write_text("[sim]\n")

@@ -559,6 +559,10 @@ def test_common_slips_in_a_set_get_a_way_out():
     assert line.endswith("); a text value needs no quotes, an array [a, b], a table {k = v}")
     sc, _ = load_scenario(BALL, ["description=a bare word"])
     assert sc.description == "a bare word"
+    # a kind that is no name: an error line, not a traceback from the plug-ins' lookup
+    assert load_error(BALL, ["planner.kind=[1]"]) == [
+        "--set planner.kind=[1]: planner: unknown kind '[1]'; choose from 'cem', 'footholds', "
+        "'schedule'"]
 
 
 def test_a_disturbance_setting_its_kind_ignores_is_named():

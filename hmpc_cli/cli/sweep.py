@@ -205,8 +205,16 @@ def cell_checks(plan) -> tuple[list[str], list[str]]:
 
 
 def _show(plan, run_id: str) -> None:
-    """Prints a planned run's effective scenario; exit 2 naming the closest ids if none."""
+    """Prints a planned run's effective scenario; exit 2 naming the closest ids if none.
+
+    Without the disturbance keys its kind ignores (every key is written out in an
+    effective scenario; ``hmpc run`` would warn of those), which change nothing the run does.
+    """
     import difflib
+    import tomllib
+
+    from hmpc_cli.run.scenario import dump_toml
+    from hmpc_cli.sim.disturbance import READS
 
     run = next((r for r in plan.runs if r.run_id == run_id), None)
     if run is None:
@@ -216,7 +224,11 @@ def _show(plan, run_id: str) -> None:
         _err([f"--show {run_id}: no run of {plan.path} has this id ({hint}`hmpc sweep "
               f"{plan.path} --dry-run` lists its {len(ids)} runs)"])
         raise typer.Exit(EXIT_BAD_INPUT)
-    typer.echo(run.toml, nl=False)
+    data = tomllib.loads(run.toml)
+    kind = data.get("disturbance", {}).get("kind", "none")
+    data["disturbance"] = {k: v for k, v in data.get("disturbance", {}).items()
+                           if k == "kind" or k in READS.get(kind, ())}
+    typer.echo(dump_toml(data), nl=False)
 
 
 def _list_runs(plan) -> None:

@@ -60,6 +60,11 @@ class MPCKindSettings(KindSettings):
         """
         return None
 
+    def margins_file(self) -> str | None:
+        """The margins file :meth:`margins_source` names (None: hand, the tube or none)."""
+        source = self.margins_source()
+        return None if source in (None, "hand", "tube") else source
+
     def resolve_margins_file(self, base: Path) -> Path | None:
         """Makes a margins file named relative to ``base`` absolute; returns it (None: none)."""
         return None

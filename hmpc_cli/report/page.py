@@ -33,6 +33,7 @@ def page_command(text: str) -> str | None:
     made = re.search(rf"^{re.escape(_MADE_BY)}([^`]+)`", text, flags=re.M)
     return made.group(1) if made and text.startswith(TITLE) else None
 
+
 @dataclass(frozen=True)
 class ReportInputs:
     """Sweep directories feeding the page (None: that section is left out).

@@ -66,9 +66,9 @@ def _model_costs(table: Path, spec: dict) -> str:
     switching = (f" ({ms['per_switching_iteration']:g} ms with a switch left)"
                  if "per_switching_iteration" in ms else "")
     return (f": {ms.get('overhead', 0.0):g} ms per solve + {ms.get('per_iteration', 0.0):g} ms "
-            f"per iteration{switching}, {ms.get('planner', 0.0):g} ms per planner call; the "
-            "costs of the solves it was fitted to (one machine, one node grid), whatever "
-            "the controller's own")
+            f"per iteration{switching}, the costs of the solves they were fitted to (one "
+            "machine, one node grid) whatever the controller's own, and "
+            f"{ms.get('planner', 0.0):g} ms per planner call")
 
 
 def _meaning(label: str, entries: dict[str, dict], costs: str = "") -> str:
@@ -111,13 +111,14 @@ def _duration(table: Path, spec: dict) -> float | None:
     """The runs' ``sim.duration`` [s]: the sweep's [set], else its base scenario's."""
     import tomllib
 
-    set_ = spec.get("set") or {}
-    if "sim.duration" in set_:
-        return float(set_["sim.duration"])
     try:
+        set_ = spec.get("set") or {}
+        if "sim.duration" in set_:
+            return float(set_["sim.duration"])
         base = tomllib.loads((table.parent / "base_scenario.toml").read_text())
         return float(base["sim"]["duration"])
-    except (OSError, KeyError, TypeError, ValueError, tomllib.TOMLDecodeError):
+    except (OSError, KeyError, TypeError, ValueError, AttributeError,
+            tomllib.TOMLDecodeError):
         return None
 
 
@@ -130,10 +131,9 @@ def _keep_up_lines(table: Path, rows: list[dict], lats: list[str], ctrls: list[s
     span = f"the whole {duration:g} s" if duration is not None else \
         "the scenario's whole duration"
     lines = ["", f"Does it keep up: MPC solves per successful run (median; a successful run "
-             f"flies {span}). The solver starts a solve only when its last one is "
-             "done: a period tick or a contact that finds it busy gets no solve, so a "
-             "controller whose charged compute time exceeds its period solves less often "
-             "than its rate"
+             f"flies {span}). There is one solver: a solve that falls due (a period, "
+             "a contact) while it still computes waits for it, so a controller whose "
+             "charged compute time exceeds its period solves less often than its rate"
              + (f" (in brackets: the share of the `{paused}` runs' count)." if paused is not
                 None else " (in brackets: solves per second of simulated time)."), "",
              "| controller | " + " | ".join(lats) + " |", "|---|" + "---|" * len(lats)]
@@ -147,7 +147,7 @@ def _keep_up_lines(table: Path, rows: list[dict], lats: list[str], ctrls: list[s
                 rate = f" ({med[(lat, c)] / duration:.0f}/s)" if duration and paused is None \
                     else ""
                 cells.append(f"{med[(lat, c)]:g}{rate}")
-            elif (paused, c) in med:
+            elif med.get((paused, c)):
                 share = med[(lat, c)] / med[(paused, c)]
                 cells.append(f"{med[(lat, c)]:g} ({100 * share:.0f} %)")
                 if share < KEEPS_UP:
@@ -158,9 +158,10 @@ def _keep_up_lines(table: Path, rows: list[dict], lats: list[str], ctrls: list[s
     if paused is not None:
         lines.append("")
         for lat, slow in short.items():
-            n = sum((lat, c) in med and (paused, c) in med for c in ctrls)
+            n = sum((lat, c) in med and bool(med.get((paused, c))) for c in ctrls)
             lines.append(f"- `{lat}`: as many solves as with time paused (at least "
-                         f"{100 * KEEPS_UP:.0f} %) for {n - len(slow)} of {n} controllers"
+                         f"{100 * KEEPS_UP:.0f} %) for {n - len(slow)} of the {n} controllers "
+                         "with successful runs both ways"
                          + (f"; fewer: {', '.join(slow)}." if slow else "."))
     return lines
 

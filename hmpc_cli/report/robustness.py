@@ -679,18 +679,23 @@ def _trend_tally(series: list[list]) -> str:
                else "."))
 
 
-def _paced(cells, latency: object) -> str:
-    """Which tested rates a fixed latency L makes solve at 1/L ('' for none, or no fixed L)."""
+def _pace(latency: object) -> float | None:
+    """1/L [Hz]: the most solves per second one solver makes at a fixed latency L [s]."""
     try:
-        pace = 1.0 / float(latency)
+        return 1.0 / float(latency)
     except (TypeError, ValueError, ZeroDivisionError):
-        return ""
-    above = sorted({c.x for c in cells if c.x > pace})
+        return None
+
+
+def _paced(cells, latency: object) -> str:
+    """Which tested rates a fixed latency L holds to 1/L ('' for none, or no fixed L)."""
+    pace = _pace(latency)
+    above = sorted({c.x for c in cells if pace is not None and c.x > pace})
     if not above:
         return ""
     return (f" One solver at {latency} s per solve runs at most {pace:.3g} Hz: the "
-            f"{', '.join(f'{x:g}' for x in above)} Hz cells all solve at {pace:.3g} Hz, so "
-            "the rates compared are in effect the slower ones and that pace.")
+            f"{', '.join(f'{x:g}' for x in above)} Hz cells solve at most that often, so "
+            "their differences are not those of their nominal rates.")
 
 
 def _refused_series(cells) -> int:
@@ -885,12 +890,12 @@ def _latency_words(spec: dict, latency: object) -> tuple[str, ...]:
 
 def _solver_pace(latency: object) -> str:
     """The rate above which a fixed latency L makes the MPC run at the solver's pace."""
-    try:
-        pace = 1.0 / float(latency)
-    except (TypeError, ValueError, ZeroDivisionError):
+    pace = _pace(latency)
+    if pace is None:
         return ""
     return (f" There is one solver: a solve that falls due while it still computes waits "
-            f"for it, so rates above 1/L = {pace:.3g} Hz run at {pace:.3g} Hz.")
+            f"for it, so rates above 1/L = {pace:.3g} Hz solve at most {pace:.3g} times a "
+            "second.")
 
 
 def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list[str]:

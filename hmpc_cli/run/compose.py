@@ -143,10 +143,10 @@ def _margins_record(sc, model, margins: ConstraintMargins | None) -> dict | None
     if margins is None:
         return None
     record = margins.to_dict(model)
-    if sc.mpc.margins_source() not in (None, "hand", "tube"):
+    if sc.mpc.margins_file() is not None:
         from hmpc_cli.core.paths import file_digest
 
-        digest = file_digest(Path(sc.mpc.margins_source()))
+        digest = file_digest(Path(sc.mpc.margins_file()))
         record |= {"sha256": digest} if digest is not None else {}
     return record
 

@@ -213,8 +213,7 @@ def _plugin_key_problems(reg, spec, data: dict) -> list[str]:
     the key that chose the plug-in (``system.name``, ``planner.kind``, ``mpc.kind``).
     """
     kinds = {"planner": reg.planners, "mpc": reg.mpcs}
-    chosen = {sec: ((data.get(sec) or {}).get("kind") if isinstance(data.get(sec), dict)
-                    else None) or getattr(spec, sec) for sec in kinds}
+    chosen = {sec: _chosen_kind(data, sec) or getattr(spec, sec) for sec in kinds}
     checks = [("system.name", f"system plug-in {spec.name!r}", "SystemSpec.defaults", key, k)
               for key, values in spec.defaults.items() for k in values]
     owners = [("system.name", f"system plug-in {spec.name!r}", "SystemSpec", spec)]
@@ -255,9 +254,9 @@ def _kind_problems(reg, spec, data: dict) -> list[str]:
     out = []
     required = {r.key: r for r in _requirements(reg, data)}
     for section, table in (("planner", reg.planners), ("mpc", reg.mpcs)):
-        kind = data[section].get("kind") if isinstance(data.get(section), dict) else None
+        kind = _chosen_kind(data, section)
         if kind not in table:
-            continue  # an unknown kind is the union's error
+            continue  # an unknown kind (or not a name) is the union's error
         req = required.get(f"{section}.kind")
         missing = sorted(table[kind].needs - spec.provides)
         if missing:
@@ -272,11 +271,16 @@ def _requirements(reg, data: dict) -> list[Requirement]:
     """Settings required by the scenario's system, planner and MPC plug-ins."""
     out = list(reg.system(data["system"]["name"]).requires)
     for section, table in (("planner", reg.planners), ("mpc", reg.mpcs)):
-        kind = (data.get(section) or {}).get("kind") if isinstance(data.get(section), dict) \
-            else None
+        kind = _chosen_kind(data, section)
         if kind in table:
             out += table[kind].requires
     return out
+
+
+def _chosen_kind(data: dict, section: str) -> str | None:
+    """The ``kind`` a scenario's ``planner`` / ``mpc`` table names (None: none, or not text)."""
+    kind = data[section].get("kind") if isinstance(data.get(section), dict) else None
+    return kind if isinstance(kind, str) else None
 
 
 def _union(models: list[type[BaseModel]], tag: str) -> Any:
@@ -602,16 +606,12 @@ def other_kind_of_file(data: dict, source: str, expected: str) -> list[str]:
 def inert_settings(path: str | Path, overrides: list[str] = ()) -> list[str]:
     """Settings the file or a ``--set`` gives that the run ignores (a valid scenario's).
 
-    ``source: key: no effect ...`` lines, ``source`` the ``--set`` when one set the key. A
-    key set to its default is not one (an effective scenario, as a run records it or
-    ``hmpc sweep --show`` prints it, writes every key out).
+    ``source: key: no effect ...`` lines, ``source`` the ``--set`` when one set the key.
     """
     from hmpc_cli.sim.disturbance import inert_keys
 
     data = apply_overrides(_read_toml(Path(path)), list(overrides), str(path))
     given = data.get("disturbance") if isinstance(data.get("disturbance"), dict) else {}
-    fields = DisturbanceSettings.model_fields
-    given = {k: v for k, v in given.items() if k not in fields or v != fields[k].default}
     lines = [f"{path}: {line}" for line in inert_keys(given.get("kind", "none"), given)]
     return attribute_to_sets(lines, str(path), list(overrides), True)
 
@@ -882,8 +882,8 @@ def margins_file_warnings(scenario: ScenarioBase) -> list[str]:
     computed for a smaller disturbance box or other low-level gains
     (:func:`hmpc_cli.tube.margins_file.margins_warnings`); [] otherwise.
     """
-    source = scenario.mpc.margins_source()
-    if source in (None, "hand", "tube"):
+    source = scenario.mpc.margins_file()
+    if source is None:
         return []
     from hmpc_cli.tube.margins_file import margins_warnings
 

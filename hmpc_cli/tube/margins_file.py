@@ -252,7 +252,8 @@ def margins_warnings(path: Path, kind: str, magnitude: float, kp: float,
     kind none is the zero set) and depends on the low level's gains. A file made for a
     smaller box does not cover the scenario's disturbance; one made for other gains is
     another closed loop's tube. A file made for a larger box is conservative: no line.
-    An unreadable file gives none either (:func:`margins_problems` names it).
+    An unreadable file gives none either (:func:`margins_problems` names it), nor a
+    magnitude or gains the file does not record.
 
     Args:
         path: the margins file.
@@ -271,14 +272,14 @@ def margins_warnings(path: Path, kind: str, magnitude: float, kp: float,
     file_bound = _bound(file_kind, mf.disturbance.get("magnitude", 0.0))
     out = []
     if _bound(kind, magnitude) > file_bound:
-        out.append(f"{path} was computed for {_box(file_kind, file_bound)}, this scenario "
-                   f"has {_box(kind, _bound(kind, magnitude))}: its margins do not cover "
-                   f"this disturbance ({fix})")
-    file_gains = (mf.lowlevel.get("kp", 0.0), mf.lowlevel.get("kd", 0.0))
-    if tuple(map(float, file_gains)) != (float(kp), float(kd)):
-        out.append(f"{path} was computed for the low level's kp = {file_gains[0]:g}, kd = "
-                   f"{file_gains[1]:g}, this scenario has kp = {kp:g}, kd = {kd:g}: its "
-                   f"margins are another closed loop's tube ({fix})")
+        out.append(f"{path} was computed for {_box(file_kind, file_bound)}; this scenario's "
+                   f"disturbance.magnitude = {magnitude:g} (disturbance.kind = {kind!r}) is "
+                   f"larger: its margins do not cover this disturbance ({fix})")
+    if "kp" in mf.lowlevel and "kd" in mf.lowlevel and \
+            (mf.lowlevel["kp"], mf.lowlevel["kd"]) != (float(kp), float(kd)):
+        out.append(f"{path} was computed for the low level's kp = {mf.lowlevel['kp']:g}, kd = "
+                   f"{mf.lowlevel['kd']:g}, not this scenario's lowlevel.kp = {kp:g}, "
+                   f"lowlevel.kd = {kd:g}: its margins are another closed loop's tube ({fix})")
     return out
 
 
