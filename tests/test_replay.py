@@ -479,3 +479,12 @@ def test_a_solves_charged_latency_is_shown_beside_its_wall_time() -> None:
                                        "median, 11.0 ms median, charged 8.0 ms median "
                                        "(period 3)")
     assert "charged" not in _solves_row([{**g, "latency": 0.0} for g in group]).text
+
+
+def test_a_results_page_run_directory_replays_from_its_trajectory_log() -> None:
+    """The committed Figure 4 run keeps only its trajectory log (report/trace.mcap):
+    replaying the directory reads it."""
+    page_run = Path(__file__).resolve().parents[1] / "results" / "biped_stairs" / "report"
+    res = replay(page_run)
+    assert res.exit_code == 0, res.output
+    assert "biped_stairs" in res.output and "trace.mcap" in res.output

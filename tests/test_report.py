@@ -484,8 +484,39 @@ def test_the_push_study_section_maps_where_the_walker_fails(tmp_path):
     assert "success falls with the push at the 5 % level." in text
     assert "- ±1500 N, across MPC rates (scores: log f): z = +" in text
     # the boundary run of 10 Hz: the largest push any seed walked through (1200 N, seed 0)
-    assert ("Figure 4 at the boundary: the 10 Hz walk through the largest push it survived "
-            "(±1200 N, seed 0, run 10-1200.0-0): its log is not here") in text
+    assert ("Figure 4 at the boundary: a 10 Hz walk at the largest push size it walked "
+            "through (±1200 N, seed 0, run 10-1200.0-0): its log is not here") in text
+    assert "Counted once" not in text  # a table without final errors cannot tell
+
+
+def test_the_push_study_counts_a_cell_of_one_repeated_run_once_and_says_how_runs_ended(
+        tmp_path):
+    """No push: every seed gives the same run (row for row alike), counted once in the
+    table and the trends; the falls before the first touchdown, the solver failures and
+    the successes' distance to the goal are counted over the distinct runs."""
+    from hmpc_cli.report.push import push_section
+
+    d = tmp_path / "biped_push"
+    d.mkdir()
+    with open(d / "results.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["run_id", "seed", "disturbance.magnitude", "mpc.rate_hz", "success",
+                    "final_error", "contacts", "solves", "solver_failures", "reason", "log"])
+        for s in range(4):  # no push: one run four times
+            w.writerow([f"a{s}", s, 0.0, 10, "true", 0.0959, 8, 27, 0, "", ""])
+        for s, (ok, err, contacts, fails) in enumerate([(True, 0.1, 8, 0), (True, 0.5, 9, 2),
+                                                        (False, 2.0, 0, 1), (False, 1.5, 3, 0)]):
+            w.writerow([f"b{s}", s, 900.0, 10, str(ok).lower(), err, contacts, 30, fails,
+                        "" if ok else "fall", ""])
+    text = "\n".join(push_section(d, tmp_path / "fig", tmp_path))
+    assert "| ±0 N | 1/1 (21-100 %) |" in text and "| ±900 N | 2/4 (" in text
+    assert ("Counted once: ±0 N at 10 Hz (its 4 seeds gave one run, row for row alike: no "
+            "push, nothing for the seed to draw).") in text
+    assert ("1 of the 2 failures fall before the first touchdown (no contact: in the first "
+            "swing; 10 Hz 1 of 2).") in text
+    assert "2 of the 5 runs had a solver failure (1 of the 3 successes)." in text
+    assert ("the successes end a median 0.10 m from the goal (at most 0.50 m).") in text
+    assert "z = " in text  # the trend across push sizes counts the unpushed run once
 
 
 RESULTS = REPO / "results"
@@ -552,7 +583,8 @@ def test_figure_3_trial_by_trial_from_a_table_alone(tmp_path):
     assert "| 20 Hz fixed | 11/11 | 11/11 | none | none | - |" in text
     assert "- 10 Hz fixed: not reproduced (10/11 vs the paper's 9/11; of the authors' 2 " \
         "failures 1 fail here)." in text
-    assert "- 20 Hz fixed: reproduced (11/11 vs the paper's 11/11; of the authors' 0 failures " \
+    assert "- 20 Hz fixed: count and failing trials reproduced (11/11 vs the paper's 11/11; of "\
+        "the authors' 0 failures " \
         "0 fail here)." in text
     # 100 Hz is not in the paper: its count is the authors' data's, and said so
     assert "| 100 Hz fixed | 0/11 | - | trial 3, trial 4," in text

@@ -112,15 +112,21 @@ class Divergence:
 
 
 def resolve_log_path(path: Path) -> Path:
-    """The MCAP file of ``path`` (a file, or a run directory holding ``run.mcap``).
+    """The MCAP file of ``path``: a file, or a run directory's ``run.mcap``.
+
+    A directory without one gives the trajectory log a results page keeps there
+    (``trace.mcap``) if it has one.
 
     Raises:
-        ReplayError: missing, a directory without run.mcap, or an empty file.
+        ReplayError: missing, a directory without either log, or an empty file.
     """
+    from hmpc_cli.log.trace import TRACE_NAME
+
     if path.is_dir():
-        if not (path / "run.mcap").is_file():
-            raise ReplayError("a directory without run.mcap")
-        path = path / "run.mcap"
+        found = [path / name for name in ("run.mcap", TRACE_NAME) if (path / name).is_file()]
+        if not found:
+            raise ReplayError(f"a directory without run.mcap (or {TRACE_NAME})")
+        path = found[0]
     if not path.exists():
         raise ReplayError("no such file")
     if not path.is_file():

@@ -31,7 +31,8 @@ REFERENCE_RULES = (
     "guard that domain planned: a contact that comes more than one MPC period late costs "
     "the plan one domain more than the ball used. Whether this rule explains the authors' "
     "failures is run, not assumed: the section on the reference rule emulated "
-    "(`mpc.schedule_rule = \"reference\"`) below gives its counts trial by trial.")
+    "(`mpc.schedule_rule = \"reference\"`) below gives its counts trial by trial, flown "
+    "on the reference mode's own plans (not on the authors' six-contact plan).")
 
 
 @dataclass(frozen=True)
@@ -147,8 +148,8 @@ def _agreement(rows: Sequence) -> list[str]:
             continue
         gaps = [r.end_gap for r in rs if r.ours.success and r.theirs.success]
         gap = f"{statistics.median(gaps):.3f} / {max(gaps):.3f}" if gaps else "-"
-        ent = [_entry_text([s.entry for s in sides])
-               for sides in ([r.ours for r in rs], [r.theirs for r in rs])]
+        ent = [_entry_text([s.entry for s in sides], who) for sides, who in
+               (([r.ours for r in rs], "hmpc"), ([r.theirs for r in rs], "authors"))]
         devs = [d for r in rs if (d := r.path_deviation) is not None]
         dev = (f"{statistics.median(d[0] for d in devs):.2f} / "
                f"{statistics.median(d[1] for d in devs):.2f}") if devs else "-"
@@ -159,14 +160,14 @@ def _agreement(rows: Sequence) -> list[str]:
     return lines
 
 
-def _entry_text(entries: list[float | None]) -> str:
-    """Median circle entry [s] of the runs that entered, and how many did if not all."""
+def _entry_text(entries: list[float | None], who: str) -> str:
+    """Median circle entry [s] of ``who``'s runs that entered, and how many did if not all."""
     inside = [e for e in entries if e is not None]
     if not inside:
         return "never"
     text = f"{statistics.median(inside):.2f}"
     return text if len(inside) == len(entries) else \
-        f"{text} ({len(inside)} of {len(entries)} entered)"
+        f"{text} ({who}: {len(inside)} of {len(entries)} entered)"
 
 
 def _plans(rows: Sequence) -> list[str]:

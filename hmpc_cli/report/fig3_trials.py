@@ -80,7 +80,8 @@ def fig3_trials_section(directory: Path) -> list[str]:
         if paper is not None:
             same = paper == f"{ok}/{len(trials)}" and set(ours) == set(theirs)
             verdicts.append(
-                f"- {controller}: {'reproduced' if same else 'not reproduced'} "
+                f"- {controller}: "
+                f"{'count and failing trials reproduced' if same else 'not reproduced'} "
                 f"({ok}/{len(trials)} vs {source} {paper}; of the authors' "
                 f"{len(theirs)} failures {len(shared)} fail here"
                 + (f", and {len(ours) - len(shared)} more" if len(ours) > len(shared) else "")

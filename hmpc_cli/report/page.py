@@ -114,8 +114,9 @@ def _biped_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]
         raise FigureInputError(str(exc)) from None
     sc, summary = run.scenario, run.summary
     d = sc.get("disturbance", {})
+    plant = ", ".join(f"{k} = {v}" for k, v in (sc.get("plant") or {}).items())
     setup = (f"Run: scenario `{sc.get('name', '?')}`, seed {sc.get('seed', '?')}; "
-             f"plant vs model: {sc.get('plant') or 'identical'}; torso force: "
+             f"plant vs model: {plant or 'identical'}; torso force: "
              + (f"{d.get('kind')} ±{d.get('magnitude')} N held {d.get('hold')} s"
                 if d.get("kind", "none") != "none" else "none"))
     verdict = {True: "success", False: "failed", None: "unfinished"}[walk.success]
@@ -129,12 +130,16 @@ def _biped_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]
     for k, (t, guard, fx, _) in enumerate(walk.contacts, start=1):
         lines.append(f"| {k} | {t:.3f} | {guard} | {fx:.3f} |")
     if summary is not None:
+        cpu = f" on {summary.cpu}" if getattr(summary, "cpu", None) else ""
+        mine = ", ".join(f"{fx:.3f}" for _, _, fx, _ in walk.contacts[:3])
         lines += ["", f"MPC re-solves: {summary.solves} (median "
-                  f"{1e3 * (summary.solve_time_median or 0):.0f} ms), solver failures "
+                  f"{1e3 * (summary.solve_time_median or 0):.0f} ms{cpu}), solver failures "
                   f"{summary.solver_failures}; foothold planning steps: "
                   f"{summary.planner_calls} (median "
-                  f"{1e3 * (summary.plan_time_median or 0):.0f} ms). Reference run: "
-                  "touchdowns at x = 0.789, 1.214 (1.0 m segment), 1.720 (top segment)."]
+                  f"{1e3 * (summary.plan_time_median or 0):.0f} ms). The reference code's "
+                  "run (the reference notes, not the paper) touches down at x = 0.789, "
+                  "1.214 (1.0 m segment) and 1.720 (top segment); this run's first three "
+                  f"touchdowns: x = {mine}."]
     return lines + [""]
 
 
@@ -198,9 +203,12 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
         raise FigureInputError("nothing to report: no Figure 3, robustness sweep or biped run")
     lines += ["## Layout", "",
               "* `<scenario>/<UTC time>-seed<N>/`: one `hmpc run` (`run.mcap`, `summary.json`, "
-              "`scenario.toml`).",
+              "`scenario.toml`); `<scenario>/report/trace.mcap`: the trajectory log of the "
+              "run this page draws (all a repository keeps of it: `hmpc replay` and `hmpc "
+              "plot` read it; `hmpc run scenarios/<scenario>.toml` runs it again).",
               "* `sweeps/<name>/`: one `hmpc sweep` (`runs/<run id>/`, `results.csv`); "
-              "`runs/<run id>/trace.mcap`: the trajectory log of a run this page draws.",
+              "`runs/<run id>/trace.mcap`: the trajectory log of a run this page draws "
+              "(`hmpc sweep SWEEP --show RUN_ID` prints its scenario to run it again).",
               "* `report/`: the figures and tables of this page.",
               *(["* `authors/`: the authors' Figure 3 data (their published trajectories)."]
                 if (results / "authors").is_dir() else []), "",

@@ -12,6 +12,7 @@ still walked through.
 from __future__ import annotations
 
 import math
+import statistics
 from pathlib import Path
 
 from hmpc_cli.analysis.tables import FigureInputError, parse_bool, read_table, resolve_table
@@ -24,20 +25,95 @@ __all__ = ["PUSH", "RATE", "push_cells", "push_section"]
 PUSH, RATE = "disturbance.magnitude", "mpc.rate_hz"
 
 
+#: the columns that make two rows of one cell the same run (the seed drew nothing)
+SAME_RUN = ("success", "final_error", "contacts", "solves", "solver_failures", "reason")
+
+
 def push_cells(rows: list[dict], where: str) -> list[Cell]:
-    """Cells (panel "", series: the rate in Hz, x: the push [N]) of the push sweep's runs."""
-    counts: dict[tuple[float, float], list[int]] = {}
+    """Cells (panel "", series: the rate in Hz, x: the push [N]) of the push sweep's runs.
+
+    A cell whose seeds all gave the same run (every :data:`SAME_RUN` column alike, e.g. no
+    push: the seed draws nothing) counts it once (:func:`repeated_cells` names them).
+    """
+    by: dict[tuple[float, float], list[dict]] = {}
     for i, row in enumerate(rows, start=2):
         try:
             key = (float(row[RATE]), float(row[PUSH]))
         except (KeyError, ValueError):
             raise FigureInputError(f"{where}:{i}: columns {RATE} and {PUSH} must be numbers "
                                    "(is this the push sweep's results.csv?)") from None
-        c = counts.setdefault(key, [0, 0])
-        c[0] += 1
-        c[1] += parse_bool(row.get("success"), f"{where}:{i}: column success")
-    return [Cell("", f"{rate:g}", push, n, k)
-            for (rate, push), (n, k) in sorted(counts.items())]
+        parse_bool(row.get("success"), f"{where}:{i}: column success")
+        by.setdefault(key, []).append(row)
+    out = []
+    for (rate, push), sel in sorted(by.items()):
+        runs = sel[:1] if _one_run(sel) else sel
+        out.append(Cell("", f"{rate:g}", push, len(runs),
+                        sum(parse_bool(r.get("success"), where) for r in runs)))
+    return out
+
+
+def _one_run(rows: list[dict]) -> bool:
+    """Whether a cell's rows (two or more) are one run repeated (see :data:`SAME_RUN`).
+
+    A table without final errors cannot tell: never.
+    """
+    first = tuple(rows[0].get(k) for k in SAME_RUN)
+    return len(rows) > 1 and rows[0].get("final_error") not in (None, "") and \
+        all(tuple(r.get(k) for k in SAME_RUN) == first for r in rows)
+
+
+def _distinct(rows: list[dict]) -> list[dict]:
+    """The rows with each cell that is one run repeated (:func:`_one_run`) kept once."""
+    by: dict[tuple[str, str], list[dict]] = {}
+    for row in rows:
+        by.setdefault((row[RATE], row[PUSH]), []).append(row)
+    return [r for sel in by.values() for r in (sel[:1] if _one_run(sel) else sel)]
+
+
+def _count(row: dict, key: str) -> int | None:
+    try:
+        return int(row[key])
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+def _outcomes(rows: list[dict], where: str) -> list[str]:
+    """How the distinct runs ended (:func:`_distinct`), in sentences.
+
+    Falls before the first touchdown, solver failures, and how far from the goal the
+    successes end (what a success asks).
+    """
+    runs = _distinct(rows)
+    ok = [r for r in runs if parse_bool(r.get("success"), where)]
+    failed = [r for r in runs if r not in ok]
+    out = []
+    if failed and all(_count(r, "contacts") is not None for r in failed):
+        early = {rate: sum(_count(r, "contacts") == 0 for r in failed if r[RATE] == rate)
+                 for rate in dict.fromkeys(r[RATE] for r in failed)}
+        out.append(f"{sum(early.values())} of the {len(failed)} failures fall before the first "
+                   "touchdown (no contact: in the first swing; "
+                   + ", ".join(f"{float(k):g} Hz {v} of "
+                               f"{sum(r[RATE] == k for r in failed)}" for k, v in early.items())
+                   + ").")
+    if all(_count(r, "solver_failures") is not None for r in runs):
+        hit = [r for r in runs if _count(r, "solver_failures")]
+        out.append(f"{len(hit)} of the {len(runs)} runs had a solver failure "
+                   f"({sum(r in ok for r in hit)} of the {len(ok)} successes).")
+    errors = sorted(float(r["final_error"]) for r in ok if r.get("final_error"))
+    if errors:
+        out.append("A success is the stance foot on the top segment at the run's end: the "
+                   f"successes end a median {statistics.median(errors):.2f} m from the goal "
+                   f"(at most {errors[-1]:.2f} m).")
+    return out
+
+
+def repeated_cells(rows: list[dict]) -> list[str]:
+    """``±P N at F Hz`` for each cell whose seeds all gave the same run."""
+    by: dict[tuple[float, float], list[dict]] = {}
+    for row in rows:
+        by.setdefault((float(row[RATE]), float(row[PUSH])), []).append(row)
+    return [f"±{push:g} N at {rate:g} Hz" for (rate, push), sel in sorted(
+        by.items(), key=lambda kv: (kv[0][1], kv[0][0])) if _one_run(sel)]
 
 
 def _boundary(cells: list[Cell]) -> list[str]:
@@ -126,6 +202,9 @@ def push_section(directory: Path, fig_dir: Path, base: Path, default_rate: str =
         raise FigureInputError(f"{table}: no finished run")
     _draw(cells, fig_dir / "biped_push")
     seeds = len({r.get("seed") for r in rows})
+    repeated = repeated_cells(rows)
+    once = ([f"Counted once: {', '.join(repeated)} (its {seeds} seeds gave one run, row for "
+             "row alike: no push, nothing for the seed to draw)."] if repeated else [])
     lines = ["## The biped under pushes that matter", "",
              f"![biped push study]({page_link(fig_dir / 'biped_push.png', base)})", "",
              f"{len(rows)} finished runs of `sweeps/biped_push.toml`, {seeds} seeds (each its "
@@ -133,8 +212,10 @@ def push_section(directory: Path, fig_dir: Path, base: Path, default_rate: str =
              "the Figure 4 stairs and 1.1x heavier robot; Wilson 95 % intervals. The "
              "paper gives no push size for its Figure 4; `scenarios/biped_stairs.toml` "
              "pushes with ±25 N (the reference notes' example); this robot's joints may "
-             f"give 3 kN m; {wall_text(rows)}.", "", *_table(cells), "",
-             "Where it starts to fail:", "",
+             "give 3 kN m, and its stance foot is pinned (no friction or unilateral contact "
+             "limit is modelled), so the pushes it withstands here are the model's, not a "
+             f"real foot's; {wall_text(rows)}.", "", *_table(cells), "", *once,
+             *_outcomes(rows, str(table)), "", "Where it starts to fail:", "",
              *_boundary(cells), "", "Trends (Cochran-Armitage):", ""]
     for rate in dict.fromkeys(c.series for c in cells):
         sel = [c for c in cells if c.series == rate]
@@ -150,8 +231,8 @@ def push_section(directory: Path, fig_dir: Path, base: Path, default_rate: str =
                          + ".")
     run = _boundary_run(rows, default_rate)
     if run is not None:
-        what = (f"Figure 4 at the boundary: the {default_rate} Hz walk through the largest "
-                f"push it survived (±{float(run[PUSH]):g} N, seed {run['seed']}, run "
+        what = (f"Figure 4 at the boundary: a {default_rate} Hz walk at the largest push "
+                f"size it walked through (±{float(run[PUSH]):g} N, seed {run['seed']}, run "
                 f"{run.get('run_id', '?')})")
         from hmpc_cli.analysis.tables import resolve_run_log
         from hmpc_cli.report.traces import keep_traces

@@ -333,13 +333,18 @@ def failure_lines(rows: list[dict], size: str) -> list[str]:
     good = [r for r, g in zip(rows, ok, strict=True) if g]
     has = set(rows[0])
     parts = [f"- Failed runs: {len(failed)} of {len(rows)}"]
-    if "final_error" in has:
+    refused = [r for r in failed if margins_refused(r)]
+    if refused:  # no controller ran: their distance and solver failures say nothing
+        failed = [r for r in failed if not margins_refused(r)]
+        parts[0] += (f" ({len(refused)} never ran: margins refused at set-up; the numbers "
+                     f"below are the {len(failed)} that ran)")
+    if "final_error" in has and failed:
         parts.append("they end " + _stat(failed, good, "final_error", "{:.2f} m",
                                          " from the goal"))
-    if "solver_failures" in has:
+    if "solver_failures" in has and failed:
         parts.append("with " + _stat(failed, good, "solver_failures", "{:g}",
                                      " solver failures per run"))
-    if "reason" in has:
+    if "reason" in has and failed:
         why = Counter(_NUMBER.sub("…", r.get("reason") or "?") for r in failed)
         parts.append("reasons: " + ", ".join(f"`{k}` ({v})" for k, v in why.most_common(4)))
     return ["; ".join(parts) + "."] + _draw_lines(rows, ok, size)
@@ -932,7 +937,11 @@ def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list
             lines += [f"### Each rate's tube margins vs one hand margin: `{spec.get('name')}` "
                       f"beside `{twin[0].get('name')}`", "",
                       "The same grid cells with the paper's mechanism, every MPC rate "
-                      "tightening its constraints by its own tube diam T(1/f), and with one "
+                      "tightening its constraints by the margins of its own tube (for a "
+                      "guard whose gap sees positions only, as the ball's guards do, the "
+                      "kinematic tube, the integral of diam T(s) over one period 1/f: "
+                      "hmpc's refinement of the paper's diam T(1/f), docs/tubes.md), and "
+                      "with one "
                       "hand margin at every rate; each cell: tube k/n | hand k/n (each the "
                       "first n seeds of its sweep, so the smaller count's seeds and "
                       "disturbance draws are shared; `refused`: the tube margins were "
