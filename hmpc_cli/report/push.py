@@ -35,6 +35,20 @@ def push_cells(rows: list[dict], where: str) -> list[Cell]:
     A cell whose seeds all gave the same run (every :data:`SAME_RUN` column alike, e.g. no
     push: the seed draws nothing) counts it once (:func:`repeated_cells` names them).
     """
+    out = []
+    for (rate, push), sel in sorted(_by_cell(rows, where).items()):
+        runs = sel[:1] if _one_run(sel) else sel
+        out.append(Cell("", f"{rate:g}", push, len(runs),
+                        sum(parse_bool(r.get("success"), where) for r in runs)))
+    return out
+
+
+def _by_cell(rows: list[dict], where: str) -> dict[tuple[float, float], list[dict]]:
+    """The rows by (rate [Hz], push [N]).
+
+    Raises:
+        FigureInputError: a rate or push that is not a number, a success that is no bool.
+    """
     by: dict[tuple[float, float], list[dict]] = {}
     for i, row in enumerate(rows, start=2):
         try:
@@ -44,12 +58,7 @@ def push_cells(rows: list[dict], where: str) -> list[Cell]:
                                    "(is this the push sweep's results.csv?)") from None
         parse_bool(row.get("success"), f"{where}:{i}: column success")
         by.setdefault(key, []).append(row)
-    out = []
-    for (rate, push), sel in sorted(by.items()):
-        runs = sel[:1] if _one_run(sel) else sel
-        out.append(Cell("", f"{rate:g}", push, len(runs),
-                        sum(parse_bool(r.get("success"), where) for r in runs)))
-    return out
+    return by
 
 
 def _one_run(rows: list[dict]) -> bool:
@@ -62,12 +71,10 @@ def _one_run(rows: list[dict]) -> bool:
         all(tuple(r.get(k) for k in SAME_RUN) == first for r in rows)
 
 
-def _distinct(rows: list[dict]) -> list[dict]:
+def _distinct(rows: list[dict], where: str) -> list[dict]:
     """The rows with each cell that is one run repeated (:func:`_one_run`) kept once."""
-    by: dict[tuple[str, str], list[dict]] = {}
-    for row in rows:
-        by.setdefault((row[RATE], row[PUSH]), []).append(row)
-    return [r for sel in by.values() for r in (sel[:1] if _one_run(sel) else sel)]
+    return [r for sel in _by_cell(rows, where).values()
+            for r in (sel[:1] if _one_run(sel) else sel)]
 
 
 def _count(row: dict, key: str) -> int | None:
@@ -83,9 +90,9 @@ def _outcomes(rows: list[dict], where: str) -> list[str]:
     Falls before the first touchdown, solver failures, and how far from the goal the
     successes end (what a success asks).
     """
-    runs = _distinct(rows)
+    runs = _distinct(rows, where)
     ok = [r for r in runs if parse_bool(r.get("success"), where)]
-    failed = [r for r in runs if r not in ok]
+    failed = [r for r in runs if not parse_bool(r.get("success"), where)]
     out = []
     if failed and all(_count(r, "contacts") is not None for r in failed):
         early = {rate: sum(_count(r, "contacts") == 0 for r in failed if r[RATE] == rate)
@@ -107,13 +114,10 @@ def _outcomes(rows: list[dict], where: str) -> list[str]:
     return out
 
 
-def repeated_cells(rows: list[dict]) -> list[str]:
+def repeated_cells(rows: list[dict], where: str = "results.csv") -> list[str]:
     """``±P N at F Hz`` for each cell whose seeds all gave the same run."""
-    by: dict[tuple[float, float], list[dict]] = {}
-    for row in rows:
-        by.setdefault((float(row[RATE]), float(row[PUSH])), []).append(row)
     return [f"±{push:g} N at {rate:g} Hz" for (rate, push), sel in sorted(
-        by.items(), key=lambda kv: (kv[0][1], kv[0][0])) if _one_run(sel)]
+        _by_cell(rows, where).items(), key=lambda kv: (kv[0][1], kv[0][0])) if _one_run(sel)]
 
 
 def _boundary(cells: list[Cell]) -> list[str]:
@@ -202,7 +206,7 @@ def push_section(directory: Path, fig_dir: Path, base: Path, default_rate: str =
         raise FigureInputError(f"{table}: no finished run")
     _draw(cells, fig_dir / "biped_push")
     seeds = len({r.get("seed") for r in rows})
-    repeated = repeated_cells(rows)
+    repeated = repeated_cells(rows, str(table))
     once = ([f"Counted once: {', '.join(repeated)} (its {seeds} seeds gave one run, row for "
              "row alike: no push, nothing for the seed to draw)."] if repeated else [])
     lines = ["## The biped under pushes that matter", "",
