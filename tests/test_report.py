@@ -181,6 +181,16 @@ def test_failure_lines_say_how_failed_runs_ended():
     assert lone == ["- Failed runs: 1 of 1; they end a median n/a from the goal (1 failed run "
                     "without a finite value); with a median 1 solver failures per run; "
                     "reasons: `d` (1)."]
+    # runs refused at set-up for their margins never ran: counted, left out of the numbers
+    refused = row(2, "false", float("nan"), 0, "ValueError: mpc.margins: the tube's margins "
+                  "at 5 Hz do not fit: ...", 5)
+    assert failure_lines(rows + [refused, refused], "disturbance.magnitude")[0] == (
+        "- Failed runs: 5 of 6 (2 never ran: margins refused at set-up; the numbers below are "
+        "the 3 that ran); they end a median 2.00 m from the goal (successful runs: 0.05 m; 1 "
+        "failed run without a finite value); with a median 7 solver failures per run "
+        "(successful runs: 0); reasons: `final error … > …` (2), `diverged: |x| … > …` (1).")
+    assert failure_lines([refused], "disturbance.magnitude")[0] == (
+        "- Failed runs: 1 of 1 (1 never ran: margins refused at set-up).")
 
 
 def test_the_wall_time_line_names_the_cpus_that_ran_the_runs():
@@ -353,6 +363,9 @@ def test_latency_study_sits_beside_its_paused_twin_and_the_reading_counts(tmp_pa
             "rate succeeds more often than the slowest with separated intervals, in 0 less "
             "often; 1 unresolved") in text
     assert "rates above 1/L = 20 Hz solve at most 20 times a second." in text
+    assert (" One solver at 0.05 s per solve runs at most 20 Hz: the 50 Hz cells solve at "
+            "most that often, so their differences are not those of their nominal rates.") \
+        in text  # the reading's rate line says which rates the pace holds
     for name in ("paper", "moved", "lat"):
         assert (tmp_path / "fig" / f"{name}.png").is_file()
         assert (tmp_path / "fig" / f"{name}_table.csv").is_file()

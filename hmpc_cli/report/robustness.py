@@ -336,8 +336,9 @@ def failure_lines(rows: list[dict], size: str) -> list[str]:
     refused = [r for r in failed if margins_refused(r)]
     if refused:  # no controller ran: their distance and solver failures say nothing
         failed = [r for r in failed if not margins_refused(r)]
-        parts[0] += (f" ({len(refused)} never ran: margins refused at set-up; the numbers "
-                     f"below are the {len(failed)} that ran)")
+        parts[0] += (f" ({len(refused)} never ran: margins refused at set-up"
+                     + (f"; the numbers below are the {len(failed)} that ran)" if failed
+                        else ")"))
     if "final_error" in has and failed:
         parts.append("they end " + _stat(failed, good, "final_error", "{:.2f} m",
                                          " from the goal"))
