@@ -110,7 +110,12 @@ def machine() -> str:
 
 def report(points, model: dict[str, float], scenarios: list[str], sets: list[str],
            candidates: bool = False) -> str:
-    """The Markdown report: the TOML, medians per iteration count beside the model."""
+    """The Markdown report: the TOML, medians per iteration count beside the model.
+
+    The constants are rounded to :data:`PLACES` decimals as printed, so the model column
+    is what ``sim.latency = "model"`` charges with the constants a scenario copies.
+    """
+    model = {k: round(v, PLACES) for k, v in model.items()}
     it = np.array([p[0] for p in points])
     wall = np.array([p[1] for p in points])
     sw = np.array([p[2] for p in points], dtype=bool)
@@ -167,9 +172,6 @@ def main() -> None:
     model = fit(points, args.switching)
     if args.candidates and OWN:
         model["planner"] = float(np.median(OWN))  # the planner's own time, median
-    # as printed (0.1 ms): the report's model column is then what sim.latency = "model"
-    # charges with the constants a scenario copies from it
-    model = {k: round(v, PLACES) for k, v in model.items()}
     text = report(points, model, scenarios, args.sets, args.candidates)
     print(text)
     if args.write:
