@@ -224,6 +224,25 @@ def test_a_comparison_shows_the_digits_that_make_its_verdict_visible():
         "a is lower than b (0 % vs 36 %; intervals separate)")
 
 
+def test_report_run_checks_the_runs_it_would_run_before_any(tmp_path, run_hmpc):
+    """hmpc report --run applies hmpc sweep's set-up checks to the runs still missing: a
+    cell the built system refuses stops it before any run and any page (exit 2)."""
+    sweep = tmp_path / "bad_study.toml"
+    sweep.write_text(f'name = "bad_study"\nscenario = "{BALL.as_posix()}"\nseeds = 1\n'
+                     '[grid]\n"mpc.input_margin" = [0.0, 60.0]\n"mpc.rate_hz" = [10, 20]\n')
+    res = tmp_path / "results"
+    proc = run_hmpc(["report", "--run", "--results", str(res), "--fig3", "", "--fig3-extra", "",
+                     "--fig3-reference", "", "--fig3-reference-extra", "", "--fig3-schedule",
+                     "", "--biped", "", "--biped-push", "", "--fig3-trials", "", "--realtime",
+                     "", "--robustness", str(sweep), "--workers", "1"], tmp_path)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error: ")]
+    assert lines == [f"error: {sweep}: cell mpc.input_margin=60.0, mpc.rate_hz={f}: "
+                     "mpc.input_margin: 60 per side exceeds half the input box of mode "
+                     "'outside' input 0 ([-100, 0]: half-width 50)" for f in (10, 20)]
+    assert not (res / "README.md").exists() and not list(res.glob("sweeps/*/runs/*"))
+
+
 @pytest.mark.slow
 def test_report_command_runs_a_tiny_study_then_writes_the_page(tmp_path, run_hmpc):
     sweep = tmp_path / "tiny_study.toml"

@@ -275,6 +275,7 @@ def _run_sweeps(plans: dict, dirs: dict[str, Path], workers: int | None) -> list
     from hmpc_cli.cli.common import is_quiet
     from hmpc_cli.cli.sweep import _execute, _print_cells
 
+    _check_missing(plans, dirs)
     lost: list[str] = []
     for key, plan in plans.items():
         outcome = _execute(plan, dirs[key], workers or os.cpu_count() or 1, None)
@@ -285,6 +286,28 @@ def _run_sweeps(plans: dict, dirs: dict[str, Path], workers: int | None) -> list
             typer.echo("interrupted: run the same command again to resume", err=True)
             raise typer.Exit(EXIT_INTERRUPTED)
     return lost
+
+
+def _check_missing(plans: dict, dirs: dict[str, Path]) -> None:
+    """``hmpc sweep``'s set-up checks of the runs still to run, before any runs.
+
+    Exit 2 with every problem; warnings (a margins file for another setting) on stderr.
+    """
+    from hmpc_cli.cli.sweep import cell_checks
+    from hmpc_cli.sweep.table import finished_runs
+
+    problems: list[str] = []
+    for key, plan in plans.items():
+        done = finished_runs(plan, dirs[key].resolve())
+        missing = [r for r in plan.selected if done[r.run_id] is None]
+        found, warnings = cell_checks(plan, missing) if missing else ([], [])
+        problems += found
+        for line in warnings:
+            typer.echo(f"warning: {line}", err=True)
+    if problems:
+        for line in problems:
+            typer.echo(f"error: {line}", err=True)
+        raise typer.Exit(EXIT_BAD_INPUT)
 
 
 def _authors_dir(path: Path | None) -> tuple[Path | None, str]:

@@ -160,8 +160,10 @@ def _checked_plan(sweep_file: Path, seeds: int | None):
     return plan
 
 
-def cell_checks(plan) -> tuple[list[str], list[str]]:
+def cell_checks(plan, runs=None) -> tuple[list[str], list[str]]:
     """The set-up checks of every distinct (system, MPC) cell of a sweep, attributed.
+
+    ``runs``: those of the plan to check (default: every selected one).
 
     Returns ``(problems, warnings)``: lines ``SWEEP: cell axis=label, ...: key.path:
     reason`` (the cell named by its grid axes).
@@ -180,7 +182,7 @@ def cell_checks(plan) -> tuple[list[str], list[str]]:
     out: list[str] = []
     noted: dict[str, list[str]] = {}  # reason -> the cells it holds for
     read: dict[str, list[str]] = {}  # the margins file and what it is compared with -> reasons
-    for run in plan.selected:
+    for run in plan.selected if runs is None else runs:
         sc = scenario_model().model_validate(tomllib.loads(run.toml))
         cell = ", ".join(f"{a.name}={v}" for a, v in zip(plan.axes, run.cell, strict=True)
                          ) or "the base scenario"
