@@ -143,6 +143,23 @@ def _biped_section(inputs: ReportInputs, fig_dir: Path, base: Path) -> list[str]
     return lines + [""]
 
 
+def _layout(results: Path) -> list[str]:
+    """The page's last section: what the results directory holds."""
+    return ["## Layout", "",
+            "* `<scenario>/<UTC time>-seed<N>/`: one `hmpc run` (`run.mcap`, `summary.json`, "
+            "`scenario.toml`); `<scenario>/report/trace.mcap`: the trajectory log of the "
+            "run this page draws (all a repository keeps of it: `hmpc replay` and `hmpc "
+            "plot` read it; `hmpc run scenarios/<scenario>.toml` runs it again).",
+            "* `sweeps/<name>/`: one `hmpc sweep` (`runs/<run id>/`, `results.csv`); "
+            "`runs/<run id>/trace.mcap`: the trajectory log of a run this page draws "
+            "(`hmpc sweep SWEEP --show RUN_ID` prints its scenario to run it again).",
+            "* `report/`: the figures and tables of this page.",
+            *(["* `authors/`: the authors' Figure 3 data (their published trajectories)."]
+              if (results / "authors").is_dir() else []), "",
+            "Open an MCAP log in Foxglove or Lichtblick, or read it in Python with "
+            "`hmpc_cli.log.rundata.read_run(path)` (arrays per topic).", ""]
+
+
 def _or_not_drawn(title: str, directory: Path, section, level: str = "##") -> list[str]:
     """A table-only section, or its title and why it is not drawn (no table yet)."""
     try:
@@ -201,19 +218,7 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
             and inputs.biped is None and inputs.biped_push is None \
             and inputs.fig3_trials is None and not inputs.realtime:
         raise FigureInputError("nothing to report: no Figure 3, robustness sweep or biped run")
-    lines += ["## Layout", "",
-              "* `<scenario>/<UTC time>-seed<N>/`: one `hmpc run` (`run.mcap`, `summary.json`, "
-              "`scenario.toml`); `<scenario>/report/trace.mcap`: the trajectory log of the "
-              "run this page draws (all a repository keeps of it: `hmpc replay` and `hmpc "
-              "plot` read it; `hmpc run scenarios/<scenario>.toml` runs it again).",
-              "* `sweeps/<name>/`: one `hmpc sweep` (`runs/<run id>/`, `results.csv`); "
-              "`runs/<run id>/trace.mcap`: the trajectory log of a run this page draws "
-              "(`hmpc sweep SWEEP --show RUN_ID` prints its scenario to run it again).",
-              "* `report/`: the figures and tables of this page.",
-              *(["* `authors/`: the authors' Figure 3 data (their published trajectories)."]
-                if (results / "authors").is_dir() else []), "",
-              "Open an MCAP log in Foxglove or Lichtblick, or read it in Python with "
-              "`hmpc_cli.log.rundata.read_run(path)` (arrays per topic).", ""]
+    lines += _layout(results)
     page = results / "README.md"
     from hmpc_cli.core.paths import write_atomic
 

@@ -197,8 +197,6 @@ def push_section(directory: Path, fig_dir: Path, base: Path, default_rate: str =
     Raises:
         FigureInputError: no such table, or not the push sweep's.
     """
-    from hmpc_cli.figures.fig4 import fig4
-
     table = resolve_table(directory)
     rows = read_table(table, [PUSH, RATE, "success"])
     cells = push_cells(rows, str(table))
@@ -235,20 +233,25 @@ def push_section(directory: Path, fig_dir: Path, base: Path, default_rate: str =
                          + ".")
     run = _boundary_run(rows, default_rate)
     if run is not None:
-        what = (f"Figure 4 at the boundary: a {default_rate} Hz walk at the largest push "
-                f"size it walked through (±{float(run[PUSH]):g} N, seed {run['seed']}, run "
-                f"{run.get('run_id', '?')})")
-        from hmpc_cli.analysis.tables import resolve_run_log
-        from hmpc_cli.report.traces import keep_traces
-
-        keep_traces([table.parent / Path(run["log"])])
-        log = resolve_run_log(table.parent / Path(run["log"]))
-        if not log.is_file():
-            lines += ["", f"{what}: its log is not here (`hmpc sweep sweeps/biped_push.toml` "
-                      "writes it), so it is not drawn."]
-        else:
-            walk = fig4(log, fig_dir / "fig4_push", "pdf,png")
-            lines += ["", f"{what}; F_x to the run's end ({walk.t[-1]:.2f} s):", "",
-                      f"![Figure 4 at ±{float(run[PUSH]):g} N]"
-                      f"({page_link(fig_dir / 'fig4_push' / 'fig4.png', base)})"]
+        lines += _boundary_walk(run, table, default_rate, fig_dir, base)
     return lines + [""]
+
+
+def _boundary_walk(run: dict, table: Path, rate: str, fig_dir: Path, base: Path) -> list[str]:
+    """Figure 4 drawn again from the boundary run's log (or why it is not drawn)."""
+    from hmpc_cli.analysis.tables import resolve_run_log
+    from hmpc_cli.figures.fig4 import fig4
+    from hmpc_cli.report.traces import keep_traces
+
+    what = (f"Figure 4 at the boundary: a {rate} Hz walk at the largest push size it walked "
+            f"through (±{float(run[PUSH]):g} N, seed {run['seed']}, run "
+            f"{run.get('run_id', '?')})")
+    keep_traces([table.parent / Path(run["log"])])
+    log = resolve_run_log(table.parent / Path(run["log"]))
+    if not log.is_file():
+        return ["", f"{what}: its log is not here (`hmpc sweep sweeps/biped_push.toml` "
+                "writes it), so it is not drawn."]
+    walk = fig4(log, fig_dir / "fig4_push", "pdf,png")
+    return ["", f"{what}; F_x to the run's end ({walk.t[-1]:.2f} s):", "",
+            f"![Figure 4 at ±{float(run[PUSH]):g} N]"
+            f"({page_link(fig_dir / 'fig4_push' / 'fig4.png', base)})"]

@@ -904,6 +904,21 @@ def _solver_pace(latency: object) -> str:
             "second.")
 
 
+def _tube_vs_hand(spec: dict, hand: dict, pairs: list[tuple]) -> list[str]:
+    """A tube-margins study's cells beside its hand-margin twin's (``sweep.toml``s)."""
+    return [f"### Each rate's tube margins vs one hand margin: `{spec.get('name')}` beside "
+            f"`{hand.get('name')}`", "",
+            "The same grid cells with the paper's mechanism, every MPC rate tightening its "
+            "constraints by the margins of its own tube (for a guard whose gap sees positions "
+            "only, as the ball's guards do, the kinematic tube, the integral of diam T(s) "
+            "over one period 1/f: hmpc's refinement of the paper's diam T(1/f), "
+            "docs/tubes.md), and with one hand margin at every rate; each cell: tube k/n | "
+            "hand k/n (each the first n seeds of its sweep, so the smaller count's seeds and "
+            "disturbance draws are shared; `refused`: the tube margins were refused at "
+            "set-up, no run ran).", "", *side_by_side(pairs), "",
+            *[_margins_line(c, h) for c, h in pairs if separated(c, h) or not c.ran], ""]
+
+
 def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list[str]:
     """The page's robustness part: every study, the latency comparison, the reading."""
     lines = ["## Robustness study: success rate vs MPC rate", "",
@@ -935,21 +950,7 @@ def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list
         if twin is not None:
             pairs = twin_pairs(twin[1], cells)
             margins.append((spec, pairs))
-            lines += [f"### Each rate's tube margins vs one hand margin: `{spec.get('name')}` "
-                      f"beside `{twin[0].get('name')}`", "",
-                      "The same grid cells with the paper's mechanism, every MPC rate "
-                      "tightening its constraints by the margins of its own tube (for a "
-                      "guard whose gap sees positions only, as the ball's guards do, the "
-                      "kinematic tube, the integral of diam T(s) over one period 1/f: "
-                      "hmpc's refinement of the paper's diam T(1/f), docs/tubes.md), and "
-                      "with one "
-                      "hand margin at every rate; each cell: tube k/n | hand k/n (each the "
-                      "first n seeds of its sweep, so the smaller count's seeds and "
-                      "disturbance draws are shared; `refused`: the tube margins were "
-                      "refused at set-up, no run ran).", "",
-                      *side_by_side(pairs), "",
-                      *[_margins_line(c, h) for c, h in pairs
-                        if separated(c, h) or not c.ran], ""]
+            lines += _tube_vs_hand(spec, twin[0], pairs)
     latency: list[tuple[tuple[str, ...], list, list[tuple], object]] = []
     for spec, cells in results:
         lat = charged(spec)
