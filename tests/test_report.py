@@ -955,7 +955,11 @@ def test_a_grid_axis_whose_entries_would_be_pooled_is_refused_by_name():
 def test_the_model_latency_entry_says_what_it_charges(tmp_path):
     """The modelled latency's costs come from the runs' scenario (the sweep's [set] wins),
     and the page says they are the fitted solves' costs, not the controller's own."""
-    from hmpc_cli.report.realtime import _model_costs
+    from hmpc_cli.report.realtime import _model_costs as costs_of
+    from hmpc_cli.report.realtime import _sim_settings
+
+    def _model_costs(table, spec):
+        return costs_of(_sim_settings(table, spec))
 
     (tmp_path / "base_scenario.toml").write_text(
         '[sim]\nlatency_model = {"overhead" = 0.0, "per_iteration" = 0.0024, '

@@ -48,20 +48,32 @@ def _kind(label: str, entries: dict[str, dict]) -> str:
     return str(entries.get(label, {}).get("sim.latency", label))
 
 
-def _model_costs(table: Path, spec: dict) -> str:
-    """The runs' ``sim.latency_model`` in words ('' when the base scenario cannot say)."""
+def _sim_settings(table: Path, spec: dict) -> dict:
+    """The runs' ``[sim]`` table as the base scenario beside the table and ``[set]`` give it.
+
+    The sweep's ``[set]`` ``sim.*`` keys go over the base scenario's ({} when that cannot
+    be read).
+    """
     import tomllib
 
     try:
-        base = tomllib.loads((table.parent / "base_scenario.toml").read_text())
-        model = dict(base["sim"]["latency_model"])
+        sim = dict(tomllib.loads((table.parent / "base_scenario.toml").read_text())["sim"])
     except (OSError, KeyError, TypeError, ValueError, tomllib.TOMLDecodeError):
-        return ""
-    model |= {k.removeprefix("sim.latency_model."): v for k, v in (spec.get("set") or {}).items()
-              if k.startswith("sim.latency_model.")}
+        sim = {}
+    for key, value in (spec.get("set") or {}).items():
+        if not key.startswith("sim."):
+            continue
+        head, _, rest = key.removeprefix("sim.").partition(".")
+        sim[head] = {**dict(sim.get(head) or {}), rest: value} if rest else value
+    return sim
+
+
+def _model_costs(sim: dict) -> str:
+    """The runs' ``sim.latency_model`` in words ('' when the settings cannot say)."""
     try:
-        ms = {k: 1e3 * float(v) for k, v in model.items() if v is not None}
-    except (TypeError, ValueError):
+        ms = {k: 1e3 * float(v) for k, v in dict(sim["latency_model"]).items()
+              if v is not None}
+    except (KeyError, TypeError, ValueError):
         return ""
     switching = (f" ({ms['per_switching_iteration']:g} ms with a switch left)"
                  if "per_switching_iteration" in ms else "")
@@ -89,45 +101,36 @@ def _ms(rows: list[dict], key: str, how) -> str:
 KEEPS_UP = 0.95
 
 
-def _solves(rows: list[dict], lat: str, ctrl: str, table: Path) -> list[int]:
-    """The MPC solves of a cell's successful runs (each flew the scenario's whole duration).
+def _count(text: str, where: str) -> int:
+    """A table cell that holds a count.
 
     Raises:
-        FigureInputError: a successful run's ``solves`` is not a count.
+        FigureInputError: it does not (``where`` names the cell).
     """
-    out = []
-    for line, r in enumerate(rows, start=2):
-        if r["latency"] == lat and r["controller"] == ctrl and \
-                parse_bool(r["success"], f"{table}:{line}: success"):
-            try:
-                out.append(int(r["solves"]))
-            except (TypeError, ValueError):
-                raise FigureInputError(f"{table}:{line}: solves: expected a count, got "
-                                       f"{r['solves']!r}") from None
-    return out
-
-
-def _duration(table: Path, spec: dict) -> float | None:
-    """The runs' ``sim.duration`` [s]: the sweep's [set], else its base scenario's."""
-    import tomllib
-
     try:
-        set_ = spec.get("set") or {}
-        if "sim.duration" in set_:
-            return float(set_["sim.duration"])
-        base = tomllib.loads((table.parent / "base_scenario.toml").read_text())
-        return float(base["sim"]["duration"])
-    except (OSError, KeyError, TypeError, ValueError, AttributeError,
-            tomllib.TOMLDecodeError):
+        return int(text)
+    except (TypeError, ValueError):
+        raise FigureInputError(f"{where}: expected a count, got {text!r}") from None
+
+
+def _duration(sim: dict) -> float | None:
+    """The runs' ``sim.duration`` [s] (None: the settings cannot say)."""
+    try:
+        return float(sim["duration"])
+    except (KeyError, TypeError, ValueError):
         return None
 
 
-def _keep_up_lines(table: Path, rows: list[dict], lats: list[str], ctrls: list[str],
-                   entries: dict[str, dict], duration: float | None) -> list[str]:
-    """The solves each controller made per latency entry, against its time-paused twin."""
+def _keep_up_lines(solves: dict[tuple[str, str], list[int]], lats: list[str],
+                   ctrls: list[str], entries: dict[str, dict],
+                   duration: float | None) -> list[str]:
+    """The solves each controller made per latency entry, against its time-paused twin.
+
+    ``solves``: (latency, controller) -> the MPC solves of its successful runs (each flew
+    the scenario's whole duration).
+    """
     paused = next((lat for lat in lats if _kind(lat, entries) == "paused"), None)
-    med = {(lat, c): statistics.median(v) for lat in lats for c in ctrls
-           if (v := _solves(rows, lat, c, table))}
+    med = {key: statistics.median(v) for key, v in solves.items() if v}
     span = f"the whole {duration:g} s" if duration is not None else \
         "the scenario's whole duration"
     lines = ["", f"Does it keep up: MPC solves per successful run (median; a successful run "
@@ -179,9 +182,12 @@ def realtime_section(directory: Path) -> list[str]:
     lats = list(dict.fromkeys(r["latency"] for r in rows))
     ctrls = list(dict.fromkeys(r["controller"] for r in rows))
     ok: dict[tuple[str, str], list[bool]] = {}
+    solves: dict[tuple[str, str], list[int]] = {}
     for line, r in enumerate(rows, start=2):
-        ok.setdefault((r["latency"], r["controller"]), []).append(
-            parse_bool(r["success"], f"{table}:{line}: success"))
+        key = (r["latency"], r["controller"])
+        ok.setdefault(key, []).append(parse_bool(r["success"], f"{table}:{line}: success"))
+        if ok[key][-1]:
+            solves.setdefault(key, []).append(_count(r["solves"], f"{table}:{line}: solves"))
     if not ok:
         raise FigureInputError(f"{table}: no finished run")
     scenario = Path(str(spec.get("scenario", "?"))).name
@@ -193,13 +199,13 @@ def realtime_section(directory: Path) -> list[str]:
              f"{wall_text(rows)}). A plan reaches the plant its charged compute time after "
              "the state it was solved from; until then the previous plan is tracked. "
              "Latency:", ""]
-    costs = _model_costs(table, spec)
-    lines += [f"- `{lat}`: {_meaning(lat, entries, costs)}." for lat in lats]
+    sim = _sim_settings(table, spec)
+    lines += [f"- `{lat}`: {_meaning(lat, entries, _model_costs(sim))}." for lat in lats]
     lines += ["", "| controller | " + " | ".join(lats) + " |", "|---|" + "---|" * len(lats)]
     for c in ctrls:
         cells = [f"{sum(v)}/{len(v)}" if (v := ok.get((lat, c))) else "-" for lat in lats]
         lines.append(f"| {c} | " + " | ".join(cells) + " |")
-    lines += _keep_up_lines(table, rows, lats, ctrls, entries, _duration(table, spec))
+    lines += _keep_up_lines(solves, lats, ctrls, entries, _duration(sim))
     measured = [lat for lat in lats if _kind(lat, entries) == "measured"]
     if measured:
         lines += ["", "MPC solve times of the measured runs (per run: its median and p95 "
