@@ -91,8 +91,9 @@ def _outcomes(rows: list[dict], where: str) -> list[str]:
     successes end (what a success asks).
     """
     runs = _distinct(rows, where)
-    ok = [r for r in runs if parse_bool(r.get("success"), where)]
-    failed = [r for r in runs if not parse_bool(r.get("success"), where)]
+    good = [parse_bool(r.get("success"), where) for r in runs]
+    ok = [r for r, g in zip(runs, good, strict=True) if g]
+    failed = [r for r, g in zip(runs, good, strict=True) if not g]
     out = []
     if failed and all(_count(r, "contacts") is not None for r in failed):
         early = {rate: sum(_count(r, "contacts") == 0 for r in failed if r[RATE] == rate)
@@ -103,9 +104,9 @@ def _outcomes(rows: list[dict], where: str) -> list[str]:
                                f"{sum(r[RATE] == k for r in failed)}" for k, v in early.items())
                    + ").")
     if all(_count(r, "solver_failures") is not None for r in runs):
-        hit = [r for r in runs if _count(r, "solver_failures")]
+        hit = [g for r, g in zip(runs, good, strict=True) if _count(r, "solver_failures")]
         out.append(f"{len(hit)} of the {len(runs)} runs had a solver failure "
-                   f"({sum(r in ok for r in hit)} of the {len(ok)} successes).")
+                   f"({sum(hit)} of the {len(ok)} successes).")
     errors = sorted(float(r["final_error"]) for r in ok if r.get("final_error"))
     if errors:
         out.append("A success is the stance foot on the top segment at the run's end: the "
