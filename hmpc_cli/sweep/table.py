@@ -44,15 +44,14 @@ def made_otherwise(out: Path, runs) -> list[str]:
     ids = []
     for run in runs:
         d = out / "runs" / run.run_id
-        if finished_in(d, run.toml) is not None:
-            continue
         try:
             stored = (d / "scenario.toml").read_text(encoding="utf-8")
             summary = json.loads((d / "summary.json").read_text())
         except (OSError, ValueError):
             continue
-        if isinstance(summary, dict) and not is_interrupted(summary) and log_done(d) and \
-                (not same_scenario(stored, run.toml) or margins_changed(d, stored)):
+        if isinstance(summary, dict) and not is_interrupted(summary) and \
+                (not same_scenario(stored, run.toml) or margins_changed(d, stored)) and \
+                log_done(d):
             ids.append(run.run_id)
     return ids
 
