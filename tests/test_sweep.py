@@ -448,6 +448,35 @@ def test_a_run_of_an_older_hmpc_stays_finished_unless_a_value_changed(tmp_path):
     assert finished_in(run, text) is None
 
 
+def test_an_interrupted_seeds_selection_counts_only_its_own_finished_runs(tmp_path,
+                                                                           monkeypatch):
+    """``--seeds 1`` stopped before its runs finish: 0 of its runs are done, though the
+    table holds the other seeds' finished rows (it said "2 of 2 runs done")."""
+    from conftest import write_finished_log
+
+    from hmpc_cli.sweep import execute
+    from hmpc_cli.sweep.plan import first_seeds
+
+    path = write_sweep(tmp_path, 'name = "part"\nscenario = "{scenario}"\nseeds = [0, 1]\n'
+                       '[grid]\n"mpc.rate_hz" = [20, 10]\n')
+    plan = first_seeds(plan_sweep(path), 1)
+    out = tmp_path / "out"
+    for run in (r for r in plan.runs if r not in plan.selected):  # seed 1's runs finished
+        d = out / "runs" / run.run_id
+        d.mkdir(parents=True)
+        (d / "scenario.toml").write_text(run.toml, encoding="utf-8")
+        (d / "summary.json").write_text(json.dumps({"success": True, "reason": ""}))
+        write_finished_log(d)
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(execute, "run_one", stopped)
+    outcome = execute.execute_sweep(plan, out)
+    assert (outcome.interrupted, outcome.done, outcome.total) == (True, 0, 2)
+    assert len(table(out)) == 2  # the table keeps the other seed's rows
+
+
 def test_results_rows_are_in_grid_order_not_completion_order(tmp_path):
     from conftest import write_finished_log
 
@@ -465,7 +494,7 @@ def test_results_rows_are_in_grid_order_not_completion_order(tmp_path):
         (d / "summary.json").write_text(json.dumps({"success": True, "reason": ""}))
         write_finished_log(d)
         time.sleep(0.001)
-    assert write_results(plan, out) == 12
+    assert len(write_results(plan, out)) == 12
     rows = table(out)
     assert [(r["mpc.rate_hz"], r["case"], r["seed"]) for r in rows] == [
         (rate, case, seed) for rate in ("20", "10") for case in ("b", "a")

@@ -71,7 +71,8 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
     ``on_start(total, skipped, successes_skipped, replaced)`` and ``on_done(run, summary)``
     report progress; ``replaced``: the ids of the pending runs whose directory holds a run
     finished with another scenario (run again, its files replaced). Ctrl-C stops cleanly
-    (``Outcome.interrupted``); results.csv is always rewritten (``Outcome.done`` rows).
+    (``Outcome.interrupted``); results.csv is always rewritten (``Outcome.done``: the
+    selected runs it holds, a ``--seeds`` selection's only).
     ``lost`` lists runs whose worker failed or whose results did not arrive from Dask (not
     recorded, retried on resume). Every run's log records its provenance
     (:func:`run_provenance`, this process's command line).
@@ -113,7 +114,8 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
         res.interrupted = True
         res.signum = signals.as_interrupted(exc).signum
     finally:
-        res.done = write_results(plan, out)
+        tabled = set(write_results(plan, out))
+        res.done = sum(r.run_id in tabled for r in selected)
     return res
 
 

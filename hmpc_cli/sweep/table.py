@@ -254,11 +254,11 @@ def result_rows(plan, out: Path) -> list[dict[str, str]]:
     return rows
 
 
-def write_results(plan, out: Path) -> int:
+def write_results(plan, out: Path) -> list[str]:
     """Rewrites ``<out>/results.csv`` (:func:`result_rows`) and ``<out>/base_scenario.toml``.
 
     Returns:
-        The table's rows.
+        The run ids of the table's rows (every seed's, not only ``--seeds``'s).
     """
     buf, rows = io.StringIO(), result_rows(plan, out)
     writer = csv.DictWriter(buf, plan.columns, lineterminator="\n")
@@ -271,7 +271,7 @@ def write_results(plan, out: Path) -> int:
         write_atomic(out / BASE_SCENARIO, plan.base_toml)
     else:  # no base to record: a sidecar of an earlier plan would vouch for these rows
         (out / BASE_SCENARIO).unlink(missing_ok=True)
-    return len(rows)
+    return [row["run_id"] for row in rows]
 
 
 def toml_value(v: Any) -> str:
