@@ -308,6 +308,38 @@ def test_bit_flip_inside_a_chunk(ball, ball_log, tmp_path) -> None:
         "chunks left out: chunk 1 (t = ")
 
 
+def test_other_commands_name_the_damage_that_lost_what_they_need(ball, tmp_path) -> None:
+    """A log whose first chunk (/run/info, the first solves) is damaged: ``plot fig2`` and
+    ``tube --runs`` say the log is damaged beside what they miss (they said "the log names
+    no system" and "not a run of this scenario's system"); a missing ``--runs``/``--states``
+    log is named by its option, not called damaged."""
+    from mcap.reader import make_reader
+
+    data = bytearray((ball / "run.mcap").read_bytes())
+    with open(ball / "run.mcap", "rb") as f:
+        first = make_reader(f).get_summary().chunk_indexes[0]
+    data[first.chunk_start_offset + first.chunk_length // 2] ^= 0x10
+    path = tmp_path / "flipped.mcap"
+    path.write_bytes(bytes(data))
+    damage = "(damaged log: 1 of "
+    fig2 = CliRunner().invoke(app, ["plot", "fig2", str(path), "--out", str(tmp_path / "f")])
+    assert fig2.exit_code == 2 and "Traceback" not in fig2.output
+    assert f"error: {path}: the log names no system {damage}" in fig2.output, fig2.output
+    scenario = str(SCENARIOS / "ball_disturbed.toml")
+    for option, log, says in (
+            ("--runs", path, f"error: --runs {path}: not a run of this scenario's system "
+                             f"(its log names no system) {damage}"),
+            ("--runs", tmp_path / "nowhere.mcap", f"error: --runs {tmp_path}/nowhere.mcap: "
+                                                  "no such run log"),
+            ("--states", tmp_path / "nowhere.mcap", f"error: --states {tmp_path}/nowhere.mcap"
+                                                    ": no such run log")):
+        res = CliRunner().invoke(app, ["tube", scenario, option, str(log), "--samples", "10",
+                                       "--out", str(tmp_path / "t")])
+        assert res.exit_code == 2 and "Traceback" not in res.output, res.output
+        assert says in " ".join(res.output.split()), res.output
+    assert not (tmp_path / "f").exists() and not (tmp_path / "t").exists()
+
+
 def test_a_log_read_for_some_topics_is_the_whole_read_of_those(ball, tmp_path) -> None:
     """read_log(topics=...) keeps those topics' messages, as the whole read has them, and
     still CRC-checks every chunk; read_run(with_plans=False) is the whole read without the

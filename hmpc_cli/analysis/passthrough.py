@@ -143,10 +143,11 @@ def _crosses(solve) -> bool:
     return solve.plan.seg.size > 0 and int(solve.plan.seg.max()) >= 1
 
 
-def _pick(solves: list, solve: int | None, path: Path):
-    """(1-based index, message) of the chosen solve."""
+def _pick(run, solve: int | None, path: Path):
+    """(1-based index, message) of the chosen solve of ``run`` (a run log's arrays)."""
+    solves = run.solves
     if not solves:
-        raise PassThroughError(f"{path}: the log has no /mpc/solve message")
+        raise PassThroughError(run.lacks("the log has no /mpc/solve message"))
     if solve is not None:
         if not 1 <= solve <= len(solves):
             raise PassThroughError(f"--solve {solve} is out of range: the log has "
@@ -290,7 +291,7 @@ def _disc_max_gap(numeric, gi: int, centre: np.ndarray, plane, d: float):
     return float(gaps[k]), pts[k, [i, j]].copy()
 
 
-def _logged_system(system: dict, where: str) -> Any:
+def _logged_system(system: dict, where: str, note: str = "") -> Any:
     """Builds the registered system a logged ``[system]`` section names.
 
     Raises:
@@ -302,7 +303,7 @@ def _logged_system(system: dict, where: str) -> Any:
     from hmpc_cli.core.registry import PluginError, build_system, registry
 
     if not system or not isinstance(system.get("name"), str):
-        raise PassThroughError(f"{where}: the log names no system")
+        raise PassThroughError(f"{where}: the log names no system{note}")
     try:
         params = registry().system(system["name"]).params.model_validate(system)
         return build_system(params)
@@ -320,7 +321,7 @@ def _open(log_path: str | Path):
         PassThroughError: no such log, unreadable, plans thinned by ``sim.log_plan_stride``,
             or a system without a 2-D plane.
     """
-    from hmpc_cli.log.rundata import read_run, resolve_log
+    from hmpc_cli.log.rundata import damage_note, read_run, resolve_log
 
     try:
         path = resolve_log(Path(log_path))
@@ -328,7 +329,7 @@ def _open(log_path: str | Path):
         run.full_plans("the pass-through (its node step and guard-side node)")
     except ValueError as exc:
         raise PassThroughError(str(exc)) from None
-    system = _logged_system(run.system, str(path))
+    system = _logged_system(run.system, str(path), damage_note(run.damage, run.complete))
     if system.plane is None or len(system.plane) != 2:
         raise PassThroughError(f"{path}: system {system.name!r} has no 2-D drawing plane")
     plane = tuple(system.state_names.index(s) for s in system.plane)
@@ -356,7 +357,7 @@ def pass_through_geometry(log_path: str | Path, *, solve: int | None = None,
     import casadi as ca
 
     path, run, system, plane, scenario = _open(log_path)
-    index, msg = _pick(run.solves, solve, path)
+    index, msg = _pick(run, solve, path)
     where = f"{path}: solve {index}"
     t = _array(msg.plan.t, f"{where}: plan t", 1)
     x = _array(msg.plan.x, f"{where}: plan x", 2)

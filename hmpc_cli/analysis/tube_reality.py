@@ -49,6 +49,8 @@ class RecordedRun:
         events: guard event times (E,) [s].
         solves: adopted solves in time order: (t_j [s], t_plan (N,) [s] absolute,
             x_plan (N, n), seg_plan (N,)).
+        damaged: for messages, the damage or cut that may have lost part of the log
+            (:func:`hmpc_cli.log.rundata.damage_note`; '' if intact).
     """
 
     name: str
@@ -57,6 +59,7 @@ class RecordedRun:
     x: np.ndarray
     events: np.ndarray
     solves: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]]
+    damaged: str = ""
 
 
 @dataclass(frozen=True)
@@ -150,17 +153,18 @@ def read_run(path: Path) -> RecordedRun:
             from a plan interpolated over the missing nodes would count the interpolation's
             error as the plant's), or without states or adopted solves.
     """
-    from hmpc_cli.log.rundata import read_run as read_log_arrays
+    from hmpc_cli.log.rundata import damage_note, read_run as read_log_arrays
 
     run = read_log_arrays(path)
     run.full_plans("tube vs reality (the plan at every logged state)")
     if not run.t.size:
-        raise ValueError(f"{run.path}: no /sim/state")
+        raise ValueError(run.lacks("no /sim/state"))
     solves = [(s.t, s.plan.t, np.atleast_2d(s.plan.x), s.plan.seg) for s in run.adopted()]
     if not solves:
-        raise ValueError(f"{run.path}: no adopted /mpc/solve")
+        raise ValueError(run.lacks("no adopted /mpc/solve"))
     return RecordedRun(run.name, run.system, run.t, run.x, np.array([e.t for e in run.events]),
-                       sorted(solves, key=lambda s: s[0]))
+                       sorted(solves, key=lambda s: s[0]),
+                       damage_note(run.damage, run.complete))
 
 
 def _node(t_plan: np.ndarray, x_plan: np.ndarray, seg_plan: np.ndarray, t: float,

@@ -47,6 +47,22 @@ def _system(scenario: Path, sc):
     return system
 
 
+class _OptionError(ValueError):
+    """A bad ``--states``/``--runs``/``--pad`` input: the message names the option."""
+
+
+def _blamed(scenario: Path, exc: Exception) -> str:
+    """The error line of a failed analysis: an option's own, else the scenario's."""
+    return str(exc) if isinstance(exc, _OptionError) else f"{scenario}: {exc}"
+
+
+def _check_pad(pad: float | None) -> None:
+    """Exits 2 when --pad is not a finite number >= 0."""
+    if pad is not None and not (math.isfinite(pad) and pad >= 0):
+        _fail([f"--pad {pad:g}: must be a finite number >= 0 (a fraction of each "
+               "coordinate's width per side, e.g. 0.1)"])
+
+
 def _check_samples(samples: int) -> None:
     """Exits 2 when --samples asks for more than the sampling limit (with its cost)."""
     from hmpc_cli.tube.sampling import samples_problem
@@ -67,13 +83,16 @@ def _states_of(log: Path, n: int) -> object:
     """The states a recorded run visited (K, n), from its /sim/state topic.
 
     Raises:
-        ValueError: the log cannot be read or has no state of dimension n.
+        _OptionError: the log cannot be read or has no state of dimension n.
     """
     from hmpc_cli.log.rundata import read_run
 
-    run = read_run(log)
+    try:
+        run = read_run(log)
+    except ValueError as exc:  # its message starts with the log's path
+        raise _OptionError(f"--states {exc}") from None
     if not run.t.size or run.x.shape[1] != n:
-        raise ValueError(f"{run.path}: no /sim/state state of dimension {n}")
+        raise _OptionError(f"--states {run.lacks(f'no /sim/state state of dimension {n}')}")
     return run.x
 
 
@@ -238,8 +257,8 @@ def tube_command(
     samples: Annotated[int, typer.Option(
         "--samples", min=1, help="uniform samples per estimated constant")] = 20000,
     pad: Annotated[float | None, typer.Option(
-        "--pad", min=0.0, help="region padding per side, x each coordinate's width "
-        "(default 1; with --states 0.1)")] = None,
+        "--pad", help="region padding per side, x each coordinate's width "
+        "(default 1; with --states or --runs 0.1)")] = None,
     states: Annotated[Path | None, typer.Option(
         "--states", help="a run log (run.mcap or its directory): the region spans the "
         "states it visited instead of x0 and the goal")] = None,
@@ -261,6 +280,7 @@ def tube_command(
     from hmpc_cli.tube import TubeError
 
     _check_samples(samples)  # before anything is read or built
+    _check_pad(pad)
     try:
         sc, _ = load_scenario(scenario, set_ or [], check_margins=False)
         parse_formats(formats)
@@ -276,7 +296,7 @@ def tube_command(
     except TubeError as exc:
         _fail([f"{scenario}: tube: {exc.quantity}: {exc.reason} (no trivial tube)"])
     except (PluginError, ValueError) as exc:
-        _fail([f"{scenario}: {exc}"])
+        _fail([_blamed(scenario, exc)])
     from hmpc_cli.cli.common import is_quiet
 
     quiet = is_quiet()  # -q: the warnings (stderr), errors and the written paths only
@@ -337,28 +357,29 @@ def _read_runs(runs: list[Path], params) -> list:
     """The runs read by :func:`hmpc_cli.analysis.tube_reality.read_run`, each of ``params``' system.
 
     Raises:
-        ValueError: a run cannot be read or is of another system.
+        _OptionError: a run cannot be read or is of another system.
     """
     from pydantic import ValidationError
 
     from hmpc_cli.core.registry import PluginError, registry
     from hmpc_cli.analysis.tube_reality import read_run
 
-    from hmpc_cli.log.damage import reading
-
     out = []
     for path in runs:
-        with reading(path):  # a damaged or foreign log: DamagedLogError, a ValueError
+        try:  # missing, unreadable or damaged (read_run guards the content it decodes)
             run = read_run(path)
+        except ValueError as exc:  # its message starts with the log's path
+            raise _OptionError(f"--runs {exc}") from None
         try:
             logged = registry().system(run.system.get("name", "")).params.model_validate(
                 run.system)
         except (PluginError, ValidationError):
             logged = None
         if logged != params:
-            raise ValueError(f"--runs {path}: not a run of this scenario's system "
-                             f"(logged {run.system.get('name', 'none')!s} with other "
-                             "parameters or none)")
+            what = (f"logged {run.system['name']!s} with other parameters" if logged
+                    or run.system.get("name") else "its log names no system")
+            raise _OptionError(f"--runs {path}: not a run of this scenario's system ({what})"
+                               f"{run.damaged}")
         out.append(run)
     return out
 

@@ -127,6 +127,10 @@ class RunData:
         """The scenario's ``sim.log_plan_stride`` (:func:`plan_stride`)."""
         return plan_stride(self.scenario)
 
+    def lacks(self, what: str) -> str:
+        """``<path>: <what>``, naming the damage or the cut that may have lost it (one line)."""
+        return f"{self.path}: {what}{damage_note(self.damage, self.complete)}"
+
     def full_plans(self, use: str) -> None:
         """Raises ValueError when the logged plans are thinned: ``use`` needs every node.
 
@@ -260,6 +264,13 @@ def _names(info: dict, key: str, first: list, width: int) -> tuple[str, ...]:
     if first and isinstance(first[0], dict):
         return tuple(first[0])
     return tuple(f"{key[0]}{i}" for i in range(width))
+
+
+def damage_note(damage: str, complete: bool) -> str:
+    """`` (damaged log: ...)`` or `` (the log is cut short)`` for a message ('' if intact)."""
+    if damage:
+        return f" (damaged log: {damage})"
+    return "" if complete else " (the log is cut short)"
 
 
 #: the topics :func:`read_run` reads without the plans (``with_plans=False``): a trajectory
