@@ -248,6 +248,10 @@ def bad_cases(table: Path, tmp: Path) -> dict[str, list[str]]:
         "unknown panel": ["fig3", str(table), "--panels", "A,Z"],
         "unknown format": ["fig3", str(table), "--formats", "pdf,jpg"],
         "bad view": ["fig3", str(table), "--view", "0,1,2"],
+        "view not finite": ["fig3", str(table), "--view", "0,nan,0,1"],
+        "view empty": ["fig3", str(table), "--view", "1,0,0,1"],
+        "another figure's option": ["fig2", str(table), "--view", "0,1,0,1"],
+        "fig4's option for fig3": ["fig3", str(table), "--every", "0.2"],
         "unknown trace axis": ["fig3", str(table), "--trace-axis", "wind"],
     }
 
@@ -263,6 +267,9 @@ def test_bad_input_exits_2_and_writes_nothing(table, tmp_path):
         assert len(err) == 1 and err[0].startswith("error: "), f"{name}: {res.stderr!r}"
         assert not out.exists(), name
         assert sorted(p.name for p in table.parent.iterdir()) == before, name
+    res = CliRunner().invoke(app, ["plot", "robustness", str(table), "--no-gif"])
+    assert res.stderr == ("error: --no-gif is fig4's option, not robustness's (it would be "
+                          "ignored): leave it out\n")
     # Without --out the table's own directory stays untouched as well.
     res = CliRunner().invoke(app, ["plot", "fig9", str(table)])
     assert res.exit_code == 2 and not (table.parent / "fig3.png").exists()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -189,11 +190,14 @@ def plot_command(
         "--series-axis", help="robustness: column with one line per value")
     ] = "replanning.policy",
     trace_axis: Annotated[str, typer.Option(
-        "--trace-axis", help="table column naming the trajectories of a panel")] = "disturbance",
+        "--trace-axis", help="fig3: table column naming the trajectories of a panel")
+    ] = "disturbance",
     nominal: Annotated[str, typer.Option(
-        "--nominal", help="trace-axis value of the undisturbed run (orange)")] = "nominal",
+        "--nominal", help="fig3: trace-axis value of the undisturbed run (orange)")
+    ] = "nominal",
     panels: Annotated[str | None, typer.Option(
-        "--panels", help='panels in order, e.g. "10 Hz fixed,20 Hz fixed" (default: all)')] = None,
+        "--panels", help='fig3: panels in order, e.g. "10 Hz fixed,20 Hz fixed" (default: '
+        'all)')] = None,
     width: Annotated[float | None, typer.Option(
         "--width", help="figure width (in; fig3, fig4 3.5 = one column; fig2, robustness "
         "7.16 = text width)")] = None,
@@ -201,9 +205,10 @@ def plot_command(
         "--height", help="figure height (in; fig3 2.1, fig4 4.2, fig2 2.8, robustness 1.9)")
     ] = None,
     view: Annotated[str | None, typer.Option(
-        "--view", help='axis limits "x0,x1,y0,y1" (default: from the data)')] = None,
+        "--view", help='fig3: axis limits "x0,x1,y0,y1" [m] (default: from the data)')
+    ] = None,
     every: Annotated[float, typer.Option(
-        "--every", help="fig4: time between stick-figure snapshots [s]")] = 0.1,
+        "--every", help="fig4: time between stick-figure snapshots (s)")] = 0.1,
     gif: Annotated[bool, typer.Option(
         "--gif/--no-gif", help="fig4: also write the animation walk.gif")] = True,
     solve: Annotated[int | None, typer.Option(
@@ -244,6 +249,7 @@ def _dispatch(figure: str, table: Path, out: Path | None, formats: str, o: dict)
 
     if figure not in FIGURES:
         _fail(f"unknown figure {figure!r} (choose from {', '.join(FIGURES)})")
+    _refuse_other_figures_options(figure, o)
     height = o["height"]
     # fig3 and fig4 fit one IEEE column; fig2 and the robustness curves span the text width
     width = o["width"] if o["width"] is not None else \
@@ -265,6 +271,27 @@ def _dispatch(figure: str, table: Path, out: Path | None, formats: str, o: dict)
         "height": height or 2.1, "view": _limits(o["view"])})
 
 
+#: the options only some figures read: option -> (its flag, its default, those figures)
+FIGURE_OPTIONS = {
+    "panel_axis": ("--panel-axis", None, ("fig3", "robustness")),
+    "x_axis": ("--x-axis", "mpc.rate_hz", ("robustness",)),
+    "series_axis": ("--series-axis", "replanning.policy", ("robustness",)),
+    "trace_axis": ("--trace-axis", "disturbance", ("fig3",)),
+    "nominal": ("--nominal", "nominal", ("fig3",)),
+    "panels": ("--panels", None, ("fig3",)), "view": ("--view", None, ("fig3",)),
+    "every": ("--every", 0.1, ("fig4",)), "gif": ("--no-gif", True, ("fig4",)),
+    "solve": ("--solve", None, ("fig2",)), "radius": ("--radius", None, ("fig2",)),
+    "from_tube": ("--from-tube", False, ("fig2",))}
+
+
+def _refuse_other_figures_options(figure: str, o: dict) -> None:
+    """Exits 2 when an option another figure reads is given (it would be ignored)."""
+    for key, (flag, default, figures) in FIGURE_OPTIONS.items():
+        if figure not in figures and o[key] != default:
+            _fail(f"{flag} is {' and '.join(figures)}'s option, not {figure}'s (it would "
+                  "be ignored): leave it out")
+
+
 def _panels(panels: str | None) -> list[str] | None:
     """The --panels list (None: all); an empty list is bad input (exit 2)."""
     chosen = [p.strip() for p in panels.split(",") if p.strip()] if panels is not None else None
@@ -278,6 +305,11 @@ def _limits(view: str | None) -> list[float] | None:
     if view is None:
         return None
     try:
-        return [float(v) for v in view.split(",")]
+        limits = [float(v) for v in view.split(",")]
     except ValueError:
-        _fail(f"--view must be four numbers x0,x1,y0,y1, got {view!r}")
+        limits = []
+    if len(limits) != 4 or not all(map(math.isfinite, limits)) or not (
+            limits[0] < limits[1] and limits[2] < limits[3]):
+        _fail(f"--view must be four finite numbers x0,x1,y0,y1 with x0 < x1 and y0 < y1, "
+              f"got {view!r}")
+    return limits
