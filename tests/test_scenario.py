@@ -580,3 +580,37 @@ def test_a_disturbance_setting_its_kind_ignores_is_named():
         "'none' (trial picks a paper_fig3 sequence)"]
     for scenario in sorted(SCENARIOS.glob("*.toml")):  # the shipped ones set nothing idle
         assert inert_settings(scenario) == [], scenario
+        assert inert_settings(scenario, [], load_scenario(scenario)[0]) == [], scenario
+
+
+def test_a_setting_another_setting_switches_off_is_named(tmp_path):
+    """Given keys the run ignores because of another setting: the --set that gave them,
+    or the file; a key left at its default is not named."""
+    from hmpc_cli.run.scenario import inert_settings
+
+    def inert(sets, path=BALL):
+        return inert_settings(path, sets, load_scenario(path, sets)[0])
+
+    assert inert(["replanning.period=0.3", "replanning.contact_guards=['floor']"]) == [
+        '--set replanning.period=0.3: replanning.period: no effect with replanning.policy = '
+        '"once" (only "periodic" replans on a period)',
+        "--set replanning.contact_guards=['floor']: replanning.contact_guards: no effect with "
+        'replanning.policy = "once" (only "on_contact" replans at contacts)']
+    assert inert(["replanning.policy=periodic", "replanning.period=0.3"]) == []
+    assert inert(["sim.latency=0.02", "sim.latency_model.per_iteration=0.001"]) == [
+        "--set sim.latency_model.per_iteration=0.001: sim.latency_model: no effect with "
+        'sim.latency = 0.02 (only "model" charges its compute times)']
+    assert inert(["planner.min_cov=2.0", "planner.adapt_covariance=true"]) == [
+        "--set planner.adapt_covariance=true: planner.adapt_covariance: no effect with "
+        "planner.elites = 1 (the variance is refitted to two elites or more)",
+        "--set planner.min_cov=2.0: planner.min_cov: no effect with planner.elites = 1 or "
+        "adapt_covariance = false (the floor of a refitted variance)"]
+    assert inert(["planner.elites=4", "planner.adapt_covariance=true", "planner.min_cov=2.0"]
+                 ) == []
+    assert inert(['mpc.margins="tube"', "mpc.tube_margin=0.1"]) == [
+        '--set mpc.tube_margin=0.1: mpc.tube_margin: no effect with mpc.margins = "tube" '
+        "(its margins replace the hand-set ones)"]
+    own = tmp_path / "own.toml"
+    own.write_text('[system]\nname = "ball"\n[replanning]\nperiod = 0.3\n')
+    assert inert([], own) == [f'{own}: replanning.period: no effect with replanning.policy = '
+                              '"once" (only "periodic" replans on a period)']

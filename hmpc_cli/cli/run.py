@@ -82,7 +82,7 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
     except ScenarioError as exc:
         _err(exc.lines)
         raise typer.Exit(EXIT_BAD_INPUT) from None
-    for line in [*inert_settings(scenario, sets), *attribute_to_sets(
+    for line in [*inert_settings(scenario, sets, sc), *attribute_to_sets(
             [f"{scenario}: {w}" for w in margins_file_warnings(sc)], str(scenario), sets,
             True)]:
         typer.echo(f"warning: {line}", err=True)

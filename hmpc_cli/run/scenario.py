@@ -603,17 +603,63 @@ def other_kind_of_file(data: dict, source: str, expected: str) -> list[str]:
     return []
 
 
-def inert_settings(path: str | Path, overrides: list[str] = ()) -> list[str]:
+def inert_settings(path: str | Path, overrides: list[str] = (),
+                   scenario: ScenarioBase | None = None) -> list[str]:
     """Settings the file or a ``--set`` gives that the run ignores (a valid scenario's).
 
+    The disturbance's keys its kind does not read and, with the validated ``scenario``,
+    the settings another setting of it switches off (:func:`_switched_off`; those of
+    :data:`SET_ONLY` only when a ``--set`` gives them).
     ``source: key: no effect ...`` lines, ``source`` the ``--set`` when one set the key.
     """
     from hmpc_cli.sim.disturbance import inert_keys
 
     data = apply_overrides(_read_toml(Path(path)), list(overrides), str(path))
     given = data.get("disturbance") if isinstance(data.get("disturbance"), dict) else {}
-    lines = [f"{path}: {line}" for line in inert_keys(given.get("kind", "none"), given)]
-    return attribute_to_sets(lines, str(path), list(overrides), True)
+    lines = attribute_to_sets([f"{path}: {line}" for line in inert_keys(
+        given.get("kind", "none"), given)], str(path), list(overrides), True)
+    if scenario is None:
+        return lines
+    keys = [(k, item) for item in overrides for k in _set_keys(item)]
+    for line in _switched_off(data, scenario):  # the last --set that gave the key, else the file
+        key = line.partition(": ")[0]
+        given_by = [item for k, item in keys
+                    if k == key or k.startswith(f"{key}.") or key.startswith(f"{k}.")]
+        if given_by:
+            lines.append(f"--set {given_by[-1]}: {line}")
+        elif key not in SET_ONLY:
+            lines.append(f"{path}: {line}")
+    return lines
+
+
+#: switched-off settings named only when a ``--set`` gives them: a file may hold them for
+#: its runs with another setting (``ball_realtime.toml``'s model for ``sim.latency = "model"``)
+SET_ONLY = frozenset({"sim.latency_model"})
+
+
+def _switched_off(data: dict, sc: ScenarioBase) -> list[str]:
+    """``key: no effect with ...`` for each setting ``data`` gives that ``sc`` switches off."""
+    policy, latency = sc.replanning.policy, sc.sim.latency
+    planner, mpc = sc.planner, sc.mpc
+    elites = getattr(planner, "elites", None)  # the CEM planner's (other planners: none)
+    rules = [  # (section, key, switched off, why)
+        ("replanning", "period", policy != "periodic",
+         f'replanning.policy = "{policy}" (only "periodic" replans on a period)'),
+        ("replanning", "contact_guards", policy != "on_contact",
+         f'replanning.policy = "{policy}" (only "on_contact" replans at contacts)'),
+        ("sim", "latency_model", latency != "model",
+         (f'sim.latency = "{latency}"' if isinstance(latency, str) else
+          f"sim.latency = {latency:g}") + ' (only "model" charges its compute times)'),
+        ("planner", "adapt_covariance", elites == 1,
+         "planner.elites = 1 (the variance is refitted to two elites or more)"),
+        ("planner", "min_cov", elites == 1 or getattr(planner, "adapt_covariance", True)
+         is False, "planner.elites = 1 or adapt_covariance = false (the floor of a "
+         "refitted variance)"),
+        *(("mpc", key, getattr(mpc, "margins", "hand") != "hand",
+           f'mpc.margins = "{getattr(mpc, "margins", "")}" (its margins replace the '
+           'hand-set ones)') for key in ("tube_margin", "input_margin"))]
+    return [f"{section}.{key}: no effect with {why}" for section, key, off, why in rules
+            if off and isinstance(data.get(section), dict) and key in data[section]]
 
 
 def _attribute_to_seed(lines: list[str], source: str, seed: int | None) -> list[str]:
