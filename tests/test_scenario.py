@@ -281,7 +281,8 @@ def test_bad_solver_options_no_traceback(work: Path) -> None:
 
 
 def test_unknown_contact_guard(work: Path) -> None:
-    reason = one_keyed(cli_bad(work, ["ball.toml", "--set", 'replanning.contact_guards=["x"]']),
+    reason = one_keyed(cli_bad(work, ["ball.toml", "--set", "replanning.policy=on_contact",
+                                      "--set", 'replanning.contact_guards=["x"]']),
                        '--set replanning.contact_guards=["x"]', "replanning.contact_guards")
     assert "'x'" in reason
 

@@ -52,7 +52,8 @@ class CEMSettings(PlannerSettings):
     init_mean: FiniteFloat = Field(0.0, description="initial mean of every knot (a system may "
                              "set its own default)")
     init_cov: FiniteFloat = Field(250.0, gt=0.0, description="initial variance of every knot")
-    adapt_covariance: StrictBool = Field(False, description="refit the variance to the elites")
+    adapt_covariance: StrictBool = Field(False, description="refit the variance to the elites "
+                                         "(with planner.elites >= 2)")
     min_cov: FiniteFloat = Field(1.0, gt=0.0, description="variance floor when adapting")
     rollout_rate_hz: BoundedInt = Field(60, gt=0, description="rollout integration rate [Hz]")
     warm_start: StrictBool = Field(False, description="start from the previous best, shifted")

@@ -55,7 +55,9 @@ class ScenarioBase(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     name: str = Field("scenario", pattern=r"^[A-Za-z0-9_.-]+$", max_length=100,
-                      description="run directory name: letters, digits, _ . - (not only dots)")
+                      description="run directory name: letters, digits, _ . - (not only "
+                      "dots); from a file, its default is the file's name without .toml "
+                      "(other characters as _)")
     description: str = ""
     seed: BoundedInt = Field(0, ge=0)
     plant: dict[str, Any] = Field(

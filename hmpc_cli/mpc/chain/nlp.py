@@ -81,7 +81,8 @@ class MPCSettings(MarginsSettings):
                                         "the chain transcription (any system)")
     rate_hz: BoundedInt = Field(10, gt=0, description="MPC re-solve rate [Hz]")
     nodes_per_second: BoundedInt = Field(60, gt=0, description="NLP node rate: node step = 1/this")
-    horizon: FiniteFloat = Field(3.0, gt=0.0, description="receding horizon [s]")
+    horizon: FiniteFloat = Field(3.0, gt=0.0, description="receding horizon [s]: a whole "
+                                 "number (>= 2) of node steps 1 / mpc.nodes_per_second")
     max_switches: BoundedInt = Field(10, ge=0, description="guard events the NLP chain can hold")
     integrator: Literal["rk4", "euler"] = "rk4"
     input_hold: Literal["foh", "zoh"] = Field(
