@@ -207,7 +207,8 @@ def test_refuses_a_directory_holding_a_run(tmp_path: Path, monkeypatch) -> None:
     assert res.exit_code == 2, res.output
     assert isinstance(res.exception, SystemExit)
     assert "Traceback" not in res.output
-    assert res.stderr.splitlines() == [f"error: {out}: already holds a run (choose another --out)"]
+    assert res.stderr.splitlines() == [
+        f"error: --out {out}: already holds a run (choose another --out)"]
     assert [p.name for p in out.iterdir()] == ["run.mcap"]
     assert mcap.read_bytes() == b"precious earlier run"
     assert mcap.stat().st_mtime_ns == stat.st_mtime_ns

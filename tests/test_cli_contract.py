@@ -100,7 +100,7 @@ def test_run_refuses_a_directory_that_holds_anything(tmp_path):
     (own / "scenario.toml").write_text(mine)
     proc = _hmpc(["run", "scenario.toml", "--out", ".", "-q"], own)
     assert proc.returncode == 2, proc.stderr
-    assert proc.stderr == ("error: .: is not empty (scenario.toml): a run writes run.mcap, "
+    assert proc.stderr == ("error: --out .: is not empty (scenario.toml): a run writes run.mcap, "
                            "scenario.toml and summary.json into a directory of its own "
                            "(choose a new or empty --out)\n")
     assert (own / "scenario.toml").read_text() == mine

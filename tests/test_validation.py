@@ -311,7 +311,7 @@ def test_out_is_checked_before_the_solvers_are_built(work: Path):
                         ("afile/sub", "cannot create it: afile is not a directory"),
                         ("y" * 300, "name too long")):
         lines = bad_run(work, ["run", ball, "--out", out])
-        assert len(lines) == 1 and lines[0].startswith(f"error: {out}: {reason}"), lines
+        assert len(lines) == 1 and lines[0].startswith(f"error: --out {out}: {reason}"), lines
 
 
 # -------------------------------------------- cross-field checks that need the built system

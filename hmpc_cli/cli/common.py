@@ -21,11 +21,21 @@ __all__ = ["EXIT_BAD_INPUT", "EXIT_INTERNAL", "VERBOSITY", "checked_output",
 #: -1 quiet, 0 default, 1 and more verbose; set by every command's -q/-v
 VERBOSITY = [0]
 
-_QUIET = Annotated[bool, typer.Option(
-    "--quiet", "-q", help="print only errors and the path of what was written (no "
-    "progress, no tables; replay writing nothing: the run's summary)")]
+#: -q's help per command that does not declare it (default: :data:`QUIET_WRITES`)
+QUIET_HELP = {
+    "replay_command": "print only errors and, with --export or --figures, the directory "
+                      "written; with neither, the run's summary alone",
+    "schema": "print only errors and the schema (the default too)"}
+QUIET_WRITES = ("print only errors and the path of what was written (no progress, no "
+                "tables)")
 _VERBOSE = Annotated[int, typer.Option(
     "--verbose", "-v", count=True, help="more detail on stderr (-vv: debug)")]
+
+
+def _quiet(command: str):
+    """The -q/--quiet option of ``command`` (a function's name) with its help."""
+    return Annotated[bool, typer.Option("--quiet", "-q",
+                                        help=QUIET_HELP.get(command, QUIET_WRITES))]
 
 
 def is_quiet() -> bool:
@@ -65,7 +75,7 @@ def with_verbosity(fn):
     own = set(sig.parameters)
     extra = [inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=default,
                                annotation=annotation)
-             for name, default, annotation in (("quiet", False, _QUIET),
+             for name, default, annotation in (("quiet", False, _quiet(fn.__name__)),
                                                ("verbose", 0, _VERBOSE))
              if name not in own]
 

@@ -27,7 +27,8 @@ def _err(lines: list[str]) -> None:
 def run_command(
     scenario: Annotated[Path, typer.Argument(help="scenario TOML file")],
     out: Annotated[Path | None, typer.Option(
-        "--out", help="run directory (default results/<scenario>/<time>-seed<N>)",
+        "--out", help="run directory (default results/<name>/<time>-seed<N>, name the "
+        "scenario's)",
         parser=path_option)] = None,
     set_: Annotated[list[str] | None, typer.Option(
         "--set", help="override a setting: key.path=value (repeatable)",
@@ -47,11 +48,10 @@ def run_command(
 ) -> None:
     """Run the layered controller in closed loop and log everything to MCAP.
 
-    SIGINT, SIGTERM and SIGHUP stop the run within one simulator step: the log is closed,
-    summary.json says ``interrupted (SIGTERM)``; exit code 128 + the signal number.
-    When stdout is not a terminal, the log's path is also printed whole on the last line;
-    with -q it is the only line printed on stdout.
-    """
+    SIGINT, SIGTERM and SIGHUP stop the run within one simulator step: the log is closed, summary.json says "interrupted (SIGTERM)", stderr names the partial log, and the exit code is 128 + the signal number.
+
+    When stdout is not a terminal, a finished run's log path is also printed whole on the last line; with -q it is the only line printed on stdout.
+    """  # noqa: E501 (Typer's help rewraps a paragraph; a line break would stay in it)
     from hmpc_cli.core.signals import as_interrupted, handle_signals
     from hmpc_cli.log.live import port_problem
 
@@ -95,7 +95,8 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
         from hmpc_cli.core.paths import EmptyPath
 
         shown = '""' if isinstance(out, EmptyPath) else out
-        _err([f"{shown}: {problem}" if out is not None else f"{check.parent}: {problem}"])
+        _err([f"--out {shown}: {problem}" if out is not None else
+              f"{check.parent}: {problem}"])
         raise typer.Exit(EXIT_BAD_INPUT)
     try:
         prepared = prepare(sc)

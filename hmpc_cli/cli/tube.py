@@ -107,7 +107,8 @@ def _constants_table(report, sc_name: str):
     t.add_row("region", escape(f"{report.region.note}; diameter {_g(report.region.diameter)}"))
     t.add_row("L_x", f"{_g(lx.L_x)} 1/s  (max ||df/dx||_2, mode {lx.mode_x})")
     t.add_row("L_u", f"{_g(lx.L_u)}  (max ||df/du||_2, mode {lx.mode_u})")
-    t.add_row("", escape(f"L_x, L_u: {lx.samples} samples each; {lx.note}"))
+    t.add_row("", escape(f"L_x, L_u: {lx.samples} Jacobian evaluations each (--samples "
+                         f"uniform samples + local refinement); {lx.note}"))
     t.add_row("eta", f"{_g(dist.eta)}  ({escape(dist.note)})")
     names = [report.state_names[i] for i in report.kinematic_states]
     t.add_row("kinematic states", escape(
@@ -252,10 +253,11 @@ def tube_command(
         "--set", help="override a setting: key.path=value (repeatable)",
         autocompletion=complete_set_key)] = None,
     out: Annotated[Path | None, typer.Option(
-        "--out", help="output directory (default results/<scenario>/tube)",
+        "--out", help="output directory (default results/<name>/tube, name the scenario's)",
         parser=path_option)] = None,
     samples: Annotated[int, typer.Option(
-        "--samples", min=1, help="uniform samples per estimated constant")] = 20000,
+        "--samples", min=1, help="uniform samples per estimated constant (at most 1e7; "
+        "local refinement adds evaluations)")] = 20000,
     pad: Annotated[float | None, typer.Option(
         "--pad", help="region padding per side, x each coordinate's width "
         "(default 1; with --states or --runs 0.1)")] = None,

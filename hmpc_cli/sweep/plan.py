@@ -306,8 +306,9 @@ def _read_spec(path: Path, src: str) -> tuple[str, SweepSpec]:
     try:
         return text, SweepSpec.model_validate(data)
     except ValidationError as exc:
-        raise ScenarioError(format_errors(exc, src, SweepSpec)
-                            + other_kind_of_file(data, src, "sweep")) from None
+        # a scenario file: that line alone (its keys' errors all follow from it)
+        raise ScenarioError(other_kind_of_file(data, src, "sweep")
+                            or format_errors(exc, src, SweepSpec)) from None
 
 
 def _expand(spec: SweepSpec, base: dict[str, Any], axes: list[Axis], src: str,
