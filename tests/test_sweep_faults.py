@@ -114,6 +114,35 @@ def test_sigterm_stops_the_sweep_and_resume_redoes_interrupted_runs(tmp_path):
     assert len(table(out)) == 4
 
 
+def _wait_for_signal(report) -> None:  # a busy worker: says which stop signal reached it
+    got = []
+    for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(s, lambda signum, frame: got.append(signum))
+    report.send("ready")
+    while not got:
+        time.sleep(0.01)
+    report.send(got[0])
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGHUP])
+def test_the_busy_workers_get_the_sweeps_own_stop_signal(sig):
+    """A sweep stopped by SIGINT (or SIGHUP) stops its busy workers with that signal, so
+    their runs are marked interrupted by it (they were sent SIGTERM)."""
+    import multiprocessing
+    from types import SimpleNamespace
+
+    from hmpc_cli.sweep.pool import _stop_all
+
+    ctx = multiprocessing.get_context("fork")
+    report, child = ctx.Pipe()
+    task, _ = ctx.Pipe()  # the worker's task pipe, which _stop_all closes
+    proc = ctx.Process(target=_wait_for_signal, args=(child,), daemon=True)
+    proc.start()
+    assert report.poll(10) and report.recv() == "ready"
+    _stop_all([SimpleNamespace(run="busy", proc=proc, conn=task)], sig)
+    assert not proc.is_alive() and report.poll(1) and report.recv() == sig
+
+
 def test_interrupted_summary_is_never_kept_as_finished(tmp_path):
     from hmpc_cli.sweep.table import finished_in
 

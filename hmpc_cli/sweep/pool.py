@@ -6,9 +6,9 @@ worker holds:
 * a worker that dies (killed, out of memory) loses only its run: the run is retried once
   on a fresh worker; a run that kills its worker twice is recorded as failed with reason
   ``worker died (signal N) twice``; the other workers go on;
-* on SIGINT/SIGTERM/SIGHUP the parent asks its busy workers to stop (SIGTERM: they stop
-  their run within one simulator step, its summary marked interrupted, see
-  :mod:`hmpc_cli.core.signals`) and waits for them;
+* on SIGINT/SIGTERM/SIGHUP the parent asks its busy workers to stop (the same signal:
+  they stop their run within one simulator step, its summary marked interrupted by it,
+  see :mod:`hmpc_cli.core.signals`) and waits for them;
 * workers exit when their parent dies (``PR_SET_PDEATHSIG`` on Linux, and a watchdog
   thread polling the parent pid).
 """
@@ -121,6 +121,7 @@ def run_pool(n: int, pending: list, out: Path, record: Callable, died: Callable,
     ctx = multiprocessing.get_context("spawn")
     todo, deaths = deque(pending), Counter()
     workers: list[_Worker] = []
+    stop = int(signal.SIGTERM)  # passed on to the busy workers: the sweep's own signal
     try:
         while todo or any(w.run is not None for w in workers):
             while todo and len(workers) < n:
@@ -136,9 +137,12 @@ def run_pool(n: int, pending: list, out: Path, record: Callable, died: Callable,
                     continue
                 if w.conn in ready or w.proc.sentinel in ready:
                     _dead(w, workers, todo, deaths, died)
+    except KeyboardInterrupt as exc:
+        stop = signals.as_interrupted(exc).signum
+        raise
     finally:
         with signals.deferred():
-            _stop_all(workers)
+            _stop_all(workers, stop)
 
 
 def _answered(w: _Worker, record: Callable) -> bool:
@@ -169,14 +173,14 @@ def _dead(w: _Worker, workers: list, todo: deque, deaths: Counter, died: Callabl
         todo.appendleft(run)
 
 
-def _stop_all(workers: list[_Worker]) -> None:
-    """Stops every worker: None to the idle ones, SIGTERM to the busy ones; then joins."""
+def _stop_all(workers: list[_Worker], stop: int = signal.SIGTERM) -> None:
+    """Stops every worker: None to the idle ones, signal ``stop`` to the busy ones; joins."""
     for w in workers:
         try:
             if w.run is None:
                 w.conn.send(None)
             elif w.proc.is_alive():
-                os.kill(w.proc.pid, signal.SIGTERM)
+                os.kill(w.proc.pid, stop)
         except (OSError, ValueError):
             pass
     deadline = time.monotonic() + WORKER_STOP_GRACE
