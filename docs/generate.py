@@ -323,20 +323,20 @@ bundled scenario for editor completion); this page lists the bundled plug-ins' k
 
 Numbers are strict and finite: `true` or `"600"` is not a number (an integer is a valid
 float), NaN and ±inf are rejected, and no setting may exceed 1e9 in magnitude
-(`sim.divergence_bound` excepted). Work is bounded before anything is built: at most
-20 000 NLP nodes (`mpc.horizon` × `mpc.nodes_per_second`; walking: 2 × `nodes_per_swing`),
-20 000 links of the switching chain NLP (its nodes + `mpc.max_switches`), 1e7 simulator
-steps (`sim.duration` × `sim.rate_hz`), 1000 events per step, 1e9 CEM rollout steps per
-planner call (`planner.iterations` × (`planner.samples` + 1) × `planner.horizon` ×
-`planner.rollout_rate_hz`), CEM arrays within half the machine's RAM, 100 000 seeds and
-20 000 runs per sweep; a message names the keys and estimates the memory and time asked
-for. Tables and arrays nest at most 32 levels deep. Checked
-when the loop is built, still before any NLP (`hmpc_cli/run/setup_checks.py`): input
-margins (`mpc.input_margin`, `mpc.torque_margin`, a margins file) must leave every input
-box non-empty, and IPOPT options are tried once on a tiny NLP (an unavailable
-`linear_solver` is named with the available ones). `--out` is checked (creatable,
-writable, names of at most 255 bytes) before anything is built; `name` may not be only
-dots.
+(`sim.divergence_bound` excepted), the numbers inside `mpc.solver_options` included (its
+back-end sections `ipopt`, `ipopt_warm` and `hpipm` are tables of option = value). Work is
+bounded before anything is built: at most 20 000 NLP nodes (`mpc.horizon` ×
+`mpc.nodes_per_second`; walking: 2 × `nodes_per_swing`), 20 000 links of the switching chain
+NLP (its nodes + `mpc.max_switches`), 1e7 simulator steps (`sim.duration` × `sim.rate_hz`),
+1000 events per step, 1e9 CEM rollout steps per planner call (`planner.iterations` ×
+(`planner.samples` + 1) × `planner.horizon` × `planner.rollout_rate_hz`), CEM arrays within
+half the machine's RAM, 100 000 seeds and 20 000 runs per sweep; a message names the keys
+and estimates the memory and time asked for. Tables and arrays nest at most 32 levels deep.
+Checked when the loop is built, still before any NLP (`hmpc_cli/run/setup_checks.py`): input
+margins (`mpc.input_margin`, `mpc.torque_margin`, a margins file) must leave every input box
+non-empty, and IPOPT options are tried once on a tiny NLP (an unavailable `linear_solver` is
+named with the available ones). `--out` is checked (creatable, writable, names of at most
+255 bytes) before anything is built; `name` may not be only dots.
 
 Rates are integers in Hz. The MPC period must be a whole number of NLP node steps
 (`mpc.nodes_per_second % mpc.rate_hz == 0`) and of simulator steps, so each period shifts

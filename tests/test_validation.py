@@ -227,6 +227,55 @@ def test_a_problem_made_on_the_command_line_names_the_option_not_the_file(work: 
         "error: --set system.x0.0=1: system.x0: Input should be a valid tuple"]
 
 
+@pytest.mark.parametrize("system,item,message", [
+    ("ball", "mpc.solver_options={ipopt={tol=nan}}",
+     "mpc.solver_options.ipopt.tol: Input should be a finite number"),
+    ("biped", "mpc.solver_options.ipopt.tol=inf",
+     "mpc.solver_options.ipopt.tol: Input should be a finite number"),
+    ("ball", "mpc.solver_options.print_level=-inf",
+     "mpc.solver_options.print_level: Input should be a finite number"),
+    ("ball", "mpc.solver_options.ipopt.max_iter=100000000000",
+     "mpc.solver_options.ipopt.max_iter: 100000000000 exceeds the largest allowed magnitude "
+     "1e+09"),
+    ("ball", "mpc.solver_options.ipopt_warm.mu_init=1e300",
+     "mpc.solver_options.ipopt_warm.mu_init: 1e+300 exceeds the largest allowed magnitude "
+     "1e+09"),
+    ("ball", "mpc.solver_options.ipopt=5",
+     "mpc.solver_options.ipopt: must be a table of option = value, not 5 (e.g. ipopt = "
+     "{tol = 1e-8}, or [mpc.solver_options.ipopt] with tol = 1e-8 below it)"),
+    ("biped", 'mpc.solver_options.hpipm=["x"]',
+     "mpc.solver_options.hpipm: must be a table of option = value, not ['x'] (e.g. hpipm = "
+     "{iter_max = 30}, or [mpc.solver_options.hpipm] with iter_max = 30 below it)"),
+    ("ball", "mpc.solver_options.ipopt.when=1979-05-27",
+     "mpc.solver_options.ipopt.when: a date is no solver option value (give a number, "
+     "text, a boolean, an array or a table)"),
+])
+def test_solver_options_values_are_checked_like_every_setting(work: Path, system: str,
+                                                              item: str, message: str):
+    """NaN, inf, a number beyond 1e9, a section that is no table: one line naming the key
+    path inside mpc.solver_options (was: an internal error, or a run with the value)."""
+    name = _scenario(work, system).name
+    assert bad_run(work, ["run", name, "--set", item, "--out", "out"]) == [
+        f"error: --set {item}: {message}"]
+    section, _, rest = item.removeprefix("mpc.solver_options.").partition(".")
+    if "{" in item or not rest:
+        return
+    key, _, value = rest.partition("=")  # the same value in the file, and for hmpc tube
+    bad = work / "bad.toml"
+    bad.write_text(f"{(work / name).read_text()}\n[mpc.solver_options.{section}]\n"
+                   f"{key} = {value}\n", encoding="utf-8")
+    assert bad_run(work, ["run", bad.name, "--out", "out"]) == [f"error: {bad.name}: {message}"]
+    assert bad_run(work, ["tube", bad.name, "--out", "t"]) == [f"error: {bad.name}: {message}"]
+
+
+def test_solver_options_within_the_bounds_pass(work: Path):
+    from hmpc_cli.mpc.solver_table import check_options
+
+    ok = {"ipopt": {"tol": 1e-300, "max_iter": 10**9, "mu_strategy": "monotone"},
+          "hpipm": {}, "print_time": False, "nested": {"a": [1, 2.5]}}
+    assert check_options(ok) is ok
+
+
 @pytest.mark.parametrize("item,message", [
     ("mpc.horizon=1e6", "mpc.horizon: 1e+06 s x 60 nodes/s (mpc.nodes_per_second) = "
                         "6e+07 NLP nodes exceeds the limit 20000 (it would need about "
