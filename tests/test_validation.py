@@ -290,6 +290,9 @@ def test_solver_options_within_the_bounds_pass(work: Path):
     ("planner.samples=100000000", "planner.iterations x planner.samples: 15 iterations x "
                                   "(100000000 + 1) samples = 1.5e+09 rollouts of 180 steps"),
     ("planner.samples=1e10", "planner.samples: Input should be a valid integer"),
+    # memory: named by the product's keys and blamed on the --set (was: the file's samples)
+    ("planner.knots=100000000", "planner.samples x planner.knots: 2 x ((50 + 1) samples x "
+                                "100000000 knots + 51 x 180 rollout steps) x 4 inputs x 8 B"),
     ("mpc.horizon=1e9", "mpc.horizon: 1e+09 s x 60 nodes/s (mpc.nodes_per_second) = 6e+10 "
                         "NLP nodes exceeds"),
 ])
@@ -298,6 +301,16 @@ def test_size_limits_are_checked_before_anything_is_built(work: Path, item: str,
     assert lines[0].startswith(f"error: --set {item}: {message}"), lines
     # the one problem, or (huge samples) its work and its memory
     assert len(lines) == 1 or (len(lines) == 2 and "memory limit" in lines[1]), lines
+
+
+def test_a_memory_limit_of_the_file_stays_the_file_s(work: Path):
+    """knots in the file: the file's problem, though a --set changed the other factor."""
+    name = _scenario(work, "ball", {"planner": {"knots": 100000000}}).name
+    lines = bad_run(work, ["run", name, "--set", "planner.samples=60"])
+    assert len(lines) == 1 and lines[0].startswith(
+        f"error: {name}: planner.samples x planner.knots: 2 x ((60 + 1) samples x 100000000 "
+        "knots"), lines
+    assert lines[0].endswith("; lower planner.samples or planner.knots"), lines
 
 
 def test_walking_nlp_size_limit(work: Path):
