@@ -228,6 +228,39 @@ def test_a_problem_made_on_the_command_line_names_the_option_not_the_file(work: 
 
 
 @pytest.mark.parametrize("system,item,message", [
+    ("ball", "system.x0=[1.0,1.0,0.0]",
+     "system.x0: needs 4 numbers, got 3 (initial state (px, py, vx, vy) [m, m, m/s, m/s])"),
+    ("ball", "system.x0=[1,2,3,4,5]",
+     "system.x0: needs 4 numbers, got 5 (initial state (px, py, vx, vy) [m, m, m/s, m/s])"),
+    ("ball", "system.circle_center=[3.0]",
+     "system.circle_center: needs 2 numbers, got 1 (centre c (x, y) of the circle guard, the "
+     "final domain [m])"),
+    ("ball", "system.circle_center=[]",
+     "system.circle_center: needs 2 numbers, got 0 (centre c (x, y) of the circle guard, the "
+     "final domain [m])"),
+    ("biped", "system.q0=[0.1,0.2]", "system.q0: needs 5 numbers, got 2 (initial angles [rad])"),
+    ("ball", "plant.x0=[1.0]",
+     "plant.x0: needs 4 numbers, got 1 (initial state (px, py, vx, vy) [m, m, m/s, m/s])"),
+])
+def test_a_tuple_of_the_wrong_length_says_how_many_numbers(work: Path, system: str, item: str,
+                                                           message: str):
+    """One line at the tuple (was: one "system.x0[3]: Field required" per missing item)."""
+    name = _scenario(work, system).name
+    assert bad_run(work, ["run", name, "--set", item]) == [f"error: --set {item}: {message}"]
+    key, _, value = item.partition("=")
+    section, _, field = key.partition(".")
+    data = {section: {field: _parsed(value)}}
+    bad = _scenario(work, system, data, "bad").name
+    assert bad_run(work, ["run", bad]) == [f"error: {bad}: {message}"]
+
+
+def _parsed(value: str):
+    import tomllib
+
+    return tomllib.loads(f"v = {value}")["v"]
+
+
+@pytest.mark.parametrize("system,item,message", [
     ("ball", "mpc.solver_options={ipopt={tol=nan}}",
      "mpc.solver_options.ipopt.tol: Input should be a finite number"),
     ("biped", "mpc.solver_options.ipopt.tol=inf",

@@ -179,7 +179,7 @@ class ScenarioBase(BaseModel):
         try:
             self.plant_params()
         except ValidationError as exc:
-            for err in exc.errors():
+            for err in _tuple_lengths(exc.errors(), type(self.system)):
                 loc = key_path(["plant", *err["loc"]])
                 msg = err["msg"].removeprefix("Value error, ")
                 if err["type"] == "extra_forbidden":
@@ -480,7 +480,7 @@ def format_errors(exc: ValidationError, source: str, model: Any = None) -> list[
     lines, tags = [], _tags()
     if model is None and exc.title == "Scenario":
         model = scenario_model()
-    for err in exc.errors():
+    for err in _tuple_lengths(exc.errors(), model):
         parts = [p for p in err["loc"] if p not in ("function-after",)]
         if len(parts) >= 2 and parts[1] in tags.get(str(parts[0]), ()):
             del parts[1]  # the union member's tag (e.g. planner.cem.samples -> planner.samples)
@@ -503,6 +503,50 @@ def format_errors(exc: ValidationError, source: str, model: Any = None) -> list[
             continue
         lines.append(f"{source}: {loc}: {msg}")
     return lines
+
+
+def _tuple_lengths(errors: list[dict], model: Any) -> list[dict]:
+    """The errors pydantic gives, those of a tuple of the wrong length as one per tuple.
+
+    A tuple too short is one ``missing`` error per absent item (``system.x0[3]: Field
+    required``), one too long a ``too_long`` error: both become one error at the tuple,
+    ``needs 4 numbers, got 3``, with the field's description when it has one (its items'
+    names, its units).
+    """
+    out, seen = [], set()
+    for err in errors:
+        loc, given = tuple(err["loc"]), err.get("input")
+        ctx = err.get("ctx") or {}
+        if err["type"] == "missing" and loc and isinstance(loc[-1], int) \
+                and isinstance(given, list | tuple):
+            at = loc[:-1]
+            need = 1 + max(e["loc"][-1] for e in errors if e["type"] == "missing"
+                           and tuple(e["loc"][:-1]) == at and isinstance(e["loc"][-1], int))
+        elif err["type"] == "too_long" and ctx.get("field_type") == "Tuple" \
+                and isinstance(given, list | tuple):
+            at, need = loc, ctx.get("max_length")
+        else:
+            out.append(err)
+            continue
+        if at in seen:
+            continue
+        seen.add(at)
+        out.append({**err, "type": "tuple_length", "loc": at,
+                    "msg": _length_text(model, at, need, len(given))})
+    return out
+
+
+def _length_text(model: Any, loc: tuple, need: int, got: int) -> str:
+    """``needs 4 numbers, got 3 (the field's description)`` for the tuple at ``loc``."""
+    fields = [f for m in (models_at(model, loc[:-1]) if model is not None and loc else [])
+              for name, f in m.model_fields.items() if loc[-1] in (name, f.alias)]
+    items = [typing.get_args(f.annotation) for f in fields
+             if typing.get_origin(f.annotation) is tuple]
+    numbers = bool(items) and all(
+        m in (int, float) for args in items for a in args for m in _members(a))
+    text = f"needs {need} {'numbers' if numbers else 'items'}, got {got}"
+    desc = next((f.description for f in fields if f.description), None)
+    return f"{text} ({desc})" if desc else text
 
 
 def _tag_text(ctx: dict, msg: str) -> str:
@@ -726,7 +770,7 @@ def _hidden_problems(data: dict, source: str) -> list[str]:
         params.model_validate({**base, **plant})
     except ValidationError as exc:
         out = []
-        for err in exc.errors():
+        for err in _tuple_lengths(exc.errors(), params):
             if err["loc"] and err["loc"][0] in plant:
                 msg = err["msg"].removeprefix("Value error, ")
                 if err["type"] == "extra_forbidden":
