@@ -409,11 +409,16 @@ def nesting(value: Any) -> int:
     return deepest
 
 
+def did_you_mean(name: Any, choices: list[str]) -> str:
+    """`` (did you mean 'x'?)`` when a choice is ``name`` in another case or near it, else ''."""
+    same = [a for a in choices if a.casefold() == str(name).casefold()]
+    close = same or difflib.get_close_matches(str(name), choices, n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
 def unknown_key(key: Any, allowed: list[str]) -> str:
     """``unknown key``, with ``(did you mean 'x'?)`` when an allowed key is close to it."""
-    same = [a for a in allowed if a.casefold() == str(key).casefold()]
-    close = same or difflib.get_close_matches(str(key), allowed, n=1)
-    return f"unknown key (did you mean {close[0]!r}?)" if close else "unknown key"
+    return "unknown key" + did_you_mean(key, allowed)
 
 
 def _field_names(models: list[type[BaseModel]]) -> list[str]:
