@@ -215,7 +215,32 @@ def test_bool_and_string_are_not_numbers(work: Path):
                      "number"]
     lines = bad_run(work, ["run", ball, "--set", 'sim.rate_hz="600"'])
     assert lines == ['error: --set sim.rate_hz="600": sim.rate_hz: Input should be a valid '
-                     'integer']
+                     'integer (text here; an integer is written without quotes in TOML: 600)']
+
+
+@pytest.mark.parametrize("key,text,message", [
+    ("sim.rate_hz", '"600"', "Input should be a valid integer (text here; an integer is "
+                             "written without quotes in TOML: 600)"),
+    ("sim.duration", '"0.3"', "Input should be a valid number (text here; a number is written "
+                              "without quotes in TOML: 0.3)"),
+    ("sim.duration", '"3"', "Input should be a valid number (text here; a number is written "
+                            "without quotes in TOML: 3)"),
+    ("sim.delay_compensation", '"true"', "Input should be a valid boolean (text here; a "
+                                         "boolean is written without quotes in TOML: true)"),
+    # no hint where the unquoted text would be wrong too
+    ("sim.rate_hz", '"1e3"', "Input should be a valid integer"),
+    ("sim.duration", '"nan"', "Input should be a valid number"),
+    ("sim.rate_hz", '"many"', "Input should be a valid integer"),
+])
+def test_a_number_given_as_text_gets_a_quoting_hint(work: Path, key: str, text: str,
+                                                    message: str):
+    """As ``name = 600`` is told text is quoted, ``rate_hz = "600"`` is told numbers are not."""
+    ball = _scenario(work, "ball").name
+    assert bad_run(work, ["run", ball, "--set", f"{key}={text}"]) == [
+        f"error: --set {key}={text}: {key}: {message}"]
+    section, _, field = key.partition(".")
+    (work / "q.toml").write_text(f"{(work / ball).read_text()}\n[{section}]\n{field} = {text}\n")
+    assert bad_run(work, ["run", "q.toml"]) == [f"error: q.toml: {key}: {message}"]
 
 
 def test_a_problem_made_on_the_command_line_names_the_option_not_the_file(work: Path):

@@ -15,6 +15,7 @@ from __future__ import annotations
 import copy
 import difflib
 import json
+import math
 import re
 import tomllib
 import types
@@ -499,6 +500,7 @@ def format_errors(exc: ValidationError, source: str, model: Any = None) -> list[
         if err["type"] == "string_type" and isinstance(given, int | float) \
                 and not isinstance(given, bool):
             msg += f' (a number here; text is quoted in TOML: "{given}")'
+        msg += _unquoted_hint(err["type"], given)
         if err["type"] == "extra_forbidden":
             raw = [p for p in err["loc"] if p not in ("function-after",)]
             allowed = _field_names(models_at(model, raw[:-1])) if model is not None else []
@@ -552,6 +554,30 @@ def _length_text(model: Any, loc: tuple, need: int, got: int) -> str:
     text = f"needs {need} {'numbers' if numbers else 'items'}, got {got}"
     desc = next((f.description for f in fields if f.description), None)
     return f"{text} ({desc})" if desc else text
+
+
+#: pydantic's error type of a value of the wrong type -> (the types it wants, their name)
+_WANTED = {"int_type": ((int,), "an integer"), "float_type": ((int, float), "a number"),
+           "bool_type": ((bool,), "a boolean")}
+
+
+def _unquoted_hint(kind: str, given: Any) -> str:
+    """`` (text here; a number is written without quotes in TOML: 600)`` for ``"600"``.
+
+    When a number or boolean setting is given text that, unquoted, is a value of the
+    wanted type ('' otherwise).
+    """
+    if kind not in _WANTED or not isinstance(given, str):
+        return ""
+    types, what = _WANTED[kind]
+    try:
+        value = tomllib.loads(f"v = {given.strip()}")["v"]
+    except (tomllib.TOMLDecodeError, RecursionError):
+        return ""
+    ok = isinstance(value, types) and (kind == "bool_type" or not isinstance(value, bool))
+    if not ok or (isinstance(value, float) and not math.isfinite(value)):
+        return ""
+    return f" (text here; {what} is written without quotes in TOML: {given.strip()})"
 
 
 def _tag_text(ctx: dict, msg: str) -> str:
