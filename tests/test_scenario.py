@@ -287,6 +287,13 @@ def test_unknown_contact_guard(work: Path) -> None:
     assert "'x'" in reason
 
 
+def test_unknown_contact_guard_names_the_guards_and_the_closest(work: Path) -> None:
+    item = 'replanning.contact_guards=["flor", "x"]'
+    assert cli_bad(work, ["ball.toml", "--set", item]) == [
+        f"error: --set {item}: replanning.contact_guards: unknown guards 'flor' (did you mean "
+        "'floor'?), 'x'; the system's guards: 'floor', 'wall', 'circle_in', 'circle_out'"]
+
+
 def test_bad_input_in_a_real_process(tmp_path: Path, run_hmpc) -> None:
     _write(tmp_path / "bad.toml", 'name = "ball"\n[mpc]\nrate_hz = 7\nfoo = 1\n')
     proc = run_hmpc(["run", "bad.toml", "--set", "sim.rate_hz=0"], cwd=tmp_path)

@@ -103,7 +103,8 @@ def test_tiny_sweep_table_and_failures(tiny):
         ("0.0", "0"), ("0.0", "1"), ("1.0", "0"), ("1.0", "1")}
     for r in by_case["crash"]:  # raised inside the run: recorded, the others went on
         assert r["success"] == "false" and r["log"] == ""
-        assert r["reason"] == "ValueError: replanning.contact_guards: unknown guards ['nope']"
+        assert r["reason"] == ("ValueError: replanning.contact_guards: unknown guard 'nope'; the "
+                               "system's guards: 'floor', 'wall', 'circle_in', 'circle_out'")
         assert r["set.replanning.contact_guards"] == '["nope"]'
         assert (out / "runs" / r["run_id"] / "error.txt").read_text().startswith("Traceback")
     for r in by_case["diverge"]:

@@ -215,7 +215,32 @@ def test_bool_and_string_are_not_numbers(work: Path):
                      "number"]
     lines = bad_run(work, ["run", ball, "--set", 'sim.rate_hz="600"'])
     assert lines == ['error: --set sim.rate_hz="600": sim.rate_hz: Input should be a valid '
-                     'integer']
+                     'integer (text here; an integer is written without quotes in TOML: 600)']
+
+
+@pytest.mark.parametrize("key,text,message", [
+    ("sim.rate_hz", '"600"', "Input should be a valid integer (text here; an integer is "
+                             "written without quotes in TOML: 600)"),
+    ("sim.duration", '"0.3"', "Input should be a valid number (text here; a number is written "
+                              "without quotes in TOML: 0.3)"),
+    ("sim.duration", '"3"', "Input should be a valid number (text here; a number is written "
+                            "without quotes in TOML: 3)"),
+    ("sim.delay_compensation", '"true"', "Input should be a valid boolean (text here; a "
+                                         "boolean is written without quotes in TOML: true)"),
+    # no hint where the unquoted text would be wrong too
+    ("sim.rate_hz", '"1e3"', "Input should be a valid integer"),
+    ("sim.duration", '"nan"', "Input should be a valid number"),
+    ("sim.rate_hz", '"many"', "Input should be a valid integer"),
+])
+def test_a_number_given_as_text_gets_a_quoting_hint(work: Path, key: str, text: str,
+                                                    message: str):
+    """As ``name = 600`` is told text is quoted, ``rate_hz = "600"`` is told numbers are not."""
+    ball = _scenario(work, "ball").name
+    assert bad_run(work, ["run", ball, "--set", f"{key}={text}"]) == [
+        f"error: --set {key}={text}: {key}: {message}"]
+    section, _, field = key.partition(".")
+    (work / "q.toml").write_text(f"{(work / ball).read_text()}\n[{section}]\n{field} = {text}\n")
+    assert bad_run(work, ["run", "q.toml"]) == [f"error: q.toml: {key}: {message}"]
 
 
 def test_a_problem_made_on_the_command_line_names_the_option_not_the_file(work: Path):
@@ -225,6 +250,86 @@ def test_a_problem_made_on_the_command_line_names_the_option_not_the_file(work: 
         "error: --seed -1: seed: Input should be greater than or equal to 0"]
     assert bad_run(work, ["run", ball, "--set", "system.x0.0=1"]) == [
         "error: --set system.x0.0=1: system.x0: Input should be a valid tuple"]
+
+
+@pytest.mark.parametrize("system,item,message", [
+    ("ball", "system.x0=[1.0,1.0,0.0]",
+     "system.x0: needs 4 numbers, got 3 (initial state (px, py, vx, vy) [m, m, m/s, m/s])"),
+    ("ball", "system.x0=[1,2,3,4,5]",
+     "system.x0: needs 4 numbers, got 5 (initial state (px, py, vx, vy) [m, m, m/s, m/s])"),
+    ("ball", "system.circle_center=[3.0]",
+     "system.circle_center: needs 2 numbers, got 1 (centre c (x, y) of the circle guard, the "
+     "final domain [m])"),
+    ("ball", "system.circle_center=[]",
+     "system.circle_center: needs 2 numbers, got 0 (centre c (x, y) of the circle guard, the "
+     "final domain [m])"),
+    ("biped", "system.q0=[0.1,0.2]", "system.q0: needs 5 numbers, got 2 (initial angles [rad])"),
+    ("ball", "plant.x0=[1.0]",
+     "plant.x0: needs 4 numbers, got 1 (initial state (px, py, vx, vy) [m, m, m/s, m/s])"),
+])
+def test_a_tuple_of_the_wrong_length_says_how_many_numbers(work: Path, system: str, item: str,
+                                                           message: str):
+    """One line at the tuple (was: one "system.x0[3]: Field required" per missing item)."""
+    name = _scenario(work, system).name
+    assert bad_run(work, ["run", name, "--set", item]) == [f"error: --set {item}: {message}"]
+    key, _, value = item.partition("=")
+    section, _, field = key.partition(".")
+    data = {section: {field: _parsed(value)}}
+    bad = _scenario(work, system, data, "bad").name
+    assert bad_run(work, ["run", bad]) == [f"error: {bad}: {message}"]
+
+
+def _parsed(value: str):
+    import tomllib
+
+    return tomllib.loads(f"v = {value}")["v"]
+
+
+@pytest.mark.parametrize("system,item,message", [
+    ("ball", "mpc.solver_options={ipopt={tol=nan}}",
+     "mpc.solver_options.ipopt.tol: Input should be a finite number"),
+    ("biped", "mpc.solver_options.ipopt.tol=inf",
+     "mpc.solver_options.ipopt.tol: Input should be a finite number"),
+    ("ball", "mpc.solver_options.print_level=-inf",
+     "mpc.solver_options.print_level: Input should be a finite number"),
+    ("ball", "mpc.solver_options.ipopt.max_iter=100000000000",
+     "mpc.solver_options.ipopt.max_iter: 100000000000 exceeds the largest allowed magnitude "
+     "1e+09"),
+    ("ball", "mpc.solver_options.ipopt=5",
+     "mpc.solver_options.ipopt: must be a table of option = value, not 5 (e.g. ipopt = "
+     "{tol = 1e-8}, or [mpc.solver_options.ipopt] with tol = 1e-8 below it)"),
+    ("biped", 'mpc.solver_options.hpipm=["x"]',
+     "mpc.solver_options.hpipm: must be a table of option = value, not ['x'] (e.g. hpipm = "
+     "{iter_max = 30}, or [mpc.solver_options.hpipm] with iter_max = 30 below it)"),
+    ("ball", "mpc.solver_options.ipopt.when=1979-05-27",
+     "mpc.solver_options.ipopt.when: a date is no solver option value (give a number, "
+     "text, a boolean, an array or a table)"),
+])
+def test_solver_options_values_are_checked_like_every_setting(work: Path, system: str,
+                                                              item: str, message: str):
+    """NaN, inf, an integer beyond 1e9, a section that is no table: one line naming the key
+    path inside mpc.solver_options (was: an internal error, or a run with the value)."""
+    name = _scenario(work, system).name
+    assert bad_run(work, ["run", name, "--set", item, "--out", "out"]) == [
+        f"error: --set {item}: {message}"]
+    section, _, rest = item.removeprefix("mpc.solver_options.").partition(".")
+    if "{" in item or not rest:
+        return
+    key, _, value = rest.partition("=")  # the same value in the file, and for hmpc tube
+    bad = work / "bad.toml"
+    bad.write_text(f"{(work / name).read_text()}\n[mpc.solver_options.{section}]\n"
+                   f"{key} = {value}\n", encoding="utf-8")
+    assert bad_run(work, ["run", bad.name, "--out", "out"]) == [f"error: {bad.name}: {message}"]
+    assert bad_run(work, ["tube", bad.name, "--out", "t"]) == [f"error: {bad.name}: {message}"]
+
+
+def test_solver_options_within_the_bounds_pass(work: Path):
+    from hmpc_cli.mpc.solver_table import check_options
+
+    ok = {"ipopt": {"tol": 1e-300, "max_iter": 10**9, "mu_strategy": "monotone",
+                    "nlp_upper_bound_inf": 1e19, "obj_scaling_factor": -1e300},
+          "hpipm": {}, "print_time": False, "nested": {"a": [1, 2.5]}}
+    assert check_options(ok) is ok
 
 
 @pytest.mark.parametrize("item,message", [
@@ -241,6 +346,9 @@ def test_a_problem_made_on_the_command_line_names_the_option_not_the_file(work: 
     ("planner.samples=100000000", "planner.iterations x planner.samples: 15 iterations x "
                                   "(100000000 + 1) samples = 1.5e+09 rollouts of 180 steps"),
     ("planner.samples=1e10", "planner.samples: Input should be a valid integer"),
+    # memory: named by the product's keys and blamed on the --set (was: the file's samples)
+    ("planner.knots=100000000", "planner.samples x planner.knots: 2 x ((50 + 1) samples x "
+                                "100000000 knots + 51 x 180 rollout steps) x 4 inputs x 8 B"),
     ("mpc.horizon=1e9", "mpc.horizon: 1e+09 s x 60 nodes/s (mpc.nodes_per_second) = 6e+10 "
                         "NLP nodes exceeds"),
 ])
@@ -249,6 +357,16 @@ def test_size_limits_are_checked_before_anything_is_built(work: Path, item: str,
     assert lines[0].startswith(f"error: --set {item}: {message}"), lines
     # the one problem, or (huge samples) its work and its memory
     assert len(lines) == 1 or (len(lines) == 2 and "memory limit" in lines[1]), lines
+
+
+def test_a_memory_limit_of_the_file_stays_the_file_s(work: Path):
+    """knots in the file: the file's problem, though a --set changed the other factor."""
+    name = _scenario(work, "ball", {"planner": {"knots": 100000000}}).name
+    lines = bad_run(work, ["run", name, "--set", "planner.samples=60"])
+    assert len(lines) == 1 and lines[0].startswith(
+        f"error: {name}: planner.samples x planner.knots: 2 x ((60 + 1) samples x 100000000 "
+        "knots"), lines
+    assert lines[0].endswith("; lower planner.samples or planner.knots"), lines
 
 
 def test_walking_nlp_size_limit(work: Path):

@@ -18,16 +18,30 @@ MAX_FLOAT = 1e9
 MAX_INT = 10**9
 
 
+def magnitude_problem(v: float) -> str | None:
+    """Why a finite number is too large for a setting; None if it is not.
+
+    An integer is checked against :data:`MAX_INT`, a float against :data:`MAX_FLOAT` (the
+    bound of :data:`BoundedInt` and :data:`FiniteFloat`).
+    """
+    if isinstance(v, int) and abs(v) > MAX_INT:
+        return f"{v} exceeds the largest allowed magnitude {MAX_INT:g}"
+    if isinstance(v, float) and abs(v) > MAX_FLOAT:
+        return f"{v:g} exceeds the largest allowed magnitude {MAX_FLOAT:g}"
+    return None
+
 
 def _float_magnitude(v: float) -> float:
-    if abs(v) > MAX_FLOAT:
-        raise ValueError(f"{v:g} exceeds the largest allowed magnitude {MAX_FLOAT:g}")
+    why = magnitude_problem(v)
+    if why is not None:
+        raise ValueError(why)
     return v
 
 
 def _int_magnitude(v: int) -> int:
-    if abs(v) > MAX_INT:
-        raise ValueError(f"{v} exceeds the largest allowed magnitude {MAX_INT:g}")
+    why = magnitude_problem(v)
+    if why is not None:
+        raise ValueError(why)
     return v
 
 
@@ -103,4 +117,5 @@ def nlp_estimate(nodes: float, mib_per_node: float, ms_per_node: float,
 Pair = tuple[FiniteFloat, FiniteFloat]
 
 __all__ = ["MAX_FLOAT", "MAX_INT", "MAX_NLP_NODES", "BoundedInt", "FiniteFloat", "LargeFloat",
-           "Pair", "StrictBool", "duration_text", "gib", "memory_limit", "nlp_estimate"]
+           "Pair", "StrictBool", "duration_text", "gib", "magnitude_problem", "memory_limit",
+           "nlp_estimate"]

@@ -12,12 +12,15 @@ check, :class:`~hmpc_cli.mpc.solver.SolverSession` and the build cache
 from __future__ import annotations
 
 import difflib
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Annotated, Any
 
-from pydantic import AfterValidator, Strict
+from pydantic import AfterValidator, Strict, ValidationError
+from pydantic_core import InitErrorDetails, PydanticCustomError
 
+from hmpc_cli.core.settings_types import magnitude_problem
 from hmpc_cli.mpc.backends import OCPStructure, rti_step_kept, rti_success, sqp_options
 
 
@@ -161,6 +164,70 @@ def describe() -> str:
     """The settings' description of the back-ends: ``"name" (summary)``, comma-separated."""
     return ", ".join(f'"{b.name}" ({b.summary})' if b.summary else f'"{b.name}"'
                      for b in SOLVERS.values())
+
+
+#: an option of a back-end's section the message of a section that is no table shows
+_EXAMPLE = {"ipopt": "tol = 1e-8", "ipopt_warm": "mu_init = 1e-6", "hpipm": "iter_max = 30"}
+
+
+def _reason(reason: str) -> PydanticCustomError:
+    return PydanticCustomError("solver_option", "{reason}", {"reason": reason})
+
+
+def _value_errors(value: Any, loc: tuple) -> list[InitErrorDetails]:
+    """The errors of one option value (tables and arrays walked, without recursion)."""
+    out: list[InitErrorDetails] = []
+    todo = [(value, loc)]
+    while todo:
+        v, at = todo.pop()
+        if isinstance(v, dict):
+            todo += [(x, (*at, str(k))) for k, x in reversed(v.items())]
+        elif isinstance(v, list | tuple):
+            todo += [(x, (*at, i)) for i, x in reversed(list(enumerate(v)))]
+        elif isinstance(v, float) and not math.isfinite(v):
+            out.append(InitErrorDetails(type="finite_number", loc=at, input=v))
+        elif isinstance(v, int) and not isinstance(v, bool):  # floats: IPOPT's 1e19/1e20
+            why = magnitude_problem(v)
+            if why is not None:
+                out.append(InitErrorDetails(type=_reason(why), loc=at, input=v))
+        elif not isinstance(v, bool | str):  # a TOML date or time
+            out.append(InitErrorDetails(type=_reason(
+                f"a {type(v).__name__} is no solver option value (give a number, text, a "
+                "boolean, an array or a table)"), loc=at, input=str(v)))
+    return out
+
+
+def check_options(options: dict) -> dict:
+    """``mpc.solver_options`` as given, if every value in it can be a solver option.
+
+    A back-end's section (``ipopt``, ``ipopt_warm``, ``hpipm``) must be a table of
+    ``option = value``; numbers anywhere in it must be finite, integers within the
+    settings' magnitude bound (:func:`~hmpc_cli.core.settings_types.magnitude_problem`;
+    a float may be larger: IPOPT's infinities are 1e19 and 1e20); TOML dates and times
+    are refused.
+
+    Raises:
+        ValidationError: one error per bad value, located at its key path inside the
+            options (pydantic puts ``mpc.solver_options`` before it).
+    """
+    sections = {s for b in SOLVERS.values() for s in b.sections}
+    errors: list[InitErrorDetails] = []
+    for key, value in options.items():
+        if key in sections and not isinstance(value, dict):
+            example = _EXAMPLE.get(key, "option = value")
+            errors.append(InitErrorDetails(type=_reason(
+                f"must be a table of option = value, not {value!r} (e.g. {key} = "
+                f"{{{example}}}, or [mpc.solver_options.{key}] with {example} below it)"),
+                loc=(key,), input=value))
+        else:
+            errors += _value_errors(value, (key,))
+    if errors:
+        raise ValidationError.from_exception_data("solver_options", errors)
+    return options
+
+
+#: ``mpc.solver_options``: a table checked by :func:`check_options`
+SolverOptions = Annotated[dict, AfterValidator(check_options)]
 
 
 def split_options(backend: Backend, extra: dict | None) -> tuple[dict, dict]:

@@ -99,13 +99,16 @@ class CEMSettings(PlannerSettings):
                 f"planner call, limit {MAX_ROLLOUT_STEPS:.0e} (about {duration_text(secs)} "
                 f"per planner call at {ROLLOUT_STEP_NS:g} ns per step in C)")
         batch = min(self.samples + 1, ROLLOUT_BATCH)
-        need = 8.0 * 2 * ((self.samples + 1) * self.knots + batch * steps) * MAX_INPUTS
-        if need > memory_limit():
+        knots, inputs = (self.samples + 1) * self.knots, batch * steps
+        need = 8.0 * 2 * (knots + inputs) * MAX_INPUTS
+        if need > memory_limit():  # named by the larger term: the keys to lower
+            keys = "planner.samples x planner.knots" if knots >= inputs else \
+                "planner.horizon x planner.rollout_rate_hz"
             out.append(
-                f"planner.samples: 2 x (({self.samples} + 1) samples x {self.knots} knots + "
+                f"{keys}: 2 x (({self.samples} + 1) samples x {self.knots} knots + "
                 f"{batch} x {steps:.3g} rollout steps) x {MAX_INPUTS} inputs x 8 B = "
                 f"{gib(need)} exceeds the memory limit {gib(memory_limit())} (half of this "
-                f"machine's RAM)")
+                f"machine's RAM); lower {keys.replace(' x ', ' or ')}")
         return out
 
 

@@ -17,6 +17,7 @@ from hmpc_cli.core.stack import FixedModeMPC, Planner, Task
 from hmpc_cli.log.books import RunBooks, RunResult
 from hmpc_cli.log.runlog import RunIdentity
 from hmpc_cli.run.realtime import Latency
+from hmpc_cli.run.scenario import did_you_mean
 from hmpc_cli.run.setup_checks import (built_problems, check_task, initial_state_problems,
                                       margins_of)
 
@@ -185,9 +186,12 @@ def _timing(sc, model) -> StackTiming:
         contact = frozenset(i for i, g in enumerate(model.guards)
                             if g.target != final or g.source == final)
     else:
-        unknown = set(rp.contact_guards) - {g.name for g in model.guards}
+        names = [g.name for g in model.guards]
+        unknown = [n for n in dict.fromkeys(rp.contact_guards) if n not in names]
         if unknown:
-            raise ValueError(f"replanning.contact_guards: unknown guards {sorted(unknown)}")
+            which = ", ".join(f"{n!r}{did_you_mean(n, names)}" for n in unknown)
+            raise ValueError(f"replanning.contact_guards: unknown guard{'s' * (len(unknown) > 1)} "
+                             f"{which}; the system's guards: {', '.join(map(repr, names))}")
         contact = frozenset(model.guard_index(n) for n in rp.contact_guards)
     if rp.policy != "on_contact":
         contact = frozenset()

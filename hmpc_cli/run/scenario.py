@@ -15,6 +15,7 @@ from __future__ import annotations
 import copy
 import difflib
 import json
+import math
 import re
 import tomllib
 import types
@@ -181,7 +182,7 @@ class ScenarioBase(BaseModel):
         try:
             self.plant_params()
         except ValidationError as exc:
-            for err in exc.errors():
+            for err in _tuple_lengths(exc.errors(), type(self.system)):
                 loc = key_path(["plant", *err["loc"]])
                 msg = err["msg"].removeprefix("Value error, ")
                 if err["type"] == "extra_forbidden":
@@ -411,11 +412,16 @@ def nesting(value: Any) -> int:
     return deepest
 
 
+def did_you_mean(name: Any, choices: list[str]) -> str:
+    """`` (did you mean 'x'?)`` when a choice is ``name`` in another case or near it, else ''."""
+    same = [a for a in choices if a.casefold() == str(name).casefold()]
+    close = same or difflib.get_close_matches(str(name), choices, n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
 def unknown_key(key: Any, allowed: list[str]) -> str:
     """``unknown key``, with ``(did you mean 'x'?)`` when an allowed key is close to it."""
-    same = [a for a in allowed if a.casefold() == str(key).casefold()]
-    close = same or difflib.get_close_matches(str(key), allowed, n=1)
-    return f"unknown key (did you mean {close[0]!r}?)" if close else "unknown key"
+    return "unknown key" + did_you_mean(key, allowed)
 
 
 def _field_names(models: list[type[BaseModel]]) -> list[str]:
@@ -482,7 +488,7 @@ def format_errors(exc: ValidationError, source: str, model: Any = None) -> list[
     lines, tags = [], _tags()
     if model is None and exc.title == "Scenario":
         model = scenario_model()
-    for err in exc.errors():
+    for err in _tuple_lengths(exc.errors(), model):
         parts = [p for p in err["loc"] if p not in ("function-after",)]
         if len(parts) >= 2 and parts[1] in tags.get(str(parts[0]), ()):
             del parts[1]  # the union member's tag (e.g. planner.cem.samples -> planner.samples)
@@ -496,6 +502,7 @@ def format_errors(exc: ValidationError, source: str, model: Any = None) -> list[
         if err["type"] == "string_type" and isinstance(given, int | float) \
                 and not isinstance(given, bool):
             msg += f' (a number here; text is quoted in TOML: "{given}")'
+        msg += _unquoted_hint(err["type"], given)
         if err["type"] == "extra_forbidden":
             raw = [p for p in err["loc"] if p not in ("function-after",)]
             allowed = _field_names(models_at(model, raw[:-1])) if model is not None else []
@@ -505,6 +512,74 @@ def format_errors(exc: ValidationError, source: str, model: Any = None) -> list[
             continue
         lines.append(f"{source}: {loc}: {msg}")
     return lines
+
+
+def _tuple_lengths(errors: list[dict], model: Any) -> list[dict]:
+    """The errors pydantic gives, those of a tuple of the wrong length as one per tuple.
+
+    A tuple too short is one ``missing`` error per absent item (``system.x0[3]: Field
+    required``), one too long a ``too_long`` error: both become one error at the tuple,
+    ``needs 4 numbers, got 3``, with the field's description when it has one (its items'
+    names, its units).
+    """
+    out, seen = [], set()
+    for err in errors:
+        loc, given = tuple(err["loc"]), err.get("input")
+        ctx = err.get("ctx") or {}
+        if err["type"] == "missing" and loc and isinstance(loc[-1], int) \
+                and isinstance(given, list | tuple):
+            at = loc[:-1]
+            need = 1 + max(e["loc"][-1] for e in errors if e["type"] == "missing"
+                           and tuple(e["loc"][:-1]) == at and isinstance(e["loc"][-1], int))
+        elif err["type"] == "too_long" and ctx.get("field_type") == "Tuple" \
+                and isinstance(given, list | tuple):
+            at, need = loc, ctx.get("max_length")
+        else:
+            out.append(err)
+            continue
+        if at in seen:
+            continue
+        seen.add(at)
+        out.append({**err, "type": "tuple_length", "loc": at,
+                    "msg": _length_text(model, at, need, len(given))})
+    return out
+
+
+def _length_text(model: Any, loc: tuple, need: int, got: int) -> str:
+    """``needs 4 numbers, got 3 (the field's description)`` for the tuple at ``loc``."""
+    fields = [f for m in (models_at(model, loc[:-1]) if model is not None and loc else [])
+              for name, f in m.model_fields.items() if loc[-1] in (name, f.alias)]
+    items = [typing.get_args(f.annotation) for f in fields
+             if typing.get_origin(f.annotation) is tuple]
+    numbers = bool(items) and all(
+        m in (int, float) for args in items for a in args for m in _members(a))
+    text = f"needs {need} {'numbers' if numbers else 'items'}, got {got}"
+    desc = next((f.description for f in fields if f.description), None)
+    return f"{text} ({desc})" if desc else text
+
+
+#: pydantic's error type of a value of the wrong type -> (the types it wants, their name)
+_WANTED = {"int_type": ((int,), "an integer"), "float_type": ((int, float), "a number"),
+           "bool_type": ((bool,), "a boolean")}
+
+
+def _unquoted_hint(kind: str, given: Any) -> str:
+    """`` (text here; a number is written without quotes in TOML: 600)`` for ``"600"``.
+
+    When a number or boolean setting is given text that, unquoted, is a value of the
+    wanted type ('' otherwise).
+    """
+    if kind not in _WANTED or not isinstance(given, str):
+        return ""
+    types, what = _WANTED[kind]
+    try:
+        value = tomllib.loads(f"v = {given.strip()}")["v"]
+    except (tomllib.TOMLDecodeError, RecursionError):
+        return ""
+    ok = isinstance(value, types) and (kind == "bool_type" or not isinstance(value, bool))
+    if not ok or (isinstance(value, float) and not math.isfinite(value)):
+        return ""
+    return f" (text here; {what} is written without quotes in TOML: {given.strip()})"
 
 
 def _tag_text(ctx: dict, msg: str) -> str:
@@ -775,7 +850,7 @@ def _hidden_problems(data: dict, source: str) -> list[str]:
         params.model_validate({**base, **plant})
     except ValidationError as exc:
         out = []
-        for err in exc.errors():
+        for err in _tuple_lengths(exc.errors(), params):
             if err["loc"] and err["loc"][0] in plant:
                 msg = err["msg"].removeprefix("Value error, ")
                 if err["type"] == "extra_forbidden":

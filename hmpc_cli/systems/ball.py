@@ -37,13 +37,15 @@ class BallParams(BaseModel):
     mass: FiniteFloat = Field(1.0, gt=0.0, description="mass [kg]")
     drag: FiniteFloat = Field(0.02, ge=0.0, description="drag gamma: acceleration -gamma |v|^2 v")
     gravity: FiniteFloat = Field(9.81, ge=0.0, description="gravity outside the circle [m/s^2]")
-    circle_center: Pair = (3.0, 3.0)
+    circle_center: Pair = Field((3.0, 3.0), description="centre c (x, y) of the circle "
+                                "guard, the final domain [m]")
     circle_radius: FiniteFloat = Field(1.0, gt=0.0)
     floor_extent: Pair = Field((0.0, 8.0), description="x range where the floor is active")
     wall_extent: Pair = Field((0.0, 8.0), description="y range where the wall is active")
     u_outside: Pair = Field((-100.0, 0.0), description="input bounds per axis outside")
     u_inside: Pair = Field((-100.0, 100.0), description="input bounds per axis inside")
-    x0: tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat] = (1.0, 1.0, 0.0, 0.0)
+    x0: tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat] = Field(
+        (1.0, 1.0, 0.0, 0.0), description="initial state (px, py, vx, vy) [m, m, m/s, m/s]")
     goal: Pair | None = Field(None, description="target position of the stage cost and "
                               "the success test [m] (default: the circle's centre)")
     q_position: FiniteFloat = Field(50.0, ge=0.0, description="stage cost weight on |p - goal|^2")

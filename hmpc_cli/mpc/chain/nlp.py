@@ -57,7 +57,7 @@ from hmpc_cli.mpc.builder import Blocks, NLPBuilder, NLPLayout
 from hmpc_cli.mpc.chain.layout import FLOW, ChainLayout, NodeSchedule
 from hmpc_cli.mpc.chain.problem_data import INF, ChainShape, problem_data
 from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart
-from hmpc_cli.mpc.solver_table import SOLVERS, SolverName, describe
+from hmpc_cli.mpc.solver_table import SOLVERS, SolverName, SolverOptions, describe
 from hmpc_cli.core.settings_types import (
     MAX_NLP_NODES, BoundedInt, FiniteFloat, StrictBool, nlp_estimate)
 
@@ -103,7 +103,7 @@ class MPCSettings(MarginsSettings):
         "a margins file of hmpc tube --write (relative to the scenario file's directory): "
         "its guard-avoid, pass-through and input margins at mpc.rate_hz replace them")
     solver: SolverName = Field("ipopt", description=f"NLP back-end: {describe()}")
-    solver_options: dict = Field(default_factory=dict, description="passed to the plugin")
+    solver_options: SolverOptions = Field(default_factory=dict, description="passed to the plugin")
     max_iter: BoundedInt = Field(200, gt=0, description="iteration limit (sqp_hpipm: of "
                                  "its IPOPT fallback)")
     max_sqp_iter: BoundedInt = Field(3, gt=0, description="sqp_hpipm and rti: SQP "

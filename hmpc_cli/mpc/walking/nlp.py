@@ -65,7 +65,7 @@ from hmpc_cli.mpc import cache
 from hmpc_cli.mpc.builder import Bounds, NLPBuilder
 from hmpc_cli.mpc.backends import OCPStructure
 from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart
-from hmpc_cli.mpc.solver_table import backend_of
+from hmpc_cli.mpc.solver_table import SolverOptions, backend_of
 from hmpc_cli.core.settings_types import (
     MAX_NLP_NODES, BoundedInt, FiniteFloat, Pair, StrictBool, nlp_estimate)
 
@@ -151,7 +151,7 @@ class WalkingMPCSettings(MarginsSettings):
                              "solution of the same candidate")
     impact_duals: StrictBool = Field(True, description="after a contact, also shift the "
                                "executed plan's multipliers (warm IPOPT instance)")
-    solver_options: dict = Field(default_factory=dict, description="extra solver options: "
+    solver_options: SolverOptions = Field(default_factory=dict, description="extra solver options: "
                                  "sections ipopt, ipopt_warm (IPOPT) and hpipm (the SQP "
                                  "back-ends' QP), other keys nlpsol options of mpc.solver")
 
