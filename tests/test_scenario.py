@@ -289,7 +289,8 @@ def test_unknown_contact_guard(work: Path) -> None:
 
 def test_unknown_contact_guard_names_the_guards_and_the_closest(work: Path) -> None:
     item = 'replanning.contact_guards=["flor", "x"]'
-    assert cli_bad(work, ["ball.toml", "--set", item]) == [
+    assert cli_bad(work, ["ball.toml", "--set", "replanning.policy=on_contact", "--set",
+                          item]) == [
         f"error: --set {item}: replanning.contact_guards: unknown guards 'flor' (did you mean "
         "'floor'?), 'x'; the system's guards: 'floor', 'wall', 'circle_in', 'circle_out'"]
 

@@ -190,7 +190,7 @@ def _value_errors(value: Any, loc: tuple) -> list[InitErrorDetails]:
             why = magnitude_problem(v)
             if why is not None:
                 out.append(InitErrorDetails(type=_reason(why), loc=at, input=v))
-        elif not isinstance(v, bool | str):  # a TOML date or time
+        elif not isinstance(v, bool | str | float):  # a TOML date or time
             out.append(InitErrorDetails(type=_reason(
                 f"a {type(v).__name__} is no solver option value (give a number, text, a "
                 "boolean, an array or a table)"), loc=at, input=str(v)))

@@ -716,7 +716,9 @@ SET_ONLY = frozenset({"sim.latency_model"})
 
 
 def _switched_off(data: dict, sc: ScenarioBase) -> list[str]:
-    """``key: no effect with ...`` for each setting ``data`` gives that ``sc`` switches off."""
+    """``key: no effect with ...`` for each setting ``data`` gives (not as its default) that
+    ``sc`` switches off.
+    """
     policy, latency = sc.replanning.policy, sc.sim.latency
     planner, mpc = sc.planner, sc.mpc
     elites = getattr(planner, "elites", None)  # the CEM planner's (other planners: none)
@@ -737,7 +739,15 @@ def _switched_off(data: dict, sc: ScenarioBase) -> list[str]:
            f'mpc.margins = "{getattr(mpc, "margins", "")}" (its margins replace the '
            'hand-set ones)') for key in ("tube_margin", "input_margin"))]
     return [f"{section}.{key}: no effect with {why}" for section, key, off, why in rules
-            if off and isinstance(data.get(section), dict) and key in data[section]]
+            if off and isinstance(data.get(section), dict) and key in data[section]
+            and not _is_default(getattr(sc, section), key)]
+
+
+def _is_default(settings: Any, key: str) -> bool:
+    """Whether a settings model's ``key`` holds its default (a run's recorded scenario, or
+    ``hmpc sweep --show``'s, writes every default out)."""
+    field = type(settings).model_fields[key]
+    return getattr(settings, key) == field.get_default(call_default_factory=True)
 
 
 def _attribute_to_seed(lines: list[str], source: str, seed: int | None) -> list[str]:
