@@ -11,7 +11,6 @@ from hmpc_cli.core.paths import path_option
 
 EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
-EXIT_INTERRUPTED = 130
 DEFAULT_AUTHORS = Path("results/authors")  # the authors' Figure 3 data, committed
 #: the robustness study's sweeps: paper geometry, a moved geometry, solve latency charged
 #: (0.05 s: about one solve here; 0.03 s: the largest the undisturbed ball survives), and
@@ -268,38 +267,54 @@ def _run_sweeps(plans: dict, dirs: dict[str, Path], workers: int | None) -> list
         One line per run a worker lost: ``<sweep name>: <run id>: <reason>``.
 
     Raises:
-        typer.Exit: interrupted (exit code 130; the same command resumes).
+        typer.Exit: stopped by a signal (exit code 128 + its number, the line saying how
+            many of the missing runs finished; the same command resumes).
     """
     import os
 
     from hmpc_cli.cli.common import is_quiet
     from hmpc_cli.cli.sweep import _execute, _print_cells
+    from hmpc_cli.core.signals import Interrupted, as_interrupted
 
-    _check_missing(plans, dirs)
+    missing = _check_missing(plans, dirs)
     lost: list[str] = []
-    for key, plan in plans.items():
-        outcome = _execute(plan, dirs[key], workers or os.cpu_count() or 1, None)
-        if not is_quiet():
-            _print_cells(plan, dirs[key])
-        lost += [f"{plan.spec.name}: {x}" for x in outcome.lost]
-        if outcome.interrupted:
-            typer.echo("interrupted: run the same command again to resume", err=True)
-            raise typer.Exit(EXIT_INTERRUPTED)
+    done = 0
+    try:
+        for key, plan in plans.items():
+            outcome = _execute(plan, dirs[key], workers or os.cpu_count() or 1, None)
+            done += outcome.ran
+            if not is_quiet():
+                _print_cells(plan, dirs[key])
+            lost += [f"{plan.spec.name}: {x}" for x in outcome.lost]
+            if outcome.interrupted:
+                raise Interrupted(outcome.signum)
+    except KeyboardInterrupt as exc:
+        _echo_errors([f"run not recorded (rerun to retry): {x}" for x in lost])
+        _stopped(as_interrupted(exc), f"{done} of {missing} missing runs done")
     return lost
 
 
-def _check_missing(plans: dict, dirs: dict[str, Path]) -> None:
+def _stopped(stop, what: str) -> None:
+    """Exits 128 + the signal number with one line: ``interrupted: <what>; ...``."""
+    typer.echo(f"interrupted: {what}; run the same command again to resume", err=True)
+    raise typer.Exit(stop.exit_code) from None
+
+
+def _check_missing(plans: dict, dirs: dict[str, Path]) -> int:
     """``hmpc sweep``'s set-up checks of the runs still to run, before any runs.
 
     Exit 2 with every problem; warnings (a margins file for another setting) on stderr.
+    Returns the number of runs still to run.
     """
     from hmpc_cli.cli.sweep import cell_checks
     from hmpc_cli.sweep.table import finished_runs
 
     problems: list[str] = []
+    count = 0
     for key, plan in plans.items():
         done = finished_runs(plan, dirs[key].resolve())
         missing = [r for r in plan.selected if done[r.run_id] is None]
+        count += len(missing)
         found, warnings = cell_checks(plan, missing) if missing else ([], [])
         problems += found
         for line in warnings:
@@ -308,6 +323,7 @@ def _check_missing(plans: dict, dirs: dict[str, Path]) -> None:
         for line in problems:
             typer.echo(f"error: {line}", err=True)
         raise typer.Exit(EXIT_BAD_INPUT)
+    return count
 
 
 def _authors_dir(path: Path | None) -> tuple[Path | None, str]:
@@ -399,9 +415,10 @@ def _biped_run(scenario: Path | None, results: Path, run: bool) -> Path | None:
             typer.echo(f"{sc.name}: running -> {out}")
         try:
             execute_run(prepare(sc), toml_text, out)
-        except KeyboardInterrupt:
-            typer.echo("interrupted: run the same command again to resume", err=True)
-            raise typer.Exit(EXIT_INTERRUPTED) from None
+        except KeyboardInterrupt as exc:
+            from hmpc_cli.core.signals import as_interrupted
+
+            _stopped(as_interrupted(exc), f"the run of {scenario} into {out} did not finish")
         except (ValueError, RuntimeError) as exc:
             typer.echo(f"error: {scenario}: {' '.join(str(exc).split())[:300]}", err=True)
             raise typer.Exit(EXIT_BAD_INPUT) from None
