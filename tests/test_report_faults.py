@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from conftest import BALL, signal_handlers_installed, stop_process
-from test_report import write_study
+from test_report import TRUTH, write_study
 
 #: every section left out (a test gives back the one it needs)
 NONE = {"--fig3": "", "--fig3-extra": "", "--fig3-reference": "", "--fig3-reference-extra": "",
@@ -126,3 +126,27 @@ def test_an_empty_value_leaves_a_section_out_and_a_dot_is_the_current_directory(
     page = (res / "README.md").read_text()
     assert "## Robustness study" in page and "![study](report/study.png)" in page
     assert (res / "report" / "study.png").is_file()
+
+
+def test_a_signal_while_the_page_is_drawn_leaves_the_results_as_they_were(tmp_path,
+                                                                          monkeypatch):
+    """A stop signal in a section after figures were drawn: the staging directory goes,
+    the results directory is byte for byte as before (the signal goes on up)."""
+    import hmpc_cli.report.push
+    from hmpc_cli.core.signals import Interrupted
+    from hmpc_cli.report.page import ReportInputs, write_report
+
+    study = write_study(tmp_path / "study" / "results.csv").parent
+    res = tmp_path / "results"
+    write_report(res, ReportInputs(None, None, study), "hmpc report")
+    before = _tree(res)
+
+    def stopped(*args, **kwargs):
+        raise Interrupted(signal.SIGTERM)
+
+    monkeypatch.setattr(hmpc_cli.report.push, "push_section", stopped)
+    changed = write_study(tmp_path / "later" / "study" / "results.csv",  # other figures
+                          {k: 10 - v for k, v in TRUTH.items()}).parent
+    with pytest.raises(Interrupted):
+        write_report(res, ReportInputs(None, None, changed, biped_push=study), "hmpc report")
+    assert _tree(res) == before
