@@ -478,8 +478,9 @@ def test_a_modelled_latency_study_pairs_with_the_paused_study_of_its_own_scenari
 
 
 def test_report_with_a_missing_authors_directory_is_a_clear_error(tmp_path, run_hmpc):
+    fig3 = write_study(tmp_path / "fig3" / "results.csv").parent  # a sweep's output
     proc = run_hmpc(["report", "--no-run", "--results", str(tmp_path / "r"),
-                     "--fig3", str(tmp_path), "--fig3-extra", "", "--fig3-reference", "",
+                     "--fig3", str(fig3), "--fig3-extra", "", "--fig3-reference", "",
                      "--fig3-reference-extra", "", "--fig3-schedule", "", "--robustness", "",
                      "--biped", "", "--biped-push", "", "--fig3-trials", "", "--realtime", "",
                      "--authors",

@@ -11,7 +11,6 @@ from hmpc_cli.core.paths import path_option
 
 EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
-EXIT_INTERRUPTED = 130
 DEFAULT_AUTHORS = Path("results/authors")  # the authors' Figure 3 data, committed
 #: the robustness study's sweeps: paper geometry, a moved geometry, solve latency charged
 #: (0.05 s: about one solve here; 0.03 s: the largest the undisturbed ball survives), and
@@ -29,41 +28,41 @@ def report_command(
     results: Annotated[Path, typer.Option(
         "--results", help="results directory (page: <results>/README.md)",
         parser=path_option)] = Path("results"),
-    fig3: Annotated[Path | None, typer.Option(
-        "--fig3", help="Figure 3 sweep file ('' to leave out)")] = Path("sweeps/fig3.toml"),
-    fig3_extra: Annotated[Path | None, typer.Option(
+    fig3: Annotated[str | None, typer.Option(
+        "--fig3", help="Figure 3 sweep file ('' to leave out)")] = "sweeps/fig3.toml",
+    fig3_extra: Annotated[str | None, typer.Option(
         "--fig3-extra", help="extra Figure 3 panel sweep (100 Hz; '' to leave out)")
-    ] = Path("sweeps/fig3_100hz.toml"),
-    fig3_reference: Annotated[Path | None, typer.Option(
+    ] = "sweeps/fig3_100hz.toml",
+    fig3_reference: Annotated[str | None, typer.Option(
         "--fig3-reference", help="Figure 3 sweep in reference mode ('' to leave out)")
-    ] = Path("sweeps/fig3_reference.toml"),
-    fig3_reference_extra: Annotated[Path | None, typer.Option(
+    ] = "sweeps/fig3_reference.toml",
+    fig3_reference_extra: Annotated[str | None, typer.Option(
         "--fig3-reference-extra", help="its 100 Hz panels ('' to leave out)")
-    ] = Path("sweeps/fig3_reference_100hz.toml"),
-    fig3_schedule: Annotated[Path | None, typer.Option(
+    ] = "sweeps/fig3_reference_100hz.toml",
+    fig3_schedule: Annotated[str | None, typer.Option(
         "--fig3-schedule", help="Figure 3 sweep flying the authors' plan ('' to leave out)")
-    ] = Path("sweeps/fig3_reference_schedule.toml"),
-    authors: Annotated[Path | None, typer.Option(
+    ] = "sweeps/fig3_reference_schedule.toml",
+    authors: Annotated[str | None, typer.Option(
         "--authors", help="directory of the authors' Figure 3 CSVs (fig3_*.csv) for the "
         "trial-by-trial comparison (default: results/authors if it exists; '' to leave "
         "out)")] = None,
-    robustness: Annotated[list[Path] | None, typer.Option(
+    robustness: Annotated[list[str] | None, typer.Option(
         "--robustness", help="robustness study sweep file or output directory, repeatable "
         "(default: sweeps/robustness.toml, robustness_tube.toml, robustness_moved.toml, "
         "robustness_moved_tube.toml, robustness_latency.toml, robustness_latency_30ms.toml, "
         "robustness_realtime_paused.toml and robustness_realtime.toml; '' to leave out)")
     ] = None,
-    biped: Annotated[Path | None, typer.Option(
+    biped: Annotated[str | None, typer.Option(
         "--biped", help="biped scenario for Figure 4 ('' to leave out)")
-    ] = Path("scenarios/biped_stairs.toml"),
-    fig3_trials: Annotated[Path | None, typer.Option(
+    ] = "scenarios/biped_stairs.toml",
+    fig3_trials: Annotated[str | None, typer.Option(
         "--fig3-trials", help="a Figure 3 sweep tabled trial by trial against the authors' "
         "failures, from its table alone ('' to leave out)")
-    ] = Path("sweeps/fig3_reference_rule.toml"),
-    biped_push: Annotated[Path | None, typer.Option(
+    ] = "sweeps/fig3_reference_rule.toml",
+    biped_push: Annotated[str | None, typer.Option(
         "--biped-push", help="the biped's push study: sweep file or output directory ('' to "
-        "leave out)")] = Path("sweeps/biped_push.toml"),
-    realtime: Annotated[list[Path] | None, typer.Option(
+        "leave out)")] = "sweeps/biped_push.toml",
+    realtime: Annotated[list[str] | None, typer.Option(
         "--realtime", help="real-time sweep file or output directory, repeatable (default: "
         "sweeps/realtime_rti.toml, realtime_ipopt.toml, realtime_biped.toml and "
         "realtime_biped_rti.toml; '' to leave out)")] = None,
@@ -89,22 +88,19 @@ def report_command(
     checked_output(results, "--results")  # before anything is read, run or written
     if not replace:
         _refuse_another_page(results)
-    plans, dirs = _sweeps(results, seeds, biped, fig3=fig3, fig3_extra=fig3_extra,
-                          fig3_reference=fig3_reference,
-                          fig3_reference_extra=fig3_reference_extra,
-                          fig3_schedule=fig3_schedule, biped_push=biped_push,
-                          fig3_trials=fig3_trials,
-                          **{f"realtime:{i}": p for i, p in enumerate(
-                              REALTIME if realtime is None else realtime)},
-                          **{f"robustness:{i}": p for i, p in enumerate(
-                              ROBUSTNESS if robustness is None else robustness)})
+    files = _parts(dict(fig3=fig3, fig3_extra=fig3_extra, fig3_reference=fig3_reference,
+                        fig3_reference_extra=fig3_reference_extra,
+                        fig3_schedule=fig3_schedule, biped_push=biped_push,
+                        fig3_trials=fig3_trials), realtime=realtime, robustness=robustness)
+    plans, dirs = _sweeps(results, seeds, _given(biped), files)
     from hmpc_cli.cli.common import is_quiet
 
     if not run and not is_quiet():
         _print_missing(plans, dirs)
     lost = _run_sweeps(plans, dirs, workers) if run else []
-    biped_dir = _biped_run(biped, results, run)
-    _write_page(results, dirs, biped_dir, _authors_dir(authors), plans)
+    biped_dir = _biped_run(_given(biped), results, run)
+    _write_page(results, dirs, biped_dir, _authors_dir(authors), plans,
+                files | {"biped": _given(biped)})
     if lost:  # the page holds every finished run; these are missing from it
         for line in lost:
             typer.echo(f"error: worker failed, run not recorded (rerun to retry): {line}",
@@ -164,18 +160,28 @@ def _refuse_another_page(results: Path) -> None:
 
 
 def _sweeps(results: Path, seeds: int | None, biped: Path | None,
-            **files: Path | None) -> tuple[dict, dict[str, Path]]:
+            files: dict[str, Path | None]) -> tuple[dict, dict[str, Path]]:
     """The sweep plans to run and every part's output directory.
 
     A sweep file runs into ``<results>/sweeps/<name>``; a directory is a sweep's output,
     read as it is; '' leaves a part out.
 
     Raises:
-        typer.Exit: an invalid sweep file, or nothing to report (exit code 2).
+        typer.Exit: an invalid sweep file, a directory that is not a sweep's output, or
+            nothing to report (exit code 2).
     """
-    given = {k: v for k, v in files.items() if not _left_out(v) and v.is_dir()}
+    from hmpc_cli.sweep.lock import is_sweep_output
+
+    given = {k: v if v.name not in ("", "..") else v.resolve()  # its name names its section
+             for k, v in files.items() if v is not None and v.is_dir()}
+    bad = [f"{_option(k)} {v}: not a sweep's output directory (no results.csv or "
+           "sweep.toml); give a sweep file to run it, or the directory `hmpc sweep --out` "
+           "wrote" for k, v in given.items() if not is_sweep_output(v)]
+    if bad:
+        _echo_errors(bad)
+        raise typer.Exit(EXIT_BAD_INPUT)
     plans = _plan_sweeps({k: v for k, v in files.items() if k not in given}, seeds)
-    if not plans and not given and _left_out(biped):
+    if not plans and not given and biped is None:
         typer.echo("error: nothing to report (every sweep option and --biped are empty)",
                    err=True)
         raise typer.Exit(EXIT_BAD_INPUT)
@@ -215,9 +221,33 @@ def _print_missing(plans: dict, dirs: dict[str, Path]) -> None:
                    "runs (resumable), then writes the page", err=True)
 
 
-def _left_out(path: Path | None) -> bool:
-    """Whether an optional input is left out: no path, or '' (which typer turns into '.')."""
-    return path is None or str(path) in ("", ".")
+def _parts(single: dict[str, str | None], **repeated: list[str] | None
+           ) -> dict[str, Path | None]:
+    """The sweep options' paths per report part (None: left out).
+
+    The repeatable options' parts are ``realtime:<i>`` and ``robustness:<i>`` (their
+    defaults when not given).
+    """
+    defaults = {"realtime": REALTIME, "robustness": ROBUSTNESS}
+    parts = {k: _given(v) for k, v in single.items()}
+    for name, values in repeated.items():
+        given = map(str, defaults[name]) if values is None else values
+        parts |= {f"{name}:{i}": _given(v) for i, v in enumerate(given)}
+    return parts
+
+
+def _option(key: str) -> str:
+    """The option of a report part: ``robustness:2`` -> ``--robustness``."""
+    return "--" + key.split(":")[0].replace("_", "-")
+
+
+def _given(value: str | None) -> Path | None:
+    """An optional input's path: None when left out (no value, or '').
+
+    The options are strings: typer turns a Path option's '' into '.', the current
+    directory, which is an input of its own.
+    """
+    return None if value is None or value == "" else Path(value)
 
 
 def _echo_errors(lines: list[str]) -> None:
@@ -244,7 +274,7 @@ def _plan_sweeps(files: dict[str, Path | None], seeds: int | None) -> dict:
 
     plans = {}
     for key, path in files.items():
-        if _left_out(path):
+        if path is None:
             continue
         try:
             plans[key] = plan_sweep(path)
@@ -268,38 +298,54 @@ def _run_sweeps(plans: dict, dirs: dict[str, Path], workers: int | None) -> list
         One line per run a worker lost: ``<sweep name>: <run id>: <reason>``.
 
     Raises:
-        typer.Exit: interrupted (exit code 130; the same command resumes).
+        typer.Exit: stopped by a signal (exit code 128 + its number, the line saying how
+            many of the missing runs finished; the same command resumes).
     """
     import os
 
     from hmpc_cli.cli.common import is_quiet
     from hmpc_cli.cli.sweep import _execute, _print_cells
+    from hmpc_cli.core.signals import Interrupted, as_interrupted
 
-    _check_missing(plans, dirs)
+    missing = _check_missing(plans, dirs)
     lost: list[str] = []
-    for key, plan in plans.items():
-        outcome = _execute(plan, dirs[key], workers or os.cpu_count() or 1, None)
-        if not is_quiet():
-            _print_cells(plan, dirs[key])
-        lost += [f"{plan.spec.name}: {x}" for x in outcome.lost]
-        if outcome.interrupted:
-            typer.echo("interrupted: run the same command again to resume", err=True)
-            raise typer.Exit(EXIT_INTERRUPTED)
+    done = 0
+    try:
+        for key, plan in plans.items():
+            outcome = _execute(plan, dirs[key], workers or os.cpu_count() or 1, None)
+            done += outcome.ran
+            if not is_quiet():
+                _print_cells(plan, dirs[key])
+            lost += [f"{plan.spec.name}: {x}" for x in outcome.lost]
+            if outcome.interrupted:
+                raise Interrupted(outcome.signum)
+    except KeyboardInterrupt as exc:
+        _echo_errors([f"run not recorded (rerun to retry): {x}" for x in lost])
+        _stopped(as_interrupted(exc), f"{done} of {missing} missing runs done")
     return lost
 
 
-def _check_missing(plans: dict, dirs: dict[str, Path]) -> None:
+def _stopped(stop, what: str) -> None:
+    """Exits 128 + the signal number with one line: ``interrupted: <what>; ...``."""
+    typer.echo(f"interrupted: {what}; run the same command again to resume", err=True)
+    raise typer.Exit(stop.exit_code) from None
+
+
+def _check_missing(plans: dict, dirs: dict[str, Path]) -> int:
     """``hmpc sweep``'s set-up checks of the runs still to run, before any runs.
 
     Exit 2 with every problem; warnings (a margins file for another setting) on stderr.
+    Returns the number of runs still to run.
     """
     from hmpc_cli.cli.sweep import cell_checks
     from hmpc_cli.sweep.table import finished_runs
 
     problems: list[str] = []
+    count = 0
     for key, plan in plans.items():
         done = finished_runs(plan, dirs[key].resolve())
         missing = [r for r in plan.selected if done[r.run_id] is None]
+        count += len(missing)
         found, warnings = cell_checks(plan, missing) if missing else ([], [])
         problems += found
         for line in warnings:
@@ -308,20 +354,22 @@ def _check_missing(plans: dict, dirs: dict[str, Path]) -> None:
         for line in problems:
             typer.echo(f"error: {line}", err=True)
         raise typer.Exit(EXIT_BAD_INPUT)
+    return count
 
 
-def _authors_dir(path: Path | None) -> tuple[Path | None, str]:
+def _authors_dir(value: str | None) -> tuple[Path | None, str]:
     """The authors' data directory and, when there is none, the page's note saying so.
 
     Raises:
         typer.Exit: an explicitly given directory that does not exist (exit code 2).
     """
-    if path is None:
+    if value is None:
         if DEFAULT_AUTHORS.is_dir():
             return DEFAULT_AUTHORS, ""
         return None, (f"The authors' data ({DEFAULT_AUTHORS}) was not found: the "
                       "trial-by-trial comparison is left out (`hmpc report --authors DIR`).")
-    if _left_out(path):
+    path = _given(value)
+    if path is None:
         return None, ""
     if not path.is_dir():
         typer.echo(f"error: --authors: {path}: no such directory", err=True)
@@ -331,7 +379,8 @@ def _authors_dir(path: Path | None) -> tuple[Path | None, str]:
 
 def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None,
                 authors: tuple[Path | None, str] = (None, ""),
-                plans: dict | None = None) -> None:
+                plans: dict | None = None, given: dict[str, Path | None] | None = None
+                ) -> None:
     """Draws the figures from the finished runs and writes ``<results>/README.md``.
 
     Args:
@@ -340,9 +389,11 @@ def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None,
         biped_dir: run directory of the biped scenario (None: no Figure 4).
         authors: the authors' data directory (None: none) and the page's note about it.
         plans: the sweep plan per part given as a sweep file (resume commands, seeds).
+        given: the path given per part (its option's value, for errors; ``biped``: the
+            scenario).
 
     Raises:
-        typer.Exit: a figure's input is unusable (exit code 2).
+        typer.Exit: a figure's input is unusable (exit code 2; nothing written).
     """
     import shlex
     import sys
@@ -365,16 +416,33 @@ def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None,
     try:
         page = write_report(results, inputs, shlex.join(["hmpc", *sys.argv[1:]]))
     except FigureInputError as exc:
-        typer.echo(f"error: {exc}", err=True)
+        where = dirs | ({"biped": biped_dir} if biped_dir is not None else {})
+        typer.echo(f"error: {_attributed(exc, where, given or {})}", err=True)
         raise typer.Exit(EXIT_BAD_INPUT) from None
     from hmpc_cli.cli.common import is_quiet
 
     typer.echo(str(page) if is_quiet() else f"wrote {page} and {results / 'report'}/")
 
 
+def _attributed(exc: Exception, dirs: dict[str, Path], given: dict[str, Path | None]) -> str:
+    """A figure input's error prefixed with the option (and value) it came from, if known.
+
+    ``exc.source``: the input directory that failed (:func:`hmpc_cli.report.page.write_report`).
+    """
+    source = getattr(exc, "source", None)
+    key = next((k for k, d in dirs.items() if source is not None and d == source), None)
+    if key is None:
+        return str(exc)
+    text = f"{_option(key)} {given.get(key) or dirs[key]}: {exc}"
+    if "missing column" in text:
+        text += (f": not the table of the sweep {_option(key)} draws; give that sweep's file "
+                 "or output directory (`hmpc report --help` names the default)")
+    return text
+
+
 def _biped_run(scenario: Path | None, results: Path, run: bool) -> Path | None:
     """Runs the biped scenario into results/<name>/report (unless done); its directory."""
-    if _left_out(scenario):
+    if scenario is None:
         return None
     from hmpc_cli.run.runner import prepare
     from hmpc_cli.run.runner import execute_run
@@ -399,9 +467,10 @@ def _biped_run(scenario: Path | None, results: Path, run: bool) -> Path | None:
             typer.echo(f"{sc.name}: running -> {out}")
         try:
             execute_run(prepare(sc), toml_text, out)
-        except KeyboardInterrupt:
-            typer.echo("interrupted: run the same command again to resume", err=True)
-            raise typer.Exit(EXIT_INTERRUPTED) from None
+        except KeyboardInterrupt as exc:
+            from hmpc_cli.core.signals import as_interrupted
+
+            _stopped(as_interrupted(exc), f"the run of {scenario} into {out} did not finish")
         except (ValueError, RuntimeError) as exc:
             typer.echo(f"error: {scenario}: {' '.join(str(exc).split())[:300]}", err=True)
             raise typer.Exit(EXIT_BAD_INPUT) from None

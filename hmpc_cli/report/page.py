@@ -163,10 +163,23 @@ def _layout(results: Path) -> list[str]:
 def _or_not_drawn(title: str, directory: Path, section, level: str = "##") -> list[str]:
     """A table-only section, or its title and why it is not drawn (no table yet)."""
     try:
-        return section()
+        return _from(directory, section)
     except FigureInputError as exc:
         if _no_table(directory):
             return [f"{level} {title}", "", f"Not drawn: {portable_text(str(exc))}", ""]
+        raise
+
+
+def _from(directory: Path, section):
+    """``section()``; its :class:`FigureInputError` records ``directory`` as its ``source``.
+
+    The caller names the input (option) that failed.
+    """
+    try:
+        return section()
+    except FigureInputError as exc:
+        if getattr(exc, "source", None) is None:
+            exc.source = Path(directory)
         raise
 
 
@@ -175,15 +188,13 @@ def _no_table(directory: Path) -> bool:
     return not (Path(directory) / "results.csv").is_file()
 
 
-def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
-    """Draws the figures into ``results/report`` and writes ``results/README.md``.
+def _page_lines(results: Path, inputs: ReportInputs, command: str, fig_dir: Path,
+                base: Path) -> list[str]:
+    """The page's Markdown lines; the figures drawn into ``fig_dir``, linked from ``base``.
 
     Raises:
         FigureInputError: a sweep table or log is missing or malformed.
     """
-    results = Path(results)
-    fig_dir = results / "report"
-    fig_dir.mkdir(parents=True, exist_ok=True)
     lines = [TITLE, "",
              f"{_MADE_BY}{portable_command(command)}` from recorded runs: the sweeps' "
              "per-run tables (each section names its sweep; the repository's are "
@@ -192,7 +203,7 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
              "`run.mcap`, or where it is not there the trajectory log `trace.mcap` the report "
              "keeps beside it); regenerate with the same command.", ""]
     if any(d is not None for d in (inputs.fig3, inputs.fig3_reference, inputs.fig3_schedule)):
-        lines += _fig3_section(inputs, fig_dir, results)
+        lines += _fig3_section(inputs, fig_dir, base)
     if inputs.fig3_trials is not None:
         from hmpc_cli.report.fig3_trials import fig3_trials_section
 
@@ -206,22 +217,74 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
             lines += _or_not_drawn(f"`{Path(d).name}`", d, lambda d=d: realtime_section(d),
                                    level="###")
     if inputs.robustness is not None:
-        lines += _robustness_section(inputs, fig_dir, results)
+        lines += _robustness_section(inputs, fig_dir, base)
     if inputs.biped is not None:
-        lines += _biped_section(inputs, fig_dir, results)
+        lines += _from(inputs.biped, lambda: _biped_section(inputs, fig_dir, base))
     if inputs.biped_push is not None:
         from hmpc_cli.report.push import push_section
 
         lines += _or_not_drawn("The biped under pushes that matter", inputs.biped_push,
-                               lambda: push_section(inputs.biped_push, fig_dir, results))
+                               lambda: push_section(inputs.biped_push, fig_dir, base))
     if inputs.fig3 is None and inputs.fig3_reference is None and inputs.robustness is None \
             and inputs.biped is None and inputs.biped_push is None \
             and inputs.fig3_trials is None and not inputs.realtime:
         raise FigureInputError("nothing to report: no Figure 3, robustness sweep or biped run")
-    lines += _layout(results)
-    page = results / "README.md"
-    from hmpc_cli.core.paths import write_atomic
+    return lines + _layout(results)
 
-    # no machine's absolute path on the committed page (repository-relative or <...>/)
-    write_atomic(page, portable_text("\n".join(lines)))
+
+def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
+    """Draws the figures into ``results/report`` and writes ``results/README.md``.
+
+    All or nothing: the figures are drawn into a staging directory in ``results`` and
+    moved into ``results/report`` (over the files of the same names; others stay) only
+    when the whole page is made, then the page is written. On any failure or signal the
+    staging directory is removed and ``results`` is as it was (not even created). The
+    trajectory logs kept beside the drawn runs' logs are written only then too.
+
+    Raises:
+        FigureInputError: a sweep table or log is missing or malformed.
+    """
+    import shutil
+    import tempfile
+
+    from hmpc_cli.report.traces import deferred_traces, keep_traces
+
+    results = Path(results)
+    made = not results.exists()
+    results.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".report-staging-", dir=results))
+    try:
+        with deferred_traces() as logs:
+            lines = _page_lines(results, inputs, command, staging / "report", staging)
+        keep_traces(logs)  # beside the run logs: not the page's, kept on their own
+        return _commit(results, staging / "report", lines)
+    except BaseException:
+        if made:
+            shutil.rmtree(results, ignore_errors=True)
+        raise
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _commit(results: Path, drawn: Path, lines: list[str]) -> Path:
+    """Moves the figures ``drawn`` into ``results/report``, then writes the page.
+
+    A stop signal meanwhile is held off to the end (the page is then whole).
+    """
+    import os
+
+    from hmpc_cli.core.paths import write_atomic
+    from hmpc_cli.core.signals import deferred
+
+    fig_dir = results / "report"
+    with deferred():
+        fig_dir.mkdir(exist_ok=True)
+        for path in sorted(drawn.rglob("*")):
+            if path.is_file():
+                dest = fig_dir / path.relative_to(drawn)
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(path, dest)
+        page = results / "README.md"
+        # no machine's absolute path on the committed page (repository-relative or <...>/)
+        write_atomic(page, portable_text("\n".join(lines)))
     return page

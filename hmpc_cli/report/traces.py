@@ -7,12 +7,29 @@ clone draws the same figures from those alone.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import contextlib
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from hmpc_cli.analysis.tables import read_table, resolve_table
 
-__all__ = ["keep_traces", "sweep_logs"]
+__all__ = ["deferred_traces", "keep_traces", "sweep_logs"]
+
+#: the logs :func:`keep_traces` noted inside :func:`deferred_traces` (innermost last)
+_NOTED: list[list[Path]] = []
+
+
+@contextlib.contextmanager
+def deferred_traces() -> Iterator[list[Path]]:
+    """:func:`keep_traces` inside only notes its logs, in the list yielded (written later).
+
+    The figures read a run log itself when it is here, never its trajectory log.
+    """
+    _NOTED.append([])
+    try:
+        yield _NOTED[-1]
+    finally:
+        _NOTED.pop()
 
 
 def sweep_logs(directory: Path) -> list[Path]:
@@ -25,11 +42,16 @@ def sweep_logs(directory: Path) -> list[Path]:
 def keep_traces(logs: Iterable[Path]) -> None:
     """Writes the trajectory log beside each run log that is here (unless it is up to date).
 
+    Inside :func:`deferred_traces`: only notes the logs.
+
     A log that cannot be copied (damaged) gets none: the figures read it themselves and
     name what they leave out.
     """
     from hmpc_cli.log.trace import TRACE_NAME, write_trace
 
+    if _NOTED:
+        _NOTED[-1].extend(Path(log) for log in logs)
+        return
     for log in logs:
         log = Path(log)
         if log.is_dir():

@@ -11,7 +11,12 @@ import os
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["SweepLockedError", "owner_problem", "output_lock"]
+__all__ = ["SweepLockedError", "is_sweep_output", "owner_problem", "output_lock"]
+
+#: the file that makes a directory a sweep's (its owner: :func:`owner_problem`)
+SWEEP_FILE = "sweep.toml"
+#: a sweep's table (:func:`hmpc_cli.sweep.table.write_results`)
+TABLE_FILE = "results.csv"
 
 
 class SweepLockedError(Exception):
@@ -68,7 +73,7 @@ def owner_problem(out: Path, name: str) -> str | None:
         return f"cannot read it ({exc.strerror or exc})"
     if not entries:
         return None
-    stored = out / "sweep.toml"
+    stored = out / SWEEP_FILE
     if not stored.is_file():
         shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
         return (f"is not a sweep's directory (no sweep.toml; it holds {shown}): choose a new "
@@ -81,3 +86,13 @@ def owner_problem(out: Path, name: str) -> str | None:
         return (f"belongs to sweep {owner!r} (its sweep.toml), not {name!r}: choose another "
                 "--out (the same sweep resumes in its own directory)")
     return None
+
+
+def is_sweep_output(directory: Path) -> bool:
+    """Whether ``directory`` is a sweep's output, to read.
+
+    That is: its ``sweep.toml`` is there (the mark :func:`owner_problem` reads, ``hmpc
+    sweep --out`` wrote it) or its table alone (a committed ``results.csv``, the run
+    directories left out).
+    """
+    return (directory / SWEEP_FILE).is_file() or (directory / TABLE_FILE).is_file()

@@ -1,0 +1,152 @@
+"""``hmpc report`` under faults: stop signals, a section that fails, inputs that are not sweeps."""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import BALL, signal_handlers_installed, stop_process
+from test_report import TRUTH, write_study
+
+#: every section left out (a test gives back the one it needs)
+NONE = {"--fig3": "", "--fig3-extra": "", "--fig3-reference": "", "--fig3-reference-extra": "",
+        "--fig3-schedule": "", "--biped": "", "--biped-push": "", "--fig3-trials": "",
+        "--realtime": "", "--robustness": ""}
+
+
+def _args(**given: str) -> list[str]:
+    """``report`` with every section left out but ``given`` (``fig3_extra=`` for --fig3-extra)."""
+    options = NONE | {"--" + k.replace("_", "-"): v for k, v in given.items()}
+    return ["report", *(x for kv in options.items() for x in kv)]
+
+
+def _wait_for(cond, what: str, timeout: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.05)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_a_stopped_report_run_exits_128_plus_the_signal_and_says_what_finished(
+        tmp_path, start_hmpc, sig):
+    """A stop signal to ``hmpc report --run`` in its first run: exit 128 + the signal, one
+    line saying how many of the missing runs finished (none), no page, no figures."""
+    sweep = tmp_path / "slow_study.toml"
+    sweep.write_text(f'name = "slow_study"\nscenario = "{BALL.as_posix()}"\nseeds = 2\n'
+                     '[set]\n"sim.duration" = 30.0\n"mpc.horizon" = 1.0\n')
+    res = tmp_path / "results"
+    proc = start_hmpc([*_args(robustness=str(sweep)), "--run", "--results", str(res),
+                       "--workers", "1"], tmp_path)
+    runs = res / "sweeps" / "slow_study" / "runs"
+    _wait_for(lambda: proc.poll() is not None or (
+        signal_handlers_installed(proc.pid) and any(runs.glob("*/run.mcap"))), "a run")
+    assert proc.poll() is None, proc.communicate()
+    _, err = stop_process(proc, sig, timeout=120)
+    assert proc.returncode == 128 + sig, err
+    assert err.splitlines()[-1] == ("interrupted: 0 of 2 missing runs done; run the same "
+                                    "command again to resume"), err
+    assert "Traceback" not in err
+    assert not (res / "README.md").exists() and not (res / "report").exists()
+
+
+def _tree(root: Path) -> dict[str, bytes | None]:
+    """Every path under ``root`` with its bytes (None: a directory)."""
+    return {str(p.relative_to(root)): (p.read_bytes() if p.is_file() else None)
+            for p in sorted(root.rglob("*"))}
+
+
+def _push_table_without_its_push_column(d: Path) -> Path:
+    d.mkdir(parents=True)
+    (d / "results.csv").write_text("run_id,seed,mpc.rate_hz,success,log\n"
+                                   "a,0,10,true,\nb,1,10,false,\n")
+    return d
+
+
+def test_a_report_that_fails_in_a_later_section_leaves_the_results_as_they_were(
+        tmp_path, run_hmpc):
+    """The robustness section draws, then the push section's table lacks its column: exit
+    2, the error names the option, and the results directory is byte for byte as before
+    (the page and figures of the report before it; no report/ on a first report)."""
+    study = write_study(tmp_path / "study" / "results.csv").parent
+    bad = _push_table_without_its_push_column(tmp_path / "push")
+    res = tmp_path / "results"
+    failing = [*_args(robustness=str(study), biped_push=str(bad)), "--results", str(res)]
+    first = run_hmpc(failing, tmp_path)
+    assert first.returncode == 2, first.stderr
+    assert first.stderr == (
+        f"error: --biped-push {bad}: {bad / 'results.csv'}: missing column(s) "
+        "disturbance.magnitude (has: run_id, seed, mpc.rate_hz, success, log): not the table "
+        "of the sweep --biped-push draws; give that sweep's file or output directory (`hmpc "
+        "report --help` names the default)\n")
+    assert not res.exists()  # a first report: nothing made, not even --results
+    ok = run_hmpc([*_args(robustness=str(study)), "--results", str(res)], tmp_path)
+    assert ok.returncode == 0, ok.stderr
+    (res / "report" / "mine.txt").write_text("kept\n")
+    before = _tree(res)
+    assert "report/study.png" in before and "README.md" in before
+    again = run_hmpc([*failing, "--replace"], tmp_path)
+    assert again.returncode == 2 and again.stderr == first.stderr
+    assert _tree(res) == before
+
+
+def test_a_directory_that_is_not_a_sweeps_output_is_refused_by_option(tmp_path, run_hmpc):
+    """An empty directory, or a folder of sweep files, for a sweep option: exit 2 naming
+    the option and what to give; nothing written."""
+    sweeps = tmp_path / "sweeps"
+    sweeps.mkdir()
+    (sweeps / "a.toml").write_text(f'name = "a"\nscenario = "{BALL.as_posix()}"\n')
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    res = tmp_path / "results"
+    proc = run_hmpc([*_args(robustness=str(sweeps), biped_push=str(empty)),
+                     "--results", str(res)], tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    why = ("not a sweep's output directory (no results.csv or sweep.toml); give a sweep "
+           "file to run it, or the directory `hmpc sweep --out` wrote")
+    assert proc.stderr.splitlines() == [f"error: --biped-push {empty}: {why}",
+                                        f"error: --robustness {sweeps}: {why}"]
+    assert not res.exists()
+
+
+def test_an_empty_value_leaves_a_section_out_and_a_dot_is_the_current_directory(
+        tmp_path, run_hmpc):
+    """``--robustness ''`` leaves the study out (nothing to report); ``--robustness .`` in a
+    sweep's output directory reads it."""
+    study = write_study(tmp_path / "study" / "results.csv").parent
+    res = tmp_path / "results"
+    left_out = run_hmpc([*_args(robustness=""), "--results", str(res)], study)
+    assert left_out.returncode == 2 and "nothing to report" in left_out.stderr
+    here = run_hmpc([*_args(robustness="."), "--results", str(res)], study)
+    assert here.returncode == 0, here.stderr
+    page = (res / "README.md").read_text()
+    assert "## Robustness study" in page and "![study](report/study.png)" in page
+    assert (res / "report" / "study.png").is_file()
+
+
+def test_a_signal_while_the_page_is_drawn_leaves_the_results_as_they_were(tmp_path,
+                                                                          monkeypatch):
+    """A stop signal in a section after figures were drawn: the staging directory goes,
+    the results directory is byte for byte as before (the signal goes on up)."""
+    import hmpc_cli.report.push
+    from hmpc_cli.core.signals import Interrupted
+    from hmpc_cli.report.page import ReportInputs, write_report
+
+    study = write_study(tmp_path / "study" / "results.csv").parent
+    res = tmp_path / "results"
+    write_report(res, ReportInputs(None, None, study), "hmpc report")
+    before = _tree(res)
+
+    def stopped(*args, **kwargs):
+        raise Interrupted(signal.SIGTERM)
+
+    monkeypatch.setattr(hmpc_cli.report.push, "push_section", stopped)
+    changed = write_study(tmp_path / "later" / "study" / "results.csv",  # other figures
+                          {k: 10 - v for k, v in TRUTH.items()}).parent
+    with pytest.raises(Interrupted):
+        write_report(res, ReportInputs(None, None, changed, biped_push=study), "hmpc report")
+    assert _tree(res) == before
