@@ -716,7 +716,7 @@ SET_ONLY = frozenset({"sim.latency_model"})
 
 
 def _switched_off(data: dict, sc: ScenarioBase) -> list[str]:
-    """``key: no effect with ...`` per setting ``data`` gives, not as its default, ``sc`` ignores."""
+    """``key: no effect with ...`` per setting ``data`` gives (not its default) ``sc`` ignores."""
     policy, latency = sc.replanning.policy, sc.sim.latency
     planner, mpc = sc.planner, sc.mpc
     elites = getattr(planner, "elites", None)  # the CEM planner's (other planners: none)
