@@ -742,8 +742,10 @@ def _switched_off(data: dict, sc: ScenarioBase) -> list[str]:
 
 
 def _is_default(settings: Any, key: str) -> bool:
-    """Whether a settings model's ``key`` holds its default (a run's recorded scenario, or
-    ``hmpc sweep --show``'s, writes every default out)."""
+    """Whether a settings model's ``key`` holds its default.
+
+    A run's recorded scenario, and ``hmpc sweep --show``'s, write every default out.
+    """
     field = type(settings).model_fields[key]
     return getattr(settings, key) == field.get_default(call_default_factory=True)
 
