@@ -150,3 +150,25 @@ def test_a_signal_while_the_page_is_drawn_leaves_the_results_as_they_were(tmp_pa
     with pytest.raises(Interrupted):
         write_report(res, ReportInputs(None, None, changed, biped_push=study), "hmpc report")
     assert _tree(res) == before
+
+
+def test_report_run_takes_the_sweeps_lock(tmp_path, run_hmpc):
+    """``report --run`` into a sweep directory another ``hmpc sweep`` writes (its lock
+    held): refused, exit 2, nothing run and no page (it ran the sweep beside it)."""
+    import os
+
+    from hmpc_cli.sweep.lock import output_lock
+
+    sweep = tmp_path / "study.toml"
+    sweep.write_text(f'name = "study"\nscenario = "{BALL.as_posix()}"\nseeds = 1\n'
+                     '[set]\n"sim.duration" = 0.2\n')
+    res = tmp_path / "results"
+    out = res / "sweeps" / "study"
+    out.mkdir(parents=True)
+    with output_lock(out):  # held by this process, as by a running hmpc sweep
+        proc = run_hmpc([*_args(robustness=str(sweep)), "--run", "--results", str(res),
+                         "--workers", "1"], tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == (
+        f"error: {out}: another sweep is writing here (pid {os.getpid()})"), proc.stderr
+    assert not (out / "runs").exists() and not (res / "README.md").exists()

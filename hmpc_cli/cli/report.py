@@ -304,7 +304,7 @@ def _run_sweeps(plans: dict, dirs: dict[str, Path], workers: int | None) -> list
     import os
 
     from hmpc_cli.cli.common import is_quiet
-    from hmpc_cli.cli.sweep import _execute, _print_cells
+    from hmpc_cli.cli.sweep import _locked_execute, _print_cells
     from hmpc_cli.core.signals import Interrupted, as_interrupted
 
     missing = _check_missing(plans, dirs)
@@ -312,7 +312,8 @@ def _run_sweeps(plans: dict, dirs: dict[str, Path], workers: int | None) -> list
     done = 0
     try:
         for key, plan in plans.items():
-            outcome = _execute(plan, dirs[key], workers or os.cpu_count() or 1, None)
+            # the sweep's lock: another hmpc sweep writing there is refused (exit 2)
+            outcome = _locked_execute(plan, dirs[key], workers or os.cpu_count() or 1, None)
             done += outcome.ran
             if not is_quiet():
                 _print_cells(plan, dirs[key])
