@@ -302,7 +302,7 @@ def test_bad_input_in_a_real_process(tmp_path: Path, run_hmpc) -> None:
     assert proc.stdout == ""
     assert "Traceback" not in proc.stderr
     assert sorted(proc.stderr.splitlines()) == [
-        "error: --set sim.rate_hz=0: sim.rate_hz: Input should be greater than 0",
+        "error: --set sim.rate_hz=0: sim.rate_hz: Input should be greater than 0 (got 0)",
         "error: bad.toml: mpc.foo: unknown key"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml"]
 
@@ -311,7 +311,7 @@ def test_bad_input_in_a_real_process(tmp_path: Path, run_hmpc) -> None:
 def test_load_errors_directly(tmp_path: Path) -> None:
     path = _write(tmp_path / "s.toml", "[mpc]\nrate_hz = 7\n[sim]\nrate_hz = -1\n")
     lines = load_error(path)
-    assert lines == [f"{path}: sim.rate_hz: Input should be greater than 0"]
+    assert lines == [f"{path}: sim.rate_hz: Input should be greater than 0 (got -1)"]
     lines = load_error(path, ["sim.rate_hz=600", "mpc.bar=2"])
     assert lines == ["--set mpc.bar=2: mpc.bar: unknown key",  # and the rate problem too
                      f"{path}: mpc.rate_hz: 7 must divide mpc.nodes_per_second = 60 and "
@@ -495,10 +495,12 @@ def test_field_and_cross_field_problems_are_reported_together(work: Path) -> Non
     _with_lines(work / "ball.toml", work / "bad.toml", planner="elites = 0",
                 sim="log_rate_hz = 7", replanning="period = 0.1234")
     lines = cli_bad(work, ["bad.toml"])
-    assert lines == ["error: bad.toml: planner.elites: Input should be greater than or equal to 1",
+    assert lines == ["error: bad.toml: planner.elites: Input should be greater than or equal to 1 "
+                     "(got 0)",
                      "error: bad.toml: sim.log_rate_hz: 7 must divide sim.rate_hz = 600"]
     lines = cli_bad(work, ["bad.toml", "--set", 'replanning.policy="periodic"'])
-    assert lines == ["error: bad.toml: planner.elites: Input should be greater than or equal to 1",
+    assert lines == ["error: bad.toml: planner.elites: Input should be greater than or equal to 1 "
+                     "(got 0)",
                      "error: bad.toml: sim.log_rate_hz: 7 must divide sim.rate_hz = 600",
                      "error: bad.toml: replanning.period: 0.1234 s must be a whole number of "
                      "simulator steps (1/sim.rate_hz = 1/600 s)"]
@@ -508,8 +510,9 @@ def test_a_cross_field_problem_about_a_wrong_key_is_not_guessed(tmp_path: Path) 
     # sim.rate_hz is wrong: whether mpc.rate_hz divides it cannot be told (no default guess)
     path = _write(tmp_path / "s.toml", "[mpc]\nrate_hz = 7\n[sim]\nrate_hz = -1\n"
                   "log_rate_hz = 0\nduration = 0.0001\n")
-    assert load_error(path) == [f"{path}: sim.rate_hz: Input should be greater than 0",
-                                f"{path}: sim.log_rate_hz: Input should be greater than 0"]
+    assert load_error(path) == [f"{path}: sim.rate_hz: Input should be greater than 0 (got -1)",
+                                f"{path}: sim.log_rate_hz: Input should be greater than 0 "
+                                "(got 0)"]
 
 
 def test_a_sweep_file_given_as_a_scenario_and_back_says_which_command_takes_it():

@@ -247,7 +247,7 @@ def test_a_problem_made_on_the_command_line_names_the_option_not_the_file(work: 
     """--seed's own problem and a --set inside a value that is not a table."""
     ball = _scenario(work, "ball").name
     assert bad_run(work, ["run", ball, "--seed", "-1"]) == [
-        "error: --seed -1: seed: Input should be greater than or equal to 0"]
+        "error: --seed -1: seed: Input should be greater than or equal to 0 (got -1)"]
     assert bad_run(work, ["run", ball, "--set", "system.x0.0=1"]) == [
         "error: --set system.x0.0=1: system.x0: Input should be a valid tuple"]
 
@@ -398,15 +398,16 @@ def test_unknown_system_still_reports_the_other_sections(work: Path):
     assert lines[0].startswith('error: --set system.name="rocket": system.name: unknown '
                                "system 'rocket'")
     assert sorted(lines[1:]) == ["error: ball.toml: lowlevel.kp: Input should be a finite number",
-                                 "error: ball.toml: sim.rate_hz: Input should be greater than 0"]
+                                 "error: ball.toml: sim.rate_hz: Input should be greater than 0 "
+                                 "(got 0)"]
 
 
 def test_plant_problems_are_reported_with_the_others(work: Path):
     ball = _scenario(work, "ball", {"plant": {"mass": -1.0, "spin": 2}, "sim": {"rate_hz": 0}})
     assert sorted(bad_run(work, ["run", ball.name])) == [
-        "error: ball.toml: plant.mass: Input should be greater than 0",
+        "error: ball.toml: plant.mass: Input should be greater than 0 (got -1.0)",
         "error: ball.toml: plant.spin: unknown key",
-        "error: ball.toml: sim.rate_hz: Input should be greater than 0"]
+        "error: ball.toml: sim.rate_hz: Input should be greater than 0 (got 0)"]
 
 
 def test_empty_file(work: Path):

@@ -182,12 +182,8 @@ class ScenarioBase(BaseModel):
         try:
             self.plant_params()
         except ValidationError as exc:
-            for err in _tuple_lengths(exc.errors(), type(self.system)):
-                loc = key_path(["plant", *err["loc"]])
-                msg = err["msg"].removeprefix("Value error, ")
-                if err["type"] == "extra_forbidden":
-                    msg = unknown_key(err["loc"][-1], _field_names([type(self.system)]))
-                out.append(f"{loc}: {msg}")
+            out += [_plant_error(err, type(self.system))
+                    for err in _tuple_lengths(exc.errors(), type(self.system))]
         return out
 
 
@@ -502,7 +498,7 @@ def format_errors(exc: ValidationError, source: str, model: Any = None) -> list[
         if err["type"] == "string_type" and isinstance(given, int | float) \
                 and not isinstance(given, bool):
             msg += f' (a number here; text is quoted in TOML: "{given}")'
-        msg += _unquoted_hint(err["type"], given)
+        msg += _unquoted_hint(err["type"], given) + _given_value(err["type"], given)
         if err["type"] == "extra_forbidden":
             raw = [p for p in err["loc"] if p not in ("function-after",)]
             allowed = _field_names(models_at(model, raw[:-1])) if model is not None else []
@@ -512,6 +508,14 @@ def format_errors(exc: ValidationError, source: str, model: Any = None) -> list[
             continue
         lines.append(f"{source}: {loc}: {msg}")
     return lines
+
+
+def _plant_error(err: dict, params: Any) -> str:
+    """``plant.key: reason`` of one pydantic error of a system's ``params`` given as [plant]."""
+    msg = err["msg"].removeprefix("Value error, ") + _given_value(err["type"], err.get("input"))
+    if err["type"] == "extra_forbidden":
+        msg = unknown_key(err["loc"][-1], _field_names([params]))
+    return f"{key_path(['plant', *err['loc']])}: {msg}"
 
 
 def _tuple_lengths(errors: list[dict], model: Any) -> list[dict]:
@@ -561,6 +565,24 @@ def _length_text(model: Any, loc: tuple, need: int, got: int) -> str:
 #: pydantic's error type of a value of the wrong type -> (the types it wants, their name)
 _WANTED = {"int_type": ((int,), "an integer"), "float_type": ((int, float), "a number"),
            "bool_type": ((bool,), "a boolean")}
+
+
+#: pydantic errors whose message does not show the value given
+_VALUE_NOT_SHOWN = frozenset({"greater_than", "greater_than_equal", "less_than",
+                              "less_than_equal", "string_pattern_mismatch", "int_from_float",
+                              "string_too_long", "too_long", "too_short"})
+
+
+def _given_value(kind: str, given: Any) -> str:
+    """`` (got -1)`` for a bound or pattern error's number or text (to 40 characters).
+
+    '' for other errors and values.
+    """
+    if kind not in _VALUE_NOT_SHOWN or isinstance(given, bool) \
+            or not isinstance(given, int | float | str):
+        return ""
+    text = _toml_value(given)
+    return f" (got {text if len(text) <= 40 else text[:37] + '...'})"
 
 
 def _unquoted_hint(kind: str, given: Any) -> str:
@@ -862,10 +884,7 @@ def _hidden_problems(data: dict, source: str) -> list[str]:
         out = []
         for err in _tuple_lengths(exc.errors(), params):
             if err["loc"] and err["loc"][0] in plant:
-                msg = err["msg"].removeprefix("Value error, ")
-                if err["type"] == "extra_forbidden":
-                    msg = unknown_key(err["loc"][-1], _field_names([params]))
-                out.append(f"{source}: {key_path(['plant', *err['loc']])}: {msg}")
+                out.append(f"{source}: {_plant_error(err, params)}")
         return out
     return []
 
