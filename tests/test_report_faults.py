@@ -152,6 +152,33 @@ def test_a_signal_while_the_page_is_drawn_leaves_the_results_as_they_were(tmp_pa
     assert _tree(res) == before
 
 
+def test_a_signal_while_the_page_is_written_stops_the_command_after_it(tmp_path,
+                                                                      monkeypatch):
+    """A stop signal while the figures and the page are put in place is held until they
+    all are, then stops the command (it was dropped: the command exited 0)."""
+    import os
+
+    import hmpc_cli.core.paths
+    from hmpc_cli.core.signals import Interrupted, handle_signals
+    from hmpc_cli.report.page import ReportInputs, write_report
+
+    study = write_study(tmp_path / "study" / "results.csv").parent
+    res = tmp_path / "results"
+    write_atomic = hmpc_cli.core.paths.write_atomic
+
+    def signalled(path, text):  # the page is being written when the signal comes
+        os.kill(os.getpid(), signal.SIGTERM)
+        return write_atomic(path, text)
+
+    monkeypatch.setattr(hmpc_cli.core.paths, "write_atomic", signalled)
+    with handle_signals(), pytest.raises(Interrupted) as stop:
+        write_report(res, ReportInputs(None, None, study), "hmpc report")
+    assert stop.value.signum == signal.SIGTERM
+    assert (res / "README.md").read_text().startswith("# hmpc results")
+    assert (res / "report" / "study.png").is_file()
+    assert [p.name for p in res.iterdir() if p.name.startswith(".")] == []
+
+
 def test_report_run_takes_the_sweeps_lock(tmp_path, run_hmpc):
     """``report --run`` into a sweep directory another ``hmpc sweep`` writes (its lock
     held): refused, exit 2, nothing run and no page (it ran the sweep beside it)."""

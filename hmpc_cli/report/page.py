@@ -237,16 +237,21 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
 
     All or nothing: the figures are drawn into a staging directory in ``results`` and
     moved into ``results/report`` (over the files of the same names; others stay) only
-    when the whole page is made, then the page is written. On any failure or signal the
-    staging directory is removed and ``results`` is as it was (not even created). The
-    trajectory logs kept beside the drawn runs' logs are written only then too.
+    when the whole page is made; then the page is written. On a failure or signal while
+    drawing, the staging directory is removed and ``results`` is as it was (not even
+    created). The trajectory logs kept beside the drawn runs' logs, the figures and the
+    page are then written with stop signals held: a signal meanwhile stops the command
+    once all of them are in place (a SIGKILL may leave a ``.report-staging-*``
+    directory, which ``.gitignore`` leaves out).
 
     Raises:
         FigureInputError: a sweep table or log is missing or malformed.
+        Interrupted: a stop signal (the page not written, or written whole).
     """
     import shutil
     import tempfile
 
+    from hmpc_cli.core.signals import check, deferred
     from hmpc_cli.report.traces import deferred_traces, keep_traces
 
     results = Path(results)
@@ -256,35 +261,35 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
     try:
         with deferred_traces() as logs:
             lines = _page_lines(results, inputs, command, staging / "report", staging)
-        keep_traces(logs)  # beside the run logs: not the page's, kept on their own
-        return _commit(results, staging / "report", lines)
+        with deferred():  # beside the run logs, then the figures and the page: all land
+            keep_traces(logs)
+            page = _commit(results, staging / "report", lines)
     except BaseException:
         if made:
-            shutil.rmtree(results, ignore_errors=True)
+            with deferred():
+                shutil.rmtree(results, ignore_errors=True)
         raise
     finally:
-        shutil.rmtree(staging, ignore_errors=True)
+        with deferred():
+            shutil.rmtree(staging, ignore_errors=True)
+    check()  # a stop signal held meanwhile stops the command now, the page whole
+    return page
 
 
 def _commit(results: Path, drawn: Path, lines: list[str]) -> Path:
-    """Moves the figures ``drawn`` into ``results/report``, then writes the page.
-
-    A stop signal meanwhile is held off to the end (the page is then whole).
-    """
+    """Moves the figures ``drawn`` into ``results/report``, then writes the page."""
     import os
 
     from hmpc_cli.core.paths import write_atomic
-    from hmpc_cli.core.signals import deferred
 
     fig_dir = results / "report"
-    with deferred():
-        fig_dir.mkdir(exist_ok=True)
-        for path in sorted(drawn.rglob("*")):
-            if path.is_file():
-                dest = fig_dir / path.relative_to(drawn)
-                dest.parent.mkdir(parents=True, exist_ok=True)
-                os.replace(path, dest)
-        page = results / "README.md"
-        # no machine's absolute path on the committed page (repository-relative or <...>/)
-        write_atomic(page, portable_text("\n".join(lines)))
+    fig_dir.mkdir(exist_ok=True)
+    for path in sorted(drawn.rglob("*")):
+        if path.is_file():
+            dest = fig_dir / path.relative_to(drawn)
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(path, dest)
+    page = results / "README.md"
+    # no machine's absolute path on the committed page (repository-relative or <...>/)
+    write_atomic(page, portable_text("\n".join(lines)))
     return page
