@@ -306,3 +306,23 @@ def test_sigint_while_the_controllers_are_built_says_so_and_exits_130(tmp_path):
     assert "Traceback" not in err and "Aborted" not in err
     assert "interrupted (SIGINT)" in err
     assert not (tmp_path / "run" / "run.mcap").exists() or "partial log" in err
+
+
+def test_no_help_text_holds_what_rich_markup_would_eat():
+    """``[s]`` in an option's help or a command's text is a rich markup tag: --help drops
+    it (the --every and --view units were lost so); units are written (s), in m."""
+    import typer
+    from typer.testing import CliRunner
+
+    from hmpc_cli.cli.app import app
+
+    command = typer.main.get_command(app)
+    texts = [(name, p.name if p is not None else "(text)",
+              (sub.help if p is None else getattr(p, "help", None)) or "")
+             for name, sub in command.commands.items() for p in [*sub.params, None]]
+    assert len(texts) > 50
+    assert [(c, p, m.group()) for c, p, text in texts
+            for m in re.finditer(r"\[[^\[\]]*\]", text)] == []
+    shown = " ".join(CliRunner().invoke(app, ["plot", "--help"], env={"COLUMNS": "200"})
+                     .output.split())
+    assert "snapshots (s)" in shown and '"x0,x1,y0,y1" in m' in shown

@@ -615,10 +615,13 @@ def test_a_setting_another_setting_switches_off_is_named(tmp_path):
     assert inert(["planner.min_cov=2.0", "planner.adapt_covariance=true"]) == [
         "--set planner.adapt_covariance=true: planner.adapt_covariance: no effect with "
         "planner.elites = 1 (the variance is refitted to two elites or more)",
-        "--set planner.min_cov=2.0: planner.min_cov: no effect with planner.elites = 1 or "
-        "adapt_covariance = false (the floor of a refitted variance)"]
+        "--set planner.min_cov=2.0: planner.min_cov: no effect with planner.elites = 1 (the "
+        "floor of a refitted variance)"]
     assert inert(["planner.elites=4", "planner.adapt_covariance=true", "planner.min_cov=2.0"]
                  ) == []
+    assert inert(["planner.elites=4", "planner.min_cov=2.0"]) == [
+        "--set planner.min_cov=2.0: planner.min_cov: no effect with planner.adapt_covariance = "
+        "false (the floor of a refitted variance)"]
     assert inert(['mpc.margins="tube"', "mpc.tube_margin=0.1"]) == [
         '--set mpc.tube_margin=0.1: mpc.tube_margin: no effect with mpc.margins = "tube" '
         "(its margins replace the hand-set ones)"]

@@ -143,6 +143,34 @@ def test_the_busy_workers_get_the_sweeps_own_stop_signal(sig):
     assert not proc.is_alive() and report.poll(1) and report.recv() == sig
 
 
+def test_a_stopped_pool_stops_its_workers_with_the_sweeps_own_signal(monkeypatch, tmp_path):
+    """run_pool stopped by SIGHUP (raised where it waits for its workers) hands SIGHUP to
+    the workers' stop, not SIGTERM."""
+    import multiprocessing.connection
+    from types import SimpleNamespace
+
+    from hmpc_cli.core.signals import Interrupted
+    from hmpc_cli.sweep import pool
+
+    class Idle:  # a worker that starts no process
+        def __init__(self, ctx):
+            self.run, self.conn, self.proc = None, object(), SimpleNamespace(sentinel=0)
+
+        def give(self, run, out, provenance):
+            self.run = run
+
+    def stopped(*args, **kwargs):
+        raise Interrupted(signal.SIGHUP)
+
+    got = []
+    monkeypatch.setattr(pool, "_Worker", Idle)
+    monkeypatch.setattr(multiprocessing.connection, "wait", stopped)
+    monkeypatch.setattr(pool, "_stop_all", lambda workers, stop=None: got.append(stop))
+    with pytest.raises(Interrupted):
+        pool.run_pool(1, ["run"], tmp_path, lambda *a: None, lambda *a: None)
+    assert got == [signal.SIGHUP]
+
+
 def test_interrupted_summary_is_never_kept_as_finished(tmp_path):
     from hmpc_cli.sweep.table import finished_in
 

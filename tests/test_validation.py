@@ -294,7 +294,7 @@ def _parsed(value: str):
      "mpc.solver_options.print_level: Input should be a finite number"),
     ("ball", "mpc.solver_options.ipopt.max_iter=100000000000",
      "mpc.solver_options.ipopt.max_iter: 100000000000 exceeds the largest allowed magnitude "
-     "1e+09"),
+     "1e+09 (an integer; a float, e.g. 1e+11, may be larger)"),
     ("ball", "mpc.solver_options.ipopt=5",
      "mpc.solver_options.ipopt: must be a table of option = value, not 5 (e.g. ipopt = "
      "{tol = 1e-8}, or [mpc.solver_options.ipopt] with tol = 1e-8 below it)"),

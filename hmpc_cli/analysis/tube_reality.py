@@ -153,16 +153,19 @@ def read_run(path: Path) -> RecordedRun:
             from a plan interpolated over the missing nodes would count the interpolation's
             error as the plant's), or without states or adopted solves.
     """
+    from hmpc_cli.log.damage import reading
     from hmpc_cli.log.rundata import damage_note, read_run as read_log_arrays
 
     run = read_log_arrays(path)
     run.full_plans("tube vs reality (the plan at every logged state)")
     if not run.t.size:
         raise ValueError(run.lacks("no /sim/state"))
-    solves = [(s.t, s.plan.t, np.atleast_2d(s.plan.x), s.plan.seg) for s in run.adopted()]
+    with reading(run.path):  # what the decoded log holds, of a wrong shape: damage
+        solves = [(s.t, s.plan.t, np.atleast_2d(s.plan.x), s.plan.seg) for s in run.adopted()]
+        events = np.array([e.t for e in run.events], dtype=float)
     if not solves:
         raise ValueError(run.lacks("no adopted /mpc/solve"))
-    return RecordedRun(run.name, run.system, run.t, run.x, np.array([e.t for e in run.events]),
+    return RecordedRun(run.name, run.system, run.t, run.x, events,
                        sorted(solves, key=lambda s: s[0]),
                        damage_note(run.damage, run.complete))
 

@@ -205,7 +205,7 @@ def plot_command(
         "--height", help="figure height (in; fig3 2.1, fig4 4.2, fig2 2.8, robustness 1.9)")
     ] = None,
     view: Annotated[str | None, typer.Option(
-        "--view", help='fig3: axis limits "x0,x1,y0,y1" [m] (default: from the data)')
+        "--view", help='fig3: axis limits "x0,x1,y0,y1" in m (default: from the data)')
     ] = None,
     every: Annotated[float, typer.Option(
         "--every", help="fig4: time between stick-figure snapshots (s)")] = 0.1,
@@ -271,23 +271,24 @@ def _dispatch(figure: str, table: Path, out: Path | None, formats: str, o: dict)
         "height": height or 2.1, "view": _limits(o["view"])})
 
 
-#: the options only some figures read: option -> (its flag, its default, those figures)
+#: the options only some figures read: option -> (its flag, those figures)
 FIGURE_OPTIONS = {
-    "panel_axis": ("--panel-axis", None, ("fig3", "robustness")),
-    "x_axis": ("--x-axis", "mpc.rate_hz", ("robustness",)),
-    "series_axis": ("--series-axis", "replanning.policy", ("robustness",)),
-    "trace_axis": ("--trace-axis", "disturbance", ("fig3",)),
-    "nominal": ("--nominal", "nominal", ("fig3",)),
-    "panels": ("--panels", None, ("fig3",)), "view": ("--view", None, ("fig3",)),
-    "every": ("--every", 0.1, ("fig4",)), "gif": ("--no-gif", True, ("fig4",)),
-    "solve": ("--solve", None, ("fig2",)), "radius": ("--radius", None, ("fig2",)),
-    "from_tube": ("--from-tube", False, ("fig2",))}
+    "panel_axis": ("--panel-axis", ("fig3", "robustness")),
+    "x_axis": ("--x-axis", ("robustness",)), "series_axis": ("--series-axis", ("robustness",)),
+    "trace_axis": ("--trace-axis", ("fig3",)), "nominal": ("--nominal", ("fig3",)),
+    "panels": ("--panels", ("fig3",)), "view": ("--view", ("fig3",)),
+    "every": ("--every", ("fig4",)), "gif": ("--no-gif", ("fig4",)),
+    "solve": ("--solve", ("fig2",)), "radius": ("--radius", ("fig2",)),
+    "from_tube": ("--from-tube", ("fig2",))}
 
 
 def _refuse_other_figures_options(figure: str, o: dict) -> None:
     """Exits 2 when an option another figure reads is given (it would be ignored)."""
-    for key, (flag, default, figures) in FIGURE_OPTIONS.items():
-        if figure not in figures and o[key] != default:
+    import inspect
+
+    defaults = {name: p.default for name, p in inspect.signature(plot_command).parameters.items()}
+    for key, (flag, figures) in FIGURE_OPTIONS.items():
+        if figure not in figures and o[key] != defaults[key]:
             _fail(f"{flag} is {' and '.join(figures)}'s option, not {figure}'s (it would "
                   "be ignored): leave it out")
 

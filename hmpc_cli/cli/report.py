@@ -321,7 +321,7 @@ def _run_sweeps(plans: dict, dirs: dict[str, Path], workers: int | None) -> list
             if outcome.interrupted:
                 raise Interrupted(outcome.signum)
     except KeyboardInterrupt as exc:
-        _echo_errors([f"run not recorded (rerun to retry): {x}" for x in lost])
+        _echo_errors([f"worker failed, run not recorded (rerun to retry): {x}" for x in lost])
         _stopped(as_interrupted(exc), f"{done} of {missing} missing runs done")
     return lost
 

@@ -188,6 +188,7 @@ def _value_errors(value: Any, loc: tuple) -> list[InitErrorDetails]:
             out.append(InitErrorDetails(type="finite_number", loc=at, input=v))
         elif isinstance(v, int) and not isinstance(v, bool):  # floats: IPOPT's 1e19/1e20
             why = magnitude_problem(v)
+            why = why and f"{why} (an integer; a float, e.g. {float(v):g}, may be larger)"
             if why is not None:
                 out.append(InitErrorDetails(type=_reason(why), loc=at, input=v))
         elif not isinstance(v, bool | str | float):  # a TOML date or time

@@ -182,7 +182,9 @@ def _mpc(sc, model, margins: ConstraintMargins | None) -> tuple[FixedModeMPC, ob
 def _timing(sc, model) -> StackTiming:
     """The stack's timing from the scenario's rates and replanning policy."""
     rp, final = sc.replanning, model.final_mode
-    if rp.contact_guards is None:  # every guard but those entering the final domain
+    if rp.policy != "on_contact":  # guards no replan waits for (a given list: a warning)
+        contact = frozenset()
+    elif rp.contact_guards is None:  # every guard but those entering the final domain
         contact = frozenset(i for i, g in enumerate(model.guards)
                             if g.target != final or g.source == final)
     else:
@@ -193,8 +195,6 @@ def _timing(sc, model) -> StackTiming:
             raise ValueError(f"replanning.contact_guards: unknown guard{'s' * (len(unknown) > 1)} "
                              f"{which}; the system's guards: {', '.join(map(repr, names))}")
         contact = frozenset(model.guard_index(n) for n in rp.contact_guards)
-    if rp.policy != "on_contact":
-        contact = frozenset()
     per_replan = int(round(rp.period * sc.sim.rate_hz)) if rp.policy == "periodic" else None
     s = sc.sim
     latency = Latency.of(s.latency, s.latency_first, s.latency_model, s.solve_budget,

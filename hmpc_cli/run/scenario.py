@@ -553,8 +553,8 @@ def _length_text(model: Any, loc: tuple, need: int, got: int) -> str:
     """``needs 4 numbers, got 3 (the field's description)`` for the tuple at ``loc``."""
     fields = [f for m in (models_at(model, loc[:-1]) if model is not None and loc else [])
               for name, f in m.model_fields.items() if loc[-1] in (name, f.alias)]
-    items = [typing.get_args(f.annotation) for f in fields
-             if typing.get_origin(f.annotation) is tuple]
+    items = [typing.get_args(t) for f in fields for t in _members(f.annotation)
+             if typing.get_origin(t) is tuple]  # an optional tuple's too
     numbers = bool(items) and all(
         m in (int, float) for args in items for a in args for m in _members(a))
     text = f"needs {need} {'numbers' if numbers else 'items'}, got {got}"
@@ -594,10 +594,15 @@ def _unquoted_hint(kind: str, given: Any) -> str:
     if kind not in _WANTED or not isinstance(given, str):
         return ""
     types, what = _WANTED[kind]
+    if "\n" in given or "\r" in given or "#" in given:  # one value, written on one line
+        return ""
     try:
-        value = tomllib.loads(f"v = {given.strip()}")["v"]
+        parsed = tomllib.loads(f"v = {given.strip()}")
     except (tomllib.TOMLDecodeError, RecursionError):
         return ""
+    if list(parsed) != ["v"]:
+        return ""
+    value = parsed["v"]
     ok = isinstance(value, types) and (kind == "bool_type" or not isinstance(value, bool))
     if not ok or (isinstance(value, float) and not math.isfinite(value)):
         return ""
@@ -753,8 +758,9 @@ def _switched_off(data: dict, sc: ScenarioBase) -> list[str]:
         ("planner", "adapt_covariance", elites == 1,
          "planner.elites = 1 (the variance is refitted to two elites or more)"),
         ("planner", "min_cov", elites == 1 or getattr(planner, "adapt_covariance", True)
-         is False, "planner.elites = 1 or adapt_covariance = false (the floor of a "
-         "refitted variance)"),
+         is False, ("planner.elites = 1" if elites == 1 else
+                    "planner.adapt_covariance = false") + " (the floor of a refitted "
+         "variance)"),
         *(("mpc", key, getattr(mpc, "margins", "hand") != "hand",
            f'mpc.margins = "{getattr(mpc, "margins", "")}" (its margins replace the '
            'hand-set ones)') for key in ("tube_margin", "input_margin"))]

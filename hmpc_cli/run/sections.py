@@ -58,7 +58,7 @@ class SimSettings(BaseModel):
         "time stops while the controllers compute; the paper's runs), 'measured' (a plan "
         "reaches the plant its measured compute wall time [s] after the state it was "
         "computed from: not reproducible), 'model' (a deterministic charge from the "
-        "solve's iterations, sim.latency_model) or a fixed delay [s] in [0, 1e6); until then the "
+        "solve's iterations, sim.latency_model) or a fixed delay [s], in [0, 1e6); until then the "
         "previous plan is tracked, and a plan takes effect at the first simulator step at "
         "or after t + latency")
     latency_model: LatencyModelSettings = Field(
