@@ -308,19 +308,24 @@ def test_bit_flip_inside_a_chunk(ball, ball_log, tmp_path) -> None:
         "chunks left out: chunk 1 (t = ")
 
 
+def _flipped(log: Path, chunk: int, path: Path) -> Path:
+    """``log`` with one bit flipped in the middle of its chunk ``chunk``, written to ``path``."""
+    from mcap.reader import make_reader
+
+    data = bytearray(log.read_bytes())
+    with open(log, "rb") as f:
+        index = make_reader(f).get_summary().chunk_indexes[chunk]
+    data[index.chunk_start_offset + index.chunk_length // 2] ^= 0x10
+    path.write_bytes(bytes(data))
+    return path
+
+
 def test_other_commands_name_the_damage_that_lost_what_they_need(ball, tmp_path) -> None:
     """A log whose first chunk (/run/info, the first solves) is damaged: ``plot fig2`` and
     ``tube --runs`` say the log is damaged beside what they miss (they said "the log names
     no system" and "not a run of this scenario's system"); a missing ``--runs``/``--states``
     log is named by its option, not called damaged."""
-    from mcap.reader import make_reader
-
-    data = bytearray((ball / "run.mcap").read_bytes())
-    with open(ball / "run.mcap", "rb") as f:
-        first = make_reader(f).get_summary().chunk_indexes[0]
-    data[first.chunk_start_offset + first.chunk_length // 2] ^= 0x10
-    path = tmp_path / "flipped.mcap"
-    path.write_bytes(bytes(data))
+    path = _flipped(ball / "run.mcap", 0, tmp_path / "flipped.mcap")
     damage = "(damaged log: 1 of "
     fig2 = CliRunner().invoke(app, ["plot", "fig2", str(path), "--out", str(tmp_path / "f")])
     assert fig2.exit_code == 2 and "Traceback" not in fig2.output
@@ -346,8 +351,6 @@ def test_a_log_read_for_some_topics_is_the_whole_read_of_those(ball, tmp_path) -
     plans."""
     import pickle
 
-    from mcap.reader import make_reader
-
     from hmpc_cli.log.rundata import TRAJECTORY_TOPICS, read_run
 
     def kept(log):
@@ -365,12 +368,7 @@ def test_a_log_read_for_some_topics_is_the_whole_read_of_those(ball, tmp_path) -
         if f.name not in ("solves", "planner"):
             assert pickle.dumps(getattr(full, f.name)) == pickle.dumps(getattr(light, f.name))
     # a damaged chunk is found whichever topics are read
-    data = bytearray((ball / "run.mcap").read_bytes())
-    with open(ball / "run.mcap", "rb") as f:
-        second = make_reader(f).get_summary().chunk_indexes[1]
-    data[second.chunk_start_offset + second.chunk_length // 2] ^= 0x10
-    path = tmp_path / "flipped.mcap"
-    path.write_bytes(bytes(data))
+    path = _flipped(ball / "run.mcap", 1, tmp_path / "flipped.mcap")
     whole, part = read_log(path), read_log(path, TRAJECTORY_TOPICS)
     assert not part.complete and part.damage == whole.damage != ""
     assert kept(part) == kept(whole) and part.messages
