@@ -190,14 +190,11 @@ def plot_command(
         "--series-axis", help="robustness: column with one line per value")
     ] = "replanning.policy",
     trace_axis: Annotated[str, typer.Option(
-        "--trace-axis", help="fig3: table column naming the trajectories of a panel")
-    ] = "disturbance",
+        "--trace-axis", help="fig3: column naming a panel's trajectories")] = "disturbance",
     nominal: Annotated[str, typer.Option(
-        "--nominal", help="fig3: trace-axis value of the undisturbed run (orange)")
-    ] = "nominal",
+        "--nominal", help="fig3: trace-axis value of the undisturbed run")] = "nominal",
     panels: Annotated[str | None, typer.Option(
-        "--panels", help='fig3: panels in order, e.g. "10 Hz fixed,20 Hz fixed" (default: '
-        'all)')] = None,
+        "--panels", help='fig3: panels in order (all), e.g. "10 Hz fixed,20 Hz fixed"')] = None,
     width: Annotated[float | None, typer.Option(
         "--width", help="figure width (in; fig3, fig4 3.5 = one column; fig2, robustness "
         "7.16 = text width)")] = None,
@@ -205,8 +202,7 @@ def plot_command(
         "--height", help="figure height (in; fig3 2.1, fig4 4.2, fig2 2.8, robustness 1.9)")
     ] = None,
     view: Annotated[str | None, typer.Option(
-        "--view", help='fig3: axis limits "x0,x1,y0,y1" in m (default: from the data)')
-    ] = None,
+        "--view", help='fig3: axis limits "x0,x1,y0,y1" in m (default: the data)')] = None,
     every: Annotated[float, typer.Option(
         "--every", help="fig4: time between stick-figure snapshots (s)")] = 0.1,
     gif: Annotated[bool, typer.Option(

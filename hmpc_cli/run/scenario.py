@@ -680,8 +680,7 @@ def load_scenario(path: str | Path, overrides: list[str] = (), seed: int | None 
     except ValidationError as exc:
         lines = (format_errors(exc, str(path)) + _hidden_problems(data, str(path))
                  + _cross_field_problems(data, exc, str(path)))
-        # a sweep file: that line alone (its keys' errors all follow from it)
-        lines = other_kind_of_file(raw, str(path), "scenario") or lines
+        lines = other_kind_of_file(raw, str(path), "scenario") or lines  # a sweep's: alone
         raise ScenarioError(blame(list(dict.fromkeys(lines)), caused)) from None
     except PluginError as exc:
         raise ScenarioError(blame([f"{path}: {exc}"])) from None
