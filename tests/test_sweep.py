@@ -45,7 +45,7 @@ seeds = 2
 case = [
   { label = "ok" },
   { label = "diverge", "sim.divergence_bound" = 0.5 },
-  { label = "crash", "replanning.contact_guards" = ["nope"] },
+  { label = "crash", "replanning.policy" = "on_contact", "replanning.contact_guards" = ["nope"] },
 ]
 """
 
@@ -90,10 +90,11 @@ def test_tiny_sweep_table_and_failures(tiny):
     assert list(rows[0]) == [
         "run_id", "lowlevel.kp", "case", "seed", "set.lowlevel.kp", "set.mpc.horizon",
         "set.planner.iterations", "set.planner.knots", "set.planner.samples",
-        "set.replanning.contact_guards", "set.sim.divergence_bound", "set.sim.duration",
-        "success", "final_error", "contacts", "solves", "solver_failures", "softened_solves",
-        "planner_calls", "planner_rejected", "diverged", "reason", "solve_time_median",
-        "solve_time_p95", "solve_time_max", "plan_time_median", "wall_time", "cpu", "log"]
+        "set.replanning.contact_guards", "set.replanning.policy", "set.sim.divergence_bound",
+        "set.sim.duration", "success", "final_error", "contacts", "solves", "solver_failures",
+        "softened_solves", "planner_calls", "planner_rejected", "diverged", "reason",
+        "solve_time_median", "solve_time_p95", "solve_time_max", "plan_time_median",
+        "wall_time", "cpu", "log"]
     from hmpc_cli.core.machine import cpu_model
 
     assert {r["cpu"] for r in rows} == {cpu_model()}  # crashed runs too

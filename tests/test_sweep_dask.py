@@ -32,7 +32,7 @@ seeds = [3]
 [grid]
 case = [
   { label = "ok", "lowlevel.kp" = 1.0 },
-  { label = "crash", "replanning.contact_guards" = ["nope"] },
+  { label = "crash", "replanning.policy" = "on_contact", "replanning.contact_guards" = ["nope"] },
 ]
 """
 #: audit events whose path arguments a sandboxed worker may not point at the client's disk
