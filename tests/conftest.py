@@ -64,6 +64,17 @@ def _default_verbosity():
     VERBOSITY[0] = 0
 
 
+@pytest.fixture(autouse=True)
+def _no_pending_stop_signal():
+    """A stop signal a test sent to its own process is forgotten after it: else the next
+    test's run in this worker stops at its first signal check (an xdist worker "crashed"
+    with a KeyboardInterrupt)."""
+    from hmpc_cli.core import signals
+
+    yield
+    signals.reset()
+
+
 def hmpc_command() -> list[str]:
     """The installed ``hmpc`` console script next to this interpreter, else ``python -m``."""
     script = Path(sys.executable).with_name("hmpc")

@@ -159,7 +159,7 @@ def test_a_signal_while_the_page_is_written_stops_the_command_after_it(tmp_path,
     import os
 
     import hmpc_cli.core.paths
-    from hmpc_cli.core.signals import Interrupted, handle_signals
+    from hmpc_cli.core.signals import Interrupted, handle_signals, reset
     from hmpc_cli.report.page import ReportInputs, write_report
 
     study = write_study(tmp_path / "study" / "results.csv").parent
@@ -171,8 +171,11 @@ def test_a_signal_while_the_page_is_written_stops_the_command_after_it(tmp_path,
         return write_atomic(path, text)
 
     monkeypatch.setattr(hmpc_cli.core.paths, "write_atomic", signalled)
-    with handle_signals(), pytest.raises(Interrupted) as stop:
-        write_report(res, ReportInputs(None, None, study), "hmpc report")
+    try:
+        with handle_signals(), pytest.raises(Interrupted) as stop:
+            write_report(res, ReportInputs(None, None, study), "hmpc report")
+    finally:
+        reset()  # the signal this process sent itself is not the next test's
     assert stop.value.signum == signal.SIGTERM
     assert (res / "README.md").read_text().startswith("# hmpc results")
     assert (res / "report" / "study.png").is_file()
