@@ -165,6 +165,28 @@ def test_export_after_filters(ball, ball_log, tmp_path) -> None:
     assert n == len([m for m in ball_log.topic("/disturbance") if m.t <= 0.2 + 1e-12])
 
 
+def test_an_export_replaces_an_earlier_one_and_refuses_other_files(ball, tmp_path) -> None:
+    """Exporting again into an earlier export's directory with other filters leaves no
+    stale topic table beside it; a directory holding other files is refused (exit 2,
+    nothing written), before the log is read."""
+    out = tmp_path / "e"
+    assert replay(ball, "--export", out).exit_code == 0
+    assert "sim_state.csv" in {p.name for p in out.iterdir()}
+    res = replay(ball, "--topic", "disturbance", "--export", out)
+    assert res.exit_code == 0, res.output
+    assert sorted(p.name for p in out.iterdir()) == ["disturbance.csv", "info.json"]
+    assert json.loads((out / "info.json").read_text())["files"] == ["disturbance.csv"]
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "sim_state.csv").write_text("my own table\n")
+    res = replay(ball, "--export", mine)
+    assert res.exit_code == 2
+    assert res.stderr == (f"error: --export {mine}: is not empty (sim_state.csv) and holds no "
+                          "earlier export (its info.json): choose a new or empty directory\n")
+    assert [p.name for p in mine.iterdir()] == ["sim_state.csv"]
+    assert (mine / "sim_state.csv").read_text() == "my own table\n"
+
+
 def test_parquet_export(ball, tmp_path) -> None:
     res = replay(ball, "--export", tmp_path / "pq", "--format", "parquet")
     try:

@@ -10,18 +10,22 @@ Flattening of a message (a JSON object):
   a further list of objects is one JSON-string column.
 
 Each topic's table has one row per message; ``info.json`` holds the run info, the metadata,
-the attached scenario text and the filters.
+the attached scenario text, the filters and the tables written (``files``). A directory
+takes an export when it is new, empty or an earlier export's: that export's tables are
+replaced, those this one does not write removed (no stale topic is left beside it).
 """
 
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 from typing import Any
 
 from hmpc_cli.core.jsonio import dumps
 
-__all__ = ["ExportError", "check_format", "flatten", "tables", "write_export"]
+__all__ = ["ExportError", "check_format", "earlier_export", "flatten", "tables",
+           "write_export"]
 
 FORMATS = ("csv", "parquet")
 
@@ -167,6 +171,7 @@ def write_export(out: Path, messages: list, info: dict, fmt: str = "csv") -> lis
     from hmpc_cli.core.paths import atomic_file, write_atomic
 
     check_format(fmt)
+    earlier = earlier_export(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
         written = []
@@ -176,8 +181,38 @@ def write_export(out: Path, messages: list, info: dict, fmt: str = "csv") -> lis
                 (_write_csv if fmt == "csv" else _write_parquet)(tmp, rows)
             written.append(path)
         path = out / "info.json"
-        write_atomic(path, dumps(info, indent=2, ensure_ascii=False) + "\n")
+        files = {"files": [p.name for p in written]}
+        write_atomic(path, dumps({**info, **files}, indent=2, ensure_ascii=False) + "\n")
         written.append(path)
+        for name in set(earlier) - {p.name for p in written}:  # the earlier export's own
+            (out / name).unlink(missing_ok=True)
     except OSError as exc:
         raise ExportError(f"{out}: cannot write ({exc.strerror or exc})") from None
     return written
+
+
+def earlier_export(out: Path) -> list[str]:
+    """The tables an earlier export wrote into ``out`` (none when it is new or empty).
+
+    Raises:
+        ExportError: ``out`` holds files but no export's ``info.json`` (they would be
+            written over or mixed with the export's).
+    """
+    try:
+        entries = sorted(p.name for p in Path(out).iterdir())
+    except OSError:  # none there (or no directory: writing it says why)
+        return []
+    if not entries:
+        return []
+    try:
+        info = json.loads((Path(out) / "info.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        info = None
+    if not isinstance(info, dict) or not {"log", "filters"} <= set(info):
+        shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
+        raise ExportError(f"{out}: is not empty ({shown}) and holds no earlier export "
+                          "(its info.json): choose a new or empty directory")
+    files = info.get("files")
+    if isinstance(files, list):  # the names it wrote; an older export's: its tables
+        return [f for f in files if isinstance(f, str) and f in entries]
+    return [f for f in entries if f.endswith(tuple(f".{x}" for x in FORMATS))]

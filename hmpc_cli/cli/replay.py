@@ -242,6 +242,7 @@ def replay_command(
         "ffmpeg) into this directory", parser=path_option)] = None,
 ) -> None:
     """Replay a recorded run: identity, summary, timeline; filter, export, verify."""
+    from hmpc_cli.analysis.export import ExportError, earlier_export
     from hmpc_cli.analysis.replay import ReplayError, load_replay, resolve_topics
     from hmpc_cli.core.paths import OutputPathError, check_output
     from hmpc_cli.log.damage import DamagedLogError
@@ -251,8 +252,12 @@ def replay_command(
         for option, where in (("--export", export), ("--figures", figures)):
             if where is not None:
                 check_output(where, option)
+        if export is not None:
+            earlier_export(export)
     except OutputPathError as exc:
         _fail([str(exc)])
+    except ExportError as exc:
+        _fail([f"--export {exc}"])
     try:
         rp = load_replay(log)
         topics = resolve_topics(topic or [], [m.topic for m in rp.log.messages],
