@@ -275,6 +275,18 @@ def tube_command(
         "the region spans the runs' states")] = None,
 ) -> None:
     """Tracking-error tubes of a scenario: L_x, L_u, eta, zeta, Prop. 3, diam T(dt), margins."""
+    sc, system, observed, report = _analysed(scenario, set_ or [], samples, pad, states,
+                                             formats, out, write, runs or [])
+    _publish(sc, system, observed, report, out, formats, write, samples)
+
+
+def _analysed(scenario: Path, sets: list[str], samples: int, pad: float | None,
+              states: Path | None, formats: str, out: Path | None, write: Path | None,
+              runs: list[Path]) -> tuple:
+    """(scenario, system, observed runs, tube report): the inputs checked, read, analysed.
+
+    Every bad input (options, outputs, scenario, runs) exits 2 before anything is written.
+    """
     from hmpc_cli.analysis.tables import FigureInputError
     from hmpc_cli.figures.common import parse_formats
     from hmpc_cli.core.registry import PluginError
@@ -284,7 +296,7 @@ def tube_command(
     _check_samples(samples)  # before anything is read or built
     _check_pad(pad)
     try:
-        sc, _ = load_scenario(scenario, set_ or [], check_margins=False)
+        sc, _ = load_scenario(scenario, sets, check_margins=False)
         parse_formats(formats)
     except ScenarioError as exc:
         _fail(exc.lines)
@@ -293,12 +305,18 @@ def tube_command(
     _check_outputs(out, write, sc.name)
     try:
         system = _system(scenario, sc)
-        observed = _read_runs(runs or [], sc.system)
-        report = _analyse(sc, system, observed, states, pad, samples)
+        observed = _read_runs(runs, sc.system)
+        return sc, system, observed, _analyse(sc, system, observed, states, pad, samples)
     except TubeError as exc:
         _fail([f"{scenario}: tube: {exc.quantity}: {exc.reason} (no trivial tube)"])
     except (PluginError, ValueError) as exc:
         _fail([_blamed(scenario, exc)])
+
+
+def _publish(sc, system, observed: list, report, out: Path | None, formats: str,
+             write: Path | None, samples: int) -> None:
+    """Prints the report (-q: its warnings) and writes tube.json, the figures, the margins."""
+    from hmpc_cli.analysis.tables import FigureInputError
     from hmpc_cli.cli.common import is_quiet
 
     quiet = is_quiet()  # -q: the warnings (stderr), errors and the written paths only
