@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from hmpc_cli.core.jsonio import dumps
+from hmpc_cli.core.paths import first_names
 
 __all__ = ["ExportError", "check_format", "earlier_export", "flatten", "tables",
            "write_export"]
@@ -209,7 +210,7 @@ def earlier_export(out: Path) -> list[str]:
     except (OSError, ValueError):
         info = None
     if not isinstance(info, dict) or not {"log", "filters"} <= set(info):
-        shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
+        shown = first_names(entries)
         raise ExportError(f"{out}: is not empty ({shown}) and holds no earlier export "
                           "(its info.json): choose a new or empty directory")
     files = info.get("files")

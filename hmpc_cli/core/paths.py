@@ -22,7 +22,8 @@ from collections.abc import Iterator
 from pathlib import Path, PosixPath
 
 __all__ = ["DISK_ERRNOS", "EmptyPath", "OutputPathError", "atomic_file", "check_output",
-           "disk_error", "file_digest", "output_problem", "path_option", "write_atomic"]
+           "disk_error", "file_digest", "first_names", "output_problem", "path_option",
+           "write_atomic"]
 
 #: errors of a full or read-only disk: bad environment (exit 2), not a bug
 DISK_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG})
@@ -181,6 +182,11 @@ def disk_error_text(exc: OSError) -> str:
     """One line for a disk error: the file and the reason."""
     where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
     return f"{where}{exc.strerror or exc}"
+
+
+def first_names(names: list[str]) -> str:
+    """The first three of a directory's entries for a message: ``a, b, c, ...``."""
+    return ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
 
 
 def file_digest(path: str | Path) -> str | None:

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from hmpc_cli.core import signals
+from hmpc_cli.core.paths import first_names
 from hmpc_cli.log.books import RunResult
 from hmpc_cli.log.recorder import Recorder
 from hmpc_cli.log.runlog import NullWriter, Provenance, TopicWriter
@@ -79,7 +80,7 @@ def out_problem(out: Path) -> str | None:
         if out.is_dir():
             names = sorted(entry.name for entry in os.scandir(out))
             if names:
-                shown = ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
+                shown = first_names(names)
                 return (f"is not empty ({shown}): a run writes run.mcap, scenario.toml and "
                         "summary.json into a directory of its own (choose a new or empty "
                         "--out)")

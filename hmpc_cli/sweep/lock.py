@@ -11,6 +11,8 @@ import os
 from collections.abc import Iterator
 from pathlib import Path
 
+from hmpc_cli.core.paths import first_names
+
 __all__ = ["SweepLockedError", "is_sweep_output", "owner_problem", "output_lock"]
 
 #: the file that makes a directory a sweep's (its owner: :func:`owner_problem`)
@@ -75,7 +77,7 @@ def owner_problem(out: Path, name: str) -> str | None:
         return None
     stored = out / SWEEP_FILE
     if not stored.is_file():
-        shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
+        shown = first_names(entries)
         return (f"is not a sweep's directory (no sweep.toml; it holds {shown}): choose a new "
                 "or empty --out")
     try:
