@@ -845,11 +845,14 @@ def test_a_users_sweep_without_policy_or_size_columns_is_drawn(tmp_path, monkeyp
     assert "| ±10.0 | on_contact | 2/4 (15-85 %) | 4/4 (51-100 %) |" in text, text
     assert ("Resume or complete: `hmpc sweep` on the sweep file of `mine` with `--out "
             "out_mine` (finished runs are skipped).") in text
-    # an axis of tables that sets the policy in some entries only cannot be read
+    # an axis of tables that sets the policy in some entries only cannot be read: an
+    # error blamed on the study's directory (the command names its option)
     (d / "sweep.toml").write_text(spec.replace('"replanning.policy" = "once" ', 'x = 1 '))
-    text = "\n".join(robustness_sections([Study(d)], tmp_path / "fig", tmp_path))
-    assert "Not drawn: grid.policy: its entries set replanning.policy, but not every entry " \
-        "does, under a label of its own" in text, text
+    with pytest.raises(FigureInputError, match="^grid.policy: its entries set "
+                       "replanning.policy, but not every entry does, under a label of its "
+                       "own") as caught:
+        robustness_sections([Study(d)], tmp_path / "fig", tmp_path)
+    assert caught.value.source == d
 
 
 def test_a_trend_is_tested_again_without_the_slowest_rate_and_tallied_both_ways(tmp_path):

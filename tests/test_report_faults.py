@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import BALL, signal_handlers_installed, stop_process
+from conftest import BALL, REPO, signal_handlers_installed, stop_process
 from test_report import TRUTH, write_study
 
 #: every section left out (a test gives back the one it needs)
@@ -92,6 +92,52 @@ def test_a_report_that_fails_in_a_later_section_leaves_the_results_as_they_were(
     again = run_hmpc([*failing, "--replace"], tmp_path)
     assert again.returncode == 2 and again.stderr == first.stderr
     assert _tree(res) == before
+
+
+def test_figure_3_robustness_and_authors_errors_name_their_option(tmp_path, run_hmpc):
+    """Another section's table given to --fig3-extra or to --robustness, and an --authors
+    directory without the authors' files: exit 2, one line naming the option and its
+    value, nothing written. A study whose table is there but unusable is an error, not a
+    'Not drawn' section of a page that exits 0."""
+    push = _push_table_without_its_push_column(tmp_path / "push")
+    empty = tmp_path / "authors"
+    empty.mkdir()
+    res = tmp_path / "results"
+    has = "(has: run_id, seed, mpc.rate_hz, success, log)"
+    cases = {
+        "fig3_extra": f"error: --fig3-extra {push}: {push / 'results.csv'}: missing column(s) "
+        f"controller, disturbance {has}: not the table of the sweep --fig3-extra draws; give "
+        "that sweep's file or output directory (`hmpc report --help` names the default)",
+        "robustness": f"error: --robustness {push}: {push / 'results.csv'}: no "
+        "replanning.policy column, and the scenario of run 'a' cannot be read (no run "
+        "directory; pass the sweep file)"}
+    for option, line in cases.items():
+        proc = run_hmpc([*_args(**{option: str(push)}), "--results", str(res)], tmp_path)
+        assert (proc.returncode, proc.stderr) == (2, line + "\n"), proc.stderr
+    fig3 = REPO / "results" / "sweeps" / "fig3_100hz"
+    proc = run_hmpc([*_args(fig3_extra=str(fig3)), "--authors", str(empty),
+                     "--results", str(res)], tmp_path)
+    assert (proc.returncode, proc.stderr) == (2, (
+        f"error: --authors {empty}: {empty}: none of the authors' Figure 3 files is there "
+        "(fig3_left_10hz_fixed.csv, fig3_middle_20hz_fixed.csv, fig3_right_10hz_hybrid.csv, "
+        "fig3_extra_100hz_fixed.csv)\n")), proc.stderr
+    assert not res.exists()
+
+
+def test_an_extra_figure_3_panel_alone_is_drawn(tmp_path, run_hmpc):
+    """--fig3-extra without --fig3 draws the 100 Hz panel (it was 'nothing to report')."""
+    res = tmp_path / "results"
+    proc = run_hmpc([*_args(fig3_extra=str(REPO / "results" / "sweeps" / "fig3_100hz")),
+                     "--authors", str(REPO / "results" / "authors"), "--results", str(res)],
+                    tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    page = (res / "README.md").read_text()
+    assert "run by hmpc in 1 mode:\n" in page
+    assert "| ![hmpc mode extra](report/fig3_extra/fig3.png) |\n" in page
+    assert "| 100 Hz fixed | - | 4/11 (trial 3, trial 4, trial 5, trial 6, trial 7, trial 9, " \
+        "trial 10) | 11/11 |\n" in page
+    assert (res / "report" / "fig3_extra" / "fig3.png").is_file()
+    assert not (res / "report" / "fig3.png").exists()
 
 
 def test_a_directory_that_is_not_a_sweeps_output_is_refused_by_option(tmp_path, run_hmpc):

@@ -9,22 +9,44 @@ from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["FigureInputError", "RunTrace", "load_trace", "parse_bool", "read_table",
-           "resolve_log", "resolve_run_log", "resolve_table", "sweep_spec", "trace_of"]
+__all__ = ["FigureInputError", "RunTrace", "blamed_on", "load_trace", "parse_bool",
+           "read_table", "resolve_log", "resolve_run_log", "resolve_table", "sweep_spec",
+           "trace_of"]
 
 _TRUE = {"true", "1", "yes"}
 _FALSE = {"false", "0", "no"}
 
 
 class FigureInputError(ValueError):
-    """Bad figure input (table, columns, logs, options); the message is one line."""
+    """Bad figure input (table, columns, logs, options); the message is one line.
+
+    ``source``: the input directory it came from, once known (:func:`blamed_on`), so that
+    the command can name the option that gave it; None until then.
+    """
+
+    source: Path | None = None
+
+
+@contextmanager
+def blamed_on(directory: str | Path) -> Iterator[None]:
+    """Records ``directory`` as the ``source`` of a :class:`FigureInputError` raised inside.
+
+    An error that already has a source (an inner input) keeps it.
+    """
+    try:
+        yield
+    except FigureInputError as exc:
+        if exc.source is None:
+            exc.source = Path(directory)
+        raise
 
 
 def resolve_run_log(path: str | Path) -> Path:

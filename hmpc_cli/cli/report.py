@@ -417,7 +417,8 @@ def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None,
     try:
         page = write_report(results, inputs, shlex.join(["hmpc", *sys.argv[1:]]))
     except FigureInputError as exc:
-        where = dirs | ({"biped": biped_dir} if biped_dir is not None else {})
+        where = dirs | ({"biped": biped_dir} if biped_dir is not None else {}) \
+            | ({"authors": authors[0]} if authors[0] is not None else {})
         typer.echo(f"error: {_attributed(exc, where, given or {})}", err=True)
         raise typer.Exit(EXIT_BAD_INPUT) from None
     from hmpc_cli.cli.common import is_quiet
@@ -428,14 +429,15 @@ def _write_page(results: Path, dirs: dict[str, Path], biped_dir: Path | None,
 def _attributed(exc: Exception, dirs: dict[str, Path], given: dict[str, Path | None]) -> str:
     """A figure input's error prefixed with the option (and value) it came from, if known.
 
-    ``exc.source``: the input directory that failed (:func:`hmpc_cli.report.page.write_report`).
+    ``exc.source``: the input directory that failed
+    (:func:`hmpc_cli.analysis.tables.blamed_on`).
     """
     source = getattr(exc, "source", None)
     key = next((k for k, d in dirs.items() if source is not None and d == source), None)
     if key is None:
         return str(exc)
     text = f"{_option(key)} {given.get(key) or dirs[key]}: {exc}"
-    if "missing column" in text:
+    if "missing column" in text and key not in ("authors", "biped"):
         text += (f": not the table of the sweep {_option(key)} draws; give that sweep's file "
                  "or output directory (`hmpc report --help` names the default)")
     return text

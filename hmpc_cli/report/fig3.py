@@ -59,18 +59,34 @@ def _count(successes: int, runs: int, failed: Sequence[str]) -> str:
 
 def _draw(mode: Fig3Mode, fig_dir: Path) -> tuple[dict, list[str]]:
     """Figure 3 of one mode (and its extra panel): counts by panel, notes on the logs."""
+    from hmpc_cli.analysis.tables import blamed_on
     from hmpc_cli.figures.fig3 import fig3
     from hmpc_cli.report.traces import keep_traces, sweep_logs
 
     for directory in (mode.main, mode.extra):
         if directory is not None:
-            keep_traces(sweep_logs(directory))
+            with blamed_on(directory):
+                keep_traces(sweep_logs(directory))
     main_dir = fig_dir / (f"fig3_{mode.stem}" if mode.stem != "hmpc" else "")
-    counts = dict(fig3(mode.main, main_dir, "pdf,svg,png")) if mode.main else {}
+    counts = {}
+    if mode.main is not None:
+        with blamed_on(mode.main):
+            counts = dict(fig3(mode.main, main_dir, "pdf,svg,png"))
     if mode.extra is not None:
         extra_dir = fig_dir / ("fig3_extra" if mode.stem == "hmpc" else f"fig3_{mode.stem}_extra")
-        counts.update(fig3(mode.extra, extra_dir, "png"))
+        with blamed_on(mode.extra):
+            counts.update(fig3(mode.extra, extra_dir, "png"))
     return counts, [n for c in counts.values() for n in c.notes]
+
+
+def _compared(directory: Path, authors: dict) -> list:
+    """One sweep's trials beside the authors' (:func:`compare_sweep`), errors blamed on it."""
+    from hmpc_cli.analysis.fig3compare import compare_sweep
+    from hmpc_cli.analysis.tables import blamed_on
+
+    with blamed_on(directory):
+        return compare_sweep(directory / "results.csv" if directory.is_dir() else directory,
+                             authors)
 
 
 def _image(mode: Fig3Mode, fig_dir: Path, base: Path, extra: bool) -> str:
@@ -275,33 +291,38 @@ def fig3_section(modes: Sequence[Fig3Mode], authors_dir: Path | None, fig_dir: P
     Raises:
         FigureInputError: a sweep table or the authors' data is unusable.
     """
-    from hmpc_cli.analysis.authors import read_panels
-    from hmpc_cli.analysis.fig3compare import compare_sweep
-    from hmpc_cli.analysis.tables import FigureInputError
+    from hmpc_cli.analysis.authors import PANEL_FILES, read_panels
+    from hmpc_cli.analysis.tables import FigureInputError, blamed_on
 
     modes = [m for m in modes if m.main is not None or m.extra is not None]
+    authors, rows = {}, {}
+    if authors_dir is not None:  # read first: a bad directory fails before any drawing
+        with blamed_on(authors_dir):
+            try:
+                authors = read_panels(authors_dir)
+            except ValueError as exc:
+                raise FigureInputError(str(exc)) from None
+            if not authors:
+                raise FigureInputError(f"{authors_dir}: none of the authors' Figure 3 files "
+                                       f"is there ({', '.join(PANEL_FILES.values())})")
     drawn = {m.name: _draw(m, fig_dir) for m in modes}
     counts = {name: c for name, (c, _) in drawn.items()}
-    authors, rows = {}, {}
-    if authors_dir is not None:
-        try:
-            authors = read_panels(authors_dir)
-        except ValueError as exc:
-            raise FigureInputError(str(exc)) from None
+    if authors:
         rows = {m.name: [r for d in (m.main, m.extra) if d is not None
-                         for r in compare_sweep(d / "results.csv" if d.is_dir() else d,
-                                                authors)] for m in modes}
+                         for r in _compared(d, authors)] for m in modes}
     lines = ["## Figure 3 as published and as improved", "",
              "The paper's Figure 3 campaign (nominal + the 10 paper disturbances per "
              "controller; success: within 1 m of (3, 3) at t = 3 s), run by hmpc in "
-             f"{len(modes)} modes:", "",
+             f"{len(modes)} mode{'s' if len(modes) != 1 else ''}:", "",
              *_settings_line(modes), "",
              "| " + " | ".join(m.name for m in modes) + " |", "|" + " --- |" * len(modes),
-             "| " + " | ".join(_image(m, fig_dir, base, False) for m in modes) + " |", "",
+             "| " + " | ".join(_image(m, fig_dir, base, m.main is None) for m in modes) + " |",
+             "",
              *_counts_table(modes, counts, _authors_counts(rows)), "",
              "The paper's counts, exactly:", "",
              *_verdicts(modes, counts, _authors_counts(rows)), ""]
-    extras = [_image(m, fig_dir, base, True) for m in modes if m.extra is not None]
+    extras = [_image(m, fig_dir, base, True) for m in modes
+              if m.extra is not None and m.main is not None]  # else drawn above
     if extras:
         lines += ["The 100 Hz panels: " + " ".join(extras), ""]
     notes = [n for _, ns in drawn.values() for n in ns]

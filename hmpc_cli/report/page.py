@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from hmpc_cli.analysis.tables import FigureInputError, resolve_table
+from hmpc_cli.analysis.tables import FigureInputError, blamed_on, resolve_table
 from hmpc_cli.figures.common import page_link
 from hmpc_cli.report.paths import portable_command, portable_text
 
@@ -175,12 +175,8 @@ def _from(directory: Path, section):
 
     The caller names the input (option) that failed.
     """
-    try:
+    with blamed_on(directory):
         return section()
-    except FigureInputError as exc:
-        if getattr(exc, "source", None) is None:
-            exc.source = Path(directory)
-        raise
 
 
 def _no_table(directory: Path) -> bool:
@@ -202,7 +198,9 @@ def _page_lines(results: Path, inputs: ReportInputs, command: str, fig_dir: Path
              "figures that draw trajectories, the logs of the runs they show (a run's "
              "`run.mcap`, or where it is not there the trajectory log `trace.mcap` the report "
              "keeps beside it); regenerate with the same command.", ""]
-    if any(d is not None for d in (inputs.fig3, inputs.fig3_reference, inputs.fig3_schedule)):
+    fig3_parts = (inputs.fig3, inputs.fig3_extra, inputs.fig3_reference,
+                  inputs.fig3_reference_extra, inputs.fig3_schedule)
+    if any(d is not None for d in fig3_parts):
         lines += _fig3_section(inputs, fig_dir, base)
     if inputs.fig3_trials is not None:
         from hmpc_cli.report.fig3_trials import fig3_trials_section
@@ -225,7 +223,7 @@ def _page_lines(results: Path, inputs: ReportInputs, command: str, fig_dir: Path
 
         lines += _or_not_drawn("The biped under pushes that matter", inputs.biped_push,
                                lambda: push_section(inputs.biped_push, fig_dir, base))
-    if inputs.fig3 is None and inputs.fig3_reference is None and inputs.robustness is None \
+    if all(d is None for d in fig3_parts) and inputs.robustness is None \
             and inputs.biped is None and inputs.biped_push is None \
             and inputs.fig3_trials is None and not inputs.realtime:
         raise FigureInputError("nothing to report: no Figure 3, robustness sweep or biped run")

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from hmpc_cli.analysis.tables import (
     FigureInputError,
+    blamed_on,
     parse_bool,
     read_table,
     resolve_table,
@@ -929,16 +930,17 @@ def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list
     results: list[tuple[dict, list]] = []
     for study in studies:
         try:
-            section, cells, spec = study_section(study, fig_dir, base)
+            with blamed_on(study.directory):
+                section, cells, spec = study_section(study, fig_dir, base)
         except FigureInputError as exc:
+            if (study.directory / "results.csv").is_file():
+                raise  # a table that is there but unusable: the command names its option
             from hmpc_cli.report.paths import portable_path, portable_text
 
-            if not (study.directory / "results.csv").is_file() and study.sweep_file:
-                why = (f"Not run yet: no run of `{portable_path(study.sweep_file)}` is in this "
-                       f"repository (`hmpc sweep {portable_path(study.sweep_file)}` runs it, "
-                       "resumably).")
-            else:
-                why = f"Not drawn: {portable_text(str(exc))}"
+            why = (f"Not run yet: no run of `{portable_path(study.sweep_file)}` is in this "
+                   f"repository (`hmpc sweep {portable_path(study.sweep_file)}` runs it, "
+                   "resumably)." if study.sweep_file else
+                   f"Not drawn: {portable_text(str(exc))}")
             lines += [f"### {study.directory.name}", "", why, ""]
             continue
         lines += section
