@@ -119,3 +119,42 @@ def test_the_last_state_sample_holds_the_last_steps_input_reference_and_disturba
     assert list(last["u"].values()) == u.tolist() and np.any(u != 0.0)
     assert list(last["x_ref"].values()) == x_ref.tolist()
     assert list(last["w"].values()) == w.tolist()
+
+
+@pytest.mark.parametrize("react", ["recompute", "hold"])
+def test_a_stop_while_the_stack_handles_a_contact_ends_the_run_after_it(
+        tmp_path, monkeypatch, react):
+    """A stop signal that arrives as the first contact is handled (its re-solve at the
+    event time with ``recompute``, the step's end with ``hold``): the summary counts that
+    contact and ends at or after it, in the state after its reset, and is the log's last
+    message (it ended before the contact, in the state before it, counting it)."""
+    import signal
+
+    from hmpc_cli.core import signals
+    from hmpc_cli.run.layers import MPCLayers
+
+    real = MPCLayers.on_event
+
+    def on_event(self, ev):
+        signals._STATE.signum = int(signal.SIGTERM)  # as the handler records it
+        real(self, ev)
+
+    monkeypatch.setattr(MPCLayers, "on_event", on_event)
+    sc, _ = load_scenario(ROOT / "scenarios" / "ball.toml",
+                          [f"sim.input_at_events={react!r}", "sim.duration=1.0"])
+    try:
+        with pytest.raises(signals.Interrupted):
+            run_loop(sc, tmp_path / "run.mcap")
+    finally:
+        signals.reset()
+    log = read_log(tmp_path / "run.mcap")
+    events = log.topic("/sim/event")
+    summary = log.topic("/run/summary")
+    assert len(events) == 1 and len(summary) == 1
+    event, end = events[0].data, summary[0].data
+    assert end["reason"] == "interrupted (SIGTERM)"
+    assert end["contacts"] == 1 and end["t_end"] >= event["t"]
+    if react == "recompute":  # stopped at the event itself
+        assert end["t_end"] == event["t"] and end["x_end"] == event["x_after"]
+    assert max(m.log_time_ns for m in log.messages) == summary[0].log_time_ns
+    assert log.topic("/sim/state")[-1].data["t"] == end["t_end"]

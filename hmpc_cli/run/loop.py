@@ -42,6 +42,7 @@ from collections.abc import Callable
 import numpy as np
 
 from hmpc_cli.core import signals
+from hmpc_cli.core.messages import GuardEvent
 from hmpc_cli.log.books import RunResult
 from hmpc_cli.log.runlog import NullWriter, TopicWriter
 from hmpc_cli.run.compose import PreparedRun
@@ -121,7 +122,7 @@ class ClosedLoop:
         from hmpc_cli.sim.simulator import ZenoError
 
         try:
-            x, mode, _ = self.plant.step(t, x, mode, u, w, self.layers.on_event,
+            x, mode, _ = self.plant.step(t, x, mode, u, w, self._on_event,
                                          lambda: self.layers.plan)
         except ZenoError as exc:
             return x, mode, self._fail(t, f"zeno: {exc}")
@@ -130,6 +131,15 @@ class ClosedLoop:
             return x, mode, self._fail(t1, "diverged: non-finite or unbounded state")
         why = self.prepared.task.failure(x, mode)
         return x, mode, bool(why) and self._fail(t1, why, diverged=False)
+
+    def _on_event(self, ev: GuardEvent) -> None:
+        """A guard event inside a step: the run has reached it, then the stack reacts.
+
+        A stop during the reaction (a re-solve at the event time) ends the run at the
+        event, in the state after its reset: the contact is in the log and the counts.
+        """
+        self._now = (ev.t, ev.x_after, ev.mode_after)
+        self.layers.on_event(ev)
 
     def _last_state(self, t: float, x: np.ndarray, mode: int) -> None:
         """The /sim/state sample at the end: the state reached, with the step's values.
