@@ -977,3 +977,22 @@ def test_the_model_latency_entry_says_what_it_charges(tmp_path):
         ": 0 ms per solve + 3 ms per iteration")
     (tmp_path / "base_scenario.toml").write_text("[sim]\n")
     assert _model_costs(table, {}) == ""
+
+
+def test_a_studys_tube_table_names_the_region_its_constants_hold_on():
+    """The robustness section's tube table says which box L_x was sampled on (the default
+    region: x0 and the goal padded; the ball's velocities within ±2 m/s) and that its tubes
+    do not cover states outside it."""
+    from hmpc_cli.analysis.tables import read_table
+    from hmpc_cli.report.robustness import region_text, tube_reports
+
+    table = REPO / "results" / "sweeps" / "robustness" / "results.csv"
+    rows = read_table(table, ["seed"])
+    reports = tube_reports(table, rows, sweep_file=REPO / "sweeps" / "robustness.toml")
+    assert sorted(reports) == [15.0, 30.0]
+    assert region_text(reports) == (
+        "L_x = 1.109 1/s, the largest ||df/dx|| sampled on `hmpc tube`'s default region, the "
+        "box px [-1, 5], py [-1, 5], vx [-2, 2], vy [-2, 2]: a Lipschitz constant inside "
+        "that box only, so these tubes do not cover a run's states outside it (docs/tubes.md, "
+        "\"The region\", measures how far the ball's runs leave it)")
+    assert region_text({}) == ""

@@ -18,6 +18,7 @@ import statistics
 from collections import Counter, defaultdict
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from hmpc_cli.analysis.tables import (
     FigureInputError,
@@ -28,6 +29,9 @@ from hmpc_cli.analysis.tables import (
     sweep_spec)
 from hmpc_cli.figures.common import page_link
 from hmpc_cli.tube.margins_file import REFUSED
+
+if TYPE_CHECKING:
+    from hmpc_cli.tube.report import TubeReport
 
 __all__ = ["Study", "robustness_sections"]
 
@@ -92,20 +96,20 @@ def _planned(sweep_file: Path) -> dict:
     return {r.run_id: r for r in plan_sweep(sweep_file).runs}
 
 
-def tube_diameters(table: Path, rows: list[dict], size_column: str = SIZE,
-                   sweep_file: Path | None = None) -> dict[float, dict[str, list]]:
-    """Diam T(1/f) per disturbance size of a sweep: size -> bound -> [(rate, diam)].
+def tube_reports(table: Path, rows: list[dict], size_column: str = SIZE,
+                 sweep_file: Path | None = None) -> dict[float, TubeReport]:
+    """Step 5's tube analysis per disturbance size of a sweep: size -> its ``TubeReport``.
 
-    Computed by Step 5's tube analysis (``hmpc tube``'s, default samples) for the
-    effective scenario of the first finished run of each size (its ``scenario.toml``, or
-    the ``sweep_file``'s for a table without run directories); bounds ``trivial``
-    (Prop. 2) and ``kinematic``; {} when no run can be read.
+    ``hmpc tube``'s (its default region and samples) for the effective scenario of the
+    first finished run of each size (its ``scenario.toml``, or the ``sweep_file``'s for a
+    table without run directories), at the sweep's rates; a size whose scenario cannot be
+    read or analysed is left out.
     """
     from hmpc_cli.core.registry import build_system
     from hmpc_cli.tube import TubeError, analyse, region_from_scenario
 
     rates = sorted({float(r[RATE]) for r in rows if r.get(RATE)})
-    out: dict[float, dict[str, list]] = {}
+    out: dict[float, TubeReport] = {}
     for size in sorted({float(r[size_column]) for r in rows if r.get(size_column)}):
         first = next(r for r in rows if r.get(size_column) and float(r[size_column]) == size)
         sc = _effective_scenario(table, first, sweep_file)
@@ -113,17 +117,47 @@ def tube_diameters(table: Path, rows: list[dict], size_column: str = SIZE,
             continue
         try:
             system = build_system(sc.system)
-            rep = analyse(system, region=region_from_scenario(system), kind=sc.disturbance.kind,
-                          magnitude=sc.disturbance.magnitude, kp=sc.lowlevel.kp,
-                          kd=sc.lowlevel.kd, rate_hz=sc.mpc.rate_hz, rates=rates,
-                          seed=sc.seed)
+            out[size] = analyse(system, region=region_from_scenario(system),
+                                kind=sc.disturbance.kind, magnitude=sc.disturbance.magnitude,
+                                kp=sc.lowlevel.kp, kd=sc.lowlevel.kd, rate_hz=sc.mpc.rate_hz,
+                                rates=rates, seed=sc.seed)
         except (OSError, TubeError, ValueError):
             continue
+    return out
+
+
+def tube_diameters(reports: dict[float, TubeReport], rows: list[dict]
+                   ) -> dict[float, dict[str, list]]:
+    """Diam T(1/f) per disturbance size: size -> bound -> [(rate, diam)].
+
+    From :func:`tube_reports`, at the rates of ``rows``; bounds ``trivial`` (Prop. 2) and
+    ``kinematic``.
+    """
+    rates = sorted({float(r[RATE]) for r in rows if r.get(RATE)})
+    out: dict[float, dict[str, list]] = {}
+    for size, rep in reports.items():
         picked = [r for r in rep.rows if any(math.isclose(r.rate_hz, x) for x in rates)]
         out[size] = {"trivial": [(r.rate_hz, r.trivial) for r in picked],
                      "kinematic": [(r.rate_hz, r.kinematic) for r in picked
                                    if r.kinematic is not None]}
     return out
+
+
+def region_text(reports: dict[float, TubeReport]) -> str:
+    """The constants' region in words: the largest L_x found and the box, per state.
+
+    Empty without a report. The sizes share one region (the scenario's default).
+    """
+    if not reports:
+        return ""
+    rep = next(iter(reports.values()))
+    box = ", ".join(f"{name} [{lo:.3g}, {hi:.3g}]" for name, lo, hi in zip(
+        rep.state_names, rep.region.lower, rep.region.upper, strict=True))
+    return (f"L_x = {max(r.lipschitz.L_x for r in reports.values()):.4g} 1/s, the largest "
+            f"||df/dx|| sampled on `hmpc tube`'s default region, the box {box}: a Lipschitz "
+            "constant inside that box only, so these tubes do not cover a run's states "
+            "outside it (docs/tubes.md, \"The region\", measures how far the ball's runs "
+            "leave it)")
 
 
 def _effective_scenario(table: Path, row: dict, sweep_file: Path | None):
@@ -145,7 +179,7 @@ def _pivot(cells) -> list[str]:
     xs = sorted({c.x for c in cells})
     lines = ["| disturbance | policy | " + " | ".join(f"{x:g} Hz" for x in xs) + " |",
              "| --- | --- | " + " | ".join("---" for _ in xs) + " |"]
-    rows: dict[tuple[str, str], dict[float, object]] = {}
+    rows: dict[tuple[str, str], dict[float, TubeReport]] = {}
     for c in cells:
         rows.setdefault((c.panel, c.series), {})[c.x] = c
     for (panel, series), by_x in rows.items():
@@ -395,11 +429,12 @@ def _draw_lines(rows: list[dict], ok: list[bool], size: str) -> list[str]:
 
 
 def _drawn(study: Study, table: Path, rows: list[dict], spec: dict, name: str,
-           fig_dir: Path) -> tuple[list[dict], str, dict, list]:
+           fig_dir: Path) -> tuple[list[dict], str, dict, str, list]:
     """The study's figure and cells.
 
     Returns:
-        (rows with the study's columns, the size column, the tube diameters, the cells).
+        (rows with the study's columns, the size column, the tube diameters, their
+        constants' region in words (:func:`region_text`), the cells).
     """
     import tempfile
 
@@ -410,11 +445,12 @@ def _drawn(study: Study, table: Path, rows: list[dict], spec: dict, name: str,
     with tempfile.TemporaryDirectory() as scratch:
         drawn, rows = _with_study_columns(table, rows, spec, study.sweep_file, Path(scratch))
         size = _size_column(rows)
-        diam = tube_diameters(table, rows, size, study.sweep_file)
+        reports = tube_reports(table, rows, size, study.sweep_file)
+        diam = tube_diameters(reports, rows)
         cells = robustness(drawn, fig_dir, "pdf,svg,png", name=name, diameters=diam,
                            panel_axis=size, width=min(TEXT_WIDTH_IN, 3.5 * max(1, len(diam))),
                            not_set_up=margins_refused)
-    return rows, size, diam, cells
+    return rows, size, diam, region_text(reports), cells
 
 
 def _draws(entries: object) -> bool:
@@ -549,7 +585,7 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
         spec = {**spec, "effective": {"sim.latency_first": sc.sim.latency_first,
                                       "lowlevel.past_guard": sc.lowlevel.past_guard,
                                       "sim.latency": sc.sim.latency}}
-    rows, size, diam, cells = _drawn(study, table, rows, spec, name, fig_dir)
+    rows, size, diam, region, cells = _drawn(study, table, rows, spec, name, fig_dir)
     seeds = len({r["seed"] for r in rows})
     n = sorted({c.runs for c in cells})
     seeds_spec = spec.get("seeds")
@@ -581,8 +617,9 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
              f"{settings_text(spec)}; Wilson 95 % intervals; {wall_text(rows)}. "
              f"Table: [{csv}]({csv})."
              + resume, "", *_pivot(cells), "",
-             *(["Tube diameter diam T(1/f) at each rate (Step 5, sampled constants; the "
-                "lower panels):", "", *_diam_lines(diam), ""] if diam else []),
+             *([f"Tube diameter diam T(1/f) at each rate (Step 5, sampled constants: "
+                f"{region}; the lower panels):", "", *_diam_lines(diam), ""]
+               if diam else []),
              "Computed findings (a pairwise claim only where the intervals separate; a "
              "trend at the 5 % level, uncorrected for this page's many tests, and again "
              "without the slowest rate where it holds):", "",
