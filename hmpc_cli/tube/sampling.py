@@ -2,9 +2,11 @@
 
 Every constant is the sampled maximum of a Jacobian norm over a box of states
 (:class:`Region`) and each mode's input box (w = 0), refined by a local random search
-from the best samples. A sampled maximum is a lower bound on the true supremum: these are
-estimates, not certificates. The Jacobians are built once per system in CasADi and
-evaluated on batches through :func:`~hmpc_cli.core.numeric.compile_numpy`.
+from the best samples; so is eta's plant part, ||f_plant - f_model|| when the simulated
+plant is another system than the controllers' model. A sampled maximum is a lower bound
+on the true supremum: these are estimates, not certificates. The Jacobians are built
+once per system in CasADi and evaluated on batches through
+:func:`~hmpc_cli.core.numeric.compile_numpy`.
 """
 
 from __future__ import annotations
