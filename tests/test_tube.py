@@ -104,6 +104,124 @@ def test_region_from_scenario_spans_x0_and_the_goal():
     np.testing.assert_allclose(reg.upper, [1.5, 0.5])
 
 
+# ------------------------------------------------------------------ the plant's mismatch
+def test_eta_adds_the_plants_flow_mismatch_to_its_own_w_part():
+    """eta = max ||f_p(x, u, 0) - f(x, u, 0)|| + max ||df_p/dw|| ||w_max||: closed forms."""
+    model = linear(np.eye(2), [[1.0], [0.0]], np.eye(2), u_box=2.0)
+    plant = linear(np.eye(2), [[1.0], [3.0]], 2.0 * np.eye(2), u_box=2.0)
+    d = eta_bound(model, BOX, "box", 2.0, 300, plant=plant, plant_note="B, Bw changed")
+    # f_p - f = (0, 3 u): largest at the input box's corner |u| = 2
+    assert 0.99 * 6.0 <= d.mismatch <= 6.0 + 1e-12 and d.mismatch_samples >= 300
+    assert d.gain == pytest.approx(2.0, rel=1e-12)  # the plant's df/dw, not the model's 1
+    assert d.from_w == pytest.approx(2.0 * 2.0 * math.sqrt(2.0), rel=1e-12)
+    assert d.eta == d.mismatch + d.from_w and not d.zero
+    assert d.plant == "B, Bw changed" and "max ||f_plant - f_model||_2" in d.note
+    (x, u) = (np.array(d.mismatch_x), np.array(d.mismatch_u))
+    assert abs(3.0 * u[0]) == pytest.approx(d.mismatch, rel=1e-12) and BOX.lower[0] <= x[0]
+    # no w part (kind none): eta is the mismatch alone, not the zero set
+    none = eta_bound(model, BOX, "none", 2.0, 300, plant=plant)
+    assert none.eta == none.mismatch > 0.0 and none.from_w == 0.0 and not none.zero
+    # the model as its own plant: exactly the plant-free bound, nothing more sampled
+    alone = eta_bound(model, BOX, "box", 2.0, 300)
+    assert eta_bound(model, BOX, "box", 2.0, 300, plant=model) == alone
+    assert alone.mismatch == 0.0 and alone.mismatch_samples == 0 and alone.plant == ""
+    other = linear(np.eye(3), np.ones((3, 1)), np.eye(3))
+    with pytest.raises(TubeError, match="modes or dimensions") as exc:
+        eta_bound(model, BOX, "box", 2.0, 300, plant=other)
+    assert exc.value.quantity == "eta"
+
+
+def _ball(sets: list[str]):
+    from hmpc_cli.core.registry import build_system
+    from hmpc_cli.run.scenario import load_scenario
+    from hmpc_cli.run.tube_margins import plant_system
+
+    sc, _ = load_scenario(SCENARIOS / "ball_disturbed.toml", sets)
+    model = build_system(sc.system)
+    return sc, model, *plant_system(sc)
+
+
+def _report(model, sc, plant=None, note=""):
+    return analyse(model, region=region_from_scenario(model), kind=sc.disturbance.kind,
+                   magnitude=sc.disturbance.magnitude, kp=sc.lowlevel.kp, kd=sc.lowlevel.kd,
+                   rate_hz=sc.mpc.rate_hz, samples=2000, plant=plant, plant_note=note)
+
+
+def test_a_heavier_ball_plant_widens_its_tube_and_an_identical_one_changes_nothing():
+    sc, model, plant, note = _ball(["plant.mass=2.0"])
+    assert note == "mass = 2" and plant is not None
+    d = _report(model, sc, plant, note).disturbance
+    # f_p - f = (0, 0, u / 2 - u): 0.5 ||u||, largest at the inside box's corner 100 sqrt 2
+    assert 0.99 * 50 * math.sqrt(2) <= d.mismatch <= 50 * math.sqrt(2) * (1 + 1e-12)
+    assert d.gain == pytest.approx(1.0) and d.from_w == pytest.approx(10 * math.sqrt(2))
+    assert d.eta == d.mismatch + d.from_w
+    base = _report(model, sc)  # the plant ignored (the old analysis)
+    assert d.eta > 3 * base.disturbance.eta
+    # an identical plant (or none) is the model: bit for bit the plant-free report
+    for sets in (["plant.mass=1.0"], []):
+        sc1, model1, plant1, note1 = _ball(sets)
+        assert (plant1, note1) == (None, "")
+        assert _report(model1, sc1, plant1, note1).to_dict() == base.to_dict()
+
+
+def test_the_tube_cache_is_keyed_by_the_plant_and_its_file_records_it(tmp_path, monkeypatch):
+    from hmpc_cli.run.tube_margins import tube_margins_file, tube_margins_path
+
+    monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path / "cache"))
+    rate = ["mpc.rate_hz=20"]
+    same = {tube_margins_path(_ball(rate + s)[0]) for s in ([], ["plant.mass=1.0"])}
+    heavy = _ball(rate + ["plant.mass=2.0"])
+    assert len(same) == 1 and tube_margins_path(heavy[0]) not in same
+    file = tube_margins_file(heavy[0], heavy[1])
+    dist = file.disturbance
+    assert dist["plant"] == "mass = 2" and dist["plant_mismatch"] > 70.0
+    assert dist["eta"] == dist["plant_mismatch"] + dist["from_w"]
+    plain = tube_margins_file(*_ball(rate)[:2])
+    assert "plant" not in plain.disturbance
+    assert file.at(20.0).radius > plain.at(20.0).radius > 0.0
+
+
+def test_the_bipeds_eta_holds_its_heavier_plant():
+    """The 1.1x heavier plant's flow differs from the model's by far more than the pushes.
+
+    Independently: with every mass and inertia x s, M, C, G scale by s, so
+    f_p(x, u) - f(x, u) = (1/s - 1) (f(x, u) - f(x, 0)) (CasADi, not the sampler's NumPy).
+    """
+    from hmpc_cli.core.registry import build_system
+    from hmpc_cli.run.scenario import load_scenario
+    from hmpc_cli.run.tube_margins import plant_system
+
+    sc, _ = load_scenario(BIPED)
+    model = build_system(sc.system)
+    plant, note = plant_system(sc)
+    assert note == "mass_scale = 1.1"
+    region = region_from_scenario(model)
+    d = eta_bound(model, region, "box", 25.0, 2000, plant=plant, plant_note=note)
+    alone = eta_bound(model, region, "box", 25.0, 2000)  # the old eta: the box only
+    assert d.eta == d.mismatch + d.from_w and d.from_w == d.gain * 25.0
+    assert d.gain == pytest.approx(alone.gain / 1.1, rel=0.05)  # M_p^-1 = M^-1 / 1.1
+    assert d.mismatch > 100 * alone.eta and d.plant == note
+
+    mode = model.modes[0]
+    w0 = np.zeros(model.n_w)
+
+    def gap(x, u):
+        fm, fp, f0 = (np.array(f(x, v, w0), dtype=float).ravel() for f, v in (
+            (mode.flow, u), (plant.modes[0].flow, u), (mode.flow, 0 * u)))
+        assert np.allclose(fp - fm, (1 / 1.1 - 1) * (fm - f0), rtol=1e-9, atol=1e-9)
+        return float(np.linalg.norm(fp - fm))
+
+    assert gap(np.array(d.mismatch_x), np.array(d.mismatch_u)) == pytest.approx(
+        d.mismatch, rel=1e-9)
+    rng = np.random.default_rng(7)
+    lo, hi = np.array(mode.u_lower), np.array(mode.u_upper)
+    for _ in range(100):
+        assert gap(rng.uniform(region.lower, region.upper), rng.uniform(lo, hi)) <= d.mismatch
+    # the auditor's points: x0 with +-300 N m torques
+    for signs in rng.choice([-1.0, 1.0], (20, model.n_u)):
+        assert gap(model.x0, 300.0 * signs) <= d.mismatch
+
+
 # ------------------------------------------------------------------ tubes
 def test_trivial_and_feedforward_tubes_closed_form():
     t = np.array([0.0, 0.1, 0.5])
@@ -244,8 +362,41 @@ def test_cli_tube(scenario: Path, tmp_path: Path):
         assert (out / name).stat().st_size > 0, name
     if scenario == BALL:  # disturbance.kind = "none"
         assert "zero disturbance set" in text and "kp = kd = 0" in text
+        assert data["disturbance"]["mismatch"] == 0.0 and data["disturbance"]["plant"] == ""
     else:
         assert data["certificate"]["certified"] and "k1, k2, k3" in text
+        # its [plant] (mass_scale = 1.1): eta's two parts, printed and in tube.json
+        d = data["disturbance"]
+        assert d["plant"] == "mass_scale = 1.1" and d["mismatch"] > 100 * d["from_w"] > 0.0
+        assert d["eta"] == d["mismatch"] + d["from_w"]
+        assert data["certificate"]["sigma"] == pytest.approx(data["certificate"]["k2"]
+                                                             * d["eta"])
+        row = " ".join(text.split("eta", 1)[1].split("kinematic states")[0].split())
+        assert "max ||f_plant - f_model|| = " in row and "(plant: mass_scale = 1.1;" in row
+        assert "+ max ||df_plant/dw|| x ||w_max|| = " in row
+
+
+@pytest.mark.slow
+def test_the_balls_margins_file_is_unchanged_and_a_plant_is_recorded(tmp_path: Path):
+    """No [plant]: the committed margins file byte for byte; a heavier plant: its eta."""
+    from hmpc_cli.run.scenario import load_scenario
+    from hmpc_cli.tube.margins_file import margins_problems, read_margins
+
+    disturbed = SCENARIOS / "ball_disturbed.toml"
+    committed = SCENARIOS / "margins" / "ball_fig3.toml"
+    for name, sets in (("same.toml", []), ("heavy.toml", ["--set", "plant.mass=2.0"])):
+        proc = hmpc(["tube", str(disturbed), *sets, "--write", name, "--out", "o", "-q",
+                     "--formats", "png"], tmp_path)
+        assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "same.toml").read_bytes() == committed.read_bytes()
+    heavy = read_margins(tmp_path / "heavy.toml")
+    assert heavy.disturbance["plant"] == "mass = 2"
+    assert heavy.disturbance["eta"] == (heavy.disturbance["plant_mismatch"]
+                                        + heavy.disturbance["from_w"])
+    assert "# plant: mass = 2 (parameters sha256:" in (tmp_path / "heavy.toml").read_text()
+    assert heavy.at(20.0).radius > read_margins(committed).at(20.0).radius
+    sc, _ = load_scenario(disturbed)
+    assert margins_problems(tmp_path / "heavy.toml", sc.system, 20.0) == []
 
 
 def test_cli_tube_disturbed_ball_warns_and_defaults_its_directory(tmp_path: Path):

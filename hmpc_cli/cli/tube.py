@@ -109,7 +109,7 @@ def _constants_table(report, sc_name: str):
     t.add_row("L_u", f"{_g(lx.L_u)}  (max ||df/du||_2, mode {lx.mode_u})")
     t.add_row("", escape(f"L_x, L_u: {lx.samples} Jacobian evaluations each (--samples "
                          f"uniform samples + local refinement); {lx.note}"))
-    t.add_row("eta", f"{_g(dist.eta)}  ({escape(dist.note)})")
+    t.add_row("eta", escape(_eta_text(dist)))
     names = [report.state_names[i] for i in report.kinematic_states]
     t.add_row("kinematic states", escape(
         f"{', '.join(names)}: flow = another state or 0, so their error is "
@@ -132,6 +132,17 @@ def _constants_table(report, sc_name: str):
               f"{', none violating up to the cap' if cert.roa_capped else ''})")
     t.add_row("tau", f"{_g(cert.tau)} s")
     return t
+
+
+def _eta_text(dist) -> str:
+    """The eta row: its value and its parts (the plant's mismatch, the disturbance box's)."""
+    if not dist.plant:
+        return f"{_g(dist.eta)}  ({dist.note})"
+    box = (f"max ||df_plant/dw|| x ||w_max|| = {_g(dist.gain)} x {_g(dist.w_norm)} = "
+           f"{_g(dist.from_w)}" if dist.w_norm else f"no w part ({dist.kind}: 0)")
+    return (f"{_g(dist.eta)} = max ||f_plant - f_model|| = {_g(dist.mismatch)} (plant: "
+            f"{dist.plant}; w = 0, mode {dist.mismatch_mode}, {dist.mismatch_samples} flow "
+            f"evaluations) + {box}")
 
 
 def _diam_table(report):
@@ -235,16 +246,20 @@ def _analyse(sc, system, observed: list, states: Path | None, pad: float | None,
     """The tube report of a scenario.
 
     The region spans the states of the run ``states``, else those of the observed runs,
-    else x0 and the goal (see :func:`hmpc_cli.tube.region_from_scenario`).
+    else x0 and the goal (see :func:`hmpc_cli.tube.region_from_scenario`). A ``[plant]``
+    that differs from the system is built and passed down: eta holds its flow's mismatch.
     """
+    from hmpc_cli.run.tube_margins import plant_system
     from hmpc_cli.tube import analyse, region_from_scenario
 
     visited = _states_of(states, system.n_x) if states is not None else (
         _stack([r.x for r in observed]) if observed else None)
     region = region_from_scenario(system, pad, visited)
+    plant, note = plant_system(sc)  # the [plant] table's flow mismatch is part of eta
     return analyse(system, region=region, kind=sc.disturbance.kind,
                    magnitude=sc.disturbance.magnitude, kp=sc.lowlevel.kp, kd=sc.lowlevel.kd,
-                   rate_hz=sc.mpc.rate_hz, samples=samples, seed=sc.seed)
+                   rate_hz=sc.mpc.rate_hz, samples=samples, seed=sc.seed, plant=plant,
+                   plant_note=note)
 
 
 def tube_command(
@@ -485,12 +500,13 @@ def _reality(report, rep, n_runs: int, out: Path, formats: str, title: str,
 
 def _write_margins(report, sc, path: Path, samples: int) -> None:
     """Writes the margins file of ``report`` (``hmpc tube --write``)."""
+    from hmpc_cli.run.tube_margins import plant_difference
     from hmpc_cli.tube.margins_file import write_margins
 
     try:
         write_margins(path, report, scenario=sc.name, params=sc.system,
                       kind=sc.disturbance.kind, magnitude=sc.disturbance.magnitude,
-                      samples=samples)
+                      samples=samples, plant=plant_difference(sc)[0])
     except OSError as exc:
         _fail([f"{path}: cannot write ({exc})"])
     from hmpc_cli.cli.common import is_quiet

@@ -2,7 +2,9 @@
 
 The paper's robust MPC tightens its constraints by the tube of its own period: diam T(dt),
 dt = 1 / ``mpc.rate_hz``, under the scenario's disturbance box and low-level gains, on the
-region spanned by x0 and the goal (what ``hmpc tube SCENARIO --write`` computes). A sweep
+region spanned by x0 and the goal, eta holding the simulated plant's mismatch when the
+scenario's ``[plant]`` differs from its system (what ``hmpc tube SCENARIO --write``
+computes). A sweep
 over MPC rates thus gives each rate its own margins. The analysis is written once as a
 margins file in ``<cache>/tubes/`` (keyed by everything it depends on) and read back by
 every later run; margins that make the tightened problem infeasible at x0 are refused
@@ -15,11 +17,19 @@ import hashlib
 import json
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 from hmpc_cli import __version__
 from hmpc_cli.core.cbuild import cache_dir
 from hmpc_cli.core.messages import ConstraintMargins
 
-__all__ = ["SAMPLES", "TUBE", "tube_margins", "tube_margins_file", "tube_margins_path"]
+if TYPE_CHECKING:
+    from pydantic import BaseModel
+
+    from hmpc_cli.core.hybrid import HybridSystem
+
+__all__ = ["SAMPLES", "TUBE", "plant_difference", "plant_system", "tube_margins",
+           "tube_margins_file", "tube_margins_path"]
 
 TUBE = "tube"  #: the ``mpc.margins`` value
 SAMPLES = 20000  #: samples per estimated constant (``hmpc tube``'s default)
@@ -34,10 +44,42 @@ def _tube_sources() -> str:
     return h.hexdigest()
 
 
+def plant_difference(sc) -> tuple[BaseModel | None, str]:
+    """The plant's parameters and what differs ("mass_scale = 1.1"), or (None, "").
+
+    (None, ""): no ``[plant]`` table, or one that leaves every parameter as the system's
+    (the plant is the model: no mismatch).
+    """
+    world = sc.plant_params() if sc.plant else sc.system
+    if world == sc.system:
+        return None, ""
+    model, plant = sc.system.model_dump(mode="json"), world.model_dump(mode="json")
+    return world, ", ".join(f"{k} = {_text(v)}" for k, v in plant.items()
+                            if v != model.get(k))
+
+
+def _text(v) -> str:
+    return f"{v:g}" if isinstance(v, float) else json.dumps(v)
+
+
+def plant_system(sc) -> tuple[HybridSystem | None, str]:
+    """The plant's built system when it differs from the model, and how (None, "": not).
+
+    Raises:
+        hmpc_cli.core.registry.PluginError: the plant's system fails to build.
+    """
+    from hmpc_cli.core.registry import build_system
+
+    params, note = plant_difference(sc)
+    return (None, "") if params is None else (build_system(params), note)
+
+
 def _inputs(sc) -> dict:
-    """Everything the tube depends on (JSON-ready)."""
+    """Everything the tube depends on (JSON-ready): the plant's parameters too."""
+    plant = plant_difference(sc)[0]
     return {"hmpc": __version__, "sources": _tube_sources(),
             "system": sc.system.model_dump(mode="json"),
+            "plant": None if plant is None else plant.model_dump(mode="json"),
             "disturbance": [sc.disturbance.kind, float(sc.disturbance.magnitude)],
             "lowlevel": [float(sc.lowlevel.kp), float(sc.lowlevel.kd)],
             "rate_hz": float(sc.mpc.rate_hz), "samples": SAMPLES, "seed": SEED}
@@ -102,15 +144,17 @@ def _compute(sc, model, rate: float) -> str:
     from hmpc_cli.tube import TubeError, analyse, region_from_scenario
     from hmpc_cli.tube.margins_file import REFUSED, margins_text
 
+    plant, note = plant_system(sc)
     try:
         report = analyse(model, region=region_from_scenario(model), kind=sc.disturbance.kind,
                          magnitude=sc.disturbance.magnitude, kp=sc.lowlevel.kp,
                          kd=sc.lowlevel.kd, rate_hz=rate, rates=(), samples=SAMPLES,
-                         seed=SEED)
+                         seed=SEED, plant=plant, plant_note=note)
     except TubeError as exc:
         raise ValueError(f"{REFUSED}no tube at {rate:g} Hz: {exc}") from None
     if report.warnings:
         raise ValueError(f"{REFUSED}the tube's margins at {rate:g} Hz do not fit: "
                          f"{report.warnings[0]}")
     return margins_text(report, scenario=sc.name, params=sc.system, kind=sc.disturbance.kind,
-                        magnitude=sc.disturbance.magnitude, samples=SAMPLES)
+                        magnitude=sc.disturbance.magnitude, samples=SAMPLES,
+                        plant=plant_difference(sc)[0])

@@ -6,7 +6,9 @@ Pure mathematics on a :class:`~hmpc_cli.core.hybrid.HybridSystem` and plain sett
 * L_x, L_u: Lipschitz constants of the flows, *estimated* as the sampled maximum of
   ||df/dx||_2 and ||df/du||_2 over a state box (:class:`Region`) and each mode's input
   box, w = 0 (:mod:`.sampling`): estimates, never certificates.
-* eta >= ||f(x, u, w) - f(x, u, 0)|| over the box of w (w enters the flow).
+* eta >= ||f_plant(x, u, w) - f(x, u, 0)|| over the box of w: what w adds to the flow
+  plus, when the simulated plant is another system than the model f (a scenario's
+  ``[plant]``), the sampled mismatch of the two flows at w = 0.
 * zeta >= ||u - u_ff||, what the low level u = u_ff + K (x_ref - x) adds (:mod:`.bounds`).
 * The trivial tube (Prop. 2) (eta + L_u zeta) t e^{L_x t}; feed-forward only (its
   Remark) eta t e^{L_x t}; Prop. 3's a(t) from an E-ISS Lyapunov function of the PD error

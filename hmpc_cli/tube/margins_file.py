@@ -10,6 +10,11 @@ same parameters (:func:`params_hash`), and holds the scenario's MPC rate. Layout
     system = "ball"
     params_hash = "sha256:..."
     ...
+    [disturbance]
+    kind = "box"
+    magnitude = 25.0
+    plant = "mass_scale = 1.1"  # only when the simulated plant is not the model: with
+    ...                         # plant_hash, plant_mismatch, from_w, eta (format 1 still)
     [rates.10]                  # one table per MPC rate [Hz]
     dt = 0.1                    # [s]
     radius = 0.0123             # diam T(dt) [state norm]
@@ -150,7 +155,7 @@ def _rate_tables(row: TubeRow) -> list[str]:
 
 
 def margins_text(report: TubeReport, *, scenario: str, params: BaseModel, kind: str,
-                 magnitude: float, samples: int) -> str:
+                 magnitude: float, samples: int, plant: BaseModel | None = None) -> str:
     """The margins file of a tube report (TOML text with a header comment).
 
     Args:
@@ -160,12 +165,17 @@ def margins_text(report: TubeReport, *, scenario: str, params: BaseModel, kind: 
         kind: disturbance kind.
         magnitude: the disturbance box's half-width per channel.
         samples: uniform samples per estimated constant.
+        plant: the simulated plant's parameters when they differ from ``params`` (eta then
+            holds the mismatch of its flow: recorded in the header and in ``[disturbance]``
+            as ``plant``, ``plant_hash``, ``plant_mismatch``, ``from_w`` and ``eta``);
+            None: the plant is the model (nothing more is written).
     """
     h = params_hash(params)
     lines = [f"{MARK}, written by hmpc {__version__} (hmpc tube --write)",
              f"# scenario {scenario}: system {report.system} (parameters {h})",
              f"# disturbance {kind}, magnitude {magnitude:g}; low level kp = {report.kp:g}, "
              f"kd = {report.kd:g}",
+             *_plant_header(report, plant),
              f"# region: {report.region.note}; {samples} samples per estimated constant",
              "# per MPC rate [Hz]: the tube radius d = diam T(dt) [state norm] and the",
              "# kinematic radius int_0^dt diam T(s) ds; per guard its radius d_g (the",
@@ -178,11 +188,32 @@ def margins_text(report: TubeReport, *, scenario: str, params: BaseModel, kind: 
              f"params_hash = {_val(h)}",
              f"rate_hz = {_val(float(report.rate_hz))}  # the scenario's MPC rate",
              "\n[disturbance]", f"kind = {_val(kind)}", f"magnitude = {_val(float(magnitude))}",
+             *_plant_keys(report, plant),
              "\n[lowlevel]", f"kp = {_val(float(report.kp))}", f"kd = {_val(float(report.kd))}",
              "\n[region]", f"note = {_val(report.region.note)}", f"samples = {int(samples)}"]
     for row in report.rows:
         lines += _rate_tables(row)
     return "\n".join(lines) + "\n"
+
+
+def _plant_header(report: TubeReport, plant: BaseModel | None) -> list[str]:
+    """The header's plant line ([] when the plant is the model)."""
+    if plant is None:
+        return []
+    d = report.disturbance
+    return [f"# plant: {d.plant} (parameters {params_hash(plant)}): eta = {d.eta:.6g} = "
+            f"max ||f_plant - f_model|| {d.mismatch:.6g} + the box's {d.from_w:.6g}"]
+
+
+def _plant_keys(report: TubeReport, plant: BaseModel | None) -> list[str]:
+    """``[disturbance]``'s plant keys ([] when the plant is the model)."""
+    if plant is None:
+        return []
+    d = report.disturbance
+    return [f"plant = {_val(d.plant)}", f"plant_hash = {_val(params_hash(plant))}",
+            f"plant_mismatch = {_val(float(d.mismatch))}  # max ||f_plant - f_model||",
+            f"from_w = {_val(float(d.from_w))}  # max ||df_plant/dw|| ||w_max||",
+            f"eta = {_val(float(d.eta))}  # plant_mismatch + from_w"]
 
 
 def write_margins(path: Path, report: TubeReport, **meta) -> None:

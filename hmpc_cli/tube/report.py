@@ -179,7 +179,8 @@ def tube_row(system: HybridSystem, rate: float, lx: LipschitzEstimate, eta: floa
 
 def analyse(system: HybridSystem, *, region: Region, kind: str, magnitude: float,
             kp: float, kd: float, rate_hz: float, rates: Sequence[float] = DEFAULT_RATES,
-            samples: int = 20000, seed: int = 0) -> TubeReport:
+            samples: int = 20000, seed: int = 0, plant: HybridSystem | None = None,
+            plant_note: str = "") -> TubeReport:
     """The tube analysis of a system under a disturbance box and a PD low level.
 
     Args:
@@ -193,13 +194,17 @@ def analyse(system: HybridSystem, *, region: Region, kind: str, magnitude: float
         rates: further MPC rates [Hz] to tabulate.
         samples: uniform samples per estimated constant (plus refinement).
         seed: sampling seed.
+        plant: the simulated plant's system when it differs from the model (its flow's
+            mismatch is part of eta, :func:`~hmpc_cli.tube.sampling.eta_bound`); None: the
+            model is the plant.
+        plant_note: how the plant differs (e.g. "mass_scale = 1.1"), for the report.
 
     Raises:
         TubeError: the region is empty/degenerate or a Jacobian is not finite on it (no
             trivial tube then).
     """
     lx = lipschitz(system, region, samples, seed)
-    dist = eta_bound(system, region, kind, magnitude, samples, seed)
+    dist = eta_bound(system, region, kind, magnitude, samples, seed, plant, plant_note)
     K = np.atleast_2d(np.asarray(system.tracking_gain(kp, kd), dtype=float))
     gain_norm = float(np.linalg.norm(K, 2)) if np.any(K) else 0.0
     box = input_box_diameter(system)

@@ -2,9 +2,11 @@
 
 Every constant is the sampled maximum of a Jacobian norm over a box of states
 (:class:`Region`) and each mode's input box (w = 0), refined by a local random search
-from the best samples. A sampled maximum is a lower bound on the true supremum: these are
-estimates, not certificates. The Jacobians are built once per system in CasADi and
-evaluated on batches through :func:`~hmpc_cli.core.numeric.compile_numpy`.
+from the best samples; so is eta's plant part, ||f_plant - f_model|| when the simulated
+plant is another system than the controllers' model. A sampled maximum is a lower bound
+on the true supremum: these are estimates, not certificates. The Jacobians are built
+once per system in CasADi and evaluated on batches through
+:func:`~hmpc_cli.core.numeric.compile_numpy`.
 """
 
 from __future__ import annotations
@@ -218,14 +220,10 @@ def _sampled_max(system: HybridSystem, region: Region, which: int, quantity: str
     Raises:
         TubeError: ``quantity`` when the Jacobian is not finite at a sample.
     """
-    jac, rng = jacobians(system), np.random.default_rng(seed)
-    best, count = None, 0
-    per_mode = max(1, samples // len(system.modes))
-    for i, mode in enumerate(system.modes):
-        signals.check()  # a stop signal ends the sampling between modes and rounds
-        ulo, uhi = np.array(mode.u_lower, dtype=float), np.array(mode.u_upper, dtype=float)
+    jac = jacobians(system)
 
-        def norm(X, U, i=i, mode=mode):
+    def values(i: int, mode) -> Callable:
+        def norm(X, U):
             with np.errstate(all="ignore"):  # a non-finite Jacobian is reported below
                 J = jac(i, X, U)[which]
             bad = ~np.all(np.isfinite(J), axis=(1, 2))
@@ -233,7 +231,24 @@ def _sampled_max(system: HybridSystem, region: Region, which: int, quantity: str
                 raise TubeError(quantity, f"the Jacobian of mode {mode.name!r} is not finite "
                                 f"at x = {np.round(X[bad][0], 6).tolist()}")
             return _norms(J)
+        return norm
 
+    return _search(system, region, values, samples, seed)
+
+
+def _search(system: HybridSystem, region: Region, values: Callable, samples: int,
+            seed: int) -> _Max:
+    """Max over modes, the region and the input boxes of ``values(i, mode)(X, U)`` (B,).
+
+    ``samples`` uniform samples split over the modes, then :func:`_refine` from the best.
+    """
+    rng = np.random.default_rng(seed)
+    best, count = None, 0
+    per_mode = max(1, samples // len(system.modes))
+    for i, mode in enumerate(system.modes):
+        signals.check()  # a stop signal ends the sampling between modes and rounds
+        ulo, uhi = np.array(mode.u_lower, dtype=float), np.array(mode.u_upper, dtype=float)
+        norm = values(i, mode)
         X = rng.uniform(region.lower, region.upper, (per_mode, system.n_x))
         U = rng.uniform(ulo, uhi, (per_mode, system.n_u))
         vals = norm(X, U)
@@ -318,16 +333,27 @@ def lipschitz(system: HybridSystem, region: Region, samples: int = 20000,
 
 @dataclass(frozen=True)
 class DisturbanceBound:
-    """eta, the bound on ||f(x, u, w) - f(x, u, 0)|| over the region and the box of w.
+    """eta, the bound on ||f_plant(x, u, w) - f(x, u, 0)|| over the region, inputs and w box.
+
+    f is the controllers' model, f_plant the simulated plant's flow (the model itself
+    unless the scenario's ``[plant]`` differs): eta = mismatch + from_w, the plant's flow
+    against the model's at w = 0 plus what the box of w adds to the plant's flow, since
+    ||f_p(x, u, w) - f(x, u, 0)|| <= ||f_p(x, u, 0) - f(x, u, 0)|| + max ||df_p/dw|| ||w||.
 
     Attributes:
-        eta: the bound [state units / s] (0: zero disturbance set).
+        eta: the bound [state units / s] (0: zero disturbance set, plant = model).
         kind: the disturbance kind (none, box, paper_fig3).
         magnitude: box half-width per channel.
         w_norm: ||w_max||_2 = magnitude sqrt(n_w) (0 for kind none).
-        gain: max ||df/dw||_2 found (sampled, w = 0).
+        gain: max ||df_p/dw||_2 found (sampled, w = 0; the plant's flow).
         samples: Jacobian evaluations.
         note: how it was obtained, or why it is zero.
+        from_w: gain x w_norm, the disturbance box's part.
+        mismatch: max ||f_p(x, u, 0) - f(x, u, 0)||_2 found (0: the plant is the model).
+        plant: what differs in the plant, e.g. "mass_scale = 1.1" ("": it is the model).
+        mismatch_samples: flow evaluations of the mismatch (0 without a plant).
+        mismatch_x: state (n,) where the mismatch was found (() without a plant).
+        mismatch_u: input (m,) there; ``mismatch_mode``: its mode ("" without a plant).
     """
 
     eta: float
@@ -337,6 +363,13 @@ class DisturbanceBound:
     gain: float
     samples: int
     note: str
+    from_w: float = 0.0
+    mismatch: float = 0.0
+    plant: str = ""
+    mismatch_samples: int = 0
+    mismatch_x: tuple[float, ...] = ()
+    mismatch_u: tuple[float, ...] = ()
+    mismatch_mode: str = ""
 
     @property
     def zero(self) -> bool:
@@ -349,22 +382,72 @@ class DisturbanceBound:
 
 
 def eta_bound(system: HybridSystem, region: Region, kind: str, magnitude: float,
-              samples: int = 20000, seed: int = 0) -> DisturbanceBound:
-    """The disturbance bound eta = max ||df/dw||_2 ||w_max||_2 (exact if f is affine in w).
+              samples: int = 20000, seed: int = 0, plant: HybridSystem | None = None,
+              plant_note: str = "") -> DisturbanceBound:
+    """The disturbance bound eta = max ||f_p - f||_2 + max ||df_p/dw||_2 ||w_max||_2.
 
-    ``kind`` none (or a zero magnitude, or no channel) gives the zero disturbance set.
+    ``plant``: the simulated plant's system when it differs from the model ``system``
+    (None or ``system`` itself: the model, the mismatch is exactly 0 and not sampled);
+    ``plant_note`` says how (e.g. "mass_scale = 1.1"). The mismatch is sampled over the
+    region and each mode's input box (w = 0) as the other constants are; the w part is
+    exact if f_p is affine in w. ``kind`` none (or a zero magnitude, or no channel) gives
+    no w part: with the model as plant the zero disturbance set.
 
     Raises:
-        TubeError: ("eta") a non-finite df/dw; ("region") a bad region.
+        TubeError: ("eta") a non-finite df/dw or flow, or a plant whose modes and
+            dimensions are not the model's; ("region") a bad region.
     """
     region.check(system.n_x)
+    plant = None if plant is system else plant
+    mis = None if plant is None else _mismatch(system, plant, region, samples, seed + 3)
     w_norm = 0.0 if kind == "none" else abs(magnitude) * math.sqrt(system.n_w)
     if w_norm == 0.0:
         why = ("disturbance.kind = none" if kind == "none" else
                "no disturbance channel" if system.n_w == 0 else "magnitude 0")
-        return DisturbanceBound(0.0, kind, magnitude, 0.0, 0.0, 0,
-                                f"zero disturbance set ({why}): every tube is identically 0")
-    gw = _sampled_max(system, region, 2, "eta", samples, seed + 2)
-    return DisturbanceBound(gw.value * w_norm, kind, magnitude, w_norm, gw.value,
-                            gw.evaluations, f"max ||df/dw||_2 = {gw.value:.4g} x "
-                            f"||w_max||_2 = {w_norm:.4g} (w_max: the box's corner)")
+        if mis is None:
+            return DisturbanceBound(0.0, kind, magnitude, 0.0, 0.0, 0,
+                                    f"zero disturbance set ({why}): every tube is "
+                                    "identically 0")
+        gain, from_w, evals, how = 0.0, 0.0, 0, f"no w part ({why})"
+    else:
+        gw = _sampled_max(plant or system, region, 2, "eta", samples, seed + 2)
+        gain, from_w, evals = gw.value, gw.value * w_norm, gw.evaluations
+        how = (f"max ||df{'_plant' if mis else ''}/dw||_2 = {gain:.4g} x ||w_max||_2 = "
+               f"{w_norm:.4g} (w_max: the box's corner)")
+    if mis is None:
+        return DisturbanceBound(from_w, kind, magnitude, w_norm, gain, evals, how, from_w)
+    what = plant_note or "other parameters"
+    note = (f"max ||f_plant - f_model||_2 = {mis.value:.4g} (plant: {what}; w = 0, mode "
+            f"{mis.mode}) + {how}")
+    return DisturbanceBound(mis.value + from_w, kind, magnitude, w_norm, gain, evals, note,
+                            from_w, mis.value, what, mis.evaluations, tuple(mis.x.tolist()),
+                            tuple(mis.u.tolist()), mis.mode)
+
+
+def _mismatch(system: HybridSystem, plant: HybridSystem, region: Region, samples: int,
+              seed: int) -> _Max:
+    """Max over modes, the region and the model's input boxes of ||f_p - f||_2 at w = 0.
+
+    Raises:
+        TubeError: ("eta") the plant's modes or dimensions differ from the model's, or a
+            flow is not finite at a sample.
+    """
+    dims = ("n_x", "n_u", "n_w")
+    if [getattr(plant, d) for d in dims] != [getattr(system, d) for d in dims] or \
+            [m.name for m in plant.modes] != [m.name for m in system.modes]:
+        raise TubeError("eta", "the plant's modes or dimensions differ from the model's (its "
+                        "flow cannot be compared)")
+    model, real, w0 = jacobians(system), jacobians(plant), np.zeros(system.n_w)
+
+    def values(i: int, mode) -> Callable:
+        def norm(X, U):
+            with np.errstate(all="ignore"):  # a non-finite flow is reported below
+                d = real.flows[i](X, U, w0)[0] - model.flows[i](X, U, w0)[0]
+            bad = ~np.all(np.isfinite(d), axis=1)
+            if np.any(bad):
+                raise TubeError("eta", f"the flow of mode {mode.name!r} (plant or model) is "
+                                f"not finite at x = {np.round(X[bad][0], 6).tolist()}")
+            return np.linalg.norm(d, axis=1)
+        return norm
+
+    return _search(system, region, values, samples, seed)
