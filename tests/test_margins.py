@@ -208,6 +208,18 @@ def test_a_margins_file_for_a_smaller_disturbance_or_other_gains_is_named(ball_f
            "= 10.5 (disturbance.kind = 'paper_fig3') is larger: its margins do not cover" in line
 
 
+def test_a_margins_file_made_without_the_scenarios_plant_is_named():
+    """A scenario whose [plant] differs from its model, reading a margins file computed
+    for the model (its eta holds no plant mismatch): a warning naming the plant; none for
+    a [plant] that changes nothing."""
+    fig3 = ["mpc.rate_hz=20", "disturbance.kind=paper_fig3"]
+    assert _margin_warnings(FIG3_FILE, [*fig3, "plant.mass=1.0"]) == []  # the model's own
+    assert _margin_warnings(FIG3_FILE, [*fig3, "plant.mass=2.0"]) == [
+        f"mpc.margins: {FIG3_FILE.resolve()} was computed for a plant that is the model, not "
+        "this scenario's plant (mass = 2): its margins do not cover this plant's mismatch "
+        f"with the model {FIX}"]
+
+
 def test_hmpc_run_and_sweep_warn_of_another_settings_margins_file(ball_file: Path,
                                                                   tmp_path: Path):
     """On stderr, before anything runs; a sweep names each reason once with its cells."""

@@ -1037,17 +1037,21 @@ def margins_file_warnings(scenario: ScenarioBase) -> list[str]:
     """``mpc.margins: reason`` when a loaded scenario's margins file is another setting's tube.
 
     The file fits (:func:`load_scenario` checked system, parameters and rate) but was
-    computed for a smaller disturbance box or other low-level gains
+    computed for a smaller disturbance box, without this scenario's plant, or for other
+    low-level gains
     (:func:`hmpc_cli.tube.margins_file.margins_warnings`); [] otherwise.
     """
     source = scenario.mpc.margins_file()
     if source is None:
         return []
-    from hmpc_cli.tube.margins_file import margins_warnings
+    from hmpc_cli.run.tube_margins import plant_difference
+    from hmpc_cli.tube.margins_file import margins_warnings, params_hash
 
     d, low = scenario.disturbance, scenario.lowlevel
+    world, differs = plant_difference(scenario)
+    plant = (params_hash(world), differs) if world is not None else None
     return [f"mpc.margins: {line}" for line in
-            margins_warnings(Path(source), d.kind, d.magnitude, low.kp, low.kd)]
+            margins_warnings(Path(source), d.kind, d.magnitude, low.kp, low.kd, plant)]
 
 
 def dump_toml(data: dict) -> str:

@@ -276,14 +276,15 @@ def margins_problems(path: Path, system: BaseModel, rate_hz: float) -> list[str]
 
 
 def margins_warnings(path: Path, kind: str, magnitude: float, kp: float,
-                     kd: float) -> list[str]:
+                     kd: float, plant: tuple[str, str] | None = None) -> list[str]:
     """Why a margins file that fits a scenario may not be its tube ([] if it is).
 
     The tube grows with the disturbance box (every kind draws w from |w_i| <= magnitude;
-    kind none is the zero set) and depends on the low level's gains. A file made for a
-    smaller box does not cover the scenario's disturbance; one made for other gains is
-    another closed loop's tube. A file made for a larger box is conservative: no line.
-    An unreadable file gives none either (:func:`margins_problems` names it), nor a
+    kind none is the zero set) and with the plant's mismatch with the model, and depends
+    on the low level's gains. A file made for a smaller box, or without this scenario's
+    plant, does not cover the scenario's disturbance; one made for other gains is another
+    closed loop's tube. A file made for a larger box is conservative: no line. An
+    unreadable file gives none either (:func:`margins_problems` names it), nor a
     magnitude or gains the file does not record.
 
     Args:
@@ -292,6 +293,8 @@ def margins_warnings(path: Path, kind: str, magnitude: float, kp: float,
         magnitude: its ``disturbance.magnitude`` (box half-width per channel).
         kp: the scenario's ``lowlevel.kp``.
         kd: its ``lowlevel.kd``.
+        plant: the scenario's plant when it differs from its system: (its
+            :func:`params_hash`, what differs, e.g. "mass_scale = 1.1"); None: the model.
     """
     try:
         mf = read_margins(path)
@@ -311,6 +314,11 @@ def margins_warnings(path: Path, kind: str, magnitude: float, kp: float,
         out.append(f"{path} was computed for the low level's kp = {mf.lowlevel['kp']:g}, kd = "
                    f"{mf.lowlevel['kd']:g}, not this scenario's lowlevel.kp = {kp:g}, "
                    f"lowlevel.kd = {kd:g}: its margins are another closed loop's tube ({fix})")
+    if plant is not None and mf.disturbance.get("plant_hash") != plant[0]:
+        made = (f"the plant {mf.disturbance['plant']}" if "plant" in mf.disturbance
+                else "a plant that is the model")
+        out.append(f"{path} was computed for {made}, not this scenario's plant ({plant[1]}): "
+                   f"its margins do not cover this plant's mismatch with the model ({fix})")
     return out
 
 

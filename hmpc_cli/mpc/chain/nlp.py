@@ -98,10 +98,11 @@ class MPCSettings(MarginsSettings):
                                 "(hand-set margins: mpc.margins = \"hand\")")
     margins: Literal["hand", "tube"] | str = Field(
         "hand", description='"hand": the margins of tube_margin and input_margin; "tube": '
-        "those of the scenario's own tube diam T(1 / mpc.rate_hz) under its disturbance and "
-        "low level (as hmpc tube computes them; cached), so each MPC rate gets its own; else "
-        "a margins file of hmpc tube --write (relative to the scenario file's directory): "
-        "its guard-avoid, pass-through and input margins at mpc.rate_hz replace them")
+        "those of the scenario's own tube diam T(1 / mpc.rate_hz) under its disturbance, "
+        "plant and low level (as hmpc tube computes them; cached), so each MPC rate gets "
+        "its own; else a margins file of hmpc tube --write (relative to the scenario file's "
+        "directory): its guard-avoid, pass-through and input margins at mpc.rate_hz replace "
+        "them")
     solver: SolverName = Field("ipopt", description=f"NLP back-end: {describe()}")
     solver_options: SolverOptions = Field(default_factory=dict, description="passed to the plugin")
     max_iter: BoundedInt = Field(200, gt=0, description="iteration limit (sqp_hpipm: of "
