@@ -6,6 +6,7 @@ import csv
 import dataclasses
 import json
 import re
+from collections import Counter
 from pathlib import Path
 
 import pytest
@@ -154,6 +155,30 @@ def test_csv_export(ball, ball_log, tmp_path) -> None:
     info = json.loads((out / "info.json").read_text())
     assert info["run_info"]["scenario_name"] == "ball_disturbed"
     assert "[disturbance]" in info["scenario_toml"]
+
+
+def test_every_child_table_joins_its_topics_table_on_msg_t(ball, ball_log, tmp_path) -> None:
+    """Every table starts with msg_t, and each row of a list's table (the plan's nodes, the
+    rollout, the run info's lists) finds exactly one row of its topic's table on it, as
+    CSV text (the parent's t, the message's float, matched 2 solves in 32)."""
+    out = tmp_path / "csv"
+    assert replay(ball, "--export", out).exit_code == 0
+    tables = {}
+    for path in out.glob("*.csv"):
+        with open(path, newline="") as f:
+            tables[path.stem] = list(csv.DictReader(f))
+    topics = {m.topic.strip("/").replace("/", "_") for m in ball_log.messages}
+    children = set(tables) - topics
+    assert {"mpc_solve_plan", "planner_plan_rollout", "run_info_geometry_static"} <= children
+    for name, rows in tables.items():
+        assert rows and next(iter(rows[0])) == "msg_t", name
+    for child in children:
+        parent = max((t for t in topics if child.startswith(t + "_")), key=len)
+        keys = Counter(r["msg_t"] for r in tables[parent])
+        assert [r["msg_t"] for r in tables[child] if keys[r["msg_t"]] != 1] == [], child
+    nodes = Counter(r["msg_t"] for r in tables["mpc_solve_plan"])
+    assert [nodes[r["msg_t"]] for r in tables["mpc_solve"]] == \
+        [len(m.data["plan"]) for m in ball_log.topic("/mpc/solve")]
 
 
 def test_export_after_filters(ball, ball_log, tmp_path) -> None:
@@ -477,7 +502,7 @@ def test_named_field_layout(tmp_path, monkeypatch) -> None:
     assert len(rows) == 2 + 3 + 4 + 5
     assert list(rows[0]) == ["msg_t", "index", "t", "seg", "x.px", "x.py", "u.ux"]
     with open(tmp_path / "csv" / "sim_state.csv") as f:
-        assert next(csv.reader(f)) == ["t", "x.px", "x.py", "mode"]
+        assert next(csv.reader(f)) == ["msg_t", "t", "x.px", "x.py", "mode"]
 
 
 def test_current_log_version_has_no_note(tmp_path) -> None:
