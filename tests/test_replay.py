@@ -181,6 +181,26 @@ def test_every_child_table_joins_its_topics_table_on_msg_t(ball, ball_log, tmp_p
         [len(m.data["plan"]) for m in ball_log.topic("/mpc/solve")]
 
 
+def test_an_empty_object_or_list_writes_no_cell(ball, tmp_path) -> None:
+    """An empty container's cells are its elements', none (it wrote the strings "[]" and
+    "{}" into a column beside the non-empty ones' x[0] columns or child table)."""
+    from hmpc_cli.analysis.export import flatten
+
+    nested: dict = {}
+    row = flatten({"a": [], "b": {}, "c": [1, "x"], "d": {"e": 1, "f": {}}, "g": [{"h": 1}],
+                   "k": []}, nested)
+    assert row == {"c[0]": 1, "c[1]": "x", "d.e": 1} and nested == {"g": [{"h": 1}]}
+    assert flatten({"plan": []}, nested := {}) == {} and nested == {}
+    out = tmp_path / "csv"
+    assert replay(ball, "--export", out).exit_code == 0
+    for path in out.glob("*.csv"):
+        with open(path, newline="") as f:
+            cells = [c for r in csv.reader(f) for c in r]
+        assert "[]" not in cells and "{}" not in cells, path.name
+    with open(out / "sim_state.csv", newline="") as f:  # the ball has no body points
+        assert not [c for c in next(csv.reader(f)) if c.startswith("body")]
+
+
 def test_export_after_filters(ball, ball_log, tmp_path) -> None:
     res = replay(ball, "--topic", "disturbance", "--to", "0.2", "--export", tmp_path)
     assert res.exit_code == 0, res.output

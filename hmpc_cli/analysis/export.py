@@ -3,11 +3,16 @@
 Flattening of a message (a JSON object):
 
 * nested objects become dotted columns (``schedule.t0``, ``x.px``);
-* lists of scalars become indexed columns (``w[0]``, ``w[1]``, ...; ``[]`` for an empty list);
+* lists of scalars become indexed columns (``w[0]``, ``w[1]``, ...);
 * lists holding objects or lists (``x_plan``, ``candidates``, the ``plan`` array of named
   nodes) go to a separate table ``<topic>_<field>`` with one row per element, keyed by
   ``msg_t`` and ``index`` (the element's position); inside such a row a further list of
   objects is one JSON-string column.
+
+A container's cells are its elements': an empty object or list writes no cell (and no
+row in a list's table), so it reads as an absent field does (e.g. ``body`` of a system
+without a skeleton, a final schedule's ``schedule.guards``, ``warnings`` of a run
+without any).
 
 Each topic's table has one row per message. Every row of every table starts with
 ``msg_t``, its message's log time [s] (``LogMessage.t``, the same float in the topic's
@@ -47,13 +52,9 @@ def _scalar(v: Any) -> bool:
 def _into(value: Any, key: str, row: dict, nested: dict | None) -> None:
     """Flattens ``value`` under column ``key`` into ``row``; lists of objects to ``nested``."""
     if isinstance(value, dict):
-        if not value and key:
-            row[key] = "{}"
         for k, v in value.items():
             _into(v, f"{key}.{k}" if key else str(k), row, nested)
-    elif isinstance(value, list) and all(_scalar(v) for v in value):
-        if not value:
-            row[key] = "[]"
+    elif isinstance(value, list) and all(_scalar(v) for v in value):  # [] too: no cell
         for i, v in enumerate(value):
             row[f"{key}[{i}]"] = v
     elif isinstance(value, list):
