@@ -585,3 +585,24 @@ def test_a_results_page_run_directory_replays_from_its_trajectory_log() -> None:
     res = replay(page_run)
     assert res.exit_code == 0, res.output
     assert "biped_stairs" in res.output and "trace.mcap" in res.output
+
+
+def test_a_run_of_ok_solves_says_how_many_stopped_at_the_iteration_limit() -> None:
+    """mpc.solver = "rti" logs a solve stopped at its iteration limit at a finite point as
+    a success: the summarised row of ok solves counts those (it called them all ok)."""
+    from hmpc_cli.analysis.replay import timeline
+    from hmpc_cli.log.reader import LogMessage
+
+    def solve(t, status):
+        return LogMessage("/mpc/solve", t, {
+            "t": t, "reason": "period", "status": status, "success": True,
+            "iterations": 1, "wall_time": 0.004, "slack": 0.0, "adopted": True})
+
+    rti = [solve(0.1 * k, "Maximum_Iterations_Exceeded" if k % 3 else "Solve_Succeeded")
+           for k in range(6)]
+    (row,) = timeline(rti)
+    assert row.text == ("... 6 solves ok until t = 0.500 s, 4 at the iteration limit (not "
+                        "converged), 1 iterations median, 4.0 ms median (period 6)")
+    converged = [solve(0.1 * k, "Solve_Succeeded") for k in range(6)]
+    assert timeline(converged)[0].text == ("... 6 solves ok until t = 0.500 s, 1 iterations "
+                                           "median, 4.0 ms median (period 6)")
