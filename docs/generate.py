@@ -549,6 +549,20 @@ def _schema_rows(schema: dict, path: str, out: list[str], kind: str | None = Non
             out.append(f"| `{key}` | {t} | {_cell(what)} |")
 
 
+def _number_arrays(schema: dict, path: str) -> list[str]:
+    """The paths of ``schema``'s arrays of numbers (``a.b``, ``c[:].d``), in order."""
+    out: list[str] = []
+    for name, p in schema.get("properties", {}).items():
+        key = f"{path}{name}"
+        if p["type"] == "array" and p["items"]["type"] == "number":
+            out.append(key)
+        elif p["type"] == "array" and p["items"]["type"] == "object":
+            out += _number_arrays(p["items"], f"{key}[:].")
+        elif p["type"] == "object":
+            out += _number_arrays(p, f"{key}.")
+    return out
+
+
 _CLASSES: dict[str, Any] = {}
 
 
@@ -574,10 +588,24 @@ def log_format_md() -> str:
     for _, cls in topics.TOPICS.values():
         _collect_classes(cls)
     schemas = topics.topic_schemas(PLACEHOLDERS)
+    reg = registry()
+    arrays = {topic: [", ".join(f"`{a}`" for a in _number_arrays(schema, ""))]
+              for topic, (_, schema) in schemas.items()}
+    for what, specs, topic in (("planner", reg.planners, "/planner/plan"),
+                               ("mpc", reg.mpcs, "/mpc/solve")):
+        for kind, spec in _bundled(specs).items():
+            found = _number_arrays(type_schema(spec.detail, PLACEHOLDERS, {}), "detail.") \
+                if spec.detail is not None else []
+            if found:
+                arrays[topic].append(", ".join(f"`{a}`" for a in found)
+                                     + f" (`{what}.kind = {toml_text(kind)}`)")
+    arrays = "\n".join(f"* {topic}: {'; '.join(a for a in found if a)}"
+                       for topic, found in arrays.items() if any(found))
     out = [GENERATED, "", "# The run log (`run.mcap`)", "",
            LOG_INTRO.strip().format(version=topics.LOG_VERSION, held=runlog.HELD,
                                     flush=inspect.signature(recorder.Recorder).parameters[
-                                        "flush_every"].default), ""]
+                                        "flush_every"].default,
+                                    arrays=arrays), ""]
     out += ["## Topics", "", "| topic | schema | message type | what |", "|---|---|---|---|"]
     for topic, (name, cls) in topics.TOPICS.items():
         out.append(f"| `{topic}` | `{name}` | `hmpc_cli.log.topics.{cls.__name__}` | "
@@ -593,7 +621,6 @@ def log_format_md() -> str:
         _schema_rows(schema, "", out)
         out.append("")
     out += ["## Plug-in detail records", "", DETAIL_INTRO.strip(), ""]
-    reg = registry()
     for what, specs, topic in (("planner", reg.planners, "/planner/plan"),
                                ("mpc", reg.mpcs, "/mpc/solve")):
         for kind, spec in _bundled(specs).items():
@@ -631,8 +658,21 @@ its state's and input's names as its own fields (`plan[:].px`, `plan[:].ux`): st
 input names are distinct and never `t`, `seg`, `mode` or `mode_name`. An object's field
 that is None, NaN or ±inf is left out of its message, never `null` ("absent" below):
 `read_run` gives an absent field its default, else NaN for a number and None for a record.
-A NaN or ±inf inside an array of numbers (e.g. `schedule.durations`) is written as
-`null`.
+
+The one exception: a NaN or ±inf inside an array of numbers is written as `null` (the
+array keeps its length), which the array's schema (`items` of type number; a type list
+such as `["number", "null"]` is not used, the viewers do not parse it) does not allow, so
+such a message does not validate against its topic's schema. The arrays of numbers (the
+arrays of integers, strings and objects never hold `null`):
+
+{arrays}
+
+hmpc's bundled systems, planners and MPCs fill them with finite numbers for a finite
+state (a margins file's or tube's margins must be finite to run), and a run stops at its
+first non-finite state (`diverged`) before solving from it; so a `null` there can come
+only from a plug-in (its system's goal or drawing, its planner's schedule durations, its
+detail's arrays) or from a walking solve from a non-finite (predicted) state, which is
+logged failed (status "error: non-finite initial state").
 
 Writing: /sim/state samples, MPC solves and disturbance changes are held (at most {held})
 and written in order at the next message of another topic, and the writer flushes a chunk

@@ -88,6 +88,28 @@ def test_none_nan_and_inf_are_left_out_and_the_message_still_validates(tmp_path)
         "schedule: null where the schema says object"]
 
 
+def test_a_non_finite_number_inside_an_array_is_null_and_fails_its_schema(tmp_path):
+    """The exception log-format.md names: inside an array of numbers a NaN stays in place
+    as null, which the array's items (type number, no type list) do not admit."""
+    import jsonschema
+
+    from hmpc_cli.log.topics import MpcSolve, ScheduleRec
+
+    schema = topic_schemas({**NAMES, "body": ()})["/mpc/solve"][1]
+    sched = ScheduleRec((0, 1), ("a", "b"), (2,), ("g",), (float("nan"),), 0.0)
+    solve = MpcSolve(0.1, "period", "Solve_Succeeded", True, 3, 0.01, 1.0, 0.0, 0.0, True,
+                     sched, ())
+    rec = Recorder(tmp_path / "run.mcap")
+    rec.add_topic("/mpc/solve", "hmpc.MpcSolve", schema)
+    rec.write("/mpc/solve", 0.1, solve)
+    rec.close()
+    (m,) = read_log(tmp_path / "run.mcap").topic("/mpc/solve")
+    assert m.data["schedule"]["durations"] == [None]
+    assert validate(schema, m.data) == [
+        "schedule.durations[0]: null where the schema says number"]
+    assert len(list(jsonschema.Draft202012Validator(schema).iter_errors(m.data))) == 1
+
+
 def test_states_plans_and_details_are_named(logs):
     log = read_log(logs["biped"])
     info = log.topic("/run/info")[0].data

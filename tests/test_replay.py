@@ -606,3 +606,4 @@ def test_a_run_of_ok_solves_says_how_many_stopped_at_the_iteration_limit() -> No
     converged = [solve(0.1 * k, "Solve_Succeeded") for k in range(6)]
     assert timeline(converged)[0].text == ("... 6 solves ok until t = 0.500 s, 1 iterations "
                                            "median, 4.0 ms median (period 6)")
+
