@@ -635,8 +635,9 @@ def log_format_md() -> str:
                     "| field | JSON type | what |", "|---|---|---|"]
             _schema_rows(sch, "detail.", out)
             out.append("")
+    versions = ", ".join(f"`version.{f.name}`" for f in dataclasses.fields(topics.Versions))
     out += [LOG_HAND.strip().format(frame=scene.FRAME, rate=f"{scene.MAX_RATE_HZ:g}",
-                                    spheres=scene.TUBE_SPHERES), ""]
+                                    spheres=scene.TUBE_SPHERES, version_keys=versions), ""]
     return "\n".join(out).rstrip() + "\n"
 
 
@@ -720,6 +721,28 @@ LOG_HAND = """
 * `/disturbance`: the disturbance from each change on. `/run/summary`: the typed summary
   (as `summary.json`, `running.md`).
 
+## Hand-written: the `run` metadata and the `scenario.toml` attachment
+
+Besides its topics, a run's `run.mcap` holds one attachment and one metadata record, both
+written at the run's start, so a killed run's log has them too (the attachment right after
+the header, the metadata right after /run/info's chunk; a finished log's summary section
+indexes both). A committed run's trajectory log (`trace.mcap`) has neither.
+
+* Attachment `scenario.toml` (media type `application/toml`, log and create time 0): the
+  effective scenario as TOML text, every setting filled in, after `--set` and `--seed`,
+  byte for byte the run directory's `scenario.toml`. `hmpc replay --verify` re-runs it;
+  `--export` copies it into `info.json` (`scenario_toml`).
+* Metadata record `run`, every key and value a string: `scenario` (the scenario's `name`),
+  `seed` (decimal), `log_version` (decimal, as /run/info `log_version`) and one
+  `version.<name>` per /run/info `versions` field, with the same value:
+  {version_keys}. `--export` copies the metadata into `info.json` (`metadata`, by record
+  name).
+
+In Python: `read_log(path).attachments["scenario.toml"]` (bytes) and
+`read_log(path).metadata["run"]` (a dict), or with the `mcap` package
+`make_reader(f).iter_attachments()` and `iter_metadata()` (a finished log; a killed one:
+below).
+
 ## Hand-written: opening a log in Foxglove or Lichtblick
 
 Open `run.mcap` with File → Open local file (or drag it into the window); simulated time
@@ -767,6 +790,36 @@ no scene. `hmpc run --live` streams the same topics live (`running.md`).
   disturbance, geometry). Figures, `hmpc tube --runs` and `hmpc replay` read through it,
   and no figure rebuilds a model (Figure 2's pass-through is computed by
   `hmpc_cli/analysis/passthrough.py`, then drawn).
+* With the `mcap` package alone: a finished log reads through
+  `mcap.reader.make_reader(f)` (`iter_messages()`, `iter_metadata()`,
+  `iter_attachments()`). A killed run's log (e.g. SIGKILL) has no summary section and
+  no footer: `make_reader(f).iter_messages()`, which looks for the footer at the file's
+  end, raises an `McapError` (e.g. `RecordLengthLimitExceeded`). Read it front to back
+  with `mcap.stream_reader.StreamReader`, which yields every complete chunk's records
+  and raises `mcap.exceptions.EndOfFile` (an `McapError`) where the file ends inside a
+  record, the chunk the kill cut (`validate_crcs=True` also stops with an `McapError` at
+  a chunk whose CRC fails); of a killed log this reads what `read_log` reads:
+
+  ```python
+  from mcap.exceptions import McapError
+  from mcap.records import Attachment, Channel, Message, Metadata
+  from mcap.stream_reader import StreamReader
+
+  channels, messages, metadata, attachments = {{}}, [], {{}}, {{}}
+  with open("run.mcap", "rb") as f:
+      try:
+          for r in StreamReader(f, validate_crcs=True).records:
+              if isinstance(r, Channel):
+                  channels[r.id] = r
+              elif isinstance(r, Message):  # JSON bytes, or /scene/* protobuf
+                  messages.append((channels[r.channel_id].topic, r.log_time, r.data))
+              elif isinstance(r, Metadata):
+                  metadata[r.name] = r.metadata
+              elif isinstance(r, Attachment):
+                  attachments[r.name] = r.data
+      except McapError:  # the file ends inside a record: the chunk cut by the kill
+          pass
+  ```
 
 ## Hand-written: replay and export
 

@@ -6,6 +6,7 @@ import csv
 import dataclasses
 import json
 import re
+import textwrap
 from collections import Counter
 from pathlib import Path
 
@@ -607,3 +608,43 @@ def test_a_run_of_ok_solves_says_how_many_stopped_at_the_iteration_limit() -> No
     assert timeline(converged)[0].text == ("... 6 solves ok until t = 0.500 s, 1 iterations "
                                            "median, 4.0 ms median (period 6)")
 
+
+def _log_format_snippet(marker: str) -> str:
+    """The Python block of docs/log-format.md that holds ``marker``, unindented."""
+    text = (Path(__file__).resolve().parents[1] / "docs" / "log-format.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
+    (block,) = [b for b in blocks if marker in b]
+    return textwrap.dedent(block)
+
+
+def test_a_killed_runs_log_reads_with_the_mcap_package_as_log_format_says(
+        ball, tmp_path, monkeypatch) -> None:
+    """log-format.md's StreamReader snippet reads a log cut short (no footer, as SIGKILL
+    leaves it) as read_log does, with its run metadata and scenario.toml attachment,
+    where make_reader's iter_messages raises."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    from hmpc_cli.log.topics import LOG_VERSION, Versions
+
+    whole = (ball / "run.mcap").read_bytes()
+    (tmp_path / "run.mcap").write_bytes(whole[:int(len(whole) * 0.6)])
+    with open(tmp_path / "run.mcap", "rb") as f, pytest.raises(McapError):
+        list(make_reader(f).iter_messages())
+    monkeypatch.chdir(tmp_path)
+    scope: dict = {}
+    exec(_log_format_snippet("StreamReader(f, validate_crcs=True)"), scope)
+    log = read_log(tmp_path / "run.mcap")
+    assert not log.complete and len(log.messages) > 100
+    assert sorted((t, lt) for t, lt, _ in scope["messages"]) == sorted(
+        (m.topic, m.log_time_ns) for m in [*log.messages, *log.raw])
+    info = log.topic("/run/info")[0].data
+    assert scope["metadata"] == log.metadata == {"run": {
+        "scenario": "ball_disturbed", "seed": "0", "log_version": str(LOG_VERSION),
+        **{f"version.{f.name}": info["versions"][f.name]
+           for f in dataclasses.fields(Versions)}}}
+    assert scope["attachments"] == {"scenario.toml": (ball / "scenario.toml").read_bytes()}
+    with open(ball / "run.mcap", "rb") as f:  # the finished log: through its summary
+        (att,) = make_reader(f).iter_attachments()
+    assert (att.name, att.media_type, att.log_time, att.create_time) == (
+        "scenario.toml", "application/toml", 0, 0)
