@@ -798,28 +798,28 @@ no scene. `hmpc run --live` streams the same topics live (`running.md`).
   with `mcap.stream_reader.StreamReader`, which yields every complete chunk's records
   and raises `mcap.exceptions.EndOfFile` (an `McapError`) where the file ends inside a
   record, the chunk the kill cut (`validate_crcs=True` also stops with an `McapError` at
-  a chunk whose CRC fails); of a killed log this reads what `read_log` reads:
+  a chunk whose CRC fails). Of a killed log, this reads what `read_log` reads:
 
-  ```python
-  from mcap.exceptions import McapError
-  from mcap.records import Attachment, Channel, Message, Metadata
-  from mcap.stream_reader import StreamReader
+```python
+from mcap.exceptions import McapError
+from mcap.records import Attachment, Channel, Message, Metadata
+from mcap.stream_reader import StreamReader
 
-  channels, messages, metadata, attachments = {{}}, [], {{}}, {{}}
-  with open("run.mcap", "rb") as f:
-      try:
-          for r in StreamReader(f, validate_crcs=True).records:
-              if isinstance(r, Channel):
-                  channels[r.id] = r
-              elif isinstance(r, Message):  # JSON bytes, or /scene/* protobuf
-                  messages.append((channels[r.channel_id].topic, r.log_time, r.data))
-              elif isinstance(r, Metadata):
-                  metadata[r.name] = r.metadata
-              elif isinstance(r, Attachment):
-                  attachments[r.name] = r.data
-      except McapError:  # the file ends inside a record: the chunk cut by the kill
-          pass
-  ```
+channels, messages, metadata, attachments = {{}}, [], {{}}, {{}}
+with open("run.mcap", "rb") as f:
+    try:
+        for r in StreamReader(f, validate_crcs=True).records:
+            if isinstance(r, Channel):
+                channels[r.id] = r
+            elif isinstance(r, Message):  # JSON bytes, or /scene/* protobuf
+                messages.append((channels[r.channel_id].topic, r.log_time, r.data))
+            elif isinstance(r, Metadata):
+                metadata[r.name] = r.metadata
+            elif isinstance(r, Attachment):
+                attachments[r.name] = r.data
+    except McapError:  # the file ends inside a record: the chunk cut by the kill
+        pass
+```
 
 ## Hand-written: replay and export
 
