@@ -549,6 +549,20 @@ def _schema_rows(schema: dict, path: str, out: list[str], kind: str | None = Non
             out.append(f"| `{key}` | {t} | {_cell(what)} |")
 
 
+def _number_arrays(schema: dict, path: str) -> list[str]:
+    """The paths of ``schema``'s arrays of numbers (``a.b``, ``c[:].d``), in order."""
+    out: list[str] = []
+    for name, p in schema.get("properties", {}).items():
+        key = f"{path}{name}"
+        if p["type"] == "array" and p["items"]["type"] == "number":
+            out.append(key)
+        elif p["type"] == "array" and p["items"]["type"] == "object":
+            out += _number_arrays(p["items"], f"{key}[:].")
+        elif p["type"] == "object":
+            out += _number_arrays(p, f"{key}.")
+    return out
+
+
 _CLASSES: dict[str, Any] = {}
 
 
@@ -574,10 +588,24 @@ def log_format_md() -> str:
     for _, cls in topics.TOPICS.values():
         _collect_classes(cls)
     schemas = topics.topic_schemas(PLACEHOLDERS)
+    reg = registry()
+    arrays = {topic: [", ".join(f"`{a}`" for a in _number_arrays(schema, ""))]
+              for topic, (_, schema) in schemas.items()}
+    for what, specs, topic in (("planner", reg.planners, "/planner/plan"),
+                               ("mpc", reg.mpcs, "/mpc/solve")):
+        for kind, spec in _bundled(specs).items():
+            found = _number_arrays(type_schema(spec.detail, PLACEHOLDERS, {}), "detail.") \
+                if spec.detail is not None else []
+            if found:
+                arrays[topic].append(", ".join(f"`{a}`" for a in found)
+                                     + f" (`{what}.kind = {toml_text(kind)}`)")
+    arrays = "\n".join(f"* {topic}: {'; '.join(a for a in found if a)}"
+                       for topic, found in arrays.items() if any(found))
     out = [GENERATED, "", "# The run log (`run.mcap`)", "",
            LOG_INTRO.strip().format(version=topics.LOG_VERSION, held=runlog.HELD,
                                     flush=inspect.signature(recorder.Recorder).parameters[
-                                        "flush_every"].default), ""]
+                                        "flush_every"].default,
+                                    arrays=arrays), ""]
     out += ["## Topics", "", "| topic | schema | message type | what |", "|---|---|---|---|"]
     for topic, (name, cls) in topics.TOPICS.items():
         out.append(f"| `{topic}` | `{name}` | `hmpc_cli.log.topics.{cls.__name__}` | "
@@ -593,7 +621,6 @@ def log_format_md() -> str:
         _schema_rows(schema, "", out)
         out.append("")
     out += ["## Plug-in detail records", "", DETAIL_INTRO.strip(), ""]
-    reg = registry()
     for what, specs, topic in (("planner", reg.planners, "/planner/plan"),
                                ("mpc", reg.mpcs, "/mpc/solve")):
         for kind, spec in _bundled(specs).items():
@@ -608,8 +635,9 @@ def log_format_md() -> str:
                     "| field | JSON type | what |", "|---|---|---|"]
             _schema_rows(sch, "detail.", out)
             out.append("")
+    versions = ", ".join(f"`version.{f.name}`" for f in dataclasses.fields(topics.Versions))
     out += [LOG_HAND.strip().format(frame=scene.FRAME, rate=f"{scene.MAX_RATE_HZ:g}",
-                                    spheres=scene.TUBE_SPHERES), ""]
+                                    spheres=scene.TUBE_SPHERES, version_keys=versions), ""]
     return "\n".join(out).rstrip() + "\n"
 
 
@@ -631,8 +659,21 @@ its state's and input's names as its own fields (`plan[:].px`, `plan[:].ux`): st
 input names are distinct and never `t`, `seg`, `mode` or `mode_name`. An object's field
 that is None, NaN or ±inf is left out of its message, never `null` ("absent" below):
 `read_run` gives an absent field its default, else NaN for a number and None for a record.
-A NaN or ±inf inside an array of numbers (e.g. `schedule.durations`) is written as
-`null`.
+
+The one exception: a NaN or ±inf inside an array of numbers is written as `null` (the
+array keeps its length), which the array's schema (`items` of type number; a type list
+such as `["number", "null"]` is not used, the viewers do not parse it) does not allow, so
+such a message does not validate against its topic's schema. The arrays of numbers (the
+arrays of integers, strings and objects never hold `null`):
+
+{arrays}
+
+hmpc's bundled systems, planners and MPCs fill them with finite numbers for a finite
+state (a margins file's or tube's margins must be finite to run), and a run stops at its
+first non-finite state (`diverged`) before solving from it; so a `null` there can come
+only from a plug-in (its system's goal or drawing, its planner's schedule durations, its
+detail's arrays) or from a walking solve from a non-finite (predicted) state, which is
+logged failed (status "error: non-finite initial state").
 
 Writing: /sim/state samples, MPC solves and disturbance changes are held (at most {held})
 and written in order at the next message of another topic, and the writer flushes a chunk
@@ -679,6 +720,28 @@ LOG_HAND = """
   system drawn with a skeleton its body points `body.<point>_x`/`_y`.
 * `/disturbance`: the disturbance from each change on. `/run/summary`: the typed summary
   (as `summary.json`, `running.md`).
+
+## Hand-written: the `run` metadata and the `scenario.toml` attachment
+
+Besides its topics, a run's `run.mcap` holds one attachment and one metadata record, both
+written at the run's start, so a killed run's log has them too (the attachment right after
+the header, the metadata right after /run/info's chunk; a finished log's summary section
+indexes both). A committed run's trajectory log (`trace.mcap`) has neither.
+
+* Attachment `scenario.toml` (media type `application/toml`, log and create time 0): the
+  effective scenario as TOML text, every setting filled in, after `--set` and `--seed`,
+  byte for byte the run directory's `scenario.toml`. `hmpc replay --verify` re-runs it;
+  `--export` copies it into `info.json` (`scenario_toml`).
+* Metadata record `run`, every key and value a string: `scenario` (the scenario's `name`),
+  `seed` (decimal), `log_version` (decimal, as /run/info `log_version`) and one
+  `version.<name>` per /run/info `versions` field, with the same value:
+  {version_keys}. `--export` copies the metadata into `info.json` (`metadata`, by record
+  name).
+
+In Python: `read_log(path).attachments["scenario.toml"]` (bytes) and
+`read_log(path).metadata["run"]` (a dict), or with the `mcap` package
+`make_reader(f).iter_attachments()` and `iter_metadata()` (a finished log; a killed one:
+below).
 
 ## Hand-written: opening a log in Foxglove or Lichtblick
 
@@ -727,19 +790,55 @@ no scene. `hmpc run --live` streams the same topics live (`running.md`).
   disturbance, geometry). Figures, `hmpc tube --runs` and `hmpc replay` read through it,
   and no figure rebuilds a model (Figure 2's pass-through is computed by
   `hmpc_cli/analysis/passthrough.py`, then drawn).
+* With the `mcap` package alone: a finished log reads through
+  `mcap.reader.make_reader(f)` (`iter_messages()`, `iter_metadata()`,
+  `iter_attachments()`). A killed run's log (e.g. SIGKILL) has no summary section and
+  no footer: `make_reader(f).iter_messages()`, which looks for the footer at the file's
+  end, raises an `McapError` (e.g. `RecordLengthLimitExceeded`). Read it front to back
+  with `mcap.stream_reader.StreamReader`, which yields every complete chunk's records
+  and raises `mcap.exceptions.EndOfFile` (an `McapError`) where the file ends inside a
+  record, the chunk the kill cut (`validate_crcs=True` also stops with an `McapError` at
+  a chunk whose CRC fails). Of a killed log, this reads what `read_log` reads:
+
+```python
+from mcap.exceptions import McapError
+from mcap.records import Attachment, Channel, Message, Metadata
+from mcap.stream_reader import StreamReader
+
+channels, messages, metadata, attachments = {{}}, [], {{}}, {{}}
+with open("run.mcap", "rb") as f:
+    try:
+        for r in StreamReader(f, validate_crcs=True).records:
+            if isinstance(r, Channel):
+                channels[r.id] = r
+            elif isinstance(r, Message):  # JSON bytes, or /scene/* protobuf
+                messages.append((channels[r.channel_id].topic, r.log_time, r.data))
+            elif isinstance(r, Metadata):
+                metadata[r.name] = r.metadata
+            elif isinstance(r, Attachment):
+                attachments[r.name] = r.data
+    except McapError:  # the file ends inside a record: the chunk cut by the kill
+        pass
+```
 
 ## Hand-written: replay and export
 
 `hmpc replay RUN` prints what a log holds and `--export DIR` writes its topics as tables
 (`hmpc_cli/analysis/replay.py`, `hmpc_cli/analysis/export.py`): one CSV per topic of the
-selected messages, one row per message (nested objects as `a.b` columns, lists of numbers
+selected messages, one row per message (nested objects as `a.b` columns, lists of scalars
 as `x[0]`, `x[1]`, ...; a list of objects or arrays, e.g. the plan, as its own table
-`mpc_solve_plan.csv`, one row per element keyed by `msg_t` and `index`), and `info.json`
-(run info, scenario text, filters, the tables written). DIR is new, empty or an earlier
-export's (its tables are replaced, those this export does not write removed; a directory
-holding other files is refused, exit 2); `--format parquet` writes Parquet instead
-(`pip install -e '.[parquet]'`). `--verify` re-runs the log's scenario and compares the
-logs message by message. All options: `running.md`.
+`mpc_solve_plan.csv`, one row per element keyed by `msg_t` and `index`; an empty object
+or list writes no cell and no row, as an absent field: e.g. no `body` column for the
+ball), and `info.json` (run info, scenario text, filters, the tables written). Every
+row of every table starts with `msg_t`, its message's log time [s] (`LogMessage.t`; in
+CSV the same text in a topic's table and its child tables), then the fields (`t` is the
+message's own field, where it has one): a child table joins its topic's table on
+`msg_t`, one row there for each child row (two messages of one topic logged at the same
+time would share it). DIR is new, empty or an earlier export's (its tables are
+replaced, those this export does not write removed; a directory holding other files is
+refused, exit 2); `--format parquet` writes Parquet instead (`pip install -e
+'.[parquet]'`). `--verify` re-runs the log's scenario and compares the logs message by
+message. All options: `running.md`.
 """
 
 

@@ -88,6 +88,62 @@ def test_none_nan_and_inf_are_left_out_and_the_message_still_validates(tmp_path)
         "schedule: null where the schema says object"]
 
 
+def test_a_non_finite_number_inside_an_array_is_null_and_fails_its_schema(tmp_path):
+    """The exception log-format.md names: inside an array of numbers a NaN stays in place
+    as null, which the array's items (type number, no type list) do not admit."""
+    import jsonschema
+
+    from hmpc_cli.log.topics import MpcSolve, ScheduleRec
+
+    schema = topic_schemas({**NAMES, "body": ()})["/mpc/solve"][1]
+    sched = ScheduleRec((0, 1), ("a", "b"), (2,), ("g",), (float("nan"),), 0.0)
+    solve = MpcSolve(0.1, "period", "Solve_Succeeded", True, 3, 0.01, 1.0, 0.0, 0.0, True,
+                     sched, ())
+    rec = Recorder(tmp_path / "run.mcap")
+    rec.add_topic("/mpc/solve", "hmpc.MpcSolve", schema)
+    rec.write("/mpc/solve", 0.1, solve)
+    rec.close()
+    (m,) = read_log(tmp_path / "run.mcap").topic("/mpc/solve")
+    assert m.data["schedule"]["durations"] == [None]
+    assert validate(schema, m.data) == [
+        "schedule.durations[0]: null where the schema says number"]
+    assert len(list(jsonschema.Draft202012Validator(schema).iter_errors(m.data))) == 1
+
+
+def test_summary_json_and_the_run_summary_topic_differ_as_running_md_says():
+    """Same fields in the same order and the same values, but x_end, contacts_by_guard,
+    failure_statuses and non-finite numbers (running.md, "What a run gives you")."""
+    from types import SimpleNamespace
+
+    from hmpc_cli.log.books import RunResult
+    from hmpc_cli.log.recorder import to_json_bytes
+    from hmpc_cli.log.runlog import summary_record
+    from hmpc_cli.run.runner import jsonable
+
+    model = SimpleNamespace(state_names=("px", "py"), n_x=2,
+                            guards=[SimpleNamespace(name="floor"), SimpleNamespace(name="wall")])
+    r = RunResult("s", 3, x_end=[1.0, 2.0], contacts=3, solves=4, solver_failures=3,
+                  contacts_by_guard={"floor": 1, "wall": 0, "ledge": 2},
+                  failure_statuses={"b_status": 1, "a_status": 2}, warnings=["w"])
+    file = json.loads(json.dumps(jsonable(r.__dict__), allow_nan=False))
+    topic = json.loads(to_json_bytes(summary_record(r, model)))
+    assert file["x_end"] == [1.0, 2.0] and topic["x_end"] == {"px": 1.0, "py": 2.0}
+    assert file["contacts_by_guard"] == {"floor": 1, "wall": 0, "ledge": 2}
+    assert topic["contacts_by_guard"] == {"floor": 1, "wall": 0}
+    assert file["failure_statuses"] == {"b_status": 1, "a_status": 2}
+    assert topic["failure_statuses"] == [{"status": "a_status", "count": 2},
+                                         {"status": "b_status", "count": 1}]
+    nulls = [k for k, v in file.items() if v is None]
+    assert nulls == ["final_error", "solve_time_median", "solve_time_p95", "solve_time_max",
+                     "plan_time_median"]
+    assert list(topic) == [k for k in file if k not in nulls]
+    shapes = {"x_end", "contacts_by_guard", "failure_statuses"}
+    assert {k: v for k, v in topic.items() if k not in shapes} == \
+        {k: v for k, v in file.items() if k not in shapes and k not in nulls}
+    model.n_x = 3  # a plant whose state is not the model's size
+    assert json.loads(to_json_bytes(summary_record(r, model)))["x_end"] == {}
+
+
 def test_states_plans_and_details_are_named(logs):
     log = read_log(logs["biped"])
     info = log.topic("/run/info")[0].data

@@ -6,6 +6,8 @@ import csv
 import dataclasses
 import json
 import re
+import textwrap
+from collections import Counter
 from pathlib import Path
 
 import pytest
@@ -154,6 +156,50 @@ def test_csv_export(ball, ball_log, tmp_path) -> None:
     info = json.loads((out / "info.json").read_text())
     assert info["run_info"]["scenario_name"] == "ball_disturbed"
     assert "[disturbance]" in info["scenario_toml"]
+
+
+def test_every_child_table_joins_its_topics_table_on_msg_t(ball, ball_log, tmp_path) -> None:
+    """Every table starts with msg_t, and each row of a list's table (the plan's nodes, the
+    rollout, the run info's lists) finds exactly one row of its topic's table on it, as
+    CSV text (the parent's t, the message's float, matched 2 solves in 32)."""
+    out = tmp_path / "csv"
+    assert replay(ball, "--export", out).exit_code == 0
+    tables = {}
+    for path in out.glob("*.csv"):
+        with open(path, newline="") as f:
+            tables[path.stem] = list(csv.DictReader(f))
+    topics = {m.topic.strip("/").replace("/", "_") for m in ball_log.messages}
+    children = set(tables) - topics
+    assert {"mpc_solve_plan", "planner_plan_rollout", "run_info_geometry_static"} <= children
+    for name, rows in tables.items():
+        assert rows and next(iter(rows[0])) == "msg_t", name
+    for child in children:
+        parent = max((t for t in topics if child.startswith(t + "_")), key=len)
+        keys = Counter(r["msg_t"] for r in tables[parent])
+        assert [r["msg_t"] for r in tables[child] if keys[r["msg_t"]] != 1] == [], child
+    nodes = Counter(r["msg_t"] for r in tables["mpc_solve_plan"])
+    assert [nodes[r["msg_t"]] for r in tables["mpc_solve"]] == \
+        [len(m.data["plan"]) for m in ball_log.topic("/mpc/solve")]
+
+
+def test_an_empty_object_or_list_writes_no_cell(ball, tmp_path) -> None:
+    """An empty container's cells are its elements', none (it wrote the strings "[]" and
+    "{}" into a column beside the non-empty ones' x[0] columns or child table)."""
+    from hmpc_cli.analysis.export import flatten
+
+    nested: dict = {}
+    row = flatten({"a": [], "b": {}, "c": [1, "x"], "d": {"e": 1, "f": {}}, "g": [{"h": 1}],
+                   "k": []}, nested)
+    assert row == {"c[0]": 1, "c[1]": "x", "d.e": 1} and nested == {"g": [{"h": 1}]}
+    assert flatten({"plan": []}, nested := {}) == {} and nested == {}
+    out = tmp_path / "csv"
+    assert replay(ball, "--export", out).exit_code == 0
+    for path in out.glob("*.csv"):
+        with open(path, newline="") as f:
+            cells = [c for r in csv.reader(f) for c in r]
+        assert "[]" not in cells and "{}" not in cells, path.name
+    with open(out / "sim_state.csv", newline="") as f:  # the ball has no body points
+        assert not [c for c in next(csv.reader(f)) if c.startswith("body")]
 
 
 def test_export_after_filters(ball, ball_log, tmp_path) -> None:
@@ -477,7 +523,7 @@ def test_named_field_layout(tmp_path, monkeypatch) -> None:
     assert len(rows) == 2 + 3 + 4 + 5
     assert list(rows[0]) == ["msg_t", "index", "t", "seg", "x.px", "x.py", "u.ux"]
     with open(tmp_path / "csv" / "sim_state.csv") as f:
-        assert next(csv.reader(f)) == ["t", "x.px", "x.py", "mode"]
+        assert next(csv.reader(f)) == ["msg_t", "t", "x.px", "x.py", "mode"]
 
 
 def test_current_log_version_has_no_note(tmp_path) -> None:
@@ -540,3 +586,65 @@ def test_a_results_page_run_directory_replays_from_its_trajectory_log() -> None:
     res = replay(page_run)
     assert res.exit_code == 0, res.output
     assert "biped_stairs" in res.output and "trace.mcap" in res.output
+
+
+def test_a_run_of_ok_solves_says_how_many_stopped_at_the_iteration_limit() -> None:
+    """mpc.solver = "rti" logs a solve stopped at its iteration limit at a finite point as
+    a success: the summarised row of ok solves counts those (it called them all ok)."""
+    from hmpc_cli.analysis.replay import timeline
+    from hmpc_cli.log.reader import LogMessage
+
+    def solve(t, status):
+        return LogMessage("/mpc/solve", t, {
+            "t": t, "reason": "period", "status": status, "success": True,
+            "iterations": 1, "wall_time": 0.004, "slack": 0.0, "adopted": True})
+
+    rti = [solve(0.1 * k, "Maximum_Iterations_Exceeded" if k % 3 else "Solve_Succeeded")
+           for k in range(6)]
+    (row,) = timeline(rti)
+    assert row.text == ("... 6 solves ok until t = 0.500 s, 4 at the iteration limit (not "
+                        "converged), 1 iterations median, 4.0 ms median (period 6)")
+    converged = [solve(0.1 * k, "Solve_Succeeded") for k in range(6)]
+    assert timeline(converged)[0].text == ("... 6 solves ok until t = 0.500 s, 1 iterations "
+                                           "median, 4.0 ms median (period 6)")
+
+
+def _log_format_snippet(marker: str) -> str:
+    """The Python block of docs/log-format.md that holds ``marker``, unindented."""
+    text = (Path(__file__).resolve().parents[1] / "docs" / "log-format.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
+    (block,) = [b for b in blocks if marker in b]
+    return textwrap.dedent(block)
+
+
+def test_a_killed_runs_log_reads_with_the_mcap_package_as_log_format_says(
+        ball, tmp_path, monkeypatch) -> None:
+    """log-format.md's StreamReader snippet reads a log cut short (no footer, as SIGKILL
+    leaves it) as read_log does, with its run metadata and scenario.toml attachment,
+    where make_reader's iter_messages raises."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    from hmpc_cli.log.topics import LOG_VERSION, Versions
+
+    whole = (ball / "run.mcap").read_bytes()
+    (tmp_path / "run.mcap").write_bytes(whole[:int(len(whole) * 0.6)])
+    with open(tmp_path / "run.mcap", "rb") as f, pytest.raises(McapError):
+        list(make_reader(f).iter_messages())
+    monkeypatch.chdir(tmp_path)
+    scope: dict = {}
+    exec(_log_format_snippet("StreamReader(f, validate_crcs=True)"), scope)
+    log = read_log(tmp_path / "run.mcap")
+    assert not log.complete and len(log.messages) > 100
+    assert sorted((t, lt) for t, lt, _ in scope["messages"]) == sorted(
+        (m.topic, m.log_time_ns) for m in [*log.messages, *log.raw])
+    info = log.topic("/run/info")[0].data
+    assert scope["metadata"] == log.metadata == {"run": {
+        "scenario": "ball_disturbed", "seed": "0", "log_version": str(LOG_VERSION),
+        **{f"version.{f.name}": info["versions"][f.name]
+           for f in dataclasses.fields(Versions)}}}
+    assert scope["attachments"] == {"scenario.toml": (ball / "scenario.toml").read_bytes()}
+    with open(ball / "run.mcap", "rb") as f:  # the finished log: through its summary
+        (att,) = make_reader(f).iter_attachments()
+    assert (att.name, att.media_type, att.log_time, att.create_time) == (
+        "scenario.toml", "application/toml", 0, 0)

@@ -3,13 +3,22 @@
 Flattening of a message (a JSON object):
 
 * nested objects become dotted columns (``schedule.t0``, ``x.px``);
-* lists of scalars become indexed columns (``w[0]``, ``w[1]``, ...; ``[]`` for an empty list);
+* lists of scalars become indexed columns (``w[0]``, ``w[1]``, ...);
 * lists holding objects or lists (``x_plan``, ``candidates``, the ``plan`` array of named
   nodes) go to a separate table ``<topic>_<field>`` with one row per element, keyed by
-  ``msg_t`` (the message's time) and ``index`` (the element's position); inside such a row
-  a further list of objects is one JSON-string column.
+  ``msg_t`` and ``index`` (the element's position); inside such a row a further list of
+  objects is one JSON-string column.
 
-Each topic's table has one row per message; ``info.json`` holds the run info, the metadata,
+A container's cells are its elements': an empty object or list writes no cell (and no
+row in a list's table), so it reads as an absent field does (e.g. ``body`` of a system
+without a skeleton, a final schedule's ``schedule.guards``, ``warnings`` of a run
+without any).
+
+Each topic's table has one row per message. Every row of every table starts with
+``msg_t``, its message's log time [s] (``LogMessage.t``, the same float in the topic's
+table and its child tables: a child row joins its message's row on ``msg_t``), then the
+message's (or the element's) fields; ``t`` is a message's own field, where it has one.
+``info.json`` holds the run info, the metadata,
 the attached scenario text, the filters and the tables written (``files``). A directory
 takes an export when it is new, empty or an earlier export's: that export's tables are
 replaced, those this one does not write removed (no stale topic is left beside it).
@@ -43,13 +52,9 @@ def _scalar(v: Any) -> bool:
 def _into(value: Any, key: str, row: dict, nested: dict | None) -> None:
     """Flattens ``value`` under column ``key`` into ``row``; lists of objects to ``nested``."""
     if isinstance(value, dict):
-        if not value and key:
-            row[key] = "{}"
         for k, v in value.items():
             _into(v, f"{key}.{k}" if key else str(k), row, nested)
-    elif isinstance(value, list) and all(_scalar(v) for v in value):
-        if not value:
-            row[key] = "[]"
+    elif isinstance(value, list) and all(_scalar(v) for v in value):  # [] too: no cell
         for i, v in enumerate(value):
             row[f"{key}[{i}]"] = v
     elif isinstance(value, list):
@@ -80,12 +85,16 @@ def _table_name(topic: str) -> str:
 
 
 def tables(messages: list) -> dict[str, list[dict]]:
-    """Rows per table name: one table per topic, one per (topic, list-of-objects field)."""
+    """Rows per table name: one table per topic, one per (topic, list-of-objects field).
+
+    Every row starts with ``msg_t``, its message's log time [s] (the same float in a
+    topic's table and in its child tables, so a child row joins its message's row on it).
+    """
     out: dict[str, list[dict]] = {}
     for m in messages:
         name = _table_name(m.topic)
         nested: dict[str, list] = {}
-        out.setdefault(name, []).append({"t": m.t, **flatten(m.data, nested)})
+        out.setdefault(name, []).append({"msg_t": m.t, **flatten(m.data, nested)})
         for key, items in nested.items():
             child = out.setdefault(f"{name}_{_table_name(key)}", [])
             for i, item in enumerate(items):

@@ -31,6 +31,9 @@ __all__ = ["LOG_VERSION", "TOPICS", "Divergence", "Replay", "ReplayError", "Time
 TOPICS = ("/run/info", "/planner/plan", "/mpc/solve", "/sim/event", "/disturbance",
           "/sim/state", "/run/summary")
 SOFTENED_TOL = 1e-6  # as hmpc_cli.log.runlog.SOFTENED_TOL (not imported: it pulls in casadi)
+#: the status of a solve stopped at its iteration limit: a success under mpc.solver = "rti"
+#: (any finite point) and "sqp_hpipm" (a feasible one), though not converged
+ITERATION_LIMIT = "Maximum_Iterations_Exceeded"
 RTOL, ATOL = 1e-9, 1e-12
 # fields that are measurements or the command line, not results: never compared by verify
 _IGNORED = {"wall_time", "versions", "command", "argv", "overrides", "sweep", "log_version",
@@ -290,9 +293,14 @@ def _solve(d: dict) -> TimelineRow:
 
 
 def _solves_row(group: list[dict]) -> TimelineRow:
-    """One row for a run of ordinary solves (a single one is shown as it is)."""
+    """One row for a run of ordinary solves (a single one is shown as it is).
+
+    It says how many of them stopped unconverged at the iteration limit (successes of a
+    bounded SQP run, e.g. ``mpc.solver = "rti"``).
+    """
     if len(group) == 1:
         return _solve(group[0])
+    limit = sum(d.get("status") == ITERATION_LIMIT for d in group)
     its = [v for v in (_num(d.get("iterations")) for d in group) if v is not None]
     wall = [v for v in (_num(d.get("wall_time")) for d in group) if v is not None]
     charged = [v for v in (_num(d.get("latency")) for d in group) if v is not None]
@@ -300,7 +308,8 @@ def _solves_row(group: list[dict]) -> TimelineRow:
     for d in group:
         reasons[str(d.get("reason", "?"))] = reasons.get(str(d.get("reason", "?")), 0) + 1
     text = (f"... {len(group)} solves ok until t = {float(group[-1].get('t', 0.0)):.3f} s, "
-            f"{_g(statistics.median(its)) if its else '-'} iterations median, "
+            + (f"{limit} at the iteration limit (not converged), " if limit else "")
+            + f"{_g(statistics.median(its)) if its else '-'} iterations median, "
             f"{_ms(statistics.median(wall)) if wall else '-'} median"
             + (f", charged {_ms(statistics.median(charged))} median" if any(charged) else "")
             + " (" + ", ".join(f"{k} {n}" for k, n in reasons.items()) + ")")

@@ -161,7 +161,9 @@ class SolveStats:
 
     Attributes:
         status: the solver's return status.
-        success: the solver converged to a finite point.
+        success: the back-end accepted a finite point: its own success flag (it
+            converged), or a bounded SQP run's ``Backend.judge`` (rti: any finite point
+            at the iteration limit); see :class:`hmpc_cli.log.topics.MpcSolve`.
         iterations: solver iterations.
         wall_time: measured solve time [s].
         cost: optimal cost (NaN if none), the objective at the solution projected onto

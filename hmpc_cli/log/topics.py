@@ -338,7 +338,16 @@ class MpcSolve:
             of t = ... s: dropped)" when a contact stopped solves in flight first.
         status: the solver's return status ("schedule rejected: <why>": the MPC cannot
             solve the schedule, nothing was solved).
-        success: the solver converged to a finite point.
+        success: the back-end accepted the solve's point, a finite one. "ipopt",
+            "fatrop", "sqpmethod": the solver's own success flag (it converged);
+            "sqp_hpipm": converged, or stopped at its iteration limit (status
+            "Maximum_Iterations_Exceeded") violating no row or bound by more than 1e-6,
+            else its IPOPT fallback's flag; "rti": converged, or stopped at its iteration
+            limit at any finite point, so an rti solve of status
+            "Maximum_Iterations_Exceeded" is a success without converging. The back-end
+            is ``mpc.solver``'s (the chain MPC's NLP with a switch: the switching one's,
+            ``mpc.switching_solver``). False too for an error (status "error: ...",
+            e.g. a NaN evaluation) or a rejected schedule.
         iterations: solver iterations (0 for a rejected schedule).
         wall_time: measured solve time [s].
         cost: the optimal cost, the objective at the solution projected onto the

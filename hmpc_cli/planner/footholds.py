@@ -182,7 +182,8 @@ class Candidate:
             surface the swing lands on.
         guard_name: that guard's name.
         status: the fixed-mode MPC's solver status.
-        success: the solver converged to a finite point.
+        success: the walking MPC's solve succeeded, as /mpc/solve ``success`` says
+            (per ``mpc.solver``: "rti" counts a finite point at its iteration limit).
         iterations: solver iterations.
         wall_time: measured solve time [s].
         cost: the solve's optimal cost (absent: none).
