@@ -684,6 +684,13 @@ the plan's last node are always kept, and the 3D scene draws the same nodes). A
 /sim/state sample's `u`, `x_ref` and `w` are those applied over the simulator step that
 starts at its `t`; the last sample (the run's end, or where it stopped) repeats those of
 the last step, since no step follows it.
+
+Rates: Lichtblick warns of a log with a topic above 60 Hz ("High frequency topics
+detected", its pull request #729). /sim/state at the default `sim.log_rate_hz = 100` (the
+biped's scenarios: 200) is one, and so is /mpc/solve at a 60 Hz MPC rate or faster (its
+re-solves at impacts add to the period's); `--set sim.log_rate_hz=50` keeps /sim/state
+under it (the warning is about the viewer's performance and memory, not the log's
+content). /scene/body is capped at 30 Hz.
 """
 
 DETAIL_INTRO = """
