@@ -950,7 +950,8 @@ def _tube_vs_hand(spec: dict, hand: dict, pairs: list[tuple]) -> list[str]:
             "constraints by the margins of its own tube (for a guard whose gap sees positions "
             "only, as the ball's guards do, the kinematic tube, the integral of diam T(s) "
             "over one period 1/f: hmpc's refinement of the paper's diam T(1/f), "
-            "docs/tubes.md), and with one hand margin at every rate; each cell: tube k/n | "
+            "docs/tubes.md; its constants those of the tube table above, on `hmpc tube`'s "
+            "default region), and with one hand margin at every rate; each cell: tube k/n | "
             "hand k/n (each the first n seeds of its sweep, so the smaller count's seeds and "
             "disturbance draws are shared; `refused`: the tube margins were refused at "
             "set-up, no run ran).", "", *side_by_side(pairs), "",
