@@ -157,3 +157,91 @@ def test_a_live_port_without_live_or_out_of_range_exits_2(tmp_path, args, messag
     assert res.exit_code == 2, res.output
     assert res.stderr.strip() == message and "Traceback" not in res.output
     assert not (tmp_path / "r").exists()
+
+
+def _stream_client(url: str, topic: str, got: list, arrived, done) -> None:
+    """A Foxglove WebSocket client subscribed to ``topic`` alone: appends each message's
+    (log time, payload) to ``got`` and notifies ``arrived``, until ``done`` is set."""
+    import json
+    import struct
+
+    from websockets.sync.client import connect
+
+    with connect(url, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],
+                 max_size=None) as ws:
+        while not done.is_set():
+            try:
+                msg = ws.recv(timeout=0.2)
+            except TimeoutError:
+                continue
+            if isinstance(msg, str):
+                op = json.loads(msg)
+                subs = [{"id": 1, "channelId": ch["id"]} for ch in op.get("channels", [])
+                        if op.get("op") == "advertise" and ch["topic"] == topic]
+                if subs:
+                    ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+            elif msg[0] == 1:  # message data: opcode, subscription id, log time, payload
+                _, ns = struct.unpack_from("<IQ", msg, 1)
+                with arrived:
+                    got.append((ns, bytes(msg[13:])))
+                    arrived.notify_all()
+
+
+def test_a_client_subscribed_during_the_run_gets_each_state_as_it_is_logged(tmp_path):
+    """A client subscribes to /sim/state (not latched) while the run goes on and receives
+    each state the run logs, with the log's time and bytes, before the run logs the next:
+    the run waits at each state until the client holds all earlier ones (a hang guard of
+    20 s, then no more waiting), so the k-th state is written when the client holds k."""
+    pytest.importorskip("foxglove")
+    pytest.importorskip("websockets")
+    import json
+    import threading
+
+    from hmpc_cli.log.live import LiveSink
+    from hmpc_cli.run.runner import execute_run, prepare
+    from hmpc_cli.run.scenario import load_scenario
+
+    topic = "/sim/state"
+    arrived, done = threading.Condition(), threading.Event()
+    subscribed = threading.Event()
+    got: list[tuple[int, bytes]] = []  # (log time, payload) as the client received them
+    held: list[int] = []  # how many states the client held when the run wrote each state
+    stalled: list[int] = []  # the state the run stopped waiting at (hang guard)
+
+    class Sink(LiveSink):
+        def on_subscribe(self, client, channel):
+            super().on_subscribe(client, channel)
+            if channel.topic == topic:
+                subscribed.set()
+
+        def write(self, t, ns, data):
+            if t == topic and not stalled:
+                ready = subscribed.wait(timeout=20)
+                with arrived:
+                    if not (ready and arrived.wait_for(lambda: len(got) >= len(held),
+                                                       timeout=20)):
+                        stalled.append(len(held))
+                    held.append(len(got))
+            super().write(t, ns, data)
+
+    sc, text = load_scenario(BALL, ["sim.duration=0.3"])
+    sink = Sink(port=0, speed=0.0)
+    thread = threading.Thread(target=_stream_client,
+                              args=(sink.url, topic, got, arrived, done), daemon=True)
+    thread.start()
+    try:
+        execute_run(prepare(sc), text, tmp_path / "r", mirror=sink)
+        with arrived:  # the last state, still on its way (hang guard)
+            stalled or arrived.wait_for(lambda: len(got) >= len(held), timeout=20)
+    finally:
+        done.set()
+        thread.join(timeout=10)
+        sink.close()
+    with open(tmp_path / "r" / "run.mcap", "rb") as f:
+        logged = [(msg.log_time, msg.data) for _, _, msg in
+                  make_reader(f).iter_messages(topics=[topic], log_time_order=False)]
+    assert stalled == []
+    assert len(logged) == 31 and held == list(range(31))
+    assert got == logged
+    first = json.loads(got[0][1])
+    assert first["t"] == 0.0 and first["x"] == {"px": 1.0, "py": 1.0, "vx": 0.0, "vy": 0.0}

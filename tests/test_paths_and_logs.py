@@ -323,6 +323,36 @@ FOREIGN = {  # name -> (/run/info, other topics)
 }
 
 
+_DAMAGE = "{log}: damaged log: its content cannot be read: "
+FOREIGN_ERRORS = {  # (name, command) -> how its one error line starts (exit 2)
+    **{(name, command): "error: " + ("--runs " if command == "tube --runs" else "")
+       + _DAMAGE + kind
+       for name, kind in (("state x a string", "ValueError"),
+                          ("solve plan a number", "TypeError"),
+                          ("info fields wrong", "TypeError"),
+                          ("events of lists", "TypeError"))
+       for command in ("plot fig2", "tube --runs")},
+    ("info fields wrong", "replay"): "error: " + _DAMAGE + "AttributeError",
+    ("info fields wrong", "replay --export"): "error: " + _DAMAGE + "AttributeError",
+    ("events of lists", "replay"): "error: " + _DAMAGE + "TypeError",
+    ("events of lists", "replay --export"): "error: " + _DAMAGE + "TypeError",
+    ("state x a string", "plot fig4"): "error: {log}: cannot read log (" + _DAMAGE
+                                        + "ValueError",
+    ("info fields wrong", "plot fig4"): "error: {log}: cannot read log (" + _DAMAGE
+                                         + "TypeError",
+    ("events of lists", "plot fig4"): "error: {log}: cannot read log (" + _DAMAGE
+                                       + "TypeError",
+    ("solve plan a number", "plot fig4"): "error: {log}: not a walking run to draw (log "
+                                          "version 1 has no geometry; re-run it with this hmpc)",
+}
+# docs/running.md: whatever a foreign log holds ("fields of the wrong type"), replay and
+# --export say "damaged log" (exit 2); these read their odd field as generic JSON, shown
+# and exported as it is, and exit 0: expected to fail until the code or the docs change
+REPLAYED_AS_IS = {(name, command) for name in ("state x a string", "solve plan a number")
+                  for command in ("replay", "replay --export")}
+FOREIGN_ERRORS.update(dict.fromkeys(REPLAYED_AS_IS, "error: {log}: damaged log"))
+
+
 @pytest.mark.parametrize("name", list(FOREIGN))
 @pytest.mark.parametrize("command", ["replay", "replay --export", "plot fig4", "plot fig2",
                                      "tube --runs"])
@@ -335,10 +365,13 @@ def test_a_foreign_log_is_damage_not_an_internal_error(tmp_path, name, command):
             "tube --runs": ["tube", BALL, "--runs", log, "--samples", "10",
                             "--out", tmp_path / "t"]}[command]
     res = hmpc(args, tmp_path)
-    assert res.exit_code in (0, 2), (res.stdout, res.stderr)
     assert "internal error" not in res.stderr and "Traceback" not in res.stderr
-    if res.exit_code == 2:
-        assert len(errors(res)) == 1
+    if (name, command) in REPLAYED_AS_IS and res.exit_code == 0:
+        pytest.xfail("replays a field of the wrong type as it is (exit 0), though "
+                     "docs/running.md says such a log is 'damaged log', exit 2")
+    assert res.exit_code == 2, (res.stdout, res.stderr)
+    (line,) = errors(res)
+    assert line.startswith(FOREIGN_ERRORS[name, command].format(log=log)), line
 
 
 def test_a_huge_length_field_is_damage_not_memory_error(tmp_path, biped_run):

@@ -80,3 +80,21 @@ def test_the_tube_study_is_the_hand_margin_study_with_tube_margins():
     assert len(tube.runs) == len(hand.runs) == 2000
     for a, b in zip(tube.runs, hand.runs, strict=True):
         assert a.overrides == {**b.overrides, "mpc.margins": "tube"}
+
+
+@pytest.mark.slow
+def test_the_committed_fig3_margins_file_is_what_its_documented_command_writes(tmp_path,
+                                                                             monkeypatch):
+    """docs/tubes.md: scenarios/margins/ball_fig3.toml is written by ``hmpc tube
+    scenarios/ball_disturbed.toml --write scenarios/margins/ball_fig3.toml``; the same
+    command (its output directory and file under tmp_path, a fresh cache) writes it byte
+    for byte (the file names no path)."""
+    monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path / "cache"))
+    file = tmp_path / "ball_fig3.toml"
+    proc = subprocess.run([*hmpc_command(), "tube", str(DISTURBED), "--write", str(file)],
+                          env=cli_env(), capture_output=True, text=True, timeout=600,
+                          cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines()[-1] == \
+        f"wrote margins file {file} (rates 5, 10, 20, 50, 100 Hz)"
+    assert file.read_bytes() == (ROOT / "scenarios" / "margins" / "ball_fig3.toml").read_bytes()
