@@ -332,10 +332,6 @@ FOREIGN_ERRORS = {  # (name, command) -> how its one error line starts (exit 2)
                           ("info fields wrong", "TypeError"),
                           ("events of lists", "TypeError"))
        for command in ("plot fig2", "tube --runs")},
-    ("info fields wrong", "replay"): "error: " + _DAMAGE + "AttributeError",
-    ("info fields wrong", "replay --export"): "error: " + _DAMAGE + "AttributeError",
-    ("events of lists", "replay"): "error: " + _DAMAGE + "TypeError",
-    ("events of lists", "replay --export"): "error: " + _DAMAGE + "TypeError",
     ("state x a string", "plot fig4"): "error: {log}: cannot read log (" + _DAMAGE
                                         + "ValueError",
     ("info fields wrong", "plot fig4"): "error: {log}: cannot read log (" + _DAMAGE
@@ -345,12 +341,14 @@ FOREIGN_ERRORS = {  # (name, command) -> how its one error line starts (exit 2)
     ("solve plan a number", "plot fig4"): "error: {log}: not a walking run to draw (log "
                                           "version 1 has no geometry; re-run it with this hmpc)",
 }
-# docs/running.md: whatever a foreign log holds ("fields of the wrong type"), replay and
-# --export say "damaged log" (exit 2); these read their odd field as generic JSON, shown
-# and exported as it is, and exit 0: expected to fail until the code or the docs change
-REPLAYED_AS_IS = {(name, command) for name in ("state x a string", "solve plan a number")
-                  for command in ("replay", "replay --export")}
-FOREIGN_ERRORS.update(dict.fromkeys(REPLAYED_AS_IS, "error: {log}: damaged log"))
+REPLAYED = {  # replay reads the messages as generic JSON: it checks each field's kind first
+    "state x a string": "/sim/state at t = 0 s: x: expected an object, got a string",
+    "solve plan a number": "/mpc/solve at t = 0 s: plan: expected an array, got a number",
+    "info fields wrong": "/run/info at t = 0 s: seed: expected an integer, got an object",
+    "events of lists": "/sim/event at t = 0 s: t: expected a number, got an array"}
+FOREIGN_ERRORS.update({(name, command): "error: " + _DAMAGE + why
+                       for name, why in REPLAYED.items()
+                       for command in ("replay", "replay --export")})
 
 
 @pytest.mark.parametrize("name", list(FOREIGN))
@@ -366,12 +364,13 @@ def test_a_foreign_log_is_damage_not_an_internal_error(tmp_path, name, command):
                             "--out", tmp_path / "t"]}[command]
     res = hmpc(args, tmp_path)
     assert "internal error" not in res.stderr and "Traceback" not in res.stderr
-    if (name, command) in REPLAYED_AS_IS and res.exit_code == 0:
-        pytest.xfail("replays a field of the wrong type as it is (exit 0), though "
-                     "docs/running.md says such a log is 'damaged log', exit 2")
     assert res.exit_code == 2, (res.stdout, res.stderr)
     (line,) = errors(res)
-    assert line.startswith(FOREIGN_ERRORS[name, command].format(log=log)), line
+    expected = FOREIGN_ERRORS[name, command].format(log=log)
+    if command.startswith("replay"):  # the whole line: the field and its kind
+        assert line == expected
+    else:
+        assert line.startswith(expected), line
 
 
 def test_a_huge_length_field_is_damage_not_memory_error(tmp_path, biped_run):

@@ -12,6 +12,7 @@ numbers or an object of named numbers). The CSV/Parquet export is :mod:`hmpc_cli
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 
 import math
@@ -172,6 +173,9 @@ def load_replay(path: Path) -> Replay:
                           f"{', '.join(topics)})")
     if not isinstance(infos[0].data, dict) or "scenario_name" not in infos[0].data:
         raise ReplayError("not an hmpc run log (its /run/info has no scenario_name)")
+    problem = mistyped(log.messages, infos[0].data.get("log_version") == LOG_VERSION)
+    if problem is not None:
+        raise ReplayError(f"damaged log: its content cannot be read: {problem}")
     summaries = log.topic("/run/summary")
     text = log.attachments.get("scenario.toml")
     try:
@@ -180,6 +184,68 @@ def load_replay(path: Path) -> Replay:
         text = None
     return Replay(path, log, infos[0].data, summaries[-1].data if summaries else None, text,
                   max(m.t for m in log.messages))
+
+
+_KINDS = {"object": (dict,), "array": (list,), "number": (int, float), "integer": (int,),
+          "string": (str,), "boolean": (bool,)}
+
+
+def _kind_problem(schema: dict, value: Any, scalars: bool = True) -> str | None:
+    """Why ``value`` is not of the JSON kind ``schema`` says (None: it is, or null).
+
+    ``scalars`` False: any scalar passes where the schema says a scalar (an older log
+    version's, e.g. a mode's name where the mode's index is now).
+    """
+    kind = schema["type"]
+    if value is None:  # left out or non-finite: not a type error of its own
+        return None
+    if isinstance(value, _KINDS[kind]) and not (kind in ("number", "integer")
+                                                and isinstance(value, bool)):
+        return None
+    if not scalars and kind not in ("object", "array") and \
+            not isinstance(value, (dict, list)):
+        return None
+    return f"expected {'an' if kind[0] in 'aeiou' else 'a'} {kind}, got {_json_kind(value)}"
+
+
+def _json_kind(value: Any) -> str:
+    return {dict: "an object", list: "an array", str: "a string", bool: "a boolean"}.get(
+        type(value), "a number")
+
+
+@functools.cache
+def _top_schemas() -> dict[str, dict]:
+    """The schemas of hmpc's topics without the run's names: their fixed fields' kinds."""
+    from hmpc_cli.log.schema import type_schema
+    from hmpc_cli.log.topics import TOPICS
+
+    return {topic: type_schema(cls, {}, {})["properties"] for topic, (_, cls) in TOPICS.items()}
+
+
+def mistyped(messages: list, current: bool = True) -> str | None:
+    """The first field of hmpc's topics whose JSON kind is not its schema's, in words.
+
+    Checks each message's own fields and the items of its arrays (not the fields named
+    after the run's states, inputs and guards, which need the run's names). ``current``
+    False (a log of another log version): an object, an array and a scalar are told
+    apart, not one scalar from another. None: every kind fits, which is what the
+    timeline, tables and export read as generic JSON.
+    """
+    schemas = _top_schemas()
+    for m in messages:
+        props = schemas.get(m.topic)
+        if props is None or not isinstance(m.data, dict):
+            continue
+        for key, sub in props.items():
+            value = m.data.get(key)
+            why = _kind_problem(sub, value, current)
+            if why is None and sub["type"] == "array" and isinstance(value, list):
+                why = next((w for v in value
+                            if (w := _kind_problem(sub["items"], v, current))), None)
+                key += "[]"
+            if why is not None:
+                return f"{m.topic} at t = {m.t:.6g} s: {key}: {why}"
+    return None
 
 
 def guarded(path: Path, what: str = ""):
