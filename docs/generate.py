@@ -834,14 +834,15 @@ with open("run.mcap", "rb") as f:
 (`hmpc_cli/analysis/replay.py`, `hmpc_cli/analysis/export.py`): one CSV per topic of the
 selected messages, one row per message (nested objects as `a.b` columns, lists of scalars
 as `x[0]`, `x[1]`, ...; a list of objects or arrays, e.g. the plan, as its own table
-`mpc_solve_plan.csv`, one row per element keyed by `msg_t` and `index`; an empty object
+`mpc_solve_plan.csv`, one row per element keyed by `msg` and `index`; an empty object
 or list writes no cell and no row, as an absent field: e.g. no `body` column for the
 ball), and `info.json` (run info, scenario text, filters, the tables written). Every
-row of every table starts with `msg_t`, its message's log time [s] (`LogMessage.t`; in
-CSV the same text in a topic's table and its child tables), then the fields (`t` is the
-message's own field, where it has one): a child table joins its topic's table on
-`msg_t`, one row there for each child row (two messages of one topic logged at the same
-time would share it). DIR is new, empty or an earlier export's (its tables are
+row of every table starts with `msg`, its message's position among its topic's exported
+messages (0, 1, ...), and `msg_t`, its log time [s] (`LogMessage.t`; in CSV the same
+text in a topic's table and its child tables; two messages of one topic logged at the
+same time share it), then the fields (`t` is the message's own field, where it has
+one): a child table joins its topic's table on `msg`, exactly one row there for each
+child row. DIR is new, empty or an earlier export's (its tables are
 replaced, those this export does not write removed; a directory holding other files is
 refused, exit 2); `--format parquet` writes Parquet instead (`pip install -e
 '.[parquet]'`). `--verify` re-runs the log's scenario and compares the logs message by

@@ -145,23 +145,24 @@ def test_csv_export(ball, ball_log, tmp_path) -> None:
         set(header)
     with open(out / "mpc_solve_plan.csv") as f:
         rows = list(csv.DictReader(f))
-    assert set(rows[0]) >= {"msg_t", "index", "t", "seg", "mode_name", "px", "vy", "ux"}
+    assert set(rows[0]) >= {"msg", "msg_t", "index", "t", "seg", "mode_name", "px", "vy", "ux"}
     with open(out / "sim_state.csv") as f:
         header = next(csv.reader(f))
     assert {"t", "x.px", "x.vy", "u.uy", "w.wy", "mode", "mode_name"} <= set(header)
     with open(out / "mpc_solve_plan.csv") as f:  # one row per planned node
         rows = list(csv.DictReader(f))
     assert len(rows) == sum(len(m.data["plan"]) for m in ball_log.topic("/mpc/solve"))
-    assert list(rows[0])[:4] == ["msg_t", "index", "t", "seg"]
+    assert list(rows[0])[:5] == ["msg", "msg_t", "index", "t", "seg"]
     info = json.loads((out / "info.json").read_text())
     assert info["run_info"]["scenario_name"] == "ball_disturbed"
     assert "[disturbance]" in info["scenario_toml"]
 
 
-def test_every_child_table_joins_its_topics_table_on_msg_t(ball, ball_log, tmp_path) -> None:
-    """Every table starts with msg_t, and each row of a list's table (the plan's nodes, the
-    rollout, the run info's lists) finds exactly one row of its topic's table on it, as
-    CSV text (the parent's t, the message's float, matched 2 solves in 32)."""
+def test_every_child_table_joins_its_topics_table_on_msg(ball, ball_log, tmp_path) -> None:
+    """Every table starts with msg (the message's position in its topic) and msg_t (its log
+    time), and each row of a list's table (the plan's nodes, the rollout, the run info's
+    lists) finds exactly one row of its topic's table on msg, with the same msg_t text
+    (the parent's t, the message's float, had matched 2 solves in 32)."""
     out = tmp_path / "csv"
     assert replay(ball, "--export", out).exit_code == 0
     tables = {}
@@ -172,13 +173,15 @@ def test_every_child_table_joins_its_topics_table_on_msg_t(ball, ball_log, tmp_p
     children = set(tables) - topics
     assert {"mpc_solve_plan", "planner_plan_rollout", "run_info_geometry_static"} <= children
     for name, rows in tables.items():
-        assert rows and next(iter(rows[0])) == "msg_t", name
+        assert rows and list(rows[0])[:2] == ["msg", "msg_t"], name
+        if name in topics:
+            assert [r["msg"] for r in rows] == [str(i) for i in range(len(rows))], name
     for child in children:
-        parent = max((t for t in topics if child.startswith(t + "_")), key=len)
-        keys = Counter(r["msg_t"] for r in tables[parent])
-        assert [r["msg_t"] for r in tables[child] if keys[r["msg_t"]] != 1] == [], child
-    nodes = Counter(r["msg_t"] for r in tables["mpc_solve_plan"])
-    assert [nodes[r["msg_t"]] for r in tables["mpc_solve"]] == \
+        parent = {r["msg"]: r["msg_t"] for r in tables[max(
+            (t for t in topics if child.startswith(t + "_")), key=len)]}
+        assert [r for r in tables[child] if parent.get(r["msg"]) != r["msg_t"]] == [], child
+    nodes = Counter(r["msg"] for r in tables["mpc_solve_plan"])
+    assert [nodes[r["msg"]] for r in tables["mpc_solve"]] == \
         [len(m.data["plan"]) for m in ball_log.topic("/mpc/solve")]
 
 
@@ -529,9 +532,9 @@ def test_named_field_layout(tmp_path, monkeypatch) -> None:
     with open(tmp_path / "csv" / "mpc_solve_plan.csv") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 2 + 3 + 4 + 5
-    assert list(rows[0]) == ["msg_t", "index", "t", "seg", "x.px", "x.py", "u.ux"]
+    assert list(rows[0]) == ["msg", "msg_t", "index", "t", "seg", "x.px", "x.py", "u.ux"]
     with open(tmp_path / "csv" / "sim_state.csv") as f:
-        assert next(csv.reader(f)) == ["msg_t", "t", "x.px", "x.py", "mode"]
+        assert next(csv.reader(f)) == ["msg", "msg_t", "t", "x.px", "x.py", "mode"]
 
 
 def test_current_log_version_has_no_note(tmp_path) -> None:
@@ -544,6 +547,36 @@ def test_current_log_version_has_no_note(tmp_path) -> None:
     assert res.exit_code == 0 and "written by an older hmpc log version (2" in res.output
     old = replay(_named_layout_log(tmp_path / "v1.mcap", {"log_version": 1})).output
     assert "written by an older hmpc log version (1" in " ".join(old.split())
+
+
+def test_an_untyped_version_1_log_is_replayed_not_called_damaged(tmp_path) -> None:
+    """Log version 1 (no log_version; states, inputs and plans as plain arrays): replay
+    reads it (its arrays are not objects of the current layout) and says its version;
+    a scalar where an object or array belongs is still damage there."""
+    path = tmp_path / "v1.mcap"
+
+    def write(state_x) -> None:
+        with Recorder(path) as rec:
+            for topic in ("/run/info", "/sim/state", "/mpc/solve"):
+                rec.add_topic(topic, "old", {"type": "object", "properties": {}})
+            rec.write("/run/info", 0.0, {"scenario_name": "old", "seed": 3,
+                                         "scenario": {"system": {"name": "ball"}},
+                                         "state_names": ["px", "py"]})
+            for k in range(3):
+                rec.write("/sim/state", 0.1 * k, {"t": 0.1 * k, "x": state_x(k), "mode": 0,
+                                                   "u": [0.0], "x_ref": [k, -k], "w": [0.0]})
+            rec.write("/mpc/solve", 0.0, {"t": 0.0, "status": "ok", "success": True,
+                                          "t_plan": [0.0, 0.1], "x_plan": [[0, 0], [1, -1]],
+                                          "u_plan": [[0.0], [0.0]], "seg_plan": [0, 0]})
+
+    write(lambda k: [k, -k])
+    res = replay(path)
+    assert res.exit_code == 0, res.output
+    assert "written by an older hmpc log version (1" in " ".join(res.output.split())
+    write(lambda k: 1.0 * k)
+    assert _error_line(replay(path)) == (
+        f"error: {path}: damaged log: its content cannot be read: /sim/state at t = 0 s: x: "
+        "expected an object, got a number")
 
 
 def test_foreign_log_with_a_run_info_topic(tmp_path) -> None:

@@ -996,3 +996,57 @@ def test_a_studys_tube_table_names_the_region_its_constants_hold_on():
         "that box only, so these tubes do not cover a run's states outside it (docs/tubes.md, "
         "\"The region\", measures how far the ball's runs leave it)")
     assert region_text({}) == ""
+
+
+def test_a_study_whose_table_holds_its_header_alone_is_not_run_yet(tmp_path):
+    """A sweep stopped before its first run ends leaves results.csv's header alone: its
+    section says it is not run yet (an error only for a table of runs that is unusable)."""
+    from hmpc_cli.report.robustness import Study, robustness_sections
+
+    d = tmp_path / "started"
+    d.mkdir()
+    (d / "results.csv").write_text("run_id,seed,mpc.rate_hz,success,log\n")
+    sweep = tmp_path / "started.toml"
+    sweep.write_text('name = "started"\n')
+    lines = robustness_sections([Study(d, sweep)], tmp_path / "fig", tmp_path)
+    assert "### started" in lines
+    assert any(x.startswith("Not run yet: no run of ") for x in lines), lines
+    (d / "results.csv").write_text("run_id,seed,mpc.rate_hz,success,log\na,0,10,true,\n")
+    with pytest.raises(FigureInputError) as caught:
+        robustness_sections([Study(d, sweep)], tmp_path / "fig", tmp_path)
+    assert caught.value.source == d
+
+
+def test_a_studys_tubes_hold_its_plants_mismatch(tmp_path):
+    """A study whose runs fly a [plant] other than their model: its tube table's eta is
+    hmpc tube's, the plant's flow mismatch included (as mpc.margins = "tube" computes it)."""
+    from hmpc_cli.core.registry import build_system
+    from hmpc_cli.report.robustness import tube_reports
+    from hmpc_cli.run.scenario import load_scenario
+    from hmpc_cli.run.tube_margins import plant_system
+    from hmpc_cli.sweep.plan import plan_sweep
+    from hmpc_cli.tube import analyse, region_from_scenario
+
+    sweep = tmp_path / "heavy.toml"
+    sweep.write_text(f'name = "heavy"\nscenario = "{BALL.as_posix()}"\nseeds = 1\n[set]\n'
+                     '"plant.mass" = 2.0\n"disturbance.kind" = "box"\n'
+                     '"disturbance.magnitude" = 15.0\n')
+    d = tmp_path / "out"
+    run = plan_sweep(sweep).runs[0]
+    (d / "runs" / run.run_id).mkdir(parents=True)
+    (d / "runs" / run.run_id / "scenario.toml").write_text(run.toml)
+    with open(d / "results.csv", "w", newline="") as f:
+        csv.writer(f).writerows([["run_id", "seed", "mpc.rate_hz", "disturbance.magnitude",
+                                  "success", "log"], [run.run_id, 0, 10, 15.0, "true", ""]])
+    with open(d / "results.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    (rep,) = tube_reports(d / "results.csv", rows, sweep_file=sweep).values()
+    sc = load_scenario(BALL, ["plant.mass=2.0", "disturbance.kind='box'",
+                              "disturbance.magnitude=15.0"])[0]
+    plant, note = plant_system(sc)
+    system = build_system(sc.system)
+    alone = analyse(system, region=region_from_scenario(system), kind="box", magnitude=15.0,
+                    kp=sc.lowlevel.kp, kd=sc.lowlevel.kd, rate_hz=sc.mpc.rate_hz,
+                    rates=[10.0], seed=sc.seed, plant=plant, plant_note=note)
+    assert rep.disturbance.mismatch > 0
+    assert rep.disturbance.eta == alone.disturbance.eta

@@ -6,7 +6,7 @@ Flattening of a message (a JSON object):
 * lists of scalars become indexed columns (``w[0]``, ``w[1]``, ...);
 * lists holding objects or lists (``x_plan``, ``candidates``, the ``plan`` array of named
   nodes) go to a separate table ``<topic>_<field>`` with one row per element, keyed by
-  ``msg_t`` and ``index`` (the element's position); inside such a row a further list of
+  ``msg`` and ``index`` (the element's position); inside such a row a further list of
   objects is one JSON-string column.
 
 A container's cells are its elements': an empty object or list writes no cell (and no
@@ -15,9 +15,11 @@ without a skeleton, a final schedule's ``schedule.guards``, ``warnings`` of a ru
 without any).
 
 Each topic's table has one row per message. Every row of every table starts with
-``msg_t``, its message's log time [s] (``LogMessage.t``, the same float in the topic's
-table and its child tables: a child row joins its message's row on ``msg_t``), then the
-message's (or the element's) fields; ``t`` is a message's own field, where it has one.
+``msg``, its message's position among its topic's exported messages (0, 1, ...: a child
+row joins its message's row on ``msg``), and ``msg_t``, the message's log time [s]
+(``LogMessage.t``, the same float in the topic's table and its child tables; two messages
+of one topic may share it), then the message's (or the element's) fields; ``t`` is a
+message's own field, where it has one.
 ``info.json`` holds the run info, the metadata,
 the attached scenario text, the filters and the tables written (``files``). A directory
 takes an export when it is new, empty or an earlier export's: that export's tables are
@@ -87,19 +89,23 @@ def _table_name(topic: str) -> str:
 def tables(messages: list) -> dict[str, list[dict]]:
     """Rows per table name: one table per topic, one per (topic, list-of-objects field).
 
-    Every row starts with ``msg_t``, its message's log time [s] (the same float in a
-    topic's table and in its child tables, so a child row joins its message's row on it).
+    Every row starts with ``msg``, its message's position among the topic's exported
+    messages (0, 1, ...: a child row joins its message's row on it), and ``msg_t``, the
+    message's log time [s] (the same float in both tables; two messages of a topic may
+    share it).
     """
     out: dict[str, list[dict]] = {}
     for m in messages:
         name = _table_name(m.topic)
         nested: dict[str, list] = {}
-        out.setdefault(name, []).append({"msg_t": m.t, **flatten(m.data, nested)})
+        rows = out.setdefault(name, [])
+        key0 = {"msg": len(rows), "msg_t": m.t}
+        rows.append({**key0, **flatten(m.data, nested)})
         for key, items in nested.items():
             child = out.setdefault(f"{name}_{_table_name(key)}", [])
             for i, item in enumerate(items):
                 row = flatten(item if isinstance(item, dict) else {key: item}, None)
-                child.append({"msg_t": m.t, "index": i, **row})
+                child.append({**key0, "index": i, **row})
     return out
 
 

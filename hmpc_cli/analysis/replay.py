@@ -173,7 +173,9 @@ def load_replay(path: Path) -> Replay:
                           f"{', '.join(topics)})")
     if not isinstance(infos[0].data, dict) or "scenario_name" not in infos[0].data:
         raise ReplayError("not an hmpc run log (its /run/info has no scenario_name)")
-    problem = mistyped(log.messages, infos[0].data.get("log_version") == LOG_VERSION)
+    version = infos[0].data.get("log_version")
+    problem = mistyped(log.messages, version if isinstance(version, int)
+                       and not isinstance(version, bool) else 1)  # none: version 1
     if problem is not None:
         raise ReplayError(f"damaged log: its content cannot be read: {problem}")
     summaries = log.topic("/run/summary")
@@ -190,11 +192,12 @@ _KINDS = {"object": (dict,), "array": (list,), "number": (int, float), "integer"
           "string": (str,), "boolean": (bool,)}
 
 
-def _kind_problem(schema: dict, value: Any, scalars: bool = True) -> str | None:
+def _kind_problem(schema: dict, value: Any, version: int = LOG_VERSION) -> str | None:
     """Why ``value`` is not of the JSON kind ``schema`` says (None: it is, or null).
 
-    ``scalars`` False: any scalar passes where the schema says a scalar (an older log
-    version's, e.g. a mode's name where the mode's index is now).
+    ``version``: the log's layout. Before :data:`LOG_VERSION` any scalar passes where the
+    schema says a scalar; in version 1 (plain arrays, untyped) also an array where it
+    says an object: only a scalar against an object or array is told apart there.
     """
     kind = schema["type"]
     if value is None:  # left out or non-finite: not a type error of its own
@@ -202,8 +205,10 @@ def _kind_problem(schema: dict, value: Any, scalars: bool = True) -> str | None:
     if isinstance(value, _KINDS[kind]) and not (kind in ("number", "integer")
                                                 and isinstance(value, bool)):
         return None
-    if not scalars and kind not in ("object", "array") and \
-            not isinstance(value, (dict, list)):
+    container = isinstance(value, (dict, list))
+    if version < LOG_VERSION and kind not in ("object", "array") and not container:
+        return None
+    if version < 2 and kind in ("object", "array") and container:
         return None
     return f"expected {'an' if kind[0] in 'aeiou' else 'a'} {kind}, got {_json_kind(value)}"
 
@@ -222,14 +227,13 @@ def _top_schemas() -> dict[str, dict]:
     return {topic: type_schema(cls, {}, {})["properties"] for topic, (_, cls) in TOPICS.items()}
 
 
-def mistyped(messages: list, current: bool = True) -> str | None:
+def mistyped(messages: list, version: int = LOG_VERSION) -> str | None:
     """The first field of hmpc's topics whose JSON kind is not its schema's, in words.
 
     Checks each message's own fields and the items of its arrays (not the fields named
-    after the run's states, inputs and guards, which need the run's names). ``current``
-    False (a log of another log version): an object, an array and a scalar are told
-    apart, not one scalar from another. None: every kind fits, which is what the
-    timeline, tables and export read as generic JSON.
+    after the run's states, inputs and guards, which need the run's names), as far as
+    the log's layout ``version`` fixes them (:func:`_kind_problem`). None: every kind
+    fits, which is what the timeline, tables and export read as generic JSON.
     """
     schemas = _top_schemas()
     for m in messages:
@@ -238,10 +242,10 @@ def mistyped(messages: list, current: bool = True) -> str | None:
             continue
         for key, sub in props.items():
             value = m.data.get(key)
-            why = _kind_problem(sub, value, current)
+            why = _kind_problem(sub, value, version)
             if why is None and sub["type"] == "array" and isinstance(value, list):
                 why = next((w for v in value
-                            if (w := _kind_problem(sub["items"], v, current))), None)
+                            if (w := _kind_problem(sub["items"], v, version))), None)
                 key += "[]"
             if why is not None:
                 return f"{m.topic} at t = {m.t:.6g} s: {key}: {why}"

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["FigureInputError", "RunTrace", "blamed_on", "load_trace", "parse_bool",
+__all__ = ["FigureInputError", "RunTrace", "blamed_on", "load_trace", "not_run_yet", "parse_bool",
            "read_table", "resolve_log", "resolve_run_log", "resolve_table", "sweep_spec",
            "trace_of"]
 
@@ -100,6 +100,24 @@ def read_table(path: Path, required: Iterable[str]) -> list[dict[str, str]]:
     if not rows:
         raise FigureInputError(f"{path}: table has no rows")
     return rows
+
+
+def not_run_yet(directory: str | Path) -> bool:
+    """Whether a sweep directory holds no run yet: no results.csv, or its header alone.
+
+    A sweep writes its table's header before its first run ends; a table that is there
+    but cannot be read counts as holding runs (reading it says what is wrong).
+    """
+    path = Path(directory) / "results.csv"
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            reader = csv.reader(f)
+            next(reader, None)
+            return next(reader, None) is None
+    except FileNotFoundError:
+        return True
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return False
 
 
 def parse_bool(value: str | None, where: str) -> bool:

@@ -180,8 +180,10 @@ def _from(directory: Path, section):
 
 
 def _no_table(directory: Path) -> bool:
-    """Whether a sweep directory has no results.csv yet (not run: not an error)."""
-    return not (Path(directory) / "results.csv").is_file()
+    """Whether a sweep directory holds no run yet (not run: not an error)."""
+    from hmpc_cli.analysis.tables import not_run_yet
+
+    return not_run_yet(directory)
 
 
 def _page_lines(results: Path, inputs: ReportInputs, command: str, fig_dir: Path,

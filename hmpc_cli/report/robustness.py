@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 from hmpc_cli.analysis.tables import (
     FigureInputError,
     blamed_on,
+    not_run_yet,
     parse_bool,
     read_table,
     resolve_table,
@@ -100,12 +101,13 @@ def tube_reports(table: Path, rows: list[dict], size_column: str = SIZE,
                  sweep_file: Path | None = None) -> dict[float, TubeReport]:
     """Step 5's tube analysis per disturbance size of a sweep: size -> its ``TubeReport``.
 
-    ``hmpc tube``'s (its default region and samples) for the effective scenario of the
-    first finished run of each size (its ``scenario.toml``, or the ``sweep_file``'s for a
-    table without run directories), at the sweep's rates; a size whose scenario cannot be
-    read or analysed is left out.
+    ``hmpc tube``'s (its default region and samples, eta with the ``[plant]``'s flow
+    mismatch) for the effective scenario of the first finished run of each size (its
+    ``scenario.toml``, or the ``sweep_file``'s for a table without run directories), at
+    the sweep's rates; a size whose scenario cannot be read or analysed is left out.
     """
-    from hmpc_cli.core.registry import build_system
+    from hmpc_cli.core.registry import PluginError, build_system
+    from hmpc_cli.run.tube_margins import plant_system
     from hmpc_cli.tube import TubeError, analyse, region_from_scenario
 
     rates = sorted({float(r[RATE]) for r in rows if r.get(RATE)})
@@ -117,11 +119,12 @@ def tube_reports(table: Path, rows: list[dict], size_column: str = SIZE,
             continue
         try:
             system = build_system(sc.system)
+            plant, note = plant_system(sc)  # the [plant]'s flow mismatch is part of eta
             out[size] = analyse(system, region=region_from_scenario(system),
                                 kind=sc.disturbance.kind, magnitude=sc.disturbance.magnitude,
                                 kp=sc.lowlevel.kp, kd=sc.lowlevel.kd, rate_hz=sc.mpc.rate_hz,
-                                rates=rates, seed=sc.seed)
-        except (OSError, TubeError, ValueError):
+                                rates=rates, seed=sc.seed, plant=plant, plant_note=note)
+        except (OSError, PluginError, TubeError, ValueError):
             continue
     return out
 
@@ -179,7 +182,7 @@ def _pivot(cells) -> list[str]:
     xs = sorted({c.x for c in cells})
     lines = ["| disturbance | policy | " + " | ".join(f"{x:g} Hz" for x in xs) + " |",
              "| --- | --- | " + " | ".join("---" for _ in xs) + " |"]
-    rows: dict[tuple[str, str], dict[float, TubeReport]] = {}
+    rows: dict[tuple[str, str], dict[float, object]] = {}
     for c in cells:
         rows.setdefault((c.panel, c.series), {})[c.x] = c
     for (panel, series), by_x in rows.items():
@@ -971,8 +974,8 @@ def robustness_sections(studies: list[Study], fig_dir: Path, base: Path) -> list
             with blamed_on(study.directory):
                 section, cells, spec = study_section(study, fig_dir, base)
         except FigureInputError as exc:
-            if (study.directory / "results.csv").is_file():
-                raise  # a table that is there but unusable: the command names its option
+            if not not_run_yet(study.directory):
+                raise  # a table of runs that is unusable: the command names its option
             from hmpc_cli.report.paths import portable_path, portable_text
 
             why = (f"Not run yet: no run of `{portable_path(study.sweep_file)}` is in this "

@@ -318,7 +318,7 @@ def margins_warnings(path: Path, kind: str, magnitude: float, kp: float,
         made = (f"the plant {mf.disturbance['plant']}" if "plant" in mf.disturbance
                 else "a plant that is the model")
         out.append(f"{path} was computed for {made}, not this scenario's plant ({plant[1]}): "
-                   f"its margins do not cover this plant's mismatch with the model ({fix})")
+                   f"its margins may not cover this plant's mismatch with the model ({fix})")
     return out
 
 
