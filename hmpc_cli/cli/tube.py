@@ -249,17 +249,13 @@ def _analyse(sc, system, observed: list, states: Path | None, pad: float | None,
     else x0 and the goal (see :func:`hmpc_cli.tube.region_from_scenario`). A ``[plant]``
     that differs from the system is built and passed down: eta holds its flow's mismatch.
     """
-    from hmpc_cli.run.tube_margins import plant_system
-    from hmpc_cli.tube import analyse, region_from_scenario
+    from hmpc_cli.run.tube_margins import scenario_tube
+    from hmpc_cli.tube import region_from_scenario
 
     visited = _states_of(states, system.n_x) if states is not None else (
         _stack([r.x for r in observed]) if observed else None)
-    region = region_from_scenario(system, pad, visited)
-    plant, note = plant_system(sc)  # the [plant] table's flow mismatch is part of eta
-    return analyse(system, region=region, kind=sc.disturbance.kind,
-                   magnitude=sc.disturbance.magnitude, kp=sc.lowlevel.kp, kd=sc.lowlevel.kd,
-                   rate_hz=sc.mpc.rate_hz, samples=samples, seed=sc.seed, plant=plant,
-                   plant_note=note)
+    return scenario_tube(sc, system, region=region_from_scenario(system, pad, visited),
+                         samples=samples)
 
 
 def tube_command(

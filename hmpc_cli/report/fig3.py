@@ -63,19 +63,15 @@ def _draw(mode: Fig3Mode, fig_dir: Path) -> tuple[dict, list[str]]:
     from hmpc_cli.figures.fig3 import fig3
     from hmpc_cli.report.traces import keep_traces, sweep_logs
 
-    for directory in (mode.main, mode.extra):
+    main_dir = fig_dir / (f"fig3_{mode.stem}" if mode.stem != "hmpc" else "")
+    extra_dir = fig_dir / ("fig3_extra" if mode.stem == "hmpc" else f"fig3_{mode.stem}_extra")
+    counts = {}
+    for directory, out, formats in ((mode.main, main_dir, "pdf,svg,png"),
+                                    (mode.extra, extra_dir, "png")):
         if directory is not None:
             with blamed_on(directory):
                 keep_traces(sweep_logs(directory))
-    main_dir = fig_dir / (f"fig3_{mode.stem}" if mode.stem != "hmpc" else "")
-    counts = {}
-    if mode.main is not None:
-        with blamed_on(mode.main):
-            counts = dict(fig3(mode.main, main_dir, "pdf,svg,png"))
-    if mode.extra is not None:
-        extra_dir = fig_dir / ("fig3_extra" if mode.stem == "hmpc" else f"fig3_{mode.stem}_extra")
-        with blamed_on(mode.extra):
-            counts.update(fig3(mode.extra, extra_dir, "png"))
+                counts.update(fig3(directory, out, formats))
     return counts, [n for c in counts.values() for n in c.notes]
 
 

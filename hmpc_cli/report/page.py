@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from hmpc_cli.analysis.tables import FigureInputError, blamed_on, resolve_table
+from hmpc_cli.analysis.tables import FigureInputError, blamed_on, not_run_yet, resolve_table
 from hmpc_cli.figures.common import page_link
 from hmpc_cli.report.paths import portable_command, portable_text
 
@@ -165,7 +165,7 @@ def _or_not_drawn(title: str, directory: Path, section, level: str = "##") -> li
     try:
         return _from(directory, section)
     except FigureInputError as exc:
-        if _no_table(directory):
+        if not_run_yet(directory):  # not run: not an error
             return [f"{level} {title}", "", f"Not drawn: {portable_text(str(exc))}", ""]
         raise
 
@@ -177,13 +177,6 @@ def _from(directory: Path, section):
     """
     with blamed_on(directory):
         return section()
-
-
-def _no_table(directory: Path) -> bool:
-    """Whether a sweep directory holds no run yet (not run: not an error)."""
-    from hmpc_cli.analysis.tables import not_run_yet
-
-    return not_run_yet(directory)
 
 
 def _page_lines(results: Path, inputs: ReportInputs, command: str, fig_dir: Path,

@@ -107,8 +107,8 @@ def tube_reports(table: Path, rows: list[dict], size_column: str = SIZE,
     the sweep's rates; a size whose scenario cannot be read or analysed is left out.
     """
     from hmpc_cli.core.registry import PluginError, build_system
-    from hmpc_cli.run.tube_margins import plant_system
-    from hmpc_cli.tube import TubeError, analyse, region_from_scenario
+    from hmpc_cli.run.tube_margins import scenario_tube
+    from hmpc_cli.tube import TubeError
 
     rates = sorted({float(r[RATE]) for r in rows if r.get(RATE)})
     out: dict[float, TubeReport] = {}
@@ -118,12 +118,7 @@ def tube_reports(table: Path, rows: list[dict], size_column: str = SIZE,
         if sc is None:
             continue
         try:
-            system = build_system(sc.system)
-            plant, note = plant_system(sc)  # the [plant]'s flow mismatch is part of eta
-            out[size] = analyse(system, region=region_from_scenario(system),
-                                kind=sc.disturbance.kind, magnitude=sc.disturbance.magnitude,
-                                kp=sc.lowlevel.kp, kd=sc.lowlevel.kd, rate_hz=sc.mpc.rate_hz,
-                                rates=rates, seed=sc.seed, plant=plant, plant_note=note)
+            out[size] = scenario_tube(sc, build_system(sc.system), rates=rates)
         except (OSError, PluginError, TubeError, ValueError):
             continue
     return out

@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Sequence
 from pathlib import Path
-
 from typing import TYPE_CHECKING
 
 from hmpc_cli import __version__
@@ -27,8 +27,10 @@ if TYPE_CHECKING:
     from pydantic import BaseModel
 
     from hmpc_cli.core.hybrid import HybridSystem
+    from hmpc_cli.tube import Region, TubeReport
 
-__all__ = ["SAMPLES", "TUBE", "plant_difference", "plant_system", "tube_margins",
+__all__ = ["SAMPLES", "TUBE", "plant_difference", "plant_system", "scenario_tube",
+           "tube_margins",
            "tube_margins_file", "tube_margins_path"]
 
 TUBE = "tube"  #: the ``mpc.margins`` value
@@ -72,6 +74,31 @@ def plant_system(sc) -> tuple[HybridSystem | None, str]:
 
     params, note = plant_difference(sc)
     return (None, "") if params is None else (build_system(params), note)
+
+
+def scenario_tube(sc, system: HybridSystem, *, region: Region | None = None,
+                  rate_hz: float | None = None, rates: Sequence[float] | None = None,
+                  samples: int = 20000, seed: int | None = None) -> TubeReport:
+    """``hmpc tube``'s analysis of a scenario: its disturbance, low level and ``[plant]``.
+
+    ``system``: the scenario's built system; ``region`` defaults to
+    :func:`hmpc_cli.tube.region_from_scenario`'s, ``rate_hz`` to ``mpc.rate_hz``,
+    ``rates`` to the tube's defaults and ``seed`` to the scenario's. A ``[plant]`` that
+    differs from the system is built and passed down: eta holds its flow's mismatch.
+
+    Raises:
+        hmpc_cli.tube.TubeError: no tube (e.g. a non-finite constant).
+        hmpc_cli.core.registry.PluginError: the plant's system fails to build.
+    """
+    from hmpc_cli.tube import DEFAULT_RATES, analyse, region_from_scenario
+
+    plant, note = plant_system(sc)
+    return analyse(system, region=region_from_scenario(system) if region is None else region,
+                   kind=sc.disturbance.kind, magnitude=sc.disturbance.magnitude,
+                   kp=sc.lowlevel.kp, kd=sc.lowlevel.kd,
+                   rate_hz=sc.mpc.rate_hz if rate_hz is None else rate_hz,
+                   rates=DEFAULT_RATES if rates is None else rates, samples=samples,
+                   seed=sc.seed if seed is None else seed, plant=plant, plant_note=note)
 
 
 def _inputs(sc) -> dict:
@@ -141,15 +168,11 @@ def _read(path: Path) -> str | None:
 
 def _compute(sc, model, rate: float) -> str:
     """The margins file text of the scenario's tube at ``rate`` [Hz]."""
-    from hmpc_cli.tube import TubeError, analyse, region_from_scenario
+    from hmpc_cli.tube import TubeError
     from hmpc_cli.tube.margins_file import REFUSED, margins_text
 
-    plant, note = plant_system(sc)
     try:
-        report = analyse(model, region=region_from_scenario(model), kind=sc.disturbance.kind,
-                         magnitude=sc.disturbance.magnitude, kp=sc.lowlevel.kp,
-                         kd=sc.lowlevel.kd, rate_hz=rate, rates=(), samples=SAMPLES,
-                         seed=SEED, plant=plant, plant_note=note)
+        report = scenario_tube(sc, model, rate_hz=rate, rates=(), samples=SAMPLES, seed=SEED)
     except TubeError as exc:
         raise ValueError(f"{REFUSED}no tube at {rate:g} Hz: {exc}") from None
     if report.warnings:
