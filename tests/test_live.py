@@ -161,7 +161,12 @@ def test_a_live_port_without_live_or_out_of_range_exits_2(tmp_path, args, messag
 
 def _stream_client(url: str, topic: str, got: list, arrived, done) -> None:
     """A Foxglove WebSocket client subscribed to ``topic`` alone: appends each message's
-    (log time, payload) to ``got`` and notifies ``arrived``, until ``done`` is set."""
+    (log time, payload) to ``got`` and notifies ``arrived``, until ``done`` is set.
+
+    foxglove-sdk 0.30 sends a channel's advertisement before it records the channel as
+    advertised to that client: a subscription that arrives in between is refused with the
+    status "Unknown channel ID: N". The client then subscribes again, as a viewer would
+    have to."""
     import json
     import struct
 
@@ -169,6 +174,7 @@ def _stream_client(url: str, topic: str, got: list, arrived, done) -> None:
 
     with connect(url, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],
                  max_size=None) as ws:
+        wanted = None
         while not done.is_set():
             try:
                 msg = ws.recv(timeout=0.2)
@@ -176,10 +182,14 @@ def _stream_client(url: str, topic: str, got: list, arrived, done) -> None:
                 continue
             if isinstance(msg, str):
                 op = json.loads(msg)
-                subs = [{"id": 1, "channelId": ch["id"]} for ch in op.get("channels", [])
-                        if op.get("op") == "advertise" and ch["topic"] == topic]
-                if subs:
-                    ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+                ids = [ch["id"] for ch in op.get("channels", []) if ch["topic"] == topic]
+                if op.get("op") == "advertise" and ids:
+                    wanted = ids[0]
+                elif wanted is None or op.get("op") != "status" or (
+                        op.get("message") != f"Unknown channel ID: {wanted}"):
+                    continue
+                ws.send(json.dumps({"op": "subscribe",
+                                    "subscriptions": [{"id": 1, "channelId": wanted}]}))
             elif msg[0] == 1:  # message data: opcode, subscription id, log time, payload
                 _, ns = struct.unpack_from("<IQ", msg, 1)
                 with arrived:
