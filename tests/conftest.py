@@ -8,6 +8,7 @@ import shutil
 import signal
 import subprocess
 import sys
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,6 +52,23 @@ def _click_command_built_once(get_command):
 
 
 typer.testing._get_command = _click_command_built_once(typer.testing._get_command)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The files holding the most slow tests run first (then those holding the most
+    tests), each file's tests in their own order: under ``--dist loadfile
+    --no-loadscope-reorder`` a worker takes whole files in this order, so the longest
+    files start early and the suite does not end on one of them while the other cores
+    idle."""
+    slow: Counter[str] = Counter()
+    count: Counter[str] = Counter()
+    for item in items:
+        count[item.location[0]] += 1
+        slow[item.location[0]] += item.get_closest_marker("slow") is not None
+    first = {f: k for k, f in enumerate(dict.fromkeys(i.location[0] for i in items))}
+    items.sort(key=lambda i: (-slow[i.location[0]], -count[i.location[0]],
+                              first[i.location[0]]))
 
 
 @pytest.fixture(autouse=True)
