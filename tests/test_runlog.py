@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+import subprocess
 
 import numpy as np
+import pytest
 
 from conftest import SCENARIOS
 from hmpc_cli.log import runlog
@@ -88,6 +90,61 @@ def test_the_null_writer_answers_every_call_of_the_topic_writer():
         return {n for n in dir(cls) if not n.startswith("_") and callable(getattr(cls, n))}
 
     assert public(TopicWriter) == public(NullWriter)
+
+
+def test_a_run_records_the_git_commit_it_ran_from(tmp_path):
+    """/run/info's versions and the metadata record name the checkout's commit, as git
+    gives it (this test runs from a checkout: CI's fresh clone); replay --verify skips
+    it (another commit is no divergence)."""
+    import shutil
+
+    from hmpc_cli.core.source import ROOT, source_commit
+
+    if shutil.which("git") is None or not (ROOT / ".git").exists():
+        pytest.skip("not run from a git checkout")
+    sc, text = load_scenario(SCENARIOS / "ball.toml", ["sim.duration=0.05"])
+    execute_run(prepare(sc), text, tmp_path / "run")
+    log = read_log(tmp_path / "run" / "run.mcap")
+    head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True,
+                          text=True, check=True).stdout.strip()
+    source = log.topic("/run/info")[0].data["versions"]["source"]
+    assert source in (head, f"{head} (modified)") and source == source_commit()
+    assert log.metadata["run"]["version.source"] == source
+    assert _ignored("versions")
+
+
+def test_the_source_commit_and_whether_tracked_files_differ(tmp_path):
+    """A clean checkout gives its commit; an untracked file changes nothing; a tracked
+    file changed appends " (modified)"; a folder without .git gives "" even inside a
+    repository (only the folder hmpc runs from counts); so does a repository without a
+    commit."""
+    import shutil
+
+    from hmpc_cli.core.source import source_commit
+
+    if shutil.which("git") is None:
+        pytest.skip("git is not installed")
+    repo = tmp_path / "repo"
+    (repo / "inner").mkdir(parents=True)
+
+    def git(*args):
+        return subprocess.run(["git", "-C", str(repo), "-c", "user.name=t",
+                               "-c", "user.email=t@t", *args],
+                              capture_output=True, text=True, check=True).stdout.strip()
+
+    git("init", "-q")
+    assert source_commit.__wrapped__(repo) == ""  # no commit yet
+    (repo / "a.txt").write_text("a\n")
+    git("add", "a.txt")
+    git("commit", "-q", "-m", "a")
+    head = git("rev-parse", "HEAD")
+    assert len(head) == 40
+    (repo / "untracked.txt").write_text("u\n")
+    assert source_commit.__wrapped__(repo) == head
+    (repo / "a.txt").write_text("b\n")
+    assert source_commit.__wrapped__(repo) == f"{head} (modified)"
+    assert source_commit.__wrapped__(repo / "inner") == ""
+    assert source_commit.__wrapped__(tmp_path / "nowhere") == ""
 
 
 def test_a_run_records_the_cpu_it_ran_on(tmp_path):

@@ -24,6 +24,7 @@ import numpy as np
 from hmpc_cli import __version__
 from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.core.machine import cpu_model
+from hmpc_cli.core.source import source_commit
 from hmpc_cli.log.geometry import body_logger, body_names, geometry_record
 from hmpc_cli.log.topics import (
     LOG_VERSION,
@@ -61,7 +62,7 @@ def versions() -> dict[str, str]:
     return {"hmpc": __version__, "python": sys.version.split()[0], "numpy": np.__version__,
             "casadi": casadi.__version__, "pydantic": pydantic.__version__,
             "mcap": getattr(mcap, "__version__", "?"), "platform": platform.platform(),
-            "cpu": cpu_model()}
+            "cpu": cpu_model(), "source": source_commit()}
 
 
 @dataclass

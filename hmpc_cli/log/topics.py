@@ -54,6 +54,9 @@ class Versions:
         platform: the operating system, as ``platform.platform()`` says.
         cpu: the CPU's model name (/proc/cpuinfo's ``model name``, elsewhere the
             platform's processor or machine type; absent in older logs).
+        source: the commit of the git checkout hmpc ran from, ``" (modified)"`` appended
+            when a tracked file differed from it ("": not run from a git checkout;
+            absent in older logs).
     """
 
     hmpc: str
@@ -64,6 +67,7 @@ class Versions:
     mcap: str
     platform: str
     cpu: str = ""
+    source: str = ""
 
 
 @dataclass(frozen=True)
