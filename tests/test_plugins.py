@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from conftest import BALL, REPO, cli_env, hmpc_command, standard_schema_errors
+from hmpc_cli.analysis.replay import _ignored
 from hmpc_cli.core.numeric import supported_operations
 from hmpc_cli.log.reader import read_log
 
@@ -61,10 +62,60 @@ def test_the_dock_distribution_is_an_ordinary_entry_point():
     assert (ep.name, ep.value) == ("dock", "hmpc_dock:SYSTEM")
 
 
-def test_dock_runs_through_the_cli(tmp_path):
-    out = tmp_path / "dock"
-    proc = hmpc(["run", str(DOCK), "--out", str(out), "-q"], PLUGINS, cwd=tmp_path)
+@pytest.fixture(scope="module")
+def dock_run(tmp_path_factory) -> Path:
+    """``PYTHONPATH=tests/plugins hmpc run tests/plugins/dock.toml``: its output directory."""
+    out = tmp_path_factory.mktemp("dock") / "dock"
+    proc = hmpc(["run", str(DOCK), "--out", str(out), "-q"], PLUGINS, cwd=out.parent)
     assert proc.returncode == 0, proc.stderr[-3000:]
+    return out
+
+
+def test_the_guides_worked_example_as_written_is_the_tested_plugin(tmp_path, dock_run):
+    """docs/plugins.md's worked example laid out as the guide says (``my_pkg/dock.py``
+    from its Python block, the entry point from its pyproject table, as pip would write
+    it, and its ``dock.toml``) runs through ``hmpc run``, and flies exactly the run of
+    tests/plugins/hmpc_dock.py (the guide's shortened code is the same system)."""
+    import re
+    import tomllib
+
+    text = (REPO / "docs" / "plugins.md").read_text()
+    code = next(b for b in re.findall(r"```python\n(.*?)```", text, re.S)
+                if b.startswith("# my_pkg/dock.py"))
+    tomls = re.findall(r"```toml\n(.*?)```", text, re.S)
+    project = tomllib.loads(next(b for b in tomls if "[project]" in b))["project"]
+    scenario = next(b for b in tomls if b.startswith("# dock.toml"))
+    (tmp_path / "my_pkg").mkdir()
+    (tmp_path / "my_pkg" / "__init__.py").write_text("")
+    (tmp_path / "my_pkg" / "dock.py").write_text(code)
+    info = tmp_path / f"{project['name'].replace('-', '_')}-{project['version']}.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {project['name']}\n"
+                                   f"Version: {project['version']}\n")
+    (info / "entry_points.txt").write_text("".join(
+        f"[{group}]\n" + "".join(f"{k} = {v}\n" for k, v in eps.items())
+        for group, eps in project["entry-points"].items()))
+    (tmp_path / "dock.toml").write_text(scenario)
+    out = tmp_path / "out"
+    proc = hmpc(["run", "dock.toml", "--out", str(out), "-q"], tmp_path, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+
+    def flown(run: Path) -> dict:  # the summary but its measured times and the machine
+        s = json.loads((run / "summary.json").read_text())
+        return {k: v for k, v in s.items() if not _ignored(k)}
+
+    guide, tested = flown(out), flown(dock_run)
+    assert guide["success"] and guide["contacts_by_guard"] == {"bumper": 1, "dock": 1}
+    assert guide == tested
+    # the guide's words: it docks at t = 0.82 s, ends 5e-5 from the goal, 31 solves
+    events = read_log(out / "run.mcap").topic("/sim/event")
+    assert [(m.data["guard_name"], round(m.data["t"], 2)) for m in events] == [
+        ("bumper", 0.24), ("dock", 0.82)]
+    assert f"{guide['final_error']:.0e}" == "5e-05" and guide["solves"] == 31
+
+
+def test_dock_runs_through_the_cli(dock_run):
+    out = dock_run
     s = json.loads((out / "summary.json").read_text())
     assert s["success"], s["reason"]
     assert s["mode_end"] == "docked"
