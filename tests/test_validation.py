@@ -453,12 +453,39 @@ def real_prepare(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
                                         "input box of mode"),
     ("ball", 'mpc.solver_options={ipopt={linear_solver="ma57"}}',
      "mpc.solver_options.ipopt.linear_solver: 'ma57' is not available (available: mumps"),
+    # IPOPT's own refusals name neither the option nor a way out: hmpc's name both
+    ("ball", "mpc.solver_options={ipopt={max_iterr=5}}",
+     "mpc.solver_options.ipopt.max_iterr: IPOPT has no option 'max_iterr' (did you mean "
+     "'max_iter'?)"),
+    ("ball", 'mpc.solver_options={ipopt={max_iter="x"}}',
+     "mpc.solver_options.ipopt.max_iter: needs a number, got 'x'"),
+    ("ball", 'mpc.solver_options={ipopt_warm={hessian_approximation="limited"}}',
+     "mpc.solver_options.ipopt_warm.hessian_approximation: 'limited' is not one of 'exact', "
+     "'limited-memory'; did you mean 'limited-memory'?"),
+    ("ball", "mpc.solver_options={ipoptt={max_iter=5}}",
+     "mpc.solver_options: the solver rejects these options (cold instance): Unknown option: "
+     "ipoptt (did you mean 'ipopt'?)"),
 ])
 def test_contradictory_settings_fail_at_set_up(real_prepare: Path, system: str, item: str,
                                                message: str):
     lines = bad_run(real_prepare, ["run", _scenario(real_prepare, system).name, "--set", item,
                                    "--out", "out"])
     assert len(lines) == 1 and lines[0].startswith(f"error: --set {item}: {message}"), lines
+
+
+def test_a_refused_ipopt_option_prints_nothing_but_the_error(capfd):
+    """IPOPT prints a refused value's documentation on the C stdout while hmpc probes the
+    options; hmpc silences it: the error line alone."""
+    import ctypes
+
+    from hmpc_cli.mpc.solver import option_problems
+
+    capfd.readouterr()
+    assert option_problems("ipopt", {"ipopt": {"mu_strategy": "adaptiv"}}) == [
+        "mpc.solver_options.ipopt.mu_strategy: 'adaptiv' is not one of 'monotone', "
+        "'adaptive'; did you mean 'adaptive'?"]
+    ctypes.CDLL(None).fflush(None)  # what the C library's stdout buffer holds, written out
+    assert capfd.readouterr().out == ""
 
 
 X0_PAST_CIRCLE = ("system.x0: (1, 1, 0, 0) lies past {}guard 'circle_in' of its initial mode "

@@ -16,7 +16,10 @@ the status ``NonIpopt_Exception_Thrown``, which the session turns back into the 
 
 from __future__ import annotations
 
+import re
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -27,6 +30,7 @@ import numpy as np
 from hmpc_cli.core import signals
 from hmpc_cli.core.messages import SolveStats
 from hmpc_cli.mpc.backends import OCPStructure
+from hmpc_cli.mpc import ipopt_options
 from hmpc_cli.mpc.buffered import BufferedSolver
 from hmpc_cli.mpc.solver_table import (
     SolverArgs, WarmStart, backend_of, split_options, warm_options)
@@ -384,6 +388,10 @@ def _option_problems(name: str, extra_json: str, key: str) -> tuple[str, ...]:
             available = [s for s, st in zip(LINEAR_SOLVERS, found, strict=True) if st is None]
             return (f"{key}.{section}.linear_solver: {solver!r} is not available "
                     f"(available: {', '.join(available) or 'none'})",)
+        named = [line for sec in ("ipopt", "ipopt_warm") if isinstance(extra.get(sec), dict)
+                 for line in ipopt_options.problems(extra[sec], f"{key}.{sec}")]
+        if plugin == "ipopt" and named:
+            return tuple(named)
         return (f"{key}: the solver rejects these options ({instance} instance): {status}",)
     return ()
 
@@ -432,16 +440,40 @@ def _probe_options(name: str, extra: dict) -> list[tuple[str, dict]]:
     return [("cold", cold), ("warm", warm)]
 
 
+@contextmanager
+def _c_stdout_silenced() -> Iterator[None]:
+    """Prints inside go nowhere: CasADi's (Python's ``sys.stdout``) and C libraries' (fd 1)."""
+    import contextlib
+    import ctypes
+    import io
+    import os
+    import sys
+
+    sys.stdout.flush()
+    kept, null = os.dup(1), os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, 1)
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            yield
+    finally:
+        ctypes.CDLL(None).fflush(None)  # what the C library still holds goes to /dev/null
+        os.dup2(kept, 1)
+        os.close(kept)
+        os.close(null)
+
+
 def _probe(plugin: str, opts: dict) -> str | None:
     """None if ``min (x - 1)^2`` solves with ``opts``; else the status or error."""
     from hmpc_cli.core.registry import one_line
 
     x = ca.SX.sym("x")
     try:
-        solver = ca.nlpsol("probe", plugin, {"x": x, "f": (x - 1) ** 2, "g": x}, opts)
-        solver(x0=0.0, lbg=-10.0, ubg=10.0)
-    except RuntimeError as exc:
-        return one_line(exc)
+        with _c_stdout_silenced():  # IPOPT prints a refused option's documentation there
+            solver = ca.nlpsol("probe", plugin, {"x": x, "f": (x - 1) ** 2, "g": x}, opts)
+            solver(x0=0.0, lbg=-10.0, ubg=10.0)
+    except RuntimeError as exc:  # CasADi's own suggestion for an unknown option, if any
+        near = re.search(r'Did you mean one of the following\?\s*> "(\w+)"', str(exc))
+        return one_line(exc) + (f" (did you mean {near.group(1)!r}?)" if near else "")
     stats = solver.stats()
     status = str(stats.get("return_status", ""))
     if plugin == "ipopt" and status in ("Invalid_Option", "Invalid_Problem_Definition",
