@@ -28,7 +28,9 @@ def source_commit(root: Path = ROOT) -> str:
     """
     if not (root / ".git").exists():
         return ""
-    git = ["git", f"--git-dir={root / '.git'}", f"--work-tree={root}"]
+    # no optional locks: a status beside the user's own git commands (or another run's)
+    # neither waits for nor takes the index lock
+    git = ["git", "--no-optional-locks", f"--git-dir={root / '.git'}", f"--work-tree={root}"]
     try:
         head = subprocess.run([*git, "rev-parse", "--verify", "-q", "HEAD"],
                               capture_output=True, text=True, timeout=10)

@@ -456,7 +456,8 @@ def _c_stdout_silenced() -> Iterator[None]:
         with contextlib.redirect_stdout(io.StringIO()):
             yield
     finally:
-        ctypes.CDLL(None).fflush(None)  # what the C library still holds goes to /dev/null
+        with contextlib.suppress(OSError, TypeError, AttributeError):  # no C library handle
+            ctypes.CDLL(None).fflush(None)  # what the C library still holds: to /dev/null
         os.dup2(kept, 1)
         os.close(kept)
         os.close(null)
