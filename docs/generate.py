@@ -324,7 +324,9 @@ float), NaN and ±inf are rejected, and no setting may exceed 1e9 in magnitude
 (`sim.divergence_bound` excepted). Inside `mpc.solver_options` numbers are finite and
 integers at most 1e9 in magnitude, floats of any size (IPOPT's infinities are 1e19 and
 1e20); its back-end sections `ipopt`, `ipopt_warm` and `hpipm` are tables of option =
-value. Work is
+value, tried on a tiny problem before the run: an option the installed IPOPT does not have,
+or a value it cannot take, is named with the nearest one (`mpc.solver_options.ipopt.max_iterr:
+IPOPT has no option 'max_iterr' (did you mean 'max_iter'?)`). Work is
 bounded before anything is built: at most 20 000 NLP nodes (`mpc.horizon` ×
 `mpc.nodes_per_second`; walking: 2 × `nodes_per_swing`), 20 000 links of the switching chain
 NLP (its nodes + `mpc.max_switches`), 1e7 simulator steps (`sim.duration` × `sim.rate_hz`),
