@@ -248,3 +248,31 @@ def test_report_run_takes_the_sweeps_lock(tmp_path, run_hmpc):
     assert proc.stderr.strip().splitlines()[-1] == (
         f"error: {out}: another sweep is writing here (pid {os.getpid()})"), proc.stderr
     assert not (out / "runs").exists() and not (res / "README.md").exists()
+
+
+def test_a_sigkilled_reports_staging_directory_goes_with_the_next_report(tmp_path):
+    """A report killed by SIGKILL leaves ``.report-staging-<pid>-*``; the next one removes
+    it, and leaves alone a running report's (this process's, a live process's) and what
+    does not name a process."""
+    import os
+    import subprocess
+    import sys
+
+    from hmpc_cli.report.page import remove_stale_staging
+
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    alive = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        names = [f".report-staging-{gone.pid}-a1", f".report-staging-{os.getpid()}-b2",
+                 f".report-staging-{alive.pid}-c3", ".report-staging-x9"]
+        for name in names:
+            (tmp_path / name / "report").mkdir(parents=True)
+            (tmp_path / name / "report" / "fig.png").write_bytes(b"png")
+        (tmp_path / f".report-staging-{gone.pid}-file").write_text("not a directory")
+        assert remove_stale_staging(tmp_path) == [tmp_path / names[0]]
+        assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+            [*names[1:], f".report-staging-{gone.pid}-file"])
+    finally:
+        alive.kill()
+        alive.wait()

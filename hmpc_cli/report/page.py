@@ -234,13 +234,14 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
     drawing, the staging directory is removed and ``results`` is as it was (not even
     created). The trajectory logs kept beside the drawn runs' logs, the figures and the
     page are then written with stop signals held: a signal meanwhile stops the command
-    once all of them are in place (a SIGKILL may leave a ``.report-staging-*``
-    directory, which ``.gitignore`` leaves out).
+    once all of them are in place (a SIGKILL may leave a ``.report-staging-<pid>-*``
+    directory, which ``.gitignore`` leaves out and the next report removes).
 
     Raises:
         FigureInputError: a sweep table or log is missing or malformed.
         Interrupted: a stop signal (the page not written, or written whole).
     """
+    import os
     import shutil
     import tempfile
 
@@ -250,7 +251,8 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
     results = Path(results)
     made = not results.exists()
     results.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=".report-staging-", dir=results))
+    remove_stale_staging(results)
+    staging = Path(tempfile.mkdtemp(prefix=f".report-staging-{os.getpid()}-", dir=results))
     try:
         with deferred_traces() as logs:
             lines = _page_lines(results, inputs, command, staging / "report", staging)
@@ -267,6 +269,30 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
             shutil.rmtree(staging, ignore_errors=True)
     check()  # a stop signal held meanwhile stops the command now, the page whole
     return page
+
+
+def remove_stale_staging(results: Path) -> list[Path]:
+    """Removes the staging directories of reports whose process is gone (SIGKILLed).
+
+    A ``.report-staging-<pid>-*`` directory whose process still runs (another report
+    writing into ``results``) is left alone. Returns the removed directories.
+    """
+    import os
+    import shutil
+
+    removed = []
+    for path in sorted(results.glob(".report-staging-*-*")):
+        pid = path.name.removeprefix(".report-staging-").split("-", 1)[0]
+        if not (pid.isdigit() and path.is_dir()) or int(pid) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:  # gone: its staging directory is debris
+            shutil.rmtree(path, ignore_errors=True)
+            removed.append(path)
+        except OSError:  # alive under another user, or not ours to judge
+            pass
+    return removed
 
 
 def _commit(results: Path, drawn: Path, lines: list[str]) -> Path:
