@@ -488,3 +488,31 @@ def build(p):
 SYSTEM = SystemSpec(name="root", params=RootParams, build=build,
                     task=lambda p, s: ReachGoal(s, 0.1), planner="cem", mpc="fixed_mode")
 '''
+
+
+def test_a_tube_analysis_removes_the_figures_of_an_earlier_one(tmp_path: Path):
+    """hmpc tube writes into a directory an earlier analysis wrote (its default is one
+    per scenario): the figures this one did not write (another format's; tube_reality
+    without --runs) would be read as its own, so they go, and a note names them; other
+    files stay."""
+    from hmpc_cli.cli.tube import _remove_stale_figures
+
+    out = tmp_path / "tube"
+    out.mkdir()
+    names = ["tube_diameter.pdf", "tube_diameter.png", "tube_diameter.svg", "tube_margins.pdf",
+             "tube_reality.png", "tube_reality.svg", "notes.png"]
+    for name in names:
+        (out / name).write_bytes(b"x")
+    assert _remove_stale_figures(out, "png,svg", with_reality=True) == [
+        "tube_diameter.pdf", "tube_margins.pdf"]
+    assert _remove_stale_figures(out, "png", with_reality=False) == [
+        "tube_diameter.svg", "tube_reality.png", "tube_reality.svg"]
+    assert sorted(p.name for p in out.iterdir()) == ["notes.png", "tube_diameter.png"]
+    # through the command: an earlier --runs analysis's figure goes, with a note
+    (out / "tube_reality.pdf").write_bytes(b"x")
+    proc = hmpc(["tube", str(BALL), "--out", str(out), "--samples", "500", "--formats", "png",
+                 "-q"], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert f"note: removed tube_reality.pdf from {out}: an earlier analysis's" in proc.stderr
+    assert sorted(p.name for p in out.iterdir()) == [
+        "notes.png", "tube.json", "tube_diameter.png", "tube_margins.png"]

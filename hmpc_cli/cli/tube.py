@@ -347,10 +347,35 @@ def _publish(sc, system, observed: list, report, out: Path | None, formats: str,
     if reality is not None:
         _reality(report, reality, len(observed), out, formats, f"{sc.name}: tube vs reality",
                  quiet)
+    stale = _remove_stale_figures(out, formats, with_reality=reality is not None)
+    if stale:
+        typer.echo(f"note: removed {', '.join(stale)} from {out}: an earlier analysis's, not "
+                   "this one's", err=True)
     if quiet:
         typer.echo(str(out))
     if write is not None:
         _write_margins(report, sc, write, samples)
+
+
+#: the figures hmpc tube writes, by file stem (tube_reality: with --runs)
+FIGURE_STEMS = ("tube_diameter", "tube_margins", "tube_reality")
+
+
+def _remove_stale_figures(out: Path, formats: str, with_reality: bool) -> list[str]:
+    """Removes hmpc tube's figures in ``out`` that this analysis did not write.
+
+    Those are another format's, and tube_reality's without ``--runs``. Returns their
+    names, sorted.
+    """
+    from hmpc_cli.figures.common import FORMATS, parse_formats
+
+    written = {f"{stem}.{fmt}" for stem in FIGURE_STEMS[:3 if with_reality else 2]
+               for fmt in parse_formats(formats)}
+    stale = sorted(name for stem in FIGURE_STEMS for fmt in FORMATS
+                   if (name := f"{stem}.{fmt}") not in written and (out / name).is_file())
+    for name in stale:
+        (out / name).unlink(missing_ok=True)
+    return stale
 
 
 def _check_outputs(out: Path | None, write: Path | None, name: str) -> None:
