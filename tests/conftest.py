@@ -56,11 +56,14 @@ typer.testing._get_command = _click_command_built_once(typer.testing._get_comman
 
 @pytest.hookimpl(trylast=True)
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The files holding the most slow tests run first (then those holding the most
-    tests), each file's tests in their own order: under ``--dist loadfile
-    --no-loadscope-reorder`` a worker takes whole files in this order, so the longest
-    files start early and the suite does not end on one of them while the other cores
-    idle."""
+    """The files holding the most slow tests selected go to the workers first, then those
+    holding the most tests, each file's tests in their own order.
+
+    Under ``--dist loadfile --no-loadscope-reorder`` a worker takes whole files in this
+    order. The slow files are the long ones, so a run with them (``pytest -m 'not
+    campaign'``, CI) starts them early and does not end on one while the other cores idle;
+    the fast suite alone is ordered by test count, as xdist would order it.
+    """
     slow: Counter[str] = Counter()
     count: Counter[str] = Counter()
     for item in items:

@@ -251,28 +251,35 @@ def test_report_run_takes_the_sweeps_lock(tmp_path, run_hmpc):
 
 
 def test_a_sigkilled_reports_staging_directory_goes_with_the_next_report(tmp_path):
-    """A report killed by SIGKILL leaves ``.report-staging-<pid>-*``; the next one removes
-    it, and leaves alone a running report's (this process's, a live process's) and what
-    does not name a process."""
-    import os
+    """A report killed by SIGKILL leaves its ``.report-staging-*`` directory, whose lock
+    its death released; the next report removes it. A staging directory whose lock is held
+    (a report running, here in another process) stays, as does one without a lock file
+    (an older report's, or one being made) and a file of that name."""
+    import signal
     import subprocess
     import sys
 
-    from hmpc_cli.report.page import remove_stale_staging
+    from hmpc_cli.report.page import STAGING_LOCK, remove_stale_staging
 
-    gone = subprocess.Popen([sys.executable, "-c", "pass"])
-    gone.wait()
-    alive = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    names = [".report-staging-killed", ".report-staging-running", ".report-staging-old"]
+    for name in names:
+        (tmp_path / name / "report").mkdir(parents=True)
+        (tmp_path / name / "report" / "fig.png").write_bytes(b"png")
+    (tmp_path / ".report-staging-file").write_text("not a directory")
+    hold = ("import fcntl, os, sys, time\n"
+            "fd = os.open(sys.argv[1], os.O_RDWR | os.O_CREAT, 0o644)\n"
+            "fcntl.flock(fd, fcntl.LOCK_EX)\nprint('held', flush=True)\ntime.sleep(60)\n")
+    procs = [subprocess.Popen([sys.executable, "-c", hold, str(tmp_path / n / STAGING_LOCK)],
+                              stdout=subprocess.PIPE, text=True) for n in names[:2]]
     try:
-        names = [f".report-staging-{gone.pid}-a1", f".report-staging-{os.getpid()}-b2",
-                 f".report-staging-{alive.pid}-c3", ".report-staging-x9"]
-        for name in names:
-            (tmp_path / name / "report").mkdir(parents=True)
-            (tmp_path / name / "report" / "fig.png").write_bytes(b"png")
-        (tmp_path / f".report-staging-{gone.pid}-file").write_text("not a directory")
+        assert [p.stdout.readline().strip() for p in procs] == ["held", "held"]
+        procs[0].send_signal(signal.SIGKILL)
+        procs[0].wait()
         assert remove_stale_staging(tmp_path) == [tmp_path / names[0]]
         assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
-            [*names[1:], f".report-staging-{gone.pid}-file"])
+            [*names[1:], ".report-staging-file"])
     finally:
-        alive.kill()
-        alive.wait()
+        for proc in procs:
+            proc.kill()
+            proc.wait()
+            proc.stdout.close()

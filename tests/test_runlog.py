@@ -92,6 +92,13 @@ def test_the_null_writer_answers_every_call_of_the_topic_writer():
     assert public(TopicWriter) == public(NullWriter)
 
 
+def _no_git_env() -> dict[str, str]:
+    """This environment without GIT_* (a git hook's would point git at another repo)."""
+    import os
+
+    return {k: v for k, v in os.environ.items() if not k.startswith("GIT_")}
+
+
 def test_a_run_records_the_git_commit_it_ran_from(tmp_path):
     """/run/info's versions and the metadata record name the checkout's commit, as git
     gives it (this test runs from a checkout: CI's fresh clone); replay --verify skips
@@ -105,15 +112,16 @@ def test_a_run_records_the_git_commit_it_ran_from(tmp_path):
     sc, text = load_scenario(SCENARIOS / "ball.toml", ["sim.duration=0.05"])
     execute_run(prepare(sc), text, tmp_path / "run")
     log = read_log(tmp_path / "run" / "run.mcap")
-    head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True,
-                          text=True, check=True).stdout.strip()
+    head = subprocess.run(["git", f"--git-dir={ROOT / '.git'}", "rev-parse", "HEAD"],
+                          capture_output=True, text=True, check=True, env=_no_git_env()
+                          ).stdout.strip()
     source = log.topic("/run/info")[0].data["versions"]["source"]
     assert source in (head, f"{head} (modified)") and source == source_commit()
     assert log.metadata["run"]["version.source"] == source
     assert _ignored("versions")
 
 
-def test_the_source_commit_and_whether_tracked_files_differ(tmp_path):
+def test_the_source_commit_and_whether_tracked_files_differ(tmp_path, monkeypatch):
     """A clean checkout gives its commit; an untracked file changes nothing; a tracked
     file changed appends " (modified)"; a folder without .git gives "" even inside a
     repository (only the folder hmpc runs from counts); so does a repository without a
@@ -129,7 +137,7 @@ def test_the_source_commit_and_whether_tracked_files_differ(tmp_path):
 
     def git(*args):
         return subprocess.run(["git", "-C", str(repo), "-c", "user.name=t",
-                               "-c", "user.email=t@t", *args],
+                               "-c", "user.email=t@t", *args], env=_no_git_env(),
                               capture_output=True, text=True, check=True).stdout.strip()
 
     git("init", "-q")
@@ -141,6 +149,9 @@ def test_the_source_commit_and_whether_tracked_files_differ(tmp_path):
     assert len(head) == 40
     (repo / "untracked.txt").write_text("u\n")
     assert source_commit.__wrapped__(repo) == head
+    monkeypatch.setenv("GIT_DIR", str(tmp_path / "elsewhere"))  # a git hook's environment
+    assert source_commit.__wrapped__(repo) == head
+    monkeypatch.delenv("GIT_DIR")
     (repo / "a.txt").write_text("b\n")
     assert source_commit.__wrapped__(repo) == f"{head} (modified)"
     assert source_commit.__wrapped__(repo / "inner") == ""

@@ -459,6 +459,8 @@ def real_prepare(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
      "'max_iter'?)"),
     ("ball", 'mpc.solver_options={ipopt={max_iter="x"}}',
      "mpc.solver_options.ipopt.max_iter: needs a number, got 'x'"),
+    ("ball", "mpc.solver_options={ipopt={tol=-1,constraint_violation_norm_type=\"max-norm\"}}",
+     "mpc.solver_options.ipopt.tol: -1 is outside IPOPT's range 0 < tol < +inf"),
     ("ball", 'mpc.solver_options={ipopt_warm={hessian_approximation="limited"}}',
      "mpc.solver_options.ipopt_warm.hessian_approximation: 'limited' is not one of 'exact', "
      "'limited-memory'; did you mean 'limited-memory'?"),
@@ -478,8 +480,9 @@ def test_a_refused_ipopt_option_prints_nothing_but_the_error(capfd):
     options; hmpc silences it: the error line alone."""
     import ctypes
 
-    from hmpc_cli.mpc.solver import option_problems
+    from hmpc_cli.mpc.solver import _option_problems, option_problems
 
+    _option_problems.cache_clear()  # probed here, not answered from an earlier test's probe
     capfd.readouterr()
     assert option_problems("ipopt", {"ipopt": {"mu_strategy": "adaptiv"}}) == [
         "mpc.solver_options.ipopt.mu_strategy: 'adaptiv' is not one of 'monotone', "
@@ -611,3 +614,20 @@ def test_a_dry_run_checks_the_output_directory_as_the_run_would(work: Path):
     (work / "other" / "sweep.toml").write_text('name = "other"\n')
     lines = bad_run(work, ["sweep", "x.toml", "--out", "other", "--dry-run"])
     assert len(lines) == 1 and lines[0].startswith("error: --out other: "), lines
+
+
+def test_every_option_of_the_installed_ipopts_listing_is_read():
+    """Each option line of IPOPT's own listing is in the catalogue, a long name touching its
+    default too; a string option's values are its own, each once."""
+    from hmpc_cli.mpc.ipopt_options import catalogue, listing
+
+    heads = [line for line in listing().splitlines()
+             if line[:1] not in ("", " ") and not line.startswith("###")]
+    assert len(heads) > 250 and len(catalogue()) == len(heads)
+    assert all(line.split("(")[0].split()[0] in catalogue() for line in heads)
+    assert catalogue()["constraint_violation_norm_type"].values == (
+        "1-norm", "2-norm", "max-norm")
+    assert catalogue()["quality_function_centrality"].values == (
+        "none", "log", "reciprocal", "cubed-reciprocal")
+    assert catalogue()["max_iter"].kind == "number"
+    assert all(len(set(o.values)) == len(o.values) for o in catalogue().values())

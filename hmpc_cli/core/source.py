@@ -20,24 +20,29 @@ def source_commit(root: Path = ROOT) -> str:
     """The commit of the git checkout at ``root``, ``" (modified)"`` appended if need be.
 
     The commit is 40 hex digits; `` (modified)`` follows when a tracked file differs from
-    it. ``""``: ``root`` holds no ``.git``, or git cannot read it (git missing, not a
-    repository, no commit yet).
+    it, `` (modified: unknown)`` when git names the commit but cannot compare the files.
+    ``""``: ``root`` holds no ``.git``, or git cannot tell the commit (git missing or
+    timing out, not a repository, no commit yet).
 
     Untracked files (a virtual environment, run outputs) do not count as modified. Only
-    ``root`` itself is looked at, never a repository around it.
+    ``root`` itself is looked at, never a repository around it, and ``GIT_*`` variables
+    of the environment (a git hook's) are not followed.
     """
+    import os
+
     if not (root / ".git").exists():
         return ""
     # no optional locks: a status beside the user's own git commands (or another run's)
     # neither waits for nor takes the index lock
     git = ["git", "--no-optional-locks", f"--git-dir={root / '.git'}", f"--work-tree={root}"]
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GIT_")}
     try:
         head = subprocess.run([*git, "rev-parse", "--verify", "-q", "HEAD"],
-                              capture_output=True, text=True, timeout=10)
+                              capture_output=True, text=True, timeout=10, env=env)
         if head.returncode != 0:
             return ""
         status = subprocess.run([*git, "status", "--porcelain", "--untracked-files=no"],
-                                capture_output=True, text=True, timeout=10)
+                                capture_output=True, text=True, timeout=10, env=env)
     except (OSError, subprocess.SubprocessError):
         return ""
     commit = head.stdout.strip()

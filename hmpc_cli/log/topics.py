@@ -55,7 +55,8 @@ class Versions:
         cpu: the CPU's model name (/proc/cpuinfo's ``model name``, elsewhere the
             platform's processor or machine type; absent in older logs).
         source: the commit of the git checkout hmpc ran from, ``" (modified)"`` appended
-            when a tracked file differed from it ("": not run from a git checkout;
+            when a tracked file differed from it (``" (modified: unknown)"``: git could
+            not compare them; "": not run from a git checkout, or git could not tell;
             absent in older logs).
     """
 

@@ -17,6 +17,7 @@ the status ``NonIpopt_Exception_Thrown``, which the session turns back into the 
 from __future__ import annotations
 
 import re
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -389,8 +390,9 @@ def _option_problems(name: str, extra_json: str, key: str) -> tuple[str, ...]:
             return (f"{key}.{section}.linear_solver: {solver!r} is not available "
                     f"(available: {', '.join(available) or 'none'})",)
         named = [line for sec in ("ipopt", "ipopt_warm") if isinstance(extra.get(sec), dict)
-                 for line in ipopt_options.problems(extra[sec], f"{key}.{sec}")]
-        if plugin == "ipopt" and named:
+                 for line in ipopt_options.problems(extra[sec], f"{key}.{sec}")
+                 ] if plugin == "ipopt" else []
+        if named:
             return tuple(named)
         return (f"{key}: the solver rejects these options ({instance} instance): {status}",)
     return ()
@@ -440,27 +442,49 @@ def _probe_options(name: str, extra: dict) -> list[tuple[str, dict]]:
     return [("cold", cold), ("warm", warm)]
 
 
-@contextmanager
-def _c_stdout_silenced() -> Iterator[None]:
-    """Prints inside go nowhere: CasADi's (Python's ``sys.stdout``) and C libraries' (fd 1)."""
+_SILENCE = threading.Lock()  # fd 1 and sys.stdout are the process's: one silencer at a time
+
+
+def _c_flush() -> None:
+    """Flushes the C library's stdio buffers (nothing where there is no C library handle)."""
     import contextlib
     import ctypes
+
+    with contextlib.suppress(OSError, TypeError, AttributeError):
+        ctypes.CDLL(None).fflush(None)
+
+
+@contextmanager
+def _c_stdout_silenced() -> Iterator[None]:
+    """Prints inside go nowhere: CasADi's (Python's ``sys.stdout``) and C libraries' (fd 1).
+
+    Without a file descriptor 1 (stdout closed) only Python's are held back.
+    """
+    import contextlib
     import io
     import os
     import sys
 
-    sys.stdout.flush()
-    kept, null = os.dup(1), os.open(os.devnull, os.O_WRONLY)
-    os.dup2(null, 1)
-    try:
-        with contextlib.redirect_stdout(io.StringIO()):
-            yield
-    finally:
-        with contextlib.suppress(OSError, TypeError, AttributeError):  # no C library handle
-            ctypes.CDLL(None).fflush(None)  # what the C library still holds: to /dev/null
-        os.dup2(kept, 1)
-        os.close(kept)
-        os.close(null)
+    with _SILENCE:
+        if sys.stdout is not None:
+            sys.stdout.flush()
+        _c_flush()  # what was printed before goes out before fd 1 moves
+        try:
+            kept = os.dup(1)
+        except OSError:
+            kept = None
+        if kept is not None:
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, 1)
+        try:
+            with contextlib.redirect_stdout(io.StringIO()):
+                yield
+        finally:
+            if kept is not None:
+                _c_flush()  # what the C library still holds: to /dev/null
+                os.dup2(kept, 1)
+                os.close(kept)
+                os.close(null)
 
 
 def _probe(plugin: str, opts: dict) -> str | None:

@@ -234,7 +234,7 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
     drawing, the staging directory is removed and ``results`` is as it was (not even
     created). The trajectory logs kept beside the drawn runs' logs, the figures and the
     page are then written with stop signals held: a signal meanwhile stops the command
-    once all of them are in place (a SIGKILL may leave a ``.report-staging-<pid>-*``
+    once all of them are in place (a SIGKILL may leave a ``.report-staging-*``
     directory, which ``.gitignore`` leaves out and the next report removes).
 
     Raises:
@@ -252,7 +252,8 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
     made = not results.exists()
     results.mkdir(parents=True, exist_ok=True)
     remove_stale_staging(results)
-    staging = Path(tempfile.mkdtemp(prefix=f".report-staging-{os.getpid()}-", dir=results))
+    staging = Path(tempfile.mkdtemp(prefix=".report-staging-", dir=results))
+    held = _hold(staging / STAGING_LOCK)  # this report's, until it ends
     try:
         with deferred_traces() as logs:
             lines = _page_lines(results, inputs, command, staging / "report", staging)
@@ -267,31 +268,52 @@ def write_report(results: Path, inputs: ReportInputs, command: str) -> Path:
     finally:
         with deferred():
             shutil.rmtree(staging, ignore_errors=True)
+            os.close(held)
     check()  # a stop signal held meanwhile stops the command now, the page whole
     return page
 
 
-def remove_stale_staging(results: Path) -> list[Path]:
-    """Removes the staging directories of reports whose process is gone (SIGKILLed).
+#: the lock file in a report's staging directory, held while that report runs
+STAGING_LOCK = ".lock"
 
-    A ``.report-staging-<pid>-*`` directory whose process still runs (another report
-    writing into ``results``) is left alone. Returns the removed directories.
+
+def _hold(path: Path) -> int:
+    """Opens ``path`` and takes its exclusive lock (``fcntl.flock``); returns the fd."""
+    import fcntl
+    import os
+
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    return fd
+
+
+def remove_stale_staging(results: Path) -> list[Path]:
+    """Removes the staging directories of reports that ended without removing their own.
+
+    A report holds the lock of its staging directory's ``.lock`` while it runs (released
+    when its process ends, SIGKILL included); a directory whose lock can be taken is
+    removed. One without a lock file (an older report's, or one being made this instant)
+    is left alone, as is one whose lock is held (a report running, on any machine that
+    shares the directory). Returns the removed directories.
     """
+    import fcntl
     import os
     import shutil
 
     removed = []
-    for path in sorted(results.glob(".report-staging-*-*")):
-        pid = path.name.removeprefix(".report-staging-").split("-", 1)[0]
-        if not (pid.isdigit() and path.is_dir()) or int(pid) == os.getpid():
+    for path in sorted(results.glob(".report-staging-*")):
+        try:
+            fd = os.open(path / STAGING_LOCK, os.O_RDWR)
+        except OSError:  # not a directory, or no lock file
             continue
         try:
-            os.kill(int(pid), 0)
-        except ProcessLookupError:  # gone: its staging directory is debris
-            shutil.rmtree(path, ignore_errors=True)
-            removed.append(path)
-        except OSError:  # alive under another user, or not ours to judge
-            pass
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:  # held: a report is running
+            os.close(fd)
+            continue
+        shutil.rmtree(path, ignore_errors=True)
+        os.close(fd)
+        removed.append(path)
     return removed
 
 
