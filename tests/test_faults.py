@@ -418,3 +418,18 @@ def test_other_commands_keep_the_exit_contract(tmp_path: Path, args, sig: int,
     assert proc.returncode == CODES[sig], err
     assert err.splitlines() == [f"interrupted ({name})"], err
     assert not list(tmp_path.rglob("*.tmp*")), "no temporary left behind"
+
+
+def test_a_run_started_without_a_stdout_runs_and_exits_0(tmp_path):
+    """``hmpc run ... >&-`` (no file descriptor 1, as under some schedulers): the option
+    probe's silencer and the exit's flush do without it; the run ends with status 0,
+    nothing on stderr, and its log whole."""
+    import json
+
+    out = tmp_path / "run"
+    proc = subprocess.run([*hmpc_command(), "run", str(BALL), "--set", "sim.duration=0.2",
+                           "--out", str(out), "-q"], env=cli_env(), cwd=tmp_path,
+                          stderr=subprocess.PIPE, text=True, preexec_fn=lambda: os.close(1),
+                          timeout=120)
+    assert (proc.returncode, proc.stderr) == (0, "")
+    assert json.loads((out / "summary.json").read_text())["t_end"] == 0.2

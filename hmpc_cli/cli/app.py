@@ -99,7 +99,8 @@ def end_process(code: object) -> None:
         status = 1
     atexit._run_exitfuncs()
     try:
-        sys.stdout.flush()
+        if sys.stdout is not None:  # None: started without a stdout (``>&-``)
+            sys.stdout.flush()
     except (OSError, ValueError) as exc:  # ValueError: stdout was closed
         with contextlib.suppress(Exception):
             print(f"hmpc: the output could not be written: {exc}", file=sys.stderr)
