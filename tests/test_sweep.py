@@ -550,3 +550,25 @@ def test_show_prints_one_rows_scenario_and_hmpc_run_gives_the_row_back(tmp_path,
     assert wrong.returncode == 2 and wrong.stderr == (
         f"error: --show eb5b8a7757: no run of {sweep_file} has this id (did you mean "
         f"'eb5b8a7756'? `hmpc sweep {sweep_file} --dry-run` lists its 264 runs)\n")
+
+
+def test_a_sweep_names_the_settings_its_cells_ignore(tmp_path, monkeypatch):
+    """An axis over a setting another setting switches off would run the same runs again:
+    the sweep names it, once per reason with the cells it holds for, on stderr before any
+    run; cells that read it are not named."""
+    from typer.testing import CliRunner
+
+    from hmpc_cli.cli.app import app
+
+    shutil.copy(BALL, tmp_path / "ball.toml")
+    write_sweep(tmp_path, 'name = "ignored"\nscenario = "ball.toml"\nseeds = 1\n[grid]\n'
+                '"replanning.policy" = ["once", "periodic"]\n'
+                '"replanning.period" = [0.1, 0.2]\n')
+    monkeypatch.chdir(tmp_path)
+    res = CliRunner().invoke(app, ["sweep", "sweep.toml", "--dry-run"])
+    assert res.exit_code == 0, res.output
+    assert [line for line in res.stderr.splitlines() if line.startswith("warning")] == [
+        "warning: sweep.toml: cell replanning.policy=once, replanning.period=0.1 (and 1 other "
+        'cell): replanning.period: no effect with replanning.policy = "once" (only '
+        '"periodic" replans on a period)']
+    assert "4 runs, all valid" in res.stdout

@@ -169,8 +169,10 @@ def cell_checks(plan, runs=None) -> tuple[list[str], list[str]]:
     reason`` (the cell named by its grid axes).
     Problems: :func:`hmpc_cli.run.setup_checks.setup_problems` (seeds and settings that
     cannot change them share one check). Warnings: a margins file computed for another
-    disturbance or low level (:func:`hmpc_cli.run.scenario.margins_file_warnings`), each
-    reason once, with the number of cells it holds for.
+    disturbance or low level (:func:`hmpc_cli.run.scenario.margins_file_warnings`) and a
+    setting the cell's runs ignore (:func:`hmpc_cli.run.scenario.inert_settings`: an
+    axis over it would run the same runs again), each reason once, with the number of
+    cells it holds for.
     """
     import json
     import tomllib
@@ -190,7 +192,7 @@ def cell_checks(plan, runs=None) -> tuple[list[str], list[str]]:
                               sc.disturbance.magnitude, sc.lowlevel.kp, sc.lowlevel.kd])
         if margins not in read:
             read[margins] = margins_file_warnings(sc)
-        for line in read[margins]:
+        for line in [*read[margins], *_inert(plan, run, sc, read)]:
             if cell not in noted.setdefault(line, []):
                 noted[line].append(cell)
         key = json.dumps([sc.system.model_dump(mode="json"), sc.mpc.model_dump(mode="json")],
@@ -204,6 +206,25 @@ def cell_checks(plan, runs=None) -> tuple[list[str], list[str]]:
                    if len(cells) > 1 else "")
                 + f": {line}" for line, cells in noted.items()]
     return out, warnings
+
+
+def _inert(plan, run, sc, read: dict[str, list[str]]) -> list[str]:
+    """``key: no effect with ...`` per setting of ``run``'s cell that its runs ignore.
+
+    Computed once per distinct set of overrides (kept in ``read``).
+    """
+    import json
+
+    from hmpc_cli.run.scenario import inert_settings
+    from hmpc_cli.sweep.table import toml_value
+
+    items = [f"{k}={toml_value(v)}" for k, v in run.overrides.items()]
+    key = json.dumps(["inert", items])
+    if key not in read:  # each line begins with "--set k=v: " or the scenario file's name
+        heads = [f"--set {item}: " for item in items] + [f"{plan.scenario}: "]
+        read[key] = [next((line.removeprefix(h) for h in heads if line.startswith(h)), line)
+                     for line in inert_settings(plan.scenario, items, sc)]
+    return read[key]
 
 
 def _show(plan, run_id: str) -> None:
