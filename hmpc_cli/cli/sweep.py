@@ -220,10 +220,8 @@ def _inert(plan, run, sc, read: dict[str, list[str]]) -> list[str]:
 
     items = [f"{k}={toml_value(v)}" for k, v in run.overrides.items()]
     key = json.dumps(["inert", items])
-    if key not in read:  # each line begins with "--set k=v: " or the scenario file's name
-        heads = [f"--set {item}: " for item in items] + [f"{plan.scenario}: "]
-        read[key] = [next((line.removeprefix(h) for h in heads if line.startswith(h)), line)
-                     for line in inert_settings(plan.scenario, items, sc)]
+    if key not in read:
+        read[key] = inert_settings(plan.scenario, items, sc, attributed=False)
     return read[key]
 
 

@@ -708,20 +708,24 @@ def other_kind_of_file(data: dict, source: str, expected: str) -> list[str]:
 
 
 def inert_settings(path: str | Path, overrides: list[str] = (),
-                   scenario: ScenarioBase | None = None) -> list[str]:
+                   scenario: ScenarioBase | None = None, attributed: bool = True
+                   ) -> list[str]:
     """Settings the file or a ``--set`` gives that the run ignores (a valid scenario's).
 
     The disturbance's keys its kind does not read and, with the validated ``scenario``,
     the settings another setting of it switches off (:func:`_switched_off`; those of
     :data:`SET_ONLY` only when a ``--set`` gives them).
-    ``source: key: no effect ...`` lines, ``source`` the ``--set`` when one set the key.
+    ``source: key: no effect ...`` lines, ``source`` the ``--set`` when one set the key;
+    ``key: no effect ...`` without ``attributed`` (a sweep names its cells instead).
     """
     from hmpc_cli.sim.disturbance import inert_keys
 
     data = apply_overrides(_read_toml(Path(path)), list(overrides), str(path))
     given = data.get("disturbance") if isinstance(data.get("disturbance"), dict) else {}
-    lines = attribute_to_sets([f"{path}: {line}" for line in inert_keys(
-        given.get("kind", "none"), given)], str(path), list(overrides), True)
+    lines = inert_keys(given.get("kind", "none"), given)
+    if attributed:
+        lines = attribute_to_sets([f"{path}: {line}" for line in lines], str(path),
+                                  list(overrides), True)
     if scenario is None:
         return lines
     keys = [(k, item) for item in overrides for k in _set_keys(item)]
@@ -729,10 +733,9 @@ def inert_settings(path: str | Path, overrides: list[str] = (),
         key = line.partition(": ")[0]
         given_by = [item for k, item in keys
                     if k == key or k.startswith(f"{key}.") or key.startswith(f"{k}.")]
-        if given_by:
-            lines.append(f"--set {given_by[-1]}: {line}")
-        elif key not in SET_ONLY:
-            lines.append(f"{path}: {line}")
+        source = f"--set {given_by[-1]}" if given_by else None if key in SET_ONLY else path
+        if source is not None:
+            lines.append(f"{source}: {line}" if attributed else line)
     return lines
 
 
