@@ -14,9 +14,9 @@ Hessian of the Lagrangian and the constraint Jacobian that IPOPT calls every ite
   and other derivative graphs: other iterates).
 
 Then, for either input hold, both NLPs' Hessian of the Lagrangian assembled stage by stage
-(:func:`staged_hessian`, given to ``nlpsol`` as ``hess_lag``) against the one ``nlpsol``
+(:func:`staged_hessian`: hmpc's, given to IPOPT as ``hess_lag``) against the one ``nlpsol``
 generates from the whole graph: set-up, evaluation, and how many of its entries differ
-bit for bit at random points (:func:`hessian_rows`; a lever tried, not adopted).
+bit for bit at random points (:func:`hessian_rows`).
 
 Measured, never asserted; the findings are in docs/performance.md.
 """
@@ -62,72 +62,11 @@ def call_ms(f: ca.Function, args: list, reps: int = 30) -> float:
 
 
 def staged_hessian(nlp: FixedModeNLP, layout: NLPLayout, expand: bool = False) -> ca.Function:
-    """The Lagrangian's Hessian assembled from each kind of stage's own, as ``hess_lag``.
+    """hmpc's Hessian of the Lagrangian assembled stage by stage (``_staged_hessian``).
 
-    Each stage function of :meth:`FixedModeNLP._stage_functions` gets the SX Hessian of
-    lam_f * cost + lam^T rows in its own variables: (z, u, sigma, z_next[, u_next]) of a
-    link, (z, sigma) of the last node (the cost first, as ``nlpsol`` forms the Lagrangian:
-    the other order gives other roundings). It is mapped over its stages in MX on gathers
-    of x and p and on slices of lam_g, and its nonzeros are summed into the upper triangle
-    by a constant 0/1 matrix (with a first-order hold, u_k is in links k-1 and k).
-    ``expand`` makes the whole of it SX.
-
-    Returns:
-        (x, p, lam_f, lam_g) -> triu(H), shape (nx, nx): ``nlpsol``'s ``nlp_hess_l``.
+    The map kept in MX, as hmpc gives it to IPOPT; ``expand`` makes the whole of it SX.
     """
-    X, P, L = layout.x, layout.p, nlp.L
-    link_par, node_par = nlp._stage_parameters()
-    widths = {name: int(np.prod(P[name].shape[1:])) for name in link_par}
-    link, held, last = nlp._stage_functions(link_par, node_par, widths)
-    x, p, lam_f = ca.MX.sym("x", X.size), ca.MX.sym("p", P.size), ca.MX.sym("lam_f")
-    lam_g = ca.MX.sym("lam_g", layout.g.size)
-
-    def cols(v: ca.MX, idx: np.ndarray, stages: slice) -> tuple[ca.MX, np.ndarray]:
-        """Entries idx[stages] of v, one column per stage, and their indices (stage, width)."""
-        idx = (idx[:, None] if idx.ndim == 1 else idx)[stages]
-        return ca.reshape(v[idx.ravel().tolist()], idx.shape[1], idx.shape[0]), idx
-
-    def pars(names: tuple[str, ...], stages: slice) -> ca.MX:
-        return ca.vertcat(*[cols(p, P[name], stages)[0] for name in names])
-
-    n_foh = L - 1 if nlp.s.input_hold == "foh" else 0
-    kinds = [(link, slice(0, n_foh), link_par), (held, slice(n_foh, L), link_par),
-             (last, slice(L, L + 1), node_par)]
-    values, rows, columns, row = [], [], [], 0
-    for fn, ks, names in kinds:
-        n = ks.stop - ks.start
-        if n == 0:
-            continue
-        zn = slice(ks.start + 1, ks.stop + 1)
-        if fn is last:
-            variables = [cols(x, X["z"], ks), cols(x, X["sigma"], ks)]
-        else:
-            variables = [cols(x, X["z"], ks), cols(x, X["u"], ks), cols(x, X["sigma"], ks),
-                         cols(x, X["z"], zn)] + ([cols(x, X["u"], zn)] if fn is link else [])
-        sym = [ca.SX.sym(f"v{i}", fn.size1_in(i)) for i in range(fn.n_in())]
-        n_rows = fn.size1_out(0)
-        lam, lf = ca.SX.sym("lam", n_rows), ca.SX.sym("lam_f")
-        out = fn(*sym)
-        lag = lf * out[1] + ca.dot(lam, out[0]) if fn.n_out() == 2 else ca.dot(lam, out)
-        h = ca.hessian(lag, ca.vertcat(*sym[:len(variables)]))[0]
-        hk = ca.Function("h", [*sym, lam, lf], [h.nz[:]])
-        v = hk.map(n)(*[c for c, _ in variables], pars(names, ks),
-                      ca.reshape(lam_g[row:row + n_rows * n], n_rows, n), ca.repmat(lam_f, 1, n))
-        row += n_rows * n
-        idx = np.hstack([i for _, i in variables])  # (stages, stage variables)
-        r, c = h.sparsity().get_triplet()
-        values.append(ca.vec(v))
-        rows.append(idx[:, r].ravel())
-        columns.append(idx[:, c].ravel())
-    r, c = np.concatenate(rows), np.concatenate(columns)
-    upper = np.flatnonzero(r <= c)
-    entry, which = np.unique(c[upper] * X.size + r[upper], return_inverse=True)  # column-major
-    total = ca.DM(ca.Sparsity.triplet(entry.size, r.size, which.tolist(), upper.tolist()), 1.0)
-    sparsity = ca.Sparsity.triplet(X.size, X.size, (entry % X.size).tolist(),
-                                   (entry // X.size).tolist())
-    hess = ca.MX(sparsity, ca.mtimes(total, ca.vertcat(*values)))
-    fn = ca.Function("nlp_hess_l", [x, p, lam_f, lam_g], [hess],
-                     ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
+    fn = nlp._staged_hessian(layout)
     return fn.expand() if expand else fn
 
 

@@ -21,6 +21,9 @@ when the library is loaded), in the directory of the C rollouts
 * ``nlp-<key>.json``: the layout (block names, stages, offsets, shapes);
 * ``nlp-<key>.casadi``: the NLP's ``(x, p) -> (f, g)`` function, serialized (the
   transcription);
+* ``nlp-<key>-hess.casadi``: the Hessian of the Lagrangian the NLP gives IPOPT instead of
+  the one ``nlpsol`` generates (``hess_lag``; the chain NLP's, assembled stage by stage),
+  serialized, if it has one (its layout file says);
 * ``nlp-<key>-<compiler>.so``: the library, its name also keyed by the compiler's identity
   and the flags.
 
@@ -74,12 +77,12 @@ from hmpc_cli import __version__
 from hmpc_cli.core import cbuild
 from hmpc_cli.core.messages import BuildInfo
 from hmpc_cli.mpc.builder import NLPLayout
-from hmpc_cli.mpc.solver import without_nlp_grad
+from hmpc_cli.mpc.solver import DERIVATIVES, without_nlp_grad
 from hmpc_cli.mpc.solver_table import SOLVERS, backend_of
 
 ENV = "HMPC_BUILD_CACHE"
 CFLAGS = ("-O1", "-shared", "-fPIC", "-ffp-contract=off", "-fno-fast-math")
-FORMAT = 1  # of the entry files
+FORMAT = 2  # of the entry files (2: the Hessian file)
 #: [s] a compile lock older than this is taken over (one of a dead process at once)
 LOCK_STALE = 3600.0
 #: MPC settings applied at solve time (bounds, parameters, options): not in the key
@@ -204,6 +207,7 @@ class Entry:
         self.key, self.folder = key, folder
         self.meta = folder / f"{stem}.json"
         self.function = folder / f"{stem}.casadi"
+        self.hessian = folder / f"{stem}-hess.casadi"
         self.library = folder / f"{stem}-{cc}.so"
         self.lock = folder / f"{stem}-{cc}.lock"
         self.failed = folder / f"{stem}-{cc}.failed"
@@ -285,6 +289,31 @@ def load_transcription(entry: Entry) -> dict:
     return {"x": x, "p": p, "f": f, "g": g}
 
 
+def load_hessian(entry: Entry) -> ca.Function | None:
+    """The entry's stored ``hess_lag``, or None if its layout file records none.
+
+    Raises:
+        ValueError: the layout file or the Hessian's is missing or damaged, or the
+            Hessian is not a function of (x, p, lam_f, lam_g).
+    """
+    if not entry.check(entry.meta):
+        raise ValueError(f"{entry.meta} is missing or damaged")
+    try:
+        if not json.loads(entry.meta.read_text()).get("hess_lag"):
+            return None
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{entry.meta}: {e}") from e
+    if not entry.check(entry.hessian, entry.key):
+        raise ValueError(f"{entry.hessian} is missing or damaged")
+    try:
+        fun = ca.Function.deserialize(entry.hessian.read_bytes().decode())
+    except (OSError, RuntimeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{entry.hessian}: {e}") from e
+    if fun.n_in() != 4 or fun.n_out() != 1:
+        raise ValueError(f"{entry.hessian} is not a Hessian's (x, p, lam_f, lam_g) -> H")
+    return fun
+
+
 def lookup(key: str, plugin: str) -> Hit:
     """The compiled library and layout of ``key`` if cached and verified, else why not.
 
@@ -317,7 +346,7 @@ def lookup(key: str, plugin: str) -> Hit:
 
 
 def store(key: str, plugin: str, nlp: dict, layout: NLPLayout, *,
-          stored: bool = False) -> BuildInfo:
+          stored: bool = False, hess_lag: ca.Function | None = None) -> BuildInfo:
     """Stores a freshly built NLP's layout and function, and starts its compilation.
 
     In the default mode (``use``) nothing is stored: transcribing the NLP again costs
@@ -329,6 +358,8 @@ def store(key: str, plugin: str, nlp: dict, layout: NLPLayout, *,
         nlp: the NLP ``{"x", "p", "f", "g"}``.
         layout: its layout.
         stored: they are stored already (the NLP was loaded from them).
+        hess_lag: the Hessian of the Lagrangian the NLP gives IPOPT (None: ``nlpsol``'s);
+            the library is compiled with it.
 
     Returns:
         The build info of this (SX) build: ``miss``, whether the transcription was loaded,
@@ -337,11 +368,12 @@ def store(key: str, plugin: str, nlp: dict, layout: NLPLayout, *,
     entry, off = open_entry(key, plugin)
     if entry is None:
         return off.info
-    fate = _library_fate(entry, nlp, layout, stored)
+    fate = _library_fate(entry, nlp, layout, stored, hess_lag)
     return BuildInfo("miss", False, f"{TRANSCRIPTION_LOADED}; {fate}" if stored else fate)
 
 
-def _library_fate(entry: Entry, nlp: dict, layout: NLPLayout, stored: bool) -> str:
+def _library_fate(entry: Entry, nlp: dict, layout: NLPLayout, stored: bool,
+                  hess_lag: ca.Function | None) -> str:
     """What happens to the entry's library.
 
     ``sync`` compiles it now and ``background`` queues it, after storing the function and
@@ -354,9 +386,11 @@ def _library_fate(entry: Entry, nlp: dict, layout: NLPLayout, stored: bool) -> s
                           ["x", "p"], ["f", "g"])
         try:
             cbuild.write_verified(entry.function, fun.serialize(), entry.key)
+            if hess_lag is not None:
+                cbuild.write_verified(entry.hessian, hess_lag.serialize(), entry.key)
             cbuild.write_verified(entry.meta, json.dumps(
-                {"format": FORMAT, "key": entry.key, "layout": layout.to_dict()},
-                sort_keys=True))
+                {"format": FORMAT, "key": entry.key, "layout": layout.to_dict(),
+                 "hess_lag": hess_lag is not None}, sort_keys=True))
         except OSError as e:
             return f"cannot write the cache: {e}"
     if entry.failed.exists():
@@ -486,16 +520,31 @@ def generate(entry: Entry, folder: Path) -> Path:
     """
     try:
         nlp = load_transcription(entry)
+        hess = load_hessian(entry)
     except ValueError as e:
         raise cbuild.CBuildError(str(e)) from e
     try:
-        solver = ca.nlpsol("nlp", "ipopt", nlp,
-                           without_nlp_grad({"expand": True, "calc_lam_p": False}))
+        solver = ca.nlpsol("nlp", "ipopt", nlp, without_nlp_grad(
+            {"expand": True, "calc_lam_p": False, **({"hess_lag": hess} if hess else {})}))
         with contextlib.chdir(folder):
-            solver.generate_dependencies("nlp.c", {"with_header": False})
+            _generate_c(solver, "nlp.c")
     except RuntimeError as e:
         raise cbuild.CBuildError(f"code generation failed: {e}") from e
     return folder / "nlp.c"
+
+
+def _generate_c(solver: ca.Function, name: str) -> None:
+    """``solver.generate_dependencies(name)``, the functions given as options included.
+
+    ``generate_dependencies`` writes the oracle and the functions ``nlpsol`` generated,
+    sorted by name, but not one it was given (``hess_lag``); the same C for the rest.
+    """
+    gen = ca.CodeGenerator(name, {"with_header": False})
+    gen.add(solver.oracle())
+    for fn in sorted({"nlp_f", "nlp_g", *DERIVATIVES["ipopt"].values()}):
+        if solver.has_function(fn):
+            gen.add(solver.get_function(fn))
+    gen.generate()
 
 
 def compile_entry(entry: Entry) -> float:

@@ -215,6 +215,10 @@ class SolverSession:
         sqp_iter: ``sqp_hpipm``: SQP iterations per solve (real-time iterations).
         residuals: ``sqp_hpipm``: least-squares residuals of the cost (see
             :func:`hmpc_cli.mpc.backends.gauss_newton_hessian`).
+        hess_lag: IPOPT's Hessian of the Lagrangian, (x, p, lam_f, lam_g) -> its upper
+            triangle, instead of the one ``nlpsol`` generates from the whole graph
+            (e.g. :meth:`~hmpc_cli.mpc.chain.nlp.FixedModeNLP._staged_hessian`); other
+            plug-ins, and a compiled library (whose own it is), leave it out.
 
     Raises:
         ValueError: an unknown back-end, or a compiled library for a back-end that
@@ -225,13 +229,14 @@ class SolverSession:
                  tol: float = 1e-8, max_wall_time: float | None = None,
                  equality: list[bool] | None = None, extra: dict | None = None,
                  warm: WarmStart | None = None, structure: OCPStructure | None = None,
-                 sqp_iter: int = 10, residuals=None) -> None:
+                 sqp_iter: int = 10, residuals=None,
+                 hess_lag: ca.Function | None = None) -> None:
         """Builds the cold and (a back-end with a warm instance, ``warm``) the warm one."""
         self.backend = backend = backend_of(plugin)
         self.plugin, self._nlp, self._name = plugin, nlp, name
         self._args = dict(max_iter=max_iter, tol=tol, max_wall_time=max_wall_time,
                           equality=equality, extra=extra, warm=warm, structure=structure,
-                          sqp_iter=sqp_iter, residuals=residuals)
+                          sqp_iter=sqp_iter, residuals=residuals, hess_lag=hess_lag)
         self._fallback: SolverSession | None = None
         compiled = isinstance(nlp, str)  # a library of nlpsol's generated functions
         if compiled and not backend.compilable:
@@ -241,6 +246,8 @@ class SolverSession:
                           structure, sqp_iter, residuals)
         self.options = without_nlp_grad({"calc_lam_p": False, **backend.options(args)},
                                          backend.plugin)
+        if hess_lag is not None and backend.plugin == "ipopt" and not compiled:
+            self.options = {"hess_lag": hess_lag, **self.options}
         if compiled and not self.options.get("no_nlp_grad"):
             asked = [k for k in NLP_GRAD_USERS if self.options.get(k)] or ["no_nlp_grad=False"]
             raise RuntimeError(f"options {asked} need nlp_grad, which a compiled NLP leaves out")

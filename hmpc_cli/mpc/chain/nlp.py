@@ -276,6 +276,7 @@ class FixedModeNLP:
         self.mode_cols = np.array([self.mode_col.get(i, -1) for i in range(len(system.modes))])
         #: per mode: its tightened input box (lower, upper), shape (modes, 2, m)
         self.input_boxes = np.array([self.input_box(i) for i in range(len(system.modes))])
+        self._guard_functions()
         self._build()
         self.shape = ChainShape(
             system=system, s=settings, layout=self.layout, L=self.L, m=self.m, dt=self.dt,
@@ -315,16 +316,21 @@ class FixedModeNLP:
             loaded = hit.transcription is not None
             nlp, self.layout = (hit.transcription, hit.layout) if loaded else \
                 self._transcription()
-            self.session = self._session(nlp)
+            hess = self._staged_hessian(self.layout)
+            self.session = self._session(nlp, hess)
             self.build_info = hit.info if hit.info.cache == "disabled" else \
-                cache.store(key, self.s.solver_of(self.S), nlp, self.layout, stored=loaded)
+                cache.store(key, self.s.solver_of(self.S), nlp, self.layout, stored=loaded,
+                            hess_lag=hess)
         X, g = self.layout.x, self.layout.g
         self.nx_var, self.ng, self.np = X.size, g.size, self.layout.p.size
         self.z_idx, self.u_idx, self.s_idx = X["z"], X["u"], X["sigma"]
         self.link_rows = np.stack([g.at(k) for k in range(self.L)])  # (L, rows per link)
 
-    def _session(self, nlp: dict | str) -> SolverSession:
-        """The solver session of the NLP (an SX dict or a compiled library's path)."""
+    def _session(self, nlp: dict | str, hess_lag: ca.Function | None = None) -> SolverSession:
+        """The solver session of the NLP (an SX dict or a compiled library's path).
+
+        ``hess_lag``: IPOPT's Hessian of the Lagrangian (:meth:`_staged_hessian`).
+        """
         equality, structure, solver = None, None, self.s.solver_of(self.S)
         if SOLVERS[solver].stagewise:
             eq = np.zeros(self.layout.g.size, dtype=bool)
@@ -333,7 +339,7 @@ class FixedModeNLP:
         return SolverSession(
             "fixed_mode_mpc", nlp, solver, max_iter=self.s.max_iter, tol=1e-8,
             equality=equality, extra=self.s.solver_options, warm=WARM_START,
-            structure=structure, sqp_iter=self.s.max_sqp_iter)
+            structure=structure, sqp_iter=self.s.max_sqp_iter, hess_lag=hess_lag)
 
     def _transcription(self) -> tuple[dict, NLPLayout]:
         """The NLP ``{"x", "p", "f", "g"}`` in SX and its layout.
@@ -350,7 +356,6 @@ class FixedModeNLP:
                     b.variable("u", self.m)
                 b.variable("sigma")
         self._parameters(b)
-        self._guard_functions()
         for k in range(self.L + 1):
             with b.stage(k):
                 for name, shape in self._row_blocks(link=k < self.L):
@@ -385,38 +390,95 @@ class FixedModeNLP:
         in a fraction of the Python calls. ``expand=False`` keeps the map in MX
         (``benchmarks/probe_stagewise.py`` measures both).
         """
-        X, P, L, foh = layout.x, layout.p, self.L, self.s.input_hold == "foh"
-        link_par, node_par = self._stage_parameters()
-        x, p = ca.MX.sym("x", X.size), ca.MX.sym("p", P.size)
-
-        def cols(v: ca.MX, idx: np.ndarray, stages: slice) -> ca.MX:
-            """Entries idx[stages] of v as columns, one per stage: shape (width, stages)."""
-            idx = (idx[:, None] if idx.ndim == 1 else idx)[stages]
-            return ca.reshape(v[idx.ravel().tolist()], idx.shape[1], idx.shape[0])
-
-        def pars(names: tuple[str, ...], stages: slice) -> ca.MX:
-            return ca.vertcat(*[cols(p, P[name], stages) for name in names])
-
-        widths = {name: math.prod(P[name].shape[1:]) for name in link_par}
-        link, held, last = self._stage_functions(link_par, node_par, widths)
-        z, u, sig = X["z"], X["u"], X["sigma"]
-        n_foh = L - 1 if foh else 0  # a first-order hold's links; the rest hold their input
+        x, p = ca.MX.sym("x", layout.x.size), ca.MX.sym("p", layout.p.size)
         rows, costs = [], []
-        for fn, start, stop in ((link, 0, n_foh), (held, n_foh, L)):
-            if stop == start:
+        for fn, n, variables, pars in self._stage_kinds(layout, x, p):
+            if fn.n_out() == 1:  # the last node
+                rows.append(fn(*[c for c, _ in variables], pars))
                 continue
-            ks, zn = slice(start, stop), slice(start + 1, stop + 1)
-            u_next = [cols(x, u, zn)] if fn is link else []
-            r, j = fn.map(stop - start)(cols(x, z, ks), cols(x, u, ks), cols(x, sig, ks),
-                                        cols(x, z, zn), *u_next, pars(link_par, ks))
+            r, j = fn.map(n)(*[c for c, _ in variables], pars)
             rows.append(ca.vec(r))
             costs.append(ca.sum2(j))
-        rows.append(last(cols(x, z, slice(L, L + 1)), cols(x, sig, slice(L, L + 1)),
-                         pars(node_par, slice(L, L + 1))))
         cost = costs[0] if len(costs) == 1 else costs[0] + costs[1]
-        f = cost + self.s.soft_penalty * ca.sum1(x[sig.ravel().tolist()])
+        f = cost + self.s.soft_penalty * ca.sum1(x[layout.x["sigma"].ravel().tolist()])
         fn = ca.Function("nlp", [x, p], [f, ca.vertcat(*rows)])
         return fn.expand() if expand else fn
+
+    def _stage_kinds(self, layout: NLPLayout, x: ca.MX, p: ca.MX) -> list[tuple]:
+        """Each kind of stage in the order of g: (function, stages, variables, parameters).
+
+        The kinds are :meth:`_stage_functions`' (links with a first-order hold, held links,
+        the last node), those with no stage left out. ``variables``: per argument of the
+        function before its parameters, (entries of x, one column per stage; their
+        indices into x, shape (stages, width)); ``parameters``: the stages' parameter
+        blocks stacked, one column per stage.
+        """
+        X, P, L = layout.x, layout.p, self.L
+        link_par, node_par = self._stage_parameters()
+        widths = {name: math.prod(P[name].shape[1:]) for name in link_par}
+        link, held, last = self._stage_functions(link_par, node_par, widths)
+        n_foh = L - 1 if self.s.input_hold == "foh" else 0  # the rest hold their input
+        out = []
+        for fn, ks, names in ((link, slice(0, n_foh), link_par), (held, slice(n_foh, L),
+                              link_par), (last, slice(L, L + 1), node_par)):
+            if ks.stop == ks.start:
+                continue
+            zn = slice(ks.start + 1, ks.stop + 1)
+            blocks = [(X["z"], ks), (X["sigma"], ks)] if fn is last else \
+                [(X["z"], ks), (X["u"], ks), (X["sigma"], ks), (X["z"], zn)] + \
+                ([(X["u"], zn)] if fn is link else [])
+            pars = ca.vertcat(*[_stage_columns(p, P[name], ks)[0] for name in names])
+            out.append((fn, ks.stop - ks.start,
+                        [_stage_columns(x, idx, stages) for idx, stages in blocks], pars))
+        return out
+
+    def _staged_hessian(self, layout: NLPLayout) -> ca.Function:
+        """The Lagrangian's Hessian assembled stage by stage, as IPOPT's ``hess_lag``.
+
+        Each kind of stage (:meth:`_stage_kinds`) gets the SX Hessian of lam_f * cost +
+        lam^T rows in its own variables (the cost first, as ``nlpsol`` forms the
+        Lagrangian), mapped over its stages in MX on gathers of x, p and slices of lam_g;
+        a constant 0/1 matrix sums the entries into the upper triangle (with a first-order
+        hold u_k is in links k-1 and k). Its sparsity is the whole graph's Hessian's; its
+        entries equal ``nlpsol``'s bit for bit with a zero-order hold, and to rounding
+        (the two sums of u_k's entries associated otherwise) with a first-order hold. It
+        is made in a fraction of the time ``nlpsol`` takes to differentiate the whole
+        graph twice (docs/performance.md).
+
+        Returns:
+            (x, p, lam_f, lam_g) -> triu(H), shape (nx, nx), named as ``nlpsol``'s
+            ``nlp_hess_l``.
+        """
+        nx = layout.x.size
+        x, p = ca.MX.sym("x", nx), ca.MX.sym("p", layout.p.size)
+        lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", layout.g.size)
+        values, rows, columns, row = [], [], [], 0
+        for fn, n, variables, pars in self._stage_kinds(layout, x, p):
+            sym = [ca.SX.sym(f"v{i}", fn.size1_in(i)) for i in range(fn.n_in())]
+            n_rows = fn.size1_out(0)
+            lam, lf = ca.SX.sym("lam", n_rows), ca.SX.sym("lam_f")
+            out = fn(*sym)
+            lag = lf * out[1] + ca.dot(lam, out[0]) if fn.n_out() == 2 else ca.dot(lam, out)
+            h = ca.hessian(lag, ca.vertcat(*sym[:len(variables)]))[0]
+            hk = ca.Function("h", [*sym, lam, lf], [h.nz[:]])
+            v = hk.map(n)(*[c for c, _ in variables], pars,
+                          ca.reshape(lam_g[row:row + n_rows * n], n_rows, n),
+                          ca.repmat(lam_f, 1, n))
+            row += n_rows * n
+            idx = np.hstack([i for _, i in variables])  # (stages, stage variables)
+            r, c = h.sparsity().get_triplet()
+            values.append(ca.vec(v))
+            rows.append(idx[:, r].ravel())
+            columns.append(idx[:, c].ravel())
+        r, c = np.concatenate(rows), np.concatenate(columns)
+        upper = np.flatnonzero(r <= c)
+        entry, which = np.unique(c[upper] * nx + r[upper], return_inverse=True)  # by column
+        total = ca.DM(ca.Sparsity.triplet(entry.size, r.size, which.tolist(), upper.tolist()),
+                      1.0)
+        sparsity = ca.Sparsity.triplet(nx, nx, (entry % nx).tolist(), (entry // nx).tolist())
+        hess = ca.MX(sparsity, ca.mtimes(total, ca.vertcat(*values)))
+        return ca.Function("nlp_hess_l", [x, p, lam_f, lam_g], [hess],
+                           ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
 
     def _stage_parameters(self) -> tuple[tuple[str, ...], tuple[str, ...]]:
         """The parameter blocks a link's and a node's rows read (see :meth:`_parameters`)."""
@@ -591,6 +653,16 @@ class FixedModeNLP:
         seg = lay.seg[: k_last + 1].copy()
         mode = np.array([ns.modes[j] for j in seg])
         return Trajectory(t, x, u, mode, seg, tuple(ns.guards), self.s.input_hold)
+
+
+def _stage_columns(v: ca.MX, idx: np.ndarray, stages: slice) -> tuple[ca.MX, np.ndarray]:
+    """Entries ``idx[stages]`` of v, one column per stage, and those indices.
+
+    ``idx``: a staged block's indices, shape (stages,) or (stages, width). Returns the
+    entries, shape (width, stages), and the indices, shape (stages, width).
+    """
+    idx = (idx[:, None] if idx.ndim == 1 else idx)[stages]
+    return ca.reshape(v[idx.ravel().tolist()], idx.shape[1], idx.shape[0]), idx
 
 
 def _move(dst: np.ndarray, src: np.ndarray, maps: dict, to: Blocks, frm: Blocks):
