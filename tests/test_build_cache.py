@@ -97,6 +97,31 @@ def test_same_problem_hits_and_solves_bit_identically(tiny, filled, use):
     np.testing.assert_array_equal(first.constraints(w, p), second.constraints(w, p))
 
 
+def test_the_library_holds_the_staged_hessian_ipopt_is_given(tiny, filled):
+    """The chain NLP gives IPOPT its Hessian assembled stage by stage; the compiled library's
+    ``nlp_hess_l`` is that function (its C), not one ``nlpsol`` derives from the whole graph:
+    equal bit for bit at random points, where ``nlpsol``'s differs (first-order hold)."""
+    import casadi as ca
+
+    folder, first = filled
+    assert first.session.options["hess_lag"] is not None
+    library = next(folder.glob(f"nlp-{cache.structure_key(*tiny, 1)[:32]}-*.so"))
+    compiled = ca.external("nlp_hess_l", str(library))
+    staged = first._staged_hessian(first.layout)
+    whole, _ = first._transcription()
+    derived = ca.nlpsol("whole", "ipopt", whole, {"print_time": False, "no_nlp_grad": True,
+                                                  "calc_lam_p": False})
+    rng = np.random.default_rng(3)
+    differs = 0
+    for _ in range(5):
+        args = [rng.standard_normal(first.nx_var), rng.uniform(size=first.np),
+                rng.standard_normal(), rng.standard_normal(first.ng)]
+        np.testing.assert_array_equal(compiled(*args).full(), staged(*args).full())
+        differs += np.count_nonzero(derived.get_function("nlp_hess_l")(*args).full()
+                                    != staged(*args).full())
+    assert differs > 0
+
+
 def test_the_default_mode_writes_nothing_and_loads_a_stored_transcription(tiny, filled, use,
                                                                           monkeypatch):
     folder = use()  # an empty cache

@@ -1,12 +1,13 @@
 """Build cache of the MPC's NLPs: compiled once per problem structure, loaded after.
 
 Where a process spends its start-up (``hmpc run scenarios/ball.toml``): transcribing
-each NLP into an SX graph and every ``ca.nlpsol`` call (the symbolic gradient, Jacobian
-and Hessian of the Lagrangian and their sparsity), which the cold and the warm IPOPT
-instance of both NLPs repeat: most of a short run (results/bench/). A serialized
+each NLP into an SX graph and its ``ca.nlpsol`` (the symbolic gradient and Jacobian and
+their sparsity; the chain NLP gives IPOPT its Hessian of the Lagrangian made stage by
+stage): most of a short run (results/bench/). A serialized
 ``nlpsol`` does not help (tens of MB for the switching NLP, slower to read than to rebuild), so
 the cache keeps what IPOPT calls, compiled: the C that ``nlpsol.generate_dependencies``
-writes (``nlp_f``, ``nlp_g``, ``nlp_grad_f``, ``nlp_jac_g``, ``nlp_hess_l``; no ``nlp_grad``),
+writes (``nlp_f``, ``nlp_g``, ``nlp_grad_f``, ``nlp_jac_g``, ``nlp_hess_l``; no ``nlp_grad``;
+a Hessian ``nlpsol`` was given written with them: :func:`_generate_c`),
 built into a shared library that ``ca.nlpsol(name, "ipopt", library)`` loads in
 milliseconds, with the NLP's block layout beside it. Compiled this way the solves are the
 SX virtual machine's bit for bit (same operations, ``-ffp-contract=off``).
@@ -128,7 +129,7 @@ def mode() -> str:
 
 #: why a miss is not compiled in the default mode
 NOT_COMPILED = (f"not compiled: {ENV}=background (at exit) or {ENV}=sync (now) compiles it, "
-                "once per problem structure (minutes of CPU, ~3 GB for the ball)")
+                "once per problem structure (minutes of CPU, ~2 GB for the ball)")
 
 
 #: the reason of a miss whose transcription was loaded (before what happens to the library)
