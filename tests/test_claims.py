@@ -215,8 +215,8 @@ def test_the_readmes_real_time_ipopt_sentence_is_the_committed_table():
     assert lost("model, next domain") == [0] * 5 + [1] * 3
     assert max(ok[k] for k in runs if k[0].endswith("hold")) == 2
     readme = " ".join((ROOT / "README.md").read_text().split())
-    assert ("with its measured compute time 5 of 8 controllers hold 11/11 and the others 8 "
-            "or 10 of 11") in readme
+    assert ("with its measured compute time 5 of 8 controllers hold 11/11, the others 8 or "
+            "10") in readme
     assert ("with the modelled one 3 of 8 lose one trial; holding the guard node instead, "
             "none holds more than 2 of 11.") in readme
 
