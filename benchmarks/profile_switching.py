@@ -260,14 +260,17 @@ def settings_of(overrides=()):
 
 def session(nlp: FixedModeNLP, ipopt: dict | None = None, warm: WarmStart = WARM_START,
             ipopt_warm: dict | None = None, max_iter: int | None = None) -> SolverSession:
-    """An IPOPT session on ``nlp``'s expressions with other options (timers on)."""
+    """An IPOPT session on ``nlp``'s expressions with other options (timers on).
+
+    It gets the Hessian of the Lagrangian ``nlp``'s own session gives IPOPT.
+    """
     extra: dict = {"record_time": True, "ipopt": dict(ipopt or {})}
     if ipopt_warm:
         extra["ipopt_warm"] = ipopt_warm
     if (ipopt or {}).get("hessian_approximation") != "limited-memory":
         return SolverSession("profile", nlp.session._nlp, "ipopt",
                              max_iter=max_iter or nlp.s.max_iter, tol=1e-8, extra=extra,
-                             warm=warm)
+                             warm=warm, hess_lag=nlp.session.options.get("hess_lag"))
     # no exact Hessian to share with the warm instance: build that one on its own
     out = SolverSession("profile", nlp.session._nlp, "ipopt",
                         max_iter=max_iter or nlp.s.max_iter, tol=1e-8, extra=extra)

@@ -134,8 +134,8 @@ def test_the_default_mode_writes_nothing_and_loads_a_stored_transcription(tiny, 
     assert list(folder.iterdir()) == []
     # an entry another mode stored, its library not made yet: loaded, nothing rewritten
     stem = f"nlp-{cache.structure_key(*tiny, 1)[:32]}"
-    for name in (f"{stem}.casadi", f"{stem}.casadi.sha256", f"{stem}.json",
-                 f"{stem}.json.sha256"):
+    for name in (f"{stem}.casadi", f"{stem}.casadi.sha256", f"{stem}-hess.casadi",
+                 f"{stem}-hess.casadi.sha256", f"{stem}.json", f"{stem}.json.sha256"):
         shutil.copy(filled[0] / name, folder / name)
     stored = {p: p.read_bytes() for p in folder.iterdir()}
     loaded = FixedModeNLP(*tiny)
@@ -228,7 +228,8 @@ def test_damaged_transcription_is_detected_and_transcribed_again(tiny, filled, u
         raw[len(raw) // 2] ^= 0x01
         target.write_bytes(bytes(raw))
     else:  # the final domain's function with its own (valid) record
-        other = next(p for p in folder.glob("nlp-*.casadi") if p != target)
+        other = next(p for p in folder.glob("nlp-*.casadi")
+                     if p != target and not p.name.endswith("-hess.casadi"))
         shutil.copy(other, target)
         shutil.copy(cbuild.hash_path(other), cbuild.hash_path(target))
     with caplog.at_level(logging.WARNING, logger="hmpc_cli.mpc.cache"):
@@ -242,6 +243,24 @@ def test_damaged_transcription_is_detected_and_transcribed_again(tiny, filled, u
     with caplog.at_level(logging.WARNING, logger="hmpc_cli.mpc.cache"):
         again = FixedModeNLP(*tiny)  # its layout left without a function: a quiet miss
     assert again.build_info.reason == cache.NOT_COMPILED and not caplog.text
+
+
+def test_a_missing_hessian_file_is_stored_again_and_compiled_with(tiny, filled, use, caplog):
+    """An entry whose transcription is stored but whose Hessian file is gone (its layout
+    file records one) is transcribed again, not loaded: the Hessian is written back and the
+    library compiled with it, instead of every later compile failing on the missing file."""
+    folder = use(filled[0], mode="sync")
+    stem = f"nlp-{cache.structure_key(tiny[0], tiny[1], 1)[:32]}"
+    for lib in folder.glob(f"{stem}-*.so"):
+        lib.unlink()
+    (folder / f"{stem}-hess.casadi").unlink()
+    with caplog.at_level(logging.WARNING, logger="hmpc_cli.mpc.cache"):
+        nlp = FixedModeNLP(*tiny)
+    assert "-hess.casadi is missing or damaged: transcribing the NLP again" in caplog.text
+    assert nlp.build_info.reason.startswith("compiled ")
+    assert cbuild.verified(folder / f"{stem}-hess.casadi")
+    again = FixedModeNLP(*tiny)
+    assert again.build_info.cache == "hit" and again.build_info.compiled
 
 
 def test_cache_writable_by_others_is_refused(tiny, filled, use):

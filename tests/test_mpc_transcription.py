@@ -340,3 +340,36 @@ def test_random_systems_transcribe_to_the_graph_written_out(seed):
         nlp = FixedModeNLP(system, settings, switches=switches)
         staged, written_out = _graphs(nlp)
         assert staged == written_out, (seed, switches, settings)
+
+
+@pytest.mark.parametrize("seed", range(0, 40, 4))
+def test_random_systems_give_ipopt_the_hessian_of_the_whole_graph(seed):
+    """The Hessian of the Lagrangian assembled stage by stage, which IPOPT is given, has the
+    sparsity of the one ``nlpsol`` derives from the whole graph and its entries: bit for bit
+    with a zero-order hold, to rounding with a first-order hold (u_k in two links)."""
+    import casadi as ca
+
+    from hmpc_cli.mpc.chain.nlp import FixedModeNLP
+
+    system, rng = _random_system(seed)
+    settings = MPCSettings(horizon=0.3, nodes_per_second=rng.choice([10, 20]),
+                           max_switches=rng.choice([1, 2, 3]),
+                           integrator=rng.choice(["rk4", "euler"]),
+                           soft_penalty=rng.choice([0.0, 1e4]))
+    points = np.random.default_rng(seed)
+    for hold in ("zoh", "foh"):
+        for switches in (settings.max_switches, 0):
+            nlp = FixedModeNLP(system, settings.model_copy(update={"input_hold": hold}),
+                               switches=switches)
+            given = nlp.session.options["hess_lag"]
+            whole, _ = nlp._transcription()
+            derived = ca.nlpsol("whole", "ipopt", whole, {
+                "no_nlp_grad": True, "calc_lam_p": False}).get_function("nlp_hess_l")
+            assert given.sparsity_out(0) == derived.sparsity_out(0), (seed, hold, switches)
+            args = [points.standard_normal(nlp.nx_var), points.uniform(size=nlp.np),
+                    points.standard_normal(), points.standard_normal(nlp.ng)]
+            a, b = given(*args).full(), derived(*args).full()
+            if hold == "zoh":
+                np.testing.assert_array_equal(a, b)
+            else:
+                np.testing.assert_allclose(a, b, rtol=0, atol=1e-14 * max(1.0, np.abs(b).max()))

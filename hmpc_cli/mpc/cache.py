@@ -78,7 +78,7 @@ from hmpc_cli import __version__
 from hmpc_cli.core import cbuild
 from hmpc_cli.core.messages import BuildInfo
 from hmpc_cli.mpc.builder import NLPLayout
-from hmpc_cli.mpc.solver import DERIVATIVES, without_nlp_grad
+from hmpc_cli.mpc.solver import without_nlp_grad
 from hmpc_cli.mpc.solver_table import SOLVERS, backend_of
 
 ENV = "HMPC_BUILD_CACHE"
@@ -255,19 +255,40 @@ def open_entry(key: str, plugin: str) -> tuple[Entry | None, Hit | None]:
     return Entry(folder, key, identity), None
 
 
-def _layout(entry: Entry) -> NLPLayout:
-    """The layout in the entry's (verified) meta file.
+def _meta(entry: Entry) -> dict:
+    """The entry's (verified) layout file: ``format``, ``key``, ``layout``, ``hess_lag``.
 
     Raises:
-        ValueError: the file cannot be read or belongs to another entry.
+        ValueError: the file is missing, damaged, unreadable or another entry's.
     """
+    if not entry.check(entry.meta):
+        raise ValueError(f"{entry.meta} is missing or damaged")
     try:
         meta = json.loads(entry.meta.read_text())
-        if meta.get("format") != FORMAT or meta.get("key") != entry.key:
-            raise ValueError(f"{entry.meta} belongs to another entry")
-        return NLPLayout.from_dict(meta["layout"])
-    except (OSError, KeyError, TypeError) as e:
-        raise ValueError(str(e)) from e
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{entry.meta}: {e}") from e
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT or \
+            meta.get("key") != entry.key:
+        raise ValueError(f"{entry.meta} belongs to another entry")
+    return meta
+
+
+def _load_function(entry: Entry, path: Path, n_in: int, n_out: int,
+                   what: str) -> ca.Function:
+    """The CasADi function stored in the entry's file ``path`` (``what``: its signature).
+
+    Raises:
+        ValueError: the file is missing or damaged, or not such a function.
+    """
+    if not entry.check(path, entry.key):
+        raise ValueError(f"{path} is missing or damaged")
+    try:
+        fun = ca.Function.deserialize(path.read_bytes().decode())
+    except (OSError, RuntimeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path}: {e}") from e
+    if fun.n_in() != n_in or fun.n_out() != n_out:
+        raise ValueError(f"{path} is not {what}")
+    return fun
 
 
 def load_transcription(entry: Entry) -> dict:
@@ -276,14 +297,7 @@ def load_transcription(entry: Entry) -> dict:
     Raises:
         ValueError: the function is missing, damaged or not a CasADi function.
     """
-    if not entry.check(entry.function, entry.key):
-        raise ValueError(f"{entry.function} is missing or damaged")
-    try:
-        fun = ca.Function.deserialize(entry.function.read_bytes().decode())
-    except (OSError, RuntimeError, UnicodeDecodeError) as e:
-        raise ValueError(f"{entry.function}: {e}") from e
-    if fun.n_in() != 2 or fun.n_out() != 2:
-        raise ValueError(f"{entry.function} is not an NLP's (x, p) -> (f, g)")
+    fun = _load_function(entry, entry.function, 2, 2, "an NLP's (x, p) -> (f, g)")
     x = ca.SX.sym("x", fun.size1_in(0))
     p = ca.SX.sym("p", fun.size1_in(1))
     f, g = fun(x, p)
@@ -297,22 +311,9 @@ def load_hessian(entry: Entry) -> ca.Function | None:
         ValueError: the layout file or the Hessian's is missing or damaged, or the
             Hessian is not a function of (x, p, lam_f, lam_g).
     """
-    if not entry.check(entry.meta):
-        raise ValueError(f"{entry.meta} is missing or damaged")
-    try:
-        if not json.loads(entry.meta.read_text()).get("hess_lag"):
-            return None
-    except (OSError, ValueError) as e:
-        raise ValueError(f"{entry.meta}: {e}") from e
-    if not entry.check(entry.hessian, entry.key):
-        raise ValueError(f"{entry.hessian} is missing or damaged")
-    try:
-        fun = ca.Function.deserialize(entry.hessian.read_bytes().decode())
-    except (OSError, RuntimeError, UnicodeDecodeError) as e:
-        raise ValueError(f"{entry.hessian}: {e}") from e
-    if fun.n_in() != 4 or fun.n_out() != 1:
-        raise ValueError(f"{entry.hessian} is not a Hessian's (x, p, lam_f, lam_g) -> H")
-    return fun
+    if not _meta(entry).get("hess_lag"):
+        return None
+    return _load_function(entry, entry.hessian, 4, 1, "a Hessian's (x, p, lam_f, lam_g) -> H")
 
 
 def lookup(key: str, plugin: str) -> Hit:
@@ -326,8 +327,9 @@ def lookup(key: str, plugin: str) -> Hit:
     if not entry.check(entry.meta):
         return Hit(None, None, BuildInfo("miss", False, "not in the cache"))
     try:
-        layout = _layout(entry)
-    except ValueError as e:
+        meta = _meta(entry)
+        layout = NLPLayout.from_dict(meta["layout"])
+    except (ValueError, KeyError, TypeError) as e:
         _LOG.warning("%s is unusable (%s): rebuilding it", entry.meta, e)
         return Hit(None, None, BuildInfo("miss", False, f"unusable entry: {e}"))
     if entry.check(entry.library, entry.key):
@@ -340,6 +342,8 @@ def lookup(key: str, plugin: str) -> Hit:
         sizes = (nlp["x"].numel(), nlp["p"].numel(), nlp["g"].numel())
         if sizes != (layout.x.size, layout.p.size, layout.g.size):
             raise ValueError(f"{entry.function}: sizes {sizes} are not its layout's")
+        if meta.get("hess_lag") and not entry.check(entry.hessian, entry.key):
+            raise ValueError(f"{entry.hessian} is missing or damaged")
     except ValueError as e:
         _LOG.warning("%s: transcribing the NLP again", e)
         return Hit(None, None, BuildInfo("miss", False, "not in the cache"))
@@ -542,9 +546,8 @@ def _generate_c(solver: ca.Function, name: str) -> None:
     """
     gen = ca.CodeGenerator(name, {"with_header": False})
     gen.add(solver.oracle())
-    for fn in sorted({"nlp_f", "nlp_g", *DERIVATIVES["ipopt"].values()}):
-        if solver.has_function(fn):
-            gen.add(solver.get_function(fn))
+    for fn in solver.get_function():  # sorted by name
+        gen.add(solver.get_function(fn))
     gen.generate()
 
 

@@ -277,6 +277,7 @@ class FixedModeNLP:
         #: per mode: its tightened input box (lower, upper), shape (modes, 2, m)
         self.input_boxes = np.array([self.input_box(i) for i in range(len(system.modes))])
         self._guard_functions()
+        self._stage_fns: tuple[ca.Function, ...] | None = None  # of _stage_kinds, made once
         self._build()
         self.shape = ChainShape(
             system=system, s=settings, layout=self.layout, L=self.L, m=self.m, dt=self.dt,
@@ -316,7 +317,10 @@ class FixedModeNLP:
             loaded = hit.transcription is not None
             nlp, self.layout = (hit.transcription, hit.layout) if loaded else \
                 self._transcription()
-            hess = self._staged_hessian(self.layout)
+            backend = SOLVERS[self.s.solver_of(self.S)]  # IPOPT, or IPOPT as its fallback
+            fallback = SOLVERS[backend.fallback].plugin if backend.fallback else None
+            hess = self._staged_hessian(self.layout) \
+                if "ipopt" in (backend.plugin, fallback) else None
             self.session = self._session(nlp, hess)
             self.build_info = hit.info if hit.info.cache == "disabled" else \
                 cache.store(key, self.s.solver_of(self.S), nlp, self.layout, stored=loaded,
@@ -405,10 +409,11 @@ class FixedModeNLP:
         return fn.expand() if expand else fn
 
     def _stage_kinds(self, layout: NLPLayout, x: ca.MX, p: ca.MX) -> list[tuple]:
-        """Each kind of stage in the order of g: (function, stages, variables, parameters).
+        """Each kind of stage in the order of g: (function, count, variables, parameters).
 
         The kinds are :meth:`_stage_functions`' (links with a first-order hold, held links,
-        the last node), those with no stage left out. ``variables``: per argument of the
+        the last node), those with no stage left out; ``count``: its stages. ``variables``:
+        per argument of the
         function before its parameters, (entries of x, one column per stage; their
         indices into x, shape (stages, width)); ``parameters``: the stages' parameter
         blocks stacked, one column per stage.
@@ -416,7 +421,9 @@ class FixedModeNLP:
         X, P, L = layout.x, layout.p, self.L
         link_par, node_par = self._stage_parameters()
         widths = {name: math.prod(P[name].shape[1:]) for name in link_par}
-        link, held, last = self._stage_functions(link_par, node_par, widths)
+        if self._stage_fns is None:
+            self._stage_fns = self._stage_functions(link_par, node_par, widths)
+        link, held, last = self._stage_fns
         n_foh = L - 1 if self.s.input_hold == "foh" else 0  # the rest hold their input
         out = []
         for fn, ks, names in ((link, slice(0, n_foh), link_par), (held, slice(n_foh, L),
@@ -460,7 +467,7 @@ class FixedModeNLP:
             out = fn(*sym)
             lag = lf * out[1] + ca.dot(lam, out[0]) if fn.n_out() == 2 else ca.dot(lam, out)
             h = ca.hessian(lag, ca.vertcat(*sym[:len(variables)]))[0]
-            hk = ca.Function("h", [*sym, lam, lf], [h.nz[:]])
+            hk = ca.Function(f"{fn.name()}_hess", [*sym, lam, lf], [h.nz[:]])
             v = hk.map(n)(*[c for c, _ in variables], pars,
                           ca.reshape(lam_g[row:row + n_rows * n], n_rows, n),
                           ca.repmat(lam_f, 1, n))
