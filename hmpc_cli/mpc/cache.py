@@ -40,8 +40,9 @@ Until its library is made a later run loads the stored function and calls it on 
 symbols (:func:`load_transcription`), the graph the compiler is given too, and ``nlpsol``
 derives the same functions from it: the solves are the transcribed NLP's bit for bit
 (``tests/test_build_cache.py``). The cache is still a miss (the NLP is solved in SX); its
-reason says the transcription was loaded. The default mode stores nothing: transcribing
-costs what loading does.
+reason says the transcription was loaded. The default mode stores nothing of the NLP:
+transcribing costs what loading does (its Hessian's small stage kernels are compiled in
+every mode but ``off``: :mod:`hmpc_cli.mpc.kernels`).
 
 ``HMPC_BUILD_CACHE`` (:func:`mode`): ``off`` (or ``0``) disables the cache; ``use`` (the
 default) loads compiled NLPs but never compiles (the user asks for the cost, once);

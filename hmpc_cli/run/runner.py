@@ -191,9 +191,14 @@ def run_one(toml_text: str, run_dir: str, provenance=None) -> dict:
     ``error.txt`` holds the traceback. Runs in one process are serialized (IPOPT is not
     thread-safe); NLPs are cached per process (:func:`hmpc_cli.run.compose.build`).
     ``provenance`` (:class:`hmpc_cli.log.runlog.Provenance`, see :func:`run_provenance`) is
-    recorded in the run's log; None records this process's command line only.
+    recorded in the run's log; None records this process's command line only. A sweep's
+    process runs many runs, so it waits for its NLPs' stage kernels to compile (once,
+    :func:`hmpc_cli.mpc.kernels.wait_for_compiles`): its later runs evaluate them in C.
     """
+    from hmpc_cli.mpc import kernels
     from hmpc_cli.run.scenario import scenario_model
+
+    kernels.wait_for_compiles()
 
     out = Path(run_dir)
     with _LOCK:

@@ -40,6 +40,7 @@ S_max) and re-solved with parameters, bounds and a primal-dual warm start.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from typing import Literal
@@ -51,7 +52,7 @@ from pydantic import ConfigDict, Field, model_validator
 from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.core.kinds import MarginsSettings
 from hmpc_cli.core.messages import ConstraintMargins, Trajectory
-from hmpc_cli.mpc import cache
+from hmpc_cli.mpc import cache, kernels
 from hmpc_cli.mpc.backends import OCPStructure
 from hmpc_cli.mpc.builder import Blocks, NLPBuilder, NLPLayout
 from hmpc_cli.mpc.chain.layout import FLOW, ChainLayout, NodeSchedule
@@ -319,12 +320,17 @@ class FixedModeNLP:
                 self._transcription()
             backend = SOLVERS[self.s.solver_of(self.S)]  # IPOPT, or IPOPT as its fallback
             fallback = SOLVERS[backend.fallback].plugin if backend.fallback else None
-            hess = self._staged_hessian(self.layout) \
+            hess = self._staged_hessian(self.layout, compiled=cache.mode() != "off") \
                 if "ipopt" in (backend.plugin, fallback) else None
             self.session = self._session(nlp, hess)
-            self.build_info = hit.info if hit.info.cache == "disabled" else \
+            if hess is not None and cache.mode() in ("background", "sync"):
+                hess = self._staged_hessian(self.layout)  # SX kernels: the library's C
+            info = hit.info if hit.info.cache == "disabled" else \
                 cache.store(key, self.s.solver_of(self.S), nlp, self.layout, stored=loaded,
                             hess_lag=hess)
+            self.build_info = info if hess is None else dataclasses.replace(
+                info, reason=f"{info.reason}; Hessian of the Lagrangian: "
+                             f"{kernels.describe(self.session.options['hess_lag'])}")
         X, g = self.layout.x, self.layout.g
         self.nx_var, self.ng, self.np = X.size, g.size, self.layout.p.size
         self.z_idx, self.u_idx, self.s_idx = X["z"], X["u"], X["sigma"]
@@ -439,7 +445,7 @@ class FixedModeNLP:
                         [_stage_columns(x, idx, stages) for idx, stages in blocks], pars))
         return out
 
-    def _staged_hessian(self, layout: NLPLayout) -> ca.Function:
+    def _staged_hessian(self, layout: NLPLayout, compiled: bool = False) -> ca.Function:
         """The Lagrangian's Hessian assembled stage by stage, as IPOPT's ``hess_lag``.
 
         Each kind of stage (:meth:`_stage_kinds`) gets the SX Hessian of lam_f * cost +
@@ -450,7 +456,9 @@ class FixedModeNLP:
         entries equal ``nlpsol``'s bit for bit with a zero-order hold, and to rounding
         (the two sums of u_k's entries associated otherwise) with a first-order hold. It
         is made in a fraction of the time ``nlpsol`` takes to differentiate the whole
-        graph twice (docs/performance.md).
+        graph twice (docs/performance.md). ``compiled``: each kind of stage's Hessian is
+        its C library where the cache holds one (:func:`hmpc_cli.mpc.kernels.compiled`,
+        the same numbers bit for bit; else it is compiled for the next run).
 
         Returns:
             (x, p, lam_f, lam_g) -> triu(H), shape (nx, nx), named as ``nlpsol``'s
@@ -468,6 +476,7 @@ class FixedModeNLP:
             lag = lf * out[1] + ca.dot(lam, out[0]) if fn.n_out() == 2 else ca.dot(lam, out)
             h = ca.hessian(lag, ca.vertcat(*sym[:len(variables)]))[0]
             hk = ca.Function(f"{fn.name()}_hess", [*sym, lam, lf], [h.nz[:]])
+            hk = kernels.compiled(hk) if compiled else hk
             v = hk.map(n)(*[c for c, _ in variables], pars,
                           ca.reshape(lam_g[row:row + n_rows * n], n_rows, n),
                           ca.repmat(lam_f, 1, n))
