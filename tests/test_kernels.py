@@ -31,6 +31,7 @@ def tiny(monkeypatch, tmp_path):
     monkeypatch.setenv("HMPC_CACHE_DIR", str(folder))
     monkeypatch.setenv(cache.ENV, "use")
     monkeypatch.setattr(kernels, "_WAIT", False)  # a single run's process (not a sweep's)
+    monkeypatch.setattr(kernels, "NICE", ())  # compiles not starved by a loaded machine
     sc, _ = load_scenario(REPO / "scenarios" / "ball.toml", TINY)
     return build_system(sc.system), sc.mpc, folder
 
@@ -57,7 +58,7 @@ def _solves(nlp: FixedModeNLP, ball) -> list:
 def test_a_second_build_evaluates_the_hessian_in_c_with_the_same_numbers(tiny):
     system, settings, folder = tiny
     first = FixedModeNLP(system, settings)  # compiles its kernels beside it
-    kernels.wait()
+    assert kernels.wait()
     assert len(_libraries(folder)) == 3  # link with a first-order hold, held link, last node
     second = FixedModeNLP(system, settings)
     given = second.session.options["hess_lag"]
@@ -83,14 +84,14 @@ def test_the_cache_off_compiles_no_kernel(tiny, monkeypatch):
     system, settings, folder = tiny
     monkeypatch.setenv(cache.ENV, "off")
     FixedModeNLP(system, settings)
-    kernels.wait()
+    assert kernels.wait()
     assert _libraries(folder) == []
 
 
 def test_damaged_kernel_libraries_are_not_loaded_but_compiled_again(tiny):
     system, settings, folder = tiny
     FixedModeNLP(system, settings)
-    kernels.wait()
+    assert kernels.wait()
     for library in _libraries(folder):
         raw = bytearray(library.read_bytes())
         raw[len(raw) // 2] ^= 0x01
@@ -98,7 +99,7 @@ def test_damaged_kernel_libraries_are_not_loaded_but_compiled_again(tiny):
         kernels._STARTED.pop(library)  # as in a new process: its compile not started yet
     again = FixedModeNLP(system, settings)
     assert _stage_classes(again) == {"SXFunction"}  # none loaded
-    kernels.wait()
+    assert kernels.wait()
     assert len(_libraries(folder)) == 3 and all(cbuild.verified(p) for p in _libraries(folder))
     assert _stage_classes(FixedModeNLP(system, settings)) == {"External"}
 
@@ -110,3 +111,16 @@ def test_a_sweeps_process_waits_for_its_kernels_once(tiny, monkeypatch):
     monkeypatch.setattr(kernels, "_WAIT", True)
     nlp = FixedModeNLP(system, settings)
     assert _stage_classes(nlp) == {"External"} and len(_libraries(folder)) == 3
+
+
+def test_the_reason_names_the_fallbacks_hessian_of_an_sqp_solver(tiny):
+    """sqp_hpipm solves on its Gauss-Newton Hessian; its IPOPT fallback gets the staged one,
+    and the build's reason says so (not the SQP's own Hessian, which has no kernels)."""
+    system, settings, _ = tiny
+    sqp = settings.model_copy(update={"solver": "sqp_hpipm", "input_hold": "zoh"})
+    nlp = FixedModeNLP(system, sqp, switches=0)
+    assert nlp.build_info.reason.endswith(
+        "; Hessian of the Lagrangian (of ipopt, the fallback): stage kernels in SX (2 of 2)")
+    # (a zero-order hold: held links and the last node, no first-order-hold link)
+    assert FixedModeNLP(system, settings.model_copy(update={"solver": "rti", "input_hold": "zoh"}),
+                        switches=0).build_info.reason.count("Hessian") == 0

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import shutil
 import tempfile
 import threading
 import time
@@ -31,13 +32,13 @@ from pathlib import Path
 import casadi as ca
 
 from hmpc_cli.core import cbuild
+from hmpc_cli.mpc.cache import CFLAGS
 
-#: compiler flags: those of the compiled NLPs (:data:`hmpc_cli.mpc.cache.CFLAGS`)
-CFLAGS = ("-O1", "-shared", "-fPIC", "-ffp-contract=off", "-fno-fast-math")
-#: the compiler runs at the lowest priority beside a run, never in its way
+#: the compiler runs at the lowest priority beside a run, never in its way (where
+#: ``nice`` is found)
 NICE = ("nice", "-n", "19")
 _STARTED: dict[Path, threading.Thread] = {}  # this process's compiles, by library
-_FAILED: dict[str, str] = {}  # this process's failed compiles: kernel name -> first line
+_FAILED: list[str] = []  # this process's failed compiles: their first lines
 _WAIT = False  # set by wait_for_compiles
 _LOCK = threading.Lock()
 _LOG = logging.getLogger(__name__)
@@ -105,7 +106,7 @@ def _start(cc: list[str], fn: ca.Function, path: Path, k: str) -> threading.Thre
         gen = ca.CodeGenerator(f"{fn.name()}.c", {"with_header": False})
         gen.add(fn)
         source = gen.dump()
-        nice = () if _WAIT else NICE
+        nice = () if _WAIT or not NICE or shutil.which(NICE[0]) is None else NICE
         thread = threading.Thread(target=_compile, args=([*nice, *cc], source, fn.name(),
                                                          path, k),
                                   name=f"hmpc-kernel-{k[:8]}", daemon=True)
@@ -115,34 +116,30 @@ def _start(cc: list[str], fn: ca.Function, path: Path, k: str) -> threading.Thre
 
 
 def _compile(cc: list[str], source: str, name: str, path: Path, k: str) -> None:
-    """Writes ``source`` beside ``path`` and compiles it to ``path`` (recorded ``k``).
+    """Compiles ``source`` to ``path`` (recorded ``k``); a failure is kept for :func:`describe`.
 
-    The source is a ``.hmpc-*`` temporary file of the cache directory, removed after the
-    compile (or, if the process exits first, a day later by
-    :func:`~hmpc_cli.core.cbuild.remove_stale_temporaries`, called before the first compile).
-    A failure is kept for :func:`describe` (no logging here: this thread may outlive the
-    handlers' streams).
+    The source gets a fixed name (``<name>.c``) in a scratch directory, so processes that
+    compile the same kernel at once write the same library bytes (the source's name is in
+    its symbol table). If the process exits first, the compiler's partial output is a
+    ``.hmpc-*`` file of the cache directory, removed a day later by
+    :func:`~hmpc_cli.core.cbuild.remove_stale_temporaries` (called before the first
+    compile). No logging here: this thread may outlive the handlers' streams.
     """
-    c_file = None
     try:
-        fd, tmp = tempfile.mkstemp(prefix=".hmpc-kernel-", suffix=".c", dir=path.parent)
-        c_file = Path(tmp)
-        with open(fd, "w") as f:
-            f.write(source)
-        cbuild.compile_shared(cc, CFLAGS, c_file, path, timeout=600.0, note=k)
+        with tempfile.TemporaryDirectory(prefix="hmpc-kernel-") as work:
+            c_file = Path(work) / f"{name}.c"
+            c_file.write_text(source)
+            cbuild.compile_shared(cc, CFLAGS, c_file, path, timeout=600.0, note=k)
     except (cbuild.CBuildError, OSError) as e:
         with _LOCK:
-            _FAILED[name] = (str(e).splitlines() or [type(e).__name__])[0]
-    finally:
-        if c_file is not None:
-            c_file.unlink(missing_ok=True)
+            _FAILED.append(f"{name}: {(str(e).splitlines() or [type(e).__name__])[0]}")
 
 
 def describe(fn: ca.Function) -> str:
     """Where the stage kernels ``fn`` maps run, as a clause of a build's reason.
 
     ``fn``: a function assembled from kernels (e.g. the staged Hessian). Names the
-    kernels in SX and, if any, the last compile failure of this process.
+    kernels in SX and, if any, this process's last failed kernel compile.
     """
     kernels = {f.name(): f.class_name() for f in fn.find_functions()
                if f.class_name() != "Map"}
@@ -150,15 +147,18 @@ def describe(fn: ca.Function) -> str:
     if in_c == len(kernels):
         return f"stage kernels in C ({in_c})"
     with _LOCK:
-        failed = next((f"; {name} failed to compile: {why}" for name, why in _FAILED.items()
-                       if name in kernels), "")
+        failed = f"; a kernel compile of this process failed: {_FAILED[-1]}" if _FAILED else ""
     return f"stage kernels in SX ({len(kernels) - in_c} of {len(kernels)}){failed}"
 
 
-def wait(timeout: float = 60.0) -> None:
-    """Waits for this process's kernel compiles, at most ``timeout`` seconds in all."""
+def wait(timeout: float = 60.0) -> bool:
+    """Waits for this process's kernel compiles, at most ``timeout`` seconds in all.
+
+    Returns whether they all ended.
+    """
     with _LOCK:
         threads = list(_STARTED.values())
     end = time.monotonic() + timeout
     for thread in threads:
         thread.join(max(0.0, end - time.monotonic()))
+    return not any(thread.is_alive() for thread in threads)

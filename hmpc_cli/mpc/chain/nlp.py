@@ -323,14 +323,16 @@ class FixedModeNLP:
             hess = self._staged_hessian(self.layout, compiled=cache.mode() != "off") \
                 if "ipopt" in (backend.plugin, fallback) else None
             self.session = self._session(nlp, hess)
+            given = hess
             if hess is not None and cache.mode() in ("background", "sync"):
                 hess = self._staged_hessian(self.layout)  # SX kernels: the library's C
             info = hit.info if hit.info.cache == "disabled" else \
                 cache.store(key, self.s.solver_of(self.S), nlp, self.layout, stored=loaded,
                             hess_lag=hess)
-            self.build_info = info if hess is None else dataclasses.replace(
-                info, reason=f"{info.reason}; Hessian of the Lagrangian: "
-                             f"{kernels.describe(self.session.options['hess_lag'])}")
+            whose = "" if backend.plugin == "ipopt" else f" (of {backend.fallback}, the fallback)"
+            self.build_info = info if given is None else dataclasses.replace(
+                info, reason=f"{info.reason}; Hessian of the Lagrangian{whose}: "
+                             f"{kernels.describe(given)}")
         X, g = self.layout.x, self.layout.g
         self.nx_var, self.ng, self.np = X.size, g.size, self.layout.p.size
         self.z_idx, self.u_idx, self.s_idx = X["z"], X["u"], X["sigma"]
