@@ -16,7 +16,9 @@ Hessian of the Lagrangian and the constraint Jacobian that IPOPT calls every ite
 Then, for either input hold, both NLPs' Hessian of the Lagrangian assembled stage by stage
 (:func:`staged_hessian`: hmpc's, given to IPOPT as ``hess_lag``) against the one ``nlpsol``
 generates from the whole graph: set-up, evaluation, and how many of its entries differ
-bit for bit at random points (:func:`hessian_rows`).
+bit for bit at random points (:func:`hessian_rows`). Last, the constraint Jacobian
+assembled the same way (:func:`staged_jacobian`, a lever not yet taken) against
+``nlpsol``'s (:func:`jacobian_rows`).
 
 Measured, never asserted; the findings are in docs/performance.md.
 """
@@ -123,6 +125,67 @@ def hessian_rows(system, settings: MPCSettings, points: int = 3,
     return out
 
 
+def staged_jacobian(nlp: FixedModeNLP, layout: NLPLayout) -> ca.Function:
+    """The constraint Jacobian assembled stage by stage: (x, p) -> dg/dx, shape (ng, nx).
+
+    Each kind of stage's rows (:meth:`FixedModeNLP._stage_kinds`) get their SX Jacobian in
+    the stage's own variables, mapped over the stages in MX; a constant 0/1 matrix puts
+    each entry at its place. Every row is one stage's, so no entry is a sum.
+    """
+    nx, ng = layout.x.size, layout.g.size
+    x, p = ca.MX.sym("x", nx), ca.MX.sym("p", layout.p.size)
+    values, rows, columns, row = [], [], [], 0
+    for fn, n, variables, pars in nlp._stage_kinds(layout, x, p):
+        sym = [ca.SX.sym(f"v{i}", fn.size1_in(i)) for i in range(fn.n_in())]
+        out = fn(*sym)
+        g = out[0] if fn.n_out() == 2 else out
+        jac = ca.jacobian(g, ca.vertcat(*sym[:len(variables)]))
+        jk = ca.Function(f"{fn.name()}_jac", sym, [jac.nz[:]])
+        values.append(ca.vec(jk.map(n)(*[c for c, _ in variables], pars)))
+        r, c = jac.sparsity().get_triplet()
+        first = row + np.arange(n)[:, None] * g.size1()  # each stage's first row
+        rows.append((first + np.array(r, dtype=int)[None, :]).ravel())
+        columns.append(np.hstack([i for _, i in variables])[:, c].ravel())
+        row += g.size1() * n
+    r, c = np.concatenate(rows), np.concatenate(columns)
+    sparsity = ca.Sparsity.triplet(ng, nx, r.tolist(), c.tolist())
+    place = {rc: k for k, rc in enumerate(zip(*sparsity.get_triplet(), strict=True))}
+    nz = [place[rc] for rc in zip(r.tolist(), c.tolist(), strict=True)]
+    move = ca.DM(ca.Sparsity.triplet(r.size, r.size, nz, list(range(r.size))), 1.0)
+    return ca.Function("jac_g", [x, p], [ca.MX(sparsity, ca.mtimes(move, ca.vertcat(*values)))])
+
+
+def jacobian_rows(system, settings: MPCSettings, points: int = 3) -> list[dict]:
+    """Per NLP (switching, final domain): ``nlpsol``'s constraint Jacobian against
+    :func:`staged_jacobian`: ``nnz``, ``same_sparsity``, ``differing`` (the most entries
+    not equal bit for bit at one of ``points`` random points (x, p)); set-up [s]:
+    ``staged`` (the staged Jacobian) and ``nlpsol`` (its Jacobian and gradient, the
+    staged Hessian given)."""
+    out = []
+    for label, switches in (("switching", None), ("final", 0)):
+        nlp = FixedModeNLP(system, settings, switches=switches)
+        whole, layout = nlp._transcription()
+        start = time.perf_counter()
+        staged = staged_jacobian(nlp, layout)
+        row: dict = {"nlp": label, "staged": time.perf_counter() - start}
+        start = time.perf_counter()
+        solver = ca.nlpsol("whole", "ipopt", whole, {
+            **QUIET, "hess_lag": nlp._staged_hessian(layout)})
+        row["nlpsol"] = time.perf_counter() - start
+        reference = solver.get_function("nlp_jac_g")  # (x, p) -> (g, dg/dx)
+        rng = np.random.default_rng(0)
+        row["differing"] = 0
+        for _ in range(points):
+            args = [rng.standard_normal(nlp.nx_var), rng.uniform(size=nlp.np)]
+            ref, got = reference(*args)[1], staged(*args)
+            row["same_sparsity"] = ref.sparsity() == got.sparsity()
+            row["nnz"] = ref.nnz()
+            row["differing"] = max(row["differing"], int(np.count_nonzero(
+                np.asarray(ref.nonzeros()) != np.asarray(got.nonzeros()))))
+        out.append(row)
+    return out
+
+
 def main() -> None:
     os.environ["HMPC_BUILD_CACHE"] = "off"  # the SX build, whatever the cache holds
     sc = load_scenario(sys.argv[1] if len(sys.argv) > 1 else "scenarios/ball.toml")[0]
@@ -163,6 +226,14 @@ def main() -> None:
                   f"{r['nnz']} entries differ bit for bit at a random point, by up to "
                   f"{r['max_diff']:.1e} (largest entry {r['max_abs']:.1e}), in the "
                   f"blocks {sorted(r['blocks'])}")
+    print("\nthe constraint Jacobian, nlpsol's (whole graph) against the stage by stage one:")
+    for hold in ("foh", "zoh"):
+        settings = sc.mpc.model_copy(update={"input_hold": hold})
+        for r in jacobian_rows(system, settings):
+            print(f"{hold} {r['nlp']:9s}: set-up {r['staged']:.3f} s staged, "
+                  f"{r['nlpsol']:.3f} s nlpsol's Jacobian and gradient; same sparsity "
+                  f"{r['same_sparsity']}; {r['differing']} of {r['nnz']} entries differ bit "
+                  "for bit at a random point")
 
 
 if __name__ == "__main__":
