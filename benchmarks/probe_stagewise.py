@@ -217,24 +217,26 @@ def main() -> None:
     system = build_system(sc.system)
     print("\nthe Hessian of the Lagrangian, nlpsol's (whole graph) against the stage by stage "
           "one (nlpsol given it; stage Hessians mapped in MX / expanded to SX):")
-    for hold in ("foh", "zoh"):
-        settings = sc.mpc.model_copy(update={"input_hold": hold})
-        for r in hessian_rows(system, settings):
-            print(f"{hold} {r['nlp']:9s}: set-up {r['nlpsol']:.3f} s / {r['staged_mx']:.3f} s / "
-                  f"{r['staged_sx']:.3f} s; one call {r['eval_nlpsol']:.2f} / "
-                  f"{r['eval_mx']:.2f} / {r['eval_sx']:.2f} ms; up to {r['differing']} of "
-                  f"{r['nnz']} entries differ bit for bit at a random point, by up to "
-                  f"{r['max_diff']:.1e} (largest entry {r['max_abs']:.1e}), in the "
-                  f"blocks {sorted(r['blocks'])}")
+    for hold, r in _by_hold(sc.mpc, system, hessian_rows):
+        print(f"{hold} {r['nlp']:9s}: set-up {r['nlpsol']:.3f} s / {r['staged_mx']:.3f} s / "
+              f"{r['staged_sx']:.3f} s; one call {r['eval_nlpsol']:.2f} / "
+              f"{r['eval_mx']:.2f} / {r['eval_sx']:.2f} ms; up to {r['differing']} of "
+              f"{r['nnz']} entries differ bit for bit at a random point, by up to "
+              f"{r['max_diff']:.1e} (largest entry {r['max_abs']:.1e}), in the "
+              f"blocks {sorted(r['blocks'])}")
     print("\nthe constraint Jacobian, nlpsol's (whole graph) against the stage by stage one:")
-    for hold in ("foh", "zoh"):
-        settings = sc.mpc.model_copy(update={"input_hold": hold})
-        for r in jacobian_rows(system, settings):
-            print(f"{hold} {r['nlp']:9s}: set-up {r['staged']:.3f} s staged, "
-                  f"{r['nlpsol']:.3f} s nlpsol's Jacobian and gradient; same sparsity "
-                  f"{r['same_sparsity']}; {r['differing']} of {r['nnz']} entries differ bit "
-                  "for bit at a random point")
+    for hold, r in _by_hold(sc.mpc, system, jacobian_rows):
+        print(f"{hold} {r['nlp']:9s}: set-up {r['staged']:.3f} s staged, "
+              f"{r['nlpsol']:.3f} s nlpsol's Jacobian and gradient; same sparsity "
+              f"{r['same_sparsity']}; {r['differing']} of {r['nnz']} entries differ bit "
+              "for bit at a random point")
 
+
+def _by_hold(settings: MPCSettings, system, rows):
+    """(input hold, row) of ``rows(system, settings)`` with each input hold, foh first."""
+    for hold in ("foh", "zoh"):
+        for r in rows(system, settings.model_copy(update={"input_hold": hold})):
+            yield hold, r
 
 if __name__ == "__main__":
     main()
