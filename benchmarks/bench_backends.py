@@ -27,7 +27,7 @@ import numpy as np
 
 from hmpc_cli.mpc.buffered import BufferedSolver
 from hmpc_cli.mpc.chain.nlp import FixedModeNLP
-from hmpc_cli.mpc.solver import SolverSession, plugin_options
+from hmpc_cli.mpc.solver import SolverSession, plugin_options, without_nlp_grad
 from hmpc_cli.core.registry import build_system
 from hmpc_cli.run.runner import prepare, run_unlogged
 from hmpc_cli.run.scenario import load_scenario
@@ -72,12 +72,20 @@ def backends(system, settings) -> dict[str, dict[str, object]]:
 
 
 def _default_ipopt(nlp: FixedModeNLP) -> SolverSession:
-    """IPOPT with CasADi's defaults (silent), no warm-start instance."""
+    """IPOPT with CasADi's defaults (silent), no warm-start instance.
+
+    On hmpc's NLP as its session holds it: assembled from stage kernels (MX, not expanded),
+    its derivatives given, and no ``nlp_grad`` nor ``lam_p`` (post-solve quantities only;
+    the kernels' C libraries have no derivatives to generate them from).
+    """
     session = nlp.session
     opts = plugin_options("ipopt", 3000)
     opts["ipopt"] = {"print_level": 0, "sb": "yes"}
     import casadi as ca
 
+    if isinstance(session._nlp["x"], ca.MX):
+        opts.pop("expand", None)
+    opts = without_nlp_grad({"calc_lam_p": False, **opts, **session.derivatives})
     session.cold = session.warm = BufferedSolver(ca.nlpsol("ipopt_defaults", "ipopt",
                                                            session._nlp, opts))
     return session

@@ -2,23 +2,25 @@
 
 Run on demand:  python benchmarks/probe_stagewise.py [scenario.toml]
 
-hmpc transcribes the chain NLP as one SX function per kind of stage, mapped over the
-links in MX and expanded to SX (``FixedModeNLP._staged_nlp``): the graph the operations
-written out at every node give, instruction for instruction. This probe builds the
-scenario's switching NLP (default scenarios/ball.toml) both ways in one process and
+hmpc has one SX function per kind of the chain NLP's stages. This probe builds the
+scenario's switching NLP (default scenarios/ball.toml) three ways in one process and
 prints their set-up time (transcription and ``nlpsol``) and the evaluation time of the
 Hessian of the Lagrangian and the constraint Jacobian that IPOPT calls every iteration:
 
-* expanded to SX, as hmpc builds it;
-* the map kept in MX (a faster set-up, slower evaluations in the MX virtual machine,
-  and other derivative graphs: other iterates).
+* mapped over the links in MX and expanded to SX (``FixedModeNLP._staged_nlp``: the graph
+  the operations written out at every node give, instruction for instruction), with
+  ``nlpsol``'s derivatives of the whole graph: what the other back-ends and the build
+  cache's compiled library start from;
+* the map kept in MX, ``nlpsol`` differentiating it (a faster set-up, slower evaluations
+  in the MX virtual machine, and other derivative graphs: other iterates);
+* assembled from stage kernels (``FixedModeNLP._staged``: hmpc's for IPOPT), its
+  derivatives given to ``nlpsol``, the kernels in SX.
 
 Then, for either input hold, both NLPs' Hessian of the Lagrangian assembled stage by stage
-(:func:`staged_hessian`: hmpc's, given to IPOPT as ``hess_lag``) against the one ``nlpsol``
+(:func:`staged_hessian`, given to IPOPT as ``hess_lag``) against the one ``nlpsol``
 generates from the whole graph: set-up, evaluation, and how many of its entries differ
 bit for bit at random points (:func:`hessian_rows`). Last, the constraint Jacobian
-assembled the same way (:func:`staged_jacobian`, a lever not yet taken) against
-``nlpsol``'s (:func:`jacobian_rows`).
+assembled the same way (``jac_g``) against ``nlpsol``'s (:func:`jacobian_rows`).
 
 Measured, never asserted; the findings are in docs/performance.md.
 """
@@ -125,48 +127,18 @@ def hessian_rows(system, settings: MPCSettings, points: int = 3,
     return out
 
 
-def staged_jacobian(nlp: FixedModeNLP, layout: NLPLayout) -> ca.Function:
-    """The constraint Jacobian assembled stage by stage: (x, p) -> dg/dx, shape (ng, nx).
-
-    Each kind of stage's rows (:meth:`FixedModeNLP._stage_kinds`) get their SX Jacobian in
-    the stage's own variables, mapped over the stages in MX; a constant 0/1 matrix puts
-    each entry at its place. Every row is one stage's, so no entry is a sum.
-    """
-    nx, ng = layout.x.size, layout.g.size
-    x, p = ca.MX.sym("x", nx), ca.MX.sym("p", layout.p.size)
-    values, rows, columns, row = [], [], [], 0
-    for fn, n, variables, pars in nlp._stage_kinds(layout, x, p):
-        sym = [ca.SX.sym(f"v{i}", fn.size1_in(i)) for i in range(fn.n_in())]
-        out = fn(*sym)
-        g = out[0] if fn.n_out() == 2 else out
-        jac = ca.jacobian(g, ca.vertcat(*sym[:len(variables)]))
-        jk = ca.Function(f"{fn.name()}_jac", sym, [jac.nz[:]])
-        values.append(ca.vec(jk.map(n)(*[c for c, _ in variables], pars)))
-        r, c = jac.sparsity().get_triplet()
-        first = row + np.arange(n)[:, None] * g.size1()  # each stage's first row
-        rows.append((first + np.array(r, dtype=int)[None, :]).ravel())
-        columns.append(np.hstack([i for _, i in variables])[:, c].ravel())
-        row += g.size1() * n
-    r, c = np.concatenate(rows), np.concatenate(columns)
-    sparsity = ca.Sparsity.triplet(ng, nx, r.tolist(), c.tolist())
-    place = {rc: k for k, rc in enumerate(zip(*sparsity.get_triplet(), strict=True))}
-    nz = [place[rc] for rc in zip(r.tolist(), c.tolist(), strict=True)]
-    move = ca.DM(ca.Sparsity.triplet(r.size, r.size, nz, list(range(r.size))), 1.0)
-    return ca.Function("jac_g", [x, p], [ca.MX(sparsity, ca.mtimes(move, ca.vertcat(*values)))])
-
-
 def jacobian_rows(system, settings: MPCSettings, points: int = 3) -> list[dict]:
-    """Per NLP (switching, final domain): ``nlpsol``'s constraint Jacobian against
-    :func:`staged_jacobian`: ``nnz``, ``same_sparsity``, ``differing`` (the most entries
-    not equal bit for bit at one of ``points`` random points (x, p)); set-up [s]:
-    ``staged`` (the staged Jacobian) and ``nlpsol`` (its Jacobian and gradient, the
-    staged Hessian given)."""
+    """Per NLP (switching, final domain): ``nlpsol``'s constraint Jacobian against hmpc's
+    assembled stage by stage: ``nnz``, ``same_sparsity``, ``differing`` (the most entries
+    of g and the Jacobian not equal bit for bit at one of ``points`` random points (x, p));
+    set-up [s]: ``staged`` (the staged Jacobian) and ``nlpsol`` (its Jacobian and
+    gradient, the staged Hessian given)."""
     out = []
     for label, switches in (("switching", None), ("final", 0)):
         nlp = FixedModeNLP(system, settings, switches=switches)
         whole, layout = nlp._transcription()
         start = time.perf_counter()
-        staged = staged_jacobian(nlp, layout)
+        staged = nlp._staged(layout).jacobian()
         row: dict = {"nlp": label, "staged": time.perf_counter() - start}
         start = time.perf_counter()
         solver = ca.nlpsol("whole", "ipopt", whole, {
@@ -177,11 +149,12 @@ def jacobian_rows(system, settings: MPCSettings, points: int = 3) -> list[dict]:
         row["differing"] = 0
         for _ in range(points):
             args = [rng.standard_normal(nlp.nx_var), rng.uniform(size=nlp.np)]
-            ref, got = reference(*args)[1], staged(*args)
+            (g_ref, ref), (g, got) = reference(*args), staged(*args)
             row["same_sparsity"] = ref.sparsity() == got.sparsity()
             row["nnz"] = ref.nnz()
-            row["differing"] = max(row["differing"], int(np.count_nonzero(
-                np.asarray(ref.nonzeros()) != np.asarray(got.nonzeros()))))
+            row["differing"] = max(row["differing"], int(
+                np.count_nonzero(np.asarray(ref.nonzeros()) != np.asarray(got.nonzeros()))
+                + np.count_nonzero(g_ref.full() != g.full())))
         out.append(row)
     return out
 
@@ -205,12 +178,17 @@ def main() -> None:
     start = time.perf_counter()
     mx = ca.nlpsol("mapped", "ipopt", {"x": x, "p": p, "f": f, "g": g}, opts)
     t_mx = time.perf_counter() - start
+    start = time.perf_counter()
+    staged = nlp._staged(layout)
+    kernels = ca.nlpsol("kernels", "ipopt", staged.nlp(), {**opts, **staged.derivatives()})
+    t_kernels = time.perf_counter() - start
     print(f"switching NLP: L = {nlp.L} intervals, {whole['x'].numel()} variables, "
           f"{whole['g'].numel()} rows")
     for label, setup, solver in (
-            (f"expanded to SX, hmpc's (transcription {t_tr:.3f} s + nlpsol {t_sx:.3f} s)",
+            (f"expanded to SX (transcription {t_tr:.3f} s + nlpsol {t_sx:.3f} s)",
              t_tr + t_sx, sx),
-            (f"kept in MX (map {t_map:.3f} s + nlpsol {t_mx:.3f} s)", t_map + t_mx, mx)):
+            (f"kept in MX (map {t_map:.3f} s + nlpsol {t_mx:.3f} s)", t_map + t_mx, mx),
+            ("assembled from stage kernels in SX, hmpc's for IPOPT", t_kernels, kernels)):
         ev = evaluation_ms(solver)
         print(f"{label}: set-up {setup:.3f} s; Hessian {ev['nlp_hess_l']:.2f} ms, "
               f"Jacobian {ev['nlp_jac_g']:.2f} ms")
@@ -237,6 +215,7 @@ def _by_hold(settings: MPCSettings, system, rows):
     for hold in ("foh", "zoh"):
         for r in rows(system, settings.model_copy(update={"input_hold": hold})):
             yield hold, r
+
 
 if __name__ == "__main__":
     main()

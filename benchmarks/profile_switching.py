@@ -262,18 +262,20 @@ def session(nlp: FixedModeNLP, ipopt: dict | None = None, warm: WarmStart = WARM
             ipopt_warm: dict | None = None, max_iter: int | None = None) -> SolverSession:
     """An IPOPT session on ``nlp``'s expressions with other options (timers on).
 
-    It gets the Hessian of the Lagrangian ``nlp``'s own session gives IPOPT.
+    It gets the derivatives ``nlp``'s own session gives IPOPT (assembled stage by stage).
     """
     extra: dict = {"record_time": True, "ipopt": dict(ipopt or {})}
     if ipopt_warm:
         extra["ipopt_warm"] = ipopt_warm
+    given = nlp.session.derivatives
     if (ipopt or {}).get("hessian_approximation") != "limited-memory":
         return SolverSession("profile", nlp.session._nlp, "ipopt",
                              max_iter=max_iter or nlp.s.max_iter, tol=1e-8, extra=extra,
-                             warm=warm, hess_lag=nlp.session.options.get("hess_lag"))
+                             warm=warm, derivatives=given)
     # no exact Hessian to share with the warm instance: build that one on its own
     out = SolverSession("profile", nlp.session._nlp, "ipopt",
-                        max_iter=max_iter or nlp.s.max_iter, tol=1e-8, extra=extra)
+                        max_iter=max_iter or nlp.s.max_iter, tol=1e-8, extra=extra,
+                        derivatives={k: f for k, f in given.items() if k != "hess_lag"})
     out.warm = ca.nlpsol("profile_warm", "ipopt", nlp.session._nlp,
                          warm_options(out.options, warm, extra))
     return out

@@ -99,28 +99,32 @@ def test_same_problem_hits_and_solves_bit_identically(tiny, filled, use):
     np.testing.assert_array_equal(first.constraints(w, p), second.constraints(w, p))
 
 
-def test_the_library_holds_the_staged_hessian_ipopt_is_given(tiny, filled):
-    """The chain NLP gives IPOPT its Hessian assembled stage by stage; the compiled library's
-    ``nlp_hess_l`` is that function (its C), not one ``nlpsol`` derives from the whole graph:
-    equal bit for bit at random points, where ``nlpsol``'s differs (first-order hold)."""
+def test_the_library_holds_the_functions_ipopt_is_given_when_built(tiny, filled):
+    """Built, the chain NLP gives IPOPT its functions assembled from stage kernels; the
+    compiled library's are the same bit for bit at random points: its ``nlp_hess_l`` is the
+    staged Hessian (its C), not one ``nlpsol`` derives from the whole graph (which differs
+    with a first-order hold), the rest ``nlpsol``'s from the transcription."""
     import casadi as ca
 
     folder, first = filled
-    assert first.session.options["hess_lag"] is not None
+    assert set(first.session.derivatives) == {"grad_f", "jac_g", "hess_lag"}
     library = next(folder.glob(f"nlp-{cache.structure_key(*tiny, 1)[:32]}-*.so"))
-    compiled = ca.external("nlp_hess_l", str(library))
-    staged = first._staged_hessian(first.layout)
     whole, _ = first._transcription()
     derived = ca.nlpsol("whole", "ipopt", whole, {"print_time": False, "no_nlp_grad": True,
                                                   "calc_lam_p": False})
     rng = np.random.default_rng(3)
     differs = 0
     for _ in range(5):
-        args = [rng.standard_normal(first.nx_var), rng.uniform(size=first.np),
-                rng.standard_normal(), rng.standard_normal(first.ng)]
-        np.testing.assert_array_equal(compiled(*args).full(), staged(*args).full())
-        differs += np.count_nonzero(derived.get_function("nlp_hess_l")(*args).full()
-                                    != staged(*args).full())
+        x, p = rng.standard_normal(first.nx_var), rng.uniform(size=first.np)
+        lam = [rng.standard_normal(), rng.standard_normal(first.ng)]
+        for name, args in (("nlp_f", [x, p]), ("nlp_g", [x, p]), ("nlp_grad_f", [x, p]),
+                           ("nlp_jac_g", [x, p]), ("nlp_hess_l", [x, p, *lam])):
+            given = first.session.cold.get_function(name).call(args)
+            compiled = ca.external(name, str(library)).call(args)
+            for a, b in zip(given, compiled, strict=True):
+                np.testing.assert_array_equal(a.full(), b.full(), err_msg=name)
+        differs += np.count_nonzero(derived.get_function("nlp_hess_l")(x, p, *lam).full()
+                                    != given[0].full())
     assert differs > 0
 
 
@@ -146,7 +150,7 @@ def test_the_default_mode_writes_nothing_and_loads_a_stored_transcription(tiny, 
     loaded = FixedModeNLP(*tiny)
     assert loaded.build_info.cache == "miss" and not loaded.build_info.compiled
     assert loaded.build_info.reason == f"{cache.TRANSCRIPTION_LOADED}; {cache.NOT_COMPILED}; " \
-        "Hessian of the Lagrangian: stage kernels in C (3)"
+        "cost, rows and derivatives assembled stage by stage: stage kernels in C (13)"
     assert {p: p.read_bytes() for p in folder.iterdir()} == stored  # nothing rewritten
     assert loaded.layout.to_dict() == built.layout.to_dict()
     _, first = filled  # transcribed: its solves are the loaded NLP's bit for bit
@@ -299,8 +303,8 @@ def test_disabled_by_environment_writes_nothing(tiny, use, monkeypatch):
     monkeypatch.setenv(cache.ENV, "off")
     nlp = FixedModeNLP(*tiny)
     assert nlp.build_info == cache.BuildInfo(
-        "disabled", False, "HMPC_BUILD_CACHE=off: the NLPs are built in SX; Hessian of the "
-        "Lagrangian: stage kernels in SX (3 of 3)")
+        "disabled", False, "HMPC_BUILD_CACHE=off: the NLPs are built in SX; cost, rows and "
+        "derivatives assembled stage by stage: stage kernels in SX (13 of 13)")
     assert not os.listdir(folder)
 
 

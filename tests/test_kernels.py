@@ -1,6 +1,6 @@
-"""Stage kernels compiled to C (hmpc_cli/mpc/kernels.py): the chain NLP's Hessian of the
-Lagrangian evaluates its stages in C once a run has compiled them, with the numbers of the
-SX kernels bit for bit; the cache off, nothing is compiled; a damaged library is never
+"""Stage kernels compiled to C (hmpc_cli/mpc/kernels.py): the chain NLP's cost, rows and
+derivatives evaluate their stages in C once a run has compiled them, with the numbers of
+the SX kernels bit for bit; the cache off, nothing is compiled; a damaged library is never
 loaded."""
 
 from __future__ import annotations
@@ -40,11 +40,20 @@ def _libraries(folder: Path) -> list[Path]:
     return sorted(folder.glob("kernel-*.so"))
 
 
+#: the kernels of the tiny chain's switching NLP: per kind of stage, its rows, cost (a
+#: link's), their Jacobian and gradient, and its Lagrangian's Hessian
+KERNELS = {f"{kind}_{what}" for kind in ("link_foh", "link_held", "last_node")
+           for what in ("rows", "cost", "jac", "grad", "hess")} - {"last_node_cost",
+                                                                 "last_node_grad"}
+
+
 def _stage_classes(nlp: FixedModeNLP) -> set[str]:
-    """The kinds of function the IPOPT Hessian's stage maps call."""
-    stages = {f.name(): f.class_name() for f in nlp.session.options["hess_lag"].find_functions()
+    """The kinds of function IPOPT's maps call: its NLP's (f, g) and the derivatives given."""
+    functions = [nlp.session.cold.oracle(), *(nlp.session.options[k] for k in
+                                               ("grad_f", "jac_g", "hess_lag"))]
+    stages = {f.name(): f.class_name() for fn in functions for f in fn.find_functions()
               if f.class_name() != "Map"}
-    assert set(stages) == {"link_foh_hess", "link_held_hess", "last_node_hess"}
+    assert set(stages) == KERNELS
     return set(stages.values())
 
 
@@ -55,25 +64,26 @@ def _solves(nlp: FixedModeNLP, ball) -> list:
     return [cold, nlp.optimize(cold.x, *data, cold.lam_x, cold.lam_g)]
 
 
-def test_a_second_build_evaluates_the_hessian_in_c_with_the_same_numbers(tiny):
+def test_a_second_build_evaluates_the_nlp_in_c_with_the_same_numbers(tiny):
     system, settings, folder = tiny
     first = FixedModeNLP(system, settings)  # compiles its kernels beside it
     assert kernels.wait()
-    assert len(_libraries(folder)) == 3  # link with a first-order hold, held link, last node
+    assert len(_libraries(folder)) == len(KERNELS) == 13
     second = FixedModeNLP(system, settings)
-    given = second.session.options["hess_lag"]
-    sx = second._staged_hessian(second.layout)
     assert _stage_classes(second) == {"External"}  # the libraries are called
     assert _stage_classes(first) == {"SXFunction"}
-    assert first.build_info.reason.endswith("; Hessian of the Lagrangian: stage kernels in "
-                                            "SX (3 of 3)")
-    assert second.build_info.reason.endswith("; Hessian of the Lagrangian: stage kernels in "
-                                             "C (3)")
+    clause = "; cost, rows and derivatives assembled stage by stage: stage kernels in "
+    assert first.build_info.reason.endswith(f"{clause}SX (13 of 13)")
+    assert second.build_info.reason.endswith(f"{clause}C (13)")
     rng = np.random.default_rng(0)
     for _ in range(5):
-        args = [rng.standard_normal(second.nx_var), rng.uniform(size=second.np),
-                rng.standard_normal(), rng.standard_normal(second.ng)]
-        np.testing.assert_array_equal(given(*args).full(), sx(*args).full())
+        x, p = rng.standard_normal(second.nx_var), rng.uniform(size=second.np)
+        lam = [rng.standard_normal(), rng.standard_normal(second.ng)]
+        for name, args in (("nlp_f", [x, p]), ("nlp_g", [x, p]), ("nlp_grad_f", [x, p]),
+                           ("nlp_jac_g", [x, p]), ("nlp_hess_l", [x, p, *lam])):
+            a, b = (nlp.session.cold.get_function(name).call(args) for nlp in (first, second))
+            for out_a, out_b in zip(a, b, strict=True):
+                np.testing.assert_array_equal(out_a.full(), out_b.full())
     for a, b in zip(_solves(first, system), _solves(second, system), strict=True):
         assert a.stats.success and a.stats.iterations == b.stats.iterations
         np.testing.assert_array_equal(a.x, b.x)
@@ -100,7 +110,7 @@ def test_damaged_kernel_libraries_are_not_loaded_but_compiled_again(tiny):
     again = FixedModeNLP(system, settings)
     assert _stage_classes(again) == {"SXFunction"}  # none loaded
     assert kernels.wait()
-    assert len(_libraries(folder)) == 3 and all(cbuild.verified(p) for p in _libraries(folder))
+    assert len(_libraries(folder)) == 13 and all(cbuild.verified(p) for p in _libraries(folder))
     assert _stage_classes(FixedModeNLP(system, settings)) == {"External"}
 
 
@@ -110,17 +120,38 @@ def test_a_sweeps_process_waits_for_its_kernels_once(tiny, monkeypatch):
     system, settings, folder = tiny
     monkeypatch.setattr(kernels, "_WAIT", True)
     nlp = FixedModeNLP(system, settings)
-    assert _stage_classes(nlp) == {"External"} and len(_libraries(folder)) == 3
+    assert _stage_classes(nlp) == {"External"} and len(_libraries(folder)) == 13
 
 
-def test_the_reason_names_the_fallbacks_hessian_of_an_sqp_solver(tiny):
-    """sqp_hpipm solves on its Gauss-Newton Hessian; its IPOPT fallback gets the staged one,
-    and the build's reason says so (not the SQP's own Hessian, which has no kernels)."""
+def test_the_reason_names_the_fallbacks_derivatives_of_an_sqp_solver(tiny):
+    """sqp_hpipm solves its SX NLP on its Gauss-Newton Hessian; its IPOPT fallback gets the
+    staged derivatives, and the build's reason says so (not the SQP's own functions, which
+    have no kernels)."""
     system, settings, _ = tiny
     sqp = settings.model_copy(update={"solver": "sqp_hpipm", "input_hold": "zoh"})
     nlp = FixedModeNLP(system, sqp, switches=0)
     assert nlp.build_info.reason.endswith(
-        "; Hessian of the Lagrangian (of ipopt, the fallback): stage kernels in SX (2 of 2)")
-    # (a zero-order hold: held links and the last node, no first-order-hold link)
+        "; derivatives of ipopt, the fallback, assembled stage by stage: stage kernels in SX "
+        "(5 of 5)")  # held links and the last node: a gradient, 2 Jacobians, 2 Hessians
+    assert nlp.session.cold.oracle().is_a("SXFunction")  # the transcription, for the SQP
     assert FixedModeNLP(system, settings.model_copy(update={"solver": "rti", "input_hold": "zoh"}),
-                        switches=0).build_info.reason.count("Hessian") == 0
+                        switches=0).build_info.reason.count("stage by stage") == 0
+
+
+def test_options_that_differentiate_the_nlp_itself_get_it_in_sx(tiny):
+    """An nlpsol option whose post-solve quantity needs ``nlp_grad`` (here ``calc_lam_p``)
+    makes nlpsol differentiate the NLP itself, which C kernels cannot be: the NLP is then
+    the SX transcription, IPOPT still given the staged derivatives, and it solves as the
+    default build does."""
+    system, settings, _ = tiny
+    FixedModeNLP(system, settings)
+    assert kernels.wait()  # the kernels in C from here on
+    asked = FixedModeNLP(system, settings.model_copy(
+        update={"solver_options": {"calc_lam_p": True}}))
+    assert asked.session.cold.oracle().is_a("SXFunction")
+    assert asked.build_info.reason.endswith(
+        "; derivatives assembled stage by stage: stage kernels in C (8)")
+    default = FixedModeNLP(system, settings)
+    for a, b in zip(_solves(default, system), _solves(asked, system), strict=True):
+        assert a.stats.success and a.stats.iterations == b.stats.iterations
+        np.testing.assert_array_equal(a.x, b.x)

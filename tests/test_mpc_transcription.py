@@ -343,10 +343,12 @@ def test_random_systems_transcribe_to_the_graph_written_out(seed):
 
 
 @pytest.mark.parametrize("seed", range(0, 40, 4))
-def test_random_systems_give_ipopt_the_hessian_of_the_whole_graph(seed):
-    """The Hessian of the Lagrangian assembled stage by stage, which IPOPT is given, has the
-    sparsity of the one ``nlpsol`` derives from the whole graph and its entries: bit for bit
-    with a zero-order hold, to rounding with a first-order hold (u_k in two links)."""
+def test_random_systems_give_ipopt_the_functions_of_the_whole_graph(seed):
+    """IPOPT's NLP assembled from stage kernels (hmpc_cli/mpc/staged.py) has the functions
+    ``nlpsol`` derives from the whole SX graph: cost, rows, gradient and constraint
+    Jacobian bit for bit with either hold; the Hessian of the Lagrangian with its sparsity,
+    bit for bit with a zero-order hold, to rounding with a first-order hold (u_k in two
+    links)."""
     import casadi as ca
 
     from hmpc_cli.mpc.chain.nlp import FixedModeNLP
@@ -361,15 +363,22 @@ def test_random_systems_give_ipopt_the_hessian_of_the_whole_graph(seed):
         for switches in (settings.max_switches, 0):
             nlp = FixedModeNLP(system, settings.model_copy(update={"input_hold": hold}),
                                switches=switches)
-            given = nlp.session.options["hess_lag"]
+            assert nlp.session.cold.oracle().is_a("MXFunction")  # assembled, not expanded
             whole, _ = nlp._transcription()
-            derived = ca.nlpsol("whole", "ipopt", whole, {
-                "no_nlp_grad": True, "calc_lam_p": False}).get_function("nlp_hess_l")
-            assert given.sparsity_out(0) == derived.sparsity_out(0), (seed, hold, switches)
-            args = [points.standard_normal(nlp.nx_var), points.uniform(size=nlp.np),
-                    points.standard_normal(), points.standard_normal(nlp.ng)]
-            a, b = given(*args).full(), derived(*args).full()
-            if hold == "zoh":
-                np.testing.assert_array_equal(a, b)
-            else:
-                np.testing.assert_allclose(a, b, rtol=0, atol=1e-14 * max(1.0, np.abs(b).max()))
+            derived = ca.nlpsol("whole", "ipopt", whole, {"no_nlp_grad": True,
+                                                          "calc_lam_p": False})
+            x, p = points.standard_normal(nlp.nx_var), points.uniform(size=nlp.np)
+            lam = [points.standard_normal(), points.standard_normal(nlp.ng)]
+            for name, args in (("nlp_f", [x, p]), ("nlp_g", [x, p]), ("nlp_grad_f", [x, p]),
+                               ("nlp_jac_g", [x, p]), ("nlp_hess_l", [x, p, *lam])):
+                given, whole_graph = (s.get_function(name) for s in (nlp.session.cold, derived))
+                for i in range(given.n_out()):
+                    where = (seed, hold, switches, name, i)
+                    assert given.sparsity_out(i) == whole_graph.sparsity_out(i), where
+                    a = given.call(args)[i].full()
+                    b = whole_graph.call(args)[i].full()
+                    if name != "nlp_hess_l" or hold == "zoh":
+                        np.testing.assert_array_equal(a, b, err_msg=str(where))
+                    else:
+                        np.testing.assert_allclose(a, b, rtol=0,
+                                                   atol=1e-14 * max(1.0, np.abs(b).max()))

@@ -32,7 +32,7 @@ def test_the_staged_hessian_is_nlpsols_bit_for_bit_only_with_a_zero_order_hold(h
 @pytest.mark.parametrize("hold", ["zoh", "foh"])
 def test_the_staged_constraint_jacobian_is_nlpsols_bit_for_bit(hold):
     """Every row is one stage's, so the Jacobian assembled stage by stage is nlpsol's bit
-    for bit with either hold (the next lever: docs/performance.md)."""
+    for bit with either hold (hmpc gives it to IPOPT: hmpc_cli/mpc/staged.py)."""
     settings = MPCSettings(horizon=1.0, max_switches=3, input_hold=hold)
     rows = probe_stagewise.jacobian_rows(build_ball(BallParams()), settings)
     assert [r["nlp"] for r in rows] == ["switching", "final"]

@@ -1,9 +1,10 @@
 """Build cache of the MPC's NLPs: compiled once per problem structure, loaded after.
 
 Where a process spends its start-up (``hmpc run scenarios/ball.toml``): transcribing
-each NLP into an SX graph and its ``ca.nlpsol`` (the symbolic gradient and Jacobian and
-their sparsity; the chain NLP gives IPOPT its Hessian of the Lagrangian made stage by
-stage): most of a short run (results/bench/). A serialized
+each NLP into an SX graph and its ``ca.nlpsol`` (the symbolic gradient, Jacobian and
+Hessian and their sparsity): most of a short run (results/bench/), but for the chain NLP
+on IPOPT, whose functions are assembled from stage kernels in a fraction of that
+(:mod:`hmpc_cli.mpc.staged`). A serialized
 ``nlpsol`` does not help (tens of MB for the switching NLP, slower to read than to rebuild), so
 the cache keeps what IPOPT calls, compiled: the C that ``nlpsol.generate_dependencies``
 writes (``nlp_f``, ``nlp_g``, ``nlp_grad_f``, ``nlp_jac_g``, ``nlp_hess_l``; no ``nlp_grad``;
@@ -38,7 +39,8 @@ for the ball's switching NLP minutes of CPU and GBs of memory at -O1.
 
 Until its library is made a later run loads the stored function and calls it on fresh
 symbols (:func:`load_transcription`), the graph the compiler is given too, and ``nlpsol``
-derives the same functions from it: the solves are the transcribed NLP's bit for bit
+derives the same functions from it (the chain NLP on IPOPT assembles them from its stage
+kernels instead: the same numbers): the solves are the transcribed NLP's bit for bit
 (``tests/test_build_cache.py``). The cache is still a miss (the NLP is solved in SX); its
 reason says the transcription was loaded. The default mode stores nothing of the NLP:
 transcribing costs what loading does (its Hessian's small stage kernels are compiled in
@@ -351,7 +353,7 @@ def lookup(key: str, plugin: str) -> Hit:
     return Hit(None, layout, BuildInfo("miss", False, TRANSCRIPTION_LOADED), nlp)
 
 
-def store(key: str, plugin: str, nlp: dict, layout: NLPLayout, *,
+def store(key: str, plugin: str, nlp: dict | None, layout: NLPLayout, *,
           stored: bool = False, hess_lag: ca.Function | None = None) -> BuildInfo:
     """Stores a freshly built NLP's layout and function, and starts its compilation.
 
@@ -361,7 +363,8 @@ def store(key: str, plugin: str, nlp: dict, layout: NLPLayout, *,
     Args:
         key: the entry's structure key.
         plugin: the solver back-end's name.
-        nlp: the NLP ``{"x", "p", "f", "g"}``.
+        nlp: the NLP ``{"x", "p", "f", "g"}`` in SX (None: only in the default mode,
+            which stores nothing).
         layout: its layout.
         stored: they are stored already (the NLP was loaded from them).
         hess_lag: the Hessian of the Lagrangian the NLP gives IPOPT (None: ``nlpsol``'s);
@@ -378,7 +381,7 @@ def store(key: str, plugin: str, nlp: dict, layout: NLPLayout, *,
     return BuildInfo("miss", False, f"{TRANSCRIPTION_LOADED}; {fate}" if stored else fate)
 
 
-def _library_fate(entry: Entry, nlp: dict, layout: NLPLayout, stored: bool,
+def _library_fate(entry: Entry, nlp: dict | None, layout: NLPLayout, stored: bool,
                   hess_lag: ca.Function | None) -> str:
     """What happens to the entry's library.
 

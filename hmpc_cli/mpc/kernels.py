@@ -1,32 +1,36 @@
 """Stage kernels compiled to C: the small SX functions a staged NLP maps over its stages.
 
-The chain NLP's Hessian of the Lagrangian is assembled from one SX function per kind of
-stage (:meth:`~hmpc_cli.mpc.chain.nlp.FixedModeNLP._staged_hessian`): a few thousand
-instructions each, evaluated once per stage and IPOPT iteration in CasADi's SX virtual
-machine. Compiled to C, each takes a fraction of a second to build (the whole NLP's
-functions take minutes: :mod:`hmpc_cli.mpc.cache`) and evaluates several times faster,
-with the same numbers bit for bit (CasADi's C of the same operations, ``-ffp-contract=off``).
+The chain NLP's cost, rows and derivatives are assembled from SX kernels, a few per kind
+of stage (:class:`~hmpc_cli.mpc.staged.StagedNLP`): up to a few thousand instructions
+each, evaluated once per stage and IPOPT call in CasADi's SX virtual machine. Compiled to
+C, each takes a fraction of a second to build (the whole NLP's functions take minutes:
+:mod:`hmpc_cli.mpc.cache`) and evaluates several times faster, with the same numbers bit
+for bit (CasADi's C of the same operations, ``-ffp-contract=off``).
 
 :func:`compiled` returns a kernel's library from the cache directory if a verified copy is
 there (``kernel-<key>.so``, keyed by the function's serialization, CasADi's version, the
-compiler's identity and the flags), else the SX function itself, and compiles the library
-in a thread, the compiler a child process at the lowest priority: a run never waits for
-it (at exit neither: a compile still running then is abandoned, and a later run starts it
-again), the next run loads it. A process that runs many runs (a sweep's worker) calls
-:func:`wait_for_compiles` first: it then waits for each kernel's compile (at normal
-priority) once, so its later runs evaluate the kernels in C.
-``HMPC_BUILD_CACHE=off``, no usable compiler or a cache directory others may write
-leave every kernel in SX.
+compiler's identity and the flags), else the SX function itself, and queues the library's
+compile for one worker thread, which runs the compiler (a child process at the lowest
+priority) on one kernel after the other: a run never waits for it (at exit neither: the
+compiles left then are abandoned, and a later run starts them again), the next run loads
+what was compiled. One compile at a time: a run of many kernels would otherwise start as
+many compilers at once, which even at the lowest priority take a share of the run's core.
+A process that runs many runs (a sweep's worker) calls :func:`wait_for_compiles` first:
+it then waits for each kernel's compile (at normal priority) once, so its later runs
+evaluate the kernels in C. ``HMPC_BUILD_CACHE=off``, no usable compiler or a cache
+directory others may write leave every kernel in SX.
 """
 
 from __future__ import annotations
 
 import hashlib
 import logging
+import queue
 import shutil
 import tempfile
 import threading
 import time
+from collections.abc import Iterable
 from pathlib import Path
 
 import casadi as ca
@@ -37,7 +41,9 @@ from hmpc_cli.mpc.cache import CFLAGS
 #: the compiler runs at the lowest priority beside a run, never in its way (where
 #: ``nice`` is found)
 NICE = ("nice", "-n", "19")
-_STARTED: dict[Path, threading.Thread] = {}  # this process's compiles, by library
+_STARTED: dict[Path, threading.Event] = {}  # this process's compiles (set: ended), by library
+_JOBS: queue.SimpleQueue = queue.SimpleQueue()  # compiles for the worker, in order
+_WORKER: list[threading.Thread] = []  # the worker thread, once started
 _FAILED: list[str] = []  # this process's failed compiles: their first lines
 _WAIT = False  # set by wait_for_compiles
 _LOCK = threading.Lock()
@@ -69,10 +75,10 @@ def compiled(fn: ca.Function) -> ca.Function:
     k = key(fn, identity)
     path = folder / f"kernel-{k[:32]}.so"
     if not _ready(path, k):
-        thread = _start(cc, fn, path, k)
+        ended = _start(cc, fn, path, k)
         if not _WAIT:
             return fn
-        thread.join()
+        ended.wait()
         if not _ready(path, k):
             return fn
     try:
@@ -93,10 +99,11 @@ def _ready(path: Path, k: str) -> bool:
     return cbuild.verified(path) and cbuild.recorded(path)[2:3] == [k]
 
 
-def _start(cc: list[str], fn: ca.Function, path: Path, k: str) -> threading.Thread:
-    """Compiles ``fn``'s C (generated here: CasADi is not thread-safe) in a thread.
+def _start(cc: list[str], fn: ca.Function, path: Path, k: str) -> threading.Event:
+    """Queues the compile of ``fn``'s C (generated here: CasADi is not thread-safe).
 
-    Returns the thread (the one started before for ``path`` in this process, if any).
+    Returns the event set when it has ended (the one of an earlier call for ``path`` in
+    this process, if any).
     """
     with _LOCK:
         if path in _STARTED:
@@ -105,14 +112,23 @@ def _start(cc: list[str], fn: ca.Function, path: Path, k: str) -> threading.Thre
             cbuild.remove_stale_temporaries(path.parent)
         gen = ca.CodeGenerator(f"{fn.name()}.c", {"with_header": False})
         gen.add(fn)
-        source = gen.dump()
         nice = () if _WAIT or not NICE or shutil.which(NICE[0]) is None else NICE
-        thread = threading.Thread(target=_compile, args=([*nice, *cc], source, fn.name(),
-                                                         path, k),
-                                  name=f"hmpc-kernel-{k[:8]}", daemon=True)
-        _STARTED[path] = thread
-    thread.start()
-    return thread
+        ended = _STARTED[path] = threading.Event()
+        _JOBS.put(([*nice, *cc], gen.dump(), fn.name(), path, k, ended))
+        if not _WORKER:
+            _WORKER.append(threading.Thread(target=_work, name="hmpc-kernels", daemon=True))
+            _WORKER[0].start()
+    return ended
+
+
+def _work() -> None:
+    """The worker thread: compiles the queued kernels one after the other."""
+    while True:
+        *job, ended = _JOBS.get()
+        try:
+            _compile(*job)
+        finally:
+            ended.set()
 
 
 def _compile(cc: list[str], source: str, name: str, path: Path, k: str) -> None:
@@ -135,20 +151,19 @@ def _compile(cc: list[str], source: str, name: str, path: Path, k: str) -> None:
             _FAILED.append(f"{name}: {(str(e).splitlines() or [type(e).__name__])[0]}")
 
 
-def describe(fn: ca.Function) -> str:
-    """Where the stage kernels ``fn`` maps run, as a clause of a build's reason.
+def describe(made: Iterable[ca.Function]) -> str:
+    """Where the stage kernels ``made`` run, as a clause of a build's reason.
 
-    ``fn``: a function assembled from kernels (e.g. the staged Hessian). Names the
-    kernels in SX and, if any, this process's last failed kernel compile.
+    ``made``: kernels as :func:`compiled` returned them. Counts those in SX and names, if
+    any, this process's last failed kernel compile.
     """
-    kernels = {f.name(): f.class_name() for f in fn.find_functions()
-               if f.class_name() != "Map"}
-    in_c = sum(kind == "External" for kind in kernels.values())
-    if in_c == len(kernels):
+    made = list(made)
+    in_c = sum(fn.class_name() == "External" for fn in made)
+    if in_c == len(made):
         return f"stage kernels in C ({in_c})"
     with _LOCK:
         failed = f"; a kernel compile of this process failed: {_FAILED[-1]}" if _FAILED else ""
-    return f"stage kernels in SX ({len(kernels) - in_c} of {len(kernels)}){failed}"
+    return f"stage kernels in SX ({len(made) - in_c} of {len(made)}){failed}"
 
 
 def wait(timeout: float = 60.0) -> bool:
@@ -157,8 +172,6 @@ def wait(timeout: float = 60.0) -> bool:
     Returns whether they all ended.
     """
     with _LOCK:
-        threads = list(_STARTED.values())
+        events = list(_STARTED.values())
     end = time.monotonic() + timeout
-    for thread in threads:
-        thread.join(max(0.0, end - time.monotonic()))
-    return not any(thread.is_alive() for thread in threads)
+    return all(ended.wait(max(0.0, end - time.monotonic())) for ended in events)

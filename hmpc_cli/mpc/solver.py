@@ -121,6 +121,16 @@ def without_nlp_grad(options: dict, plugin: str = "ipopt") -> dict:
     return {**options, "no_nlp_grad": True}
 
 
+def needs_nlp_grad(plugin: str, extra: dict | None) -> bool:
+    """Whether back-end ``plugin``'s instance generates ``nlpsol``'s ``nlp_grad``.
+
+    With user options ``extra`` (:func:`without_nlp_grad`); it differentiates the NLP.
+    """
+    backend = backend_of(plugin)
+    return not without_nlp_grad(split_options(backend, extra)[0], backend.plugin) \
+        .get("no_nlp_grad")
+
+
 def derivatives_of(solver: ca.Function, plugin: str = "ipopt") -> dict:
     """The derivative functions an ``nlpsol`` instance of ``plugin`` generated, as options.
 
@@ -215,10 +225,14 @@ class SolverSession:
         sqp_iter: ``sqp_hpipm``: SQP iterations per solve (real-time iterations).
         residuals: ``sqp_hpipm``: least-squares residuals of the cost (see
             :func:`hmpc_cli.mpc.backends.gauss_newton_hessian`).
-        hess_lag: IPOPT's Hessian of the Lagrangian, (x, p, lam_f, lam_g) -> its upper
-            triangle, instead of the one ``nlpsol`` generates from the whole graph
-            (e.g. :meth:`~hmpc_cli.mpc.chain.nlp.FixedModeNLP._staged_hessian`); other
-            plug-ins, and a compiled library (whose own it is), leave it out.
+        derivatives: IPOPT's derivative functions by ``nlpsol`` option (``grad_f``,
+            ``jac_g``, ``hess_lag``: :data:`DERIVATIVES`) instead of those ``nlpsol``
+            generates from the whole graph (e.g.
+            :meth:`~hmpc_cli.mpc.staged.StagedNLP.derivatives`); other plug-ins, and a
+            compiled library (whose own they are), leave them out (:attr:`derivatives`:
+            those given). An NLP in MX is not expanded (its functions are assembled
+            already; its kernels may be C libraries, which do not expand): ``options``,
+            what the cold instance gets, then has no ``expand``.
 
     Raises:
         ValueError: an unknown back-end, or a compiled library for a back-end that
@@ -230,13 +244,14 @@ class SolverSession:
                  equality: list[bool] | None = None, extra: dict | None = None,
                  warm: WarmStart | None = None, structure: OCPStructure | None = None,
                  sqp_iter: int = 10, residuals=None,
-                 hess_lag: ca.Function | None = None) -> None:
+                 derivatives: dict[str, ca.Function] | None = None) -> None:
         """Builds the cold and (a back-end with a warm instance, ``warm``) the warm one."""
         self.backend = backend = backend_of(plugin)
         self.plugin, self._nlp, self._name = plugin, nlp, name
         self._args = dict(max_iter=max_iter, tol=tol, max_wall_time=max_wall_time,
                           equality=equality, extra=extra, warm=warm, structure=structure,
-                          sqp_iter=sqp_iter, residuals=residuals, hess_lag=hess_lag)
+                          sqp_iter=sqp_iter, residuals=residuals,
+                          derivatives=derivatives)
         self._fallback: SolverSession | None = None
         compiled = isinstance(nlp, str)  # a library of nlpsol's generated functions
         if compiled and not backend.compilable:
@@ -246,17 +261,23 @@ class SolverSession:
                           structure, sqp_iter, residuals)
         self.options = without_nlp_grad({"calc_lam_p": False, **backend.options(args)},
                                          backend.plugin)
-        if hess_lag is not None and backend.plugin == "ipopt" and not compiled:
-            self.options = {"hess_lag": hess_lag, **self.options}
+        #: the derivative functions given to ``nlpsol`` (by option; empty: its own)
+        self.derivatives = dict(derivatives or {}) \
+            if backend.plugin == "ipopt" and not compiled else {}
+        unknown = set(self.derivatives) - set(DERIVATIVES["ipopt"])
+        if unknown:
+            raise ValueError(f"not derivative options of ipopt: {sorted(unknown)}")
+        self.options = {**self.derivatives, **self.options}
         if compiled and not self.options.get("no_nlp_grad"):
             asked = [k for k in NLP_GRAD_USERS if self.options.get(k)] or ["no_nlp_grad=False"]
             raise RuntimeError(f"options {asked} need nlp_grad, which a compiled NLP leaves out")
-        load = {k: v for k, v in self.options.items() if k != "expand"} if compiled \
-            else self.options
-        self.cold = self.warm = BufferedSolver(ca.nlpsol(name, backend.plugin, nlp, load))
+        if compiled or isinstance(nlp["x"], ca.MX):  # nothing to expand, or not expandable
+            self.options.pop("expand", None)
+        self.cold = self.warm = BufferedSolver(ca.nlpsol(name, backend.plugin, nlp,
+                                                         self.options))
         if backend.warm is not None and warm is not None:
             self.warm = BufferedSolver(ca.nlpsol(f"{name}_warm", backend.plugin, nlp, {
-                **backend.warm(load, warm, sections, args),
+                **backend.warm(self.options, warm, sections, args),
                 **({} if compiled else derivatives_of(self.cold, backend.plugin))}))
         self._g = ca.external("nlp_g", nlp) if compiled else \
             ca.Function("g", [nlp["x"], nlp["p"]], [nlp["g"]])

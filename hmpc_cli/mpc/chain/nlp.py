@@ -57,7 +57,8 @@ from hmpc_cli.mpc.backends import OCPStructure
 from hmpc_cli.mpc.builder import Blocks, NLPBuilder, NLPLayout
 from hmpc_cli.mpc.chain.layout import FLOW, ChainLayout, NodeSchedule
 from hmpc_cli.mpc.chain.problem_data import INF, ChainShape, problem_data
-from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart
+from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart, needs_nlp_grad
+from hmpc_cli.mpc.staged import StageKind, StagedNLP
 from hmpc_cli.mpc.solver_table import SOLVERS, SolverName, SolverOptions, describe
 from hmpc_cli.core.settings_types import (
     MAX_NLP_NODES, BoundedInt, FiniteFloat, StrictBool, nlp_estimate)
@@ -302,7 +303,12 @@ class FixedModeNLP:
         return z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
     def _build(self) -> None:
-        """The NLP from the build cache if compiled there, else transcribed (and cached)."""
+        """The NLP from the build cache if compiled there, else built (and cached).
+
+        Built, IPOPT gets the cost, rows and derivatives assembled from the stage kernels
+        (:meth:`_staged`); another back-end the SX transcription, its IPOPT fallback the
+        staged derivatives.
+        """
         key = cache.structure_key(self.system, self.s, self.S)
         hit = cache.lookup(key, self.s.solver_of(self.S))
         self.session = None
@@ -315,33 +321,50 @@ class FixedModeNLP:
                              str(exc).strip().splitlines()[-1:])
                 hit = cache.Hit(None, None, cache.BuildInfo("miss", False, "unloadable"))
         if self.session is None:
-            loaded = hit.transcription is not None
-            nlp, self.layout = (hit.transcription, hit.layout) if loaded else \
-                self._transcription()
-            backend = SOLVERS[self.s.solver_of(self.S)]  # IPOPT, or IPOPT as its fallback
-            fallback = SOLVERS[backend.fallback].plugin if backend.fallback else None
-            hess = self._staged_hessian(self.layout, compiled=cache.mode() != "off") \
-                if "ipopt" in (backend.plugin, fallback) else None
-            self.session = self._session(nlp, hess)
-            given = hess
-            if hess is not None and cache.mode() in ("background", "sync"):
-                hess = self._staged_hessian(self.layout)  # SX kernels: the library's C
-            info = hit.info if hit.info.cache == "disabled" else \
-                cache.store(key, self.s.solver_of(self.S), nlp, self.layout, stored=loaded,
-                            hess_lag=hess)
-            whose = "" if backend.plugin == "ipopt" else f" (of {backend.fallback}, the fallback)"
-            self.build_info = info if given is None else dataclasses.replace(
-                info, reason=f"{info.reason}; Hessian of the Lagrangian{whose}: "
-                             f"{kernels.describe(given)}")
+            self.build_info = self._built(key, hit)
         X, g = self.layout.x, self.layout.g
         self.nx_var, self.ng, self.np = X.size, g.size, self.layout.p.size
         self.z_idx, self.u_idx, self.s_idx = X["z"], X["u"], X["sigma"]
         self.link_rows = np.stack([g.at(k) for k in range(self.L)])  # (L, rows per link)
 
-    def _session(self, nlp: dict | str, hess_lag: ca.Function | None = None) -> SolverSession:
-        """The solver session of the NLP (an SX dict or a compiled library's path).
+    def _built(self, key: str, hit: cache.Hit) -> cache.BuildInfo:
+        """Builds the session of an NLP the cache holds no library of; its build info.
 
-        ``hess_lag``: IPOPT's Hessian of the Lagrangian (:meth:`_staged_hessian`).
+        The info is the cache's, with where the stage kernels run. The SX transcription
+        is made for a back-end other than IPOPT, for options that need ``nlpsol`` to
+        differentiate the NLP itself, and for the cache in the modes that compile (with
+        the staged Hessian of SX kernels: the library's C).
+        """
+        solver = self.s.solver_of(self.S)
+        backend = SOLVERS[solver]
+        fallback = SOLVERS[backend.fallback].plugin if backend.fallback else None
+        sx, self.layout = (hit.transcription, hit.layout) if hit.transcription is not None \
+            else (None, self._builder().layout())
+        compiles = hit.info.cache != "disabled" and cache.mode() in ("background", "sync")
+        # options that make nlpsol differentiate the NLP itself (nlp_grad) need it in SX
+        mx = backend.plugin == "ipopt" and not needs_nlp_grad(solver, self.s.solver_options)
+        if sx is None and (not mx or compiles):
+            sx = self._transcription()[0]
+        staged = self._staged(self.layout, compiled=cache.mode() != "off") \
+            if "ipopt" in (backend.plugin, fallback) else None
+        nlp = staged.nlp() if mx else sx
+        self.session = self._session(nlp, staged.derivatives() if staged else None)
+        info = hit.info if hit.info.cache == "disabled" else cache.store(
+            key, solver, sx, self.layout, stored=hit.transcription is not None,
+            hess_lag=self._staged_hessian(self.layout) if staged and compiles else None)
+        if staged is None:
+            return info
+        what = "cost, rows and derivatives" if mx else "derivatives" if \
+            backend.plugin == "ipopt" else f"derivatives of {backend.fallback}, the fallback,"
+        return dataclasses.replace(info, reason=f"{info.reason}; {what} assembled stage by "
+                                                f"stage: {kernels.describe(staged.made)}")
+
+    def _session(self, nlp: dict | str,
+                 derivatives: dict[str, ca.Function] | None = None) -> SolverSession:
+        """The solver session of the NLP (a dict of MX or SX, or a compiled library's path).
+
+        ``derivatives``: IPOPT's derivative functions by ``nlpsol`` option
+        (:meth:`~hmpc_cli.mpc.staged.StagedNLP.derivatives`).
         """
         equality, structure, solver = None, None, self.s.solver_of(self.S)
         if SOLVERS[solver].stagewise:
@@ -351,15 +374,10 @@ class FixedModeNLP:
         return SolverSession(
             "fixed_mode_mpc", nlp, solver, max_iter=self.s.max_iter, tol=1e-8,
             equality=equality, extra=self.s.solver_options, warm=WARM_START,
-            structure=structure, sqp_iter=self.s.max_sqp_iter, hess_lag=hess_lag)
+            structure=structure, sqp_iter=self.s.max_sqp_iter, derivatives=derivatives)
 
-    def _transcription(self) -> tuple[dict, NLPLayout]:
-        """The NLP ``{"x", "p", "f", "g"}`` in SX and its layout.
-
-        The builder lays out x, p and g stage by stage (the rows by place only);
-        :meth:`_staged_nlp` makes the cost and the rows, evaluated on the builder's
-        symbols.
-        """
+    def _builder(self) -> NLPBuilder:
+        """The builder with x, p and g laid out stage by stage (the rows by place only)."""
         b = NLPBuilder()
         for k in range(self.L + 1):
             with b.stage(k):
@@ -374,6 +392,15 @@ class FixedModeNLP:
                     b.place_rows(name, shape)
         if self.T:
             b.place_rows("terminal", self.T)
+        return b
+
+    def _transcription(self) -> tuple[dict, NLPLayout]:
+        """The NLP ``{"x", "p", "f", "g"}`` in SX and its layout.
+
+        :meth:`_staged_nlp` makes the cost and the rows, evaluated on the builder's
+        symbols (:meth:`_builder`).
+        """
+        b = self._builder()
         (x, p), layout = b.symbols(), b.layout()
         f, g = self._staged_nlp(layout).call([x, p])
         return {"x": x, "p": p, "f": f, "g": g}, layout
@@ -404,11 +431,12 @@ class FixedModeNLP:
         """
         x, p = ca.MX.sym("x", layout.x.size), ca.MX.sym("p", layout.p.size)
         rows, costs = [], []
-        for fn, n, variables, pars in self._stage_kinds(layout, x, p):
-            if fn.n_out() == 1:  # the last node
-                rows.append(fn(*[c for c, _ in variables], pars))
+        for kind in self._stage_kinds(layout, x, p):
+            args = [c for c, _ in kind.variables]
+            if not kind.has_cost:  # the last node
+                rows.append(kind.fn(*args, kind.parameters))
                 continue
-            r, j = fn.map(n)(*[c for c, _ in variables], pars)
+            r, j = kind.fn.map(kind.count)(*args, kind.parameters)
             rows.append(ca.vec(r))
             costs.append(ca.sum2(j))
         cost = costs[0] if len(costs) == 1 else costs[0] + costs[1]
@@ -416,15 +444,12 @@ class FixedModeNLP:
         fn = ca.Function("nlp", [x, p], [f, ca.vertcat(*rows)])
         return fn.expand() if expand else fn
 
-    def _stage_kinds(self, layout: NLPLayout, x: ca.MX, p: ca.MX) -> list[tuple]:
-        """Each kind of stage in the order of g: (function, count, variables, parameters).
+    def _stage_kinds(self, layout: NLPLayout, x: ca.MX, p: ca.MX) -> list[StageKind]:
+        """Each kind of stage in the order of g, on the MX symbols x and p.
 
         The kinds are :meth:`_stage_functions`' (links with a first-order hold, held links,
-        the last node), those with no stage left out; ``count``: its stages. ``variables``:
-        per argument of the
-        function before its parameters, (entries of x, one column per stage; their
-        indices into x, shape (stages, width)); ``parameters``: the stages' parameter
-        blocks stacked, one column per stage.
+        the last node), those with no stage left out; a kind's parameters are its stages'
+        parameter blocks stacked.
         """
         X, P, L = layout.x, layout.p, self.L
         link_par, node_par = self._stage_parameters()
@@ -443,60 +468,29 @@ class FixedModeNLP:
                 [(X["z"], ks), (X["u"], ks), (X["sigma"], ks), (X["z"], zn)] + \
                 ([(X["u"], zn)] if fn is link else [])
             pars = ca.vertcat(*[_stage_columns(p, P[name], ks)[0] for name in names])
-            out.append((fn, ks.stop - ks.start,
-                        [_stage_columns(x, idx, stages) for idx, stages in blocks], pars))
+            out.append(StageKind(fn, ks.stop - ks.start,
+                                 [_stage_columns(x, idx, stages) for idx, stages in blocks],
+                                 pars))
         return out
 
-    def _staged_hessian(self, layout: NLPLayout, compiled: bool = False) -> ca.Function:
-        """The Lagrangian's Hessian assembled stage by stage, as IPOPT's ``hess_lag``.
+    def _staged(self, layout: NLPLayout, compiled: bool = False) -> StagedNLP:
+        """The NLP's cost, rows and derivatives assembled from its stage kernels.
 
-        Each kind of stage (:meth:`_stage_kinds`) gets the SX Hessian of lam_f * cost +
-        lam^T rows in its own variables (the cost first, as ``nlpsol`` forms the
-        Lagrangian), mapped over its stages in MX on gathers of x, p and slices of lam_g;
-        a constant 0/1 matrix sums the entries into the upper triangle (with a first-order
-        hold u_k is in links k-1 and k). Its sparsity is the whole graph's Hessian's; its
-        entries equal ``nlpsol``'s bit for bit with a zero-order hold, and to rounding
-        (the two sums of u_k's entries associated otherwise) with a first-order hold. It
-        is made in a fraction of the time ``nlpsol`` takes to differentiate the whole
-        graph twice (docs/performance.md). ``compiled``: each kind of stage's Hessian is
-        its C library where the cache holds one (:func:`hmpc_cli.mpc.kernels.compiled`,
-        the same numbers bit for bit; else it is compiled for the next run).
-
-        Returns:
-            (x, p, lam_f, lam_g) -> triu(H), shape (nx, nx), named as ``nlpsol``'s
-            ``nlp_hess_l``.
+        See :class:`~hmpc_cli.mpc.staged.StagedNLP`; ``compiled``: the kernels' C libraries
+        where the cache holds them (:func:`hmpc_cli.mpc.kernels.compiled`).
         """
-        nx = layout.x.size
-        x, p = ca.MX.sym("x", nx), ca.MX.sym("p", layout.p.size)
-        lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", layout.g.size)
-        values, rows, columns, row = [], [], [], 0
-        for fn, n, variables, pars in self._stage_kinds(layout, x, p):
-            sym = [ca.SX.sym(f"v{i}", fn.size1_in(i)) for i in range(fn.n_in())]
-            n_rows = fn.size1_out(0)
-            lam, lf = ca.SX.sym("lam", n_rows), ca.SX.sym("lam_f")
-            out = fn(*sym)
-            lag = lf * out[1] + ca.dot(lam, out[0]) if fn.n_out() == 2 else ca.dot(lam, out)
-            h = ca.hessian(lag, ca.vertcat(*sym[:len(variables)]))[0]
-            hk = ca.Function(f"{fn.name()}_hess", [*sym, lam, lf], [h.nz[:]])
-            hk = kernels.compiled(hk) if compiled else hk
-            v = hk.map(n)(*[c for c, _ in variables], pars,
-                          ca.reshape(lam_g[row:row + n_rows * n], n_rows, n),
-                          ca.repmat(lam_f, 1, n))
-            row += n_rows * n
-            idx = np.hstack([i for _, i in variables])  # (stages, stage variables)
-            r, c = h.sparsity().get_triplet()
-            values.append(ca.vec(v))
-            rows.append(idx[:, r].ravel())
-            columns.append(idx[:, c].ravel())
-        r, c = np.concatenate(rows), np.concatenate(columns)
-        upper = np.flatnonzero(r <= c)
-        entry, which = np.unique(c[upper] * nx + r[upper], return_inverse=True)  # by column
-        total = ca.DM(ca.Sparsity.triplet(entry.size, r.size, which.tolist(), upper.tolist()),
-                      1.0)
-        sparsity = ca.Sparsity.triplet(nx, nx, (entry % nx).tolist(), (entry // nx).tolist())
-        hess = ca.MX(sparsity, ca.mtimes(total, ca.vertcat(*values)))
-        return ca.Function("nlp_hess_l", [x, p, lam_f, lam_g], [hess],
-                           ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
+        x, p = ca.MX.sym("x", layout.x.size), ca.MX.sym("p", layout.p.size)
+        slack = (layout.x["sigma"].ravel(), self.s.soft_penalty)
+        return StagedNLP(self._stage_kinds(layout, x, p), x, p, slack, compiled)
+
+    def _staged_hessian(self, layout: NLPLayout, compiled: bool = False) -> ca.Function:
+        """IPOPT's Hessian of the Lagrangian assembled stage by stage.
+
+        (x, p, lam_f, lam_g) -> triu(H) (:meth:`~hmpc_cli.mpc.staged.StagedNLP.hessian`).
+        Equal to ``nlpsol``'s bit for bit with a zero-order hold, to rounding with a
+        first-order hold (u_k's entries sum links k-1 and k in another order).
+        """
+        return self._staged(layout, compiled).hessian()
 
     def _stage_parameters(self) -> tuple[tuple[str, ...], tuple[str, ...]]:
         """The parameter blocks a link's and a node's rows read (see :meth:`_parameters`)."""
