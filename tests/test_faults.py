@@ -264,7 +264,7 @@ def test_a_lock_whose_owner_is_dead_is_taken_over(tmp_path: Path, content, age: 
     then = time.time() - age
     os.utime(entry.lock, (then, then))
     before = entry.lock.read_text()
-    assert cache.take_lock(entry.lock) is taken
+    assert cache._take_lock(entry) is taken
     if taken:
         assert entry.lock.read_text() == cache.lock_owner()
     else:
@@ -275,7 +275,7 @@ def test_the_background_compile_owns_its_locks(tmp_path: Path, monkeypatch):
     from hmpc_cli.mpc import cache
 
     entry = cache.Entry(tmp_path, "k" * 64, "identity")
-    assert cache.take_lock(entry.lock)
+    assert cache._take_lock(entry)
     started = []
 
     class Proc:
@@ -289,7 +289,7 @@ def test_the_background_compile_owns_its_locks(tmp_path: Path, monkeypatch):
     monkeypatch.setattr(cache, "_QUEUE", [entry])
     cache._start_queue()
     assert started and entry.lock.read_text().split()[0] == str(Proc.pid)
-    assert cache.take_lock(entry.lock), "its process is gone: taken over at once"
+    assert cache._take_lock(entry), "its process is gone: taken over at once"
 
 
 # --------------------------------------------------------- 1. stop signals, in-process

@@ -155,32 +155,3 @@ def test_options_that_differentiate_the_nlp_itself_get_it_in_sx(tiny):
     for a, b in zip(_solves(default, system), _solves(asked, system), strict=True):
         assert a.stats.success and a.stats.iterations == b.stats.iterations
         np.testing.assert_array_equal(a.x, b.x)
-
-
-def test_compiles_left_at_exit_are_finished_by_a_detached_process(tiny):
-    """A run that ends before its kernels are compiled hands them to a detached process at
-    exit (idle priority, the cache directory's lock held while it compiles), which
-    compiles them and removes its jobs file: the next run finds every kernel in C."""
-    import os
-    import subprocess
-    import sys
-    import time
-
-    _, _, folder = tiny
-    script = ("from hmpc_cli.core.registry import build_system\n"
-              "from hmpc_cli.mpc.chain.nlp import FixedModeNLP\n"
-              "from hmpc_cli.run.scenario import load_scenario\n"
-              f"sc, _ = load_scenario({str(REPO / 'scenarios' / 'ball.toml')!r}, {TINY!r})\n"
-              "FixedModeNLP(build_system(sc.system), sc.mpc)\n")  # exits at once
-    subprocess.run([sys.executable, "-c", script], check=True, env={**os.environ},
-                   timeout=120)
-    end = time.monotonic() + 120.0  # a guard, not a timing: the compile takes seconds
-    while time.monotonic() < end and (len(_libraries(folder)) < len(KERNELS) or any(
-            p.name == kernels.LOCK_NAME or p.name.startswith(".hmpc-kernels-")
-            for p in folder.iterdir())):
-        time.sleep(0.2)
-    assert len(_libraries(folder)) == len(KERNELS)
-    assert all(cbuild.verified(p) for p in _libraries(folder))
-    assert not [p.name for p in folder.iterdir() if p.name.startswith(".hmpc-")]
-    system, settings, _ = tiny
-    assert _stage_classes(FixedModeNLP(system, settings)) == {"External"}

@@ -468,17 +468,17 @@ def _stale(lock: Path) -> bool:
     return bool(started and now and started != now)
 
 
-def take_lock(lock: Path) -> bool:
-    """Creates the compile lock file ``lock`` (False if another live compile holds it).
+def _take_lock(entry: Entry) -> bool:
+    """Creates the entry's lock file (False if another live compile holds it).
 
     The lock records this process (:func:`lock_owner`); one whose owner died is taken
     over at once.
     """
-    if _stale(lock):
-        _LOG.info("taking over the stale compile lock %s", lock)
-        lock.unlink(missing_ok=True)
+    if _stale(entry.lock):
+        _LOG.info("taking over the stale compile lock %s", entry.lock)
+        entry.lock.unlink(missing_ok=True)
     try:
-        fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600)
+        fd = os.open(entry.lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600)
     except OSError:  # held by a live compile (FileExistsError), or not writable
         return False
     os.write(fd, lock_owner().encode())
@@ -493,7 +493,7 @@ def _spawn(entry: Entry) -> str:
     the other once it exits (never competing with its run, one compiler's memory at a
     time).
     """
-    if not take_lock(entry.lock):
+    if not _take_lock(entry):
         return f"being compiled by another process ({entry.lock.name})"
     if not _QUEUE:
         atexit.register(_start_queue)
@@ -504,9 +504,14 @@ def _spawn(entry: Entry) -> str:
 def _start_queue() -> None:
     """Starts the detached compile of the queued entries (at exit)."""
     entries, _QUEUE[:] = list(_QUEUE), []
+    root = str(Path(__file__).resolve().parents[2])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        p for p in (root, os.environ.get("PYTHONPATH", "")) if p)}
     args = [a for e in entries for a in (str(e.folder), e.key)]
     try:
-        proc = spawn_detached("hmpc_cli.mpc.cache", args)
+        proc = subprocess.Popen([sys.executable, "-m", "hmpc_cli.mpc.cache", *args], env=env,
+                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, start_new_session=True)
     except OSError:
         for e in entries:
             e.lock.unlink(missing_ok=True)
@@ -514,22 +519,6 @@ def _start_queue() -> None:
     for e in entries:  # the compiling process owns the locks before this one exits
         with contextlib.suppress(OSError):
             cbuild.atomic_write(e.lock, lock_owner(proc.pid))
-
-
-def spawn_detached(module: str, args: list[str]) -> subprocess.Popen:
-    """Starts ``python -m <module> <args>`` detached (its own session, no stdio).
-
-    It finds this checkout's ``hmpc_cli`` whatever the working directory.
-
-    Raises:
-        OSError: the process cannot be started.
-    """
-    root = str(Path(__file__).resolve().parents[2])
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
-        p for p in (root, os.environ.get("PYTHONPATH", "")) if p)}
-    return subprocess.Popen([sys.executable, "-m", module, *args], env=env,
-                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, start_new_session=True)
 
 
 def generate(entry: Entry, folder: Path) -> Path:

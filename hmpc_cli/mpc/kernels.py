@@ -11,12 +11,10 @@ for bit (CasADi's C of the same operations, ``-ffp-contract=off``).
 there (``kernel-<key>.so``, keyed by the function's serialization, CasADi's version, the
 compiler's identity and the flags), else the SX function itself, and queues the library's
 compile for one worker thread, which runs the compiler (a child process at the lowest
-priority) on one kernel after the other: a run never waits for it, the next run loads
+priority) on one kernel after the other: a run never waits for it (at exit neither: the
+compiles left then are abandoned, and a later run starts them again), the next run loads
 what was compiled. One compile at a time: a run of many kernels would otherwise start as
 many compilers at once, which even at the lowest priority take a share of the run's core.
-At exit neither: the compiles left then (the one running included) go to a detached
-process (``python -m hmpc_cli.mpc.kernels``, idle priority, one such process per cache
-directory at a time: a lock), so the next run finds them all.
 A process that runs many runs (a sweep's worker) calls :func:`wait_for_compiles` first:
 it then waits for each kernel's compile (at normal priority) once, so its later runs
 evaluate the kernels in C. ``HMPC_BUILD_CACHE=off``, no usable compiler or a cache
@@ -25,15 +23,10 @@ directory others may write leave every kernel in SX.
 
 from __future__ import annotations
 
-import atexit
-import contextlib
 import hashlib
-import json
 import logging
-import os
 import queue
 import shutil
-import sys
 import tempfile
 import threading
 import time
@@ -43,7 +36,6 @@ from pathlib import Path
 import casadi as ca
 
 from hmpc_cli.core import cbuild
-from hmpc_cli.mpc import cache
 from hmpc_cli.mpc.cache import CFLAGS
 
 #: the compiler runs at the lowest priority beside a run, never in its way (where
@@ -52,7 +44,6 @@ NICE = ("nice", "-n", "19")
 _STARTED: dict[Path, threading.Event] = {}  # this process's compiles (set: ended), by library
 _JOBS: queue.SimpleQueue = queue.SimpleQueue()  # compiles for the worker, in order
 _WORKER: list[threading.Thread] = []  # the worker thread, once started
-_CURRENT: list[tuple] = []  # the job the worker is compiling
 _FAILED: list[str] = []  # this process's failed compiles: their first lines
 _WAIT = False  # set by wait_for_compiles
 _LOCK = threading.Lock()
@@ -127,91 +118,17 @@ def _start(cc: list[str], fn: ca.Function, path: Path, k: str) -> threading.Even
         if not _WORKER:
             _WORKER.append(threading.Thread(target=_work, name="hmpc-kernels", daemon=True))
             _WORKER[0].start()
-            atexit.register(_hand_over)
     return ended
 
 
 def _work() -> None:
     """The worker thread: compiles the queued kernels one after the other."""
     while True:
-        *job, ended = item = _JOBS.get()
-        with _LOCK:
-            _CURRENT[:] = [item]
+        *job, ended = _JOBS.get()
         try:
             _compile(*job)
         finally:
-            with _LOCK:
-                _CURRENT.clear()
             ended.set()
-
-
-#: the detached compile's lock file in the cache directory (one such process at a time)
-LOCK_NAME = "kernels.lock"
-#: [s] how long a detached compile waits for another one's lock before giving up
-LOCK_WAIT = 900.0
-#: [s] how long the exit waits for the compile running then (a kernel's takes a fraction
-#: of a second); one still running after it is handed over too, its compiler's partial
-#: output left for :func:`~hmpc_cli.core.cbuild.remove_stale_temporaries`
-EXIT_WAIT = 2.0
-
-
-def _hand_over() -> None:
-    """At exit: the compiles not ended go to a detached process (:func:`_main`).
-
-    Their jobs (compiler command, C source, name, library, key) go to a ``.hmpc-*.json``
-    file of the cache directory, which that process reads and removes.
-    """
-    with _LOCK:
-        running = [tuple(job) for job in _CURRENT]
-        queued = []
-        with contextlib.suppress(queue.Empty):
-            while True:
-                queued.append(tuple(_JOBS.get_nowait()))
-    jobs = [job[:-1] for job in running if not job[-1].wait(EXIT_WAIT)] + \
-        [job[:-1] for job in queued]
-    if not jobs:
-        return
-    folder = jobs[0][3].parent
-    try:
-        fd, spec = tempfile.mkstemp(prefix=".hmpc-kernels-", suffix=".json", dir=folder)
-        with os.fdopen(fd, "w") as out:
-            out.write(json.dumps([{"cc": cc, "source": source, "name": name, "path": str(path),
-                                   "key": k} for cc, source, name, path, k in jobs],
-                                 allow_nan=False))
-        cache.spawn_detached("hmpc_cli.mpc.kernels", [spec])
-    except OSError:
-        return  # a later run compiles them
-
-
-def _main(args: list[str]) -> int:
-    """The detached compile: ``python -m hmpc_cli.mpc.kernels <jobs.json>``.
-
-    At idle priority, it waits for the cache directory's lock (another such process's),
-    compiles each job whose library is not there yet, and removes the jobs file. Returns
-    1 if a compile failed, 2 if it gave up waiting for the lock.
-    """
-    spec = Path(args[0])
-    with contextlib.suppress(OSError, AttributeError):
-        os.nice(19)
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    try:
-        jobs = json.loads(spec.read_text())
-    finally:
-        spec.unlink(missing_ok=True)
-    lock = spec.parent / LOCK_NAME
-    end = time.monotonic() + LOCK_WAIT
-    while not cache.take_lock(lock):
-        if time.monotonic() > end:
-            return 2
-        time.sleep(0.5)
-    try:
-        for job in jobs:
-            path = Path(job["path"])
-            if not _ready(path, job["key"]):
-                _compile(job["cc"], job["source"], job["name"], path, job["key"])
-    finally:
-        lock.unlink(missing_ok=True)
-    return 1 if _FAILED else 0
 
 
 def _compile(cc: list[str], source: str, name: str, path: Path, k: str) -> None:
@@ -258,7 +175,3 @@ def wait(timeout: float = 60.0) -> bool:
         events = list(_STARTED.values())
     end = time.monotonic() + timeout
     return all(ended.wait(max(0.0, end - time.monotonic())) for ended in events)
-
-
-if __name__ == "__main__":
-    sys.exit(_main(sys.argv[1:]))
