@@ -83,7 +83,7 @@ def _default_ipopt(nlp: FixedModeNLP) -> SolverSession:
     opts["ipopt"] = {"print_level": 0, "sb": "yes"}
     import casadi as ca
 
-    if isinstance(session._nlp["x"], ca.MX):
+    if isinstance(session._nlp, dict) and isinstance(session._nlp["x"], ca.MX):
         opts.pop("expand", None)
     opts = without_nlp_grad({"calc_lam_p": False, **opts, **session.derivatives})
     session.cold = session.warm = BufferedSolver(ca.nlpsol("ipopt_defaults", "ipopt",

@@ -160,7 +160,7 @@ def jacobian_rows(system, settings: MPCSettings, points: int = 3) -> list[dict]:
 
 
 def main() -> None:
-    os.environ["HMPC_BUILD_CACHE"] = "off"  # the SX build, whatever the cache holds
+    os.environ["HMPC_BUILD_CACHE"] = "off"  # the kernels in SX, whatever the cache holds
     sc = load_scenario(sys.argv[1] if len(sys.argv) > 1 else "scenarios/ball.toml")[0]
     nlp = FixedModeNLP(build_system(sc.system), sc.mpc)
     opts = {"print_time": False}
@@ -179,8 +179,8 @@ def main() -> None:
     mx = ca.nlpsol("mapped", "ipopt", {"x": x, "p": p, "f": f, "g": g}, opts)
     t_mx = time.perf_counter() - start
     start = time.perf_counter()
-    staged = nlp._staged(layout)
-    kernels = ca.nlpsol("kernels", "ipopt", staged.nlp(), {**opts, **staged.derivatives()})
+    staged = nlp._staged(layout)  # hmpc's options: no nlp_grad (it would differentiate it)
+    kernels = ca.nlpsol("kernels", "ipopt", staged.nlp(), {**QUIET, **staged.derivatives()})
     t_kernels = time.perf_counter() - start
     print(f"switching NLP: L = {nlp.L} intervals, {whole['x'].numel()} variables, "
           f"{whole['g'].numel()} rows")

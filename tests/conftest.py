@@ -33,6 +33,15 @@ SCENARIOS = REPO / "scenarios"
 BALL = SCENARIOS / "ball.toml"
 
 
+def nlp_function_calls(rng, nx: int, n_p: int, ng: int) -> list[tuple[str, list]]:
+    """(name, arguments) of the functions IPOPT calls (``nlpsol``'s names), at one random
+    point (x, p, lam_f, lam_g) of ``rng`` for an NLP of those sizes."""
+    x, p = rng.standard_normal(nx), rng.uniform(size=n_p)
+    lam = [rng.standard_normal(), rng.standard_normal(ng)]
+    return [("nlp_f", [x, p]), ("nlp_g", [x, p]), ("nlp_grad_f", [x, p]),
+            ("nlp_jac_g", [x, p]), ("nlp_hess_l", [x, p, *lam])]
+
+
 def _click_command_built_once(get_command):
     """Typer's ``get_command`` made once per app and its registered commands and groups:
     ``CliRunner.invoke`` otherwise builds the whole command tree, every option's parameter

@@ -21,6 +21,7 @@ from hmpc_cli.mpc.chain.layout import ChainLayout, NodeSchedule
 from hmpc_cli.mpc.chain.nlp import FixedModeNLP, MPCSettings
 from hmpc_cli.core.registry import build_system
 from hmpc_cli.run.scenario import load_scenario
+from conftest import nlp_function_calls
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = ["mpc.horizon=0.1", "mpc.nodes_per_second=20", "mpc.max_switches=1"]
@@ -115,21 +116,18 @@ def test_the_library_holds_the_functions_ipopt_is_given_when_built(tiny, filled)
     rng = np.random.default_rng(3)
     differs = 0
     for _ in range(5):
-        x, p = rng.standard_normal(first.nx_var), rng.uniform(size=first.np)
-        lam = [rng.standard_normal(), rng.standard_normal(first.ng)]
-        for name, args in (("nlp_f", [x, p]), ("nlp_g", [x, p]), ("nlp_grad_f", [x, p]),
-                           ("nlp_jac_g", [x, p]), ("nlp_hess_l", [x, p, *lam])):
+        for name, args in nlp_function_calls(rng, first.nx_var, first.np, first.ng):
             given = first.session.cold.get_function(name).call(args)
             compiled = ca.external(name, str(library)).call(args)
             for a, b in zip(given, compiled, strict=True):
                 np.testing.assert_array_equal(a.full(), b.full(), err_msg=name)
-        differs += np.count_nonzero(derived.get_function("nlp_hess_l")(x, p, *lam).full()
-                                    != given[0].full())
+        differs += np.count_nonzero(derived.get_function("nlp_hess_l").call(args)[0].full()
+                                    != given[0].full())  # the last call: the Hessian
     assert differs > 0
 
 
-def test_the_default_mode_writes_nothing_and_loads_a_stored_transcription(tiny, filled, use,
-                                                                          monkeypatch):
+def test_the_default_mode_writes_nothing_and_uses_a_stored_transcription(tiny, filled, use,
+                                                                         monkeypatch):
     folder = use()  # an empty cache
     monkeypatch.delenv(cache.ENV)
     monkeypatch.setattr(kernels, "NICE", ())  # not starved by a loaded machine
@@ -141,19 +139,28 @@ def test_the_default_mode_writes_nothing_and_loads_a_stored_transcription(tiny, 
     # a miss in the default mode writes nothing of the NLP (transcribing costs what loading
     # does), only its stage kernels' small libraries (hmpc_cli/mpc/kernels.py)
     assert {p.name.split("-")[0] for p in folder.iterdir()} == {"kernel"}
-    # an entry another mode stored, its library not made yet: loaded, nothing rewritten
+    # an entry another mode stored, its library not made yet: nothing rewritten
     stem = f"nlp-{cache.structure_key(*tiny, 1)[:32]}"
     for name in (f"{stem}.casadi", f"{stem}.casadi.sha256", f"{stem}-hess.casadi",
                  f"{stem}-hess.casadi.sha256", f"{stem}.json", f"{stem}.json.sha256"):
         shutil.copy(filled[0] / name, folder / name)
     stored = {p: p.read_bytes() for p in folder.iterdir()}
-    loaded = FixedModeNLP(*tiny)
+    # IPOPT's NLP assembled from stage kernels: the transcription verified, not loaded
+    assembled = FixedModeNLP(*tiny)
+    assert assembled.build_info.reason == f"{cache.TRANSCRIPTION_STORED}; " \
+        f"{cache.NOT_COMPILED}; cost, rows and derivatives assembled stage by stage: stage " \
+        "kernels in C (13)"
+    # an option that needs nlpsol to differentiate the NLP itself: the transcription loaded
+    # (the structure key leaves solver options out) and solved, IPOPT given the derivatives
+    tiny_sx = (tiny[0], tiny[1].model_copy(update={"solver_options": {"calc_lam_p": True}}))
+    loaded = FixedModeNLP(*tiny_sx)
     assert loaded.build_info.cache == "miss" and not loaded.build_info.compiled
     assert loaded.build_info.reason == f"{cache.TRANSCRIPTION_LOADED}; {cache.NOT_COMPILED}; " \
-        "cost, rows and derivatives assembled stage by stage: stage kernels in C (13)"
+        "derivatives assembled stage by stage: stage kernels in C (8)"
+    assert loaded.session.cold.oracle().is_a("SXFunction")
     assert {p: p.read_bytes() for p in folder.iterdir()} == stored  # nothing rewritten
-    assert loaded.layout.to_dict() == built.layout.to_dict()
-    _, first = filled  # transcribed: its solves are the loaded NLP's bit for bit
+    assert loaded.layout.to_dict() == assembled.layout.to_dict() == built.layout.to_dict()
+    _, first = filled  # assembled: its solves are the loaded transcription's bit for bit
     for a, b in zip(_solve_twice(first, tiny[0]), _solve_twice(loaded, tiny[0]), strict=True):
         assert a.stats.success and a.stats.iterations == b.stats.iterations
         np.testing.assert_array_equal(a.x, b.x)
@@ -246,7 +253,7 @@ def test_damaged_transcription_is_detected_and_transcribed_again(tiny, filled, u
         nlp = FixedModeNLP(*tiny)
     assert "does not match its recorded sha256" in caplog.text
     assert "transcribing the NLP again" in caplog.text
-    assert nlp.build_info.reason.startswith(f"{cache.NOT_COMPILED}; ")  # transcribed
+    assert nlp.build_info.reason.startswith(f"{cache.NOT_COMPILED}; ")  # built anew
     assert _solve_twice(nlp, tiny[0])[0].stats.success
     assert not target.exists()  # removed, and the default mode stores no transcription
     caplog.clear()
@@ -295,6 +302,7 @@ def test_no_compiler_falls_back_to_sx_and_says_so(tiny, use, monkeypatch, how):
     assert info.cache == "disabled" and not info.compiled
     assert ("cannot run /nonexistent/cc" if how == "missing CC" else "no C compiler") \
         in info.reason
+    assert info.reason.endswith("stage kernels in SX (13 of 13)")  # no kernel compiled
     assert _solve_twice(nlp, tiny[0])[0].stats.success
 
 
@@ -303,7 +311,7 @@ def test_disabled_by_environment_writes_nothing(tiny, use, monkeypatch):
     monkeypatch.setenv(cache.ENV, "off")
     nlp = FixedModeNLP(*tiny)
     assert nlp.build_info == cache.BuildInfo(
-        "disabled", False, "HMPC_BUILD_CACHE=off: the NLPs are built in SX; cost, rows and "
+        "disabled", False, "HMPC_BUILD_CACHE=off: no NLP is compiled; cost, rows and "
         "derivatives assembled stage by stage: stage kernels in SX (13 of 13)")
     assert not os.listdir(folder)
 
@@ -324,20 +332,27 @@ def test_run_log_names_the_build(tiny, filled, use, run_hmpc, tmp_path):
 
 def test_sweep_says_when_its_nlps_are_not_compiled(tiny, filled, use, run_hmpc, tmp_path,
                                                    monkeypatch):
-    """The default mode on an empty cache: the sweep notes the miss once and how to compile;
-    with the compiled entry (a hit) it says nothing."""
+    """The default mode on an empty cache: a sweep whose NLPs ran in SX (the walking NLP,
+    which has no stage kernels) notes the miss once and how to compile; one whose stage
+    kernels ran in C (the chain NLP: its workers compile them first), or with the
+    compiled entry (a hit), says nothing."""
+    from hmpc_cli.log.rundata import read_run
+
     sets = "\n".join(f'"{k}" = {v}' for k, v in (t.split("=") for t in TINY))
-    sweep = tmp_path / "sweep.toml"
-    sweep.write_text(f'name = "tiny"\nscenario = "{REPO / "scenarios" / "ball.toml"}"\n'
-                     f'seeds = 2\n[set]\n"sim.duration" = 0.2\n{sets}\n')
+    sweeps = {}
+    for name, scenario, extra in (("tiny", "ball.toml", sets), ("biped", "biped_stairs.toml", "")):
+        sweeps[name] = tmp_path / f"{name}.toml"
+        sweeps[name].write_text(f'name = "{name}"\nscenario = "{REPO / "scenarios" / scenario}"'
+                                f'\nseeds = 2\n[set]\n"sim.duration" = 0.1\n{extra}\n')
     use(filled[0], mode="use")  # inherited by the hmpc process
     empty = tmp_path / "empty-cache"
     empty.mkdir(mode=0o700)
-    for folder, noted in ((None, False), (empty, True)):
+    for folder, sweep, noted in ((None, "tiny", False), (empty, "tiny", False),
+                                 (empty, "biped", True)):
         if folder is not None:
             monkeypatch.setenv("HMPC_CACHE_DIR", str(folder))
-        out = tmp_path / f"out-{noted}"
-        res = run_hmpc(["sweep", str(sweep), "--out", str(out), "--quiet"], REPO)
+        out = tmp_path / f"out-{sweep}-{noted}-{folder is None}"
+        res = run_hmpc(["sweep", str(sweeps[sweep]), "--out", str(out), "--quiet"], REPO)
         assert res.returncode == 0, res.stderr
         text = " ".join((res.stdout + res.stderr).split())
         note = "note: the MPC's NLPs of this sweep are not compiled (build cache miss)"
@@ -345,6 +360,9 @@ def test_sweep_says_when_its_nlps_are_not_compiled(tiny, filled, use, run_hmpc, 
         if noted:
             assert (f"HMPC_BUILD_CACHE=sync hmpc run {out / 'runs'}") in text
             assert "--set sim.duration=0.1" in text
+        elif folder is not None:  # the chain NLP's stage kernels ran in C
+            run = next(out.glob("runs/**/run.mcap"))
+            assert "stage kernels in C (13)" in read_run(run).info.build.reason
 
 
 def test_background_compile_after_exit_fills_the_cache(tiny, use):

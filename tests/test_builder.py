@@ -381,3 +381,33 @@ def test_the_cost_is_the_objective_inside_the_bounds():
     objective = ca.Function("f", [nlp["x"], nlp["p"]], [nlp["f"]])
     assert res.stats.cost == float(objective(inside, np.zeros(0)))
     assert 0.0 <= res.stats.cost < 1e-12
+
+
+def test_given_derivatives_are_checked_and_an_assembled_nlp_is_not_expanded():
+    """``derivatives`` are IPOPT's derivative options only (a typo is an error, not a
+    silently generated function); an MX NLP given them is solved as assembled (no
+    ``expand``: its kernels may be C libraries), one given none is expanded as before."""
+    x, p = ca.MX.sym("x"), ca.MX.sym("p", 0)
+    nlp = {"x": x, "p": p, "f": (x - 1) ** 2, "g": x}
+    grad = ca.Function("nlp_grad_f", [x, p], [(x - 1) ** 2, 2 * (x - 1)], ["x", "p"],
+                       ["f", "grad_f_x"])
+    with pytest.raises(ValueError, match=r"not derivative options of ipopt: \['grad'\]"):
+        SolverSession("typo", nlp, "ipopt", max_iter=10, derivatives={"grad": grad})
+    given = SolverSession("given", nlp, "ipopt", max_iter=10, derivatives={"grad_f": grad})
+    assert "expand" not in given.options and given.derivatives == {"grad_f": grad}
+    assert given.cold.get_function("nlp_grad_f").serialize() == grad.serialize()  # used
+    plain = SolverSession("plain", nlp, "ipopt", max_iter=10)
+    assert plain.options["expand"] is True
+    assert plain.cold.get_function("nlp_grad_f").is_a("SXFunction")  # generated, expanded
+
+
+def test_which_options_take_the_nlp_assembled_from_compiled_kernels():
+    """Only IPOPT, and only options that cannot make nlpsol differentiate the NLP itself."""
+    from hmpc_cli.mpc.solver import takes_assembled
+
+    assert takes_assembled("ipopt", None)
+    assert takes_assembled("ipopt", {"ipopt": {"max_cpu_time": 1.0}, "record_time": True})
+    assert not takes_assembled("ipopt", {"calc_lam_p": True})  # needs nlp_grad
+    assert not takes_assembled("ipopt", {"detect_simple_bounds": True})  # not known safe
+    assert not takes_assembled("sqp_hpipm", None)  # its own derivatives, from SX
+    assert not takes_assembled("fatrop", None)

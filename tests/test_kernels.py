@@ -16,6 +16,7 @@ from hmpc_cli.mpc import cache, kernels
 from hmpc_cli.mpc.chain.layout import ChainLayout, NodeSchedule
 from hmpc_cli.mpc.chain.nlp import FixedModeNLP
 from hmpc_cli.run.scenario import load_scenario
+from conftest import nlp_function_calls
 
 pytestmark = pytest.mark.skipif(cbuild.compiler() is None, reason="no C compiler")
 
@@ -77,10 +78,7 @@ def test_a_second_build_evaluates_the_nlp_in_c_with_the_same_numbers(tiny):
     assert second.build_info.reason.endswith(f"{clause}C (13)")
     rng = np.random.default_rng(0)
     for _ in range(5):
-        x, p = rng.standard_normal(second.nx_var), rng.uniform(size=second.np)
-        lam = [rng.standard_normal(), rng.standard_normal(second.ng)]
-        for name, args in (("nlp_f", [x, p]), ("nlp_g", [x, p]), ("nlp_grad_f", [x, p]),
-                           ("nlp_jac_g", [x, p]), ("nlp_hess_l", [x, p, *lam])):
+        for name, args in nlp_function_calls(rng, second.nx_var, second.np, second.ng):
             a, b = (nlp.session.cold.get_function(name).call(args) for nlp in (first, second))
             for out_a, out_b in zip(a, b, strict=True):
                 np.testing.assert_array_equal(out_a.full(), out_b.full())
@@ -138,16 +136,17 @@ def test_the_reason_names_the_fallbacks_derivatives_of_an_sqp_solver(tiny):
                         switches=0).build_info.reason.count("stage by stage") == 0
 
 
-def test_options_that_differentiate_the_nlp_itself_get_it_in_sx(tiny):
-    """An nlpsol option whose post-solve quantity needs ``nlp_grad`` (here ``calc_lam_p``)
-    makes nlpsol differentiate the NLP itself, which C kernels cannot be: the NLP is then
-    the SX transcription, IPOPT still given the staged derivatives, and it solves as the
-    default build does."""
+@pytest.mark.parametrize("option", ["calc_lam_p", "detect_simple_bounds"])
+def test_options_that_differentiate_the_nlp_itself_get_it_in_sx(tiny, option):
+    """An nlpsol option that may make nlpsol differentiate the NLP itself (a post-solve
+    quantity of ``nlp_grad``; the search for simple bounds), which C kernels cannot be:
+    the NLP is then the SX transcription, IPOPT still given the staged derivatives, and
+    it solves as the default build does."""
     system, settings, _ = tiny
     FixedModeNLP(system, settings)
     assert kernels.wait()  # the kernels in C from here on
     asked = FixedModeNLP(system, settings.model_copy(
-        update={"solver_options": {"calc_lam_p": True}}))
+        update={"solver_options": {option: True}}))
     assert asked.session.cold.oracle().is_a("SXFunction")
     assert asked.build_info.reason.endswith(
         "; derivatives assembled stage by stage: stage kernels in C (8)")
@@ -155,3 +154,39 @@ def test_options_that_differentiate_the_nlp_itself_get_it_in_sx(tiny):
     for a, b in zip(_solves(default, system), _solves(asked, system), strict=True):
         assert a.stats.success and a.stats.iterations == b.stats.iterations
         np.testing.assert_array_equal(a.x, b.x)
+
+
+def test_a_run_that_exits_mid_compile_leaves_nothing_behind(tiny, tmp_path):
+    """A process that ends while its kernels compile stops the compiler at exit: no
+    compiler outlives it, nothing is written into the cache directory after it, no
+    partial output nor scratch directory is left, and its failure list stays empty (a
+    stopped compile is not a failed one); a later process compiles the rest."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    _, _, folder = tiny
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    script = ("import sys\n"
+              "from hmpc_cli.core.registry import build_system\n"
+              "from hmpc_cli.mpc import kernels\n"
+              "from hmpc_cli.mpc.chain.nlp import FixedModeNLP\n"
+              "from hmpc_cli.run.scenario import load_scenario\n"
+              f"sc, _ = load_scenario({str(REPO / 'scenarios' / 'ball.toml')!r}, {TINY!r})\n"
+              "FixedModeNLP(build_system(sc.system), sc.mpc)\n"
+              "kernels._stop()\n"  # what exit runs first: then the failures are checked
+              "sys.exit(3 if kernels._FAILED else 0)\n")
+    subprocess.run([sys.executable, "-c", script], check=True, timeout=120,
+                   env={**os.environ, "TMPDIR": str(scratch)})
+    after = sorted(p.name for p in folder.iterdir())
+    assert not [name for name in after if name.startswith(".hmpc-")]
+    assert len(_libraries(folder)) < len(KERNELS)  # it ended before compiling them all
+    assert not list(scratch.iterdir())  # the compile's scratch directories removed
+    time.sleep(1.0)  # a compiler still running would write its output now
+    assert sorted(p.name for p in folder.iterdir()) == after
+    system, settings, _ = tiny
+    FixedModeNLP(system, settings)
+    assert kernels.wait()
+    assert len(_libraries(folder)) == len(KERNELS)

@@ -12,6 +12,7 @@ from hmpc_cli.mpc.chain.nlp import MPCSettings
 from hmpc_cli.planner.cem import CEMSettings, CrossEntropyPlanner
 from hmpc_cli.sim.simulator import HybridSimulator
 from hmpc_cli.systems.ball import BallParams, build_ball
+from conftest import nlp_function_calls
 
 BALL_MEAN = -20.0  # the ball plug-in's CEM initial mean (its default)
 
@@ -367,10 +368,7 @@ def test_random_systems_give_ipopt_the_functions_of_the_whole_graph(seed):
             whole, _ = nlp._transcription()
             derived = ca.nlpsol("whole", "ipopt", whole, {"no_nlp_grad": True,
                                                           "calc_lam_p": False})
-            x, p = points.standard_normal(nlp.nx_var), points.uniform(size=nlp.np)
-            lam = [points.standard_normal(), points.standard_normal(nlp.ng)]
-            for name, args in (("nlp_f", [x, p]), ("nlp_g", [x, p]), ("nlp_grad_f", [x, p]),
-                               ("nlp_jac_g", [x, p]), ("nlp_hess_l", [x, p, *lam])):
+            for name, args in nlp_function_calls(points, nlp.nx_var, nlp.np, nlp.ng):
                 given, whole_graph = (s.get_function(name) for s in (nlp.session.cold, derived))
                 for i in range(given.n_out()):
                     where = (seed, hold, switches, name, i)

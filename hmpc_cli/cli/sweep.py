@@ -307,14 +307,17 @@ def _execute(plan, out: Path, workers: int, client):
 def not_compiled_note(run_dir: Path) -> str:
     """A note when a finished run solved its MPC NLPs uncompiled for a build cache miss.
 
-    '' when the run's /run/info says the NLPs were loaded compiled, the cache is off, or
-    the log cannot be read. Measured here: the paper robustness sweep's runs 1.5x faster
-    compiled, bit-identical (``hmpc replay --verify``).
+    '' when the run's /run/info says the NLPs were loaded compiled, their stage kernels
+    ran in C (the chain NLP on IPOPT: compiled, a Figure 3 campaign gains 8 %,
+    docs/performance.md), the cache is off, or the log cannot be read. Measured before
+    the stage kernels: the paper robustness sweep's runs 1.5x faster compiled,
+    bit-identical (``hmpc replay --verify``).
     """
     from hmpc_cli.log.reader import first_message
 
     build = ((first_message(run_dir / "run.mcap", "/run/info") or {}).get("build") or {})
-    if build.get("cache") != "miss" or build.get("compiled"):
+    if build.get("cache") != "miss" or build.get("compiled") or \
+            "stage kernels in C" in build.get("reason", ""):
         return ""
     return (f"note: the MPC's NLPs of this sweep are not compiled (build cache miss), so "
             f"every run solves them in CasADi's SX virtual machine, slower. Compile them once "

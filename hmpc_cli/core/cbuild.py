@@ -29,6 +29,7 @@ import subprocess
 import tempfile
 import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 _IDENTITY: dict[tuple[str, ...], str] = {}  # compiler identity by command
@@ -209,12 +210,15 @@ def recorded(path: Path) -> list[str]:
 
 
 def compile_shared(cc: list[str], flags: tuple[str, ...], source: Path, path: Path,
-                   timeout: float = 1800.0, note: str = "") -> float:
+                   timeout: float = 1800.0, note: str = "",
+                   started: Callable[[subprocess.Popen], None] | None = None) -> float:
     """Compiles C file ``source`` to shared library ``path``; returns the seconds taken.
 
     The library is compiled to a temporary file beside ``path`` and moved in place
     (``os.replace``) after its sha256 is written next to it (atomically), followed by
-    ``note`` (one word, e.g. the cache key the library was built for).
+    ``note`` (one word, e.g. the cache key the library was built for). ``started`` gets
+    the compiler's process as soon as it runs, its own process group then (a caller that
+    may have to stop it and the programs it runs: ``os.killpg``).
 
     Raises:
         CBuildError: the directory is not writable, the compiler cannot be run or fails.
@@ -229,12 +233,21 @@ def compile_shared(cc: list[str], flags: tuple[str, ...], source: Path, path: Pa
     try:
         cmd = [*cc, *flags, "-o", tmp, str(source), "-lm"]
         try:
-            out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout,
-                                 check=False)
+            with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                  text=True, errors="replace",
+                                  process_group=0 if started is not None else None) as proc:
+                if started is not None:
+                    started(proc)
+                try:
+                    _, stderr = proc.communicate(timeout=timeout)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.communicate()
+                    raise
         except (OSError, subprocess.SubprocessError) as e:
             raise CBuildError(f"cannot run {shlex.join(cc)}: {e}") from e
-        if out.returncode != 0:
-            raise CBuildError(f"{shlex.join(cmd)} failed:\n{out.stderr[-2000:]}")
+        if proc.returncode != 0:
+            raise CBuildError(f"{shlex.join(cmd)} failed:\n{stderr[-2000:]}")
         digest = file_sha256(Path(tmp))
         # the record first: a reader never sees the new library without it
         atomic_write(hash_path(path), f"{digest}  {path.name}  {note}".rstrip() + "\n")

@@ -292,9 +292,11 @@ class BuildInfo:
 
     Attributes:
         cache: ``"hit"`` (every NLP loaded compiled from the build cache), ``"miss"``
-            (an NLP built in SX; ``reason`` says what the cache keeps of it) or
-            ``"disabled"`` (built in SX, no cache).
-        compiled: the solver calls compiled code (else the SX virtual machine).
+            (an NLP built without its compiled library; ``reason`` says what the cache
+            keeps of it) or ``"disabled"`` (built, no cache).
+        compiled: every NLP's functions are the build cache's compiled library (else
+            they run in CasADi's virtual machines, their stage kernels compiled to C
+            where ``reason`` says so).
         reason: why, in one line (one clause per NLP where they differ).
     """
 

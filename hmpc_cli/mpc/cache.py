@@ -30,29 +30,30 @@ when the library is loaded), in the directory of the C rollouts
   and the flags.
 
 Each file is written atomically with its sha256 beside it and used only when its bytes
-match; a damaged file is reported, removed and rebuilt. A miss transcribes the NLP in SX,
-stores the layout and the function, and compiles the library in a detached
-background process started when the process exits (``python -m hmpc_cli.mpc.cache``;
-one entry is compiled by one process at a time: a lock file), so a run never waits for
-the compiler nor competes with it; the next run loads it. The compile is the price:
-for the ball's switching NLP minutes of CPU and GBs of memory at -O1.
+match; a damaged file is reported, removed and rebuilt. A miss in the modes that compile
+transcribes the NLP in SX, stores the layout and the function, and compiles the library
+in a detached background process started when the process exits (``python -m
+hmpc_cli.mpc.cache``; one entry is compiled by one process at a time: a lock file), so a
+run never waits for the compiler nor competes with it; the next run loads it. The compile
+is the price: for the ball's switching NLP minutes of CPU and GBs of memory at -O1.
 
 Until its library is made a later run loads the stored function and calls it on fresh
 symbols (:func:`load_transcription`), the graph the compiler is given too, and ``nlpsol``
 derives the same functions from it (the chain NLP on IPOPT assembles them from its stage
 kernels instead: the same numbers): the solves are the transcribed NLP's bit for bit
-(``tests/test_build_cache.py``). The cache is still a miss (the NLP is solved in SX); its
-reason says the transcription was loaded. The default mode stores nothing of the NLP:
-transcribing costs what loading does (its Hessian's small stage kernels are compiled in
-every mode but ``off``: :mod:`hmpc_cli.mpc.kernels`).
+(``tests/test_build_cache.py``). The cache is still a miss (no compiled library); its
+reason says the transcription was loaded (or, assembled from stage kernels, only
+verified). The default mode stores nothing of the NLP: transcribing costs what loading
+does (the stage kernels, small, are compiled in every mode but ``off``:
+:mod:`hmpc_cli.mpc.kernels`).
 
 ``HMPC_BUILD_CACHE`` (:func:`mode`): ``off`` (or ``0``) disables the cache; ``use`` (the
 default) loads compiled NLPs but never compiles (the user asks for the cost, once);
 ``background`` compiles a missing one at exit, ``sync`` in the foreground. No
 compiler, a cache directory writable by others, a solver the table does not mark
 ``compilable`` (:mod:`hmpc_cli.mpc.solver_table`; IPOPT only) or a failed
-compilation: the NLP is built in SX, and :class:`BuildInfo` says why (it goes to the run
-log's ``/run/info``).
+compilation: the NLP is built without a library, and :class:`BuildInfo` says why (it goes
+to the run log's ``/run/info``).
 """
 
 from __future__ import annotations
@@ -102,13 +103,15 @@ class Hit:
     """A lookup: the library and layout on a hit (else None), and the build info.
 
     ``transcription``: on a miss whose function and layout are stored, the NLP
-    ``{"x", "p", "f", "g"}`` loaded from them (with ``layout``), else None.
+    ``{"x", "p", "f", "g"}`` loaded from them (with ``layout``), else None. ``stored``:
+    they are stored (and verified), loaded or not (:func:`lookup`'s ``load``).
     """
 
     library: str | None
     layout: NLPLayout | None
     info: BuildInfo
     transcription: dict | None = None
+    stored: bool = False
 
 
 #: ``$HMPC_BUILD_CACHE`` values: off, use (default), background, sync
@@ -137,6 +140,8 @@ NOT_COMPILED = (f"not compiled: {ENV}=background (at exit) or {ENV}=sync (now) c
 
 #: the reason of a miss whose transcription was loaded (before what happens to the library)
 TRANSCRIPTION_LOADED = "transcription loaded from the cache"
+#: the reason's clause of a stored transcription a build verified but did not load
+TRANSCRIPTION_STORED = "transcription stored in the cache"
 
 
 #: the sources that turn a system and settings into the NLP's graph and code
@@ -240,18 +245,18 @@ def _disabled(reason: str) -> Hit:
 def open_entry(key: str, plugin: str) -> tuple[Entry | None, Hit | None]:
     """The entry of ``key``, or None and why the cache is not used."""
     if mode() == "off":
-        return None, _disabled(f"{ENV}=off: the NLPs are built in SX")
+        return None, _disabled(f"{ENV}=off: no NLP is compiled")
     if not backend_of(plugin).compilable:
         able = " or ".join(b.name for b in SOLVERS.values() if b.compilable)
         return None, _disabled(f"solver {plugin!r}: compiled NLPs are for {able} only")
     cc = cbuild.compiler()
     if cc is None:
         why = cbuild.compiler_problem() or "no C compiler found (set CC or install cc/gcc)"
-        return None, _disabled(f"{why}: the NLPs are built in SX")
+        return None, _disabled(f"{why}: no NLP is compiled")
     try:
         identity = cbuild.compiler_identity(cc)
     except cbuild.CBuildError as e:
-        return None, _disabled(f"{e}: the NLPs are built in SX")
+        return None, _disabled(f"{e}: no NLP is compiled")
     folder, unsafe = cbuild.checked_cache_dir()
     if unsafe:
         return None, _disabled(f"cache directory {folder} is not used ({unsafe})")
@@ -319,10 +324,11 @@ def load_hessian(entry: Entry) -> ca.Function | None:
     return _load_function(entry, entry.hessian, 4, 1, "a Hessian's (x, p, lam_f, lam_g) -> H")
 
 
-def lookup(key: str, plugin: str) -> Hit:
+def lookup(key: str, plugin: str, load: bool = True) -> Hit:
     """The compiled library and layout of ``key`` if cached and verified, else why not.
 
-    On a miss, the stored transcription and layout if they are verified.
+    On a miss, the stored transcription and layout if they are verified; ``load=False``:
+    the transcription's file verified, not loaded (a build that does not use it).
     """
     entry, off = open_entry(key, plugin)
     if entry is None:
@@ -341,16 +347,21 @@ def lookup(key: str, plugin: str) -> Hit:
     if not entry.function.exists():  # removed as damaged, or by hand: nothing to report
         return Hit(None, None, BuildInfo("miss", False, "not in the cache"))
     try:
-        nlp = load_transcription(entry)
-        sizes = (nlp["x"].numel(), nlp["p"].numel(), nlp["g"].numel())
-        if sizes != (layout.x.size, layout.p.size, layout.g.size):
-            raise ValueError(f"{entry.function}: sizes {sizes} are not its layout's")
+        nlp = None
+        if load:
+            nlp = load_transcription(entry)
+            sizes = (nlp["x"].numel(), nlp["p"].numel(), nlp["g"].numel())
+            if sizes != (layout.x.size, layout.p.size, layout.g.size):
+                raise ValueError(f"{entry.function}: sizes {sizes} are not its layout's")
+        elif not entry.check(entry.function, entry.key):
+            raise ValueError(f"{entry.function} is damaged")
         if meta.get("hess_lag") and not entry.check(entry.hessian, entry.key):
             raise ValueError(f"{entry.hessian} is missing or damaged")
     except ValueError as e:
         _LOG.warning("%s: transcribing the NLP again", e)
         return Hit(None, None, BuildInfo("miss", False, "not in the cache"))
-    return Hit(None, layout, BuildInfo("miss", False, TRANSCRIPTION_LOADED), nlp)
+    return Hit(None, layout, BuildInfo("miss", False, TRANSCRIPTION_LOADED if load
+                                       else TRANSCRIPTION_STORED), nlp, stored=True)
 
 
 def store(key: str, plugin: str, nlp: dict | None, layout: NLPLayout, *,
@@ -363,10 +374,11 @@ def store(key: str, plugin: str, nlp: dict | None, layout: NLPLayout, *,
     Args:
         key: the entry's structure key.
         plugin: the solver back-end's name.
-        nlp: the NLP ``{"x", "p", "f", "g"}`` in SX (None: only in the default mode,
-            which stores nothing).
+        nlp: the NLP ``{"x", "p", "f", "g"}`` in SX (None: in the default mode, which
+            stores nothing, or ``stored`` and not loaded).
         layout: its layout.
-        stored: they are stored already (the NLP was loaded from them).
+        stored: they are stored already (the NLP loaded from them, or ``nlp`` None:
+            verified only).
         hess_lag: the Hessian of the Lagrangian the NLP gives IPOPT (None: ``nlpsol``'s);
             the library is compiled with it.
 
@@ -378,7 +390,8 @@ def store(key: str, plugin: str, nlp: dict | None, layout: NLPLayout, *,
     if entry is None:
         return off.info
     fate = _library_fate(entry, nlp, layout, stored, hess_lag)
-    return BuildInfo("miss", False, f"{TRANSCRIPTION_LOADED}; {fate}" if stored else fate)
+    said = TRANSCRIPTION_LOADED if nlp is not None else TRANSCRIPTION_STORED
+    return BuildInfo("miss", False, f"{said}; {fate}" if stored else fate)
 
 
 def _library_fate(entry: Entry, nlp: dict | None, layout: NLPLayout, stored: bool,

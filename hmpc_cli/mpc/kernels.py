@@ -11,10 +11,12 @@ for bit (CasADi's C of the same operations, ``-ffp-contract=off``).
 there (``kernel-<key>.so``, keyed by the function's serialization, CasADi's version, the
 compiler's identity and the flags), else the SX function itself, and queues the library's
 compile for one worker thread, which runs the compiler (a child process at the lowest
-priority) on one kernel after the other: a run never waits for it (at exit neither: the
-compiles left then are abandoned, and a later run starts them again), the next run loads
-what was compiled. One compile at a time: a run of many kernels would otherwise start as
-many compilers at once, which even at the lowest priority take a share of the run's core.
+priority) on one kernel after the other: a run never waits for it, the next run loads
+what was compiled. At exit neither: the compiler running then is stopped and its output
+removed, and a later run compiles what was left (no process outlives the run, nothing is
+written into the cache directory after it). One compile at a time: a run of many kernels
+would otherwise start as many compilers at once, which even at the lowest priority take a
+share of the run's core.
 A process that runs many runs (a sweep's worker) calls :func:`wait_for_compiles` first:
 it then waits for each kernel's compile (at normal priority) once, so its later runs
 evaluate the kernels in C. ``HMPC_BUILD_CACHE=off``, no usable compiler or a cache
@@ -23,10 +25,15 @@ directory others may write leave every kernel in SX.
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import hashlib
 import logging
+import os
 import queue
 import shutil
+import signal
+import subprocess
 import tempfile
 import threading
 import time
@@ -44,7 +51,12 @@ NICE = ("nice", "-n", "19")
 _STARTED: dict[Path, threading.Event] = {}  # this process's compiles (set: ended), by library
 _JOBS: queue.SimpleQueue = queue.SimpleQueue()  # compiles for the worker, in order
 _WORKER: list[threading.Thread] = []  # the worker thread, once started
-_FAILED: list[str] = []  # this process's failed compiles: their first lines
+_RUNNING: list[subprocess.Popen] = []  # the compiler the worker runs now
+_EXITING = threading.Event()  # set at exit: the worker takes no more jobs
+_FAILED: dict[str, str] = {}  # this process's failed compiles by key: their first lines
+_SX_KEYS: dict[int, tuple[ca.Function, str]] = {}  # kernels returned in SX: their keys
+#: [s] the longest a compile may take (a kernel's takes a fraction of a second)
+TIMEOUT = 600.0
 _WAIT = False  # set by wait_for_compiles
 _LOCK = threading.Lock()
 _LOG = logging.getLogger(__name__)
@@ -76,10 +88,11 @@ def compiled(fn: ca.Function) -> ca.Function:
     path = folder / f"kernel-{k[:32]}.so"
     if not _ready(path, k):
         ended = _start(cc, fn, path, k)
-        if not _WAIT:
-            return fn
-        ended.wait()
+        if _WAIT:
+            ended.wait(TIMEOUT + 60.0)
         if not _ready(path, k):
+            with _LOCK:
+                _SX_KEYS[id(fn)] = (fn, k)
             return fn
     try:
         return ca.external(fn.name(), str(path))
@@ -116,19 +129,46 @@ def _start(cc: list[str], fn: ca.Function, path: Path, k: str) -> threading.Even
         ended = _STARTED[path] = threading.Event()
         _JOBS.put(([*nice, *cc], gen.dump(), fn.name(), path, k, ended))
         if not _WORKER:
+            atexit.register(_stop)
+        if not _WORKER or not _WORKER[-1].is_alive():
             _WORKER.append(threading.Thread(target=_work, name="hmpc-kernels", daemon=True))
-            _WORKER[0].start()
+            _WORKER[-1].start()
     return ended
 
 
 def _work() -> None:
-    """The worker thread: compiles the queued kernels one after the other."""
-    while True:
+    """The worker thread: compiles the queued kernels one after the other, until exit."""
+    while not _EXITING.is_set():
         *job, ended = _JOBS.get()
         try:
-            _compile(*job)
+            if not _EXITING.is_set():
+                _compile(*job)
         finally:
             ended.set()
+
+
+def _stop() -> None:
+    """At exit: the worker takes no more jobs; the compiler it runs is stopped.
+
+    Its partial output is removed as the worker ends that compile (waited for a moment).
+    """
+    _EXITING.set()
+    _JOBS.put(([], "", "", Path(), "", threading.Event()))  # wakes an idle worker
+    with _LOCK:
+        running = list(_RUNNING)
+    for proc in running:
+        _terminate(proc)
+    for worker in _WORKER:
+        worker.join(2.0)
+
+
+def _terminate(proc: subprocess.Popen) -> None:
+    """Stops a compiler and the programs it runs (its process group).
+
+    On SIGTERM the compiler driver removes its own temporary files.
+    """
+    with contextlib.suppress(OSError):
+        os.killpg(proc.pid, signal.SIGTERM)
 
 
 def _compile(cc: list[str], source: str, name: str, path: Path, k: str) -> None:
@@ -136,33 +176,47 @@ def _compile(cc: list[str], source: str, name: str, path: Path, k: str) -> None:
 
     The source gets a fixed name (``<name>.c``) in a scratch directory, so processes that
     compile the same kernel at once write the same library bytes (the source's name is in
-    its symbol table). If the process exits first, the compiler's partial output is a
-    ``.hmpc-*`` file of the cache directory, removed a day later by
-    :func:`~hmpc_cli.core.cbuild.remove_stale_temporaries` (called before the first
-    compile). No logging here: this thread may outlive the handlers' streams.
+    its symbol table). A compile stopped at exit (:func:`_stop`) is not a failure; a
+    process killed mid-compile leaves a ``.hmpc-*`` file of the cache directory, removed
+    a day later by :func:`~hmpc_cli.core.cbuild.remove_stale_temporaries` (called before
+    the first compile). No logging here: this thread may outlive the handlers' streams.
     """
+
+    def started(proc: subprocess.Popen) -> None:
+        with _LOCK:
+            _RUNNING[:] = [proc]
+        if _EXITING.is_set():  # exit began while it was starting
+            _terminate(proc)
+
     try:
         with tempfile.TemporaryDirectory(prefix="hmpc-kernel-") as work:
             c_file = Path(work) / f"{name}.c"
             c_file.write_text(source)
-            cbuild.compile_shared(cc, CFLAGS, c_file, path, timeout=600.0, note=k)
-    except (cbuild.CBuildError, OSError) as e:
+            cbuild.compile_shared(cc, CFLAGS, c_file, path, timeout=TIMEOUT, note=k,
+                                  started=started)
+    except Exception as e:  # the worker must go on: recorded, reported
+        if not _EXITING.is_set():
+            with _LOCK:
+                _FAILED[k] = f"{name}: {(str(e).splitlines() or [type(e).__name__])[0]}"
+    finally:
         with _LOCK:
-            _FAILED.append(f"{name}: {(str(e).splitlines() or [type(e).__name__])[0]}")
+            _RUNNING.clear()
 
 
 def describe(made: Iterable[ca.Function]) -> str:
     """Where the stage kernels ``made`` run, as a clause of a build's reason.
 
     ``made``: kernels as :func:`compiled` returned them. Counts those in SX and names, if
-    any, this process's last failed kernel compile.
+    any, the last failed compile of one of them in this process.
     """
     made = list(made)
     in_c = sum(fn.class_name() == "External" for fn in made)
     if in_c == len(made):
         return f"stage kernels in C ({in_c})"
     with _LOCK:
-        failed = f"; a kernel compile of this process failed: {_FAILED[-1]}" if _FAILED else ""
+        keys = [_SX_KEYS[id(fn)][1] for fn in made if id(fn) in _SX_KEYS]
+        errors = [_FAILED[k] for k in keys if k in _FAILED]
+    failed = f"; a kernel compile of this process failed: {errors[-1]}" if errors else ""
     return f"stage kernels in SX ({len(made) - in_c} of {len(made)}){failed}"
 
 

@@ -121,24 +121,38 @@ def without_nlp_grad(options: dict, plugin: str = "ipopt") -> dict:
     return {**options, "no_nlp_grad": True}
 
 
-def needs_nlp_grad(plugin: str, extra: dict | None) -> bool:
-    """Whether back-end ``plugin``'s instance generates ``nlpsol``'s ``nlp_grad``.
+#: ``nlpsol`` options an NLP whose derivatives are given, assembled from compiled kernels,
+#: takes: none of them makes ``nlpsol`` differentiate the NLP itself (but those that ask
+#: for ``nlp_grad``: :func:`takes_assembled`). Any other (``detect_simple_bounds``, say)
+#: might, which C kernels cannot be.
+ASSEMBLED_OPTIONS = frozenset({
+    "print_time", "record_time", "error_on_fail", "verbose_init", "warn_initial_bounds",
+    "bound_consistency", "min_lam", "expand", "no_nlp_grad", *NLP_GRAD_USERS})
 
-    With user options ``extra`` (:func:`without_nlp_grad`); it differentiates the NLP.
+
+def takes_assembled(plugin: str, extra: dict | None) -> bool:
+    """Whether back-end ``plugin`` can solve an NLP assembled from compiled kernels.
+
+    With user options ``extra``, the NLP's derivatives given
+    (:class:`~hmpc_cli.mpc.staged.StagedNLP`): IPOPT only, with only
+    :data:`ASSEMBLED_OPTIONS` among the ``nlpsol`` options and none that needs
+    ``nlp_grad`` (:func:`without_nlp_grad`): else ``nlpsol`` differentiates the NLP
+    itself, which needs it in SX.
     """
     backend = backend_of(plugin)
-    return not without_nlp_grad(split_options(backend, extra)[0], backend.plugin) \
-        .get("no_nlp_grad")
+    nlpsol = split_options(backend, extra)[0]
+    return backend.plugin == "ipopt" and set(nlpsol) <= ASSEMBLED_OPTIONS and \
+        bool(without_nlp_grad(nlpsol, backend.plugin).get("no_nlp_grad"))
 
 
 def derivatives_of(solver: ca.Function, plugin: str = "ipopt") -> dict:
     """The derivative functions an ``nlpsol`` instance of ``plugin`` generated, as options.
 
     Another instance of the same NLP given them skips their symbolic generation (a large
-    part of an instance's start-up); they are the same SX graphs, so its iterates
-    are the same bit for bit. A function the instance did not generate (no Hessian
-    with ``hessian_approximation = "limited-memory"``) is left out; a plugin without
-    an entry in :data:`DERIVATIVES` gets none.
+    part of an instance's start-up); they are the same functions (those the first was
+    given, if any), so its iterates are the same bit for bit. A function the instance
+    did not generate (no Hessian with ``hessian_approximation = "limited-memory"``) is
+    left out; a plugin without an entry in :data:`DERIVATIVES` gets none.
     """
     return {opt: solver.get_function(fn) for opt, fn in DERIVATIVES.get(plugin, {}).items()
             if solver.has_function(fn)}
@@ -230,13 +244,13 @@ class SolverSession:
             generates from the whole graph (e.g.
             :meth:`~hmpc_cli.mpc.staged.StagedNLP.derivatives`); other plug-ins, and a
             compiled library (whose own they are), leave them out (:attr:`derivatives`:
-            those given). An NLP in MX is not expanded (its functions are assembled
-            already; its kernels may be C libraries, which do not expand): ``options``,
-            what the cold instance gets, then has no ``expand``.
+            those given). An NLP in MX given them is not expanded (its functions are
+            assembled already; its kernels may be C libraries, which do not expand):
+            ``options``, what the cold instance gets, then has no ``expand``.
 
     Raises:
-        ValueError: an unknown back-end, or a compiled library for a back-end that
-            cannot load one.
+        ValueError: an unknown back-end, a compiled library for a back-end that cannot
+            load one, or a derivative that is not one of IPOPT's options.
     """
 
     def __init__(self, name: str, nlp: dict, plugin: str = "ipopt", *, max_iter: int,
@@ -271,8 +285,8 @@ class SolverSession:
         if compiled and not self.options.get("no_nlp_grad"):
             asked = [k for k in NLP_GRAD_USERS if self.options.get(k)] or ["no_nlp_grad=False"]
             raise RuntimeError(f"options {asked} need nlp_grad, which a compiled NLP leaves out")
-        if compiled or isinstance(nlp["x"], ca.MX):  # nothing to expand, or not expandable
-            self.options.pop("expand", None)
+        if compiled or (self.derivatives and isinstance(nlp["x"], ca.MX)):
+            self.options.pop("expand", None)  # nothing to expand, or assembled already
         self.cold = self.warm = BufferedSolver(ca.nlpsol(name, backend.plugin, nlp,
                                                          self.options))
         if backend.warm is not None and warm is not None:

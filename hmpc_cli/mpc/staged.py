@@ -77,7 +77,10 @@ class StagedNLP:
         self.kinds, self.x, self.p = kinds, x, p
         self.slack, self.compiled = slack, compiled
         self.nx = x.size1()
-        self.ng = sum(k.n_rows * k.count for k in kinds)
+        sizes = [k.n_rows * k.count for k in kinds]
+        self.ng = sum(sizes)
+        #: per kind, the index of its first row in g
+        self.first_rows = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(int)
         #: the kernels made so far, as evaluated: SX functions or their C libraries
         self.made: list[ca.Function] = []
 
@@ -85,15 +88,15 @@ class StagedNLP:
     def _mapped(self, kind: StageKind, what: str, outputs, extra=()) -> tuple[list, object]:
         """The kernel ``<fn>_<what>`` mapped over the kind's stages.
 
-        ``outputs(symbols, stage_variables)`` gives the kernel's SX outputs from ``fn``'s
-        argument symbols (and those of its variables stacked) and what the caller keeps
-        of them (a derivative's sparsity); ``extra``: (SX symbol, its MX argument) pairs
-        of further inputs after them. Returns the map's outputs, one column per stage,
-        and what ``outputs`` kept.
+        ``outputs(kind, symbols, stage_variables)`` gives the kernel's SX outputs from
+        ``fn``'s argument symbols (and those of its variables stacked) and what the caller
+        keeps of them (a derivative's sparsity); ``extra``: (SX symbol, its MX argument)
+        pairs of further inputs after them. Returns the map's outputs, one column per
+        stage, and what ``outputs`` kept.
         """
         fn = kind.fn
         sym = [ca.SX.sym(f"v{i}", fn.size1_in(i)) for i in range(fn.n_in())]
-        out, kept = outputs(sym, ca.vertcat(*sym[:len(kind.variables)]))
+        out, kept = outputs(kind, sym, ca.vertcat(*sym[:len(kind.variables)]))
         kernel = ca.Function(f"{fn.name()}_{what}", [*sym, *(s for s, _ in extra)], out)
         kernel = kernels.compiled(kernel) if self.compiled else kernel
         self.made.append(kernel)
@@ -104,24 +107,16 @@ class StagedNLP:
     # -------------------------------------------------------------- functions
     def nlp(self) -> dict:
         """The NLP ``{"x", "p", "f", "g"}`` in MX, f and g from the cost and rows kernels."""
-        rows = [ca.vec(self._mapped(k, "rows", lambda s, _v, k=k: (
-            [_outputs(k, s)[0]], None))[0][0]) for k in self.kinds]
-        costs = [self._mapped(k, "cost", lambda s, _v, k=k: ([_outputs(k, s)[1]], None))[0][0]
-                 for k in self.kinds if k.has_cost]
+        rows = [ca.vec(self._mapped(k, "rows", _rows)[0][0]) for k in self.kinds]
+        costs = [self._mapped(k, "cost", _cost)[0][0] for k in self.kinds if k.has_cost]
         return {"x": self.x, "p": self.p, "f": self._cost(costs), "g": ca.vertcat(*rows)}
 
     def gradient(self) -> ca.Function:
         """(x, p) -> (f, df/dx), named as ``nlpsol``'s ``nlp_grad_f``."""
         costs, values, columns = [], [], []
-
-        def outputs(s, v, k):
-            cost = _outputs(k, s)[1]
-            grad = ca.gradient(cost, v)
-            return [cost, grad.nz[:]], grad.sparsity().row()
-
         for k in self.kinds:
             if k.has_cost:
-                (cost, grad), entries = self._mapped(k, "grad", lambda s, v, k=k: outputs(s, v, k))
+                (cost, grad), entries = self._mapped(k, "grad", _gradient)
                 costs.append(cost)
                 values.append(ca.vec(grad))
                 columns.append(k.columns()[:, entries].ravel())
@@ -138,21 +133,14 @@ class StagedNLP:
 
         Every row is one stage's, so no entry is a sum.
         """
-        rows, values, r_all, c_all, first = [], [], [], [], 0
-
-        def outputs(s, v, k):
-            g = _outputs(k, s)[0]
-            jac = ca.jacobian(g, v)
-            return [g, jac.nz[:]], jac.sparsity().get_triplet()
-
-        for k in self.kinds:
-            (g, jac), (r, c) = self._mapped(k, "jac", lambda s, v, k=k: outputs(s, v, k))
+        rows, values, r_all, c_all = [], [], [], []
+        for k, first in zip(self.kinds, self.first_rows, strict=True):
+            (g, jac), (r, c) = self._mapped(k, "jac", _jacobian)
             rows.append(ca.vec(g))
             values.append(ca.vec(jac))
             stage_rows = first + np.arange(k.count)[:, None] * k.n_rows
             r_all.append((stage_rows + np.asarray(r, dtype=int)[None, :]).ravel())
             c_all.append(k.columns()[:, c].ravel())
-            first += k.n_rows * k.count
         r, c = np.concatenate(r_all), np.concatenate(c_all)
         jac = _assembled(ca.vertcat(*values), np.arange(r.size), r, c, (self.ng, self.nx))
         return ca.Function("nlp_jac_g", [self.x, self.p], [ca.vertcat(*rows), jac],
@@ -167,23 +155,21 @@ class StagedNLP:
         graph's Hessian's.
         """
         lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", self.ng)
-        values, r_all, c_all, row = [], [], [], 0
-
-        def outputs(s, v, k, lam, lf):
-            out = _outputs(k, s)
-            lag = lf * out[1] + ca.dot(lam, out[0]) if k.has_cost else ca.dot(lam, out[0])
-            h = ca.hessian(lag, v)[0]
-            return [h.nz[:]], h.sparsity().get_triplet()
-
-        for k in self.kinds:
+        values, r_all, c_all = [], [], []
+        for k, first in zip(self.kinds, self.first_rows, strict=True):
             lam, lf = ca.SX.sym("lam", k.n_rows), ca.SX.sym("lam_f")
-            span = lam_g[row:row + k.n_rows * k.count]
-            (h,), (r, c) = self._mapped(
-                k, "hess", lambda s, v, k=k, lam=lam, lf=lf: outputs(s, v, k, lam, lf),
-                extra=((lam, ca.reshape(span, k.n_rows, k.count)),
-                       (lf, ca.repmat(lam_f, 1, k.count))))
+
+            def outputs(kind, s, v, lam=lam, lf=lf):
+                out = _outputs(kind, s)
+                lag = lf * out[1] + ca.dot(lam, out[0]) if kind.has_cost else \
+                    ca.dot(lam, out[0])
+                h = ca.hessian(lag, v)[0]
+                return [h.nz[:]], h.sparsity().get_triplet()
+
+            span = lam_g[int(first):int(first) + k.n_rows * k.count]
+            (h,), (r, c) = self._mapped(k, "hess", outputs, extra=(
+                (lam, ca.reshape(span, k.n_rows, k.count)), (lf, ca.repmat(lam_f, 1, k.count))))
             values.append(ca.vec(h))
-            row += k.n_rows * k.count
             r_all.append(k.columns()[:, r].ravel())
             c_all.append(k.columns()[:, c].ravel())
         r, c = np.concatenate(r_all), np.concatenate(c_all)
@@ -197,22 +183,51 @@ class StagedNLP:
         return {"grad_f": self.gradient(), "jac_g": self.jacobian(), "hess_lag": self.hessian()}
 
     def _cost(self, costs: list[ca.MX]) -> ca.MX:
-        """The cost f from the kinds' per-stage costs (one row each).
+        """The cost f from the kinds' per-stage costs (:func:`total_cost`)."""
+        return total_cost(costs, self.x, self.slack)
 
-        Summed as ``nlpsol``'s graph sums them: each kind's stages, the kinds in order,
-        then the slack penalty.
-        """
-        total = ca.sum2(costs[0])
-        for cost in costs[1:]:
-            total = total + ca.sum2(cost)
-        idx, weight = self.slack
-        return total + weight * ca.sum1(self.x[idx.tolist()])
+
+def total_cost(costs: list[ca.MX], x: ca.MX, slack: tuple[np.ndarray, float]) -> ca.MX:
+    """The NLP's cost f from its kinds' stage costs (one row each, a column per stage).
+
+    Summed in the one order every form of the NLP shares (so they are equal bit for bit):
+    each kind's stages, the kinds in order, then the slack penalty (``slack``: indices
+    into x, weight).
+    """
+    total = ca.sum2(costs[0])
+    for cost in costs[1:]:
+        total = total + ca.sum2(cost)
+    idx, weight = slack
+    return total + weight * ca.sum1(x[idx.tolist()])
 
 
 def _outputs(kind: StageKind, sym: list[ca.SX]) -> list[ca.SX]:
     """``kind.fn`` on ``sym``: [rows, cost], or [rows] for a kind without cost."""
     out = kind.fn(*sym)
     return list(out) if kind.has_cost else [out]
+
+
+# Kernel outputs (for StagedNLP._mapped): (SX outputs, what the caller keeps of them).
+def _rows(kind: StageKind, sym: list[ca.SX], _v: ca.SX) -> tuple[list, None]:
+    return [_outputs(kind, sym)[0]], None
+
+
+def _cost(kind: StageKind, sym: list[ca.SX], _v: ca.SX) -> tuple[list, None]:
+    return [_outputs(kind, sym)[1]], None
+
+
+def _gradient(kind: StageKind, sym: list[ca.SX], v: ca.SX) -> tuple[list, list]:
+    """The cost and its gradient's nonzeros; kept: their rows in the stage variables."""
+    cost = _outputs(kind, sym)[1]
+    grad = ca.gradient(cost, v)
+    return [cost, grad.nz[:]], grad.sparsity().row()
+
+
+def _jacobian(kind: StageKind, sym: list[ca.SX], v: ca.SX) -> tuple[list, tuple]:
+    """The rows and their Jacobian's nonzeros; kept: its (rows, columns) triplet."""
+    g = _outputs(kind, sym)[0]
+    jac = ca.jacobian(g, v)
+    return [g, jac.nz[:]], jac.sparsity().get_triplet()
 
 
 def _assembled(values: ca.MX, at: np.ndarray, r: np.ndarray, c: np.ndarray,

@@ -57,8 +57,8 @@ from hmpc_cli.mpc.backends import OCPStructure
 from hmpc_cli.mpc.builder import Blocks, NLPBuilder, NLPLayout
 from hmpc_cli.mpc.chain.layout import FLOW, ChainLayout, NodeSchedule
 from hmpc_cli.mpc.chain.problem_data import INF, ChainShape, problem_data
-from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart, needs_nlp_grad
-from hmpc_cli.mpc.staged import StageKind, StagedNLP
+from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart, takes_assembled
+from hmpc_cli.mpc.staged import StageKind, StagedNLP, total_cost
 from hmpc_cli.mpc.solver_table import SOLVERS, SolverName, SolverOptions, describe
 from hmpc_cli.core.settings_types import (
     MAX_NLP_NODES, BoundedInt, FiniteFloat, StrictBool, nlp_estimate)
@@ -306,11 +306,14 @@ class FixedModeNLP:
         """The NLP from the build cache if compiled there, else built (and cached).
 
         Built, IPOPT gets the cost, rows and derivatives assembled from the stage kernels
-        (:meth:`_staged`); another back-end the SX transcription, its IPOPT fallback the
-        staged derivatives.
+        (:meth:`_staged`); another back-end, or IPOPT with options that may make ``nlpsol``
+        differentiate the NLP itself (:func:`~hmpc_cli.mpc.solver.takes_assembled`), the SX
+        transcription, IPOPT (or the fallback) with the staged derivatives.
         """
         key = cache.structure_key(self.system, self.s, self.S)
-        hit = cache.lookup(key, self.s.solver_of(self.S))
+        # options that may make nlpsol differentiate the NLP itself need it in SX
+        mx = takes_assembled(self.s.solver_of(self.S), self.s.solver_options)
+        hit = cache.lookup(key, self.s.solver_of(self.S), load=not mx)
         self.session = None
         if hit.library is not None:
             self.layout, self.build_info = hit.layout, hit.info
@@ -321,37 +324,39 @@ class FixedModeNLP:
                              str(exc).strip().splitlines()[-1:])
                 hit = cache.Hit(None, None, cache.BuildInfo("miss", False, "unloadable"))
         if self.session is None:
-            self.build_info = self._built(key, hit)
+            self.build_info = self._built(key, hit, mx)
         X, g = self.layout.x, self.layout.g
         self.nx_var, self.ng, self.np = X.size, g.size, self.layout.p.size
         self.z_idx, self.u_idx, self.s_idx = X["z"], X["u"], X["sigma"]
         self.link_rows = np.stack([g.at(k) for k in range(self.L)])  # (L, rows per link)
 
-    def _built(self, key: str, hit: cache.Hit) -> cache.BuildInfo:
+    def _built(self, key: str, hit: cache.Hit, mx: bool) -> cache.BuildInfo:
         """Builds the session of an NLP the cache holds no library of; its build info.
 
-        The info is the cache's, with where the stage kernels run. The SX transcription
-        is made for a back-end other than IPOPT, for options that need ``nlpsol`` to
-        differentiate the NLP itself, and for the cache in the modes that compile (with
-        the staged Hessian of SX kernels: the library's C).
+        The info is the cache's, with where the stage kernels run. ``mx``: IPOPT gets the
+        NLP assembled from stage kernels; else (another back-end, options that may make
+        ``nlpsol`` differentiate the NLP itself) the SX transcription, which the cache's
+        modes that compile also store when they hold none (with the staged Hessian of SX
+        kernels: the library's C).
         """
         solver = self.s.solver_of(self.S)
         backend = SOLVERS[solver]
         fallback = SOLVERS[backend.fallback].plugin if backend.fallback else None
-        sx, self.layout = (hit.transcription, hit.layout) if hit.transcription is not None \
-            else (None, self._builder().layout())
-        compiles = hit.info.cache != "disabled" and cache.mode() in ("background", "sync")
-        # options that make nlpsol differentiate the NLP itself (nlp_grad) need it in SX
-        mx = backend.plugin == "ipopt" and not needs_nlp_grad(solver, self.s.solver_options)
-        if sx is None and (not mx or compiles):
-            sx = self._transcription()[0]
+        stores = hit.info.cache != "disabled" and not hit.stored and \
+            cache.mode() in ("background", "sync")
+        if hit.stored:  # loaded unless mx
+            sx, self.layout = hit.transcription, hit.layout
+        elif not mx or stores:
+            sx, self.layout = self._transcription()
+        else:
+            sx, self.layout = None, self._builder().layout()
         staged = self._staged(self.layout, compiled=cache.mode() != "off") \
             if "ipopt" in (backend.plugin, fallback) else None
         nlp = staged.nlp() if mx else sx
         self.session = self._session(nlp, staged.derivatives() if staged else None)
         info = hit.info if hit.info.cache == "disabled" else cache.store(
-            key, solver, sx, self.layout, stored=hit.transcription is not None,
-            hess_lag=self._staged_hessian(self.layout) if staged and compiles else None)
+            key, solver, sx, self.layout, stored=hit.stored,
+            hess_lag=self._staged_hessian(self.layout) if staged and stores else None)
         if staged is None:
             return info
         what = "cost, rows and derivatives" if mx else "derivatives" if \
@@ -438,9 +443,8 @@ class FixedModeNLP:
                 continue
             r, j = kind.fn.map(kind.count)(*args, kind.parameters)
             rows.append(ca.vec(r))
-            costs.append(ca.sum2(j))
-        cost = costs[0] if len(costs) == 1 else costs[0] + costs[1]
-        f = cost + self.s.soft_penalty * ca.sum1(x[layout.x["sigma"].ravel().tolist()])
+            costs.append(j)
+        f = total_cost(costs, x, (layout.x["sigma"].ravel(), self.s.soft_penalty))
         fn = ca.Function("nlp", [x, p], [f, ca.vertcat(*rows)])
         return fn.expand() if expand else fn
 
