@@ -10,18 +10,23 @@ wall time and whether its schedule has a switch left, and fits by least squares
   for a solve with a switch left (the larger NLP),
 
 side by side with the medians per (switching, iterations). Prints the TOML to paste under
-[sim.latency_model] and, with --write, a Markdown report.
+[sim.latency_model] and, with --write, a Markdown report. With --sweep it runs nothing and
+fits the solves its runs logged (e.g. a real-time sweep's time-paused cells, run under the
+same load as its measured ones).
 
     python benchmarks/calibrate_latency.py --write results/bench/latency_model.md
     python benchmarks/calibrate_latency.py --switching --scenario scenarios/ball_realtime.toml \
         --write results/bench/latency_model_rti.md
     python benchmarks/calibrate_latency.py --scenario scenarios/biped_stairs.toml \
         --set 'mpc.solver="rti"' --candidates --write results/bench/latency_model_biped_rti.md
+    python benchmarks/calibrate_latency.py --switching --sweep results/sweeps/realtime_ipopt \
+        --where latency=paused --write results/bench/latency_model_ipopt.md
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import os
 import platform
 import tempfile
@@ -46,23 +51,58 @@ def solves_of(scenario: Path, runs: int, work: Path, sets: list[str],
     """
     out = []
     for k in range(runs):
-        chosen: set[float] = set()  # the candidates' wall times: a replan reuses one
         sc, text = load_scenario(scenario, [f"seed={k}", 'sim.latency="paused"', *sets])
         run_dir = work / f"{scenario.stem}-{k}"
         execute_run(prepare(sc), text, run_dir)
-        for m in read_log(run_dir / "run.mcap").messages:
-            if m.topic == "/mpc/solve" and m.data.get("iterations", 0) > 0 \
-                    and float(m.data["wall_time"]) not in chosen:
-                guards = (m.data.get("schedule") or {}).get("guards") or ()
-                out.append((int(m.data["iterations"]), float(m.data["wall_time"]),
-                            len(guards) > 0))
-            elif m.topic == "/planner/plan" and candidates:
-                cands = (m.data.get("detail") or {}).get("candidates", [])
-                out += [(int(c["iterations"]), float(c["wall_time"]), True)
-                        for c in cands if c.get("iterations", 0) > 0]
-                chosen |= {float(c["wall_time"]) for c in cands}
-                OWN.append(float(m.data["wall_time"]) - sum(c["wall_time"] for c in cands))
+        out += solves_in(run_dir / "run.mcap", candidates)
     return out
+
+
+def solves_in(log: Path, candidates: bool = False) -> list[tuple[int, float, bool]]:
+    """(iterations, wall time [s], a switch left) of every MPC solve logged in ``log``."""
+    out = []
+    chosen: set[float] = set()  # the candidates' wall times: a replan reuses one
+    for m in read_log(log).messages:
+        if m.topic == "/mpc/solve" and m.data.get("iterations", 0) > 0 \
+                and float(m.data["wall_time"]) not in chosen:
+            guards = (m.data.get("schedule") or {}).get("guards") or ()
+            out.append((int(m.data["iterations"]), float(m.data["wall_time"]),
+                        len(guards) > 0))
+        elif m.topic == "/planner/plan" and candidates:
+            cands = (m.data.get("detail") or {}).get("candidates", [])
+            out += [(int(c["iterations"]), float(c["wall_time"]), True)
+                    for c in cands if c.get("iterations", 0) > 0]
+            chosen |= {float(c["wall_time"]) for c in cands}
+            OWN.append(float(m.data["wall_time"]) - sum(c["wall_time"] for c in cands))
+    return out
+
+
+def sweep_logs(sweep: Path, where: list[str]) -> list[Path]:
+    """The run logs of the sweep directory ``sweep`` whose results.csv row matches every
+    ``COLUMN=VALUE`` of ``where`` (its time-paused runs: ``latency=paused``).
+
+    Raises:
+        SystemExit: no results.csv, an unknown column, no row matching or a log missing.
+    """
+    table = sweep / "results.csv"
+    if not table.is_file():
+        raise SystemExit(f"{table}: no such file (a sweep's output directory has one)")
+    with table.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    pairs = [w.split("=", 1) for w in where]
+    for pair in pairs:
+        if len(pair) != 2 or (rows and pair[0] not in rows[0]):
+            raise SystemExit(f"--where {'='.join(pair)}: want COLUMN=VALUE with a column of "
+                             f"{table} ({', '.join(rows[0]) if rows else 'empty'})")
+    picked = [r for r in rows if all(r[k] == v for k, v in pairs)]
+    if not picked:
+        raise SystemExit(f"{table}: no run matches {' and '.join(where) or 'anything'}")
+    logs = [sweep / r["log"] for r in picked]
+    missing = [str(p) for p in logs if not p.is_file()]
+    if missing:
+        raise SystemExit(f"{len(missing)} run logs missing (first: {missing[0]}): run "
+                         f"the sweep again to make them")
+    return logs
 
 
 #: per planner call, its wall time beyond its candidate solves [s] (``--candidates``)
@@ -109,11 +149,12 @@ def machine() -> str:
 
 
 def report(points, model: dict[str, float], scenarios: list[str], sets: list[str],
-           candidates: bool = False) -> str:
+           candidates: bool = False, source: str | None = None) -> str:
     """The Markdown report: the TOML, medians per iteration count beside the model.
 
     The constants are rounded to :data:`PLACES` decimals as printed, so the model column
     is what ``sim.latency = "model"`` charges with the constants a scenario copies.
+    ``source``: where the solves come from, instead of ``scenarios`` run with ``sets``.
     """
     model = {k: round(v, PLACES) for k, v in model.items()}
     it = np.array([p[0] for p in points])
@@ -123,7 +164,8 @@ def report(points, model: dict[str, float], scenarios: list[str], sets: list[str
     config = f" with `{'`, `'.join(sets)}`" if sets else ""
     lines = ["# The latency model, fitted to measured MPC solves", "",
              f"Machine: {machine()} (machine dependent: re-fit on yours).", "",
-             f"{len(points)} solves of {', '.join(scenarios)}{config}, time paused"
+             f"{len(points)} solves of "
+             + (source or f"{', '.join(scenarios)}{config}, time paused")
              + (" (with the foothold planner's candidate solves)" if candidates else "")
              + ".", "",
              "```toml", "[sim.latency_model]",
@@ -160,19 +202,38 @@ def main() -> None:
     ap.add_argument("--candidates", action="store_true",
                     help="also the foothold planner's candidate solves (the model charges "
                     "each as a solve)")
+    ap.add_argument("--sweep", type=Path, help="run nothing: fit the solves logged by "
+                    "the runs of this sweep output directory (its results.csv and logs), "
+                    "e.g. results/sweeps/realtime_ipopt with --where latency=paused")
+    ap.add_argument("--where", action="append", default=[], metavar="COLUMN=VALUE",
+                    help="with --sweep: only the runs whose results.csv row has this "
+                    "value (repeatable)")
     ap.add_argument("--write", type=Path, help="write the Markdown report here")
     args = ap.parse_args()
+    if args.where and not args.sweep:
+        ap.error("--where needs --sweep")
+    if args.sweep and (args.scenario or args.sets or args.trials):
+        ap.error("--sweep fits logged runs: --scenario, --set and --trials run new ones")
     scenarios = args.scenario or SCENARIOS
-    cases = [(s, []) for s in scenarios]
-    cases += [(s, ['disturbance.kind="paper_fig3"', f"disturbance.trial={k}"])
-              for s in scenarios for k in (int(x) for x in args.trials.split(",") if x)]
-    with tempfile.TemporaryDirectory() as tmp:
-        points = [p for n, (s, extra) in enumerate(cases) for p in solves_of(
-            ROOT / s, args.runs, Path(tmp) / str(n), [*args.sets, *extra], args.candidates)]
+    source = None
+    if args.sweep:
+        logs = sweep_logs(args.sweep, args.where)
+        points = [p for log in logs for p in solves_in(log, args.candidates)]
+        source = (f"the {len(logs)} runs of `{args.sweep}`"
+                  + (f" with {' and '.join(f'`{w}`' for w in args.where)}" if args.where
+                     else "") + " (their logged wall times)")
+    else:
+        cases = [(s, []) for s in scenarios]
+        cases += [(s, ['disturbance.kind="paper_fig3"', f"disturbance.trial={k}"])
+                  for s in scenarios for k in (int(x) for x in args.trials.split(",") if x)]
+        with tempfile.TemporaryDirectory() as tmp:
+            points = [p for n, (s, extra) in enumerate(cases) for p in solves_of(
+                ROOT / s, args.runs, Path(tmp) / str(n), [*args.sets, *extra],
+                args.candidates)]
     model = fit(points, args.switching)
     if args.candidates and OWN:
         model["planner"] = float(np.median(OWN))  # the planner's own time, median
-    text = report(points, model, scenarios, args.sets, args.candidates)
+    text = report(points, model, scenarios, args.sets, args.candidates, source)
     print(text)
     if args.write:
         args.write.parent.mkdir(parents=True, exist_ok=True)

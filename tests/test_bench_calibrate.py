@@ -1,4 +1,5 @@
-"""benchmarks/calibrate_latency.py: its report charges what it prints (no run)."""
+"""benchmarks/calibrate_latency.py: its report charges what it prints; --sweep fits the
+solves a sweep logged (no new run)."""
 
 import importlib.util
 import re
@@ -26,3 +27,68 @@ def test_the_model_column_is_what_the_printed_constants_charge():
     rows = {int(m[1]): float(m[2]) for m in re.finditer(
         r"^\| no \| (\d+) \| \d+ \| [\d.]+ \| [\d.]+ \| ([\d.]+) \|$", text, re.M)}
     assert rows == {1: 5.6, 79: 325.4}
+
+
+def _sweep_dir(tmp_path: Path, log: Path) -> Path:
+    """A sweep output directory whose results.csv names ``log`` twice: once paused, once
+    measured (only the paused row's log exists)."""
+    import shutil
+
+    sweep = tmp_path / "sweep"
+    (sweep / "runs" / "a").mkdir(parents=True)
+    shutil.copy(log, sweep / "runs" / "a" / "run.mcap")
+    (sweep / "results.csv").write_text(
+        "run_id,latency,success,log\n"
+        "a,paused,true,runs/a/run.mcap\n"
+        "b,measured,false,runs/b/run.mcap\n")
+    return sweep
+
+
+def test_a_sweeps_logged_solves_are_fitted_without_running_anything(full_run, tmp_path):
+    """--sweep DIR --where latency=paused reads the matching rows' logs: every logged MPC
+    solve with its iterations, wall time and whether a switch was left, as the log has
+    them; the report names the runs it fitted and charges what it prints."""
+    import subprocess
+    import sys
+
+    from hmpc_cli.log.reader import read_log
+
+    cal = _module()
+    log = full_run.out / "run.mcap"
+    sweep = _sweep_dir(tmp_path, log)
+    assert cal.sweep_logs(sweep, ["latency=paused"]) == [sweep / "runs" / "a" / "run.mcap"]
+    want = [(int(m.data["iterations"]), float(m.data["wall_time"]),
+             bool((m.data.get("schedule") or {}).get("guards")))
+            for m in read_log(log).messages
+            if m.topic == "/mpc/solve" and m.data.get("iterations", 0) > 0]
+    got = cal.solves_in(sweep / "runs" / "a" / "run.mcap")
+    assert got == want and len(got) == 32 and sum(s for *_, s in got) == 7
+    out = tmp_path / "fit.md"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "calibrate_latency.py"), "--switching",
+         "--sweep", str(sweep), "--where", "latency=paused", "--write", str(out)],
+        capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    text = out.read_text()
+    assert f"32 solves of the 1 runs of `{sweep}` with `latency=paused` (their logged wall " \
+           "times)." in text
+    assert "per_switching_iteration = " in text and text == proc.stdout.rstrip("\n") + "\n"
+
+
+def test_a_sweep_that_cannot_be_fitted_is_said(full_run, tmp_path):
+    """No results.csv, an unknown column, no matching row and a missing log each stop with
+    a message naming the file and what to do."""
+    import pytest
+
+    cal = _module()
+    sweep = _sweep_dir(tmp_path, full_run.out / "run.mcap")
+    cases = [(tmp_path / "none", [], "results.csv: no such file"),
+             (sweep, ["rate=10"], "--where rate=10: want COLUMN=VALUE with a column of"),
+             (sweep, ["latency"], "--where latency: want COLUMN=VALUE"),
+             (sweep, ["latency=model"], "no run matches latency=model"),
+             (sweep, ["latency=measured"], "1 run logs missing (first: "
+              f"{sweep / 'runs' / 'b' / 'run.mcap'}): run the sweep again")]
+    for where, pairs, said in cases:
+        with pytest.raises(SystemExit, match=None) as stop:
+            cal.sweep_logs(where, pairs)
+        assert said in str(stop.value), (pairs, stop.value)

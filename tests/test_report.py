@@ -957,13 +957,14 @@ def test_a_grid_axis_whose_entries_would_be_pooled_is_refused_by_name():
 
 
 def test_the_model_latency_entry_says_what_it_charges(tmp_path):
-    """The modelled latency's costs come from the runs' scenario (the sweep's [set] wins),
-    and the page says they are the fitted solves' costs, not the controller's own."""
+    """The modelled latency's costs come from the runs' scenario (the sweep's [set] wins,
+    a latency entry's own keys over both), and the page says they are the fitted solves'
+    costs, not the controller's own."""
     from hmpc_cli.report.realtime import _model_costs as costs_of
     from hmpc_cli.report.realtime import _sim_settings
 
-    def _model_costs(table, spec):
-        return costs_of(_sim_settings(table, spec))
+    def _model_costs(table, spec, entry=None):
+        return costs_of(_sim_settings(table, spec, entry))
 
     (tmp_path / "base_scenario.toml").write_text(
         '[sim]\nlatency_model = {"overhead" = 0.0, "per_iteration" = 0.0024, '
@@ -971,10 +972,15 @@ def test_the_model_latency_entry_says_what_it_charges(tmp_path):
     table = tmp_path / "results.csv"
     assert _model_costs(table, {}) == (
         ": 0 ms per solve + 2.4 ms per iteration (8 ms with a switch left), the costs of the "
-        "solves they were fitted to (one machine, one node grid) whatever the controller's "
-        "own, and 10 ms per planner call")
+        "solves they were fitted to (on one machine; not scaled to the NLP's size) whatever "
+        "the controller's own, and 10 ms per planner call")
     assert _model_costs(table, {"set": {"sim.latency_model.per_iteration": 0.003}}).startswith(
         ": 0 ms per solve + 3 ms per iteration")
+    entry = {"label": "model", "sim.latency": "model", "sim.latency_model.overhead": 0.0058,
+             "sim.latency_model.per_iteration": 0.0018}
+    assert _model_costs(table, {"set": {"sim.latency_model.per_iteration": 0.003}},
+                        entry).startswith(": 5.8 ms per solve + 1.8 ms per iteration (8 ms "
+                                          "with a switch left)")
     (tmp_path / "base_scenario.toml").write_text("[sim]\n")
     assert _model_costs(table, {}) == ""
 

@@ -48,11 +48,11 @@ def _kind(label: str, entries: dict[str, dict]) -> str:
     return str(entries.get(label, {}).get("sim.latency", label))
 
 
-def _sim_settings(table: Path, spec: dict) -> dict:
-    """The runs' ``[sim]`` table as the base scenario beside the table and ``[set]`` give it.
+def _sim_settings(table: Path, spec: dict, entry: dict | None = None) -> dict:
+    """The runs' ``[sim]``: the base scenario beside the table, ``[set]``, a grid ``entry``.
 
     The sweep's ``[set]`` ``sim.*`` keys go over the base scenario's ({} when that cannot
-    be read).
+    be read), the entry's over both (e.g. a latency entry's own ``sim.latency_model.*``).
     """
     import tomllib
 
@@ -60,7 +60,7 @@ def _sim_settings(table: Path, spec: dict) -> dict:
         sim = dict(tomllib.loads((table.parent / "base_scenario.toml").read_text())["sim"])
     except (OSError, KeyError, TypeError, ValueError, tomllib.TOMLDecodeError):
         sim = {}
-    for key, value in (spec.get("set") or {}).items():
+    for key, value in [*(spec.get("set") or {}).items(), *(entry or {}).items()]:
         if not key.startswith("sim."):
             continue
         head, _, rest = key.removeprefix("sim.").partition(".")
@@ -78,8 +78,8 @@ def _model_costs(sim: dict) -> str:
     switching = (f" ({ms['per_switching_iteration']:g} ms with a switch left)"
                  if "per_switching_iteration" in ms else "")
     return (f": {ms.get('overhead', 0.0):g} ms per solve + {ms.get('per_iteration', 0.0):g} ms "
-            f"per iteration{switching}, the costs of the solves they were fitted to (one "
-            "machine, one node grid) whatever the controller's own, and "
+            f"per iteration{switching}, the costs of the solves they were fitted to (on one "
+            "machine; not scaled to the NLP's size) whatever the controller's own, and "
             f"{ms.get('planner', 0.0):g} ms per planner call")
 
 
@@ -200,7 +200,9 @@ def realtime_section(directory: Path) -> list[str]:
              "the state it was solved from; until then the previous plan is tracked. "
              "Latency:", ""]
     sim = _sim_settings(table, spec)
-    lines += [f"- `{lat}`: {_meaning(lat, entries, _model_costs(sim))}." for lat in lats]
+    for lat in lats:  # a latency entry may set its own model
+        costs = _model_costs(_sim_settings(table, spec, entries.get(lat)))
+        lines.append(f"- `{lat}`: {_meaning(lat, entries, costs)}.")
     lines += ["", "| controller | " + " | ".join(lats) + " |", "|---|" + "---|" * len(lats)]
     for c in ctrls:
         cells = [f"{sum(v)}/{len(v)}" if (v := ok.get((lat, c))) else "-" for lat in lats]
