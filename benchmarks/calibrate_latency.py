@@ -43,8 +43,9 @@ SCENARIOS = ["scenarios/ball.toml", "scenarios/ball_disturbed.toml"]
 
 
 def solves_of(scenario: Path, runs: int, work: Path, sets: list[str],
-              candidates: bool = False) -> list[tuple[int, float, bool]]:
-    """(iterations, wall time [s], a switch left) of every MPC solve of ``runs`` paused runs.
+              candidates: bool = False) -> list[tuple[int, float, bool, int]]:
+    """(iterations, wall time [s], a switch left, plan nodes) of every MPC solve of ``runs``
+    paused runs.
 
     ``candidates``: also the foothold planner's candidate solves (each has its guard); the
     loop's solve that returns a candidate's stored plan (its stats) is counted once.
@@ -58,8 +59,9 @@ def solves_of(scenario: Path, runs: int, work: Path, sets: list[str],
     return out
 
 
-def solves_in(log: Path, candidates: bool = False) -> list[tuple[int, float, bool]]:
-    """(iterations, wall time [s], a switch left) of every MPC solve logged in ``log``."""
+def solves_in(log: Path, candidates: bool = False) -> list[tuple[int, float, bool, int]]:
+    """(iterations, wall time [s], a switch left, plan nodes) of every MPC solve logged in
+    ``log`` (nodes 0: a log written before /mpc/solve had them; a foothold candidate's)."""
     out = []
     chosen: set[float] = set()  # the candidates' wall times: a replan reuses one
     for m in read_log(log).messages:
@@ -67,10 +69,10 @@ def solves_in(log: Path, candidates: bool = False) -> list[tuple[int, float, boo
                 and float(m.data["wall_time"]) not in chosen:
             guards = (m.data.get("schedule") or {}).get("guards") or ()
             out.append((int(m.data["iterations"]), float(m.data["wall_time"]),
-                        len(guards) > 0))
+                        len(guards) > 0, int(m.data.get("nodes", 0))))
         elif m.topic == "/planner/plan" and candidates:
             cands = (m.data.get("detail") or {}).get("candidates", [])
-            out += [(int(c["iterations"]), float(c["wall_time"]), True)
+            out += [(int(c["iterations"]), float(c["wall_time"]), True, 0)
                     for c in cands if c.get("iterations", 0) > 0]
             chosen |= {float(c["wall_time"]) for c in cands}
             OWN.append(float(m.data["wall_time"]) - sum(c["wall_time"] for c in cands))
@@ -109,14 +111,31 @@ def sweep_logs(sweep: Path, where: list[str]) -> list[Path]:
 OWN: list[float] = []
 
 
-def fit(points: list[tuple[int, float, bool]], switching: bool) -> dict[str, float]:
-    """The model's constants [s]: least squares, each clipped at 0 (refit without it)."""
+def _columns(points) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(iterations, wall time [s], a switch left, plan nodes: 0 unknown) of ``points``."""
     it = np.array([p[0] for p in points], dtype=float)
-    wall = np.array([p[1] for p in points])
+    wall = np.array([p[1] for p in points], dtype=float)
     sw = np.array([p[2] for p in points], dtype=bool)
+    nodes = np.array([p[3] if len(p) > 3 else 0 for p in points], dtype=float)
+    return it, wall, sw, nodes
+
+
+def fit(points, switching: bool, nodes: int | None = None) -> dict[str, float]:
+    """The model's constants [s]: least squares, each clipped at 0 (refit without it).
+
+    ``points``: (iterations, wall time [s], a switch left[, plan nodes]) per solve.
+    ``nodes``: fit the constants at that many plan nodes, every solve's charge scaled by
+    its plan's nodes / ``nodes`` (each point needs its nodes; the result has ``nodes``).
+    """
+    it, wall, sw, n = _columns(points)
+    if nodes is not None and not (n > 0).all():
+        raise SystemExit(f"{int((n <= 0).sum())} of {len(n)} solves have no plan nodes "
+                         f"(logs written before /mpc/solve had them, or foothold "
+                         f"candidates): fit them without --scale-nodes")
+    scale = n / nodes if nodes is not None else np.ones_like(it)
     names = ["overhead", "per_iteration"] + (["per_switching_iteration"] if switching else [])
-    cols = [np.ones_like(it), np.where(sw, 0.0, it) if switching else it] + \
-        ([np.where(sw, it, 0.0)] if switching else [])
+    cols = [scale, scale * (np.where(sw, 0.0, it) if switching else it)] + \
+        ([scale * np.where(sw, it, 0.0)] if switching else [])
     keep = list(range(len(names)))
     while True:
         coef, *_ = np.linalg.lstsq(np.column_stack([cols[i] for i in keep]), wall, rcond=None)
@@ -125,6 +144,8 @@ def fit(points: list[tuple[int, float, bool]], switching: bool) -> dict[str, flo
         keep.pop(int(np.argmin(coef)))
     out = dict.fromkeys(names, 0.0)
     out.update({names[i]: float(c) for i, c in zip(keep, coef, strict=True)})
+    if nodes is not None:
+        out["nodes"] = nodes
     return out
 
 
@@ -132,11 +153,22 @@ def fit(points: list[tuple[int, float, bool]], switching: bool) -> dict[str, flo
 PLACES = 4
 
 
-def predict(model: dict[str, float], it: np.ndarray, sw: np.ndarray) -> np.ndarray:
-    """The model's charge [s] of solves with ``it`` iterations, ``sw`` a switch left."""
+def predict(model: dict[str, float], it: np.ndarray, sw: np.ndarray,
+            nodes: np.ndarray | None = None) -> np.ndarray:
+    """The model's charge [s] of solves with ``it`` iterations, ``sw`` a switch left and
+    ``nodes`` plan nodes (scaled as ``sim.latency = "model"`` does when the model has
+    ``nodes``)."""
     per = np.where(sw, model.get("per_switching_iteration", model["per_iteration"]),
                    model["per_iteration"])
-    return model["overhead"] + per * it
+    charge = model["overhead"] + per * it
+    if model.get("nodes") and nodes is not None:
+        charge = np.where(nodes > 0, charge * nodes / model["nodes"], charge)
+    return charge
+
+
+def _constant(key: str, value: float) -> str:
+    """One TOML line of the model: seconds at :data:`PLACES` decimals, nodes whole."""
+    return f"{key} = {int(value)}" if key == "nodes" else f"{key} = {value:.{PLACES}f}"
 
 
 def machine() -> str:
@@ -156,11 +188,11 @@ def report(points, model: dict[str, float], scenarios: list[str], sets: list[str
     is what ``sim.latency = "model"`` charges with the constants a scenario copies.
     ``source``: where the solves come from, instead of ``scenarios`` run with ``sets``.
     """
-    model = {k: round(v, PLACES) for k, v in model.items()}
-    it = np.array([p[0] for p in points])
-    wall = np.array([p[1] for p in points])
-    sw = np.array([p[2] for p in points], dtype=bool)
-    pred = predict(model, it, sw)
+    model = {k: v if k == "nodes" else round(v, PLACES) for k, v in model.items()}
+    it, wall, sw, n = _columns(points)
+    it = it.astype(int)
+    pred = predict(model, it, sw, n)
+    scaled = bool(model.get("nodes"))
     config = f" with `{'`, `'.join(sets)}`" if sets else ""
     lines = ["# The latency model, fitted to measured MPC solves", "",
              f"Machine: {machine()} (machine dependent: re-fit on yours).", "",
@@ -169,15 +201,26 @@ def report(points, model: dict[str, float], scenarios: list[str], sets: list[str
              + (" (with the foothold planner's candidate solves)" if candidates else "")
              + ".", "",
              "```toml", "[sim.latency_model]",
-             *(f"{k} = {v:.{PLACES}f}" for k, v in model.items()), "```", "",
-             "| switch left | iterations | solves | measured median [ms] | measured p95 [ms] "
-             "| model [ms] |", "|---|---|---|---|---|---|"]
+             *(_constant(k, v) for k, v in model.items()), "```", ""]
+    if scaled:
+        lines += [f"Each solve is charged its plan's nodes / {int(model['nodes'])} times the "
+                  "constants; the model column is the median charge of the row's solves.", ""]
+    lines += ["| switch left | iterations | solves | measured median [ms] | measured p95 [ms] "
+              "| model [ms] |", "|---|---|---|---|---|---|"]
     for s in sorted(set(sw.tolist())):
         for k in sorted(set(it[sw == s].tolist())):
             sel = (it == k) & (sw == s)
             w = wall[sel] * 1e3
             lines.append(f"| {'yes' if s else 'no'} | {k} | {len(w)} | {np.median(w):.1f} | "
-                         f"{np.percentile(w, 95):.1f} | {pred[sel][0] * 1e3:.1f} |")
+                         f"{np.percentile(w, 95):.1f} | {np.median(pred[sel]) * 1e3:.1f} |")
+    if scaled:
+        lines += ["", "By plan nodes:", "", "| plan nodes | solves | measured median [ms] | "
+                  "measured p95 [ms] | model median [ms] |", "|---|---|---|---|---|"]
+        for k in sorted(set(n.astype(int).tolist())):
+            sel = n == k
+            w = wall[sel] * 1e3
+            lines.append(f"| {k} | {len(w)} | {np.median(w):.1f} | "
+                         f"{np.percentile(w, 95):.1f} | {np.median(pred[sel]) * 1e3:.1f} |")
     err = np.abs(pred - wall) * 1e3
     lines += ["", f"Absolute error of the model: median {np.median(err):.1f} ms, "
               f"p95 {np.percentile(err, 95):.1f} ms.", ""]
@@ -199,6 +242,9 @@ def main() -> None:
                     "scenario (disturbance.trial, paper_fig3)")
     ap.add_argument("--switching", action="store_true",
                     help="fit per_switching_iteration for solves with a switch left")
+    ap.add_argument("--scale-nodes", action="store_true",
+                    help="charges scale with the plan's nodes (sim.latency_model.nodes, set "
+                    "to the fitted solves' median): one model for several node grids")
     ap.add_argument("--candidates", action="store_true",
                     help="also the foothold planner's candidate solves (the model charges "
                     "each as a solve)")
@@ -230,7 +276,11 @@ def main() -> None:
             points = [p for n, (s, extra) in enumerate(cases) for p in solves_of(
                 ROOT / s, args.runs, Path(tmp) / str(n), [*args.sets, *extra],
                 args.candidates)]
-    model = fit(points, args.switching)
+    ref = None
+    if args.scale_nodes:
+        counts = [p[3] for p in points if len(p) > 3 and p[3] > 0]
+        ref = int(np.median(counts)) if counts else 0
+    model = fit(points, args.switching, ref)
     if args.candidates and OWN:
         model["planner"] = float(np.median(OWN))  # the planner's own time, median
     text = report(points, model, scenarios, args.sets, args.candidates, source)

@@ -5,6 +5,8 @@ import importlib.util
 import re
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -58,11 +60,12 @@ def test_a_sweeps_logged_solves_are_fitted_without_running_anything(full_run, tm
     sweep = _sweep_dir(tmp_path, log)
     assert cal.sweep_logs(sweep, ["latency=paused"]) == [sweep / "runs" / "a" / "run.mcap"]
     want = [(int(m.data["iterations"]), float(m.data["wall_time"]),
-             bool((m.data.get("schedule") or {}).get("guards")))
+             bool((m.data.get("schedule") or {}).get("guards")), len(m.data["plan"]))
             for m in read_log(log).messages
             if m.topic == "/mpc/solve" and m.data.get("iterations", 0) > 0]
     got = cal.solves_in(sweep / "runs" / "a" / "run.mcap")
-    assert got == want and len(got) == 32 and sum(s for *_, s in got) == 7
+    assert got == want and len(got) == 32 and sum(s for _, _, s, _ in got) == 7
+    assert {n for *_, n in got} >= {181}  # the final-domain plans: 180 links
     out = tmp_path / "fit.md"
     proc = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "calibrate_latency.py"), "--switching",
@@ -78,8 +81,6 @@ def test_a_sweeps_logged_solves_are_fitted_without_running_anything(full_run, tm
 def test_a_sweep_that_cannot_be_fitted_is_said(full_run, tmp_path):
     """No results.csv, an unknown column, no matching row and a missing log each stop with
     a message naming the file and what to do."""
-    import pytest
-
     cal = _module()
     sweep = _sweep_dir(tmp_path, full_run.out / "run.mcap")
     cases = [(tmp_path / "none", [], "results.csv: no such file"),
@@ -92,3 +93,26 @@ def test_a_sweep_that_cannot_be_fitted_is_said(full_run, tmp_path):
         with pytest.raises(SystemExit, match=None) as stop:
             cal.sweep_logs(where, pairs)
         assert said in str(stop.value), (pairs, stop.value)
+
+
+def test_a_fit_scaled_by_plan_nodes_recovers_its_constants_and_charges_them():
+    """--scale-nodes: solves timed exactly (n / 181) x (5 ms + 2 ms per iteration, 4 ms
+    with a switch left) on 181- and 301-node plans give back those constants at 181 nodes;
+    the report prints nodes whole and charges each solve as sim.latency = "model" does."""
+    import numpy as np
+
+    cal = _module()
+    points = [(k, n / 181 * (0.005 + (0.004 if sw else 0.002) * k), sw, n)
+              for n in (181, 191, 301) for sw in (False, True) for k in (1, 2, 5, 9)]
+    model = cal.fit(points, switching=True, nodes=181)
+    assert model["nodes"] == 181
+    assert np.allclose([model[k] for k in ("overhead", "per_iteration",
+                                           "per_switching_iteration")],
+                       [0.005, 0.002, 0.004], rtol=1e-12, atol=1e-15)
+    text = cal.report(points, model, ["s.toml"], [])
+    assert "nodes = 181\n" in text and "overhead = 0.0050\n" in text
+    assert "| 301 | 8 | " in text  # the table by plan nodes
+    assert "median charge of the row's solves" in text
+    bad = [*points, (2, 0.01, False, 0)]
+    with pytest.raises(SystemExit, match="1 of 25 solves have no plan nodes"):
+        cal.fit(bad, switching=True, nodes=181)

@@ -52,6 +52,8 @@ def test_a_thinned_log_holds_the_full_logs_nodes_it_keeps(tmp_path, run_hmpc):
                 or (i > 0 and seg[i] != seg[i - 1])]
         resets += sum(seg[i] != seg[i + 1] for i in range(len(seg) - 1))
         assert b.data["plan"] == [nodes[i] for i in keep]  # the same numbers, bit for bit
+        # the plan's own node count, not the logged one (the latency model scales by it)
+        assert a.data["nodes"] == b.data["nodes"] == len(nodes) > len(keep)
     assert resets > 0  # the plans cross guards: the reset pairs were checked
     scene = {k: sum(len(bytes(m.data)) for m in logs[k].raw if m.topic == "/scene/plan")
              for k in logs}

@@ -13,6 +13,7 @@ from hmpc_cli.log.reader import LogMessage, read_log
 from hmpc_cli.run.realtime import Latency
 from hmpc_cli.run.runner import prepare, run_to_log
 from hmpc_cli.run.scenario import load_scenario
+from hmpc_cli.run.sections import SimSettings
 
 ROOT = Path(__file__).resolve().parents[1]
 BALL = ROOT / "scenarios" / "ball.toml"
@@ -40,10 +41,12 @@ def _run(tmp_path, name, overrides, spy_predict=None):
     return result, tmp_path / f"{name}.mcap", solves, steps
 
 
-def _plan(iterations: int, wall: float, switches: int = 0, t0: float = 0.0) -> Plan:
-    """A plan with these solve statistics over a schedule with ``switches`` switches."""
-    traj = Trajectory(np.zeros(1), np.zeros((1, 1)), np.zeros((1, 1)), np.zeros(1, int),
-                      np.zeros(1, int))
+def _plan(iterations: int, wall: float, switches: int = 0, t0: float = 0.0,
+          nodes: int = 1) -> Plan:
+    """A plan of ``nodes`` nodes with these solve statistics over a schedule with
+    ``switches`` switches."""
+    traj = Trajectory(np.zeros(nodes), np.zeros((nodes, 1)), np.zeros((nodes, 1)),
+                      np.zeros(nodes, int), np.zeros(nodes, int))
     sched = ModeSchedule((0,) * (switches + 1), (0,) * switches, (0.1,) * switches, t0)
     return Plan(t0, traj, SolveStats("Solve_Succeeded", True, iterations, wall, 1.0, 0.0),
                 sched)
@@ -73,6 +76,27 @@ def test_the_latency_kinds_charge_what_they_say():
     assert two.charge(_plan(1, 5.0, switches=1)) == pytest.approx(0.010)
     assert two.charge(_plan(5, 5.0)) == pytest.approx(0.011)
     assert model.charge(_plan(2, 5.0, switches=1)) == pytest.approx(0.018)
+
+
+def test_a_model_with_nodes_charges_a_plan_by_its_size():
+    """sim.latency_model.nodes: a plan of n nodes is charged n / nodes times the model (a
+    301-node plan 301/181 of a 181-node one's, per its own iterations); without nodes, or
+    for a plan without nodes (a rejected schedule's), the charge is the unscaled one."""
+    kw = {"overhead": 0.005, "per_iteration": 0.002, "per_switching_iteration": 0.004}
+    scaled, flat = Latency("model", nodes=181, **kw), Latency("model", **kw)
+    assert scaled.charge(_plan(2, 5.0, nodes=181)) == flat.charge(_plan(2, 5.0, nodes=301)) \
+        == pytest.approx(0.009)
+    assert scaled.charge(_plan(2, 5.0, nodes=301)) == pytest.approx(0.009 * 301 / 181)
+    assert scaled.charge(_plan(3, 5.0, switches=1, nodes=191)) == pytest.approx(
+        0.017 * 191 / 181)
+    assert scaled.charge(_plan(0, 5.0, nodes=0)) == pytest.approx(0.005)
+    planned = _planned(0.3, _plan(4, 0.1, switches=1, nodes=362))
+    assert Latency("model", nodes=181, planner=0.01, **kw).planner_cost(planned) == \
+        pytest.approx(0.01 + 2 * 0.021)
+    sim = SimSettings.model_validate({"latency": "model", "latency_model": {
+        "overhead": 0.005, "per_iteration": 0.002, "nodes": 181}})
+    assert Latency.of(sim.latency, model=sim.latency_model).nodes == 181
+    assert Latency.of("model", model=SimSettings().latency_model).nodes is None
 
 
 def test_a_planner_that_solves_mpc_problems_is_charged_them_once():
@@ -223,6 +247,20 @@ def test_verify_forgives_a_setting_added_since_the_run_and_nothing_else():
                                             '{"sim": {"rate_hz": 500, "new": 1}}'}, 0)
     (kept,) = _settings_added_since([old], [changed])
     assert kept.data == changed.data
+
+
+def test_verify_forgives_a_field_added_since_the_logs_version_and_nothing_else():
+    """/mpc/solve's nodes (log version 5) is left out of a re-run compared with a version-4
+    log, kept against a version-5 one; other fields stay either way."""
+    solve = LogMessage("/mpc/solve", 0.1, {"iterations": 3, "nodes": 181}, 0)
+    recorded = LogMessage("/mpc/solve", 0.1, {"iterations": 3}, 0)  # written without it
+    for version, want in [(4, {"iterations": 3}), (5, {"iterations": 3, "nodes": 181})]:
+        info = LogMessage("/run/info", 0.0, {"log_version": version}, 0)
+        rerun = _settings_added_since([info, recorded], [info, solve])
+        assert rerun[1].data == want
+        found = compare_logs([info, recorded], rerun)
+        assert (found is None) if version == 4 else (found.path, found.recorded) == (
+            "nodes", "(missing)")
 
 
 def test_a_compensated_walking_solve_past_the_touchdown_is_a_logged_rejection(tmp_path):

@@ -977,10 +977,12 @@ def test_the_model_latency_entry_says_what_it_charges(tmp_path):
     assert _model_costs(table, {"set": {"sim.latency_model.per_iteration": 0.003}}).startswith(
         ": 0 ms per solve + 3 ms per iteration")
     entry = {"label": "model", "sim.latency": "model", "sim.latency_model.overhead": 0.0058,
-             "sim.latency_model.per_iteration": 0.0018}
+             "sim.latency_model.per_iteration": 0.0018, "sim.latency_model.nodes": 301}
     assert _model_costs(table, {"set": {"sim.latency_model.per_iteration": 0.003}},
-                        entry).startswith(": 5.8 ms per solve + 1.8 ms per iteration (8 ms "
-                                          "with a switch left)")
+                        entry).startswith(
+        ": 5.8 ms per solve + 1.8 ms per iteration (8 ms with a switch left), the costs of "
+        "the solves they were fitted to (on one machine; at 301 plan nodes, a plan of n nodes "
+        "charged n / 301 times them) whatever")
     (tmp_path / "base_scenario.toml").write_text("[sim]\n")
     assert _model_costs(table, {}) == ""
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hmpc_cli.log.topics import LOG_VERSION
+from hmpc_cli.log.topics import FIELDS_ADDED, LOG_VERSION
 
 __all__ = ["LOG_VERSION", "TOPICS", "Divergence", "Replay", "ReplayError", "TimelineRow",
            "compare_logs", "disturbance_stats", "load_replay", "resolve_topics",
@@ -597,13 +597,23 @@ def scene_divergence(recorded: list, rerun: list, prefix_only: bool = False
 
 
 def _settings_added_since(recorded: list, rerun: list) -> list:
-    """The re-run's messages with the settings added since the recorded run forgiven.
+    """The re-run's messages, the settings and fields added since the recorded run forgiven.
 
     A setting the recorded /run/info scenario lacks took its default in the re-run (as a
     sweep's resume treats it): when the re-run's scenario equals the recorded one but for
-    such keys, it is taken as the recorded one. Every behaviour still counts.
+    such keys, it is taken as the recorded one. A message field a later log version added
+    (:data:`~hmpc_cli.log.topics.FIELDS_ADDED`) is left out of the re-run's messages when
+    the recorded log is older. Every behaviour still counts.
     """
     info = next((m for m in recorded if m.topic == "/run/info"), None)
+    version = info.data.get("log_version", 1) if info is not None else LOG_VERSION
+    added: dict[str, set[str]] = {}
+    for (topic, name), since in FIELDS_ADDED.items():
+        if not isinstance(version, int) or version < since:
+            added.setdefault(topic, set()).add(name)
+    rerun = [dataclasses.replace(m, data={k: v for k, v in m.data.items()
+                                          if k not in added[m.topic]})
+             if m.topic in added and isinstance(m.data, dict) else m for m in rerun]
     try:
         old = json.loads(info.data["scenario_json"]) if info is not None else None
     except (KeyError, TypeError, ValueError):

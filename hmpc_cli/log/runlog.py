@@ -295,15 +295,17 @@ class TopicWriter:
         """
         stride = self.identity.plan_stride
         traj = plan.traj
+        nodes = len(traj.t)
         traj = thinned(traj, stride) if stride > 1 else dataclasses.replace(
             traj, t=np.array(traj.t, dtype=float), x=np.array(traj.x, dtype=float),
             u=np.array(traj.u, dtype=float), mode=np.array(traj.mode), seg=np.array(traj.seg))
         detail = _detail(self.identity.details.get("mpc"), plan.detail, "mpc")
         self._hold(self._write_mpc_solve,
-                   (t, dataclasses.replace(plan, traj=traj), reason, model, latency, detail))
+                   (t, dataclasses.replace(plan, traj=traj), reason, model, latency, detail,
+                    nodes))
 
     def _write_mpc_solve(self, t: float, plan: Plan, reason: str, model: HybridSystem,
-                         latency: float, detail) -> None:
+                         latency: float, detail, nodes: int) -> None:
         """Writes one /mpc/solve message and its scene plan (``detail``: the MPC's).
 
         The plan's node times are absolute: ``plan.t0`` + its relative times (t0 is the
@@ -316,7 +318,7 @@ class TopicWriter:
             _schedule(plan.schedule, model),
             PlanArrays(np.asarray(traj.t, dtype=float) + plan.t0, np.asarray(traj.seg),
                        np.asarray(traj.mode), np.asarray(traj.x, dtype=float),
-                       np.asarray(traj.u, dtype=float)), detail, float(latency))
+                       np.asarray(traj.u, dtype=float)), detail, float(latency), int(nodes))
         self.rec.write("/mpc/solve", t, dataclasses.replace(  # on the wire: node records
             msg, plan=plan_nodes(msg.plan, 0.0, model)))
         if self.scene is not None:

@@ -23,15 +23,19 @@ from hmpc_cli.log.schema import Detail, Names, Nodes
 from hmpc_cli.log.schema import type_schema
 
 __all__ = [
-    "LOG_VERSION", "TOPICS", "GuardEventRec", "MarginsRec", "MpcSolve",
+    "FIELDS_ADDED", "LOG_VERSION", "TOPICS", "GuardEventRec", "MarginsRec", "MpcSolve",
     "PlanArrays", "PlanNode", "PlannerCall", "RolloutArrays", "RolloutNode", "RunInfo",
     "ScheduleRec", "StateSample", "StatusCount", "Summary", "Versions", "WRec", "named",
     "topic_schemas"]
 
 #: the log layout this hmpc writes (1: plain arrays, untyped; 2: this module; 3: with the
 #: system's geometry and body points, :mod:`hmpc_cli.log.geometry`; 4: None, NaN and inf
-#: fields left out instead of null)
-LOG_VERSION = 4
+#: fields left out instead of null; 5: /mpc/solve's ``nodes``)
+LOG_VERSION = 5
+
+#: fields a message gained with a log version: (topic, field) -> that version (a log
+#: written before it lacks them)
+FIELDS_ADDED = {("/mpc/solve", "nodes"): 5}
 
 
 State = Annotated[dict, Names("state")]
@@ -373,6 +377,8 @@ class MpcSolve:
         latency: compute time charged [s] (``sim.latency``; 0: time paused): the plan
             reaches the plant that long after t unless dropped (over budget: adopted
             false).
+        nodes: the plan's nodes, before ``sim.log_plan_stride`` thins them (0: a
+            rejected schedule's empty plan); ``sim.latency_model.nodes`` scales by them.
     """
 
     t: float
@@ -389,6 +395,7 @@ class MpcSolve:
     plan: Annotated[PlanArrays, Nodes(PlanNode)]
     detail: Annotated[Any, Detail("mpc")] = None
     latency: float = 0.0
+    nodes: int = 0
 
 
 @dataclass(frozen=True)

@@ -71,15 +71,18 @@ def _sim_settings(table: Path, spec: dict, entry: dict | None = None) -> dict:
 def _model_costs(sim: dict) -> str:
     """The runs' ``sim.latency_model`` in words ('' when the settings cannot say)."""
     try:
-        ms = {k: 1e3 * float(v) for k, v in dict(sim["latency_model"]).items()
-              if v is not None}
+        model = dict(sim["latency_model"])
+        nodes = model.pop("nodes", None)  # plan nodes, not seconds
+        ms = {k: 1e3 * float(v) for k, v in model.items() if v is not None}
+        size = (f"at {int(nodes)} plan nodes, a plan of n nodes charged n / {int(nodes)} "
+                "times them" if nodes else "not scaled to the NLP's size")
     except (KeyError, TypeError, ValueError):
         return ""
     switching = (f" ({ms['per_switching_iteration']:g} ms with a switch left)"
                  if "per_switching_iteration" in ms else "")
     return (f": {ms.get('overhead', 0.0):g} ms per solve + {ms.get('per_iteration', 0.0):g} ms "
             f"per iteration{switching}, the costs of the solves they were fitted to (on one "
-            "machine; not scaled to the NLP's size) whatever the controller's own, and "
+            f"machine; {size}) whatever the controller's own, and "
             f"{ms.get('planner', 0.0):g} ms per planner call")
 
 

@@ -7,7 +7,8 @@
 * ``measured``: the measured wall time of the planner call it follows plus the MPC solve
   (machine dependent: runs are not reproducible);
 * ``model``: ``overhead + per_iteration x iterations`` of the MPC solve (a solve with a
-  switch left: ``per_switching_iteration``, its NLP being larger, if set), plus, for the
+  switch left: ``per_switching_iteration``, its NLP being larger, if set; with ``nodes``
+  set, times the plan's nodes / ``nodes``: a larger NLP costs more), plus, for the
   planner call it follows, ``planner`` and each fixed-mode MPC solve the planner made
   itself (a foothold candidate) charged as a solve: a deterministic charge from a
   calibrated cost per iteration (``benchmarks/calibrate_latency.py`` fits the constants
@@ -53,6 +54,8 @@ class Latency:
         per_switching_iteration: per NLP iteration of a solve with a switch left [s]
             (kind ``model``; None: ``per_iteration``).
         planner: per planner call [s] (kind ``model``).
+        nodes: the plan nodes the model's constants hold at; a solve whose plan has n
+            nodes is charged n / nodes times them (kind ``model``; None: no scaling).
         first: ``charged`` (the first plan waits its delay too) or ``paused``.
         budget: a solve charged more than this [s] is dropped (None: no budget).
         compensate: solve from the state predicted at the plan's arrival.
@@ -69,6 +72,7 @@ class Latency:
     compensate: bool = False
     per_switching_iteration: float | None = None
     preempt: bool = False
+    nodes: int | None = None
 
     @classmethod
     def of(cls, latency: str | float, first: str = "charged", model=None,
@@ -84,7 +88,7 @@ class Latency:
                    planner=m.planner if m else 0.0, first=first, budget=budget,
                    compensate=compensate,
                    per_switching_iteration=m.per_switching_iteration if m else None,
-                   preempt=preempt)
+                   preempt=preempt, nodes=m.nodes if m else None)
 
     def charged(self, reason: str) -> bool:
         """Whether a solve for ``reason`` is charged (``initial`` may be paused)."""
@@ -94,7 +98,8 @@ class Latency:
         """The compute time [s] one fixed-mode MPC solve is charged (``measured``, ``model``).
 
         ``model``: a schedule with a switch left is charged ``per_switching_iteration``
-        per iteration, if set.
+        per iteration, if set; with ``nodes`` set the charge is scaled by the plan's nodes
+        / ``nodes`` (a plan without nodes, e.g. a rejected schedule's: unscaled).
         """
         st = plan.stats
         if self.kind == "measured":
@@ -104,7 +109,9 @@ class Latency:
         switching = plan.schedule is not None and plan.schedule.n_switches > 0
         per = self.per_switching_iteration if switching and \
             self.per_switching_iteration is not None else self.per_iteration
-        return self.overhead + per * max(int(st.iterations), 0)
+        cost = self.overhead + per * max(int(st.iterations), 0)
+        n = len(plan.traj.t)
+        return cost * (n / self.nodes) if self.nodes and n else cost
 
     def planner_cost(self, result: PlannerResult) -> float:
         """The compute time [s] one planner call is charged (``measured``, ``model``).

@@ -31,6 +31,11 @@ class LatencyModelSettings(BaseModel):
     planner: FiniteFloat = Field(0.01, ge=0.0, description="per planner call [s]; the "
                                  "fixed-mode MPC solves a planner makes itself (foothold "
                                  "candidates) are charged beside it as solves")
+    nodes: BoundedInt | None = Field(
+        None, ge=2, description="the plan nodes the constants were fitted at: a solve whose "
+        "plan has n nodes is charged n / nodes times its overhead and iterations (a larger "
+        "NLP costs more per iteration, e.g. a finer node grid); None: every solve as fitted, "
+        "whatever its size")
 
 
 class SimSettings(BaseModel):
