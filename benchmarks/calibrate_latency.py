@@ -9,6 +9,9 @@ wall time and whether its schedule has a switch left, and fits by least squares
 * with ``--switching``: per_iteration for the final-domain NLP and per_switching_iteration
   for a solve with a switch left (the larger NLP),
 
+each term scaled by the solve's plan nodes / ``nodes`` with ``--scale-nodes`` (``nodes`` the
+fitted solves' median; one model for several node grids),
+
 side by side with the medians per (switching, iterations). Prints the TOML to paste under
 [sim.latency_model] and, with --write, a Markdown report. With --sweep it runs nothing and
 fits the solves its runs logged (e.g. a real-time sweep's time-paused cells, run under the
@@ -19,14 +22,16 @@ same load as its measured ones).
         --write results/bench/latency_model_rti.md
     python benchmarks/calibrate_latency.py --scenario scenarios/biped_stairs.toml \
         --set 'mpc.solver="rti"' --candidates --write results/bench/latency_model_biped_rti.md
-    python benchmarks/calibrate_latency.py --switching --sweep results/sweeps/realtime_ipopt \
-        --where latency=paused --write results/bench/latency_model_ipopt.md
+    python benchmarks/calibrate_latency.py --switching --scale-nodes \
+        --sweep results/sweeps/realtime_ipopt --where latency=paused \
+        --write results/bench/latency_model_ipopt.md
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
 import platform
 import tempfile
@@ -61,15 +66,33 @@ def solves_of(scenario: Path, runs: int, work: Path, sets: list[str],
 
 def solves_in(log: Path, candidates: bool = False) -> list[tuple[int, float, bool, int]]:
     """(iterations, wall time [s], a switch left, plan nodes) of every MPC solve logged in
-    ``log`` (nodes 0: a log written before /mpc/solve had them; a foothold candidate's)."""
+    ``log``.
+
+    Plan nodes: /mpc/solve's ``nodes``; in a log written before it had them (log version
+    4), the logged plan's nodes when the run logged every one (``sim.log_plan_stride =
+    1``), else 0 (unknown), as for a foothold candidate's solve.
+    """
+    return logged_solves(read_log(log).messages, candidates)
+
+
+def logged_solves(messages, candidates: bool = False) -> list[tuple[int, float, bool, int]]:
+    """:func:`solves_in` of a log's decoded messages."""
     out = []
     chosen: set[float] = set()  # the candidates' wall times: a replan reuses one
-    for m in read_log(log).messages:
-        if m.topic == "/mpc/solve" and m.data.get("iterations", 0) > 0 \
+    stride = 0  # the run's sim.log_plan_stride (0: unknown)
+    for m in messages:
+        if m.topic == "/run/info":
+            try:
+                sim = json.loads(m.data["scenario_json"]).get("sim") or {}
+                stride = int(sim.get("log_plan_stride", 1))
+            except (KeyError, TypeError, ValueError, AttributeError):
+                stride = 0
+        elif m.topic == "/mpc/solve" and m.data.get("iterations", 0) > 0 \
                 and float(m.data["wall_time"]) not in chosen:
             guards = (m.data.get("schedule") or {}).get("guards") or ()
+            nodes = m.data.get("nodes", len(m.data.get("plan") or ()) if stride == 1 else 0)
             out.append((int(m.data["iterations"]), float(m.data["wall_time"]),
-                        len(guards) > 0, int(m.data.get("nodes", 0))))
+                        len(guards) > 0, int(nodes)))
         elif m.topic == "/planner/plan" and candidates:
             cands = (m.data.get("detail") or {}).get("candidates", [])
             out += [(int(c["iterations"]), float(c["wall_time"]), True, 0)
@@ -99,6 +122,11 @@ def sweep_logs(sweep: Path, where: list[str]) -> list[Path]:
     picked = [r for r in rows if all(r[k] == v for k, v in pairs)]
     if not picked:
         raise SystemExit(f"{table}: no run matches {' and '.join(where) or 'anything'}")
+    unlogged = [r.get("run_id", "?") for r in picked if not (r.get("log") or "").strip()]
+    if unlogged:
+        raise SystemExit(f"{table}: {len(unlogged)} matching runs have no log (first: run "
+                         f"{unlogged[0]}, which did not finish): narrow --where or run the "
+                         f"sweep again")
     logs = [sweep / r["log"] for r in picked]
     missing = [str(p) for p in logs if not p.is_file()]
     if missing:

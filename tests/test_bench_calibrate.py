@@ -65,17 +65,20 @@ def test_a_sweeps_logged_solves_are_fitted_without_running_anything(full_run, tm
             if m.topic == "/mpc/solve" and m.data.get("iterations", 0) > 0]
     got = cal.solves_in(sweep / "runs" / "a" / "run.mcap")
     assert got == want and len(got) == 32 and sum(s for _, _, s, _ in got) == 7
-    assert {n for *_, n in got} >= {181}  # the final-domain plans: 180 links
+    assert min(n for *_, n in got) == 181  # the final-domain plans: 180 links
     out = tmp_path / "fit.md"
     proc = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / "calibrate_latency.py"), "--switching",
-         "--sweep", str(sweep), "--where", "latency=paused", "--write", str(out)],
+         "--scale-nodes", "--sweep", str(sweep), "--where", "latency=paused", "--write",
+         str(out)],
         capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     text = out.read_text()
     assert f"32 solves of the 1 runs of `{sweep}` with `latency=paused` (their logged wall " \
            "times)." in text
     assert "per_switching_iteration = " in text and text == proc.stdout.rstrip("\n") + "\n"
+    # the reference size is the fitted solves' median plan: 25 final-domain plans of 181
+    assert "nodes = 181\n" in text and "| 181 | 25 | " in text
 
 
 def test_a_sweep_that_cannot_be_fitted_is_said(full_run, tmp_path):
@@ -116,3 +119,26 @@ def test_a_fit_scaled_by_plan_nodes_recovers_its_constants_and_charges_them():
     bad = [*points, (2, 0.01, False, 0)]
     with pytest.raises(SystemExit, match="1 of 25 solves have no plan nodes"):
         cal.fit(bad, switching=True, nodes=181)
+
+
+def test_a_log_without_plan_nodes_gives_them_where_it_logged_every_node():
+    """A log written before /mpc/solve had `nodes` (version 4): the logged plan's length
+    when the run logged every node (sim.log_plan_stride = 1), 0 (unknown) when it thinned
+    them; a field present is taken as it is."""
+    import json
+
+    from hmpc_cli.log.reader import LogMessage
+
+    def info(stride):
+        return LogMessage("/run/info", 0.0, {"scenario_json": json.dumps(
+            {"sim": {"log_plan_stride": stride}})}, 0)
+
+    old = LogMessage("/mpc/solve", 0.1, {"iterations": 2, "wall_time": 0.01,
+                                         "plan": [{}, {}, {}]}, 0)
+    new = LogMessage("/mpc/solve", 0.2, {"iterations": 3, "wall_time": 0.02, "nodes": 181,
+                                         "plan": [{}] * 61}, 0)
+    cal = _module()
+    assert cal.logged_solves([info(1), old, new]) == [(2, 0.01, False, 3),
+                                                      (3, 0.02, False, 181)]
+    assert cal.logged_solves([info(3), old, new]) == [(2, 0.01, False, 0),
+                                                      (3, 0.02, False, 181)]

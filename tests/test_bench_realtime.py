@@ -79,3 +79,22 @@ def test_a_report_over_a_committed_table_is_printed_not_written(tmp_path):
         f"error: --out {out}: belongs to sweep 'realtime_rti' (its sweep.toml), not "
         "'realtime': choose another --out (the same sweep resumes in its own directory)\n")
     assert not (out / "realtime.toml").exists()
+
+
+def test_the_report_names_whose_latency_model_the_runs_charge(tmp_path):
+    """A sweep whose latency entries set their own model (realtime_ipopt) is not said to
+    charge the scenario's; one that does not (realtime_rti) is."""
+    import argparse
+
+    rt = _module()
+    said = {}
+    for name in ("realtime_ipopt", "realtime_rti"):
+        args = argparse.Namespace(sweep=ROOT / "sweeps" / f"{name}.toml",
+                                  out=tmp_path / name)
+        rt._plan(args)
+        said[name] = (args.own_model, args.grid_says)
+    assert said["realtime_ipopt"] == (True, "the grid of `" + (
+        ROOT / "sweeps" / "realtime_ipopt.toml").as_posix() + "` sets the rest, its latency "
+        "entries their own latency model")
+    assert said["realtime_rti"][0] is False
+    assert not said["realtime_rti"][1].endswith("latency model")

@@ -81,7 +81,10 @@ def test_the_latency_kinds_charge_what_they_say():
 def test_a_model_with_nodes_charges_a_plan_by_its_size():
     """sim.latency_model.nodes: a plan of n nodes is charged n / nodes times the model (a
     301-node plan 301/181 of a 181-node one's, per its own iterations); without nodes, or
-    for a plan without nodes (a rejected schedule's), the charge is the unscaled one."""
+    for a rejected schedule's one-node plan (nothing solved), the charge is the unscaled
+    one."""
+    from hmpc_cli.mpc.chain.kind import rejected_plan
+
     kw = {"overhead": 0.005, "per_iteration": 0.002, "per_switching_iteration": 0.004}
     scaled, flat = Latency("model", nodes=181, **kw), Latency("model", **kw)
     assert scaled.charge(_plan(2, 5.0, nodes=181)) == flat.charge(_plan(2, 5.0, nodes=301)) \
@@ -89,7 +92,9 @@ def test_a_model_with_nodes_charges_a_plan_by_its_size():
     assert scaled.charge(_plan(2, 5.0, nodes=301)) == pytest.approx(0.009 * 301 / 181)
     assert scaled.charge(_plan(3, 5.0, switches=1, nodes=191)) == pytest.approx(
         0.017 * 191 / 181)
-    assert scaled.charge(_plan(0, 5.0, nodes=0)) == pytest.approx(0.005)
+    rejected = rejected_plan(0.2, np.zeros(4), 0, ModeSchedule((0,), (), (), 0.2), "why")
+    assert len(rejected.traj.t) == 1 and scaled.charge(rejected) == flat.charge(rejected) \
+        == pytest.approx(0.005)
     planned = _planned(0.3, _plan(4, 0.1, switches=1, nodes=362))
     assert Latency("model", nodes=181, planner=0.01, **kw).planner_cost(planned) == \
         pytest.approx(0.01 + 2 * 0.021)
@@ -283,6 +288,9 @@ def test_a_compensated_walking_solve_past_the_touchdown_is_a_logged_rejection(tm
                                        "has no guard left"]
     assert [round(m.t, 3) for m in rejected] == [0.214]
     assert rejected[0].data["plan"] == [] and not rejected[0].data["adopted"]
+    assert rejected[0].data["nodes"] == 0  # an empty plan: no nodes to scale a charge by
+    solved = [m for m in log.topic("/mpc/solve") if m.data["iterations"] > 0]
+    assert solved and all(m.data["nodes"] == len(m.data["plan"]) for m in solved)
     for m in log.messages:
         assert validate(log.schemas[m.topic], m.data) == [], (m.topic, m.t)
 

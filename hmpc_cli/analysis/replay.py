@@ -36,6 +36,9 @@ SOFTENED_TOL = 1e-6  # as hmpc_cli.log.runlog.SOFTENED_TOL (not imported: it pul
 #: (any finite point) and "sqp_hpipm" (a feasible one), though not converged
 ITERATION_LIMIT = "Maximum_Iterations_Exceeded"
 RTOL, ATOL = 1e-9, 1e-12
+#: the log version from which a scalar field holds its schema's scalar type (4: None, NaN
+#: and inf left out instead of null)
+TYPED_SCALARS_SINCE = 4
 # fields that are measurements or the command line, not results: never compared by verify
 _IGNORED = {"wall_time", "versions", "command", "argv", "overrides", "sweep", "log_version",
             "build", "cpu"}
@@ -195,9 +198,9 @@ _KINDS = {"object": (dict,), "array": (list,), "number": (int, float), "integer"
 def _kind_problem(schema: dict, value: Any, version: int = LOG_VERSION) -> str | None:
     """Why ``value`` is not of the JSON kind ``schema`` says (None: it is, or null).
 
-    ``version``: the log's layout. Before :data:`LOG_VERSION` any scalar passes where the
-    schema says a scalar; in version 1 (plain arrays, untyped) also an array where it
-    says an object: only a scalar against an object or array is told apart there.
+    ``version``: the log's layout. Before :data:`TYPED_SCALARS_SINCE` any scalar passes
+    where the schema says a scalar; in version 1 (plain arrays, untyped) also an array
+    where it says an object: only a scalar against an object or array is told apart there.
     """
     kind = schema["type"]
     if value is None:  # left out or non-finite: not a type error of its own
@@ -206,7 +209,7 @@ def _kind_problem(schema: dict, value: Any, version: int = LOG_VERSION) -> str |
                                                 and isinstance(value, bool)):
         return None
     container = isinstance(value, (dict, list))
-    if version < LOG_VERSION and kind not in ("object", "array") and not container:
+    if version < TYPED_SCALARS_SINCE and kind not in ("object", "array") and not container:
         return None
     if version < 2 and kind in ("object", "array") and container:
         return None

@@ -192,7 +192,7 @@ def _plan(d: dict, names: tuple, inputs: tuple) -> PlanArrays:
 
 _SOLVE_KEYS = ("t", "reason", "status", "success", "iterations", "wall_time", "cost", "slack",
                "adopted", "schedule", "plan", "x_plan", "u_plan", "t_plan", "seg_plan",
-               "max_violation", "detail", "latency")
+               "max_violation", "detail", "latency", "nodes")
 
 
 def _detail(d: dict, schema: dict | None, old: dict, title: str):

@@ -319,8 +319,9 @@ class TopicWriter:
             PlanArrays(np.asarray(traj.t, dtype=float) + plan.t0, np.asarray(traj.seg),
                        np.asarray(traj.mode), np.asarray(traj.x, dtype=float),
                        np.asarray(traj.u, dtype=float)), detail, float(latency), int(nodes))
-        self.rec.write("/mpc/solve", t, dataclasses.replace(  # on the wire: node records
-            msg, plan=plan_nodes(msg.plan, 0.0, model)))
+        wire = plan_nodes(msg.plan, 0.0, model)  # on the wire: node records
+        self.rec.write("/mpc/solve", t, dataclasses.replace(
+            msg, plan=wire, nodes=msg.nodes if wire else 0))
         if self.scene is not None:
             self.scene.plan(t, plan)
 

@@ -377,8 +377,9 @@ class MpcSolve:
         latency: compute time charged [s] (``sim.latency``; 0: time paused): the plan
             reaches the plant that long after t unless dropped (over budget: adopted
             false).
-        nodes: the plan's nodes, before ``sim.log_plan_stride`` thins them (0: a
-            rejected schedule's empty plan); ``sim.latency_model.nodes`` scales by them.
+        nodes: the plan's nodes, before ``sim.log_plan_stride`` thins them (0: a rejected
+            schedule's empty plan); ``sim.latency_model.nodes`` scales a solve's charge by
+            them.
     """
 
     t: float

@@ -99,7 +99,8 @@ class Latency:
 
         ``model``: a schedule with a switch left is charged ``per_switching_iteration``
         per iteration, if set; with ``nodes`` set the charge is scaled by the plan's nodes
-        / ``nodes`` (a plan without nodes, e.g. a rejected schedule's: unscaled).
+        / ``nodes`` (a plan of one node, a rejected schedule's, which solved nothing:
+        unscaled).
         """
         st = plan.stats
         if self.kind == "measured":
@@ -111,7 +112,7 @@ class Latency:
             self.per_switching_iteration is not None else self.per_iteration
         cost = self.overhead + per * max(int(st.iterations), 0)
         n = len(plan.traj.t)
-        return cost * (n / self.nodes) if self.nodes and n else cost
+        return cost * (n / self.nodes) if self.nodes and n >= 2 else cost
 
     def planner_cost(self, result: PlannerResult) -> float:
         """The compute time [s] one planner call is charged (``measured``, ``model``).
