@@ -142,11 +142,13 @@ def _sweep_subset(source: str, path: Path, keep: dict[str, set[str]]) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
-def _the_ball_in_real_time_with_the_model_latency(tmp_path, run_hmpc, controllers) -> None:
-    """scenarios/ball_realtime.toml (real-time iterations, compute time charged by its
-    fitted model, deterministic) with ``controllers`` over Figure 3's nominal run and ten
-    trials: every run holds, with no solver failure, and gives the committed
-    ``realtime_rti`` table's row run for run."""
+def _the_ball_in_real_time_with_the_model_latency(tmp_path, run_hmpc, controllers,
+                                                  failing) -> None:
+    """scenarios/ball_realtime.toml (real-time iterations, compute time charged by the
+    sweep's fitted model, deterministic) with ``controllers`` over Figure 3's nominal run
+    and ten trials: the runs of ``failing`` ((controller, disturbance) pairs) fail, every
+    other holds, none has a solver failure, and each gives the committed ``realtime_rti``
+    table's row run for run."""
     _sweep_subset("realtime_rti", tmp_path / "rt.toml",
                   {"latency": {"model"}, "controller": controllers})
     proc = run_hmpc(["sweep", str(tmp_path / "rt.toml"), "--out", str(tmp_path / "rt")],
@@ -156,7 +158,9 @@ def _the_ball_in_real_time_with_the_model_latency(tmp_path, run_hmpc, controller
     with open(table, newline="") as f:
         rows = list(csv.DictReader(f))
     assert sorted({r["controller"] for r in rows}) == sorted(controllers)
-    assert [r for r in rows if r["success"] != "true" or r["solver_failures"] != "0"] == []
+    assert {(r["controller"], r["disturbance"]) for r in rows if r["success"] != "true"} \
+        == failing
+    assert [r for r in rows if r["solver_failures"] != "0"] == []
     assert assert_runs_match_the_committed_table(
         table, "realtime_rti",
         keep=lambda r: r["latency"] == "model" and r["controller"] in controllers) \
@@ -165,18 +169,21 @@ def _the_ball_in_real_time_with_the_model_latency(tmp_path, run_hmpc, controller
 
 @pytest.mark.slow
 def test_the_ball_keeps_up_in_real_time_with_the_model_latency_at_20_hz(tmp_path, run_hmpc):
-    """At 20 Hz planning once all 11 hold with the modelled compute time (with the compute
-    time measured here, 20 Hz loses trial 5: results/bench/realtime_rti.md)."""
-    _the_ball_in_real_time_with_the_model_latency(tmp_path, run_hmpc, {"20 Hz once"})
+    """At 20 Hz planning once the modelled compute time loses trial 5, the one the measured
+    compute time loses (three flights: results/bench/realtime_rti.md, docs/performance.md);
+    the other 10 hold."""
+    _the_ball_in_real_time_with_the_model_latency(tmp_path, run_hmpc, {"20 Hz once"},
+                                                  {("20 Hz once", "trial 5")})
 
 
 @pytest.mark.slow
 @pytest.mark.campaign
 def test_the_ball_keeps_up_in_real_time_with_the_model_latency(tmp_path, run_hmpc):
-    """At 60 Hz all 11 hold, planning once and replanning at contacts, and at 20 Hz
-    planning once."""
+    """At 60 Hz all 11 hold, planning once and replanning at contacts; at 20 Hz planning
+    once trial 5 fails."""
     _the_ball_in_real_time_with_the_model_latency(
-        tmp_path, run_hmpc, {"60 Hz once", "60 Hz on_contact", "20 Hz once"})
+        tmp_path, run_hmpc, {"60 Hz once", "60 Hz on_contact", "20 Hz once"},
+        {("20 Hz once", "trial 5")})
 
 
 @pytest.mark.slow
@@ -239,7 +246,7 @@ def _solve_shares(sweep: str, latency: str) -> dict[str, float]:
 def test_the_readmes_keeping_up_sentence_is_the_committed_tables():
     """README: the IPOPT controller's measured runs make 62-98 % of their time-paused solves
     (100 Hz: 62 %; its modelled runs 62-97 %, 100 Hz 62-63 %), the real-time iterations'
-    85-100 %, as the results page tables them."""
+    84-100 %, as the results page tables them."""
     ipopt = {c: round(100 * v) for c, v in _solve_shares(
         "realtime_ipopt", "measured, next domain").items()}
     model = {c: round(100 * v) for c, v in _solve_shares(
@@ -249,10 +256,10 @@ def test_the_readmes_keeping_up_sentence_is_the_committed_tables():
     rti = [round(100 * v) for v in _solve_shares("realtime_rti", "measured").values()]
     assert (min(ipopt.values()), max(ipopt.values())) == (62, 98)
     assert sorted(v for c, v in ipopt.items() if c.startswith("100 Hz")) == [62, 62]
-    assert (min(rti), max(rti)) == (85, 100)
+    assert (min(rti), max(rti)) == (84, 100)
     readme = " ".join((ROOT / "README.md").read_text().split())
     assert ("its measured runs make 62-98 % of the solves made with time paused (100 Hz: "
-            "62 %; modelled 62-97 %, 62-63 %), the real-time iterations 85-100 %.") in readme
+            "62 %; modelled 62-97 %, 62-63 %), the real-time iterations 84-100 %.") in readme
 
 
 def test_the_readmes_robustness_verdict_is_the_pages_reading():

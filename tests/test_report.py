@@ -978,6 +978,12 @@ def test_the_model_latency_entry_says_what_it_charges(tmp_path):
         ": 0 ms per solve + 3 ms per iteration")
     entry = {"label": "model", "sim.latency": "model", "sim.latency_model.overhead": 0.0058,
              "sim.latency_model.per_iteration": 0.0018, "sim.latency_model.nodes": 301}
+    from hmpc_cli.report.realtime import _meaning
+
+    assert _meaning("model", {"model": entry}).startswith(
+        "each solve charged by the sweep's fitted solve-time model")
+    assert _meaning("model", {"model": {"sim.latency": "model"}}).startswith(
+        "each solve charged by the scenario's fitted solve-time model")
     assert _model_costs(table, {"set": {"sim.latency_model.per_iteration": 0.003}},
                         entry).startswith(
         ": 5.8 ms per solve + 1.8 ms per iteration (8 ms with a switch left), the costs of "

@@ -89,6 +89,8 @@ def _model_costs(sim: dict) -> str:
 def _meaning(label: str, entries: dict[str, dict], costs: str = "") -> str:
     entry, kind = entries.get(label, {}), _kind(label, entries)
     text = KINDS.get(kind, kind) + (costs if kind == "model" else "")
+    if kind == "model" and any(k.startswith("sim.latency_model.") for k in entry):
+        text = text.replace("the scenario's fitted", "the sweep's fitted", 1)
     past = entry.get("lowlevel.past_guard")
     return f"{text}; {PAST_GUARD.get(past, past)}" if past else text
 
