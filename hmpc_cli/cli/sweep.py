@@ -314,10 +314,11 @@ def not_compiled_note(run_dir: Path) -> str:
     bit-identical (``hmpc replay --verify``).
     """
     from hmpc_cli.log.reader import first_message
+    from hmpc_cli.mpc.kernels import IN_C
 
     build = ((first_message(run_dir / "run.mcap", "/run/info") or {}).get("build") or {})
     if build.get("cache") != "miss" or build.get("compiled") or \
-            "stage kernels in C" in build.get("reason", ""):
+            IN_C in build.get("reason", ""):
         return ""
     return (f"note: the MPC's NLPs of this sweep are not compiled (build cache miss), so "
             f"every run solves them in CasADi's SX virtual machine, slower. Compile them once "

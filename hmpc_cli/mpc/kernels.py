@@ -57,6 +57,9 @@ _FAILED: dict[str, str] = {}  # this process's failed compiles by key: their fir
 _SX_KEYS: dict[int, tuple[ca.Function, str]] = {}  # kernels returned in SX: their keys
 #: [s] the longest a compile may take (a kernel's takes a fraction of a second)
 TIMEOUT = 600.0
+#: how :func:`describe` says that every kernel of a build runs in C (a build's reason
+#: holds it then: :func:`hmpc_cli.cli.sweep.not_compiled_note` reads it there)
+IN_C = "stage kernels in C"
 _WAIT = False  # set by wait_for_compiles
 _LOCK = threading.Lock()
 _LOG = logging.getLogger(__name__)
@@ -212,7 +215,7 @@ def describe(made: Iterable[ca.Function]) -> str:
     made = list(made)
     in_c = sum(fn.class_name() == "External" for fn in made)
     if in_c == len(made):
-        return f"stage kernels in C ({in_c})"
+        return f"{IN_C} ({in_c})"
     with _LOCK:
         keys = [_SX_KEYS[id(fn)][1] for fn in made if id(fn) in _SX_KEYS]
         errors = [_FAILED[k] for k in keys if k in _FAILED]

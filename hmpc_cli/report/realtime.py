@@ -22,7 +22,7 @@ __all__ = ["realtime_section"]
 
 #: what each latency kind means, as the page says it
 KINDS = {"paused": "time paused while the controllers compute (the paper's runs)",
-         "model": "each solve charged by the scenario's fitted solve-time model "
+         "model": "each solve charged by the {whose} fitted solve-time model "
                   "(deterministic)",
          "measured": "each solve charged its measured wall time on the machine that ran "
                      "the table (not reproducible elsewhere)"}
@@ -88,9 +88,9 @@ def _model_costs(sim: dict) -> str:
 
 def _meaning(label: str, entries: dict[str, dict], costs: str = "") -> str:
     entry, kind = entries.get(label, {}), _kind(label, entries)
-    text = KINDS.get(kind, kind) + (costs if kind == "model" else "")
-    if kind == "model" and any(k.startswith("sim.latency_model.") for k in entry):
-        text = text.replace("the scenario's fitted", "the sweep's fitted", 1)
+    own = any(k.startswith("sim.latency_model.") for k in entry)  # the entry sets it
+    text = KINDS.get(kind, kind).format(whose="sweep's" if own else "scenario's") + \
+        (costs if kind == "model" else "")
     past = entry.get("lowlevel.past_guard")
     return f"{text}; {PAST_GUARD.get(past, past)}" if past else text
 
