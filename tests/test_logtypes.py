@@ -118,15 +118,16 @@ def test_summary_json_and_the_run_summary_topic_differ_as_running_md_says():
     from hmpc_cli.log.books import RunResult
     from hmpc_cli.log.recorder import to_json_bytes
     from hmpc_cli.log.runlog import summary_record
-    from hmpc_cli.run.runner import jsonable
+    from hmpc_cli.run.runner import summary_text
 
     model = SimpleNamespace(state_names=("px", "py"), n_x=2,
                             guards=[SimpleNamespace(name="floor"), SimpleNamespace(name="wall")])
     r = RunResult("s", 3, x_end=[1.0, 2.0], contacts=3, solves=4, solver_failures=3,
                   contacts_by_guard={"floor": 1, "wall": 0, "ledge": 2},
                   failure_statuses={"b_status": 1, "a_status": 2}, warnings=["w"])
-    file = json.loads(json.dumps(jsonable(r.__dict__), allow_nan=False))
+    file = json.loads(summary_text(r))
     topic = json.loads(to_json_bytes(summary_record(r, model)))
+    assert "real_time" not in file and "real_time" not in topic  # time paused
     assert file["x_end"] == [1.0, 2.0] and topic["x_end"] == {"px": 1.0, "py": 2.0}
     assert file["contacts_by_guard"] == {"floor": 1, "wall": 0, "ledge": 2}
     assert topic["contacts_by_guard"] == {"floor": 1, "wall": 0}
@@ -142,6 +143,16 @@ def test_summary_json_and_the_run_summary_topic_differ_as_running_md_says():
         {k: v for k, v in file.items() if k not in shapes and k not in nulls}
     model.n_x = 3  # a plant whose state is not the model's size
     assert json.loads(to_json_bytes(summary_record(r, model)))["x_end"] == {}
+    # compute time charged: the same object in both, a statistic of no solve left out
+    r.real_time = {"latency": "model", "period": 0.1, "delay_median": float("nan"),
+                   "delay_p95": float("nan"), "delay_max": float("nan"),
+                   "charged_solves": 0, "late_solves": 0, "dropped_solves": 0,
+                   "preempted_solves": 0}
+    file = json.loads(summary_text(r))
+    topic = json.loads(to_json_bytes(summary_record(r, model)))
+    assert file["real_time"]["delay_max"] is None and list(file)[-1] == "real_time"
+    assert topic["real_time"] == {k: v for k, v in file["real_time"].items()
+                                  if v is not None}
 
 
 def test_states_plans_and_details_are_named(logs):

@@ -177,6 +177,8 @@ def test_a_solve_over_its_budget_is_dropped_and_the_previous_plan_tracked_on(tmp
         before = steps[k0][2]
         assert all(steps[k][2] is before for k in range(k0, k1) if k in steps)
     assert any("solve_budget" in w for w in res.warnings)
+    assert res.real_time["dropped_solves"] == len(dropped)
+    assert res.real_time["charged_solves"] == len(msgs) - 1  # the first plan paused
 
 
 def test_a_contact_counts_and_names_only_the_plans_it_stops():
@@ -203,6 +205,8 @@ def test_real_time_settings_with_time_paused_are_named_in_a_warning(tmp_path):
         "sim.solve_budget, sim.delay_compensation: no effect with sim.latency = \"paused\" "
         "(no compute time is charged); set sim.latency to \"model\", \"measured\" or a "
         "delay [s]"]
+    assert res.real_time is None
+    assert "real_time" not in read_log(log).topic("/run/summary")[0].data
     assert all(m.data["latency"] == 0.0 and "over budget" not in m.data["reason"]
                for m in read_log(log).messages if m.topic == "/mpc/solve")
 
@@ -216,6 +220,33 @@ def test_the_model_latency_is_deterministic(tmp_path):
     charged = [m.data["latency"] for m in read_log(a).messages if m.topic == "/mpc/solve"]
     iters = [m.data["iterations"] for m in read_log(a).messages if m.topic == "/mpc/solve"]
     assert charged[1:] == pytest.approx([0.002 + 0.008 * k for k in iters[1:]])
+
+
+def test_the_summary_says_how_the_charged_compute_time_met_the_mpc_period(tmp_path):
+    """real_time: the compute time charged to each solve as /mpc/solve logs it (the
+    first plan's, paused, left out), the late solves those charged more than the 50 ms
+    period of a 20 Hz MPC (some are, some are not); the same object in summary.json and
+    /run/summary."""
+    import json
+
+    from hmpc_cli.run.runner import summary_text
+
+    res, log, _, _ = _run(tmp_path, "rt", [
+        "sim.duration=1.0", "mpc.rate_hz=20", 'sim.latency="model"',
+        'sim.latency_first="paused"', "sim.latency_model.overhead=0.002",
+        "sim.latency_model.per_iteration=0.008", "sim.latency_model.planner=0.0"])
+    solves = [m.data for m in read_log(log).messages if m.topic == "/mpc/solve"]
+    assert solves[0]["latency"] == 0.0
+    charged = np.array([s["latency"] for s in solves[1:]])
+    late = charged > 0.05
+    assert 0 < late.sum() < len(charged)
+    assert res.real_time == {
+        "latency": "model", "period": 0.05, "delay_median": float(np.median(charged)),
+        "delay_p95": float(np.percentile(charged, 95)), "delay_max": float(charged.max()),
+        "charged_solves": len(charged), "late_solves": int(late.sum()),
+        "dropped_solves": 0, "preempted_solves": 0}
+    assert read_log(log).topic("/run/summary")[0].data["real_time"] == res.real_time
+    assert json.loads(summary_text(res))["real_time"] == res.real_time
 
 
 def test_the_model_charges_a_solve_with_a_switch_left_its_own_cost(tmp_path):
@@ -254,18 +285,23 @@ def test_verify_forgives_a_setting_added_since_the_run_and_nothing_else():
     assert kept.data == changed.data
 
 
-def test_verify_forgives_a_field_added_since_the_logs_version_and_nothing_else():
-    """/mpc/solve's nodes (log version 5) is left out of a re-run compared with a version-4
-    log, kept against a version-5 one; other fields stay either way."""
-    solve = LogMessage("/mpc/solve", 0.1, {"iterations": 3, "nodes": 181}, 0)
-    recorded = LogMessage("/mpc/solve", 0.1, {"iterations": 3}, 0)  # written without it
-    for version, want in [(4, {"iterations": 3}), (5, {"iterations": 3, "nodes": 181})]:
+@pytest.mark.parametrize("topic, field, value, since", [
+    ("/mpc/solve", "nodes", 181, 5), ("/run/summary", "real_time", {"late_solves": 2}, 6)])
+def test_verify_forgives_a_field_added_since_the_logs_version_and_nothing_else(
+        topic, field, value, since):
+    """/mpc/solve's nodes (log version 5) and /run/summary's real_time (6) are left out of
+    a re-run compared with an older log, kept against one of their version; other fields
+    stay either way."""
+    new = LogMessage(topic, 0.1, {"iterations": 3, field: value}, 0)
+    recorded = LogMessage(topic, 0.1, {"iterations": 3}, 0)  # written without it
+    for version, want in [(since - 1, {"iterations": 3}),
+                          (since, {"iterations": 3, field: value})]:
         info = LogMessage("/run/info", 0.0, {"log_version": version}, 0)
-        rerun = _settings_added_since([info, recorded], [info, solve])
+        rerun = _settings_added_since([info, recorded], [info, new])
         assert rerun[1].data == want
         found = compare_logs([info, recorded], rerun)
-        assert (found is None) if version == 4 else (found.path, found.recorded) == (
-            "nodes", "(missing)")
+        assert (found is None) if version < since else (found.path, found.recorded) == (
+            field, "(missing)")
 
 
 def test_a_compensated_walking_solve_past_the_touchdown_is_a_logged_rejection(tmp_path):
@@ -418,6 +454,7 @@ def test_a_contact_stops_the_solve_in_flight(tmp_path):
                  if "stopped" in s.data["reason"]]
         assert noted == ([(contact.t, "replan (after a contact stopped the solve of "
                            "t = 0.3000 s: dropped)")] if preempt else [])
+        assert result.real_time["preempted_solves"] == int(preempt)
     assert planned[True] == contact.t
     assert planned[False] == pytest.approx(0.372)
 

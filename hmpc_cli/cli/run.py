@@ -278,6 +278,21 @@ def _crashed(exc: Exception, t_end: float, out: Path) -> None:
     raise typer.Exit(EXIT_INTERNAL)
 
 
+def real_time_text(rt: dict) -> str:
+    """One line of a summary's ``real_time``: the charged solves against the MPC period."""
+    def ms(v) -> str:
+        return "-" if v is None or v != v else f"{1e3 * v:.1f}"
+
+    text = (f"{rt['late_solves']} of {rt['charged_solves']} solves over the "
+            f"{ms(rt['period'])} ms MPC period; median / p95 / max {ms(rt['delay_median'])} / "
+            f"{ms(rt['delay_p95'])} / {ms(rt['delay_max'])} ms")
+    if rt["dropped_solves"]:
+        text += f"; {rt['dropped_solves']} dropped (over sim.solve_budget)"
+    if rt["preempted_solves"]:
+        text += f"; {rt['preempted_solves']} stopped by a contact"
+    return text
+
+
 def _print_summary(r, out: Path) -> None:
     from rich.console import Console
     from rich.table import Table
@@ -293,6 +308,9 @@ def _print_summary(r, out: Path) -> None:
     table.add_row("MPC solves", str(r.solves))
     table.add_row("solve time median / p95 / max",
                   f"{ms(r.solve_time_median)} / {ms(r.solve_time_p95)} / {ms(r.solve_time_max)}")
+    if r.real_time is not None:
+        table.add_row(f"compute time charged ({r.real_time['latency']})",
+                      real_time_text(r.real_time))
     table.add_row("solver failures", f"{r.solver_failures} "
                   + (json.dumps(r.failure_statuses) if r.failure_statuses else ""))
     if r.fallbacks:

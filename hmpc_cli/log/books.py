@@ -2,7 +2,8 @@
 
 :class:`RunBooks` is the only producer of a run's :class:`RunResult` (``summary.json``
 and /run/summary): contacts per guard, MPC solves and their failures, softened solves,
-planner calls and their verdicts, solve and planning times. It does no I/O; the topic
+planner calls and their verdicts, solve and planning times, and, when compute time is
+charged, each solve's charge against the MPC period. It does no I/O; the topic
 writer (:mod:`hmpc_cli.log.runlog`) writes the log beside it.
 """
 
@@ -19,6 +20,7 @@ from hmpc_cli.core.messages import Plan, PlannerResult
 __all__ = ["SOFTENED_TOL", "RunBooks", "RunResult"]
 
 SOFTENED_TOL = 1e-6  # a solve whose hybrid-constraint slack exceeds this is "softened"
+PERIOD_TOL = 1e-9  # a charged delay within this of the MPC period [s] is not late
 
 
 @dataclass
@@ -51,6 +53,9 @@ class RunResult:
     wall_time: float = 0.0
     warnings: list = field(default_factory=list)
     cpu: str = field(default_factory=cpu_model)  # the machine's (hmpc_cli.core.machine)
+    #: how the charged compute time met the MPC period (None: time paused; the keys of
+    #: :class:`hmpc_cli.log.topics.RealTime`)
+    real_time: dict | None = None
 
 
 class RunBooks:
@@ -68,8 +73,35 @@ class RunBooks:
         self.plan_times: list[float] = []
         self.accepted_plans = 0
         self.last_note = ""  # the last planner call's note
+        self.delays: list[float] = []  # compute time charged to each solve [s]
+        self._real_time: dict | None = None
         #: failed solves counted from a planner call's own MPC solves (:func:`_solve_key`)
         self._counted: set[tuple] = set()
+
+    def charge_time(self, latency: str, period: float) -> None:
+        """Compute time is charged at an MPC period of ``period`` [s].
+
+        ``latency``: ``fixed``, ``measured`` or ``model``; the result gets ``real_time``.
+        """
+        self._real_time = {"latency": latency, "period": float(period), "late_solves": 0,
+                           "dropped_solves": 0, "preempted_solves": 0}
+
+    def charged(self, delay: float, dropped: bool) -> None:
+        """Counts the compute time ``delay`` [s] charged to one solve.
+
+        ``dropped``: its budget dropped it.
+        """
+        rt = self._real_time
+        if rt is None:
+            return
+        self.delays.append(float(delay))
+        rt["late_solves"] += delay > rt["period"] + PERIOD_TOL
+        rt["dropped_solves"] += bool(dropped)
+
+    def preempted(self, n: int) -> None:
+        """Counts ``n`` solves in flight that a contact stopped."""
+        if self._real_time is not None:
+            self._real_time["preempted_solves"] += int(n)
 
     def contact(self, guard: str) -> None:
         """Counts a guard event of the simulated system."""
@@ -156,6 +188,16 @@ class RunBooks:
             r.solve_time_max = float(st.max())
         if self.plan_times:
             r.plan_time_median = float(np.median(self.plan_times))
+        rt = self._real_time
+        if rt is not None:
+            d = np.array(self.delays) if self.delays else np.full(1, np.nan)
+            r.real_time = {"latency": rt["latency"], "period": rt["period"],
+                           "delay_median": float(np.median(d)),
+                           "delay_p95": float(np.percentile(d, 95)),
+                           "delay_max": float(d.max()),
+                           "charged_solves": len(self.delays), "late_solves": rt["late_solves"],
+                           "dropped_solves": rt["dropped_solves"],
+                           "preempted_solves": rt["preempted_solves"]}
         return r
 
 

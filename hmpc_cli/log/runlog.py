@@ -34,6 +34,7 @@ from hmpc_cli.log.topics import (
     PlanArrays,
     PlanNode,
     PlannerCall,
+    RealTime,
     RolloutArrays,
     RolloutNode,
     RunInfo,
@@ -419,4 +420,5 @@ def summary_record(r: RunResult, model: HybridSystem) -> Summary:
     d["failure_statuses"] = tuple(StatusCount(k, int(v))
                                   for k, v in sorted(r.failure_statuses.items()))
     d["warnings"] = tuple(str(w) for w in r.warnings)
+    d["real_time"] = RealTime(**r.real_time) if r.real_time is not None else None
     return Summary(**d)

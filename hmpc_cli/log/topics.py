@@ -24,18 +24,19 @@ from hmpc_cli.log.schema import type_schema
 
 __all__ = [
     "FIELDS_ADDED", "LOG_VERSION", "TOPICS", "GuardEventRec", "MarginsRec", "MpcSolve",
-    "PlanArrays", "PlanNode", "PlannerCall", "RolloutArrays", "RolloutNode", "RunInfo",
-    "ScheduleRec", "StateSample", "StatusCount", "Summary", "Versions", "WRec", "named",
-    "topic_schemas"]
+    "PlanArrays", "PlanNode", "PlannerCall", "RealTime", "RolloutArrays", "RolloutNode",
+    "RunInfo", "ScheduleRec", "StateSample", "StatusCount", "Summary", "Versions", "WRec",
+    "named", "topic_schemas"]
 
 #: the log layout this hmpc writes (1: plain arrays, untyped; 2: this module; 3: with the
 #: system's geometry and body points, :mod:`hmpc_cli.log.geometry`; 4: None, NaN and inf
-#: fields left out instead of null; 5: /mpc/solve's ``nodes``)
-LOG_VERSION = 5
+#: fields left out instead of null; 5: /mpc/solve's ``nodes``; 6: /run/summary's
+#: ``real_time``)
+LOG_VERSION = 6
 
 #: fields a message gained with a log version: (topic, field) -> that version (a log
 #: written before it lacks them)
-FIELDS_ADDED = {("/mpc/solve", "nodes"): 5}
+FIELDS_ADDED = {("/mpc/solve", "nodes"): 5, ("/run/summary", "real_time"): 6}
 
 
 State = Annotated[dict, Names("state")]
@@ -466,6 +467,40 @@ class StatusCount:
 
 
 @dataclass(frozen=True)
+class RealTime:
+    """/run/summary's ``real_time``: how the charged compute time met the MPC period.
+
+    Attributes:
+        latency: how compute time was charged (``sim.latency``): ``fixed``, ``measured``
+            or ``model``.
+        period: the fixed-mode MPC's period [s] (simulator steps per period / sim rate).
+        delay_median: median compute time charged to a solve [s], the planner call it
+            follows included: how long its plan took to reach the plant (absent: no solve
+            was charged).
+        delay_p95: 95th percentile of the charged compute times [s] (absent: none).
+        delay_max: the longest charged compute time [s] (absent: none).
+        charged_solves: solves charged compute time (a first solve with
+            ``sim.latency_first = "paused"`` is not).
+        late_solves: charged solves that took longer than one period: the next period's
+            solve waited for them.
+        dropped_solves: solves charged more than ``sim.solve_budget``: their plans were
+            dropped.
+        preempted_solves: solves in flight stopped by a contact
+            (``sim.preempt_at_contact``).
+    """
+
+    latency: str
+    period: float
+    delay_median: float
+    delay_p95: float
+    delay_max: float
+    charged_solves: int
+    late_solves: int
+    dropped_solves: int
+    preempted_solves: int
+
+
+@dataclass(frozen=True)
 class Summary:
     """/run/summary: the run's outcome (summary.json, typed).
 
@@ -505,6 +540,8 @@ class Summary:
             NLPs' build, excluded).
         warnings: warnings of the run, e.g. a planner that never found a schedule.
         cpu: the CPU's model name (as ``Versions.cpu``).
+        real_time: how the charged compute time met the MPC period (absent: time
+            paused, ``sim.latency = "paused"``).
     """
 
     scenario: str
@@ -533,6 +570,7 @@ class Summary:
     wall_time: float
     warnings: tuple[str, ...]
     cpu: str = ""
+    real_time: RealTime | None = None
 
 
 #: topic -> (schema name, message type)

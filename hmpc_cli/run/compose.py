@@ -132,6 +132,8 @@ def build(scenario) -> PreparedRun:
         _build_info(problem), s.log_plan_stride)
     timing = _timing(sc, model)
     books = RunBooks(sc.name, sc.seed, [g.name for g in model.guards])
+    if timing.latency.kind != "paused":
+        books.charge_time(timing.latency.kind, timing.per_solve / s.rate_hz)
     if timing.latency.kind == "measured":
         books.warn("sim.latency = 'measured': plans reach the plant after their measured "
                    "compute time, so this run is not reproducible")

@@ -26,9 +26,8 @@ from hmpc_cli.run.loop import ClosedLoop
 
 INTERRUPTED = "interrupted"  # a summary reason's prefix: the run was stopped
 
-__all__ = ["RunDirTakenError", "claim_run_dir", "execute_run", "jsonable", "out_problem", "prepare",
-           "run_one", "run_scenario", "run_to_log",
-           "run_unlogged"]
+__all__ = ["RunDirTakenError", "claim_run_dir", "execute_run", "jsonable", "out_problem",
+           "prepare", "run_one", "run_scenario", "run_to_log", "run_unlogged", "summary_text"]
 
 
 def prepare(scenario) -> PreparedRun:
@@ -116,6 +115,15 @@ def jsonable(value):
     return finite(value)
 
 
+def summary_text(res: RunResult) -> str:
+    """``summary.json``'s text: the result's fields, NaN and inf as null.
+
+    ``real_time`` is left out when time was paused.
+    """
+    fields = {k: v for k, v in res.__dict__.items() if not (k == "real_time" and v is None)}
+    return json.dumps(jsonable(fields), indent=2, allow_nan=False) + "\n"
+
+
 def execute_run(prepared: PreparedRun, toml_text: str, out: Path,
                 progress: Callable[[int, int, str], None] | None = None,
                 mirror=None, provenance: Provenance | None = None) -> RunResult:
@@ -162,8 +170,7 @@ def _write_summary(out: Path, res: RunResult) -> None:
     """Writes ``summary.json`` atomically (a reader never sees half of it, nor a temporary)."""
     from hmpc_cli.core.paths import write_atomic
 
-    write_atomic(out / "summary.json",
-                 json.dumps(jsonable(res.__dict__), indent=2, allow_nan=False) + "\n")
+    write_atomic(out / "summary.json", summary_text(res))
 
 
 def _open_scene(prepared: PreparedRun, rec: Recorder):
@@ -219,6 +226,5 @@ def run_one(toml_text: str, run_dir: str, provenance=None) -> dict:
             out.mkdir(parents=True, exist_ok=True)
             write_atomic(out / "scenario.toml", toml_text)
             write_atomic(out / "error.txt", traceback.format_exc())
-            write_atomic(out / "summary.json",
-                         json.dumps(jsonable(res.__dict__), indent=2, allow_nan=False) + "\n")
+            write_atomic(out / "summary.json", summary_text(res))
         return json.loads((out / "summary.json").read_text())

@@ -122,7 +122,7 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
 def _worker_died(run: Run, out: Path, signum: int) -> dict:
     """Records a run that killed its worker twice as failed; returns its summary."""
     from hmpc_cli.log.runlog import RunResult
-    from hmpc_cli.run.runner import jsonable
+    from hmpc_cli.run.runner import summary_text
 
     d = out / "runs" / run.run_id
     d.mkdir(parents=True, exist_ok=True)
@@ -136,6 +136,5 @@ def _worker_died(run: Run, out: Path, signum: int) -> dict:
     write_atomic(d / "error.txt", f"{res.reason}: the run was tried twice and each time its "
                  "worker process was killed; run.killed.mcap is the second try's log so "
                  "far (if any)\n")
-    write_atomic(d / "summary.json",
-                 json.dumps(jsonable(res.__dict__), indent=2, allow_nan=False) + "\n")
+    write_atomic(d / "summary.json", summary_text(res))
     return json.loads((d / "summary.json").read_text())
