@@ -179,6 +179,11 @@ def test_a_solve_over_its_budget_is_dropped_and_the_previous_plan_tracked_on(tmp
     assert any("solve_budget" in w for w in res.warnings)
     assert res.real_time["dropped_solves"] == len(dropped)
     assert res.real_time["charged_solves"] == len(msgs) - 1  # the first plan paused
+    # a dropped solve keeps the solver busy for the budget (0.05 s), under the 0.1 s
+    # period, however much it was charged: late are kept solves charged over the period
+    assert any(m["latency"] > 0.1 for m in dropped)
+    assert res.real_time["late_solves"] == sum(m["latency"] > 0.1 for m in kept[1:])
+    assert res.real_time["delay_max"] == max(m["latency"] for m in msgs[1:])
 
 
 def test_a_contact_counts_and_names_only_the_plans_it_stops():
@@ -190,6 +195,8 @@ def test_a_contact_counts_and_names_only_the_plans_it_stops():
     assert clock.charge(0.10, _plan(3, 0.0)) == (False, 0.05)  # due at 0.15
     assert clock.charge(0.20, _plan(3, 0.0)) == (False, 0.05)  # due at 0.25
     assert clock.preempt(0.22) == [0.20] and clock.preempted == 1
+    # the stopped solve kept the solver busy until the contact, its charge stays
+    assert np.allclose(clock.charges, [[0.10, 0.05, 0.05], [0.20, 0.05, 0.02]])
     assert [due for due, _, _ in clock.pending] == [0.15000000000000002]
     clock.busy(0.30, 0.04)
     assert clock.preempt(0.32) == [] and clock.preempted == 1

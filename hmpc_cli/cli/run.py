@@ -278,14 +278,16 @@ def _crashed(exc: Exception, t_end: float, out: Path) -> None:
     raise typer.Exit(EXIT_INTERNAL)
 
 
-def real_time_text(rt: dict) -> str:
-    """One line of a summary's ``real_time``: the charged solves against the MPC period."""
-    def ms(v) -> str:
-        return "-" if v is None or v != v else f"{1e3 * v:.1f}"
+def _ms(v: float | None) -> str:
+    """Seconds as '12.3 ms' ('-': none, NaN)."""
+    return "-" if v is None or v != v else f"{1e3 * v:.1f} ms"
 
-    text = (f"{rt['late_solves']} of {rt['charged_solves']} solves over the "
-            f"{ms(rt['period'])} ms MPC period; median / p95 / max {ms(rt['delay_median'])} / "
-            f"{ms(rt['delay_p95'])} / {ms(rt['delay_max'])} ms")
+
+def _real_time_text(rt: dict) -> str:
+    """One line of a summary's ``real_time``: the charged solves against the MPC period."""
+    text = (f"{rt['late_solves']} of {rt['charged_solves']} solves kept the solver busy "
+            f"over the {_ms(rt['period'])} MPC period; charged median / p95 / max "
+            f"{_ms(rt['delay_median'])} / {_ms(rt['delay_p95'])} / {_ms(rt['delay_max'])}")
     if rt["dropped_solves"]:
         text += f"; {rt['dropped_solves']} dropped (over sim.solve_budget)"
     if rt["preempted_solves"]:
@@ -297,9 +299,6 @@ def _print_summary(r, out: Path) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    def ms(v: float) -> str:
-        return "-" if v != v else f"{1e3 * v:.1f} ms"
-
     table = Table(title=f"{r.scenario} (seed {r.seed})", show_header=False)
     table.add_row("result", "[green]success[/]" if r.success else f"[red]failed[/]: {r.reason}")
     table.add_row("final distance to goal", f"{r.final_error:.4f}")
@@ -307,10 +306,10 @@ def _print_summary(r, out: Path) -> None:
     table.add_row("contacts", f"{r.contacts} " + json.dumps(r.contacts_by_guard))
     table.add_row("MPC solves", str(r.solves))
     table.add_row("solve time median / p95 / max",
-                  f"{ms(r.solve_time_median)} / {ms(r.solve_time_p95)} / {ms(r.solve_time_max)}")
+                  f"{_ms(r.solve_time_median)} / {_ms(r.solve_time_p95)} / {_ms(r.solve_time_max)}")
     if r.real_time is not None:
         table.add_row(f"compute time charged ({r.real_time['latency']})",
-                      real_time_text(r.real_time))
+                      _real_time_text(r.real_time))
     table.add_row("solver failures", f"{r.solver_failures} "
                   + (json.dumps(r.failure_statuses) if r.failure_statuses else ""))
     if r.fallbacks:
@@ -318,7 +317,7 @@ def _print_summary(r, out: Path) -> None:
     table.add_row("softened solves (max slack)",
                   f"{r.softened_solves}" + (f" ({r.max_slack:.3g})" if r.softened_solves else ""))
     table.add_row("planner calls (rejected)", f"{r.planner_calls} ({r.planner_rejected})")
-    table.add_row("plan time median", ms(r.plan_time_median))
+    table.add_row("plan time median", _ms(r.plan_time_median))
     table.add_row("wall time", f"{r.wall_time:.2f} s")
     for w in r.warnings:
         table.add_row("[yellow]warning[/]", w)

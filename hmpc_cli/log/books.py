@@ -3,12 +3,13 @@
 :class:`RunBooks` is the only producer of a run's :class:`RunResult` (``summary.json``
 and /run/summary): contacts per guard, MPC solves and their failures, softened solves,
 planner calls and their verdicts, solve and planning times, and, when compute time is
-charged, each solve's charge against the MPC period. It does no I/O; the topic
+charged, the solves' charges against the MPC period. It does no I/O; the topic
 writer (:mod:`hmpc_cli.log.runlog`) writes the log beside it.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -16,11 +17,12 @@ import numpy as np
 
 from hmpc_cli.core.machine import cpu_model
 from hmpc_cli.core.messages import Plan, PlannerResult
+from hmpc_cli.log.topics import RealTime
 
 __all__ = ["SOFTENED_TOL", "RunBooks", "RunResult"]
 
 SOFTENED_TOL = 1e-6  # a solve whose hybrid-constraint slack exceeds this is "softened"
-PERIOD_TOL = 1e-9  # a charged delay within this of the MPC period [s] is not late
+PERIOD_TOL = 1e-9  # a solve busy within this of the MPC period [s] is not late
 
 
 @dataclass
@@ -73,35 +75,31 @@ class RunBooks:
         self.plan_times: list[float] = []
         self.accepted_plans = 0
         self.last_note = ""  # the last planner call's note
-        self.delays: list[float] = []  # compute time charged to each solve [s]
-        self._real_time: dict | None = None
         #: failed solves counted from a planner call's own MPC solves (:func:`_solve_key`)
         self._counted: set[tuple] = set()
 
     def charge_time(self, latency: str, period: float) -> None:
         """Compute time is charged at an MPC period of ``period`` [s].
 
-        ``latency``: ``fixed``, ``measured`` or ``model``; the result gets ``real_time``.
+        ``latency``: ``fixed``, ``measured`` or ``model``. The result gets ``real_time``
+        (no solve yet, until :meth:`time_charged`).
         """
-        self._real_time = {"latency": latency, "period": float(period), "late_solves": 0,
-                           "dropped_solves": 0, "preempted_solves": 0}
+        self.result.real_time = _real_time(latency, period, [], 0, 0)
 
-    def charged(self, delay: float, dropped: bool) -> None:
-        """Counts the compute time ``delay`` [s] charged to one solve.
+    def time_charged(self, charges: Sequence[tuple[float, float]], dropped: int,
+                     preempted: int) -> None:
+        """The run's charged solves in ``real_time`` (none without :meth:`charge_time`).
 
-        ``dropped``: its budget dropped it.
+        Args:
+            charges: per charged solve, (the compute time charged [s], the time it kept
+                the solver busy [s]).
+            dropped: solves dropped for their budget.
+            preempted: solves in flight a contact stopped.
         """
-        rt = self._real_time
-        if rt is None:
-            return
-        self.delays.append(float(delay))
-        rt["late_solves"] += delay > rt["period"] + PERIOD_TOL
-        rt["dropped_solves"] += bool(dropped)
-
-    def preempted(self, n: int) -> None:
-        """Counts ``n`` solves in flight that a contact stopped."""
-        if self._real_time is not None:
-            self._real_time["preempted_solves"] += int(n)
+        rt = self.result.real_time
+        if rt is not None:
+            self.result.real_time = _real_time(rt["latency"], rt["period"], charges,
+                                               dropped, preempted)
 
     def contact(self, guard: str) -> None:
         """Counts a guard event of the simulated system."""
@@ -188,17 +186,18 @@ class RunBooks:
             r.solve_time_max = float(st.max())
         if self.plan_times:
             r.plan_time_median = float(np.median(self.plan_times))
-        rt = self._real_time
-        if rt is not None:
-            d = np.array(self.delays) if self.delays else np.full(1, np.nan)
-            r.real_time = {"latency": rt["latency"], "period": rt["period"],
-                           "delay_median": float(np.median(d)),
-                           "delay_p95": float(np.percentile(d, 95)),
-                           "delay_max": float(d.max()),
-                           "charged_solves": len(self.delays), "late_solves": rt["late_solves"],
-                           "dropped_solves": rt["dropped_solves"],
-                           "preempted_solves": rt["preempted_solves"]}
         return r
+
+
+def _real_time(latency: str, period: float, charges: Sequence[tuple[float, float]],
+               dropped: int, preempted: int) -> dict:
+    """The fields of :class:`~hmpc_cli.log.topics.RealTime` as a dict (see there)."""
+    delays = np.array([c[0] for c in charges]) if len(charges) else np.full(1, np.nan)
+    late = sum(busy > period + PERIOD_TOL for _, busy in charges)
+    return dataclasses.asdict(RealTime(
+        latency, float(period), float(np.median(delays)),
+        float(np.percentile(delays, 95)), float(delays.max()), len(charges), int(late),
+        int(dropped), int(preempted)))
 
 
 def _solve_key(t: float, plan: Plan) -> tuple:

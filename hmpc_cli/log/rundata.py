@@ -72,7 +72,7 @@ class RunData:
         path: the log file.
         complete: False when the file was cut short (no footer).
         log_version: the log layout (1: untyped arrays, 2: typed, 3: with geometry, 4: no
-            nulls).
+            nulls, 5: /mpc/solve's nodes, 6: /run/summary's real_time).
         info: /run/info (None when missing; an older log's missing fields empty).
         scenario: the scenario as run (a dict).
         state_names, input_names, mode_names, guard_names: the system's names.

@@ -470,23 +470,28 @@ class StatusCount:
 class RealTime:
     """/run/summary's ``real_time``: how the charged compute time met the MPC period.
 
+    A charged solve is an MPC solve whose compute time delayed its plan (the first one
+    with ``sim.latency_first = "paused"`` is not); a planner call that found no schedule
+    keeps the solver busy too but is not a solve.
+
     Attributes:
         latency: how compute time was charged (``sim.latency``): ``fixed``, ``measured``
             or ``model``.
         period: the fixed-mode MPC's period [s] (simulator steps per period / sim rate).
-        delay_median: median compute time charged to a solve [s], the planner call it
-            follows included: how long its plan took to reach the plant (absent: no solve
-            was charged).
+        delay_median: median compute time charged to a solve [s], as /mpc/solve's
+            ``latency`` (the planner call it follows included; a dropped or stopped
+            solve's whole charge): an adopted plan reached the plant at the first step
+            at or after its solve time plus this (absent: no charged solve).
         delay_p95: 95th percentile of the charged compute times [s] (absent: none).
         delay_max: the longest charged compute time [s] (absent: none).
-        charged_solves: solves charged compute time (a first solve with
-            ``sim.latency_first = "paused"`` is not).
-        late_solves: charged solves that took longer than one period: the next period's
-            solve waited for them.
+        charged_solves: charged solves.
+        late_solves: charged solves that kept the solver busy longer than one period, so
+            that the next period's solve waited: busy for their charge, for
+            ``sim.solve_budget`` if dropped for it, until the contact if one stopped them.
         dropped_solves: solves charged more than ``sim.solve_budget``: their plans were
             dropped.
-        preempted_solves: solves in flight stopped by a contact
-            (``sim.preempt_at_contact``).
+        preempted_solves: solves in flight whose plan was still on its way when a contact
+            stopped them (``sim.preempt_at_contact``).
     """
 
     latency: str
@@ -541,7 +546,7 @@ class Summary:
         warnings: warnings of the run, e.g. a planner that never found a schedule.
         cpu: the CPU's model name (as ``Versions.cpu``).
         real_time: how the charged compute time met the MPC period (absent: time
-            paused, ``sim.latency = "paused"``).
+            paused, ``sim.latency = "paused"``, or a run whose set-up failed).
     """
 
     scenario: str

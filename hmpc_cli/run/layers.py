@@ -147,7 +147,6 @@ class MPCLayers:
                 return False  # the triggers wait for the solver
             # a contact: the solve in flight is from the state before it
             st.preempted = clock.preempt(t)
-            self.books.preempted(len(st.preempted))
         need_replan, impact = st.need_replan, st.impact
         st.need_replan = st.impact = False
         if need_replan:
@@ -195,7 +194,6 @@ class MPCLayers:
         self.books.count_solve(t, plan)
         if charged:
             dropped, latency = clock.charge(t, plan)
-            self.books.charged(latency, dropped)
             if dropped:  # never reaches the plant: logged not adopted
                 plan, note = dataclasses.replace(plan, adopt=False), note + OVER_BUDGET
             self.log.mpc_solve(t, plan, reason + note, self.model, latency)

@@ -172,9 +172,12 @@ class ClosedLoop:
         raise exc
 
     def _finish(self, x: np.ndarray, mode: int, stopped: bool, start: float) -> RunResult:
-        for warning in [*self.layers.clock.warnings(), self.plant.lowlevel.warning()]:
+        clock = self.layers.clock
+        for warning in [*clock.warnings(), self.plant.lowlevel.warning()]:
             if warning:
                 self.books.warn(warning)
+        self.books.time_charged([(delay, busy) for _, delay, busy in clock.charges],
+                                clock.over_budget, clock.preempted)
         r = self.books.close(x, self.model.modes[mode].name,
                              self.prepared.task.verdict(x, mode), stopped,
                              time.perf_counter() - start)

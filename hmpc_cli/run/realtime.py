@@ -163,6 +163,9 @@ class SolverClock:
         over_budget: solves dropped for their budget.
         preempted: solves in flight stopped by a contact with their plan not yet at the
             plant (a solve over budget, or a planner call that found nothing, is not one).
+        charges: per charged solve, in order: [solve time [s], charged delay [s], the
+            time it kept the solver busy [s]: the delay, the budget if dropped for it, or
+            until the contact that stopped it].
     """
 
     latency: Latency = field(default_factory=Latency)
@@ -173,6 +176,7 @@ class SolverClock:
     told: list[int] = field(default_factory=list)
     over_budget: int = 0
     preempted: int = 0
+    charges: list[list[float]] = field(default_factory=list)
 
     def free(self, t: float) -> bool:
         """Whether the solver is done with its last solve at sim time t [s]."""
@@ -191,8 +195,10 @@ class SolverClock:
         if lat.over_budget(delay):
             self.over_budget += 1
             self.free_at = t + lat.budget
+            self.charges.append([t, delay, lat.budget])
             return True, delay
         self.free_at = t + delay
+        self.charges.append([t, delay, delay])
         if plan.adopt:
             self.pending.append((t + delay, t, plan))
         return False, delay
@@ -208,6 +214,9 @@ class SolverClock:
         self.pending = [p for p in self.pending if p[0] <= t + GRID_TOL]
         self.free_at = t
         self.preempted += len(dropped)
+        for t_solve in dropped:  # busy until the contact
+            entry = next(c for c in reversed(self.charges) if c[0] == t_solve)
+            entry[2] = min(entry[2], t - t_solve)
         return dropped
 
     def busy(self, t: float, cost: float) -> None:

@@ -120,8 +120,10 @@ def summary_text(res: RunResult) -> str:
 
     ``real_time`` is left out when time was paused.
     """
+    from hmpc_cli.core.jsonio import dumps
+
     fields = {k: v for k, v in res.__dict__.items() if not (k == "real_time" and v is None)}
-    return json.dumps(jsonable(fields), indent=2, allow_nan=False) + "\n"
+    return dumps(fields, indent=2) + "\n"
 
 
 def execute_run(prepared: PreparedRun, toml_text: str, out: Path,
