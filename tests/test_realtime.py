@@ -254,6 +254,15 @@ def test_the_summary_says_how_the_charged_compute_time_met_the_mpc_period(tmp_pa
         "dropped_solves": 0, "preempted_solves": 0}
     assert read_log(log).topic("/run/summary")[0].data["real_time"] == res.real_time
     assert json.loads(summary_text(res))["real_time"] == res.real_time
+    # hmpc replay says it as hmpc run does
+    from typer.testing import CliRunner
+
+    from hmpc_cli.cli.app import app
+    from hmpc_cli.cli.run import real_time_text
+
+    shown = CliRunner().invoke(app, ["replay", "-q", str(log)], env={"COLUMNS": "400"})
+    assert shown.exit_code == 0, shown.output
+    assert f"model: {real_time_text(res.real_time)}" in " ".join(shown.output.split())
 
 
 def test_the_model_charges_a_solve_with_a_switch_left_its_own_cost(tmp_path):

@@ -97,11 +97,15 @@ def _summary_table(summary: dict):
     from rich.markup import escape
     from rich.table import Table
 
+    from hmpc_cli.cli.run import real_time_text
+
     t = Table(title="summary", show_header=False)
     for key, v in summary.items():
         text = escape(_text(v))
         if key == "success":
             text = "[green]true[/]" if v else "[red]false[/]"
+        elif key == "real_time" and isinstance(v, dict):
+            text = escape(f"{v.get('latency', '?')}: {real_time_text(v)}")
         t.add_row(escape(key), text)
     return t
 

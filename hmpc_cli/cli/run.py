@@ -13,7 +13,7 @@ import typer
 from hmpc_cli.cli.common import complete_set_key
 from hmpc_cli.core.paths import path_option
 
-__all__ = ["run_command"]
+__all__ = ["real_time_text", "run_command"]
 
 EXIT_FAILED = 1
 EXIT_BAD_INPUT = 2
@@ -283,11 +283,15 @@ def _ms(v: float | None) -> str:
     return "-" if v is None or v != v else f"{1e3 * v:.1f} ms"
 
 
-def _real_time_text(rt: dict) -> str:
-    """One line of a summary's ``real_time``: the charged solves against the MPC period."""
+def real_time_text(rt: dict) -> str:
+    """One line of a summary's ``real_time``: the charged solves against the MPC period.
+
+    ``rt``: summary.json's object, or /run/summary's (a statistic of no solve left out).
+    """
     text = (f"{rt['late_solves']} of {rt['charged_solves']} solves kept the solver busy "
             f"over the {_ms(rt['period'])} MPC period; charged median / p95 / max "
-            f"{_ms(rt['delay_median'])} / {_ms(rt['delay_p95'])} / {_ms(rt['delay_max'])}")
+            f"{_ms(rt.get('delay_median'))} / {_ms(rt.get('delay_p95'))} / "
+            f"{_ms(rt.get('delay_max'))}")
     if rt["dropped_solves"]:
         text += f"; {rt['dropped_solves']} dropped (over sim.solve_budget)"
     if rt["preempted_solves"]:
@@ -309,7 +313,7 @@ def _print_summary(r, out: Path) -> None:
                   f"{_ms(r.solve_time_median)} / {_ms(r.solve_time_p95)} / {_ms(r.solve_time_max)}")
     if r.real_time is not None:
         table.add_row(f"compute time charged ({r.real_time['latency']})",
-                      _real_time_text(r.real_time))
+                      real_time_text(r.real_time))
     table.add_row("solver failures", f"{r.solver_failures} "
                   + (json.dumps(r.failure_statuses) if r.failure_statuses else ""))
     if r.fallbacks:
