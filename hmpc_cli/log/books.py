@@ -55,8 +55,8 @@ class RunResult:
     wall_time: float = 0.0
     warnings: list = field(default_factory=list)
     cpu: str = field(default_factory=cpu_model)  # the machine's (hmpc_cli.core.machine)
-    #: how the charged compute time met the MPC period (None: time paused; the keys of
-    #: :class:`hmpc_cli.log.topics.RealTime`)
+    #: how the charged compute time met the MPC period (None: time paused, or a set-up
+    #: that failed; the fields of :class:`hmpc_cli.log.topics.RealTime`)
     real_time: dict | None = None
 
 

@@ -118,7 +118,7 @@ def jsonable(value):
 def summary_text(res: RunResult) -> str:
     """``summary.json``'s text: the result's fields, NaN and inf as null.
 
-    ``real_time`` is left out when time was paused.
+    ``real_time`` is left out when there is none (time paused, or a set-up that failed).
     """
     from hmpc_cli.core.jsonio import dumps
 
