@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from hmpc_cli.log.reader import read_log
+from hmpc_cli.log.rundata import plan_stride
 from hmpc_cli.run.runner import execute_run, prepare
 from hmpc_cli.run.scenario import load_scenario
 
@@ -83,8 +84,7 @@ def logged_solves(messages, candidates: bool = False) -> list[tuple[int, float, 
     for m in messages:
         if m.topic == "/run/info":
             try:
-                sim = json.loads(m.data["scenario_json"]).get("sim") or {}
-                stride = int(sim.get("log_plan_stride", 1))
+                stride = plan_stride(json.loads(m.data["scenario_json"]))
             except (KeyError, TypeError, ValueError, AttributeError):
                 stride = 0
         elif m.topic == "/mpc/solve" and m.data.get("iterations", 0) > 0 \

@@ -412,3 +412,19 @@ def test_stale_temporaries_are_removed(tmp_path):
     os.utime(old, (1.0, 1.0))
     assert cbuild.remove_stale_temporaries(tmp_path) == 1
     assert not old.exists() and new.exists()
+
+
+def test_the_sweep_note_counts_every_nlps_kernels(monkeypatch, tmp_path):
+    """A run's build reason joins its NLPs': the note is left out only when none of them
+    ran a stage kernel in SX (one NLP's kernels in C do not speak for the other's)."""
+    import hmpc_cli.log.reader as reader
+    from hmpc_cli.cli.sweep import not_compiled_note
+    from hmpc_cli.mpc.kernels import IN_C, IN_SX
+
+    for reason, noted in ((f"not compiled: x; {IN_C} (13)", False),
+                          (f"not compiled: x; {IN_SX} (5 of 13); not compiled: x; {IN_C} (13)",
+                           True),
+                          (f"not compiled: x; {IN_SX} (13 of 13)", True)):
+        monkeypatch.setattr(reader, "first_message", lambda path, topic, r=reason: {
+            "build": {"cache": "miss", "compiled": False, "reason": r}})
+        assert bool(not_compiled_note(tmp_path)) is noted, reason

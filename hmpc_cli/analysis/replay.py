@@ -25,7 +25,7 @@ from typing import Any
 from hmpc_cli.log.topics import FIELDS_ADDED, LOG_VERSION
 
 __all__ = ["LOG_VERSION", "TOPICS", "Divergence", "Replay", "ReplayError", "TimelineRow",
-           "compare_logs", "disturbance_stats", "load_replay", "resolve_topics",
+           "compare_logs", "disturbance_stats", "load_replay", "ms_text", "resolve_topics",
            "select", "timeline", "verify"]
 
 #: the topics an hmpc run writes
@@ -309,8 +309,8 @@ def _num(v: Any) -> float | None:
     return float(v)
 
 
-def _ms(v: Any) -> str:
-    """Seconds as milliseconds text, or '-'."""
+def ms_text(v: Any) -> str:
+    """Seconds as milliseconds text ('12.3 ms'), or '-' (none, not finite)."""
     v = _num(v)
     return "-" if v is None else f"{1e3 * v:.1f} ms"
 
@@ -333,7 +333,7 @@ def _contact(d: dict) -> TimelineRow:
 def _plan(d: dict) -> TimelineRow:
     """Timeline row of a /planner/plan message."""
     acc = "accepted" if d.get("accepted") else "REJECTED"
-    text = f"{d.get('reason', '?')}: {acc}, cost {_g(d.get('cost'))}, {_ms(d.get('wall_time'))}"
+    text = f"{d.get('reason', '?')}: {acc}, cost {_g(d.get('cost'))}, {ms_text(d.get('wall_time'))}"
     if d.get("reached_final") is False:
         text += ", did not reach the final domain"
     if d.get("note"):
@@ -351,9 +351,9 @@ def _solve(d: dict) -> TimelineRow:
     """Timeline row of one /mpc/solve message."""
     ok = bool(d.get("success"))
     text = (f"{d.get('reason', '?')}: {'' if ok else 'FAILED '}{d.get('status', '?')}, "
-            f"{d.get('iterations', '?')} it, {_ms(d.get('wall_time'))}")
+            f"{d.get('iterations', '?')} it, {ms_text(d.get('wall_time'))}")
     if _num(d.get("latency")):  # compute time charged (sim.latency): what the plant waited
-        text += f", charged {_ms(d.get('latency'))}"
+        text += f", charged {ms_text(d.get('latency'))}"
     style = "" if ok else "bold red"
     slack = _num(d.get("slack")) or 0.0
     if ok and slack > SOFTENED_TOL:
@@ -383,8 +383,8 @@ def _solves_row(group: list[dict]) -> TimelineRow:
     text = (f"... {len(group)} solves ok until t = {float(group[-1].get('t', 0.0)):.3f} s, "
             + (f"{limit} at the iteration limit (not converged), " if limit else "")
             + f"{_g(statistics.median(its)) if its else '-'} iterations median, "
-            f"{_ms(statistics.median(wall)) if wall else '-'} median"
-            + (f", charged {_ms(statistics.median(charged))} median" if any(charged) else "")
+            f"{ms_text(statistics.median(wall)) if wall else '-'} median"
+            + (f", charged {ms_text(statistics.median(charged))} median" if any(charged) else "")
             + " (" + ", ".join(f"{k} {n}" for k, n in reasons.items()) + ")")
     return TimelineRow(float(group[0].get("t", 0.0)), "solves", text, "dim")
 

@@ -278,16 +278,13 @@ def _crashed(exc: Exception, t_end: float, out: Path) -> None:
     raise typer.Exit(EXIT_INTERNAL)
 
 
-def _ms(v: float | None) -> str:
-    """Seconds as '12.3 ms' ('-': none, NaN)."""
-    return "-" if v is None or v != v else f"{1e3 * v:.1f} ms"
-
-
 def real_time_text(rt: dict) -> str:
     """One line of a summary's ``real_time``: the charged solves against the MPC period.
 
     ``rt``: summary.json's object, or /run/summary's (a statistic of no solve left out).
     """
+    from hmpc_cli.analysis.replay import ms_text as _ms
+
     text = (f"{rt['late_solves']} of {rt['charged_solves']} solves kept the solver busy "
             f"over the {_ms(rt['period'])} MPC period; charged median / p95 / max "
             f"{_ms(rt.get('delay_median'))} / {_ms(rt.get('delay_p95'))} / "
@@ -302,6 +299,8 @@ def real_time_text(rt: dict) -> str:
 def _print_summary(r, out: Path) -> None:
     from rich.console import Console
     from rich.table import Table
+
+    from hmpc_cli.analysis.replay import ms_text as _ms
 
     table = Table(title=f"{r.scenario} (seed {r.seed})", show_header=False)
     table.add_row("result", "[green]success[/]" if r.success else f"[red]failed[/]: {r.reason}")

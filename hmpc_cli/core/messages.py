@@ -207,6 +207,16 @@ class Plan:
     detail: Any = None
     adopt: bool = True
 
+    @property
+    def nodes(self) -> int:
+        """The nodes the MPC solved over: ``traj``'s, or 0.
+
+        0 for fewer than 2 nodes: a rejected schedule's plan, the state alone, solved
+        nothing.
+        """
+        n = len(self.traj.t)
+        return n if n >= 2 else 0
+
 
 @dataclass(frozen=True)
 class ConstraintMargins:

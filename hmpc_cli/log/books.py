@@ -180,10 +180,7 @@ class RunBooks:
                       f"{self.last_note})")
         r.wall_time = wall_time
         if self.solve_times:
-            st = np.array(self.solve_times)
-            r.solve_time_median = float(np.median(st))
-            r.solve_time_p95 = float(np.percentile(st, 95))
-            r.solve_time_max = float(st.max())
+            r.solve_time_median, r.solve_time_p95, r.solve_time_max = _spread(self.solve_times)
         if self.plan_times:
             r.plan_time_median = float(np.median(self.plan_times))
         return r
@@ -192,12 +189,16 @@ class RunBooks:
 def _real_time(latency: str, period: float, charges: Sequence[tuple[float, float]],
                dropped: int, preempted: int) -> dict:
     """The fields of :class:`~hmpc_cli.log.topics.RealTime` as a dict (see there)."""
-    delays = np.array([c[0] for c in charges]) if len(charges) else np.full(1, np.nan)
+    delays = _spread([c[0] for c in charges]) if len(charges) else (np.nan,) * 3
     late = sum(busy > period + PERIOD_TOL for _, busy in charges)
-    return dataclasses.asdict(RealTime(
-        latency, float(period), float(np.median(delays)),
-        float(np.percentile(delays, 95)), float(delays.max()), len(charges), int(late),
-        int(dropped), int(preempted)))
+    return dataclasses.asdict(RealTime(latency, float(period), *delays, len(charges),
+                                       int(late), int(dropped), int(preempted)))
+
+
+def _spread(values: Sequence[float]) -> tuple[float, float, float]:
+    """(median, 95th percentile, max) of non-empty ``values``."""
+    v = np.asarray(values, dtype=float)
+    return float(np.median(v)), float(np.percentile(v, 95)), float(v.max())
 
 
 def _solve_key(t: float, plan: Plan) -> tuple:

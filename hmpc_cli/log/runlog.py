@@ -296,14 +296,13 @@ class TopicWriter:
         """
         stride = self.identity.plan_stride
         traj = plan.traj
-        nodes = len(traj.t)
         traj = thinned(traj, stride) if stride > 1 else dataclasses.replace(
             traj, t=np.array(traj.t, dtype=float), x=np.array(traj.x, dtype=float),
             u=np.array(traj.u, dtype=float), mode=np.array(traj.mode), seg=np.array(traj.seg))
         detail = _detail(self.identity.details.get("mpc"), plan.detail, "mpc")
         self._hold(self._write_mpc_solve,
                    (t, dataclasses.replace(plan, traj=traj), reason, model, latency, detail,
-                    nodes))
+                    plan.nodes))
 
     def _write_mpc_solve(self, t: float, plan: Plan, reason: str, model: HybridSystem,
                          latency: float, detail, nodes: int) -> None:
@@ -321,8 +320,7 @@ class TopicWriter:
                        np.asarray(traj.mode), np.asarray(traj.x, dtype=float),
                        np.asarray(traj.u, dtype=float)), detail, float(latency), int(nodes))
         wire = plan_nodes(msg.plan, 0.0, model)  # on the wire: node records
-        self.rec.write("/mpc/solve", t, dataclasses.replace(
-            msg, plan=wire, nodes=msg.nodes if wire else 0))
+        self.rec.write("/mpc/solve", t, dataclasses.replace(msg, plan=wire))
         if self.scene is not None:
             self.scene.plan(t, plan)
 

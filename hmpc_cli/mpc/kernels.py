@@ -57,9 +57,11 @@ _FAILED: dict[str, str] = {}  # this process's failed compiles by key: their fir
 _SX_KEYS: dict[int, tuple[ca.Function, str]] = {}  # kernels returned in SX: their keys
 #: [s] the longest a compile may take (a kernel's takes a fraction of a second)
 TIMEOUT = 600.0
-#: how :func:`describe` says that every kernel of a build runs in C (a build's reason
-#: holds it then: :func:`hmpc_cli.cli.sweep.not_compiled_note` reads it there)
+#: how :func:`describe` says that every kernel of a build runs in C, or that some run in
+#: SX (a run's build reason joins its NLPs': :func:`hmpc_cli.cli.sweep.not_compiled_note`
+#: reads both there)
 IN_C = "stage kernels in C"
+IN_SX = "stage kernels in SX"
 _WAIT = False  # set by wait_for_compiles
 _LOCK = threading.Lock()
 _LOG = logging.getLogger(__name__)
@@ -220,7 +222,7 @@ def describe(made: Iterable[ca.Function]) -> str:
         keys = [_SX_KEYS[id(fn)][1] for fn in made if id(fn) in _SX_KEYS]
         errors = [_FAILED[k] for k in keys if k in _FAILED]
     failed = f"; a kernel compile of this process failed: {errors[-1]}" if errors else ""
-    return f"stage kernels in SX ({len(made) - in_c} of {len(made)}){failed}"
+    return f"{IN_SX} ({len(made) - in_c} of {len(made)}){failed}"
 
 
 def wait(timeout: float = 60.0) -> bool:

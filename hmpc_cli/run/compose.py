@@ -91,11 +91,7 @@ def build(scenario) -> PreparedRun:
         ValueError: settings that do not fit the built system (e.g. unknown guards, a
             margins file that does not fit: ``mpc.margins: ...``).
     """
-    from hmpc_cli.sim.disturbance import make_disturbance
-    from hmpc_cli.lowlevel import LowLevelController
-    from hmpc_cli.run.plant import Plant
     from hmpc_cli.core.registry import build_system, plugin_call, registry
-    from hmpc_cli.sim.simulator import HybridSimulator
 
     sc, reg = scenario, registry()
     spec = reg.system(sc.system.name)
@@ -103,13 +99,7 @@ def build(scenario) -> PreparedRun:
     world = sc.plant_params()
     system = build_system(world) if sc.plant else model
     s = sc.sim
-    dist = make_disturbance(sc.disturbance.kind, n_w=model.n_w, duration=s.duration,
-                            magnitude=sc.disturbance.magnitude, hold=sc.disturbance.hold,
-                            seed=sc.seed, trial=sc.disturbance.trial)
-    plant = Plant(model, system, HybridSimulator(system, s.max_events_per_step,
-                                                 s.event_time_tol),
-                  dist, LowLevelController(model, sc.lowlevel), s.rate_hz,
-                  s.input_at_events == "recompute", s.max_events_per_step)
+    plant = _plant(sc, model, system)
     margins = margins_of(sc, model)
     problems = built_problems(sc, model, margins)
     if sc.plant:
@@ -131,14 +121,35 @@ def build(scenario) -> PreparedRun:
         {"planner": reg.planner(sc.planner.kind).detail, "mpc": reg.mpc(sc.mpc.kind).detail},
         _build_info(problem), s.log_plan_stride)
     timing = _timing(sc, model)
+    return PreparedRun(plant, planner, mpc, timing, task, s.duration, s.divergence_bound,
+                       identity, _books(sc, model, timing))
+
+
+def _plant(sc, model, system):
+    """The simulated plant: ``system`` under the disturbance, tracked by the low level."""
+    from hmpc_cli.lowlevel import LowLevelController
+    from hmpc_cli.run.plant import Plant
+    from hmpc_cli.sim.disturbance import make_disturbance
+    from hmpc_cli.sim.simulator import HybridSimulator
+
+    s, d = sc.sim, sc.disturbance
+    dist = make_disturbance(d.kind, n_w=model.n_w, duration=s.duration,
+                            magnitude=d.magnitude, hold=d.hold, seed=sc.seed, trial=d.trial)
+    return Plant(model, system, HybridSimulator(system, s.max_events_per_step,
+                                                s.event_time_tol),
+                 dist, LowLevelController(model, sc.lowlevel), s.rate_hz,
+                 s.input_at_events == "recompute", s.max_events_per_step)
+
+
+def _books(sc, model, timing: StackTiming) -> RunBooks:
+    """The run's books: every guard of the model, the charged compute time if any."""
     books = RunBooks(sc.name, sc.seed, [g.name for g in model.guards])
     if timing.latency.kind != "paused":
-        books.charge_time(timing.latency.kind, timing.per_solve / s.rate_hz)
+        books.charge_time(timing.latency.kind, timing.per_solve / sc.sim.rate_hz)
     if timing.latency.kind == "measured":
         books.warn("sim.latency = 'measured': plans reach the plant after their measured "
                    "compute time, so this run is not reproducible")
-    return PreparedRun(plant, planner, mpc, timing, task, s.duration, s.divergence_bound,
-                       identity, books)
+    return books
 
 
 def _margins_record(sc, model, margins: ConstraintMargins | None) -> dict | None:

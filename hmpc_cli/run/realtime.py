@@ -111,8 +111,8 @@ class Latency:
         per = self.per_switching_iteration if switching and \
             self.per_switching_iteration is not None else self.per_iteration
         cost = self.overhead + per * max(int(st.iterations), 0)
-        n = len(plan.traj.t)
-        return cost * (n / self.nodes) if self.nodes and n >= 2 else cost
+        n = plan.nodes
+        return cost * (n / self.nodes) if self.nodes and n else cost
 
     def planner_cost(self, result: PlannerResult) -> float:
         """The compute time [s] one planner call is charged (``measured``, ``model``).
