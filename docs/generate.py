@@ -460,7 +460,12 @@ SWEEP_TEXT = """
 * Output: `<out>/runs/<run_id>/` (as `hmpc run`), `<out>/results.csv` (one row per run,
   in grid order: cells as the grid lists them, seeds ascending:
   run id, one column per axis (label or value), seed, `set.<key>` per overridden key, the
-  summary's metrics, the log), rebuilt from the runs' `summary.json` files.
+  summary's metrics, the log), rebuilt from the runs' `summary.json` files. A sweep with a
+  run whose compute time is charged (`sim.latency` not `"paused"`) also tables each run's
+  `real_time` before the log: `charged_solves`, `late_solves`, `dropped_solves`,
+  `preempted_solves`, `delay_median`, `delay_p95`, `delay_max` (see
+  [running.md](running.md); empty for a time-paused run, and for a tabled row flown before
+  hmpc recorded them).
 
 The bundled sweeps: `sweeps/fig3*.toml` (Figure 3 in hmpc and reference mode, at 10/20 Hz
 and 100 Hz, the authors' schedule, the reference rule emulated), `sweeps/margins.toml`

@@ -390,6 +390,41 @@ def test_latency_study_sits_beside_its_paused_twin_and_the_reading_counts(tmp_pa
         assert (tmp_path / "fig" / f"{name}_table.csv").is_file()
 
 
+def test_a_charged_study_tables_its_solves_past_the_period_per_policy_and_rate(tmp_path):
+    """From the table's real_time columns, every size and run pooled (a row without them
+    left out); a study whose table has none gets no such table (exact)."""
+    from hmpc_cli.report.robustness import Study, robustness_sections
+
+    truth = {(5, "once", 15.0): 2, (50, "once", 15.0): 3, (50, "on_contact", 15.0): 4,
+             (50, "on_contact", 5.0): 5}
+    d = tmp_path / "lat"
+    write_study(d / "results.csv", truth, seeds=2)
+    (d / "sweep.toml").write_text('name = "lat"\nseeds = 2\n[set]\n"disturbance.kind" = '
+                                  '"box"\n"sim.latency" = "model"\n')
+    with open(d / "results.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    counts = {("5", "once"): ("10", "0", "0", "0"), ("50", "once"): ("40", "3", "1", "0"),
+              ("50", "on_contact"): ("30", "6", "0", "2")}
+    with open(d / "results.csv", "w", newline="") as f:
+        pooled = ("charged_solves", "late_solves", "dropped_solves", "preempted_solves")
+        w = csv.DictWriter(f, [*rows[0], *pooled])
+        w.writeheader()
+        for i, r in enumerate(rows):
+            c = counts[(r["mpc.rate_hz"], r["replanning.policy"])] if i else ("",) * 4
+            w.writerow({**r, **dict(zip(pooled, c, strict=True))})
+    text = "\n".join(robustness_sections([Study(d)], tmp_path / "fig", tmp_path))
+    assert ("Solves that kept the one solver busy past the MPC period, so that the next "
+            "period's solve waited (`late_solves` of `charged_solves`, every disturbance size "
+            "and run pooled, failed ones too; then the solves whose plans the budget dropped "
+            "and those a contact stopped): a rate whose solves fit its period runs at that "
+            "rate.\n\n| replanning | 5 Hz | 50 Hz |\n|---|---|---|\n"
+            "| once | 0 % (0/10) | 8 % (6/80); 2 dropped |\n"
+            "| on_contact | - | 20 % (24/120); 8 stopped |\n") in text  # row 0 left out
+    write_study(d / "results.csv", truth, seeds=2)
+    text = "\n".join(robustness_sections([Study(d)], tmp_path / "fig", tmp_path))
+    assert "past the MPC period" not in text
+
+
 def test_latency_study_with_the_first_plan_paused_or_measured_latency_is_said(tmp_path):
     """sim.latency_first = "paused" still finds the twin and is said; "measured" reads as
     words; a latency study without a paused twin says so instead of vanishing."""
@@ -711,8 +746,51 @@ def test_the_real_time_section_from_a_table_alone(tmp_path):
     assert "| 60 Hz once | 1/1 | 1/2 |" in text and "| 20 Hz once | - | 1/1 |" in text
     assert "| 60 Hz once | 4.0 | 20.0 |" in text and "| 20 Hz once | 1.0 | - |" in text
     assert "machine: `results/bench/rt.md`" in text
+    assert ("Solves past the MPC period: not in this table; the runs of `measured` were "
+            "flown before hmpc recorded `real_time` (a run flown now records them in its "
+            "summary and the table's `late_solves` column).") in text  # no such column
     with pytest.raises(FigureInputError, match="missing column"):
         (d / "results.csv").write_text("run_id,success\n1,true\n")
+        realtime_section(d)
+
+
+def test_the_real_time_section_pools_the_solves_busy_past_the_period(tmp_path):
+    """late, dropped and stopped solves of the charged ones per controller and charged
+    latency, every run of the cell pooled (failed ones too); a row flown before real_time
+    was recorded is left out, a cell with none recorded is '-', a latency with none is
+    named (exact)."""
+    from hmpc_cli.report.realtime import realtime_section
+
+    d = tmp_path / "rt"
+    d.mkdir()
+    (d / "sweep.toml").write_text('name = "rt"\nscenario = "../scenarios/ball.toml"\n')
+    head = ["run_id", "latency", "controller", "seed", "success", "solves", "charged_solves",
+            "late_solves", "dropped_solves", "preempted_solves", "log"]
+    with open(d / "results.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(head)
+        for k, row in enumerate([("paused", "10 Hz", "true", 30, "", "", "", ""),
+                                 ("model", "10 Hz", "true", 30, 30, 3, 0, 0),
+                                 ("model", "10 Hz", "false", 12, 12, 9, 2, 1),
+                                 ("model", "10 Hz", "true", 30, "", "", "", ""),  # before
+                                 ("model", "60 Hz", "true", 100, 0, 0, 0, 0),
+                                 ("measured", "60 Hz", "true", 90, "", "", "", ""),
+                                 ("paused", "100 Hz", "true", 300, "", "", "", ""),
+                                 ("model", "100 Hz", "true", 150, "", "", "", "")]):
+            w.writerow([k, *row[:2], 0, *row[2:], ""])
+    text = "\n".join(realtime_section(d))
+    assert ("Solves that kept the one solver busy past the MPC period, so that the next "
+            "period's solve waited (`late_solves` of `charged_solves`, every run of the cell "
+            "pooled, failed ones too; then the solves whose plans the budget dropped and "
+            "those a contact stopped; `-`: no run of the cell recorded them; the runs of "
+            "`measured` were flown before hmpc recorded `real_time` (a run flown now records "
+            "them in its summary and the table's `late_solves` column)):\n\n"
+            "| controller | model |\n|---|---|\n"
+            "| 10 Hz | 29 % (12/42); 2 dropped, 1 stopped |\n| 60 Hz | 0/0 |\n"
+            "| 100 Hz | - |") in text
+    (d / "results.csv").write_text(",".join(head) + "\n0,model,10 Hz,0,true,30,30,some,0,0,\n")
+    with pytest.raises(FigureInputError, match=r"results.csv:2: late_solves: expected a "
+                                               r"count, got 'some'"):
         realtime_section(d)
 
 

@@ -198,6 +198,80 @@ def test_a_committed_table_resumes_without_its_run_directories(tiny):
         [drawn, *(r["run_id"] for r in table(out)[:2])])
 
 
+REAL_TIME_SWEEP = """name = "charged"
+scenario = "{scenario}"
+
+[set]
+"sim.duration" = 0.6
+
+[grid]
+"sim.latency" = ["paused", "model"]
+"""
+
+
+def test_a_sweep_that_charges_compute_time_tables_its_real_time(tmp_path):
+    """Its table carries each run's real_time (a time-paused run's cells empty; a paused
+    sweep's header has none, test_tiny_sweep_table_and_failures) and its printed cell
+    table the late solves' share, from run directories and tabled rows alike; a table
+    flown before hmpc recorded real_time resumes with those cells empty, nothing run
+    again."""
+    from hmpc_cli.sweep.table import REAL_TIME, cell_text
+
+    path = write_sweep(tmp_path, REAL_TIME_SWEEP)
+    out = tmp_path / "out"
+    proc = sweep([str(path), "--workers", "1", "--out", str(out)], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    rows = table(out, timing=True)
+    assert list(rows[0])[-len(REAL_TIME) - 2:] == ["cpu", *REAL_TIME, "log"]
+    paused, model = rows
+    assert (paused["sim.latency"], model["sim.latency"]) == ("paused", "model")
+    assert {paused[k] for k in REAL_TIME} == {""}
+    real_time = json.loads((out / "runs" / model["run_id"] / "summary.json").read_text())[
+        "real_time"]
+    assert {k: model[k] for k in REAL_TIME} == {k: cell_text(real_time[k]) for k in REAL_TIME}
+    assert int(model["charged_solves"]) == int(model["solves"]) > 0  # the first charged
+    late, charged = int(model["late_solves"]), int(model["charged_solves"])
+    assert (model["dropped_solves"], model["preempted_solves"]) == ("0", "0")  # no budget
+    share = f"{100 * late / charged:.0f} % ({late}/{charged})"  # the cells' printed table
+    ok = int(model["success"] == "true")
+
+    def printed(proc) -> list[list[str]]:
+        return [[c.strip() for c in line.split("│")[1:-1]] for line in
+                proc.stdout.splitlines() if line.startswith("│ model ")]
+
+    assert printed(proc) == [["model", "1", str(ok), f"{100 * ok} %", share]]
+    committed = _as_committed(out, tmp_path / "committed")  # the tabled rows say it too
+    proc = sweep([str(path), "--workers", "1", "--out", str(committed)], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert printed(proc) == [["model", "1", str(ok), f"{100 * ok} %", share]]
+    older = _as_committed(out, tmp_path / "older")
+    with open(older / "results.csv", newline="") as f:
+        kept = [{k: v for k, v in r.items() if k not in REAL_TIME} for r in csv.DictReader(f)]
+    with open(older / "results.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, list(kept[0]), lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(kept)
+    proc = sweep([str(path), "--workers", "1", "--out", str(older)], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "2 runs, 2 skipped (already done), 0 to run" in proc.stdout
+    assert table(older, timing=True) == [{**r, **dict.fromkeys(REAL_TIME, "")}
+                                         for r in table(out, timing=True)]
+    assert printed(proc) == [["model", "1", str(ok), f"{100 * ok} %", "-"]]
+
+
+def test_a_cells_solves_past_the_period_read_as_counts():
+    from hmpc_cli.sweep.table import CellStats, late_text
+
+    assert late_text(25, 3) == "12 % (3/25)"
+    assert late_text(9, 0, 4, 1) == "0 % (0/9); 4 dropped, 1 stopped"
+    assert late_text(9, 2, 0, 1) == "22 % (2/9); 1 stopped"
+    assert late_text(0, 0) == "0/0"
+    assert CellStats(("a",), 2, 1, 9, 0, 4).columns(True) == [
+        "2", "1", "50 %", "0 % (0/9); 4 dropped"]
+    assert CellStats(("a",), 2, 1).columns(True) == ["2", "1", "50 %", "-"]  # not recorded
+    assert CellStats(("a",), 0).columns(False) == ["0", "0", "-"]
+
+
 @pytest.mark.parametrize("case", ["another scenario", "no base_scenario.toml"])
 def test_a_table_of_another_or_an_unknown_scenario_counts_for_nothing(tiny, case):
     base, path, out, _ = tiny

@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 
 __all__ = ["FigureInputError", "RunTrace", "blamed_on", "load_trace", "not_run_yet", "parse_bool",
-           "read_table", "resolve_log", "resolve_run_log", "resolve_table", "sweep_spec",
-           "trace_of"]
+           "pooled_counts", "read_table", "resolve_log", "resolve_run_log", "resolve_table",
+           "sweep_spec", "trace_of"]
 
 _TRUE = {"true", "1", "yes"}
 _FALSE = {"false", "0", "no"}
@@ -100,6 +100,32 @@ def read_table(path: Path, required: Iterable[str]) -> list[dict[str, str]]:
     if not rows:
         raise FigureInputError(f"{path}: table has no rows")
     return rows
+
+
+def pooled_counts(table: Path, rows: list[dict[str, str]], key, columns: tuple[str, ...]
+                  ) -> dict[Any, list[int]]:
+    """Per ``key(row)``: the sums of the count ``columns`` over its rows that hold them.
+
+    A row whose first column is empty (e.g. flown before hmpc recorded it) is left out;
+    ``key(row)`` None leaves a row out too.
+
+    Raises:
+        FigureInputError: a counted cell that is not a whole number (file:line: column).
+    """
+    out: dict[Any, list[int]] = {}
+    for line, row in enumerate(rows, start=2):
+        k = key(row)
+        if k is None or not (row.get(columns[0]) or "").strip():
+            continue
+        sums = out.setdefault(k, [0] * len(columns))
+        for i, col in enumerate(columns):
+            text = row.get(col)
+            try:
+                sums[i] += int(text)
+            except (TypeError, ValueError):
+                raise FigureInputError(f"{table}:{line}: {col}: expected a count, got "
+                                       f"{text!r}") from None
+    return out
 
 
 def not_run_yet(directory: str | Path) -> bool:

@@ -126,7 +126,7 @@ def _locked_execute(plan, out: Path, workers: int, client):
     except OSError as exc:
         if not disk_error(exc):
             raise
-        kept = sum(cell[1] for cell in _safe_stats(plan, out))
+        kept = sum(cell.runs for cell in _safe_stats(plan, out))
         _err([f"cannot write: {disk_error_text(exc)}; {kept} of {len(plan.runs)} runs kept "
               f"in {out} (finished runs stay; free space and run the same command to "
               "resume)"])
@@ -134,7 +134,9 @@ def _locked_execute(plan, out: Path, workers: int, client):
 
 
 def _safe_stats(plan, out: Path) -> list:
-    """:func:`cell_stats`, or none when even reading fails."""
+    """:func:`hmpc_cli.sweep.table.cell_stats`, or none when even reading fails."""
+    from hmpc_cli.sweep.table import cell_stats
+
     try:
         return cell_stats(plan, out)
     except OSError:
@@ -334,36 +336,26 @@ def _print_cells(plan, out: Path) -> None:
     from rich.markup import escape
     from rich.table import Table
 
+    import dataclasses
+
+    from hmpc_cli.sweep.table import CellStats, cell_stats
+
     table = Table(title=f"{plan.spec.name}: success per grid cell (seeds pooled)")
     for a in plan.axes:
         table.add_column(a.name)
-    for name in ("runs", "successes", "success rate"):
+    charged = any(r.charged for r in plan.runs)
+    for name in ("runs", "successes", "success rate",
+                 *(["solves past the period"] if charged else [])):
         table.add_column(name, justify="right")
-    total = [0, 0]
-    for cell, n, ok in cell_stats(plan, out):
-        total[0], total[1] = total[0] + n, total[1] + ok
-        rate = f"{100 * ok / n:.0f} %" if n else "-"
-        table.add_row(*map(escape, cell), str(n), str(ok), rate)
-    rate = f"{100 * total[1] / total[0]:.0f} %" if total[0] else "-"
+    cells = cell_stats(plan, out)
+    for c in cells:
+        table.add_row(*map(escape, c.cell), *c.columns(charged))
+    total = CellStats((), *(sum(getattr(c, f.name) for c in cells)
+                            for f in dataclasses.fields(CellStats)[1:]))
     table.add_section()
     table.add_row(*(["all"] + [""] * (len(plan.axes) - 1) if plan.axes else []),
-                  str(total[0]), str(total[1]), rate)
+                  *total.columns(charged))
     Console().print(table)
-
-
-def cell_stats(plan, out: Path) -> list[tuple[tuple[str, ...], int, int]]:
-    """Per grid cell (all axes, seeds pooled): (cell, finished runs, successes)."""
-    from hmpc_cli.sweep.table import cell_text, finished_runs
-
-    stats: dict[tuple[str, ...], list[int]] = {}
-    done = finished_runs(plan, out.resolve(), plan.runs)
-    for run in plan.runs:
-        s = stats.setdefault(tuple(cell_text(v) for v in run.cell), [0, 0])
-        summary = done[run.run_id]
-        if summary is not None:
-            s[0] += 1
-            s[1] += bool(summary.get("success"))
-    return [(c, n, k) for c, (n, k) in stats.items()]
 
 
 DASK_HINT = "is it the dashboard port 8787? the scheduler listens on 8786"

@@ -15,8 +15,8 @@ import statistics
 from pathlib import Path
 
 from hmpc_cli.analysis.tables import (
-    FigureInputError, parse_bool, read_table, resolve_table, sweep_spec)
-from hmpc_cli.report.robustness import settings_text, wall_text
+    FigureInputError, parse_bool, pooled_counts, read_table, resolve_table, sweep_spec)
+from hmpc_cli.report.robustness import PAST_PERIOD, settings_text, wall_text
 
 __all__ = ["realtime_section"]
 
@@ -174,6 +174,38 @@ def _keep_up_lines(solves: dict[tuple[str, str], list[int]], lats: list[str],
     return lines
 
 
+def _late_lines(table: Path, rows: list[dict], lats: list[str], ctrls: list[str],
+                entries: dict[str, dict]) -> list[str]:
+    """Per controller and charged latency entry: its solves past the MPC period.
+
+    Pooled over the cell's runs that recorded ``real_time`` (the table's ``late_solves``,
+    ``dropped_solves``, ``preempted_solves`` of ``charged_solves``; empty in a row flown
+    before hmpc recorded them).
+    """
+    from hmpc_cli.sweep.table import POOLED, late_text
+
+    charged = [lat for lat in lats if _kind(lat, entries) != "paused"]
+    if not charged:
+        return []
+    pooled = pooled_counts(table, rows, lambda r: (r["latency"], r["controller"])
+                           if r["latency"] in charged else None, POOLED)
+    shown = [lat for lat in charged if any((lat, c) in pooled for c in ctrls)]
+    unrecorded = ", ".join(f"`{lat}`" for lat in charged if lat not in shown)
+    before = (f"the runs of {unrecorded} were flown before hmpc recorded `real_time` (a run "
+              "flown now records them in its summary and the table's `late_solves` column)"
+              ) if unrecorded else ""
+    if not shown:
+        return ["", f"Solves past the MPC period: not in this table; {before}."]
+    lines = ["", PAST_PERIOD.format(pooled="every run of the cell pooled")
+             + "; `-`: no run of the cell recorded them" + (f"; {before}" if before else "")
+             + "):", "",
+             "| controller | " + " | ".join(shown) + " |", "|---|" + "---|" * len(shown)]
+    for c in ctrls:
+        cells = [late_text(*v) if (v := pooled.get((lat, c))) else "-" for lat in shown]
+        lines.append(f"| {c} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def realtime_section(directory: Path) -> list[str]:
     """The markdown lines of one real-time sweep's table (a sub-section of :data:`HEADING`).
 
@@ -213,6 +245,7 @@ def realtime_section(directory: Path) -> list[str]:
         cells = [f"{sum(v)}/{len(v)}" if (v := ok.get((lat, c))) else "-" for lat in lats]
         lines.append(f"| {c} | " + " | ".join(cells) + " |")
     lines += _keep_up_lines(solves, lats, ctrls, entries, _duration(sim))
+    lines += _late_lines(table, rows, lats, ctrls, entries)
     measured = [lat for lat in lats if _kind(lat, entries) == "measured"]
     if measured:
         lines += ["", "MPC solve times of the measured runs (per run: its median and p95 "

@@ -25,6 +25,7 @@ from hmpc_cli.analysis.tables import (
     blamed_on,
     not_run_yet,
     parse_bool,
+    pooled_counts,
     read_table,
     resolve_table,
     sweep_spec)
@@ -37,6 +38,11 @@ if TYPE_CHECKING:
 __all__ = ["Study", "robustness_sections"]
 
 RATE, POLICY, SIZE = "mpc.rate_hz", "replanning.policy", "disturbance.magnitude"
+#: the page's words for a table of charged solves past the period (``pooled``: over what)
+PAST_PERIOD = ("Solves that kept the one solver busy past the MPC period, so that the next "
+               "period's solve waited (`late_solves` of `charged_solves`, {pooled}, failed "
+               "ones too; then the solves whose plans the budget dropped and those a contact "
+               "stopped")
 
 
 def margins_refused(row: dict) -> bool:
@@ -618,12 +624,39 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
              *([f"Tube diameter diam T(1/f) at each rate (Step 5, sampled constants: "
                 f"{region}; the lower panels):", "", *_diam_lines(diam), ""]
                if diam else []),
+             *_past_period_lines(table, rows),
              "Computed findings (a pairwise claim only where the intervals separate; a "
              "trend at the 5 % level, uncorrected for this page's many tests, and again "
              "without the slowest rate where it holds):", "",
              *(findings(cells) or ["- none: no cell has runs at two rates"]), "",
              "How the runs failed (each run's summary):", "", *failure_lines(rows, size), ""],
             cells, spec)
+
+
+def _past_period_lines(table: Path, rows: list[dict]) -> list[str]:
+    """Per policy and rate, the charged solves past the MPC period.
+
+    No line when no row records them (time paused, or runs flown before hmpc recorded
+    ``real_time``).
+    """
+    from hmpc_cli.sweep.table import POOLED, late_text
+
+    def key(row: dict) -> tuple[str, float] | None:
+        rate = _number(row.get(RATE))
+        return (row.get(POLICY, ""), rate) if math.isfinite(rate) else None
+
+    pooled = pooled_counts(table, rows, key, POOLED)
+    if not pooled:
+        return []
+    policies = list(dict.fromkeys(p for p, _ in pooled))
+    rates = sorted({x for _, x in pooled})
+    return [PAST_PERIOD.format(pooled="every disturbance size and run pooled") + "): a rate "
+            "whose solves fit its period runs at that rate.", "",
+            "| replanning | " + " | ".join(f"{x:g} Hz" for x in rates) + " |",
+            "|---|" + "---|" * len(rates),
+            *(f"| {p} | " + " | ".join(late_text(*pooled[(p, x)]) if (p, x) in pooled
+                                        else "-" for x in rates) + " |" for p in policies),
+            ""]
 
 
 def twin_pairs(paused: list, charged: list) -> list[tuple]:

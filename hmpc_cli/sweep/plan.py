@@ -30,9 +30,9 @@ from hmpc_cli.run.scenario import (
     ScenarioError, format_errors, load_scenario, other_kind_of_file, read_toml_file,
     scenario_model, seeded_toml)
 from hmpc_cli.core.settings_types import MAX_INT
-from hmpc_cli.sweep.table import METRICS, cell_text, toml_value
+from hmpc_cli.sweep.table import METRICS, REAL_TIME, cell_text, toml_value
 
-RESERVED = {"run_id", "seed", "log", *METRICS}
+RESERVED = {"run_id", "seed", "log", *METRICS, *REAL_TIME}
 #: most seeds of a sweep and most runs (cells x seeds); validating a run takes ~0.3 ms and
 #: running one seconds to minutes: 20 000 runs is already hours of work on this machine
 MAX_SEEDS = 100_000
@@ -105,6 +105,8 @@ class Run:
     overrides: dict[str, Any]
     origin: dict[str, str]
     toml: str = ""
+    #: its compute time is charged (``sim.latency`` not ``"paused"``): it records real_time
+    charged: bool = False
 
 
 @dataclass
@@ -130,9 +132,14 @@ class SweepPlan:
 
     @property
     def columns(self) -> list[str]:
-        """results.csv columns, in order."""
+        """results.csv columns, in order.
+
+        The real-time ones only when a run charges compute time: a time-paused sweep's
+        table keeps its columns.
+        """
+        real_time = REAL_TIME if any(r.charged for r in self.runs) else ()
         return ["run_id", *(a.name for a in self.axes), "seed",
-                *(f"set.{k}" for k in self.keys), *METRICS, "log"]
+                *(f"set.{k}" for k in self.keys), *METRICS, *real_time, "log"]
 
 
 def _models(ann: Any) -> list[type[BaseModel]]:
@@ -271,16 +278,17 @@ def plan_sweep(path: str | Path) -> SweepPlan:
                              f"seeds = {total} runs exceeds the limit {MAX_RUNS}"])
     runs = _expand(spec, base, axes, src, errors)
     # a cell's scenario is validated once; its other seeds differ from it in the seed only
-    cells: dict[tuple[str, ...], Callable[[int], str] | None] = {}  # None: the cell is invalid
+    cells: dict[tuple[str, ...], tuple[Callable[[int], str], bool] | None] = {}  # None: invalid
     for run in runs if scenario.is_file() else []:
         items = tuple(f"{k}={toml_value(v)}" for k, v in run.overrides.items())
         try:
             if items not in cells:
                 cell, run.toml = load_scenario(scenario, list(items), run.seed,
                                                attribute_sets=False)
-                cells[items] = seeded_toml(cell)
-            elif cells[items] is not None:
-                run.toml = cells[items](run.seed)
+                cells[items] = seeded_toml(cell), cell.sim.latency != "paused"
+                run.charged = cells[items][1]
+            elif (known := cells[items]) is not None:
+                run.toml, run.charged = known[0](run.seed), known[1]
         except ScenarioError as exc:
             cells[items] = None
             errors += [_rewrite(line, scenario, src, run) for line in exc.lines]

@@ -13,6 +13,7 @@ import csv
 import io
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,11 @@ TIMING = ("solve_time_median", "solve_time_p95", "solve_time_max", "plan_time_me
           "wall_time")
 METRICS = ("success", "final_error", "contacts", "solves", "solver_failures", "softened_solves",
            "planner_calls", "planner_rejected", "diverged", "reason", *TIMING, "cpu")
+#: the summary's ``real_time`` (:class:`hmpc_cli.log.topics.RealTime`), columns of a sweep
+#: that charges compute time (:attr:`hmpc_cli.sweep.plan.SweepPlan.columns`); a run whose
+#: summary has none (time paused, or flown before hmpc recorded it) leaves them empty
+REAL_TIME = ("charged_solves", "late_solves", "dropped_solves", "preempted_solves",
+             "delay_median", "delay_p95", "delay_max")
 INTERRUPTED = "interrupted"
 #: beside results.csv: the sweep's scenario file as its runs read it (no override, seed 0)
 BASE_SCENARIO = "base_scenario.toml"
@@ -209,8 +215,9 @@ def finished_runs(plan, out: Path, runs=None) -> dict[str, dict | None]:
     """Per run of ``runs`` (default: the plan's selected ones): what shows it finished.
 
     The run directory's summary (:func:`finished`); else, for a run never started here
-    (:func:`started`), its tabled row's values as a summary (``success`` a bool;
-    :func:`tabled_rows`); else None. A run started here and not finished (a log deleted,
+    (:func:`started`), its tabled row's values as a summary (``success`` a bool, the
+    other values as tabled, ``real_time`` when its columns hold it; :func:`tabled_rows`);
+    else None. A run started here and not finished (a log deleted,
     a run killed) is redone whatever the table says.
     """
     tabled = tabled_rows(plan, out)
@@ -221,6 +228,8 @@ def finished_runs(plan, out: Path, runs=None) -> dict[str, dict | None]:
         if row is not None:
             summary = {**{k: row.get(k, "") for k in METRICS}, "success": row["success"] ==
                        "true"}
+            if (row.get("charged_solves") or "").strip():  # tabled since hmpc records it
+                summary["real_time"] = {k: row.get(k, "") for k in REAL_TIME}
         done[run.run_id] = summary
     return done
 
@@ -244,10 +253,12 @@ def result_rows(plan, out: Path) -> list[dict[str, str]]:
         if summary is None:
             was = _standing_row(tabled, out, run)
             if was is not None:
-                row |= {k: was.get(k, "") for k in (*METRICS, "log")}
+                row |= {k: was.get(k, "") for k in (*METRICS, *REAL_TIME, "log")}
                 rows.append({c: row[c] for c in plan.columns})
             continue
         row |= {k: cell_text(summary.get(k)) for k in METRICS}
+        real_time = summary.get("real_time") or {}
+        row |= {k: cell_text(real_time.get(k)) for k in REAL_TIME}
         log = out / "runs" / run.run_id / "run.mcap"
         row["log"] = log.relative_to(out).as_posix() if log.exists() else ""
         rows.append({c: row[c] for c in plan.columns})
@@ -288,3 +299,62 @@ def toml_value(v: Any) -> str:
         return "{" + ", ".join(f"{toml_value(str(k))} = {toml_value(x)}"
                                for k, x in v.items()) + "}"
     raise TypeError(f"unsupported value type {type(v).__name__}")
+
+
+@dataclass(frozen=True)
+class CellStats:
+    """A grid cell's finished runs (seeds pooled).
+
+    ``late``, ``dropped``, ``preempted`` of ``charged``: the charged solves that kept the
+    solver busy past the MPC period, whose plans a budget dropped, and that a contact
+    stopped, over the runs that recorded ``real_time``.
+    """
+
+    cell: tuple[str, ...]
+    runs: int = 0
+    successes: int = 0
+    charged: int = 0
+    late: int = 0
+    dropped: int = 0
+    preempted: int = 0
+
+    def columns(self, charged: bool) -> list[str]:
+        """The cell's counts as table cells (its solves past the period when ``charged``)."""
+        rate = f"{100 * self.successes / self.runs:.0f} %" if self.runs else "-"
+        late = late_text(self.charged, self.late, self.dropped, self.preempted) \
+            if self.charged else "-"
+        return [str(self.runs), str(self.successes), rate, *([late] if charged else [])]
+
+
+#: the real_time counts a cell pools, in :class:`CellStats`' order and :func:`late_text`'s
+POOLED = ("charged_solves", "late_solves", "dropped_solves", "preempted_solves")
+
+
+def late_text(charged: int, late: int, dropped: int = 0, preempted: int = 0) -> str:
+    """Charged solves past the MPC period as a table cell; ``0/0`` without one.
+
+    E.g. ``12 % (3/25)`` (late of charged) or ``0 % (0/9); 4 dropped, 1 stopped`` (plans
+    dropped by the budget, solves stopped by a contact).
+    """
+    if not charged:
+        return "0/0"
+    more = [f"{n} {what}" for n, what in ((dropped, "dropped"), (preempted, "stopped")) if n]
+    return f"{100 * late / charged:.0f} % ({late}/{charged})" + \
+        (f"; {', '.join(more)}" if more else "")
+
+
+def cell_stats(plan, out: Path) -> list[CellStats]:
+    """Per grid cell (all axes, seeds pooled): runs, successes, solves past the period."""
+    stats: dict[tuple[str, ...], list[int]] = {}
+    done = finished_runs(plan, out.resolve(), plan.runs)
+    for run in plan.runs:
+        s = stats.setdefault(tuple(cell_text(v) for v in run.cell), [0] * (2 + len(POOLED)))
+        summary = done[run.run_id]
+        if summary is not None:
+            s[0] += 1
+            s[1] += bool(summary.get("success"))
+            real_time = summary.get("real_time") or {}
+            if str(real_time.get("charged_solves", "")).strip():
+                for i, key in enumerate(POOLED, start=2):
+                    s[i] += int(real_time[key])
+    return [CellStats(c, *v) for c, v in stats.items()]
