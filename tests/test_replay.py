@@ -598,7 +598,9 @@ def test_figures_and_the_scene_animation(system, request, tmp_path) -> None:
     out = " ".join(res.output.split())
     drawn, skipped = ("fig2", "fig4") if system == "ball" else ("fig4", "fig2")
     assert f"figures: {drawn} written" in out and f"figures: {skipped} not drawn" in out
+    assert "figures: timing written" in out  # every run with a solve
     assert (tmp_path / "f" / f"{drawn}.png").is_file()
+    assert (tmp_path / "f" / "timing.png").is_file()
     assert not (tmp_path / "f" / f"{skipped}.png").exists()
     gif = (tmp_path / "f" / "scene.gif").read_bytes()
     assert gif[:6] in (b"GIF87a", b"GIF89a") and gif.count(b"\x21\xf9\x04") > 5  # frames

@@ -103,6 +103,31 @@ def _fig4(log: Path, out: Path | None, formats: str, every: float, gif: bool,
     _wrote(names, out_dir)
 
 
+def _timing(log: Path, out: Path | None, formats: str, width: float, height: float) -> None:
+    """The run's solve times against its MPC period; prints the counts of its title."""
+    from hmpc_cli.analysis.tables import FigureInputError, resolve_run_log
+    from hmpc_cli.figures.common import check_size, parse_formats
+    from hmpc_cli.figures.timing import solve_times, timing
+
+    try:
+        check_size(width, height)
+        names = [f"timing.{f}" for f in parse_formats(formats)]
+        log = resolve_run_log(log)
+        st = solve_times(log)
+        out_dir = out if out is not None else checked_output(log.parent, "output directory")
+        timing(log, out_dir, formats, width=width, height=height)
+    except FigureInputError as exc:
+        _fail(str(exc))
+    if not is_quiet():
+        n, above = int(st.counted.sum()), int(st.above.sum())
+        what = (f"compute time charged ({st.charged})" if st.charged else
+                "time paused: the solves' measured wall times")
+        period = (f"above the {1e3 * st.period:.1f} ms MPC period" if st.period is not None
+                  else "(the log does not give the MPC period)")
+        typer.echo(f"{above} of {n} solves {period}; {what}")
+    _wrote(names, out_dir)
+
+
 def _fig2(log: Path, out: Path | None, formats: str, options: dict) -> None:
     """Figure 2 from a run log: the pass-through computed, drawn; prints its checks."""
     from hmpc_cli.analysis.tables import FigureInputError, resolve_run_log
@@ -170,11 +195,12 @@ def _robustness(table: Path, out: Path | None, formats: str, options: dict) -> N
 
 def plot_command(
     figure: Annotated[str, typer.Argument(
-        help="figure to draw: fig2, fig3, robustness or fig4", autocompletion=complete_figure)],
+        help="figure to draw: fig2, fig3, robustness, fig4 or timing",
+        autocompletion=complete_figure)],
     table: Annotated[Path, typer.Argument(
         help="fig3, robustness: sweep table (results.csv, or the sweep directory holding "
-        "it); fig2: a run log, fig4: a biped run log (run.mcap, or the run directory "
-        "holding it)")],
+        "it); fig2, timing: a run log, fig4: a biped run log (run.mcap, or the run "
+        "directory holding it)")],
     out: Annotated[Path | None, typer.Option(
         "--out", help="output directory (default: the table's directory)",
         parser=path_option)] = None,
@@ -196,11 +222,11 @@ def plot_command(
     panels: Annotated[str | None, typer.Option(
         "--panels", help='fig3: panels in order (all), e.g. "10 Hz fixed,20 Hz fixed"')] = None,
     width: Annotated[float | None, typer.Option(
-        "--width", help="figure width (in; fig3, fig4 3.5 = one column; fig2, robustness "
-        "7.16 = text width)")] = None,
+        "--width", help="figure width (in; fig3, fig4 3.5 = one column; fig2, robustness, "
+        "timing 7.16 = text width)")] = None,
     height: Annotated[float | None, typer.Option(
-        "--height", help="figure height (in; fig3 2.1, fig4 4.2, fig2 2.8, robustness 1.9)")
-    ] = None,
+        "--height", help="figure height (in; fig3 2.1, fig4 4.2, fig2 2.8, robustness 1.9, "
+        "timing 2.4)")] = None,
     view: Annotated[str | None, typer.Option(
         "--view", help='fig3: axis limits "x0,x1,y0,y1" in m (default: the data)')] = None,
     every: Annotated[float, typer.Option(
@@ -256,6 +282,8 @@ def _dispatch(figure: str, table: Path, out: Path | None, formats: str, o: dict)
                                            "height": height or 2.8})
     if figure == "fig4":
         return _fig4(table, out, formats, o["every"], o["gif"], width, height or 4.2)
+    if figure == "timing":
+        return _timing(table, out, formats, width, height or 2.4)
     if figure == "robustness":
         return _robustness(table, out, formats, {
             "x_axis": o["x_axis"], "series_axis": o["series_axis"], "width": width,

@@ -331,6 +331,7 @@ def _figures(console, rp, out: Path) -> None:
     from hmpc_cli.figures.fig2 import fig2
     from hmpc_cli.figures.fig4 import fig4
     from hmpc_cli.figures.scene_anim import animate_scene
+    from hmpc_cli.figures.timing import timing
     from hmpc_cli.analysis.passthrough import PassThroughError, pass_through_geometry
 
     try:
@@ -343,6 +344,7 @@ def _figures(console, rp, out: Path) -> None:
     quiet = is_quiet()
     jobs = (("fig2", lambda: fig2(pass_through_geometry(rp.path), out, ["pdf", "png"])),
             ("fig4", lambda: fig4(rp.path, out, ["pdf", "png"])),
+            ("timing", lambda: timing(rp.path, out, ["pdf", "png"])),
             ("scene animation", lambda: animate_scene(rp.log, out, title)))
     for name, job in jobs:
         try:

@@ -10,4 +10,5 @@ FIGURES: dict[str, str] = {
     "fig3": "bouncing ball under disturbances, one panel per controller",
     "robustness": "success rate vs MPC rate per replanning policy and disturbance size",
     "fig4": "biped on the stairs: stick figures, hip x(t), y(t), torso force (+ GIF)",
+    "timing": "one run's MPC solves: compute time against the MPC period, contacts",
 }
