@@ -203,9 +203,11 @@ def test_the_wall_time_line_names_the_cpus_that_ran_the_runs():
         "the runs took 0.0 core-hours (2.6 s per run on average; divide by the worker "
         "processes for the elapsed time); run on AMD EPYC (2 runs), Intel(R) Xeon(R) "
         "Processor (1 run), a CPU not recorded (2 runs)")
-    # a table written before hmpc recorded the CPU: the line as it was
+    # a table written before hmpc recorded the CPU says so: wall times compare on one CPU
     assert wall_text(rows[1:3]) == ("the runs took 0.0 core-hours (3.5 s per run on average; "
-                                    "divide by the worker processes for the elapsed time)")
+                                    "divide by the worker processes for the elapsed time); "
+                                    "its CPU not recorded")
+    assert wall_text([]) == "wall time not recorded"
 
 
 def test_a_comparison_shows_the_digits_that_make_its_verdict_visible():
@@ -415,12 +417,17 @@ def test_a_charged_study_tables_its_solves_past_the_period_per_policy_and_rate(t
     text = "\n".join(robustness_sections([Study(d)], tmp_path / "fig", tmp_path))
     assert ("Solves that kept the one solver busy past the MPC period, so that the next "
             "period's solve waited (`late_solves` of `charged_solves`, every disturbance size "
-            "and run pooled, failed ones too; then the solves whose plans the budget dropped "
-            "and those a contact stopped): a rate whose solves fit its period runs at that "
-            "rate.\n\n| replanning | 5 Hz | 50 Hz |\n|---|---|---|\n"
+            "and run that recorded them pooled, failed ones too; then the solves whose plans "
+            "the budget dropped and those a contact stopped): a rate whose solves fit its "
+            "period runs at that rate.\n\n| replanning | 5 Hz | 50 Hz |\n|---|---|---|\n"
             "| once | 0 % (0/10) | 8 % (6/80); 2 dropped |\n"
             "| on_contact | - | 20 % (24/120); 8 stopped |\n") in text  # row 0 left out
-    write_study(d / "results.csv", truth, seeds=2)
+    write_study(d / "results.csv", truth, seeds=2)  # flown before hmpc recorded them
+    text = "\n".join(robustness_sections([Study(d)], tmp_path / "fig", tmp_path))
+    assert ("Solves past the MPC period: not in this table; its runs were flown before hmpc "
+            "recorded `real_time`.") in text
+    (d / "sweep.toml").write_text('name = "lat"\nseeds = 2\n[set]\n"disturbance.kind" = '
+                                  '"box"\n')  # time paused: nothing to say
     text = "\n".join(robustness_sections([Study(d)], tmp_path / "fig", tmp_path))
     assert "past the MPC period" not in text
 
@@ -746,9 +753,8 @@ def test_the_real_time_section_from_a_table_alone(tmp_path):
     assert "| 60 Hz once | 1/1 | 1/2 |" in text and "| 20 Hz once | - | 1/1 |" in text
     assert "| 60 Hz once | 4.0 | 20.0 |" in text and "| 20 Hz once | 1.0 | - |" in text
     assert "machine: `results/bench/rt.md`" in text
-    assert ("Solves past the MPC period: not in this table; the runs of `measured` were "
-            "flown before hmpc recorded `real_time` (a run flown now records them in its "
-            "summary and the table's `late_solves` column).") in text  # no such column
+    assert ("Solves past the MPC period: not in this table; the `measured` runs were flown "
+            "before hmpc recorded `real_time`.") in text  # no such column
     with pytest.raises(FigureInputError, match="missing column"):
         (d / "results.csv").write_text("run_id,success\n1,true\n")
         realtime_section(d)
@@ -781,10 +787,10 @@ def test_the_real_time_section_pools_the_solves_busy_past_the_period(tmp_path):
     text = "\n".join(realtime_section(d))
     assert ("Solves that kept the one solver busy past the MPC period, so that the next "
             "period's solve waited (`late_solves` of `charged_solves`, every run of the cell "
-            "pooled, failed ones too; then the solves whose plans the budget dropped and "
-            "those a contact stopped; `-`: no run of the cell recorded them; the runs of "
-            "`measured` were flown before hmpc recorded `real_time` (a run flown now records "
-            "them in its summary and the table's `late_solves` column)):\n\n"
+            "that recorded them pooled, failed ones too; then the solves whose plans the "
+            "budget dropped and "
+            "those a contact stopped; `-`: no run of the cell recorded them; the `measured` "
+            "runs were flown before hmpc recorded `real_time`):\n\n"
             "| controller | model |\n|---|---|\n"
             "| 10 Hz | 29 % (12/42); 2 dropped, 1 stopped |\n| 60 Hz | 0/0 |\n"
             "| 100 Hz | - |") in text

@@ -266,10 +266,18 @@ def test_a_cells_solves_past_the_period_read_as_counts():
     assert late_text(9, 0, 4, 1) == "0 % (0/9); 4 dropped, 1 stopped"
     assert late_text(9, 2, 0, 1) == "22 % (2/9); 1 stopped"
     assert late_text(0, 0) == "0/0"
-    assert CellStats(("a",), 2, 1, 9, 0, 4).columns(True) == [
+    assert CellStats(("a",), 2, 1, 2, 9, 0, 4).columns(True) == [
         "2", "1", "50 %", "0 % (0/9); 4 dropped"]
+    assert CellStats(("a",), 2, 1, 1).columns(True) == ["2", "1", "50 %", "0/0"]  # no solve
     assert CellStats(("a",), 2, 1).columns(True) == ["2", "1", "50 %", "-"]  # not recorded
     assert CellStats(("a",), 0).columns(False) == ["0", "0", "-"]
+    from hmpc_cli.sweep.table import _pooled
+
+    counts = {"charged_solves": "9", "late_solves": "2", "dropped_solves": "0",
+              "preempted_solves": "1"}
+    assert _pooled(counts) == [9, 2, 0, 1] and _pooled({**counts, "late_solves": 2}) == [9, 2, 0, 1]
+    assert _pooled({**counts, "late_solves": "two"}) is None  # an edited table: not counted
+    assert _pooled({}) is None
 
 
 @pytest.mark.parametrize("case", ["another scenario", "no base_scenario.toml"])

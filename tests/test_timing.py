@@ -26,9 +26,11 @@ def _run(out: Path, *overrides: str) -> Path:
 
 @pytest.fixture(scope="module")
 def budget(tmp_path_factory) -> Path:
-    """Compute time modelled, a budget of 20 ms: the switching solves are dropped."""
+    """Compute time modelled at 30 Hz (a 33.3 ms period), a budget of 50 ms, the first
+    plan paused: solves under the period, over it, and dropped."""
     return _run(tmp_path_factory.mktemp("t") / "budget", "sim.latency=model",
-                "sim.solve_budget=0.02")
+                "mpc.rate_hz=30", "sim.solve_budget=0.05", "sim.latency_first=paused",
+                "lowlevel.past_guard=next_domain")
 
 
 @pytest.fixture(scope="module")
@@ -43,30 +45,83 @@ def plot(*args) -> object:
 
 
 def test_charged_solves_their_charges_the_dropped_ones_and_the_runs_own_count(budget):
-    from hmpc_cli.figures.timing import solve_times
+    from hmpc_cli.figures.timing import _title, solve_times
     from hmpc_cli.log.rundata import read_run
 
     st, run = solve_times(budget), read_run(budget)
     rt = run.summary.real_time
-    assert st.charged == "model" and st.period == rt.period == 0.1
+    sim = run.scenario["sim"]["rate_hz"]
+    assert st.charged == "model" and st.period == rt.period == (sim // 30) / sim
+    assert round(1e3 * st.period, 1) == 33.3
     assert st.t.tolist() == [s.t for s in run.solves]
     assert st.compute.tolist() == [s.latency for s in run.solves]  # what the plant waited
     assert st.wall.tolist() == [s.wall_time for s in run.solves]
     assert st.dropped.tolist() == [s.reason.endswith(" (over budget: dropped)")
                                    for s in run.solves]
     assert int(st.dropped.sum()) == rt.dropped_solves > 0
-    assert int(st.counted.sum()) == rt.charged_solves  # every solve charged
-    assert st.above.tolist() == [s.latency > 0.1 for s in run.solves]
+    assert int(st.counted.sum()) == rt.charged_solves == len(st.t) - 1  # not the first
+    assert st.counted.tolist() == [i > 0 for i in range(len(st.t))] and st.compute[0] == 0
+    assert st.above.tolist() == [s.latency > st.period for s in run.solves]
+    assert (st.above & ~st.dropped).any() and (st.counted & ~st.above).any()  # all kinds
+    assert not st.stopped.any() and rt.preempted_solves == 0
     assert st.contacts.tolist() == [e.t for e in run.events]
-    from hmpc_cli.figures.timing import _title
-
-    above = int(st.above.sum())
+    above, dropped = int(st.above.sum()), int((st.above & st.dropped).sum())
     assert _title(st) == (
-        f"compute time charged (model); {above} of {rt.charged_solves} charged solves above "
-        f"the 100.0 ms MPC period ({int((st.above & st.dropped).sum())} dropped over "
-        f"budget)\nreal_time: {rt.late_solves} of {rt.charged_solves} charged solves kept "
-        f"the solver busy past the period, {rt.dropped_solves} dropped, "
-        f"{rt.preempted_solves} stopped by a contact")
+        f"compute time charged (model); {above} of {rt.charged_solves} charged solves charged "
+        f"more than the 33.3 ms MPC period ({dropped} dropped over budget)\nreal_time: "
+        f"{rt.late_solves} of {rt.charged_solves} charged solves kept the solver busy past "
+        f"the period, {rt.dropped_solves} dropped, {rt.preempted_solves} stopped by a contact")
+
+
+def test_what_the_figure_draws(budget):
+    from hmpc_cli.figures.common import figure_style
+    from hmpc_cli.figures.timing import _figure, solve_times
+
+    st = solve_times(budget)
+    with figure_style():
+        fig = _figure(st, 7.16, 2.4)
+    (ax,) = fig.axes
+    lines = {ln.get_label(): ln for ln in ax.get_lines() if not ln.get_label().startswith("_")}
+    assert set(lines) == {"contact", "measured wall time", "MPC period 33.3 ms",
+                          "solve (charged)", "above the period", "dropped over budget"}
+    assert lines["above the period"].get_xdata().tolist() == \
+        st.t[st.above & ~st.dropped].tolist()
+    assert lines["dropped over budget"].get_ydata().tolist() == \
+        (1e3 * st.compute[st.dropped]).tolist()
+    assert len(lines["measured wall time"].get_xdata()) == len(st.t)
+    assert lines["solve (charged)"].get_xdata().tolist() == \
+        st.t[st.counted & ~st.above].tolist()  # the paused first plan: its wall time only
+
+
+@pytest.mark.parametrize("latency,first,counted", [
+    ("0.03", "paused", "all but the first"), ("0", "charged", "all")])
+def test_a_fixed_latency_and_the_first_plan_paused_count_as_real_time_does(
+        tmp_path, latency, first, counted):
+    from hmpc_cli.figures.timing import count_text, solve_times
+    from hmpc_cli.log.rundata import read_run
+
+    d = _run(tmp_path / "run", f"sim.latency={latency}", f"sim.latency_first={first}",
+             "sim.duration=0.4")
+    st, rt = solve_times(d), read_run(d).summary.real_time
+    assert st.charged == rt.latency == "fixed"
+    assert int(st.counted.sum()) == rt.charged_solves
+    assert st.counted.tolist() == [counted == "all" or i > 0 for i in range(len(st.t))]
+    assert st.compute.tolist() == [0.0 if first == "paused" and i == 0 else float(latency)
+                                   for i in range(len(st.t))]
+    assert count_text(st) == (f"compute time charged (fixed); 0 of {rt.charged_solves} "
+                              "charged solves charged more than the 100.0 ms MPC period")
+
+
+def test_the_stopped_solves_are_found_from_the_notes_after_them():
+    from hmpc_cli.figures.timing import _stopped
+
+    t = np.array([0.3, 0.415, 0.415, 0.415, 0.5])
+    reasons = ["period", "impact", "impact (after a contact stopped the solve of t = 0.4150 "
+               "s: dropped)", "impact (after a contact stopped the solve of t = 0.4150 s: "
+               "dropped)", "period (after a contact stopped the solve of t = 0.3000, 0.4150 s:"
+               " dropped)"]
+    assert _stopped(reasons, t).tolist() == [True, True, True, True, False]
+    assert _stopped(["period", "period"], np.array([0.1, 0.2])).tolist() == [False, False]
 
 
 def test_time_paused_shows_the_wall_times_against_the_scenarios_period(paused):
@@ -88,8 +143,8 @@ def test_plot_timing_writes_the_same_figure_twice_and_prints_its_count(paused, t
     res = plot(paused, "--out", tmp_path / "a", "--formats", "png,svg")
     assert res.exit_code == 0, res.output
     assert res.output.splitlines()[0] == (
-        f"{int(st.above.sum())} of {len(st.t)} solves above the 100.0 ms MPC period; time "
-        "paused: the solves' measured wall times")
+        f"time paused: each solve's measured wall time; {int(st.above.sum())} of {len(st.t)} "
+        "solves above the 100.0 ms MPC period")
     assert plot(paused / "run.mcap", "--out", tmp_path / "b", "--formats", "png,svg",
                 "-q").exit_code == 0
     for f in ("timing.png", "timing.svg"):

@@ -17,9 +17,9 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["FigureInputError", "RunTrace", "blamed_on", "load_trace", "not_run_yet", "parse_bool",
-           "pooled_counts", "read_table", "resolve_log", "resolve_run_log", "resolve_table",
-           "sweep_spec", "trace_of"]
+__all__ = ["FigureInputError", "RunTrace", "blamed_on", "count_cell", "load_trace",
+           "not_run_yet", "parse_bool", "pooled_counts", "read_table", "resolve_log",
+           "resolve_run_log", "resolve_table", "sweep_spec", "trace_of"]
 
 _TRUE = {"true", "1", "yes"}
 _FALSE = {"false", "0", "no"}
@@ -119,13 +119,20 @@ def pooled_counts(table: Path, rows: list[dict[str, str]], key, columns: tuple[s
             continue
         sums = out.setdefault(k, [0] * len(columns))
         for i, col in enumerate(columns):
-            text = row.get(col)
-            try:
-                sums[i] += int(text)
-            except (TypeError, ValueError):
-                raise FigureInputError(f"{table}:{line}: {col}: expected a count, got "
-                                       f"{text!r}") from None
+            sums[i] += count_cell(row.get(col), f"{table}:{line}: {col}")
     return out
+
+
+def count_cell(text: str | None, where: str) -> int:
+    """A table cell that holds a count.
+
+    Raises:
+        FigureInputError: it does not (``where`` names the cell: file:line: column).
+    """
+    try:
+        return int(text)
+    except (TypeError, ValueError):
+        raise FigureInputError(f"{where}: expected a count, got {text!r}") from None
 
 
 def not_run_yet(directory: str | Path) -> bool:

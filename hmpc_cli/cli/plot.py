@@ -107,7 +107,7 @@ def _timing(log: Path, out: Path | None, formats: str, width: float, height: flo
     """The run's solve times against its MPC period; prints the counts of its title."""
     from hmpc_cli.analysis.tables import FigureInputError, resolve_run_log
     from hmpc_cli.figures.common import check_size, parse_formats
-    from hmpc_cli.figures.timing import solve_times, timing
+    from hmpc_cli.figures.timing import count_text, solve_times, timing
 
     try:
         check_size(width, height)
@@ -115,16 +115,11 @@ def _timing(log: Path, out: Path | None, formats: str, width: float, height: flo
         log = resolve_run_log(log)
         st = solve_times(log)
         out_dir = out if out is not None else checked_output(log.parent, "output directory")
-        timing(log, out_dir, formats, width=width, height=height)
+        timing(st, out_dir, formats, width=width, height=height)
     except FigureInputError as exc:
         _fail(str(exc))
     if not is_quiet():
-        n, above = int(st.counted.sum()), int(st.above.sum())
-        what = (f"compute time charged ({st.charged})" if st.charged else
-                "time paused: the solves' measured wall times")
-        period = (f"above the {1e3 * st.period:.1f} ms MPC period" if st.period is not None
-                  else "(the log does not give the MPC period)")
-        typer.echo(f"{above} of {n} solves {period}; {what}")
+        typer.echo(count_text(st))
     _wrote(names, out_dir)
 
 

@@ -6,10 +6,11 @@ One panel over simulated time (log scale in milliseconds):
   (``/mpc/solve``'s ``latency``) when compute time is charged, else its measured wall
   time (what ``sim.latency = "measured"`` would have charged on this machine);
 * under ``"model"`` or a fixed latency, the measured wall times beside, in grey;
-* the MPC period as a line: a solve above it kept the one solver busy past the next
-  period's solve (red); a solve dropped over ``sim.solve_budget``, a cross; a solve
-  charged nothing under charged time (a first plan computed before the start) is counted
-  and drawn only by its wall time;
+* the MPC period as a line: a solve charged more kept the one solver busy past the next
+  period's solve (red) unless ``sim.solve_budget`` dropped it (a cross: busy for the
+  budget) or a contact stopped it in flight (a triangle: busy until the contact); a first
+  plan computed with ``sim.latency_first = "paused"`` is neither counted nor drawn but by
+  its wall time;
 * the contacts as vertical lines.
 
 The title counts the solves above the period, and under charged time the run's own
@@ -19,6 +20,7 @@ solve's time until the contact; :class:`hmpc_cli.log.topics.RealTime`).
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,12 +37,14 @@ from hmpc_cli.figures.common import (
     save_figure,
 )
 
-__all__ = ["SolveTimes", "solve_times", "timing"]
+__all__ = ["SolveTimes", "count_text", "solve_times", "timing"]
 
 LATE_COLOR = "#d62728"  # red: above the period
 ON_TIME_COLOR = "#4a6fa5"  # muted blue
 WALL_COLOR = "#9a9a9a"  # grey: measured wall times under a charge that is not them
 DROPPED = " (over budget: dropped)"  # /mpc/solve's reason suffix
+#: the note a solve's reason carries of solves a contact stopped before it (their times)
+STOPPED = re.compile(r"after a contact stopped the solve of t = ([0-9., e+-]+?) s: dropped")
 
 
 @dataclass(frozen=True)
@@ -53,6 +57,10 @@ class SolveTimes:
             charged (``charged``), else its measured wall time.
         wall: each solve's measured wall time (S,) [s].
         dropped: the solves dropped over ``sim.solve_budget`` (S,).
+        stopped: the solves a contact stopped in flight (S,) (``sim.preempt_at_contact``).
+        counted: the solves whose compute time the plant waited for (S,): all with time
+            paused, else the charged ones (not a first plan computed with
+            ``sim.latency_first = "paused"``).
         period: the fixed-mode MPC's period [s] (None: the log does not say).
         charged: ``sim.latency``'s kind when compute time is charged ("model",
             "measured", "fixed"), else "" (time paused).
@@ -64,19 +72,12 @@ class SolveTimes:
     compute: np.ndarray
     wall: np.ndarray
     dropped: np.ndarray
+    stopped: np.ndarray
+    counted: np.ndarray
     period: float | None
     charged: str
     contacts: np.ndarray
     real_time: dict | None
-
-    @property
-    def counted(self) -> np.ndarray:
-        """The solves whose compute time the plant waited for (S,).
-
-        All with time paused, else the charged ones (a first plan computed before the
-        start is not).
-        """
-        return self.compute > 0.0 if self.charged else np.ones(len(self.t), dtype=bool)
 
     @property
     def above(self) -> np.ndarray:
@@ -123,32 +124,61 @@ def solve_times(path: str | Path) -> SolveTimes:
 
         real_time = asdict(run.summary.real_time)
     charged = real_time["latency"] if real_time else _charged(run.scenario)
+    t = np.array([s.t for s in run.solves], dtype=float)
     wall = np.array([s.wall_time for s in run.solves], dtype=float)
+    counted = np.ones(len(t), dtype=bool)
+    if charged and (run.scenario.get("sim") or {}).get("latency_first") == "paused":
+        counted[0] = False  # the first solve, made with time paused
     return SolveTimes(
-        np.array([s.t for s in run.solves], dtype=float),
-        np.array([s.latency for s in run.solves], dtype=float) if charged else wall, wall,
+        t, np.array([s.latency for s in run.solves], dtype=float) if charged else wall, wall,
         np.array([s.reason.endswith(DROPPED) for s in run.solves], dtype=bool),
+        _stopped([s.reason for s in run.solves], t), counted,
         real_time["period"] if real_time else _period(run.scenario), charged,
         np.array([e.t for e in run.events], dtype=float), real_time)
 
 
-def _title(st: SolveTimes) -> str:
-    """What the figure shows, counted."""
+def _stopped(reasons: list[str], t: np.ndarray) -> np.ndarray:
+    """The solves a contact stopped in flight (S,), from the notes of the solves after.
+
+    A solve's reason names the solve times (to 0.1 ms) a contact stopped before it: each
+    is the latest earlier solve of that time not named yet (solves after contacts in one
+    step share their time).
+    """
+    out = np.zeros(len(t), dtype=bool)
+    for i, reason in enumerate(reasons):
+        for m in STOPPED.finditer(reason):
+            for v in (float(x) for x in m.group(1).split(", ")):
+                j = next((j for j in range(i - 1, -1, -1)
+                          if not out[j] and abs(t[j] - v) < 5.01e-5), None)
+                if j is not None:
+                    out[j] = True
+    return out
+
+
+def count_text(st: SolveTimes) -> str:
+    """The counted solves above the period, and how compute time was charged (one line)."""
     n, above = int(st.counted.sum()), int(st.above.sum())
-    what = "charged solves" if st.charged else "solves"
     head = (f"compute time charged ({st.charged})" if st.charged else
             "time paused: each solve's measured wall time")
+    what = "charged solves" if st.charged else "solves"
     if st.period is None:
         return f"{head}; {n} {what} (the log does not give the MPC period)"
-    dropped = int((st.above & st.dropped).sum())
-    text = (f"{head}; {above} of {n} {what} above the {1e3 * st.period:.1f} ms MPC period"
-            + (f" ({dropped} dropped over budget)" if dropped else ""))
+    more = [f"{k} {how}" for k, how in ((int((st.above & st.dropped).sum()),
+                                         "dropped over budget"),
+                                        (int((st.above & st.stopped).sum()),
+                                         "stopped by a contact")) if k]
+    over = "charged more than" if st.charged else "above"
+    return (f"{head}; {above} of {n} {what} {over} the {1e3 * st.period:.1f} ms MPC period"
+            + (f" ({', '.join(more)})" if more else ""))
+
+
+def _title(st: SolveTimes) -> str:
+    """What the figure shows, counted; the run's own real_time beneath."""
     rt = st.real_time
-    if rt:
-        text += (f"\nreal_time: {rt['late_solves']} of {rt['charged_solves']} charged solves "
-                 f"kept the solver busy past the period, {rt['dropped_solves']} dropped, "
-                 f"{rt['preempted_solves']} stopped by a contact")
-    return text
+    return count_text(st) + (
+        f"\nreal_time: {rt['late_solves']} of {rt['charged_solves']} charged solves kept the "
+        f"solver busy past the period, {rt['dropped_solves']} dropped, "
+        f"{rt['preempted_solves']} stopped by a contact" if rt else "")
 
 
 def _minor_label(v: float, _pos=None) -> str:
@@ -174,15 +204,18 @@ def _figure(st: SolveTimes, width: float, height: float):
     if st.period is not None:
         ax.axhline(1e3 * st.period, color="black", lw=0.8,
                    label=f"MPC period {1e3 * st.period:.1f} ms")
-    late = st.above & ~st.dropped
-    kept = st.counted & ~st.above & ~st.dropped
+    ended = st.counted & (st.dropped | st.stopped)  # not busy for their whole charge
+    late = st.above & ~ended
+    kept = st.counted & ~st.above & ~ended
     what = "charged" if st.charged else "wall time"
     ax.plot(st.t[kept], ms[kept], "o", ms=3, color=ON_TIME_COLOR, label=f"solve ({what})")
     if late.any():
         ax.plot(st.t[late], ms[late], "o", ms=3, color=LATE_COLOR, label="above the period")
-    if st.dropped.any():
-        ax.plot(st.t[st.dropped], ms[st.dropped], "x", ms=4, color=LATE_COLOR,
-                label="dropped over budget")
+    for sel, marker, label in ((st.counted & st.dropped, "x", "dropped over budget"),
+                               (st.counted & st.stopped & ~st.dropped, "v",
+                                "stopped by a contact")):
+        if sel.any():
+            ax.plot(st.t[sel], ms[sel], marker, ms=4, color=LATE_COLOR, label=label)
     ax.set_yscale("log")
     from matplotlib.ticker import FuncFormatter
 
@@ -196,17 +229,18 @@ def _figure(st: SolveTimes, width: float, height: float):
     return fig
 
 
-def timing(log: str | Path, out_dir: str | Path,
+def timing(log: str | Path | SolveTimes, out_dir: str | Path,
            formats: str | Iterable[str] = ("pdf", "svg", "png"), *,
            width: float = TEXT_WIDTH_IN, height: float = 2.4, dpi: int = 300) -> list[Path]:
     """Draws the run's solve times against its MPC period into out_dir/timing.<fmt>.
 
+    ``log``: the run log (a run.mcap or its run directory), or its :func:`solve_times`.
     Sizes in inches. Returns the files. Raises FigureInputError on bad formats or sizes,
     an unreadable log or one without a solve, before anything is written.
     """
     check_size(width, height)
     fmts = parse_formats(formats)
-    st = solve_times(log)
+    st = log if isinstance(log, SolveTimes) else solve_times(log)
     out = make_out_dir(Path(out_dir))
     with figure_style():
         save_figure(_figure(st, width, height), out, "timing", fmts, dpi=dpi)

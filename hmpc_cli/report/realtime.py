@@ -15,8 +15,9 @@ import statistics
 from pathlib import Path
 
 from hmpc_cli.analysis.tables import (
-    FigureInputError, parse_bool, pooled_counts, read_table, resolve_table, sweep_spec)
-from hmpc_cli.report.robustness import PAST_PERIOD, settings_text, wall_text
+    FigureInputError, count_cell, parse_bool, pooled_counts, read_table, resolve_table,
+    sweep_spec)
+from hmpc_cli.report.robustness import FLOWN_BEFORE, PAST_PERIOD, settings_text, wall_text
 
 __all__ = ["realtime_section"]
 
@@ -106,18 +107,6 @@ def _ms(rows: list[dict], key: str, how) -> str:
 KEEPS_UP = 0.95
 
 
-def _count(text: str, where: str) -> int:
-    """A table cell that holds a count.
-
-    Raises:
-        FigureInputError: it does not (``where`` names the cell).
-    """
-    try:
-        return int(text)
-    except (TypeError, ValueError):
-        raise FigureInputError(f"{where}: expected a count, got {text!r}") from None
-
-
 def _duration(sim: dict) -> float | None:
     """The runs' ``sim.duration`` [s] (None: the settings cannot say)."""
     try:
@@ -191,12 +180,10 @@ def _late_lines(table: Path, rows: list[dict], lats: list[str], ctrls: list[str]
                            if r["latency"] in charged else None, POOLED)
     shown = [lat for lat in charged if any((lat, c) in pooled for c in ctrls)]
     unrecorded = ", ".join(f"`{lat}`" for lat in charged if lat not in shown)
-    before = (f"the runs of {unrecorded} were flown before hmpc recorded `real_time` (a run "
-              "flown now records them in its summary and the table's `late_solves` column)"
-              ) if unrecorded else ""
+    before = FLOWN_BEFORE.format(f"the {unrecorded}") if unrecorded else ""
     if not shown:
         return ["", f"Solves past the MPC period: not in this table; {before}."]
-    lines = ["", PAST_PERIOD.format(pooled="every run of the cell pooled")
+    lines = ["", PAST_PERIOD.format(pooled="every run of the cell that recorded them pooled")
              + "; `-`: no run of the cell recorded them" + (f"; {before}" if before else "")
              + "):", "",
              "| controller | " + " | ".join(shown) + " |", "|---|" + "---|" * len(shown)]
@@ -224,7 +211,7 @@ def realtime_section(directory: Path) -> list[str]:
         key = (r["latency"], r["controller"])
         ok.setdefault(key, []).append(parse_bool(r["success"], f"{table}:{line}: success"))
         if ok[key][-1]:
-            solves.setdefault(key, []).append(_count(r["solves"], f"{table}:{line}: solves"))
+            solves.setdefault(key, []).append(count_cell(r["solves"], f"{table}:{line}: solves"))
     if not ok:
         raise FigureInputError(f"{table}: no finished run")
     scenario = Path(str(spec.get("scenario", "?"))).name

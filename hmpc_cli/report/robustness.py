@@ -43,6 +43,8 @@ PAST_PERIOD = ("Solves that kept the one solver busy past the MPC period, so tha
                "period's solve waited (`late_solves` of `charged_solves`, {pooled}, failed "
                "ones too; then the solves whose plans the budget dropped and those a contact "
                "stopped")
+#: ... when a table's runs do not record them (``{}``: whose runs)
+FLOWN_BEFORE = "{} runs were flown before hmpc recorded `real_time`"
 
 
 def margins_refused(row: dict) -> bool:
@@ -331,13 +333,14 @@ def wall_text(rows: list[dict]) -> str:
 
 
 def machines_text(rows: list[dict]) -> str:
-    """``; run on CPU (n runs), ...`` when any row records its CPU, else ''.
+    """``; run on CPU (n runs), ...``; ``; its CPU not recorded`` when no row records it.
 
-    Rows of a table written before hmpc recorded the CPU count as not recorded.
+    Rows of a table written before hmpc recorded the CPU count as not recorded (wall
+    times of two tables compare only on one machine).
     """
     cpus = Counter(r.get("cpu") or "" for r in rows)
     if not any(cpus):
-        return ""
+        return "; its CPU not recorded" if rows else ""
     parts = [f"{cpu or 'a CPU not recorded'} ({n} run{'' if n == 1 else 's'})"
              for cpu, n in sorted(cpus.items(), key=lambda kv: (not kv[0], -kv[1], kv[0]))]
     return "; run on " + ", ".join(parts)
@@ -624,7 +627,7 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
              *([f"Tube diameter diam T(1/f) at each rate (Step 5, sampled constants: "
                 f"{region}; the lower panels):", "", *_diam_lines(diam), ""]
                if diam else []),
-             *_past_period_lines(table, rows),
+             *_past_period_lines(table, rows, charged(spec) is not None),
              "Computed findings (a pairwise claim only where the intervals separate; a "
              "trend at the 5 % level, uncorrected for this page's many tests, and again "
              "without the slowest rate where it holds):", "",
@@ -633,11 +636,11 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
             cells, spec)
 
 
-def _past_period_lines(table: Path, rows: list[dict]) -> list[str]:
+def _past_period_lines(table: Path, rows: list[dict], charges: bool) -> list[str]:
     """Per policy and rate, the charged solves past the MPC period.
 
-    No line when no row records them (time paused, or runs flown before hmpc recorded
-    ``real_time``).
+    ``charges``: the study charges compute time. No line with time paused; one sentence
+    for runs flown before hmpc recorded ``real_time``.
     """
     from hmpc_cli.sweep.table import POOLED, late_text
 
@@ -647,11 +650,13 @@ def _past_period_lines(table: Path, rows: list[dict]) -> list[str]:
 
     pooled = pooled_counts(table, rows, key, POOLED)
     if not pooled:
-        return []
+        return [f"Solves past the MPC period: not in this table; {FLOWN_BEFORE.format('its')}.",
+                ""] if charges else []
     policies = list(dict.fromkeys(p for p, _ in pooled))
     rates = sorted({x for _, x in pooled})
-    return [PAST_PERIOD.format(pooled="every disturbance size and run pooled") + "): a rate "
-            "whose solves fit its period runs at that rate.", "",
+    return [PAST_PERIOD.format(pooled="every disturbance size and run that recorded them "
+                               "pooled") + "): a rate whose solves fit its period runs at "
+            "that rate.", "",
             "| replanning | " + " | ".join(f"{x:g} Hz" for x in rates) + " |",
             "|---|" + "---|" * len(rates),
             *(f"| {p} | " + " | ".join(late_text(*pooled[(p, x)]) if (p, x) in pooled

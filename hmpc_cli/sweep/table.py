@@ -238,9 +238,10 @@ def result_rows(plan, out: Path) -> list[dict[str, str]]:
     """One row per finished run, in grid order (:func:`grid_order`), however they finished.
 
     A run whose directory is finished gets its row from its summary; a tabled run never
-    started here (:func:`finished_runs`) keeps its outcome (the metrics and ``log``) as
-    tabled. The run id, labels, seed and ``set.*`` columns come from the plan (an axis or
-    a label renamed since is renamed in the table too). Columns: :attr:`SweepPlan.columns`.
+    started here (:func:`finished_runs`) keeps its outcome (the metrics, the real-time
+    columns and ``log``) as tabled. The run id, labels, seed and ``set.*`` columns come
+    from the plan (an axis or a label renamed since is renamed in the table too).
+    Columns: :attr:`SweepPlan.columns`.
     """
     rows = []
     tabled = tabled_rows(plan, out)
@@ -307,12 +308,13 @@ class CellStats:
 
     ``late``, ``dropped``, ``preempted`` of ``charged``: the charged solves that kept the
     solver busy past the MPC period, whose plans a budget dropped, and that a contact
-    stopped, over the runs that recorded ``real_time``.
+    stopped, over the ``recorded`` runs (those that recorded ``real_time``).
     """
 
     cell: tuple[str, ...]
     runs: int = 0
     successes: int = 0
+    recorded: int = 0
     charged: int = 0
     late: int = 0
     dropped: int = 0
@@ -322,7 +324,7 @@ class CellStats:
         """The cell's counts as table cells (its solves past the period when ``charged``)."""
         rate = f"{100 * self.successes / self.runs:.0f} %" if self.runs else "-"
         late = late_text(self.charged, self.late, self.dropped, self.preempted) \
-            if self.charged else "-"
+            if self.recorded else "-"
         return [str(self.runs), str(self.successes), rate, *([late] if charged else [])]
 
 
@@ -348,13 +350,24 @@ def cell_stats(plan, out: Path) -> list[CellStats]:
     stats: dict[tuple[str, ...], list[int]] = {}
     done = finished_runs(plan, out.resolve(), plan.runs)
     for run in plan.runs:
-        s = stats.setdefault(tuple(cell_text(v) for v in run.cell), [0] * (2 + len(POOLED)))
+        s = stats.setdefault(tuple(cell_text(v) for v in run.cell), [0] * (3 + len(POOLED)))
         summary = done[run.run_id]
         if summary is not None:
             s[0] += 1
             s[1] += bool(summary.get("success"))
-            real_time = summary.get("real_time") or {}
-            if str(real_time.get("charged_solves", "")).strip():
-                for i, key in enumerate(POOLED, start=2):
-                    s[i] += int(real_time[key])
+            counts = _pooled(summary.get("real_time") or {})
+            if counts is not None:
+                s[2:] = [a + b for a, b in zip(s[2:], [1, *counts], strict=True)]
     return [CellStats(c, *v) for c, v in stats.items()]
+
+
+def _pooled(real_time: dict) -> list[int] | None:
+    """A run's :data:`POOLED` counts; None: not recorded, or a tabled cell not a count.
+
+    The table printed at a sweep's end leaves such a run out rather than fail; the
+    results page names the cell.
+    """
+    try:
+        return [int(real_time[k]) for k in POOLED]
+    except (KeyError, TypeError, ValueError):
+        return None
