@@ -5,8 +5,9 @@ Runs the nominal ball and the 10 Figure 3 trials at 10, 20, 60 and 100 Hz (100 H
 ``paused`` (the paper's runs), charged by the deterministic ``model`` and ``measured``
 (machine dependent), each with delay compensation and the first plan paused, through
 ``hmpc sweep``'s machinery (resumable: ``--out`` keeps finished runs). Prints and writes
-success counts per cell and the MPC solve percentiles (all solves, and those with a switch
-left), measured wall time and charged delay.
+success counts per cell, the solves past the MPC period (from the runs' ``real_time``), and
+the MPC solve percentiles (all solves, and those with a switch left), measured wall time
+and charged delay.
 
     python benchmarks/realtime.py --write results/bench/realtime.md
     python benchmarks/realtime.py --latency paused,model --rates 20,60 --workers 2
@@ -113,6 +114,33 @@ def summarise(out: Path) -> tuple[dict, dict, float, int, list[str]]:
     return counts, solves, sum(walls), no_log, cpus
 
 
+def past_period(out: Path) -> dict[tuple[str, str], list[int]]:
+    """Per (latency, controller): the table's charged, late, dropped and stopped solves,
+    pooled over its runs that recorded them (the summary's ``real_time``; a row flown
+    before hmpc recorded it has none)."""
+    from hmpc_cli.analysis.tables import pooled_counts
+    from hmpc_cli.sweep.table import POOLED
+
+    table = out / "results.csv"
+    with open(table, newline="", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    return pooled_counts(table, rows, lambda r: (r["latency"], r["controller"]), POOLED)
+
+
+def _past_period_lines(late: dict, lats: list[str], ctrls: list[str]) -> list[str]:
+    """The report's table of :func:`past_period` (none when no run recorded it)."""
+    from hmpc_cli.report.robustness import past_period_table
+
+    shown = [lat for lat in lats if any(k[0] == lat for k in late)]
+    if not shown:
+        return []
+    return ["", "Solves past the MPC period (`late_solves` of `charged_solves` of the "
+            "runs' `real_time`, pooled; then those the budget dropped and a contact stopped; "
+            "`-`: not recorded):", "",
+            *past_period_table({(c, lat): v for (lat, c), v in late.items()}, "controller",
+                               ctrls, shown)]
+
+
 def machine(cpus: list[str] = ()) -> str:
     """The runs' CPUs when the table names them, else this machine (marked so)."""
     if cpus:
@@ -158,8 +186,10 @@ def run_settings(plan) -> str:
     return f"{comp_text}, {first_text}"
 
 
-def report(counts: dict, solves: dict, args, cpu: float, cpus: list[str] = ()) -> str:
-    """The Markdown report: success per controller and latency, solve percentiles."""
+def report(counts: dict, solves: dict, args, cpu: float, cpus: list[str] = (),
+           late: dict | None = None) -> str:
+    """The Markdown report: success per controller and latency, solves past the period
+    (``late``: :func:`past_period`), solve percentiles."""
     lats = [lat for lat in args.latency if any(k[0] == lat for k in counts)]
     ctrls = list(dict.fromkeys(k[1] for k in counts))
     lines = [f"# Real time: {args.title}", "",
@@ -178,6 +208,7 @@ def report(counts: dict, solves: dict, args, cpu: float, cpus: list[str] = ()) -
         cells = [f"{counts[(lat, c)][0]}/{counts[(lat, c)][1]}" if (lat, c) in counts else "-"
                  for lat in lats]
         lines.append(f"| {c} | " + " | ".join(cells) + " |")
+    lines += _past_period_lines(late or {}, lats, ctrls)
     lines += ["", "MPC solves [ms] (measured wall time; charged delay for model/measured), "
               "all controllers:", "", SOLVE_HEAD[0].format("latency"), SOLVE_HEAD[1]]
     for lat in lats:
@@ -219,7 +250,7 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     execute_sweep(plan, args.out, workers=args.workers)
     counts, solves, cpu, no_log, cpus = summarise(args.out)
-    out = report(counts, solves, args, cpu, cpus)
+    out = report(counts, solves, args, cpu, cpus, past_period(args.out))
     print(out)
     if no_log and args.write:
         _refuse(f"--write {args.write}: {no_log} of {sum(c[1] for c in counts.values())} "

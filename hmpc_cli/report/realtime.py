@@ -17,7 +17,8 @@ from pathlib import Path
 from hmpc_cli.analysis.tables import (
     FigureInputError, count_cell, parse_bool, pooled_counts, read_table, resolve_table,
     sweep_spec)
-from hmpc_cli.report.robustness import FLOWN_BEFORE, PAST_PERIOD, settings_text, wall_text
+from hmpc_cli.report.robustness import (
+    FLOWN_BEFORE, PAST_PERIOD, past_period_table, settings_text, wall_text)
 
 __all__ = ["realtime_section"]
 
@@ -171,7 +172,7 @@ def _late_lines(table: Path, rows: list[dict], lats: list[str], ctrls: list[str]
     ``dropped_solves``, ``preempted_solves`` of ``charged_solves``; empty in a row flown
     before hmpc recorded them).
     """
-    from hmpc_cli.sweep.table import POOLED, late_text
+    from hmpc_cli.sweep.table import POOLED
 
     charged = [lat for lat in lats if _kind(lat, entries) != "paused"]
     if not charged:
@@ -183,14 +184,10 @@ def _late_lines(table: Path, rows: list[dict], lats: list[str], ctrls: list[str]
     before = FLOWN_BEFORE.format(f"the {unrecorded}") if unrecorded else ""
     if not shown:
         return ["", f"Solves past the MPC period: not in this table; {before}."]
-    lines = ["", PAST_PERIOD.format(pooled="every run of the cell that recorded them pooled")
-             + "; `-`: no run of the cell recorded them" + (f"; {before}" if before else "")
-             + "):", "",
-             "| controller | " + " | ".join(shown) + " |", "|---|" + "---|" * len(shown)]
-    for c in ctrls:
-        cells = [late_text(*v) if (v := pooled.get((lat, c))) else "-" for lat in shown]
-        lines.append(f"| {c} | " + " | ".join(cells) + " |")
-    return lines
+    return ["", PAST_PERIOD.format(pooled="every run of the cell that recorded them pooled")
+            + "; `-`: no run of the cell recorded them" + (f"; {before}" if before else "")
+            + "):", "", *past_period_table({(c, lat): v for (lat, c), v in pooled.items()},
+                                           "controller", ctrls, shown)]
 
 
 def realtime_section(directory: Path) -> list[str]:

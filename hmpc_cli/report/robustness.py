@@ -35,7 +35,7 @@ from hmpc_cli.tube.margins_file import REFUSED
 if TYPE_CHECKING:
     from hmpc_cli.tube.report import TubeReport
 
-__all__ = ["Study", "robustness_sections"]
+__all__ = ["Study", "past_period_table", "robustness_sections"]
 
 RATE, POLICY, SIZE = "mpc.rate_hz", "replanning.policy", "disturbance.magnitude"
 #: the page's words for a table of charged solves past the period (``pooled``: over what)
@@ -642,7 +642,7 @@ def _past_period_lines(table: Path, rows: list[dict], charges: bool) -> list[str
     ``charges``: the study charges compute time. No line with time paused; one sentence
     for runs flown before hmpc recorded ``real_time``.
     """
-    from hmpc_cli.sweep.table import POOLED, late_text
+    from hmpc_cli.sweep.table import POOLED
 
     def key(row: dict) -> tuple[str, float] | None:
         rate = _number(row.get(RATE))
@@ -657,11 +657,23 @@ def _past_period_lines(table: Path, rows: list[dict], charges: bool) -> list[str
     return [PAST_PERIOD.format(pooled="every disturbance size and run that recorded them "
                                "pooled") + "): a rate whose solves fit its period runs at "
             "that rate.", "",
-            "| replanning | " + " | ".join(f"{x:g} Hz" for x in rates) + " |",
-            "|---|" + "---|" * len(rates),
-            *(f"| {p} | " + " | ".join(late_text(*pooled[(p, x)]) if (p, x) in pooled
-                                        else "-" for x in rates) + " |" for p in policies),
+            *past_period_table(pooled, "replanning", policies, rates, lambda x: f"{x:g} Hz"),
             ""]
+
+
+def past_period_table(pooled: dict, head: str, rows: list, columns: list,
+                      label=str) -> list[str]:
+    """A Markdown table of pooled charged solves past the period (:func:`late_text`).
+
+    ``pooled``: (row, column) -> the :data:`~hmpc_cli.sweep.table.POOLED` counts; a cell
+    without them is ``-``. ``label(column)``: its heading.
+    """
+    from hmpc_cli.sweep.table import late_text
+
+    return ["| " + head + " | " + " | ".join(map(label, columns)) + " |",
+            "|---|" + "---|" * len(columns),
+            *(f"| {r} | " + " | ".join(late_text(*pooled[(r, c)]) if (r, c) in pooled
+                                        else "-" for c in columns) + " |" for r in rows)]
 
 
 def twin_pairs(paused: list, charged: list) -> list[tuple]:
