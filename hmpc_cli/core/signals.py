@@ -13,10 +13,12 @@ solve), and CasADi's warning about it is left out of stderr. Nothing happens at 
 
 from __future__ import annotations
 
+import _thread
 import contextlib
 import signal
 import sys
 import threading
+import time
 from collections.abc import Iterator
 
 __all__ = ["EXIT_CODES", "Interrupted", "abortable", "as_interrupted", "check", "deferred",
@@ -197,6 +199,36 @@ def _release_stderr() -> None:
     quiet.release()
 
 
+def _unraisable(hook):
+    """``sys.unraisablehook`` that raises a dropped :class:`Interrupted` again, else ``hook``.
+
+    Python drops an exception raised where nothing can catch it (a weakref callback such
+    as importlib's module-lock one, a ``__del__``) and reports it as "Exception ignored":
+    a stop signal landing there would be lost with a traceback on stderr. It is not
+    reported; the signal stays recorded (:func:`check` raises it) and is sent again to
+    the main thread a millisecond later from another thread, so that the handler raises
+    in the code around (handled in the hook itself it would be dropped again; landing in
+    such a place again, it is sent again).
+    """
+    def unraisable(info) -> None:
+        if not (isinstance(info.exc_value, Interrupted) and _STATE.installed):
+            hook(info)
+            return
+        _STATE.raise_now = True  # it raised, so it could: it may again
+        with contextlib.suppress(RuntimeError):  # no new thread at shutdown: check() has it
+            _thread.start_new_thread(_send_again, (threading.main_thread().ident,
+                                                   info.exc_value.signum))
+
+    return unraisable
+
+
+def _send_again(thread_id: int, signum: int) -> None:
+    """Sends ``signum`` to the thread ``thread_id`` once the hook that asked has returned."""
+    time.sleep(0.001)
+    with contextlib.suppress(OSError):  # the process is ending
+        signal.pthread_kill(thread_id, signum)
+
+
 def install_deferred() -> None:
     """Installs the stop handlers for good, recording only (a sweep's worker process).
 
@@ -205,6 +237,7 @@ def install_deferred() -> None:
     """
     for s in STOP_SIGNALS:
         signal.signal(s, _handler)
+    sys.unraisablehook = _unraisable(sys.unraisablehook)
     _STATE.installed, _STATE.raise_now = True, False
 
 
@@ -220,10 +253,12 @@ def handle_signals() -> Iterator[None]:
         return
     reset()
     previous = {s: signal.signal(s, _handler) for s in STOP_SIGNALS}
+    hook, sys.unraisablehook = sys.unraisablehook, _unraisable(sys.unraisablehook)
     _STATE.installed, _STATE.raise_now = True, True
     try:
         yield
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
+        sys.unraisablehook = hook
         _STATE.installed = False

@@ -198,7 +198,7 @@ def _figure(st: SolveTimes, width: float, height: float):
     ms = 1e3 * st.compute
     for i, t in enumerate(st.contacts):
         ax.axvline(t, color="black", lw=0.5, ls=":", label="contact" if i == 0 else None)
-    if st.charged and not np.array_equal(st.compute, st.wall):
+    if st.charged in ("model", "fixed"):  # a charge that is not the solve's wall time
         ax.plot(st.t, 1e3 * np.maximum(st.wall, 1e-6), ".", ms=2.5, color=WALL_COLOR,
                 label="measured wall time")
     if st.period is not None:
@@ -208,7 +208,8 @@ def _figure(st: SolveTimes, width: float, height: float):
     late = st.above & ~ended
     kept = st.counted & ~st.above & ~ended
     what = "charged" if st.charged else "wall time"
-    ax.plot(st.t[kept], ms[kept], "o", ms=3, color=ON_TIME_COLOR, label=f"solve ({what})")
+    if kept.any():
+        ax.plot(st.t[kept], ms[kept], "o", ms=3, color=ON_TIME_COLOR, label=f"solve ({what})")
     if late.any():
         ax.plot(st.t[late], ms[late], "o", ms=3, color=LATE_COLOR, label="above the period")
     for sel, marker, label in ((st.counted & st.dropped, "x", "dropped over budget"),
