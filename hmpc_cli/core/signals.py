@@ -59,6 +59,8 @@ class _State:
         self.installed = False
         self.solving = False  # inside an abortable section (an IPOPT solve)
         self.quiet: _Unreported | None = None  # sys.stderr's filter after a signal in one
+        self.dropped: int | None = None  # a raise Python dropped, to be raised again
+        self.generation = 0  # handle_signals' entries and exits: a late re-raise is stale
 
 
 _STATE = _State()
@@ -69,6 +71,7 @@ def _handler(signum: int, frame) -> None:
         _STATE.signum = int(signum)
     if _STATE.raise_now:
         _STATE.raise_now = False  # raise once; the code then checks the flag
+        _STATE.dropped = None  # raised (again): a drop says so anew
         if _STATE.solving and _STATE.quiet is None:  # inside a solve CasADi catches the
             # interrupt and warns about it: that line is left out of stderr
             _STATE.quiet = sys.stderr = _Unreported(sys.stderr)
@@ -89,7 +92,7 @@ def pending() -> int | None:
 
 def reset() -> None:
     """Forgets a received signal (tests, and a fresh run in a long-lived process)."""
-    _STATE.signum = None
+    _STATE.signum = _STATE.dropped = None
 
 
 def check() -> None:
@@ -205,28 +208,33 @@ def _unraisable(hook):
     Python drops an exception raised where nothing can catch it (a weakref callback such
     as importlib's module-lock one, a ``__del__``) and reports it as "Exception ignored":
     a stop signal landing there would be lost with a traceback on stderr. It is not
-    reported; the signal stays recorded (:func:`check` raises it) and is sent again to
-    the main thread a millisecond later from another thread, so that the handler raises
-    in the code around (handled in the hook itself it would be dropped again; landing in
-    such a place again, it is sent again).
+    reported; it stays recorded (:func:`check` raises it) and the handler is called
+    again from another thread a millisecond later (``_thread.interrupt_main``: no signal
+    reaches the process), so that it raises in the code around; landing in such a place
+    again, it is called again. A body of :func:`handle_signals` that ends first raises it
+    on its way out.
     """
     def unraisable(info) -> None:
         if not (isinstance(info.exc_value, Interrupted) and _STATE.installed):
             hook(info)
             return
         _STATE.raise_now = True  # it raised, so it could: it may again
-        with contextlib.suppress(RuntimeError):  # no new thread at shutdown: check() has it
-            _thread.start_new_thread(_send_again, (threading.main_thread().ident,
-                                                   info.exc_value.signum))
+        _STATE.dropped = info.exc_value.signum
+        with contextlib.suppress(RuntimeError):  # no new thread at shutdown: see above
+            _thread.start_new_thread(_raise_again, (_STATE.generation, _STATE.dropped))
 
     return unraisable
 
 
-def _send_again(thread_id: int, signum: int) -> None:
-    """Sends ``signum`` to the thread ``thread_id`` once the hook that asked has returned."""
+def _raise_again(generation: int, signum: int) -> None:
+    """Calls the handler of ``signum`` in the main thread once the hook that asked returned.
+
+    Not if it was raised since, or the handlers that dropped it are gone (``generation``:
+    :attr:`_State.generation` when it was dropped).
+    """
     time.sleep(0.001)
-    with contextlib.suppress(OSError):  # the process is ending
-        signal.pthread_kill(thread_id, signum)
+    if _STATE.installed and _STATE.generation == generation and _STATE.dropped == signum:
+        _thread.interrupt_main(signum)
 
 
 def install_deferred() -> None:
@@ -246,7 +254,8 @@ def handle_signals() -> Iterator[None]:
     """Installs the stop handlers for SIGINT, SIGTERM and SIGHUP; restores them on exit.
 
     Only in the main thread (elsewhere: does nothing). The received signal is forgotten on
-    entry.
+    entry. A stop whose raise Python dropped (:func:`_unraisable`) is raised on exit if
+    the body ends first.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -255,9 +264,14 @@ def handle_signals() -> Iterator[None]:
     previous = {s: signal.signal(s, _handler) for s in STOP_SIGNALS}
     hook, sys.unraisablehook = sys.unraisablehook, _unraisable(sys.unraisablehook)
     _STATE.installed, _STATE.raise_now = True, True
+    _STATE.generation += 1
     try:
         yield
+        if _STATE.dropped is not None:  # the body ended before the stop was raised again
+            raise Interrupted(_STATE.dropped)
     finally:
+        _STATE.generation += 1  # a raise asked for now is stale
+        _STATE.dropped = None
         for s, h in previous.items():
             signal.signal(s, h)
         sys.unraisablehook = hook
