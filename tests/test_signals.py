@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -319,6 +320,66 @@ def test_a_stop_signal_where_python_drops_exceptions_is_raised_after_it(sig):
         Dying()
         gc.collect()
         assert [type(u.exc_value) for u in dropped] == [ValueError]  # others as before
+    finally:
+        sys.unraisablehook = hook
+        signals.reset()
+
+
+def test_a_dropped_stop_is_asked_for_again_only_while_nothing_raised_it():
+    """check() raising the stop first, no second raise cuts the cleanup after it; check()'s
+    own Interrupted dropped in a finaliser inside a deferred section keeps the section
+    deferred (the signal stays recorded); a nested handle_signals leaves the outer one in
+    place, so a stop dropped after the inner one ended is still raised (review of the
+    change: each reproduced)."""
+    import gc
+
+    from hmpc_cli.core import signals
+
+    hook, sys.unraisablehook = sys.unraisablehook, lambda info: None
+    raise_in_del = {"fn": lambda: signal.raise_signal(signal.SIGTERM)}
+
+    class Dying:
+        def __del__(self):
+            raise_in_del["fn"]()
+            sum(range(1000))
+
+    def spin(seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            pass
+
+    cleaned: list[bool] = []
+    try:
+        with pytest.raises(signals.Interrupted), signals.handle_signals():
+            Dying()
+            gc.collect()  # dropped: asked for again in 1 ms
+            try:
+                signals.check()  # raises it first
+            except signals.Interrupted:
+                spin(0.05)  # cleanup: not cut by a second raise
+                cleaned.append(True)
+                raise
+        assert cleaned == [True]
+        signals.reset()
+        with pytest.raises(signals.Interrupted), signals.handle_signals():
+            with signals.deferred():
+                with contextlib.suppress(signals.Interrupted):
+                    signal.raise_signal(signal.SIGTERM)  # recorded only
+                raise_in_del["fn"] = signals.check
+                Dying()
+                gc.collect()  # check()'s Interrupted dropped: the section stays deferred
+                assert signals._STATE.raise_now is False
+                spin(0.02)
+            signals.check()
+        signals.reset()
+        raise_in_del["fn"] = lambda: signal.raise_signal(signal.SIGINT)
+        with pytest.raises(signals.Interrupted) as exc, signals.handle_signals():
+            with signals.handle_signals():  # nested: the outer one stays
+                pass
+            Dying()
+            gc.collect()
+            spin(5)
+        assert exc.value.signum == signal.SIGINT
     finally:
         sys.unraisablehook = hook
         signals.reset()

@@ -60,6 +60,7 @@ class _State:
         self.solving = False  # inside an abortable section (an IPOPT solve)
         self.quiet: _Unreported | None = None  # sys.stderr's filter after a signal in one
         self.dropped: int | None = None  # a raise Python dropped, to be raised again
+        self.raised: Interrupted | None = None  # the handler's last raise (not check()'s)
         self.generation = 0  # handle_signals' entries and exits: a late re-raise is stale
 
 
@@ -75,7 +76,8 @@ def _handler(signum: int, frame) -> None:
         if _STATE.solving and _STATE.quiet is None:  # inside a solve CasADi catches the
             # interrupt and warns about it: that line is left out of stderr
             _STATE.quiet = sys.stderr = _Unreported(sys.stderr)
-        raise Interrupted(_STATE.signum)
+        _STATE.raised = Interrupted(_STATE.signum)
+        raise _STATE.raised
 
 
 def as_interrupted(exc: BaseException) -> Interrupted:
@@ -102,6 +104,7 @@ def check() -> None:
         Interrupted: a stop signal is pending.
     """
     if _STATE.signum is not None:
+        _STATE.dropped = None  # raised here: a dropped raise is not asked for again
         raise Interrupted(_STATE.signum)
 
 
@@ -212,16 +215,20 @@ def _unraisable(hook):
     again from another thread a millisecond later (``_thread.interrupt_main``: no signal
     reaches the process), so that it raises in the code around; landing in such a place
     again, it is called again. A body of :func:`handle_signals` that ends first raises it
-    on its way out.
+    on its way out. Unlike a signal, the call does not cut a blocking call short (a
+    ``time.sleep``, a wait on a process): the stop waits for it to return.
     """
     def unraisable(info) -> None:
         if not (isinstance(info.exc_value, Interrupted) and _STATE.installed):
             hook(info)
             return
-        _STATE.raise_now = True  # it raised, so it could: it may again
+        if info.exc_value is not _STATE.raised:  # check()'s, in a finaliser: the signal
+            return  # is recorded, and the next check raises it
         _STATE.dropped = info.exc_value.signum
         with contextlib.suppress(RuntimeError):  # no new thread at shutdown: see above
             _thread.start_new_thread(_raise_again, (_STATE.generation, _STATE.dropped))
+        _STATE.raise_now = True  # it raised, so it could: it may again (set last, so that
+        # a second signal does not raise in this hook)
 
     return unraisable
 
@@ -253,12 +260,12 @@ def install_deferred() -> None:
 def handle_signals() -> Iterator[None]:
     """Installs the stop handlers for SIGINT, SIGTERM and SIGHUP; restores them on exit.
 
-    Only in the main thread (elsewhere: does nothing). The received signal is forgotten on
-    entry. A stop whose raise Python dropped (:func:`_unraisable`) is raised on exit if
-    the body ends first.
+    Only in the main thread, and only the outermost (elsewhere, or nested: does nothing).
+    The received signal is forgotten on entry. A stop whose raise Python dropped
+    (:func:`_unraisable`) is raised on exit if the body ends first.
     """
-    if threading.current_thread() is not threading.main_thread():
-        yield
+    if threading.current_thread() is not threading.main_thread() or _STATE.installed:
+        yield  # another thread's, or inside another handle_signals (or a worker's)
         return
     reset()
     previous = {s: signal.signal(s, _handler) for s in STOP_SIGNALS}
