@@ -243,7 +243,23 @@ def scenarios_md() -> str:
             cls = _section_class(model, k)
             out += _model_section(f"`[{k}]`", "", cls, f"{k}.", f"{k}.", used)
             del sub
-    out += ["## `[system]`: the systems", "", SYSTEMS_INTRO.strip(), ""]
+    out += _plugin_sections(systems, planners, mpcs, used)
+    out += [SET_SYNTAX.strip(), ""]
+    out += ["## Sweep files", "", SWEEP_INTRO.strip(), ""]
+    out += _model_section("Sweep file keys", "", sweep_plan.SweepSpec, "", "sweep.", used)
+    out += [SWEEP_TEXT.strip().format(max_seeds=sweep_plan.MAX_SEEDS,
+                                      max_runs=sweep_plan.MAX_RUNS,
+                                      reserved=", ".join(f"`{r}`" for r in
+                                                         sorted(sweep_plan.RESERVED))), ""]
+    stale = sorted(set(NOTES) - used - _documented_notes(model, systems, planners, mpcs))
+    if stale:
+        raise SystemExit(f"docs/generate.py: NOTES for keys the models no longer have: {stale}")
+    return "\n".join(out).rstrip() + "\n"
+
+
+def _plugin_sections(systems: dict, planners: dict, mpcs: dict, used: set[str]) -> list[str]:
+    """The sections of docs/scenarios.md on the bundled systems, planners and MPCs."""
+    out = ["## `[system]`: the systems", "", SYSTEMS_INTRO.strip(), ""]
     for name, spec in systems.items():
         out += _model_section(f"`system.name = {toml_text(name)}`", "", spec.params,
                               "system.", f"system[{name}].", used)
@@ -256,29 +272,17 @@ def scenarios_md() -> str:
             scope = " (with that kind only)" if "." in section else ""
             out.append(f"* {items}{scope}")
         out.append("")
-    out += ["## `[planner]`: the planners", "", PLANNERS_INTRO.strip(), ""]
-    for kind, spec in planners.items():
-        out += _model_section(f"`planner.kind = {toml_text(kind)}`", "", spec.settings,
-                              "planner.", f"planner[{kind}].", used)
-        extra = _needs_lines(spec)
-        out += (extra + [""]) if extra else []
-    out += ["## `[mpc]`: the fixed-mode MPCs", "", MPCS_INTRO.strip(), ""]
-    for kind, spec in mpcs.items():
-        out += _model_section(f"`mpc.kind = {toml_text(kind)}`", "", spec.settings,
-                              "mpc.", f"mpc[{kind}].", used)
-        extra = _needs_lines(spec)
-        out += (extra + [""]) if extra else []
-    out += [SET_SYNTAX.strip(), ""]
-    out += ["## Sweep files", "", SWEEP_INTRO.strip(), ""]
-    out += _model_section("Sweep file keys", "", sweep_plan.SweepSpec, "", "sweep.", used)
-    out += [SWEEP_TEXT.strip().format(max_seeds=sweep_plan.MAX_SEEDS,
-                                      max_runs=sweep_plan.MAX_RUNS,
-                                      reserved=", ".join(f"`{r}`" for r in
-                                                         sorted(sweep_plan.RESERVED))), ""]
-    stale = sorted(set(NOTES) - used - _documented_notes(model, systems, planners, mpcs))
-    if stale:
-        raise SystemExit(f"docs/generate.py: NOTES for keys the models no longer have: {stale}")
-    return "\n".join(out).rstrip() + "\n"
+    for title, intro, key, specs in (("## `[planner]`: the planners", PLANNERS_INTRO,
+                                      "planner", planners),
+                                     ("## `[mpc]`: the fixed-mode MPCs", MPCS_INTRO, "mpc",
+                                      mpcs)):
+        out += [title, "", intro.strip(), ""]
+        for kind, spec in specs.items():
+            out += _model_section(f"`{key}.kind = {toml_text(kind)}`", "", spec.settings,
+                                  f"{key}.", f"{key}[{kind}].", used)
+            extra = _needs_lines(spec)
+            out += (extra + [""]) if extra else []
+    return out
 
 
 def _documented_notes(model, systems, planners, mpcs) -> set[str]:
