@@ -177,17 +177,16 @@ def _late_lines(table: Path, rows: list[dict], lats: list[str], ctrls: list[str]
     charged = [lat for lat in lats if _kind(lat, entries) != "paused"]
     if not charged:
         return []
-    pooled = pooled_counts(table, rows, lambda r: (r["latency"], r["controller"])
+    pooled = pooled_counts(table, rows, lambda r: (r["controller"], r["latency"])
                            if r["latency"] in charged else None, POOLED)
-    shown = [lat for lat in charged if any((lat, c) in pooled for c in ctrls)]
+    shown = [lat for lat in charged if any((c, lat) in pooled for c in ctrls)]
     unrecorded = ", ".join(f"`{lat}`" for lat in charged if lat not in shown)
     before = FLOWN_BEFORE.format(f"the {unrecorded}") if unrecorded else ""
     if not shown:
         return ["", f"Solves past the MPC period: not in this table; {before}."]
     return ["", PAST_PERIOD.format(pooled="every run of the cell that recorded them pooled")
             + "; `-`: no run of the cell recorded them" + (f"; {before}" if before else "")
-            + "):", "", *past_period_table({(c, lat): v for (lat, c), v in pooled.items()},
-                                           "controller", ctrls, shown)]
+            + "):", "", *past_period_table(pooled, "controller", ctrls, shown)]
 
 
 def realtime_section(directory: Path) -> list[str]:
