@@ -269,6 +269,45 @@ def _boom(*args, **kwargs):
     return 1 / 0
 
 
+@pytest.mark.parametrize("summary_too", [False, True], ids=["log", "log and summary"])
+def test_a_full_disk_inside_the_loop_names_only_the_files_written_exit_2(
+        tmp_path, monkeypatch, summary_too):
+    """A full disk is the environment's (exit 2, no traceback file); the second line names
+    what the run directory really holds (it promised summary.json and error.txt that a
+    full disk had not let exist)."""
+    import errno
+
+    from typer.testing import CliRunner
+
+    import hmpc_cli.run.runner as runner
+    from hmpc_cli.cli.app import app
+    from hmpc_cli.run.loop import ClosedLoop
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", "run.mcap")
+
+    real = ClosedLoop.run
+
+    def full_later(self, *args, **kwargs):
+        self.log.state = full
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(ClosedLoop, "run", full_later)
+    if summary_too:
+        monkeypatch.setattr(runner, "_write_summary", full)
+    out = tmp_path / "run"
+    res = CliRunner().invoke(app, ["run", str(BALL), "--out", str(out), "-q", "--set",
+                                   "sim.duration=0.2"])
+    assert res.exit_code == 2, res.output
+    err = res.stderr.strip().splitlines()
+    assert err[0].startswith("error: the run stopped at t = ")
+    assert err[0].endswith(" s: cannot write: run.mcap: No space left on device")
+    held = "its log (run.mcap) is" if summary_too else "its log (run.mcap) and summary.json are"
+    assert err[1:] == [f"error: {held} in {out}"]
+    assert not (out / "error.txt").exists()
+    assert (out / "summary.json").exists() is not summary_too
+
+
 def test_a_crash_while_setting_up_is_an_internal_error_traceback_only_with_v(
         tmp_path, monkeypatch):
     from typer.testing import CliRunner

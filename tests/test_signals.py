@@ -419,3 +419,84 @@ def test_an_exception_after_a_stop_signal_is_the_stop(capsys, verbose):
         command(signalled=False)
     assert failed.value.exit_code == EXIT_INTERNAL
     assert capsys.readouterr().err.startswith("error: internal error: TypeError: expected a")
+
+
+def test_a_stop_right_after_the_run_directory_is_claimed_ends_a_readable_run_at_t0(
+        tmp_path, monkeypatch):
+    """A stop between claiming --out and the loop (it once left an empty run.mcap, said
+    "no run was started" and refused the same --out again; a moment later, a log without
+    /run/info that replay refused): the run ends at t = 0 with its log readable."""
+    from typer.testing import CliRunner
+
+    import hmpc_cli.run.runner as runner
+    from hmpc_cli.cli.app import app
+
+    claim = runner.claim_run_dir
+
+    def claimed_then_stopped(out):
+        path = claim(out)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return path
+
+    monkeypatch.setattr(runner, "claim_run_dir", claimed_then_stopped)
+    out = tmp_path / "r"
+    res = CliRunner().invoke(app, ["run", str(BALL), "--set", "sim.duration=0.05",
+                                   "--out", str(out), "-q"])
+    assert res.exit_code == 143, res.output
+    assert res.stderr.splitlines() == [
+        f"interrupted (SIGTERM) at t = 0.000 s; partial log in {out / 'run.mcap'}"]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["reason"] == "interrupted (SIGTERM)" and summary["t_end"] == 0.0
+    log = read_log(out / "run.mcap")
+    assert log.complete and log.topic("/run/info") and log.topic("/run/summary")
+    assert [m.t for m in log.topic("/sim/state")] == [0.0]
+    monkeypatch.undo()
+    shown = CliRunner().invoke(app, ["replay", str(out)])
+    assert shown.exit_code == 0 and "interrupted (SIGTERM)" in shown.stdout, shown.output
+
+
+def test_a_stop_after_the_runs_last_check_says_the_run_finished(tmp_path, monkeypatch):
+    """A stop once the run has closed its log and written its summary (it was reported as
+    "interrupted at t = 0.050 s; partial log" beside a summary saying success)."""
+    from typer.testing import CliRunner
+
+    import hmpc_cli.run.runner as runner
+    from hmpc_cli.cli.app import app
+
+    execute = runner.execute_run
+
+    def finished_then_stopped(*args, **kwargs):
+        result = execute(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return result
+
+    monkeypatch.setattr(runner, "execute_run", finished_then_stopped)
+    out = tmp_path / "r"
+    res = CliRunner().invoke(app, ["run", str(BALL), "--set", "sim.duration=0.05",
+                                   "--out", str(out), "-q"])
+    assert res.exit_code == 143, res.output
+    assert res.stderr.splitlines() == [
+        f"interrupted (SIGTERM) after the run finished; its log is complete: {out / 'run.mcap'}"]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["t_end"] == pytest.approx(0.05) and not summary["reason"].startswith(
+        "interrupted")
+    assert read_log(out / "run.mcap").complete
+
+
+@pytest.mark.parametrize("ignored", [False, True], ids=["handled", "ignored"])
+def test_a_stop_while_the_process_exits_is_one_line_not_a_traceback(ignored):
+    """Ctrl-C while the atexit handlers run (the command's handlers already taken off)
+    printed a KeyboardInterrupt traceback from inside one; it is held to the exit: one
+    line, 130. A SIGINT the process ignores (a background job) stays ignored."""
+    code = ("import atexit, os, signal\n"
+            + ("signal.signal(signal.SIGINT, signal.SIG_IGN)\n" if ignored else "")
+            + "from hmpc_cli.cli.app import end_process\n"
+            "atexit.register(lambda: os.kill(os.getpid(), signal.SIGINT))\n"
+            "end_process(0)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=60, env=cli_env())
+    if ignored:
+        assert (res.returncode, res.stderr) == (0, "")
+    else:
+        assert res.returncode == 130 and res.stderr.splitlines() == [
+            "interrupted (SIGINT) while exiting; the command had finished"]

@@ -10,6 +10,7 @@ import atexit
 import contextlib
 import json
 import os
+import signal
 import sys
 import threading
 from typing import Annotated
@@ -71,10 +72,17 @@ def main() -> None:
     The process ends as soon as the command is done (:func:`end_process`).
     """
     try:
-        app(prog_name="hmpc")
-        code = 0
-    except SystemExit as stop:
-        code = stop.code
+        try:
+            app(prog_name="hmpc")
+            code = 0
+        except SystemExit as stop:
+            code = stop.code
+    except KeyboardInterrupt as exc:  # after the command's own handlers were taken off
+        from hmpc_cli.core.signals import as_interrupted
+
+        stop = as_interrupted(exc)
+        print(f"interrupted ({stop.name})", file=sys.stderr)
+        code = stop.exit_code
     end_process(code)
 
 
@@ -87,11 +95,15 @@ def end_process(code: object) -> None:
     status is already an error); then ``os._exit``. The teardown it skips frees CasADi's
     and the plug-ins' objects one by one and writes nothing. While another non-daemon
     thread is alive it exits the ordinary way, which waits for that thread.
+
+    A stop signal from here on is held to the end (no traceback from inside an atexit
+    handler): one stderr line says so, and a status of 0 becomes 128 + its number.
     """
     others = [t for t in threading.enumerate()
               if t is not threading.main_thread() and t.is_alive() and not t.daemon]
     if others:
         raise SystemExit(code)
+    held = _hold_stop_signals()
     if code is None or isinstance(code, int):
         status = code or 0
     else:  # sys.exit("message"): the message on stderr, status 1
@@ -105,9 +117,32 @@ def end_process(code: object) -> None:
         with contextlib.suppress(Exception):
             print(f"hmpc: the output could not be written: {exc}", file=sys.stderr)
         status = status or 120
+    if held:
+        name = signal.Signals(held[0]).name
+        with contextlib.suppress(Exception):
+            print(f"interrupted ({name}) while exiting; the command had finished",
+                  file=sys.stderr)
+        status = status or 128 + held[0]
     with contextlib.suppress(Exception):
         sys.stderr.flush()
     os._exit(status & 0xFF)
+
+
+def _hold_stop_signals() -> list[int]:
+    """From now on SIGINT, SIGTERM and SIGHUP are recorded (returned list), not raised.
+
+    A signal the process ignores (e.g. SIGINT in a background job) stays ignored.
+    """
+    held: list[int] = []
+
+    def hold(signum: int, frame) -> None:
+        held.append(signum)
+
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        with contextlib.suppress(ValueError, OSError):
+            if signal.getsignal(sig) is not signal.SIG_IGN:
+                signal.signal(sig, hold)
+    return held
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -110,21 +110,26 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
             typer.echo(exc.plugin_traceback.rstrip("\n"), err=True)  # where in the plug-in
         raise typer.Exit(EXIT_BAD_INPUT) from None
     sink = _live_sink(live_port) if live else None  # before the run directory is made
-    try:
-        out = _run_dir(out, sc)
-    except BaseException:
-        if sink is not None:
-            sink.close()
-        raise
+    from hmpc_cli.core.signals import deferred
     from hmpc_cli.log.runlog import Provenance
 
-    provenance = Provenance(overrides=tuple(
-        [*sets, *([f"seed={seed}"] if seed is not None else [])]))
-    try:
-        result = _execute(prepared, sc, toml_text, out, quiet, sink, provenance)
-    finally:
-        if sink is not None:
-            sink.close()
+    # from the claim of the run directory to the report, a stop is only recorded where
+    # it arrives: the loop acts on it once its log is open (the log then ends where the
+    # run was stopped), the report once the run has finished
+    with deferred():
+        try:
+            out = _run_dir(out, sc)
+        except BaseException:
+            if sink is not None:
+                sink.close()
+            raise
+        provenance = Provenance(overrides=tuple(
+            [*sets, *([f"seed={seed}"] if seed is not None else [])]))
+        try:
+            result = _execute(prepared, sc, toml_text, out, quiet, sink, provenance)
+        finally:
+            if sink is not None:
+                sink.close()
     _report_finished(result, out, quiet)
     if strict and not result.success:
         _err([f"--strict: the run failed ({result.reason or 'task not achieved'}); its log: "
@@ -164,9 +169,13 @@ def _setup_caused(scenario: Path, sets: list[str], seed: int | None):
 def _report_finished(result, out: Path, quiet: bool) -> None:
     """Prints a finished run's summary (or, with -q, its log's path).
 
-    A stop signal meanwhile says that the run and its log are complete, then stops.
+    A stop signal meanwhile, or one received after the run's last check, says that the
+    run and its log are complete, then stops.
     """
+    from hmpc_cli.core.signals import check
+
     try:
+        check()
         if quiet:  # errors and the log's path only
             typer.echo(str(out / "run.mcap"))
         else:
@@ -261,21 +270,49 @@ def _execute(prepared, sc, toml_text: str, out: Path, quiet: bool, sink=None,
 
 
 def _crashed(exc: Exception, t_end: float, out: Path) -> None:
-    """Reports a run that crashed: one line, the traceback in ``out/error.txt``; exit 1."""
+    """Reports a run that crashed: one line, the traceback in ``out/error.txt``; exit 1.
+
+    A full or read-only disk is the environment's (exit 2, no traceback). The second line
+    names the files the run directory really holds (a write that failed leaves none).
+    """
     import contextlib
     import traceback
 
     from hmpc_cli.cli.common import EXIT_INTERNAL, VERBOSITY
+    from hmpc_cli.core.paths import disk_error, disk_error_text
 
     trace = "".join(traceback.format_exception(exc))
-    with contextlib.suppress(OSError):  # the one-line report does not depend on it
-        (out / "error.txt").write_text(trace, encoding="utf-8")
-    msg = " ".join(str(exc).split())[:300]
-    _err([f"the run crashed at t = {t_end:.3f} s: {type(exc).__name__}: {msg}",
-          f"its log, summary.json and the traceback (error.txt) are in {out}"])
+    disk = disk_error(exc)
+    if not disk:
+        try:  # the one-line report does not depend on it
+            (out / "error.txt").write_text(trace, encoding="utf-8")
+        except OSError:  # no empty or partial traceback left behind
+            with contextlib.suppress(OSError):
+                (out / "error.txt").unlink(missing_ok=True)
+    if disk:
+        first = f"the run stopped at t = {t_end:.3f} s: cannot write: {disk_error_text(exc)}"
+    else:
+        msg = " ".join(str(exc).split())[:300]
+        first = f"the run crashed at t = {t_end:.3f} s: {type(exc).__name__}: {msg}"
+    _err([first, _written_text(out)])
     if VERBOSITY[0] >= 1:
         typer.echo(trace.rstrip(), err=True)
-    raise typer.Exit(EXIT_INTERNAL)
+    raise typer.Exit(EXIT_BAD_INPUT if disk else EXIT_INTERNAL)
+
+
+#: what a run directory holds after a crash, as :func:`_written_text` names it
+_WRITTEN = (("run.mcap", "its log (run.mcap)"), ("summary.json", "summary.json"),
+            ("error.txt", "the traceback (error.txt)"))
+
+
+def _written_text(out: Path) -> str:
+    """Which of a crashed run's files ``out`` holds (not empty), as one line."""
+    held = [text for name, text in _WRITTEN
+            if (out / name).is_file() and (out / name).stat().st_size > 0]
+    if not held:
+        return f"nothing of the run could be written to {out}"
+    listed = held[0] if len(held) == 1 else f"{', '.join(held[:-1])} and {held[-1]}"
+    return f"{listed} {'is' if len(held) == 1 else 'are'} in {out}"
 
 
 def real_time_text(rt: dict) -> str:

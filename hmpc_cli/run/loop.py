@@ -84,6 +84,7 @@ class ClosedLoop:
         self._now = (0.0, x, mode)
         try:
             with signals.deferred():
+                signals.check()  # stopped before the first step: the log ends at t = 0
                 x, mode, stopped = self._steps(x, mode)
         except KeyboardInterrupt as exc:
             self._abort(start, signals.as_interrupted(exc), "interrupted")

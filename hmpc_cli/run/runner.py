@@ -146,7 +146,6 @@ def execute_run(prepared: PreparedRun, toml_text: str, out: Path,
         try:
             rec.add_attachment("scenario.toml", toml_text.encode(), "application/toml")
             log = TopicWriter(rec, prepared.identity, provenance, _open_scene(prepared, rec))
-            signals.check()
             res = ClosedLoop(prepared, log, progress).run()
         except KeyboardInterrupt as exc:
             if not res.reason.startswith(INTERRUPTED):
