@@ -316,6 +316,57 @@ def test_verify_without_a_rebuildable_scenario(ball, tmp_path) -> None:
     assert res.exit_code == 2 and "cannot be rebuilt" in res.output and "no_such" in res.output
 
 
+def test_verify_of_a_run_a_stop_signal_ended_compares_up_to_the_stop(tmp_path) -> None:
+    """The re-run goes on past the stop: a stopped run is compared up to where it ended
+    (its summary and the state sample the stop wrote left out); it was reported as
+    diverged on the message count of its first topic."""
+    import signal
+
+    from hmpc_cli.core import signals
+    from hmpc_cli.run.runner import execute_run, prepare
+    from hmpc_cli.run.scenario import load_scenario
+
+    sc, text = load_scenario(SCENARIOS / "ball_disturbed.toml", ["sim.duration=0.6"])
+    prepared = prepare(sc)
+    step, calls = prepared.plant.step, []
+
+    def stopped_at_step_200(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 200:  # the loop's check after this step stops the run
+            signals._STATE.signum = int(signal.SIGTERM)
+        return step(*args, **kwargs)
+
+    prepared.plant.step = stopped_at_step_200
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            execute_run(prepared, text, tmp_path / "run")
+    finally:
+        signals.reset()
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["reason"] == "interrupted (SIGTERM)"
+    assert summary["t_end"] == pytest.approx(200 / 600)
+    res = replay(tmp_path / "run", "--verify")
+    assert res.exit_code == 0, res.output
+    assert re.search(r"identical \(\d+ messages on \d+ topics\) up to t = 0\.3333 s \(a "
+                     r"stop signal ended the run there\)", " ".join(res.output.split())), \
+        res.output
+
+
+def test_verify_refuses_a_damaged_log_and_a_measured_latency_run(ball, tmp_path) -> None:
+    """A log missing a chunk, and a run that charged its measured compute time, cannot
+    match any re-run: exit 2 with the reason (they were reported as diverged, exit 1)."""
+    path = _flipped(ball / "run.mcap", 1, tmp_path / "flipped.mcap")
+    line = _error_line(replay(path, "--verify"))
+    assert line.startswith(f"error: {path}: --verify: damaged log (1 of ")
+    assert line.endswith("messages are missing from it, so no re-run can be compared with "
+                         "it (hmpc replay shows what its intact chunks hold)")
+    measured = _run("ball.toml", tmp_path / "measured", "sim.duration=0.1",
+                    'sim.latency="measured"')
+    line = _error_line(replay(measured, "--verify"))
+    assert line.startswith(f"error: {measured / 'run.mcap'}: --verify: the run charged its "
+                           'measured compute time (sim.latency = "measured"): ')
+
+
 def _error_line(res) -> str:
     lines = [line for line in res.output.splitlines() if line.startswith("error: ")]
     assert res.exit_code == 2 and len(lines) == 1, res.output

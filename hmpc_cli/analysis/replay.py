@@ -87,6 +87,16 @@ class Replay:
         """Whether the file was read to its footer."""
         return bool(self.log.complete)
 
+    @property
+    def stopped_at(self) -> float | None:
+        """The time [s] a stop signal ended the run at (its summary's ``t_end``), or None."""
+        s = self.summary or {}
+        reason, t_end = s.get("reason"), s.get("t_end")
+        if isinstance(reason, str) and reason.startswith("interrupted") and \
+                isinstance(t_end, (int, float)) and not isinstance(t_end, bool):
+            return float(t_end)
+        return None
+
     def version_note(self) -> str:
         """A note when the log's version differs from :data:`LOG_VERSION`, else ""."""
         version = self.info.get("log_version", 1)  # logs without it: version 1
@@ -534,14 +544,37 @@ def compare_logs(recorded: list, rerun: list, prefix_only: bool = False) -> Dive
     return min(found, key=lambda f: f[:3])[3] if found else None
 
 
+def unverifiable(replay: Replay) -> str | None:
+    """Why no re-run can be compared with the log (one line), or None.
+
+    A damaged log misses messages; a run that charged its measured compute time
+    (``sim.latency = "measured"``) diverges from any re-run by design.
+    """
+    if replay.log.damage:
+        return (f"damaged log ({replay.log.damage}): messages are missing from it, so no "
+                f"re-run can be compared with it (hmpc replay shows what its intact chunks "
+                f"hold)")
+    sim = replay.scenario.get("sim")
+    if isinstance(sim, dict) and sim.get("latency") == "measured":
+        return ('the run charged its measured compute time (sim.latency = "measured"): a '
+                "re-run charges this machine's times now, its plans reach the plant at "
+                "other moments and it diverges by design; --verify re-runs runs with time "
+                'paused, a fixed latency or sim.latency = "model"')
+    return None
+
+
 def verify(replay: Replay, workdir: Path) -> tuple[Divergence | None, int, int]:
     """Re-runs the log's attached scenario (its seed) in ``workdir`` and compares the logs.
+
+    A log cut short, or of a run a stop signal ended, is compared up to where it ends (a
+    stopped run's summary and its last state sample, written at the stop, left out).
 
     Returns:
         The first divergence (or None), the number of compared messages and of topics.
 
     Raises:
-        ReplayError: no scenario attached, or the scenario cannot be rebuilt.
+        ReplayError: no scenario attached, the scenario cannot be rebuilt, or
+            :func:`unverifiable`.
     """
     from hmpc_cli.log.reader import read_log
     from hmpc_cli.core.registry import PluginError
@@ -550,6 +583,9 @@ def verify(replay: Replay, workdir: Path) -> tuple[Divergence | None, int, int]:
 
     if not replay.scenario_text:
         raise ReplayError("no scenario.toml attached: the run cannot be re-run")
+    why = unverifiable(replay)
+    if why is not None:
+        raise ReplayError(why)
     toml = workdir / "scenario.toml"
     toml.write_text(replay.scenario_text, encoding="utf-8")
     try:
@@ -562,13 +598,16 @@ def verify(replay: Replay, workdir: Path) -> tuple[Divergence | None, int, int]:
         raise ReplayError(f"the attached scenario cannot be rebuilt: {exc}") from None
     execute_run(prepared, text, workdir / "rerun")
     again = read_log(workdir / "rerun" / "run.mcap")
-    recorded = replay.log.messages
+    recorded, stop = replay.log.messages, replay.stopped_at
+    if stop is not None:  # what the stop wrote, which no re-run writes there
+        recorded = [m for m in recorded if m.topic != "/run/summary"
+                    and not (m.topic == "/sim/state" and m.t >= stop - 1e-6)]  # ns log times
+    prefix = not replay.complete or stop is not None
     with guarded(replay.path, "comparing it with the re-run"):
         rerun = _settings_added_since(recorded, again.messages)
-        found = [compare_logs(recorded, rerun, prefix_only=not replay.complete)]
+        found = [compare_logs(recorded, rerun, prefix_only=prefix)]
         if replay.log.raw:  # a log written without its 3D scene (run_to_log) has none
-            found.append(scene_divergence(replay.log.raw, again.raw,
-                                          prefix_only=not replay.complete))
+            found.append(scene_divergence(replay.log.raw, again.raw, prefix_only=prefix))
     found = [d for d in found if d is not None]
     div = min(found, key=lambda d: d.t) if found else None
     n = len(recorded) + len(replay.log.raw)

@@ -197,10 +197,13 @@ def _verify(console, rp) -> None:
 
     from rich.markup import escape
 
-    from hmpc_cli.analysis.replay import ReplayError, verify
+    from hmpc_cli.analysis.replay import ReplayError, unverifiable, verify
 
     from hmpc_cli.cli.common import is_quiet
 
+    why = unverifiable(rp)
+    if why is not None:
+        _fail([f"{rp.path}: --verify: {why}"])
     if not is_quiet():
         console.print("verify: re-running the attached scenario (seed "
                       f"{rp.info.get('seed', '?')}) ...", markup=False)
@@ -210,6 +213,8 @@ def _verify(console, rp) -> None:
         except ReplayError as exc:
             _fail([f"{rp.path}: {exc}"])
     scope = "" if rp.complete else f" up to t = {rp.t_last:.4g} s (the log was cut short)"
+    if rp.complete and rp.stopped_at is not None:
+        scope = f" up to t = {rp.stopped_at:.4g} s (a stop signal ended the run there)"
     if div is None:
         console.print(f"[green]identical[/] ({n} messages on {k} topics){escape(scope)}")
         return
