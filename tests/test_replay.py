@@ -467,6 +467,35 @@ def test_other_commands_name_the_damage_that_lost_what_they_need(ball, tmp_path)
     assert not (tmp_path / "f").exists() and not (tmp_path / "t").exists()
 
 
+def test_a_figure_from_a_log_not_read_whole_says_so(ball, tmp_path) -> None:
+    """A damaged (a chunk left out) or cut-short log still draws what it holds, with a
+    warning naming the damage (plot timing counted 0 of 26 solves of a 32-solve run, and
+    fig2 numbered its solves from the first one read, without a word)."""
+    from mcap.reader import make_reader
+
+    damaged = _flipped(ball / "run.mcap", 1, tmp_path / "flipped.mcap")
+    with open(ball / "run.mcap", "rb") as f:
+        third = make_reader(f).get_summary().chunk_indexes[2].chunk_start_offset
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes((ball / "run.mcap").read_bytes()[:third + 10])
+    for log, note in ((damaged, "(damaged log: 1 of "), (cut, "(the log is cut short)")):
+        for figure in ("timing", "fig2"):
+            res = CliRunner().invoke(app, ["plot", figure, str(log), "--out",
+                                           str(tmp_path / figure), "--formats", "png"])
+            assert res.exit_code == 0, res.output
+            assert f"warning: {log}: the figure shows what the log holds {note}" in \
+                res.stderr, res.output
+        res = CliRunner().invoke(app, ["tube", str(SCENARIOS / "ball_disturbed.toml"),
+                                       "--runs", str(log), "--samples", "10", "--out",
+                                       str(tmp_path / "t"), "-q"])
+        assert res.exit_code == 0, res.output
+        assert f"warning: --runs {log.name}: tube vs reality uses what the log holds " \
+            f"{note}" in res.stderr, res.output
+    res = CliRunner().invoke(app, ["plot", "timing", str(ball), "--out", str(tmp_path / "w"),
+                                   "--formats", "png"])
+    assert res.exit_code == 0 and "warning" not in res.stderr, res.output
+
+
 def test_a_log_read_for_some_topics_is_the_whole_read_of_those(ball, tmp_path) -> None:
     """read_log(topics=...) keeps those topics' messages, as the whole read has them, and
     still CRC-checks every chunk; read_run(with_plans=False) is the whole read without the

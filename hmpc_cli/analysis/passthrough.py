@@ -75,6 +75,9 @@ class PassThroughGeometry:
         guard_grids: per view, the crossed guard's signed gap (gx, gy, gap), each
             (G, G), on a grid over the view, the other states at the guard node's (NaN
             outside the guard's activity region): its zero level set is the guard.
+        log_note: the damage or cut of a log not read whole
+            (:func:`hmpc_cli.log.rundata.damage_note`; '' if intact): ``solve`` counts
+            the solves read.
     """
 
     log: Path
@@ -105,6 +108,7 @@ class PassThroughGeometry:
     reset_changes: tuple[str, ...] = ()
     views: dict = field(default_factory=dict)
     guard_grids: dict = field(default_factory=dict)
+    log_note: str = ""
 
     @property
     def guard_node(self) -> np.ndarray:
@@ -356,6 +360,8 @@ def pass_through_geometry(log_path: str | Path, *, solve: int | None = None,
     """
     import casadi as ca
 
+    from hmpc_cli.log.rundata import damage_note
+
     path, run, system, plane, scenario = _open(log_path)
     index, msg = _pick(run, solve, path)
     where = f"{path}: solve {index}"
@@ -394,7 +400,8 @@ def pass_through_geometry(log_path: str | Path, *, solve: int | None = None,
         guard_node_gap=float(num.gap(gi, x[k][None])[0]),
         virtual_gap=float(num.gap(gi, xv[None])[0]), virtual_q=float(q(xv)),
         kappa=float(g.kappa(d, past=True)), disc_gap=disc_gap, disc_point=disc_point,
-        slack=float(msg.slack), state_names=tuple(system.state_names))
+        slack=float(msg.slack), state_names=tuple(system.state_names),
+        log_note=damage_note(run.damage, run.complete))
     return _with_grids(system, geo)
 
 

@@ -23,6 +23,12 @@ def _wrote(names: list[str], out_dir: Path) -> None:
     typer.echo(str(out_dir) if is_quiet() else f"wrote {', '.join(names)} to {out_dir}")
 
 
+def _partial(log: Path, note: str) -> None:
+    """A warning when the figure's log was not read whole (``note``: its damage or cut)."""
+    if note:
+        typer.echo(f"warning: {log}: the figure shows what the log holds{note}", err=True)
+
+
 def _fail(message: str) -> None:
     """Prints one error line and exits with the bad-input code."""
     typer.echo(f"error: {message}", err=True)
@@ -91,6 +97,7 @@ def _fig4(log: Path, out: Path | None, formats: str, every: float, gif: bool,
             animate_walk(walk, out_dir / "walk.gif")
     except FigureInputError as exc:
         _fail(str(exc))
+    _partial(log, walk.log_note)
     names = [f"fig4.{f}" for f in parse_formats(formats)] + (["walk.gif"] if gif else [])
     if is_quiet():
         return _wrote(names, out_dir)
@@ -118,6 +125,7 @@ def _timing(log: Path, out: Path | None, formats: str, width: float, height: flo
         timing(st, out_dir, formats, width=width, height=height)
     except FigureInputError as exc:
         _fail(str(exc))
+    _partial(log, st.log_note)
     if not is_quiet():
         typer.echo(count_text(st))
     _wrote(names, out_dir)
@@ -139,6 +147,7 @@ def _fig2(log: Path, out: Path | None, formats: str, options: dict) -> None:
         fig2(geo, out_dir, formats, **size)
     except (FigureInputError, PassThroughError) as exc:
         _fail(str(exc))
+    _partial(geo.log, geo.log_note)
     names = [f"fig2.{f}" for f in parse_formats(formats)]
     if is_quiet():
         return _wrote(names, out_dir)

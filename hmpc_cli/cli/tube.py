@@ -337,6 +337,10 @@ def _publish(sc, system, observed: list, report, out: Path | None, formats: str,
     else:
         _print(report, sc.name)
     out = out if out is not None else Path("results") / sc.name / "tube"
+    for run in observed:  # a log not read whole: its deviations are those of what it holds
+        if run.damaged:
+            typer.echo(f"warning: --runs {run.name}: tube vs reality uses what the log "
+                       f"holds{run.damaged}", err=True)
     reality = _reality_report(report, observed) if observed else None
     try:
         names = _write(report, system, out, formats, f"{sc.name}: tubes", reality)

@@ -47,7 +47,8 @@ class WalkLog:
     Times t (K,), body points (K, P, 2) in the world [m], hip (K, 2), contacts
     [(t, guard name, foot x, foot y)], disturbance samples (t, w_0), terrain segments
     [(x0, x1, height)], ground height, the skeleton as point-index polylines, logged
-    success.
+    success; ``log_note``: the damage or cut of a log not read whole
+    (:func:`hmpc_cli.log.rundata.damage_note`; '' if intact).
     """
 
     path: Path
@@ -61,6 +62,7 @@ class WalkLog:
     success: bool | None
     reason: str
     skeleton: list[list[int]]
+    log_note: str = ""
 
 
 def load_walk(path: str | Path) -> WalkLog:
@@ -73,7 +75,7 @@ def load_walk(path: str | Path) -> WalkLog:
         FigureInputError: no such log, unreadable, or a log without body points and
             terrain (not a walking run, or written by an hmpc before log version 3).
     """
-    from hmpc_cli.log.rundata import read_run
+    from hmpc_cli.log.rundata import damage_note, read_run
 
     path = Path(path)
     if not path.is_file():
@@ -98,7 +100,8 @@ def load_walk(path: str | Path) -> WalkLog:
                    _contacts(run, names.index("swing_foot")), _force(run),
                    [(s.x0, s.x1, s.height) for s in terrain.segments],
                    float(terrain.ground), *_outcome(run),
-                   [[names.index(n) for n in line.points] for line in geo.skeleton])
+                   [[names.index(n) for n in line.points] for line in geo.skeleton],
+                   damage_note(run.damage, run.complete))
 
 
 def _contacts(run, foot: int) -> list[tuple[float, str, float, float]]:

@@ -66,6 +66,8 @@ class SolveTimes:
             "measured", "fixed"), else "" (time paused).
         contacts: the contacts' times (C,) [s].
         real_time: the run summary's ``real_time`` (None: paused, or not finished).
+        log_note: the damage or cut of a log not read whole
+            (:func:`hmpc_cli.log.rundata.damage_note`; '' if intact).
     """
 
     t: np.ndarray
@@ -78,6 +80,7 @@ class SolveTimes:
     charged: str
     contacts: np.ndarray
     real_time: dict | None
+    log_note: str = ""
 
     @property
     def above(self) -> np.ndarray:
@@ -110,7 +113,7 @@ def solve_times(path: str | Path) -> SolveTimes:
     Raises:
         FigureInputError: not a readable log, or a log without an MPC solve.
     """
-    from hmpc_cli.log.rundata import read_run
+    from hmpc_cli.log.rundata import damage_note, read_run
 
     try:
         run = read_run(Path(path))
@@ -134,7 +137,8 @@ def solve_times(path: str | Path) -> SolveTimes:
         np.array([s.reason.endswith(DROPPED) for s in run.solves], dtype=bool),
         _stopped([s.reason for s in run.solves], t), counted,
         real_time["period"] if real_time else _period(run.scenario), charged,
-        np.array([e.t for e in run.events], dtype=float), real_time)
+        np.array([e.t for e in run.events], dtype=float), real_time,
+        damage_note(run.damage, run.complete))
 
 
 def _stopped(reasons: list[str], t: np.ndarray) -> np.ndarray:
