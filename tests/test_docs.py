@@ -86,14 +86,35 @@ def test_architecture_names_every_module():
     assert not missing, f"docs/architecture.md does not name {missing}"
 
 
+def _heading_anchors(path: Path) -> set[str]:
+    """The anchors GitHub gives the headings of a Markdown file (outside code fences)."""
+    anchors, seen, fenced = set(), {}, False
+    for line in path.read_text().splitlines():
+        if line.startswith("```"):
+            fenced = not fenced
+        m = None if fenced else re.match(r"#{1,6}\s+(.*)", line)
+        if m is None:
+            continue
+        text = re.sub(r"\[([^\]]*)\]\([^)]*\)", r"\1", m.group(1)).strip().lower()
+        slug = re.sub(r"[^\w\- ]", "", text).replace(" ", "-")
+        n = seen[slug] = seen.get(slug, -1) + 1
+        anchors.add(slug if n == 0 else f"{slug}-{n}")
+    return anchors
+
+
 def test_docs_links_resolve():
-    for doc in [ROOT / "README.md", *DOCS.glob("*.md")]:
-        for target in re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", doc.read_text()):
+    """Every relative link's file exists, and its #anchor is a heading of that file."""
+    for doc in [ROOT / "README.md", ROOT / "results" / "README.md", *DOCS.glob("*.md")]:
+        for target, anchor in re.findall(r"\]\(([^)#\s]*)(?:#([^)\s]*))?\)", doc.read_text()):
             if target.startswith("http"):
                 continue
             if target.endswith("profile_switching.md"):
                 continue  # written by the benchmark that profiles the switching NLP
-            assert (doc.parent / target).exists(), f"{doc.name}: broken link {target}"
+            path = doc.parent / target if target else doc
+            assert path.exists(), f"{doc.name}: broken link {target}"
+            if anchor and path.suffix == ".md":
+                assert anchor in _heading_anchors(path), \
+                    f"{doc.name}: link {target}#{anchor}: no such heading in {path.name}"
 
 
 def test_log_format_describes_every_field():
