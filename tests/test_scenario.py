@@ -308,6 +308,44 @@ def test_bad_input_in_a_real_process(tmp_path: Path, run_hmpc) -> None:
 
 
 # ------------------------------------------------------------------ load_scenario directly
+def test_an_empty_key_part_and_a_margins_file_elsewhere_are_named(tmp_path, monkeypatch):
+    """``--set sim..duration=3`` said "sim.: unknown key"; a directory as mpc.margins was
+    "file not found"; a relative mpc.margins read from the scenario's directory while the
+    file sits in the current one (hmpc tube --write writes it there) now says so."""
+    (tmp_path / "sc").mkdir()
+    path = _write(tmp_path / "sc" / "s.toml", '[system]\nname = "ball"\n')
+    for item in ("sim..duration=3", ".sim.duration=3", "sim.duration.=3"):
+        key = item.partition("=")[0]
+        assert load_error(path, [item]) == [
+            f"--set {item!r}: {key!r} has an empty part: the key is dotted names, e.g. "
+            "sim.duration"]
+    (tmp_path / "dir").mkdir()
+    assert load_error(path, [f'mpc.margins="{tmp_path / "dir"}"']) == [
+        f"--set mpc.margins=\"{tmp_path / 'dir'}\": mpc.margins: {tmp_path / 'dir'}: a "
+        "directory, not a margins file"]
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "m.toml").write_text("")
+    assert load_error(path, ['mpc.margins="m.toml"']) == [
+        f"--set mpc.margins=\"m.toml\": mpc.margins: file not found: {tmp_path}/sc/m.toml (a "
+        "relative mpc.margins is read from the scenario file's directory; m.toml is in the "
+        "current directory: name it '../m.toml' or by its absolute path)"]
+
+
+def test_a_misspelled_choice_names_the_value_given_and_the_closest_choice(tmp_path) -> None:
+    """A literal setting's error said only what it should be: it names the value given and
+    the closest choice (another case, or a near spelling), as unknown keys do."""
+    path = _write(tmp_path / "s.toml", '[disturbance]\nkind = "paper_fig33"\n')
+    assert load_error(path) == [f"{path}: disturbance.kind: Input should be 'none', 'box' or "
+                                f"'paper_fig3' (got \"paper_fig33\") (did you mean "
+                                f"'paper_fig3'?)"]
+    path = _write(tmp_path / "t.toml", '[system]\nname = "ball"\n')
+    assert sorted(load_error(path, ['lowlevel.past_guard="Hold"', 'replanning.policy="zzz"'])) == [
+        "--set lowlevel.past_guard=\"Hold\": lowlevel.past_guard: Input should be 'hold' or "
+        "'next_domain' (got \"Hold\") (did you mean 'hold'?)",
+        "--set replanning.policy=\"zzz\": replanning.policy: Input should be 'once', "
+        "'on_contact' or 'periodic' (got \"zzz\")"]
+
+
 def test_load_errors_directly(tmp_path: Path) -> None:
     path = _write(tmp_path / "s.toml", "[mpc]\nrate_hz = 7\n[sim]\nrate_hz = -1\n")
     lines = load_error(path)

@@ -16,6 +16,7 @@ import copy
 import difflib
 import json
 import math
+import os
 import re
 import tomllib
 import types
@@ -357,6 +358,10 @@ def apply_overrides(data: dict, overrides: list[str], source: str) -> dict:
             continue
         node = data
         parts = key.strip().split(".")
+        if not all(p.strip() for p in parts):  # "sim..duration", ".sim", "sim."
+            errors.append(f"--set {_shown(item)}: {key.strip()!r} has an empty part: "
+                          "the key is dotted names, e.g. sim.duration")
+            continue
         for part in parts[:-1]:
             nxt = node.setdefault(part, {})
             if not isinstance(nxt, dict):
@@ -499,6 +504,9 @@ def format_errors(exc: ValidationError, source: str, model: Any = None) -> list[
                 and not isinstance(given, bool):
             msg += f' (a number here; text is quoted in TOML: "{given}")'
         msg += _unquoted_hint(err["type"], given) + _given_value(err["type"], given)
+        if err["type"] in ("literal_error", "enum") and isinstance(given, str):
+            msg += did_you_mean(given, re.findall(r"'([^']*)'", str(
+                (err.get("ctx") or {}).get("expected", ""))))
         if err["type"] == "extra_forbidden":
             raw = [p for p in err["loc"] if p not in ("function-after",)]
             allowed = _field_names(models_at(model, raw[:-1])) if model is not None else []
@@ -570,7 +578,8 @@ _WANTED = {"int_type": ((int,), "an integer"), "float_type": ((int, float), "a n
 #: pydantic errors whose message does not show the value given
 _VALUE_NOT_SHOWN = frozenset({"greater_than", "greater_than_equal", "less_than",
                               "less_than_equal", "string_pattern_mismatch", "int_from_float",
-                              "string_too_long", "too_long", "too_short"})
+                              "string_too_long", "too_long", "too_short", "literal_error",
+                              "enum"})
 
 
 def _given_value(kind: str, given: Any) -> str:
@@ -1027,13 +1036,25 @@ def _set_keys(item: str) -> list[str]:
 
 
 def _resolve_margins(scenario: ScenarioBase, path: Path, check: bool) -> list[str]:
-    """Makes ``mpc.margins`` absolute (relative: to the scenario's directory); its problems."""
+    """Makes ``mpc.margins`` absolute (relative: to the scenario's directory); its problems.
+
+    A relative file missing there but present in the current directory says so.
+    """
+    given = scenario.mpc.margins_file()
     file = scenario.mpc.resolve_margins_file(path.parent)
     if file is None or not check:  # hand or tube ("tube": computed when the run is built)
         return []
     from hmpc_cli.tube.margins_file import margins_problems
 
-    return margins_problems(file, scenario.system, scenario.mpc.rate_hz)
+    problems = margins_problems(file, scenario.system, scenario.mpc.rate_hz)
+    here = Path(given) if given is not None else None
+    if problems and not file.exists() and here is not None and not here.is_absolute() \
+            and here.is_file():
+        problems[0] += (f" (a relative mpc.margins is read from the scenario file's "
+                        f"directory; {given} is in the current directory: name it "
+                        f"{os.path.relpath(here.resolve(), file.parent.resolve())!r} or by "
+                        f"its absolute path)")
+    return problems
 
 
 def margins_file_warnings(scenario: ScenarioBase) -> list[str]:

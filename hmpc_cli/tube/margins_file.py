@@ -233,6 +233,8 @@ def read_margins(path: Path) -> MarginsFile:
         ValueError: missing, not TOML, or not a margins file (the message says which).
     """
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{path}: a directory, not a margins file")
     if not path.is_file():
         raise ValueError(f"file not found: {path}")
     try:
