@@ -329,3 +329,19 @@ def test_save_gif_is_matplotlibs_pillow_animation(tmp_path, layout, size, monkey
             save_gif(fig, draw, range(2), tmp_path / "full.gif", 10)
         plt.close(fig)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ours.gif", "ref.gif"]
+
+
+def test_a_missing_column_the_table_has_as_a_fixed_setting_is_suggested(tmp_path):
+    """A sweep's fixed settings are its set.<key> columns: `hmpc plot robustness` on a
+    Figure 3 table said only 'missing column(s) mpc.rate_hz, replanning.policy'."""
+    from hmpc_cli.analysis.tables import FigureInputError, read_table
+
+    table = tmp_path / "results.csv"
+    table.write_text("run_id,set.mpc.rate_hz,set.replanning.policy,succes,log\n"
+                     "a,10,once,True,runs/a/run.mcap\n")
+    with pytest.raises(FigureInputError) as info:
+        read_table(table, ["mpc.rate_hz", "replanning.policy", "success", "wind"])
+    assert str(info.value) == (
+        f"{table}: missing column(s) mpc.rate_hz (did you mean 'set.mpc.rate_hz'?), "
+        "replanning.policy (did you mean 'set.replanning.policy'?), success (did you mean "
+        "'succes'?), wind (has: run_id, set.mpc.rate_hz, set.replanning.policy, succes, log)")

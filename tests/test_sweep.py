@@ -394,6 +394,20 @@ def test_bad_sweep_exits_2_and_creates_nothing(tmp_path, case):
     assert not (tmp_path / "results").exists()
 
 
+def test_a_scenario_path_relative_to_the_wrong_directory_says_how_to_name_it(tmp_path):
+    """A sweep file elsewhere naming a scenario relative to the current directory: the
+    error said only 'file not found: sweeps/ball.toml' (read from the sweep's directory)."""
+    (tmp_path / "sweeps").mkdir()
+    (tmp_path / "ball.toml").write_text(BALL.read_text())
+    (tmp_path / "sweeps" / "s.toml").write_text('name = "s"\nscenario = "ball.toml"\n')
+    proc = sweep(["sweeps/s.toml", "--out", "out"], tmp_path)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert proc.stderr.splitlines() == [
+        "error: sweeps/s.toml: scenario: file not found: sweeps/ball.toml (a relative "
+        "scenario is read from the sweep file's directory, sweeps; ball.toml is in the "
+        "current directory: name it '../ball.toml')"]
+
+
 def test_run_ids_are_stable_hashes_of_overrides_and_seed(tmp_path):
     a = write_sweep(tmp_path, 'name = "a"\nscenario = "{scenario}"\nseeds = [1, 0]\n[set]\n'
                     'sim.duration = 0.5\n[grid]\n"mpc.rate_hz" = [10, 20]\n'

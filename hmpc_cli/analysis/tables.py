@@ -96,10 +96,23 @@ def read_table(path: Path, required: Iterable[str]) -> list[dict[str, str]]:
     missing = [c for c in required if c not in columns]
     if missing:
         have = ", ".join(columns) if columns else "none"
-        raise FigureInputError(f"{path}: missing column(s) {', '.join(missing)} (has: {have})")
+        named = ", ".join(c + _column_hint(c, columns) for c in missing)
+        raise FigureInputError(f"{path}: missing column(s) {named} (has: {have})")
     if not rows:
         raise FigureInputError(f"{path}: table has no rows")
     return rows
+
+
+def _column_hint(name: str, columns: list[str]) -> str:
+    """`` (did you mean 'set.x'?)`` for a column the table has under another name, else ''.
+
+    A sweep's fixed settings are its ``set.<key>`` columns; else a near spelling.
+    """
+    import difflib
+
+    close = [f"set.{name}"] if f"set.{name}" in columns else \
+        difflib.get_close_matches(name, columns, n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
 
 
 def pooled_counts(table: Path, rows: list[dict[str, str]], key, columns: tuple[str, ...]

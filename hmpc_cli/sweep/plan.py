@@ -17,6 +17,7 @@ import hashlib
 import itertools
 import json
 import math
+import os
 import re
 import typing
 from collections.abc import Callable
@@ -252,6 +253,21 @@ def _rewrite(line: str, scenario: Path, src: str, run: Run) -> str:
     return f"{src}: {where}: {key}: {reason} (value {toml_value(run.overrides[hit[-1]])})"
 
 
+def _relative_hint(given: str, base: Path) -> str:
+    """`` (a relative scenario is read from ...)`` for a relative scenario path.
+
+    '' for an absolute path, or a sweep file in the current directory. A file found in
+    the current directory instead is named as the sweep file should name it.
+    """
+    if Path(given).is_absolute() or base.resolve() == Path.cwd().resolve():
+        return ""
+    hint = f" (a relative scenario is read from the sweep file's directory, {base}"
+    if Path(given).is_file():
+        hint += (f"; {given} is in the current directory: name it "
+                 f"{os.path.relpath(Path(given).resolve(), base.resolve())!r}")
+    return hint + ")"
+
+
 def plan_sweep(path: str | Path) -> SweepPlan:
     """Reads a sweep file, expands it and validates every run's scenario.
 
@@ -263,7 +279,8 @@ def plan_sweep(path: str | Path) -> SweepPlan:
     errors: list[str] = []
     scenario = path.parent / spec.scenario
     if not scenario.is_file():
-        errors.append(f"{src}: scenario: file not found: {scenario}")
+        errors.append(f"{src}: scenario: file not found: {scenario}"
+                      + _relative_hint(spec.scenario, path.parent))
     base = _flatten(spec.set_, scenario_model())
     axes = _axes(spec, src, errors)  # broken axes are left out; their runs still checked
     errors += _dead_sets(base, axes, src)
