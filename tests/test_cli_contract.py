@@ -365,3 +365,21 @@ def test_no_help_text_holds_what_rich_markup_would_eat():
     shown = " ".join(CliRunner().invoke(app, ["plot", "--help"], env={"COLUMNS": "200"})
                      .output.split())
     assert "snapshots (s)" in shown and '"x0,x1,y0,y1" in m' in shown
+
+
+def test_help_shows_no_value_type_beside_a_flag_and_fits_80_columns():
+    """Typer's help printed `<bool>` beside flags and `<int>` beside -v, which read as if
+    they took a value (`--strict true` is an error); `hmpc report --help` at 80 columns cut
+    an option's name (`--fig3-reference-e…`)."""
+    env = {**cli_env(), "COLUMNS": "80"}
+    run = subprocess.run([sys.executable, "-m", "hmpc_cli", "run", "--help"], env=env,
+                         capture_output=True, text=True, timeout=120)
+    rows = {line.split()[1]: line for line in run.stdout.splitlines()
+            if line.startswith("│ --")}
+    for flag in ("--quiet", "--live", "--strict", "--verbose", "--help"):
+        assert "<" not in rows[flag], rows[flag]
+    assert "<int>" in rows["--seed"] and "<list[str]>" in rows["--set"]
+    report = subprocess.run([sys.executable, "-m", "hmpc_cli", "report", "--help"], env=env,
+                            capture_output=True, text=True, timeout=120)
+    names = [line.split()[1] for line in report.stdout.splitlines() if line.startswith("│ --")]
+    assert "--fig3-reference-extra" in names and not any("…" in n for n in names), names

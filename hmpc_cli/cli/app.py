@@ -63,7 +63,30 @@ def _register() -> None:
     app.command("replay")(with_verbosity(replay_command))
 
 
+def _flags_without_a_type() -> None:
+    """Help shows no value type beside a flag or a counted option.
+
+    Typer's help prints one beside every option, flags too (``--strict <bool>``, ``-v
+    <int>``), which reads as if they took a value (``--strict true`` is then an error).
+    Left as Typer has it if its option class does not look as expected.
+    """
+    from typer.core import TyperOption
+
+    shown = getattr(TyperOption, "display_type_rich", None)
+    if shown is None or getattr(shown, "_hmpc_flags", False):
+        return
+
+    def display_type_rich(self, ctx):
+        if getattr(self, "is_flag", False) or getattr(self, "count", False):
+            return None
+        return shown(self, ctx)
+
+    display_type_rich._hmpc_flags = True
+    TyperOption.display_type_rich = display_type_rich
+
+
 _register()
+_flags_without_a_type()
 
 
 def main() -> None:

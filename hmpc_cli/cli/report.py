@@ -26,46 +26,53 @@ REALTIME = (Path("sweeps/realtime_rti.toml"), Path("sweeps/realtime_ipopt.toml")
 
 #: the options of ``hmpc report`` (its signature below)
 _Results = Annotated[Path, typer.Option(
-    "--results", help="results directory (page: <results>/README.md)",
+    "--results", metavar="DIR", help="results directory (page: <results>/README.md)",
     parser=path_option)]
 _Fig3 = Annotated[str | None, typer.Option(
-    "--fig3", help="Figure 3 sweep file ('' to leave out)")]
+    "--fig3", metavar="SWEEP", help="Figure 3 sweep file ('' to leave out)")]
 _Fig3Extra = Annotated[str | None, typer.Option(
-    "--fig3-extra", help="extra Figure 3 panel sweep (100 Hz; '' to leave out)")]
+    "--fig3-extra", metavar="SWEEP", help="extra Figure 3 panel sweep (100 Hz; '' to leave out)")]
 _Fig3Reference = Annotated[str | None, typer.Option(
-    "--fig3-reference", help="Figure 3 sweep in reference mode ('' to leave out)")]
+    "--fig3-reference", metavar="SWEEP", help="Figure 3 sweep in reference mode ('' to leave out)")]
 _Fig3ReferenceExtra = Annotated[str | None, typer.Option(
-    "--fig3-reference-extra", help="its 100 Hz panels ('' to leave out)")]
+    "--fig3-reference-extra", metavar="SWEEP", help="its 100 Hz panels ('' to leave out)")]
 _Fig3Schedule = Annotated[str | None, typer.Option(
-    "--fig3-schedule", help="Figure 3 sweep flying the authors' plan ('' to leave out)")]
+    "--fig3-schedule", metavar="SWEEP",
+    help="Figure 3 sweep flying the authors' plan ('' to leave out)")]
 _Authors = Annotated[str | None, typer.Option(
-    "--authors", help="directory of the authors' Figure 3 CSVs (fig3_*.csv) for the "
+    "--authors", metavar="DIR",
+    help="directory of the authors' Figure 3 CSVs (fig3_*.csv) for the "
     "trial-by-trial comparison (default: results/authors if it exists; '' to leave "
     "out)")]
 _Robustness = Annotated[list[str] | None, typer.Option(
-    "--robustness", help="robustness study sweep file or output directory, repeatable "
+    "--robustness", metavar="SWEEP",
+    help="robustness study sweep file or output directory, repeatable "
     "(default: sweeps/robustness.toml, robustness_tube.toml, robustness_moved.toml, "
     "robustness_moved_tube.toml, robustness_latency.toml, robustness_latency_30ms.toml, "
     "robustness_realtime_paused.toml and robustness_realtime.toml; '' to leave out)")]
 _Biped = Annotated[str | None, typer.Option(
-    "--biped", help="biped scenario for Figure 4 ('' to leave out)")]
+    "--biped", metavar="FILE", help="biped scenario for Figure 4 ('' to leave out)")]
 _Fig3Trials = Annotated[str | None, typer.Option(
-    "--fig3-trials", help="a Figure 3 sweep tabled trial by trial against the authors' "
+    "--fig3-trials", metavar="SWEEP",
+    help="a Figure 3 sweep tabled trial by trial against the authors' "
     "failures, from its table alone ('' to leave out)")]
 _BipedPush = Annotated[str | None, typer.Option(
-    "--biped-push", help="the biped's push study: sweep file or output directory ('' to "
+    "--biped-push", metavar="SWEEP",
+    help="the biped's push study: sweep file or output directory ('' to "
     "leave out)")]
 _Realtime = Annotated[list[str] | None, typer.Option(
-    "--realtime", help="real-time sweep file or output directory, repeatable (default: "
+    "--realtime", metavar="SWEEP",
+    help="real-time sweep file or output directory, repeatable (default: "
     "sweeps/realtime_rti.toml, realtime_ipopt.toml, realtime_biped.toml and "
     "realtime_biped_rti.toml; '' to leave out)")]
 _Run = Annotated[bool, typer.Option(
     "--run/--no-run", help="run the missing sweep runs first (finished ones are skipped; "
     "default: run nothing, print what is missing)")]
 _Workers = Annotated[int | None, typer.Option(
-    "--workers", min=1, help="worker processes (default: all cores)")]
+    "--workers", metavar="N", min=1, help="worker processes (default: all cores)")]
 _Seeds = Annotated[int | None, typer.Option(
-    "--seeds", help="robustness study: only its first N seeds (resume later with more)")]
+    "--seeds", metavar="N",
+    help="robustness study: only its first N seeds (resume later with more)")]
 _Replace = Annotated[bool, typer.Option(
     "--replace", help="replace a page of <results> generated with other sections")]
 
