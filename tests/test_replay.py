@@ -88,6 +88,21 @@ def test_ball_identity_summary_and_timeline(ball, ball_log) -> None:
     assert re.search(r"NLP build\W+miss: not compiled", out)
 
 
+def test_a_description_the_overrides_outdate_says_so(tmp_path) -> None:
+    """`hmpc run ball.toml --set mpc.rate_hz=20` then `hmpc replay` showed the file's
+    "10 Hz fixed-mode MPC" as the run's description, with nothing to say it was not."""
+    out = tmp_path / "r"
+    ran = CliRunner().invoke(app, ["run", str(SCENARIOS / "ball.toml"), "--set",
+                                   "mpc.rate_hz=20", "--set", "sim.duration=0.1", "--out",
+                                   str(out), "-q"])
+    assert ran.exit_code == 0, ran.output
+    text = " ".join(replay(out).output.split())
+    assert "10 Hz fixed-mode MPC, hybrid plan once at t = 0 (the scenario file's; the " \
+        "overrides below changed the run)" in text, text
+    assert "(the scenario file's" not in " ".join(replay(
+        _run("ball.toml", tmp_path / "plain", "sim.duration=0.1")).output.split())
+
+
 def test_all_shows_every_solve(ball, ball_log) -> None:
     out = replay(ball, "--all").output
     assert len(_rows(out, "solve")) == len(ball_log.topic("/mpc/solve"))

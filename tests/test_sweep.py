@@ -633,6 +633,10 @@ def test_show_prints_one_rows_scenario_and_hmpc_run_gives_the_row_back(tmp_path,
     planned, printed = tomllib.loads(run.toml), tomllib.loads(shown.stdout)
     assert planned["disturbance"].pop("hold") == 0.05  # paper_fig3 ignores it: left out
     assert printed == planned and not shown.stderr
+    first = shown.stdout.splitlines()[0]  # the description is the scenario file's: says so
+    assert first.startswith(f"# run 4745fb0366 of {sweep_file}: latency=") and \
+        "disturbance=trial 5, seed 0; its description is the scenario file's, which the " \
+        "sweep's settings below change" in first, first
     (tmp_path / "row.toml").write_text(shown.stdout)
     again = run_hmpc(["run", "row.toml", "--out", "row", "-q"], cwd=tmp_path)
     assert again.returncode == 0 and again.stderr == "", again.stderr

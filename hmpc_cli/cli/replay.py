@@ -57,8 +57,10 @@ def _identity_table(rp, size: int):
     info = rp.info
     t = Table(title=escape(f"run {info.get('scenario_name', '?')}"), show_header=False)
     desc = rp.scenario.get("description")
-    if desc:
-        t.add_row("description", escape(str(desc)))
+    if desc:  # the scenario file's words: overrides and a sweep's settings are not in them
+        by = "overrides" if info.get("overrides") else "sweep" if info.get("sweep") else ""
+        t.add_row("description", escape(str(desc)) + (
+            f" (the scenario file's; the {by} below changed the run)" if by else ""))
     t.add_row("system", escape(str(info.get("system", "?"))))
     t.add_row("seed", str(info.get("seed", "?")))
     vers = info.get("versions") or {}
