@@ -516,3 +516,32 @@ def test_a_tube_analysis_removes_the_figures_of_an_earlier_one(tmp_path: Path):
     assert f"note: removed tube_reality.pdf from {out}: an earlier analysis's" in proc.stderr
     assert sorted(p.name for p in out.iterdir()) == [
         "notes.png", "tube.json", "tube_diameter.png", "tube_margins.png"]
+
+
+def test_a_stop_while_the_tube_writes_its_outputs_acts_after_they_are_whole(tmp_path,
+                                                                          monkeypatch):
+    """A stop while tube.json and the figures were written left some (tube.json and the
+    diameter figures, no margins figures) and said only 'interrupted': the outputs are now
+    written whole, then the command stops and says so."""
+    import signal
+
+    from typer.testing import CliRunner
+
+    import hmpc_cli.figures.tube as figures
+    from hmpc_cli.cli.app import app
+
+    draw = figures.draw_diameters
+
+    def stopped_while_drawing(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return draw(*args, **kwargs)
+
+    monkeypatch.setattr(figures, "draw_diameters", stopped_while_drawing)
+    out = tmp_path / "t"
+    res = CliRunner().invoke(app, ["tube", str(SCENARIOS / "ball_disturbed.toml"), "--samples",
+                                   "20", "--out", str(out), "--formats", "png", "-q"])
+    assert res.exit_code == 143, res.output
+    assert res.stderr.splitlines()[-1] == (
+        f"interrupted (SIGTERM) once the analysis was written whole to {out}")
+    assert sorted(p.name for p in out.iterdir()) == [
+        "tube.json", "tube_diameter.png", "tube_margins.png"]

@@ -329,6 +329,7 @@ def _publish(sc, system, observed: list, report, out: Path | None, formats: str,
     """Prints the report (-q: its warnings) and writes tube.json, the figures, the margins."""
     from hmpc_cli.analysis.tables import FigureInputError
     from hmpc_cli.cli.common import is_quiet
+    from hmpc_cli.core.signals import deferred
 
     quiet = is_quiet()  # -q: the warnings (stderr), errors and the written paths only
     if quiet:
@@ -342,23 +343,39 @@ def _publish(sc, system, observed: list, report, out: Path | None, formats: str,
             typer.echo(f"warning: --runs {run.name}: tube vs reality uses what the log "
                        f"holds{run.damaged}", err=True)
     reality = _reality_report(report, observed) if observed else None
+    with deferred():  # the outputs are written whole: a stop meanwhile acts after them
+        try:
+            names = _write(report, system, out, formats, f"{sc.name}: tubes", reality)
+        except (OSError, FigureInputError) as exc:
+            _fail([f"{out}: cannot write ({exc})"])
+        if not quiet:
+            typer.echo(f"wrote {', '.join(names)} to {out}")
+        if reality is not None:
+            _reality(report, reality, len(observed), out, formats,
+                     f"{sc.name}: tube vs reality", quiet)
+        stale = _remove_stale_figures(out, formats, with_reality=reality is not None)
+        if stale:
+            typer.echo(f"note: removed {', '.join(stale)} from {out}: an earlier analysis's, "
+                       "not this one's", err=True)
+        if quiet:
+            typer.echo(str(out))
+        if write is not None:
+            _write_margins(report, sc, write, samples)
+    _stopped_after_writing(out)
+
+
+def _stopped_after_writing(out: Path) -> None:
+    """Stops (one stderr line) if a stop signal came while the outputs were written."""
+    from hmpc_cli.core.signals import as_interrupted, check
+
     try:
-        names = _write(report, system, out, formats, f"{sc.name}: tubes", reality)
-    except (OSError, FigureInputError) as exc:
-        _fail([f"{out}: cannot write ({exc})"])
-    if not quiet:
-        typer.echo(f"wrote {', '.join(names)} to {out}")
-    if reality is not None:
-        _reality(report, reality, len(observed), out, formats, f"{sc.name}: tube vs reality",
-                 quiet)
-    stale = _remove_stale_figures(out, formats, with_reality=reality is not None)
-    if stale:
-        typer.echo(f"note: removed {', '.join(stale)} from {out}: an earlier analysis's, not "
-                   "this one's", err=True)
-    if quiet:
-        typer.echo(str(out))
-    if write is not None:
-        _write_margins(report, sc, write, samples)
+        check()
+    except KeyboardInterrupt as exc:
+        stop = as_interrupted(exc)
+        typer.echo(f"interrupted ({stop.name}) once the analysis was written whole to {out}",
+                   err=True)
+        stop.reported = True
+        raise stop from None
 
 
 #: the figures hmpc tube writes, by file stem (tube_reality: with --runs)
