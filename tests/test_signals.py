@@ -500,3 +500,20 @@ def test_a_stop_while_the_process_exits_is_one_line_not_a_traceback(ignored):
     else:
         assert res.returncode == 130 and res.stderr.splitlines() == [
             "interrupted (SIGINT) while exiting; the command had finished"]
+
+
+def test_a_second_stop_while_the_process_exits_ends_it_at_once():
+    """An atexit handler that hangs: the first stop is held, the second ends the process
+    (128 + its number), the rest of the handlers not run."""
+    code = ("import atexit, os, signal, time\n"
+            "from hmpc_cli.cli.app import end_process\n"
+            "atexit.register(lambda: print('not reached', flush=True))\n"
+            "def hang():\n"
+            "    os.kill(os.getpid(), signal.SIGINT)\n"
+            "    os.kill(os.getpid(), signal.SIGTERM)\n"
+            "    time.sleep(60)\n"
+            "atexit.register(hang)\n"
+            "end_process(0)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=60, env=cli_env())
+    assert (res.returncode, res.stdout, res.stderr) == (143, "", "")

@@ -154,11 +154,14 @@ def end_process(code: object) -> None:
 def _hold_stop_signals() -> list[int]:
     """From now on SIGINT, SIGTERM and SIGHUP are recorded (returned list), not raised.
 
-    A signal the process ignores (e.g. SIGINT in a background job) stays ignored.
+    A second one ends the process at once (an atexit handler that hangs), status 128 + its
+    number. A signal the process ignores (e.g. SIGINT in a background job) stays ignored.
     """
     held: list[int] = []
 
     def hold(signum: int, frame) -> None:
+        if held:
+            os._exit(128 + signum)
         held.append(signum)
 
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
