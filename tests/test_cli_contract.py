@@ -367,6 +367,35 @@ def test_no_help_text_holds_what_rich_markup_would_eat():
     assert "snapshots (s)" in shown and '"x0,x1,y0,y1" in m' in shown
 
 
+def test_a_full_disk_before_anything_is_logged_keeps_nothing_and_frees_out(tmp_path,
+                                                                          monkeypatch):
+    """The log's header cannot be written: the error said nothing was written while the
+    claimed run.mcap and scenario.toml stayed, and the same --out was then refused ("already
+    holds a run"); now nothing is kept, and a retry into it runs."""
+    import errno
+
+    from typer.testing import CliRunner
+
+    import hmpc_cli.run.runner as runner
+    from hmpc_cli.cli.app import app
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", "run.mcap")
+
+    monkeypatch.setattr(runner, "Recorder", full)
+    out = tmp_path / "run"
+    args = ["run", str(BALL), "--out", str(out), "-q", "--set", "sim.duration=0.05"]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 2, res.output
+    assert res.stderr.strip().splitlines() == [
+        "error: the run stopped at t = 0.000 s: cannot write: run.mcap: No space left on device",
+        f"error: nothing of the run could be kept in {out} (--out can be used again)"]
+    assert list(out.iterdir()) == []
+    monkeypatch.undo()
+    again = CliRunner().invoke(app, args)
+    assert again.exit_code == 0, again.output
+
+
 def test_help_shows_no_value_type_beside_a_flag_and_fits_80_columns():
     """Typer's help printed `<bool>` beside flags and `<int>` beside -v, which read as if
     they took a value (`--strict true` is an error); `hmpc report --help` at 80 columns cut

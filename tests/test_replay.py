@@ -101,6 +101,10 @@ def test_a_description_the_overrides_outdate_says_so(tmp_path) -> None:
         "overrides below changed the run)" in text, text
     assert "(the scenario file's" not in " ".join(replay(
         _run("ball.toml", tmp_path / "plain", "sim.duration=0.1")).output.split())
+    seeded = tmp_path / "seeded"  # --seed alone leaves the description true
+    ran = CliRunner().invoke(app, ["run", str(SCENARIOS / "ball.toml"), "--seed", "3", "--out",
+                                   str(seeded), "-q"])
+    assert ran.exit_code == 0 and "(the scenario file's" not in replay(seeded).output
 
 
 def test_all_shows_every_solve(ball, ball_log) -> None:

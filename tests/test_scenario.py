@@ -314,6 +314,7 @@ def test_an_empty_key_part_and_a_margins_file_elsewhere_are_named(tmp_path, monk
     file sits in the current one (hmpc tube --write writes it there) now says so."""
     (tmp_path / "sc").mkdir()
     path = _write(tmp_path / "sc" / "s.toml", '[system]\nname = "ball"\n')
+    assert load_scenario(path, ["sim . duration=1.5"])[0].sim.duration == 1.5  # as TOML reads
     for item in ("sim..duration=3", ".sim.duration=3", "sim.duration.=3"):
         key = item.partition("=")[0]
         assert load_error(path, [item]) == [
@@ -339,6 +340,9 @@ def test_a_misspelled_choice_names_the_value_given_and_the_closest_choice(tmp_pa
                                 f"'paper_fig3' (got \"paper_fig33\") (did you mean "
                                 f"'paper_fig3'?)"]
     path = _write(tmp_path / "t.toml", '[system]\nname = "ball"\n')
+    assert load_error(path, ['sim.latency="measurd"']) == [
+        "--set sim.latency=\"measurd\": sim.latency: expected 'paused', 'measured', 'model' or "
+        "a delay in [0, 1e6) s, got 'measurd' (did you mean 'measured'?)"]
     assert sorted(load_error(path, ['lowlevel.past_guard="Hold"', 'replanning.policy="zzz"'])) == [
         "--set lowlevel.past_guard=\"Hold\": lowlevel.past_guard: Input should be 'hold' or "
         "'next_domain' (got \"Hold\") (did you mean 'hold'?)",

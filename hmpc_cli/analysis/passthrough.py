@@ -360,8 +360,6 @@ def pass_through_geometry(log_path: str | Path, *, solve: int | None = None,
     """
     import casadi as ca
 
-    from hmpc_cli.log.rundata import damage_note
-
     path, run, system, plane, scenario = _open(log_path)
     index, msg = _pick(run, solve, path)
     where = f"{path}: solve {index}"
@@ -376,8 +374,7 @@ def pass_through_geometry(log_path: str | Path, *, solve: int | None = None,
     if not guards or not 0 <= guards[0] < len(system.guards):
         raise PassThroughError(f"{where}: the schedule names no known guard")
     gi, g = int(guards[0]), system.guards[int(guards[0])]
-    src = np.flatnonzero(seg == 0)
-    nxt = np.flatnonzero(seg == 1)
+    src, nxt = np.flatnonzero(seg == 0), np.flatnonzero(seg == 1)
     if not len(src) or not len(nxt) or nxt[0] != src[-1] + 1:
         raise PassThroughError(f"{where}: the plan's segments are not consecutive")
     k = int(src[-1])
@@ -401,7 +398,7 @@ def pass_through_geometry(log_path: str | Path, *, solve: int | None = None,
         virtual_gap=float(num.gap(gi, xv[None])[0]), virtual_q=float(q(xv)),
         kappa=float(g.kappa(d, past=True)), disc_gap=disc_gap, disc_point=disc_point,
         slack=float(msg.slack), state_names=tuple(system.state_names),
-        log_note=damage_note(run.damage, run.complete))
+        log_note=run.damage_text)
     return _with_grids(system, geo)
 
 

@@ -161,6 +161,9 @@ def _hold_stop_signals() -> list[int]:
 
     def hold(signum: int, frame) -> None:
         if held:
+            for stream in (sys.stdout, sys.stderr):  # what was printed, best effort
+                with contextlib.suppress(Exception):
+                    stream.flush()
             os._exit(128 + signum)
         held.append(signum)
 

@@ -58,7 +58,8 @@ def _identity_table(rp, size: int):
     t = Table(title=escape(f"run {info.get('scenario_name', '?')}"), show_header=False)
     desc = rp.scenario.get("description")
     if desc:  # the scenario file's words: overrides and a sweep's settings are not in them
-        by = "overrides" if info.get("overrides") else "sweep" if info.get("sweep") else ""
+        settings = [o for o in info.get("overrides") or [] if not str(o).startswith("seed=")]
+        by = "overrides" if settings else "sweep" if info.get("sweep") else ""
         t.add_row("description", escape(str(desc)) + (
             f" (the scenario file's; the {by} below changed the run)" if by else ""))
     t.add_row("system", escape(str(info.get("system", "?"))))

@@ -6,7 +6,7 @@ import json
 import sys
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -110,31 +110,35 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
             typer.echo(exc.plugin_traceback.rstrip("\n"), err=True)  # where in the plug-in
         raise typer.Exit(EXIT_BAD_INPUT) from None
     sink = _live_sink(live_port) if live else None  # before the run directory is made
-    from hmpc_cli.core.signals import deferred
     from hmpc_cli.log.runlog import Provenance
 
-    # from the claim of the run directory to the report, a stop is only recorded where
-    # it arrives: the loop acts on it once its log is open (the log then ends where the
-    # run was stopped), the report once the run has finished
-    with deferred():
-        try:
-            out = _run_dir(out, sc)
-        except BaseException:
-            if sink is not None:
-                sink.close()
-            raise
-        provenance = Provenance(overrides=tuple(
-            [*sets, *([f"seed={seed}"] if seed is not None else [])]))
-        try:
-            result = _execute(prepared, sc, toml_text, out, quiet, sink, provenance)
-        finally:
-            if sink is not None:
-                sink.close()
+    provenance = Provenance(overrides=tuple(
+        [*sets, *([f"seed={seed}"] if seed is not None else [])]))
+    out, result = _claimed_run(out, prepared, sc, toml_text, quiet, sink, provenance)
     _report_finished(result, out, quiet)
     if strict and not result.success:
         _err([f"--strict: the run failed ({result.reason or 'task not achieved'}); its log: "
               f"{out / 'run.mcap'}"])
         raise typer.Exit(EXIT_FAILED)
+
+
+def _claimed_run(out: Path | None, prepared, sc, toml_text: str, quiet: bool, sink,
+                 provenance) -> tuple[Path, Any]:
+    """Claims the run directory and runs into it; returns (the directory, the result).
+
+    From the claim to the report a stop is only recorded where it arrives: the loop acts
+    on it once its log is open (the log then ends where the run was stopped), the report
+    once the run has finished. The --live ``sink`` is closed here.
+    """
+    from hmpc_cli.core.signals import deferred
+
+    with deferred():
+        try:
+            out = _run_dir(out, sc)
+            return out, _execute(prepared, sc, toml_text, out, quiet, sink, provenance)
+        finally:
+            if sink is not None:
+                sink.close()
 
 
 def _setup_caused(scenario: Path, sets: list[str], seed: int | None):
@@ -283,6 +287,10 @@ def _crashed(exc: Exception, t_end: float, out: Path) -> None:
 
     trace = "".join(traceback.format_exception(exc))
     disk = disk_error(exc)
+    if disk and not _log_has_messages(out / "run.mcap"):  # nothing kept: --out free again
+        for name in ("run.mcap", "scenario.toml", "summary.json"):
+            with contextlib.suppress(OSError):
+                (out / name).unlink(missing_ok=True)
     if not disk:
         try:  # the one-line report does not depend on it
             (out / "error.txt").write_text(trace, encoding="utf-8")
@@ -305,12 +313,23 @@ _WRITTEN = (("run.mcap", "its log (run.mcap)"), ("summary.json", "summary.json")
             ("error.txt", "the traceback (error.txt)"))
 
 
+def _log_has_messages(path: Path) -> bool:
+    """Whether the run log at ``path`` holds a readable message (a header only: no)."""
+    from hmpc_cli.log.reader import read_log
+
+    try:
+        return bool(read_log(path).messages)
+    except (OSError, ValueError):
+        return False
+
+
 def _written_text(out: Path) -> str:
     """Which of a crashed run's files ``out`` holds (not empty), as one line."""
-    held = [text for name, text in _WRITTEN
+    held = [text if name != "run.mcap" or _log_has_messages(out / name) else
+            "its log (run.mcap, no message)" for name, text in _WRITTEN
             if (out / name).is_file() and (out / name).stat().st_size > 0]
     if not held:
-        return f"nothing of the run could be written to {out}"
+        return f"nothing of the run could be kept in {out} (--out can be used again)"
     listed = held[0] if len(held) == 1 else f"{', '.join(held[:-1])} and {held[-1]}"
     return f"{listed} {'is' if len(held) == 1 else 'are'} in {out}"
 

@@ -252,9 +252,10 @@ def _show(plan, run_id: str) -> None:
     data["disturbance"] = {k: v for k, v in data.get("disturbance", {}).items()
                            if k == "kind" or k in READS.get(kind, ())}
     cell = ", ".join(f"{a.name}={label}" for a, label in zip(plan.axes, run.cell, strict=True))
+    note = "; its description is the scenario file's, which the sweep's settings below " \
+        "change" if data.get("description") and run.overrides else ""
     typer.echo(f"# run {run.run_id} of {plan.path}: {cell or 'its one cell'}, seed "
-               f"{run.seed}; its description is the scenario file's, which the sweep's "
-               "settings below change")
+               f"{run.seed}{note}")
     typer.echo(dump_toml(data), nl=False)
 
 

@@ -361,10 +361,10 @@ def _publish(sc, system, observed: list, report, out: Path | None, formats: str,
             typer.echo(str(out))
         if write is not None:
             _write_margins(report, sc, write, samples)
-    _stopped_after_writing(out)
+    _stopped_after_writing(out, write)
 
 
-def _stopped_after_writing(out: Path) -> None:
+def _stopped_after_writing(out: Path, write: Path | None) -> None:
     """Stops (one stderr line) if a stop signal came while the outputs were written."""
     from hmpc_cli.core.signals import as_interrupted, check
 
@@ -372,8 +372,8 @@ def _stopped_after_writing(out: Path) -> None:
         check()
     except KeyboardInterrupt as exc:
         stop = as_interrupted(exc)
-        typer.echo(f"interrupted ({stop.name}) once the analysis was written whole to {out}",
-                   err=True)
+        typer.echo(f"interrupted ({stop.name}) once the analysis was written whole to {out}"
+                   + (f" and {write}" if write is not None else ""), err=True)
         stop.reported = True
         raise stop from None
 

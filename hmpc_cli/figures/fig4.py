@@ -75,7 +75,7 @@ def load_walk(path: str | Path) -> WalkLog:
         FigureInputError: no such log, unreadable, or a log without body points and
             terrain (not a walking run, or written by an hmpc before log version 3).
     """
-    from hmpc_cli.log.rundata import damage_note, read_run
+    from hmpc_cli.log.rundata import read_run
 
     path = Path(path)
     if not path.is_file():
@@ -101,7 +101,7 @@ def load_walk(path: str | Path) -> WalkLog:
                    [(s.x0, s.x1, s.height) for s in terrain.segments],
                    float(terrain.ground), *_outcome(run),
                    [[names.index(n) for n in line.points] for line in geo.skeleton],
-                   damage_note(run.damage, run.complete))
+                   run.damage_text)
 
 
 def _contacts(run, foot: int) -> list[tuple[float, str, float, float]]:

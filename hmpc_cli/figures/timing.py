@@ -113,7 +113,7 @@ def solve_times(path: str | Path) -> SolveTimes:
     Raises:
         FigureInputError: not a readable log, or a log without an MPC solve.
     """
-    from hmpc_cli.log.rundata import damage_note, read_run
+    from hmpc_cli.log.rundata import read_run
 
     try:
         run = read_run(Path(path))
@@ -138,7 +138,7 @@ def solve_times(path: str | Path) -> SolveTimes:
         _stopped([s.reason for s in run.solves], t), counted,
         real_time["period"] if real_time else _period(run.scenario), charged,
         np.array([e.t for e in run.events], dtype=float), real_time,
-        damage_note(run.damage, run.complete))
+        run.damage_text)
 
 
 def _stopped(reasons: list[str], t: np.ndarray) -> np.ndarray:

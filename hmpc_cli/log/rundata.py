@@ -127,6 +127,11 @@ class RunData:
         """The scenario's ``sim.log_plan_stride`` (:func:`plan_stride`)."""
         return plan_stride(self.scenario)
 
+    @property
+    def damage_text(self) -> str:
+        """:func:`damage_note` of this log: its damage or cut ('' if read whole)."""
+        return damage_note(self.damage, self.complete)
+
     def lacks(self, what: str) -> str:
         """``<path>: <what>``, naming the damage or the cut that may have lost it (one line)."""
         return f"{self.path}: {what}{damage_note(self.damage, self.complete)}"

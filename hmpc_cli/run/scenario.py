@@ -357,8 +357,8 @@ def apply_overrides(data: dict, overrides: list[str], source: str) -> dict:
                           f"than {MAX_DEPTH} levels)")
             continue
         node = data
-        parts = key.strip().split(".")
-        if not all(p.strip() for p in parts):  # "sim..duration", ".sim", "sim."
+        parts = [p.strip() for p in key.strip().split(".")]  # TOML: "sim . duration" too
+        if not all(parts):  # "sim..duration", ".sim", "sim."
             errors.append(f"--set {_shown(item)}: {key.strip()!r} has an empty part: "
                           "the key is dotted names, e.g. sim.duration")
             continue

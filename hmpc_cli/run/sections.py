@@ -94,8 +94,13 @@ class SimSettings(BaseModel):
         ok = v in ("paused", "measured", "model") if isinstance(v, str) else (
             isinstance(v, int | float) and not isinstance(v, bool) and 0.0 <= v < 1e6)
         if not ok:
+            import difflib
+
+            close = difflib.get_close_matches(v.lower(), ["paused", "measured", "model"], n=1) \
+                if isinstance(v, str) else []
             raise ValueError(f"expected 'paused', 'measured', 'model' or a delay in [0, 1e6) "
-                             f"s, got {v!r}")
+                             f"s, got {v!r}" + (f" (did you mean {close[0]!r}?)" if close
+                                                else ""))
         return float(v) if not isinstance(v, str) else v
 
 
