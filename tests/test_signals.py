@@ -488,8 +488,9 @@ def test_a_stop_while_the_process_exits_is_one_line_not_a_traceback(ignored):
     """Ctrl-C while the atexit handlers run (the command's handlers already taken off)
     printed a KeyboardInterrupt traceback from inside one; it is held to the exit: one
     line, 130. A SIGINT the process ignores (a background job) stays ignored."""
-    code = ("import atexit, os, signal\n"
-            + ("signal.signal(signal.SIGINT, signal.SIG_IGN)\n" if ignored else "")
+    code = ("import atexit, os, signal\n"  # the child's SIGINT as Python's own, or ignored
+            + ("signal.signal(signal.SIGINT, signal.SIG_IGN)\n" if ignored else
+               "signal.signal(signal.SIGINT, signal.default_int_handler)\n")
             + "from hmpc_cli.cli.app import end_process\n"
             "atexit.register(lambda: os.kill(os.getpid(), signal.SIGINT))\n"
             "end_process(0)\n")
@@ -506,6 +507,7 @@ def test_a_second_stop_while_the_process_exits_ends_it_at_once():
     """An atexit handler that hangs: the first stop is held, the second ends the process
     (128 + its number), the rest of the handlers not run."""
     code = ("import atexit, os, signal, time\n"
+            "signal.signal(signal.SIGINT, signal.default_int_handler)\n"  # a CI may ignore it
             "from hmpc_cli.cli.app import end_process\n"
             "atexit.register(lambda: print('not reached', flush=True))\n"
             "def hang():\n"
