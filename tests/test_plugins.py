@@ -632,3 +632,65 @@ def test_parameters_that_are_not_a_strict_pydantic_model_refuse_that_plugin_only
         "discriminator"]["mapping"])
 
 
+
+
+_DOCK_TEXT = (PLUGINS / "hmpc_dock.py").read_text()
+#: (case, entry points, module text, scenario, the one error line after "error: {scenario}: ")
+_AUTHOR_MISTAKES = [
+    ("name typed str", "[hmpc.systems]\ndock = hmpc_dock:SYSTEM\n",
+     _DOCK_TEXT.replace('name: Literal["dock"] = "dock"', 'name: str = "dock"'),
+     '[system]\nname = "dock"\n',
+     "system.name: entry point 'dock' = 'hmpc_dock:SYSTEM' (group hmpc.systems): "
+     "DockParams.name must be Literal['dock'] = 'dock', not str (a scenario's [system] "
+     "section is told apart by it)"),
+    ("kind typed str", "[hmpc.planners]\nstay = hmpc_toy:PLANNER\n",
+     TOY_KINDS.replace('kind: Literal["stay"] = "stay"', 'kind: str = "stay"'),
+     '[system]\nname = "ball"\n[planner]\nkind = "stay"\n',
+     "planner: entry point 'stay' = 'hmpc_toy:PLANNER' (group hmpc.planners): "
+     "StaySettings.kind must be Literal['stay'] = 'stay', not str (a scenario's [planner] "
+     "section is told apart by it)"),
+    ("no rate_hz", "[hmpc.mpcs]\nhold = hmpc_toy:MPC\n",
+     TOY_KINDS.replace("    rate_hz: int = 10\n", ""),
+     '[system]\nname = "ball"\n[mpc]\nkind = "hold"\n',
+     "mpc: entry point 'hold' = 'hmpc_toy:MPC' (group hmpc.mpcs): HoldSettings needs a "
+     "field rate_hz (the re-solve rate [Hz] the loop keeps), e.g. rate_hz: int = 10"),
+    ("a bundled kind's name", "[hmpc.planners]\ncem = hmpc_toy:PLANNER\n",
+     TOY_KINDS.replace('"stay"', '"cem"'), '[system]\nname = "ball"\n',
+     "planner 'cem', the default of system 'ball', cannot be used: kind 'cem' is registered "
+     "twice in group hmpc.planners: 'hmpc_cli.planner.cem:PLANNER' and 'hmpc_toy:PLANNER'"),
+    ("misnamed planner", "[hmpc.planners]\nstayer = hmpc_toy:PLANNER\n", TOY_KINDS,
+     '[system]\nname = "ball"\n[planner]\nkind = "stay"\n',
+     "planner: entry point 'stayer' = 'hmpc_toy:PLANNER' (group hmpc.planners) registers "
+     "kind 'stay': the entry point must be named after it"),
+    ("misspelled initial mode", "[hmpc.systems]\ndock = hmpc_dock:SYSTEM\n",
+     _DOCK_TEXT.replace('initial_mode="free"', 'initial_mode="fre"'),
+     '[system]\nname = "dock"\n',
+     "system: 'dock' failed to build: ValueError: dock: initial_mode 'fre' is not a mode "
+     "(modes: 'free', 'docked'; did you mean 'free'?)"),
+    ("flow not finite at x0", "[hmpc.systems]\ndock = hmpc_dock:SYSTEM\n",
+     _DOCK_TEXT.replace("ca.vertcat(vel, u / p.mass + w)",
+                        "ca.vertcat(vel, ca.sqrt(pos - 1.5) + u / p.mass + w)"),
+     '[system]\nname = "dock"\n',
+     "system.x0: the flow of mode 'free' is not finite at x0 (1, -4) with u = 0 and w = 0 "
+     "(d/dt of v): the run would diverge at its first step; check the flow's expression "
+     "where x0 lies, or move system.x0"),
+]
+
+
+@pytest.mark.parametrize("case, entry_points, text, scenario, line", _AUTHOR_MISTAKES,
+                         ids=[m[0] for m in _AUTHOR_MISTAKES])
+def test_a_plugin_authors_mistake_is_one_line_naming_it(tmp_path, case, entry_points, text,
+                                                        scenario, line):
+    """Mistakes a review made writing plug-ins from plugins.md: a name or kind typed str
+    broke every scenario (exit 1, PydanticUserError), an MPC without rate_hz and a planner
+    under a bundled kind's name crashed (AttributeError, KeyError), a misnamed planner was
+    'unknown kind', a misspelled initial mode named no choice, a flow NaN at x0 ran and
+    'diverged'. Each is now one exit-2 line, nothing written."""
+    module = "hmpc_dock" if "hmpc_dock" in entry_points else "hmpc_toy"
+    site = write_dist(tmp_path / "site", "hmpc-mistake", entry_points, {module: text})
+    path = tmp_path / "s.toml"
+    path.write_text(scenario)
+    proc = hmpc(["run", str(path), "--out", str(tmp_path / "out"), "-q"], site, cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert error_lines(proc) == [f"error: {path}: {line}"]
+    assert not (tmp_path / "out").exists()

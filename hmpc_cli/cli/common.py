@@ -150,13 +150,15 @@ def environment_error(exc: BaseException) -> None:
     """Exits 2 with one line when ``exc`` is bad input or environment, not a bug.
 
     An unusable output path (:class:`hmpc_cli.core.paths.OutputPathError`), a damaged or
-    foreign log (:class:`hmpc_cli.log.damage.DamagedLogError`) or a full or read-only disk
+    foreign log (:class:`hmpc_cli.log.damage.DamagedLogError`), plug-ins that cannot be
+    used together (:class:`hmpc_cli.core.registry.PluginError`) or a full or read-only disk
     (:data:`hmpc_cli.core.paths.DISK_ERRNOS`) wherever a command meets it; else returns.
     """
     from hmpc_cli.core.paths import OutputPathError, disk_error, disk_error_text
+    from hmpc_cli.core.registry import PluginError
     from hmpc_cli.log.damage import DamagedLogError
 
-    if isinstance(exc, (OutputPathError, DamagedLogError)):
+    if isinstance(exc, (OutputPathError, DamagedLogError, PluginError)):
         line = " ".join(str(exc).split())
     elif disk_error(exc):
         line = f"cannot write: {disk_error_text(exc)}"

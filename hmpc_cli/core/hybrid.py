@@ -256,9 +256,15 @@ class HybridSystem:
                                  f"{', '.join(map(repr, unknown))} (modes: {names})")
             if g.direction not in (-1, 1):
                 raise ValueError(f"{self.name}: guard {g.name} direction must be -1 or +1")
-        for mode in (self.initial_mode, self.final_mode):
+        for field_name, mode in (("initial_mode", self.initial_mode),
+                                 ("final_mode", self.final_mode)):
             if mode not in names:
-                raise ValueError(f"{self.name}: unknown mode {mode!r}")
+                import difflib
+
+                close = difflib.get_close_matches(str(mode), names, n=1)
+                raise ValueError(f"{self.name}: {field_name} {mode!r} is not a mode (modes: "
+                                 f"{', '.join(map(repr, names))}"
+                                 + (f"; did you mean {close[0]!r}?)" if close else ")"))
         for line in self.skeleton:
             if not set(line) <= set(self.point_names):
                 raise ValueError(f"{self.name}: skeleton names unknown points {line}")

@@ -17,6 +17,7 @@ e.g. :class:`~hmpc_cli.core.walker.WalkerModel`), kept by their class name.
 from __future__ import annotations
 
 import re
+import typing
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -281,6 +282,16 @@ def _load_one(ep: EntryPoint, group: str, kind_field: str, spec_type: type) -> A
     if fld is None or fld.default != name:
         raise PluginError(f"{where}: {model.__name__} needs a field "
                           f"{kind_field}: Literal[{name!r}] = {name!r}")
+    if typing.get_origin(fld.annotation) is not typing.Literal \
+            or typing.get_args(fld.annotation) != (name,):
+        shown = getattr(fld.annotation, "__name__", None) or repr(fld.annotation)
+        section = {"hmpc.systems": "system", "hmpc.planners": "planner"}.get(group, "mpc")
+        raise PluginError(f"{where}: {model.__name__}.{kind_field} must be "
+                          f"Literal[{name!r}] = {name!r}, not {shown} (a scenario's "
+                          f"[{section}] section is told apart by it)")
+    if group == "hmpc.mpcs" and "rate_hz" not in model.model_fields:
+        raise PluginError(f"{where}: {model.__name__} needs a field rate_hz (the re-solve "
+                          f"rate [Hz] the loop keeps), e.g. rate_hz: int = 10")
     return spec
 
 

@@ -294,6 +294,11 @@ def scenario_model() -> type[ScenarioBase]:
     """The Scenario model with the registered plug-ins' sections (built once)."""
     reg = registry()
     default = reg.systems.get(DEFAULT_SYSTEM) or next(iter(reg.systems.values()))
+    for what, kind, table in (("planner", default.planner, reg.planners),
+                              ("mpc", default.mpc, reg.mpcs)):
+        if kind not in table:  # e.g. a plug-in registered under a bundled kind's name
+            raise PluginError(f"{what} {kind!r}, the default of system {default.name!r}, "
+                              f"cannot be used: {reg.failure(what, kind) or 'not registered'}")
     planner = reg.planners[default.planner].settings
     mpc = reg.mpcs[default.mpc].settings
     model = create_model(
@@ -496,9 +501,10 @@ def format_errors(exc: ValidationError, source: str, model: Any = None) -> list[
         loc = key_path(parts) or "(top)"
         msg = err["msg"].removeprefix("Value error, ")
         if err["type"] == "union_tag_invalid":  # a kind that failed to load says why
-            ctx = err.get("ctx") or {}
-            failed = registry().failed.get(str(parts[0]) if parts else "", {})
-            msg = failed.get(str(ctx.get("tag")), None) or _tag_text(ctx, msg)
+            ctx, section = err.get("ctx") or {}, str(parts[0]) if parts else ""
+            why = registry().failure(section, str(ctx.get("tag"))) \
+                if section in registry().failed else None
+            msg = why or _tag_text(ctx, msg)
         given = err.get("input")
         if err["type"] == "string_type" and isinstance(given, int | float) \
                 and not isinstance(given, bool):

@@ -103,7 +103,30 @@ def initial_state_problems(system, x0=None, whose: str = "") -> list[str]:
                        f"mode {mode!r} (gap 0): a guard fires when its gap goes from > 0 to "
                        f"<= 0 within a step, so from there it would never fire; move "
                        f"system.x0 off the guard")
-    return out
+    return out + _flow_problems(system, x0, whose)
+
+
+def _flow_problems(system, x0, whose: str = "") -> list[str]:
+    """``system.x0: reason`` when the initial mode's flow is not finite at x0.
+
+    Evaluated with no disturbance and the input nearest 0 within the mode's bounds: a flow
+    that returns NaN or inf there (a square root of a negative number, a division by 0)
+    would end the run at its first step as "diverged".
+    """
+    import numpy as np
+
+    mode = system.modes[system.mode_index(system.initial_mode)]
+    u = np.clip(np.zeros(system.n_u), np.asarray(mode.u_lower, dtype=float),
+                np.asarray(mode.u_upper, dtype=float))
+    value = np.asarray(mode.flow(x0, u, np.zeros(system.n_w)), dtype=float).ravel()
+    if np.all(np.isfinite(value)):
+        return []
+    bad = [n for n, v in zip(system.state_names, value, strict=False) if not np.isfinite(v)]
+    point = ", ".join(f"{v:g}" for v in x0)
+    return [f"system.x0: the flow of {whose}mode {mode.name!r} is not finite at x0 ({point}) "
+            f"with u = {', '.join(f'{v:g}' for v in u) or '()'} and w = 0 (d/dt of "
+            f"{', '.join(bad)}): the run would diverge at its first step; check the flow's "
+            f"expression where x0 lies, or move system.x0"]
 
 
 def _planner_problems(sc, model) -> list[str]:
