@@ -193,5 +193,13 @@ def test_the_papers_counts_are_called_reproduced_only_where_a_mode_gets_them_exa
         "- 20 Hz fixed (the paper: 11/11): count reproduced by hmpc (hmpc 11/11, reference "
         "10/11).",
         "- 100 Hz fixed: not in the paper (the authors' data: 4/11)."]
+    partial = {"hmpc": {"10 Hz fixed": Count(successes=5, runs=5),
+                        "20 Hz fixed": Count(successes=5, runs=5)},
+               "reference": {"20 Hz fixed": Count(successes=10, runs=11)}}
+    assert _verdicts(modes, partial, {}) == [  # a sweep stopped halfway is not judged
+        "- 10 Hz fixed (the paper: 9/11): not judged: no mode holds its 11 runs yet (hmpc 5/5, "
+        "6 runs missing).",
+        "- 20 Hz fixed (the paper: 11/11): **not reproduced** by any mode (hmpc 5/5, 6 runs "
+        "missing, reference 10/11)."]
     assert _entry_text([1.2, None, 1.4, 1.3], "authors") == "1.30 (authors: 3 of 4 entered)"
     assert _entry_text([1.2, 1.4], "hmpc") == "1.30" and _entry_text([None], "x") == "never"

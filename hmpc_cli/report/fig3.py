@@ -273,11 +273,25 @@ def _verdicts(modes: Sequence[Fig3Mode], counts: dict, authors: dict) -> list[st
             out.append(f"- {p}: not in the paper" + (
                 f" (the authors' data: {theirs.split(' ')[0]})" if theirs else "") + ".")
             continue
-        same = [name for name, c in got.items() if c == paper]
-        out.append(f"- {p} (the paper: {paper}): " + (
-            f"count reproduced by {', '.join(same)}" if same else "**not reproduced** by "
-            "any mode") + " (" + ", ".join(f"{name} {c}" for name, c in got.items()) + ").")
+        total = int(paper.split("/")[1])  # the paper's runs in that panel
+        whole = {m.name: c for m in modes if (c := counts[m.name].get(p)) is not None
+                 and c.runs == total}  # a panel with runs missing is not judged
+        same = [name for name, c in whole.items() if f"{c.successes}/{c.runs}" == paper]
+        verdict = (f"count reproduced by {', '.join(same)}" if same else
+                   "**not reproduced** by any mode" if whole else
+                   f"not judged: no mode holds its {total} runs yet")
+        out.append(f"- {p} (the paper: {paper}): {verdict} (" + ", ".join(
+            f"{name} {c}{_runs_note(int(c.split('/')[1]), total)}"
+            for name, c in got.items()) + ").")
     return out
+
+
+def _runs_note(runs: int, total: int) -> str:
+    """``, 6 runs missing`` (or ``, 22 runs against the paper's 11``) unless ``runs`` is it."""
+    if runs == total:
+        return ""
+    return f", {total - runs} runs missing" if runs < total else \
+        f", {runs} runs against the paper's {total}"
 
 
 def fig3_section(modes: Sequence[Fig3Mode], authors_dir: Path | None, fig_dir: Path,
