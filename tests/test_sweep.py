@@ -672,3 +672,25 @@ def test_a_sweep_names_the_settings_its_cells_ignore(tmp_path, monkeypatch):
         'cell): replanning.period: no effect with replanning.policy = "once" (only '
         '"periodic" replans on a period)']
     assert "4 runs, all valid" in res.stdout
+
+
+@pytest.mark.parametrize("magnitudes", ["[15.0, 30.0]", "[30.0, 15.0]"])
+def test_a_cell_whose_own_tube_does_not_fit_is_a_warning_in_either_axis_order(tmp_path,
+                                                                              magnitudes):
+    """With mpc.margins = "tube", a cell whose rate's tube is too wide is a finding of the
+    study (its runs recorded as refused). It was an error (exit 2) when its cell came
+    first and a failed run when another disturbance came first: the check of a cell was
+    shared by cells with the same system and MPC, which the tube's margins outgrow."""
+    from hmpc_cli.cli.sweep import cell_checks
+
+    path = write_sweep(tmp_path, 'name = "tube"\nscenario = "{scenario}"\n[set]\n'
+                       '"disturbance.kind" = "box"\n"mpc.nodes_per_second" = 100\n'
+                       '"mpc.margins" = "tube"\n[grid]\n"mpc.rate_hz" = [5]\n'
+                       f'"disturbance.magnitude" = {magnitudes}\n')
+    problems, warnings = cell_checks(plan_sweep(path))
+    assert problems == []
+    assert warnings == [
+        f"{path}: cell mpc.rate_hz=5, disturbance.magnitude=30.0: mpc.margins: the tube's "
+        "margins at 5 Hz do not fit: at 5 Hz the tightened guard-avoid row of floor (kappa = "
+        "0.9878) exceeds its NLP gap at x0 (0.9): the tightened problem is infeasible at the "
+        "initial state (its runs are recorded as refused)"]

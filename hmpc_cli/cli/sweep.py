@@ -170,8 +170,11 @@ def cell_checks(plan, runs=None) -> tuple[list[str], list[str]]:
     Returns ``(problems, warnings)``: lines ``SWEEP: cell axis=label, ...: key.path:
     reason`` (the cell named by its grid axes).
     Problems: :func:`hmpc_cli.run.setup_checks.setup_problems` (seeds and settings that
-    cannot change them share one check). Warnings: a margins file computed for another
-    disturbance or low level (:func:`hmpc_cli.run.scenario.margins_file_warnings`) and a
+    cannot change them share one check: the system, MPC and planner, with the tube's
+    margins also the disturbance, plant and low level); a cell whose own tube's margins
+    do not fit (``mpc.margins = "tube"``) is a warning, its runs recorded as refused (a
+    finding of a robustness study). Warnings: a margins file computed
+    for another disturbance or low level (:func:`hmpc_cli.run.scenario.margins_file_warnings`) and a
     setting the cell's runs ignore (:func:`hmpc_cli.run.scenario.inert_settings`: an
     axis over it would run the same runs again), each reason once, with the number of
     cells it holds for.
@@ -181,8 +184,9 @@ def cell_checks(plan, runs=None) -> tuple[list[str], list[str]]:
 
     from hmpc_cli.run.scenario import margins_file_warnings, scenario_model
     from hmpc_cli.run.setup_checks import setup_problems as scenario_problems
+    from hmpc_cli.tube.margins_file import REFUSED
 
-    seen: set[str] = set()
+    checked: dict[str, list[str]] = {}  # what the checks read -> their problems
     out: list[str] = []
     noted: dict[str, list[str]] = {}  # reason -> the cells it holds for
     read: dict[str, list[str]] = {}  # the margins file and what it is compared with -> reasons
@@ -197,12 +201,22 @@ def cell_checks(plan, runs=None) -> tuple[list[str], list[str]]:
         for line in [*read[margins], *_inert(plan, run, sc, read)]:
             if cell not in noted.setdefault(line, []):
                 noted[line].append(cell)
-        key = json.dumps([sc.system.model_dump(mode="json"), sc.mpc.model_dump(mode="json")],
-                         sort_keys=True)
-        if key in seen:
-            continue
-        seen.add(key)
-        out += [f"{plan.path}: cell {cell}: {line}" for line in scenario_problems(sc)]
+        # what the checks read: the tube margins also the disturbance, plant and low level
+        parts = [sc.system, sc.mpc, sc.planner] + ([sc.disturbance, sc.plant, sc.lowlevel]
+                                                   if sc.mpc.margins_source() == "tube" else [])
+        key = json.dumps([part if isinstance(part, dict) else part.model_dump(mode="json")
+                          for part in parts], sort_keys=True)  # [plant]: a dict
+        first = key not in checked
+        if first:
+            checked[key] = scenario_problems(sc)
+        for line in checked[key]:
+            if sc.mpc.margins_source() == "tube" and line.startswith(REFUSED):
+                # the rate's own tube does not fit: a finding of the study, not an error
+                line = f"{line} (its runs are recorded as refused)"
+                if cell not in noted.setdefault(line, []):
+                    noted[line].append(cell)
+            elif first:
+                out.append(f"{plan.path}: cell {cell}: {line}")
     warnings = [f"{plan.path}: cell {cells[0]}"
                 + (f" (and {len(cells) - 1} other cell{'s' * (len(cells) > 2)})"
                    if len(cells) > 1 else "")
