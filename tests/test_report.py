@@ -1148,3 +1148,18 @@ def test_a_studys_tubes_hold_its_plants_mismatch(tmp_path):
                     rates=[10.0], seed=sc.seed, plant=plant, plant_note=note)
     assert rep.disturbance.mismatch > 0
     assert rep.disturbance.eta == alone.disturbance.eta
+
+
+def test_only_series_the_rate_reading_compares_count_as_refused():
+    """A series with fewer than two rates set up is not compared: its refused rate is not
+    one of 'these series' (a ±30 series with one rate set up was counted)."""
+    from types import SimpleNamespace as Cell
+
+    from hmpc_cli.report.robustness import _refused_series
+
+    cells = [Cell(panel="±15", series="once", x=x, ran=True) for x in (5, 20)] + [
+        Cell(panel="±30", series="once", x=5, ran=False),
+        Cell(panel="±30", series="once", x=20, ran=True),
+        Cell(panel="±30", series="replan", x=5, ran=False),
+        *[Cell(panel="±30", series="replan", x=x, ran=True) for x in (10, 20)]]
+    assert _refused_series(cells) == 1

@@ -791,8 +791,13 @@ def _paced(cells, latency: object) -> str:
 
 
 def _refused_series(cells) -> int:
-    """How many (size, policy) series have a rate none of whose runs was set up."""
-    return len({(c.panel, c.series) for c in cells if not c.ran})
+    """How many compared (size, policy) series hold a rate none of whose runs was set up.
+
+    Compared: two rates or more set up (a series with fewer is not in the rate reading).
+    """
+    refused = {(c.panel, c.series) for c in cells if not c.ran}
+    return sum(sum(c.ran for c in cells if (c.panel, c.series) == key) >= 2
+               for key in refused)
 
 
 def reading(results: list[tuple[dict, list]],
