@@ -253,6 +253,7 @@ def bad_cases(table: Path, tmp: Path) -> dict[str, list[str]]:
         "another figure's option": ["fig2", str(table), "--view", "0,1,0,1"],
         "fig4's option for fig3": ["fig3", str(table), "--every", "0.2"],
         "unknown trace axis": ["fig3", str(table), "--trace-axis", "wind"],
+        "unknown nominal": ["fig3", str(table), "--nominal", "bogus"],
     }
 
 

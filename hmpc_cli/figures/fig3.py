@@ -331,6 +331,10 @@ def fig3(table_path: str | Path, out_dir: str | Path | None = None,
             raise FigureInputError(f"view must be x0 < x1, y0 < y1 (4 finite numbers), got {view}")
     fmts = parse_formats(formats)
     rows = read_table(table, [panel_axis, trace_axis, "success", "log"])
+    traces = sorted({(r.get(trace_axis) or "").strip() for r in rows}, key=_natural)
+    if nominal and nominal != "nominal" and nominal not in traces:  # the default may be absent
+        raise FigureInputError(f"{table}: --nominal {nominal!r}: no run has it as its "
+                               f"{trace_axis} (has: {', '.join(map(repr, traces))})")
     groups = _group(rows, panel_axis, list(panels) if panels is not None else None, table)
     notes: dict[str, list[str]] = {}
     runs = _load_runs(table, groups, trace_axis, nominal or None, notes)
