@@ -379,6 +379,11 @@ BAD = {
                          "sweep.toml: scenario: file not found: nope/ball.toml"),
     "unknown sweep key": ('seed = 3\n',
                          "sweep.toml: seed: unknown key (did you mean 'seeds'?)"),
+    "one value written twice": ('[set]\n"disturbance.kind" = "box"\n[grid]\n'
+                                '"disturbance.magnitude" = [15, 15.0]\n',
+                                "sweep.toml: grid: cells [15] and [15.0] run the same scenario "
+                                "(their values differ only as written, e.g. 15 and 15.0): keep "
+                                "one"),
 }
 
 

@@ -309,6 +309,7 @@ def plan_sweep(path: str | Path) -> SweepPlan:
         except ScenarioError as exc:
             cells[items] = None
             errors += [_rewrite(line, scenario, src, run) for line in exc.lines]
+    errors += _same_scenarios(runs, src)
     if errors:
         raise ScenarioError(list(dict.fromkeys(errors)))
     keys = sorted({k for r in runs for k in r.overrides})
@@ -361,6 +362,25 @@ def _expand(spec: SweepSpec, base: dict[str, Any], axes: list[Axis], src: str,
             ids[run.run_id] = list(cell)
             runs.append(run)
     return runs
+
+
+def _same_scenarios(runs: list[Run], src: str) -> list[str]:
+    """``grid: cells A and B run the same scenario`` lines ([] if none).
+
+    Cells whose overrides differ only in how a value is written (15 and 15.0) would run the
+    same runs twice under two run ids.
+    """
+    first: dict[str, Run] = {}
+    out = []
+    for run in runs:
+        if not run.toml:
+            continue
+        other = first.setdefault(run.toml, run)
+        if other is not run and other.run_id != run.run_id:
+            out.append(f"{src}: grid: cells {list(other.cell)} and {list(run.cell)} run the "
+                       "same scenario (their values differ only as written, e.g. 15 and "
+                       "15.0): keep one")
+    return list(dict.fromkeys(out))
 
 
 def first_seeds(plan: SweepPlan, n: int | None) -> SweepPlan:
