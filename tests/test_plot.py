@@ -346,3 +346,16 @@ def test_a_missing_column_the_table_has_as_a_fixed_setting_is_suggested(tmp_path
         f"{table}: missing column(s) mpc.rate_hz (did you mean 'set.mpc.rate_hz'?), "
         "replanning.policy (did you mean 'set.replanning.policy'?), success (did you mean "
         "'succes'?), wind (has: run_id, set.mpc.rate_hz, set.replanning.policy, succes, log)")
+
+
+def test_a_table_with_a_run_twice_is_refused_by_line(tmp_path):
+    """A results.csv edited by hand with a run's row twice was counted twice (17 runs of a
+    16-run sweep on the page and in plot robustness)."""
+    from hmpc_cli.analysis.tables import FigureInputError, read_table
+
+    table = tmp_path / "results.csv"
+    table.write_text("run_id,success\na1,true\nb2,false\na1,false\n")
+    with pytest.raises(FigureInputError) as info:
+        read_table(table, ["success"])
+    assert str(info.value) == (f"{table}:4: run_id 'a1' again (line 2): a sweep's table holds "
+                               "each run once; keep one of the two rows")

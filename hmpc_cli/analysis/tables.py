@@ -100,6 +100,13 @@ def read_table(path: Path, required: Iterable[str]) -> list[dict[str, str]]:
         raise FigureInputError(f"{path}: missing column(s) {named} (has: {have})")
     if not rows:
         raise FigureInputError(f"{path}: table has no rows")
+    seen: dict[str, int] = {}
+    for line, row in enumerate(rows, start=2):  # a sweep's table holds each run once
+        rid = row.get("run_id")
+        if rid and seen.setdefault(rid, line) != line:
+            raise FigureInputError(f"{path}:{line}: run_id {rid!r} again (line "
+                                   f"{seen[rid]}): a sweep's table holds each run once; "
+                                   f"keep one of the two rows")
     return rows
 
 
