@@ -254,3 +254,32 @@ def test_two_sweeps_on_one_directory(tmp_path):
         os.kill(first.pid, signal.SIGINT)
         _finish(first)
     assert first.returncode == 130
+
+
+def test_a_stop_while_a_worker_imports_is_recorded_not_a_traceback():
+    """Ctrl-C in the first second of a sweep reached workers still importing hmpc (before
+    their handlers): each printed 'Process SpawnProcess-1: Traceback ... KeyboardInterrupt'.
+    The worker records a stop from its first line on and ends cleanly."""
+    import subprocess
+    import sys
+
+    code = """
+import importlib.abc, multiprocessing, os, signal, sys
+signal.signal(signal.SIGINT, signal.default_int_handler)
+
+class StopDuringImport(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name == "hmpc_cli.run.runner":
+            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C while the worker imports
+        return None
+
+sys.meta_path.insert(0, StopDuringImport())
+from hmpc_cli.sweep.pool import worker_main
+parent, child = multiprocessing.Pipe()
+parent.send(None)
+worker_main(child, os.getppid())
+print("ended cleanly")
+"""
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)
+    assert (res.returncode, res.stdout, res.stderr) == (0, "ended cleanly\n", ""), res.stderr

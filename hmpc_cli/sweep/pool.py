@@ -60,10 +60,10 @@ def worker_main(conn, parent: int) -> None:
     Stops at a None task or a signal. Replies with each run's summary, or None when the
     run was stopped by a signal (the worker then exits).
     """
+    signals.install_deferred()  # first: a stop during the imports below is recorded
+    _die_with_parent(parent)
     from hmpc_cli.run.runner import run_one
 
-    signals.install_deferred()
-    _die_with_parent(parent)
     while True:
         try:
             task = conn.recv()
