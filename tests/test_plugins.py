@@ -694,3 +694,23 @@ def test_a_plugin_authors_mistake_is_one_line_naming_it(tmp_path, case, entry_po
     assert proc.returncode == 2, proc.stderr[-3000:]
     assert error_lines(proc) == [f"error: {path}: {line}"]
     assert not (tmp_path / "out").exists()
+
+
+def test_a_plugin_that_raises_on_import_shows_its_traceback_with_v(tmp_path):
+    """-v showed the traceback of a plug-in whose build raises, not of one whose module
+    raises while imported: now both, after the one error line."""
+    site = write_dist(tmp_path / "site", "hmpc-boom", "[hmpc.systems]\nboom = hmpc_boom:SYSTEM\n",
+                      {"hmpc_boom": "def _configure():\n    raise RuntimeError('bad config')\n\n"
+                                    "_configure()\n"})
+    scenario = tmp_path / "boom.toml"
+    scenario.write_text('[system]\nname = "boom"\n')
+    line = (f"error: {scenario}: system.name: entry point 'boom' = 'hmpc_boom:SYSTEM' (group "
+            "hmpc.systems) failed to load: RuntimeError: bad config")
+    quiet = hmpc(["run", str(scenario), "--out", str(tmp_path / "out")], site, cwd=tmp_path)
+    assert quiet.returncode == 2 and error_lines(quiet) == [line], quiet.stderr[-3000:]
+    loud = hmpc(["run", str(scenario), "--out", str(tmp_path / "out"), "-v"], site,
+                cwd=tmp_path)
+    lines = loud.stderr.splitlines()
+    assert loud.returncode == 2 and lines[:2] == [line, "Traceback (most recent call last):"]
+    assert any("hmpc_boom.py" in ln and "in _configure" in ln for ln in lines)
+    assert lines[-1] == "RuntimeError: bad config" and not (tmp_path / "out").exists()

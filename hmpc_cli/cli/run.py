@@ -81,6 +81,11 @@ def _run(scenario: Path, out: Path | None, sets: list[str], seed: int | None, qu
         sc, toml_text = load_scenario(scenario, sets, seed)
     except ScenarioError as exc:
         _err(exc.lines)
+        from hmpc_cli.cli.common import VERBOSITY
+        from hmpc_cli.core.registry import load_tracebacks
+
+        for trace in load_tracebacks(exc.lines) if VERBOSITY[0] >= 1 else []:
+            typer.echo(trace.rstrip("\n"), err=True)  # where the plug-in failed to import
         raise typer.Exit(EXIT_BAD_INPUT) from None
     for line in [*inert_settings(scenario, sets, sc), *attribute_to_sets(
             [f"{scenario}: {w}" for w in margins_file_warnings(sc)], str(scenario), sets,

@@ -257,6 +257,9 @@ def _load_one(ep: EntryPoint, group: str, kind_field: str, spec_type: type) -> A
     try:
         spec = ep.load()
     except Exception as exc:
+        import traceback
+
+        _LOAD_TRACES[where] = "".join(traceback.format_exception(exc))
         raise PluginError(f"{where} failed to load: {type(exc).__name__}: {exc}") from None
     if not isinstance(spec, spec_type):
         raise PluginError(f"{where} is a {type(spec).__name__}, not a {spec_type.__name__}")
@@ -347,6 +350,19 @@ def missing_capabilities(names: Iterable[str], system: Any) -> list[str]:
         if not ok:
             out.append(c)
     return out
+
+
+#: the traceback of each entry point that raised while imported, by its description
+_LOAD_TRACES: dict[str, str] = {}
+
+
+def load_tracebacks(lines: Iterable[str]) -> list[str]:
+    """The tracebacks of the entry points that failed to import named in ``lines``.
+
+    (``hmpc run -v`` prints them after the error lines: where in the plug-in to look.)
+    """
+    text = "\n".join(lines)
+    return [tb for where, tb in _LOAD_TRACES.items() if where in text]
 
 
 def plugin_call(what: str, fn: Callable[..., Any], *args: Any) -> Any:
