@@ -674,6 +674,13 @@ _AUTHOR_MISTAKES = [
      "system.x0: the flow of mode 'free' is not finite at x0 (1, -4) with u = 0 and w = 0 "
      "(d/dt of v): the run would diverge at its first step; check the flow's expression "
      "where x0 lies, or move system.x0"),
+    ("x0 set by the build", "[hmpc.systems]\ndock = hmpc_dock:SYSTEM\n",
+     _DOCK_TEXT.replace("    x0: tuple[float, float] = (1.0, -4.0)", "    pass").replace(
+         "x0=np.array(p.x0, dtype=float)", "x0=np.array([-0.5, -4.0])"),
+     '[system]\nname = "dock"\n',
+     "the x0 that 'dock' builds (it has no x0 setting): (-0.5, -4) lies past guard 'bumper' "
+     "of its initial mode 'free' (gap -0.5 < 0), so the run would start outside that "
+     "mode's domain; move x0 or the guard"),
 ]
 
 

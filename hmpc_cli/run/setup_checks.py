@@ -69,12 +69,17 @@ def check_task(task, name: str, system):
 
 def built_problems(sc, model, margins: ConstraintMargins | None) -> list[str]:
     """The checks of a scenario against its built model: x0, margins, solver, planner."""
-    return (initial_state_problems(model) + _margin_problems(sc, model, margins)
+    key = "system.x0" if "x0" in type(sc.system).model_fields else \
+        f"the x0 that {sc.system.name!r} builds (it has no x0 setting)"
+    return (initial_state_problems(model, key=key) + _margin_problems(sc, model, margins)
             + _solver_problems(sc) + _planner_problems(sc, model))
 
 
-def initial_state_problems(system, x0=None, whose: str = "") -> list[str]:
+def initial_state_problems(system, x0=None, whose: str = "", key: str = "system.x0"
+                           ) -> list[str]:
     """``system.x0: reason`` when x0 lies on or past a guard of its initial mode.
+
+    ``key``: how the lines name x0 (a system without an x0 setting: where it comes from).
 
     x0 (default ``system.x0``) must lie in the domain of ``system.initial_mode``: every
     guard out of that mode whose activity region holds x0 has a gap > 0 there. A guard
@@ -87,7 +92,7 @@ def initial_state_problems(system, x0=None, whose: str = "") -> list[str]:
 
     x0 = np.asarray(system.x0 if x0 is None else x0, dtype=float)
     x = ca.SX.sym("x", system.n_x)
-    mode = system.initial_mode
+    mode, moved = system.initial_mode, "system.x0" if key == "system.x0" else "x0"
     out = []
     for i in system.guards_of(system.mode_index(mode)):
         g = system.guards[i]
@@ -95,18 +100,18 @@ def initial_state_problems(system, x0=None, whose: str = "") -> list[str]:
         inside = g.region is None or bool(np.all(np.asarray(g.region(x0)) >= 0.0))
         point = ", ".join(f"{v:g}" for v in x0)
         if inside and gap < 0.0:
-            out.append(f"system.x0: ({point}) lies past {whose}guard {g.name!r} of its "
+            out.append(f"{key}: ({point}) lies past {whose}guard {g.name!r} of its "
                        f"initial mode {mode!r} (gap {gap:.4g} < 0), so the run would start "
-                       f"outside that mode's domain; move system.x0 or the guard")
+                       f"outside that mode's domain; move {moved} or the guard")
         elif inside and gap == 0.0:
-            out.append(f"system.x0: ({point}) lies on {whose}guard {g.name!r} of its initial "
+            out.append(f"{key}: ({point}) lies on {whose}guard {g.name!r} of its initial "
                        f"mode {mode!r} (gap 0): a guard fires when its gap goes from > 0 to "
                        f"<= 0 within a step, so from there it would never fire; move "
-                       f"system.x0 off the guard")
-    return out + _flow_problems(system, x0, whose)
+                       f"{moved} off the guard")
+    return out + _flow_problems(system, x0, whose, key)
 
 
-def _flow_problems(system, x0, whose: str = "") -> list[str]:
+def _flow_problems(system, x0, whose: str = "", key: str = "system.x0") -> list[str]:
     """``system.x0: reason`` when the initial mode's flow is not finite at x0.
 
     Evaluated with no disturbance and the input nearest 0 within the mode's bounds: a flow
@@ -116,6 +121,7 @@ def _flow_problems(system, x0, whose: str = "") -> list[str]:
     import numpy as np
 
     mode = system.modes[system.mode_index(system.initial_mode)]
+    moved = "system.x0" if key == "system.x0" else "x0"
     u = np.clip(np.zeros(system.n_u), np.asarray(mode.u_lower, dtype=float),
                 np.asarray(mode.u_upper, dtype=float))
     value = np.asarray(mode.flow(x0, u, np.zeros(system.n_w)), dtype=float).ravel()
@@ -123,10 +129,10 @@ def _flow_problems(system, x0, whose: str = "") -> list[str]:
         return []
     bad = [n for n, v in zip(system.state_names, value, strict=False) if not np.isfinite(v)]
     point = ", ".join(f"{v:g}" for v in x0)
-    return [f"system.x0: the flow of {whose}mode {mode.name!r} is not finite at x0 ({point}) "
+    return [f"{key}: the flow of {whose}mode {mode.name!r} is not finite at x0 ({point}) "
             f"with u = {', '.join(f'{v:g}' for v in u) or '()'} and w = 0 (d/dt of "
             f"{', '.join(bad)}): the run would diverge at its first step; check the flow's "
-            f"expression where x0 lies, or move system.x0"]
+            f"expression where x0 lies, or move {moved}"]
 
 
 def _planner_problems(sc, model) -> list[str]:
