@@ -382,8 +382,8 @@ BAD = {
     "one value written twice": ('[set]\n"disturbance.kind" = "box"\n[grid]\n'
                                 '"disturbance.magnitude" = [15, 15.0]\n',
                                 "sweep.toml: grid: cells [15] and [15.0] run the same scenario "
-                                "(their values differ only as written, e.g. 15 and 15.0): keep "
-                                "one"),
+                                "(a value written two ways, e.g. 15 and 15.0, or one the "
+                                "scenario already has): keep one"),
 }
 
 

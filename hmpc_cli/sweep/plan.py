@@ -367,8 +367,8 @@ def _expand(spec: SweepSpec, base: dict[str, Any], axes: list[Axis], src: str,
 def _same_scenarios(runs: list[Run], src: str) -> list[str]:
     """``grid: cells A and B run the same scenario`` lines ([] if none).
 
-    Cells whose overrides differ only in how a value is written (15 and 15.0) would run the
-    same runs twice under two run ids.
+    Cells whose overrides differ only in how a value is written (15 and 15.0), or in a value
+    the scenario already has, would run the same runs twice under two run ids.
     """
     first: dict[str, Run] = {}
     out = []
@@ -378,8 +378,8 @@ def _same_scenarios(runs: list[Run], src: str) -> list[str]:
         other = first.setdefault(run.toml, run)
         if other is not run and other.run_id != run.run_id:
             out.append(f"{src}: grid: cells {list(other.cell)} and {list(run.cell)} run the "
-                       "same scenario (their values differ only as written, e.g. 15 and "
-                       "15.0): keep one")
+                       "same scenario (a value written two ways, e.g. 15 and 15.0, or one "
+                       "the scenario already has): keep one")
     return list(dict.fromkeys(out))
 
 
