@@ -287,3 +287,14 @@ def stop_process(proc: subprocess.Popen, sig: int, timeout: float) -> tuple[floa
             proc.kill()
             proc.wait()
     return time.monotonic() - sent, err
+
+
+def load_benchmark(stem: str):
+    """``benchmarks/<stem>.py`` as a module (the benchmarks are scripts, not a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        f"benchmark_{stem}", Path(__file__).resolve().parents[1] / "benchmarks" / f"{stem}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod

@@ -1,21 +1,18 @@
 """benchmarks/calibrate_latency.py: its report charges what it prints; --sweep fits the
 solves a sweep logged (no new run)."""
 
-import importlib.util
 import re
 from pathlib import Path
 
 import pytest
 
+from conftest import load_benchmark
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location(
-        "calibrate_latency", ROOT / "benchmarks" / "calibrate_latency.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("calibrate_latency")
 
 
 def test_the_model_column_is_what_the_printed_constants_charge():

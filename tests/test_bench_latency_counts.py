@@ -1,20 +1,17 @@
 """benchmarks/latency_counts.py: IPOPT's counters recorded per call, the non-negative fits
 and the report's rows (behaviour; its times are measured, never asserted)."""
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
+
+from conftest import load_benchmark
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location(
-        "latency_counts", ROOT / "benchmarks" / "latency_counts.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("latency_counts")
 
 
 def test_the_fit_is_non_negative_and_recovers_a_non_negative_truth():

@@ -1,19 +1,15 @@
 """benchmarks/realtime.py: its sweep is the yardstick's grid and plans (no run)."""
 
-import importlib.util
 from pathlib import Path
 
+from conftest import load_benchmark
 from hmpc_cli.sweep.plan import plan_sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("bench_realtime",
-                                                  ROOT / "benchmarks" / "realtime.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("realtime")
 
 
 def test_the_yardstick_grid_plans(tmp_path):

@@ -421,6 +421,27 @@ def test_an_exception_after_a_stop_signal_is_the_stop(capsys, verbose):
     assert capsys.readouterr().err.startswith("error: internal error: TypeError: expected a")
 
 
+def _run_stopped_after(step: str, tmp_path, monkeypatch):
+    """``hmpc run`` of a 0.05 s ball run with a SIGTERM sent as ``runner.<step>`` returns;
+    (the CliRunner result, the run directory)."""
+    from typer.testing import CliRunner
+
+    import hmpc_cli.run.runner as runner
+    from hmpc_cli.cli.app import app
+
+    real = getattr(runner, step)
+
+    def then_stopped(*args, **kwargs):
+        result = real(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return result
+
+    monkeypatch.setattr(runner, step, then_stopped)
+    out = tmp_path / "r"
+    return CliRunner().invoke(app, ["run", str(BALL), "--set", "sim.duration=0.05",
+                                    "--out", str(out), "-q"]), out
+
+
 def test_a_stop_right_after_the_run_directory_is_claimed_ends_a_readable_run_at_t0(
         tmp_path, monkeypatch):
     """A stop between claiming --out and the loop (it once left an empty run.mcap, said
@@ -428,20 +449,9 @@ def test_a_stop_right_after_the_run_directory_is_claimed_ends_a_readable_run_at_
     /run/info that replay refused): the run ends at t = 0 with its log readable."""
     from typer.testing import CliRunner
 
-    import hmpc_cli.run.runner as runner
     from hmpc_cli.cli.app import app
 
-    claim = runner.claim_run_dir
-
-    def claimed_then_stopped(out):
-        path = claim(out)
-        os.kill(os.getpid(), signal.SIGTERM)
-        return path
-
-    monkeypatch.setattr(runner, "claim_run_dir", claimed_then_stopped)
-    out = tmp_path / "r"
-    res = CliRunner().invoke(app, ["run", str(BALL), "--set", "sim.duration=0.05",
-                                   "--out", str(out), "-q"])
+    res, out = _run_stopped_after("claim_run_dir", tmp_path, monkeypatch)
     assert res.exit_code == 143, res.output
     assert res.stderr.splitlines() == [
         f"interrupted (SIGTERM) at t = 0.000 s; partial log in {out / 'run.mcap'}"]
@@ -458,22 +468,7 @@ def test_a_stop_right_after_the_run_directory_is_claimed_ends_a_readable_run_at_
 def test_a_stop_after_the_runs_last_check_says_the_run_finished(tmp_path, monkeypatch):
     """A stop once the run has closed its log and written its summary (it was reported as
     "interrupted at t = 0.050 s; partial log" beside a summary saying success)."""
-    from typer.testing import CliRunner
-
-    import hmpc_cli.run.runner as runner
-    from hmpc_cli.cli.app import app
-
-    execute = runner.execute_run
-
-    def finished_then_stopped(*args, **kwargs):
-        result = execute(*args, **kwargs)
-        os.kill(os.getpid(), signal.SIGTERM)
-        return result
-
-    monkeypatch.setattr(runner, "execute_run", finished_then_stopped)
-    out = tmp_path / "r"
-    res = CliRunner().invoke(app, ["run", str(BALL), "--set", "sim.duration=0.05",
-                                   "--out", str(out), "-q"])
+    res, out = _run_stopped_after("execute_run", tmp_path, monkeypatch)
     assert res.exit_code == 143, res.output
     assert res.stderr.splitlines() == [
         f"interrupted (SIGTERM) after the run finished; its log is complete: {out / 'run.mcap'}"]

@@ -115,11 +115,10 @@ def _column_hint(name: str, columns: list[str]) -> str:
 
     A sweep's fixed settings are its ``set.<key>`` columns; else a near spelling.
     """
-    import difflib
+    from hmpc_cli.core.text import did_you_mean
 
-    close = [f"set.{name}"] if f"set.{name}" in columns else \
-        difflib.get_close_matches(name, columns, n=1)
-    return f" (did you mean {close[0]!r}?)" if close else ""
+    return f" (did you mean 'set.{name}'?)" if f"set.{name}" in columns else \
+        did_you_mean(name, columns)
 
 
 def pooled_counts(table: Path, rows: list[dict[str, str]], key, columns: tuple[str, ...]

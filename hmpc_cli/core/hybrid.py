@@ -24,6 +24,7 @@ from hmpc_cli.core.drawing import Drawing
 from hmpc_cli.core.numeric import (compile_evaluator, supported_operations,
                                    unsupported_operations)
 from hmpc_cli.core.shapes import shape_problems
+from hmpc_cli.core.text import closest
 from hmpc_cli.core.walker import WalkerModel
 
 
@@ -259,12 +260,10 @@ class HybridSystem:
         for field_name, mode in (("initial_mode", self.initial_mode),
                                  ("final_mode", self.final_mode)):
             if mode not in names:
-                import difflib
-
-                close = difflib.get_close_matches(str(mode), names, n=1)
+                near = closest(mode, names)
                 raise ValueError(f"{self.name}: {field_name} {mode!r} is not a mode (modes: "
                                  f"{', '.join(map(repr, names))}"
-                                 + (f"; did you mean {close[0]!r}?)" if close else ")"))
+                                 + (f"; did you mean {near!r}?)" if near else ")"))
         for line in self.skeleton:
             if not set(line) <= set(self.point_names):
                 raise ValueError(f"{self.name}: skeleton names unknown points {line}")

@@ -32,6 +32,7 @@ from pydantic import (
 
 from hmpc_cli.lowlevel import LowLevelSettings
 from hmpc_cli.core.registry import PluginError, Requirement, registry
+from hmpc_cli.core.text import did_you_mean
 from hmpc_cli.run.sections import DisturbanceSettings, ReplanSettings, SimSettings
 from hmpc_cli.core.settings_types import BoundedInt
 
@@ -416,13 +417,6 @@ def nesting(value: Any) -> int:
         if deepest > MAX_DEPTH:
             break
     return deepest
-
-
-def did_you_mean(name: Any, choices: list[str]) -> str:
-    """`` (did you mean 'x'?)`` when a choice is ``name`` in another case or near it, else ''."""
-    same = [a for a in choices if a.casefold() == str(name).casefold()]
-    close = same or difflib.get_close_matches(str(name), choices, n=1)
-    return f" (did you mean {close[0]!r}?)" if close else ""
 
 
 def unknown_key(key: Any, allowed: list[str]) -> str:

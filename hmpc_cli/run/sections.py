@@ -11,6 +11,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from hmpc_cli.core.settings_types import BoundedInt, FiniteFloat, LargeFloat, StrictBool
+from hmpc_cli.core.text import did_you_mean
 
 __all__ = ["DisturbanceSettings", "LatencyModelSettings", "ReplanSettings", "SimSettings"]
 
@@ -94,13 +95,9 @@ class SimSettings(BaseModel):
         ok = v in ("paused", "measured", "model") if isinstance(v, str) else (
             isinstance(v, int | float) and not isinstance(v, bool) and 0.0 <= v < 1e6)
         if not ok:
-            import difflib
-
-            close = difflib.get_close_matches(v.lower(), ["paused", "measured", "model"], n=1) \
-                if isinstance(v, str) else []
             raise ValueError(f"expected 'paused', 'measured', 'model' or a delay in [0, 1e6) "
-                             f"s, got {v!r}" + (f" (did you mean {close[0]!r}?)" if close
-                                                else ""))
+                             f"s, got {v!r}" + (did_you_mean(v, ["paused", "measured", "model"])
+                                                if isinstance(v, str) else ""))
         return float(v) if not isinstance(v, str) else v
 
 

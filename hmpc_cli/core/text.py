@@ -1,0 +1,22 @@
+"""Words for messages: the choice closest to what was given ("did you mean ...?")."""
+
+from __future__ import annotations
+
+import difflib
+from collections.abc import Sequence
+from typing import Any
+
+__all__ = ["closest", "did_you_mean"]
+
+
+def closest(name: Any, choices: Sequence[str]) -> str | None:
+    """The choice that is ``name`` in another case, else the nearest spelling, else None."""
+    same = [c for c in choices if c.casefold() == str(name).casefold()]
+    near = same or difflib.get_close_matches(str(name), list(choices), n=1)
+    return near[0] if near else None
+
+
+def did_you_mean(name: Any, choices: Sequence[str]) -> str:
+    """`` (did you mean 'x'?)`` for :func:`closest` of ``name`` in ``choices``, else ''."""
+    near = closest(name, choices)
+    return f" (did you mean {near!r}?)" if near is not None else ""
