@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import signal
 import time
 from pathlib import Path
@@ -283,3 +284,78 @@ def test_a_sigkilled_reports_staging_directory_goes_with_the_next_report(tmp_pat
             proc.kill()
             proc.wait()
             proc.stdout.close()
+
+
+def _tabled_study(tmp_path: Path) -> tuple[Path, Path, Path]:
+    """A sweep file over a copy of the ball scenario and its table as ``hmpc sweep`` writes
+    it (rows of the plan's run ids, the base scenario beside it), no run directories.
+
+    Returns:
+        The sweep file, the scenario copy and the sweep's output directory.
+    """
+    from hmpc_cli.sweep.plan import plan_sweep
+    from hmpc_cli.sweep.table import BASE_SCENARIO
+
+    scenario = tmp_path / "ball.toml"
+    scenario.write_text(BALL.read_text())
+    sweep = tmp_path / "study.toml"
+    sweep.write_text('name = "study"\nscenario = "ball.toml"\nseeds = 2\n[grid]\n'
+                     '"mpc.rate_hz" = [10, 20]\n"replanning.policy" = ["once"]\n'
+                     '"disturbance.magnitude" = [5.0]\n')
+    plan = plan_sweep(sweep)
+    out = tmp_path / "results" / "sweeps" / "study"
+    out.mkdir(parents=True)
+    with open(out / "results.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, plan.columns, restval="")
+        w.writeheader()
+        for r in plan.runs:
+            w.writerow({"run_id": r.run_id, "seed": r.seed, "success": "true",
+                        "mpc.rate_hz": r.overrides["mpc.rate_hz"], "replanning.policy": "once",
+                        "disturbance.magnitude": 5.0, "final_error": 0.01})
+    (out / BASE_SCENARIO).write_text(plan.base_toml)
+    return sweep, scenario, out
+
+
+def test_a_sweep_files_stale_table_is_refused_and_its_directory_draws_it(tmp_path, run_hmpc):
+    """After its sweep file or its base scenario changed, a sweep's table is no table of the
+    file's runs: ``hmpc report`` without ``--run`` refuses it (exit 2, why, what to do,
+    nothing written) instead of drawing it as the file's results; the directory given
+    instead draws it as it is."""
+    sweep, scenario, out = _tabled_study(tmp_path)
+    res = tmp_path / "results"
+    ok = run_hmpc([*_args(robustness=str(sweep)), "--results", str(res)], tmp_path)
+    assert ok.returncode == 0, ok.stderr
+    assert "4 finished runs, 2 seeds" in (res / "README.md").read_text()
+    before = _tree(res)
+    table = out / "results.csv"
+    how = (f"; `hmpc report --run` rewrites it from the runs that stand (running the missing "
+           f"ones first), or give the directory (--robustness {out}) to draw it as it is")
+    sweep.write_text(sweep.read_text().replace("[10, 20]", "[10, 30]"))
+    from hmpc_cli.sweep.plan import plan_sweep
+
+    gone = [r.run_id for r in plan_sweep(sweep).runs]
+    with open(table) as f:
+        foreign = [row["run_id"] for row in csv.DictReader(f) if row["run_id"] not in gone]
+    assert len(foreign) == 2
+    edited = run_hmpc([*_args(robustness=str(sweep)), "--results", str(res), "--replace"],
+                      tmp_path)
+    assert edited.returncode == 2, edited.stderr
+    assert edited.stderr.splitlines() == [
+        f"error: --robustness {sweep}: {table} is not this sweep file's table: 2 of its 4 "
+        f"rows are runs this sweep file does not plan (run ids {', '.join(foreign)}): the "
+        f"grid, [set] or seeds changed since it was written{how}"]
+    assert _tree(res) == before
+    sweep.write_text(sweep.read_text().replace("[10, 30]", "[10, 20]"))
+    scenario.write_text(scenario.read_text().replace("duration = 3.0", "duration = 2.5", 1))
+    moved = run_hmpc([*_args(robustness=str(sweep)), "--results", str(res), "--replace"],
+                     tmp_path)
+    assert moved.returncode == 2, moved.stderr
+    assert moved.stderr.splitlines() == [
+        f"error: --robustness {sweep}: {table} is not this sweep file's table: it was "
+        f"written for another base scenario: {scenario} changed since (the one it ran: "
+        f"{out / 'base_scenario.toml'}){how}"]
+    assert _tree(res) == before
+    as_is = run_hmpc([*_args(robustness=str(out)), "--results", str(res), "--replace"],
+                     tmp_path)
+    assert as_is.returncode == 0, as_is.stderr
+    assert "4 finished runs, 2 seeds" in (res / "README.md").read_text()

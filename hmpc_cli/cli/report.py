@@ -112,8 +112,10 @@ def report_command(
     plans, dirs = _sweeps(results, seeds, _given(biped), files)
     from hmpc_cli.cli.common import is_quiet
 
-    if not run and not is_quiet():
-        _print_missing(plans, dirs)
+    if not run:
+        _refuse_stale_tables(plans, dirs)
+        if not is_quiet():
+            _print_missing(plans, dirs)
     lost = _run_sweeps(plans, dirs, workers) if run else []
     biped_dir = _biped_run(_given(biped), results, run)
     _write_page(results, dirs, biped_dir, _authors_dir(authors), plans,
@@ -236,6 +238,29 @@ def _print_missing(plans: dict, dirs: dict[str, Path]) -> None:
     if total:
         typer.echo(f"note: nothing was run; `hmpc report --run` runs the {total} missing "
                    "runs (resumable), then writes the page", err=True)
+
+
+def _refuse_stale_tables(plans: dict, dirs: dict[str, Path]) -> None:
+    """Exit 2 when a sweep file's table is not a table of its runs (the file was edited).
+
+    Drawn as it stands, such a table would be shown as the sweep file's results
+    (:func:`hmpc_cli.sweep.table.stale_table` says why it is not). ``--run`` rewrites it;
+    the directory given instead of the file draws it as it is.
+    """
+    from hmpc_cli.sweep.table import stale_table
+
+    lines = []
+    for key, plan in plans.items():
+        why = stale_table(plan, dirs[key].resolve())
+        if why is not None:
+            table = dirs[key] / "results.csv"
+            lines.append(f"{_option(key)} {plan.path}: {table} is not this sweep file's "
+                         f"table: {why}; `hmpc report --run` rewrites it from the runs that "
+                         f"stand (running the missing ones first), or give the directory "
+                         f"({_option(key)} {dirs[key]}) to draw it as it is")
+    if lines:
+        _echo_errors(lines)
+        raise typer.Exit(EXIT_BAD_INPUT)
 
 
 def _parts(single: dict[str, str | None], **repeated: list[str] | None

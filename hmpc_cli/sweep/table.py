@@ -196,6 +196,43 @@ def tabled_rows(plan, out: Path) -> dict[str, dict[str, str]]:
                 INTERRUPTED) and r.get("success") in ("true", "false")}
 
 
+def stale_table(plan, out: Path) -> str | None:
+    """Why ``<out>/results.csv`` is not a table of ``plan``'s runs, or None if it is one.
+
+    Not one: rows hold run ids the plan does not have (the grid, ``[set]`` or seeds changed
+    since), or it was written for another base scenario (``base_scenario.toml`` differs from
+    ``plan.base_toml``, :func:`same_scenario`), or, with no base scenario to check against,
+    rows whose run directory is not finished here. No table, or an unreadable one: None.
+    """
+    try:
+        with open(out / "results.csv", newline="", encoding="utf-8-sig") as f:
+            ids = [r.get("run_id") or "" for r in csv.DictReader(f)]
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return None
+    runs = {r.run_id: r for r in plan.runs}
+    foreign = [i for i in ids if i not in runs]
+    if foreign:
+        return (f"{len(foreign)} of its {len(ids)} rows are runs this sweep file does not "
+                f"plan (run ids {', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}"
+                "): the grid, [set] or seeds changed since it was written")
+    if not ids:
+        return None
+    try:
+        stored = (out / BASE_SCENARIO).read_text(encoding="utf-8") if plan.base_toml else None
+    except FileNotFoundError:
+        stored = None
+    except (OSError, UnicodeDecodeError):
+        return None
+    if stored is not None:
+        return None if same_scenario(stored, plan.base_toml) else (
+            f"it was written for another base scenario: {plan.scenario} changed since (the "
+            f"one it ran: {out / BASE_SCENARIO})")
+    unfinished = sum(finished(out, runs[i]) is None for i in ids)
+    return None if not unfinished else (
+        f"{unfinished} of its {len(ids)} rows have no finished run directory to vouch for "
+        f"them, and no base scenario ({BASE_SCENARIO}) they could be checked against")
+
+
 def started(d: Path) -> bool:
     """Whether run directory ``d`` holds a run started here: its log or its summary.
 
