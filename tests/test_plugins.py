@@ -721,3 +721,19 @@ def test_a_plugin_that_raises_on_import_shows_its_traceback_with_v(tmp_path):
     assert loud.returncode == 2 and lines[:2] == [line, "Traceback (most recent call last):"]
     assert any("hmpc_boom.py" in ln and "in _configure" in ln for ln in lines)
     assert lines[-1] == "RuntimeError: bad config" and not (tmp_path / "out").exists()
+
+
+def test_a_flow_that_goes_non_finite_mid_run_names_the_states_and_the_mode(tmp_path):
+    """A flow finite at x0 and NaN past it: the run ends diverged, its reason naming the
+    non-finite states and the mode (it said only "non-finite or unbounded state")."""
+    text = _DOCK_TEXT.replace("ca.vertcat(vel, u / p.mass + w)",
+                              "ca.vertcat(vel, ca.sqrt(pos - 0.9) + u / p.mass + w)")
+    site = write_dist(tmp_path / "site", "hmpc-nan", "[hmpc.systems]\ndock = hmpc_dock:SYSTEM\n",
+                      {"hmpc_dock": text})
+    path = tmp_path / "s.toml"
+    path.write_text('[system]\nname = "dock"\n')
+    proc = hmpc(["run", str(path), "--out", str(tmp_path / "out"), "-q"], site, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]  # it ran (1 with --strict)
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["diverged"] is True and not summary["success"]
+    assert summary["reason"] == "diverged: non-finite state (p = nan, v = nan) in mode 'free'"

@@ -129,9 +129,25 @@ class ClosedLoop:
             return x, mode, self._fail(t, f"zeno: {exc}")
         t1 = t + self.plant.h
         if not np.all(np.isfinite(x)) or np.max(np.abs(x)) > self.prepared.divergence_bound:
-            return x, mode, self._fail(t1, "diverged: non-finite or unbounded state")
+            return x, mode, self._fail(t1, self._diverged(x, mode))
         why = self.prepared.task.failure(x, mode)
         return x, mode, bool(why) and self._fail(t1, why, diverged=False)
+
+    def _diverged(self, x: np.ndarray, mode: int) -> str:
+        """The reason of a state that is not finite or beyond ``sim.divergence_bound``.
+
+        Names the non-finite states (up to 3), else the largest one and the bound, and the
+        mode the step ended in.
+        """
+        names, where = self.model.state_names, self.model.modes[mode].name
+        bad = [i for i in range(len(x)) if not np.isfinite(x[i])]
+        if bad:
+            what = ", ".join(f"{names[i]} = {x[i]}" for i in bad[:3])
+            more = f" and {len(bad) - 3} more" if len(bad) > 3 else ""
+            return f"diverged: non-finite state ({what}{more}) in mode '{where}'"
+        i = int(np.argmax(np.abs(x)))
+        return (f"diverged: |{names[i]}| {abs(x[i]):.3g} > {self.prepared.divergence_bound:g} "
+                f"(sim.divergence_bound) in mode '{where}'")
 
     def _on_event(self, ev: GuardEvent) -> None:
         """A guard event inside a step: the run has reached it, then the stack reacts.
