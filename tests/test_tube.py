@@ -17,7 +17,7 @@ from hmpc_cli.core.hybrid import Guard, HybridSystem, Mode
 from hmpc_cli.tube import (
     Margins, Region, TubeError, a_bound, analyse, eiss_constants, eta_bound,
     feedforward_tube, lipschitz, low_level_share, margins, pd_certificate,
-    region_from_scenario, solve_lyapunov, trivial_tube, zeta_bound)
+    region_from_scenario, solve_lyapunov, tau_of, trivial_tube, zeta_bound)
 
 BIPED = SCENARIOS / "biped_stairs.toml"
 RATES = ("5 Hz", "10 Hz", "20 Hz", "50 Hz", "100 Hz")
@@ -304,6 +304,21 @@ def test_saturation_limits_the_region_of_attraction():
     assert big.roa_radius == pytest.approx(1.0, rel=0.02) and not big.roa_capped
     assert big.tau == pytest.approx(math.log(2.0 / (2.0 - big.roa_radius)) / 2.0)
     assert big.a(big.tau) == pytest.approx(big.roa_radius)
+
+
+def test_a_thin_band_of_rising_v_decades_below_the_cap_bounds_the_region_of_attraction():
+    """V' >= 0 only for |e| in about [0.9895, 1.0105], the search starting at a level a
+    thousand times larger: the ROA estimate stops at the band, not at the cap (sampling V
+    uniformly up to the cap hit the band with probability 2e-5 a sample, so the estimate
+    was the cap, tau infinite, and hmpc tube used Prop. 3 at every rate)."""
+    sys_ = make_system(lambda x, u, w: -x + 3.0 * x * ca.exp(-((x * x - 1.0) / 0.02) ** 2) + w,
+                       1, 1, 1)
+    cert = pd_certificate(sys_, 0.0, 0.0, 2.0, samples=2000, scale=1e3)  # a(inf) = 2
+    assert cert.certified and not cert.roa_capped
+    band = 0.02 * math.sqrt(math.log(3.0))  # 3 exp(-((e^2 - 1) / 0.02)^2) >= 1
+    assert math.sqrt(1.0 - band) <= cert.roa_radius <= math.sqrt(1.0 - band) * 1.002
+    assert cert.tau == pytest.approx(tau_of(cert.roa_level, cert.k2, cert.a_inf, cert.gamma))
+    assert math.isfinite(cert.tau)
 
 
 def test_ball_default_scenario_has_no_certificate():

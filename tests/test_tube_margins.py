@@ -47,6 +47,30 @@ def test_each_rate_gets_the_margins_hmpc_tube_writes_for_it(tmp_path, monkeypatc
     assert avoid[20] == pytest.approx(0.0184, abs=1e-4)
 
 
+def test_hmpc_tube_samples_as_tube_margins_do_whatever_the_scenarios_seed(tmp_path,
+                                                                          monkeypatch):
+    """The sampling seed of both is 0: ``hmpc tube`` sampled with the scenario's seed, so
+    ``--set seed=1`` gave another certificate (its ROA estimate) than the seed-0 tube a
+    run's ``mpc.margins = "tube"`` uses whatever the run's seed."""
+    monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path / "cache"))
+    gains = ["lowlevel.kp=100", "lowlevel.kd=20"]
+    made = {}
+    for seed in (0, 1):
+        out = tmp_path / f"seed{seed}"
+        proc = subprocess.run([*hmpc_command(), "tube", str(DISTURBED), "--out", str(out),
+                               "--write", str(out / "margins.toml"), "-q",
+                               *(x for g in [*gains, f"seed={seed}"] for x in ("--set", g))],
+                              env=cli_env(), capture_output=True, text=True, timeout=600,
+                              cwd=tmp_path)
+        assert proc.returncode == 0, proc.stderr
+        made[seed] = [(out / f).read_text() for f in ("tube.json", "margins.toml")]
+    assert made[1] == made[0]
+    row = tomllib.loads(made[1][1])["rates"]["20"]
+    sc, _ = load_scenario(DISTURBED, ['mpc.margins="tube"', "mpc.rate_hz=20", *gains, "seed=1"])
+    m = margins_of(sc, build_system(sc.system))
+    assert m.source == "tube at 20 Hz" and m.radius == row["radius"]
+
+
 def test_a_cached_tube_is_read_not_recomputed(tmp_path, monkeypatch):
     monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path / "cache"))
     _, _, first = _margins(20)

@@ -83,7 +83,9 @@ def scenario_tube(sc, system: HybridSystem, *, region: Region | None = None,
 
     ``system``: the scenario's built system; ``region`` defaults to
     :func:`hmpc_cli.tube.region_from_scenario`'s, ``rate_hz`` to ``mpc.rate_hz``,
-    ``rates`` to the tube's defaults and ``seed`` to the scenario's. A ``[plant]`` that
+    ``rates`` to the tube's defaults and ``seed`` (of the sampling) to :data:`SEED`, not
+    the scenario's: one tube per setting, as ``mpc.margins = "tube"`` computes it. A
+    ``[plant]`` that
     differs from the system is built and passed down: eta holds its flow's mismatch.
 
     Raises:
@@ -98,7 +100,7 @@ def scenario_tube(sc, system: HybridSystem, *, region: Region | None = None,
                    kp=sc.lowlevel.kp, kd=sc.lowlevel.kd,
                    rate_hz=sc.mpc.rate_hz if rate_hz is None else rate_hz,
                    rates=DEFAULT_RATES if rates is None else rates, samples=samples,
-                   seed=sc.seed if seed is None else seed, plant=plant, plant_note=note)
+                   seed=SEED if seed is None else seed, plant=plant, plant_note=note)
 
 
 def _inputs(sc) -> dict:

@@ -232,16 +232,22 @@ def roa_level(closed: _ClosedLoop, P: np.ndarray, cap: float, samples: int,
               seed: int) -> tuple[float, bool, int]:
     """Largest c with V' < 0 at every sample of {V <= c} (||e|| >= 1e-6): (c, capped, count).
 
-    Starts at ``cap``; each round samples {V <= c} (uniform directions, uniform V levels)
-    and lowers c to the smallest V where V' >= 0, until a round finds none (at most 8).
+    Starts at ``cap``. Each of 8 rounds samples {V <= c} at ``samples`` errors (uniform
+    directions; V levels half uniform in [0, c], half uniform in log between the least V
+    of an error of norm 1e-6 and c, so that a cap decades above where V' turns positive is
+    sampled at every scale) and lowers c to the smallest V where V' >= 0. Every round runs
+    (a round that finds none is checked by the next): ``capped`` when none ever did.
     """
     rng = np.random.default_rng(seed)
     L_inv_T = np.linalg.inv(np.linalg.cholesky(P)).T  # V(L^-T z) = ||z||
+    floor = math.sqrt(float(np.linalg.eigvalsh(P).min())) * _SMALL  # V >= k1 ||e||
     c, count = cap, 0
     for _ in range(_ROA_ROUNDS):
         signals.check()  # a stop signal ends the sampling between rounds
         z = rng.standard_normal((samples, P.shape[0]))
-        z *= (rng.uniform(0.0, 1.0, samples) / np.linalg.norm(z, axis=1))[:, None]
+        level = rng.uniform(0.0, 1.0, samples)  # V / c
+        level[1::2] = np.exp(rng.uniform(math.log(min(floor, c) / c), 0.0, samples // 2))
+        z *= (level / np.linalg.norm(z, axis=1))[:, None]
         e = c * z @ L_inv_T.T
         e = e[np.linalg.norm(e, axis=1) >= _SMALL]
         if not len(e):
@@ -249,7 +255,6 @@ def roa_level(closed: _ClosedLoop, P: np.ndarray, cap: float, samples: int,
         vdot, V = closed.vdot(e)
         count += len(e)
         bad = ~(vdot < 0.0)
-        if not np.any(bad):
-            return float(c), c == cap, count
-        c = float(V[bad].min())
-    return float(c), False, count
+        if np.any(bad):
+            c = float(V[bad].min())
+    return float(c), c == cap, count
