@@ -510,9 +510,39 @@ def test_a_figure_from_a_log_not_read_whole_says_so(ball, tmp_path) -> None:
         assert res.exit_code == 0, res.output
         assert f"warning: --runs {log.name}: tube vs reality uses what the log holds " \
             f"{note}" in res.stderr, res.output
+        res = CliRunner().invoke(app, ["tube", str(SCENARIOS / "ball_disturbed.toml"),
+                                       "--states", str(log), "--samples", "10", "--out",
+                                       str(tmp_path / "t"), "-q"])
+        assert res.exit_code == 0, res.output  # --states said nothing of the damage
+        assert f"warning: --states {log}: the region spans the states the log holds " \
+            f"{note}" in res.stderr, res.output
     res = CliRunner().invoke(app, ["plot", "timing", str(ball), "--out", str(tmp_path / "w"),
                                    "--formats", "png"])
     assert res.exit_code == 0 and "warning" not in res.stderr, res.output
+
+
+def test_tube_refuses_a_run_given_twice_and_a_margins_file_over_its_own_outputs(
+        ball, tmp_path) -> None:
+    """``--runs R --runs R/run.mcap`` counted R's periods twice; ``--write`` naming one of
+    the files written to --out replaced it with the margins file. Both: exit 2, nothing
+    written."""
+    scenario = str(SCENARIOS / "ball_disturbed.toml")
+    out = tmp_path / "t"
+    twice = CliRunner().invoke(app, ["tube", scenario, "--runs", str(ball), "--runs",
+                                     str(ball / "run.mcap"), "--samples", "10", "--out",
+                                     str(out)])
+    assert twice.exit_code == 2 and "Traceback" not in twice.output, twice.output
+    assert twice.stderr.splitlines() == [
+        f"error: --runs {ball / 'run.mcap'}: the same log as --runs {ball} "
+        f"({(ball / 'run.mcap').resolve()}); give each run once"], twice.output
+    for name in ("tube.json", "tube_diameter.png", "tube_reality.svg"):
+        res = CliRunner().invoke(app, ["tube", scenario, "--samples", "10", "--out", str(out),
+                                       "--write", str(out / name)])
+        assert res.exit_code == 2, res.output
+        assert res.stderr.splitlines() == [
+            f"error: --write {out / name}: is {name}, a file this command writes to --out "
+            f"{out}: name the margins file otherwise (e.g. {out / 'margins.toml'})"]
+    assert not out.exists()
 
 
 def test_a_log_read_for_some_topics_is_the_whole_read_of_those(ball, tmp_path) -> None:

@@ -82,10 +82,12 @@ def _g(v: float | None) -> str:
 def _states_of(log: Path, n: int) -> object:
     """The states a recorded run visited (K, n), from its /sim/state topic.
 
+    A damaged or cut log's states are used, with a warning saying so.
+
     Raises:
         _OptionError: the log cannot be read or has no state of dimension n.
     """
-    from hmpc_cli.log.rundata import read_run
+    from hmpc_cli.log.rundata import damage_note, read_run
 
     try:
         run = read_run(log)
@@ -93,6 +95,10 @@ def _states_of(log: Path, n: int) -> object:
         raise _OptionError(f"--states {exc}") from None
     if not run.t.size or run.x.shape[1] != n:
         raise _OptionError(f"--states {run.lacks(f'no /sim/state state of dimension {n}')}")
+    note = damage_note(run.damage, run.complete)
+    if note:  # as --runs: what it holds is used, and said
+        typer.echo(f"warning: --states {log}: the region spans the states the log holds"
+                   f"{note}", err=True)
     return run.x
 
 
@@ -403,9 +409,16 @@ def _check_outputs(out: Path | None, write: Path | None, name: str) -> None:
     """Every output checked before any work: a bad path exits 2 with nothing written."""
     from hmpc_cli.cli.common import checked_output
 
-    checked_output(out if out is not None else Path("results") / name / "tube", "--out")
+    out = out if out is not None else Path("results") / name / "tube"
+    checked_output(out, "--out")
     if write is not None:
         checked_output(write, "--write", "file")
+        from hmpc_cli.figures.common import FORMATS
+
+        own = {"tube.json", *(f"{s}.{f}" for s in FIGURE_STEMS for f in FORMATS)}
+        if write.resolve().parent == out.resolve() and write.name in own:
+            _fail([f"--write {write}: is {write.name}, a file this command writes to --out "
+                   f"{out}: name the margins file otherwise (e.g. {out / 'margins.toml'})"])
         if _foreign_file(write):
             _fail([f"--write {write}: exists and is not an hmpc margins file: it would be "
                    "overwritten (choose another path)"])
@@ -441,8 +454,18 @@ def _read_runs(runs: list[Path], params) -> list:
     from hmpc_cli.core.registry import PluginError, registry
     from hmpc_cli.analysis.tube_reality import read_run
 
-    out = []
+    from hmpc_cli.log.rundata import resolve_log
+
+    out, seen = [], {}
     for path in runs:
+        try:
+            log = resolve_log(path).resolve()
+        except ValueError:
+            log = None  # read_run says what is wrong with it
+        if log is not None and log in seen:  # it would count its periods twice
+            raise _OptionError(f"--runs {path}: the same log as --runs {seen[log]} ({log}); "
+                               "give each run once")
+        seen.setdefault(log, path)
         try:  # missing, unreadable or damaged (read_run guards the content it decodes)
             run = read_run(path)
         except ValueError as exc:  # its message starts with the log's path
