@@ -167,8 +167,15 @@ def save_figure(fig: Any, out_dir: Path, stem: str, formats: Iterable[str],
     from hmpc_cli.core.paths import atomic_file
 
     paths = []
+    # each format drawn from the same layout: a draw moves fixed-aspect axes under a
+    # layout engine, so a PNG saved after the PDF differed from one saved alone
+    start = [(ax, ax.get_position(original=True).frozen(), ax.get_position().frozen())
+             for ax in fig.get_axes()]
     try:
         for fmt in formats:
+            for ax, original, active in start:
+                ax._set_position(original, which="original")
+                ax._set_position(active, which="active")
             path = Path(out_dir) / f"{stem}.{fmt}"
             with atomic_file(path) as tmp:  # never leave a half-written figure behind
                 fig.savefig(tmp, format=fmt, dpi=dpi, metadata=_METADATA[fmt])
