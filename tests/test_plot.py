@@ -377,3 +377,26 @@ def test_a_figures_png_is_the_same_whatever_other_formats_are_saved_with_it(tmp_
         assert proc.returncode == 0, proc.stderr
         made[formats] = (out / "fig3.png").read_bytes()
     assert made["png"] == made["pdf,svg,png"]
+
+
+@pytest.mark.parametrize("figure, table, taken", [
+    ("robustness", "robustness", "robustness.png"),
+    ("robustness", "robustness", "robustness_table.csv"),
+    ("fig3", "fig3", "fig3_counts.csv"),
+    ("fig3", "fig3", "fig3.png")])
+def test_a_directory_where_a_figure_file_goes_is_refused_before_any_file(tmp_path, figure,
+                                                                        table, taken):
+    """A directory named as one of the outputs: exit 2 naming it, no file written (the
+    PDF and SVG were written before the PNG failed, or the figure before its table)."""
+    from conftest import REPO
+
+    out = tmp_path / "out"
+    (out / taken).mkdir(parents=True)
+    proc = subprocess.run([*hmpc_command(), "plot", figure,
+                           str(REPO / "results" / "sweeps" / table), "--out", str(out)],
+                          env=cli_env(), capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"error: {out / taken}: is a directory, where this command writes a file: remove "
+        "it or choose another output directory"]
+    assert [p.name for p in out.iterdir()] == [taken]

@@ -524,7 +524,8 @@ def test_a_figure_from_a_log_not_read_whole_says_so(ball, tmp_path) -> None:
 def test_tube_refuses_a_run_given_twice_and_a_margins_file_over_its_own_outputs(
         ball, tmp_path) -> None:
     """``--runs R --runs R/run.mcap`` counted R's periods twice; ``--write`` naming one of
-    the files written to --out replaced it with the margins file. Both: exit 2, nothing
+    the files written to --out replaced it with the margins file; a directory where an
+    output file goes was found after the others were written. Each: exit 2, nothing
     written."""
     scenario = str(SCENARIOS / "ball_disturbed.toml")
     out = tmp_path / "t"
@@ -543,6 +544,13 @@ def test_tube_refuses_a_run_given_twice_and_a_margins_file_over_its_own_outputs(
             f"error: --write {out / name}: is {name}, a file this command writes to --out "
             f"{out}: name the margins file otherwise (e.g. {out / 'margins.toml'})"]
     assert not out.exists()
+    (out / "tube_margins.png").mkdir(parents=True)  # written after tube.json and 3 figures
+    res = CliRunner().invoke(app, ["tube", scenario, "--samples", "10", "--out", str(out)])
+    assert res.exit_code == 2, res.output
+    assert res.stderr.splitlines() == [
+        f"error: --out {out}: {out / 'tube_margins.png'} is a directory, where this command "
+        "writes a file: remove it or choose another --out"]
+    assert [p.name for p in out.iterdir()] == ["tube_margins.png"]
 
 
 def test_a_log_read_for_some_topics_is_the_whole_read_of_those(ball, tmp_path) -> None:

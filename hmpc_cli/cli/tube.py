@@ -408,13 +408,17 @@ def _remove_stale_figures(out: Path, formats: str, with_reality: bool) -> list[s
 def _check_outputs(out: Path | None, write: Path | None, name: str) -> None:
     """Every output checked before any work: a bad path exits 2 with nothing written."""
     from hmpc_cli.cli.common import checked_output
+    from hmpc_cli.figures.common import FORMATS
 
     out = out if out is not None else Path("results") / name / "tube"
     checked_output(out, "--out")
+    taken = [n for n in ("tube.json", *(f"{s}.{f}" for s in FIGURE_STEMS for f in FORMATS))
+             if (out / n).is_dir()]
+    if taken:  # it would be written last, the others before it: half a set
+        _fail([f"--out {out}: {out / n} is a directory, where this command writes a file: "
+               "remove it or choose another --out" for n in taken])
     if write is not None:
         checked_output(write, "--write", "file")
-        from hmpc_cli.figures.common import FORMATS
-
         own = {"tube.json", *(f"{s}.{f}" for s in FIGURE_STEMS for f in FORMATS)}
         if write.resolve().parent == out.resolve() and write.name in own:
             _fail([f"--write {write}: is {write.name}, a file this command writes to --out "

@@ -12,9 +12,9 @@ from typing import Any
 from hmpc_cli.analysis.tables import FigureInputError
 
 __all__ = [
-    "COLUMN_WIDTH_IN", "FORMATS", "GIF_DPI", "OKABE_ITO", "TEXT_WIDTH_IN", "check_size",
-    "figure_style", "ieee_rc", "page_link", "parse_formats", "save_figure", "save_gif",
-    "write_csv",
+    "COLUMN_WIDTH_IN", "FORMATS", "GIF_DPI", "OKABE_ITO", "TEXT_WIDTH_IN", "check_outputs",
+    "check_size", "figure_style", "ieee_rc", "page_link", "parse_formats", "save_figure",
+    "save_gif", "write_csv",
 ]
 
 TEXT_WIDTH_IN = 7.16  # IEEE two-column: full text width (in)
@@ -143,6 +143,20 @@ def make_out_dir(out: Path) -> Path:
     return out
 
 
+def check_outputs(out_dir: Path, names: Iterable[str]) -> None:
+    """Refuses, before anything is written, an output file name held by a directory.
+
+    Raises:
+        FigureInputError: ``out_dir/<name>`` is a directory (it would be written after
+            the command's other files, leaving them half a set).
+    """
+    for name in names:
+        if (Path(out_dir) / name).is_dir():
+            raise FigureInputError(f"{Path(out_dir) / name}: is a directory, where this "
+                                   "command writes a file: remove it or choose another "
+                                   "output directory")
+
+
 def save_figure(fig: Any, out_dir: Path, stem: str, formats: Iterable[str],
                 dpi: int = 300, close: bool = True) -> list[Path]:
     """Saves ``fig`` as out_dir/stem.<fmt> per format, with fixed metadata.
@@ -166,6 +180,7 @@ def save_figure(fig: Any, out_dir: Path, stem: str, formats: Iterable[str],
     """
     from hmpc_cli.core.paths import atomic_file
 
+    check_outputs(out_dir, (f"{stem}.{fmt}" for fmt in formats))
     paths = []
     # each format drawn from the same layout: a draw moves fixed-aspect axes under a
     # layout engine, so a PNG saved after the PDF differed from one saved alone

@@ -19,8 +19,8 @@ import numpy as np
 from hmpc_cli.analysis.tables import (
     FigureInputError, RunTrace, load_trace, parse_bool, read_table, resolve_log, resolve_table)
 from hmpc_cli.figures.common import (
-    COLUMN_WIDTH_IN, OKABE_ITO, check_size, figure_style, make_out_dir, parse_formats,
-    save_figure, static_polylines, write_csv)
+    COLUMN_WIDTH_IN, OKABE_ITO, check_outputs, check_size, figure_style, make_out_dir,
+    parse_formats, save_figure, static_polylines, write_csv)
 
 __all__ = ["PAPER_GEOMETRY", "REFERENCE_COUNTS", "PanelCounts", "fig3", "not_the_paper"]
 
@@ -348,6 +348,7 @@ def fig3(table_path: str | Path, out_dir: str | Path | None = None,
         next(iter(counts.values())).notes.extend(dropped)
     out = Path(out_dir) if out_dir is not None else table.parent
     make_out_dir(out)
+    check_outputs(out, ["fig3_counts.csv", *(f"fig3.{f}" for f in fmts)])
     with figure_style():  # nothing from the user's matplotlibrc leaks in
         save_figure(_figure(runs, width, height, view), out, "fig3", fmts, dpi=dpi)
     _write_counts(out / "fig3_counts.csv", counts)

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from hmpc_cli.figures.common import (
     TEXT_WIDTH_IN,
+    check_outputs,
     check_size,
     figure_style,
     make_out_dir,
@@ -249,6 +250,7 @@ def robustness(table: str | Path, out_dir: str | Path | None = None,
             ax.minorticks_off()
             ax.grid(True, linewidth=0.3, alpha=0.5)
         fig.tight_layout(pad=0.3, w_pad=0.4, h_pad=0.3)
+        check_outputs(out, [f"{name}_table.csv", *(f"{name}.{f}" for f in fmts)])
         save_figure(fig, out, name, fmts)
     _write_table(out / f"{name}_table.csv", data,
                  (panel_axis or "panel", series_axis, x_axis))
