@@ -400,3 +400,42 @@ def test_a_directory_where_a_figure_file_goes_is_refused_before_any_file(tmp_pat
         f"error: {out / taken}: is a directory, where this command writes a file: remove "
         "it or choose another output directory"]
     assert [p.name for p in out.iterdir()] == [taken]
+
+
+def test_a_table_whose_logs_are_all_missing_is_one_short_error(tmp_path):
+    """Every log missing: one line naming the first three and the count (it was one line of
+    every row, each naming its place twice: 5.8 kB for the Figure 3 table)."""
+    from conftest import REPO
+
+    d = tmp_path / "nolog"
+    d.mkdir()
+    (d / "results.csv").write_bytes((REPO / "results/sweeps/fig3/results.csv").read_bytes())
+    with open(d / "results.csv") as f:
+        ids = [r["run_id"] for r in csv.DictReader(f)]
+    proc = subprocess.run([*hmpc_command(), "plot", "fig3", str(d)], env=cli_env(),
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 2
+    table = d / "results.csv"
+    assert proc.stderr.splitlines() == [
+        f"error: {table}: no readable run log: " + "; ".join(
+            f"{table}:{i + 2}: skipped: log {d}/runs/{ids[i]}/run.mcap does not exist"
+            for i in range(3)) + f"; ... ({len(ids)} rows in all)"]
+
+
+def test_fig4_names_its_every_option_and_keeps_the_gif_with_the_figure(tmp_path):
+    from conftest import REPO
+
+    walk = REPO / "results" / "biped_stairs" / "report"
+    zero = subprocess.run([*hmpc_command(), "plot", "fig4", str(walk), "--every=0", "--out",
+                           str(tmp_path / "z")], env=cli_env(), capture_output=True,
+                          text=True, timeout=600)
+    assert zero.returncode == 2 and zero.stderr.splitlines() == [
+        "error: --every: the time between snapshots must be > 0 s (got 0)"]
+    out = tmp_path / "g"
+    (out / "walk.gif").mkdir(parents=True)  # drawn after fig4.pdf and fig4.png
+    gif = subprocess.run([*hmpc_command(), "plot", "fig4", str(walk), "--out", str(out)],
+                         env=cli_env(), capture_output=True, text=True, timeout=600)
+    assert gif.returncode == 2 and gif.stderr.splitlines() == [
+        f"error: {out / 'walk.gif'}: is a directory, where this command writes a file: "
+        "remove it or choose another output directory"]
+    assert [p.name for p in out.iterdir()] == ["walk.gif"]

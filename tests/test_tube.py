@@ -295,6 +295,20 @@ def test_pd_double_integrator_is_certified_and_its_condition_fails():
     assert not none.certified and "kp = kd = 0" in none.reason and none.k1 is None
 
 
+def test_eigenvalues_negative_only_within_round_off_are_said_to_be_so():
+    """kp = kd = 1e9 on a double integrator: eigenvalues -1 and -1e9, the -1 within the
+    round-off tolerance of A - B K's entries; the reason said only 'not Hurwitz: largest
+    eigenvalue real part -1'."""
+    sys_ = linear([[0.0, 1.0], [0.0, 0.0]], [[0.0], [1.0]], [[0.0], [1.0]], u_box=1e12,
+                  gain=lambda kp, kd: np.array([[kp, kd]]))
+    cert = pd_certificate(sys_, 1e9, 1e9, 0.5, samples=100)
+    assert not cert.certified
+    assert cert.reason.startswith(
+        "A - B K linearised at x0 in mode 'only' is not Hurwitz: largest eigenvalue real "
+        "part -1, not below -1 (1e-9 x the largest |entry| of A - B K: zero within "
+        "round-off) (eigenvalues "), cert.reason
+
+
 def test_saturation_limits_the_region_of_attraction():
     # x' = x + u, u = -K e saturated at |u| <= 1: V decreases only for |e| < 1
     sys_ = linear([[1.0]], [[1.0]], [[1.0]], u_box=1.0, gain=lambda kp, kd: np.array([[kp]]))

@@ -85,13 +85,17 @@ def _fig4(log: Path, out: Path | None, formats: str, every: float, gif: bool,
           width: float, height: float) -> None:
     """Draws Figure 4 (and the GIF) from a biped run log."""
     from hmpc_cli.analysis.tables import FigureInputError
-    from hmpc_cli.figures.common import parse_formats
+    from hmpc_cli.figures.common import check_outputs, parse_formats
     from hmpc_cli.figures.fig4 import animate_walk, fig4
     from hmpc_cli.analysis.tables import resolve_run_log
 
+    if not every > 0.0:
+        _fail(f"--every: the time between snapshots must be > 0 s (got {every:g})")
     log = resolve_run_log(log)
     out_dir = out if out is not None else checked_output(log.parent, "output directory")
     try:
+        check_outputs(out_dir, [*(f"fig4.{f}" for f in parse_formats(formats)),
+                                *(["walk.gif"] if gif else [])])  # the GIF comes last
         walk = fig4(log, out_dir, formats, every=every, width=width, height=height)
         if gif:
             animate_walk(walk, out_dir / "walk.gif")

@@ -147,8 +147,8 @@ def _load_runs(table: Path, groups: dict, trace_axis: str, nominal: str | None,
             ok = parse_bool(row.get("success"), f"{where}: success")
             try:
                 trace = load_trace(resolve_log(table, row.get("log"), where))
-            except FigureInputError as exc:
-                notes[label].append(f"{where}: skipped: {exc}")
+            except FigureInputError as exc:  # its text may start with the row's place
+                notes[label].append(f"{where}: skipped: {str(exc).removeprefix(where + ': ')}")
                 continue
             if trace.damage:
                 notes[label].append(f"{trace.path}: damaged log, its intact chunks drawn "
@@ -160,8 +160,9 @@ def _load_runs(table: Path, groups: dict, trace_axis: str, nominal: str | None,
         else:
             notes[label].append(f"panel {label!r}: no readable log, panel left out")
     if not out:
-        raise FigureInputError(f"{table}: no readable run log: "
-                               + "; ".join(n for ns in notes.values() for n in ns))
+        said = [n for ns in notes.values() for n in ns if not n.startswith("panel ")]
+        more = f"; ... ({len(said)} rows in all)" if len(said) > 3 else ""
+        raise FigureInputError(f"{table}: no readable run log: " + "; ".join(said[:3]) + more)
     return out
 
 

@@ -180,11 +180,15 @@ def pd_certificate(system: HybridSystem, kp: float, kd: float, eta: float,
     eig = np.linalg.eigvals(A_cl)
     pairs = tuple((float(e.real) + 0.0, float(e.imag) + 0.0) for e in eig)
     worst = float(eig.real.max()) if eig.size else -math.inf
-    if not eig.size or worst >= -1e-9 * max(1.0, float(np.abs(A_cl).max())):
+    tol = 1e-9 * max(1.0, float(np.abs(A_cl).max()))  # round-off of the eigenvalues
+    if not eig.size or worst >= -tol:
         why = " with no low-level feedback (kp = kd = 0)" if not np.any(K) else ""
+        within = (f", not below -{tol:.3g} (1e-9 x the largest |entry| of A - B K: zero "
+                  "within round-off)") if worst < 0.0 else ""
         return Certificate(False, f"A - B K linearised at x0 in mode {base['mode']!r} is not "
-                           f"Hurwitz{why}: largest eigenvalue real part {worst + 0.0:.4g} "
-                           f"(eigenvalues {_fmt_eigs(eig)})", eigenvalues=pairs, **base)
+                           f"Hurwitz{why}: largest eigenvalue real part {worst + 0.0:.4g}"
+                           f"{within} (eigenvalues {_fmt_eigs(eig)})", eigenvalues=pairs,
+                           **base)
     Q = np.eye(len(keep))
     P = solve_lyapunov(A_cl, Q)
     k1, k2, k3 = eiss_constants(P, Q)
