@@ -377,13 +377,49 @@ def test_verify_refuses_a_damaged_log_and_a_measured_latency_run(ball, tmp_path)
     path = _flipped(ball / "run.mcap", 1, tmp_path / "flipped.mcap")
     line = _error_line(replay(path, "--verify"))
     assert line.startswith(f"error: {path}: --verify: damaged log (1 of ")
-    assert line.endswith("messages are missing from it, so no re-run can be compared with "
-                         "it (hmpc replay shows what its intact chunks hold)")
+    assert line.endswith("what a re-run would be compared with is not all there, so no "
+                         "re-run can be compared with it (hmpc replay shows what it holds "
+                         "intact)")
     measured = _run("ball.toml", tmp_path / "measured", "sim.duration=0.1",
                     'sim.latency="measured"')
     line = _error_line(replay(measured, "--verify"))
     assert line.startswith(f"error: {measured / 'run.mcap'}: --verify: the run charged its "
                            'measured compute time (sim.latency = "measured"): ')
+
+
+def _record_at(path: Path, opcode: int) -> int:
+    """The byte offset of the first top-level record of ``opcode`` in an MCAP file."""
+    import struct
+
+    data, pos = path.read_bytes(), 8
+    while struct.unpack("<B", data[pos:pos + 1])[0] != opcode:
+        pos += 9 + struct.unpack("<Q", data[pos + 1:pos + 9])[0]
+    return pos
+
+
+def test_a_damaged_metadata_or_attachment_record_is_damage_not_a_cut(ball, tmp_path) -> None:
+    """A byte flipped in the run's metadata record of a finished log read as a log cut
+    short after /run/info (2 messages: --verify said identical, exit 0); one changed in the
+    attached scenario went unchecked (the mcap reader skips its CRC: --verify blamed the
+    run, exit 1). Now both are damage: every message kept, --verify exits 2."""
+    whole = (ball / "run.mcap").read_bytes()
+    n = len(read_log(ball / "run.mcap").messages)
+    meta = bytearray(whole)
+    meta[_record_at(ball / "run.mcap", 0x0C) + 13] ^= 0xFF  # inside the record's name
+    scenario = bytearray(whole)
+    at = whole.index(b"[system]", _record_at(ball / "run.mcap", 0x09))
+    scenario[at:at + 8] = b"[sistem]"
+    for name, data, says in (
+            ("meta.mcap", meta, "its metadata records are damaged, left out"),
+            ("scenario.mcap", scenario, "attachment(s) 'scenario.toml' damaged (CRC), left "
+                                        "out")):
+        path = tmp_path / name
+        path.write_bytes(bytes(data))
+        log = read_log(path)
+        assert log.damage.startswith(says) and len(log.messages) == n, log.damage
+        line = _error_line(replay(path, "--verify"))
+        assert line.startswith(f"error: {path}: --verify: damaged log ({says}")
+    assert "scenario.toml" not in read_log(tmp_path / "scenario.mcap").attachments
 
 
 def _error_line(res) -> str:

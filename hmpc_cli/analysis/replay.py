@@ -547,13 +547,14 @@ def compare_logs(recorded: list, rerun: list, prefix_only: bool = False) -> Dive
 def unverifiable(replay: Replay) -> str | None:
     """Why no re-run can be compared with the log (one line), or None.
 
-    A damaged log misses messages; a run that charged its measured compute time
-    (``sim.latency = "measured"``) diverges from any re-run by design.
+    A damaged log misses messages, or the scenario or record a re-run is checked
+    against; a run that charged its measured compute time (``sim.latency = "measured"``)
+    diverges from any re-run by design.
     """
     if replay.log.damage:
-        return (f"damaged log ({replay.log.damage}): messages are missing from it, so no "
-                f"re-run can be compared with it (hmpc replay shows what its intact chunks "
-                f"hold)")
+        return (f"damaged log ({replay.log.damage}): what a re-run would be compared with "
+                f"is not all there, so no re-run can be compared with it (hmpc replay shows "
+                f"what it holds intact)")
     sim = replay.scenario.get("sim")
     if isinstance(sim, dict) and sim.get("latency") == "measured":
         return ('the run charged its measured compute time (sim.latency = "measured"): a '

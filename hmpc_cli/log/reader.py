@@ -145,8 +145,17 @@ def _read_indexed(path: Path, topics: Collection[str] | None = None) -> Log:
             if channel.topic not in log.schemas and channel.topic not in log.raw_schemas:
                 log._add_channel(channel, schema)
             log._add(channel, schema, msg, log.messages, log.raw, topics)
-        log.metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
-        log.attachments = {a.name: a.data for a in reader.iter_attachments()}
+        # the messages read whole: a damaged metadata or attachment record does not lose them
+        damage = []
+        try:
+            log.metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+        except _DAMAGE_ERRORS as exc:
+            damage.append(_damage_text("its metadata records are damaged, left out", exc))
+        try:
+            log.attachments = {a.name: a.data for a in reader.iter_attachments()}
+        except _DAMAGE_ERRORS as exc:
+            damage.append(_damage_text("its attachments are damaged, left out", exc))
+        log.damage = "; ".join(damage)
     return log
 
 
@@ -209,8 +218,13 @@ def _damage_text(what: str, exc: BaseException) -> str:
     return f"{what} ({detail[:120]})"
 
 
-def _read_stream(path: Path, topics: Collection[str] | None = None) -> Log:
-    """Reads records front to back, keeping every fully written chunk."""
+def _read_stream(path: Path, topics: Collection[str] | None = None,
+                 finished: bool = False) -> Log:
+    """Reads records front to back, keeping every fully written chunk.
+
+    ``finished``: the file ends with its footer's magic, so a record that cannot be read
+    is damage, not the end of a file cut short.
+    """
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
     log = Log([], {}, {}, {}, complete=False)
@@ -237,8 +251,11 @@ def _read_stream(path: Path, topics: Collection[str] | None = None) -> Log:
                 record = next(records)
             except StopIteration:
                 break
-            except _DAMAGE_ERRORS:
-                return log  # truncated mid-record: keep what was complete
+            except _DAMAGE_ERRORS as exc:  # truncated mid-record: keep what was complete
+                if finished:  # ... unless the file ends with its footer: then damaged
+                    log.damage = _damage_text("a record is damaged, though the file ends "
+                                              "with its footer", exc)
+                return log
             pending: list[LogMessage] = []
             pending_raw: list[RawMessage] = []
             try:  # a chunk is kept only as a whole: CRC-checked, every message decoded
@@ -272,7 +289,19 @@ def read_log(path: str | Path, topics: Collection[str] | None = None) -> Log:
             tail = f.read(8)
     if head != MCAP_MAGIC:
         raise ValueError(f"{path} is not an MCAP file (bad magic {head!r})")
-    if tail == MCAP_MAGIC:
+    log = _read(path, topics, tail == MCAP_MAGIC)
+    bad = _damaged_attachments(path)
+    for name in bad:  # left out: a damaged scenario must not pass for the run's
+        log.attachments.pop(name, None)
+    if bad:
+        said = f"attachment(s) {', '.join(map(repr, bad))} damaged (CRC), left out"
+        log.damage = f"{log.damage}; {said}" if log.damage else said
+    return log
+
+
+def _read(path: Path, topics: Collection[str] | None, finished: bool) -> Log:
+    """The log through its index, its chunk index or a linear scan, the first that works."""
+    if finished:
         try:
             return _read_indexed(path, topics)
         except (*_DAMAGE_ERRORS, OSError):
@@ -281,7 +310,45 @@ def read_log(path: str | Path, topics: Collection[str] | None = None) -> Log:
             return _read_chunks(path, topics)
         except (*_DAMAGE_ERRORS, OSError, StopIteration):
             pass  # no usable index: a linear scan up to the damage
-    return _read_stream(path, topics)
+    return _read_stream(path, topics, finished)
+
+
+_ATTACHMENT = 0x09  # MCAP opcodes: attachment and the data end (the data section's last)
+_DATA_END = 0x0F
+
+
+def _damaged_attachments(path: Path) -> list[str]:
+    """The names of the attachments whose CRC does not match their record.
+
+    Walks the top-level records (opcode, length) from the magic to the data end, reading
+    only the attachments' bodies; stops quietly at a length past the file's end (the
+    readers say what is wrong there). The mcap reader skips the attachment CRC.
+    """
+    import struct
+    import zlib
+
+    bad = []
+    with open(path, "rb") as f:
+        size = f.seek(0, 2)
+        pos = len(MCAP_MAGIC)
+        while pos + 9 <= size:
+            f.seek(pos)
+            op, length = struct.unpack("<BQ", f.read(9))
+            if op == _DATA_END or pos + 9 + length > size:
+                break
+            if op == _ATTACHMENT and length >= 4:
+                body = f.read(length)
+                stored = int.from_bytes(body[-4:], "little")
+                if stored and zlib.crc32(body[:-4]) != stored:
+                    bad.append(_attachment_name(body))
+            pos += 9 + length
+    return bad
+
+
+def _attachment_name(body: bytes) -> str:
+    """An attachment record's name (after its two 8-byte times), as far as it decodes."""
+    n = int.from_bytes(body[16:20], "little")
+    return body[20:20 + n].decode("utf-8", "replace") if n < len(body) else "?"
 
 
 def first_message(path: str | Path, topic: str) -> dict | None:
