@@ -867,3 +867,23 @@ def test_a_killed_runs_log_reads_with_the_mcap_package_as_log_format_says(
         (att,) = make_reader(f).iter_attachments()
     assert (att.name, att.media_type, att.log_time, att.create_time) == (
         "scenario.toml", "application/toml", 0, 0)
+
+
+def test_disturbance_statistics_are_those_of_the_window() -> None:
+    """Over --from/--to the values in effect there count, each for its time inside: the
+    last value of the window was weighted as if it held to the run's end, and a value set
+    before --from was left out."""
+    from hmpc_cli.analysis.replay import disturbance_stats
+    from hmpc_cli.log.reader import LogMessage
+
+    msgs = [LogMessage("/disturbance", t, {"w": {"wx": wx}}) for t, wx in
+            ((0.0, 1.0), (0.5, -3.0), (1.0, 5.0))] + [LogMessage("/sim/state", 0.7, {})]
+
+    def stats(*window):
+        s = disturbance_stats(msgs, *window)
+        return s["values"], s["channels"]["wx"]["max"], s["channels"]["wx"]["mean"]
+
+    assert stats(2.0) == (3, 5.0, pytest.approx(3.5))  # (1 x 0.5 + 3 x 0.5 + 5 x 1) / 2
+    assert stats(0.75, 0.25) == (2, 3.0, pytest.approx(2.0))  # 1 then 3, 0.25 s each
+    assert stats(1.5, 0.5) == (2, 5.0, pytest.approx(4.0))  # 3 from 0.5, 5 from 1.0
+    assert stats(0.4, 0.2) == (1, 1.0, pytest.approx(1.0))  # one value held throughout

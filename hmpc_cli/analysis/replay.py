@@ -436,20 +436,25 @@ def _channels(w: Any) -> dict[str, float]:
     return {} if v is None else {"w": abs(v)}
 
 
-def disturbance_stats(messages: list, t_end: float) -> dict:
-    """Statistics of the /disturbance messages.
+def disturbance_stats(messages: list, t_end: float, t_start: float | None = None) -> dict:
+    """Statistics of the /disturbance values in effect over [t_start, t_end] [s].
 
-    Each value holds until the next one (the last until ``t_end``); the mean |w| is
+    Each value holds until the next one (the last until ``t_end``); a value set before
+    ``t_start`` counts from ``t_start`` (None: from the first value). The mean |w| is
     time-weighted (a plain mean if the values span no time).
 
     Returns:
         ``{"values": N, "changes": N - 1, "channels": {name: {"max": .., "mean": ..}}}``.
     """
     dist = sorted((m for m in messages if m.topic == "/disturbance"), key=lambda m: m.t)
+    lo = -math.inf if t_start is None else t_start
+    held = [m for m in dist if m.t <= lo + 1e-12]  # the value in effect at t_start
+    dist = held[-1:] + [m for m in dist if lo + 1e-12 < m.t <= t_end + 1e-12]
     if not dist:
         return {"values": 0, "changes": 0, "channels": {}}
-    ends = [m.t for m in dist[1:]] + [max(t_end, dist[-1].t)]
-    spans = [max(e - m.t, 0.0) for m, e in zip(dist, ends, strict=True)]
+    starts = [max(m.t, lo) for m in dist]
+    ends = starts[1:] + [max(t_end, starts[-1])]
+    spans = [max(e - t, 0.0) for t, e in zip(starts, ends, strict=True)]
     total = sum(spans)
     weights = [s / total for s in spans] if total > 0 else [1 / len(dist)] * len(dist)
     chans: dict[str, dict[str, float]] = {}

@@ -158,8 +158,9 @@ def _no_summary(rp) -> str:
     return "no summary (the run did not finish)"
 
 
-def _print_report(console, rp, selected: list, show_all: bool, window: str) -> None:
-    """Identity, summary, timeline and disturbance statistics."""
+def _print_report(console, rp, selected: list, show_all: bool, window: str,
+                  span: tuple[float | None, float | None], topics: list[str] | None) -> None:
+    """Identity, summary, timeline and disturbance statistics (over ``span``: --from, --to)."""
     from hmpc_cli.analysis.replay import disturbance_stats, timeline
 
     console.print(_identity_table(rp, rp.path.stat().st_size))
@@ -169,7 +170,10 @@ def _print_report(console, rp, selected: list, show_all: bool, window: str) -> N
         console.print(_summary_table(rp.summary))
     console.print(_timeline_table(timeline(selected, show_all), len(selected), window))
     console.print(f"selected messages per topic: {_counts_line(selected)}", markup=False)
-    stats = disturbance_stats(selected, rp.t_last)
+    if topics and "/disturbance" not in topics:
+        return
+    t_end = rp.t_last if span[1] is None else min(span[1], rp.t_last)
+    stats = disturbance_stats(rp.log.messages, t_end, span[0])
     if stats["values"]:
         console.print(_disturbance_table(stats))
 
@@ -318,7 +322,8 @@ def _replay(rp, topics, t_from, t_to, show_all, export, fmt, check, figures) -> 
     console = Console()
     with guarded(rp.path):
         if not quiet:
-            _print_report(console, rp, selected, show_all, window)
+            _print_report(console, rp, selected, show_all, window, (t_from, t_to),
+                          topics or None)
         elif export is None and figures is None and not check:  # the summary is the result
             console.print(_summary_table(rp.summary) if rp.summary is not None
                           else _no_summary(rp))
