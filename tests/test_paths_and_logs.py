@@ -546,3 +546,31 @@ def test_biped_plan_and_rollout_lines_break_at_resets(biped_run):
         assert len(lines) == 4
         for pts in lines:
             assert np.max(np.hypot(*np.diff(pts, axis=0).T)) < 0.3
+
+
+def test_a_path_whose_bytes_are_not_utf8_is_recorded_escaped(tmp_path):
+    """``--out`` with a byte that is not UTF-8: the run crashed at t = 0 (UnicodeEncodeError
+    writing /run/info's command line), and an export of a log there was reported as a
+    damaged log. Every JSON hmpc writes now holds such a byte as ``\\xNN``."""
+    import subprocess
+
+    from conftest import BALL, cli_env, hmpc_command
+    from hmpc_cli.log.reader import read_log
+
+    out = os.fsdecode(os.fsencode(str(tmp_path)) + b"/run\xffbad")
+    common = dict(env=cli_env(), capture_output=True, timeout=600)
+    run = subprocess.run([*hmpc_command(), "run", str(BALL), "--out", out, "-q",
+                          "--set", "sim.duration=0.3"], **common)
+    assert run.returncode == 0, run.stderr
+    info = next(m.data for m in read_log(Path(out) / "run.mcap").messages
+                if m.topic == "/run/info")
+    assert info["command"].endswith(f"--out '{tmp_path}/run\\xffbad' -q --set "
+                                    "sim.duration=0.3")
+    summary = (Path(out) / "summary.json").read_bytes().decode("utf-8")  # valid UTF-8
+    assert json.loads(summary)["success"] in (True, False)
+    export = tmp_path / "export"
+    res = subprocess.run([*hmpc_command(), "replay", out, "--export", str(export), "-q"],
+                         **common)
+    assert res.returncode == 0, res.stderr
+    assert json.loads((export / "info.json").read_text())["log"] == \
+        f"{tmp_path}/run\\xffbad/run.mcap"

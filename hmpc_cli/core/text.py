@@ -1,4 +1,4 @@
-"""Words for messages: the choice closest to what was given ("did you mean ...?")."""
+"""Words for messages: the closest choice ("did you mean ...?"), text UTF-8 can encode."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import difflib
 from collections.abc import Sequence
 from typing import Any
 
-__all__ = ["closest", "did_you_mean"]
+__all__ = ["closest", "did_you_mean", "printable"]
 
 
 def closest(name: Any, choices: Sequence[str]) -> str | None:
@@ -20,3 +20,16 @@ def did_you_mean(name: Any, choices: Sequence[str]) -> str:
     """`` (did you mean 'x'?)`` for :func:`closest` of ``name`` in ``choices``, else ''."""
     near = closest(name, choices)
     return f" (did you mean {near!r}?)" if near is not None else ""
+
+
+def printable(text: str) -> str:
+    r"""``text`` as UTF-8 can encode it: bytes that are not UTF-8 as ``\xNN``.
+
+    Python keeps such bytes of a path or an argument as surrogate escapes, which no
+    UTF-8 file can hold; other text comes back unchanged.
+    """
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    return text

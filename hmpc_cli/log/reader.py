@@ -246,16 +246,7 @@ def _read_stream(path: Path, topics: Collection[str] | None = None,
     saw_footer = False
     with open(path, "rb") as f:
         records = StreamReader(f, emit_chunks=True).records
-        while True:
-            try:
-                record = next(records)
-            except StopIteration:
-                break
-            except _DAMAGE_ERRORS as exc:  # truncated mid-record: keep what was complete
-                if finished:  # ... unless the file ends with its footer: then damaged
-                    log.damage = _damage_text("a record is damaged, though the file ends "
-                                              "with its footer", exc)
-                return log
+        while (record := _next_record(records, log, finished)) is not None:
             pending: list[LogMessage] = []
             pending_raw: list[RawMessage] = []
             try:  # a chunk is kept only as a whole: CRC-checked, every message decoded
@@ -270,6 +261,23 @@ def _read_stream(path: Path, topics: Collection[str] | None = None,
             saw_footer = saw_footer or isinstance(record, Footer)
     log.complete = saw_footer
     return log
+
+
+def _next_record(records: Any, log: Log, finished: bool) -> Any:
+    """The stream's next record, or None at its end or at a record that cannot be read.
+
+    Such a record ends a file cut short (the records before it kept); in a ``finished``
+    file (it ends with its footer) it is damage, named in ``log.damage``.
+    """
+    try:
+        return next(records)
+    except StopIteration:
+        return None
+    except _DAMAGE_ERRORS as exc:
+        if finished:
+            log.damage = _damage_text("a record is damaged, though the file ends with its "
+                                      "footer", exc)
+        return None
 
 
 def read_log(path: str | Path, topics: Collection[str] | None = None) -> Log:

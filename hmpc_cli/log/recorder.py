@@ -19,6 +19,7 @@ from mcap.writer import CompressionType, Writer
 
 from hmpc_cli.log.codecs import add_messages, zstd_chunks_at_level
 from hmpc_cli.log.codecs import compression as mcap_compression
+from hmpc_cli.core.text import printable
 
 __all__ = ["NS_PER_S", "Recorder", "file_descriptor_set", "to_json_bytes"]
 
@@ -45,14 +46,17 @@ def _to_ns(t: float) -> int:
 
 def _jsonable(obj: Any) -> Any:
     """Recursively converts `obj` to plain JSON types; non-finite floats become None."""
-    if obj is None or isinstance(obj, (str, bool)):
+    if isinstance(obj, str):
+        return printable(obj)  # a path's bytes that are not UTF-8 as \\xNN
+    if obj is None or isinstance(obj, bool):
         return obj
     if isinstance(obj, int):
         return int(obj)
     if isinstance(obj, float):
         return float(obj) if math.isfinite(obj) else None
     if isinstance(obj, dict):
-        return {(k if isinstance(k, str) else _jsonable(k)): _jsonable(v) for k, v in obj.items()}
+        return {(printable(k) if isinstance(k, str) else _jsonable(k)): _jsonable(v)
+                for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [_jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
