@@ -201,6 +201,35 @@ def test_a_full_disk_is_bad_environment_not_an_internal_error(tmp_path, ball_run
     assert listing(tmp_path / "e") == []  # no temporaries, no half tables
 
 
+def test_an_export_that_fails_midway_leaves_the_directory_as_it_was(tmp_path, ball_run,
+                                                                   monkeypatch):
+    """A disk filling up at the third table: the new directory is gone, and an earlier
+    export in it is left whole (7 tables and no info.json stayed, and the next export was
+    refused; re-exported another log, the two were mixed)."""
+    import hmpc_cli.analysis.export as export
+
+    earlier = tmp_path / "e"
+    assert hmpc(["replay", ball_run, "--export", earlier, "--topic", "summary", "-q"],
+                tmp_path).exit_code == 0
+    before = {p.name: p.read_bytes() for p in earlier.iterdir()}
+    write, calls = export._write_csv, []
+
+    def fills_up(path, rows):
+        calls.append(path)
+        if len(calls) == 3:
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        write(path, rows)
+
+    monkeypatch.setattr(export, "_write_csv", fills_up)
+    for out in (tmp_path / "new", earlier):
+        calls.clear()
+        res = hmpc(["replay", ball_run, "--export", out, "-q"], tmp_path)
+        assert res.exit_code == 2 and "No space left on device" in res.stderr, res.stderr
+        assert len(calls) == 3
+    assert not (tmp_path / "new").exists()
+    assert {p.name: p.read_bytes() for p in earlier.iterdir()} == before
+
+
 @pytest.fixture
 def small_disk(tmp_path):
     yield from mounted_tmpfs(tmp_path / "disk", "size=200k", "a full disk")

@@ -170,7 +170,11 @@ def check_format(fmt: str) -> None:
 
 
 def write_export(out: Path, messages: list, info: dict, fmt: str = "csv") -> list[Path]:
-    """Writes the tables of ``messages`` and ``info.json`` into directory ``out``.
+    """Writes the tables of ``messages`` and ``info.json`` into directory ``out``, whole.
+
+    Everything is written into a staging directory inside ``out`` (the same file system)
+    and then moved in, ``info.json`` last, an earlier export's other tables removed: a
+    failure while writing (a full disk) leaves ``out`` as it was, or none if it was new.
 
     Args:
         out: output directory (created).
@@ -184,27 +188,36 @@ def write_export(out: Path, messages: list, info: dict, fmt: str = "csv") -> lis
     Raises:
         ExportError: unknown format, pyarrow missing for Parquet, or ``out`` unwritable.
     """
-    from hmpc_cli.core.paths import atomic_file, write_atomic
+    import shutil
+    import tempfile
+
+    from hmpc_cli.core import signals
 
     check_format(fmt)
     earlier = earlier_export(out)
+    new, stage = not out.exists(), None
     try:
         out.mkdir(parents=True, exist_ok=True)
-        written = []
+        stage = Path(tempfile.mkdtemp(prefix=".hmpc-export-", dir=out))
+        names = []
         for name, rows in tables(messages).items():
-            path = out / f"{name}.{fmt}"
-            with atomic_file(path) as tmp:  # whole or not at all (a full disk)
-                (_write_csv if fmt == "csv" else _write_parquet)(tmp, rows)
-            written.append(path)
-        path = out / "info.json"
-        files = {"files": [p.name for p in written]}
-        write_atomic(path, dumps({**info, **files}, indent=2, ensure_ascii=False) + "\n")
-        written.append(path)
-        for name in set(earlier) - {p.name for p in written}:  # the earlier export's own
-            (out / name).unlink(missing_ok=True)
+            (_write_csv if fmt == "csv" else _write_parquet)(stage / f"{name}.{fmt}", rows)
+            names.append(f"{name}.{fmt}")
+        (stage / "info.json").write_text(dumps({**info, "files": names}, indent=2,
+                                               ensure_ascii=False) + "\n", encoding="utf-8")
+        with signals.deferred():  # moved in whole: a stop meanwhile acts after
+            for name in [*names, "info.json"]:
+                (stage / name).replace(out / name)
+            for name in set(earlier) - set(names):  # the earlier export's own
+                (out / name).unlink(missing_ok=True)
     except OSError as exc:
+        if new:
+            shutil.rmtree(out, ignore_errors=True)
         raise ExportError(f"{out}: cannot write ({exc.strerror or exc})") from None
-    return written
+    finally:
+        if stage is not None:
+            shutil.rmtree(stage, ignore_errors=True)
+    return [out / n for n in [*names, "info.json"]]
 
 
 def earlier_export(out: Path) -> list[str]:
@@ -214,8 +227,9 @@ def earlier_export(out: Path) -> list[str]:
         ExportError: ``out`` holds files but no export's ``info.json`` (they would be
             written over or mixed with the export's).
     """
-    try:
-        entries = sorted(p.name for p in Path(out).iterdir())
+    try:  # a staging directory an export killed while writing left is not content
+        entries = sorted(p.name for p in Path(out).iterdir()
+                         if not p.name.startswith(".hmpc-export-"))
     except OSError:  # none there (or no directory: writing it says why)
         return []
     if not entries:
