@@ -644,6 +644,35 @@ def test_bad_files(ball, tmp_path) -> None:
         assert _error_line(replay(path)).startswith(f"error: {path}: {what}")
 
 
+def test_a_log_without_json_messages_is_told_apart(ball, tmp_path) -> None:
+    """A foreign log of non-JSON messages (a ROS 2 one) was 'the run was stopped before
+    anything was logged'; a file cut inside its first chunk said 'its header only' though
+    it holds the attached scenario too."""
+    from mcap.writer import Writer
+
+    ros = tmp_path / "ros.mcap"
+    with open(ros, "wb") as f:
+        w = Writer(f)
+        w.start(profile="ros2", library="other")
+        sid = w.register_schema("std_msgs/msg/String", "ros2msg", b"string data")
+        cid = w.register_channel("/chatter", "cdr", sid)
+        for i in range(5):
+            w.add_message(cid, i, b"\x00\x01\x00\x00\x03\x00\x00\x00hi\x00", i)
+        w.finish()
+    assert _error_line(replay(ros)) == (
+        f"error: {ros}: not an hmpc run log (no /run/info; its topics: /chatter)")
+    from mcap.reader import make_reader
+
+    with open(ball / "run.mcap", "rb") as f:
+        first = make_reader(f).get_summary().chunk_indexes[0].chunk_start_offset
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes((ball / "run.mcap").read_bytes()[:first + 100])
+    assert _error_line(replay(cut)) == (
+        f"error: {cut}: no message could be read: the run was stopped before anything was "
+        f"logged ({first + 100} bytes: its header and attachment 'scenario.toml' only), or "
+        "the file was cut short after them")
+
+
 def test_bad_file_in_a_real_process(run_hmpc, tmp_path) -> None:
     (tmp_path / "x.mcap").write_bytes(b"\x89MCAP0\r\n\x01\x02")
     res = run_hmpc(["replay", "x.mcap"], tmp_path)

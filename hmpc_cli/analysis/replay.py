@@ -153,6 +153,23 @@ def resolve_log_path(path: Path) -> Path:
     return path
 
 
+def _no_message(path: Path, log) -> None:
+    """Why a log holds no JSON message (a :class:`ReplayError`, always raised)."""
+    if log.damage:
+        raise ReplayError(f"damaged log: no message could be read: {log.damage}")
+    raw = sorted({m.topic for m in log.raw})
+    if raw and not all(t.startswith("/scene/") for t in raw):
+        raise ReplayError(f"not an hmpc run log (no /run/info; its topics: {', '.join(raw)})")
+    if raw:  # hmpc's scene, written before the run's first message
+        raise ReplayError("no /run/info: the run stopped before it logged anything but its "
+                          f"scene ({', '.join(raw)})")
+    held = "its header" + "".join(f" and attachment {n!r}" for n in sorted(log.attachments))
+    raise ReplayError("no message could be read: the run was stopped before anything was "
+                      f"logged ({path.stat().st_size} bytes: "
+                      + ("closed with no message)" if log.complete else
+                         f"{held} only), or the file was cut short after them"))
+
+
 def load_replay(path: Path) -> Replay:
     """Reads a run log for replay; a truncated or damaged file yields what was completed.
 
@@ -171,12 +188,7 @@ def load_replay(path: Path) -> Replay:
     except OSError as exc:
         raise ReplayError(f"cannot read ({exc.strerror or exc})") from None
     if not log.messages:
-        if log.damage:
-            raise ReplayError(f"damaged log: no message could be read: {log.damage}")
-        raise ReplayError("no message could be read: the run was stopped before anything "
-                          f"was logged ({path.stat().st_size} bytes: "
-                          + ("closed with no message)" if log.complete else
-                             "its header only), or the file was cut short after its header"))
+        _no_message(path, log)
     infos = log.topic("/run/info")
     if not infos and log.damage:  # its first chunk, which holds /run/info, is lost
         raise ReplayError(f"damaged log: its /run/info could not be read: {log.damage}")
