@@ -422,6 +422,20 @@ def test_a_damaged_metadata_or_attachment_record_is_damage_not_a_cut(ball, tmp_p
     assert "scenario.toml" not in read_log(tmp_path / "scenario.mcap").attachments
 
 
+def test_replay_refuses_format_alone_and_a_verify_refusal_before_any_export(ball,
+                                                                           tmp_path) -> None:
+    """``--format`` without ``--export`` was ignored (exit 0); ``--export --verify`` of a
+    log --verify refuses wrote the export, then exited 2."""
+    alone = _error_line(replay(ball, "--format", "parquet"))
+    assert alone == "error: --format parquet: the format of --export's tables; give " \
+                    "--export DIR too"
+    path = _flipped(ball / "run.mcap", 1, tmp_path / "flipped.mcap")
+    out = tmp_path / "export"
+    line = _error_line(replay(path, "--export", str(out), "--verify"))
+    assert line.startswith(f"error: {path}: --verify: damaged log (1 of ")
+    assert not out.exists()
+
+
 def _error_line(res) -> str:
     lines = [line for line in res.output.splitlines() if line.startswith("error: ")]
     assert res.exit_code == 2 and len(lines) == 1, res.output

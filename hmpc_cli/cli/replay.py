@@ -246,9 +246,9 @@ def replay_command(
     export: Annotated[Path | None, typer.Option(
         "--export", metavar="DIR", help="write one table per topic (after the filters) "
         "and info.json into this directory", parser=path_option)] = None,
-    fmt: Annotated[str, typer.Option(
-        "--format", metavar="FORMAT",
-        help="export format: csv, or parquet (needs pyarrow)")] = "csv",
+    fmt: Annotated[str | None, typer.Option(
+        "--format", metavar="FORMAT", show_default=False,
+        help="export format: csv (default), or parquet (needs pyarrow)")] = None,
     check: Annotated[bool, typer.Option(
         "--verify", help="re-run the attached scenario with the same seed and compare the "
         "logs (exit 1 at the first divergence)")] = False,
@@ -264,6 +264,9 @@ def replay_command(
     from hmpc_cli.log.damage import DamagedLogError
 
     _check_window(t_from, t_to)
+    if fmt is not None and export is None:
+        _fail([f"--format {fmt}: the format of --export's tables; give --export DIR too"])
+    fmt = fmt or "csv"
     try:  # the outputs first: a bad path writes nothing and reads nothing
         for option, where in (("--export", export), ("--figures", figures)):
             if where is not None:
@@ -280,6 +283,11 @@ def replay_command(
                                 sorted({m.topic for m in rp.log.raw}))
     except ReplayError as exc:
         _fail([f"{log}: {exc}"])
+    from hmpc_cli.analysis.replay import unverifiable
+
+    why = unverifiable(rp) if check else None
+    if why is not None:  # before the export and figures: nothing written for a refusal
+        _fail([f"{rp.path}: --verify: {why}"])
     try:
         _replay(rp, topics, t_from, t_to, show_all, export, fmt, check, figures)
     except DamagedLogError as exc:
