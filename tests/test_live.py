@@ -255,3 +255,55 @@ def test_a_client_subscribed_during_the_run_gets_each_state_as_it_is_logged(tmp_
     assert got == logged
     first = json.loads(got[0][1])
     assert first["t"] == 0.0 and first["x"] == {"px": 1.0, "py": 1.0, "vx": 0.0, "vy": 0.0}
+
+
+def test_a_latched_message_goes_to_a_new_subscriber_twice_and_close_waits_for_the_queue(
+        tmp_path):
+    """The server may call on_subscribe before the client's subscription takes messages
+    (foxglove-sdk PR #533): the latched message, sent at once, is sent again RESEND_S
+    later. close() with a client subscribed waits FLUSH_S before stopping the server
+    (stopped at once, it dropped the run's last messages now and then); without one it
+    does not."""
+    pytest.importorskip("foxglove")
+    pytest.importorskip("websockets")
+    import json
+    import time
+
+    from websockets.sync.client import connect
+
+    from hmpc_cli.log.live import FLUSH_S, LATCHED, RESEND_S, LiveSink
+    from hmpc_cli.run.runner import execute_run, prepare
+    from hmpc_cli.run.scenario import load_scenario
+
+    sent: list[tuple[str, float]] = []
+
+    class Sink(LiveSink):
+        def _resend(self, topic):
+            sent.append((topic, time.monotonic()))
+            super()._resend(topic)
+
+    sc, text = load_scenario(BALL, ["sim.duration=0.05"])
+    sink, slept = Sink(port=0, speed=0.0), []
+    sink._sleep = slept.append
+    execute_run(prepare(sc), text, tmp_path / "r", mirror=sink)
+    with connect(sink.url, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],
+                 max_size=None) as ws:
+        deadline = time.monotonic() + 20
+        while len(sent) < 2 * len(LATCHED) and time.monotonic() < deadline:
+            try:
+                msg = ws.recv(timeout=0.05)
+            except TimeoutError:
+                continue
+            if isinstance(msg, str) and json.loads(msg).get("op") == "advertise":
+                ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                    {"id": ch["id"], "channelId": ch["id"]}  # one per channel
+                    for ch in json.loads(msg)["channels"]]}))
+        sink.close()  # the client still subscribed
+    for topic in LATCHED:
+        times = [t for s, t in sent if s == topic]
+        assert len(times) == 2 and times[1] - times[0] >= RESEND_S * 0.99, sent
+    assert slept == [FLUSH_S]
+    idle, slept = LiveSink(port=0, speed=0.0), []
+    idle._sleep = slept.append
+    idle.close()
+    assert slept == []

@@ -13,17 +13,20 @@ connection → Foxglove WebSocket → ``ws://127.0.0.1:8765``.
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
 from hmpc_cli.log.scene import STATIC
 
-__all__ = ["LATCHED", "LiveSink", "LiveError", "Pacing", "port_problem"]
+__all__ = ["FLUSH_S", "LATCHED", "LiveSink", "LiveError", "Pacing", "RESEND_S", "port_problem"]
 
 _NS_PER_S = 1_000_000_000
 #: topics written once at the start that a client subscribing later still needs
 LATCHED = ("/run/info", STATIC)
+RESEND_S = 0.1  #: a latched message is sent to a new subscriber again this much later [s]
+FLUSH_S = 0.3  #: the wait for queued messages before the server stops, with a subscriber [s]
 
 
 def port_problem(port: int) -> str | None:
@@ -89,6 +92,9 @@ class LiveSink:
         self.context = foxglove.Context()
         self._channels: dict[str, Any] = {}
         self._held: dict[str, tuple[int, bytes]] = {}  # latched topic -> (ns, data)
+        self._subscribers = 0  # subscriptions open (the server's callbacks count them)
+        self._timers: list[threading.Timer] = []  # latched messages' second sending
+        self._sleep = time.sleep
         try:
             self.server = foxglove.start_server(
                 name="hmpc", host="127.0.0.1", port=port, context=self.context,
@@ -122,15 +128,37 @@ class LiveSink:
     def on_subscribe(self, client: Any, channel: Any) -> None:
         """The server's callback: a latched topic's message, again, to a new subscriber.
 
-        Clients subscribed before get it once more (a description, the same one).
+        Sent at once (if written yet) and again :data:`RESEND_S` later: the server may call
+        this before the client's subscription takes messages (foxglove-sdk PR #533), and a
+        message sent meanwhile, this one or the run's own, is lost. Clients subscribed
+        before get it more than once (the same message).
         """
-        held = self._held.get(channel.topic)
+        self._subscribers += 1
+        if channel.topic in LATCHED:  # also when its message is being written just now
+            self._resend(channel.topic)
+            timer = threading.Timer(RESEND_S, self._resend, (channel.topic,))
+            timer.daemon = True
+            self._timers.append(timer)
+            timer.start()
+
+    def _resend(self, topic: str) -> None:
+        """Sends the latched topic's held message again (none yet: nothing)."""
+        held = self._held.get(topic)
         if held is not None:
-            self._channels[channel.topic].log(held[1], log_time=held[0])
+            self._channels[topic].log(held[1], log_time=held[0])
 
     def on_unsubscribe(self, client: Any, channel: Any) -> None:
-        """The server's callback: nothing to do."""
+        """The server's callback: one subscription fewer."""
+        self._subscribers -= 1
 
     def close(self) -> None:
-        """Stops the server (clients keep what they received)."""
+        """Stops the server once what it queued went out (clients keep what they received).
+
+        With a subscriber, waits :data:`FLUSH_S` first: stopping right after the last
+        write dropped the run's last messages (its summary among them) now and then.
+        """
+        if self._subscribers > 0:
+            self._sleep(FLUSH_S)  # a latched message's second sending is due in it too
+        for timer in self._timers:
+            timer.cancel()
         self.server.stop()
