@@ -603,3 +603,23 @@ def test_a_path_whose_bytes_are_not_utf8_is_recorded_escaped(tmp_path):
     assert res.returncode == 0, res.stderr
     assert json.loads((export / "info.json").read_text())["log"] == \
         f"{tmp_path}/run\\xffbad/run.mcap"
+
+
+@pytest.fixture
+def tiny_disk(tmp_path):
+    yield from mounted_tmpfs(tmp_path / "tiny", "size=16k", "a full temporary directory")
+
+
+def test_verify_with_a_full_temporary_directory_names_it(ball_run, tiny_disk, monkeypatch):
+    """The re-run's log did not fit in TMPDIR: 'error: cannot write: No space left on
+    device', naming neither the file nor the step."""
+    import tempfile
+
+    monkeypatch.setenv("TMPDIR", str(tiny_disk))
+    monkeypatch.setattr(tempfile, "tempdir", None)  # read TMPDIR again
+    res = hmpc(["replay", ball_run, "--verify", "-q"])
+    assert res.exit_code == 2, res.output
+    assert res.stderr.splitlines() == [
+        f"error: {Path(ball_run) / 'run.mcap'}: --verify: cannot write the re-run's log in "
+        f"{tiny_disk} (No space left on device): point TMPDIR at a directory with room for "
+        "it"]

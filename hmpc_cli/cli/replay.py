@@ -214,11 +214,16 @@ def _verify(console, rp) -> None:
     if not is_quiet():
         console.print("verify: re-running the attached scenario (seed "
                       f"{rp.info.get('seed', '?')}) ...", markup=False)
-    with tempfile.TemporaryDirectory(prefix="hmpc-verify-") as tmp:
-        try:
-            div, n, k = verify(rp, Path(tmp))
-        except ReplayError as exc:
-            _fail([f"{rp.path}: {exc}"])
+    where = tempfile.gettempdir()
+    try:
+        with tempfile.TemporaryDirectory(prefix="hmpc-verify-") as tmp:
+            try:
+                div, n, k = verify(rp, Path(tmp))
+            except ReplayError as exc:
+                _fail([f"{rp.path}: {exc}"])
+    except OSError as exc:  # the re-run's log: a full or unwritable temporary directory
+        _fail([f"{rp.path}: --verify: cannot write the re-run's log in {where} "
+               f"({exc.strerror or exc}): point TMPDIR at a directory with room for it"])
     scope = "" if rp.complete else f" up to t = {rp.t_last:.4g} s (the log was cut short)"
     if rp.complete and rp.stopped_at is not None:
         scope = f" up to t = {rp.stopped_at:.4g} s (a stop signal ended the run there)"
