@@ -930,3 +930,20 @@ def test_disturbance_statistics_are_those_of_the_window() -> None:
     assert stats(0.75, 0.25) == (2, 3.0, pytest.approx(2.0))  # 1 then 3, 0.25 s each
     assert stats(1.5, 0.5) == (2, 5.0, pytest.approx(4.0))  # 3 from 0.5, 5 from 1.0
     assert stats(0.4, 0.2) == (1, 1.0, pytest.approx(1.0))  # one value held throughout
+
+
+def test_verify_compares_the_run_metadata_record(ball, tmp_path) -> None:
+    """The MCAP metadata record's seed edited (0 -> 7, its length kept): --verify said
+    identical; it now reports the divergence at t = 0 (exit 1)."""
+    data = bytearray((ball / "run.mcap").read_bytes())
+    at = _record_at(ball / "run.mcap", 0x0C)
+    key = data.index(b"seed", at)
+    value = data.index(b"0", key + 4)  # the value's length prefix, then "0"
+    data[value:value + 1] = b"7"
+    path = tmp_path / "seed7.mcap"
+    path.write_bytes(bytes(data))
+    assert read_log(path).metadata["run"]["seed"] == "7"
+    res = replay(path, "--verify")
+    assert res.exit_code == 1, res.output
+    assert "diverged at t = 0 s on metadata 'run', field seed: recorded 7, re-run 0" in \
+        " ".join(res.output.split()), res.output

@@ -626,10 +626,25 @@ def verify(replay: Replay, workdir: Path) -> tuple[Divergence | None, int, int]:
         found = [compare_logs(recorded, rerun, prefix_only=prefix)]
         if replay.log.raw:  # a log written without its 3D scene (run_to_log) has none
             found.append(scene_divergence(replay.log.raw, again.raw, prefix_only=prefix))
+        found.append(metadata_divergence(replay.log.metadata, again.metadata))
     found = [d for d in found if d is not None]
     div = min(found, key=lambda d: d.t) if found else None
     n = len(recorded) + len(replay.log.raw)
     return div, n, len({m.topic for m in recorded} | {m.topic for m in replay.log.raw})
+
+
+def metadata_divergence(recorded: dict, rerun: dict) -> Divergence | None:
+    """The first difference of the MCAP metadata records (scenario name, seed), or None.
+
+    Reported at t = 0. Only keys both logs hold; versions and skipped fields
+    (:func:`_ignored`) left out.
+    """
+    for name in sorted(set(recorded) & set(rerun)):
+        was, now = recorded[name], rerun[name]
+        for key in sorted(set(was) & set(now)):
+            if not key.startswith("version.") and not _ignored(key) and was[key] != now[key]:
+                return Divergence(0.0, f"metadata {name!r}", key, was[key], now[key])
+    return None
 
 
 def scene_divergence(recorded: list, rerun: list, prefix_only: bool = False
