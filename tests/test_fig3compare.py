@@ -192,7 +192,16 @@ def test_the_papers_counts_are_called_reproduced_only_where_a_mode_gets_them_exa
         "reference 11/11).",
         "- 20 Hz fixed (the paper: 11/11): count reproduced by hmpc (hmpc 11/11, reference "
         "10/11).",
-        "- 100 Hz fixed: not in the paper (the authors' data: 4/11)."]
+        # not in the paper: judged against the authors' data (it said only their count)
+        "- 100 Hz fixed (not in the paper; the authors' data: 4/11): **not reproduced** by "
+        "any mode (hmpc 11/11)."]
+    assert _verdicts(modes, {"hmpc": {"100 Hz fixed": Count(successes=4, runs=11)},
+                             "reference": {}}, authors) == [
+        "- 100 Hz fixed (not in the paper; the authors' data: 4/11): count reproduced by "
+        "hmpc (hmpc 4/11)."]
+    assert _verdicts(modes, {"hmpc": {"50 Hz fixed": Count(successes=3, runs=11)},
+                             "reference": {}}, authors) == [
+        "- 50 Hz fixed: not in the paper (hmpc 3/11)."]
     partial = {"hmpc": {"10 Hz fixed": Count(successes=5, runs=5),
                         "20 Hz fixed": Count(successes=5, runs=5)},
                "reference": {"20 Hz fixed": Count(successes=10, runs=11)}}

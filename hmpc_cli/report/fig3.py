@@ -260,27 +260,31 @@ def _settings_line(modes: Sequence[Fig3Mode]) -> list[str]:
 def _verdicts(modes: Sequence[Fig3Mode], counts: dict, authors: dict) -> list[str]:
     """Per panel: the paper's count reproduced by which modes (exactly), or by none.
 
-    The count only: which trials fail is the trial-by-trial sections' (the paper names
+    A panel the paper has not is judged against the authors' data's count when they have
+    it. The count only: which trials fail is the trial-by-trial sections' (the paper names
     none; the authors' data do).
     """
     out = []
     for p in dict.fromkeys(p for m in modes for p in counts[m.name]):
         got = {m.name: f"{c.successes}/{c.runs}" for m in modes
                if (c := counts[m.name].get(p)) is not None}
-        paper = _paper(p)
-        if paper == "-":
-            theirs = authors.get(p)
-            out.append(f"- {p}: not in the paper" + (
-                f" (the authors' data: {theirs.split(' ')[0]})" if theirs else "") + ".")
+        paper, theirs = _paper(p), authors.get(p)
+        if paper == "-" and not theirs:
+            out.append(f"- {p}: not in the paper (" + ", ".join(
+                f"{name} {c}" for name, c in got.items()) + ").")
             continue
-        total = int(paper.split("/")[1])  # the paper's runs in that panel
+        # a panel the paper has not: judged against the authors' data's count
+        ref = paper if paper != "-" else theirs.split(" ")[0]
+        said = (f"the paper: {paper}" if paper != "-" else
+                f"not in the paper; the authors' data: {ref}")
+        total = int(ref.split("/")[1])  # the reference's runs in that panel
         whole = {m.name: c for m in modes if (c := counts[m.name].get(p)) is not None
                  and c.runs == total}  # a panel with runs missing is not judged
-        same = [name for name, c in whole.items() if f"{c.successes}/{c.runs}" == paper]
+        same = [name for name, c in whole.items() if f"{c.successes}/{c.runs}" == ref]
         verdict = (f"count reproduced by {', '.join(same)}" if same else
                    "**not reproduced** by any mode" if whole else
                    f"not judged: no mode holds its {total} runs yet")
-        out.append(f"- {p} (the paper: {paper}): {verdict} (" + ", ".join(
+        out.append(f"- {p} ({said}): {verdict} (" + ", ".join(
             f"{name} {c}{_runs_note(int(c.split('/')[1]), total)}"
             for name, c in got.items()) + ").")
     return out
