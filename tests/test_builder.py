@@ -332,6 +332,31 @@ def test_fixed_mode_row_groups_by_name_and_size():
     assert np.all(lbx[x["z"][0]] == ball.x0) and np.all(ubx[x["sigma"]] == np.inf)
 
 
+def test_without_the_virtual_node_the_input_before_a_guard_is_free_in_its_box():
+    """mpc.robust = false: the reset link's input, the end of the first-order hold of the
+    interval before the guard node, had bounds [0, 0], so that interval's input ramped to
+    0 (outside the ball's [-100, 0] box tightened by an input margin). It takes the
+    source mode's box either way; only the virtual node's row differs."""
+    from hmpc_cli.mpc.chain.layout import ChainLayout, NodeSchedule, RESET
+    from hmpc_cli.mpc.chain.nlp import FixedModeNLPs, MPCSettings
+    from hmpc_cli.systems.ball import BallParams, build_ball
+
+    ball = build_ball(BallParams())
+    ns = NodeSchedule((0, 0, 1), (0, 2), (10, 20, 150))
+    made = {}
+    for robust in (True, False):
+        nlp = FixedModeNLPs(ball, MPCSettings(robust=robust, input_margin=5.0)).switching
+        lay = ChainLayout.build(ns, nlp.L)
+        _, lbx, ubx, lbg, _ = nlp.problem_data(ns, lay, ball.x0)
+        reset = np.nonzero(lay.link_type == RESET)[0]
+        u = nlp.layout.x["u"]
+        made[robust] = lbx[u[reset]], ubx[u[reset]]
+        assert np.all(lbx[u[reset]] == -95.0) and np.all(ubx[u[reset]] == -5.0)
+        virtual = lbg[nlp.layout.g["virtual_node"]]
+        assert np.isfinite(virtual).sum() == (2 if robust else 0)
+    assert all(np.array_equal(a, b) for a, b in zip(made[True], made[False]))
+
+
 def test_walking_row_groups_by_name_and_size():
     from hmpc_cli.mpc.walking.nlp import WalkingMPCSettings, WalkingNLP
     from hmpc_cli.systems.biped import BipedParams, build_biped

@@ -95,9 +95,12 @@ def _links(nlp: ChainShape, lay: ChainLayout, par: dict, bounds: Bounds) -> None
         par["foh"][flow[nxt[flow] != HOLD]] = 1.0
     reset = np.nonzero(typ == RESET)[0]
     par["b"][reset, lay.link_guard[reset]] = 1.0
-    if nlp.s.robust:
-        par["v"][reset] = VIRTUAL_INPUT_WEIGHT * nlp.dt
-        lo[reset], hi[reset] = boxes[mode[reset], 0], boxes[mode[reset], 1]
+    # the reset link's input: the virtual node's (robust), and in either case the end of
+    # the first-order hold of the interval before the guard node, so within the source
+    # mode's box (pinned at 0 without the virtual node, it ramped that interval's input
+    # to 0 and left the tightened box)
+    par["v"][reset] = VIRTUAL_INPUT_WEIGHT * nlp.dt
+    lo[reset], hi[reset] = boxes[mode[reset], 0], boxes[mode[reset], 1]
     par["e"][typ == HOLD] = 1.0
     bounds.lbx["u"][:], bounds.ubx["u"][:] = lo, hi
 
