@@ -4,8 +4,10 @@ The scenario names the domain sequence D_0..D_S, the guards G_1..G_S between the
 the time spent in D_0..D_{S-1}; the planner hands that schedule to the fixed-mode MPC
 unchanged. The schedule's clock starts at the first plan: a later call (a replanning
 policy) drops the domains whose scheduled end has passed and shortens the current one,
-and lets a contact that came early count (the plant already in the next scheduled
-domain). It plans nothing and rolls nothing out: no initial guess (the MPC starts from
+and lets a contact that came early count when it changed the mode (the plant already in
+the next scheduled domain's mode). The planner sees the mode, not the contacts: an early
+contact through a guard into the same mode (the ball's floor and wall) is not seen, and
+its domain is kept until its scheduled end. It plans nothing and rolls nothing out: no initial guess (the MPC starts from
 the held current state).
 """
 
