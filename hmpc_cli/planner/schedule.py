@@ -7,8 +7,8 @@ policy) drops the domains whose scheduled end has passed and shortens the curren
 and lets a contact that came early count when it changed the mode (the plant already in
 the next scheduled domain's mode). The planner sees the mode, not the contacts: an early
 contact through a guard into the same mode (the ball's floor and wall) is not seen, and
-its domain is kept until its scheduled end. It plans nothing and rolls nothing out: no initial guess (the MPC starts from
-the held current state).
+its domain is kept until its scheduled end. It plans nothing and rolls nothing out: no
+initial guess (the MPC starts from the held current state).
 """
 
 from __future__ import annotations
