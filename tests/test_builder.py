@@ -354,7 +354,7 @@ def test_without_the_virtual_node_the_input_before_a_guard_is_free_in_its_box():
         assert np.all(lbx[u[reset]] == -95.0) and np.all(ubx[u[reset]] == -5.0)
         virtual = lbg[nlp.layout.g["virtual_node"]]
         assert np.isfinite(virtual).sum() == (2 if robust else 0)
-    assert all(np.array_equal(a, b) for a, b in zip(made[True], made[False]))
+    assert all(np.array_equal(a, b) for a, b in zip(made[True], made[False], strict=True))
 
 
 def test_walking_row_groups_by_name_and_size():
