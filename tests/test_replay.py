@@ -632,23 +632,30 @@ def test_a_log_read_for_some_topics_is_the_whole_read_of_those(ball, tmp_path) -
     assert kept(part) == kept(whole) and part.messages
 
 
+def _foreign_log(path: Path, topic: str, encoding: str, schema: tuple, payloads: list
+                 ) -> Path:
+    """An MCAP file another tool wrote: one channel, its messages at t = 0, 1, ... ns."""
+    from mcap.writer import Writer
+
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(profile="", library="other")
+        cid = w.register_channel(topic, encoding, w.register_schema(*schema))
+        for i, data in enumerate(payloads):
+            w.add_message(cid, i, data, i)
+        w.finish()
+    return path
+
+
 def test_bad_files(ball, tmp_path) -> None:
     import random
-
-    from mcap.writer import Writer
 
     empty = tmp_path / "empty.mcap"
     empty.write_bytes(b"")
     noise = tmp_path / "noise.bin"
     noise.write_bytes(random.Random(0).randbytes(4000))
-    foreign = tmp_path / "foreign.mcap"
-    with open(foreign, "wb") as f:
-        w = Writer(f)
-        w.start(profile="", library="other")
-        sid = w.register_schema("Cam", "jsonschema", b"{}")
-        cid = w.register_channel("/camera", "json", sid)
-        w.add_message(cid, 0, b'{"frame": 1}', 0)
-        w.finish()
+    foreign = _foreign_log(tmp_path / "foreign.mcap", "/camera", "json",
+                           ("Cam", "jsonschema", b"{}"), [b'{"frame": 1}'])
     (tmp_path / "dir").mkdir()
     cases = {tmp_path / "missing.mcap": "no such file",
              tmp_path / "dir": "a directory without run.mcap",
@@ -662,17 +669,9 @@ def test_a_log_without_json_messages_is_told_apart(ball, tmp_path) -> None:
     """A foreign log of non-JSON messages (a ROS 2 one) was 'the run was stopped before
     anything was logged'; a file cut inside its first chunk said 'its header only' though
     it holds the attached scenario too."""
-    from mcap.writer import Writer
-
-    ros = tmp_path / "ros.mcap"
-    with open(ros, "wb") as f:
-        w = Writer(f)
-        w.start(profile="ros2", library="other")
-        sid = w.register_schema("std_msgs/msg/String", "ros2msg", b"string data")
-        cid = w.register_channel("/chatter", "cdr", sid)
-        for i in range(5):
-            w.add_message(cid, i, b"\x00\x01\x00\x00\x03\x00\x00\x00hi\x00", i)
-        w.finish()
+    ros = _foreign_log(tmp_path / "ros.mcap", "/chatter", "cdr",
+                       ("std_msgs/msg/String", "ros2msg", b"string data"),
+                       [b"\x00\x01\x00\x00\x03\x00\x00\x00hi\x00"] * 5)
     assert _error_line(replay(ros)) == (
         f"error: {ros}: not an hmpc run log (no /run/info; its topics: /chatter)")
     from mcap.reader import make_reader

@@ -337,24 +337,21 @@ def test_a_sweep_files_stale_table_is_refused_and_its_directory_draws_it(tmp_pat
     with open(table) as f:
         foreign = [row["run_id"] for row in csv.DictReader(f) if row["run_id"] not in gone]
     assert len(foreign) == 2
-    edited = run_hmpc([*_args(robustness=str(sweep)), "--results", str(res), "--replace"],
-                      tmp_path)
-    assert edited.returncode == 2, edited.stderr
-    assert edited.stderr.splitlines() == [
-        f"error: --robustness {sweep}: {table} is not this sweep file's table: 2 of its 4 "
-        f"rows are runs this sweep file does not plan (run ids {', '.join(foreign)}): the "
-        f"grid, [set] or seeds changed since it was written{how}"]
-    assert _tree(res) == before
+
+    def refused(why: str) -> None:  # exit 2, the one line, nothing written
+        proc = run_hmpc([*_args(robustness=str(sweep)), "--results", str(res), "--replace"],
+                        tmp_path)
+        assert proc.returncode == 2, proc.stderr
+        assert proc.stderr.splitlines() == [
+            f"error: --robustness {sweep}: {table} is not this sweep file's table: {why}{how}"]
+        assert _tree(res) == before
+
+    refused(f"2 of its 4 rows are runs this sweep file does not plan (run ids "
+            f"{', '.join(foreign)}): the grid, [set] or seeds changed since it was written")
     sweep.write_text(sweep.read_text().replace("[10, 30]", "[10, 20]"))
     scenario.write_text(scenario.read_text().replace("duration = 3.0", "duration = 2.5", 1))
-    moved = run_hmpc([*_args(robustness=str(sweep)), "--results", str(res), "--replace"],
-                     tmp_path)
-    assert moved.returncode == 2, moved.stderr
-    assert moved.stderr.splitlines() == [
-        f"error: --robustness {sweep}: {table} is not this sweep file's table: it was "
-        f"written for another base scenario: {scenario} changed since (the one it ran: "
-        f"{out / 'base_scenario.toml'}){how}"]
-    assert _tree(res) == before
+    refused(f"it was written for another base scenario: {scenario} changed since (the one "
+            f"it ran: {out / 'base_scenario.toml'})")
     as_is = run_hmpc([*_args(robustness=str(out)), "--results", str(res), "--replace"],
                      tmp_path)
     assert as_is.returncode == 0, as_is.stderr

@@ -412,14 +412,13 @@ def _check_outputs(out: Path | None, write: Path | None, name: str) -> None:
 
     out = out if out is not None else Path("results") / name / "tube"
     checked_output(out, "--out")
-    taken = [n for n in ("tube.json", *(f"{s}.{f}" for s in FIGURE_STEMS for f in FORMATS))
-             if (out / n).is_dir()]
+    own = ["tube.json", *(f"{s}.{f}" for s in FIGURE_STEMS for f in FORMATS)]
+    taken = [n for n in own if (out / n).is_dir()]
     if taken:  # it would be written last, the others before it: half a set
         _fail([f"--out {out}: {out / n} is a directory, where this command writes a file: "
                "remove it or choose another --out" for n in taken])
     if write is not None:
         checked_output(write, "--write", "file")
-        own = {"tube.json", *(f"{s}.{f}" for s in FIGURE_STEMS for f in FORMATS)}
         if write.resolve().parent == out.resolve() and write.name in own:
             _fail([f"--write {write}: is {write.name}, a file this command writes to --out "
                    f"{out}: name the margins file otherwise (e.g. {out / 'margins.toml'})"])
