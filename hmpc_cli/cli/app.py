@@ -1,7 +1,7 @@
 """The ``hmpc`` application: its options, its commands (one module each), ``hmpc schema``.
 
-Exit codes: 0 ran; 1 ``--strict`` failure or lost work; 2 bad input or environment;
-129/130/143 hang-up/interrupt/termination.
+Exit codes: 0 ran; 1 ``--strict`` failure, lost work or an internal error; 2 bad input or
+environment; 129/130/143 hang-up/interrupt/termination.
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ app = typer.Typer(
     name="hmpc", no_args_is_help=True, add_completion=True,
     context_settings={"help_option_names": ["-h", "--help"]},
     help="Layered nonlinear MPC of hybrid systems (Olkin & Ames, 2024): run, log, inspect.",
-    epilog="Exit codes: 0 ran; 1 --strict failure or lost work; 2 bad input or environment; "
-    "129/130/143 signals (hang-up, interrupt, termination).")
+    epilog="Exit codes: 0 ran; 1 --strict failure, lost work or an internal error; 2 bad "
+           "input or environment; 129/130/143 signals (hang-up, interrupt, termination).")
 
 @app.callback()
 def _main(
@@ -34,8 +34,8 @@ def _main(
 ) -> None:
     """Layered nonlinear MPC of hybrid systems (Olkin & Ames, 2024): run, log, inspect.
 
-    Exit codes: 0 ran; 1 --strict failure or lost work; 2 bad input or environment;
-    129/130/143 signals (hang-up, interrupt, termination).
+    Exit codes: 0 ran; 1 --strict failure, lost work or an internal error; 2 bad input or
+    environment; 129/130/143 signals (hang-up, interrupt, termination).
     """
 
 
