@@ -20,8 +20,9 @@ Path rows of node k >= 1 of each swing (belonging to interval k - 1):
   edge e_i moved by ``terrain_margin`` towards the lower side (a step up starts that much
   earlier), sigma the logistic function of width ``terrain_smoothing``. c_k =
   ``apex_clearance`` at the apex node (swing time apex_node * dt); within the first
-  ``liftoff_time`` of a swing c_k = min(0, gap of the lifting foot at the swing start),
-  so a foot starting on (or, near an edge, below) the inflated floor may not sink. Off
+  ``liftoff_time`` of a swing c_k = min(0, gap of the lifting foot in the solve's x0),
+  so a foot that is on (or, near an edge, below) the inflated floor when the solve starts
+  may not sink further (it is the swing start's gap only when the solve starts there). Off
   at swing 0's touchdown node. Swing 1 has no touchdown: its last node's upper bound
   is min(cap, ``swing2_end_clearance``) (foot ready to land anywhere; None: the cap);
 * knees: stance and swing knee at least ``knee_clearance`` above the stance foot.
@@ -100,7 +101,8 @@ class WalkingMPCSettings(MarginsSettings):
     apex_clearance: FiniteFloat = Field(0.05, ge=0.0, description="foot above the terrain at the "
                                   "apex node [m]")
     liftoff_time: FiniteFloat = Field(0.024, ge=0.0, description="liftoff window: guard-avoid "
-                                "row relaxed to the start height [s]")
+                                "row relaxed to the lifting foot's height in the solve's "
+                                "start state [s]")
     liftoff_accel: FiniteFloat = Field(3.0, description="upward swing-foot acceleration at "
                                  "node 0 when the swing starts within the liftoff window "
                                  "[m/s^2]")
