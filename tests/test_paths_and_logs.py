@@ -230,6 +230,45 @@ def test_an_export_that_fails_midway_leaves_the_directory_as_it_was(tmp_path, ba
     assert {p.name: p.read_bytes() for p in earlier.iterdir()} == before
 
 
+def test_an_export_stopped_or_failed_leaves_nothing_and_a_stop_is_not_lost(
+        tmp_path, ball_run, monkeypatch):
+    """A stop signal while the staged files are moved in: the export completes, then the
+    stop acts (exit 143; it was lost, exit 0). A failure that is not an OSError, deep in
+    directories the export made: none of them is left (it left the directories). A dead
+    export's staging directory is removed by the next export (it stayed for ever)."""
+    import signal as sig
+
+    import hmpc_cli.analysis.export as export
+
+    out = tmp_path / "a" / "b" / "e"
+    replace = Path.replace
+
+    def stopped(self, target):
+        if self.parent.name.startswith(".hmpc-export-") and not stopped.sent:
+            stopped.sent = True
+            os.kill(os.getpid(), sig.SIGTERM)
+        return replace(self, target)
+
+    stopped.sent = False
+    monkeypatch.setattr(Path, "replace", stopped)
+    res = hmpc(["replay", ball_run, "--export", out, "-q"], tmp_path)
+    assert res.exit_code == 143, res.output
+    assert (out / "info.json").is_file()  # moved in whole, then stopped
+    monkeypatch.setattr(Path, "replace", replace)
+
+    def broken(path, rows):
+        raise UnicodeEncodeError("utf-8", "\ud800", 0, 1, "surrogates not allowed")
+
+    monkeypatch.setattr(export, "_write_csv", broken)
+    res = hmpc(["replay", ball_run, "--export", tmp_path / "x" / "y" / "e", "-q"], tmp_path)
+    assert res.exit_code != 0 and not (tmp_path / "x").exists(), res.output
+    monkeypatch.undo()
+    dead = out / ".hmpc-export-999999999-abc"
+    dead.mkdir()
+    assert hmpc(["replay", ball_run, "--export", out, "-q"], tmp_path).exit_code == 0
+    assert not dead.exists()
+
+
 @pytest.fixture
 def small_disk(tmp_path):
     yield from mounted_tmpfs(tmp_path / "disk", "size=200k", "a full disk")
@@ -623,3 +662,19 @@ def test_verify_with_a_full_temporary_directory_names_it(ball_run, tiny_disk, mo
         f"error: {Path(ball_run) / 'run.mcap'}: --verify: cannot write the re-run's log in "
         f"{tiny_disk} (No space left on device): point TMPDIR at a directory with room for "
         "it"]
+
+
+def test_printable_and_a_set_value_that_is_not_utf8():
+    """A lone surrogate no byte stands for raised in printable; a --set value with a byte
+    that is not UTF-8 crashed the run writing scenario.toml (exit 1): now exit 2, one
+    line, nothing written."""
+    from hmpc_cli.core.text import printable
+
+    assert printable("a\udcffb") == "a\\xffb" and printable("a\ud800b") == "a\\ud800b"
+    assert printable("plain é") == "plain é"
+    bad = os.fsdecode(b'description="a\xffb"')
+    res = hmpc(["run", str(REPO / "scenarios" / "ball.toml"), "--set", bad, "--out",
+                "never"], None)
+    assert res.exit_code == 2, res.output
+    assert "--set 'description=\"a\\xffb\"': holds bytes that are not UTF-8 text " \
+        "(shown as \\xNN); give the value in UTF-8" in res.stderr, res.stderr

@@ -439,3 +439,15 @@ def test_fig4_names_its_every_option_and_keeps_the_gif_with_the_figure(tmp_path)
         f"error: {out / 'walk.gif'}: is a directory, where this command writes a file: "
         "remove it or choose another output directory"]
     assert [p.name for p in out.iterdir()] == ["walk.gif"]
+
+
+def test_save_figure_takes_any_iterable_of_formats(tmp_path):
+    """A generator of formats was used up by the output check: nothing was written."""
+    from matplotlib.figure import Figure
+
+    from hmpc_cli.figures.common import save_figure
+
+    fig = Figure()
+    fig.subplots().plot([0, 1], [1, 0])
+    paths = save_figure(fig, tmp_path, "x", (f for f in ["png", "pdf"]))
+    assert [p.name for p in paths] == ["x.png", "x.pdf"] and all(p.is_file() for p in paths)

@@ -929,6 +929,7 @@ def test_disturbance_statistics_are_those_of_the_window() -> None:
     assert stats(0.75, 0.25) == (2, 3.0, pytest.approx(2.0))  # 1 then 3, 0.25 s each
     assert stats(1.5, 0.5) == (2, 5.0, pytest.approx(4.0))  # 3 from 0.5, 5 from 1.0
     assert stats(0.4, 0.2) == (1, 1.0, pytest.approx(1.0))  # one value held throughout
+    assert disturbance_stats(msgs, 2.0, 100.0)["values"] == 0  # a window past the end
 
 
 def test_verify_compares_the_run_metadata_record(ball, tmp_path) -> None:
@@ -946,3 +947,16 @@ def test_verify_compares_the_run_metadata_record(ball, tmp_path) -> None:
     assert res.exit_code == 1, res.output
     assert "diverged at t = 0 s on metadata 'run', field seed: recorded 7, re-run 0" in \
         " ".join(res.output.split()), res.output
+    # a key or the record renamed (same length; metadata records have no CRC)
+    for old, new, says in ((b"seed", b"sees", "metadata 'run', field sees: recorded 0, "
+                                              "re-run (none)"),
+                           (b"\x03\x00\x00\x00run", b"\x03\x00\x00\x00rum",
+                            "metadata 'rum', field (record): recorded present, re-run "
+                            "(none)")):
+        data = bytearray((ball / "run.mcap").read_bytes())
+        at = data.index(old, _record_at(ball / "run.mcap", 0x0C))
+        data[at:at + len(old)] = new
+        path.write_bytes(bytes(data))
+        res = replay(path, "--verify")
+        assert res.exit_code == 1 and f"diverged at t = 0 s on {says}" in \
+            " ".join(res.output.split()), res.output

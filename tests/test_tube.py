@@ -574,3 +574,11 @@ def test_a_stop_while_the_tube_writes_its_outputs_acts_after_they_are_whole(tmp_
         f"interrupted (SIGTERM) once the analysis was written whole to {out}")
     assert sorted(p.name for p in out.iterdir()) == [
         "tube.json", "tube_diameter.png", "tube_margins.png"]
+
+
+def test_a_region_of_attraction_search_from_level_zero_is_level_zero():
+    """A start level of 0 (eta 0, scale 0) raised ZeroDivisionError in the log sampling."""
+    sys_ = linear([[0.0, 1.0], [0.0, 0.0]], [[0.0], [1.0]], [[0.0], [1.0]], u_box=1e6,
+                  gain=lambda kp, kd: np.array([[kp, kd]]))
+    cert = pd_certificate(sys_, 4.0, 4.0, 0.0, samples=100, scale=0.0)
+    assert cert.certified and cert.roa_level == 0.0 and cert.roa_capped

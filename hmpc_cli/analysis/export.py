@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -195,10 +196,13 @@ def write_export(out: Path, messages: list, info: dict, fmt: str = "csv") -> lis
 
     check_format(fmt)
     earlier = earlier_export(out)
-    new, stage = not out.exists(), None
+    made = next((d for d in [*reversed(out.absolute().parents), out.absolute()]
+                 if not d.exists()), None)  # the first directory this export creates
+    stage = None
     try:
         out.mkdir(parents=True, exist_ok=True)
-        stage = Path(tempfile.mkdtemp(prefix=".hmpc-export-", dir=out))
+        _remove_dead_stages(out)
+        stage = Path(tempfile.mkdtemp(prefix=f".hmpc-export-{os.getpid()}-", dir=out))
         names = []
         for name, rows in tables(messages).items():
             (_write_csv if fmt == "csv" else _write_parquet)(stage / f"{name}.{fmt}", rows)
@@ -210,14 +214,38 @@ def write_export(out: Path, messages: list, info: dict, fmt: str = "csv") -> lis
                 (stage / name).replace(out / name)
             for name in set(earlier) - set(names):  # the earlier export's own
                 (out / name).unlink(missing_ok=True)
-    except OSError as exc:
-        if new:
-            shutil.rmtree(out, ignore_errors=True)
-        raise ExportError(f"{out}: cannot write ({exc.strerror or exc})") from None
+    except BaseException as exc:  # a full disk, a stop, unwritable content: as it was
+        if made is not None:
+            shutil.rmtree(made, ignore_errors=True)
+        if isinstance(exc, OSError):
+            raise ExportError(f"{out}: cannot write ({exc.strerror or exc})") from None
+        raise
     finally:
         if stage is not None:
             shutil.rmtree(stage, ignore_errors=True)
+    signals.check()  # a stop held while the files were moved in acts now
     return [out / n for n in [*names, "info.json"]]
+
+
+def _remove_dead_stages(out: Path) -> None:
+    """Removes the staging directories in ``out`` of exports whose process is gone."""
+    import shutil
+
+    for d in out.glob(".hmpc-export-*"):
+        pid = d.name.split("-")[2]
+        if not pid.isdigit() or not _alive(int(pid)):
+            shutil.rmtree(d, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` exists."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # it exists, another user's
+        return True
+    return True
 
 
 def earlier_export(out: Path) -> list[str]:

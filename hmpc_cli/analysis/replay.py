@@ -460,6 +460,8 @@ def disturbance_stats(messages: list, t_end: float, t_start: float | None = None
     """
     dist = sorted((m for m in messages if m.topic == "/disturbance"), key=lambda m: m.t)
     lo = -math.inf if t_start is None else t_start
+    if lo > t_end:  # a window after the run's end: no value held in it
+        return {"values": 0, "changes": 0, "channels": {}}
     held = [m for m in dist if m.t <= lo + 1e-12]  # the value in effect at t_start
     dist = held[-1:] + [m for m in dist if lo + 1e-12 < m.t <= t_end + 1e-12]
     if not dist:
@@ -636,14 +638,20 @@ def verify(replay: Replay, workdir: Path) -> tuple[Divergence | None, int, int]:
 def metadata_divergence(recorded: dict, rerun: dict) -> Divergence | None:
     """The first difference of the MCAP metadata records (scenario name, seed), or None.
 
-    Reported at t = 0. Only keys both logs hold; versions and skipped fields
-    (:func:`_ignored`) left out.
+    Reported at t = 0: a record or key the recorded log holds and the re-run not
+    ("(none)"), or a value that differs; what only the re-run holds counts as added
+    since the recorded run; versions and skipped fields (:func:`_ignored`) left out.
     """
-    for name in sorted(set(recorded) & set(rerun)):
-        was, now = recorded[name], rerun[name]
-        for key in sorted(set(was) & set(now)):
-            if not key.startswith("version.") and not _ignored(key) and was[key] != now[key]:
-                return Divergence(0.0, f"metadata {name!r}", key, was[key], now[key])
+    for name in sorted(recorded):
+        was, now = recorded[name], rerun.get(name)
+        if now is None:
+            return Divergence(0.0, f"metadata {name!r}", "(record)", "present", "(none)")
+        for key in sorted(was):
+            if key.startswith("version.") or _ignored(key):
+                continue
+            if was[key] != now.get(key, "(none)"):
+                return Divergence(0.0, f"metadata {name!r}", key, was[key],
+                                  now.get(key, "(none)"))
     return None
 
 

@@ -26,10 +26,14 @@ def printable(text: str) -> str:
     r"""``text`` as UTF-8 can encode it: bytes that are not UTF-8 as ``\xNN``.
 
     Python keeps such bytes of a path or an argument as surrogate escapes, which no
-    UTF-8 file can hold; other text comes back unchanged.
+    UTF-8 file can hold (another lone surrogate comes out as ``\uNNNN``); other text
+    comes back unchanged.
     """
     try:
         text.encode("utf-8")
     except UnicodeEncodeError:
-        return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+        try:
+            return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+        except UnicodeEncodeError:  # a lone surrogate no byte stands for: \uNNNN
+            return text.encode("utf-8", "backslashreplace").decode("utf-8")
     return text

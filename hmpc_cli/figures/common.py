@@ -180,6 +180,7 @@ def save_figure(fig: Any, out_dir: Path, stem: str, formats: Iterable[str],
     """
     from hmpc_cli.core.paths import atomic_file
 
+    formats = list(formats)  # read twice
     check_outputs(out_dir, (f"{stem}.{fmt}" for fmt in formats))
     paths = []
     # each format drawn from the same layout: a draw moves fixed-aspect axes under a

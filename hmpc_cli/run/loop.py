@@ -146,8 +146,9 @@ class ClosedLoop:
             more = f" and {len(bad) - 3} more" if len(bad) > 3 else ""
             return f"diverged: non-finite state ({what}{more}) in mode '{where}'"
         i = int(np.argmax(np.abs(x)))
-        return (f"diverged: |{names[i]}| {abs(x[i]):.3g} > {self.prepared.divergence_bound:g} "
-                f"(sim.divergence_bound) in mode '{where}'")
+        return (f"diverged: |{names[i]}| {abs(x[i]):.6g} > "
+                f"{self.prepared.divergence_bound:.6g} (sim.divergence_bound) in mode "
+                f"'{where}'")
 
     def _on_event(self, ev: GuardEvent) -> None:
         """A guard event inside a step: the run has reached it, then the stack reacts.

@@ -32,7 +32,7 @@ from pydantic import (
 
 from hmpc_cli.lowlevel import LowLevelSettings
 from hmpc_cli.core.registry import PluginError, Requirement, registry
-from hmpc_cli.core.text import did_you_mean
+from hmpc_cli.core.text import did_you_mean, printable
 from hmpc_cli.run.sections import DisturbanceSettings, ReplanSettings, SimSettings
 from hmpc_cli.core.settings_types import BoundedInt
 
@@ -342,6 +342,10 @@ def apply_overrides(data: dict, overrides: list[str], source: str) -> dict:
     errors = []
     for item in overrides:
         key, sep, raw = item.partition("=")
+        if printable(item) != item:  # a scenario is UTF-8 text, and so is its log
+            errors.append(f"--set '{printable(item)}': holds bytes that are not UTF-8 "
+                          "text (shown as \\xNN); give the value in UTF-8")
+            continue
         if not sep or not key.strip():
             errors.append(f"--set {item!r}: expected key.path=value")
             continue

@@ -242,6 +242,8 @@ def roa_level(closed: _ClosedLoop, P: np.ndarray, cap: float, samples: int,
     sampled at every scale) and lowers c to the smallest V where V' >= 0. Every round runs
     (a round that finds none is checked by the next): ``capped`` when none ever did.
     """
+    if not cap > 0.0:  # nothing to sample: the level 0, as far as it goes
+        return 0.0, True, 0
     rng = np.random.default_rng(seed)
     L_inv_T = np.linalg.inv(np.linalg.cholesky(P)).T  # V(L^-T z) = ||z||
     floor = math.sqrt(float(np.linalg.eigvalsh(P).min())) * _SMALL  # V >= k1 ||e||
