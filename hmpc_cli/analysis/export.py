@@ -231,21 +231,12 @@ def _remove_dead_stages(out: Path) -> None:
     """Removes the staging directories in ``out`` of exports whose process is gone."""
     import shutil
 
+    from hmpc_cli.core.machine import process_exists
+
     for d in out.glob(".hmpc-export-*"):
         pid = d.name.split("-")[2]
-        if not pid.isdigit() or not _alive(int(pid)):
+        if not pid.isdigit() or not process_exists(int(pid)):
             shutil.rmtree(d, ignore_errors=True)
-
-
-def _alive(pid: int) -> bool:
-    """Whether process ``pid`` exists."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except OSError:  # it exists, another user's
-        return True
-    return True
 
 
 def earlier_export(out: Path) -> list[str]:

@@ -204,14 +204,11 @@ def _verify(console, rp) -> None:
 
     from rich.markup import escape
 
-    from hmpc_cli.analysis.replay import ReplayError, unverifiable, verify
+    from hmpc_cli.analysis.replay import ReplayError, verify
 
     from hmpc_cli.cli.common import is_quiet
 
-    why = unverifiable(rp)
-    if why is not None:
-        _fail([f"{rp.path}: --verify: {why}"])
-    if not is_quiet():
+    if not is_quiet():  # replay_command refused an unverifiable log before this
         console.print("verify: re-running the attached scenario (seed "
                       f"{rp.info.get('seed', '?')}) ...", markup=False)
     where = tempfile.gettempdir()
@@ -263,25 +260,10 @@ def replay_command(
         "ffmpeg) into this directory", parser=path_option)] = None,
 ) -> None:
     """Replay a recorded run: identity, summary, timeline; filter, export, verify."""
-    from hmpc_cli.analysis.export import ExportError, earlier_export
     from hmpc_cli.analysis.replay import ReplayError, load_replay, resolve_topics
-    from hmpc_cli.core.paths import OutputPathError, check_output
     from hmpc_cli.log.damage import DamagedLogError
 
-    _check_window(t_from, t_to)
-    if fmt is not None and export is None:
-        _fail([f"--format {fmt}: the format of --export's tables; give --export DIR too"])
-    fmt = fmt or "csv"
-    try:  # the outputs first: a bad path writes nothing and reads nothing
-        for option, where in (("--export", export), ("--figures", figures)):
-            if where is not None:
-                check_output(where, option)
-        if export is not None:
-            earlier_export(export)
-    except OutputPathError as exc:
-        _fail([str(exc)])
-    except ExportError as exc:
-        _fail([f"--export {exc}"])
+    fmt = _checked_options(t_from, t_to, fmt, export, figures)
     try:
         rp = load_replay(log)
         topics = resolve_topics(topic or [], [m.topic for m in rp.log.messages],
@@ -297,6 +279,31 @@ def replay_command(
         _replay(rp, topics, t_from, t_to, show_all, export, fmt, check, figures)
     except DamagedLogError as exc:
         _fail([str(exc)])
+
+
+def _checked_options(t_from: float | None, t_to: float | None, fmt: str | None,
+                     export: Path | None, figures: Path | None) -> str:
+    """The window, the export format and the outputs checked before anything is read.
+
+    Exits 2 on a bad one (nothing read, nothing written); returns the export format.
+    """
+    from hmpc_cli.analysis.export import ExportError, earlier_export
+    from hmpc_cli.core.paths import OutputPathError, check_output
+
+    _check_window(t_from, t_to)
+    if fmt is not None and export is None:
+        _fail([f"--format {fmt}: the format of --export's tables; give --export DIR too"])
+    try:  # the outputs first: a bad path writes nothing and reads nothing
+        for option, where in (("--export", export), ("--figures", figures)):
+            if where is not None:
+                check_output(where, option)
+        if export is not None:
+            earlier_export(export)
+    except OutputPathError as exc:
+        _fail([str(exc)])
+    except ExportError as exc:
+        _fail([f"--export {exc}"])
+    return fmt or "csv"
 
 
 def _check_window(t_from: float | None, t_to: float | None) -> None:

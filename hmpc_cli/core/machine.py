@@ -1,4 +1,7 @@
-"""The machine a run computes on: its CPU model, which can move a result's last bits.
+"""The machine a run computes on: its CPU model, and whether a process of it exists.
+
+The CPU model can move a result's last bits; a process that no longer exists leaves a
+lock or a staging folder to take over.
 
 NumPy and the BLAS under IPOPT choose their kernels by the CPU, so two machines with the
 same versions can give runs that differ in the last digits (docs/running.md).
@@ -7,6 +10,7 @@ same versions can give runs that differ in the last digits (docs/running.md).
 from __future__ import annotations
 
 import functools
+import os
 import platform
 
 
@@ -26,3 +30,14 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine() or "unknown"
+
+
+def process_exists(pid: int) -> bool:
+    """Whether process ``pid`` exists on this machine (another user's too)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # it exists, another user's
+        return True
+    return True

@@ -240,21 +240,25 @@ def robustness(table: str | Path, out_dir: str | Path | None = None,
             if found:
                 axes[1][-1].legend(found.values(), found.keys(), loc="lower left",
                                    title="tube bound")
-        xs = sorted({c.x for c in data})
-        for ax in axes[-1]:
-            ax.set_xlabel(_axis_label(x_axis))
-        for ax in axes.ravel():
-            ax.set_xscale("log")
-            ax.set_xticks(xs)
-            ax.set_xticklabels([f"{x:g}" for x in xs])
-            ax.minorticks_off()
-            ax.grid(True, linewidth=0.3, alpha=0.5)
+        _rate_axes(axes, sorted({c.x for c in data}), x_axis)
         fig.tight_layout(pad=0.3, w_pad=0.4, h_pad=0.3)
         check_outputs(out, [f"{name}_table.csv", *(f"{name}.{f}" for f in fmts)])
         save_figure(fig, out, name, fmts)
     _write_table(out / f"{name}_table.csv", data,
                  (panel_axis or "panel", series_axis, x_axis))
     return data
+
+
+def _rate_axes(axes, xs: list[float], x_axis: str) -> None:
+    """Every panel's log x axis ticked at the table's values ``xs``; the bottom row labelled."""
+    for ax in axes[-1]:
+        ax.set_xlabel(_axis_label(x_axis))
+    for ax in axes.ravel():
+        ax.set_xscale("log")
+        ax.set_xticks(xs)
+        ax.set_xticklabels([f"{x:g}" for x in xs])
+        ax.minorticks_off()
+        ax.grid(True, linewidth=0.3, alpha=0.5)
 
 
 def _handles(row) -> dict:

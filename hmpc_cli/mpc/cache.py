@@ -81,6 +81,7 @@ import numpy as np
 from hmpc_cli import __version__
 from hmpc_cli.core import cbuild
 from hmpc_cli.core.messages import BuildInfo
+from hmpc_cli.core.machine import process_exists
 from hmpc_cli.mpc.builder import NLPLayout
 from hmpc_cli.mpc.solver import without_nlp_grad
 from hmpc_cli.mpc.solver_table import SOLVERS, backend_of
@@ -471,12 +472,8 @@ def _stale(lock: Path) -> bool:
             raise ValueError(pid)
     except (IndexError, ValueError):
         return age > LOCK_GRACE
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+    if not process_exists(pid):
         return True
-    except OSError:
-        return False  # alive, another user's
     started, now = (fields[1] if len(fields) > 1 else ""), _start_time(pid)
     return bool(started and now and started != now)
 
