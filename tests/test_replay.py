@@ -838,6 +838,10 @@ def test_a_solves_charged_latency_is_shown_beside_its_wall_time() -> None:
                                        "median, 11.0 ms median, charged 8.0 ms median "
                                        "(period 3)")
     assert "charged" not in _solves_row([{**g, "latency": 0.0} for g in group]).text
+    # a paused first plan (charged nothing) is not in the charged median
+    paused = [{**base, "reason": "initial", "latency": 0.0}, {**base, "latency": 0.0425}]
+    assert _solves_row(paused).text.endswith(
+        "charged 42.5 ms median of 1 charged (initial 1, period 1)")
 
 
 def test_a_results_page_run_directory_replays_from_its_trajectory_log() -> None:

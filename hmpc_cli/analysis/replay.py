@@ -398,7 +398,8 @@ def _solves_row(group: list[dict]) -> TimelineRow:
     limit = sum(d.get("status") == ITERATION_LIMIT for d in group)
     its = [v for v in (_num(d.get("iterations")) for d in group) if v is not None]
     wall = [v for v in (_num(d.get("wall_time")) for d in group) if v is not None]
-    charged = [v for v in (_num(d.get("latency")) for d in group) if v is not None]
+    # a solve charged nothing was not charged (time paused, or a paused first plan)
+    charged = [v for v in (_num(d.get("latency")) for d in group) if v]
     reasons: dict[str, int] = {}
     for d in group:
         reasons[str(d.get("reason", "?"))] = reasons.get(str(d.get("reason", "?")), 0) + 1
@@ -406,7 +407,9 @@ def _solves_row(group: list[dict]) -> TimelineRow:
             + (f"{limit} at the iteration limit (not converged), " if limit else "")
             + f"{_g(statistics.median(its)) if its else '-'} iterations median, "
             f"{ms_text(statistics.median(wall)) if wall else '-'} median"
-            + (f", charged {ms_text(statistics.median(charged))} median" if any(charged) else "")
+            + (f", charged {ms_text(statistics.median(charged))} median"
+               + (f" of {len(charged)} charged" if len(charged) < len(group) else "")
+               if charged else "")
             + " (" + ", ".join(f"{k} {n}" for k, n in reasons.items()) + ")")
     return TimelineRow(float(group[0].get("t", 0.0)), "solves", text, "dim")
 
