@@ -154,6 +154,98 @@ def test_delay_compensation_solves_from_the_state_at_the_plans_arrival(tmp_path,
         assert logged[round(t, 9)]["plan"][0]["t"] == pytest.approx(pred.t, abs=1e-12)
 
 
+def test_a_prediction_expects_the_last_solves_own_time_at_most_the_budget(tmp_path,
+                                                                         monkeypatch):
+    """Modelled latency (2 ms per iteration, 30 ms per planner call), a 0.1 s budget, the
+    first plan charged: each compensated solve predicts as far ahead as the last charged
+    solve took itself, never its planner call's time (a period solve follows none) and
+    never past the budget (a slower solve is dropped: no plan arrives later)."""
+    delays = []
+    real_predict = layers_module.predict
+
+    def spy(plant, t, x, mode, delay, plan_at, contacts):
+        delays.append((t, delay))
+        return real_predict(plant, t, x, mode, delay, plan_at, contacts)
+
+    monkeypatch.setattr(layers_module, "predict", spy)
+    res, log, solves, _ = _run(tmp_path, "expect", [
+        "sim.duration=1.5", 'sim.latency="model"', "sim.latency_model.overhead=0.0",
+        "sim.latency_model.per_iteration=0.002",
+        "sim.latency_model.per_switching_iteration=0.002", "sim.latency_model.planner=0.03",
+        "sim.solve_budget=0.1", "sim.delay_compensation=true"])
+    msgs = [m.data for m in read_log(log).topic("/mpc/solve")]
+    expected, last = {}, 0.0
+    for m in msgs:
+        expected[round(m["t"], 9)] = min(last, 0.1)
+        if m["iterations"] > 0:
+            last = 0.002 * m["iterations"]
+    assert len(delays) > 5 and all(d == pytest.approx(expected[round(t, 9)], abs=1e-12)
+                                   for t, d in delays)
+    # the first plan's charge held the planner's 30 ms; its successor expects its solve's
+    assert msgs[0]["reason"] == "initial" and delays[0][0] == msgs[1]["t"]
+    assert delays[0][1] == pytest.approx(msgs[0]["latency"] - 0.03, abs=1e-12)
+    assert any(d == 0.1 for _, d in delays), "no prediction capped: not exercised"
+
+
+def test_a_predicted_contact_not_predicted_again_replans_the_schedule_on_time(
+        tmp_path, monkeypatch):
+    """Ball, 0.02 s charged, compensated: one prediction (forced 0.1 s longer) tells the
+    MPC of a wall contact at 0.15 s that the next prediction, to 0.12 s, does not reach.
+    The MPC then holds a schedule the plant has not reached: the loop plans its schedule
+    anew at 0.12 s, the current domain keeping what is left of its planned time, so the
+    MPC's first domain has 2 intervals of 1/60 s (it had 9 from the planner's whole 0.139 s
+    when the contact was just forgotten); the real contact is applied when it comes."""
+    real_predict, forced = layers_module.predict, []
+
+    def spy(plant, t, x, mode, delay, plan_at, contacts):
+        pred = real_predict(plant, t, x, mode, delay, plan_at, contacts)
+        if not forced and pred is not None and not pred.events:
+            longer = real_predict(plant, t, x, mode, delay + 0.1, plan_at, contacts)
+            if longer is not None and longer.events:
+                forced.append(longer)
+                return longer
+        return pred
+
+    monkeypatch.setattr(layers_module, "predict", spy)
+    res, log, solves, _ = _run(tmp_path, "told", [
+        "sim.duration=0.3", "sim.latency=0.02", 'sim.latency_first="paused"',
+        "sim.delay_compensation=true", "mpc.rate_hz=20"])
+    (pred,) = forced
+    assert [round(ev.t, 4) for ev in pred.events] == [0.15] and pred.t == pytest.approx(0.17)
+    planned = solves[0][3].schedule
+    at = {round(t, 4): plan for t, _, _, plan in solves}
+    replanned = at[0.12]  # solved at 0.1 s from the state predicted at 0.12 s
+    assert replanned.schedule.t0 == pytest.approx(0.12)
+    assert replanned.schedule.durations[0] == pytest.approx(planned.durations[0] - 0.12)
+    assert replanned.schedule.durations[1:] == planned.durations[1:]
+    assert replanned.detail.counts[:2] == (2, 3)
+    (wall, *_) = [m.t for m in read_log(log).topic("/sim/event")]
+    after = [plan for t, _, _, plan in solves if t > wall]
+    assert after and len(after[0].detail.counts) == len(replanned.detail.counts) - 1
+
+
+def test_measured_latency_charges_the_prediction_and_the_whole_solve_call(tmp_path,
+                                                                        monkeypatch):
+    """``measured``: a solve is charged the controller's whole work for it, the prediction
+    (made to take 30 ms here) and the MPC's set-up around its NLP included, not only the
+    NLP solver's own wall time."""
+    import time
+
+    real_predict = layers_module.predict
+
+    def slow(*args):
+        time.sleep(0.03)
+        return real_predict(*args)
+
+    monkeypatch.setattr(layers_module, "predict", slow)
+    _, log, _, _ = _run(tmp_path, "measured", [
+        "sim.duration=0.5", 'sim.latency="measured"', 'sim.latency_first="paused"',
+        "sim.delay_compensation=true", "mpc.rate_hz=20"])
+    msgs = [m.data for m in read_log(log).topic("/mpc/solve")][1:]
+    assert msgs and all(m["reason"] in ("period", "impact") for m in msgs)
+    assert all(m["latency"] >= m["wall_time"] + 0.03 for m in msgs)
+
+
 def test_a_solve_over_its_budget_is_dropped_and_the_previous_plan_tracked_on(tmp_path):
     res, log, solves, steps = _run(tmp_path, "budget", [
         "sim.duration=0.5", 'sim.latency="model"', 'sim.latency_first="paused"',
@@ -320,29 +412,36 @@ def test_verify_forgives_a_field_added_since_the_logs_version_and_nothing_else(
             field, "(missing)")
 
 
-def test_a_compensated_walking_solve_past_the_touchdown_is_a_logged_rejection(tmp_path):
+def test_a_compensated_walking_solve_past_the_touchdown_solves_from_the_measured_state(
+        tmp_path):
     """Biped, modelled latency (8 ms per iteration, the first plan paused), delay
     compensation: a period solve whose prediction crosses the touchdown leaves no
-    foothold in the schedule; the walking MPC rejects it, and the
-    log holds that solve with no plan nodes (writing it crashed the run)."""
+    foothold in the schedule, which the walking MPC cannot solve; the solve starts from
+    the measured state instead (it was given the predicted one, rejected, and charged
+    while the plant waited) and the MPC is not told the touchdown the plant has not had."""
     from hmpc_cli.log.schema import validate
 
     sc, _ = load_scenario(ROOT / "scenarios" / "biped_stairs.toml", [
         "sim.duration=0.3", 'sim.latency="model"', "sim.delay_compensation=true",
         'sim.latency_first="paused"', "sim.latency_model.per_iteration=0.008"])
-    result = run_to_log(prepare(sc), tmp_path / "biped.mcap")
-    # the run reaches its end and is judged there (not on the stairs' top yet)
+    told: list = []
+    prepared = prepare(sc)
+    solve = prepared.mpc.solve
+
+    def spy(t, x, mode, schedule, events=(), guess=None):
+        told.append((round(t, 4), [round(ev.t, 4) for ev in events]))
+        return solve(t, x, mode, schedule, events, guess)
+
+    prepared.mpc.solve = spy
+    result = run_to_log(prepared, tmp_path / "biped.mcap")
     assert result.t_end == pytest.approx(0.3), result.reason
-    assert result.reason.startswith("stance foot at x = "), result.reason
     log = read_log(tmp_path / "biped.mcap")
-    rejected = [m for m in log.topic("/mpc/solve")
-                if m.data["status"] == "schedule rejected: no foothold target: the schedule "
-                                       "has no guard left"]
-    assert [round(m.t, 3) for m in rejected] == [0.214]
-    assert rejected[0].data["plan"] == [] and not rejected[0].data["adopted"]
-    assert rejected[0].data["nodes"] == 0  # an empty plan: no nodes to scale a charge by
-    solved = [m for m in log.topic("/mpc/solve") if m.data["iterations"] > 0]
-    assert solved and all(m.data["nodes"] == len(m.data["plan"]) for m in solved)
+    solves = log.topic("/mpc/solve")
+    assert not [m for m in solves if m.data["status"].startswith("schedule rejected")]
+    (at,) = [m for m in solves if round(m.t, 3) == 0.214]
+    assert at.data["iterations"] > 0 and at.data["plan"][0]["t"] == pytest.approx(at.t)
+    # the touchdown (after the run's end) was never told the MPC
+    assert not log.topic("/sim/event") and told and not any(ts for _, ts in told)
     for m in log.messages:
         assert validate(log.schemas[m.topic], m.data) == [], (m.topic, m.t)
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import math
 from importlib.metadata import EntryPoint
@@ -74,6 +76,18 @@ def test_chain_mpc_owns_its_node_schedule(chain, ball, planned):
     assert len(third.detail.counts) == len(counts) - 1 and third.detail.shifted == 1
     again = chain.solve(0.26, third.traj.x[6], sched.modes[1], advanced, [ev])
     assert len(again.detail.counts) == len(counts) - 1 and again.detail.shifted == 6
+
+
+def test_a_solve_from_an_earlier_time_moves_no_node_twice(chain, ball, planned):
+    """Delay compensation can hand the MPC a solve time before its previous one (a
+    shorter delay expected): no node moves then, and the next shift counts from the
+    latest time, so the nodes moved always match the latest time reached."""
+    sched = dataclasses.replace(planned.schedule, t0=5.0)  # newly planned at t = 5 s
+    counts = chain.solve(5.0, ball.x0, OUTSIDE, sched, (), planned.trajectory).detail.counts
+    x = ball.x0
+    moved = [chain.solve(t, x, OUTSIDE, sched).detail.shifted for t in (5.05, 5.0, 5.1)]
+    assert counts[0] > 7 and moved == [3, 0, 3]  # 6 nodes at 60 /s: the latest 0.1 s
+    assert chain.solve(5.1, x, OUTSIDE, sched).detail.counts[0] == counts[0] - 6
 
 
 def test_a_schedule_the_chain_cannot_hold_is_a_rejected_plan_not_an_exception(chain, ball):

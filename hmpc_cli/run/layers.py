@@ -13,6 +13,7 @@ run's books and writes the planner's and the MPC's topics.
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -21,7 +22,7 @@ from hmpc_cli.core import signals
 from hmpc_cli.core.messages import OFF_SCHEDULE, SCHEDULED, GuardEvent, ModeSchedule, Plan
 from hmpc_cli.log.runlog import NullWriter, TopicWriter
 from hmpc_cli.run.compose import PreparedRun
-from hmpc_cli.run.realtime import SolverClock, advance, predict, prediction_plant
+from hmpc_cli.run.realtime import SolverClock, advance, predict, prediction_plant, rebase
 
 __all__ = ["MPCLayers"]
 
@@ -31,6 +32,7 @@ class _LayerState:
     """What the layers hold between steps."""
 
     schedule: ModeSchedule | None = None
+    domain_start: float = 0.0  # when the plant entered ``schedule``'s current domain [s]
     usable: bool = False  # the MPC can solve ``schedule``
     guess: object = None
     plan: Plan | None = None
@@ -106,9 +108,11 @@ class MPCLayers:
             scheduled = outcome == SCHEDULED
             final = ModeSchedule.final(ev.mode_after, ev.t)
             if outcome != OFF_SCHEDULE:
+                if after != st.schedule:
+                    st.domain_start = ev.t
                 st.schedule = after
             elif ev.mode_after == self.final_mode and not self.mpc.check(final):
-                st.schedule = final
+                st.schedule, st.domain_start = final, ev.t
             else:
                 st.need_replan = True
             st.usable = not self.mpc.check(st.schedule)
@@ -171,6 +175,7 @@ class MPCLayers:
         accepted = result.schedule is not None and not note
         if accepted:
             st.schedule, st.guess, st.usable = result.schedule, result.trajectory, True
+            st.domain_start = t
         else:
             note += "; previous schedule kept" if st.usable else "; no schedule yet"
         self.books.planner_call(t, result, accepted, note)
@@ -188,12 +193,15 @@ class MPCLayers:
                 clock.busy(t, clock.latency.planner_cost(clock.planner))
             clock.planner = None
             return
+        start = time.perf_counter()
         plan = self._solve_ahead(t, x, mode, reason) if charged else self.mpc.solve(
             t, x, mode, st.schedule, st.events, st.guess)
+        compute = time.perf_counter() - start  # the prediction and the solve call
         st.events = []
         self.books.count_solve(t, plan)
         if charged:
-            dropped, latency = clock.charge(t, plan)
+            clock.solved(plan, compute)
+            dropped, latency = clock.charge(t, plan, compute)
             if dropped:  # never reaches the plant: logged not adopted
                 plan, note = dataclasses.replace(plan, adopt=False), note + OVER_BUDGET
             self.log.mpc_solve(t, plan, reason + note, self.model, latency)
@@ -208,21 +216,36 @@ class MPCLayers:
         """A charged solve, from the state predicted at the plan's arrival if compensating.
 
         A replan's solves start from the measured state (the planner's schedule starts at
-        t); so does a solve whose prediction leaves the schedule or starts off the grid
-        or chatters.
+        t); so does a solve whose prediction leaves the schedule, gives one the MPC cannot
+        solve (a walking MPC's with no guard left), starts off the grid or chatters. The
+        MPC is told each predicted event once. When events told it before, which the plant
+        has not had, are not predicted again, the MPC holds a schedule the plant has not
+        reached: the loop's schedule is planned anew from the solve's time
+        (:func:`~hmpc_cli.run.realtime.rebase`), so the MPC installs it on its timing.
         """
         st, clock = self.st, self.clock
         pred = sched = None
         if self._predictor is not None and reason in ("period", "impact"):
-            low = self._lowlevel
-            pred = predict(self._predictor, t, x, mode,
-                           clock.latency.expected(clock.last_delay),
-                           lambda s: clock.plan_at(s, st.plan),
-                           (low.contact_times, low.contact_guards))
+            pred = self._predict(t, x, mode)
             sched = advance(st.schedule, pred.events) if pred is not None else None
-        if pred is None or sched is None:
+            if sched is not None and self.mpc.check(sched):
+                sched = None
+        if sched is None:
+            if clock.told:  # the MPC is ahead of the plant: plan its schedule anew
+                st.schedule, st.domain_start = rebase(st.schedule, t, st.domain_start), t
             clock.told = []
             return self.mpc.solve(t, x, mode, st.schedule, st.events, st.guess)
-        clock.told = [ev.guard for ev in pred.events]
-        return self.mpc.solve(pred.t, pred.x, pred.mode, sched, [*st.events, *pred.events],
-                              st.guess)
+        guards, told = [ev.guard for ev in pred.events], clock.told
+        new = pred.events[len(told):]
+        if guards[:len(told)] != told:  # the MPC is ahead of the plant: as above
+            st.schedule = rebase(st.schedule, pred.t, st.domain_start)
+            st.domain_start, sched, new = pred.t, advance(st.schedule, pred.events), pred.events
+        clock.told = guards
+        return self.mpc.solve(pred.t, pred.x, pred.mode, sched, [*st.events, *new], st.guess)
+
+    def _predict(self, t: float, x: np.ndarray, mode: int):
+        """The model's state at the plan's expected arrival (None: see ``predict``)."""
+        clock, low = self.clock, self._lowlevel
+        return predict(self._predictor, t, x, mode, clock.latency.expected(clock.last_solve),
+                       lambda s: clock.plan_at(s, self.st.plan),
+                       (low.contact_times, low.contact_guards))

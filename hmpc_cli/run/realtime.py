@@ -4,8 +4,9 @@
 
 * ``paused``: none (simulated time stops while the controllers compute; the paper's runs);
 * ``fixed``: a constant delay L [s];
-* ``measured``: the measured wall time of the planner call it follows plus the MPC solve
-  (machine dependent: runs are not reproducible);
+* ``measured``: the measured wall time of the planner call it follows plus the
+  controller's whole work for the solve (the prediction, the NLP's set-up, the solve and
+  the plan built from it; machine dependent: runs are not reproducible);
 * ``model``: ``overhead + per_iteration x iterations`` of the MPC solve (a solve with a
   switch left: ``per_switching_iteration``, its NLP being larger, if set; with ``nodes``
   set, times the plan's nodes / ``nodes``: a larger NLP costs more), plus, for the
@@ -25,6 +26,9 @@ the state before the contact): its plan is dropped and the stack works at the co
 Delay compensation (:func:`predict`) solves from the state predicted at the time the
 plan will reach the plant: the model (never the true plant) flown with w = 0 through
 its resets under the plans the plant will track until then, on the simulator's grid.
+The delay it expects is the last charged MPC solve's own compute time (a planner call's
+is not a period solve's; none before the first), at most the budget (a solve charged more
+never reaches the plant).
 """
 
 from __future__ import annotations
@@ -37,7 +41,8 @@ import numpy as np
 
 from hmpc_cli.core.messages import OFF_SCHEDULE, GuardEvent, ModeSchedule, Plan, PlannerResult
 
-__all__ = ["Latency", "Prediction", "SolverClock", "advance", "predict", "prediction_plant"]
+__all__ = ["Latency", "Prediction", "SolverClock", "advance", "predict", "prediction_plant",
+           "rebase"]
 
 GRID_TOL = 1e-9  #: a time within this of a simulator step [s] is on the grid
 
@@ -94,17 +99,18 @@ class Latency:
         """Whether a solve for ``reason`` is charged (``initial`` may be paused)."""
         return self.kind != "paused" and not (reason == "initial" and self.first == "paused")
 
-    def solve_cost(self, plan: Plan) -> float:
+    def solve_cost(self, plan: Plan, compute: float | None = None) -> float:
         """The compute time [s] one fixed-mode MPC solve is charged (``measured``, ``model``).
 
-        ``model``: a schedule with a switch left is charged ``per_switching_iteration``
-        per iteration, if set; with ``nodes`` set the charge is scaled by the plan's nodes
-        / ``nodes`` (a plan of one node, a rejected schedule's, which solved nothing:
-        unscaled).
+        ``measured``: ``compute``, the loop's measured wall time of the whole solve call
+        [s] (None: the NLP solver's own, ``plan.stats.wall_time``). ``model``: a schedule
+        with a switch left is charged ``per_switching_iteration`` per iteration, if set;
+        with ``nodes`` set the charge is scaled by the plan's nodes / ``nodes`` (a plan of
+        one node, a rejected schedule's, which solved nothing: unscaled).
         """
         st = plan.stats
         if self.kind == "measured":
-            return st.wall_time
+            return st.wall_time if compute is None else compute
         if self.kind != "model":
             return 0.0
         switching = plan.schedule is not None and plan.schedule.n_switches > 0
@@ -126,22 +132,31 @@ class Latency:
             return 0.0
         return self.planner + sum(self.solve_cost(p) for p in result.mpc_solves)
 
-    def charge(self, plan: Plan, planner: PlannerResult | None = None) -> float:
+    def charge(self, plan: Plan, planner: PlannerResult | None = None,
+               compute: float | None = None) -> float:
         """The delay [s] of one solve's plan, and of the planner call it follows, if any.
 
         A plan the planner has already solved (one of ``planner.mpc_solves``: same start
         time and statistics) adds no solve cost: it was returned, not computed again.
+        ``compute``: see :meth:`solve_cost`.
         """
         if self.kind == "fixed":
             return self.delay
         if planner is None:
-            return self.solve_cost(plan)
+            return self.solve_cost(plan, compute)
         reused = any(p.t0 == plan.t0 and p.stats == plan.stats for p in planner.mpc_solves)
-        return self.planner_cost(planner) + (0.0 if reused else self.solve_cost(plan))
+        return self.planner_cost(planner) + (0.0 if reused else self.solve_cost(plan, compute))
 
-    def expected(self, last: float) -> float:
-        """The delay [s] a prediction assumes: the fixed delay, else the last one charged."""
-        return self.delay if self.kind == "fixed" else last
+    def expected(self, last_solve: float) -> float:
+        """The delay [s] a prediction assumes.
+
+        The fixed delay; else ``last_solve``, the last MPC solve's own compute time [s]
+        (no planner call's), at most the budget: a solve charged more is dropped, so no
+        plan reaches the plant later than t + budget.
+        """
+        if self.kind == "fixed":
+            return self.delay
+        return last_solve if self.budget is None else min(last_solve, self.budget)
 
     def over_budget(self, delay: float) -> bool:
         """Whether a solve charged ``delay`` [s] is dropped."""
@@ -157,9 +172,11 @@ class SolverClock:
         pending: plans computed but not yet at the plant: (due [s], solve time [s], plan),
             in order.
         free_at: sim time [s] the solver is free again.
-        last_delay: the last charged delay [s] (what a prediction expects).
+        last_solve: the last charged MPC solve's own compute time [s] (what a prediction
+            expects: :meth:`Latency.expected`; 0 before the first).
         planner: the planner call the next solve follows (None: none).
-        told: guards of predicted events told the MPC at its last solve, in order.
+        told: guards of predicted events told the MPC that the plant has not had yet,
+            in order.
         over_budget: solves dropped for their budget.
         preempted: solves in flight stopped by a contact with their plan not yet at the
             plant (a solve over budget, or a planner call that found nothing, is not one).
@@ -171,7 +188,7 @@ class SolverClock:
     latency: Latency = field(default_factory=Latency)
     pending: list[tuple[float, float, Plan]] = field(default_factory=list)
     free_at: float = 0.0
-    last_delay: float = 0.0
+    last_solve: float = 0.0
     planner: PlannerResult | None = None
     told: list[int] = field(default_factory=list)
     over_budget: int = 0
@@ -182,16 +199,26 @@ class SolverClock:
         """Whether the solver is done with its last solve at sim time t [s]."""
         return t >= self.free_at - GRID_TOL
 
-    def charge(self, t: float, plan: Plan) -> tuple[bool, float]:
+    def solved(self, plan: Plan, compute: float) -> None:
+        """Notes a solve's own compute time (``compute``: its measured wall time [s]).
+
+        A rejected schedule's plan (no NLP solved) tells nothing of the next solve's.
+        """
+        if plan.stats.iterations > 0:
+            self.last_solve = self.latency.solve_cost(plan, compute)
+
+    def charge(self, t: float, plan: Plan, compute: float | None = None
+               ) -> tuple[bool, float]:
         """Charges a plan solved at t [s]: it waits for the plant, or is dropped.
+
+        ``compute``: the measured wall time of the solve call [s] (:meth:`Latency.charge`).
 
         Returns:
             (whether it is dropped for its budget: the solver stops at t + budget, the
             compute time it was charged [s]).
         """
         lat = self.latency
-        delay = lat.charge(plan, self.planner)
-        self.last_delay = delay
+        delay = lat.charge(plan, self.planner, compute)
         if lat.over_budget(delay):
             self.over_budget += 1
             self.free_at = t + lat.budget
@@ -242,7 +269,7 @@ class SolverClock:
         return plan
 
     def heard(self, guard: int) -> bool:
-        """Whether an event of ``guard`` was predicted and told the MPC (then forgotten)."""
+        """Whether the plant's event of ``guard`` was predicted and told the MPC (forgotten)."""
         if self.told and self.told[0] == guard:
             self.told.pop(0)
             return True
@@ -347,6 +374,18 @@ def advance(schedule: ModeSchedule, events: Sequence[GuardEvent]) -> ModeSchedul
         if outcome == OFF_SCHEDULE:
             return None
     return schedule
+
+
+def rebase(schedule: ModeSchedule, t: float, start: float) -> ModeSchedule:
+    """``schedule`` as planned anew at t [s].
+
+    Its current domain, entered at ``start`` [s], keeps what is left of its planned time
+    (none when overdue); the later domains keep theirs.
+    """
+    durations = schedule.durations
+    if durations:
+        durations = (max(0.0, durations[0] - (t - start)), *durations[1:])
+    return ModeSchedule(schedule.modes, schedule.guards, durations, t)
 
 
 def prediction_plant(plant):

@@ -75,8 +75,9 @@ class SimSettings(BaseModel):
         "dropped at t + budget and the previous plan tracked on (None: no budget)")
     delay_compensation: StrictBool = Field(
         False, description="with a latency: solve from the state the model predicts (w = 0, "
-        "through its resets) at the step the plan will reach the plant, for the MPC "
-        "period's and impacts' solves (a replan's solves start from the measured state)")
+        "through its resets) at the step the plan is expected to reach the plant (after the "
+        "last charged solve's own compute time, at most the budget), for the MPC period's "
+        "and impacts' solves (a replan's solves start from the measured state)")
     preempt_at_contact: StrictBool = Field(
         False, description="with a latency: a contact that makes the stack work (a replan, "
         "or the impact's re-solve) stops the solve in flight, solved from the state before "

@@ -95,12 +95,16 @@ class ChainMPC:
             ns = NodeSchedule.from_schedule(schedule, self.chain.N, self.chain.dt)
             self.chain.set_schedule(ns, guess)
             self._schedule, self._installed, shifted = schedule, schedule, 0
-        elif dropped:  # the domain after the impact started at the event, not at t
-            n = self.s.shifted_nodes(t - self._t_shift)
-            shifted = self._shift(n) if n else 0
+            self._t_shift = t
         else:
-            shifted = self._shift(self.s.shifted_nodes(t - self._t_shift))
-        self._t_shift = t
+            if dropped:  # the domain after the impact started at the event, not at t
+                n = self.s.shifted_nodes(t - self._t_shift)
+                shifted = self._shift(n) if n else 0
+            else:
+                shifted = self._shift(self.s.shifted_nodes(t - self._t_shift))
+            # a solve from before the last one's time (a compensated solve expecting a
+            # shorter delay) moves no node and keeps the clock: no interval moves twice
+            self._t_shift = max(self._t_shift, t)
         plan = self.chain.reoptimize(t, x)
         return replace(plan, schedule=self._schedule, detail=ChainDetail(
             int(shifted), tuple(int(c) for c in self.chain.node_schedule.counts)))
