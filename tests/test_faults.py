@@ -71,6 +71,10 @@ SIZES = [
     ("rollout rate", ["run", "ball.toml", "--set", "planner.rollout_rate_hz=100000000"],
      "error: --set planner.rollout_rate_hz=100000000: planner.iterations x planner.samples:",
      "(planner.horizon x planner.rollout_rate_hz)"),
+    ("planner horizon", ["run", "ball.toml", "--set", "planner.horizon=0.001"],
+     "error: --set planner.horizon=0.001: planner.horizon: 0.001 s x 60 Hz "
+     "(planner.rollout_rate_hz) = 0.06 rollout steps: a rollout needs at least one",
+     "lengthen planner.horizon to 0.0166667 s or more"),
     ("switches", ["run", "ball.toml", "--set", "mpc.max_switches=20000"],
      "error: --set mpc.max_switches=20000: mpc.max_switches: 180 nodes (mpc.horizon x "
      "mpc.nodes_per_second) + 20000 switches = 2.02e+04 links of the switching NLP exceeds "
@@ -135,6 +139,10 @@ BLAME = [
     ("unreadable", _unreadable, ["error: locked.toml: cannot read it: Permission denied"]),
     ("through a value", ["run", "ball.toml", "--set", "mpc.rate_hz.x=1"],
      ["error: --set 'mpc.rate_hz.x=1': rate_hz is not a table"]),
+    ("a horizon shorter than the period", ["run", "ball.toml", "--set", "mpc.horizon=0.05",
+                                           "--set", "mpc.rate_hz=5"],
+     ["error: --set mpc.horizon=0.05: mpc.horizon: 0.05 s is shorter than the MPC period "
+      "1 / mpc.rate_hz = 0.2 s: each plan would run out before the next one"]),
     ("no =", ["run", "ball.toml", "--set", "nokey"],
      ["error: --set 'nokey': expected key.path=value"]),
     ("a rate named in the reason", ["run", "ball.toml", "--set", "sim.rate_hz=7"],

@@ -98,10 +98,17 @@ def _edit(src: Path, dst: Path, pattern: str, repl: str) -> Path:
     return dst
 
 
-@pytest.mark.parametrize("case", ["system", "params", "rate", "missing"])
+@pytest.mark.parametrize("case", ["system", "params", "rate", "missing", "widening shrink",
+                                  "loosening offset", "format", "no format"])
 def test_a_margins_file_that_does_not_fit_exits_2(case: str, ball_file: Path, tmp_path: Path):
-    f = {"system": lambda: _edit(ball_file, tmp_path / "m.toml", r'^system = "ball"',
-                                 'system = "biped"'),
+    m = tmp_path / "m.toml"
+    f = {"system": lambda: _edit(ball_file, m, r'^system = "ball"', 'system = "biped"'),
+         "widening shrink": lambda: _edit(ball_file, m, r"^(\[rates\.10\.inputs\].*\n"
+                                          r"outside = )\[0\.0", r"\1[-1.0"),
+         "loosening offset": lambda: _edit(ball_file, m, r"^(\[rates\.10\.guards\.floor\]"
+                                           r"(.*\n)+?avoid = ).*$", r"\1-5.0"),
+         "format": lambda: _edit(ball_file, m, r"^format = 1$", "format = 2"),
+         "no format": lambda: _edit(ball_file, m, r"^format = 1\n", ""),
          "params": lambda: _edit(ball_file, tmp_path / "m.toml", r'^params_hash = ".*"',
                                  'params_hash = "sha256:0"'),
          "rate": lambda: _edit(ball_file, tmp_path / "m.toml", r"^\[rates\.10", "[rates.11"),
@@ -112,7 +119,13 @@ def test_a_margins_file_that_does_not_fit_exits_2(case: str, ball_file: Path, tm
     assert res.exit_code == 2, res.output
     assert f"error: --set mpc.margins=\"{f}\": mpc.margins: " in res.output  # the --set's file
     assert {"system": "system 'biped', not 'ball'", "params": "other ball parameters",
-            "rate": "no margins for mpc.rate_hz = 10", "missing": "file not found"}[case] \
+            "rate": "no margins for mpc.rate_hz = 10", "missing": "file not found",
+            "widening shrink": "rates.10.inputs.outside.0: Input should be greater than or "
+                               "equal to 0 (got -1.0",
+            "loosening offset": "rates.10.guards.floor.avoid: Input should be greater than "
+                                "or equal to 0 (got -5.0",
+            "format": "format: Input should be 1 (got 2",
+            "no format": "not a margins file (format: Field required)"}[case] \
         in " ".join(res.output.split())
     assert not out.exists()
 

@@ -78,7 +78,9 @@ class CEMSettings(PlannerSettings):
 
 
     def size_problems(self) -> list[str]:
-        """Planner calls too long to wait for, or rollout arrays too big for memory.
+        """Planner calls too long to wait for or too short, or arrays too big for memory.
+
+        Too short: a horizon of less than one rollout step.
 
         Work: a planner call rolls out iterations x (samples + 1) input sequences of
         horizon x rollout_rate_hz steps each, at most :data:`MAX_ROLLOUT_STEPS` steps in
@@ -88,6 +90,12 @@ class CEMSettings(PlannerSettings):
         """
         out = []
         steps = self.horizon * self.rollout_rate_hz
+        if round(steps) < 1:
+            out.append(
+                f"planner.horizon: {self.horizon:g} s x {self.rollout_rate_hz:g} Hz "
+                f"(planner.rollout_rate_hz) = {steps:.3g} rollout steps: a rollout needs at "
+                f"least one; lengthen planner.horizon to {1.0 / self.rollout_rate_hz:g} s or "
+                "more, or raise planner.rollout_rate_hz")
         rollouts = self.iterations * (self.samples + 1)
         work = rollouts * max(1.0, steps)
         if work > MAX_ROLLOUT_STEPS:

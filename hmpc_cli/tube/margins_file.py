@@ -35,6 +35,7 @@ import math
 import re
 import tomllib
 from pathlib import Path
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -64,8 +65,9 @@ class GuardOffsets(BaseModel):
     model_config = ConfigDict(extra="forbid")
     radius: float | None = Field(None, ge=0.0, description="the radius d_g the offsets are "
                                  "of (the kinematic radius for a guard on kinematic states)")
-    avoid: float = Field(description="guard-avoid offset kappa(d, past=False)")
-    pass_through: float = Field(description="virtual-node offset kappa(d, past=True)")
+    avoid: float = Field(ge=0.0, description="guard-avoid offset kappa(d, past=False) (a "
+                         "negative one would loosen the row)")
+    pass_through: float = Field(ge=0.0, description="virtual-node offset kappa(d, past=True)")
     formula_holds: bool = Field(True, description="kappa is monotone on [0, d]")
 
 
@@ -80,14 +82,15 @@ class RateMargins(BaseModel):
     bound: str = Field(description="the bound the radius is (prop3 or trivial)")
     zeta: float = Field(ge=0.0, description="the low level's input share")
     guards: dict[str, GuardOffsets] = Field(description="offsets by guard name")
-    inputs: dict[str, list[float]] = Field(description="shrink per side by mode name")
+    inputs: dict[str, list[Annotated[float, Field(ge=0.0)]]] = Field(
+        description="shrink per side by mode name (a negative one would widen the box)")
 
 
 class MarginsFile(BaseModel):
     """A margins file read back (see the module docstring)."""
 
     model_config = ConfigDict(extra="forbid")
-    format: int = FORMAT
+    format: Literal[1] = Field(description="the file format (1)")
     hmpc_version: str
     scenario: str
     system: str
@@ -245,6 +248,9 @@ def read_margins(path: Path) -> MarginsFile:
     except ValidationError as exc:
         err = exc.errors()[0]
         loc = ".".join(str(p) for p in err["loc"]) or "(top)"
+        if err["type"] in ("greater_than_equal", "literal_error"):  # a margins file's value
+            raise ValueError(f"{path}: {loc}: {err['msg']} (got {err['input']!r}; hmpc tube "
+                             "--write makes the file)") from None
         raise ValueError(f"{path}: not a margins file ({loc}: {err['msg']})") from None
 
 

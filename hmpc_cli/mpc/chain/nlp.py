@@ -203,6 +203,10 @@ class MPCSettings(MarginsSettings):
         n = self.horizon * self.nodes_per_second
         if n < 2 or abs(n - round(n)) > 1e-9 * max(1.0, n):
             return ["mpc.horizon: must be a whole number (>= 2) of node steps"]
+        if self.horizon < 1.0 / self.rate_hz - 1e-12:
+            return [f"mpc.horizon: {self.horizon:g} s is shorter than the MPC period "
+                    f"1 / mpc.rate_hz = {1.0 / self.rate_hz:g} s: each plan would run out "
+                    "before the next one; lengthen mpc.horizon or raise mpc.rate_hz"]
         return []
 
     @property
