@@ -297,6 +297,18 @@ class TypoRequire(DockParams):
 
 from hmpc_cli.plugin import Requirement
 
+class WrongSign(DockParams):
+    name: Literal["wrongsign"] = "wrongsign"
+
+
+def _wrong_sign(p):
+    dock = _dock(p)
+    x = ca.SX.sym("x", 2)
+    flipped = replace(dock.guards[0], nlp_gap=ca.Function("q_dock", [x], [x[0] - p.dock_at]))
+    return replace(dock, guards=(flipped, *dock.guards[1:]))
+
+
+WRONG_SIGN = replace(SYSTEM, name="wrongsign", params=WrongSign, build=_wrong_sign)
 TYPO_DEFAULT = replace(SYSTEM, name="typodefault", params=TypoDefault, build=_dock,
                        defaults={**SYSTEM.defaults, "sim": {"rat_hz": 600},
                                  "mpc.chain": {"horizon": 2.0}, "sensor": {"rate": 1}})
@@ -309,7 +321,8 @@ def _faulty_site(tmp_path: Path) -> Path:
     """The FAULTY plug-ins installed in ``tmp_path/site``."""
     names = {"badbuild": "BAD_BUILD", "liar": "LIAR", "badshape": "BAD_SHAPE",
              "erfflow": "ERF", "notask": "NO_TASK", "trueverdict": "TRUE",
-             "typodefault": "TYPO_DEFAULT", "typorequire": "TYPO_REQUIRE"}
+             "typodefault": "TYPO_DEFAULT", "typorequire": "TYPO_REQUIRE",
+             "wrongsign": "WRONG_SIGN"}
     return write_dist(tmp_path / "site", "hmpc-faulty", "[hmpc.systems]\n" + "".join(
         f"{k} = hmpc_faulty:{v}\n" for k, v in names.items()), {"hmpc_faulty": FAULTY})
 
@@ -333,6 +346,11 @@ def _faulty_site(tmp_path: Path) -> Path:
                "-> str and verdict(x, mode) -> Verdict: docs/plugins.md)"),
     ("trueverdict", "system: the task of 'trueverdict': verdict(x0, mode) returned a bool, "
                     "not a Verdict"),
+    # an nlp_gap of the wrong sign would turn the NLP's guard-avoid rows around
+    ("wrongsign", "system: guard 'dock' of mode 'free': nlp_gap(x0) = -1 has the opposite "
+                  "sign to its gap at x0 (1 = -direction (h(x0) - level), h(x0) = 1, level "
+                  "2, direction +1): the NLP's gap must be positive where the guard's gap "
+                  "is, before the crossing (docs/plugins.md)"),
 ])
 def test_a_plugin_that_fails_to_build_is_one_error_line(tmp_path, name, reason):
     """Named when the run is built (exit 2, nothing written), not inside it; a sweep

@@ -108,7 +108,38 @@ def initial_state_problems(system, x0=None, whose: str = "", key: str = "system.
                        f"mode {mode!r} (gap 0): a guard fires when its gap goes from > 0 to "
                        f"<= 0 within a step, so from there it would never fire; move "
                        f"{moved} off the guard")
-    return out + _flow_problems(system, x0, whose, key)
+    return out + _nlp_gap_problems(system, x0, whose) + _flow_problems(system, x0, whose, key)
+
+
+def _nlp_gap_problems(system, x0, whose: str = "") -> list[str]:
+    """``system: reason`` when a guard's ``nlp_gap`` has not the gap's sign at x0.
+
+    For each guard of the initial mode that has an ``nlp_gap`` and is active at x0 with
+    a gap > 0 there: the NLP reads q = nlp_gap in place of the gap, so a q <= 0 turns its
+    guard-avoid rows around (a plan must then cross the guard at once). The plant
+    (``whose`` given) is not checked: the NLP reads the controllers' model only.
+    """
+    import casadi as ca
+    import numpy as np
+
+    if whose:
+        return []
+    x = ca.SX.sym("x", system.n_x)
+    mode, out = system.initial_mode, []
+    for i in system.guards_of(system.mode_index(mode)):
+        g = system.guards[i]
+        if g.nlp_gap is None or (g.region is not None
+                                 and not np.all(np.asarray(g.region(x0)) >= 0.0)):
+            continue
+        gap, q = (float(ca.Function("v", [x], [f(x)])(x0)) for f in (g.gap_expr, g.q_expr))
+        if gap > 0.0 and q <= 0.0:
+            how = "has the opposite sign to" if q < 0.0 else "is not positive like"
+            out.append(f"system: guard {g.name!r} of mode {mode!r}: nlp_gap(x0) = {q:.4g} "
+                       f"{how} its gap at x0 ({gap:.4g} = -direction (h(x0) - level), h(x0) "
+                       f"= {float(g.h(x0)):.4g}, level {g.level:g}, direction "
+                       f"{g.direction:+d}): the NLP's gap must be positive where the "
+                       "guard's gap is, before the crossing (docs/plugins.md)")
+    return out
 
 
 def _flow_problems(system, x0, whose: str = "", key: str = "system.x0") -> list[str]:
