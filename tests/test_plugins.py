@@ -309,6 +309,22 @@ def _wrong_sign(p):
 
 
 WRONG_SIGN = replace(SYSTEM, name="wrongsign", params=WrongSign, build=_wrong_sign)
+
+
+class NanGap(DockParams):
+    name: Literal["nangap"] = "nangap"
+
+
+def _nan_gap(p):
+    dock = _dock(p)
+    x = ca.SX.sym("x", 2)
+    dock_guard = replace(dock.guards[0], nlp_gap=ca.Function("q_dock", [x], [
+        ca.sqrt(x[0] - p.dock_at)]))
+    bumper = replace(dock.guards[1], h=ca.Function("h_bumper", [x], [1 / (x[0] - 1.0)]))
+    return replace(dock, guards=(dock_guard, bumper))
+
+
+NAN_GAP = replace(SYSTEM, name="nangap", params=NanGap, build=_nan_gap)
 TYPO_DEFAULT = replace(SYSTEM, name="typodefault", params=TypoDefault, build=_dock,
                        defaults={**SYSTEM.defaults, "sim": {"rat_hz": 600},
                                  "mpc.chain": {"horizon": 2.0}, "sensor": {"rate": 1}})
@@ -322,7 +338,7 @@ def _faulty_site(tmp_path: Path) -> Path:
     names = {"badbuild": "BAD_BUILD", "liar": "LIAR", "badshape": "BAD_SHAPE",
              "erfflow": "ERF", "notask": "NO_TASK", "trueverdict": "TRUE",
              "typodefault": "TYPO_DEFAULT", "typorequire": "TYPO_REQUIRE",
-             "wrongsign": "WRONG_SIGN"}
+             "wrongsign": "WRONG_SIGN", "nangap": "NAN_GAP"}
     return write_dist(tmp_path / "site", "hmpc-faulty", "[hmpc.systems]\n" + "".join(
         f"{k} = hmpc_faulty:{v}\n" for k, v in names.items()), {"hmpc_faulty": FAULTY})
 
@@ -351,6 +367,13 @@ def _faulty_site(tmp_path: Path) -> Path:
                   "sign to its gap at x0 (1 = -direction (h(x0) - level), h(x0) = 1, level "
                   "2, direction +1): the NLP's gap must be positive where the guard's gap "
                   "is, before the crossing (docs/plugins.md)"),
+    # a gap that is NaN or inf at x0 (a guard that would never fire), each guard named
+    ("nangap", "\n".join(
+        f"system.x0: guard {name!r} of mode 'free' is not finite at x0 (1, -4): {what}: a "
+        "gap that is NaN or inf never fires in the simulator and makes the NLP's rows NaN; "
+        "check the guard's expression where x0 lies (a square root of a negative number, "
+        "a division by 0), or move system.x0"
+        for name, what in (("dock", "nlp_gap(x0) = nan"), ("bumper", "h(x0) = inf")))),
 ])
 def test_a_plugin_that_fails_to_build_is_one_error_line(tmp_path, name, reason):
     """Named when the run is built (exit 2, nothing written), not inside it; a sweep
@@ -362,12 +385,13 @@ def test_a_plugin_that_fails_to_build_is_one_error_line(tmp_path, name, reason):
     proc = hmpc(["run", str(scenario), "--out", str(out), "-q"], site, PLUGINS, cwd=tmp_path)
     assert proc.returncode == 2, proc.stderr[-3000:]
     assert "Traceback" not in proc.stderr
-    assert error_lines(proc) == [f"error: {scenario}: {reason}"]
+    assert error_lines(proc) == [f"error: {scenario}: {line}" for line in reason.split("\n")]
     assert not out.exists()
     (tmp_path / "s.toml").write_text(f'name = "s"\nscenario = "{scenario.name}"\nseeds = 1\n')
     proc = hmpc(["sweep", "s.toml", "--out", str(out)], site, PLUGINS, cwd=tmp_path)
     assert proc.returncode == 2, proc.stderr[-3000:]
-    assert error_lines(proc) == [f"error: s.toml: cell the base scenario: {reason}"]
+    assert error_lines(proc) == [f"error: s.toml: cell the base scenario: {line}"
+                                 for line in reason.split("\n")]
     assert not out.exists()
 
 

@@ -86,6 +86,8 @@ def initial_state_problems(system, x0=None, whose: str = "", key: str = "system.
     already crossed, or one x0 lies on, never fires (it fires when its gap goes from > 0
     to <= 0), so the run would start in a mode its state has left, or pass through it.
     ``whose`` names another system checked with the controllers' x0 (``"the plant's "``).
+    Then: guards' gaps that are not finite at x0, an ``nlp_gap`` without its gap's sign
+    there, a flow that is not finite there.
     """
     import casadi as ca
     import numpy as np
@@ -108,7 +110,38 @@ def initial_state_problems(system, x0=None, whose: str = "", key: str = "system.
                        f"mode {mode!r} (gap 0): a guard fires when its gap goes from > 0 to "
                        f"<= 0 within a step, so from there it would never fire; move "
                        f"{moved} off the guard")
-    return out + _nlp_gap_problems(system, x0, whose) + _flow_problems(system, x0, whose, key)
+    return (out + _finite_gap_problems(system, x0, whose, key)
+            + _nlp_gap_problems(system, x0, whose) + _flow_problems(system, x0, whose, key))
+
+
+def _finite_gap_problems(system, x0, whose: str = "", key: str = "system.x0") -> list[str]:
+    """``system.x0: reason`` when a guard of the initial mode has a gap that is not finite at x0.
+
+    Every guard of the mode, inside its region or not: the simulator evaluates each gap
+    every step (a NaN or inf one never fires) and the NLP its ``nlp_gap`` at every node
+    of the mode (NaN rows). The plant (``whose`` given) is checked for h only: the NLP
+    reads the controllers' model.
+    """
+    import casadi as ca
+    import numpy as np
+
+    x = ca.SX.sym("x", system.n_x)
+    mode, out = system.initial_mode, []
+    moved = "system.x0" if key == "system.x0" else "x0"
+    point = ", ".join(f"{v:g}" for v in x0)
+    for i in system.guards_of(system.mode_index(mode)):
+        g = system.guards[i]
+        parts = [("h", g.h)] + ([("nlp_gap", g.nlp_gap)]
+                                if g.nlp_gap is not None and not whose else [])
+        values = [(name, float(ca.Function("v", [x], [f(x)])(x0))) for name, f in parts]
+        bad = [f"{name}(x0) = {v:g}" for name, v in values if not np.isfinite(v)]
+        if bad:
+            out.append(f"{key}: {whose}guard {g.name!r} of mode {mode!r} is not finite at x0 "
+                       f"({point}): {', '.join(bad)}: a gap that is NaN or inf never fires "
+                       f"in the simulator and makes the NLP's rows NaN; check the guard's "
+                       f"expression where x0 lies (a square root of a negative number, a "
+                       f"division by 0), or move {moved}")
+    return out
 
 
 def _nlp_gap_problems(system, x0, whose: str = "") -> list[str]:
