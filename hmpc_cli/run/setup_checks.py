@@ -208,7 +208,9 @@ def margins_of(sc, model) -> ConstraintMargins | None:
     """The MPC's margins: hand-set, from the scenario's margins file, or None (no field).
 
     Raises:
-        ValueError: ``mpc.margins: ...`` when the file does not fit the scenario.
+        ValueError: ``mpc.margins: ...`` when the file does not fit the scenario, or its
+            margins (a margins file's or the tube's) make the tightened problem infeasible
+            at x0.
     """
     from hmpc_cli.core.registry import registry
 
@@ -221,10 +223,32 @@ def margins_of(sc, model) -> ConstraintMargins | None:
     if source == "tube":
         from hmpc_cli.run.tube_margins import tube_margins
 
-        return tube_margins(sc, model)
+        return tube_margins(sc, model)  # refused when computed if infeasible at x0
     from hmpc_cli.tube.margins_file import constraint_margins
 
-    return constraint_margins(source, model, sc.system, sc.mpc.rate_hz)
+    return _feasible_at_x0(constraint_margins(source, model, sc.system, sc.mpc.rate_hz),
+                           model, sc.mpc.rate_hz)
+
+
+def _feasible_at_x0(margins: ConstraintMargins, model, rate_hz: float) -> ConstraintMargins:
+    """``margins``, once no guard-avoid row they tighten fails at x0 already.
+
+    The check ``mpc.margins = "tube"`` makes when it computes its tube, made on a margins
+    file: such a row fails at the NLP's first nodes, so every solve would be softened or
+    fail.
+
+    Raises:
+        ValueError: ``mpc.margins: ...`` naming the first guard whose row fails at x0.
+    """
+    from hmpc_cli.tube.margins_file import REFUSED
+
+    violated = model.initial_avoid_violations(margins.avoid)
+    if not violated:
+        return margins
+    name, q, kappa = violated[0]
+    raise ValueError(f"{REFUSED}{margins.source}: at {rate_hz:g} Hz the tightened guard-avoid "
+                     f"row of {name} (kappa = {kappa:.4g}) exceeds its NLP gap at x0 "
+                     f"({q:.4g}): the tightened problem is infeasible at the initial state")
 
 
 def _margin_problems(sc, model, margins: ConstraintMargins | None) -> list[str]:
