@@ -325,6 +325,23 @@ def _nan_gap(p):
 
 
 NAN_GAP = replace(SYSTEM, name="nangap", params=NanGap, build=_nan_gap)
+
+
+class DrawnCart(DockParams):
+    name: Literal["drawncart"] = "drawncart"
+
+
+def _drawn_cart(p):
+    import numpy as np
+
+    from hmpc_cli.plugin import Drawing
+
+    drawing = Drawing(points=lambda x: np.array([[x[0], x[0] + 0.2], [0.1, 0.1]]),
+                      point_names=("cart", "hook"), links=(("cart", "hook"),))
+    return replace(_dock(p), drawing=drawing)
+
+
+DRAWN_CART = replace(SYSTEM, name="drawncart", params=DrawnCart, build=_drawn_cart)
 TYPO_DEFAULT = replace(SYSTEM, name="typodefault", params=TypoDefault, build=_dock,
                        defaults={**SYSTEM.defaults, "sim": {"rat_hz": 600},
                                  "mpc.chain": {"horizon": 2.0}, "sensor": {"rate": 1}})
@@ -338,7 +355,7 @@ def _faulty_site(tmp_path: Path) -> Path:
     names = {"badbuild": "BAD_BUILD", "liar": "LIAR", "badshape": "BAD_SHAPE",
              "erfflow": "ERF", "notask": "NO_TASK", "trueverdict": "TRUE",
              "typodefault": "TYPO_DEFAULT", "typorequire": "TYPO_REQUIRE",
-             "wrongsign": "WRONG_SIGN", "nangap": "NAN_GAP"}
+             "wrongsign": "WRONG_SIGN", "nangap": "NAN_GAP", "drawncart": "DRAWN_CART"}
     return write_dist(tmp_path / "site", "hmpc-faulty", "[hmpc.systems]\n" + "".join(
         f"{k} = hmpc_faulty:{v}\n" for k, v in names.items()), {"hmpc_faulty": FAULTY})
 
@@ -393,6 +410,24 @@ def test_a_plugin_that_fails_to_build_is_one_error_line(tmp_path, name, reason):
     assert error_lines(proc) == [f"error: s.toml: cell the base scenario: {line}"
                                  for line in reason.split("\n")]
     assert not out.exists()
+
+
+def test_fig4_of_a_system_without_the_walkers_points_says_what_it_needs(tmp_path):
+    """A run that logs body points but no terrain, hip or swing_foot: fig4 names all three
+    and the points it logs."""
+    site = _faulty_site(tmp_path)
+    scenario = tmp_path / "drawncart.toml"
+    scenario.write_text('[system]\nname = "drawncart"\n[sim]\nduration = 0.2\n')
+    out = tmp_path / "run"
+    proc = hmpc(["run", str(scenario), "--out", str(out), "-q"], site, PLUGINS, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    proc = hmpc(["plot", "fig4", str(out), "--out", str(tmp_path / "fig")], site, PLUGINS,
+                cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert error_lines(proc) == [
+        f"error: {out / 'run.mcap'}: not a walking run to draw (fig4 needs the terrain and "
+        "the body points named 'hip' and 'swing_foot'; system 'drawncart' logs no terrain, "
+        "no body point 'hip', no body point 'swing_foot' (its body points: 'cart', 'hook'))"]
 
 
 def test_a_plugins_own_misspelled_default_or_requirement_is_blamed_on_it(tmp_path):
