@@ -343,7 +343,8 @@ def _drawn_cart(p):
 
 DRAWN_CART = replace(SYSTEM, name="drawncart", params=DrawnCart, build=_drawn_cart)
 TYPO_DEFAULT = replace(SYSTEM, name="typodefault", params=TypoDefault, build=_dock,
-                       defaults={**SYSTEM.defaults, "sim": {"rat_hz": 600},
+                       defaults={**SYSTEM.defaults, "sim": {"rat_hz": 600}, "planner.cem": {
+                           **SYSTEM.defaults["planner.cem"], "sampels": 30},
                                  "mpc.chain": {"horizon": 2.0}, "sensor": {"rate": 1}})
 TYPO_REQUIRE = replace(SYSTEM, name="typorequire", params=TypoRequire, build=_dock,
                        requires=(Requirement("mpc.nodes_per_secnd", 60, "fine grid"),))
@@ -437,6 +438,10 @@ def test_a_plugins_own_misspelled_default_or_requirement_is_blamed_on_it(tmp_pat
     fix = "the plug-in must be fixed, not the scenario"
     for name, lines in {
         "typodefault": [
+            # the key's whole path in the defaults, the kind's table included
+            "system.name: the system plug-in 'typodefault' sets planner.cem.sampels in its "
+            "SystemSpec.defaults, which is not a setting of [planner.cem] (did you mean "
+            f"'samples'?); {fix}",
             "system.name: the system plug-in 'typodefault' sets sim.rat_hz in its "
             f"SystemSpec.defaults, which is not a setting of [sim] (did you mean 'rate_hz'?); "
             f"{fix}",
