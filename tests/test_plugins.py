@@ -342,6 +342,20 @@ def _drawn_cart(p):
 
 
 DRAWN_CART = replace(SYSTEM, name="drawncart", params=DrawnCart, build=_drawn_cart)
+
+
+class Regioned(DockParams):
+    name: Literal["regioned"] = "regioned"
+
+
+def _regioned(p):
+    dock = _dock(p)
+    x = ca.SX.sym("x", 2)
+    latch = replace(dock.guards[0], region=ca.Function("r_dock", [x], [x[1]]))  # v >= 0
+    return replace(dock, guards=(latch, *dock.guards[1:]))
+
+
+REGIONED = replace(SYSTEM, name="regioned", params=Regioned, build=_regioned)
 TYPO_DEFAULT = replace(SYSTEM, name="typodefault", params=TypoDefault, build=_dock,
                        defaults={**SYSTEM.defaults, "sim": {"rat_hz": 600}, "planner.cem": {
                            **SYSTEM.defaults["planner.cem"], "sampels": 30},
@@ -356,7 +370,8 @@ def _faulty_site(tmp_path: Path) -> Path:
     names = {"badbuild": "BAD_BUILD", "liar": "LIAR", "badshape": "BAD_SHAPE",
              "erfflow": "ERF", "notask": "NO_TASK", "trueverdict": "TRUE",
              "typodefault": "TYPO_DEFAULT", "typorequire": "TYPO_REQUIRE",
-             "wrongsign": "WRONG_SIGN", "nangap": "NAN_GAP", "drawncart": "DRAWN_CART"}
+             "wrongsign": "WRONG_SIGN", "nangap": "NAN_GAP", "drawncart": "DRAWN_CART",
+             "regioned": "REGIONED"}
     return write_dist(tmp_path / "site", "hmpc-faulty", "[hmpc.systems]\n" + "".join(
         f"{k} = hmpc_faulty:{v}\n" for k, v in names.items()), {"hmpc_faulty": FAULTY})
 
@@ -429,6 +444,28 @@ def test_fig4_of_a_system_without_the_walkers_points_says_what_it_needs(tmp_path
         f"error: {out / 'run.mcap'}: not a walking run to draw (fig4 needs the terrain and "
         "the body points named 'hip' and 'swing_foot'; system 'drawncart' logs no terrain, "
         "no body point 'hip', no body point 'swing_foot' (its body points: 'cart', 'hook'))"]
+
+
+def test_a_guard_region_x0_lies_outside_where_its_avoid_row_fails_is_warned_of(tmp_path):
+    """The fixed-mode MPC imposes the dock's guard-avoid row q >= kappa at every node of
+    mode free, outside the dock's region (v >= 0) too: with the dock 5 mm ahead of x0
+    (q = 0.005 < kappa = 0.01) the summary warns; 1 m ahead it does not."""
+    site = _faulty_site(tmp_path)
+    warnings = {}
+    for dock_at in (1.005, 2.0):
+        scenario = tmp_path / f"regioned{dock_at}.toml"
+        scenario.write_text(f'[system]\nname = "regioned"\ndock_at = {dock_at}\n[sim]\n'
+                            'duration = 0.1\n[mpc]\ntube_margin = 0.01\n')
+        out = tmp_path / f"run{dock_at}"
+        proc = hmpc(["run", str(scenario), "--out", str(out), "-q"], site, PLUGINS,
+                    cwd=tmp_path)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        warnings[dock_at] = json.loads((out / "summary.json").read_text())["warnings"]
+    assert warnings == {1.005: [
+        "system: guard 'dock' of mode 'free': x0 lies outside its region and its guard-avoid "
+        "row fails there (nlp_gap(x0) = 0.005, kappa = 0.01): the fixed-mode MPC imposes that "
+        "row at every node of mode 'free', outside the region too, so solves are softened or "
+        "infeasible; fold the region into the guard's nlp_gap (docs/plugins.md)"], 2.0: []}
 
 
 def test_a_plugins_own_misspelled_default_or_requirement_is_blamed_on_it(tmp_path):

@@ -10,7 +10,7 @@ from __future__ import annotations
 from hmpc_cli.core.messages import ConstraintMargins
 
 __all__ = ["built_problems", "check_task", "initial_state_problems", "margins_of",
-           "setup_problems"]
+           "region_warnings", "setup_problems"]
 
 
 def setup_problems(scenario) -> list[str]:
@@ -197,6 +197,37 @@ def _flow_problems(system, x0, whose: str = "", key: str = "system.x0") -> list[
             f"with u = {', '.join(f'{v:g}' for v in u) or '()'} and w = 0 (d/dt of "
             f"{', '.join(bad)}): the run would diverge at its first step; check the flow's "
             f"expression where x0 lies, or move {moved}"]
+
+
+def region_warnings(system, margins: ConstraintMargins | None = None) -> list[str]:
+    """Warnings for guards of non-final modes whose avoid row fails at x0, outside their region.
+
+    The fixed-mode MPC imposes a guard's guard-avoid rows (q >= kappa) at every node of
+    the domains it leaves from, inside its activity region or not (the region is honoured
+    by the simulator and at the switching node only). A guard whose region x0 lies
+    outside and whose row fails at x0 (q(x0) < kappa, ``margins``' guard-avoid offset, 0
+    without margins) is a region that does not cover the workspace: solves are softened
+    or infeasible. The run goes on (the soft rows may carry it).
+    """
+    import casadi as ca
+    import numpy as np
+
+    x = ca.SX.sym("x", system.n_x)
+    out = []
+    for i, g in enumerate(system.guards):
+        if g.region is None or g.source == system.final_mode or \
+                np.all(np.asarray(g.region(system.x0)) >= 0.0):
+            continue
+        q = float(ca.Function("q", [x], [g.q_expr(x)])(system.x0))
+        kappa = margins.avoid[i] if margins is not None else 0.0
+        if q < kappa:
+            out.append(
+                f"system: guard {g.name!r} of mode {g.source!r}: x0 lies outside its region "
+                f"and its guard-avoid row fails there (nlp_gap(x0) = {q:.4g}, kappa = "
+                f"{kappa:.4g}): the fixed-mode MPC imposes that row at every node of mode "
+                f"{g.source!r}, outside the region too, so solves are softened or "
+                f"infeasible; fold the region into the guard's nlp_gap (docs/plugins.md)")
+    return out
 
 
 def _planner_problems(sc, model) -> list[str]:
