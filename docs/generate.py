@@ -722,9 +722,11 @@ LOG_HAND = """
   goal, the drawing's static polylines (guards, walls, stairs), body point names,
   skeleton, terrain.
 * `/mpc/solve`: every solve: status, iterations, wall time, cost, constraint violation,
-  slack, whether the plan was adopted (false: the low level never tracks it, e.g. a
-  failed solve without a fallback or a solve dropped over `sim.solve_budget`; a solve
-  that a contact stops later, `sim.preempt_at_contact`, was logged adopted before it was
+  slack, whether the plan was adopted (false: the low level never tracks it: a rejected
+  schedule, a solve dropped over `sim.solve_budget`, or a failed solve of the walking
+  MPC; a failed solve of the fixed-mode MPC is adopted, its plan the MPC's fallback, a
+  first one's the planner's rollout: [running.md](running.md#errors-and-exit-codes); a
+  solve that a contact stops later, `sim.preempt_at_contact`, was logged adopted before it was
   stopped: the reason of the solve made at that contact names it), the
   schedule, the plan as an array of nodes (times absolute [s], from the plan's start:
   the solve's t, or the predicted arrival under `sim.delay_compensation`), the compute

@@ -130,6 +130,25 @@ def test_a_margins_file_that_does_not_fit_exits_2(case: str, ball_file: Path, tm
     assert not out.exists()
 
 
+def test_a_margins_file_infeasible_at_x0_exits_2(ball_file: Path, tmp_path: Path):
+    """As ``mpc.margins = "tube"`` refuses its tube: a guard-avoid row the file tightens
+    beyond its NLP gap at x0 fails at the first nodes (every solve softened or failed)."""
+    f = _edit(ball_file, tmp_path / "m.toml",
+              r"^(\[rates\.10\.guards\.floor\]\nradius = .*\navoid = ).*$", r"\g<1>1000.0")
+    sc, _ = load_scenario(BALL)
+    system = build_system(sc.system)
+    (q,) = [float(g.q_expr(system.x0)) for g in system.guards if g.name == "floor"]
+    out = tmp_path / "run"
+    res = CliRunner().invoke(app, ["run", str(BALL), "--out", str(out), "--set",
+                                   f'mpc.margins="{f}"', *SHORT])
+    assert res.exit_code == 2, res.output
+    assert " ".join(res.output.split()) == " ".join(
+        f"error: --set mpc.margins=\"{f}\": mpc.margins: {f}: at 10 Hz the tightened "
+        f"guard-avoid row of floor (kappa = 1000) exceeds its NLP gap at x0 ({q:.4g}): the "
+        "tightened problem is infeasible at the initial state".split())
+    assert not out.exists()
+
+
 def test_other_parameters_do_not_fit(ball_file: Path):
     with pytest.raises(ScenarioError, match=r"mpc\.margins: .*other ball parameters"):
         load_scenario(BALL, ["system.radius=0.6", f'mpc.margins="{ball_file}"'])

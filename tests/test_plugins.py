@@ -297,8 +297,68 @@ class TypoRequire(DockParams):
 
 from hmpc_cli.plugin import Requirement
 
+class WrongSign(DockParams):
+    name: Literal["wrongsign"] = "wrongsign"
+
+
+def _wrong_sign(p):
+    dock = _dock(p)
+    x = ca.SX.sym("x", 2)
+    flipped = replace(dock.guards[0], nlp_gap=ca.Function("q_dock", [x], [x[0] - p.dock_at]))
+    return replace(dock, guards=(flipped, *dock.guards[1:]))
+
+
+WRONG_SIGN = replace(SYSTEM, name="wrongsign", params=WrongSign, build=_wrong_sign)
+
+
+class NanGap(DockParams):
+    name: Literal["nangap"] = "nangap"
+
+
+def _nan_gap(p):
+    dock = _dock(p)
+    x = ca.SX.sym("x", 2)
+    dock_guard = replace(dock.guards[0], nlp_gap=ca.Function("q_dock", [x], [
+        ca.sqrt(x[0] - p.dock_at)]))
+    bumper = replace(dock.guards[1], h=ca.Function("h_bumper", [x], [1 / (x[0] - 1.0)]))
+    return replace(dock, guards=(dock_guard, bumper))
+
+
+NAN_GAP = replace(SYSTEM, name="nangap", params=NanGap, build=_nan_gap)
+
+
+class DrawnCart(DockParams):
+    name: Literal["drawncart"] = "drawncart"
+
+
+def _drawn_cart(p):
+    import numpy as np
+
+    from hmpc_cli.plugin import Drawing
+
+    drawing = Drawing(points=lambda x: np.array([[x[0], x[0] + 0.2], [0.1, 0.1]]),
+                      point_names=("cart", "hook"), links=(("cart", "hook"),))
+    return replace(_dock(p), drawing=drawing)
+
+
+DRAWN_CART = replace(SYSTEM, name="drawncart", params=DrawnCart, build=_drawn_cart)
+
+
+class Regioned(DockParams):
+    name: Literal["regioned"] = "regioned"
+
+
+def _regioned(p):
+    dock = _dock(p)
+    x = ca.SX.sym("x", 2)
+    latch = replace(dock.guards[0], region=ca.Function("r_dock", [x], [x[1]]))  # v >= 0
+    return replace(dock, guards=(latch, *dock.guards[1:]))
+
+
+REGIONED = replace(SYSTEM, name="regioned", params=Regioned, build=_regioned)
 TYPO_DEFAULT = replace(SYSTEM, name="typodefault", params=TypoDefault, build=_dock,
-                       defaults={**SYSTEM.defaults, "sim": {"rat_hz": 600},
+                       defaults={**SYSTEM.defaults, "sim": {"rat_hz": 600}, "planner.cem": {
+                           **SYSTEM.defaults["planner.cem"], "sampels": 30},
                                  "mpc.chain": {"horizon": 2.0}, "sensor": {"rate": 1}})
 TYPO_REQUIRE = replace(SYSTEM, name="typorequire", params=TypoRequire, build=_dock,
                        requires=(Requirement("mpc.nodes_per_secnd", 60, "fine grid"),))
@@ -309,7 +369,9 @@ def _faulty_site(tmp_path: Path) -> Path:
     """The FAULTY plug-ins installed in ``tmp_path/site``."""
     names = {"badbuild": "BAD_BUILD", "liar": "LIAR", "badshape": "BAD_SHAPE",
              "erfflow": "ERF", "notask": "NO_TASK", "trueverdict": "TRUE",
-             "typodefault": "TYPO_DEFAULT", "typorequire": "TYPO_REQUIRE"}
+             "typodefault": "TYPO_DEFAULT", "typorequire": "TYPO_REQUIRE",
+             "wrongsign": "WRONG_SIGN", "nangap": "NAN_GAP", "drawncart": "DRAWN_CART",
+             "regioned": "REGIONED"}
     return write_dist(tmp_path / "site", "hmpc-faulty", "[hmpc.systems]\n" + "".join(
         f"{k} = hmpc_faulty:{v}\n" for k, v in names.items()), {"hmpc_faulty": FAULTY})
 
@@ -333,6 +395,18 @@ def _faulty_site(tmp_path: Path) -> Path:
                "-> str and verdict(x, mode) -> Verdict: docs/plugins.md)"),
     ("trueverdict", "system: the task of 'trueverdict': verdict(x0, mode) returned a bool, "
                     "not a Verdict"),
+    # an nlp_gap of the wrong sign would turn the NLP's guard-avoid rows around
+    ("wrongsign", "system: guard 'dock' of mode 'free': nlp_gap(x0) = -1 has the opposite "
+                  "sign to its gap at x0 (1 = -direction (h(x0) - level), h(x0) = 1, level "
+                  "2, direction +1): the NLP's gap must be positive where the guard's gap "
+                  "is, before the crossing (docs/plugins.md)"),
+    # a gap that is NaN or inf at x0 (a guard that would never fire), each guard named
+    ("nangap", "\n".join(
+        f"system.x0: guard {name!r} of mode 'free' is not finite at x0 (1, -4): {what}: a "
+        "gap that is NaN or inf never fires in the simulator and makes the NLP's rows NaN; "
+        "check the guard's expression where x0 lies (a square root of a negative number, "
+        "a division by 0), or move system.x0"
+        for name, what in (("dock", "nlp_gap(x0) = nan"), ("bumper", "h(x0) = inf")))),
 ])
 def test_a_plugin_that_fails_to_build_is_one_error_line(tmp_path, name, reason):
     """Named when the run is built (exit 2, nothing written), not inside it; a sweep
@@ -344,13 +418,54 @@ def test_a_plugin_that_fails_to_build_is_one_error_line(tmp_path, name, reason):
     proc = hmpc(["run", str(scenario), "--out", str(out), "-q"], site, PLUGINS, cwd=tmp_path)
     assert proc.returncode == 2, proc.stderr[-3000:]
     assert "Traceback" not in proc.stderr
-    assert error_lines(proc) == [f"error: {scenario}: {reason}"]
+    assert error_lines(proc) == [f"error: {scenario}: {line}" for line in reason.split("\n")]
     assert not out.exists()
     (tmp_path / "s.toml").write_text(f'name = "s"\nscenario = "{scenario.name}"\nseeds = 1\n')
     proc = hmpc(["sweep", "s.toml", "--out", str(out)], site, PLUGINS, cwd=tmp_path)
     assert proc.returncode == 2, proc.stderr[-3000:]
-    assert error_lines(proc) == [f"error: s.toml: cell the base scenario: {reason}"]
+    assert error_lines(proc) == [f"error: s.toml: cell the base scenario: {line}"
+                                 for line in reason.split("\n")]
     assert not out.exists()
+
+
+def test_fig4_of_a_system_without_the_walkers_points_says_what_it_needs(tmp_path):
+    """A run that logs body points but no terrain, hip or swing_foot: fig4 names all three
+    and the points it logs."""
+    site = _faulty_site(tmp_path)
+    scenario = tmp_path / "drawncart.toml"
+    scenario.write_text('[system]\nname = "drawncart"\n[sim]\nduration = 0.2\n')
+    out = tmp_path / "run"
+    proc = hmpc(["run", str(scenario), "--out", str(out), "-q"], site, PLUGINS, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    proc = hmpc(["plot", "fig4", str(out), "--out", str(tmp_path / "fig")], site, PLUGINS,
+                cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert error_lines(proc) == [
+        f"error: {out / 'run.mcap'}: not a walking run to draw (fig4 needs the terrain and "
+        "the body points named 'hip' and 'swing_foot'; system 'drawncart' logs no terrain, "
+        "no body point 'hip', no body point 'swing_foot' (its body points: 'cart', 'hook'))"]
+
+
+def test_a_guard_region_x0_lies_outside_where_its_avoid_row_fails_is_warned_of(tmp_path):
+    """The fixed-mode MPC imposes the dock's guard-avoid row q >= kappa at every node of
+    mode free, outside the dock's region (v >= 0) too: with the dock 5 mm ahead of x0
+    (q = 0.005 < kappa = 0.01) the summary warns; 1 m ahead it does not."""
+    site = _faulty_site(tmp_path)
+    warnings = {}
+    for dock_at in (1.005, 2.0):
+        scenario = tmp_path / f"regioned{dock_at}.toml"
+        scenario.write_text(f'[system]\nname = "regioned"\ndock_at = {dock_at}\n[sim]\n'
+                            'duration = 0.1\n[mpc]\ntube_margin = 0.01\n')
+        out = tmp_path / f"run{dock_at}"
+        proc = hmpc(["run", str(scenario), "--out", str(out), "-q"], site, PLUGINS,
+                    cwd=tmp_path)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        warnings[dock_at] = json.loads((out / "summary.json").read_text())["warnings"]
+    assert warnings == {1.005: [
+        "system: guard 'dock' of mode 'free': x0 lies outside its region and its guard-avoid "
+        "row fails there (nlp_gap(x0) = 0.005, kappa = 0.01): the fixed-mode MPC imposes that "
+        "row at every node of mode 'free', outside the region too, so solves are softened or "
+        "infeasible; fold the region into the guard's nlp_gap (docs/plugins.md)"], 2.0: []}
 
 
 def test_a_plugins_own_misspelled_default_or_requirement_is_blamed_on_it(tmp_path):
@@ -360,6 +475,10 @@ def test_a_plugins_own_misspelled_default_or_requirement_is_blamed_on_it(tmp_pat
     fix = "the plug-in must be fixed, not the scenario"
     for name, lines in {
         "typodefault": [
+            # the key's whole path in the defaults, the kind's table included
+            "system.name: the system plug-in 'typodefault' sets planner.cem.sampels in its "
+            "SystemSpec.defaults, which is not a setting of [planner.cem] (did you mean "
+            f"'samples'?); {fix}",
             "system.name: the system plug-in 'typodefault' sets sim.rat_hz in its "
             f"SystemSpec.defaults, which is not a setting of [sim] (did you mean 'rate_hz'?); "
             f"{fix}",

@@ -51,6 +51,24 @@ def test_the_balls_positions_and_the_bipeds_angles_and_stance_are_kinematic():
     assert guard_states(ball.guards[0], 4) == (1,)  # the floor sees py only
 
 
+def test_a_state_whose_rate_differs_between_modes_is_not_kinematic():
+    """docs/tubes.md: the same rate in every mode. A position that is p' = v in one mode
+    and held (p' = 0) in the other, as a foot that follows the body in flight and is
+    pinned in stance, is not kinematic; one held in every mode is (ZERO)."""
+    from dataclasses import replace
+
+    ball = _system("ball")
+    x, u, w = ca.SX.sym("x", 4), ca.SX.sym("u", 2), ca.SX.sym("w", 2)
+    inside = ball.modes[1]
+    f = inside.flow(x, u, w)
+    held = replace(inside, flow=ca.Function("f_held", [x, u, w], [ca.vertcat(0, f[1:])]))
+    assert kinematic_rates(replace(ball, modes=(ball.modes[0], held))) == {1: 3}
+    out = ball.modes[0].flow(x, u, w)
+    both = [replace(m, flow=ca.Function(f"f_{m.name}", [x, u, w], [ca.vertcat(0, g[1:])]))
+            for m, g in ((ball.modes[0], out), (inside, f))]
+    assert kinematic_rates(replace(ball, modes=tuple(both))) == {0: ZERO, 1: 3}
+
+
 def test_kinematic_guards_get_the_kinematic_radius():
     ball = _system("ball")
     m = margins(ball, 0.5, 0.0, kinematic=0.01, kinematic_guards=(True, False, True, True))

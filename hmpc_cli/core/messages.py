@@ -196,8 +196,9 @@ class Plan:
         detail: the MPC's log detail (e.g. nodes shifted, warm start kind), an instance
             of the frozen dataclass its spec declares (``MPCSpec.detail``), or None.
         adopt: whether the low level should track this plan; a failed solve's plan
-            may still be a usable fallback (the shifted previous plan), else the low
-            level keeps the plan it has.
+            may still be a usable fallback (the fixed-mode MPC's: its last solution on
+            the schedule, shifted, or before one the initial guess), else the low level
+            keeps the plan it has.
     """
 
     t0: float

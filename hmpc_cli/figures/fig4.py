@@ -33,6 +33,7 @@ from hmpc_cli.analysis.tables import FigureInputError, resolve_run_log
 
 __all__ = ["WalkLog", "animate_walk", "fig4", "load_walk", "resolve_run_log"]
 
+WALKER_POINTS = ("hip", "swing_foot")  #: the body points fig4 draws a walker by
 LINK_COLOR = OKABE_ITO["blue"]
 STAIR_COLOR = "#555555"
 CONTACT_COLOR = OKABE_ITO["vermillion"]
@@ -72,8 +73,9 @@ def load_walk(path: str | Path) -> WalkLog:
     of every state sample, the skeleton, the terrain and the touchdown points.
 
     Raises:
-        FigureInputError: no such log, unreadable, or a log without body points and
-            terrain (not a walking run, or written by an hmpc before log version 3).
+        FigureInputError: no such log, unreadable, or a log without the terrain and the
+            body points ``hip`` and ``swing_foot`` (not a walking run, or written by an
+            hmpc before log version 3; the message names what is missing).
     """
     from hmpc_cli.log.rundata import read_run
 
@@ -86,10 +88,9 @@ def load_walk(path: str | Path) -> WalkLog:
         raise FigureInputError(f"{path}: cannot read log ({exc})") from None
     geo = run.geometry
     names = list(geo.point_names) if geo is not None else []
-    if geo is None or geo.terrain is None or not {"hip", "swing_foot"} <= set(names):
+    if geo is None or geo.terrain is None or not set(WALKER_POINTS) <= set(names):
         why = f"log version {run.log_version} has no geometry; re-run it with this hmpc" \
-            if run.log_version < 3 else \
-            f"system {run.system.get('name', '?')!r} logs no body points and terrain"
+            if run.log_version < 3 else _not_a_walker(run.system.get("name", "?"), geo)
         raise FigureInputError(f"{path}: not a walking run to draw ({why})")
     keep = np.all(np.isfinite(run.body), axis=(1, 2)) & np.all(np.isfinite(run.x), axis=1)
     if not np.any(keep):
@@ -102,6 +103,17 @@ def load_walk(path: str | Path) -> WalkLog:
                    float(terrain.ground), *_outcome(run),
                    [[names.index(n) for n in line.points] for line in geo.skeleton],
                    run.damage_text)
+
+
+def _not_a_walker(system: str, geo) -> str:
+    """What fig4 needs that a log's geometry ``geo`` (None: none) lacks, and what it logs."""
+    names = list(geo.point_names) if geo is not None else []
+    lacks = [*(["no terrain"] if geo is None or geo.terrain is None else []),
+             *(f"no body point {n!r}" for n in WALKER_POINTS if n not in names)]
+    logs = f"its body points: {', '.join(map(repr, names))}" if names else "no body points"
+    return (f"fig4 needs the terrain and the body points named "
+            f"{' and '.join(map(repr, WALKER_POINTS))}; system {system!r} logs {', '.join(lacks)}"
+            f" ({logs})")
 
 
 def _contacts(run, foot: int) -> list[tuple[float, str, float, float]]:

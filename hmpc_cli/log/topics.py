@@ -366,9 +366,12 @@ class MpcSolve:
             units; absent: not finite, e.g. a rejected schedule).
         slack: the largest relaxation of the hybrid (guard, virtual-node, region,
             terminal) constraints by the soft-constraint slacks (0: they hold exactly).
-        adopted: the low level tracks this plan (false: a failed solve without a usable
-            fallback plan, a rejected schedule, or a solve dropped over budget; the
-            previous plan is tracked on).
+        adopted: the low level tracks this plan (false: a rejected schedule, a solve
+            dropped over budget, or a failed solve of an MPC without a fallback plan,
+            the walking MPC; the previous plan is tracked on, none before the first: u
+            = 0). The fixed-mode MPC's failed solve is adopted: its plan is the last
+            solution on the schedule shifted to the measured state, or, before one, the
+            planner's rollout on the nodes.
         schedule: the schedule the plan was solved for, as the MPC holds it (absent:
             none).
         plan: the plan's nodes: every ``sim.log_plan_stride``-th, the nodes either side

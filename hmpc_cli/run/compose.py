@@ -19,7 +19,7 @@ from hmpc_cli.log.runlog import RunIdentity
 from hmpc_cli.run.realtime import Latency
 from hmpc_cli.run.scenario import did_you_mean
 from hmpc_cli.run.setup_checks import (built_problems, check_task, initial_state_problems,
-                                      margins_of)
+                                      margins_of, region_warnings)
 
 __all__ = ["PreparedRun", "StackTiming", "build"]
 
@@ -122,7 +122,7 @@ def build(scenario) -> PreparedRun:
         _build_info(problem), s.log_plan_stride)
     timing = _timing(sc, model)
     return PreparedRun(plant, planner, mpc, timing, task, s.duration, s.divergence_bound,
-                       identity, _books(sc, model, timing))
+                       identity, _books(sc, model, timing, margins))
 
 
 def _plant(sc, model, system):
@@ -141,14 +141,21 @@ def _plant(sc, model, system):
                  s.input_at_events == "recompute", s.max_events_per_step)
 
 
-def _books(sc, model, timing: StackTiming) -> RunBooks:
-    """The run's books: every guard of the model, the charged compute time if any."""
+def _books(sc, model, timing: StackTiming, margins: ConstraintMargins | None = None
+           ) -> RunBooks:
+    """The run's books: every guard of the model, the charged compute time if any.
+
+    Set-up warnings go into its summary: measured latency, and (fixed-mode MPC) guards
+    whose region x0 lies outside (:func:`~hmpc_cli.run.setup_checks.region_warnings`).
+    """
     books = RunBooks(sc.name, sc.seed, [g.name for g in model.guards])
     if timing.latency.kind != "paused":
         books.charge_time(timing.latency.kind, timing.per_solve / sc.sim.rate_hz)
     if timing.latency.kind == "measured":
         books.warn("sim.latency = 'measured': plans reach the plant after their measured "
                    "compute time, so this run is not reproducible")
+    for line in region_warnings(model, margins) if sc.mpc.kind == "fixed_mode" else []:
+        books.warn(line)
     return books
 
 

@@ -240,7 +240,7 @@ def _plugin_key_problems(reg, spec, data: dict) -> list[str]:
         elif key not in model.model_fields:
             close = difflib.get_close_matches(key, list(model.model_fields), n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
-            out.append(f"{at}: the {who} sets {base}.{key} in its {attr}, which is not a "
+            out.append(f"{at}: the {who} sets {section}.{key} in its {attr}, which is not a "
                        f"setting of [{section}]{hint}; the plug-in must be fixed, not the "
                        f"scenario")
     return out

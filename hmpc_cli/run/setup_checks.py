@@ -10,7 +10,7 @@ from __future__ import annotations
 from hmpc_cli.core.messages import ConstraintMargins
 
 __all__ = ["built_problems", "check_task", "initial_state_problems", "margins_of",
-           "setup_problems"]
+           "region_warnings", "setup_problems"]
 
 
 def setup_problems(scenario) -> list[str]:
@@ -86,6 +86,8 @@ def initial_state_problems(system, x0=None, whose: str = "", key: str = "system.
     already crossed, or one x0 lies on, never fires (it fires when its gap goes from > 0
     to <= 0), so the run would start in a mode its state has left, or pass through it.
     ``whose`` names another system checked with the controllers' x0 (``"the plant's "``).
+    Then: guards' gaps that are not finite at x0, an ``nlp_gap`` without its gap's sign
+    there, a flow that is not finite there.
     """
     import casadi as ca
     import numpy as np
@@ -108,7 +110,69 @@ def initial_state_problems(system, x0=None, whose: str = "", key: str = "system.
                        f"mode {mode!r} (gap 0): a guard fires when its gap goes from > 0 to "
                        f"<= 0 within a step, so from there it would never fire; move "
                        f"{moved} off the guard")
-    return out + _flow_problems(system, x0, whose, key)
+    return (out + _finite_gap_problems(system, x0, whose, key)
+            + _nlp_gap_problems(system, x0, whose) + _flow_problems(system, x0, whose, key))
+
+
+def _finite_gap_problems(system, x0, whose: str = "", key: str = "system.x0") -> list[str]:
+    """``system.x0: reason`` when a guard of the initial mode has a gap that is not finite at x0.
+
+    Every guard of the mode, inside its region or not: the simulator evaluates each gap
+    every step (a NaN or inf one never fires) and the NLP its ``nlp_gap`` at every node
+    of the mode (NaN rows). The plant (``whose`` given) is checked for h only: the NLP
+    reads the controllers' model.
+    """
+    import casadi as ca
+    import numpy as np
+
+    x = ca.SX.sym("x", system.n_x)
+    mode, out = system.initial_mode, []
+    moved = "system.x0" if key == "system.x0" else "x0"
+    point = ", ".join(f"{v:g}" for v in x0)
+    for i in system.guards_of(system.mode_index(mode)):
+        g = system.guards[i]
+        parts = [("h", g.h)] + ([("nlp_gap", g.nlp_gap)]
+                                if g.nlp_gap is not None and not whose else [])
+        values = [(name, float(ca.Function("v", [x], [f(x)])(x0))) for name, f in parts]
+        bad = [f"{name}(x0) = {v:g}" for name, v in values if not np.isfinite(v)]
+        if bad:
+            out.append(f"{key}: {whose}guard {g.name!r} of mode {mode!r} is not finite at x0 "
+                       f"({point}): {', '.join(bad)}: a gap that is NaN or inf never fires "
+                       f"in the simulator and makes the NLP's rows NaN; check the guard's "
+                       f"expression where x0 lies (a square root of a negative number, a "
+                       f"division by 0), or move {moved}")
+    return out
+
+
+def _nlp_gap_problems(system, x0, whose: str = "") -> list[str]:
+    """``system: reason`` when a guard's ``nlp_gap`` has not the gap's sign at x0.
+
+    For each guard of the initial mode that has an ``nlp_gap`` and is active at x0 with
+    a gap > 0 there: the NLP reads q = nlp_gap in place of the gap, so a q <= 0 turns its
+    guard-avoid rows around (a plan must then cross the guard at once). The plant
+    (``whose`` given) is not checked: the NLP reads the controllers' model only.
+    """
+    import casadi as ca
+    import numpy as np
+
+    if whose:
+        return []
+    x = ca.SX.sym("x", system.n_x)
+    mode, out = system.initial_mode, []
+    for i in system.guards_of(system.mode_index(mode)):
+        g = system.guards[i]
+        if g.nlp_gap is None or (g.region is not None
+                                 and not np.all(np.asarray(g.region(x0)) >= 0.0)):
+            continue
+        gap, q = (float(ca.Function("v", [x], [f(x)])(x0)) for f in (g.gap_expr, g.q_expr))
+        if gap > 0.0 and q <= 0.0:
+            how = "has the opposite sign to" if q < 0.0 else "is not positive like"
+            out.append(f"system: guard {g.name!r} of mode {mode!r}: nlp_gap(x0) = {q:.4g} "
+                       f"{how} its gap at x0 ({gap:.4g} = -direction (h(x0) - level), h(x0) "
+                       f"= {float(g.h(x0)):.4g}, level {g.level:g}, direction "
+                       f"{g.direction:+d}): the NLP's gap must be positive where the "
+                       "guard's gap is, before the crossing (docs/plugins.md)")
+    return out
 
 
 def _flow_problems(system, x0, whose: str = "", key: str = "system.x0") -> list[str]:
@@ -135,6 +199,37 @@ def _flow_problems(system, x0, whose: str = "", key: str = "system.x0") -> list[
             f"expression where x0 lies, or move {moved}"]
 
 
+def region_warnings(system, margins: ConstraintMargins | None = None) -> list[str]:
+    """Warnings for guards of non-final modes whose avoid row fails at x0, outside their region.
+
+    The fixed-mode MPC imposes a guard's guard-avoid rows (q >= kappa) at every node of
+    the domains it leaves from, inside its activity region or not (the region is honoured
+    by the simulator and at the switching node only). A guard whose region x0 lies
+    outside and whose row fails at x0 (q(x0) < kappa, ``margins``' guard-avoid offset, 0
+    without margins) is a region that does not cover the workspace: solves are softened
+    or infeasible. The run goes on (the soft rows may carry it).
+    """
+    import casadi as ca
+    import numpy as np
+
+    x = ca.SX.sym("x", system.n_x)
+    out = []
+    for i, g in enumerate(system.guards):
+        if g.region is None or g.source == system.final_mode or \
+                np.all(np.asarray(g.region(system.x0)) >= 0.0):
+            continue
+        q = float(ca.Function("q", [x], [g.q_expr(x)])(system.x0))
+        kappa = margins.avoid[i] if margins is not None else 0.0
+        if q < kappa:
+            out.append(
+                f"system: guard {g.name!r} of mode {g.source!r}: x0 lies outside its region "
+                f"and its guard-avoid row fails there (nlp_gap(x0) = {q:.4g}, kappa = "
+                f"{kappa:.4g}): the fixed-mode MPC imposes that row at every node of mode "
+                f"{g.source!r}, outside the region too, so solves are softened or "
+                f"infeasible; fold the region into the guard's nlp_gap (docs/plugins.md)")
+    return out
+
+
 def _planner_problems(sc, model) -> list[str]:
     """``planner.key: reason`` lines from planner settings that check a built system."""
     return list(sc.planner.system_problems(model))
@@ -144,7 +239,9 @@ def margins_of(sc, model) -> ConstraintMargins | None:
     """The MPC's margins: hand-set, from the scenario's margins file, or None (no field).
 
     Raises:
-        ValueError: ``mpc.margins: ...`` when the file does not fit the scenario.
+        ValueError: ``mpc.margins: ...`` when the file does not fit the scenario, or its
+            margins (a margins file's or the tube's) make the tightened problem infeasible
+            at x0.
     """
     from hmpc_cli.core.registry import registry
 
@@ -157,10 +254,32 @@ def margins_of(sc, model) -> ConstraintMargins | None:
     if source == "tube":
         from hmpc_cli.run.tube_margins import tube_margins
 
-        return tube_margins(sc, model)
+        return tube_margins(sc, model)  # refused when computed if infeasible at x0
     from hmpc_cli.tube.margins_file import constraint_margins
 
-    return constraint_margins(source, model, sc.system, sc.mpc.rate_hz)
+    return _feasible_at_x0(constraint_margins(source, model, sc.system, sc.mpc.rate_hz),
+                           model, sc.mpc.rate_hz)
+
+
+def _feasible_at_x0(margins: ConstraintMargins, model, rate_hz: float) -> ConstraintMargins:
+    """``margins``, once no guard-avoid row they tighten fails at x0 already.
+
+    The check ``mpc.margins = "tube"`` makes when it computes its tube, made on a margins
+    file: such a row fails at the NLP's first nodes, so every solve would be softened or
+    fail.
+
+    Raises:
+        ValueError: ``mpc.margins: ...`` naming the first guard whose row fails at x0.
+    """
+    from hmpc_cli.tube.margins_file import REFUSED
+
+    violated = model.initial_avoid_violations(margins.avoid)
+    if not violated:
+        return margins
+    name, q, kappa = violated[0]
+    raise ValueError(f"{REFUSED}{margins.source}: at {rate_hz:g} Hz the tightened guard-avoid "
+                     f"row of {name} (kappa = {kappa:.4g}) exceeds its NLP gap at x0 "
+                     f"({q:.4g}): the tightened problem is infeasible at the initial state")
 
 
 def _margin_problems(sc, model, margins: ConstraintMargins | None) -> list[str]:

@@ -1,11 +1,13 @@
 """The kinematic part of the state: where a tube can be integrated once more.
 
-A state x_i is *kinematic* when, in every mode, its flow is another state x_j or zero,
-free of the input and the disturbance (positions of a mechanical system, p' = v; a held
-stance-foot position, p' = 0). Its tracking error then starts at zero at every MPC solve
-(the plan starts at the measured state) and is the integral of other components of the
-error: ||e_P(t)|| <= int_0^t ||e(s)|| ds <= int_0^t diam(s) ds. A guard whose gap depends
-on kinematic states only sees that smaller tube (:func:`hmpc_cli.tube.bounds.margins`).
+A state x_i is *kinematic* when its flow has the same rate in every mode: exactly the
+same other state x_j in every mode, or zero in every mode, free of the input and the
+disturbance (positions of a mechanical system, p' = v; a held stance-foot position,
+p' = 0; not a state that is p' = v in one mode and p' = 0 in another). Its tracking
+error then starts at zero at every MPC solve (the plan starts at the measured state) and
+is the integral of other components of the error: ||e_P(t)|| <= int_0^t ||e(s)|| ds <=
+int_0^t diam(s) ds. A guard whose gap depends on kinematic states only sees that smaller
+tube (:func:`hmpc_cli.tube.bounds.margins`).
 """
 
 from __future__ import annotations
