@@ -347,7 +347,29 @@ def test_bad_parameters_give_keyed_errors():
     assert errors_of(spin=1)[0][0] == "spin"
     assert errors_of(name="ball")[0][0] == "name"
     assert errors_of(stairs=[])[0][0] == "stairs"
+    # already on the top segment: nothing to climb (one flat stair)
+    errs = errors_of(stairs=[{"length": 3.0, "height": 0.0}])
+    assert errs == [("stance_foot0", "(0, 0) is on the top segment [0, 3] at "
+                     "height 0 already: nothing to climb (add a stair, or start before the "
+                     "top)")]
     # valid: stance foot on a segment boundary, at either height
     lifted = (-0.78, 0.9, 0.0133, 0.8, -1.8)  # swing foot 0.18 m up
     for height in (0.0, 0.075):
         assert BipedParams(stance_foot0=(0.4, height), q0=lifted).stance_foot0[1] == height
+
+
+def test_success_needs_the_stance_foot_at_the_top_segments_height():
+    """A stance foot within the top segment's x range but 5 m above it (the one stair's
+    height is -5 m, the foot on the ground at 0) is not on it."""
+    from hmpc_cli.systems.biped.task import ClimbStairs
+
+    system = build_biped(BipedParams(stairs=[{"length": 1.0, "height": -5.0}]))
+    task = ClimbStairs(system, 0.35)
+    x = system.x0.copy()
+    x[10:] = (0.5, 0.0)
+    verdict = task.verdict(x, 0)
+    assert not verdict.success
+    assert verdict.reason == ("stance foot at (0.500, 0.000) m is not on the top segment "
+                              "[0, 1] at height -5")
+    x[11] = -5.0 + 1e-9  # a touchdown's stance foot: within the event tolerance
+    assert task.verdict(x, 0).success

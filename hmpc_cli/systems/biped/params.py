@@ -109,6 +109,12 @@ class BipedParams(BaseModel):
         elif min(abs(fy - h) for h in ground) > 1e-9:
             out.append((("stance_foot0",), f"must be on the ground: y = {fy}, terrain height "
                         f"{_fmt(ground)} at x = {fx}", [fx, fy]))
+        else:
+            start, end, top = stair_terrain(self).segments[-1]
+            if start <= fx <= end and abs(fy - top) <= 1e-9:
+                out.append((("stance_foot0",), f"({fx:g}, {fy:g}) is on the top segment "
+                            f"[{start:g}, {end:g}] at height {top:g} already: nothing to "
+                            "climb (add a stair, or start before the top)", [fx, fy]))
         sx, sy = swing_foot_numeric(self, q)
         sx, sy = sx + fx, sy + fy
         ground = stair_terrain(self).heights(sx)

@@ -13,6 +13,9 @@ from hmpc_cli.core.stack import Verdict
 #: body points that must stay above the terrain (a knee, the hip or the torso top down
 #: is a fall)
 BODY = ("stance_knee", "hip", "torso_top", "swing_knee")
+#: a stance foot this close to a segment's height stands on it [m] (a touchdown is located
+#: on the guard's near side, within the event tolerance)
+ON_SEGMENT = 1e-6
 
 
 @dataclass(frozen=True)
@@ -60,12 +63,15 @@ class ClimbStairs:
         return ""
 
     def verdict(self, x: np.ndarray, mode: int) -> Verdict:
-        """Success iff the stance foot stands on the top segment."""
+        """Success iff the stance foot stands on the top segment.
+
+        On it: within its x range and at its height (to :data:`ON_SEGMENT` m).
+        """
         err = float(self.system.numeric.goal_error(x)) if np.all(np.isfinite(x)) else \
             float("nan")
-        foot_x = float(self.system.numeric.output("stance_foot")(x)[0][0])
-        start, end, _ = self.system.terrain.segments[-1]
-        if start <= foot_x <= end:
+        foot_x, foot_y = (float(v) for v in self.system.numeric.output("stance_foot")(x)[0])
+        start, end, top = self.system.terrain.segments[-1]
+        if start <= foot_x <= end and abs(foot_y - top) <= ON_SEGMENT:
             return Verdict(True, err, "success")
-        return Verdict(False, err, f"stance foot at x = {foot_x:.3f} m is not on the top "
-                                   f"segment [{start:g}, {end:g}]")
+        return Verdict(False, err, f"stance foot at ({foot_x:.3f}, {foot_y:.3f}) m is not on "
+                                   f"the top segment [{start:g}, {end:g}] at height {top:g}")
