@@ -332,7 +332,8 @@ value, tried on a tiny problem before the run: an option the installed IPOPT doe
 or a value it cannot take, is named with the nearest one (`mpc.solver_options.ipopt.max_iterr:
 IPOPT has no option 'max_iterr' (did you mean 'max_iter'?)`). Work is
 bounded before anything is built: at most 20 000 NLP nodes (`mpc.horizon` ×
-`mpc.nodes_per_second`; walking: 2 × `nodes_per_swing`), 20 000 links of the switching chain
+`mpc.nodes_per_second`; the walking MPC's 2 × `nodes_per_swing` at most 1000, its solves
+growing faster than its nodes), 20 000 links of the switching chain
 NLP (its nodes + `mpc.max_switches`), 1e7 simulator steps (`sim.duration` × `sim.rate_hz`),
 1000 events per step, 1e9 CEM rollout steps per planner call (`planner.iterations` ×
 (`planner.samples` + 1) × `planner.horizon` × `planner.rollout_rate_hz`), CEM arrays within
