@@ -794,6 +794,22 @@ def test_an_untyped_version_1_log_is_replayed_not_called_damaged(tmp_path) -> No
         "expected an object, got a number")
 
 
+def test_figures_from_a_log_none_can_be_drawn_from_is_an_error(ball, tmp_path) -> None:
+    """--figures on a log cut after 30 kB: no figure can be drawn, so the option fails
+    (exit 2, each figure's reason on stderr, -q or not) and the directory it made goes;
+    it printed the directory, exit 0, and left it empty."""
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes((ball / "run.mcap").read_bytes()[:30000])
+    res = replay(cut, "--figures", tmp_path / "f", "-q")
+    assert res.exit_code == 2, res.output
+    lines = res.stderr.splitlines()
+    assert lines[0] == f"error: --figures {tmp_path / 'f'}: no figure could be drawn from " \
+                       "this log"
+    assert [line.split(":")[1].strip() for line in lines[1:]] == [
+        "fig2", "fig4", "timing", "scene animation"]
+    assert not (tmp_path / "f").exists() and not res.stdout.strip()
+
+
 def test_foreign_log_with_a_run_info_topic(tmp_path) -> None:
     path = tmp_path / "other.mcap"
     with Recorder(path) as rec:

@@ -367,6 +367,7 @@ def _figures(console, rp, out: Path) -> None:
     from hmpc_cli.figures.timing import timing
     from hmpc_cli.analysis.passthrough import PassThroughError, pass_through_geometry
 
+    made = not out.exists()
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -379,15 +380,21 @@ def _figures(console, rp, out: Path) -> None:
             ("fig4", lambda: fig4(rp.path, out, ["pdf", "png"])),
             ("timing", lambda: timing(rp.path, out, ["pdf", "png"])),
             ("scene animation", lambda: animate_scene(rp.log, out, title)))
+    missed = []
     for name, job in jobs:
         try:
             job()
             if not quiet:
                 console.print(f"figures: {name} written to {escape(str(out))}")
         except (FigureInputError, PassThroughError) as exc:
+            missed.append(f"{name}: {exc}")
             if not quiet:
                 console.print(f"figures: {name} not drawn: {escape(str(exc))}")
         except OSError as exc:
             _fail([f"--figures {out}: cannot write ({exc})"])
+    if len(missed) == len(jobs):  # nothing to show for the option: a refusal, not a result
+        if made:
+            out.rmdir()
+        _fail([f"--figures {out}: no figure could be drawn from this log", *missed])
     if quiet:
         typer.echo(str(out))
