@@ -143,6 +143,10 @@ BLAME = [
                                            "--set", "mpc.rate_hz=5"],
      ["error: --set mpc.horizon=0.05: mpc.horizon: 0.05 s is shorter than the MPC period "
       "1 / mpc.rate_hz = 0.2 s: each plan would run out before the next one"]),
+    ("an event tolerance of a step", ["run", "ball.toml", "--set", "sim.event_time_tol=1e9"],
+     ["error: --set sim.event_time_tol=1e9: sim.event_time_tol: 1e+09 s brackets an event "
+      "time to more than 1e-3 of a simulator step (1/sim.rate_hz = 0.001667 s): events would "
+      "be placed anywhere in the step; use at most 1.67e-06 s (default 1e-10)"]),
     ("no =", ["run", "ball.toml", "--set", "nokey"],
      ["error: --set 'nokey': expected key.path=value"]),
     ("a rate named in the reason", ["run", "ball.toml", "--set", "sim.rate_hz=7"],

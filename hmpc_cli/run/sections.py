@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from hmpc_cli.core.settings_types import BoundedInt, FiniteFloat, LargeFloat, StrictBool
 from hmpc_cli.core.text import did_you_mean
@@ -89,6 +89,17 @@ class SimSettings(BaseModel):
         "'paused' computes the first plan (planner and MPC at t = 0) with time paused, as "
         "a controller that planned before the run started, and charges every later solve "
         "(also a first plan found only after t = 0)")
+
+    @field_validator("event_time_tol")
+    @classmethod
+    def _event_time_tol(cls, v: float, info: ValidationInfo) -> float:
+        rate = info.data.get("rate_hz")
+        if rate is not None and v > 1e-3 / rate:
+            raise ValueError(f"{v:g} s brackets an event time to more than 1e-3 of a "
+                             f"simulator step (1/sim.rate_hz = {1.0 / rate:.4g} s): events "
+                             f"would be placed anywhere in the step; use at most "
+                             f"{1e-3 / rate:.3g} s (default 1e-10)")
+        return v
 
     @field_validator("latency", mode="before")
     @classmethod
