@@ -125,6 +125,18 @@ def test_not_utf8(work: Path) -> None:
     assert cli_bad(work, ["bin.toml"]) == ["error: bin.toml: not a UTF-8 text file"]
 
 
+def test_a_byte_order_mark_is_read_past_and_a_dangling_link_named(work: Path) -> None:
+    """A UTF-8 byte-order mark (some editors write one) was a syntax error at line 1; a
+    symbolic link looping on itself was 'file not found'."""
+    from hmpc_cli.run.scenario import load_scenario
+
+    (work / "bom.toml").write_bytes(b"\xef\xbb\xbf" + (work / "ball.toml").read_bytes())
+    assert load_scenario(work / "bom.toml")[0] == load_scenario(work / "ball.toml")[0]
+    (work / "loop.toml").symlink_to(work / "loop.toml")
+    assert cli_bad(work, ["loop.toml"]) == [
+        "error: loop.toml: a symbolic link to nothing (a missing file, or a loop)"]
+
+
 @pytest.mark.parametrize("via_file", [False, True], ids=["set", "file"])
 def test_wrong_type(work: Path, via_file: bool) -> None:
     if via_file:

@@ -841,12 +841,13 @@ def read_toml_file(path: Path, what: str = "scenario file", src: str | None = No
     if path.is_dir():
         raise ScenarioError([f"{src}: is a directory, not a {what}"])
     if not path.exists():
-        raise ScenarioError([f"{src}: file not found"])
+        raise ScenarioError([f"{src}: a symbolic link to nothing (a missing file, or a loop)"
+                             if path.is_symlink() else f"{src}: file not found"])
     if not path.is_file():  # a FIFO or a device: reading it may block forever
         raise ScenarioError([f"{src}: not a regular file"])
     deep = f"{src}: tables or arrays nested too deeply (more than {MAX_DEPTH} levels)"
-    try:
-        text = path.read_text(encoding="utf-8")
+    try:  # a byte-order mark some editors write is not TOML's: skipped
+        text = path.read_text(encoding="utf-8-sig")
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError([f"{src}: TOML syntax error: {exc}"]) from None
