@@ -147,6 +147,8 @@ BLAME = [
      ["error: --set sim.event_time_tol=1e9: sim.event_time_tol: 1e+09 s brackets an event "
       "time to more than 1e-3 of a simulator step (1/sim.rate_hz = 0.001667 s): events would "
       "be placed anywhere in the step; use at most 1.67e-06 s (default 1e-10)"]),
+    ("a system that is not a table", ["run", "ball.toml", "--set", "system=ball"],
+     ["error: --set system=ball: system: Input should be a valid dictionary"]),  # only
     ("no =", ["run", "ball.toml", "--set", "nokey"],
      ["error: --set 'nokey': expected key.path=value"]),
     ("a rate named in the reason", ["run", "ball.toml", "--set", "sim.rate_hz=7"],

@@ -492,7 +492,10 @@ def format_errors(exc: ValidationError, source: str, model: Any = None) -> list[
     lines, tags = [], _tags()
     if model is None and exc.title == "Scenario":
         model = scenario_model()
-    for err in _tuple_lengths(exc.errors(), model):
+    errors = _tuple_lengths(exc.errors(), model)
+    if any(e["loc"][:1] == ("system",) for e in errors):  # the kinds follow the system's
+        errors = [e for e in errors if e["type"] != "union_tag_not_found"]
+    for err in errors:
         parts = [p for p in err["loc"] if p not in ("function-after",)]
         if len(parts) >= 2 and parts[1] in tags.get(str(parts[0]), ()):
             del parts[1]  # the union member's tag (e.g. planner.cem.samples -> planner.samples)
