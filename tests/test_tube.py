@@ -462,10 +462,11 @@ def test_cli_tube_bad_input(tmp_path: Path):
     assert proc.stderr.startswith("error: --set lowlevel.kp=-1: lowlevel.kp:")
     proc = hmpc(["tube", str(tmp_path / "missing.toml")], tmp_path)
     assert proc.returncode == 2 and "file not found" in proc.stderr
-    for pad in ("nan", "inf", "-1"):  # named by the option (inf was blamed on the region)
+    # named by the option (inf and 1e300 were blamed on the region)
+    for pad in ("nan", "inf", "-1", "1e+300"):
         proc = hmpc(["tube", str(BALL), "--pad", pad, "--out", str(tmp_path / "o")], tmp_path)
-        assert (proc.returncode, proc.stderr) == (2, f"error: --pad {pad}: must be a finite "
-                                                     "number >= 0 (a fraction of each coordinate's "
+        assert (proc.returncode, proc.stderr) == (2, f"error: --pad {pad}: must be a number in "
+                                                     "[0, 100] (a fraction of each coordinate's "
                                                      "width per side, e.g. 0.1)\n")
     assert not (tmp_path / "o").exists()
 

@@ -57,10 +57,14 @@ def _blamed(scenario: Path, exc: Exception) -> str:
 
 
 def _check_pad(pad: float | None) -> None:
-    """Exits 2 when --pad is not a finite number >= 0."""
-    if pad is not None and not (math.isfinite(pad) and pad >= 0):
-        _fail([f"--pad {pad:g}: must be a finite number >= 0 (a fraction of each "
+    """Exits 2 when --pad is not a number in [0, :data:`MAX_PAD`]."""
+    if pad is not None and not (math.isfinite(pad) and 0 <= pad <= MAX_PAD):
+        _fail([f"--pad {pad:g}: must be a number in [0, {MAX_PAD:g}] (a fraction of each "
                "coordinate's width per side, e.g. 0.1)"])
+
+
+#: the widest --pad: a region 201 times as wide as the one it pads
+MAX_PAD = 100.0
 
 
 def _check_samples(samples: int) -> None:
