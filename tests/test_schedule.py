@@ -33,6 +33,14 @@ def test_names_are_checked_against_the_system(tmp_path):
     assert any(p.startswith("planner.modes[2]: unknown mode 'nowhere'") for p in problems)
     assert any(p.startswith("planner.guards[1]: guard 'floor' leads from 'outside'")
                for p in problems)
+    # a schedule runs from where the plant starts to the final domain (6 of 6 solves
+    # failed, no warning, when it never reached it)
+    for modes, line in ((["outside"], "planner.modes[0]: 'outside' is not the system's "
+                                      "final mode 'inside'"),
+                        (["inside"], "planner.modes[0]: 'inside' is not the system's "
+                                     "initial mode 'outside'")):
+        sc, _ = load_scenario(_schedule_toml(tmp_path, modes, [], []))
+        assert [p.split(" (")[0] for p in setup_problems(sc)] == [line]
     with pytest.raises(ScenarioError) as exc:  # lengths and signs: when the file is read
         load_scenario(_schedule_toml(tmp_path, ["outside", "inside"], ["circle_in"], [-1.0]))
     assert any("planner.durations" in line for line in exc.value.lines)

@@ -57,13 +57,20 @@ class ScheduleSettings(PlannerSettings):
     def system_problems(self, system: HybridSystem) -> list[str]:
         """``planner.key: reason`` lines where the schedule does not fit ``system``.
 
-        Unknown mode or guard names, and a guard that does not lead from the domain
-        before it to the domain after it.
+        Unknown mode or guard names, a guard that does not lead from the domain before it
+        to the domain after it, and a schedule that does not start in the system's initial
+        mode (where the plant starts) or end in its final mode.
         """
         modes = [m.name for m in system.modes]
         guards = {g.name: g for g in system.guards}
         out = [f"planner.modes[{i}]: unknown mode {m!r} (the system has {modes})"
                for i, m in enumerate(self.modes) if m not in modes]
+        for i, end, mode in ((0, "initial", system.initial_mode),
+                             (len(self.modes) - 1, "final", system.final_mode)):
+            if self.modes[i] in modes and self.modes[i] != mode:
+                out.append(f"planner.modes[{i}]: {self.modes[i]!r} is not the system's {end} "
+                           f"mode {mode!r} (a schedule runs from the initial mode, where the "
+                           "plant starts, to the final one)")
         for j, name in enumerate(self.guards):
             g = guards.get(name)
             if g is None:
