@@ -356,3 +356,22 @@ def test_a_sweep_files_stale_table_is_refused_and_its_directory_draws_it(tmp_pat
                      tmp_path)
     assert as_is.returncode == 0, as_is.stderr
     assert "4 finished runs, 2 seeds" in (res / "README.md").read_text()
+
+
+def test_two_sweep_files_of_one_name_are_refused_naming_both(tmp_path, run_hmpc):
+    """Two sweep files of one ``name`` would share ``<results>/sweeps/<name>`` (the first
+    section showing the second's runs): exit 2 naming both files and the name, nothing
+    written."""
+    a, b = tmp_path / "a.toml", tmp_path / "b.toml"
+    for path, rate in ((a, 10), (b, 30)):
+        path.write_text(f'name = "study"\nscenario = "{BALL.as_posix()}"\nseeds = 1\n'
+                        f'[set]\n"sim.duration" = 0.2\n[grid]\n"mpc.rate_hz" = [{rate}]\n')
+    res = tmp_path / "results"
+    args = ["report", *(x for kv in (NONE | {"--robustness": str(a)}).items() for x in kv),
+            "--robustness", str(b), "--results", str(res), "--run", "--workers", "1"]
+    proc = run_hmpc(args, tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"error: --robustness {a} and --robustness {b}: both sweep files are named 'study' "
+        f"and would share {res / 'sweeps' / 'study'}; give one of them another name"]
+    assert not res.exists()

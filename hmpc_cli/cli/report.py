@@ -200,11 +200,32 @@ def _sweeps(results: Path, seeds: int | None, biped: Path | None,
         _echo_errors(bad)
         raise typer.Exit(EXIT_BAD_INPUT)
     plans = _plan_sweeps({k: v for k, v in files.items() if k not in given}, seeds)
+    _refuse_shared_names(plans, results)
     if not plans and not given and biped is None:
         typer.echo("error: nothing to report (every sweep option and --biped are empty)",
                    err=True)
         raise typer.Exit(EXIT_BAD_INPUT)
     return plans, {k: results / "sweeps" / p.spec.name for k, p in plans.items()} | given
+
+
+def _refuse_shared_names(plans: dict, results: Path) -> None:
+    """Exit 2 when two different sweep files have one ``name`` (one output directory).
+
+    Both would run into ``<results>/sweeps/<name>``, and the first section would show
+    the second sweep's runs.
+    """
+    first: dict[str, tuple[str, Path]] = {}  # name -> (part, sweep file)
+    lines = []
+    for key, plan in plans.items():
+        name = plan.spec.name
+        seen = first.setdefault(name, (key, plan.path))
+        if Path(seen[1]).resolve() != Path(plan.path).resolve():
+            lines.append(f"{_option(seen[0])} {seen[1]} and {_option(key)} {plan.path}: both "
+                         f"sweep files are named {name!r} and would share "
+                         f"{results / 'sweeps' / name}; give one of them another name")
+    if lines:
+        _echo_errors(lines)
+        raise typer.Exit(EXIT_BAD_INPUT)
 
 
 def _print_missing(plans: dict, dirs: dict[str, Path]) -> None:
