@@ -127,6 +127,20 @@ class SweepPlan:
     base_toml: str = ""
 
     @property
+    def stored_text(self) -> str:
+        """The text stored as ``<out>/sweep.toml``: the file's, naming the sweep.
+
+        A file without ``name`` gets its resolved name (from the file's stem) as a first
+        line: the directory's owner (:func:`hmpc_cli.sweep.lock.owner_problem`) is read
+        from it, and the stored file's own stem is ``sweep``.
+        """
+        import tomllib
+
+        if "name" in tomllib.loads(self.text):
+            return self.text
+        return f"name = {toml_value(self.spec.name)}  # hmpc sweep: the file's stem\n{self.text}"
+
+    @property
     def selected(self) -> list[Run]:
         """The runs to execute: all, or those of ``only_seeds``."""
         return [r for r in self.runs if self.only_seeds is None or r.seed in self.only_seeds]
