@@ -384,6 +384,18 @@ BAD = {
                                 "sweep.toml: grid: cells [15] and [15.0] run the same scenario "
                                 "(a value written two ways, e.g. 15 and 15.0, or one the "
                                 "scenario already has): keep one"),
+    "one key written two ways in [grid]": (
+        '[grid]\n"mpc.rate_hz" = [10, 20]\n[grid.mpc]\nrate_hz = [30, 60]\n',
+        'sweep.toml: grid.mpc.rate_hz: written two ways, "mpc.rate_hz" and mpc.rate_hz (the '
+        'same key): keep one'),
+    "one key written two ways in [set]": (
+        '[set]\n"mpc.rate_hz" = 30\n[set.mpc]\nrate_hz = 60\n',
+        'sweep.toml: set.mpc.rate_hz: written two ways, "mpc.rate_hz" and mpc.rate_hz (the '
+        'same key): keep one'),
+    "one key written two ways in an axis entry": (
+        '[grid]\nc = [{ label = "a", "mpc.rate_hz" = 30, mpc = { rate_hz = 60 } }]\n',
+        'sweep.toml: grid.c[0].mpc.rate_hz: written two ways, "mpc.rate_hz" and mpc.rate_hz '
+        '(the same key): keep one'),
 }
 
 
