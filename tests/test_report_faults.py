@@ -375,3 +375,30 @@ def test_two_sweep_files_of_one_name_are_refused_naming_both(tmp_path, run_hmpc)
         f"error: --robustness {a} and --robustness {b}: both sweep files are named 'study' "
         f"and would share {res / 'sweeps' / 'study'}; give one of them another name"]
     assert not res.exists()
+
+
+def test_report_run_refuses_a_sweep_directory_that_is_not_its_sweeps(tmp_path, run_hmpc):
+    """``report --run`` checks each sweep's directory as ``hmpc sweep`` checks ``--out``:
+    one that is no sweep's, or another sweep's, is refused (exit 2, nothing run, no
+    page); it wrote its runs among the files there."""
+    sweep = tmp_path / "study.toml"
+    sweep.write_text(f'name = "study"\nscenario = "{BALL.as_posix()}"\nseeds = 1\n'
+                     '[set]\n"sim.duration" = 0.2\n')
+    res = tmp_path / "results"
+    out = res / "sweeps" / "study"
+    out.mkdir(parents=True)
+    (out / "notes.txt").write_text("mine\n")
+    args = [*_args(robustness=str(sweep)), "--run", "--results", str(res), "--workers", "1"]
+    proc = run_hmpc(args, tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"error: --robustness {sweep}: {out}: is not a sweep's directory (no sweep.toml; it "
+        f"holds notes.txt): choose a new or empty --results"]
+    (out / "sweep.toml").write_text('name = "other"\n')
+    proc = run_hmpc(args, tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"error: --robustness {sweep}: {out}: belongs to sweep 'other' (its sweep.toml), not "
+        f"'study': choose another --results (the same sweep resumes in its own directory)"]
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt", "sweep.toml"]
+    assert not (res / "README.md").exists()

@@ -370,6 +370,7 @@ def _run_sweeps(plans: dict, dirs: dict[str, Path], workers: int | None) -> list
     from hmpc_cli.cli.sweep import _locked_execute, _print_cells
     from hmpc_cli.core.signals import Interrupted, as_interrupted
 
+    _check_owners(plans, dirs)
     missing = _check_missing(plans, dirs)
     lost: list[str] = []
     done = 0
@@ -387,6 +388,23 @@ def _run_sweeps(plans: dict, dirs: dict[str, Path], workers: int | None) -> list
         _echo_errors([f"worker failed, run not recorded (rerun to retry): {x}" for x in lost])
         _stopped(as_interrupted(exc), f"{done} of {missing} missing runs done")
     return lost
+
+
+def _check_owners(plans: dict, dirs: dict[str, Path]) -> None:
+    """Exit 2 (nothing run) when a sweep's directory is another's or no sweep's.
+
+    ``hmpc sweep``'s check of ``--out`` (:func:`hmpc_cli.sweep.lock.owner_problem`).
+    """
+    from hmpc_cli.sweep.lock import owner_problem
+
+    lines = []
+    for key, plan in plans.items():
+        problem = owner_problem(dirs[key], plan.spec.name, "--results")
+        if problem is not None:
+            lines.append(f"{_option(key)} {plan.path}: {dirs[key]}: {problem}")
+    if lines:
+        _echo_errors(lines)
+        raise typer.Exit(EXIT_BAD_INPUT)
 
 
 def _stopped(stop, what: str) -> None:
