@@ -402,3 +402,37 @@ def test_report_run_refuses_a_sweep_directory_that_is_not_its_sweeps(tmp_path, r
         f"'study': choose another --results (the same sweep resumes in its own directory)"]
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt", "sweep.toml"]
     assert not (res / "README.md").exists()
+
+
+def _swept_study(tmp_path: Path, run_hmpc) -> tuple[Path, Path, Path]:
+    """A sweep file over a copy of the ball scenario, swept (2 runs) into the results'
+    sweeps directory: (the sweep file, the scenario copy, the sweep's output directory)."""
+    scenario = tmp_path / "ball.toml"
+    scenario.write_text(BALL.read_text())
+    sweep = tmp_path / "study.toml"
+    sweep.write_text('name = "study"\nscenario = "ball.toml"\nseeds = 1\n[set]\n'
+                     '"sim.duration" = 0.2\n[grid]\n"mpc.rate_hz" = [10, 20]\n')
+    out = tmp_path / "results" / "sweeps" / "study"
+    proc = run_hmpc(["sweep", str(sweep), "--out", str(out), "--workers", "1", "-q"], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    return sweep, scenario, out
+
+
+def test_a_table_behind_its_finished_runs_is_refused(tmp_path, run_hmpc):
+    """A sweep stopped (SIGKILL) before it rewrote results.csv: its finished run
+    directories hold more runs than the table. ``hmpc report`` drew the table as it stood
+    ('1 finished runs'); it now refuses (exit 2, why, what rewrites it, nothing written)."""
+    sweep, _, out = _swept_study(tmp_path, run_hmpc)
+    table = out / "results.csv"
+    table.write_text("".join(table.read_text().splitlines(keepends=True)[:2]))  # one row
+    res = tmp_path / "results"
+    proc = run_hmpc([*_args(robustness=str(sweep)), "--results", str(res)], tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"error: --robustness {sweep}: {table} is not this sweep file's table: it is behind "
+        f"its finished runs: 1 finished run directory is not in it (the sweep stopped before "
+        f"it rewrote its table); `hmpc report --run` rewrites it from the runs that stand "
+        f"(running the missing ones first), or give the directory (--robustness {out}) to "
+        f"draw it as it is"]
+    assert not (res / "README.md").exists() and not (res / "report").exists()
+
