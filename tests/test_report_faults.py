@@ -436,3 +436,16 @@ def test_a_table_behind_its_finished_runs_is_refused(tmp_path, run_hmpc):
         f"draw it as it is"]
     assert not (res / "README.md").exists() and not (res / "report").exists()
 
+
+def test_a_base_scenario_changed_in_keys_every_run_overrides_is_no_stale_table(
+        tmp_path, run_hmpc):
+    """The base scenario changed only in a key every run overrides: every row is vouched
+    for by a finished run directory (its effective scenario is the planned one), so the
+    table is drawn (it was refused as written for another base scenario)."""
+    sweep, scenario, _ = _swept_study(tmp_path, run_hmpc)
+    scenario.write_text(scenario.read_text().replace("duration = 3.0", "duration = 2.5", 1))
+    assert scenario.read_text() != BALL.read_text()
+    res = tmp_path / "results"
+    proc = run_hmpc([*_args(robustness=str(sweep)), "--results", str(res)], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "2 finished runs, 1 seeds" in (res / "README.md").read_text()

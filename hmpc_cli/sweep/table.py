@@ -201,10 +201,10 @@ def stale_table(plan, out: Path) -> str | None:
 
     Not one: rows hold run ids the plan does not have (the grid, ``[set]`` or seeds changed
     since); finished run directories of the plan hold runs it lacks (the sweep stopped
-    before it rewrote the table); it was written for another base scenario
-    (``base_scenario.toml`` differs from ``plan.base_toml``, :func:`same_scenario`), or,
-    with no base scenario to check against, rows whose run directory is not finished
-    here. No table, or an unreadable one: None.
+    before it rewrote the table); or a row no finished run directory vouches for (its
+    effective scenario is the planned one) while the table was written for another base
+    scenario (``base_scenario.toml`` differs from ``plan.base_toml``, :func:`same_scenario`)
+    or for none to check against. No table, or an unreadable one: None.
     """
     try:
         with open(out / "results.csv", newline="", encoding="utf-8-sig") as f:
@@ -230,14 +230,16 @@ def stale_table(plan, out: Path) -> str | None:
         stored = None
     except (OSError, UnicodeDecodeError):
         return None
-    if stored is not None:
-        return None if same_scenario(stored, plan.base_toml) else (
-            f"it was written for another base scenario: {plan.scenario} changed since (the "
-            f"one it ran: {out / BASE_SCENARIO})")
+    if stored is not None and same_scenario(stored, plan.base_toml):
+        return None
     unfinished = sum(finished(out, runs[i]) is None for i in ids)
-    return None if not unfinished else (
-        f"{unfinished} of its {len(ids)} rows have no finished run directory to vouch for "
-        f"them, and no base scenario ({BASE_SCENARIO}) they could be checked against")
+    if not unfinished:  # every row vouched for by its run directory
+        return None
+    if stored is not None:
+        return (f"it was written for another base scenario: {plan.scenario} changed since (the "
+                f"one it ran: {out / BASE_SCENARIO})")
+    return (f"{unfinished} of its {len(ids)} rows have no finished run directory to vouch for "
+            f"them, and no base scenario ({BASE_SCENARIO}) they could be checked against")
 
 
 def _untabled_finished(plan, out: Path, tabled: set[str]) -> int:
