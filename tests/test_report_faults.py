@@ -356,3 +356,96 @@ def test_a_sweep_files_stale_table_is_refused_and_its_directory_draws_it(tmp_pat
                      tmp_path)
     assert as_is.returncode == 0, as_is.stderr
     assert "4 finished runs, 2 seeds" in (res / "README.md").read_text()
+
+
+def test_two_sweep_files_of_one_name_are_refused_naming_both(tmp_path, run_hmpc):
+    """Two sweep files of one ``name`` would share ``<results>/sweeps/<name>`` (the first
+    section showing the second's runs): exit 2 naming both files and the name, nothing
+    written."""
+    a, b = tmp_path / "a.toml", tmp_path / "b.toml"
+    for path, rate in ((a, 10), (b, 30)):
+        path.write_text(f'name = "study"\nscenario = "{BALL.as_posix()}"\nseeds = 1\n'
+                        f'[set]\n"sim.duration" = 0.2\n[grid]\n"mpc.rate_hz" = [{rate}]\n')
+    res = tmp_path / "results"
+    args = ["report", *(x for kv in (NONE | {"--robustness": str(a)}).items() for x in kv),
+            "--robustness", str(b), "--results", str(res), "--run", "--workers", "1"]
+    proc = run_hmpc(args, tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"error: --robustness {a} and --robustness {b}: both sweep files are named 'study' "
+        f"and would share {res / 'sweeps' / 'study'}; give one of them another name"]
+    assert not res.exists()
+
+
+def test_report_run_refuses_a_sweep_directory_that_is_not_its_sweeps(tmp_path, run_hmpc):
+    """``report --run`` checks each sweep's directory as ``hmpc sweep`` checks ``--out``:
+    one that is no sweep's, or another sweep's, is refused (exit 2, nothing run, no
+    page); it wrote its runs among the files there."""
+    sweep = tmp_path / "study.toml"
+    sweep.write_text(f'name = "study"\nscenario = "{BALL.as_posix()}"\nseeds = 1\n'
+                     '[set]\n"sim.duration" = 0.2\n')
+    res = tmp_path / "results"
+    out = res / "sweeps" / "study"
+    out.mkdir(parents=True)
+    (out / "notes.txt").write_text("mine\n")
+    args = [*_args(robustness=str(sweep)), "--run", "--results", str(res), "--workers", "1"]
+    proc = run_hmpc(args, tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"error: --robustness {sweep}: {out}: is not a sweep's directory (no sweep.toml; it "
+        f"holds notes.txt): choose a new or empty --results"]
+    (out / "sweep.toml").write_text('name = "other"\n')
+    proc = run_hmpc(args, tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"error: --robustness {sweep}: {out}: belongs to sweep 'other' (its sweep.toml), not "
+        f"'study': choose another --results (the same sweep resumes in its own directory)"]
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt", "sweep.toml"]
+    assert not (res / "README.md").exists()
+
+
+def _swept_study(tmp_path: Path, run_hmpc) -> tuple[Path, Path, Path]:
+    """A sweep file over a copy of the ball scenario, swept (2 runs) into the results'
+    sweeps directory: (the sweep file, the scenario copy, the sweep's output directory)."""
+    scenario = tmp_path / "ball.toml"
+    scenario.write_text(BALL.read_text())
+    sweep = tmp_path / "study.toml"
+    sweep.write_text('name = "study"\nscenario = "ball.toml"\nseeds = 1\n[set]\n'
+                     '"sim.duration" = 0.2\n[grid]\n"mpc.rate_hz" = [10, 20]\n')
+    out = tmp_path / "results" / "sweeps" / "study"
+    proc = run_hmpc(["sweep", str(sweep), "--out", str(out), "--workers", "1", "-q"], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    return sweep, scenario, out
+
+
+def test_a_table_behind_its_finished_runs_is_refused(tmp_path, run_hmpc):
+    """A sweep stopped (SIGKILL) before it rewrote results.csv: its finished run
+    directories hold more runs than the table. ``hmpc report`` drew the table as it stood
+    ('1 finished runs'); it now refuses (exit 2, why, what rewrites it, nothing written)."""
+    sweep, _, out = _swept_study(tmp_path, run_hmpc)
+    table = out / "results.csv"
+    table.write_text("".join(table.read_text().splitlines(keepends=True)[:2]))  # one row
+    res = tmp_path / "results"
+    proc = run_hmpc([*_args(robustness=str(sweep)), "--results", str(res)], tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"error: --robustness {sweep}: {table} is not this sweep file's table: it is behind "
+        f"its finished runs: 1 finished run directory is not in it (the sweep stopped before "
+        f"it rewrote its table); `hmpc report --run` rewrites it from the runs that stand "
+        f"(running the missing ones first), or give the directory (--robustness {out}) to "
+        f"draw it as it is"]
+    assert not (res / "README.md").exists() and not (res / "report").exists()
+
+
+def test_a_base_scenario_changed_in_keys_every_run_overrides_is_no_stale_table(
+        tmp_path, run_hmpc):
+    """The base scenario changed only in a key every run overrides: every row is vouched
+    for by a finished run directory (its effective scenario is the planned one), so the
+    table is drawn (it was refused as written for another base scenario)."""
+    sweep, scenario, _ = _swept_study(tmp_path, run_hmpc)
+    scenario.write_text(scenario.read_text().replace("duration = 3.0", "duration = 2.5", 1))
+    assert scenario.read_text() != BALL.read_text()
+    res = tmp_path / "results"
+    proc = run_hmpc([*_args(robustness=str(sweep)), "--results", str(res)], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "2 finished runs, 1 seeds" in (res / "README.md").read_text()

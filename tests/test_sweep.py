@@ -384,6 +384,18 @@ BAD = {
                                 "sweep.toml: grid: cells [15] and [15.0] run the same scenario "
                                 "(a value written two ways, e.g. 15 and 15.0, or one the "
                                 "scenario already has): keep one"),
+    "one key written two ways in [grid]": (
+        '[grid]\n"mpc.rate_hz" = [10, 20]\n[grid.mpc]\nrate_hz = [30, 60]\n',
+        'sweep.toml: grid.mpc.rate_hz: written two ways, "mpc.rate_hz" and mpc.rate_hz (the '
+        'same key): keep one'),
+    "one key written two ways in [set]": (
+        '[set]\n"mpc.rate_hz" = 30\n[set.mpc]\nrate_hz = 60\n',
+        'sweep.toml: set.mpc.rate_hz: written two ways, "mpc.rate_hz" and mpc.rate_hz (the '
+        'same key): keep one'),
+    "one key written two ways in an axis entry": (
+        '[grid]\nc = [{ label = "a", "mpc.rate_hz" = 30, mpc = { rate_hz = 60 } }]\n',
+        'sweep.toml: grid.c[0].mpc.rate_hz: written two ways, "mpc.rate_hz" and mpc.rate_hz '
+        '(the same key): keep one'),
 }
 
 
@@ -699,3 +711,24 @@ def test_a_cell_whose_own_tube_does_not_fit_is_a_warning_in_either_axis_order(tm
         "margins at 5 Hz do not fit: at 5 Hz the tightened guard-avoid row of floor (kappa = "
         "0.9878) exceeds its NLP gap at x0 (0.9): the tightened problem is infeasible at the "
         "initial state (its runs are recorded as refused)"]
+
+
+def test_a_sweep_file_without_a_name_resumes_in_its_directory(tmp_path):
+    """A sweep named by its file's stem (no ``name``): its stored sweep.toml names it, so
+    the same command resumes (it said 'belongs to sweep None'); another sweep is refused."""
+    path = write_sweep(tmp_path, 'scenario = "{scenario}"\nseeds = 1\n[set]\n'
+                       '"sim.duration" = 0.2\n', name="noname.toml")
+    args = [str(path), "--workers", "1", "--out", "out"]
+    first = sweep(args, tmp_path)
+    assert first.returncode == 0, first.stderr
+    assert (tmp_path / "out" / "sweep.toml").read_text() == (
+        f'name = "noname"  # hmpc sweep: the file\'s stem\n{path.read_text()}')
+    again = sweep(args, tmp_path)
+    assert again.returncode == 0, again.stderr
+    assert "noname: 1 runs, 1 skipped (already done), 0 to run" in again.stdout
+    other = write_sweep(tmp_path, path.read_text(), name="other.toml")
+    refused = sweep([str(other), "--out", "out", "--dry-run"], tmp_path)
+    assert refused.returncode == 2
+    assert refused.stderr.splitlines() == [
+        "error: --out out: belongs to sweep 'noname' (its sweep.toml), not 'other': choose "
+        "another --out (the same sweep resumes in its own directory)"]

@@ -10,12 +10,14 @@ from __future__ import annotations
 import json
 import os
 import shlex
+import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-from test_sweep import TIMING, TINY_SET, table, write_sweep
+from conftest import cli_env
+from test_sweep import REGISTER, TIMING, TINY_SET, table, write_sweep
 from hmpc_cli.sweep import dask as sweep_dask
 from hmpc_cli.log.reader import read_log
 from hmpc_cli.analysis.replay import compare_logs
@@ -161,6 +163,28 @@ def test_a_failed_transfer_writes_nothing_and_is_redone(setup, monkeypatch):
     assert (again.skipped, again.ran, again.lost, again.done) == (1, 1, [], 2)
     assert calls[2:] == calls[:1]
     assert table(out) == table(local)
+
+
+#: ``hmpc sweep`` whose client's disk is full: storing any run's files fails (ENOSPC)
+FULL_DISK = ("import errno\n"
+             "from hmpc_cli.sweep import dask\n"
+             "def store_run(out, run_id, payload):\n"
+             "    raise OSError(errno.ENOSPC, 'No space left on device', str(out / 'runs'))\n"
+             "dask.store_run = store_run\n")
+
+
+def test_a_full_disk_stops_a_dask_sweep_with_one_line(setup):
+    client_dir, path, _, client = setup
+    out = client_dir / "full"
+    proc = subprocess.run([sys.executable, "-c", FULL_DISK + REGISTER, "sweep", str(path),
+                           "--dask", client.scheduler.address, "--out", str(out)],
+                          cwd=client_dir, env=cli_env(), capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"error: cannot write: {out / 'runs'}: No space left on device; 0 of 2 runs kept in "
+        f"{out} (finished runs stay; free space and run the same command to resume)"]
+    assert list((out / "runs").iterdir()) == []
 
 
 # ------------------------------------------------------------ storing, no cluster

@@ -283,3 +283,38 @@ print("ended cleanly")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120)
     assert (res.returncode, res.stdout, res.stderr) == (0, "ended cleanly\n", ""), res.stderr
+
+
+#: a ``sitecustomize`` whose processes (the sweep's and its spawned workers) find the disk
+#: full under every sweep's runs/ directory: each atomic write there fails (ENOSPC)
+FULL_RUNS = ("import errno\n"
+             "from hmpc_cli.core import paths\n"
+             "real = paths.write_atomic\n"
+             "def write_atomic(path, data):\n"
+             "    if '/runs/' in str(path):\n"
+             "        raise OSError(errno.ENOSPC, 'No space left on device', str(path))\n"
+             "    return real(path, data)\n"
+             "paths.write_atomic = write_atomic\n")
+
+
+def test_a_full_disk_in_the_workers_stops_the_pool_with_one_line(tmp_path):
+    """Workers whose run files cannot be written (a full disk): the worker's disk error
+    comes back to the parent, which stops with its one line (it printed each worker's
+    traceback and retried every run first); no run directory holds an empty file."""
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(FULL_RUNS)
+    path = write_sweep(tmp_path, _spec("full", 2, 0.2))
+    out = tmp_path / "out"
+    env = cli_env() | {"PYTHONPATH": os.pathsep.join(
+        [str(site), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    proc = subprocess.run([sys.executable, "-c", REGISTER, "sweep", str(path), "--workers",
+                           "2", "--out", str(out)], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, proc.stderr
+    (line,) = proc.stderr.splitlines()
+    assert line.startswith(f"error: cannot write: {out / 'runs'}/"), line
+    assert line.endswith(f"/scenario.toml: No space left on device; 0 of 2 runs kept in {out} "
+                         "(finished runs stay; free space and run the same command to "
+                         "resume)"), line
+    assert [p for p in (out / "runs").rglob("*") if p.is_file()] == []

@@ -200,11 +200,32 @@ def _sweeps(results: Path, seeds: int | None, biped: Path | None,
         _echo_errors(bad)
         raise typer.Exit(EXIT_BAD_INPUT)
     plans = _plan_sweeps({k: v for k, v in files.items() if k not in given}, seeds)
+    _refuse_shared_names(plans, results)
     if not plans and not given and biped is None:
         typer.echo("error: nothing to report (every sweep option and --biped are empty)",
                    err=True)
         raise typer.Exit(EXIT_BAD_INPUT)
     return plans, {k: results / "sweeps" / p.spec.name for k, p in plans.items()} | given
+
+
+def _refuse_shared_names(plans: dict, results: Path) -> None:
+    """Exit 2 when two different sweep files have one ``name`` (one output directory).
+
+    Both would run into ``<results>/sweeps/<name>``, and the first section would show
+    the second sweep's runs.
+    """
+    first: dict[str, tuple[str, Path]] = {}  # name -> (part, sweep file)
+    lines = []
+    for key, plan in plans.items():
+        name = plan.spec.name
+        seen = first.setdefault(name, (key, plan.path))
+        if Path(seen[1]).resolve() != Path(plan.path).resolve():
+            lines.append(f"{_option(seen[0])} {seen[1]} and {_option(key)} {plan.path}: both "
+                         f"sweep files are named {name!r} and would share "
+                         f"{results / 'sweeps' / name}; give one of them another name")
+    if lines:
+        _echo_errors(lines)
+        raise typer.Exit(EXIT_BAD_INPUT)
 
 
 def _print_missing(plans: dict, dirs: dict[str, Path]) -> None:
@@ -349,6 +370,7 @@ def _run_sweeps(plans: dict, dirs: dict[str, Path], workers: int | None) -> list
     from hmpc_cli.cli.sweep import _locked_execute, _print_cells
     from hmpc_cli.core.signals import Interrupted, as_interrupted
 
+    _check_owners(plans, dirs)
     missing = _check_missing(plans, dirs)
     lost: list[str] = []
     done = 0
@@ -366,6 +388,23 @@ def _run_sweeps(plans: dict, dirs: dict[str, Path], workers: int | None) -> list
         _echo_errors([f"worker failed, run not recorded (rerun to retry): {x}" for x in lost])
         _stopped(as_interrupted(exc), f"{done} of {missing} missing runs done")
     return lost
+
+
+def _check_owners(plans: dict, dirs: dict[str, Path]) -> None:
+    """Exit 2 (nothing run) when a sweep's directory is another's or no sweep's.
+
+    ``hmpc sweep``'s check of ``--out`` (:func:`hmpc_cli.sweep.lock.owner_problem`).
+    """
+    from hmpc_cli.sweep.lock import owner_problem
+
+    lines = []
+    for key, plan in plans.items():
+        problem = owner_problem(dirs[key], plan.spec.name, "--results")
+        if problem is not None:
+            lines.append(f"{_option(key)} {plan.path}: {dirs[key]}: {problem}")
+    if lines:
+        _echo_errors(lines)
+        raise typer.Exit(EXIT_BAD_INPUT)
 
 
 def _stopped(stop, what: str) -> None:

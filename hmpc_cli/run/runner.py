@@ -17,7 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from hmpc_cli.core import signals
-from hmpc_cli.core.paths import first_names
+from hmpc_cli.core.paths import disk_error, first_names, write_atomic
 from hmpc_cli.log.books import RunResult
 from hmpc_cli.log.recorder import Recorder
 from hmpc_cli.log.runlog import NullWriter, Provenance, TopicWriter
@@ -139,7 +139,7 @@ def execute_run(prepared: PreparedRun, toml_text: str, out: Path,
     ``provenance``: the command line and overrides recorded (default: this process's).
     """
     out.mkdir(parents=True, exist_ok=True)
-    (out / "scenario.toml").write_text(toml_text, encoding="utf-8")
+    write_atomic(out / "scenario.toml", toml_text)  # a full disk leaves no empty file
     with signals.deferred():  # a signal stops the loop at its next check, not the writes
         rec = Recorder(out / "run.mcap", mirror=mirror)
         res, log = prepared.result, None
@@ -169,8 +169,6 @@ def execute_run(prepared: PreparedRun, toml_text: str, out: Path,
 
 def _write_summary(out: Path, res: RunResult) -> None:
     """Writes ``summary.json`` atomically (a reader never sees half of it, nor a temporary)."""
-    from hmpc_cli.core.paths import write_atomic
-
     write_atomic(out / "summary.json", summary_text(res))
 
 
@@ -196,8 +194,10 @@ def run_one(toml_text: str, run_dir: str, provenance=None) -> dict:
     """Runs one effective scenario into ``run_dir`` (replacing it); returns its summary.
 
     An exception becomes a failed run: ``reason`` is the exception type and message and
-    ``error.txt`` holds the traceback. Runs in one process are serialized (IPOPT is not
-    thread-safe); NLPs are cached per process (:func:`hmpc_cli.run.compose.build`).
+    ``error.txt`` holds the traceback; a disk error (a full or read-only disk,
+    :func:`hmpc_cli.core.paths.disk_error`) is no run's result: it is raised. Runs in one
+    process are serialized (IPOPT is not thread-safe); NLPs are cached per process
+    (:func:`hmpc_cli.run.compose.build`).
     ``provenance`` (:class:`hmpc_cli.log.runlog.Provenance`, see :func:`run_provenance`) is
     recorded in the run's log; None records this process's command line only. A sweep's
     process runs many runs, so it waits for its NLPs' stage kernels to compile (once,
@@ -218,12 +218,12 @@ def run_one(toml_text: str, run_dir: str, provenance=None) -> dict:
             prepared = prepare(sc)
             execute_run(prepared, toml_text, out, provenance=provenance)
         except Exception as exc:  # broad on purpose: a failed run is a result
+            if disk_error(exc):  # the sweep stops (its files could not be written either)
+                raise
             res = prepared.result if prepared is not None else RunResult(
                 sc.name if sc else "?", sc.seed if sc else -1)
             res.success = False
             res.reason = f"{type(exc).__name__}: {' '.join(str(exc).split())}"[:500]
-            from hmpc_cli.core.paths import write_atomic
-
             out.mkdir(parents=True, exist_ok=True)
             write_atomic(out / "scenario.toml", toml_text)
             write_atomic(out / "error.txt", traceback.format_exc())

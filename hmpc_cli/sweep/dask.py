@@ -7,7 +7,9 @@ bytes through the future, and removes its directory. The client writes the files
 ``<out>/runs/<run_id>/`` atomically: into a hidden staging directory first, renamed into
 place only when every file is written. A run whose transfer or store fails leaves nothing
 behind (an earlier partial run directory stays as it was): it is reported as lost and
-redone when the sweep is resumed.
+redone when the sweep is resumed. A disk error storing a run (a full or read-only disk,
+:func:`hmpc_cli.core.paths.disk_error`) stops the sweep: the remaining futures are
+cancelled and the error raised, as the local paths do.
 """
 
 from __future__ import annotations
@@ -147,7 +149,13 @@ def clear_stale(runs: Path) -> None:
 
 
 def collect(fut, run, out: Path, record: Callable, lost: list[str]) -> None:
-    """Stores and records one finished future; a failed transfer or store goes to ``lost``."""
+    """Stores and records one finished future; a failed transfer or store goes to ``lost``.
+
+    Raises:
+        OSError: a disk error storing the run (:func:`hmpc_cli.core.paths.disk_error`).
+    """
+    from hmpc_cli.core.paths import disk_error
+
     try:
         payload = fut.result()
     except Exception as exc:  # broad on purpose: the worker (not the run) failed
@@ -156,6 +164,8 @@ def collect(fut, run, out: Path, record: Callable, lost: list[str]) -> None:
     try:
         summary = store_run(out, run.run_id, payload)
     except (TransferError, OSError) as exc:
+        if disk_error(exc):  # this machine's disk: every later run would fail the same way
+            raise
         lost.append(f"{run.run_id}: results not stored: {type(exc).__name__}: {exc}")
         return
     record(run, summary)
@@ -175,6 +185,7 @@ def run_on_dask(client, pending: list, out: Path, record: Callable, lost: list[s
 
     Raises:
         KeyboardInterrupt: a stop signal (the remaining futures are cancelled first).
+        OSError: a disk error storing a run (the remaining futures are cancelled first).
     """
     from distributed import as_completed
 
@@ -186,6 +197,6 @@ def run_on_dask(client, pending: list, out: Path, record: Callable, lost: list[s
             run = futures.pop(fut)
             collect(fut, run, out, record, lost)
             fut.release()  # the worker may drop the result (about 1 MB per run)
-    except KeyboardInterrupt:
+    except BaseException:  # a stop signal or a disk error: nothing more is stored
         client.cancel(list(futures))
         raise

@@ -79,7 +79,7 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
     """
     out = out.resolve()
     (out / "runs").mkdir(parents=True, exist_ok=True)
-    write_atomic(out / "sweep.toml", plan.text)
+    write_atomic(out / "sweep.toml", plan.stored_text)
     selected = plan.selected
     done = finished_runs(plan, out, selected)  # run directories and tabled runs
     pending = [r for r in selected if done[r.run_id] is None]

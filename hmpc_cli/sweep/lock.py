@@ -58,12 +58,13 @@ def output_lock(out: Path) -> Iterator[None]:
         os.close(fd)  # releases the lock
 
 
-def owner_problem(out: Path, name: str) -> str | None:
+def owner_problem(out: Path, name: str, option: str = "--out") -> str | None:
     """Why sweep ``name`` may not write into ``out``, or None; reads only.
 
     ``out`` is free when it does not exist or is empty (but for a lock); else it must be
     a sweep's directory (its ``sweep.toml``) of a sweep of the same name: resuming
     or extending it. A directory of another sweep, or one that is no sweep's, is refused.
+    ``option``: the option the reason advises to change.
     """
     import tomllib
 
@@ -79,14 +80,14 @@ def owner_problem(out: Path, name: str) -> str | None:
     if not stored.is_file():
         shown = first_names(entries)
         return (f"is not a sweep's directory (no sweep.toml; it holds {shown}): choose a new "
-                "or empty --out")
+                f"or empty {option}")
     try:
         owner = tomllib.loads(stored.read_text(encoding="utf-8")).get("name")
     except (OSError, ValueError) as exc:
-        return f"its sweep.toml cannot be read ({exc}): choose another --out"
+        return f"its sweep.toml cannot be read ({exc}): choose another {option}"
     if owner != name:
         return (f"belongs to sweep {owner!r} (its sweep.toml), not {name!r}: choose another "
-                "--out (the same sweep resumes in its own directory)")
+                f"{option} (the same sweep resumes in its own directory)")
     return None
 
 

@@ -127,6 +127,20 @@ class SweepPlan:
     base_toml: str = ""
 
     @property
+    def stored_text(self) -> str:
+        """The text stored as ``<out>/sweep.toml``: the file's, naming the sweep.
+
+        A file without ``name`` gets its resolved name (from the file's stem) as a first
+        line: the directory's owner (:func:`hmpc_cli.sweep.lock.owner_problem`) is read
+        from it, and the stored file's own stem is ``sweep``.
+        """
+        import tomllib
+
+        if "name" in tomllib.loads(self.text):
+            return self.text
+        return f"name = {toml_value(self.spec.name)}  # hmpc sweep: the file's stem\n{self.text}"
+
+    @property
     def selected(self) -> list[Run]:
         """The runs to execute: all, or those of ``only_seeds``."""
         return [r for r in self.runs if self.only_seeds is None or r.seed in self.only_seeds]
@@ -151,23 +165,44 @@ def _models(ann: Any) -> list[type[BaseModel]]:
     return [m for a in args for m in _models(a)]
 
 
-def _flatten(data: dict, model: Any, prefix: str = "") -> dict:
-    """Dotted keys; descends into tables only where the scenario has a settings section."""
-    out = {}
+def _flatten(data: dict, model: Any, where: str = "", twice: list[str] | None = None) -> dict:
+    """Dotted keys; descends into tables only where the scenario has a settings section.
+
+    A key written two ways (``"mpc.rate_hz"`` and ``mpc = {rate_hz = ...}``) keeps its
+    first value; ``twice`` then receives ``<where>.<key>: written two ways, ...``.
+    """
+    out: dict[str, Any] = {}
+    spelled: dict[str, str] = {}
+    for parts, v in _leaves(data, model, ()):
+        key = ".".join(parts)
+        spelling = ".".join(p if re.fullmatch(r"[A-Za-z0-9_-]+", p) else json.dumps(p)
+                            for p in parts)
+        if key not in out:
+            out[key], spelled[key] = v, spelling
+        elif twice is not None:
+            twice.append(f"{where}.{key}: written two ways, {spelled[key]} and {spelling} "
+                         "(the same key): keep one")
+    return out
+
+
+def _leaves(data: dict, model: Any, path: tuple[str, ...]
+            ) -> list[tuple[tuple[str, ...], Any]]:
+    """``(key path as written, value)`` of every setting in ``data`` (see :func:`_flatten`)."""
     models = _models(model)
+    items = []
     for k, v in data.items():
         subs = [m.model_fields[k].annotation for m in models if k in m.model_fields]
         if isinstance(v, dict) and any(_models(a) for a in subs):
-            out.update(_flatten(v, subs, f"{prefix}{k}."))
+            items += _leaves(v, subs, (*path, k))
         else:
-            out[f"{prefix}{k}"] = v
-    return out
+            items.append(((*path, k), v))
+    return items
 
 
 def _axes(spec: SweepSpec, src: str, errors: list[str]) -> list[Axis]:
     """The grid's axes in file order; problems go to ``errors``, broken axes are left out."""
     axes = []
-    for name, values in _flatten(spec.grid, scenario_model()).items():
+    for name, values in _flatten(spec.grid, scenario_model(), f"{src}: grid", errors).items():
         where = f"{src}: grid.{name}"
         problem = _axis_problem(name, values)
         if problem is not None:
@@ -217,7 +252,7 @@ def _table_axis(name: str, tables: list[dict], where: str, errors: list[str]) ->
         if label is not None and not isinstance(label, str):
             errors.append(f"{where}[{i}].label: must be a string")
             label = None
-        ov = _flatten(entry, scenario_model())
+        ov = _flatten(entry, scenario_model(), f"{where}[{i}]", errors)
         labels.append(label if label is not None else
                       ", ".join(f"{k}={cell_text(v)}" for k, v in ov.items()) or "(base)")
         overrides.append(ov)
@@ -281,7 +316,7 @@ def plan_sweep(path: str | Path) -> SweepPlan:
     if not scenario.is_file():
         errors.append(f"{src}: scenario: file not found: {scenario}"
                       + _relative_hint(spec.scenario, path.parent))
-    base = _flatten(spec.set_, scenario_model())
+    base = _flatten(spec.set_, scenario_model(), f"{src}: set", errors)
     axes = _axes(spec, src, errors)  # broken axes are left out; their runs still checked
     errors += _dead_sets(base, axes, src)
     bad_keys = _bad_keys(src, [(k, v, "set") for k, v in base.items()] + [

@@ -9,6 +9,8 @@ worker holds:
 * on SIGINT/SIGTERM/SIGHUP the parent asks its busy workers to stop (the same signal:
   they stop their run within one simulator step, its summary marked interrupted by it,
   see :mod:`hmpc_cli.core.signals`) and waits for them;
+* a disk error in a worker (a full or read-only disk) comes back as such: the parent
+  raises it (no retry), stopping the sweep;
 * workers exit when their parent dies (``PR_SET_PDEATHSIG`` on Linux, and a watchdog
   thread polling the parent pid).
 """
@@ -25,12 +27,14 @@ from collections.abc import Callable
 from pathlib import Path
 
 from hmpc_cli.core import signals
+from hmpc_cli.core.paths import disk_error
 
 __all__ = ["WORKER_STOP_GRACE", "run_pool"]
 
 WORKER_STOP_GRACE = 20.0  # [s] a stopping worker's time to close its run before SIGKILL
 _PR_SET_PDEATHSIG = 1
 _WATCH_PERIOD = 0.5  # [s] parent-pid watchdog period
+_DISK = "disk error"  # a reply's mark: (_DISK, errno, strerror, filename)
 
 
 # ------------------------------------------------------------------ the worker side
@@ -57,8 +61,9 @@ def _die_with_parent(parent: int) -> None:
 def worker_main(conn, parent: int) -> None:
     """A worker: runs ``(toml_text, run_dir, provenance)`` tasks from ``conn``.
 
-    Stops at a None task or a signal. Replies with each run's summary, or None when the
-    run was stopped by a signal (the worker then exits).
+    Stops at a None task or a signal. Replies with each run's summary, None when the
+    run was stopped by a signal, or ``(_DISK, errno, strerror, filename)`` for a disk
+    error (the worker then exits).
     """
     signals.install_deferred()  # first: a stop during the imports below is recorded
     _die_with_parent(parent)
@@ -75,11 +80,15 @@ def worker_main(conn, parent: int) -> None:
             summary = run_one(*task)
         except KeyboardInterrupt:
             summary = None
+        except OSError as exc:
+            if not disk_error(exc):
+                raise
+            summary = (_DISK, exc.errno, exc.strerror, exc.filename)
         try:
             conn.send(summary)
         except (BrokenPipeError, OSError):
             return
-        if summary is None or signals.pending() is not None:
+        if not isinstance(summary, dict) or signals.pending() is not None:
             return
 
 
@@ -114,6 +123,7 @@ def run_pool(n: int, pending: list, out: Path, record: Callable, died: Callable,
 
     Raises:
         KeyboardInterrupt: a stop signal (the workers are stopped first).
+        OSError: a disk error in a worker (the workers are stopped first).
     """
     import multiprocessing
     from multiprocessing.connection import wait
@@ -146,13 +156,20 @@ def run_pool(n: int, pending: list, out: Path, record: Callable, died: Callable,
 
 
 def _answered(w: _Worker, record: Callable) -> bool:
-    """Records the worker's answer; False if the worker died instead."""
+    """Records the worker's answer; False if the worker died instead.
+
+    Raises:
+        OSError: the worker's disk error (its run is not recorded).
+    """
     try:
         summary = w.conn.recv()
     except (EOFError, OSError):
         return False
     if summary is None:  # the worker was stopped by a signal not from us: as if it died
         return False
+    if isinstance(summary, tuple) and summary[:1] == (_DISK,):
+        w.run = None  # the worker exits; its run resumes later
+        raise OSError(*summary[1:])
     run, w.run = w.run, None
     record(run, summary)
     return True

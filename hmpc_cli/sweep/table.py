@@ -200,9 +200,11 @@ def stale_table(plan, out: Path) -> str | None:
     """Why ``<out>/results.csv`` is not a table of ``plan``'s runs, or None if it is one.
 
     Not one: rows hold run ids the plan does not have (the grid, ``[set]`` or seeds changed
-    since), or it was written for another base scenario (``base_scenario.toml`` differs from
-    ``plan.base_toml``, :func:`same_scenario`), or, with no base scenario to check against,
-    rows whose run directory is not finished here. No table, or an unreadable one: None.
+    since); finished run directories of the plan hold runs it lacks (the sweep stopped
+    before it rewrote the table); or a row no finished run directory vouches for (its
+    effective scenario is the planned one) while the table was written for another base
+    scenario (``base_scenario.toml`` differs from ``plan.base_toml``, :func:`same_scenario`)
+    or for none to check against. No table, or an unreadable one: None.
     """
     try:
         with open(out / "results.csv", newline="", encoding="utf-8-sig") as f:
@@ -215,6 +217,11 @@ def stale_table(plan, out: Path) -> str | None:
         return (f"{len(foreign)} of its {len(ids)} rows are runs this sweep file does not "
                 f"plan (run ids {', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}"
                 "): the grid, [set] or seeds changed since it was written")
+    behind = _untabled_finished(plan, out, set(ids))
+    if behind:
+        return (f"it is behind its finished runs: {behind} finished run "
+                f"director{'y is' if behind == 1 else 'ies are'} not in it (the sweep "
+                "stopped before it rewrote its table)")
     if not ids:
         return None
     try:
@@ -223,14 +230,22 @@ def stale_table(plan, out: Path) -> str | None:
         stored = None
     except (OSError, UnicodeDecodeError):
         return None
-    if stored is not None:
-        return None if same_scenario(stored, plan.base_toml) else (
-            f"it was written for another base scenario: {plan.scenario} changed since (the "
-            f"one it ran: {out / BASE_SCENARIO})")
+    if stored is not None and same_scenario(stored, plan.base_toml):
+        return None
     unfinished = sum(finished(out, runs[i]) is None for i in ids)
-    return None if not unfinished else (
-        f"{unfinished} of its {len(ids)} rows have no finished run directory to vouch for "
-        f"them, and no base scenario ({BASE_SCENARIO}) they could be checked against")
+    if not unfinished:  # every row vouched for by its run directory
+        return None
+    if stored is not None:
+        return (f"it was written for another base scenario: {plan.scenario} changed since (the "
+                f"one it ran: {out / BASE_SCENARIO})")
+    return (f"{unfinished} of its {len(ids)} rows have no finished run directory to vouch for "
+            f"them, and no base scenario ({BASE_SCENARIO}) they could be checked against")
+
+
+def _untabled_finished(plan, out: Path, tabled: set[str]) -> int:
+    """How many of ``plan``'s runs not in ``tabled`` have a finished run directory."""
+    return sum(r.run_id not in tabled and (out / "runs" / r.run_id / "summary.json").is_file()
+               and finished(out, r) is not None for r in plan.runs)
 
 
 def started(d: Path) -> bool:
