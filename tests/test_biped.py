@@ -373,3 +373,5 @@ def test_success_needs_the_stance_foot_at_the_top_segments_height():
                               "[0, 1] at height -5")
     x[11] = -5.0 + 1e-9  # a touchdown's stance foot: within the event tolerance
     assert task.verdict(x, 0).success
+    x[11] = -5.0 + 2e-3  # 2 mm above: not on it
+    assert not task.verdict(x, 0).success

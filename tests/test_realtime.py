@@ -10,7 +10,7 @@ import hmpc_cli.run.layers as layers_module
 from hmpc_cli.analysis.replay import _settings_added_since, compare_logs
 from hmpc_cli.core.messages import ModeSchedule, Plan, PlannerResult, SolveStats, Trajectory
 from hmpc_cli.log.reader import LogMessage, read_log
-from hmpc_cli.run.realtime import Latency
+from hmpc_cli.run.realtime import Latency, SolverClock
 from hmpc_cli.run.runner import prepare, run_to_log
 from hmpc_cli.run.scenario import load_scenario
 from hmpc_cli.run.sections import SimSettings
@@ -119,6 +119,37 @@ def test_a_planner_that_solves_mpc_problems_is_charged_them_once():
     assert measured.charge(other, call) == pytest.approx(0.36)
 
 
+def test_a_prediction_after_a_foothold_replan_expects_the_candidates_solve_time():
+    """``measured``: the loop's solve of the chosen foothold candidate returns the plan the
+    planner solved (a lookup of microseconds); the next prediction expects that plan's own
+    solve time, not the lookup's (it expected about 0 s), nor the planner call's."""
+    clock = SolverClock(Latency("measured", compensate=True))
+    chosen = _plan(39, 0.2, switches=1, t0=0.3)
+    clock.planner = _planned(0.35, chosen, _plan(20, 0.1, switches=1, t0=0.3))
+    clock.solved(chosen, 1.5e-5)
+    assert clock.last_solve == 0.2
+    clock.planner = None
+    clock.solved(_plan(5, 0.01, t0=0.4), 0.012)  # a period solve: its whole call
+    assert clock.last_solve == 0.012
+    clock.solved(replace(_plan(0, 0.0, t0=0.5), adopt=False), 1e-4)  # rejected: no NLP
+    assert clock.last_solve == 0.012
+
+
+def test_rebase_keeps_what_is_left_of_the_current_domain():
+    """A schedule planned anew at t: the current domain, entered at start, keeps its
+    planned time less what has elapsed (none when overdue; all of it when start is later
+    than t, a domain entered at a predicted time the solve came before: it gained time)."""
+    from hmpc_cli.run.realtime import rebase
+
+    sched = ModeSchedule((0, 1, 2), (0, 1), (0.1, 0.2), t0=0.0)
+    assert rebase(sched, 0.25, 0.2).durations == pytest.approx((0.05, 0.2))
+    assert rebase(sched, 0.25, 0.2).t0 == 0.25
+    assert rebase(sched, 0.5, 0.2).durations == (0.0, 0.2)
+    assert rebase(sched, 0.3, 0.35).durations == (0.1, 0.2)
+    final = ModeSchedule((2,), (), (), t0=0.0)
+    assert rebase(final, 0.4, 0.1) == ModeSchedule((2,), (), (), t0=0.4)
+
+
 def test_delay_compensation_solves_from_the_state_at_the_plans_arrival(tmp_path, monkeypatch):
     """Undisturbed ball, 0.02 s charged: every compensated solve starts from exactly the
     plant's state at the step its plan reaches the plant, a contact inside the delay
@@ -224,6 +255,41 @@ def test_a_predicted_contact_not_predicted_again_replans_the_schedule_on_time(
     assert after and len(after[0].detail.counts) == len(replanned.detail.counts) - 1
 
 
+def test_a_real_contact_before_a_withdrawn_prediction_of_it_is_applied(tmp_path,
+                                                                       monkeypatch):
+    """As above, but the forced prediction places the wall contact at 0.19 s, after the
+    plant's real one at 0.176 s: the MPC had kept the predicted time as the newest event
+    it applied, skipped the real contact as old and reinstalled its schedule cold. Now a
+    schedule planned anew forgets the withdrawn time: the real contact drops the wall
+    domain, with no reinstall."""
+    import dataclasses
+
+    real_predict, forced = layers_module.predict, []
+
+    def spy(plant, t, x, mode, delay, plan_at, contacts):
+        pred = real_predict(plant, t, x, mode, delay, plan_at, contacts)
+        if not forced and pred is not None and not pred.events:
+            longer = real_predict(plant, t, x, mode, delay + 0.1, plan_at, contacts)
+            if longer is not None and longer.events:
+                late = dataclasses.replace(longer.events[0], t=0.19)
+                forced.append(dataclasses.replace(longer, events=(late,), t=0.2))
+                return forced[0]
+        return pred
+
+    monkeypatch.setattr(layers_module, "predict", spy)
+    _, log, solves, _ = _run(tmp_path, "late", [
+        "sim.duration=0.3", "sim.latency=0.02", 'sim.latency_first="paused"',
+        "sim.delay_compensation=true", "mpc.rate_hz=20"])
+    (wall, *_) = [m.t for m in read_log(log).topic("/sim/event")]
+    assert wall == pytest.approx(0.1761, abs=1e-4) and wall < 0.19
+    at = {round(t, 4): plan for t, _, _, plan in solves}
+    before, after = at[0.17], at[0.1967]  # the solves either side of the real contact
+    assert len(after.detail.counts) == len(before.detail.counts) - 1  # the wall dropped
+    # one node moved since the contact: no schedule reinstalled (it was: 0 moved, the
+    # first domain 3 intervals from 0.1967 s)
+    assert after.detail.shifted == 1 and after.detail.counts[0] == 2
+
+
 def test_measured_latency_charges_the_prediction_and_the_whole_solve_call(tmp_path,
                                                                         monkeypatch):
     """``measured``: a solve is charged the controller's whole work for it, the prediction
@@ -281,8 +347,6 @@ def test_a_solve_over_its_budget_is_dropped_and_the_previous_plan_tracked_on(tmp
 def test_a_contact_counts_and_names_only_the_plans_it_stops():
     """A plan due after the contact is dropped and named; one already due is kept; work
     that had no plan for the plant (a planner call that found nothing) is no preemption."""
-    from hmpc_cli.run.realtime import SolverClock
-
     clock = SolverClock(Latency("fixed", 0.05, preempt=True))
     assert clock.charge(0.10, _plan(3, 0.0)) == (False, 0.05)  # due at 0.15
     assert clock.charge(0.20, _plan(3, 0.0)) == (False, 0.05)  # due at 0.25

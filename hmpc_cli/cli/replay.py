@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -394,7 +395,7 @@ def _figures(console, rp, out: Path) -> None:
             _fail([f"--figures {out}: cannot write ({exc})"])
     if len(missed) == len(jobs):  # nothing to show for the option: a refusal, not a result
         if made:
-            out.rmdir()
+            shutil.rmtree(out, ignore_errors=True)
         _fail([f"--figures {out}: no figure could be drawn from this log", *missed])
     if quiet:
         typer.echo(str(out))

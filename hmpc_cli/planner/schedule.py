@@ -31,7 +31,8 @@ class ScheduleSettings(PlannerSettings):
     model_config = ConfigDict(extra="forbid")
     kind: Literal["schedule"] = Field("schedule", description="fly a given mode schedule")
     modes: list[str] = Field(min_length=1, description="domain sequence D_0..D_S by mode "
-                             "name (D_0: the plant's mode at the first plan)")
+                             "name (D_0: the system's initial mode, where the plant starts; "
+                             "D_S: its final mode)")
     guards: list[str] = Field(default_factory=list, description="guards G_1..G_S by name "
                               "(G_j leads from D_{j-1} to D_j)")
     durations: list[FiniteFloat] = Field(

@@ -202,10 +202,15 @@ class SolverClock:
     def solved(self, plan: Plan, compute: float) -> None:
         """Notes a solve's own compute time (``compute``: its measured wall time [s]).
 
-        A rejected schedule's plan (no NLP solved) tells nothing of the next solve's.
+        A rejected schedule's plan (no NLP solved) tells nothing of the next solve's; a
+        plan the planner solved (a foothold candidate, returned, not solved again) counts
+        its own solve's time, not the lookup's.
         """
-        if plan.stats.iterations > 0:
-            self.last_solve = self.latency.solve_cost(plan, compute)
+        if plan.stats.iterations <= 0:
+            return
+        reused = self.planner is not None and any(
+            p.t0 == plan.t0 and p.stats == plan.stats for p in self.planner.mpc_solves)
+        self.last_solve = self.latency.solve_cost(plan, None if reused else compute)
 
     def charge(self, t: float, plan: Plan, compute: float | None = None
                ) -> tuple[bool, float]:
@@ -384,7 +389,7 @@ def rebase(schedule: ModeSchedule, t: float, start: float) -> ModeSchedule:
     """
     durations = schedule.durations
     if durations:
-        durations = (max(0.0, durations[0] - (t - start)), *durations[1:])
+        durations = (max(0.0, durations[0] - max(0.0, t - start)), *durations[1:])
     return ModeSchedule(schedule.modes, schedule.guards, durations, t)
 
 

@@ -47,7 +47,8 @@ class SimSettings(BaseModel):
     duration: FiniteFloat = Field(3.0, gt=0.0, description="simulated time [s]")
     max_events_per_step: BoundedInt = Field(10, ge=1, le=1000,
                                             description="more is Zeno chattering")
-    event_time_tol: FiniteFloat = Field(1e-10, gt=0.0, description="event time bracket [s]")
+    event_time_tol: FiniteFloat = Field(1e-10, gt=0.0, description="event time bracket [s], "
+                                        "at most 1e-3 of a simulator step")
     divergence_bound: LargeFloat = Field(1e6, gt=0.0, description="|x| beyond this is "
                                          "divergence")
     log_rate_hz: BoundedInt = Field(100, gt=0, description="state logging rate [Hz]")

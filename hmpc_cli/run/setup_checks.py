@@ -99,7 +99,7 @@ def initial_state_problems(system, x0=None, whose: str = "", key: str = "system.
     for i in system.guards_of(system.mode_index(mode)):
         g = system.guards[i]
         gap = float(ca.Function("gap", [x], [g.gap_expr(x)])(x0))
-        inside = g.region is None or bool(np.all(np.asarray(g.region(x0)) >= 0.0))
+        inside = _inside(g, x0)
         point = ", ".join(f"{v:g}" for v in x0)
         if inside and gap < 0.0:
             out.append(f"{key}: ({point}) lies past {whose}guard {g.name!r} of its "
@@ -122,10 +122,8 @@ def _finite_gap_problems(system, x0, whose: str = "", key: str = "system.x0") ->
     of the mode (NaN rows). The plant (``whose`` given) is checked for h only: the NLP
     reads the controllers' model.
     """
-    import casadi as ca
     import numpy as np
 
-    x = ca.SX.sym("x", system.n_x)
     mode, out = system.initial_mode, []
     moved = "system.x0" if key == "system.x0" else "x0"
     point = ", ".join(f"{v:g}" for v in x0)
@@ -133,7 +131,7 @@ def _finite_gap_problems(system, x0, whose: str = "", key: str = "system.x0") ->
         g = system.guards[i]
         parts = [("h", g.h)] + ([("nlp_gap", g.nlp_gap)]
                                 if g.nlp_gap is not None and not whose else [])
-        values = [(name, float(ca.Function("v", [x], [f(x)])(x0))) for name, f in parts]
+        values = [(name, _at(system, f, x0)) for name, f in parts]
         bad = [f"{name}(x0) = {v:g}" for name, v in values if not np.isfinite(v)]
         if bad:
             out.append(f"{key}: {whose}guard {g.name!r} of mode {mode!r} is not finite at x0 "
@@ -152,19 +150,14 @@ def _nlp_gap_problems(system, x0, whose: str = "") -> list[str]:
     guard-avoid rows around (a plan must then cross the guard at once). The plant
     (``whose`` given) is not checked: the NLP reads the controllers' model only.
     """
-    import casadi as ca
-    import numpy as np
-
     if whose:
         return []
-    x = ca.SX.sym("x", system.n_x)
     mode, out = system.initial_mode, []
     for i in system.guards_of(system.mode_index(mode)):
         g = system.guards[i]
-        if g.nlp_gap is None or (g.region is not None
-                                 and not np.all(np.asarray(g.region(x0)) >= 0.0)):
+        if g.nlp_gap is None or not _inside(g, x0):
             continue
-        gap, q = (float(ca.Function("v", [x], [f(x)])(x0)) for f in (g.gap_expr, g.q_expr))
+        gap, q = (_at(system, f, x0) for f in (g.gap_expr, g.q_expr))
         if gap > 0.0 and q <= 0.0:
             how = "has the opposite sign to" if q < 0.0 else "is not positive like"
             out.append(f"system: guard {g.name!r} of mode {mode!r}: nlp_gap(x0) = {q:.4g} "
@@ -200,25 +193,24 @@ def _flow_problems(system, x0, whose: str = "", key: str = "system.x0") -> list[
 
 
 def region_warnings(system, margins: ConstraintMargins | None = None) -> list[str]:
-    """Warnings for guards of non-final modes whose avoid row fails at x0, outside their region.
+    """Warnings for guards of x0's mode whose avoid row fails at x0, outside their region.
 
     The fixed-mode MPC imposes a guard's guard-avoid rows (q >= kappa) at every node of
     the domains it leaves from, inside its activity region or not (the region is honoured
-    by the simulator and at the switching node only). A guard whose region x0 lies
-    outside and whose row fails at x0 (q(x0) < kappa, ``margins``' guard-avoid offset, 0
-    without margins) is a region that does not cover the workspace: solves are softened
-    or infeasible. The run goes on (the soft rows may carry it).
+    by the simulator and at the switching node only). A guard of the initial mode (not
+    the final one: its nodes there are the first solve's) whose region x0 lies outside
+    and whose row fails at x0 (q(x0) < kappa, ``margins``' guard-avoid offset, 0 without
+    margins) is a region that does not cover the workspace: solves are softened or
+    infeasible. The run goes on (the soft rows may carry it).
     """
-    import casadi as ca
-    import numpy as np
-
-    x = ca.SX.sym("x", system.n_x)
-    out = []
-    for i, g in enumerate(system.guards):
-        if g.region is None or g.source == system.final_mode or \
-                np.all(np.asarray(g.region(system.x0)) >= 0.0):
+    out, mode = [], system.mode_index(system.initial_mode)
+    if system.initial_mode == system.final_mode:
+        return out
+    for i in system.guards_of(mode):
+        g = system.guards[i]
+        if g.region is None or _inside(g, system.x0):
             continue
-        q = float(ca.Function("q", [x], [g.q_expr(x)])(system.x0))
+        q = _at(system, g.q_expr, system.x0)
         kappa = margins.avoid[i] if margins is not None else 0.0
         if q < kappa:
             out.append(
@@ -228,6 +220,21 @@ def region_warnings(system, margins: ConstraintMargins | None = None) -> list[st
                 f"{g.source!r}, outside the region too, so solves are softened or "
                 f"infeasible; fold the region into the guard's nlp_gap (docs/plugins.md)")
     return out
+
+
+def _at(system, f, x0) -> float:
+    """The scalar CasADi expression ``f(x)`` of ``system``'s state, at x0."""
+    import casadi as ca
+
+    x = ca.SX.sym("x", system.n_x)
+    return float(ca.Function("v", [x], [f(x)])(x0))
+
+
+def _inside(guard, x0) -> bool:
+    """Whether x0 lies in ``guard``'s activity region (everywhere without one)."""
+    import numpy as np
+
+    return guard.region is None or bool(np.all(np.asarray(guard.region(x0)) >= 0.0))
 
 
 def _planner_problems(sc, model) -> list[str]:

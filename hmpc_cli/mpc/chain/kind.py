@@ -95,7 +95,9 @@ class ChainMPC:
             ns = NodeSchedule.from_schedule(schedule, self.chain.N, self.chain.dt)
             self.chain.set_schedule(ns, guess)
             self._schedule, self._installed, shifted = schedule, schedule, 0
-            self._t_shift = t
+            # an event after t is new to this schedule, also one at or before a predicted
+            # event told before (the loop withdrew it and planned this schedule anew)
+            self._t_shift, self._t_event = t, min(self._t_event, t)
         else:
             if dropped:  # the domain after the impact started at the event, not at t
                 n = self.s.shifted_nodes(t - self._t_shift)

@@ -76,6 +76,7 @@ class WalkingMPC:
         self._executing: int | None = None  # target of the last successful solve
         self._swing_start = 0.0  # [s]
         self._t_event = -math.inf  # the newest event applied [s]
+        self._planned_at = math.nan  # the t0 of the schedule last solved over [s]
         self._recent: tuple[float, bytes, dict[int, Plan]] = (math.nan, b"", {})
 
     # -------------------------------------------------------------- contract
@@ -98,6 +99,9 @@ class WalkingMPC:
         The first swing lands on the surface of ``schedule.guards[0]`` (see the module
         docstring); ``guess`` is not used.
         """
+        if schedule.t0 != self._planned_at:  # planned anew: an event after t is new to it,
+            self._planned_at = schedule.t0  # also one before a withdrawn predicted event
+            self._t_event = min(self._t_event, t)
         for ev in events:
             if ev.t > self._t_event:
                 self._t_event = ev.t

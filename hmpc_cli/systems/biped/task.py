@@ -14,8 +14,9 @@ from hmpc_cli.core.stack import Verdict
 #: is a fall)
 BODY = ("stance_knee", "hip", "torso_top", "swing_knee")
 #: a stance foot this close to a segment's height stands on it [m] (a touchdown is located
-#: on the guard's near side, within the event tolerance)
-ON_SEGMENT = 1e-6
+#: on the guard's near side, within the event tolerance: |foot velocity| x
+#: sim.event_time_tol, at most 1e-3 of a step)
+ON_SEGMENT = 1e-3
 
 
 @dataclass(frozen=True)
