@@ -218,6 +218,28 @@ def test_a_prediction_expects_the_last_solves_own_time_at_most_the_budget(tmp_pa
     assert any(d == 0.1 for _, d in delays), "no prediction capped: not exercised"
 
 
+def _force_one_longer_prediction(monkeypatch, late: float | None = None) -> list:
+    """Makes the first compensated prediction that sees no contact fly 0.1 s longer, to
+    one it sees (with ``late``: that contact placed at ``late`` s, the prediction ending
+    0.01 s after it); returns the list that gets that prediction."""
+    real_predict, forced = layers_module.predict, []
+
+    def spy(plant, t, x, mode, delay, plan_at, contacts):
+        pred = real_predict(plant, t, x, mode, delay, plan_at, contacts)
+        if not forced and pred is not None and not pred.events:
+            longer = real_predict(plant, t, x, mode, delay + 0.1, plan_at, contacts)
+            if longer is not None and longer.events:
+                if late is not None:
+                    moved = replace(longer.events[0], t=late)
+                    longer = replace(longer, events=(moved,), t=late + 0.01)
+                forced.append(longer)
+                return longer
+        return pred
+
+    monkeypatch.setattr(layers_module, "predict", spy)
+    return forced
+
+
 def test_a_predicted_contact_not_predicted_again_replans_the_schedule_on_time(
         tmp_path, monkeypatch):
     """Ball, 0.02 s charged, compensated: one prediction (forced 0.1 s longer) tells the
@@ -226,18 +248,7 @@ def test_a_predicted_contact_not_predicted_again_replans_the_schedule_on_time(
     anew at 0.12 s, the current domain keeping what is left of its planned time, so the
     MPC's first domain has 2 intervals of 1/60 s (it had 9 from the planner's whole 0.139 s
     when the contact was just forgotten); the real contact is applied when it comes."""
-    real_predict, forced = layers_module.predict, []
-
-    def spy(plant, t, x, mode, delay, plan_at, contacts):
-        pred = real_predict(plant, t, x, mode, delay, plan_at, contacts)
-        if not forced and pred is not None and not pred.events:
-            longer = real_predict(plant, t, x, mode, delay + 0.1, plan_at, contacts)
-            if longer is not None and longer.events:
-                forced.append(longer)
-                return longer
-        return pred
-
-    monkeypatch.setattr(layers_module, "predict", spy)
+    forced = _force_one_longer_prediction(monkeypatch)
     res, log, solves, _ = _run(tmp_path, "told", [
         "sim.duration=0.3", "sim.latency=0.02", 'sim.latency_first="paused"',
         "sim.delay_compensation=true", "mpc.rate_hz=20"])
@@ -262,21 +273,7 @@ def test_a_real_contact_before_a_withdrawn_prediction_of_it_is_applied(tmp_path,
     it applied, skipped the real contact as old and reinstalled its schedule cold. Now a
     schedule planned anew forgets the withdrawn time: the real contact drops the wall
     domain, with no reinstall."""
-    import dataclasses
-
-    real_predict, forced = layers_module.predict, []
-
-    def spy(plant, t, x, mode, delay, plan_at, contacts):
-        pred = real_predict(plant, t, x, mode, delay, plan_at, contacts)
-        if not forced and pred is not None and not pred.events:
-            longer = real_predict(plant, t, x, mode, delay + 0.1, plan_at, contacts)
-            if longer is not None and longer.events:
-                late = dataclasses.replace(longer.events[0], t=0.19)
-                forced.append(dataclasses.replace(longer, events=(late,), t=0.2))
-                return forced[0]
-        return pred
-
-    monkeypatch.setattr(layers_module, "predict", spy)
+    _force_one_longer_prediction(monkeypatch, late=0.19)
     _, log, solves, _ = _run(tmp_path, "late", [
         "sim.duration=0.3", "sim.latency=0.02", 'sim.latency_first="paused"',
         "sim.delay_compensation=true", "mpc.rate_hz=20"])

@@ -229,6 +229,17 @@ def test_a_signal_while_the_page_is_written_stops_the_command_after_it(tmp_path,
     assert [p.name for p in res.iterdir() if p.name.startswith(".")] == []
 
 
+def _study_and_its_directory(tmp_path: Path) -> tuple[Path, Path, Path]:
+    """A one-run sweep file, a results directory and its sweep directory (made, empty)."""
+    sweep = tmp_path / "study.toml"
+    sweep.write_text(f'name = "study"\nscenario = "{BALL.as_posix()}"\nseeds = 1\n'
+                     '[set]\n"sim.duration" = 0.2\n')
+    res = tmp_path / "results"
+    out = res / "sweeps" / "study"
+    out.mkdir(parents=True)
+    return sweep, res, out
+
+
 def test_report_run_takes_the_sweeps_lock(tmp_path, run_hmpc):
     """``report --run`` into a sweep directory another ``hmpc sweep`` writes (its lock
     held): refused, exit 2, nothing run and no page (it ran the sweep beside it)."""
@@ -236,12 +247,7 @@ def test_report_run_takes_the_sweeps_lock(tmp_path, run_hmpc):
 
     from hmpc_cli.sweep.lock import output_lock
 
-    sweep = tmp_path / "study.toml"
-    sweep.write_text(f'name = "study"\nscenario = "{BALL.as_posix()}"\nseeds = 1\n'
-                     '[set]\n"sim.duration" = 0.2\n')
-    res = tmp_path / "results"
-    out = res / "sweeps" / "study"
-    out.mkdir(parents=True)
+    sweep, res, out = _study_and_its_directory(tmp_path)
     with output_lock(out):  # held by this process, as by a running hmpc sweep
         proc = run_hmpc([*_args(robustness=str(sweep)), "--run", "--results", str(res),
                          "--workers", "1"], tmp_path)
@@ -381,12 +387,7 @@ def test_report_run_refuses_a_sweep_directory_that_is_not_its_sweeps(tmp_path, r
     """``report --run`` checks each sweep's directory as ``hmpc sweep`` checks ``--out``:
     one that is no sweep's, or another sweep's, is refused (exit 2, nothing run, no
     page); it wrote its runs among the files there."""
-    sweep = tmp_path / "study.toml"
-    sweep.write_text(f'name = "study"\nscenario = "{BALL.as_posix()}"\nseeds = 1\n'
-                     '[set]\n"sim.duration" = 0.2\n')
-    res = tmp_path / "results"
-    out = res / "sweeps" / "study"
-    out.mkdir(parents=True)
+    sweep, res, out = _study_and_its_directory(tmp_path)
     (out / "notes.txt").write_text("mine\n")
     args = [*_args(robustness=str(sweep)), "--run", "--results", str(res), "--workers", "1"]
     proc = run_hmpc(args, tmp_path)
