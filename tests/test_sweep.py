@@ -732,3 +732,13 @@ def test_a_sweep_file_without_a_name_resumes_in_its_directory(tmp_path):
     assert refused.stderr.splitlines() == [
         "error: --out out: belongs to sweep 'noname' (its sweep.toml), not 'other': choose "
         "another --out (the same sweep resumes in its own directory)"]
+    # a directory an older hmpc wrote (its sweep.toml the file's text, no name): resumes
+    (tmp_path / "out" / "sweep.toml").write_text(path.read_text())
+    older = sweep(args, tmp_path)
+    assert older.returncode == 0, older.stderr
+    assert "noname: 1 runs, 1 skipped (already done), 0 to run" in older.stdout
+    (tmp_path / "out" / "sweep.toml").write_text(path.read_text() + "# edited\n")
+    edited = sweep([*args, "--dry-run"], tmp_path)
+    assert edited.returncode == 2 and edited.stderr.splitlines() == [
+        "error: --out out: its sweep.toml names no sweep and is not this sweep file: choose "
+        "another --out (the same sweep resumes in its own directory)"]

@@ -399,7 +399,7 @@ def _check_owners(plans: dict, dirs: dict[str, Path]) -> None:
 
     lines = []
     for key, plan in plans.items():
-        problem = owner_problem(dirs[key], plan.spec.name, "--results")
+        problem = owner_problem(dirs[key], plan.spec.name, "--results", plan.text)
         if problem is not None:
             lines.append(f"{_option(key)} {plan.path}: {dirs[key]}: {problem}")
     if lines:

@@ -101,7 +101,7 @@ def _check_out(out: Path, plan) -> None:
     from hmpc_cli.sweep.lock import owner_problem
 
     checked_output(out, "--out")
-    problem = owner_problem(out, plan.spec.name)
+    problem = owner_problem(out, plan.spec.name, text=plan.text)
     if problem is not None:
         _err([f"--out {out}: {problem}"])
         raise typer.Exit(EXIT_BAD_INPUT)

@@ -58,12 +58,15 @@ def output_lock(out: Path) -> Iterator[None]:
         os.close(fd)  # releases the lock
 
 
-def owner_problem(out: Path, name: str, option: str = "--out") -> str | None:
+def owner_problem(out: Path, name: str, option: str = "--out", text: str | None = None
+                  ) -> str | None:
     """Why sweep ``name`` may not write into ``out``, or None; reads only.
 
     ``out`` is free when it does not exist or is empty (but for a lock); else it must be
     a sweep's directory (its ``sweep.toml``) of a sweep of the same name: resuming
     or extending it. A directory of another sweep, or one that is no sweep's, is refused.
+    A stored ``sweep.toml`` without a name (an older hmpc's, of a file without ``name``)
+    is this sweep's when it is ``text``, the sweep file's own text.
     ``option``: the option the reason advises to change.
     """
     import tomllib
@@ -82,9 +85,14 @@ def owner_problem(out: Path, name: str, option: str = "--out") -> str | None:
         return (f"is not a sweep's directory (no sweep.toml; it holds {shown}): choose a new "
                 f"or empty {option}")
     try:
-        owner = tomllib.loads(stored.read_text(encoding="utf-8")).get("name")
+        stored_text = stored.read_text(encoding="utf-8")
+        owner = tomllib.loads(stored_text).get("name")
     except (OSError, ValueError) as exc:
         return f"its sweep.toml cannot be read ({exc}): choose another {option}"
+    if owner is None and text is not None:
+        return None if stored_text == text else (
+            f"its sweep.toml names no sweep and is not this sweep file: choose another "
+            f"{option} (the same sweep resumes in its own directory)")
     if owner != name:
         return (f"belongs to sweep {owner!r} (its sweep.toml), not {name!r}: choose another "
                 f"{option} (the same sweep resumes in its own directory)")
