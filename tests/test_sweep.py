@@ -377,6 +377,10 @@ BAD = {
                    "sweep.toml: grid.mpc.rate_hz: empty axis (no values)"),
     "missing scenario": ('scenario = "nope/ball.toml"\n',
                          "sweep.toml: scenario: file not found: nope/ball.toml"),
+    "itself as its scenario": ('scenario = "sweep.toml"\nseeds = 1\n[set]\n"sim.duration" = 0.2\n',
+                               "sweep.toml: scenario: sweep.toml is a sweep file (this sweep "
+                               "file itself), not a scenario: name the scenario file its runs "
+                               "start from (one with system and mpc sections)"),
     "unknown sweep key": ('seed = 3\n',
                          "sweep.toml: seed: unknown key (did you mean 'seeds'?)"),
     "one value written twice": ('[set]\n"disturbance.kind" = "box"\n[grid]\n'

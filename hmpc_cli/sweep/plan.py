@@ -316,6 +316,11 @@ def plan_sweep(path: str | Path) -> SweepPlan:
     if not scenario.is_file():
         errors.append(f"{src}: scenario: file not found: {scenario}"
                       + _relative_hint(spec.scenario, path.parent))
+    elif _is_a_sweep_file(scenario):  # its runs would say "run it with hmpc sweep"
+        this = " (this sweep file itself)" if scenario.resolve() == path.resolve() else ""
+        raise ScenarioError([f"{src}: scenario: {scenario} is a sweep file{this}, not a "
+                             "scenario: name the scenario file its runs start from (one "
+                             "with system and mpc sections)"])
     base = _flatten(spec.set_, scenario_model(), f"{src}: set", errors)
     axes = _axes(spec, src, errors)  # broken axes are left out; their runs still checked
     errors += _dead_sets(base, axes, src)
@@ -353,6 +358,15 @@ def plan_sweep(path: str | Path) -> SweepPlan:
     except ScenarioError:
         base = ""
     return SweepPlan(path, text, spec, scenario, axes, runs, keys, base_toml=base)
+
+
+def _is_a_sweep_file(path: Path) -> bool:
+    """Whether ``path`` reads as a sweep file (unreadable: left to the scenario's loader)."""
+    try:
+        _, data = read_toml_file(path)
+    except ScenarioError:
+        return False
+    return bool(other_kind_of_file(data, str(path), "scenario"))
 
 
 def _read_spec(path: Path, src: str) -> tuple[str, SweepSpec]:
