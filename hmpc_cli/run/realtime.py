@@ -144,7 +144,7 @@ class Latency:
             return self.delay
         if planner is None:
             return self.solve_cost(plan, compute)
-        reused = any(p.t0 == plan.t0 and p.stats == plan.stats for p in planner.mpc_solves)
+        reused = _solved_by(plan, planner)
         return self.planner_cost(planner) + (0.0 if reused else self.solve_cost(plan, compute))
 
     def expected(self, last_solve: float) -> float:
@@ -208,8 +208,7 @@ class SolverClock:
         """
         if plan.stats.iterations <= 0:
             return
-        reused = self.planner is not None and any(
-            p.t0 == plan.t0 and p.stats == plan.stats for p in self.planner.mpc_solves)
+        reused = _solved_by(plan, self.planner)
         self.last_solve = self.latency.solve_cost(plan, None if reused else compute)
 
     def charge(self, t: float, plan: Plan, compute: float | None = None
@@ -298,6 +297,12 @@ class SolverClock:
                        "compute time is charged); set sim.latency to \"model\", "
                        "\"measured\" or a delay [s]")
         return out
+
+
+def _solved_by(plan: Plan, planner: PlannerResult | None) -> bool:
+    """Whether the planner call solved ``plan`` itself (same start time and statistics)."""
+    return planner is not None and any(
+        p.t0 == plan.t0 and p.stats == plan.stats for p in planner.mpc_solves)
 
 
 def _solves(n: int) -> str:

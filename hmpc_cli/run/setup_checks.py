@@ -89,16 +89,14 @@ def initial_state_problems(system, x0=None, whose: str = "", key: str = "system.
     Then: guards' gaps that are not finite at x0, an ``nlp_gap`` without its gap's sign
     there, a flow that is not finite there.
     """
-    import casadi as ca
     import numpy as np
 
     x0 = np.asarray(system.x0 if x0 is None else x0, dtype=float)
-    x = ca.SX.sym("x", system.n_x)
     mode, moved = system.initial_mode, "system.x0" if key == "system.x0" else "x0"
     out = []
     for i in system.guards_of(system.mode_index(mode)):
         g = system.guards[i]
-        gap = float(ca.Function("gap", [x], [g.gap_expr(x)])(x0))
+        gap = _at(system, g.gap_expr, x0)
         inside = _inside(g, x0)
         point = ", ".join(f"{v:g}" for v in x0)
         if inside and gap < 0.0:
