@@ -249,6 +249,23 @@ def test_non_commensurate_other_rates(work: Path) -> None:
               "--set mpc.horizon=0.001", "mpc.horizon")
 
 
+def test_disturbance_knots_on_simulator_steps(work: Path) -> None:
+    # each process holds its values on a knot grid the simulator must step on: the paper's
+    # 0.05 s (at 30 Hz its knots fell between steps and were applied up to 1/60 s late)
+    fig3 = ["--set", 'disturbance.kind="paper_fig3"', "--set", "disturbance.magnitude=10"]
+    reason = one_keyed(cli_bad(work, ["ball.toml", *fig3, "--set", "sim.rate_hz=30",
+                                      "--set", "sim.log_rate_hz=30"]),
+                       '--set disturbance.kind="paper_fig3"', "disturbance.kind")
+    assert reason == ("paper_fig3 holds each value 0.05 s, which must be a whole number of "
+                      "simulator steps (1/sim.rate_hz = 1/30 s); pick a sim.rate_hz that is "
+                      "a multiple of 20")
+    box = ["--set", 'disturbance.kind="box"', "--set", "disturbance.magnitude=1"]
+    reason = one_keyed(cli_bad(work, ["ball.toml", *box, "--set", "disturbance.hold=0.0025"]),
+                       "--set disturbance.hold=0.0025", "disturbance.hold")
+    assert reason == ("0.0025 s must be a whole number of simulator steps "
+                      "(1/sim.rate_hz = 1/600 s)")
+
+
 @pytest.mark.parametrize("item", ["nokey", "=3", " =3", ""])
 def test_set_bad_syntax(work: Path, item: str) -> None:
     lines = cli_bad(work, ["ball.toml", "--set", item])

@@ -34,6 +34,7 @@ from hmpc_cli.lowlevel import LowLevelSettings
 from hmpc_cli.core.registry import PluginError, Requirement, registry
 from hmpc_cli.core.text import did_you_mean, printable
 from hmpc_cli.run.sections import DisturbanceSettings, ReplanSettings, SimSettings
+from hmpc_cli.sim.disturbance import knot_period
 from hmpc_cli.core.settings_types import BoundedInt
 
 #: the system of a scenario that names none
@@ -146,8 +147,11 @@ class ScenarioBase(BaseModel):
         step = f"must be a whole number of simulator steps (1/sim.rate_hz = 1/{s.rate_hz} s)"
         if not _whole(s.duration * s.rate_hz):
             problems.append(f"sim.duration: {s.duration:g} s {step}")
-        if self.disturbance.kind == "box" and not _whole(self.disturbance.hold * s.rate_hz):
-            problems.append(f"disturbance.hold: {self.disturbance.hold:g} s {step}")
+        d = self.disturbance
+        if (held := knot_period(d.kind, d.hold)) is not None and not _whole(held * s.rate_hz):
+            problems.append(f"disturbance.hold: {d.hold:g} s {step}" if d.kind == "box" else
+                            f"disturbance.kind: {d.kind} holds each value {held:g} s, which "
+                            f"{step}; pick a sim.rate_hz that is a multiple of {1 / held:g}")
         if self.replanning.policy == "periodic" and not _whole(self.replanning.period * s.rate_hz):
             problems.append(f"replanning.period: {self.replanning.period:g} s {step}")
         return problems + list(m.scenario_problems())

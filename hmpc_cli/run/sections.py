@@ -120,7 +120,8 @@ class DisturbanceSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
     kind: Literal["none", "box", "paper_fig3"] = "none"
     magnitude: FiniteFloat = Field(10.0, ge=0.0, description="uniform box half-width per channel")
-    hold: FiniteFloat = Field(0.05, gt=0.0, description="hold period [s] (box)")
+    hold: FiniteFloat = Field(0.05, gt=0.0, description="hold period [s] (box; paper_fig3 "
+                              "holds 0.05 s): a whole number of simulator steps")
     trial: BoundedInt = Field(1, ge=1, le=10, description="paper_fig3 trial 1..10")
 
 

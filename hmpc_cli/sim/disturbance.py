@@ -61,6 +61,11 @@ def inert_keys(kind: str, given) -> list[str]:
             for key in sorted(set(given) - {"kind"}) if key not in READS.get(kind, ())]
 
 
+def knot_period(kind: str, hold: float) -> float | None:
+    """The time [s] each value of ``kind``'s process is held (None: ``none``, one value)."""
+    return {"box": hold, "paper_fig3": PAPER_HOLD}.get(kind)
+
+
 def make_disturbance(kind: str, *, n_w: int, duration: float, magnitude: float = 0.0,
                      hold: float = PAPER_HOLD, seed: int = 0, trial: int = 1) -> HeldDisturbance:
     """Builds the disturbance process of a scenario.
