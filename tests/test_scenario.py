@@ -605,15 +605,36 @@ def test_a_sweep_file_given_as_a_scenario_and_back_says_which_command_takes_it()
 def test_a_set_up_problem_a_set_causes_is_the_sets(work):
     """Problems the set-up checks find on the built model (after validation) are the
     ``--set``'s when they go away without it, whatever key they name."""
-    circle = "system.circle_center=[1.0,1.0]"
+    circle = "system.circle_center=[1.2,1.2]"
     assert cli_bad(work, ["ball.toml", "--set", circle]) == [
         f"error: --set {circle}: system.x0: (1, 1, 0, 0) lies past guard 'circle_in' of its "
-        "initial mode 'outside' (gap -1 < 0), so the run would start outside that mode's "
+        "initial mode 'outside' (gap -0.7172 < 0), so the run would start outside that mode's "
         "domain; move system.x0 or the guard"]
     option = "mpc.solver_options.ipopt.nosuch_option=1"
     assert cli_bad(work, ["ball.toml", "--set", "sim.duration=1", "--set", option]) == [
         f"error: --set {option}: mpc.solver_options.ipopt.nosuch_option: IPOPT has no option "
         "'nosuch_option' (IPOPT's options: https://coin-or.github.io/Ipopt/OPTIONS.html)"]
+
+
+@pytest.mark.parametrize("centre,surface,span", [
+    ("[1.5,0.6]", "floor's guard y = radius = 0.1 over [0.634, 2.366]", "floor"),
+    ("[1.0,3.0]", "wall's guard x = radius = 0.1 over [2.564, 3.436]", "wall"),
+    ("[-0.5,0.5]", "floor's guard y = radius = 0.1 over [0, 0.4165]", "floor")])
+def test_a_circle_reaching_floor_or_wall_is_refused(work, centre, surface, span):
+    """Floor and wall bounce only ``outside``: a circle across them let the ball fall
+    through the floor inside it and leave the circle below it (exit 0, no warning)."""
+    lines = cli_bad(work, ["ball.toml", "--set", f"system.circle_center={centre}"])
+    reason = one_keyed(lines, f"--set system.circle_center={centre}", "system")
+    assert f"reaches the {surface}: inside the circle the ball does not bounce" in reason
+    assert reason.endswith(f"move circle_center at least circle_radius + radius from the {span}")
+
+
+def test_a_circle_clear_of_floor_and_wall_is_taken() -> None:
+    from hmpc_cli.systems.ball import BallParams
+
+    BallParams(circle_center=(1.1, 1.1))  # tangent to both guard lines: never below them
+    BallParams(circle_center=(9.5, 0.5))  # across the floor's line beyond its extent
+    BallParams(circle_center=(0.5, -1.0), circle_radius=0.5)  # below the floor's line
 
 
 def test_a_hand_margin_that_fails_at_x0_is_refused(work):

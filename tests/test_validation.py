@@ -259,10 +259,10 @@ def test_a_problem_made_on_the_command_line_names_the_option_not_the_file(work: 
      "system.x0: needs 4 numbers, got 5 (initial state (px, py, vx, vy) [m, m, m/s, m/s])"),
     ("ball", "system.circle_center=[3.0]",
      "system.circle_center: needs 2 numbers, got 1 (centre c (x, y) of the circle guard, the "
-     "final domain [m])"),
+     "final domain [m]; the circle must not reach the floor's or the wall's guard)"),
     ("ball", "system.circle_center=[]",
      "system.circle_center: needs 2 numbers, got 0 (centre c (x, y) of the circle guard, the "
-     "final domain [m])"),
+     "final domain [m]; the circle must not reach the floor's or the wall's guard)"),
     ("biped", "system.q0=[0.1,0.2]", "system.q0: needs 5 numbers, got 2 (initial angles [rad])"),
     ("ball", "plant.x0=[1.0]",
      "plant.x0: needs 4 numbers, got 1 (initial state (px, py, vx, vy) [m, m, m/s, m/s])"),
@@ -498,15 +498,15 @@ def test_a_refused_ipopt_option_prints_nothing_but_the_error(capfd):
 
 
 X0_PAST_CIRCLE = ("system.x0: (1, 1, 0, 0) lies past {}guard 'circle_in' of its initial mode "
-                  "'outside' (gap -0.2929 < 0), so the run would start outside that mode's "
+                  "'outside' (gap -0.7172 < 0), so the run would start outside that mode's "
                   "domain; move system.x0 or the guard")
 
 
 def test_an_initial_state_past_a_guard_of_its_mode_is_refused(real_prepare: Path):
-    """x0 = (1, 1) inside a circle centred at (0.5, 0.5): it starts in mode 'outside', whose
+    """x0 = (1, 1) inside a circle centred at (1.2, 1.2): it starts in mode 'outside', whose
     guard circle_in it has crossed (a crossed guard never fires), so hmpc run, hmpc tube and
     a sweep refuse it before anything is built or written."""
-    name = _scenario(real_prepare, "ball", {"system": {"circle_center": [0.5, 0.5]}}).name
+    name = _scenario(real_prepare, "ball", {"system": {"circle_center": [1.2, 1.2]}}).name
     message = X0_PAST_CIRCLE.format("")
     assert bad_run(real_prepare, ["run", name, "--out", "out"]) == [f"error: {name}: {message}"]
     assert bad_run(real_prepare, ["tube", name, "--out", "t"]) == [f"error: {name}: {message}"]
@@ -519,7 +519,7 @@ def test_an_initial_state_past_a_guard_of_its_mode_is_refused(real_prepare: Path
     lines = bad_run(real_prepare, ["run", fine, "--set", item, "--out", "out"])
     assert len(lines) == 1 and lines[0].startswith(
         f"error: --set {item}: system.x0: (3, 3, 0, 0) lies past guard 'circle_in'"), lines
-    lines = bad_run(real_prepare, ["run", fine, "--set", "plant.circle_center=[0.5,0.5]",
+    lines = bad_run(real_prepare, ["run", fine, "--set", "plant.circle_center=[1.2,1.2]",
                                    "--out", "out"])
     assert lines == [f"error: {fine}: {X0_PAST_CIRCLE.format('the plant' + chr(39) + 's ')}"]
 

@@ -18,7 +18,7 @@ from typing import Literal
 
 import casadi as ca
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from hmpc_cli.plugin import (
     Ball, Drawing, FiniteFloat, Guard, HybridSystem, Mode, Polyline, ReachGoal, SystemSpec, circle)
@@ -38,7 +38,8 @@ class BallParams(BaseModel):
     drag: FiniteFloat = Field(0.02, ge=0.0, description="drag gamma: acceleration -gamma |v|^2 v")
     gravity: FiniteFloat = Field(9.81, ge=0.0, description="gravity outside the circle [m/s^2]")
     circle_center: Pair = Field((3.0, 3.0), description="centre c (x, y) of the circle "
-                                "guard, the final domain [m]")
+                                "guard, the final domain [m]; the circle must not reach the "
+                                "floor's or the wall's guard")
     circle_radius: FiniteFloat = Field(1.0, gt=0.0)
     floor_extent: Pair = Field((0.0, 8.0), description="x range where the floor is active")
     wall_extent: Pair = Field((0.0, 8.0), description="y range where the wall is active")
@@ -68,6 +69,25 @@ class BallParams(BaseModel):
         if not v[0] < v[1]:
             raise ValueError(f"lower bound {v[0]} must be below upper bound {v[1]}")
         return v
+
+    @model_validator(mode="after")
+    def _circle_clear_of_bounces(self) -> BallParams:
+        # floor and wall are guards of ``outside`` only: inside the circle the ball would
+        # pass through them, and leave the circle beyond them with their gaps negative
+        (cx, cy), rad, r = self.circle_center, self.circle_radius, self.radius
+        for surface, line, across, along, extent in (
+                ("floor", "y", cy, cx, self.floor_extent),
+                ("wall", "x", cx, cy, self.wall_extent)):
+            if abs(across - r) < rad:
+                half = (rad**2 - (across - r) ** 2) ** 0.5
+                lo, hi = max(along - half, extent[0]), min(along + half, extent[1])
+                if lo < hi:
+                    raise ValueError(
+                        f"the circle (centre {self.circle_center}, radius {rad:g}) reaches "
+                        f"the {surface}'s guard {line} = radius = {r:g} over [{lo:.4g}, "
+                        f"{hi:.4g}]: inside the circle the ball does not bounce on it; move "
+                        f"circle_center at least circle_radius + radius from the {surface}")
+        return self
 
 
 def _modes(p: BallParams, x: ca.SX, u: ca.SX, w: ca.SX) -> tuple[Mode, Mode]:
