@@ -84,6 +84,16 @@ def test_the_plant_differs_from_the_model_only_where_the_scenario_says(tmp_path)
     assert pa["plan"] == pb["plan"]
 
 
+def test_the_logged_input_is_the_one_the_plant_applies(tmp_path):
+    """A [plant] input box narrower than the model's: /sim/state.u is the input the plant
+    applied (its box), not the model's saturation of the command (it logged -100 while the
+    plant pushed with -50)."""
+    result, log = run(tmp_path, ["sim.duration=0.3", "plant.u_outside=[-50.0, 0.0]"])
+    ux = np.array([m.data["u"]["ux"] for m in log.topic("/sim/state")
+                   if m.data["mode_name"] == "outside"])
+    assert len(ux) > 10 and ux.min() == -50.0 and np.all(ux <= 0.0)
+
+
 def test_a_schedule_the_nlp_cannot_hold_is_rejected_not_fatal(tmp_path):
     # the nominal plan crosses 3 guards; an NLP chain for 1 switch cannot hold it
     result, log = run(tmp_path, ["mpc.max_switches=1", "sim.duration=0.3"])

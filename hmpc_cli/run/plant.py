@@ -54,11 +54,16 @@ class Plant:
         """The low level's command at time t [s].
 
         Returns:
-            The input (m,) held over [t, t + span], saturated to the mode's box, and the
+            The input (m,) held over [t, t + span], saturated to the mode's box (the
+            model's, then the simulated system's: the input the plant applies), and the
             reference state (n,) at t.
         """
         u, x_ref = self.lowlevel.command(t, x, plan, span)
-        return self.model.numeric.saturate(np.array([mode]), u[None])[0], x_ref
+        modes = np.array([mode])
+        u = self.model.numeric.saturate(modes, u[None])
+        if self.system is not self.model:  # [plant]: its own box acts on the input
+            u = self.system.numeric.saturate(modes, u)
+        return u[0], x_ref
 
     def step(self, t0: float, x: np.ndarray, mode: int, u: np.ndarray, w: np.ndarray,
              on_event: Callable[[GuardEvent], None], plan: Callable[[], Plan | None]
