@@ -94,6 +94,29 @@ def test_the_logged_input_is_the_one_the_plant_applies(tmp_path):
     assert len(ux) > 10 and ux.min() == -50.0 and np.all(ux <= 0.0)
 
 
+@pytest.mark.parametrize("react,contacts", [("hold", 0), ("recompute", 1)])
+def test_zeno_ends_the_run_where_the_log_and_the_counts_do(tmp_path, react, contacts):
+    """More events in a step than allowed: the run ends at the step's start (hold: none of
+    its events happened) or after the last event handled (recompute: its contact is logged
+    and counted, so the run ended after it, not at the step's start before the bounce);
+    one /sim/state sample per time, the last one the run's end state."""
+    result, log = run(tmp_path, ["sim.duration=0.2", "system.x0=[0.3, 0.3, -10.0, -10.0]",
+                                 "sim.max_events_per_step=1", "planner.iterations=1",
+                                 f'sim.input_at_events="{react}"'])
+    assert result.reason == ("zeno: more than 1 guard event in one step of 0.00166667 s "
+                             "(Zeno chattering)")
+    events, states = log.topic("/sim/event"), log.topic("/sim/state")
+    assert result.contacts == len(events) == contacts
+    times = [m.data["t"] for m in states]
+    assert len(set(times)) == len(times) and times[-1] == result.t_end
+    assert list(states[-1].data["x"].values()) == list(result.x_end)
+    if contacts:
+        assert result.t_end == events[-1].data["t"] > 0.02
+        assert list(result.x_end) == list(events[-1].data["x_after"].values())
+    else:
+        assert result.t_end == pytest.approx(0.02)
+
+
 def test_a_schedule_the_nlp_cannot_hold_is_rejected_not_fatal(tmp_path):
     # the nominal plan crosses 3 guards; an NLP chain for 1 switch cannot hold it
     result, log = run(tmp_path, ["mpc.max_switches=1", "sim.duration=0.3"])

@@ -151,6 +151,7 @@ class TopicWriter:
         self._body = None  # x -> the plant's body points (None: no body logged)
         #: messages not yet written, in order: (None, /sim/state sample) or (writer, args)
         self._held: list[tuple] = []
+        self._state_t: float | None = None  # the time of the last /sim/state sample
 
     def _write(self, topic: str, t: float, payload) -> None:
         if self._held:
@@ -217,7 +218,14 @@ class TopicWriter:
 
     def state(self, t: float, x: np.ndarray, mode: int, u: np.ndarray, x_ref: np.ndarray,
               w: np.ndarray) -> None:
-        """One /sim/state sample (with its scene body), held (copied): see :meth:`flush_held`."""
+        """One /sim/state sample (with its scene body), held (copied): see :meth:`flush_held`.
+
+        A sample at the time of the last one is not written again (a run that ends where a
+        step began, which sampled it).
+        """
+        if t == self._state_t:
+            return
+        self._state_t = t
         self._hold(None, (t, int(mode), *(None if v is None else np.array(v, dtype=float)
                                           for v in (x, u, x_ref, w))))
 

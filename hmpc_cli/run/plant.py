@@ -17,7 +17,7 @@ import numpy as np
 from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.lowlevel import LowLevelController
 from hmpc_cli.core.messages import GuardEvent, Plan
-from hmpc_cli.sim.simulator import HybridSimulator, ZenoError
+from hmpc_cli.sim.simulator import HybridSimulator, ZenoError, zeno_text
 
 
 @dataclass
@@ -83,8 +83,7 @@ class Plant:
                                  stop_at_event=self.recompute_at_events)
             x, mode = step.x[0], int(step.mode[0])
             if len(events) + len(step.events) > self.max_events:
-                raise ZenoError(f"more than {self.max_events} guard events in one step of "
-                                f"{h} s (Zeno chattering)")
+                raise ZenoError(zeno_text(self.max_events, h))
             for ev in step.events:
                 g = ev.guard
                 gev = GuardEvent(t0 + (h - left) + ev.tau, g, int(self.sim.num.source[g]),

@@ -22,6 +22,12 @@ import numpy as np
 from hmpc_cli.core.hybrid import HybridSystem
 
 
+def zeno_text(max_events: int, h: float) -> str:
+    """The reason of a step of ``h`` seconds with more than ``max_events`` events."""
+    return (f"more than {max_events} guard event{'s' if max_events != 1 else ''} in one "
+            f"step of {h:.6g} s (Zeno chattering)")
+
+
 class ZenoError(RuntimeError):
     """Raised when one step holds more guard events than allowed."""
 
@@ -206,9 +212,9 @@ class HybridSimulator:
         over = n_events > self.max_events
         if over.any():
             if raise_zeno:
-                raise ZenoError(f"more than {self.max_events} guard events in one step of "
-                                f"{dt} s (Zeno chattering) for sample(s) "
-                                f"{np.nonzero(over)[0].tolist()}")
+                which = (f" for sample(s) {np.nonzero(over)[0].tolist()}"
+                         if len(over) > 1 else "")
+                raise ZenoError(zeno_text(self.max_events, dt) + which)
             zeno |= over
             rem[over] = 0.0
 
