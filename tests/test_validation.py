@@ -11,6 +11,7 @@ a value that slips through fails at once instead of running a simulation.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tracemalloc
 from pathlib import Path
@@ -519,9 +520,39 @@ def test_an_initial_state_past_a_guard_of_its_mode_is_refused(real_prepare: Path
     lines = bad_run(real_prepare, ["run", fine, "--set", item, "--out", "out"])
     assert len(lines) == 1 and lines[0].startswith(
         f"error: --set {item}: system.x0: (3, 3, 0, 0) lies past guard 'circle_in'"), lines
-    lines = bad_run(real_prepare, ["run", fine, "--set", "plant.circle_center=[1.2,1.2]",
-                                   "--out", "out"])
-    assert lines == [f"error: {fine}: {X0_PAST_CIRCLE.format('the plant' + chr(39) + 's ')}"]
+    item = "plant.circle_center=[1.2,1.2]"
+    lines = bad_run(real_prepare, ["run", fine, "--set", item, "--out", "out"])
+    assert lines == [f"error: --set {item}: "
+                     f"{X0_PAST_CIRCLE.format('the plant' + chr(39) + 's ')}"]
+    # a sweep checks the plant before it starts a run
+    (real_prepare / "p.toml").write_text(
+        f'name = "p"\nscenario = "{fine}"\nseeds = 1\n[grid]\nplant = [{{ label = "near", '
+        f'"plant.circle_center" = [1.2, 1.2] }}]\n')
+    lines = bad_run(real_prepare, ["sweep", "p.toml"])
+    assert len(lines) == 1 and "lies past the plant's guard 'circle_in'" in lines[0], lines
+
+
+def test_a_plant_whose_guards_are_not_the_models_is_refused(real_prepare: Path):
+    """The controllers take a contact's guard by its place in the model's list: a plant
+    with one stair more filed its landings under the wrong stair (and as unscheduled)."""
+    name = _scenario(real_prepare, "biped", name="walk").name
+    item = ("plant.stairs=[{length=0.2,height=0.0},{length=0.2,height=0.0},"
+            "{length=1.0,height=0.075},{length=0.2,height=0.125},{length=1.25,height=0.175}]")
+    assert bad_run(real_prepare, ["run", name, "--set", item, "--out", "out"]) == [
+        f"error: --set {item}: plant: the simulated system has 6 guards, the model 5: the "
+        "controllers name a contact by its guard's place in the model's list, so [plant] may "
+        "move guards but not add, drop or reorder them (e.g. keep the number of stairs)"]
+    from hmpc_cli.run.setup_checks import plant_guard_problems
+    from hmpc_cli.systems.ball import BallParams, build_ball
+
+    model = build_ball(BallParams())
+    moved = build_ball(BallParams(circle_center=(4.0, 2.0), radius=0.2))
+    assert plant_guard_problems(model, moved) == []
+    swapped = dataclasses.replace(moved, guards=(moved.guards[1], moved.guards[0],
+                                                 *moved.guards[2:]))
+    assert plant_guard_problems(model, swapped)[0].startswith(
+        "plant: the simulated system has its guard 0 is 'wall' (outside -> outside), the "
+        "model's 'floor' (outside -> outside):")
 
 
 def test_an_initial_state_on_a_guard_of_its_mode_is_refused(real_prepare: Path):

@@ -523,9 +523,8 @@ class Summary:
         x_end: the final state (empty: its size is not the model's).
         mode_end: the final mode's name.
         contacts: guard events of the simulated system.
-        contacts_by_guard: guard events per guard name of the model (zeros included); a
-            guard only the simulated plant has (``[plant]`` keys) is counted in
-            ``contacts`` and in summary.json's ``contacts_by_guard``, not here.
+        contacts_by_guard: guard events per guard name of the model (zeros included;
+            a ``[plant]`` keeps the model's guards one for one).
         solves: fixed-mode MPC solves (one /mpc/solve each).
         solver_failures: failed solves: the /mpc/solve ones with success false and the
             failed solves a planner made itself (the foothold candidates), once each.

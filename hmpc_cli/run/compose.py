@@ -18,8 +18,8 @@ from hmpc_cli.log.books import RunBooks, RunResult
 from hmpc_cli.log.runlog import RunIdentity
 from hmpc_cli.run.realtime import Latency
 from hmpc_cli.run.scenario import did_you_mean
-from hmpc_cli.run.setup_checks import (built_problems, check_task, initial_state_problems,
-                                      margins_of, region_warnings)
+from hmpc_cli.run.setup_checks import (built_problems, check_task, margins_of, plant_problems,
+                                       region_warnings)
 
 __all__ = ["PreparedRun", "StackTiming", "build"]
 
@@ -103,7 +103,7 @@ def build(scenario) -> PreparedRun:
     margins = margins_of(sc, model)
     problems = built_problems(sc, model, margins)
     if sc.plant:
-        problems += initial_state_problems(system, model.x0, "the plant's ")
+        problems += plant_problems(model, system)
     if problems:  # before the NLPs are built
         raise ValueError("\n".join(problems))
     # the planner first: what it compiles in the background (the CEM's C rollouts)

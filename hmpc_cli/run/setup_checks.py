@@ -18,9 +18,10 @@ def setup_problems(scenario) -> list[str]:
 
     ``key.path: reason`` lines (none: the scenario sets up): margins that do not fit the
     system (a margins file, an input shrink beyond half an input box), solver options
-    the solver rejects and planner settings that do not fit the system (a schedule), and
-    a task that is not one (:func:`check_task`). Builds the controllers' model only (no
-    NLP, no planner), so a sweep checks every cell before it starts a run.
+    the solver rejects and planner settings that do not fit the system (a schedule), a
+    task that is not one (:func:`check_task`) and a ``[plant]`` that does not fit the
+    model (:func:`plant_problems`). Builds the controllers' model (and the plant) only
+    (no NLP, no planner), so a sweep checks every cell before it starts a run.
     """
     from hmpc_cli.core.registry import PluginError, build_system, plugin_call, registry
 
@@ -31,9 +32,17 @@ def setup_problems(scenario) -> list[str]:
                                registry().system(name).task, scenario.system, model),
                    name, model)
         margins = margins_of(scenario, model)
+        system = build_system(scenario.plant_params()) if scenario.plant else None
     except (PluginError, ValueError) as exc:
         return str(exc).splitlines()
-    return built_problems(scenario, model, margins)
+    problems = built_problems(scenario, model, margins)
+    return problems + (plant_problems(model, system) if system is not None else [])
+
+
+def plant_problems(model, system) -> list[str]:
+    """The simulated system's (``[plant]``) problems: its guards, the model's x0 in it."""
+    return (plant_guard_problems(model, system)
+            + initial_state_problems(system, model.x0, "the plant's "))
 
 
 def check_task(task, name: str, system):
@@ -73,6 +82,31 @@ def built_problems(sc, model, margins: ConstraintMargins | None) -> list[str]:
         f"the x0 that {sc.system.name!r} builds (it has no x0 setting)"
     return (initial_state_problems(model, key=key) + _margin_problems(sc, model, margins)
             + _solver_problems(sc) + _planner_problems(sc, model))
+
+
+def plant_guard_problems(model, system) -> list[str]:
+    """``plant: reason`` when the simulated system's guards are not the model's one for one.
+
+    The controllers take a contact's guard by its index in the model's list (schedules,
+    the low level, replanning triggers, the log's names and counts), so a ``[plant]`` may
+    move a guard (another stair height, circle, extent) but not add, drop, rename or
+    reorder guards, nor change their modes.
+    """
+    def listed(s) -> list[tuple[str, str, str]]:
+        return [(g.name, g.source, g.target) for g in s.guards]
+
+    ours, theirs = listed(model), listed(system)
+    if ours == theirs:
+        return []
+    if len(ours) != len(theirs):
+        what = f"{len(theirs)} guards, the model {len(ours)}"
+    else:
+        k = next(i for i, (a, b) in enumerate(zip(ours, theirs, strict=True)) if a != b)
+        what = (f"its guard {k} is {theirs[k][0]!r} ({theirs[k][1]} -> {theirs[k][2]}), the "
+                f"model's {ours[k][0]!r} ({ours[k][1]} -> {ours[k][2]})")
+    return [f"plant: the simulated system has {what}: the controllers name a contact by "
+            f"its guard's place in the model's list, so [plant] may move guards but not "
+            f"add, drop or reorder them (e.g. keep the number of stairs)"]
 
 
 def initial_state_problems(system, x0=None, whose: str = "", key: str = "system.x0"
