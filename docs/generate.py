@@ -375,7 +375,9 @@ constraints; a default `unset` is TOML's absence (the description says what it m
 SYSTEMS_INTRO = """
 The bundled systems; a plug-in system adds its own (`plugins.md`). `[plant]` holds
 system parameters of the simulated plant that differ from the controllers' model (e.g.
-`mass_scale = 1.1`), checked against the system's parameters.
+`mass_scale = 1.1`), checked against the system's parameters. Its guards must be the
+model's one for one (moved, not added, dropped or reordered: the same number of stairs),
+since the controllers name a contact by its guard's place in the model's list.
 """
 
 PLANNERS_INTRO = """
