@@ -950,6 +950,10 @@ def test_disturbance_statistics_are_those_of_the_window() -> None:
     assert stats(1.5, 0.5) == (2, 5.0, pytest.approx(4.0))  # 3 from 0.5, 5 from 1.0
     assert stats(0.4, 0.2) == (1, 1.0, pytest.approx(1.0))  # one value held throughout
     assert disturbance_stats(msgs, 2.0, 100.0)["values"] == 0  # a window past the end
+    # a value set at --to holds no time in the window: not counted, nor its max
+    assert stats(1.0, 0.5) == (1, 3.0, pytest.approx(3.0))
+    assert stats(1.0) == (2, 3.0, pytest.approx(2.0))
+    assert stats(1.0, 1.0) == (1, 5.0, pytest.approx(5.0))  # a window of no time
 
 
 def test_verify_compares_the_run_metadata_record(ball, tmp_path) -> None:

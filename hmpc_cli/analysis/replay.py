@@ -455,8 +455,9 @@ def disturbance_stats(messages: list, t_end: float, t_start: float | None = None
     """Statistics of the /disturbance values in effect over [t_start, t_end] [s].
 
     Each value holds until the next one (the last until ``t_end``); a value set before
-    ``t_start`` counts from ``t_start`` (None: from the first value). The mean |w| is
-    time-weighted (a plain mean if the values span no time).
+    ``t_start`` counts from ``t_start`` (None: from the first value). A value that holds no
+    time in the window (set at ``t_end``) is not counted. The mean |w| is time-weighted (a
+    plain mean of every value if the values span no time).
 
     Returns:
         ``{"values": N, "changes": N - 1, "channels": {name: {"max": .., "mean": ..}}}``.
@@ -473,6 +474,9 @@ def disturbance_stats(messages: list, t_end: float, t_start: float | None = None
     ends = starts[1:] + [max(t_end, starts[-1])]
     spans = [max(e - t, 0.0) for t, e in zip(starts, ends, strict=True)]
     total = sum(spans)
+    if total > 0:  # a value set at the window's end held no time in it: not counted
+        dist, spans = zip(*((m, s) for m, s in zip(dist, spans, strict=True) if s > 0),
+                          strict=True)
     weights = [s / total for s in spans] if total > 0 else [1 / len(dist)] * len(dist)
     chans: dict[str, dict[str, float]] = {}
     for m, wgt in zip(dist, weights, strict=True):
