@@ -984,3 +984,28 @@ def test_verify_compares_the_run_metadata_record(ball, tmp_path) -> None:
         res = replay(path, "--verify")
         assert res.exit_code == 1 and f"diverged at t = 0 s on {says}" in \
             " ".join(res.output.split()), res.output
+
+
+def test_a_scene_cut_before_its_first_state_says_so(ball_log) -> None:
+    """A log killed after /scene/static and before the first /scene/body sample: the
+    animation's reason is the cut, not 'a system without a drawing, or an older log'."""
+    import types
+
+    from hmpc_cli.analysis.tables import FigureInputError
+    from hmpc_cli.figures.scene_anim import read_scene
+
+    def cut(complete: bool, damage: str = "", static: bool = True):
+        return types.SimpleNamespace(
+            complete=complete, damage=damage, raw_topic=lambda topic: (
+                ball_log.raw_topic(topic) if topic == "/scene/static" and static else []))
+
+    for log, reason in (
+            (cut(False), "the log has no /scene/body sample (the log is cut short)"),
+            (cut(False, "bad CRC"), "the log has no /scene/body sample (damaged log: bad CRC)"),
+            (cut(True), "the log has no /scene/body sample (it ends before its first state)"),
+            (cut(True, static=False), "the log has no /scene/body (a system without a "
+                                      "drawing, or a log written before hmpc logged its "
+                                      "scene)")):
+        with pytest.raises(FigureInputError) as info:
+            read_scene(log)
+        assert str(info.value) == reason

@@ -54,6 +54,12 @@ def read_scene(log) -> SceneFrames:
     for m in log.raw_topic("/scene/static"):
         out.static += list(SceneUpdate.FromString(m.data).entities)
     if not out.body[0]:
+        from hmpc_cli.log.rundata import damage_note
+
+        cut = damage_note(log.damage, log.complete)
+        if cut or out.static:  # a drawing was logged: the log ends before its first state
+            raise FigureInputError("the log has no /scene/body sample" + (
+                cut or " (it ends before its first state)"))
         raise FigureInputError("the log has no /scene/body (a system without a drawing, "
                                "or a log written before hmpc logged its scene)")
     return out
