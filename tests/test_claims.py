@@ -296,3 +296,28 @@ def test_the_readmes_counts_without_contact_sequences_are_the_pages():
     for row in ("| 20 Hz plan-once 11/11 | 11/11 |", "| 10 Hz replanning 11/11 | 11/11 |"):
         line = next(ln for ln in readme.splitlines() if ln.startswith(row))
         assert line.endswith("| count reproduced (not the contact sequences) |"), line
+
+
+def test_the_readmes_figure_3_table_is_the_committed_tables():
+    """README's table of what is reproduced: its hmpc and reference-rule columns are the
+    success counts of the committed sweeps (fig3 + fig3_100hz; fig3_reference_rule)."""
+    sweeps = ROOT / "results" / "sweeps"
+
+    def counts(*names: str) -> dict[str, str]:
+        out = {}
+        for name in names:
+            with open(sweeps / name / "results.csv", newline="") as f:
+                rows = list(csv.DictReader(f))
+            total = Counter(r["controller"] for r in rows)
+            won = Counter(r["controller"] for r in rows if r["success"] == "true")
+            out |= {c: f"{won[c]}/{n}" for c, n in total.items()}
+        return out
+
+    hmpc, rule = counts("fig3", "fig3_100hz"), counts("fig3_reference_rule")
+    readme = (ROOT / "README.md").read_text().splitlines()
+    for published, controller in (("10 Hz plan-once 9/11", "10 Hz fixed"),
+                                  ("20 Hz plan-once 11/11", "20 Hz fixed"),
+                                  ("10 Hz replanning 11/11", "10 Hz replan"),
+                                  ("100 Hz 4/11 (reference data)", "100 Hz fixed")):
+        line = next(ln for ln in readme if ln.startswith(f"| {published} |"))
+        assert line.split(" | ")[1:3] == [hmpc[controller], rule[controller]], line
