@@ -54,3 +54,23 @@ def test_floor_shift_at_100_hz_never_moves_a_node(tmp_path):
     firsts = [c[0] for _, c in exact]
     assert firsts == list(range(firsts[0], firsts[0] - 9, -1))
     assert len({sum(c) for _, c in exact}) == 1  # the horizon keeps its length
+
+
+def test_solves_off_the_period_grid_move_the_time_elapsed(tmp_path):
+    """A fixed latency of 0.02 s at 60 Hz: the solver runs at its own pace, a solve every
+    0.02 s = 1.2 node steps. The nodes moved add up to the time elapsed (each solve moved
+    round(1.2) = 1 and dropped the rest, so the planned guard slid 3.3 ms later at every
+    solve): the planned guard time stays within half a node step of where it was."""
+    sc, _ = load_scenario(BALL, ["sim.duration=0.45", "mpc.rate_hz=60", "sim.latency=0.02",
+                                 'sim.latency_first="paused"',
+                                 'lowlevel.past_guard="next_domain"'])
+    run_to_log(prepare(sc), tmp_path / "r.mcap")
+    solves = [s for s in read_run(tmp_path / "r.mcap").solves
+              if s.t > 0.21 and len(s.detail.counts) == 2]  # after the floor: circle next
+    dt = 1 / 60
+    assert len(solves) >= 10 and {round(b.t - a.t, 9) for a, b in zip(
+        solves, solves[1:], strict=False)} == {0.02}
+    guard = [s.t + s.detail.counts[0] * dt for s in solves]
+    assert max(guard) - min(guard) <= dt + 1e-9  # within +- dt/2 of one time: no drift
+    moved = sum(s.detail.shifted for s in solves[1:])
+    assert abs(moved * dt - (solves[-1].t - solves[0].t)) <= dt / 2 + 1e-9

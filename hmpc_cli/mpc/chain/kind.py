@@ -99,17 +99,27 @@ class ChainMPC:
             # event told before (the loop withdrew it and planned this schedule anew)
             self._t_shift, self._t_event = t, min(self._t_event, t)
         else:
-            if dropped:  # the domain after the impact started at the event, not at t
-                n = self.s.shifted_nodes(t - self._t_shift)
-                shifted = self._shift(n) if n else 0
-            else:
-                shifted = self._shift(self.s.shifted_nodes(t - self._t_shift))
-            # a solve from before the last one's time (a compensated solve expecting a
-            # shorter delay) moves no node and keeps the clock: no interval moves twice
-            self._t_shift = max(self._t_shift, t)
+            n = self.s.shifted_nodes(t - self._t_shift)
+            # after an impact (its domain started at the event, not at t) only a move
+            shifted = 0 if dropped and not n else self._shift(n)
+            self._t_shift = self._shift_clock(t, n)
         plan = self.chain.reoptimize(t, x)
         return replace(plan, schedule=self._schedule, detail=ChainDetail(
             int(shifted), tuple(int(c) for c in self.chain.node_schedule.counts)))
+
+    def _shift_clock(self, t: float, n: int) -> float:
+        """The time [s] the next solve's shift counts from, after n intervals moved at t.
+
+        ``elapsed``: the clock advances by the n whole intervals moved, so the part of an
+        interval not moved counts at the next solve (solves at the solver's own pace, not
+        one period apart, moved 1 node per 1.2 elapsed and planned the guard later at
+        each solve). A solve from before the clock (a compensated solve expecting a
+        shorter delay) moves no node and keeps it: no interval moves twice. ``floor``
+        (the reference code's rule) drops the rest at every solve, as the reference does.
+        """
+        if self.s.node_shift == "floor":
+            return max(self._t_shift, t)
+        return self._t_shift + n * self.s.dt if t > self._t_shift else self._t_shift
 
     def _new_plan(self, schedule: ModeSchedule) -> bool:
         """Whether ``schedule`` is a newly planned one (else the one the nodes follow).
