@@ -50,8 +50,9 @@ NOTES: dict[str, str] = {
                         "paper's Figure 3 recipe (\"paper_fig3\", with `trial`)",
     "mpc[fixed_mode].integrator": 'RK4 ("rk4") or forward Euler ("euler", the reference '
                                   "code's) per node interval",
-    "mpc[fixed_mode].warm_start": "start each solve from the shifted previous primal-dual "
-                                  "solution",
+    "mpc[fixed_mode].warm_start": "start each solve from the shifted previous solution's "
+                                  "multipliers too (false: the primal start is still the "
+                                  "shifted previous solution, the duals cold)",
     "mpc[fixed_mode].resolve_on_impact": "re-solve at every contact, not only every period",
     "replanning.policy": '"once" (at t = 0), "on_contact" (after every guard event) or '
                          '"periodic" (every `period` s)',

@@ -138,7 +138,10 @@ def rti_step_kept(status: str, converged: bool, violation: float) -> bool:
     """Whether a real-time iteration's result is kept as the plan.
 
     It is if it converged, or stopped at its iteration limit with a finite iterate: its
-    remaining violation is what the next periods' steps reduce (a failed QP is not kept).
+    remaining violation is what the next periods' steps reduce. A QP HPIPM failed to
+    solve is not told apart: CasADi 3.8's ``sqpmethod`` (``error_on_fail`` off) reports
+    its iteration limit then too and its statistics carry no QP status, so such a step is
+    kept if its iterate is finite (its violation is logged in /mpc/solve).
     """
     if converged:
         return True
