@@ -167,6 +167,8 @@ def field_rows(model_schema: dict, defs: dict, prefix: str, note_prefix: str,
         default = p.get("default", "(required)") if "$ref" not in p else "(table)"
         default_text = default if default in ("(required)", "(table)") else \
             f"`{toml_text(default)}`"
+        if "default_text" in p:  # set before validation, so required by the model
+            default_text = p["default_text"]
         if isinstance(default, list) and default and isinstance(default[0], dict):
             default_text = f"{len(default)} tables (`hmpc schema`)"
         rows.append(f"| `{key}` | {_cell(type_text(p, defs))} | {_cell(unit)} | "
@@ -430,18 +432,19 @@ Shell completion of keys: `hmpc --install-completion`.
 
 SWEEP_INTRO = """
 `hmpc sweep SWEEP.toml` (`sweeps-and-report.md`) runs one scenario × `[set]` overrides ×
-`[grid]` axes × seeds (`hmpc_cli/sweep/plan.py`). Example (`sweeps/fig3.toml`, shortened):
+`[grid]` axes × seeds (`hmpc_cli/sweep/plan.py`). Example (after `sweeps/fig3.toml`;
+`tests/test_docs.py` plans it):
 
 ```toml
-name = "fig3"
+name = "fig3_example"
 scenario = "../scenarios/ball.toml"   # relative to the sweep file
 seeds = [0]                           # or a count: seeds = 100 means 0..99
 
 [set]                                 # applied to every run
-"disturbance.hold" = 0.05
+"disturbance.kind" = "paper_fig3"
 
 [grid]                                # axes, multiplied out in file order
-"mpc.rate_hz" = [10, 20]              # a scenario key with a list of values
+"disturbance.trial" = [1, 2]          # a scenario key with a list of values
 controller = [                        # or a name with a list of override tables
   { label = "10 Hz fixed", "mpc.rate_hz" = 10, "replanning.policy" = "once" },
   { label = "10 Hz replan", "mpc.rate_hz" = 10, "replanning.policy" = "on_contact" },

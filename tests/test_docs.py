@@ -125,3 +125,17 @@ def test_log_format_describes_every_field():
     assert len(rows) > 150 and any(m[1] == "plan[:].<state>" for m in rows)
     empty = [m[1] for m in rows if not m[3].strip()]
     assert not empty, f"log-format.md: fields without a description: {empty}"
+
+
+def test_the_sweep_file_example_plans(tmp_path):
+    """scenarios.md's example sweep file is one hmpc plans (it set mpc.rate_hz on two
+    axes and was refused), with the runs it describes."""
+    from hmpc_cli.sweep.plan import plan_sweep
+
+    text = (DOCS / "scenarios.md").read_text().split("Example (after `sweeps/fig3.toml`", 1)[1]
+    example = text.split("```toml\n", 1)[1].split("```", 1)[0]
+    (tmp_path / "sweeps").mkdir()
+    (tmp_path / "scenarios").symlink_to(ROOT / "scenarios")
+    (tmp_path / "sweeps" / "example.toml").write_text(example)
+    plan = plan_sweep(tmp_path / "sweeps" / "example.toml")
+    assert plan.spec.name == "fig3_example" and len(plan.runs) == 4  # 2 trials x 2 controllers

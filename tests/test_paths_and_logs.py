@@ -678,3 +678,17 @@ def test_printable_and_a_set_value_that_is_not_utf8():
     assert res.exit_code == 2, res.output
     assert "--set 'description=\"a\\xffb\"': holds bytes that are not UTF-8 text " \
         "(shown as \\xNN); give the value in UTF-8" in res.stderr, res.stderr
+
+
+def test_a_text_file_given_as_a_log_is_named_as_text(tmp_path):
+    """A summary.json given where a run log goes: 'not an MCAP file', said in words (it
+    printed the first bytes as a Python bytes literal)."""
+    from hmpc_cli.log.reader import read_log
+
+    (tmp_path / "summary.json").write_text('{\n  "scenario": "ball"\n}\n')
+    (tmp_path / "noise.bin").write_bytes(bytes(range(200, 256)))
+    for name, why in (("summary.json", " (it reads as text: a summary.json or a scenario?)"),
+                      ("noise.bin", "")):
+        with pytest.raises(ValueError) as err:
+            read_log(tmp_path / name)
+        assert str(err.value) == f"{tmp_path / name} is not an MCAP file{why}"

@@ -1,7 +1,8 @@
 """Every command the README and the manual (docs/*.md) show in a ``console`` block is run here.
 
 Each document's ``$ `` lines run in order in a fresh directory of their own (the scenarios,
-benchmarks and sweeps linked in); install and the default run are run by CI. The
+benchmarks and sweeps linked in); install and the default run are run by CI (.ci/run:
+the run verbatim, in a scratch directory). The
 campaign-only commands (``CAMPAIGN_ONLY``) run apart, under ``pytest -m campaign``; in
 their documents' order their committed results stand in for theirs.
 """

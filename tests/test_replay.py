@@ -663,6 +663,12 @@ def test_bad_files(ball, tmp_path) -> None:
              foreign: "not an hmpc run log (no /run/info; its topics: /camera)"}
     for path, what in cases.items():  # an empty file: "empty file: the run was stopped ..."
         assert _error_line(replay(path)).startswith(f"error: {path}: {what}")
+    sweep = tmp_path / "sweep"  # a sweep's output directory: where its runs are
+    (sweep / "runs").mkdir(parents=True)
+    (sweep / "results.csv").write_text("run_id\n")
+    assert _error_line(replay(sweep)) == (
+        f"error: {sweep}: a directory without run.mcap (or trace.mcap): a sweep's output "
+        f"directory, its runs are in {sweep / 'runs'}/<run id>")
 
 
 def test_a_log_without_json_messages_is_told_apart(ball, tmp_path) -> None:

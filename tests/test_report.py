@@ -93,6 +93,13 @@ def test_robustness_figure_is_deterministic_and_tabled(tmp_path):
 def test_robustness_bad_tables_are_clear_errors(tmp_path):
     with pytest.raises(FigureInputError, match="no such table"):
         robustness(tmp_path / "missing.csv", tmp_path)
+    (tmp_path / "run").mkdir()  # a run's directory given where a sweep's is expected
+    (tmp_path / "run" / "run.mcap").write_bytes(b"")
+    with pytest.raises(FigureInputError) as err:
+        robustness(tmp_path / "run", tmp_path)
+    assert str(err.value) == (
+        f"{tmp_path / 'run'}: a run's directory, not a table: give a sweep's output "
+        "directory or its results.csv (a run's figures: hmpc plot fig2, timing)")
     bad = tmp_path / "bad.csv"
     bad.write_text("run_id,success\n1,true\n")
     with pytest.raises(FigureInputError, match="missing column"):
@@ -1163,3 +1170,22 @@ def test_only_series_the_rate_reading_compares_count_as_refused():
         Cell(panel="±30", series="replan", x=5, ran=False),
         *[Cell(panel="±30", series="replan", x=x, ran=True) for x in (10, 20)]]
     assert _refused_series(cells) == 1
+
+
+def test_a_page_is_the_same_sections_however_its_options_are_written():
+    """Options in another order, ``--opt=value``, a default given explicitly or ``./x``
+    for ``x`` show the same sections (such a report refused to regenerate its own page,
+    'with other sections'); another value, or a section left out, does not."""
+    from hmpc_cli.cli.report import _sections
+
+    made = ["--results", "repro", "--no-run", "--fig3-extra", "", "--fig3-trials", "",
+            "--realtime", ""]
+    for same in (["--results=repro", "--realtime", "", "--fig3-trials", "", "--fig3-extra",
+                  "", "--run", "--workers", "2"],
+                 ["--results", "./repro", "--fig3", "sweeps/fig3.toml", "--fig3-extra=",
+                  "--fig3-trials", "", "--realtime", "", "-q"]):
+        assert _sections(same) == _sections(made), same
+    for other in (["--results", "repro", "--fig3-extra", "", "--fig3-trials", ""],
+                  ["--results", "repro", "--fig3-extra", "x.toml", "--fig3-trials", "",
+                   "--realtime", ""]):
+        assert _sections(other) != _sections(made), other

@@ -450,3 +450,22 @@ def test_a_base_scenario_changed_in_keys_every_run_overrides_is_no_stale_table(
     proc = run_hmpc([*_args(robustness=str(sweep)), "--results", str(res)], tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "2 finished runs, 1 seeds" in (res / "README.md").read_text()
+
+
+def test_a_sweep_file_that_cannot_be_read_names_its_option(tmp_path):
+    """A missing or broken sweep file given to a section: its lines name the option (they
+    named the file alone, so which of a dozen options was wrong had to be guessed)."""
+    from typer.testing import CliRunner
+
+    from hmpc_cli.cli.app import app
+
+    (tmp_path / "broken.toml").write_text("name = \n")
+    for option, value, why in (("fig3", "nonexist.toml", "file not found"),
+                               ("fig3_trials", str(tmp_path / "broken.toml"),
+                                "TOML syntax error: ")):
+        res = CliRunner().invoke(app, [*_args(**{option: value}), "--results",
+                                       str(tmp_path / "r")])
+        assert res.exit_code == 2
+        flag = "--" + option.replace("_", "-")
+        assert res.output.startswith(f"error: {flag} {value}: {why}"), res.output
+    assert not (tmp_path / "r").exists()

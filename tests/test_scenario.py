@@ -123,6 +123,11 @@ def test_toml_syntax_error(work: Path) -> None:
 def test_not_utf8(work: Path) -> None:
     (work / "bin.toml").write_bytes(b'name = "\xff\xfe"\n')
     assert cli_bad(work, ["bin.toml"]) == ["error: bin.toml: not a UTF-8 text file"]
+    # a run log given as the scenario: say what it is and what reads it
+    (work / "run.mcap").write_bytes(b"\x89MCAP0\r\n\xff\xfe")
+    assert cli_bad(work, ["run.mcap"]) == [
+        "error: run.mcap: not a UTF-8 text file (a run log: `hmpc replay run.mcap` reads it; "
+        "the scenario file of its run is the scenario.toml beside it)"]
 
 
 def test_a_byte_order_mark_is_read_past_and_a_dangling_link_named(work: Path) -> None:

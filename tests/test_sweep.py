@@ -351,6 +351,7 @@ def test_dask_unreachable_exits_2_quickly(tmp_path):
                  timeout=60)
     assert proc.returncode == 2
     assert "error: --dask tcp://127.0.0.1:1: cannot connect" in proc.stderr
+    assert "8787" not in proc.stderr  # the dashboard's port is no hint for port 1
     assert not (tmp_path / "out").exists()
 
 
@@ -381,6 +382,10 @@ BAD = {
                                "sweep.toml: scenario: sweep.toml is a sweep file (this sweep "
                                "file itself), not a scenario: name the scenario file its runs "
                                "start from (one with system and mpc sections)"),
+    "unknown key in a table entry": (
+        '[grid]\nc = [{ label = "a", "mpc.rate_hz" = 10 }, { label = "b", '
+        '"replaning.policy" = "once" }]\n',
+        "sweep.toml: grid.c[1]: replaning: unknown key (did you mean 'replanning'?)"),
     "unknown sweep key": ('seed = 3\n',
                          "sweep.toml: seed: unknown key (did you mean 'seeds'?)"),
     "one value written twice": ('[set]\n"disturbance.kind" = "box"\n[grid]\n'

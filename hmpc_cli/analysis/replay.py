@@ -142,7 +142,10 @@ def resolve_log_path(path: Path) -> Path:
     if path.is_dir():
         found = [path / name for name in ("run.mcap", TRACE_NAME) if (path / name).is_file()]
         if not found:
-            raise ReplayError(f"a directory without run.mcap (or {TRACE_NAME})")
+            sweep = (path / "results.csv").is_file() and (path / "runs").is_dir()
+            raise ReplayError(f"a directory without run.mcap (or {TRACE_NAME})" + (
+                f": a sweep's output directory, its runs are in {path / 'runs'}/<run id>"
+                if sweep else ""))
         path = found[0]
     if not path.exists():
         raise ReplayError("no such file")

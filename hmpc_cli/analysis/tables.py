@@ -85,7 +85,11 @@ def read_table(path: Path, required: Iterable[str]) -> list[dict[str, str]]:
     """Reads a CSV table with a header; checks it exists, has rows and the `required` columns."""
     path = Path(path)
     if not path.is_file():
-        raise FigureInputError(f"{path}: no such table")
+        run = path.is_dir() and any((path / f).is_file() for f in ("run.mcap", "trace.mcap"))
+        raise FigureInputError(f"{path}: " + (
+            "a run's directory, not a table: give a sweep's output directory or its "
+            "results.csv (a run's figures: hmpc plot fig2, timing)" if run
+            else "no such table"))
     try:
         with open(path, newline="", encoding="utf-8-sig") as f:
             reader = csv.DictReader(f)

@@ -203,14 +203,14 @@ def _robustness(table: Path, out: Path | None, formats: str, options: dict) -> N
 
 def plot_command(
     figure: Annotated[str, typer.Argument(
-        help="figure to draw: fig2, fig3, robustness, fig4 or timing",
+        metavar="FIGURE", help="figure to draw: fig2, fig3, robustness, fig4 or timing",
         autocompletion=complete_figure)],
     table: Annotated[Path, typer.Argument(
-        help="fig3, robustness: sweep table (results.csv, or the sweep directory holding "
-        "it); fig2, timing: a run log, fig4: a biped run log (run.mcap, or the run "
-        "directory holding it)")],
+        metavar="TABLE|RUN", help="fig3, robustness: sweep table (results.csv, or the sweep "
+        "directory holding it); fig2, timing: a run log, fig4: a biped run log (run.mcap, or "
+        "the run directory holding it)")],
     out: Annotated[Path | None, typer.Option(
-        "--out", help="output directory (default: the table's directory)",
+        "--out", metavar="DIR", help="output directory (default: the table's directory)",
         parser=path_option)] = None,
     formats: Annotated[str, typer.Option(
         "--formats", help="comma-separated output formats: pdf,svg,png")] = "pdf,svg,png",

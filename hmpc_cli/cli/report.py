@@ -132,18 +132,35 @@ _HOW = {"--run", "--no-run", "--workers", "--seeds", "--replace", "-q", "--quiet
         "-vv", "--verbose"}
 
 
-def _sections(args: list[str]) -> list[str]:
-    """A report command's arguments without those in :data:`_HOW` (and their values)."""
-    out, skip = [], False
-    for arg in args:
-        name = arg.split("=", 1)[0]
-        if skip:
-            skip = False
-        elif name in _HOW:
-            skip = name in ("--workers", "--seeds") and "=" not in arg
-        else:
-            out.append(arg)
-    return out
+#: options of :data:`_HOW` that take no value
+_FLAGS = {"--run", "--no-run", "--replace", "-q", "--quiet", "-v", "-vv", "--verbose"}
+
+
+def _sections(args: list[str]) -> dict[str, list[str]]:
+    """What a report command's arguments show: {option: values} for every section option.
+
+    Options of :data:`_HOW` are left out; an option not given has its default, so the
+    order of the options, ``--opt=value`` against ``--opt value``, a default given
+    explicitly and ``./path`` against ``path`` make no difference.
+    """
+    import inspect
+    import os
+
+    shown: dict[str, list[str]] = {}
+    for name, p in inspect.signature(report_command).parameters.items():
+        option = "--" + name.replace("_", "-")
+        if option not in _HOW and p.default is not None:
+            shown[option] = [os.path.normpath(str(p.default)) if p.default else ""]
+    given: dict[str, list[str]] = {}
+    k = 0
+    while k < len(args):
+        name, eq, value = args[k].partition("=")
+        if not eq and name not in _FLAGS and k + 1 < len(args):
+            value, k = args[k + 1], k + 1
+        k += 1
+        if name not in _HOW:
+            given.setdefault(name, []).append(os.path.normpath(value) if value else value)
+    return shown | given
 
 
 def _refuse_another_page(results: Path) -> None:
@@ -343,8 +360,8 @@ def _plan_sweeps(files: dict[str, Path | None], seeds: int | None) -> dict:
             plans[key] = plan_sweep(path)
             if key.startswith("robustness"):
                 plans[key] = first_seeds(plans[key], seeds)
-        except ScenarioError as exc:
-            _echo_errors(exc.lines)
+        except ScenarioError as exc:  # each line names the file: say which option too
+            _echo_errors([f"{_option(key)} {line}" for line in exc.lines])
             raise typer.Exit(EXIT_BAD_INPUT) from None
     return plans
 

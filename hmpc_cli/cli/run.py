@@ -25,13 +25,13 @@ def _err(lines: list[str]) -> None:
 
 
 def run_command(
-    scenario: Annotated[Path, typer.Argument(help="scenario TOML file")],
+    scenario: Annotated[Path, typer.Argument(metavar="SCENARIO", help="scenario TOML file")],
     out: Annotated[Path | None, typer.Option(
-        "--out", help="run directory (default results/<name>/<time>-seed<N>, name the "
-        "scenario's)",
+        "--out", metavar="DIR", help="run directory (default "
+        "results/<name>/<time>-seed<N>, name the scenario's)",
         parser=path_option)] = None,
     set_: Annotated[list[str] | None, typer.Option(
-        "--set", help="override a setting: key.path=value (repeatable)",
+        "--set", metavar="KEY.PATH=VALUE", help="override a setting (repeatable)",
         autocompletion=complete_set_key)] = None,
     seed: Annotated[int | None, typer.Option("--seed", help="override the seed")] = None,
     quiet: Annotated[bool, typer.Option(

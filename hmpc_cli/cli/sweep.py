@@ -25,12 +25,12 @@ def _err(lines: list[str]) -> None:
 
 
 def sweep_command(
-    sweep_file: Annotated[Path, typer.Argument(help="sweep TOML file")],
+    sweep_file: Annotated[Path, typer.Argument(metavar="SWEEP.toml", help="sweep TOML file")],
     workers: Annotated[int | None, typer.Option(
         "--workers", min=1, help="worker processes (default: all cores; 1 = in-process)")
     ] = None,
     out: Annotated[Path | None, typer.Option(
-        "--out", help="output directory (default results/sweeps/<name>)",
+        "--out", metavar="DIR", help="output directory (default results/sweeps/<name>)",
         parser=path_option)] = None,
     dask: Annotated[str | None, typer.Option(
         "--dask", help="run on a Dask cluster: scheduler address, e.g. tcp://host:8786")
@@ -278,7 +278,8 @@ def _list_runs(plan) -> None:
         cell = zip(plan.axes, run.cell, strict=True)  # one label per axis
         parts = [run.run_id, *(f"{a.name}={v}" for a, v in cell)]
         typer.echo("  ".join([*parts, f"seed={run.seed}"]))
-    typer.echo(f"{len(plan.selected)} runs, all valid (dry run: nothing started)")
+    n = len(plan.selected)
+    typer.echo(f"{n} run{'s' if n != 1 else ''}, all valid (dry run: nothing started)")
 
 
 def _execute(plan, out: Path, workers: int, client):
@@ -434,8 +435,10 @@ def connect_dask(address: str, timeout: float = 10.0):
         raise ScenarioError([f"--dask {address}: the 'distributed' package is not installed "
                              "(pip install 'hmpc[dask]')"]) from None
     reason = _probe_scheduler(address, timeout)
-    if reason:
-        raise ScenarioError([f"--dask {address}: {reason} ({DASK_HINT})"])
+    if reason:  # something listens there (the dashboard, say) or the port is the dashboard's
+        hint = "" if reason.startswith("cannot connect") and not address.endswith(":8787") \
+            else f" ({DASK_HINT})"
+        raise ScenarioError([f"--dask {address}: {reason}{hint}"])
     box: dict = {}
 
     def connect() -> None:
@@ -452,4 +455,5 @@ def connect_dask(address: str, timeout: float = 10.0):
     exc = box.get("error")
     reason = (" ".join(str(exc).split()) or type(exc).__name__) if exc is not None else \
         f"no Dask scheduler answered within {timeout:g} s"
-    raise ScenarioError([f"--dask {address}: cannot connect: {reason} ({DASK_HINT})"])
+    hint = f" ({DASK_HINT})" if address.endswith(":8787") else ""
+    raise ScenarioError([f"--dask {address}: cannot connect: {reason}{hint}"])

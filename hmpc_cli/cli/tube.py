@@ -269,12 +269,13 @@ def _analyse(sc, system, observed: list, states: Path | None, pad: float | None,
 
 
 def tube_command(
-    scenario: Annotated[Path, typer.Argument(help="scenario TOML file")],
+    scenario: Annotated[Path, typer.Argument(metavar="SCENARIO", help="scenario TOML file")],
     set_: Annotated[list[str] | None, typer.Option(
-        "--set", help="override a setting: key.path=value (repeatable)",
+        "--set", metavar="KEY.PATH=VALUE", help="override a setting (repeatable)",
         autocompletion=complete_set_key)] = None,
     out: Annotated[Path | None, typer.Option(
-        "--out", help="output directory (default results/<name>/tube, name the scenario's)",
+        "--out", metavar="DIR",
+        help="output directory (default results/<name>/tube, name the scenario's)",
         parser=path_option)] = None,
     samples: Annotated[int, typer.Option(
         "--samples", min=1, help="uniform samples per estimated constant (at most 1e7; "
@@ -283,15 +284,16 @@ def tube_command(
         "--pad", help="region padding per side, x each coordinate's width "
         "(default 1; with --states or --runs 0.1)")] = None,
     states: Annotated[Path | None, typer.Option(
-        "--states", help="a run log (run.mcap or its directory): the region spans the "
-        "states it visited instead of x0 and the goal")] = None,
+        "--states", metavar="RUN", help="a run log (run.mcap or its directory): the region "
+        "spans the states it visited instead of x0 and the goal")] = None,
     formats: Annotated[str, typer.Option(
         "--formats", help="comma-separated figure formats: pdf,svg,png")] = "pdf,png",
     write: Annotated[Path | None, typer.Option(
-        "--write", help="also write a margins file (TOML) a scenario's mpc.margins can "
-        "name: the radius and margins per tabulated MPC rate", parser=path_option)] = None,
+        "--write", metavar="FILE", help="also write a margins file (TOML) a scenario's "
+        "mpc.margins can name: the radius and margins per tabulated MPC rate",
+        parser=path_option)] = None,
     runs: Annotated[list[Path] | None, typer.Option(
-        "--runs", help="a run of this scenario's system (directory or run.mcap; "
+        "--runs", metavar="RUN", help="a run of this scenario's system (directory or run.mcap; "
         "repeatable): its deviation from its plans against the tubes; without --states "
         "the region spans the runs' states")] = None,
 ) -> None:

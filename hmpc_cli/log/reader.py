@@ -296,7 +296,9 @@ def read_log(path: str | Path, topics: Collection[str] | None = None) -> Log:
             f.seek(-8, 2)
             tail = f.read(8)
     if head != MCAP_MAGIC:
-        raise ValueError(f"{path} is not an MCAP file (bad magic {head!r})")
+        raise ValueError(f"{path} is not an MCAP file" + (
+            " (it reads as text: a summary.json or a scenario?)"
+            if head and all(32 <= b < 127 or b in b"\t\r\n" for b in head) else ""))
     log = _read(path, topics, tail == MCAP_MAGIC)
     bad = _damaged_attachments(path)
     for name in bad:  # left out: a damaged scenario must not pass for the run's

@@ -859,7 +859,8 @@ def read_toml_file(path: Path, what: str = "scenario file", src: str | None = No
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError([f"{src}: TOML syntax error: {exc}"]) from None
     except UnicodeDecodeError:
-        raise ScenarioError([f"{src}: not a UTF-8 text file"]) from None
+        raise ScenarioError([f"{src}: not a UTF-8 text file" + _binary_hint(path, what)]) \
+            from None
     except RecursionError:
         raise ScenarioError([deep]) from None
     except OSError as exc:  # unreadable (permissions), a FIFO's error, an I/O error
@@ -867,6 +868,20 @@ def read_toml_file(path: Path, what: str = "scenario file", src: str | None = No
     if nesting(data) > MAX_DEPTH:
         raise ScenarioError([deep])
     return text, data
+
+
+def _binary_hint(path: Path, what: str) -> str:
+    """What a binary file given as a TOML file is, when it is a run log (else '')."""
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(5)
+    except OSError:
+        return ""
+    if magic != b"\x89MCAP":
+        return ""
+    return (f" (a run log: `hmpc replay {path}` reads it; the {what} of its run is the "
+            "scenario.toml beside it)" if what == "scenario file"
+            else f" (a run log: `hmpc replay {path}` reads it)")
 
 
 def _read_toml(path: Path) -> dict:

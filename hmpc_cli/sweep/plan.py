@@ -46,7 +46,9 @@ class SweepSpec(BaseModel):
     """The sweep file as written (grid and [set] are checked after flattening)."""
 
     model_config = ConfigDict(extra="forbid")
-    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$")
+    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$", description=(
+        "the results folder's name (results/sweeps/<name>)"),
+        json_schema_extra={"default_text": "the file's stem"})
     description: str = ""
     scenario: str = Field(min_length=1, description="scenario file, relative to the sweep file")
     seeds: list[int] = Field(default_factory=lambda: [0], description="list, or N for 0..N-1")
@@ -283,8 +285,9 @@ def _rewrite(line: str, scenario: Path, src: str, run: Run) -> str:
     if rest == line or not sep or not hit:
         return line
     where = run.origin[hit[-1]]
-    if reason.startswith("unknown key"):
-        return f"{src}: {_INDEX.sub('', where)}: {key}: {reason}"
+    if reason.startswith("unknown key"):  # a value axis: one line for all its values
+        axis = _INDEX.sub("", where)
+        return f"{src}: {axis if axis == f'grid.{hit[-1]}' else where}: {key}: {reason}"
     return f"{src}: {where}: {key}: {reason} (value {toml_value(run.overrides[hit[-1]])})"
 
 
