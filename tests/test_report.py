@@ -1183,7 +1183,9 @@ def test_a_page_is_the_same_sections_however_its_options_are_written():
     for same in (["--results=repro", "--realtime", "", "--fig3-trials", "", "--fig3-extra",
                   "", "--run", "--workers", "2"],
                  ["--results", "./repro", "--fig3", "sweeps/fig3.toml", "--fig3-extra=",
-                  "--fig3-trials", "", "--realtime", "", "-q"]):
+                  "--fig3-trials", "", "--realtime", "", "-q"],
+                 ["-qv", "--results", "repro", "-vvv", "--fig3-extra", "", "--fig3-trials",
+                  "", "--realtime", ""]):
         assert _sections(same) == _sections(made), same
     for other in (["--results", "repro", "--fig3-extra", "", "--fig3-trials", ""],
                   ["--results", "repro", "--fig3-extra", "x.toml", "--fig3-trials", "",

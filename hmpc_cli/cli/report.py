@@ -139,12 +139,15 @@ _FLAGS = {"--run", "--no-run", "--replace", "-q", "--quiet", "-v", "-vv", "--ver
 def _sections(args: list[str]) -> dict[str, list[str]]:
     """What a report command's arguments show: {option: values} for every section option.
 
-    Options of :data:`_HOW` are left out; an option not given has its default, so the
-    order of the options, ``--opt=value`` against ``--opt value``, a default given
-    explicitly and ``./path`` against ``path`` make no difference.
+    Options of :data:`_HOW` are left out (short flags combined too: ``-qv``); an option
+    with a default that is not None and not given has it, so the order of the options,
+    ``--opt=value`` against ``--opt value``, such a default given explicitly and
+    ``./path`` against ``path`` make no difference. (``--authors``, ``--robustness`` and
+    ``--realtime`` find their defaults when the page is made: given or not, they differ.)
     """
     import inspect
     import os
+    import re
 
     shown: dict[str, list[str]] = {}
     for name, p in inspect.signature(report_command).parameters.items():
@@ -155,10 +158,11 @@ def _sections(args: list[str]) -> dict[str, list[str]]:
     k = 0
     while k < len(args):
         name, eq, value = args[k].partition("=")
-        if not eq and name not in _FLAGS and k + 1 < len(args):
+        flag = name in _FLAGS or re.fullmatch(r"-[qv]+", name) is not None
+        if not eq and not flag and k + 1 < len(args):
             value, k = args[k + 1], k + 1
         k += 1
-        if name not in _HOW:
+        if name not in _HOW and not flag:
             given.setdefault(name, []).append(os.path.normpath(value) if value else value)
     return shown | given
 

@@ -122,12 +122,13 @@ class ClosedLoop:
         """One plant step; returns (x, mode, stopped)."""
         from hmpc_cli.sim.simulator import ZenoError
 
+        start = self._now
         try:
             x, mode, _ = self.plant.step(t, x, mode, u, w, self._on_event,
                                          lambda: self.layers.plan)
         except ZenoError as exc:
-            if self._now[0] > t:  # events of this step were handled (recompute): end after
-                t, x, mode = self._now  # the last, as logged and counted
+            if self._now is not start:  # events of this step were handled (recompute): end
+                t, x, mode = self._now  # after the last, as logged and counted
             return x, mode, self._fail(t, f"zeno: {exc}")
         t1 = t + self.plant.h
         if not np.all(np.isfinite(x)) or np.max(np.abs(x)) > self.prepared.divergence_bound:

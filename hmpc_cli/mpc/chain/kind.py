@@ -11,7 +11,8 @@ previous solve, it
   a scheduled impact drops the current domain, virtual node included, and its remaining
   nodes move to the final domain (:meth:`~hmpc_cli.mpc.chain.layout.NodeSchedule.on_impact`);
 * shifts the nodes elapsed since its previous solve (or since the last such impact) from
-  the current domain to the final domain (node shifting, paper Sec. III);
+  the current domain to the final domain, the part of an interval not moved carried to
+  the next solve (node shifting, paper Sec. III);
 * solves on the NLP that fits the node schedule (the final domain's own once no switch
   is left).
 """
@@ -200,7 +201,8 @@ class ChainDetail:
 
     Attributes:
         shifted: flow intervals this solve moved from the current domain to the final
-            one for the time elapsed since the previous solve or impact (node shifting;
+            one for the time elapsed (node shifting: since the previous solve or impact,
+            the part of an interval not moved then included;
             under ``mpc.schedule_rule = "reference"`` the intervals of the domains it
             dropped too; 0: a newly installed schedule).
         counts: flow intervals per domain D_0..D_S of the node schedule solved on (final

@@ -121,7 +121,8 @@ class MPCSettings(MarginsSettings):
     node_shift: Literal["elapsed", "floor"] = Field(
         "elapsed", description='nodes moved to the final domain at each re-solve: "elapsed" '
         "(the time since the previous re-solve or scheduled contact [s] in whole node steps, "
-        "rounded; the MPC period must then be a whole number of node steps) or \"floor\" (the "
+        "rounded, the rest carried to the next re-solve; the MPC period must then be a whole "
+        "number of node steps) or \"floor\" (the "
         "reference code's floor(nodes_per_second x elapsed), computed in floating point: "
         "0 at 100 Hz with 60 nodes/s, so the nodes never move, and 5 instead of 6 in some 10 "
         "Hz periods; any nodes_per_second)")
