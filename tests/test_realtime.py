@@ -643,28 +643,3 @@ def test_the_real_time_biped_climbs_with_its_modelled_compute_time(tmp_path):
             'sim.latency="model"', f'lowlevel.past_guard="{past}"'])
         result = run_to_log(prepare(sc), tmp_path / f"{past}.mcap")
         assert result.success is climbs, (past, result.reason)
-
-
-def test_a_solve_dropped_over_its_budget_is_no_warm_start(tmp_path, monkeypatch):
-    """A replan's cold solve charged past the budget never reached the plant, so the next
-    solve has no solution of it to start from: it starts cold too (it warm-started from
-    the dropped solve's primal-dual solution, which real time never had)."""
-    from hmpc_cli.mpc.chain.controller import ChainSolver
-
-    starts, reoptimize = {}, ChainSolver.reoptimize
-
-    def spy(self, t, x0):  # the solve's start: warm (duals held) or cold
-        starts[round(t, 9)] = self._lam_g is not None
-        return reoptimize(self, t, x0)
-
-    monkeypatch.setattr(ChainSolver, "reoptimize", spy)
-    _, log, _, _ = _run(tmp_path, "dropped", [
-        "sim.duration=0.35", 'sim.latency="model"', 'sim.latency_first="paused"',
-        "sim.latency_model.overhead=0.0", "sim.latency_model.per_iteration=0.01",
-        "sim.latency_model.planner=0.0", "sim.solve_budget=0.05",
-        'replanning.policy="on_contact"'])
-    msgs = [m.data for m in read_log(log).messages if m.topic == "/mpc/solve"]
-    warm = [starts[round(m["t"], 9)] for m in msgs]
-    dropped = ["over budget" in m["reason"] for m in msgs]
-    after_cold_drop = [warm[k + 1] for k in range(len(msgs) - 1) if dropped[k] and not warm[k]]
-    assert len(after_cold_drop) >= 2 and not any(after_cold_drop)

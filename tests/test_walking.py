@@ -276,24 +276,3 @@ def test_walking_mpc_behind_the_contract(mpc):
     assert after.detail.elapsed == 0.0 and after.detail.warm == "primal-dual"
     again = walker.solve(0.35, ev.x_after, 0, sched, [ev])  # the event applies once
     assert again.detail.elapsed == pytest.approx(0.1)
-
-
-def test_a_discarded_solve_leaves_the_memory_and_the_executing_plan_as_they_were():
-    """A solve dropped over the solve budget never reached the plant: its solution is no
-    warm start, and the plant executes the plan it had (the contact's template is built
-    from that one)."""
-    mpc = WalkingMPC(SYS, WalkingMPCSettings())
-    x0 = build_biped(P).x0
-    sched = ModeSchedule((0, 0), (SEGMENT,), (0.4,), 0.0)
-    first = mpc.solve(0.0, x0, 0, sched)
-    assert first.adopt and mpc._executing == SEGMENT
-    kept = mpc._memory[SEGMENT]
-    x1 = first.traj.x[3]
-    mpc.solve(first.traj.t[3], x1, 0, sched)
-    assert mpc._memory[SEGMENT] is not kept
-    mpc.discard()
-    assert mpc._memory[SEGMENT] is kept and mpc._executing == SEGMENT
-    fresh = WalkingMPC(SYS, WalkingMPCSettings())
-    fresh.solve(0.0, x0, 0, sched)
-    fresh.discard()  # the first solve dropped: nothing to start from, nothing executing
-    assert fresh._memory == {} and fresh._executing is None

@@ -42,10 +42,6 @@ class FixedModeMPC(Protocol):
     time, applies the paper's impact rule for the events it is given (once each,
     however often they are passed again) and moves to the final domain's problem
     itself.
-
-    Optional: ``discard()``, called when the plan the last ``solve`` returned is dropped
-    before it reaches the plant (over ``sim.solve_budget``): that solve's solution must
-    not warm-start the next one. An MPC without it keeps whatever its solve stored.
     """
 
     rate_hz: int

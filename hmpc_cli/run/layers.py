@@ -202,10 +202,8 @@ class MPCLayers:
         if charged:
             clock.solved(plan, compute)
             dropped, latency = clock.charge(t, plan, compute)
-            if dropped:  # never reaches the plant: logged not adopted, nor a warm start
+            if dropped:  # never reaches the plant: logged not adopted
                 plan, note = dataclasses.replace(plan, adopt=False), note + OVER_BUDGET
-                if (discard := getattr(self.mpc, "discard", None)) is not None:
-                    discard()
             self.log.mpc_solve(t, plan, reason + note, self.model, latency)
             st.preempted = []
         else:

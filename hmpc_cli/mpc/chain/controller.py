@@ -32,7 +32,6 @@ class ChainSolver:
         self._w: np.ndarray | None = None
         self._lam_x: np.ndarray | None = None
         self._lam_g: np.ndarray | None = None
-        self._before: tuple = (None, None, None)  # the last solve's start (discard)
 
     # ------------------------------------------------------------ schedule
     def set_schedule(self, ns: NodeSchedule, guess: Trajectory | None = None) -> None:
@@ -92,7 +91,6 @@ class ChainSolver:
             self._w[nlp.z_idx] = x0
         w0 = self._w.copy()
         w0[nlp.z_idx[0]] = x0
-        self._before = (self._w, self._lam_x, self._lam_g)
         warm = self.s.warm_start and self._lam_g is not None
         res = nlp.optimize(w0, p, lbx, ubx, lbg, ubg, self._lam_x if warm else None,
                            self._lam_g if warm else None)
@@ -102,13 +100,6 @@ class ChainSolver:
             self._w, self._lam_x, self._lam_g = res.x, res.lam_x, res.lam_g
         traj = nlp.trajectory(res.x if ok else self._w_with(x0), ns, lay)
         return Plan(t, traj, replace(res.stats, slack=slack), ns)
-
-    def discard(self) -> None:
-        """Forgets the last :meth:`reoptimize`'s solution (its plan never reached the plant).
-
-        The next one starts from the iterate that one started from.
-        """
-        self._w, self._lam_x, self._lam_g = self._before
 
     def _w_with(self, x0: np.ndarray) -> np.ndarray:
         w = self._w.copy()

@@ -108,14 +108,6 @@ class ChainMPC:
         return replace(plan, schedule=self._schedule, detail=ChainDetail(
             int(shifted), tuple(int(c) for c in self.chain.node_schedule.counts)))
 
-    def discard(self) -> None:
-        """Forgets the last solve: its plan never reached the plant (over the solve budget).
-
-        The next solve starts from the iterate that one started from; the nodes it moved
-        stay moved (time passed).
-        """
-        self.chain.discard()
-
     def _shift_clock(self, t: float, n: int) -> float:
         """The time [s] the next solve's shift counts from, after n intervals moved at t.
 

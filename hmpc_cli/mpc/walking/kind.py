@@ -78,8 +78,6 @@ class WalkingMPC:
         self._t_event = -math.inf  # the newest event applied [s]
         self._planned_at = math.nan  # the t0 of the schedule last solved over [s]
         self._recent: tuple[float, bytes, dict[int, Plan]] = (math.nan, b"", {})
-        #: (target, its memory, the executing segment) before the last solve (discard)
-        self._undo: tuple | None = None
 
     # -------------------------------------------------------------- contract
     def check(self, schedule: ModeSchedule) -> str:
@@ -117,28 +115,12 @@ class WalkingMPC:
         if self._recent[0] != t or self._recent[1] != key:
             self._recent = (t, key, {})
         plan = self._recent[2].get(target)
-        self._undo = (target, self._memory.get(target), self._executing)
         if plan is None:
             plan = self.solve_segment(t, x, target, t - self._swing_start)
             self._recent[2][target] = plan
         if plan.stats.success:
             self._executing = target
         return replace(plan, adopt=plan.stats.success)
-
-    def discard(self) -> None:
-        """Forgets the last :meth:`solve`: its plan never reached the plant (over the budget).
-
-        Its solution is not the next solve's warm start, nor the plan the plant executes
-        at the next contact.
-        """
-        if self._undo is None:
-            return
-        target, memory, executing = self._undo
-        if memory is None:
-            self._memory.pop(target, None)
-        else:
-            self._memory[target] = memory
-        self._executing, self._undo = executing, None
 
     # ---------------------------------------------------------------- memory
     def reset(self) -> None:
