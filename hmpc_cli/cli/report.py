@@ -133,7 +133,7 @@ _HOW = {"--run", "--no-run", "--workers", "--seeds", "--replace", "-q", "--quiet
 
 
 #: options of :data:`_HOW` that take no value
-_FLAGS = {"--run", "--no-run", "--replace", "-q", "--quiet", "-v", "-vv", "--verbose"}
+_FLAGS = _HOW - {"--workers", "--seeds"}
 
 
 def _sections(args: list[str]) -> dict[str, list[str]]:
