@@ -628,8 +628,12 @@ def test_a_contact_stops_the_solve_in_flight(tmp_path):
                             "(sim.preempt_at_contact; their plans dropped)"] if preempt else [])
         noted = [(s.t, s.data["reason"]) for s in log.topic("/mpc/solve")
                  if "stopped" in s.data["reason"]]
+        # the solver had run 0.2 ms, under the model's overhead: no iteration of the solve in
+        # flight was done, so its start is the next warm start, not its solution
         assert noted == ([(contact.t, "replan (after a contact stopped the solve of "
-                           "t = 0.3000 s: dropped)")] if preempt else [])
+                           "t = 0.3000 s: dropped) (stopped at the contact: its solve after "
+                           "0 of 17 iterations, that iterate warm-starts this one)")]
+                         if preempt else [])
         assert result.real_time["preempted_solves"] == int(preempt)
     assert planned[True] == contact.t
     assert planned[False] == pytest.approx(0.372)
@@ -643,3 +647,102 @@ def test_the_real_time_biped_climbs_with_its_modelled_compute_time(tmp_path):
             'sim.latency="model"', f'lowlevel.past_guard="{past}"'])
         result = run_to_log(prepare(sc), tmp_path / f"{past}.mcap")
         assert result.success is climbs, (past, result.reason)
+
+
+def test_the_budget_stops_each_charged_solve_where_it_ran_out():
+    """The iterations each solve had finished when the budget ran out: the model's exact
+    count, the solve's mean time per iteration otherwise; a replan's own solves in the
+    order they ran after the planner's work, those after the budget never started."""
+    model = Latency("model", overhead=0.001, per_iteration=0.01, planner=0.02, budget=0.05)
+    plan = _plan(10, 9.0)
+    assert [k for _, k in model.stopped_solves(plan)] == [4]  # 0.041 fits, 0.051 not
+    a, b = _plan(3, 9.0, t0=0.5), _plan(5, 9.0, t0=0.5)
+    # the planner's 0.02 s, then a (0.031 s: over by 0.001 s, 2 iterations fit), then b
+    stops = model.stopped_solves(b, _planned(7.0, a, b))  # b is the planner's: not again
+    assert [(p is a or p is b, k) for p, k in stops] == [(True, 2), (True, 0)]
+    assert [k for _, k in model.stopped_solves(_plan(1, 9.0), _planned(7.0, a))] == [2, 0]
+    measured = Latency("measured", budget=0.05)
+    assert [k for _, k in measured.stopped_solves(_plan(10, 0.2), None, 0.125)] == [4]
+    # a planner call of 0.03 s whose solve took 0.02 s: 0.01 s of its own, then its
+    # solve (all 4 iterations fit: 0.03 s), then 0.04 s of the loop's own: 0.02 s left
+    c = _plan(4, 0.02, t0=1.0)
+    assert [k for _, k in measured.stopped_solves(_plan(8, 0.04, t0=1.0), _planned(0.03, c),
+                                                  0.04)] == [4, 4]
+    assert Latency("model", per_iteration=0.01).stopped_solves(plan) == []  # no budget
+
+
+def test_a_solve_dropped_over_its_budget_warm_starts_the_next_from_its_iterate_there(
+        tmp_path, monkeypatch):
+    """A real solver stopped at its budget hands over the iterate it reached: the chain
+    keeps the dropped solve's iterate after the iterations the budget let it finish
+    (IPOPT's own iterate there) as the next warm start, not its whole solution; the
+    model latency keeps the runs deterministic."""
+    from hmpc_cli.mpc.chain.controller import ChainSolver
+    from hmpc_cli.mpc.solver import SolverSession
+
+    kept, stopped, stop_at = [], SolverSession.stopped, ChainSolver.stop_at
+
+    def spy_stopped(self, k, *call):
+        res = stopped(self, k, *call)
+        kept.append([k, res])
+        return res
+
+    def spy_stop_at(self, plan, k):
+        out = stop_at(self, plan, k)
+        kept[-1].append((self._w.copy(), self._lam_g.copy(), plan))
+        return out
+
+    monkeypatch.setattr(SolverSession, "stopped", spy_stopped)
+    monkeypatch.setattr(ChainSolver, "stop_at", spy_stop_at)
+    overrides = ["sim.duration=0.35", 'sim.latency="model"', 'sim.latency_first="paused"',
+                 "sim.latency_model.overhead=0.0", "sim.latency_model.per_iteration=0.01",
+                 "sim.latency_model.planner=0.0", "sim.solve_budget=0.05"]
+    _, log, _, _ = _run(tmp_path, "stopped", overrides)
+    msgs = [m.data for m in read_log(log).topic("/mpc/solve")]
+    dropped = [m for m in msgs if "over budget" in m["reason"]]
+    assert len(dropped) >= 2 and len(kept) == len(dropped)
+    assert {m["reason"].split()[0] for m in dropped} == {"period", "impact"}
+    for m, (k, res, (w, lam_g, _)) in zip(dropped, kept, strict=True):
+        assert k == 5 and res.stats.iterations == 5  # 5 x 0.01 s fit the 0.05 s budget
+        assert res.stats.status == "User_Requested_Stop" and m["iterations"] > 5
+        assert np.array_equal(w, res.x) and np.array_equal(lam_g, res.lam_g)
+        why = m["reason"].split()[0]
+        assert m["reason"] == (f"{why} (stopped at the budget: its solve after 5 of "
+                               f"{m['iterations']} iterations, that iterate warm-starts the "
+                               f"next solve) (over budget: dropped)")
+    _, again, _, _ = _run(tmp_path, "stopped_again", overrides)
+
+    def timeless(log):
+        return [{k: v for k, v in m.data.items() if k != "wall_time"}
+                for m in read_log(log).topic("/mpc/solve")]
+
+    assert timeless(again) == timeless(log)
+
+
+def test_the_stopped_iterate_is_ipopts_own_after_that_many_iterations():
+    """SolverSession.stopped(k) hands over the iterate IPOPT reaches after k iterations
+    from the same start: a session limited to k iterations reaches the same one, bit for
+    bit, cold and warm."""
+    import casadi as ca
+
+    from hmpc_cli.mpc.solver import SolverSession, WarmStart
+
+    x, p = ca.SX.sym("x", 3), ca.SX.sym("p")
+    nlp = {"x": x, "p": p, "f": (x[0] - p) ** 2 + 100 * (x[1] - x[0] ** 2) ** 2 +
+           (1 - x[2]) ** 4, "g": ca.vertcat(x[0] + x[1] + x[2], x[0] * x[1])}
+    call = (np.array([-1.2, 1.0, 0.0]), 1.0, np.full(3, -np.inf), np.full(3, np.inf),
+            np.array([-10.0, -5.0]), np.array([2.0, 5.0]))
+    warm = WarmStart(mu_init=1e-3, bound_push=1e-6)
+    session = SolverSession("t", nlp, max_iter=100, warm=warm)
+    full = session.run(*call)
+    assert full.stats.success and full.stats.iterations > 6
+    duals = (full.lam_x, full.lam_g)
+    for start in ((), duals):
+        n = session.run(*call, *start).stats.iterations
+        for k in range(n):
+            got = session.stopped(k, *call, *start)
+            ref = SolverSession("m", nlp, max_iter=k, warm=warm).run(*call, *start)
+            assert got.stats.iterations == k == ref.stats.iterations
+            for a, b in ((got.x, ref.x), (got.lam_x, ref.lam_x), (got.lam_g, ref.lam_g)):
+                assert np.array_equal(a, b)
+    assert SolverSession("s", nlp, "sqpmethod", max_iter=5).stopped(2, *call) is None

@@ -276,3 +276,33 @@ def test_walking_mpc_behind_the_contract(mpc):
     assert after.detail.elapsed == 0.0 and after.detail.warm == "primal-dual"
     again = walker.solve(0.35, ev.x_after, 0, sched, [ev])  # the event applies once
     assert again.detail.elapsed == pytest.approx(0.1)
+
+
+def test_a_solve_stopped_at_its_budget_leaves_its_iterate_as_the_warm_start():
+    """A solve dropped over the solve budget: its target's memory (the next warm start)
+    is IPOPT's iterate after the iterations the budget let it finish (0: the memory
+    before it), and the plant executes the plan it had."""
+    mpc = WalkingMPC(SYS, WalkingMPCSettings())
+    x0 = build_biped(P).x0
+    sched = ModeSchedule((0, 0), (SEGMENT,), (0.4,), 0.0)
+    first = mpc.solve(0.0, x0, 0, sched)
+    assert first.adopt and mpc._executing == SEGMENT
+    t1, x1 = first.traj.t[3], first.traj.x[3]
+    second = mpc.solve(t1, x1, 0, sched)
+    assert second.stats.iterations >= 2
+    call = mpc._step[SEGMENT][0]
+    ref = mpc.nlp.session.stopped(1, *call[:8])  # deterministic: the same iterate again
+    assert mpc.stop_at([(first, 0)]) == []  # not a solve of this step
+    assert mpc.stop_at([(second, 1)]) == [(second, 1)]
+    assert np.array_equal(mpc._memory[SEGMENT].w, ref.x)
+    assert np.array_equal(mpc._memory[SEGMENT].lam_g, ref.lam_g)
+    assert not np.array_equal(ref.x, mpc.nlp.session.run(*call[:8]).x)
+    assert mpc._executing == SEGMENT and mpc._memory[SEGMENT].x0 is call[8]
+    stopped = mpc._memory[SEGMENT]
+    third = mpc.solve(first.traj.t[4], first.traj.x[4], 0, sched)
+    assert mpc.stop_at([(third, 0)]) == [(third, 0)]  # never started: the memory before
+    assert mpc._memory[SEGMENT] is stopped
+    fresh = WalkingMPC(SYS, WalkingMPCSettings())
+    dropped = fresh.solve(0.0, x0, 0, sched)
+    assert fresh.stop_at([(dropped, 0)]) == [(dropped, 0)]
+    assert fresh._memory == {} and fresh._executing is None

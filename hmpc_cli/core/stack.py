@@ -42,6 +42,13 @@ class FixedModeMPC(Protocol):
     time, applies the paper's impact rule for the events it is given (once each,
     however often they are passed again) and moves to the final domain's problem
     itself.
+
+    Optional: ``stop_at(stops) -> list[tuple[Plan, int]]``, called right after a
+    ``solve`` whose plan is dropped over ``sim.solve_budget``, with (a plan it returned,
+    the iterations its solver had finished when the budget ran out) per solve the plan
+    was charged for: the iterate it held there, not its whole solution, must warm-start
+    the next solve. Returns (plan, iterations kept) of the solves it stopped; an MPC
+    without it keeps its whole solution.
     """
 
     rate_hz: int

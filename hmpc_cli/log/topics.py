@@ -344,8 +344,11 @@ class MpcSolve:
             predicted arrival under ``sim.delay_compensation``.
         reason: why it was made: "initial", "period", "impact" (after a contact) or
             "replan" (after a planner call); " (over budget: dropped)" appended when it
-            was dropped over ``sim.solve_budget``, " (after a contact stopped the solve
-            of t = ... s: dropped)" when a contact stopped solves in flight first.
+            was dropped over ``sim.solve_budget``, before it " (stopped at the budget:
+            its solve after k of n iterations, that iterate warm-starts the next solve)"
+            when the MPC kept the iterate its solver had reached then, " (after a
+            contact stopped the solve of t = ... s: dropped)" when a contact stopped
+            solves in flight first.
         status: the solver's return status ("schedule rejected: <why>": the MPC cannot
             solve the schedule, nothing was solved).
         success: the back-end accepted the solve's point, a finite one. "ipopt",

@@ -289,10 +289,15 @@ class SolverSession:
             self.options.pop("expand", None)  # nothing to expand, or assembled already
         self.cold = self.warm = BufferedSolver(ca.nlpsol(name, backend.plugin, nlp,
                                                          self.options))
+        #: the warm instance's options (None: warm starts run on the cold instance)
+        self._warm_options: dict | None = None
         if backend.warm is not None and warm is not None:
-            self.warm = BufferedSolver(ca.nlpsol(f"{name}_warm", backend.plugin, nlp, {
+            self._warm_options = {
                 **backend.warm(self.options, warm, sections, args),
-                **({} if compiled else derivatives_of(self.cold, backend.plugin))}))
+                **({} if compiled else derivatives_of(self.cold, backend.plugin))}
+            self.warm = BufferedSolver(ca.nlpsol(f"{name}_warm", backend.plugin, nlp,
+                                                 self._warm_options))
+        self._stopping: tuple[_IterationStop, tuple] | None = None  # :meth:`stopped`'s
         self._g = ca.external("nlp_g", nlp) if compiled else \
             ca.Function("g", [nlp["x"], nlp["p"]], [nlp["g"]])
 
@@ -319,6 +324,40 @@ class SolverSession:
                            fallback=True)
         return SolveResult(again.x, again.lam_x, again.lam_g, stats)
 
+    def stopped(self, iterations: int, w0, p, lbx, ubx, lbg, ubg, lam_x0=None,
+                lam_g0=None) -> SolveResult | None:
+        """The iterate :meth:`run` from the same arguments reaches after ``iterations``.
+
+        IPOPT is deterministic: the same instance's options (cold, or warm with both
+        multiplier guesses) stopped by an iteration callback after ``iterations``
+        iterations (0: the start) hand over the very iterate its full run passed there,
+        as IPOPT's own ``max_iter`` would (status ``User_Requested_Stop``). Its
+        instances are built on first use. Never raises on a solver failure.
+
+        Returns:
+            That iterate, or None for a back-end other than IPOPT (its iterates are not
+            recorded).
+        """
+        if self.backend.plugin != "ipopt":
+            return None
+        if self._stopping is None:
+            stop = _IterationStop(self.cold.function)
+            made = []
+            for name, options in ((self._name, self.options),
+                                  (f"{self._name}_warm", self._warm_options)):
+                if options is None:
+                    made.append(made[0])
+                    continue
+                extra = {} if isinstance(self._nlp, str) or name == self._name + "_warm" \
+                    else derivatives_of(self.cold, "ipopt")
+                made.append(BufferedSolver(ca.nlpsol(
+                    f"{name}_stopped", "ipopt", self._nlp,
+                    {**options, **extra, "iteration_callback": stop})))
+            self._stopping = (stop, tuple(made))
+        stop, instances = self._stopping
+        stop.after = max(int(iterations), 0)
+        return _call_instance(instances, w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0)
+
     def fallback_session(self) -> SolverSession:
         """The session of the back-end's fallback (built on first use).
 
@@ -340,6 +379,49 @@ class SolverSession:
     def violation(self, w, p, lbx, ubx, lbg, ubg) -> float:
         """Largest constraint or bound violation at primal point w (0 if none)."""
         return _violation(w, self.constraints(w, p), lbx, ubx, lbg, ubg)
+
+
+class _IterationStop(ca.Callback):
+    """IPOPT's iteration callback that stops the solve after :attr:`after` iterations.
+
+    IPOPT calls it once per iterate, the start (iteration 0) included; a nonzero return
+    stops IPOPT there. A solve resets its count by setting :attr:`after`.
+    """
+
+    def __init__(self, solver: ca.Function) -> None:
+        """The callback of ``solver``'s NLP (its outputs are the callback's inputs)."""
+        ca.Callback.__init__(self)
+        self._after, self._calls = 0, 0
+        self._sparsity = [solver.sparsity_out(i) for i in range(solver.n_out())]
+        self.construct("iteration_stop", {})
+
+    @property
+    def after(self) -> int:
+        """Iterations to let run before stopping."""
+        return self._after
+
+    @after.setter
+    def after(self, iterations: int) -> None:
+        self._after, self._calls = iterations, 0
+
+    def get_n_in(self) -> int:
+        return ca.nlpsol_n_out()
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_name_in(self, i: int) -> str:
+        return ca.nlpsol_out(i)
+
+    def get_name_out(self, i: int) -> str:
+        return "stop"
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        return self._sparsity[i]
+
+    def eval(self, arg):
+        self._calls += 1
+        return [1 if self._calls > self._after else 0]
 
 
 def _violation(w, g, lbx, ubx, lbg, ubg) -> float:

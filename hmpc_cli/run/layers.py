@@ -41,6 +41,7 @@ class _LayerState:
     need_replan: bool = False
     impact: bool = False
     preempted: list[float] = field(default_factory=list)  # solve times [s] a contact stopped
+    stopped: str = ""  # where the contact stopped the solver in flight (a reason's note)
 
 
 #: appended to the reason of a solve dropped for its budget (``sim.solve_budget``)
@@ -151,6 +152,7 @@ class MPCLayers:
                 return False  # the triggers wait for the solver
             # a contact: the solve in flight is from the state before it
             st.preempted = clock.preempt(t)
+            st.stopped = self._stop_in_flight(t, st.preempted)
         need_replan, impact = st.need_replan, st.impact
         st.need_replan = st.impact = False
         if need_replan:
@@ -184,7 +186,7 @@ class MPCLayers:
     def _solve(self, t: float, x: np.ndarray, mode: int, reason: str) -> None:
         st, clock = self.st, self.clock
         charged = clock.latency.charged(reason)
-        note = PREEMPTED.format(", ".join(f"{v:.4f}" for v in st.preempted)) \
+        note = PREEMPTED.format(", ".join(f"{v:.4f}" for v in st.preempted)) + st.stopped \
             if st.preempted else ""
         # no schedule: a planner call that found none still took its time (a preemption's
         # note waits for the solve that logs it)
@@ -203,14 +205,57 @@ class MPCLayers:
             clock.solved(plan, compute)
             dropped, latency = clock.charge(t, plan, compute)
             if dropped:  # never reaches the plant: logged not adopted
-                plan, note = dataclasses.replace(plan, adopt=False), note + OVER_BUDGET
+                plan, note = dataclasses.replace(plan, adopt=False), \
+                    note + self._stop_at_budget(plan, compute) + OVER_BUDGET
             self.log.mpc_solve(t, plan, reason + note, self.model, latency)
-            st.preempted = []
+            st.preempted, st.stopped = [], ""
         else:
             self.log.mpc_solve(t, plan, reason, self.model)
             st.plan = plan if plan.adopt else st.plan
         clock.planner = None
         signals.check()
+
+    def _stop_at_budget(self, plan: Plan, compute: float) -> str:
+        """Stops the solves of a plan dropped over its budget where the budget ran out.
+
+        The MPC keeps, of each solve the plan was charged for (a replan's: the planner's
+        own MPC solves too), the iterate its solver held when the budget ran out as the
+        warm start (``stop_at``; :meth:`~hmpc_cli.run.realtime.Latency.stopped_solves`).
+
+        Returns:
+            The note for its /mpc/solve reason ('' if every solve keeps its solution).
+        """
+        stops = self.clock.latency.stopped_solves(plan, self.clock.planner, compute)
+        return self._stop(stops, "the budget", "warm-starts the next solve")
+
+    def _stop_in_flight(self, t: float, preempted: list[float]) -> str:
+        """A contact at t [s] stopped the solver in flight: the MPC keeps its iterate then.
+
+        Returns:
+            The note for the reason of the solve the contact starts ('' if none).
+        """
+        last = self.clock.last_charged
+        if last is None or last[0] not in preempted:
+            return ""
+        t_solve, plan, planner, compute = last
+        stops = self.clock.latency.stopped_solves(plan, planner, compute,
+                                                  available=max(t - t_solve, 0.0))
+        return self._stop(stops, "the contact", "warm-starts this one")
+
+    def _stop(self, stops: list[tuple[Plan, int]], where: str, then: str) -> str:
+        """The MPC's ``stop_at`` on ``stops``; the note of the solves it stopped short."""
+        stop = getattr(self.mpc, "stop_at", None)
+        if stop is None or not stops:
+            return ""
+        kept = [(p, k) for p, k in stop(stops) if k < p.stats.iterations]
+        if not kept:
+            return ""
+        counts = ", ".join(f"{k} of {p.stats.iterations}" for p, k in kept)
+        if len(kept) == 1:
+            return (f" (stopped at {where}: its solve after {counts} iterations, that "
+                    f"iterate {then})")
+        return (f" (stopped at {where}: {len(kept)} of its solves after {counts} iterations, "
+                f"those iterates {then.replace('starts', 'start')})")
 
     def _solve_ahead(self, t: float, x: np.ndarray, mode: int, reason: str) -> Plan:
         """A charged solve, from the state predicted at the plan's arrival if compensating.

@@ -26,7 +26,8 @@ at t = 0). The delay is logged with each solve (/mpc/solve ``latency``). There i
 solver: a solve that falls due while it is still computing (a period, an impact, a
 replanning) waits until it is free and then starts from the state of that moment, so an
 MPC rate faster than 1 / L runs at the solver's pace. A solve charged more than
-``sim.solve_budget`` is dropped at t + budget (the previous plan tracked on); with
+``sim.solve_budget`` is dropped at t + budget (the previous plan tracked on, the
+iterate its solver had reached then the next warm start); with
 ``sim.preempt_at_contact`` a contact that makes the stack work stops the solve in flight
 (its plan dropped) and the stack works at once; with
 ``sim.delay_compensation`` the period's and impacts' solves start from the state

@@ -18,8 +18,9 @@
 A solve that returns a plan the planner has just solved (the foothold planner's chosen
 candidate) costs nothing more: its compute time is the planner's.
 
-A ``budget`` [s] bounds a solve: a solve charged more is abandoned at t + budget, its
-plan dropped and the previous plan (time-indexed, hence shifted) tracked on. With
+A ``budget`` [s] bounds a solve: a solve charged more is stopped at t + budget, its
+plan dropped and the previous plan (time-indexed, hence shifted) tracked on; the MPC
+keeps the iterate its solver had reached then (:meth:`Latency.stopped_solves`). With
 ``preempt`` a contact that makes the stack work stops the solve in flight (solved from
 the state before the contact): its plan is dropped and the stack works at the contact.
 
@@ -162,6 +163,60 @@ class Latency:
         """Whether a solve charged ``delay`` [s] is dropped."""
         return self.budget is not None and delay > self.budget + GRID_TOL
 
+    def stopped_solves(self, plan: Plan, planner: PlannerResult | None = None,
+                       compute: float | None = None, available: float | None = None
+                       ) -> list[tuple[Plan, int]]:
+        """Where the budget stopped the solves a dropped plan was charged for.
+
+        ``available`` [s]: the time the solver had instead of the budget (a contact
+        stopped it in flight, that long after it started).
+
+        The solves in the order they ran: the planner call's own MPC solves, then
+        ``plan``'s unless the planner solved it (:meth:`charge`), after the planner's own
+        work. Each gets the iterations it finished within the budget: all of them while
+        the charge so far fits, then the iterations of the solve the budget ran out in
+        (``model``: the most whose charge, :meth:`solve_cost` of that many, fits what is
+        left; else its iterations times what is left / its charge, every iteration
+        taking the solve's mean time), and 0 for those after it (never started).
+
+        Returns:
+            (solve's plan, iterations finished) pairs; empty without a budget.
+        """
+        budget = self.budget if available is None else available
+        if budget is None:
+            return []
+        solves = list(planner.mpc_solves) if planner is not None else []
+        if not _solved_by(plan, planner):
+            solves.append(plan)
+        if self.kind == "fixed":
+            costs, used = [self.delay / len(solves)] * len(solves), 0.0
+        else:
+            costs = [self.solve_cost(p, compute if p is plan else None) for p in solves]
+            used = 0.0 if planner is None else (
+                self.planner if self.kind == "model" else
+                max(planner.wall_time - sum(c for p, c in zip(solves, costs, strict=True)
+                                            if p is not plan), 0.0))
+        out = []
+        for p, cost in zip(solves, costs, strict=True):
+            n = max(int(p.stats.iterations), 0)
+            left = budget + GRID_TOL - used
+            if cost <= left:
+                out.append((p, n))
+            elif self.kind == "model":
+                fit = [k for k in range(n + 1)
+                       if self.solve_cost(_with_iterations(p, k)) <= left]
+                out.append((p, fit[-1] if fit else 0))
+            else:
+                out.append((p, min(int(math.floor(n * max(left, 0.0) / cost + 1e-9)), n)
+                            if cost > 0 else 0))
+            used += cost
+        return out
+
+
+def _with_iterations(plan: Plan, k: int) -> Plan:
+    """``plan`` with its statistics' iterations set to k."""
+    return replace(plan, stats=replace(plan.stats, iterations=k))
+
 
 @dataclass
 class SolverClock:
@@ -183,6 +238,8 @@ class SolverClock:
         charges: per charged solve, in order: [solve time [s], charged delay [s], the
             time it kept the solver busy [s]: the delay, the budget if dropped for it, or
             until the contact that stopped it].
+        last_charged: the last charged solve's (solve time [s], plan, the planner call
+            it followed or None, its measured compute time [s]), or None.
     """
 
     latency: Latency = field(default_factory=Latency)
@@ -194,6 +251,7 @@ class SolverClock:
     over_budget: int = 0
     preempted: int = 0
     charges: list[list[float]] = field(default_factory=list)
+    last_charged: tuple | None = None
 
     def free(self, t: float) -> bool:
         """Whether the solver is done with its last solve at sim time t [s]."""
@@ -223,6 +281,7 @@ class SolverClock:
         """
         lat = self.latency
         delay = lat.charge(plan, self.planner, compute)
+        self.last_charged = (t, plan, self.planner, compute)
         if lat.over_budget(delay):
             self.over_budget += 1
             self.free_at = t + lat.budget

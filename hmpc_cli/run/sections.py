@@ -73,8 +73,8 @@ class SimSettings(BaseModel):
         description="sim.latency = 'model': the charged compute time of a solve")
     solve_budget: FiniteFloat | None = Field(
         None, gt=0.0, description="with a latency: a solve charged more than this [s] is "
-        "dropped at t + budget and the previous plan tracked on; its solution still warm-starts "
-        "the next solve (None: no budget)")
+        "dropped at t + budget and the previous plan tracked on; the iterate its solver had "
+        "reached when the budget ran out warm-starts the next solve (None: no budget)")
     delay_compensation: StrictBool = Field(
         False, description="with a latency: solve from the state the model predicts (w = 0, "
         "through its resets) at the step the plan is expected to reach the plant (after the "

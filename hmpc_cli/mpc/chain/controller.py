@@ -32,6 +32,8 @@ class ChainSolver:
         self._w: np.ndarray | None = None
         self._lam_x: np.ndarray | None = None
         self._lam_g: np.ndarray | None = None
+        #: the last :meth:`reoptimize`'s call (its NLP, arguments, the warm start before it)
+        self._last: tuple | None = None
 
     # ------------------------------------------------------------ schedule
     def set_schedule(self, ns: NodeSchedule, guess: Trajectory | None = None) -> None:
@@ -92,14 +94,46 @@ class ChainSolver:
         w0 = self._w.copy()
         w0[nlp.z_idx[0]] = x0
         warm = self.s.warm_start and self._lam_g is not None
-        res = nlp.optimize(w0, p, lbx, ubx, lbg, ubg, self._lam_x if warm else None,
-                           self._lam_g if warm else None)
+        call = (w0, p, lbx, ubx, lbg, ubg, self._lam_x if warm else None,
+                self._lam_g if warm else None)
+        res = nlp.optimize(*call)
+        self._last = (t, res.stats, nlp, call, (self._w, self._lam_x, self._lam_g))
         ok = res.stats.success
         slack = float(np.max(res.x[nlp.s_idx], initial=0.0)) if ok else float("nan")
         if ok:
             self._w, self._lam_x, self._lam_g = res.x, res.lam_x, res.lam_g
         traj = nlp.trajectory(res.x if ok else self._w_with(x0), ns, lay)
         return Plan(t, traj, replace(res.stats, slack=slack), ns)
+
+    def stop_at(self, plan: Plan, iterations: int) -> int | None:
+        """The last :meth:`reoptimize`, which returned ``plan``, stopped after ``iterations``.
+
+        Its iterate there becomes the next solve's warm start (0: the warm start it
+        started from; a non-finite iterate: that too).
+
+        Returns:
+            The iterations of the warm start kept, or None: ``plan`` is not the last
+            solve's, or the back-end cannot stop at an iteration (its whole solution
+            stays).
+        """
+        if self._last is None:
+            return None
+        t, stats, nlp, call, before = self._last
+        if (plan.t0, plan.stats.iterations, plan.stats.wall_time) != \
+                (t, stats.iterations, stats.wall_time):
+            return None
+        k = min(max(int(iterations), 0), stats.iterations)
+        if k >= stats.iterations:
+            return k
+        res = nlp.session.stopped(k, *call) if k > 0 else None
+        if k > 0 and res is None:
+            return None
+        self._last = None
+        if res is not None and bool(np.all(np.isfinite(res.x))) and res.lam_g is not None:
+            self._w, self._lam_x, self._lam_g = res.x, res.lam_x, res.lam_g
+            return res.stats.iterations
+        self._w, self._lam_x, self._lam_g = before
+        return 0
 
     def _w_with(self, x0: np.ndarray) -> np.ndarray:
         w = self._w.copy()

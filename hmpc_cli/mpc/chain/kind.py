@@ -108,6 +108,25 @@ class ChainMPC:
         return replace(plan, schedule=self._schedule, detail=ChainDetail(
             int(shifted), tuple(int(c) for c in self.chain.node_schedule.counts)))
 
+    def stop_at(self, stops: Sequence[tuple[Plan, int]]) -> list[tuple[Plan, int]]:
+        """Solves dropped over the solve budget, each stopped where the budget ran out.
+
+        ``stops``: (a plan this MPC returned, the iterations its solver had finished at
+        the budget). The chain keeps one warm start: only its last solve's counts, whose
+        iterate there warm-starts the next solve (the nodes it moved stay moved: time
+        passed; see :meth:`ChainSolver.stop_at`).
+
+        Returns:
+            (plan, iterations kept) of the solves stopped; the others keep their whole
+            solution.
+        """
+        out = []
+        for plan, k in stops:
+            kept = self.chain.stop_at(plan, k)
+            if kept is not None:
+                out.append((plan, kept))
+        return out
+
     def _shift_clock(self, t: float, n: int) -> float:
         """The time [s] the next solve's shift counts from, after n intervals moved at t.
 

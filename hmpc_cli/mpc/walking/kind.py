@@ -78,6 +78,12 @@ class WalkingMPC:
         self._t_event = -math.inf  # the newest event applied [s]
         self._planned_at = math.nan  # the t0 of the schedule last solved over [s]
         self._recent: tuple[float, bytes, dict[int, Plan]] = (math.nan, b"", {})
+        #: this planning step's solves (same t and x as ``_recent``), by target: (its
+        #: solver call, the target's memory before it), and the executing target before
+        #: them (:meth:`stop_at`)
+        self._step: dict[int, tuple] = {}
+        self._step_executing: int | None = None
+        self._call: tuple | None = None  # the last solve_segment's solver call
 
     # -------------------------------------------------------------- contract
     def check(self, schedule: ModeSchedule) -> str:
@@ -114,13 +120,60 @@ class WalkingMPC:
         key = np.asarray(x, dtype=float).tobytes()
         if self._recent[0] != t or self._recent[1] != key:
             self._recent = (t, key, {})
+            self._step, self._step_executing = {}, self._executing
         plan = self._recent[2].get(target)
         if plan is None:
+            before, self._call = self._memory.get(target), None
             plan = self.solve_segment(t, x, target, t - self._swing_start)
             self._recent[2][target] = plan
+            if self._call is not None:
+                self._step[target] = (self._call, before)
         if plan.stats.success:
             self._executing = target
         return replace(plan, adopt=plan.stats.success)
+
+    def stop_at(self, stops: Sequence[tuple[Plan, int]]) -> list[tuple[Plan, int]]:
+        """Solves dropped over the solve budget, each stopped where the budget ran out.
+
+        ``stops``: (a plan of this planning step's solves, the iterations its solver had
+        finished at the budget). A solve stopped short leaves its iterate there as its
+        target's memory (the next solve's warm start; 0 or a non-finite iterate: the
+        memory before it); the plant executes the plan it had before the step (the
+        contact's template comes from that target's memory).
+
+        Returns:
+            (plan, iterations kept) of the solves stopped; the others keep their whole
+            solution (a back-end that cannot stop at an iteration keeps it too).
+        """
+        out = []
+        for plan, k in stops:
+            detail = plan.detail
+            entry = self._step.get(getattr(detail, "segment", None)) \
+                if plan.t0 == self._recent[0] else None
+            if entry is None:
+                continue
+            call, before = entry
+            target, total = detail.segment, plan.stats.iterations
+            k = min(max(int(k), 0), total)
+            self._executing = self._step_executing
+            if k >= total:
+                out.append((plan, k))
+                continue
+            res = self.nlp.session.stopped(k, *call[:8]) if k > 0 else None
+            if k > 0 and res is None:
+                continue
+            del self._step[target]
+            if res is not None and bool(np.all(np.isfinite(res.x))) and \
+                    res.lam_g is not None:
+                self._memory[target] = _Memory(res.x, res.lam_x, res.lam_g, *call[8:])
+                out.append((plan, res.stats.iterations))
+            else:
+                if before is None:
+                    self._memory.pop(target, None)
+                else:
+                    self._memory[target] = before
+                out.append((plan, 0))
+        return out
 
     # ---------------------------------------------------------------- memory
     def reset(self) -> None:
@@ -274,6 +327,7 @@ class WalkingMPC:
                              f"the segment margin ({nlp.segment_margin:g} m)")
         else:
             res = nlp.optimize(w0, p, lbx, ubx, lbg, ubg, lam_x, lam_g)
+            self._call = (w0, p, lbx, ubx, lbg, ubg, lam_x, lam_g, x0, elapsed)
         if res.stats.success:
             self._memory[segment] = _Memory(res.x, res.lam_x, res.lam_g, x0, elapsed)
         else:
