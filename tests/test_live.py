@@ -124,9 +124,10 @@ def _foxglove_client(url: str, want: set[str], timeout: float = 20.0) -> dict[st
     return got
 
 
-def test_a_client_that_connects_after_the_start_gets_the_run_info_and_static_scene(tmp_path):
-    """The run is over before the client connects: its description and static scene are
-    still sent to it, byte for byte the log's."""
+def test_a_client_that_connects_after_the_start_gets_the_latched_topics(tmp_path):
+    """The run is over before the client connects: its description, static scene and the
+    planner call of t = 0 with its rollout (a run that plans once writes them before any
+    client can subscribe) are still sent to it, byte for byte the log's."""
     pytest.importorskip("foxglove")
     pytest.importorskip("websockets")
     from hmpc_cli.log.live import LATCHED, LiveSink
@@ -140,7 +141,8 @@ def test_a_client_that_connects_after_the_start_gets_the_run_info_and_static_sce
         got = _foxglove_client(sink.url, set(LATCHED))
     finally:
         sink.close()
-    assert set(got) >= set(LATCHED), sorted(got)
+    assert set(got) >= set(LATCHED) >= {"/run/info", "/scene/static", "/planner/plan",
+                                        "/scene/rollout"}, sorted(got)
     with open(tmp_path / "r" / "run.mcap", "rb") as f:
         logged = {ch.topic: msg.data for _, ch, msg in
                   make_reader(f).iter_messages(topics=list(LATCHED))}

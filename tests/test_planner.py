@@ -71,3 +71,37 @@ def test_reference_cost_plans_more_contacts_and_a_later_entry():
     assert ref.schedule.n_switches > hmpc.schedule.n_switches
     assert sum(ref.schedule.durations) > sum(hmpc.schedule.durations) + 0.5
     assert ref.schedule.guards[-1] == hmpc.schedule.guards[-1] == ball.guard_index("circle_in")
+
+
+def test_a_rollout_from_inside_the_final_domain_accrues_its_stage_cost_all_along():
+    """Cost "hmpc": a rollout that enters the final domain accrues its entry state's stage
+    cost (zero input) for the rest of the horizon; one that starts in it, for the whole
+    horizon (it was 0), in C and in NumPy alike."""
+    ball = build_ball(BallParams())
+    inside = np.array([3.5, 3.0, 2.0, 0.0])
+    mode = ball.mode_index("inside")
+    knots = np.random.default_rng(0).normal(-20.0, 5.0, (3, 45, 2))
+    costs = {}
+    for backend in ("c", "numpy"):
+        planner = CrossEntropyPlanner(ball, CEMSettings(init_mean=BALL_MEAN,
+                                                        rollout_backend=backend))
+        cost, reached = planner.rollout_cost(inside, mode, knots)
+        assert reached.all()
+        costs[backend] = cost
+        stage = planner.cost_fn(inside[None], np.zeros((1, 2)))[0][0, 0]
+        expected = planner.n_steps * planner.dt * stage
+        assert expected > 0 and np.all(cost == expected)
+        assert planner.plan(0.0, inside, mode).cost == expected
+    assert np.array_equal(costs["c"], costs["numpy"])
+
+
+def test_the_reference_cost_says_when_rollouts_reached_but_the_best_did_not():
+    """Cost "reference" ranks rollouts by their whole-horizon cost, so the best may not
+    enter the final domain while others did: the note says so (it said none did)."""
+    ball = build_ball(BallParams())
+    settings = CEMSettings(init_mean=BALL_MEAN, cost="reference", horizon=1.0,
+                           iterations=14)
+    result = CrossEntropyPlanner(ball, settings).plan(0.0, ball.x0, 0)
+    assert not result.reached_final and result.schedule is None
+    assert result.note.startswith("the best rollout did not reach the final domain (")
+    assert result.note.endswith(" of the last iteration's 51 did, at a higher cost)")

@@ -1015,3 +1015,51 @@ def test_a_scene_cut_before_its_first_state_says_so(ball_log) -> None:
         with pytest.raises(FigureInputError) as info:
             read_scene(log)
         assert str(info.value) == reason
+
+
+def test_a_solve_the_model_charged_0_s_counts_as_charged() -> None:
+    """sim.latency = "model" charges a 0-iteration solve 0 s: it was charged (the run's
+    books count it), so the median and count take it; a paused first plan is not."""
+    from hmpc_cli.analysis.replay import _solve, _solves_row, charged_by
+
+    base = {"t": 0.5, "reason": "period", "status": "Solve_Succeeded", "success": True,
+            "iterations": 0, "wall_time": 0.0006, "slack": 0.0, "latency": 0.0}
+    group = [base, base, {**base, "iterations": 4, "latency": 0.0024}]
+    model = charged_by({"latency": "model", "latency_first": "paused"})
+    assert _solves_row(group, model).text == (
+        "... 3 solves ok until t = 0.500 s, 0 iterations median, 0.6 ms median, charged "
+        "0.0 ms median (period 3)")
+    assert _solve(base, model).text == "period: Solve_Succeeded, 0 it, 0.6 ms, charged 0.0 ms"
+    first = {**base, "reason": "initial"}
+    assert _solves_row([first, *group], model).text.endswith(
+        "charged 0.0 ms median of 3 charged (initial 1, period 3)")
+    paused = charged_by({"latency": "paused"})
+    assert "charged" not in _solves_row(group, paused).text
+    assert "charged" not in _solve(base, paused).text
+
+
+def test_verify_forgives_a_version_4_logs_last_sample_in_the_earlier_layout() -> None:
+    """Logs of version 4 written before 2026-11-27 end with a /sim/state holding no input
+    (u = 0), the state as its reference and a fresh disturbance; since, the last sample
+    repeats the last step's. The re-run is compared with them on everything else."""
+    from hmpc_cli.analysis.replay import _settings_added_since, compare_logs
+    from hmpc_cli.log.reader import LogMessage
+
+    def state(t, u, x_ref, w):
+        return LogMessage("/sim/state", t, {"t": t, "x": {"q": 1.0}, "u": {"f": u},
+                                            "x_ref": {"q": x_ref}, "w": {"w": w}})
+
+    info = LogMessage("/run/info", 0.0, {"log_version": 4})
+    recorded = [info, state(0.0, 5.0, 1.5, 0.1), state(0.1, 0.0, 1.0, 0.7)]
+    rerun = [info, state(0.0, 5.0, 1.5, 0.1), state(0.1, 5.0, 1.5, 0.1)]
+    assert compare_logs(recorded, rerun) is not None  # as it was: a false divergence
+    assert compare_logs(recorded, _settings_added_since(recorded, rerun)) is None
+    # a real difference earlier, or a last sample in today's layout, still counts
+    moved = [info, state(0.0, 6.0, 1.5, 0.1), state(0.1, 5.0, 1.5, 0.1)]
+    assert compare_logs(recorded, _settings_added_since(recorded, moved)) is not None
+    today = [info, state(0.0, 5.0, 1.5, 0.1), state(0.1, 5.0, 1.5, 0.2)]
+    assert compare_logs(today, _settings_added_since(today, rerun)) is not None
+    v6 = LogMessage("/run/info", 0.0, {"log_version": 6})
+    assert compare_logs([v6, *recorded[1:]],
+                        _settings_added_since([v6, *recorded[1:]], [v6, *rerun[1:]])) \
+        is not None

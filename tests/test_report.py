@@ -248,7 +248,8 @@ def test_report_run_checks_the_runs_it_would_run_before_any(tmp_path, run_hmpc):
     lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error: ")]
     assert lines == [f"error: {sweep}: cell mpc.input_margin=60.0, mpc.rate_hz={f}: "
                      "mpc.input_margin: 60 per side exceeds half the input box of mode "
-                     "'outside' input 0 ([-100, 0]: half-width 50)" for f in (10, 20)]
+                     "'outside' input 0 ([-100, 0]: half-width 50; the MPC would keep no "
+                     "input authority)" for f in (10, 20)]
     assert not (res / "README.md").exists() and not list(res.glob("sweeps/*/runs/*"))
 
 

@@ -162,3 +162,21 @@ def test_plot_timing_bad_input_is_one_line_and_exit_2(tmp_path):
     assert res.exit_code == 2 and "no such run log" in res.output
     res = plot(nosolve, "--every", "0.2")
     assert res.exit_code == 2 and "--every is fig4's option, not timing's" in res.output
+
+
+def test_a_solve_charged_0_s_is_drawn_at_the_bottom_of_the_log_axis():
+    """"model" charges a 0-iteration solve 0 s, which a log axis cannot show: such solves
+    are dashes at the bottom (they vanished from the figure)."""
+    from hmpc_cli.figures.timing import SolveTimes, _figure
+
+    n = 4
+    st = SolveTimes(t=np.arange(n) * 0.1, compute=np.array([0.004, 0.0, 0.0, 0.002]),
+                    wall=np.full(n, 0.001), dropped=np.zeros(n, bool),
+                    stopped=np.zeros(n, bool), counted=np.ones(n, bool), period=0.1,
+                    charged="model", contacts=np.array([]), real_time=None, log_note="")
+    fig = _figure(st, 6.0, 2.4)
+    lines = {ln.get_label(): ln for ln in fig.axes[0].get_lines()}
+    zero = lines["charged 0 s (drawn at the bottom)"]
+    assert zero.get_xdata().tolist() == [0.1, 0.2]
+    assert zero.get_ydata().tolist() == [1.0, 1.0]  # half the smallest charge drawn, in ms
+    assert lines["solve (charged)"].get_ydata().tolist() == [4.0, 2.0]

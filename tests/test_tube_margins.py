@@ -53,7 +53,7 @@ def test_hmpc_tube_samples_as_tube_margins_do_whatever_the_scenarios_seed(tmp_pa
     ``--set seed=1`` gave another certificate (its ROA estimate) than the seed-0 tube a
     run's ``mpc.margins = "tube"`` uses whatever the run's seed."""
     monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path / "cache"))
-    gains = ["lowlevel.kp=100", "lowlevel.kd=20"]
+    gains = ["lowlevel.kp=10", "lowlevel.kd=2"]  # certified (a sampled ROA), no box capped
     made = {}
     for seed in (0, 1):
         out = tmp_path / f"seed{seed}"
@@ -122,3 +122,71 @@ def test_the_committed_fig3_margins_file_is_what_its_documented_command_writes(t
     assert proc.stdout.splitlines()[-1] == \
         f"wrote margins file {file} (rates 5, 10, 20, 50, 100 Hz)"
     assert file.read_bytes() == (ROOT / "scenarios" / "margins" / "ball_fig3.toml").read_bytes()
+
+
+def test_no_disturbance_is_a_zero_tube_whatever_the_gains():
+    """eta = 0 (the zero disturbance set, plant = model): the error starts and stays 0, so
+    the tube is 0 at every rate, PD gains or not (it jumped to the saturated bound once
+    L_u ||K|| t e^{L_x t} reached 1: 0 at 0.009 s, 2.83 at 0.0099 s)."""
+    from hmpc_cli.tube.bounds import low_level_share
+
+    assert low_level_share(0.009, 0.0, 1.109, 1.0, 100.0, 282.84) == (0.0, 0.0)
+    assert low_level_share(0.0099, 0.0, 1.109, 1.0, 100.0, 282.84) == (0.0, 0.0)
+    assert low_level_share(0.0099, 1e-9, 1.109, 1.0, 100.0, 282.84)[1] == 282.84
+    sc, _ = load_scenario(DISTURBED, ['disturbance.kind="none"', "lowlevel.kp=100",
+                                      'mpc.margins="tube"', "mpc.rate_hz=10"])
+    m = margins_of(sc, build_system(sc.system))
+    assert m.radius == 0.0 and all(v == 0.0 for v in m.avoid)
+    assert all(v == 0.0 for box in m.inputs for v in box)
+
+
+def test_a_tube_that_shrinks_an_input_box_to_a_point_is_refused(tmp_path, monkeypatch):
+    """Stiff PD gains: the low level's share zeta reaches half of every input box, so the
+    feed-forward boxes collapse to their centres and the MPC keeps no input authority
+    (a run with it failed where hand margins succeed): refused like an infeasible tube,
+    and a hand shrink of exactly half a box too."""
+    from hmpc_cli.run.setup_checks import setup_problems
+
+    monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path / "cache"))
+    sc, _ = load_scenario(DISTURBED, ['mpc.margins="tube"', "mpc.rate_hz=30",
+                                      "lowlevel.kp=100", "lowlevel.kd=20"])
+    with pytest.raises(ValueError) as exc:
+        margins_of(sc, build_system(sc.system))
+    assert "the tube's margins at 30 Hz do not fit: at 30 Hz the input shrink zeta = " \
+           "282.8 reaches half of mode outside's input box (capped)" in str(exc.value)
+    hand, _ = load_scenario(DISTURBED, ["mpc.input_margin=50"])
+    assert setup_problems(hand) == [
+        "mpc.input_margin: 50 per side reaches half the input box of mode 'outside' input 0 "
+        "([-100, 0]: half-width 50; the MPC would keep no input authority)"]
+
+
+def test_a_margins_file_whose_formula_does_not_hold_is_refused_as_tube_refuses_it(tmp_path):
+    from hmpc_cli.tube.margins_file import margins_problems
+
+    text = (ROOT / "scenarios" / "margins" / "ball_fig3.toml").read_text()
+    sc, _ = load_scenario(DISTURBED, ["mpc.rate_hz=20"])
+    good = tmp_path / "good.toml"
+    good.write_text(text)
+    assert margins_problems(good, sc.system, 20) == []
+    head, rest = text.split("[rates.20.guards.circle_in]", 1)
+    bad = tmp_path / "bad.toml"
+    bad.write_text(head + "[rates.20.guards.circle_in]" +
+                   rest.replace("formula_holds = true", "formula_holds = false", 1))
+    assert margins_problems(bad, sc.system, 20) == [
+        f"{bad}: at 20 Hz the margin formula of guard circle_in does not hold for its tube "
+        "(formula_holds = false: the tube does not fit the guard's geometry), as "
+        "mpc.margins = \"tube\" refuses it"]
+
+
+def test_a_damaged_cached_tube_is_computed_again_and_the_key_follows_the_system(
+        tmp_path, monkeypatch):
+    from hmpc_cli.run.tube_margins import _tube_sources, tube_margins_file
+
+    monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path / "cache"))
+    sc, model, m = _margins(20)
+    path = tube_margins_path(sc)
+    path.write_text(path.read_text()[:200])  # cut: not TOML any more
+    assert tube_margins_file(sc, model).at(20).radius == m.radius
+    assert tomllib.loads(path.read_text())["rates"]["20"]["radius"] == m.radius  # rewritten
+    # the system plug-in's own source is part of the key (its flows and guards)
+    assert _tube_sources("ball") != _tube_sources("biped")

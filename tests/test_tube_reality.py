@@ -141,3 +141,18 @@ def test_biped_run_against_its_tubes_through_the_interpolated_plan(tmp_path):
     cells = [c.strip() for c in row.split("│")[1:-1]]
     assert int(cells[1]) >= 6 and cells[2] == "1.000" and cells[5] == "0"
     assert (tmp_path / "tb" / "tube_reality.png").is_file()
+
+
+def test_a_run_of_another_closed_loop_is_named(campaign):
+    """--runs takes runs of the scenario's system; one flown with another disturbance or
+    other gains is another closed loop, whose deviations this tube does not bound: the
+    warning names what differs."""
+    r = hmpc("tube", SC / "ball.toml", "--samples", "200", "--formats", "png", "--out",
+             "tother", "--runs", "d1", "--set", "lowlevel.kp=5", cwd=campaign)
+    assert r.returncode == 0, r.stderr
+    assert ("warning: --runs d1: ran with disturbance.kind = 'paper_fig3' (the scenario's: "
+            "'none'); lowlevel.kp = 0.0 (the scenario's: 5.0): this tube is not its closed "
+            "loop's") in r.stderr
+    same = hmpc("tube", SC / "ball.toml", "--samples", "200", "--formats", "png", "--out",
+                "tsame", "--runs", "nom", cwd=campaign)
+    assert same.returncode == 0 and "this tube is not its closed loop's" not in same.stderr

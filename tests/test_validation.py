@@ -455,7 +455,8 @@ def real_prepare(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
 
 @pytest.mark.parametrize("system,item,message", [
     ("ball", "mpc.input_margin=60", "mpc.input_margin: 60 per side exceeds half the input box "
-                                    "of mode 'outside' input 0 ([-100, 0]: half-width 50)"),
+                                    "of mode 'outside' input 0 ([-100, 0]: half-width 50; the MPC "
+                                    "would keep no input authority)"),
     ("biped", "mpc.torque_margin=3500", "mpc.torque_margin: 3500 per side exceeds half the "
                                         "input box of mode"),
     ("ball", 'mpc.solver_options={ipopt={linear_solver="ma57"}}',
@@ -609,7 +610,7 @@ def test_a_cell_the_built_system_refuses_stops_the_sweep_before_any_run(work: Pa
     lines = bad_run(work, ["sweep", "x.toml", *(["--dry-run"] if dry else [])])
     assert lines == ["error: x.toml: cell mpc.input_margin=60.0: mpc.input_margin: 60 per "
                      "side exceeds half the input box of mode 'outside' input 0 ([-100, 0]: "
-                     "half-width 50)"]
+                     "half-width 50; the MPC would keep no input authority)"]
 
 
 @pytest.mark.parametrize("window,lines", [

@@ -18,6 +18,7 @@ import json
 import math
 import re
 import statistics
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -372,13 +373,13 @@ def _ordinary(d: dict) -> bool:
     return bool(d.get("success")) and slack <= SOFTENED_TOL and d.get("adopted", True) is not False
 
 
-def _solve(d: dict) -> TimelineRow:
-    """Timeline row of one /mpc/solve message."""
+def _solve(d: dict, is_charged: Callable[[dict], bool] | None = None) -> TimelineRow:
+    """Timeline row of one /mpc/solve message (``is_charged``: :func:`charged_by`)."""
     ok = bool(d.get("success"))
     text = (f"{d.get('reason', '?')}: {'' if ok else 'FAILED '}{d.get('status', '?')}, "
             f"{d.get('iterations', '?')} it, {ms_text(d.get('wall_time'))}")
-    if _num(d.get("latency")):  # compute time charged (sim.latency): what the plant waited
-        text += f", charged {ms_text(d.get('latency'))}"
+    if (is_charged or charged_by(None))(d) and _num(d.get("latency")) is not None:
+        text += f", charged {ms_text(d.get('latency'))}"  # what the plant waited
     style = "" if ok else "bold red"
     slack = _num(d.get("slack")) or 0.0
     if ok and slack > SOFTENED_TOL:
@@ -390,19 +391,37 @@ def _solve(d: dict) -> TimelineRow:
     return TimelineRow(float(d.get("t", 0.0)), "solve", text, style)
 
 
-def _solves_row(group: list[dict]) -> TimelineRow:
+def charged_by(sim: dict | None) -> Callable[[dict], bool]:
+    """Whether an /mpc/solve was charged, from the run's ``sim`` settings (None: unknown).
+
+    Every solve of a run with compute time charged (``sim.latency`` not "paused"),
+    but the first plan's with ``sim.latency_first = "paused"``, as the run's books count
+    them: a solve charged 0 s (a model's 0 iterations) was charged. Without the
+    settings, a solve that was charged more than nothing.
+    """
+    if sim is None:
+        return lambda d: bool(_num(d.get("latency")))
+    kind, first = sim.get("latency", "paused"), sim.get("latency_first", "charged")
+    if kind == "paused":
+        return lambda d: False
+    return lambda d: not (first == "paused" and str(d.get("reason", "")).startswith("initial"))
+
+
+def _solves_row(group: list[dict],
+                is_charged: Callable[[dict], bool] | None = None) -> TimelineRow:
     """One row for a run of ordinary solves (a single one is shown as it is).
 
     It says how many of them stopped unconverged at the iteration limit (successes of a
     bounded SQP run, e.g. ``mpc.solver = "rti"``).
     """
     if len(group) == 1:
-        return _solve(group[0])
+        return _solve(group[0], is_charged)
     limit = sum(d.get("status") == ITERATION_LIMIT for d in group)
     its = [v for v in (_num(d.get("iterations")) for d in group) if v is not None]
     wall = [v for v in (_num(d.get("wall_time")) for d in group) if v is not None]
-    # a solve charged nothing was not charged (time paused, or a paused first plan)
-    charged = [v for v in (_num(d.get("latency")) for d in group) if v]
+    is_charged = is_charged or charged_by(None)
+    charged = [v for v in (_num(d.get("latency")) for d in group if is_charged(d))
+               if v is not None]
     reasons: dict[str, int] = {}
     for d in group:
         reasons[str(d.get("reason", "?"))] = reasons.get(str(d.get("reason", "?")), 0) + 1
@@ -417,14 +436,18 @@ def _solves_row(group: list[dict]) -> TimelineRow:
     return TimelineRow(float(group[0].get("t", 0.0)), "solves", text, "dim")
 
 
-def timeline(messages: list, show_all: bool = False) -> list[TimelineRow]:
+def timeline(messages: list, show_all: bool = False,
+             is_charged: Callable[[dict], bool] | None = None) -> list[TimelineRow]:
     """The time-ordered timeline of contacts, planner calls and solves.
 
     Args:
         messages: log messages (any topics; only events, plans and solves appear).
         show_all: one row per solve; otherwise runs of ordinary solves (successful,
             adopted, not softened) between other rows are summarised in one row.
+        is_charged: whether a solve was charged (:func:`charged_by`; None: one charged
+            more than nothing).
     """
+    is_charged = is_charged or charged_by(None)
     rank = {"/sim/event": 0, "/planner/plan": 1, "/mpc/solve": 2}  # contact, then replan
     ordered = sorted((m for m in messages if m.topic in rank),
                      key=lambda m: (m.t, rank[m.topic]))
@@ -435,12 +458,14 @@ def timeline(messages: list, show_all: bool = False) -> list[TimelineRow]:
             group.append(m.data)
             continue
         if group:
-            rows.append(_solves_row(group))
+            rows.append(_solves_row(group, is_charged))
             group = []
-        make = {"/planner/plan": _plan, "/mpc/solve": _solve, "/sim/event": _contact}
-        rows.append(make[m.topic](m.data))
+        if m.topic == "/mpc/solve":
+            rows.append(_solve(m.data, is_charged))
+        else:
+            rows.append({"/planner/plan": _plan, "/sim/event": _contact}[m.topic](m.data))
     if group:
-        rows.append(_solves_row(group))
+        rows.append(_solves_row(group, is_charged))
     return rows
 
 
@@ -689,6 +714,29 @@ def scene_divergence(recorded: list, rerun: list, prefix_only: bool = False
     return min(found, key=lambda d: d.t) if found else None
 
 
+def _old_final_sample(recorded: list, rerun: list) -> list:
+    """The re-run's messages, its last /sim/state's u, x_ref and w as an old log's.
+
+    When the recorded last sample is in the layout before 2026-11-27 (log version 4
+    then and after): that last sample held no input (u = 0), the state as its own reference and a
+    disturbance drawn after the last step; since, it repeats the last step's values. A
+    recorded log of that layout (u all 0, x_ref = x) is compared on the rest.
+    """
+    rec = [m for m in recorded if m.topic == "/sim/state"]
+    new = [i for i, m in enumerate(rerun) if m.topic == "/sim/state"]
+    if not rec or not new or not isinstance(rec[-1].data, dict):
+        return rerun
+    last = rec[-1].data
+    u, x, x_ref = last.get("u"), last.get("x"), last.get("x_ref")
+    if not (isinstance(u, dict) and all(v == 0 for v in u.values()) and x_ref == x):
+        return rerun
+    i = new[-1]
+    if not isinstance(rerun[i].data, dict):
+        return rerun
+    fixed = {**rerun[i].data, **{k: last[k] for k in ("u", "x_ref", "w") if k in last}}
+    return [*rerun[:i], dataclasses.replace(rerun[i], data=fixed), *rerun[i + 1:]]
+
+
 def _settings_added_since(recorded: list, rerun: list) -> list:
     """The re-run's messages, the settings and fields added since the recorded run forgiven.
 
@@ -696,7 +744,9 @@ def _settings_added_since(recorded: list, rerun: list) -> list:
     sweep's resume treats it): when the re-run's scenario equals the recorded one but for
     such keys, it is taken as the recorded one. A message field a later log version added
     (:data:`~hmpc_cli.log.topics.FIELDS_ADDED`) is left out of the re-run's messages when
-    the recorded log is older. Every behaviour still counts.
+    the recorded log is older, and a version-4 log's last /sim/state in the earlier layout
+    is compared without its u, x_ref and w (:func:`_old_final_sample`). Every behaviour
+    still counts.
     """
     info = next((m for m in recorded if m.topic == "/run/info"), None)
     version = info.data.get("log_version", 1) if info is not None else LOG_VERSION
@@ -707,6 +757,8 @@ def _settings_added_since(recorded: list, rerun: list) -> list:
     rerun = [dataclasses.replace(m, data={k: v for k, v in m.data.items()
                                           if k not in added[m.topic]})
              if m.topic in added and isinstance(m.data, dict) else m for m in rerun]
+    if isinstance(version, int) and version <= 4:
+        rerun = _old_final_sample(recorded, rerun)
     try:
         old = json.loads(info.data["scenario_json"]) if info is not None else None
     except (KeyError, TypeError, ValueError):

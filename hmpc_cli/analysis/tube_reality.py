@@ -51,6 +51,7 @@ class RecordedRun:
             x_plan (N, n), seg_plan (N,)).
         damaged: for messages, the damage or cut that may have lost part of the log
             (:func:`hmpc_cli.log.rundata.damage_note`; '' if intact).
+        scenario: the logged scenario as run ({}: not recorded).
     """
 
     name: str
@@ -60,6 +61,7 @@ class RecordedRun:
     events: np.ndarray
     solves: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]]
     damaged: str = ""
+    scenario: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -167,7 +169,29 @@ def read_run(path: Path) -> RecordedRun:
         raise ValueError(run.lacks("no adopted /mpc/solve"))
     return RecordedRun(run.name, run.system, run.t, run.x, events,
                        sorted(solves, key=lambda s: s[0]),
-                       damage_note(run.damage, run.complete))
+                       damage_note(run.damage, run.complete), dict(run.scenario))
+
+
+#: the settings besides the system's parameters that make a run's tube: disturbance,
+#: the low level's gains, the simulated plant
+TUBE_SETTINGS = (("disturbance", "kind"), ("disturbance", "magnitude"), ("lowlevel", "kp"),
+                 ("lowlevel", "kd"), ("plant",))
+
+
+def other_tube_settings(run: RecordedRun, scenario: dict) -> list[str]:
+    """``key: run value (scenario value)`` for each of :data:`TUBE_SETTINGS` that differs.
+
+    A setting the run's log does not record is not compared.
+    """
+    out = []
+    for path in TUBE_SETTINGS:
+        have, want = run.scenario, scenario
+        for key in path:
+            have = have.get(key) if isinstance(have, dict) else None
+            want = want.get(key) if isinstance(want, dict) else None
+        if have is not None and have != want:
+            out.append(f"{'.'.join(path)} = {have!r} (the scenario's: {want!r})")
+    return out
 
 
 def _node(t_plan: np.ndarray, x_plan: np.ndarray, seg_plan: np.ndarray, t: float,

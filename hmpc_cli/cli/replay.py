@@ -162,14 +162,16 @@ def _no_summary(rp) -> str:
 def _print_report(console, rp, selected: list, show_all: bool, window: str,
                   span: tuple[float | None, float | None], topics: list[str] | None) -> None:
     """Identity, summary, timeline and disturbance statistics (over ``span``: --from, --to)."""
-    from hmpc_cli.analysis.replay import disturbance_stats, timeline
+    from hmpc_cli.analysis.replay import charged_by, disturbance_stats, timeline
 
     console.print(_identity_table(rp, rp.path.stat().st_size))
     if rp.summary is None:
         console.print(f"[yellow]{_no_summary(rp)}[/]")
     else:
         console.print(_summary_table(rp.summary))
-    console.print(_timeline_table(timeline(selected, show_all), len(selected), window))
+    sim = rp.scenario.get("sim") if rp.scenario else None
+    rows = timeline(selected, show_all, charged_by(sim if isinstance(sim, dict) else None))
+    console.print(_timeline_table(rows, len(selected), window))
     console.print(f"selected messages per topic: {_counts_line(selected)}", markup=False)
     if topics and "/disturbance" not in topics:
         return

@@ -350,10 +350,17 @@ def _publish(sc, system, observed: list, report, out: Path | None, formats: str,
     else:
         _print(report, sc.name)
     out = out if out is not None else Path("results") / sc.name / "tube"
+    from hmpc_cli.analysis.tube_reality import other_tube_settings
+
+    settings = sc.model_dump(mode="json")
     for run in observed:  # a log not read whole: its deviations are those of what it holds
         if run.damaged:
             typer.echo(f"warning: --runs {run.name}: tube vs reality uses what the log "
                        f"holds{run.damaged}", err=True)
+        other = other_tube_settings(run, settings)
+        if other:  # another closed loop: its deviations are not this tube's to bound
+            typer.echo(f"warning: --runs {run.name}: ran with {'; '.join(other)}: this "
+                       "tube is not its closed loop's", err=True)
     reality = _reality_report(report, observed) if observed else None
     with deferred():  # the outputs are written whole: a stop meanwhile acts after them
         try:

@@ -10,7 +10,7 @@ One panel over simulated time (log scale in milliseconds):
   period's solve (red) unless ``sim.solve_budget`` dropped it (a cross: busy for the
   budget) or a contact stopped it in flight (a triangle: busy until the contact); a first
   plan computed with ``sim.latency_first = "paused"`` is neither counted nor drawn but by
-  its wall time;
+  its wall time; a solve charged 0 s (a model's 0 iterations) is a dash at the bottom;
 * the contacts as vertical lines.
 
 The title counts the solves above the period, and under charged time the run's own
@@ -212,8 +212,15 @@ def _figure(st: SolveTimes, width: float, height: float):
     late = st.above & ~ended
     kept = st.counted & ~st.above & ~ended
     what = "charged" if st.charged else "wall time"
+    zero = kept & (ms <= 0.0)  # charged 0 s (a model's 0 iterations): a log axis has no 0
+    kept &= ~zero
     if kept.any():
         ax.plot(st.t[kept], ms[kept], "o", ms=3, color=ON_TIME_COLOR, label=f"solve ({what})")
+    if zero.any():
+        shown = ms[st.counted & (ms > 0.0)]
+        floor = 0.5 * float(np.min(shown)) if shown.size else 1e-3
+        ax.plot(st.t[zero], np.full(int(zero.sum()), floor), "_", ms=5, color=ON_TIME_COLOR,
+                label="charged 0 s (drawn at the bottom)")
     if late.any():
         ax.plot(st.t[late], ms[late], "o", ms=3, color=LATE_COLOR, label="above the period")
     for sel, marker, label in ((st.counted & st.dropped, "x", "dropped over budget"),

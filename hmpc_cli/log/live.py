@@ -5,9 +5,10 @@ recorder registers (JSON or protobuf, same schemas) becomes a channel of a Foxgl
 WebSocket server on 127.0.0.1 (``foxglove-sdk``, the optional extra ``live``), and every
 message written to the log is also sent there with the same log time, paced
 (:class:`Pacing`) so that simulated time runs no faster than ``speed`` times the wall
-clock. The run's description and static scene (:data:`LATCHED`) are sent again to each
-client that subscribes to them later. Connect Foxglove or Lichtblick with Open
-connection → Foxglove WebSocket → ``ws://127.0.0.1:8765``.
+clock. The run's description, static scene and newest planner call with its rollout
+(:data:`LATCHED`) are sent again to each client that subscribes to them later.
+Connect Foxglove or Lichtblick with Open connection → Foxglove WebSocket →
+``ws://127.0.0.1:8765``.
 """
 
 from __future__ import annotations
@@ -18,13 +19,15 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from hmpc_cli.log.scene import STATIC
+from hmpc_cli.log.scene import ROLLOUT, STATIC
 
 __all__ = ["FLUSH_S", "LATCHED", "LiveSink", "LiveError", "Pacing", "RESEND_S", "port_problem"]
 
 _NS_PER_S = 1_000_000_000
-#: topics written once at the start that a client subscribing later still needs
-LATCHED = ("/run/info", STATIC)
+#: topics written rarely that a client subscribing later still needs: the run's
+#: description, the static scene, and the newest planner call and its rollout (written
+#: once at t = 0 when the run plans once; before a client can have subscribed)
+LATCHED = ("/run/info", STATIC, "/planner/plan", ROLLOUT)
 RESEND_S = 0.1  #: a latched message is sent to a new subscriber again this much later [s]
 FLUSH_S = 0.3  #: the wait for queued messages before the server stops, with a subscriber [s]
 

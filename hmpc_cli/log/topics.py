@@ -30,8 +30,9 @@ __all__ = [
 
 #: the log layout this hmpc writes (1: plain arrays, untyped; 2: this module; 3: with the
 #: system's geometry and body points, :mod:`hmpc_cli.log.geometry`; 4: None, NaN and inf
-#: fields left out instead of null; 5: /mpc/solve's ``nodes``; 6: /run/summary's
-#: ``real_time``)
+#: fields left out instead of null (from 2026-11-27 the last /sim/state repeats the last
+#: step's u, x_ref and w; before, u = 0 and x_ref = x); 5: /mpc/solve's ``nodes``; 6:
+#: /run/summary's ``real_time``)
 LOG_VERSION = 6
 
 #: fields a message gained with a log version: (topic, field) -> that version (a log

@@ -238,8 +238,20 @@ class CrossEntropyPlanner:
         c = self._compiled()
         if c is None:
             return self.rollout_cost_numpy(x0, mode0, knots, bound)
-        return c.cost(np.asarray(x0, dtype=float), mode0, self._inputs(knots), self.dt,
-                      self.final_mode, bound, self.penalty, self.absorbing)
+        cost, reached = c.cost(np.asarray(x0, dtype=float), mode0, self._inputs(knots),
+                               self.dt, self.final_mode, bound, self.penalty, self.absorbing)
+        return cost + self._stay_cost(x0, mode0), reached
+
+    def _stay_cost(self, x0: np.ndarray, mode0: int) -> float:
+        """A rollout's cost when it starts in the (absorbing) final domain (0 elsewhere).
+
+        Its entry state's stage cost, zero input, over the whole horizon.
+        """
+        if not self.absorbing or mode0 != self.final_mode:
+            return 0.0
+        x = np.asarray(x0, dtype=float)[None, :]
+        stage = self.cost_fn(x, np.zeros((1, self.system.n_u)))[0][0, 0]
+        return float(self.n_steps * self.dt * stage)
 
     @property
     def absorbing(self) -> bool:
@@ -257,7 +269,8 @@ class CrossEntropyPlanner:
 
         Cost "hmpc": the final domain is absorbing: a rollout that enters it stops there
         and accrues the stage cost of its entry state (zero input) for the rest of the
-        horizon; one that never enters pays ``UNREACHED_PENALTY`` on top of its cost.
+        horizon (from x0 in it: the whole horizon); one that never enters pays
+        ``UNREACHED_PENALTY`` on top of its cost.
         Cost "reference": every rollout runs the whole horizon with its sampled inputs
         (leaving the final domain again is possible), the flag says whether it ever
         entered, no penalty. Costs only grow along a rollout, so one whose running cost
@@ -274,6 +287,7 @@ class CrossEntropyPlanner:
         alive = np.ones(b, dtype=bool)
         reached = mode == self.final_mode
         absorbing = self.absorbing
+        cost += self._stay_cost(x0, mode0)  # started in it: the entry cost, all along
         for k in range(self.n_steps):
             todo = alive & ~reached if absorbing else alive
             if todo.all():
@@ -317,12 +331,13 @@ class CrossEntropyPlanner:
                 mean[:, j] = np.interp(shifted, self.t_knots, self._previous[:, j])
         var = np.full((s.knots, m), s.init_cov)
         best_cost, best = np.inf, mean.copy()
+        entered = np.zeros(0, dtype=bool)
         for _ in range(s.iterations):
             signals.check()  # the run stops within one iteration (and batch) of a signal
             noise = rng.standard_normal((s.samples, s.knots, m))
             samples = np.concatenate([mean[None], mean[None] + np.sqrt(var)[None] * noise])
             bound = best_cost if s.elites == 1 else np.inf
-            cost, _ = self.rollout_cost(x0, mode0, samples, bound)
+            cost, entered = self.rollout_cost(x0, mode0, samples, bound)
             order = np.argsort(cost, kind="stable")
             elite = samples[order[: s.elites]]
             if cost[order[0]] < best_cost:
@@ -336,6 +351,9 @@ class CrossEntropyPlanner:
         reached = bool(traj.mode[-1] == self.final_mode)
         schedule = schedule_from(traj, t) if reached else None
         note = "" if reached else "no rollout reached the final domain"
+        if not reached and not self.absorbing and entered.any():  # they ranked lower
+            note = (f"the best rollout did not reach the final domain ({int(entered.sum())} "
+                    f"of the last iteration's {entered.size} did, at a higher cost)")
         return PlannerResult(schedule, traj, best_cost, reached,
                              time.perf_counter() - start, s.iterations, note)
 

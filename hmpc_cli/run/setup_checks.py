@@ -322,16 +322,20 @@ def _feasible_at_x0(margins: ConstraintMargins, model, rate_hz: float) -> Constr
 
 
 def _margin_problems(sc, model, margins: ConstraintMargins | None) -> list[str]:
-    """``mpc.<margin>: reason`` when an input shrink leaves a mode's input box empty."""
+    """``mpc.<margin>: reason`` when an input shrink leaves a mode's input box empty.
+
+    A box shrunk to a point counts too: the MPC keeps no input authority there.
+    """
     if margins is None:
         return []
     key = sc.mpc.input_margin_key() if margins.source == "hand" else "mpc.margins"
     for mode, shrink in zip(model.modes, margins.inputs, strict=False):
         for i, (lo, hi, m) in enumerate(zip(mode.u_lower, mode.u_upper, shrink, strict=False)):
-            if 2.0 * m > hi - lo:
-                return [f"{key}: {m:g} per side exceeds half the input box of mode "
+            if 2.0 * m >= hi - lo and m > 0.0:
+                what = "exceeds" if 2.0 * m > hi - lo else "reaches"
+                return [f"{key}: {m:g} per side {what} half the input box of mode "
                         f"{mode.name!r} input {i} ([{lo:g}, {hi:g}]: half-width "
-                        f"{(hi - lo) / 2:g})"]
+                        f"{(hi - lo) / 2:g}; the MPC would keep no input authority)"]
     return []
 
 

@@ -38,10 +38,26 @@ SAMPLES = 20000  #: samples per estimated constant (``hmpc tube``'s default)
 SEED = 0  #: one tube per system and setting, whatever the run's seed
 
 
-def _tube_sources() -> str:
-    """sha256 of the tube analysis' sources (a changed analysis is another cache entry)."""
+def _tube_sources(system: str) -> str:
+    """sha256 of what the tube is computed from (a change to any: another cache entry).
+
+    The tube analysis, this module, the hybrid system's vocabulary and the system
+    plug-in's own source (its package's modules, for a package).
+    """
+    import inspect
+
+    from hmpc_cli.core import hybrid
+    from hmpc_cli.core.registry import PluginError, registry
+
+    here = Path(__file__).resolve()
+    paths = {*(here.parents[1] / "tube").glob("*.py"), here, Path(hybrid.__file__).resolve()}
+    try:
+        source = Path(inspect.getsourcefile(registry().system(system).build)).resolve()
+        paths |= set(source.parent.glob("*.py")) if source.name == "__init__.py" else {source}
+    except (PluginError, TypeError, OSError):
+        pass  # no such plug-in (refused elsewhere) or no source file: the rest decides
     h = hashlib.sha256()
-    for path in sorted((Path(__file__).resolve().parents[1] / "tube").glob("*.py")):
+    for path in sorted(paths):
         h.update(path.name.encode() + b"\0" + path.read_bytes())
     return h.hexdigest()
 
@@ -106,7 +122,7 @@ def scenario_tube(sc, system: HybridSystem, *, region: Region | None = None,
 def _inputs(sc) -> dict:
     """Everything the tube depends on (JSON-ready): the plant's parameters too."""
     plant = plant_difference(sc)[0]
-    return {"hmpc": __version__, "sources": _tube_sources(),
+    return {"hmpc": __version__, "sources": _tube_sources(sc.system.name),
             "system": sc.system.model_dump(mode="json"),
             "plant": None if plant is None else plant.model_dump(mode="json"),
             "disturbance": [sc.disturbance.kind, float(sc.disturbance.magnitude)],
@@ -137,8 +153,9 @@ def tube_margins(sc, model) -> ConstraintMargins:
 def tube_margins_file(sc, model):
     """The scenario's tube as a :class:`~hmpc_cli.tube.margins_file.MarginsFile` (cached).
 
-    Read from :func:`tube_margins_path` when a run wrote it, else computed and written
-    there (an unwritable cache: computed again next time).
+    Read from :func:`tube_margins_path` when a run wrote it, else (or when that file is
+    damaged: not TOML or not a margins file) computed and written there (an unwritable
+    cache: computed again next time).
 
     Raises:
         ValueError: as :func:`tube_margins`.
@@ -147,17 +164,23 @@ def tube_margins_file(sc, model):
 
     from hmpc_cli.tube.margins_file import MarginsFile
 
+    from pydantic import ValidationError
+
     path = tube_margins_path(sc)
     text = _read(path)
-    if text is None:
-        text = _compute(sc, model, float(sc.mpc.rate_hz))
+    if text is not None:
         try:
-            from hmpc_cli.core.paths import write_atomic
+            return MarginsFile.model_validate(tomllib.loads(text))
+        except (tomllib.TOMLDecodeError, ValidationError):
+            pass  # a damaged cache entry (a disk full, an editor): computed again
+    text = _compute(sc, model, float(sc.mpc.rate_hz))
+    try:
+        from hmpc_cli.core.paths import write_atomic
 
-            path.parent.mkdir(parents=True, exist_ok=True)
-            write_atomic(path, text)
-        except OSError:
-            pass
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_atomic(path, text)
+    except OSError:
+        pass
     return MarginsFile.model_validate(tomllib.loads(text))
 
 

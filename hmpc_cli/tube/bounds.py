@@ -65,7 +65,10 @@ def low_level_share(t: float, eta: float, L_x: float, L_u: float, gain_norm: flo
     c = t e^{L_x t}, when L_u ||K|| c < 1 (if the error never reached r, the PD share
     stayed below ||K|| r and Gronwall keeps the error below r up to t); else, and whenever
     it is smaller, r = (eta + L_u D) c with zeta = D (the saturated input stays in its box).
+    With eta = 0 the error starts and stays 0 (Gronwall with L_x + L_u ||K||): (0, 0).
     """
+    if eta == 0.0:  # no disturbance: the error stays 0 (Gronwall on L_x + L_u ||K||)
+        return 0.0, 0.0
     sat = trivial_tube(t, eta, L_x, L_u, box_diameter)
     if gain_norm == 0.0:
         return float(trivial_tube(t, eta, L_x, 0.0, 0.0)), 0.0

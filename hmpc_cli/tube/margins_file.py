@@ -280,6 +280,11 @@ def margins_problems(path: Path, system: BaseModel, rate_hz: float) -> list[str]
               *[v for s in row.inputs.values() for v in s]]
     if not all(math.isfinite(v) for v in values):
         return [f"{path}: the tube at {rate_hz:g} Hz is not finite (no usable margins)"]
+    bent = [name for name, g in row.guards.items() if not g.formula_holds]
+    if bent:
+        return [f"{path}: at {rate_hz:g} Hz the margin formula of guard {bent[0]} does not "
+                f"hold for its tube (formula_holds = false: the tube does not fit the "
+                f"guard's geometry), as mpc.margins = \"tube\" refuses it"]
     return []
 
 

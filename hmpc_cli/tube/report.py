@@ -227,7 +227,7 @@ def analyse(system: HybridSystem, *, region: Region, kind: str, magnitude: float
 
 def _warnings(system: HybridSystem, rows: Sequence[TubeRow], rate_hz: float,
               L_x: float) -> list[str]:
-    """Infeasibility at x0 and invalid margin formulas at the scenario's rate."""
+    """Infeasibility at x0, invalid margin formulas, collapsed input boxes at the rate."""
     row = next(r for r in rows if r.rate_hz == float(rate_hz))
     out = [f"at {rate_hz:g} Hz the tightened guard-avoid row of {name} (kappa = {k:.4g}) "
            f"exceeds its NLP gap at x0 ({q:.4g}): the tightened problem is infeasible at "
@@ -235,6 +235,10 @@ def _warnings(system: HybridSystem, rows: Sequence[TubeRow], rate_hz: float,
     out += [f"at {rate_hz:g} Hz the margin of guard {g.guard} decreases with the radius "
             f"{g.radius:.4g}: its formula does not hold for a tube this large (the tube "
             f"does not fit the guard's geometry)" for g in row.margins.guards if not g.monotone]
+    out += [f"at {rate_hz:g} Hz the input shrink zeta = {row.margins.zeta:.4g} reaches half "
+            f"of mode {i.mode}'s input box (capped): its feed-forward box collapses to the "
+            f"centre, the MPC keeps no input authority there" for i in row.margins.inputs
+            if i.capped]
     if not math.isfinite(row.diam):
         out.append(f"at {rate_hz:g} Hz diam T(dt) overflows (L_x dt = "
                    f"{row.dt * L_x:.4g}): no finite tube")
