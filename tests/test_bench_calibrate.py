@@ -71,8 +71,8 @@ def test_a_sweeps_logged_solves_are_fitted_without_running_anything(full_run, tm
         capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     text = out.read_text()
-    assert f"32 solves of the 1 runs of `{sweep}` with `latency=paused` (their logged wall " \
-           "times)." in text
+    assert f"32 solves of the 1 runs of `{sweep}` with `latency=paused` (their logged " \
+           "`wall_time`)." in text
     assert "per_switching_iteration = " in text and text == proc.stdout.rstrip("\n") + "\n"
     # the reference size is the fitted solves' median plan: 25 final-domain plans of 181
     assert "nodes = 181\n" in text and "| 181 | 25 | " in text
@@ -139,3 +139,38 @@ def test_a_log_without_plan_nodes_gives_them_where_it_logged_every_node():
                                                       (3, 0.02, False, 181)]
     assert cal.logged_solves([info(3), old, new]) == [(2, 0.01, False, 0),
                                                       (3, 0.02, False, 181)]
+
+
+def test_the_whole_solve_call_is_logged_and_fitted_with_time_call(full_run, tmp_path,
+                                                                  monkeypatch):
+    """/mpc/solve's call_wall_time is the controller's whole solve call (the NLP solver's
+    call inside it); --time call fits it, what sim.latency = "measured" charges; a log
+    without it (written before version 7) is said."""
+    import dataclasses
+    import subprocess
+    import sys
+
+    from hmpc_cli.log.reader import read_log
+
+    cal = _module()
+    log = full_run.out / "run.mcap"
+    solves = [m.data for m in read_log(log).messages if m.topic == "/mpc/solve"]
+    assert all(d["call_wall_time"] > d["wall_time"] > 0 for d in solves)
+    monkeypatch.setattr(cal, "TIME", ["call_wall_time"])
+    got = cal.solves_in(log)
+    assert [w for _, w, _, _ in got] == [d["call_wall_time"] for d in solves
+                                         if d["iterations"] > 0]
+    old = [dataclasses.replace(m, data={k: v for k, v in m.data.items()
+                                        if k != "call_wall_time"})
+           for m in read_log(log).messages]
+    with pytest.raises(SystemExit) as stop:
+        cal.logged_solves(old)
+    assert "has no call_wall_time (a log written before hmpc logged it, version 7)" in \
+        str(stop.value)
+    sweep = _sweep_dir(tmp_path, log)
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "calibrate_latency.py"), "--time", "call",
+         "--sweep", str(sweep), "--where", "latency=paused"],
+        capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "(their logged `call_wall_time`)." in proc.stdout

@@ -295,12 +295,13 @@ class TopicWriter:
             self.scene.rollout(t, result.trajectory)
 
     def mpc_solve(self, t: float, plan: Plan, reason: str, model: HybridSystem,
-                  latency: float = 0.0) -> None:
+                  latency: float = 0.0, call_time: float = 0.0) -> None:
         """Logs one fixed-mode MPC solve to /mpc/solve (held: a snapshot of the plan).
 
         ``latency`` [s]: the compute time charged (``sim.latency``; 0: time paused): a plan
         reaches the plant that long after t, unless it is dropped (over budget: not
         adopted; or stopped by a contact, which the next solve's reason names).
+        ``call_time`` [s]: the measured wall time of the controller's whole solve call.
         """
         stride = self.identity.plan_stride
         traj = plan.traj
@@ -310,10 +311,10 @@ class TopicWriter:
         detail = _detail(self.identity.details.get("mpc"), plan.detail, "mpc")
         self._hold(self._write_mpc_solve,
                    (t, dataclasses.replace(plan, traj=traj), reason, model, latency, detail,
-                    plan.nodes))
+                    plan.nodes, call_time))
 
     def _write_mpc_solve(self, t: float, plan: Plan, reason: str, model: HybridSystem,
-                         latency: float, detail, nodes: int) -> None:
+                         latency: float, detail, nodes: int, call_time: float) -> None:
         """Writes one /mpc/solve message and its scene plan (``detail``: the MPC's).
 
         The plan's node times are absolute: ``plan.t0`` + its relative times (t0 is the
@@ -326,7 +327,8 @@ class TopicWriter:
             _schedule(plan.schedule, model),
             PlanArrays(np.asarray(traj.t, dtype=float) + plan.t0, np.asarray(traj.seg),
                        np.asarray(traj.mode), np.asarray(traj.x, dtype=float),
-                       np.asarray(traj.u, dtype=float)), detail, float(latency), int(nodes))
+                       np.asarray(traj.u, dtype=float)), detail, float(latency), int(nodes),
+            float(call_time))
         wire = plan_nodes(msg.plan, 0.0, model)  # on the wire: node records
         self.rec.write("/mpc/solve", t, dataclasses.replace(msg, plan=wire))
         if self.scene is not None:

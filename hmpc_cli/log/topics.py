@@ -32,12 +32,13 @@ __all__ = [
 #: system's geometry and body points, :mod:`hmpc_cli.log.geometry`; 4: None, NaN and inf
 #: fields left out instead of null (from 2026-11-27 the last /sim/state repeats the last
 #: step's u, x_ref and w; before, u = 0 and x_ref = x); 5: /mpc/solve's ``nodes``; 6:
-#: /run/summary's ``real_time``)
-LOG_VERSION = 6
+#: /run/summary's ``real_time``; 7: /mpc/solve's ``call_wall_time``)
+LOG_VERSION = 7
 
 #: fields a message gained with a log version: (topic, field) -> that version (a log
 #: written before it lacks them)
-FIELDS_ADDED = {("/mpc/solve", "nodes"): 5, ("/run/summary", "real_time"): 6}
+FIELDS_ADDED = {("/mpc/solve", "nodes"): 5, ("/run/summary", "real_time"): 6,
+                ("/mpc/solve", "call_wall_time"): 7}
 
 
 State = Annotated[dict, Names("state")]
@@ -388,6 +389,10 @@ class MpcSolve:
         nodes: the plan's nodes, before ``sim.log_plan_stride`` thins them (0: a rejected
             schedule's empty plan); ``sim.latency_model.nodes`` scales a solve's charge by
             them.
+        call_wall_time: the controller's whole work for this solve, measured [s]: the
+            prediction, the NLP's set-up, the solve (``wall_time``) and the plan built
+            from it; what ``sim.latency = "measured"`` charges (a planner call before it
+            apart), and what ``benchmarks/calibrate_latency.py --time call`` fits.
     """
 
     t: float
@@ -405,6 +410,7 @@ class MpcSolve:
     detail: Annotated[Any, Detail("mpc")] = None
     latency: float = 0.0
     nodes: int = 0
+    call_wall_time: float = 0.0
 
 
 @dataclass(frozen=True)

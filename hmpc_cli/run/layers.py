@@ -207,10 +207,10 @@ class MPCLayers:
             if dropped:  # never reaches the plant: logged not adopted
                 plan, note = dataclasses.replace(plan, adopt=False), \
                     note + self._stop_at_budget(plan, compute) + OVER_BUDGET
-            self.log.mpc_solve(t, plan, reason + note, self.model, latency)
+            self.log.mpc_solve(t, plan, reason + note, self.model, latency, compute)
             st.preempted, st.stopped = [], ""
         else:
-            self.log.mpc_solve(t, plan, reason, self.model)
+            self.log.mpc_solve(t, plan, reason, self.model, call_time=compute)
             st.plan = plan if plan.adopt else st.plan
         clock.planner = None
         signals.check()
