@@ -113,3 +113,15 @@ def test_with_record_time_a_buffered_call_has_its_own_total_timer():
         assert st["n_call_total"] == plain.stats()["n_call_total"] == 1
         assert st["t_wall_total"] >= st["t_wall_nlp_hess_l"] + st["t_wall_nlp_jac_g"] > 0
         assert st["t_proc_total"] > 0
+
+
+def test_the_buffered_objective_is_nlp_f_bit_for_bit():
+    """The cost at the bounds after each solve (hmpc_cli.mpc.solver) calls nlp_f through a
+    buffer: the same values as a plain call of the solver's nlp_f."""
+    plain = ca.nlpsol("s", "ipopt", _nlp(), SOLVERS["ipopt"])
+    buffered = BufferedSolver(ca.nlpsol("s", "ipopt", _nlp(), SOLVERS["ipopt"]))
+    f = plain.get_function("nlp_f")
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        w, p = rng.normal(size=12), rng.normal(size=2)
+        assert buffered.objective(w, p) == float(f(w, p))

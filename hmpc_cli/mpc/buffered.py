@@ -49,6 +49,7 @@ class BufferedSolver:
             self._buffer.set_res(i, memoryview(arr))
         self._total: dict = {}
         self._last: dict = {}
+        self._objective: tuple | None = None  # nlp_f's buffer (:meth:`objective`)
 
     def __call__(self, **inputs) -> dict[str, np.ndarray]:
         """One solve; see the class docstring.
@@ -103,6 +104,30 @@ class BufferedSolver:
     def stats(self) -> dict:
         """The last call's stats (see the class docstring)."""
         return dict(self._last)
+
+    def objective(self, w: np.ndarray, p: np.ndarray) -> float:
+        """The solver's ``nlp_f`` at primal point w (nx,) and parameters p (np,), buffered.
+
+        The same function as ``get_function("nlp_f")(w, p)``, without converting its
+        arguments to ``DM`` on every call.
+
+        Raises:
+            RuntimeError: the solver has no ``nlp_f`` (``has_function``).
+        """
+        if self._objective is None:
+            f = self.function.get_function("nlp_f")
+            buffer, evaluate = f.buffer()
+            args = [np.zeros(f.nnz_in(i)) for i in range(f.n_in())]
+            out = np.zeros(f.nnz_out(0))
+            for i, arr in enumerate(args):
+                buffer.set_arg(i, memoryview(arr))
+            buffer.set_res(0, memoryview(out))
+            self._objective = (buffer, evaluate, args, out)
+        _, evaluate, args, out = self._objective
+        np.copyto(args[0], np.ravel(w))
+        np.copyto(args[1], np.ravel(p))
+        evaluate()
+        return float(out[0])
 
     def __getattr__(self, name: str):
         """The wrapped Function's attribute ``name``."""

@@ -208,6 +208,9 @@ def _cost_in_bounds(solver: ca.Function, w: np.ndarray, p, lbx, ubx, f: float) -
     has = getattr(solver, "has_function", None)  # a wrapper without it keeps the solver's
     if np.array_equal(inside, w) or has is None or not has("nlp_f"):
         return f
+    objective = getattr(solver, "objective", None)  # a BufferedSolver's, buffered
+    if objective is not None:
+        return objective(inside, p)
     return float(solver.get_function("nlp_f")(inside, p))
 
 
