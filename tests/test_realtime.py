@@ -632,8 +632,9 @@ def test_a_contact_stops_the_solve_in_flight(tmp_path):
         # the solver had run 0.2 ms, under the model's overhead: no iteration of the solve in
         # flight was done, so its start is the next warm start, not its solution
         assert noted == ([(contact.t, "replan (after a contact stopped the solve of "
-                           "t = 0.3000 s: dropped) (stopped at the contact: its solve after "
-                           "0 of 17 iterations, that iterate warm-starts this one)")]
+                           "t = 0.3000 s: dropped) (stopped at the contact: the solve of "
+                           "t = 0.3000 s after 0 of 17 iterations, that iterate warm-starts "
+                           "this one)")]
                          if preempt else [])
         assert result.real_time["preempted_solves"] == int(preempt)
     assert planned[True] == contact.t
@@ -747,3 +748,40 @@ def test_the_stopped_iterate_is_ipopts_own_after_that_many_iterations():
             for a, b in ((got.x, ref.x), (got.lam_x, ref.lam_x), (got.lam_g, ref.lam_g)):
                 assert np.array_equal(a, b)
     assert SolverSession("s", nlp, "sqpmethod", max_iter=5).stopped(2, *call) is None
+    # Waechter and Biegler's example: IPOPT's restoration phase (iterations 5r-14r), where
+    # CasADi calls the iteration callback more than once an iteration
+    x = ca.SX.sym("x", 3)
+    resto = {"x": x, "p": p, "f": x[0],
+             "g": ca.vertcat(x[0] ** 2 - x[1] - 1, x[0] - x[2] - 0.5)}
+    call = (np.array([-2.0, 1.0, 1.0]), 0.0, np.array([-np.inf, 0.0, 0.0]),
+            np.full(3, np.inf), np.zeros(2), np.zeros(2))
+    session = SolverSession("r", resto, max_iter=100)
+    n = session.run(*call).stats.iterations
+    assert n == 14
+    for k in range(n + 1):
+        got = session.stopped(k, *call)
+        ref = SolverSession("m", resto, max_iter=k).run(*call)
+        assert got.stats.iterations == k == ref.stats.iterations
+        for a, b in ((got.x, ref.x), (got.lam_x, ref.lam_x), (got.lam_g, ref.lam_g)):
+            assert np.array_equal(a, b)
+
+
+def test_a_contact_before_the_budget_ran_out_stops_the_dropped_solve_earlier(tmp_path):
+    """biped_realtime.toml, seed 2, modelled: the period solve of 0.896 s (200 iterations)
+    is dropped over its 0.1 s budget (23 iterations fit), but the swing foot lands at
+    0.9357 s and the contact stops the solver after 39.7 ms: 8 iterations (8.3 ms + 8 x
+    3.9 ms). That iterate, not the budget's, warm-starts the contact's solve, and the
+    solver was busy until the contact only."""
+    sc, _ = load_scenario(ROOT / "scenarios" / "biped_realtime.toml",
+                          ['sim.latency="model"', "seed=2", "sim.duration=1.0"])
+    loop = prepare(sc)
+    run_to_log(loop, tmp_path / "r.mcap")
+    reasons = {round(m.t, 4): m.data["reason"] for m in read_log(tmp_path / "r.mcap").topic(
+        "/mpc/solve")}
+    assert reasons[0.896] == ("period (stopped at the budget: its solve after 23 of 200 "
+                              "iterations, that iterate warm-starts the next solve) (over "
+                              "budget: dropped)")
+    contact = next(t for t in reasons if 0.93 < t < 0.94)
+    assert reasons[contact].startswith(
+        "replan (stopped at the contact: the solve of t = 0.8960 s after 8 of 200 "
+        "iterations, that iterate warm-starts this one)")

@@ -1192,3 +1192,28 @@ def test_a_page_is_the_same_sections_however_its_options_are_written():
                   ["--results", "repro", "--fig3-extra", "x.toml", "--fig3-trials", "",
                    "--realtime", ""]):
         assert _sections(other) != _sections(made), other
+
+
+def test_a_section_names_only_files_the_repository_holds(tmp_path, monkeypatch):
+    """A section made from a sweep outside the repository's layout named `sweeps/X.toml`
+    and `scenarios/Y.toml`, files the reader cannot find: only what exists is a path."""
+    from hmpc_cli.report.paths import repository_file
+
+    monkeypatch.chdir(REPO)
+    assert repository_file("sweeps", "fig3.toml") == "`sweeps/fig3.toml`"
+    assert repository_file("scenarios", "ball.toml") == "`scenarios/ball.toml`"
+    monkeypatch.chdir(tmp_path)
+    assert repository_file("sweeps", "s9.toml") == "`s9.toml`"
+
+
+def test_the_tube_panel_says_what_each_curve_bounds():
+    """The trivial curve is diam T(1/f), a bound on the state's norm; the kinematic one its
+    integral over the period, a bound on the positions: one axis, so the legend says it."""
+    from matplotlib.figure import Figure
+
+    from hmpc_cli.figures.robustness import _diameter_panel
+
+    ax = Figure().subplots()
+    _diameter_panel(ax, {15.0: {"trivial": [(10.0, 0.5)], "kinematic": [(10.0, 0.01)]}}, "15")
+    assert [ln.get_label() for ln in ax.get_lines()] == [
+        "trivial: diam $T(1/f)$, state norm", r"kinematic: $\int_0^{1/f}$ diam $T$, positions"]

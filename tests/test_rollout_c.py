@@ -143,7 +143,8 @@ def test_c_rollout_zeno_and_start_in_the_final_domain():
     assert np.array_equal(reached, ref_reached)
     assert np.array_equal(cost, ref)
     cost0, reached0 = planner.rollout_cost(x0, 1, knots)  # already in the final domain
-    assert reached0.all() and np.all(cost0 == 0.0)
+    stay = planner.n_steps * planner.dt * planner.cost_fn(x0[None], np.zeros((1, 2)))[0][0, 0]
+    assert reached0.all() and np.all(cost0 == stay) and stay > 0  # its stage cost all along
     assert np.array_equal(cost0, planner.rollout_cost_numpy(x0, 1, knots)[0])
 
 

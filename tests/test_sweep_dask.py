@@ -269,3 +269,24 @@ def test_stale_staging_directories_are_cleared(tmp_path):
         (runs / name).mkdir(parents=True)
     sweep_dask.clear_stale(runs)
     assert sorted(p.name for p in runs.iterdir()) == [".keep", "abc"]
+
+
+def test_a_margins_file_the_worker_lacks_makes_its_run_lost_not_failed(tmp_path):
+    """The workers need no shared file system but for a margins file: the task carries
+    its path and sha256, and a worker without it (or with another file there) fails the
+    task before running, so the run is lost (exit 1, redone), not tabled as a controller
+    whose margins were refused."""
+    from hmpc_cli.core.paths import file_digest
+
+    margins = Path(__file__).resolve().parents[1] / "scenarios" / "margins" / "ball_fig3.toml"
+    toml = f'[mpc]\nmargins = "{margins}"\n'
+    assert sweep_dask.needed_files(toml) == {str(margins): file_digest(margins)}
+    assert sweep_dask.needed_files('[mpc]\nmargins = "tube"\n') == {}
+    assert sweep_dask.needed_files("[mpc]\n") == {}
+    sweep_dask.check_needed(sweep_dask.needed_files(toml))  # here: the same file
+    for needed in ({str(tmp_path / "gone.toml"): file_digest(margins)},
+                   {str(margins): "sha256:" + "0" * 64}):
+        with pytest.raises(FileNotFoundError) as exc:
+            sweep_dask.run_remote(toml, None, needed)
+        assert str(exc.value).endswith("a margins file must be readable at the same path "
+                                       "with the same content on every worker")

@@ -215,7 +215,10 @@ def test_a_killed_worker_loses_only_its_run_which_is_retried(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_run_that_kills_its_worker_twice_is_failed(tmp_path):
+def test_a_run_that_kills_its_worker_twice_is_lost_work_and_runs_again(tmp_path):
+    """Killed from outside (or out of memory) twice: no result of the controller's, so
+    not tabled as a failed run; the sweep exits 1 naming it, its directory keeps why and
+    the partial log, and the next sweep runs it again."""
     path = write_sweep(tmp_path, _spec("kill2", 2, 6.0))
     out = tmp_path / "out"
     proc = _start(path, out, tmp_path)
@@ -227,13 +230,18 @@ def test_a_run_that_kills_its_worker_twice_is_failed(tmp_path):
         return next((p for p in _workers(proc.pid) if p != victim and _run_of(p) == run), None)
     os.kill(_wait(holder, what="the retried run"), signal.SIGKILL)
     _, err = _finish(proc)
-    assert proc.returncode == 0, err
+    assert proc.returncode == 1, err
+    assert f"run not recorded (rerun to retry): {run}: worker died (signal 9) twice" in err
     rows = {r["run_id"]: r for r in table(out)}
-    assert len(rows) == 2
-    assert rows[run]["reason"] == "worker died (signal 9) twice"
-    assert rows[run]["success"] == "false"
-    other = next(r for k, r in rows.items() if k != run)
-    assert "died" not in other["reason"]
+    assert list(rows) != [] and run not in rows and len(rows) == 1
+    assert "died" not in next(iter(rows.values()))["reason"]
+    kept = out / "runs" / run
+    assert (kept / "worker-died.txt").is_file() and not (kept / "summary.json").exists()
+    again = sweep([str(path), "--workers", "2", "--out", str(out)], tmp_path)
+    assert again.returncode == 0, again.stderr
+    rows = {r["run_id"]: r for r in table(out)}
+    assert len(rows) == 2 and "died" not in rows[run]["reason"]
+    assert not (kept / "worker-died.txt").exists()
 
 
 @pytest.mark.slow

@@ -188,5 +188,9 @@ def test_a_damaged_cached_tube_is_computed_again_and_the_key_follows_the_system(
     path.write_text(path.read_text()[:200])  # cut: not TOML any more
     assert tube_margins_file(sc, model).at(20).radius == m.radius
     assert tomllib.loads(path.read_text())["rates"]["20"]["radius"] == m.radius  # rewritten
+    raw = bytearray(path.read_bytes())
+    raw[100] = 0xFF  # not UTF-8 any more
+    path.write_bytes(bytes(raw))
+    assert tube_margins_file(sc, model).at(20).radius == m.radius
     # the system plug-in's own source is part of the key (its flows and guards)
     assert _tube_sources("ball") != _tube_sources("biped")

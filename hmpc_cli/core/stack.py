@@ -44,11 +44,13 @@ class FixedModeMPC(Protocol):
     itself.
 
     Optional: ``stop_at(stops) -> list[tuple[Plan, int]]``, called right after a
-    ``solve`` whose plan is dropped over ``sim.solve_budget``, with (a plan it returned,
-    the iterations its solver had finished when the budget ran out) per solve the plan
-    was charged for: the iterate it held there, not its whole solution, must warm-start
-    the next solve. Returns (plan, iterations kept) of the solves it stopped; an MPC
-    without it keeps its whole solution.
+    ``solve`` whose plan is dropped over ``sim.solve_budget``, and when a contact stops
+    the solver in flight (``sim.preempt_at_contact``; then possibly again, earlier, for
+    a solve stopped at its budget before), with (a plan it returned, the iterations its
+    solver had finished then) per solve the plan was charged for: the iterate it held
+    there, not its whole solution, must warm-start the next solve. Returns (plan,
+    iterations kept) of the solves it stopped; an MPC without it keeps its whole
+    solution.
     """
 
     rate_hz: int

@@ -189,6 +189,9 @@ def _panel_title(axis: str | None, value: str) -> str:
     return f"{_axis_label(axis)} {value}"
 
 
+#: the curves' legend entries, by bound name: what each bounds, and in what
+TUBE_LABEL = {"trivial": "trivial: diam $T(1/f)$, state norm",
+              "kinematic": r"kinematic: $\int_0^{1/f}$ diam $T$, positions"}
 #: line styles of the tube-diameter curves, by bound name (others: grey)
 TUBE_STYLE = {"trivial": {"color": "#0072B2", "linestyle": "-", "marker": "v"},
               "kinematic": {"color": "#CC79A7", "linestyle": "-.", "marker": "x"}}
@@ -235,7 +238,7 @@ def robustness(table: str | Path, out_dir: str | Path | None = None,
                 if ax is not axes[1][0]:
                     ax.sharey(axes[1][0])
                 _diameter_panel(ax, diameters, p)
-            axes[1][0].set_ylabel("diam $T(1/f)$")
+            axes[1][0].set_ylabel("tube bound at $1/f$")
             found = _handles(axes[1])
             if found:
                 axes[1][-1].legend(found.values(), found.keys(), loc="lower left",
@@ -313,8 +316,8 @@ def _diameter_panel(ax, diameters: Mapping[float, Mapping[str, Sequence[tuple[fl
         pts = sorted((x, d) for x, d in points if math.isfinite(d) and d > 0)
         if pts:
             style = TUBE_STYLE.get(bound, {"color": "0.4", "linestyle": ":", "marker": "."})
-            ax.plot([x for x, _ in pts], [d for _, d in pts], markersize=3, label=bound,
-                    **style)
+            ax.plot([x for x, _ in pts], [d for _, d in pts], markersize=3,
+                    label=TUBE_LABEL.get(bound, bound), **style)
     ax.set_yscale("log")
 
 

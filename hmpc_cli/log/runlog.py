@@ -121,7 +121,7 @@ class NullWriter:
     def open(self, model: HybridSystem, plant: HybridSystem | None = None) -> None:
         """Nothing to register."""
 
-    def step(self, *args) -> None:
+    def step(self, *args, **kwargs) -> None:
         """Nothing to log."""
 
     state = event = planner = mpc_solve = summary = step

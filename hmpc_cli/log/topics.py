@@ -348,9 +348,11 @@ class MpcSolve:
             "replan" (after a planner call); " (over budget: dropped)" appended when it
             was dropped over ``sim.solve_budget``, before it " (stopped at the budget:
             its solve after k of n iterations, that iterate warm-starts the next solve)"
-            when the MPC kept the iterate its solver had reached then, " (after a
+            when the MPC kept the iterate its solver had reached then; " (after a
             contact stopped the solve of t = ... s: dropped)" when a contact stopped
-            solves in flight first.
+            solves in flight first, and " (stopped at the contact: the solve of t = ...
+            s after k of n iterations, that iterate warm-starts this one)" when the MPC
+            kept that solve's iterate at the contact (superseding a budget stop).
         status: the solver's return status ("schedule rejected: <why>": the MPC cannot
             solve the schedule, nothing was solved).
         success: the back-end accepted the solve's point, a finite one. "ipopt",

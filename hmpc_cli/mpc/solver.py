@@ -334,8 +334,10 @@ class SolverSession:
         IPOPT is deterministic: the same instance's options (cold, or warm with both
         multiplier guesses) stopped by an iteration callback after ``iterations``
         iterations (0: the start) hand over the very iterate its full run passed there,
-        as IPOPT's own ``max_iter`` would (status ``User_Requested_Stop``). Its
-        instances are built on first use. Never raises on a solver failure.
+        as IPOPT's own ``max_iter`` would (status ``User_Requested_Stop``). In IPOPT's
+        restoration phase the callback comes more than once an iteration: a run that
+        stopped short is run again with the calls it lacked added. Its instances are
+        built on first use. Never raises on a solver failure.
 
         Returns:
             That iterate, or None for a back-end other than IPOPT (its iterates are not
@@ -358,8 +360,16 @@ class SolverSession:
                     {**options, **extra, "iteration_callback": stop})))
             self._stopping = (stop, tuple(made))
         stop, instances = self._stopping
-        stop.after = max(int(iterations), 0)
-        return _call_instance(instances, w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0)
+        want = max(int(iterations), 0)
+        calls = want
+        for _ in range(_STOP_TRIES):
+            stop.after = calls
+            res = _call_instance(instances, w0, p, lbx, ubx, lbg, ubg, lam_x0, lam_g0)
+            short = want - res.stats.iterations
+            if short <= 0 or res.stats.status != "User_Requested_Stop":
+                return res
+            calls += short  # restoration: CasADi calls back more than once an iteration
+        return res
 
     def fallback_session(self) -> SolverSession:
         """The session of the back-end's fallback (built on first use).
@@ -384,11 +394,16 @@ class SolverSession:
         return _violation(w, self.constraints(w, p), lbx, ubx, lbg, ubg)
 
 
-class _IterationStop(ca.Callback):
-    """IPOPT's iteration callback that stops the solve after :attr:`after` iterations.
+#: runs of :meth:`SolverSession.stopped` to reach its iteration count
+_STOP_TRIES = 8
 
-    IPOPT calls it once per iterate, the start (iteration 0) included; a nonzero return
-    stops IPOPT there. A solve resets its count by setting :attr:`after`.
+
+class _IterationStop(ca.Callback):
+    """IPOPT's iteration callback that stops the solve after :attr:`after` calls.
+
+    CasADi calls it once per iterate, the start (iteration 0) included, and in IPOPT's
+    restoration phase more than once an iteration; a nonzero return stops IPOPT there.
+    A solve resets its count by setting :attr:`after`.
     """
 
     def __init__(self, solver: ca.Function) -> None:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from hmpc_cli.analysis.tables import FigureInputError, parse_bool, read_table, resolve_table
 from hmpc_cli.analysis.tables import sweep_spec
+from hmpc_cli.report.paths import repository_file
 from hmpc_cli.report.robustness import settings_text, wall_text
 
 __all__ = ["AUTHORS_FAILED", "PAPER_COUNTS", "fig3_trials_section"]
@@ -54,7 +55,8 @@ def fig3_trials_section(directory: Path) -> list[str]:
     if not by:
         raise FigureInputError(f"{table}: no finished run")
     lines = [f"## Figure 3 trial by trial: {spec.get('description', name)}", "",
-             f"From `sweeps/{name}.toml`'s per-run table ({len(rows)} runs; settings of every "
+             f"From {repository_file('sweeps', name + '.toml')}'s per-run table "
+             f"({len(rows)} runs; settings of every "
              f"run: {settings_text(spec)}; {wall_text(rows)}). The authors' "
              "failures: their own data (the trials that end outside the circle at t = 3 s).",
              "",

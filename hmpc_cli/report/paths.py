@@ -12,7 +12,8 @@ import re
 import shlex
 from pathlib import Path, PureWindowsPath
 
-__all__ = ["PLACEHOLDER", "portable_command", "portable_path", "portable_text"]
+__all__ = ["PLACEHOLDER", "portable_command", "portable_path", "portable_text",
+           "repository_file"]
 
 PLACEHOLDER = "<...>"
 #: an absolute POSIX path (two components at least) or a Windows drive path in text
@@ -76,3 +77,13 @@ def portable_text(text: str, root: str | Path | None = None) -> str:
         return portable_path(found, root)
 
     return _ABSOLUTE.sub(sub, text)
+
+
+def repository_file(folder: str, name: str) -> str:
+    """```folder/name``` in Markdown when the repository holds it, else ```name```.
+
+    A section made from a sweep outside the repository's layout (an output directory of
+    the user's own sweep) names no file the reader cannot find.
+    """
+    path = Path(folder) / name
+    return f"`{path.as_posix()}`" if path.is_file() else f"`{name}`"

@@ -17,6 +17,7 @@ from pathlib import Path
 from hmpc_cli.analysis.tables import (
     FigureInputError, count_cell, parse_bool, pooled_counts, read_table, resolve_table,
     sweep_spec)
+from hmpc_cli.report.paths import repository_file
 from hmpc_cli.report.robustness import (
     FLOWN_BEFORE, PAST_PERIOD, past_period_table, settings_text, wall_text)
 
@@ -213,8 +214,10 @@ def realtime_section(directory: Path) -> list[str]:
     scenario = Path(str(spec.get("scenario", "?"))).name
     name = spec.get("name", table.parent.name)
     entries = _latency_entries(spec)
-    lines = [f"### `sweeps/{name}.toml`: {spec.get('description', name)}", "",
-             f"From its per-run table ({len(rows)} runs of `scenarios/{scenario}`; "
+    lines = [f"### {repository_file('sweeps', name + '.toml')}: "
+             f"{spec.get('description', name)}", "",
+             f"From its per-run table ({len(rows)} runs of "
+             f"{repository_file('scenarios', scenario)}; "
              f"settings of every run: {settings_text(spec)}; "
              f"{wall_text(rows)}). A plan reaches the plant its charged compute time after "
              "the state it was solved from; until then the previous plan is tracked. "

@@ -152,7 +152,7 @@ class MPCLayers:
                 return False  # the triggers wait for the solver
             # a contact: the solve in flight is from the state before it
             st.preempted = clock.preempt(t)
-            st.stopped = self._stop_in_flight(t, st.preempted)
+            st.stopped = self._stop_in_flight()
         need_replan, impact = st.need_replan, st.impact
         st.need_replan = st.impact = False
         if need_replan:
@@ -186,8 +186,8 @@ class MPCLayers:
     def _solve(self, t: float, x: np.ndarray, mode: int, reason: str) -> None:
         st, clock = self.st, self.clock
         charged = clock.latency.charged(reason)
-        note = PREEMPTED.format(", ".join(f"{v:.4f}" for v in st.preempted)) + st.stopped \
-            if st.preempted else ""
+        note = (PREEMPTED.format(", ".join(f"{v:.4f}" for v in st.preempted))
+                if st.preempted else "") + st.stopped
         # no schedule: a planner call that found none still took its time (a preemption's
         # note waits for the solve that logs it)
         if not st.usable:
@@ -228,21 +228,27 @@ class MPCLayers:
         stops = self.clock.latency.stopped_solves(plan, self.clock.planner, compute)
         return self._stop(stops, "the budget", "warm-starts the next solve")
 
-    def _stop_in_flight(self, t: float, preempted: list[float]) -> str:
-        """A contact at t [s] stopped the solver in flight: the MPC keeps its iterate then.
+    def _stop_in_flight(self) -> str:
+        """A contact stopped the solver in flight: the MPC keeps its iterate then.
+
+        The last charged solve, if the solver was still busy with it (its plan pending,
+        dropped over the budget, whose budget stop this one supersedes, or not adopted),
+        stopped after the time it had run (``SolverClock.in_flight``).
 
         Returns:
             The note for the reason of the solve the contact starts ('' if none).
         """
-        last = self.clock.last_charged
-        if last is None or last[0] not in preempted:
+        clock = self.clock
+        if clock.in_flight is None or clock.last_charged is None:
             return ""
-        t_solve, plan, planner, compute = last
-        stops = self.clock.latency.stopped_solves(plan, planner, compute,
-                                                  available=max(t - t_solve, 0.0))
-        return self._stop(stops, "the contact", "warm-starts this one")
+        t_solve, plan, planner, compute = clock.last_charged
+        stops = clock.latency.stopped_solves(plan, planner, compute,
+                                             available=clock.in_flight)
+        return self._stop(stops, "the contact", "warm-starts this one",
+                          f"the solve of t = {t_solve:.4f} s")
 
-    def _stop(self, stops: list[tuple[Plan, int]], where: str, then: str) -> str:
+    def _stop(self, stops: list[tuple[Plan, int]], where: str, then: str,
+              whose: str = "its solve") -> str:
         """The MPC's ``stop_at`` on ``stops``; the note of the solves it stopped short."""
         stop = getattr(self.mpc, "stop_at", None)
         if stop is None or not stops:
@@ -252,10 +258,10 @@ class MPCLayers:
             return ""
         counts = ", ".join(f"{k} of {p.stats.iterations}" for p, k in kept)
         if len(kept) == 1:
-            return (f" (stopped at {where}: its solve after {counts} iterations, that "
+            return (f" (stopped at {where}: {whose} after {counts} iterations, that "
                     f"iterate {then})")
-        return (f" (stopped at {where}: {len(kept)} of its solves after {counts} iterations, "
-                f"those iterates {then.replace('starts', 'start')})")
+        return (f" (stopped at {where}: {len(kept)} of {whose.replace('solve', 'solves')} "
+                f"after {counts} iterations, those iterates {then.replace('starts', 'start')})")
 
     def _solve_ahead(self, t: float, x: np.ndarray, mode: int, reason: str) -> Plan:
         """A charged solve, from the state predicted at the plan's arrival if compensating.

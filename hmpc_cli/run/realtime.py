@@ -240,6 +240,8 @@ class SolverClock:
             until the contact that stopped it].
         last_charged: the last charged solve's (solve time [s], plan, the planner call
             it followed or None, its measured compute time [s]), or None.
+        in_flight: after :meth:`preempt`, how long [s] the solver had run on the last
+            charged solve when the contact stopped it (None: it was done).
     """
 
     latency: Latency = field(default_factory=Latency)
@@ -252,6 +254,7 @@ class SolverClock:
     preempted: int = 0
     charges: list[list[float]] = field(default_factory=list)
     last_charged: tuple | None = None
+    in_flight: float | None = None
 
     def free(self, t: float) -> bool:
         """Whether the solver is done with its last solve at sim time t [s]."""
@@ -296,10 +299,19 @@ class SolverClock:
     def preempt(self, t: float) -> list[float]:
         """A contact at t [s] stops the solve in flight: its plan (due after t) is dropped.
 
+        The last charged solve, if the solver was still busy with it (its plan pending,
+        dropped over the budget or not adopted), is busy until the contact only:
+        :attr:`in_flight` says how long it had run (None: it was done).
+
         Returns:
             The solve times [s] of the plans dropped (empty: the solver was busy with
             work that had no plan for the plant).
         """
+        self.in_flight = None
+        if self.charges and self.last_charged is not None:
+            entry = self.charges[-1]
+            if entry[0] == self.last_charged[0] and t < entry[0] + entry[2] - GRID_TOL:
+                self.in_flight = max(t - entry[0], 0.0)
         dropped = [t_solve for due, t_solve, _ in self.pending if due > t + GRID_TOL]
         self.pending = [p for p in self.pending if p[0] <= t + GRID_TOL]
         self.free_at = t
@@ -307,6 +319,8 @@ class SolverClock:
         for t_solve in dropped:  # busy until the contact
             entry = next(c for c in reversed(self.charges) if c[0] == t_solve)
             entry[2] = min(entry[2], t - t_solve)
+        if self.in_flight is not None:  # also dropped over its budget, or not adopted
+            self.charges[-1][2] = min(self.charges[-1][2], self.in_flight)
         return dropped
 
     def busy(self, t: float, cost: float) -> None:

@@ -185,9 +185,10 @@ def tube_margins_file(sc, model):
 
 
 def _read(path: Path) -> str | None:
+    """The cached file's text (None: none, unreadable, or not UTF-8: damaged)."""
     try:
         return path.read_text(encoding="utf-8")
-    except OSError:
+    except (OSError, UnicodeDecodeError):
         return None
 
 

@@ -1,6 +1,8 @@
 """``hmpc sweep --dask``: runs on a Dask cluster, results back through the futures.
 
-A worker needs no view of the client's disk: it runs in a temporary directory of its own
+A worker needs no view of the client's disk but a scenario's margins file (``mpc.margins``
+as a file), which must be at the same path with the same content (checked by its sha256:
+else the run is lost, not failed): it runs in a temporary directory of its own
 (under the Dask worker's local directory), returns the run's summary and every file of
 the run directory (``scenario.toml``, ``run.mcap``, ``summary.json``, ``error.txt``...) as
 bytes through the future, and removes its directory. The client writes the files into
@@ -22,7 +24,8 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path, PurePosixPath
 
-__all__ = ["TransferError", "run_on_dask", "run_remote", "store_run"]
+__all__ = ["TransferError", "check_needed", "needed_files", "run_on_dask", "run_remote",
+           "store_run"]
 
 _PART, _OLD = ".part-", ".old-"  # staging and replaced run directories (hidden, in runs/)
 
@@ -42,18 +45,65 @@ def _scratch() -> str | None:
         return None
 
 
-def run_remote(toml_text: str, provenance=None) -> dict:
+def needed_files(toml_text: str) -> dict[str, str]:
+    """The files a run reads from the client's disk: its margins file, path -> sha256.
+
+    (``mpc.margins`` as a file, made absolute when the sweep planned the run; a file
+    missing on the client is the sweep's own check's to report.)
+    """
+    import tomllib
+
+    from hmpc_cli.core.paths import file_digest
+
+    try:
+        source = (tomllib.loads(toml_text).get("mpc") or {}).get("margins")
+    except tomllib.TOMLDecodeError:
+        return {}
+    if not isinstance(source, str) or source in ("hand", "tube") or \
+            not Path(source).is_file():
+        return {}
+    return {source: file_digest(Path(source))}
+
+
+def check_needed(needed: dict[str, str]) -> None:
+    """Raises when a file the run reads is not on this worker as on the client.
+
+    Raises:
+        FileNotFoundError: missing, unreadable, or other content (its sha256): the run
+            would fail for the worker's disk, not for the controller.
+    """
+    from hmpc_cli.core.paths import file_digest
+
+    for source, digest in needed.items():
+        try:
+            same = file_digest(Path(source)) == digest
+        except OSError:
+            same = False
+        if not same:
+            raise FileNotFoundError(
+                f"mpc.margins: {source} is not on this Dask worker as on the client "
+                f"(missing, unreadable or another file): a margins file must be readable "
+                f"at the same path with the same content on every worker")
+
+
+def run_remote(toml_text: str, provenance=None, needed: dict[str, str] | None = None
+               ) -> dict:
     """Runs one effective scenario in a private temporary directory; returns its results.
 
     Args:
         toml_text: the run's effective scenario.
         provenance: the run's :class:`hmpc_cli.log.runlog.Provenance` (recorded in its log).
+        needed: the client's files it reads (:func:`needed_files`), checked first
+            (:func:`check_needed`): one not here fails the task, so the run is lost and
+            redone, not tabled as a controller that failed.
 
     Returns:
         ``{"summary": dict, "files": {relative posix path: bytes}}``: the run directory's
         files; the directory itself is removed.
     """
     from hmpc_cli.run.runner import run_one
+
+    check_needed(needed or {})
 
     with tempfile.TemporaryDirectory(prefix="hmpc-run-", dir=_scratch()) as tmp:
         run_dir = Path(tmp) / "run"
@@ -190,7 +240,8 @@ def run_on_dask(client, pending: list, out: Path, record: Callable, lost: list[s
     from distributed import as_completed
 
     clear_stale(out / "runs")
-    futures = {client.submit(run_remote, r.toml, provenance(r), pure=False): r
+    futures = {client.submit(run_remote, r.toml, provenance(r), needed_files(r.toml),
+                             pure=False): r
                for r in pending}
     try:
         for fut in as_completed(list(futures)):

@@ -10,11 +10,9 @@ for runs (:mod:`hmpc_cli.sweep.table`).
 from __future__ import annotations
 
 import dataclasses
-import json
 import shlex
 import signal
 import sys
-import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -83,6 +81,9 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
     selected = plan.selected
     done = finished_runs(plan, out, selected)  # run directories and tabled runs
     pending = [r for r in selected if done[r.run_id] is None]
+    for r in pending:  # what a run that killed its workers left: it runs again now
+        for name in WORKER_DIED:
+            (out / "runs" / r.run_id / name).unlink(missing_ok=True)
     res = Outcome(len(selected), skipped=len(selected) - len(pending))
     if on_start:
         on_start(res.total, res.skipped, sum(bool(s and s.get("success")) for s in done.values()),
@@ -109,7 +110,8 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
                 record(run, run_one(run.toml, str(out / "runs" / run.run_id), prov(run)))
         else:
             run_pool(min(workers, len(pending)), pending, out, record,
-                     lambda run, signum: record(run, _worker_died(run, out, signum)), prov)
+                     lambda run, signum: res.lost.append(_worker_died(run, out, signum)),
+                     prov)
     except KeyboardInterrupt as exc:
         res.interrupted = True
         res.signum = signals.as_interrupted(exc).signum
@@ -119,22 +121,29 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
     return res
 
 
-def _worker_died(run: Run, out: Path, signum: int) -> dict:
-    """Records a run that killed its worker twice as failed; returns its summary."""
-    from hmpc_cli.log.runlog import RunResult
-    from hmpc_cli.run.runner import summary_text
+#: the files a run that killed its worker twice leaves in its directory
+WORKER_DIED = ("worker-died.txt", "run.killed.mcap")
 
+
+def _worker_died(run: Run, out: Path, signum: int) -> str:
+    """A run that killed its worker twice: lost work, not a result; returns its line.
+
+    Its partial log is kept aside as ``run.killed.mcap`` beside ``worker-died.txt``;
+    nothing marks it finished (no summary), so the sweep exits 1 and a resume runs it
+    again (a worker death, an out-of-memory kill, say, is not the controller's failure).
+    """
     d = out / "runs" / run.run_id
     d.mkdir(parents=True, exist_ok=True)
     write_atomic(d / "scenario.toml", run.toml)
-    sc = tomllib.loads(run.toml)
-    res = RunResult(str(sc.get("name", "?")), int(sc.get("seed", run.seed)))
-    res.reason = f"worker died (signal {signum}) twice"
+    for stale in ("summary.json", "error.txt"):  # of an earlier try: not this one's
+        (d / stale).unlink(missing_ok=True)
     log = d / "run.mcap"
-    if log.exists():  # the killed worker's partial log: kept aside, the run is a result
+    if log.exists():
         log.replace(d / "run.killed.mcap")
-    write_atomic(d / "error.txt", f"{res.reason}: the run was tried twice and each time its "
-                 "worker process was killed; run.killed.mcap is the second try's log so "
-                 "far (if any)\n")
-    write_atomic(d / "summary.json", summary_text(res))
-    return json.loads((d / "summary.json").read_text())
+    why = f"worker died (signal {signum}) twice"
+    write_atomic(d / "worker-died.txt", f"{why}: the run was tried twice and each time its "
+                 "worker process was killed; run.killed.mcap is the second try's log so far "
+                 "(if any); the run is not recorded and runs again when the sweep does\n")
+    kept = f" (its partial log: {d / 'run.killed.mcap'})" if (d / "run.killed.mcap").exists() \
+        else ""
+    return f"{run.run_id}: {why}{kept}"

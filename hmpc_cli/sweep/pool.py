@@ -4,8 +4,8 @@ Each worker gets its runs through its own pipe, so the parent always knows which
 worker holds:
 
 * a worker that dies (killed, out of memory) loses only its run: the run is retried once
-  on a fresh worker; a run that kills its worker twice is recorded as failed with reason
-  ``worker died (signal N) twice``; the other workers go on;
+  on a fresh worker; a run that kills its worker twice is lost work (``died``: not
+  recorded, the sweep exits 1, a resume runs it again); the other workers go on;
 * on SIGINT/SIGTERM/SIGHUP the parent asks its busy workers to stop (the same signal:
   they stop their run within one simulator step, its summary marked interrupted by it,
   see :mod:`hmpc_cli.core.signals`) and waits for them;
@@ -117,7 +117,7 @@ def run_pool(n: int, pending: list, out: Path, record: Callable, died: Callable,
         pending: the runs (:class:`hmpc_cli.sweep.plan.Run`).
         out: the sweep's output directory.
         record: ``record(run, summary)``; summary None for a run stopped by a signal.
-        died: ``died(run, signum)`` for a run whose worker died twice (records it failed).
+        died: ``died(run, signum)`` for a run whose worker died twice (lost work).
         provenance: ``provenance(run)``, the :class:`hmpc_cli.log.runlog.Provenance` the run's
             log records (None: the worker's own command line).
 
@@ -176,7 +176,7 @@ def _answered(w: _Worker, record: Callable) -> bool:
 
 
 def _dead(w: _Worker, workers: list, todo: deque, deaths: Counter, died: Callable) -> None:
-    """A worker died holding a run: retry the run once, then record it failed."""
+    """A worker died holding a run: retry the run once, then hand it to ``died``."""
     w.proc.join(timeout=5.0)
     code = w.proc.exitcode
     signum = -code if code is not None and code < 0 else int(signal.SIGTERM)

@@ -109,7 +109,8 @@ class ChainSolver:
         """The last :meth:`reoptimize`, which returned ``plan``, stopped after ``iterations``.
 
         Its iterate there becomes the next solve's warm start (0: the warm start it
-        started from; a non-finite iterate: that too).
+        started from; a non-finite iterate: that too). It may be stopped again, earlier
+        (a contact that came before its budget ran out), until the next solve.
 
         Returns:
             The iterations of the warm start kept, or None: ``plan`` is not the last
@@ -128,7 +129,6 @@ class ChainSolver:
         res = nlp.session.stopped(k, *call) if k > 0 else None
         if k > 0 and res is None:
             return None
-        self._last = None
         if res is not None and bool(np.all(np.isfinite(res.x))) and res.lam_g is not None:
             self._w, self._lam_x, self._lam_g = res.x, res.lam_x, res.lam_g
             return res.stats.iterations

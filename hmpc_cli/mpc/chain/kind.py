@@ -109,7 +109,7 @@ class ChainMPC:
             int(shifted), tuple(int(c) for c in self.chain.node_schedule.counts)))
 
     def stop_at(self, stops: Sequence[tuple[Plan, int]]) -> list[tuple[Plan, int]]:
-        """Solves dropped over the solve budget, each stopped where the budget ran out.
+        """Solves stopped by the solve budget or a contact, each where its time ran out.
 
         ``stops``: (a plan this MPC returned, the iterations its solver had finished at
         the budget). The chain keeps one warm start: only its last solve's counts, whose

@@ -133,13 +133,16 @@ class WalkingMPC:
         return replace(plan, adopt=plan.stats.success)
 
     def stop_at(self, stops: Sequence[tuple[Plan, int]]) -> list[tuple[Plan, int]]:
-        """Solves dropped over the solve budget, each stopped where the budget ran out.
+        """Solves stopped by the solve budget or a contact, each where its time ran out.
 
         ``stops``: (a plan of this planning step's solves, the iterations its solver had
         finished at the budget). A solve stopped short leaves its iterate there as its
         target's memory (the next solve's warm start; 0 or a non-finite iterate: the
         memory before it); the plant executes the plan it had before the step (the
         contact's template comes from that target's memory).
+
+        A solve may be stopped again, earlier (a contact before its budget ran out),
+        until the next planning step.
 
         Returns:
             (plan, iterations kept) of the solves stopped; the others keep their whole
@@ -162,7 +165,6 @@ class WalkingMPC:
             res = self.nlp.session.stopped(k, *call[:8]) if k > 0 else None
             if k > 0 and res is None:
                 continue
-            del self._step[target]
             if res is not None and bool(np.all(np.isfinite(res.x))) and \
                     res.lam_g is not None:
                 self._memory[target] = _Memory(res.x, res.lam_x, res.lam_g, *call[8:])
