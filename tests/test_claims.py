@@ -179,11 +179,12 @@ def test_the_ball_keeps_up_in_real_time_with_the_model_latency_at_20_hz(tmp_path
 @pytest.mark.slow
 @pytest.mark.campaign
 def test_the_ball_keeps_up_in_real_time_with_the_model_latency(tmp_path, run_hmpc):
-    """At 60 Hz all 11 hold, planning once and replanning at contacts; at 20 Hz planning
-    once trial 5 fails."""
+    """At 60 Hz replanning at contacts all 11 hold, planning once trial 5 fails (the model
+    charging the whole solve call, 2026-12-01; the measured flights held it); at 20 Hz
+    planning once trial 5 fails."""
     _the_ball_in_real_time_with_the_model_latency(
         tmp_path, run_hmpc, {"60 Hz once", "60 Hz on_contact", "20 Hz once"},
-        {("20 Hz once", "trial 5")})
+        {("20 Hz once", "trial 5"), ("60 Hz once", "trial 5")})
 
 
 @pytest.mark.slow

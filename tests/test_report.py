@@ -755,7 +755,8 @@ def test_the_real_time_section_from_a_table_alone(tmp_path):
     assert "| 60 Hz once | 180 | 90 (50 %) |" in text and "| 20 Hz once | - | 60 |" in text
     assert ("- `measured`: as many solves as with time paused (at least 95 %) for 0 of the 1 "
             "controllers with successful runs both ways; fewer: 60 Hz once 50 %.") in text
-    assert "### `sweeps/rt.toml`: rt\n\nFrom its per-run table (4 runs of " \
+    # a sweep the repository does not hold: its name, no path the reader cannot find
+    assert "### `rt.toml`: rt\n\nFrom its per-run table (4 runs of " \
         "`scenarios/ball_realtime.toml`; " in text
     assert "| controller | paused | measured |" in text
     assert "| 60 Hz once | 1/1 | 1/2 |" in text and "| 20 Hz once | - | 1/1 |" in text
@@ -832,7 +833,7 @@ def test_the_real_time_section_says_what_each_latency_entry_sets(tmp_path):
         w.writerow([1, "measured, next", "10 Hz once", "nominal", 0, "true", 31, 0.009, 0.03, 1,
                     ""])
     text = "\n".join(realtime_section(d))
-    assert text.startswith("### `sweeps/rt.toml`: two low levels\n")
+    assert text.startswith("### `rt.toml`: two low levels\n")
     assert ("settings of every run: `sim.latency_first = \"paused\"`, "
             "`sim.delay_compensation = false`;") in text
     assert ("- `measured, hold`: each solve charged its measured wall time on the machine "

@@ -653,29 +653,29 @@ def test_show_prints_one_rows_scenario_and_hmpc_run_gives_the_row_back(tmp_path,
     10 Hz, modelled latency, Figure 3 trial 5); an unknown id names the closest."""
     repo = Path(__file__).resolve().parents[1]
     sweep_file = repo / "sweeps" / "realtime_rti.toml"
-    shown = run_hmpc(["sweep", str(sweep_file), "--show", "4745fb0366"], cwd=tmp_path)
+    shown = run_hmpc(["sweep", str(sweep_file), "--show", "bf0f30da1f"], cwd=tmp_path)
     assert shown.returncode == 0, shown.stderr
-    (run,) = [r for r in plan_sweep(sweep_file).runs if r.run_id == "4745fb0366"]
+    (run,) = [r for r in plan_sweep(sweep_file).runs if r.run_id == "bf0f30da1f"]
     planned, printed = tomllib.loads(run.toml), tomllib.loads(shown.stdout)
     assert planned["disturbance"].pop("hold") == 0.05  # paper_fig3 ignores it: left out
     assert printed == planned and not shown.stderr
     first = shown.stdout.splitlines()[0]  # the description is the scenario file's: says so
-    assert first.startswith(f"# run 4745fb0366 of {sweep_file}: latency=") and \
+    assert first.startswith(f"# run bf0f30da1f of {sweep_file}: latency=") and \
         "disturbance=trial 5, seed 0; its description is the scenario file's, which the " \
         "sweep's settings below change" in first, first
     (tmp_path / "row.toml").write_text(shown.stdout)
     again = run_hmpc(["run", "row.toml", "--out", "row", "-q"], cwd=tmp_path)
     assert again.returncode == 0 and again.stderr == "", again.stderr
     with open(repo / "results" / "sweeps" / "realtime_rti" / "results.csv", newline="") as f:
-        (row,) = [r for r in csv.DictReader(f) if r["run_id"] == "4745fb0366"]
+        (row,) = [r for r in csv.DictReader(f) if r["run_id"] == "bf0f30da1f"]
     summary = json.loads((tmp_path / "row" / "summary.json").read_text())
     assert (row["success"], row["final_error"], row["contacts"], row["solves"]) == (
         "true", repr(summary["final_error"]), str(summary["contacts"]),
         str(summary["solves"])) and summary["success"] is True
-    wrong = run_hmpc(["sweep", str(sweep_file), "--show", "4745fb0367"], cwd=tmp_path)
+    wrong = run_hmpc(["sweep", str(sweep_file), "--show", "bf0f30da1e"], cwd=tmp_path)
     assert wrong.returncode == 2 and wrong.stderr == (
-        f"error: --show 4745fb0367: no run of {sweep_file} has this id (did you mean "
-        f"'4745fb0366'? `hmpc sweep {sweep_file} --dry-run` lists its 264 runs)\n")
+        f"error: --show bf0f30da1e: no run of {sweep_file} has this id (did you mean "
+        f"'bf0f30da1f'? `hmpc sweep {sweep_file} --dry-run` lists its 264 runs)\n")
 
 
 def test_a_sweep_names_the_settings_its_cells_ignore(tmp_path, monkeypatch):

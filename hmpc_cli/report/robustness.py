@@ -624,8 +624,10 @@ def study_section(study: Study, fig_dir: Path, base: Path) -> tuple[list[str], l
              f"{settings_text(spec)}; Wilson 95 % intervals; {wall_text(rows)}. "
              f"Table: [{csv}]({csv})."
              + resume, "", *_pivot(cells), "",
-             *([f"Tube diameter diam T(1/f) at each rate (Step 5, sampled constants: "
-                f"{region}; the lower panels):", "", *_diam_lines(diam), ""]
+             *([f"Tube bounds at each rate (Step 5, sampled constants: {region}; the "
+                f"lower panels): trivial, diam T(1/f), a bound on the state's norm; "
+                f"kinematic, its integral over the period, a bound on the positions:", "",
+                *_diam_lines(diam), ""]
                if diam else []),
              *_past_period_lines(table, rows, charged(spec) is not None),
              "Computed findings (a pairwise claim only where the intervals separate; a "
