@@ -166,7 +166,7 @@ class Latency:
     def stopped_solves(self, plan: Plan, planner: PlannerResult | None = None,
                        compute: float | None = None, available: float | None = None
                        ) -> list[tuple[Plan, int]]:
-        """Where the budget stopped the solves a dropped plan was charged for.
+        """Where the budget, or a contact, stopped the solves a plan was charged for.
 
         ``available`` [s]: the time the solver had instead of the budget (a contact
         stopped it in flight, that long after it started).
@@ -180,7 +180,8 @@ class Latency:
         taking the solve's mean time), and 0 for those after it (never started).
 
         Returns:
-            (solve's plan, iterations finished) pairs; empty without a budget.
+            (solve's plan, iterations finished) pairs; empty without a budget or
+            ``available``.
         """
         budget = self.budget if available is None else available
         if budget is None:
