@@ -111,8 +111,8 @@ class ChainMPC:
     def stop_at(self, stops: Sequence[tuple[Plan, int]]) -> list[tuple[Plan, int]]:
         """Solves stopped by the solve budget or a contact, each where its time ran out.
 
-        ``stops``: (a plan this MPC returned, the iterations its solver had finished at
-        the budget). The chain keeps one warm start: only its last solve's counts, whose
+        ``stops``: (a plan this MPC returned, the iterations its solver had finished when
+        its time ran out). The chain keeps one warm start: only its last solve's counts, whose
         iterate there warm-starts the next solve (the nodes it moved stay moved: time
         passed; see :meth:`ChainSolver.stop_at`).
 

@@ -136,7 +136,7 @@ class WalkingMPC:
         """Solves stopped by the solve budget or a contact, each where its time ran out.
 
         ``stops``: (a plan of this planning step's solves, the iterations its solver had
-        finished at the budget). A solve stopped short leaves its iterate there as its
+        finished when its time ran out). A solve stopped short leaves its iterate there as its
         target's memory (the next solve's warm start; 0 or a non-finite iterate: the
         memory before it); the plant executes the plan it had before the step (the
         contact's template comes from that target's memory).
