@@ -338,6 +338,7 @@ def test_bad_parameters_give_keyed_errors():
     assert errs[0][0] == "q0" and "below the terrain" in errs[0][1]
     errs = errors_of(stance_foot0=(3.0, 0.175))
     assert errs[0][0] == "stance_foot0" and "beyond the stairs' end" in errs[0][1]
+    assert len(errs) == 1  # not q0's swing foot too: it is placed from the stance foot
     errs = errors_of(q0=(-0.78, -0.2, 0.0133, 0.51, -1.0951))
     assert errs[0][0] == "q0" and "stance knee" in errs[0][1]
     errs = errors_of(thigh_com=0.5)

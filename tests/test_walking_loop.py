@@ -104,8 +104,15 @@ def test_no_candidate_keeps_the_previous_plan_and_is_logged(tmp_path):
     res = run_loop(sc, tmp_path / "run.mcap")
     assert res.planner_rejected >= 1
     notes = [m.data["note"] for m in read_log(tmp_path / "run.mcap").topic("/planner/plan")]
-    assert any("no foothold candidate within reach" in n and
-               ("previous schedule kept" in n or "no schedule yet" in n) for n in notes)
+    # the schedule of t = 0 was followed to its contact: not "no schedule yet" (it said so)
+    assert notes[0] == "" and len(notes) == 3
+    assert all("no foothold candidate within reach" in n and
+               n.endswith("; no usable schedule (the last one is used up)") for n in notes[1:])
+    # and the summary says the MPC stopped planning for the rest of the run
+    assert res.warnings[-1] == (
+        "no usable schedule from t = 0.2988 s to the end (t = 0.4000 s): 2 planner calls "
+        "found none (the last: no foothold candidate within reach 0.01 m of the stance foot "
+        "at x = 0.3277 m (stairs span [0, 2.85])); the low level tracked the last plan")
 
 
 def test_terrain_height_of_the_figure_4_course():

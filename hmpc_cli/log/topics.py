@@ -446,8 +446,9 @@ class PlannerCall:
         wall_time: the call's measured computation time [s] (a planner's own MPC solves
             included).
         iterations: iterations run (sampling iterations, or solver iterations summed).
-        note: why the schedule was not accepted, then "; previous schedule kept" or
-            "; no schedule yet" ("": accepted).
+        note: why the schedule was not accepted, then "; previous schedule kept", "; no
+            usable schedule (the last one is used up)" or "; no schedule yet" (none was
+            ever accepted) ("": accepted).
         schedule: the planner's schedule, logged even when not accepted (absent: none
             found).
         rollout: the best rollout or plan (the MPC's initial guess; empty: none).
@@ -557,7 +558,8 @@ class Summary:
             exception), else the task's verdict ("success" or why not).
         wall_time: wall-clock time of the closed loop [s] (the run's set-up, e.g. the
             NLPs' build, excluded).
-        warnings: warnings of the run, e.g. a planner that never found a schedule.
+        warnings: warnings of the run, e.g. a planner that never found a schedule, or
+            found none from the time a contact used up the last one to the end.
         cpu: the CPU's model name (as ``Versions.cpu``).
         real_time: how the charged compute time met the MPC period (absent: time
             paused, ``sim.latency = "paused"``, or a run whose set-up failed).

@@ -42,6 +42,9 @@ class _LayerState:
     impact: bool = False
     preempted: list[float] = field(default_factory=list)  # solve times [s] a contact stopped
     stopped: str = ""  # where the contact stopped the solver in flight (a reason's note)
+    planned: bool = False  # a planner call's schedule was accepted once
+    lost_at: float | None = None  # when a contact used up the last usable schedule [s]
+    rejected_since: int = 0  # planner calls that found none since then
 
 
 #: appended to the reason of a solve dropped for its budget (``sim.solve_budget``)
@@ -80,6 +83,22 @@ class MPCLayers:
         if due is not None:
             self.st.plan = due
 
+    def warning(self, t_end: float) -> str:
+        """The summary's warning when the run ended without a usable schedule ('' if not).
+
+        A contact used up the last schedule at some time and no planner call found
+        another until the end (t_end [s]): the low level tracked the last plan, the MPC
+        no longer solved, whatever the run's outcome.
+        """
+        st = self.st
+        if st.usable or st.lost_at is None or st.rejected_since == 0:
+            return ""
+        calls = "call" if st.rejected_since == 1 else "calls"
+        return (f"no usable schedule from t = {st.lost_at:.4f} s to the end (t = {t_end:.4f} "
+                f"s): {st.rejected_since} planner {calls} found none (the last: "
+                f"{self.books.last_note.rsplit('; ', 1)[0]}); the low level tracked the "
+                "last plan")
+
     def note(self) -> str:
         """Why the layers hold no schedule, if so (for the progress line)."""
         note = self.books.last_note
@@ -116,7 +135,9 @@ class MPCLayers:
                 st.schedule, st.domain_start = final, ev.t
             else:
                 st.need_replan = True
-            st.usable = not self.mpc.check(st.schedule)
+            usable, st.usable = st.usable, not self.mpc.check(st.schedule)
+            if usable and not st.usable:
+                st.lost_at, st.rejected_since = ev.t, 0
         st.impact = True
         st.need_replan |= ev.guard in self.timing.on_contact
         self.books.contact(self.system.guards[ev.guard].name)
@@ -177,9 +198,13 @@ class MPCLayers:
         accepted = result.schedule is not None and not note
         if accepted:
             st.schedule, st.guess, st.usable = result.schedule, result.trajectory, True
+            st.planned, st.lost_at = True, None
             st.domain_start = t
         else:
-            note += "; previous schedule kept" if st.usable else "; no schedule yet"
+            st.rejected_since += not st.usable
+            note += ("; previous schedule kept" if st.usable else
+                     "; no usable schedule (the last one is used up)" if st.planned else
+                     "; no schedule yet")
         self.books.planner_call(t, result, accepted, note)
         self.log.planner(t, reason, result, accepted, note, self.model)
 

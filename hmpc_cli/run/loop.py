@@ -195,7 +195,8 @@ class ClosedLoop:
 
     def _finish(self, x: np.ndarray, mode: int, stopped: bool, start: float) -> RunResult:
         clock = self.layers.clock
-        for warning in [*clock.warnings(), self.plant.lowlevel.warning()]:
+        for warning in [*clock.warnings(), self.plant.lowlevel.warning(),
+                        self.layers.warning(self.books.result.t_end)]:
             if warning:
                 self.books.warn(warning)
         self.books.time_charged([(delay, busy) for _, delay, busy in clock.charges],

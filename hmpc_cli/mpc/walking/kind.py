@@ -325,8 +325,9 @@ class WalkingMPC:
         if not np.all(np.isfinite(x0)):
             res = failed(w0, "non-finite initial state")
         elif b - a < 2 * nlp.segment_margin:
-            res = failed(w0, f"segment {segment} ({b - a:g} m) is shorter than twice "
-                             f"the segment margin ({nlp.segment_margin:g} m)")
+            res = failed(w0, f"segment {self.system.guards[segment].name} ({b - a:g} m) "
+                             f"is shorter than {2 * nlp.segment_margin:g} m, twice the "
+                             f"segment margin")
         else:
             res = nlp.optimize(w0, p, lbx, ubx, lbg, ubg, lam_x, lam_g)
             self._call = (w0, p, lbx, ubx, lbg, ubg, lam_x, lam_g, x0, elapsed)

@@ -106,9 +106,11 @@ class BipedParams(BaseModel):
         if not ground:
             out.append((("stance_foot0",), f"x = {fx} lies beyond the stairs' end "
                         f"{stair_terrain(self).end:g}", [fx, fy]))
-        elif min(abs(fy - h) for h in ground) > 1e-9:
+            return out  # the swing foot is placed from it: its checks would blame q0
+        if min(abs(fy - h) for h in ground) > 1e-9:
             out.append((("stance_foot0",), f"must be on the ground: y = {fy}, terrain height "
                         f"{_fmt(ground)} at x = {fx}", [fx, fy]))
+            return out
         else:
             start, end, top = stair_terrain(self).segments[-1]
             if start <= fx <= end and abs(fy - top) <= 1e-9:
