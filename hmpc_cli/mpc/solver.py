@@ -37,8 +37,8 @@ from hmpc_cli.mpc.solver_table import (
     SolverArgs, WarmStart, backend_of, split_options, warm_options)
 
 __all__ = ["DERIVATIVES", "FALLBACK_WARM", "INTERRUPTED", "LINEAR_SOLVERS", "SolveResult",
-           "SolverSession", "WarmStart", "derivatives_of", "failed", "option_problems",
-           "plugin_options", "warm_options"]
+           "SolverSession", "WarmStart", "derivatives_of", "failed", "iterate_at",
+           "option_problems", "plugin_options", "warm_options"]
 
 INTERRUPTED = "NonIpopt_Exception_Thrown"
 #: the fallback's warm start when its session was given none
@@ -392,6 +392,30 @@ class SolverSession:
     def violation(self, w, p, lbx, ubx, lbg, ubg) -> float:
         """Largest constraint or bound violation at primal point w (0 if none)."""
         return _violation(w, self.constraints(w, p), lbx, ubx, lbg, ubg)
+
+
+def iterate_at(session: SolverSession, iterations: int, total: int, call: tuple
+               ) -> tuple[int, SolveResult | None] | None:
+    """The warm start a solve of ``total`` iterations leaves when stopped after ``iterations``.
+
+    ``call``: the solve's arguments (:meth:`SolverSession.run`'s, in order).
+
+    Returns:
+        (``total``, None): not stopped short, its whole solution stays; (0, None): the
+        warm start it started from (stopped before its first iteration, or at a
+        non-finite iterate); (k, iterate): IPOPT's iterate after k iterations
+        (:meth:`SolverSession.stopped`); None: the back-end cannot stop at an iteration
+        (its whole solution stays).
+    """
+    k = min(max(int(iterations), 0), total)
+    if k >= total or k == 0:
+        return k, None
+    res = session.stopped(k, *call)
+    if res is None:
+        return None
+    if bool(np.all(np.isfinite(res.x))) and res.lam_g is not None:
+        return res.stats.iterations, res
+    return 0, None
 
 
 #: runs of :meth:`SolverSession.stopped` to reach its iteration count

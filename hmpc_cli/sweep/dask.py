@@ -51,16 +51,11 @@ def needed_files(toml_text: str) -> dict[str, str]:
     (``mpc.margins`` as a file, made absolute when the sweep planned the run; a file
     missing on the client is the sweep's own check's to report.)
     """
-    import tomllib
-
     from hmpc_cli.core.paths import file_digest
+    from hmpc_cli.sweep.table import margins_file_of
 
-    try:
-        source = (tomllib.loads(toml_text).get("mpc") or {}).get("margins")
-    except tomllib.TOMLDecodeError:
-        return {}
-    if not isinstance(source, str) or source in ("hand", "tube") or \
-            not Path(source).is_file():
+    source = margins_file_of(toml_text)
+    if source is None or not Path(source).is_file():
         return {}
     return {source: file_digest(Path(source))}
 

@@ -85,6 +85,19 @@ def finished_in(d: Path, toml_text: str) -> dict | None:
     return summary
 
 
+def margins_file_of(toml_text: str) -> str | None:
+    """The margins file a run's scenario text reads (``mpc.margins`` as a path), or None."""
+    if 'margins = "' not in toml_text:
+        return None
+    import tomllib
+
+    try:
+        source = (tomllib.loads(toml_text).get("mpc") or {}).get("margins")
+    except tomllib.TOMLDecodeError:
+        return None
+    return None if not isinstance(source, str) or source in ("hand", "tube") else source
+
+
 def margins_changed(d: Path, stored: str) -> bool:
     """Whether the run in ``d`` read a margins file whose contents changed since.
 
@@ -95,15 +108,8 @@ def margins_changed(d: Path, stored: str) -> bool:
         d: the run directory.
         stored: its scenario.toml.
     """
-    if 'margins = "' not in stored:
-        return False
-    import tomllib
-
-    try:
-        source = (tomllib.loads(stored).get("mpc") or {}).get("margins")
-    except tomllib.TOMLDecodeError:
-        return False
-    if not isinstance(source, str) or source in ("hand", "tube"):
+    source = margins_file_of(stored)
+    if source is None:
         return False
     from hmpc_cli.log.reader import first_message
     from hmpc_cli.core.paths import file_digest

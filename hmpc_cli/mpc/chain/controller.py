@@ -10,6 +10,7 @@ from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.core.messages import Plan, Trajectory
 from hmpc_cli.mpc.chain.layout import ChainLayout, NodeSchedule, remap
 from hmpc_cli.mpc.chain.nlp import FixedModeNLP, FixedModeNLPs, MPCSettings
+from hmpc_cli.mpc.solver import iterate_at
 
 
 class ChainSolver:
@@ -123,17 +124,15 @@ class ChainSolver:
         if (plan.t0, plan.stats.iterations, plan.stats.wall_time) != \
                 (t, stats.iterations, stats.wall_time):
             return None
-        k = min(max(int(iterations), 0), stats.iterations)
-        if k >= stats.iterations:
-            return k
-        res = nlp.session.stopped(k, *call) if k > 0 else None
-        if k > 0 and res is None:
+        got = iterate_at(nlp.session, iterations, stats.iterations, call)
+        if got is None:
             return None
-        if res is not None and bool(np.all(np.isfinite(res.x))) and res.lam_g is not None:
+        kept, res = got
+        if res is not None:
             self._w, self._lam_x, self._lam_g = res.x, res.lam_x, res.lam_g
-            return res.stats.iterations
-        self._w, self._lam_x, self._lam_g = before
-        return 0
+        elif kept == 0:
+            self._w, self._lam_x, self._lam_g = before
+        return kept
 
     def _w_with(self, x0: np.ndarray) -> np.ndarray:
         w = self._w.copy()

@@ -34,7 +34,7 @@ import numpy as np
 from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.core.messages import ConstraintMargins, GuardEvent, ModeSchedule, Plan, Trajectory
 from hmpc_cli.mpc.chain.kind import rejected_plan
-from hmpc_cli.mpc.solver import failed
+from hmpc_cli.mpc.solver import failed, iterate_at
 from hmpc_cli.mpc.walking.nlp import WalkingMPCSettings, WalkingNLP, hand_margins
 from hmpc_cli.core.registry import MPCSpec
 from hmpc_cli.core.walker import WalkerModel
@@ -156,25 +156,19 @@ class WalkingMPC:
             if entry is None:
                 continue
             call, before = entry
-            target, total = detail.segment, plan.stats.iterations
-            k = min(max(int(k), 0), total)
+            target = detail.segment
             self._executing = self._step_executing
-            if k >= total:
-                out.append((plan, k))
+            got = iterate_at(self.nlp.session, k, plan.stats.iterations, call[:8])
+            if got is None:
                 continue
-            res = self.nlp.session.stopped(k, *call[:8]) if k > 0 else None
-            if k > 0 and res is None:
-                continue
-            if res is not None and bool(np.all(np.isfinite(res.x))) and \
-                    res.lam_g is not None:
+            kept, res = got
+            if res is not None:
                 self._memory[target] = _Memory(res.x, res.lam_x, res.lam_g, *call[8:])
-                out.append((plan, res.stats.iterations))
-            else:
-                if before is None:
-                    self._memory.pop(target, None)
-                else:
-                    self._memory[target] = before
-                out.append((plan, 0))
+            elif kept == 0 and before is None:
+                self._memory.pop(target, None)
+            elif kept == 0:
+                self._memory[target] = before
+            out.append((plan, kept))
         return out
 
     # ---------------------------------------------------------------- memory
