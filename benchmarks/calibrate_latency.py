@@ -28,7 +28,9 @@ same load as its measured ones).
 
 ``--time call`` fits the controller's whole solve call (/mpc/solve ``call_wall_time``:
 the NLP's set-up and the plan too, what ``sim.latency = "measured"`` charges) instead of
-the NLP solver's own call (``wall_time``).
+the NLP solver's own call (``wall_time``). A foothold planner's candidates (``--candidates``)
+are fitted by their NLP solver's call either way: their set-up is in the planner call's
+own time, which ``planner`` fits, as "measured" charges a replan.
 """
 
 from __future__ import annotations
@@ -81,10 +83,17 @@ def solves_in(log: Path, candidates: bool = False) -> list[tuple[int, float, boo
 
 
 def logged_solves(messages, candidates: bool = False) -> list[tuple[int, float, bool, int]]:
-    """:func:`solves_in` of a log's decoded messages."""
+    """:func:`solves_in` of a log's decoded messages.
+
+    A replan's /mpc/solve that returns a foothold candidate's stored plan (its statistics)
+    is left out with ``candidates`` (the candidate is the point) and with ``--time call``
+    (its call only returned the plan: the planner call holds the solve's time); it is
+    counted in :data:`REUSED`.
+    """
     out = []
     chosen: set[float] = set()  # the candidates' wall times: a replan reuses one
     stride = 0  # the run's sim.log_plan_stride (0: unknown)
+    skip_reused = candidates or TIME[0] != "wall_time"
     for m in messages:
         if m.topic == "/run/info":
             try:
@@ -92,7 +101,9 @@ def logged_solves(messages, candidates: bool = False) -> list[tuple[int, float, 
             except (KeyError, TypeError, ValueError, AttributeError):
                 stride = 0
         elif m.topic == "/mpc/solve" and m.data.get("iterations", 0) > 0 \
-                and float(m.data["wall_time"]) not in chosen:
+                and skip_reused and float(m.data["wall_time"]) in chosen:
+            REUSED[0] += 1
+        elif m.topic == "/mpc/solve" and m.data.get("iterations", 0) > 0:
             guards = (m.data.get("schedule") or {}).get("guards") or ()
             nodes = m.data.get("nodes", len(m.data.get("plan") or ()) if stride == 1 else 0)
             if TIME[0] not in m.data:
@@ -101,12 +112,13 @@ def logged_solves(messages, candidates: bool = False) -> list[tuple[int, float, 
                                  f"7): run the runs again")
             out.append((int(m.data["iterations"]), float(m.data[TIME[0]]),
                         len(guards) > 0, int(nodes)))
-        elif m.topic == "/planner/plan" and candidates:
+        elif m.topic == "/planner/plan":
             cands = (m.data.get("detail") or {}).get("candidates", [])
-            out += [(int(c["iterations"]), float(c["wall_time"]), True, 0)
-                    for c in cands if c.get("iterations", 0) > 0]
             chosen |= {float(c["wall_time"]) for c in cands}
-            OWN.append(float(m.data["wall_time"]) - sum(c["wall_time"] for c in cands))
+            if candidates:  # each the NLP solver's call: its set-up is the planner's own
+                out += [(int(c["iterations"]), float(c["wall_time"]), True, 0)
+                        for c in cands if c.get("iterations", 0) > 0]
+                OWN.append(float(m.data["wall_time"]) - sum(c["wall_time"] for c in cands))
     return out
 
 
@@ -148,6 +160,8 @@ OWN: list[float] = []
 #: the /mpc/solve field fitted: ``wall_time`` (the NLP solver's call) or, with ``--time
 #: call``, ``call_wall_time`` (the controller's whole solve call, what "measured" charges)
 TIME = ["wall_time"]
+#: replan solves left out: each returned a foothold candidate's plan (:func:`logged_solves`)
+REUSED = [0]
 
 
 def _columns(points) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -220,12 +234,13 @@ def machine() -> str:
 
 
 def report(points, model: dict[str, float], scenarios: list[str], sets: list[str],
-           candidates: bool = False, source: str | None = None) -> str:
+           candidates: bool = False, source: str | None = None, reused: int = 0) -> str:
     """The Markdown report: the TOML, medians per iteration count beside the model.
 
     The constants are rounded to :data:`PLACES` decimals as printed, so the model column
     is what ``sim.latency = "model"`` charges with the constants a scenario copies.
-    ``source``: where the solves come from, instead of ``scenarios`` run with ``sets``.
+    ``source``: where the solves come from, instead of ``scenarios`` run with ``sets``;
+    ``reused``: replan solves left out, each a foothold candidate's plan returned.
     """
     model = {k: v if k == "nodes" else round(v, PLACES) for k, v in model.items()}
     it, wall, sw, n = _columns(points)
@@ -238,6 +253,9 @@ def report(points, model: dict[str, float], scenarios: list[str], sets: list[str
              f"{len(points)} solves of "
              + (source or f"{', '.join(scenarios)}{config}, time paused")
              + (" (with the foothold planner's candidate solves)" if candidates else "")
+             + (f"; {reused} replan solves left out: each returned a foothold candidate's "
+                f"plan, whose time is the planner call's (`--candidates` fits the "
+                f"candidates)" if reused else "")
              + ".", "",
              "```toml", "[sim.latency_model]",
              *(_constant(k, v) for k, v in model.items()), "```", ""]
@@ -300,8 +318,6 @@ def main() -> None:
     ap.add_argument("--write", type=Path, help="write the Markdown report here")
     args = ap.parse_args()
     if args.time == "call":
-        if args.candidates:
-            ap.error("--time call: the foothold candidates log no call time of their own")
         TIME[0] = "call_wall_time"
     if args.where and not args.sweep:
         ap.error("--where needs --sweep")
@@ -330,7 +346,8 @@ def main() -> None:
     model = fit(points, args.switching, ref)
     if args.candidates and OWN:
         model["planner"] = float(np.median(OWN))  # the planner's own time, median
-    text = report(points, model, scenarios, args.sets, args.candidates, source)
+    text = report(points, model, scenarios, args.sets, args.candidates, source,
+                  0 if args.candidates else REUSED[0])
     print(text)
     if args.write:
         args.write.parent.mkdir(parents=True, exist_ok=True)

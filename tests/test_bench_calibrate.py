@@ -174,3 +174,39 @@ def test_the_whole_solve_call_is_logged_and_fitted_with_time_call(full_run, tmp_
         capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert "(their logged `call_wall_time`)." in proc.stdout
+
+
+def test_a_replan_that_returned_a_foothold_candidates_plan_is_fitted_once(monkeypatch):
+    """A foothold replan's /mpc/solve returns a candidate's stored plan: its statistics
+    are the candidate's, its call_wall_time only the return. --time call leaves it out
+    (said in the report) instead of fitting 7 iterations to 10 us; --candidates fits the
+    candidates' own solver calls, whose set-up is in the planner's own time, with either
+    --time."""
+    from hmpc_cli.log.reader import LogMessage
+
+    cands = [{"iterations": 5, "wall_time": 0.03}, {"iterations": 7, "wall_time": 0.04}]
+    sched = {"guards": ["stair_1"]}
+    msgs = [LogMessage("/planner/plan", 0.3, {"wall_time": 0.08,
+                                              "detail": {"candidates": cands}}, 0),
+            LogMessage("/mpc/solve", 0.3, {"iterations": 7, "wall_time": 0.04,
+                                           "call_wall_time": 1e-5, "nodes": 40,
+                                           "schedule": sched}, 0),
+            LogMessage("/mpc/solve", 0.4, {"iterations": 4, "wall_time": 0.02,
+                                           "call_wall_time": 0.022, "nodes": 40,
+                                           "schedule": sched}, 0)]
+    cal = _module()
+    monkeypatch.setattr(cal, "REUSED", [0])
+    monkeypatch.setattr(cal, "OWN", [])
+    assert cal.logged_solves(msgs) == [(7, 0.04, True, 40), (4, 0.02, True, 40)]
+    assert cal.REUSED == [0] and cal.OWN == []
+    monkeypatch.setattr(cal, "TIME", ["call_wall_time"])
+    assert cal.logged_solves(msgs) == [(4, 0.022, True, 40)]
+    assert cal.REUSED == [1]
+    got = cal.logged_solves(msgs, candidates=True)
+    assert got == [(5, 0.03, True, 0), (7, 0.04, True, 0), (4, 0.022, True, 40)]
+    assert len(cal.OWN) == 1 and cal.OWN[0] == pytest.approx(0.01)
+    text = cal.report([(4, 0.022, True, 40)], {"overhead": 0.0, "per_iteration": 0.005},
+                      ["x.toml"], [], source="the runs", reused=1)
+    assert ("4 solves" not in text and "1 solves of the runs; 1 replan solves left out: each "
+            "returned a foothold candidate's plan, whose time is the planner call's "
+            "(`--candidates` fits the candidates).") in text
