@@ -148,3 +148,20 @@ def test_an_entry_names_only_known_backends(table):
     with pytest.raises(ValueError, match="unknown back-end 'nope'"):
         register_backend(Backend("lonely", "ipopt", ipopt_options, fallback="nope"))
     assert "lonely" not in SOLVERS
+
+
+def test_a_fatrop_section_merges_over_hmpcs_own_fatrop_options():
+    """[mpc.solver_options.fatrop] adds fatrop's own options to hmpc's (print_level 0,
+    mpc.max_iter, mpc.tol) instead of replacing them (which printed fatrop's iteration log
+    on stdout and dropped the limits); another back-end never gets the section."""
+    from hmpc_cli.mpc.solver import plugin_options
+
+    opts = plugin_options("fatrop", 8, tol=1e-5, extra={"fatrop": {"mu_init": 0.1}})
+    assert opts["fatrop"] == {"print_level": 0, "max_iter": 8, "tol": 1e-5, "mu_init": 0.1}
+    assert "fatrop" not in plugin_options("ipopt", 8, extra={"fatrop": {"mu_init": 0.1}})
+
+
+def test_sqpmethod_prints_no_status_line_per_solve():
+    from hmpc_cli.mpc.solver import plugin_options
+
+    assert plugin_options("sqpmethod", 8)["print_status"] is False

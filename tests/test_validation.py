@@ -669,3 +669,44 @@ def test_every_option_of_the_installed_ipopts_listing_is_read():
         "none", "log", "reciprocal", "cubed-reciprocal")
     assert catalogue()["max_iter"].kind == "number"
     assert all(len(set(o.values)) == len(o.values) for o in catalogue().values())
+
+
+@pytest.mark.parametrize("sets,item,message", [
+    (['mpc.solver="rti"'], "mpc.solver_options={max_iterr=1}",
+     "mpc.solver_options.max_iterr: sqpmethod (back-end 'rti') has no option 'max_iterr' "
+     "(did you mean 'max_iter'?)"),
+    (['mpc.solver="sqpmethod"', 'mpc.input_hold="foh"'], "mpc.solver_options={tol_prr=1e-6}",
+     "mpc.solver_options.tol_prr: sqpmethod (back-end 'sqpmethod') has no option 'tol_prr' "
+     "(did you mean 'tol_pr'?)"),
+    (['mpc.switching_solver="rti"'], "mpc.solver_options={hpipm={iter_maxx=3}}",
+     "mpc.solver_options.hpipm.iter_maxx: HPIPM has no option 'iter_maxx' (did you mean "
+     "'iter_max'?)"),
+])
+def test_an_option_the_other_back_ends_do_not_know_is_named_with_its_key_path(
+        real_prepare: Path, sets: list[str], item: str, message: str):
+    """The SQP back-ends' and a switching back-end's options are checked before the run
+    like IPOPT's: the key path and CasADi's nearest option, not the build's 'failed to
+    build ... Unknown option' of the whole MPC."""
+    args = ["run", _scenario(real_prepare, "ball").name]
+    for s in [*sets, 'mpc.input_hold="zoh"' if "foh" not in str(sets) else None, item]:
+        if s is not None:
+            args += ["--set", s]
+    lines = bad_run(real_prepare, [*args, "--out", "out"])
+    assert lines == [f"error: --set {item}: {message}"], lines
+    assert not (real_prepare / "out").exists()
+
+
+def test_mpc_solvers_own_options_do_not_reach_the_switching_nlps_other_back_end():
+    """sqp_hpipm's switching NLP runs on IPOPT unless mpc.switching_solver says otherwise:
+    an nlpsol option of sqp_hpipm (sqpmethod's tol_pr) stays with it, the IPOPT NLP gets
+    its own sections; a named switching back-end the same as mpc.solver gets them all."""
+    from hmpc_cli.mpc.chain.nlp import MPCSettings
+
+    opts = {"tol_pr": 1e-6, "ipopt": {"tol": 1e-7}, "hpipm": {"iter_max": 30}}
+    s = MPCSettings(solver="sqp_hpipm", input_hold="zoh", solver_options=opts)
+    assert s.options_of(0) == opts
+    assert s.options_of(1) == {"ipopt": {"tol": 1e-7}}
+    assert s.solver_choices() == [("sqp_hpipm", opts), ("ipopt", {"ipopt": {"tol": 1e-7}})]
+    same = MPCSettings(solver="sqp_hpipm", switching_solver="sqp_hpipm", input_hold="zoh",
+                       solver_options=opts)
+    assert same.options_of(1) == opts and same.solver_choices() == [("sqp_hpipm", opts)]

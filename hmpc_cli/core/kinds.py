@@ -77,6 +77,14 @@ class MPCKindSettings(KindSettings):
         """(back-end, options) the set-up checks try on a tiny NLP; None: nothing to try."""
         return None
 
+    def solver_choices(self) -> list[tuple[str, dict]]:
+        """Every (back-end, options) the kind builds, for the set-up checks.
+
+        Default: :meth:`solver_choice`'s.
+        """
+        choice = self.solver_choice()
+        return [] if choice is None else [choice]
+
     def resolves_on_impact(self) -> bool:
         """Whether the loop re-solves right after a guard event."""
         return True

@@ -483,8 +483,9 @@ def option_problems(plugin: str, extra: dict, key: str = "mpc.solver_options") -
     CasADi rejects unknown ``nlpsol`` options when the solver is built; IPOPT reports an
     unknown option or an unavailable linear solver only when it solves (status
     ``Invalid_Option``), so one tiny problem is solved with the same options.
-    Only back-ends with ``probe`` are tried (the others' options fail when the NLP is
-    built, a PluginError); a back-end's fallback is tried with its own sections. Each
+    Only back-ends with ``probe`` are solved; the others' ``nlpsol`` options (the keys
+    outside every section) are checked by a build on a tiny NLP, each unknown one named
+    with CasADi's nearest. A back-end's fallback is tried with its own sections. Each
     option of an ``hpipm`` section is tried alone on a tiny QP (HPIPM's error does not
     name it).
     """
@@ -497,11 +498,49 @@ def option_problems(plugin: str, extra: dict, key: str = "mpc.solver_options") -
         checks.append((fallback, split_options(fallback, extra)[1]))
     lines = [line for b, opts in checks if b.probe
              for line in _option_problems(b.name, json.dumps(opts, sort_keys=True), key)]
+    nlpsol = split_options(backend, extra)[0]
+    if not backend.probe and nlpsol:
+        lines += _unknown_options(backend.name, json.dumps(nlpsol, sort_keys=True), key)
     section = extra.get("hpipm") if "hpipm" in backend.sections else None
     if isinstance(section, dict):
         lines += [line for name, value in section.items()
                   for line in _hpipm_problem(name, json.dumps(value), key)]
     return lines
+
+
+@lru_cache(maxsize=64)
+def _unknown_options(name: str, nlpsol_json: str, key: str) -> tuple[str, ...]:
+    """``key.option: ...`` for each ``nlpsol`` option back-end ``name``'s plugin lacks.
+
+    Found by building it on a tiny NLP: CasADi names one unknown option per build and
+    suggests the nearest. Only the user's options are given: an error of another kind
+    (the tiny NLP has no stage structure, a value of the wrong type) is left to the MPC's
+    own build.
+    """
+    import json
+    import re
+
+    plugin, left, out = backend_of(name).plugin, json.loads(nlpsol_json), []
+    x = ca.SX.sym("x", 2)
+    tiny = {"x": x, "f": ca.sumsqr(x), "g": x[0] + x[1]}
+    while left:
+        try:
+            with _c_stdout_silenced():
+                ca.nlpsol("probe", plugin, tiny, {**left, "print_time": False})
+            break
+        except RuntimeError as exc:
+            text = str(exc)
+            found = re.search(r"Unknown option: (\S+)", text)
+            if found is None or found.group(1) not in left:
+                break
+            option = found.group(1)
+            near = re.search(r'Did you mean one of the following\?\s*> "([^"]+)"', text)
+            hint = f"did you mean {near.group(1)!r}?" if near else \
+                f"casadi.nlpsol_options({plugin!r}) lists the plugin's own"
+            out.append(f"{key}.{option}: {plugin} (back-end {name!r}) has no option "
+                       f"{option!r} ({hint})")
+            del left[option]
+    return tuple(out)
 
 
 #: HPIPM options CasADi's interface accepts (named in the error of a misspelt one)

@@ -167,7 +167,8 @@ def describe() -> str:
 
 
 #: an option of a back-end's section the message of a section that is no table shows
-_EXAMPLE = {"ipopt": "tol = 1e-8", "ipopt_warm": "mu_init = 1e-6", "hpipm": "iter_max = 30"}
+_EXAMPLE = {"ipopt": "tol = 1e-8", "ipopt_warm": "mu_init = 1e-6", "hpipm": "iter_max = 30",
+            "fatrop": "mu_init = 0.1"}
 
 
 def _reason(reason: str) -> PydanticCustomError:
@@ -272,17 +273,22 @@ def warm_options(cold: dict, warm: WarmStart, extra: dict | None = None,
 def sqpmethod_options(a: SolverArgs) -> dict:
     """CasADi's SQP: exact Hessian, sparse active-set QP (qrqp)."""
     return {"expand": True, "max_iter": a.max_iter, "print_time": False,
-            "print_header": False, "print_iteration": False, "qpsol": "qrqp",
+            "print_header": False, "print_iteration": False, "print_status": False,
+            "qpsol": "qrqp",
             "qpsol_options": {"print_iter": False, "print_header": False,
                               "error_on_fail": False}, **a.nlpsol}
 
 
 def fatrop_options(a: SolverArgs) -> dict:
-    """fatrop: structure detected from the equality rows; ``tol`` its tolerance."""
+    """fatrop: structure detected from the equality rows; ``tol`` its tolerance.
+
+    ``sections["fatrop"]``: fatrop's own options, over hmpc's.
+    """
     opts: dict = {"expand": True, "structure_detection": "auto", "print_time": False}
     if a.equality is not None:
         opts["equality"] = list(a.equality)
-    opts["fatrop"] = {"print_level": 0, "max_iter": a.max_iter, "tol": a.tol}
+    opts["fatrop"] = {"print_level": 0, "max_iter": a.max_iter, "tol": a.tol,
+                      **a.sections.get("fatrop", {})}
     return {**opts, **a.nlpsol}
 
 
@@ -351,6 +357,6 @@ register_backend(Backend(
     "too, no fallback; needs input_hold = \"zoh\"",
     stagewise=True, warm=rti_warm_options, judge=rti_step_kept, sections=("hpipm",)))
 register_backend(Backend("fatrop", "fatrop", fatrop_options, summary='needs "zoh"',
-                         stagewise=True))
+                         stagewise=True, sections=("fatrop",)))
 register_backend(Backend("sqpmethod", "sqpmethod", sqpmethod_options,
                          summary="exact Hessian, sparse active-set QP"))

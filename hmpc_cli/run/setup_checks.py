@@ -340,10 +340,11 @@ def _margin_problems(sc, model, margins: ConstraintMargins | None) -> list[str]:
 
 
 def _solver_problems(sc) -> list[str]:
-    """The MPC's solver options, tried once on a tiny NLP (see ``option_problems``)."""
+    """The MPC's solver options, tried on a tiny NLP per back-end it builds.
+
+    See ``option_problems``.
+    """
     from hmpc_cli.mpc.solver import option_problems
 
-    choice = sc.mpc.solver_choice()
-    if choice is None:
-        return []
-    return option_problems(*choice)
+    lines = [line for choice in sc.mpc.solver_choices() for line in option_problems(*choice)]
+    return list(dict.fromkeys(lines))

@@ -59,7 +59,8 @@ from hmpc_cli.mpc.chain.layout import FLOW, ChainLayout, NodeSchedule
 from hmpc_cli.mpc.chain.problem_data import INF, ChainShape, problem_data
 from hmpc_cli.mpc.solver import SolveResult, SolverSession, WarmStart, takes_assembled
 from hmpc_cli.mpc.staged import StageKind, StagedNLP, total_cost
-from hmpc_cli.mpc.solver_table import SOLVERS, SolverName, SolverOptions, describe
+from hmpc_cli.mpc.solver_table import (SOLVERS, SolverName, SolverOptions, describe,
+                                       split_options)
 from hmpc_cli.core.settings_types import (
     MAX_NLP_NODES, BoundedInt, FiniteFloat, StrictBool, nlp_estimate)
 
@@ -106,9 +107,14 @@ class MPCSettings(MarginsSettings):
         "directory): its guard-avoid, pass-through and input margins at mpc.rate_hz replace "
         "them")
     solver: SolverName = Field("ipopt", description=f"NLP back-end: {describe()}")
-    solver_options: SolverOptions = Field(default_factory=dict, description="passed to the plugin")
+    solver_options: SolverOptions = Field(default_factory=dict, description="extra solver options: "
+        "sections ipopt, ipopt_warm (IPOPT), hpipm (the SQP back-ends' QP) and fatrop (fatrop's "
+        "own options over hmpc's, passed unchecked); other keys nlpsol options of mpc.solver's "
+        "back-end, checked before the run (a switching NLP on another back-end gets its own "
+        "sections only)")
     max_iter: BoundedInt = Field(200, gt=0, description="iteration limit (sqp_hpipm: of "
-                                 "its IPOPT fallback)")
+                                 "its IPOPT fallback; fatrop can run past it: its watchdog "
+                                 "steps)")
     max_sqp_iter: BoundedInt = Field(3, gt=0, description="sqp_hpipm and rti: SQP "
                                      "iterations per solve (sqp_hpipm accepts a feasible "
                                      "point at the limit, rti any finite one)")
@@ -154,6 +160,25 @@ class MPCSettings(MarginsSettings):
     def solver_choice(self) -> tuple[str, dict]:
         """(``mpc.solver``, ``mpc.solver_options``) for the set-up checks."""
         return self.solver, self.solver_options
+
+    def solver_choices(self) -> list[tuple[str, dict]]:
+        """(back-end, options) of the final-domain and (if another) the switching NLP."""
+        choices = [(self.solver, self.solver_options)]
+        if self.solver_of(1) != self.solver:
+            choices.append((self.solver_of(1), self.options_of(1)))
+        return choices
+
+    def options_of(self, switches: int) -> dict:
+        """``mpc.solver_options`` as the NLP with ``switches`` guard events takes them.
+
+        All of them on ``mpc.solver``'s back-end; another back-end (the switching NLP's
+        ``mpc.switching_solver``, or sqp_hpipm's IPOPT) takes its own sections only: the
+        other keys are ``mpc.solver``'s ``nlpsol`` options.
+        """
+        name = self.solver_of(switches)
+        if name == self.solver:
+            return self.solver_options
+        return split_options(SOLVERS[name], self.solver_options)[1]
 
     def resolves_on_impact(self) -> bool:
         """``mpc.resolve_on_impact``."""
@@ -317,7 +342,7 @@ class FixedModeNLP:
         """
         key = cache.structure_key(self.system, self.s, self.S)
         # options that may make nlpsol differentiate the NLP itself need it in SX
-        mx = takes_assembled(self.s.solver_of(self.S), self.s.solver_options)
+        mx = takes_assembled(self.s.solver_of(self.S), self.s.options_of(self.S))
         hit = cache.lookup(key, self.s.solver_of(self.S), load=not mx)
         self.session = None
         if hit.library is not None:
@@ -383,7 +408,7 @@ class FixedModeNLP:
             equality, structure = eq.tolist(), self.structure()
         return SolverSession(
             "fixed_mode_mpc", nlp, solver, max_iter=self.s.max_iter, tol=1e-8,
-            equality=equality, extra=self.s.solver_options, warm=WARM_START,
+            equality=equality, extra=self.s.options_of(self.S), warm=WARM_START,
             structure=structure, sqp_iter=self.s.max_sqp_iter, derivatives=derivatives)
 
     def _builder(self) -> NLPBuilder:

@@ -148,7 +148,8 @@ class WalkingMPCSettings(MarginsSettings):
         "a cold one takes up to 3); sqp_hpipm: per solve before its IPOPT fallback (None: "
         "10)")
     max_iter: BoundedInt = Field(200, gt=0, description="iteration limit of IPOPT and fatrop "
-                                 "(sqp_hpipm: of its IPOPT fallback; rti: unused)")
+                                 "(sqp_hpipm: of its IPOPT fallback; rti: unused; fatrop can "
+                                 "run past it: its watchdog steps)")
     tol: FiniteFloat = Field(1e-6, gt=0.0, description="convergence tolerance (IPOPT's and "
                              "fatrop's tol; sqp_hpipm: primal and dual)")
     max_wall_time: FiniteFloat | None = Field(None, gt=0.0, description="IPOPT's wall-time "
@@ -158,8 +159,9 @@ class WalkingMPCSettings(MarginsSettings):
     impact_duals: StrictBool = Field(True, description="after a contact, also shift the "
                                "executed plan's multipliers (warm IPOPT instance)")
     solver_options: SolverOptions = Field(default_factory=dict, description="extra solver options: "
-                                 "sections ipopt, ipopt_warm (IPOPT) and hpipm (the SQP "
-                                 "back-ends' QP), other keys nlpsol options of mpc.solver")
+        "sections ipopt, ipopt_warm (IPOPT), hpipm (the SQP back-ends' QP) and fatrop (fatrop's "
+        "own options over hmpc's, passed unchecked); other keys nlpsol options of mpc.solver's "
+        "back-end, checked before the run (its IPOPT fallback gets its own sections only)")
 
     @model_validator(mode="after")
     def _apex_inside(self) -> WalkingMPCSettings:
