@@ -376,3 +376,23 @@ def test_success_needs_the_stance_foot_at_the_top_segments_height():
     assert task.verdict(x, 0).success
     x[11] = -5.0 + 2e-3  # 2 mm above: not on it
     assert not task.verdict(x, 0).success
+
+
+def test_a_swing_foot_inside_the_terrain_where_no_guard_stops_it_is_a_fall():
+    """Past the stairs' end the terrain keeps the top's height but no guard catches the
+    swing foot: a walker whose swing foot sank 0.24 m into it there counted as a success.
+    It is a fall now, as a knee's is; within a touchdown's tolerance (1 mm) it is not."""
+    from hmpc_cli.systems.biped.task import ON_SEGMENT, ClimbStairs
+
+    system = build_biped(BipedParams())
+    task = ClimbStairs(system, 0.35)
+    top = system.terrain.segments[-1][2]
+    x = system.x0.copy()
+    x[10:] = (system.terrain.segments[-1][1] + 0.3, top)  # standing past the end
+    foot = float(system.numeric.output("swing_foot_world")(x)[0][1])
+    x[11] = top + (top - foot) - 0.01  # the swing foot 1 cm below the top's height
+    reason = task.failure(x, 0)
+    assert reason.startswith("fall: the swing foot is 0.010 m inside the terrain at x = ")
+    assert reason.endswith(" m (no guard there: it tripped)")
+    x[11] += 0.01 - ON_SEGMENT / 2  # within the tolerance
+    assert task.failure(x, 0) == ""

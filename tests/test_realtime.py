@@ -785,3 +785,15 @@ def test_a_contact_before_the_budget_ran_out_stops_the_dropped_solve_earlier(tmp
     assert reasons[contact].startswith(
         "replan (stopped at the contact: the solve of t = 0.8960 s after 8 of 200 "
         "iterations, that iterate warm-starts this one)")
+
+
+def test_a_planner_call_that_found_nothing_is_stopped_at_the_budget():
+    """A planner call that finds no schedule keeps the solver busy for its charge, but no
+    longer than sim.solve_budget, as a solve is stopped there (it was charged 0.26 s with a
+    budget of 0.1 s, the next contact handled only then)."""
+    clock = SolverClock(Latency("model", planner=0.01, budget=0.1))
+    clock.busy(0.5, 0.26)
+    assert not clock.free(0.599) and clock.free(0.6)
+    unbounded = SolverClock(Latency("model", planner=0.01))
+    unbounded.busy(0.5, 0.26)
+    assert not unbounded.free(0.6) and unbounded.free(0.76)

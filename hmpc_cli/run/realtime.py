@@ -325,8 +325,12 @@ class SolverClock:
         return dropped
 
     def busy(self, t: float, cost: float) -> None:
-        """Work at t [s] that yields no plan (a planner call that found no schedule)."""
-        self.free_at = t + cost
+        """Work at t [s] that yields no plan (a planner call that found no schedule).
+
+        It is charged ``cost`` [s], stopped at the budget as a solve is.
+        """
+        budget = self.latency.budget
+        self.free_at = t + (cost if budget is None else min(cost, budget + GRID_TOL))
 
     def plan_at(self, t: float, current: Plan | None) -> Plan | None:
         """The plan the plant tracks over the step at t [s] (``current`` or a due one)."""

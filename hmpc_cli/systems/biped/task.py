@@ -24,7 +24,9 @@ class ClimbStairs:
     """Falls and success judged on the simulated robot's geometry and terrain.
 
     A fall ends the run: the hip less than ``fall_hip_height`` above the terrain under
-    it, or a knee, the hip or the torso top below the terrain. Success: no fall and the
+    it, a knee, the hip or the torso top below the terrain, or the swing foot more than
+    :data:`ON_SEGMENT` below it (where no guard stops it: a stair's riser, or past the
+    stairs' end, where the terrain keeps the top's height). Success: no fall and the
     stance foot on the top segment at the end. The reported error is |hip - goal| [m].
 
     Attributes:
@@ -61,6 +63,11 @@ class ClimbStairs:
             k = names.index(name)
             if pts[k, 1] < ground[k]:
                 return f"fall: {name} touched the ground at x = {pts[k, 0]:.3f} m"
+        k = names.index("swing_foot")
+        depth = ground[k] - pts[k, 1]
+        if depth > ON_SEGMENT:
+            return (f"fall: the swing foot is {depth:.3f} m inside the terrain at x = "
+                    f"{pts[k, 0]:.3f} m (no guard there: it tripped)")
         return ""
 
     def verdict(self, x: np.ndarray, mode: int) -> Verdict:
