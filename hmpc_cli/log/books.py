@@ -127,6 +127,15 @@ class RunBooks:
                 self._fail(plan.stats.status)
                 self._counted.add(_solve_key(t, plan))
 
+    def planner_revoked(self, note: str) -> None:
+        """The last planner call's accepted schedule was dropped with its replan.
+
+        Its MPC solves did not finish within the budget: it counts as rejected after all.
+        """
+        self.result.planner_rejected += 1
+        self.accepted_plans -= 1
+        self.last_note = note
+
     def count_solve(self, t: float, plan: Plan) -> None:
         """Counts one fixed-mode MPC solve (a planner's candidate solve only once)."""
         st, r = plan.stats, self.result

@@ -45,12 +45,25 @@ class _LayerState:
     planned: bool = False  # a planner call's schedule was accepted once
     lost_at: float | None = None  # when a contact used up the last usable schedule [s]
     rejected_since: int = 0  # planner calls that found none since then
+    #: the schedule state a replan replaced (schedule, guess, usable, planned, lost_at,
+    #: domain_start), until its solve is charged (None: no replan accepted since)
+    before_replan: tuple | None = None
+    #: the last planner call's /planner/plan, written with its solve (t, reason, result,
+    #: accepted, note)
+    planner_record: tuple | None = None
 
 
 #: appended to the reason of a solve dropped for its budget (``sim.solve_budget``)
 OVER_BUDGET = " (over budget: dropped)"
 #: appended to the reason of the solve a contact started after stopping solves in flight
 PREEMPTED = " (after a contact stopped the solve of t = {} s: dropped)"
+#: appended to the reason of a replan dropped for its budget whose planner's own MPC
+#: solves did not all finish within it (the planner's choice was never made)
+REVOKED = (" (its schedule dropped with it: the planner's solves did not finish within the "
+           "budget)")
+#: the /planner/plan note of such a replan
+REVOKED_NOTE = ("its MPC solves did not finish within the budget (sim.solve_budget): the "
+                "schedule before it is kept, the planner runs again")
 
 
 class MPCLayers:
@@ -196,7 +209,10 @@ class MPCLayers:
         if result.schedule is not None:
             note = self.mpc.check(result.schedule)
         accepted = result.schedule is not None and not note
+        st.before_replan = None
         if accepted:
+            st.before_replan = (st.schedule, st.guess, st.usable, st.planned, st.lost_at,
+                                st.domain_start)
             st.schedule, st.guess, st.usable = result.schedule, result.trajectory, True
             st.planned, st.lost_at = True, None
             st.domain_start = t
@@ -206,7 +222,38 @@ class MPCLayers:
                      "; no usable schedule (the last one is used up)" if st.planned else
                      "; no schedule yet")
         self.books.planner_call(t, result, accepted, note)
-        self.log.planner(t, reason, result, accepted, note, self.model)
+        st.planner_record = (t, reason, result, accepted, note)
+
+    def _write_planner(self) -> None:
+        """Writes the last planner call's /planner/plan (held until its solve is charged)."""
+        record, self.st.planner_record = self.st.planner_record, None
+        if record is not None:
+            self.log.planner(*record, self.model)
+
+    def _revoke_replan(self, stops: list[tuple[Plan, int]]) -> str:
+        """Undoes a dropped replan whose planner's own MPC solves overran the budget.
+
+        The planner's choice was never made in time: the schedule state before the
+        replan comes back, the planner runs again at the solver's next free step, and the
+        call counts as rejected.
+
+        Returns:
+            The note for the dropped solve's reason ('' if nothing was revoked).
+        """
+        st, planner = self.st, self.clock.planner
+        if planner is None or st.before_replan is None or not planner.mpc_solves:
+            return ""
+        own = {id(p) for p in planner.mpc_solves}
+        if all(k >= p.stats.iterations for p, k in stops if id(p) in own):
+            return ""
+        (st.schedule, st.guess, st.usable, st.planned, st.lost_at,
+         st.domain_start) = st.before_replan
+        st.before_replan, st.need_replan = None, True
+        st.rejected_since += not st.usable
+        if st.planner_record is not None:
+            st.planner_record = (*st.planner_record[:3], False, REVOKED_NOTE)
+        self.books.planner_revoked(REVOKED_NOTE)
+        return REVOKED
 
     def _solve(self, t: float, x: np.ndarray, mode: int, reason: str) -> None:
         st, clock = self.st, self.clock
@@ -219,6 +266,7 @@ class MPCLayers:
             if charged and clock.planner is not None:
                 clock.busy(t, clock.latency.planner_cost(clock.planner))
             clock.planner = None
+            self._write_planner()
             return
         start = time.perf_counter()
         plan = self._solve_ahead(t, x, mode, reason) if charged else self.mpc.solve(
@@ -230,27 +278,31 @@ class MPCLayers:
             clock.solved(plan, compute)
             dropped, latency = clock.charge(t, plan, compute)
             if dropped:  # never reaches the plant: logged not adopted
+                stops = clock.latency.stopped_solves(plan, clock.planner, compute)
                 plan, note = dataclasses.replace(plan, adopt=False), \
-                    note + self._stop_at_budget(plan, compute) + OVER_BUDGET
+                    note + self._stop_at_budget(stops) + self._revoke_replan(stops) + \
+                    OVER_BUDGET
+            self._write_planner()
             self.log.mpc_solve(t, plan, reason + note, self.model, latency, compute)
             st.preempted, st.stopped = [], ""
         else:
+            self._write_planner()
             self.log.mpc_solve(t, plan, reason, self.model, call_time=compute)
             st.plan = plan if plan.adopt else st.plan
         clock.planner = None
         signals.check()
 
-    def _stop_at_budget(self, plan: Plan, compute: float) -> str:
+    def _stop_at_budget(self, stops: list[tuple[Plan, int]]) -> str:
         """Stops the solves of a plan dropped over its budget where the budget ran out.
 
         The MPC keeps, of each solve the plan was charged for (a replan's: the planner's
         own MPC solves too), the iterate its solver held when the budget ran out as the
-        warm start (``stop_at``; :meth:`~hmpc_cli.run.realtime.Latency.stopped_solves`).
+        warm start (``stop_at``); ``stops``:
+        :meth:`~hmpc_cli.run.realtime.Latency.stopped_solves`.
 
         Returns:
             The note for its /mpc/solve reason ('' if every solve keeps its solution).
         """
-        stops = self.clock.latency.stopped_solves(plan, self.clock.planner, compute)
         return self._stop(stops, "the budget", "warm-starts the next solve")
 
     def _stop_in_flight(self) -> str:
