@@ -381,18 +381,27 @@ def test_success_needs_the_stance_foot_at_the_top_segments_height():
 def test_a_swing_foot_inside_the_terrain_where_no_guard_stops_it_is_a_fall():
     """Past the stairs' end the terrain keeps the top's height but no guard catches the
     swing foot: a walker whose swing foot sank 0.24 m into it there counted as a success.
-    It is a fall now, as a knee's is; within a touchdown's tolerance (1 mm) it is not."""
+    Once the foot has cleared the terrain since its lift-off (a new stance foot), or has
+    left the ground it lifted off from (into a riser), more than 1 mm inside is a fall (a
+    trip), as a knee's is; before that, over its lift-off ground, it is a scuff: the foot
+    still on it."""
     from hmpc_cli.systems.biped.task import ON_SEGMENT, ClimbStairs
 
     system = build_biped(BipedParams())
+    top, end = system.terrain.segments[-1][2], system.terrain.end
     task = ClimbStairs(system, 0.35)
-    top = system.terrain.segments[-1][2]
-    x = system.x0.copy()
-    x[10:] = (system.terrain.segments[-1][1] + 0.3, top)  # standing past the end
-    foot = float(system.numeric.output("swing_foot_world")(x)[0][1])
-    x[11] = top + (top - foot) - 0.01  # the swing foot 1 cm below the top's height
-    reason = task.failure(x, 0)
-    assert reason.startswith("fall: the swing foot is 0.010 m inside the terrain at x = ")
-    assert reason.endswith(" m (no guard there: it tripped)")
-    x[11] += 0.01 - ON_SEGMENT / 2  # within the tolerance
-    assert task.failure(x, 0) == ""
+    stance = np.array([end + 0.1, top])
+    assert task._tripped(stance, np.array([end + 0.3, top - 0.01]), top) == ""  # a scuff
+    assert task._tripped(stance, np.array([end + 0.3, top + 0.02]), top) == ""  # cleared
+    reason = task._tripped(stance, np.array([end + 0.3, top - 0.01]), top)
+    assert reason == (f"fall: the swing foot is 0.010 m inside the terrain at x = "
+                      f"{end + 0.3:.3f} m (no guard there: it tripped)")
+    assert task._tripped(stance, np.array([end + 0.3, top - ON_SEGMENT / 2]), top) == ""
+    # a new stance foot on the first segment [0, 0.4]: the swing foot drags into the
+    # riser of the second (0.075 m high) before it ever cleared the ground
+    stance = np.array([0.3, 0.0])
+    assert task._tripped(stance, np.array([0.35, -0.004]), 0.0) == ""  # a scuff
+    assert task._tripped(stance, np.array([0.41, 0.07]), 0.075).startswith(
+        "fall: the swing foot is 0.005 m inside the terrain at x = 0.410 m")
+    # the whole check on a state: x0 stands on the ground with its swing foot on it
+    assert ClimbStairs(system, 0.35).failure(system.x0.copy(), 0) == ""

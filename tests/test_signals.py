@@ -514,3 +514,24 @@ def test_a_second_stop_while_the_process_exits_ends_it_at_once():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=60, env=cli_env())
     assert (res.returncode, res.stdout, res.stderr) == (143, "", "")
+
+
+def test_a_solve_stopped_after_its_planner_call_leaves_that_call_in_the_log(tmp_path):
+    """The planner call's /planner/plan is written with the solve that follows it (a
+    dropped replan revokes its schedule there): a run stopped inside that solve still
+    logs the call, before the log ends."""
+    from hmpc_cli.run.runner import execute_run, prepare
+    from hmpc_cli.run.scenario import load_scenario
+
+    sc, text = load_scenario(BALL, ["sim.duration=0.5"], None)
+    loop = prepare(sc)
+
+    def stopped(*args, **kw):
+        raise KeyboardInterrupt
+
+    loop.mpc.solve = stopped
+    with pytest.raises(KeyboardInterrupt):
+        execute_run(loop, text, tmp_path / "run")
+    log = read_log(tmp_path / "run" / "run.mcap")
+    assert [m.topic for m in log.messages if m.topic.startswith(("/planner", "/mpc"))] == \
+        ["/planner/plan"]

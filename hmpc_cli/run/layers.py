@@ -269,8 +269,12 @@ class MPCLayers:
             self._write_planner()
             return
         start = time.perf_counter()
-        plan = self._solve_ahead(t, x, mode, reason) if charged else self.mpc.solve(
-            t, x, mode, st.schedule, st.events, st.guess)
+        try:
+            plan = self._solve_ahead(t, x, mode, reason) if charged else self.mpc.solve(
+                t, x, mode, st.schedule, st.events, st.guess)
+        except BaseException:  # stopped (a signal): the planner call is in the log still
+            self._write_planner()
+            raise
         compute = time.perf_counter() - start  # the prediction and the solve call
         st.events = []
         self.books.count_solve(t, plan)

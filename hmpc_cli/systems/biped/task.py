@@ -24,10 +24,15 @@ class ClimbStairs:
     """Falls and success judged on the simulated robot's geometry and terrain.
 
     A fall ends the run: the hip less than ``fall_hip_height`` above the terrain under
-    it, a knee, the hip or the torso top below the terrain, or the swing foot more than
-    :data:`ON_SEGMENT` below it (where no guard stops it: a stair's riser, or past the
-    stairs' end, where the terrain keeps the top's height). Success: no fall and the
-    stance foot on the top segment at the end. The reported error is |hip - goal| [m].
+    it, a knee, the hip or the torso top below the terrain, or the swing foot tripped:
+    more than :data:`ON_SEGMENT` inside the terrain once it has cleared it since its
+    lift-off, or off the ground it lifted off from (where no guard stops it: a stair's
+    riser, or past the stairs' end, where the terrain keeps the top's height). Before it
+    clears, over the ground it lifted off from, a foot below it is still on it (a
+    scuff, not a trip). Success: no fall and the stance foot on the top segment at the
+    end. The reported error is |hip - goal| [m].
+
+    :meth:`failure` follows one run step by step (it keeps the lift-off it saw last).
 
     Attributes:
         system: the simulated plant (its ``points_world`` output and ``terrain``).
@@ -37,10 +42,14 @@ class ClimbStairs:
     system: HybridSystem
     fall_hip_height: float
     _points: object = field(init=False, repr=False, compare=False)
+    #: the swing foot's lift-off: (stance foot (x, y), the x range it lifted off from,
+    #: whether it has cleared the terrain since) [m]
+    _lift: list = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:  # judged at every simulator step: one state at a time
         object.__setattr__(self, "_points",
                            compile_evaluator(self.system.output("points_world")))
+        object.__setattr__(self, "_lift", [None, (0.0, 0.0), False])
 
     @property
     def goal(self) -> np.ndarray:
@@ -63,12 +72,30 @@ class ClimbStairs:
             k = names.index(name)
             if pts[k, 1] < ground[k]:
                 return f"fall: {name} touched the ground at x = {pts[k, 0]:.3f} m"
-        k = names.index("swing_foot")
-        depth = ground[k] - pts[k, 1]
-        if depth > ON_SEGMENT:
+        return self._tripped(pts[names.index("stance_foot")], pts[names.index("swing_foot")],
+                             float(ground[names.index("swing_foot")]))
+
+    def _tripped(self, stance: np.ndarray, foot: np.ndarray, ground: float) -> str:
+        """A swing foot inside the terrain where it is no longer on its lift-off ground."""
+        lift, depth = self._lift, ground - float(foot[1])
+        if lift[0] != (float(stance[0]), float(stance[1])):  # a new stance: a lift-off
+            lift[:] = [(float(stance[0]), float(stance[1])), self._ground_of(foot[0]), False]
+        lift[2] = lift[2] or depth < -ON_SEGMENT
+        lo, hi = lift[1]
+        if depth > ON_SEGMENT and (lift[2] or not lo <= foot[0] <= hi):
             return (f"fall: the swing foot is {depth:.3f} m inside the terrain at x = "
-                    f"{pts[k, 0]:.3f} m (no guard there: it tripped)")
+                    f"{foot[0]:.3f} m (no guard there: it tripped)")
         return ""
+
+    def _ground_of(self, x: float) -> tuple[float, float]:
+        """The x range [m] of the flat ground under x: a segment, before 0, past the end."""
+        terrain = self.system.terrain
+        if x <= 0.0:
+            return (-np.inf, 0.0)
+        if x > terrain.end:
+            return (terrain.end, np.inf)
+        a, b, _ = terrain.segments[terrain.segment_at(x)]
+        return (a, b)
 
     def verdict(self, x: np.ndarray, mode: int) -> Verdict:
         """Success iff the stance foot stands on the top segment.
