@@ -710,3 +710,18 @@ def test_mpc_solvers_own_options_do_not_reach_the_switching_nlps_other_back_end(
     same = MPCSettings(solver="sqp_hpipm", switching_solver="sqp_hpipm", input_hold="zoh",
                        solver_options=opts)
     assert same.options_of(1) == opts and same.solver_choices() == [("sqp_hpipm", opts)]
+
+
+def test_an_nlpsol_option_of_sqp_hpipm_runs_beside_its_switching_nlps_ipopt(real_prepare: Path):
+    """`tol_pr` (sqpmethod's) with mpc.solver = "sqp_hpipm": the switching NLP, on IPOPT,
+    is built without it, and the run goes (it aborted: 'Unknown option: tol_pr')."""
+    from typer.testing import CliRunner
+
+    from hmpc_cli.cli.app import app
+
+    res = CliRunner().invoke(app, [
+        "run", _scenario(real_prepare, "ball").name, "-q", "--out", "out",
+        "--set", 'mpc.solver="sqp_hpipm"', "--set", 'mpc.input_hold="zoh"',
+        "--set", "mpc.solver_options={tol_pr=1e-6}", "--set", "sim.duration=0.05"])
+    assert res.exit_code == 0, res.output
+    assert (real_prepare / "out" / "run.mcap").is_file()
