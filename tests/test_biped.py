@@ -403,5 +403,10 @@ def test_a_swing_foot_inside_the_terrain_where_no_guard_stops_it_is_a_fall():
     assert task._tripped(stance, np.array([0.35, -0.004]), 0.0) == ""  # a scuff
     assert task._tripped(stance, np.array([0.41, 0.07]), 0.075).startswith(
         "fall: the swing foot is 0.005 m inside the terrain at x = 0.410 m")
+    # lifted off the ground before x = 0: the first segment is the same flat ground, so a
+    # scuff over it is no trip (a review found it one)
+    stance = np.array([0.0, 0.0])
+    assert task._tripped(stance, np.array([-0.2, 0.0]), 0.0) == ""
+    assert task._tripped(stance, np.array([0.05, -0.004]), 0.0) == ""
     # the whole check on a state: x0 stands on the ground with its swing foot on it
     assert ClimbStairs(system, 0.35).failure(system.x0.copy(), 0) == ""

@@ -535,3 +535,29 @@ def test_a_solve_stopped_after_its_planner_call_leaves_that_call_in_the_log(tmp_
     log = read_log(tmp_path / "run" / "run.mcap")
     assert [m.topic for m in log.messages if m.topic.startswith(("/planner", "/mpc"))] == \
         ["/planner/plan"]
+
+
+def test_a_stop_while_a_dropped_replan_is_stopped_at_its_budget_keeps_its_planner_call(
+        tmp_path, monkeypatch):
+    """The stop can come while the MPC replays a dropped solve to its budget's iterate
+    (an IPOPT re-solve): the planner call before it is in the log all the same, as the
+    books counted it."""
+    from hmpc_cli.core import signals
+    from hmpc_cli.mpc.walking.kind import WalkingMPC
+    from hmpc_cli.run.runner import execute_run, prepare
+    from hmpc_cli.run.scenario import load_scenario
+
+    root = Path(__file__).resolve().parents[1]
+    sc, text = load_scenario(root / "scenarios" / "biped_rti.toml",
+                             ["sim.solve_budget=0.01", "sim.duration=0.6"], None)
+
+    def stop(self, stops):
+        raise signals.Interrupted()
+
+    monkeypatch.setattr(WalkingMPC, "stop_at", stop)
+    with pytest.raises(KeyboardInterrupt):
+        execute_run(prepare(sc), text, tmp_path / "run")
+    log = read_log(tmp_path / "run" / "run.mcap")
+    planner = [m for m in log.messages if m.topic == "/planner/plan"]
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert len(planner) == summary["planner_calls"] >= 2

@@ -703,13 +703,22 @@ def test_mpc_solvers_own_options_do_not_reach_the_switching_nlps_other_back_end(
     from hmpc_cli.mpc.chain.nlp import MPCSettings
 
     opts = {"tol_pr": 1e-6, "ipopt": {"tol": 1e-7}, "hpipm": {"iter_max": 30}}
+    sections = {"ipopt": {"tol": 1e-7}, "hpipm": {"iter_max": 30}}
     s = MPCSettings(solver="sqp_hpipm", input_hold="zoh", solver_options=opts)
     assert s.options_of(0) == opts
-    assert s.options_of(1) == {"ipopt": {"tol": 1e-7}}
-    assert s.solver_choices() == [("sqp_hpipm", opts), ("ipopt", {"ipopt": {"tol": 1e-7}})]
+    assert s.options_of(1) == sections
+    assert s.solver_choices() == [("sqp_hpipm", opts), ("ipopt", sections)]
     same = MPCSettings(solver="sqp_hpipm", switching_solver="sqp_hpipm", input_hold="zoh",
                        solver_options=opts)
     assert same.options_of(1) == opts and same.solver_choices() == [("sqp_hpipm", opts)]
+    # a switching sqp_hpipm under mpc.solver = "ipopt": its IPOPT fallback keeps the
+    # user's ipopt section (a review found it dropped)
+    from hmpc_cli.mpc.solver import plugin_options
+
+    mixed = MPCSettings(solver="ipopt", switching_solver="sqp_hpipm", input_hold="zoh",
+                        solver_options={"max_cpu_time": 5.0, **sections})
+    assert mixed.options_of(1) == sections
+    assert plugin_options("ipopt", 5, extra=mixed.options_of(1))["ipopt"]["tol"] == 1e-7
 
 
 def test_an_nlpsol_option_of_sqp_hpipm_runs_beside_its_switching_nlps_ipopt(real_prepare: Path):

@@ -45,8 +45,9 @@ class _LayerState:
     planned: bool = False  # a planner call's schedule was accepted once
     lost_at: float | None = None  # when a contact used up the last usable schedule [s]
     rejected_since: int = 0  # planner calls that found none since then
-    #: the schedule state a replan replaced (schedule, guess, usable, planned, lost_at,
-    #: domain_start), until its solve is charged (None: no replan accepted since)
+    #: the schedule state the last accepted replan replaced (schedule, guess, usable,
+    #: planned, lost_at, domain_start), for its solve's charge (None: none since the
+    #: last planner call, or revoked)
     before_replan: tuple | None = None
     #: the last planner call's /planner/plan, written with its solve (t, reason, result,
     #: accepted, note)
@@ -63,7 +64,7 @@ REVOKED = (" (its schedule dropped with it: the planner's solves did not finish 
            "budget)")
 #: the /planner/plan note of such a replan
 REVOKED_NOTE = ("its MPC solves did not finish within the budget (sim.solve_budget): the "
-                "schedule before it is kept, the planner runs again")
+                "schedule before it, if any, is kept, the planner runs again")
 
 
 class MPCLayers:
@@ -268,13 +269,25 @@ class MPCLayers:
             clock.planner = None
             self._write_planner()
             return
-        start = time.perf_counter()
         try:
-            plan = self._solve_ahead(t, x, mode, reason) if charged else self.mpc.solve(
-                t, x, mode, st.schedule, st.events, st.guess)
+            self._charge_and_log(t, x, mode, reason, charged, note)
         except BaseException:  # stopped (a signal): the planner call is in the log still
             self._write_planner()
             raise
+        clock.planner = None
+        signals.check()
+
+    def _charge_and_log(self, t: float, x: np.ndarray, mode: int, reason: str,
+                        charged: bool, note: str) -> None:
+        """One solve: made, charged, counted, and logged after its planner call's record.
+
+        Dropped over its budget, its solves are stopped there and a replan may be revoked
+        (:meth:`_revoke_replan`).
+        """
+        st, clock = self.st, self.clock
+        start = time.perf_counter()
+        plan = self._solve_ahead(t, x, mode, reason) if charged else self.mpc.solve(
+            t, x, mode, st.schedule, st.events, st.guess)
         compute = time.perf_counter() - start  # the prediction and the solve call
         st.events = []
         self.books.count_solve(t, plan)
@@ -293,8 +306,6 @@ class MPCLayers:
             self._write_planner()
             self.log.mpc_solve(t, plan, reason, self.model, call_time=compute)
             st.plan = plan if plan.adopt else st.plan
-        clock.planner = None
-        signals.check()
 
     def _stop_at_budget(self, stops: list[tuple[Plan, int]]) -> str:
         """Stops the solves of a plan dropped over its budget where the budget ran out.

@@ -48,8 +48,9 @@ def plant_problems(model, system) -> list[str]:
 def check_task(task, name: str, system):
     """``task`` (a system plug-in's), once checked on ``system``'s x0 in its initial mode.
 
-    Its ``failure`` must give a str and its ``verdict`` a Verdict there (both pure
-    functions of the state and mode), so a wrong task fails before the run, not in it.
+    Its ``failure`` must give a str and its ``verdict`` a Verdict there, so a wrong task
+    fails before the run, not in it (``failure`` may follow the run step by step: x0 is
+    where the run starts).
 
     Raises:
         hmpc_cli.core.registry.PluginError: a method is missing, raises or returns

@@ -172,13 +172,15 @@ class MPCSettings(MarginsSettings):
         """``mpc.solver_options`` as the NLP with ``switches`` guard events takes them.
 
         All of them on ``mpc.solver``'s back-end; another back-end (the switching NLP's
-        ``mpc.switching_solver``, or sqp_hpipm's IPOPT) takes its own sections only: the
-        other keys are ``mpc.solver``'s ``nlpsol`` options.
+        ``mpc.switching_solver``, or sqp_hpipm's IPOPT) takes the sections only (its own
+        and its fallback's are picked from them): the other keys are ``mpc.solver``'s
+        ``nlpsol`` options.
         """
         name = self.solver_of(switches)
         if name == self.solver:
             return self.solver_options
-        return split_options(SOLVERS[name], self.solver_options)[1]
+        nlpsol = split_options(SOLVERS[name], self.solver_options)[0]
+        return {k: v for k, v in self.solver_options.items() if k not in nlpsol}
 
     def resolves_on_impact(self) -> bool:
         """``mpc.resolve_on_impact``."""

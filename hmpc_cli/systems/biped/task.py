@@ -26,7 +26,7 @@ class ClimbStairs:
     A fall ends the run: the hip less than ``fall_hip_height`` above the terrain under
     it, a knee, the hip or the torso top below the terrain, or the swing foot tripped:
     more than :data:`ON_SEGMENT` inside the terrain once it has cleared it since its
-    lift-off, or off the ground it lifted off from (where no guard stops it: a stair's
+    lift-off, or off the flat ground it lifted off from (where no guard stops it: a stair's
     riser, or past the stairs' end, where the terrain keeps the top's height). Before it
     clears, over the ground it lifted off from, a foot below it is still on it (a
     scuff, not a trip). Success: no fall and the stance foot on the top segment at the
@@ -88,14 +88,22 @@ class ClimbStairs:
         return ""
 
     def _ground_of(self, x: float) -> tuple[float, float]:
-        """The x range [m] of the flat ground under x: a segment, before 0, past the end."""
+        """The x range [m] of the flat ground under x.
+
+        Its piece (the ground before 0, a segment, past the end) and the neighbours of the
+        same height.
+        """
         terrain = self.system.terrain
-        if x <= 0.0:
-            return (-np.inf, 0.0)
-        if x > terrain.end:
-            return (terrain.end, np.inf)
-        a, b, _ = terrain.segments[terrain.segment_at(x)]
-        return (a, b)
+        pieces = [(-np.inf, 0.0, terrain.ground), *terrain.segments,
+                  (terrain.end, np.inf, terrain.segments[-1][2])]
+        k = 0 if x <= 0.0 else len(pieces) - 1 if x > terrain.end else \
+            1 + terrain.segment_at(x)
+        lo = hi = k
+        while lo > 0 and pieces[lo - 1][2] == pieces[k][2]:
+            lo -= 1
+        while hi < len(pieces) - 1 and pieces[hi + 1][2] == pieces[k][2]:
+            hi += 1
+        return (pieces[lo][0], pieces[hi][1])
 
     def verdict(self, x: np.ndarray, mode: int) -> Verdict:
         """Success iff the stance foot stands on the top segment.
