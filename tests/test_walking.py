@@ -10,7 +10,7 @@ from hmpc_cli.lowlevel import LowLevelController, LowLevelSettings
 from hmpc_cli.core.messages import ModeSchedule, Plan, SolveStats, Trajectory
 from hmpc_cli.mpc.walking.kind import WalkingMPC
 from hmpc_cli.mpc.walking.nlp import WalkingMPCSettings
-from hmpc_cli.planner.footholds import FootholdSettings, candidates, choose
+from hmpc_cli.planner.footholds import FootholdPlanner, FootholdSettings, candidates, choose
 from hmpc_cli.systems.biped import BipedParams, Stair, build_biped, make_biped_model, stair_edges
 
 P = BipedParams()
@@ -254,6 +254,29 @@ def test_choose_keeps_the_largest_final_hip_x_among_successes():
     assert choose([replace(plans[0]), plans[0]], hip_x=hip_x) == 0  # ties keep the first
     with pytest.raises(ValueError, match="max_hip_x criterion needs hip_x"):
         choose(plans)
+
+
+def test_the_foothold_planner_chooses_within_the_candidates_that_finished():
+    """A solve budget stopped some candidates: the best of the finished ones is kept
+    (the budget's anytime choice); none finished: no schedule, and the note says so."""
+    planner = FootholdPlanner(SYS, FootholdSettings(criterion="min_cost"))
+    costs, plans = [5.0, 2.0, 3.0], []
+
+    def solve(schedule):  # the candidates in the order the planner solves them
+        plans.append(replace(_fake(True, 1.0, costs[len(plans)]), schedule=schedule))
+        return plans[-1]
+
+    x = SYS.x0.copy()
+    x[10] = 1.3  # stance x: three candidate segments within reach
+    full = planner.plan(0.2, x, 0, solve)
+    assert len(plans) == 3 and full.schedule is plans[1].schedule
+    cut = planner.within(full, [True, False, True])
+    assert cut.schedule is plans[2].schedule and cut.cost == 3.0 and cut.note == ""
+    assert cut.trajectory is plans[2].traj and cut.detail == full.detail
+    assert cut.mpc_solves == full.mpc_solves
+    none = planner.within(full, [False, False, False])
+    assert none.schedule is None and none.trajectory is None
+    assert none.note == "no candidate solved in time (0 of 3 finished)"
 
 
 def test_walking_mpc_behind_the_contract(mpc):

@@ -23,7 +23,14 @@ SolveFn = Callable[[ModeSchedule], Plan]
 
 
 class Planner(Protocol):
-    """The hybrid MPC: picks the domain/guard sequence (a mode schedule)."""
+    """The hybrid MPC: picks the domain/guard sequence (a mode schedule).
+
+    Optional: ``within(result, finished) -> PlannerResult``, called when
+    ``sim.solve_budget`` stopped some of a call's own MPC solves (``result.mpc_solves``;
+    ``finished[i]``: whether the i-th finished in time): the result the call would have
+    returned with only those. Its schedule replaces the call's (none: the schedule
+    before the call is kept and the planner runs again, as without it).
+    """
 
     def plan(self, t: float, x: np.ndarray, mode: int, solve: SolveFn) -> PlannerResult:
         """Plans from state x (n,) in mode ``mode`` at simulated time t [s].

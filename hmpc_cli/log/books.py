@@ -136,6 +136,13 @@ class RunBooks:
         self.accepted_plans -= 1
         self.last_note = note
 
+    def planner_chosen_within(self, note: str) -> None:
+        """The last planner call chose again among its MPC solves finished in time.
+
+        Still accepted, with ``note``.
+        """
+        self.last_note = note
+
     def count_solve(self, t: float, plan: Plan) -> None:
         """Counts one fixed-mode MPC solve (a planner's candidate solve only once)."""
         st, r = plan.stats, self.result

@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -158,6 +158,25 @@ class FootholdPlanner:
                                  "every candidate failed", detail, solved)
         return PlannerResult(chosen.schedule, chosen.traj, chosen.stats.cost, True, wall,
                              iters, "", detail, solved)
+
+    def within(self, result: PlannerResult, finished: Sequence[bool]) -> PlannerResult:
+        """``result`` had the call stopped with only some candidates solved.
+
+        ``finished[i]``: whether ``result.mpc_solves[i]`` finished in time (a solve time
+        budget stopped the others): the best of those keeps its schedule, the detail
+        still lists every candidate.
+        """
+        plans = [p if done else None
+                 for p, done in zip(result.mpc_solves, finished, strict=True)]
+        best = choose(plans, self.s, self._hip_x)
+        if best is None:
+            return replace(
+                result, schedule=None, trajectory=None, cost=math.nan,
+                reached_final=False, note=f"no candidate solved in time ({sum(finished)} of "
+                                          f"{len(plans)} finished)")
+        chosen = plans[best]
+        return replace(result, schedule=chosen.schedule, trajectory=chosen.traj,
+                       cost=chosen.stats.cost, reached_final=True, note="")
 
     def _candidate(self, guard: int, plan: Plan) -> Candidate:
         """One candidate's row: its solve, planned touchdown and final hip (x, y) [m].

@@ -65,6 +65,13 @@ REVOKED = (" (its schedule dropped with it: the planner's solves did not finish 
 #: the /planner/plan note of such a replan
 REVOKED_NOTE = ("its MPC solves did not finish within the budget (sim.solve_budget): the "
                 "schedule before it, if any, is kept, the planner runs again")
+#: appended to the reason of such a replan whose planner chose again among the solves that
+#: finished (its optional ``within``)
+WITHIN = (" (its schedule chosen again among the planner's {} of {} solves finished within "
+          "the budget)")
+#: the /planner/plan note of that replan
+WITHIN_NOTE = ("{} of its {} MPC solves finished within the budget (sim.solve_budget): "
+               "chosen among those")
 
 
 class MPCLayers:
@@ -232,21 +239,34 @@ class MPCLayers:
             self.log.planner(*record, self.model)
 
     def _revoke_replan(self, stops: list[tuple[Plan, int]]) -> str:
-        """Undoes a dropped replan whose planner's own MPC solves overran the budget.
+        """A dropped replan whose planner's own MPC solves overran the budget.
 
-        The planner's choice was never made in time: the schedule state before the
-        replan comes back, the planner runs again at the solver's next free step, and the
-        call counts as rejected.
+        The planner's choice was never made in time. A planner with the optional
+        ``within`` chooses again among its solves that finished: that schedule replaces
+        the replan's (the plant keeps its plan until the next solve). Without it, or when
+        it finds none, the schedule state before the replan comes back, the planner runs
+        again at the solver's next free step, and the call counts as rejected.
 
         Returns:
-            The note for the dropped solve's reason ('' if nothing was revoked).
+            The note for the dropped solve's reason ('' if the choice stands).
         """
         st, planner = self.st, self.clock.planner
         if planner is None or st.before_replan is None or not planner.mpc_solves:
             return ""
-        own = {id(p) for p in planner.mpc_solves}
-        if all(k >= p.stats.iterations for p, k in stops if id(p) in own):
+        done = {id(p): k >= p.stats.iterations for p, k in stops}
+        finished = [done.get(id(p), True) for p in planner.mpc_solves]
+        if all(finished):
             return ""
+        within = getattr(self.planner, "within", None)
+        result = within(planner, finished) if within is not None else None
+        if result is not None and result.schedule is not None and \
+                not self.mpc.check(result.schedule):
+            st.schedule, st.guess = result.schedule, result.trajectory
+            note = WITHIN_NOTE.format(sum(finished), len(finished))
+            if st.planner_record is not None:
+                st.planner_record = (*st.planner_record[:2], result, True, note)
+            self.books.planner_chosen_within(note)
+            return WITHIN.format(sum(finished), len(finished))
         (st.schedule, st.guess, st.usable, st.planned, st.lost_at,
          st.domain_start) = st.before_replan
         st.before_replan, st.need_replan = None, True
