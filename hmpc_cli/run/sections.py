@@ -75,8 +75,9 @@ class SimSettings(BaseModel):
         None, gt=0.0, description="with a latency: a solve charged more than this [s] is "
         "dropped at t + budget and the previous plan tracked on; the iterate its solver had "
         "reached when the budget ran out warm-starts the next solve; a replan whose planner's "
-        "own MPC solves had not finished then keeps the schedule before it and plans again; "
-        "a planner call that found none stops there too (None: no budget)")
+        "own MPC solves had not all finished then takes the planner's choice among those "
+        "that had (none: keeps the schedule before it and plans again); a planner call "
+        "that found none stops there too (None: no budget)")
     delay_compensation: StrictBool = Field(
         False, description="with a latency: solve from the state the model predicts (w = 0, "
         "through its resets) at the step the plan is expected to reach the plant (after the "
