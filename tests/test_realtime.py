@@ -669,6 +669,20 @@ def test_ipopts_walking_mpc_does_not_climb_with_its_modelled_compute_time(tmp_pa
             assert result.planner_rejected == 4
 
 
+def test_a_solve_never_started_within_the_budget_did_not_finish_whatever_its_iterations():
+    """A replan's own solves finished in time only if their whole charge fitted: one the
+    budget never started did not, even with 0 iterations (a warm start already optimal;
+    a review found such a candidate chosen as finished)."""
+    model = Latency("model", overhead=0.001, per_iteration=0.01, planner=0.02, budget=0.05)
+    a, b, c = _plan(3, 9.0, t0=0.5), _plan(0, 9.0, t0=0.5), _plan(2, 9.0, t0=0.5)
+    # the planner's 0.02 s, a's 0.031 s (over by 0.001 s), b's 0.001 s never started
+    assert model.finished_in_time(b, _planned(7.0, a, b)) == [False, False]
+    assert [k for _, k in model.stopped_solves(b, _planned(7.0, a, b))] == [2, 0]
+    assert model.finished_in_time(a, _planned(7.0, c, a)) == [True, False]  # c: 0.021 s
+    assert Latency("model", per_iteration=0.01).finished_in_time(
+        a, _planned(7.0, c, a)) == [True, True]  # no budget
+
+
 def test_the_budget_stops_each_charged_solve_where_it_ran_out():
     """The iterations each solve had finished when the budget ran out: the model's exact
     count, the solve's mean time per iteration otherwise; a replan's own solves in the
@@ -856,22 +870,34 @@ def test_a_replan_dropped_before_its_planner_finished_chooses_among_its_finished
     cut, summary, flown = _budget_cut_replans(tmp_path)
     assert len(cut) == 3 and flown > 0
     for reason, call in cut:
-        n, m = (int(v) for v in re.match(r"(\d+) of its (\d+) ", call["note"]).groups())
-        assert 1 <= n < m and call["accepted"] is True
-        assert call["note"] == WITHIN_NOTE.format(n, m)
+        n, m, which = re.match(r"(\d+) of its (\d+) .*order they ran: ([\d, ]+)\)",
+                               call["note"]).groups()
+        done = [int(i) - 1 for i in which.split(", ")]
+        assert 1 <= int(n) == len(done) < int(m) and call["accepted"] is True
+        assert call["note"] == WITHIN_NOTE.format(n, m, which)
         assert reason.endswith(WITHIN.format(n, m) + OVER_BUDGET)
+        # the logged choice is a finished candidate's
+        segments = [c["segment"] for c in call["detail"]["candidates"]]
+        assert len(segments) == int(m)
+        assert call["schedule"]["guards"][0] in [segments[i] for i in done]
     assert summary["planner_rejected"] == 0
 
 
+@pytest.mark.parametrize("within", ["none", "not among the finished"])
 def test_a_replan_dropped_before_its_planner_finished_keeps_the_schedule_before_it(
-        tmp_path, monkeypatch):
-    """A planner that cannot choose among its finished solves (no ``within``): the cut
-    replan's schedule is dropped with it (the one before kept, the planner run again, the
-    call rejected in the log and the summary)."""
+        tmp_path, monkeypatch, within):
+    """A planner that cannot choose among its finished solves (no ``within``), or whose
+    ``within`` returns a schedule none of them had: the cut replan's schedule is dropped
+    with it (the one before kept, the planner run again, the call rejected in the log and
+    the summary)."""
     from hmpc_cli.planner.footholds import FootholdPlanner
     from hmpc_cli.run.layers import OVER_BUDGET, REVOKED, REVOKED_NOTE
 
-    monkeypatch.delattr(FootholdPlanner, "within")
+    if within == "none":
+        monkeypatch.delattr(FootholdPlanner, "within")
+    else:  # its choice re-timed: the MPC can solve it, but no finished solve had it
+        monkeypatch.setattr(FootholdPlanner, "within", lambda self, result, finished: replace(
+            result, schedule=replace(result.schedule, durations=(0.123,))))
     cut, summary, flown = _budget_cut_replans(tmp_path)
     assert len(cut) > 10 and flown > 0
     for reason, call in cut:

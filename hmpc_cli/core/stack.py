@@ -28,8 +28,10 @@ class Planner(Protocol):
     Optional: ``within(result, finished) -> PlannerResult``, called when
     ``sim.solve_budget`` stopped some of a call's own MPC solves (``result.mpc_solves``;
     ``finished[i]``: whether the i-th finished in time): the result the call would have
-    returned with only those. Its schedule replaces the call's (none: the schedule
-    before the call is kept and the planner runs again, as without it).
+    returned with only those (``result.iterations``: those they ran within the budget).
+    Its schedule, if it is one of the finished solves' and the MPC can solve it,
+    replaces the call's; otherwise, as without it, the schedule before the call is kept
+    and the planner runs again.
     """
 
     def plan(self, t: float, x: np.ndarray, mode: int, solve: SolveFn) -> PlannerResult:

@@ -439,18 +439,22 @@ class PlannerCall:
             (``replanning.period``) or "retry" (no schedule the MPC can solve is held:
             retried every MPC period).
         accepted: the planner found a schedule and the MPC can solve it (the layers
-            follow it from now on).
-        reached_final: the best candidate reached the final domain (or the target).
-        cost: the best candidate's cost (absent: none, e.g. no candidate succeeded or a
-            planner without a cost).
+            follow it from now on); False also for a replan that ``sim.solve_budget``
+            dropped before the planner's own MPC solves finished, none of them chosen.
+        reached_final: the chosen candidate reached the final domain (or the target).
+        cost: the chosen candidate's cost (absent: none, e.g. no candidate succeeded or
+            a planner without a cost).
         wall_time: the call's measured computation time [s] (a planner's own MPC solves
             included).
-        iterations: iterations run (sampling iterations, or solver iterations summed).
+        iterations: iterations run (sampling iterations, or solver iterations summed;
+            a replan the budget dropped: those its own MPC solves ran within it).
         note: why the schedule was not accepted, then "; previous schedule kept", "; no
             usable schedule (the last one is used up)" or "; no schedule yet" (none was
-            ever accepted) ("": accepted).
+            ever accepted), or why a dropped replan was revoked ("": accepted; a replan
+            the budget dropped, chosen among its MPC solves that finished in time: how
+            many, and which).
         schedule: the planner's schedule, logged even when not accepted (absent: none
-            found).
+            found); a dropped replan chosen among its finished solves: that choice.
         rollout: the best rollout or plan (the MPC's initial guess; empty: none).
         detail: the planner's typed detail, its spec's ``detail`` (absent: none, or the
             planner declares no detail type).

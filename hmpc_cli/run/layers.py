@@ -70,8 +70,8 @@ REVOKED_NOTE = ("its MPC solves did not finish within the budget (sim.solve_budg
 WITHIN = (" (its schedule chosen again among the planner's {} of {} solves finished within "
           "the budget)")
 #: the /planner/plan note of that replan
-WITHIN_NOTE = ("{} of its {} MPC solves finished within the budget (sim.solve_budget): "
-               "chosen among those")
+WITHIN_NOTE = ("{} of its {} MPC solves finished within the budget (sim.solve_budget; "
+               "those in the order they ran: {}): chosen among those")
 
 
 class MPCLayers:
@@ -238,14 +238,18 @@ class MPCLayers:
         if record is not None:
             self.log.planner(*record, self.model)
 
-    def _revoke_replan(self, stops: list[tuple[Plan, int]]) -> str:
+    def _revoke_replan(self, plan: Plan, compute: float,
+                       stops: list[tuple[Plan, int]]) -> str:
         """A dropped replan whose planner's own MPC solves overran the budget.
 
-        The planner's choice was never made in time. A planner with the optional
-        ``within`` chooses again among its solves that finished: that schedule replaces
-        the replan's (the plant keeps its plan until the next solve). Without it, or when
-        it finds none, the schedule state before the replan comes back, the planner runs
-        again at the solver's next free step, and the call counts as rejected.
+        ``plan``: the replan's solve, ``compute`` its call [s]. The planner's choice was
+        never made in time. A planner with the optional ``within`` chooses again among
+        its solves that finished: that schedule, if it is one of theirs and the MPC can
+        solve it, replaces the replan's (the plant keeps its plan until the next solve).
+        Otherwise, or without it, the schedule state before the replan comes back, the
+        planner runs again at the solver's next free step, and the call counts as
+        rejected. Either way the call's record logs the iterations its solves ran within
+        the budget (``stops``).
 
         Returns:
             The note for the dropped solve's reason ('' if the choice stands).
@@ -253,26 +257,32 @@ class MPCLayers:
         st, planner = self.st, self.clock.planner
         if planner is None or st.before_replan is None or not planner.mpc_solves:
             return ""
-        done = {id(p): k >= p.stats.iterations for p, k in stops}
-        finished = [done.get(id(p), True) for p in planner.mpc_solves]
+        finished = self.clock.latency.finished_in_time(plan, planner, compute)
         if all(finished):
             return ""
+        own = {id(p) for p in planner.mpc_solves}
+        ran = dataclasses.replace(
+            planner, iterations=int(sum(k for p, k in stops if id(p) in own)))
         within = getattr(self.planner, "within", None)
-        result = within(planner, finished) if within is not None else None
+        result = within(ran, finished) if within is not None else None
+        kept = [p.schedule for p, done in zip(planner.mpc_solves, finished, strict=True)
+                if done]
         if result is not None and result.schedule is not None and \
+                any(result.schedule is k or result.schedule == k for k in kept) and \
                 not self.mpc.check(result.schedule):
             st.schedule, st.guess = result.schedule, result.trajectory
-            note = WITHIN_NOTE.format(sum(finished), len(finished))
+            note = WITHIN_NOTE.format(len(kept), len(finished), ", ".join(
+                str(i + 1) for i, done in enumerate(finished) if done))
             if st.planner_record is not None:
                 st.planner_record = (*st.planner_record[:2], result, True, note)
             self.books.planner_chosen_within(note)
-            return WITHIN.format(sum(finished), len(finished))
+            return WITHIN.format(len(kept), len(finished))
         (st.schedule, st.guess, st.usable, st.planned, st.lost_at,
          st.domain_start) = st.before_replan
         st.before_replan, st.need_replan = None, True
         st.rejected_since += not st.usable
         if st.planner_record is not None:
-            st.planner_record = (*st.planner_record[:3], False, REVOKED_NOTE)
+            st.planner_record = (*st.planner_record[:2], ran, False, REVOKED_NOTE)
         self.books.planner_revoked(REVOKED_NOTE)
         return REVOKED
 
@@ -317,7 +327,8 @@ class MPCLayers:
             if dropped:  # never reaches the plant: logged not adopted
                 stops = clock.latency.stopped_solves(plan, clock.planner, compute)
                 plan, note = dataclasses.replace(plan, adopt=False), \
-                    note + self._stop_at_budget(stops) + self._revoke_replan(stops) + \
+                    note + self._stop_at_budget(stops) + \
+                    self._revoke_replan(plan, compute, stops) + \
                     OVER_BUDGET
             self._write_planner()
             self.log.mpc_solve(t, plan, reason + note, self.model, latency, compute)

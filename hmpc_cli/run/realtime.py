@@ -183,6 +183,26 @@ class Latency:
             (solve's plan, iterations finished) pairs; empty without a budget or
             ``available``.
         """
+        return [(p, k) for p, k, _ in self._budget_walk(plan, planner, compute, available)]
+
+    def finished_in_time(self, plan: Plan, planner: PlannerResult,
+                         compute: float | None = None) -> list[bool]:
+        """Whether each of ``planner.mpc_solves`` finished within the budget.
+
+        Its whole charge fitted (:meth:`stopped_solves`' order): a solve never started
+        did not finish, whatever its iteration count (0 for a warm start already
+        optimal). All True without a budget.
+        """
+        walk = {id(p): fit for p, _, fit in self._budget_walk(plan, planner, compute)}
+        return [walk.get(id(p), True) for p in planner.mpc_solves]
+
+    def _budget_walk(self, plan: Plan, planner: PlannerResult | None,
+                     compute: float | None, available: float | None = None
+                     ) -> list[tuple[Plan, int, bool]]:
+        """Per charged solve, in the order they ran (:meth:`stopped_solves`).
+
+        (solve's plan, iterations finished, its whole charge fitted).
+        """
         budget = self.budget if available is None else available
         if budget is None:
             return []
@@ -202,14 +222,14 @@ class Latency:
             n = max(int(p.stats.iterations), 0)
             left = budget + GRID_TOL - used
             if cost <= left:
-                out.append((p, n))
+                out.append((p, n, True))
             elif self.kind == "model":
                 fit = [k for k in range(n + 1)
                        if self.solve_cost(_with_iterations(p, k)) <= left]
-                out.append((p, fit[-1] if fit else 0))
+                out.append((p, fit[-1] if fit else 0, False))
             else:
                 out.append((p, min(int(math.floor(n * max(left, 0.0) / cost + 1e-9)), n)
-                            if cost > 0 else 0))
+                            if cost > 0 else 0, False))
             used += cost
         return out
 

@@ -76,7 +76,8 @@ class SimSettings(BaseModel):
         "dropped at t + budget and the previous plan tracked on; the iterate its solver had "
         "reached when the budget ran out warm-starts the next solve; a replan whose planner's "
         "own MPC solves had not all finished then takes the planner's choice among those "
-        "that had (none: keeps the schedule before it and plans again); a planner call "
+        "that had (the planner's optional within; none, or a planner without it: keeps "
+        "the schedule before it and plans again); a planner call "
         "that found none stops there too (None: no budget)")
     delay_compensation: StrictBool = Field(
         False, description="with a latency: solve from the state the model predicts (w = 0, "
