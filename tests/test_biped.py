@@ -384,14 +384,14 @@ def test_a_swing_foot_inside_the_terrain_where_no_guard_stops_it_is_a_fall():
     Once the foot has cleared the terrain since its lift-off (a new stance foot), or has
     left the ground it lifted off from (into a riser), more than 1 mm inside is a fall (a
     trip), as a knee's is; before that, over its lift-off ground, it is a scuff: the foot
-    still on it."""
-    from hmpc_cli.systems.biped.task import ON_SEGMENT, ClimbStairs
+    still on it, down to 1 cm (a run's swing foot dipped 0.169 m so and ran on)."""
+    from hmpc_cli.systems.biped.task import ON_SEGMENT, SCUFF, ClimbStairs
 
     system = build_biped(BipedParams())
     top, end = system.terrain.segments[-1][2], system.terrain.end
     task = ClimbStairs(system, 0.35)
     stance = np.array([end + 0.1, top])
-    assert task._tripped(stance, np.array([end + 0.3, top - 0.01]), top) == ""  # a scuff
+    assert task._tripped(stance, np.array([end + 0.3, top - 0.009]), top) == ""  # a scuff
     assert task._tripped(stance, np.array([end + 0.3, top + 0.02]), top) == ""  # cleared
     reason = task._tripped(stance, np.array([end + 0.3, top - 0.01]), top)
     assert reason == (f"fall: the swing foot is 0.010 m inside the terrain at x = "
@@ -408,5 +408,11 @@ def test_a_swing_foot_inside_the_terrain_where_no_guard_stops_it_is_a_fall():
     stance = np.array([0.0, 0.0])
     assert task._tripped(stance, np.array([-0.2, 0.0]), 0.0) == ""
     assert task._tripped(stance, np.array([0.05, -0.004]), 0.0) == ""
+    # a scuff deeper than SCUFF is the leg driven into the ground: a trip
+    assert SCUFF == 0.01
+    assert task._tripped(stance, np.array([0.05, -0.0099]), 0.0) == ""
+    assert task._tripped(stance, np.array([0.05, -0.169]), 0.0) == (
+        "fall: the swing foot is 0.169 m inside the terrain at x = 0.050 m (no guard "
+        "there: it tripped)")
     # the whole check on a state: x0 stands on the ground with its swing foot on it
     assert ClimbStairs(system, 0.35).failure(system.x0.copy(), 0) == ""

@@ -17,6 +17,11 @@ BODY = ("stance_knee", "hip", "torso_top", "swing_knee")
 #: on the guard's near side, within the event tolerance: |foot velocity| x
 #: sim.event_time_tol, at most 1e-3 of a step)
 ON_SEGMENT = 1e-3
+#: the deepest a swing foot may dip into its lift-off ground before it clears it, still
+#: on it (a scuff) [m]: deeper, the leg is driven into the ground, a trip. Set after the
+#: committed flights' successes (their deepest scuff: 6.6 mm) and a run whose swing
+#: foot dipped 0.169 m without a fall
+SCUFF = 1e-2
 
 
 @dataclass(frozen=True)
@@ -28,9 +33,9 @@ class ClimbStairs:
     more than :data:`ON_SEGMENT` inside the terrain once it has cleared it since its
     lift-off, or off the flat ground it lifted off from (where no guard stops it: a stair's
     riser, or past the stairs' end, where the terrain keeps the top's height). Before it
-    clears, over the ground it lifted off from, a foot below it is still on it (a
-    scuff, not a trip). Success: no fall and the stance foot on the top segment at the
-    end. The reported error is |hip - goal| [m].
+    clears, over the ground it lifted off from, a foot at most :data:`SCUFF` below it is
+    still on it (a scuff, not a trip). Success: no fall and the stance foot on the top
+    segment at the end. The reported error is |hip - goal| [m].
 
     :meth:`failure` follows one run step by step (it keeps the lift-off it saw last).
 
@@ -82,7 +87,7 @@ class ClimbStairs:
             lift[:] = [(float(stance[0]), float(stance[1])), self._ground_of(foot[0]), False]
         lift[2] = lift[2] or depth < -ON_SEGMENT
         lo, hi = lift[1]
-        if depth > ON_SEGMENT and (lift[2] or not lo <= foot[0] <= hi):
+        if depth > SCUFF or depth > ON_SEGMENT and (lift[2] or not lo <= foot[0] <= hi):
             return (f"fall: the swing foot is {depth:.3f} m inside the terrain at x = "
                     f"{foot[0]:.3f} m (no guard there: it tripped)")
         return ""
