@@ -412,7 +412,7 @@ def test_a_swing_foot_inside_the_terrain_where_no_guard_stops_it_is_a_fall():
     assert SCUFF == 0.01
     assert task._tripped(stance, np.array([0.05, -0.0099]), 0.0) == ""
     assert task._tripped(stance, np.array([0.05, -0.169]), 0.0) == (
-        "fall: the swing foot is 0.169 m inside the terrain at x = 0.050 m (no guard "
-        "there: it tripped)")
+        "fall: the swing foot is 0.169 m inside the terrain at x = 0.050 m (driven into the "
+        "ground it lifted off from before clearing it, deeper than 0.01 m: it tripped)")
     # the whole check on a state: x0 stands on the ground with its swing foot on it
     assert ClimbStairs(system, 0.35).failure(system.x0.copy(), 0) == ""

@@ -81,15 +81,22 @@ class ClimbStairs:
                              float(ground[names.index("swing_foot")]))
 
     def _tripped(self, stance: np.ndarray, foot: np.ndarray, ground: float) -> str:
-        """A swing foot inside the terrain where it is no longer on its lift-off ground."""
+        """A swing foot inside the terrain off its lift-off ground, or deep in it.
+
+        Off it: cleared since its lift-off, or moved past its ends; deep: more than
+        :data:`SCUFF` below it before clearing it.
+        """
         lift, depth = self._lift, ground - float(foot[1])
         if lift[0] != (float(stance[0]), float(stance[1])):  # a new stance: a lift-off
             lift[:] = [(float(stance[0]), float(stance[1])), self._ground_of(foot[0]), False]
         lift[2] = lift[2] or depth < -ON_SEGMENT
         lo, hi = lift[1]
-        if depth > SCUFF or depth > ON_SEGMENT and (lift[2] or not lo <= foot[0] <= hi):
-            return (f"fall: the swing foot is {depth:.3f} m inside the terrain at x = "
-                    f"{foot[0]:.3f} m (no guard there: it tripped)")
+        where = f"fall: the swing foot is {depth:.3f} m inside the terrain at x = {foot[0]:.3f} m"
+        if depth > ON_SEGMENT and (lift[2] or not lo <= foot[0] <= hi):
+            return f"{where} (no guard there: it tripped)"
+        if depth > SCUFF:
+            return (f"{where} (driven into the ground it lifted off from before clearing "
+                    f"it, deeper than {SCUFF:g} m: it tripped)")
         return ""
 
     def _ground_of(self, x: float) -> tuple[float, float]:
