@@ -18,9 +18,9 @@ BODY = ("stance_knee", "hip", "torso_top", "swing_knee")
 #: sim.event_time_tol, at most 1e-3 of a step)
 ON_SEGMENT = 1e-3
 #: the deepest a swing foot may dip into its lift-off ground before it clears it, still
-#: on it (a scuff) [m]: deeper, the leg is driven into the ground, a trip. Set after the
-#: committed flights' successes (their deepest scuff: 6.6 mm) and a run whose swing
-#: foot dipped 0.169 m without a fall
+#: on it (a scuff) [m]: deeper, the leg is driven into the ground, a trip. Set after
+#: runs that dipped the swing foot 0.169 m (a fall later) and 0.10 m (counted a success)
+#: so; biped_push's successes scuff at most 6.6 mm
 SCUFF = 1e-2
 
 
