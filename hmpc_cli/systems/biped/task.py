@@ -91,13 +91,15 @@ class ClimbStairs:
             lift[:] = [(float(stance[0]), float(stance[1])), self._ground_of(foot[0]), False]
         lift[2] = lift[2] or depth < -ON_SEGMENT
         lo, hi = lift[1]
-        where = f"fall: the swing foot is {depth:.3f} m inside the terrain at x = {foot[0]:.3f} m"
         if depth > ON_SEGMENT and (lift[2] or not lo <= foot[0] <= hi):
-            return f"{where} (no guard there: it tripped)"
-        if depth > SCUFF:
-            return (f"{where} (driven into the ground it lifted off from before clearing "
-                    f"it, deeper than {SCUFF:g} m: it tripped)")
-        return ""
+            why = "no guard there"
+        elif depth > SCUFF:
+            why = (f"driven into the ground it lifted off from before clearing it, deeper "
+                   f"than {SCUFF:g} m")
+        else:  # every simulator step: no message built
+            return ""
+        return (f"fall: the swing foot is {depth:.3f} m inside the terrain at x = "
+                f"{foot[0]:.3f} m ({why}: it tripped)")
 
     def _ground_of(self, x: float) -> tuple[float, float]:
         """The x range [m] of the flat ground under x.
