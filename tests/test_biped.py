@@ -393,16 +393,20 @@ def test_a_swing_foot_inside_the_terrain_where_no_guard_stops_it_is_a_fall():
     stance = np.array([end + 0.1, top])
     assert task._tripped(stance, np.array([end + 0.3, top - 0.009]), top) == ""  # a scuff
     assert task._tripped(stance, np.array([end + 0.3, top + 0.02]), top) == ""  # cleared
-    reason = task._tripped(stance, np.array([end + 0.3, top - 0.01]), top)
-    assert reason == (f"fall: the swing foot is 0.010 m inside the terrain at x = "
-                      f"{end + 0.3:.3f} m (no guard there: it tripped)")
+    reason = task._tripped(stance, np.array([end + 0.3, top - 0.0105]), top)
+    assert reason == (f"fall: the swing foot is 10.50 mm inside the terrain at x = "
+                      f"{end + 0.3:.3f} m (no guard there, deeper than 1 mm: it tripped)")
+    # in mm to 0.01 mm: a depth just past the bound reads past it (in m to 1 mm it read
+    # "0.001 m", at the bound)
+    assert task._tripped(stance, np.array([end + 0.3, top - 0.00104]), top).startswith(
+        "fall: the swing foot is 1.04 mm inside")
     assert task._tripped(stance, np.array([end + 0.3, top - ON_SEGMENT / 2]), top) == ""
     # a new stance foot on the first segment [0, 0.4]: the swing foot drags into the
     # riser of the second (0.075 m high) before it ever cleared the ground
     stance = np.array([0.3, 0.0])
     assert task._tripped(stance, np.array([0.35, -0.004]), 0.0) == ""  # a scuff
     assert task._tripped(stance, np.array([0.41, 0.07]), 0.075).startswith(
-        "fall: the swing foot is 0.005 m inside the terrain at x = 0.410 m")
+        "fall: the swing foot is 5.00 mm inside the terrain at x = 0.410 m (no guard there")
     # lifted off the ground before x = 0: the first segment is the same flat ground, so a
     # scuff over it is no trip (a review found it one)
     stance = np.array([0.0, 0.0])
@@ -412,7 +416,9 @@ def test_a_swing_foot_inside_the_terrain_where_no_guard_stops_it_is_a_fall():
     assert SCUFF == 0.01
     assert task._tripped(stance, np.array([0.05, -0.0099]), 0.0) == ""
     assert task._tripped(stance, np.array([0.05, -0.169]), 0.0) == (
-        "fall: the swing foot is 0.169 m inside the terrain at x = 0.050 m (driven into the "
-        "ground it lifted off from before clearing it, deeper than 0.01 m: it tripped)")
+        "fall: the swing foot is 169.00 mm inside the terrain at x = 0.050 m (driven into the "
+        "ground it lifted off from before clearing it, deeper than 10 mm: it tripped)")
+    assert task._tripped(stance, np.array([0.05, -0.01001]), 0.0).startswith(
+        "fall: the swing foot is 10.01 mm inside")
     # the whole check on a state: x0 stands on the ground with its swing foot on it
     assert ClimbStairs(system, 0.35).failure(system.x0.copy(), 0) == ""

@@ -659,8 +659,9 @@ def test_ipopts_walking_mpc_does_not_climb_with_its_modelled_compute_time(tmp_pa
         result = run_to_log(prepare(sc), log)
         assert result.success is False, result.reason
         if past == "next_domain":
-            assert result.reason == ("fall: the swing foot is 0.015 m inside the terrain "
-                                     "at x = 1.600 m (no guard there: it tripped)")
+            assert result.reason == ("fall: the swing foot is 14.60 mm inside the terrain "
+                                     "at x = 1.600 m (no guard there, deeper than 1 mm: "
+                                     "it tripped)")
             plans = [m.data for m in read_log(log).topic("/planner/plan")]
             assert [p["accepted"] for p in plans] == [True] * 3 + [False] + [True] * 3 + \
                 [False, False, True, False]

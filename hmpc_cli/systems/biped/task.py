@@ -92,13 +92,14 @@ class ClimbStairs:
         lift[2] = lift[2] or depth < -ON_SEGMENT
         lo, hi = lift[1]
         if depth > ON_SEGMENT and (lift[2] or not lo <= foot[0] <= hi):
-            why = "no guard there"
+            why = f"no guard there, deeper than {ON_SEGMENT * 1e3:g} mm"
         elif depth > SCUFF:
             why = (f"driven into the ground it lifted off from before clearing it, deeper "
-                   f"than {SCUFF:g} m")
+                   f"than {SCUFF * 1e3:g} mm")
         else:  # every simulator step: no message built
             return ""
-        return (f"fall: the swing foot is {depth:.3f} m inside the terrain at x = "
+        # in mm to 0.01 mm: a depth just past either bound reads past it
+        return (f"fall: the swing foot is {depth * 1e3:.2f} mm inside the terrain at x = "
                 f"{foot[0]:.3f} m ({why}: it tripped)")
 
     def _ground_of(self, x: float) -> tuple[float, float]:
