@@ -15,6 +15,9 @@ from pathlib import Path
 import pytest
 import typer.testing
 
+# first: NumPy's BLAS kernels pinned before a test module loads NumPy (hmpc_cli.core.blas)
+import hmpc_cli  # noqa: F401
+
 REPO = Path(__file__).resolve().parents[1]
 # compiled rollout kernels of this test session go to a private cache (inherited by the
 # ``hmpc`` subprocesses), never to the user's ~/.cache/hmpc

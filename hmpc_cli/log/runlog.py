@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hmpc_cli import __version__
+from hmpc_cli.core.blas import kernels
 from hmpc_cli.core.hybrid import HybridSystem
 from hmpc_cli.core.machine import cpu_model
 from hmpc_cli.core.source import source_commit
@@ -63,7 +64,7 @@ def versions() -> dict[str, str]:
     return {"hmpc": __version__, "python": sys.version.split()[0], "numpy": np.__version__,
             "casadi": casadi.__version__, "pydantic": pydantic.__version__,
             "mcap": getattr(mcap, "__version__", "?"), "platform": platform.platform(),
-            "cpu": cpu_model(), "source": source_commit()}
+            "cpu": cpu_model(), "source": source_commit(), "blas": kernels()}
 
 
 @dataclass

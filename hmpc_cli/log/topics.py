@@ -65,6 +65,10 @@ class Versions:
             when a tracked file differed from it (``" (modified: unknown)"``: git could
             not compare them; "": not run from a git checkout, or git could not tell;
             absent in older logs).
+        blas: NumPy's OpenBLAS kernels, e.g. "Haswell (OPENBLAS_CORETYPE=Haswell)": hmpc
+            pins them on x86-64 CPUs with AVX2 and FMA, so that those machines compute the
+            same bits (:mod:`hmpc_cli.core.blas`; "": NumPy's BLAS does not say; absent in
+            older logs).
     """
 
     hmpc: str
@@ -76,6 +80,7 @@ class Versions:
     platform: str
     cpu: str = ""
     source: str = ""
+    blas: str = ""
 
 
 @dataclass(frozen=True)
