@@ -165,6 +165,34 @@ def test_fig4_is_legible_at_one_column(short_walk, tmp_path, width, height):
     assert len(f4._snapshots(walk, 0.1)) >= 5
 
 
+def test_fig4_draws_the_terrain_past_the_end_at_the_tops_height(short_walk):
+    """Past the last segment's end the terrain keeps the top's height (no guard there):
+    Figure 4 drew a drop there and cut the view at the end, so a walker that went on was
+    drawn off the plot, over no ground."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    from hmpc_cli.figures import fig4 as f4
+
+    walk = load_walk(short_walk / "run.mcap")
+    end, top = walk.stairs[-1][1], walk.stairs[-1][2]
+    # the same walk carried 1 m past the end, 0.3 m up
+    far = f4.WalkLog(**{**walk.__dict__, "points": walk.points + [end + 1.0, top]})
+    ax = Figure().add_subplot()
+    x_min, x_max, y_min = f4._draw_terrain(ax, far)
+    assert x_max == pytest.approx(float(far.points[:, :, 0].max()) + 0.05)
+    profile, past = ax.lines
+    assert min(profile.get_ydata()) == walk.ground_height  # no drop below the ground
+    assert list(profile.get_xdata()[-1:]) == [end] and profile.get_ydata()[-1] == top
+    assert list(past.get_xdata()) == [end, x_max] and list(past.get_ydata()) == [top, top]
+    assert past.get_linestyle() == ":"
+    assert y_min == pytest.approx(walk.ground_height - 0.02)
+    # a walk that stays on the stairs: the view ends 5 cm past the end, as before
+    assert f4._draw_terrain(Figure().add_subplot(), walk)[1] == pytest.approx(end + 0.05)
+
+
 @pytest.mark.slow
 def test_plot_fig4_command_writes_the_gif_and_rejects_a_ball_log(short_walk, tmp_path,
                                                                   run_hmpc, full_run):

@@ -149,14 +149,24 @@ def _outcome(run) -> tuple[bool | None, str]:
     return bool(run.summary.success), run.summary.reason
 
 
-def _stairs_xy(walk: WalkLog, x_min: float) -> tuple[list[float], list[float]]:
+def _draw_terrain(ax, walk: WalkLog) -> tuple[float, float, float]:
+    """The terrain's profile under the walk, dotted past the last segment's end.
+
+    Past the end the terrain keeps the top's height, with no guard there.
+
+    Returns:
+        x_min, x_max, y_min [m]: the limits that hold the terrain and every body point.
+    """
+    x_min = min(-0.2, float(walk.points[:, :, 0].min()) - 0.05)
+    end, top = walk.stairs[-1][1], walk.stairs[-1][2]
+    x_max = max(end, float(walk.points[:, :, 0].max())) + 0.05
     xs, ys = [x_min, 0.0], [walk.ground_height, walk.ground_height]
     for a, b, h in walk.stairs:
         xs += [a, b]
         ys += [h, h]
-    xs.append(walk.stairs[-1][1])
-    ys.append(walk.ground_height - 0.05)
-    return xs, ys
+    ax.plot(xs, ys, color=STAIR_COLOR, lw=1.0)
+    ax.plot([end, x_max], [top, top], color=STAIR_COLOR, lw=1.0, ls=":")
+    return x_min, x_max, min(*ys, float(walk.points[:, :, 1].min())) - 0.02
 
 
 def _draw_stick(ax, pts: np.ndarray, skeleton: list[list[int]], color, lw: float = 0.8
@@ -189,16 +199,14 @@ def _draw_walk(ax, walk: WalkLog, every: float, cmap, norm) -> None:
     for k in _snapshots(walk, every):
         _draw_stick(ax, walk.points[k], walk.skeleton, cmap(norm(walk.t[k])))
     ax.plot(walk.hip[:, 0], walk.hip[:, 1], color="0.4", lw=0.5, ls="--", label="hip path")
-    x_min = min(-0.2, float(walk.points[:, :, 0].min()) - 0.05)
-    sx, sy = _stairs_xy(walk, x_min)
-    ax.plot(sx, sy, color=STAIR_COLOR, lw=1.0)
+    x_min, x_max, y_min = _draw_terrain(ax, walk)
     if walk.contacts:
         ax.plot([c[2] for c in walk.contacts], [c[3] for c in walk.contacts], "v",
                 color=CONTACT_COLOR, ms=3.5, label="touchdown")
     ax.set_aspect("equal")
-    ax.set_xlim(x_min, walk.stairs[-1][1] + 0.05)
+    ax.set_xlim(x_min, x_max)
     # headroom above the tallest pose for the legend
-    ax.set_ylim(min(sy) - 0.02, float(walk.points[:, :, 1].max()) + 0.3)
+    ax.set_ylim(y_min, float(walk.points[:, :, 1].max()) + 0.3)
     ax.set_xlabel("$x$ (m)")
     ax.set_ylabel("$y$ (m)")
     verdict = {True: "success", False: "failed", None: "unfinished"}[walk.success]
@@ -294,12 +302,10 @@ def animate_walk(log: str | Path | WalkLog, out_path: str | Path, fps: int = 25,
         import matplotlib.pyplot as plt
 
         fig, ax = plt.subplots(figsize=(width, height))
-        x_min = min(-0.2, float(walk.points[:, :, 0].min()) - 0.05)
-        sx, sy = _stairs_xy(walk, x_min)
-        ax.plot(sx, sy, color=STAIR_COLOR, lw=1.0)
+        x_min, x_max, y_min = _draw_terrain(ax, walk)
         ax.set_aspect("equal")
-        ax.set_xlim(x_min, walk.stairs[-1][1] + 0.05)
-        ax.set_ylim(min(sy) - 0.02, float(walk.points[:, :, 1].max()) + 0.08)
+        ax.set_xlim(x_min, x_max)
+        ax.set_ylim(y_min, float(walk.points[:, :, 1].max()) + 0.08)
         legs, = ax.plot([], [], color=LINK_COLOR, lw=1.5)
         torso, = ax.plot([], [], color=LINK_COLOR, lw=2.2)
         trail, = ax.plot([], [], color="0.5", lw=0.5, ls="--")
