@@ -17,6 +17,7 @@ from __future__ import annotations
 import ctypes
 import os
 import platform
+import sys
 
 #: the OpenBLAS kernels hmpc pins on an x86-64 CPU with AVX2 and FMA
 PINNED = "Haswell"
@@ -24,6 +25,9 @@ PINNED = "Haswell"
 NEEDS = frozenset({"avx", "avx2", "fma"})
 #: the environment variable OpenBLAS reads its kernels from when it loads
 VARIABLE = "OPENBLAS_CORETYPE"
+
+#: whether NumPy was loaded when this process set the variable (empty: it did not set it)
+_late: list[bool] = []
 
 def _cpu_flags() -> frozenset[str]:
     """The CPU's flags from /proc/cpuinfo (empty where there is none)."""
@@ -51,6 +55,7 @@ def pin_kernels() -> None:
     if not _cpu_flags() >= NEEDS:
         return
     os.environ[VARIABLE] = PINNED
+    _late.append("numpy" in sys.modules)
 
 
 def _core_names() -> list[str]:
@@ -81,8 +86,9 @@ def kernels() -> str:
 
     E.g. ``"Haswell (OPENBLAS_CORETYPE=Haswell)"``, ``"SkylakeX"`` (unset: OpenBLAS chose
     by the CPU), ``"SkylakeX (OPENBLAS_CORETYPE=Haswell not applied: NumPy loaded its
-    kernels before it was set)"``, or ``""`` where NumPy's BLAS does not say (not
-    OpenBLAS, or no /proc).
+    kernels before hmpc set it)"``, or ``""`` where NumPy's BLAS does not say (not
+    OpenBLAS, or no /proc). OpenBLAS names some kernel sets after others (``Zen`` runs
+    ``Haswell``'s).
     """
     import numpy  # noqa: F401  (loads its BLAS)
 
@@ -92,7 +98,7 @@ def kernels() -> str:
     name, wanted = names[0], os.environ.get(VARIABLE, "")
     if not wanted:
         return name
-    if name.lower() == wanted.lower():
-        return f"{name} ({VARIABLE}={wanted})"
-    return (f"{name} ({VARIABLE}={wanted} not applied: NumPy loaded its kernels before it "
-            "was set)")
+    if _late and _late[-1]:
+        return (f"{name} ({VARIABLE}={wanted} not applied: NumPy loaded its kernels before "
+                "hmpc set it)")
+    return f"{name} ({VARIABLE}={wanted})"
