@@ -240,6 +240,7 @@ def test_results_page_figure_4_section(short_walk, tmp_path):
 
 @pytest.mark.slow
 def test_a_biped_sweep_reuses_one_nlp_per_worker(tmp_path):
+    from hmpc_cli.mpc import kernels
     from hmpc_cli.run import compose
     from hmpc_cli.sweep.execute import execute_sweep
     from hmpc_cli.sweep.plan import plan_sweep
@@ -252,6 +253,9 @@ def test_a_biped_sweep_reuses_one_nlp_per_worker(tmp_path):
     outcome = execute_sweep(plan_sweep(sweep), tmp_path / "out", workers=1)
     assert outcome.done == 4 and not outcome.lost
     assert len(compose._PROBLEMS) == 1  # one walking NLP served all four runs
+    # its runs waited for their kernels' compiles; this process's later builds do not
+    # (they did: every later test's NLP of other kernels waited for the compiler)
+    assert kernels._WAIT is False
     import csv
 
     with open(tmp_path / "out" / "results.csv", newline="") as f:

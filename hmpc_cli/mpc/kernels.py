@@ -112,6 +112,22 @@ def wait_for_compiles() -> None:
     _WAIT = True
 
 
+@contextlib.contextmanager
+def waits_restored():
+    """Within: :func:`wait_for_compiles` holds; after: the process waits as it did before.
+
+    For a sweep run in a process that goes on after it (``hmpc sweep --workers 1``, a
+    script's or a test's :func:`~hmpc_cli.sweep.execute.execute_sweep`): its later NLP
+    builds compile their kernels in the background again, not waiting for the compiler.
+    """
+    global _WAIT
+    before = _WAIT
+    try:
+        yield
+    finally:
+        _WAIT = before
+
+
 def _ready(path: Path, k: str) -> bool:
     """Whether ``path`` is a verified library recorded for key ``k``."""
     return cbuild.verified(path) and cbuild.recorded(path)[2:3] == [k]

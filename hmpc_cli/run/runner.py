@@ -7,6 +7,7 @@ NLPs are built once per process per (system, MPC settings) by :func:`hmpc_cli.ru
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -188,6 +189,19 @@ def run_scenario(scenario, toml_text: str, out: Path,
 
 # ------------------------------------------------------------------ a sweep's run
 _LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def runs_in_this_process():
+    """Where :func:`run_one` runs in a process that goes on after its runs.
+
+    A sweep's runs in the caller's own process: within, they wait for their kernels'
+    compiles; after, the process's NLP builds compile them in the background again.
+    """
+    from hmpc_cli.mpc import kernels
+
+    with kernels.waits_restored():
+        yield
 
 
 def run_one(toml_text: str, run_dir: str, provenance=None) -> dict:

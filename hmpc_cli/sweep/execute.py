@@ -19,7 +19,7 @@ from pathlib import Path
 
 from hmpc_cli.core import signals
 from hmpc_cli.core.paths import write_atomic
-from hmpc_cli.run.runner import run_one
+from hmpc_cli.run.runner import run_one, runs_in_this_process
 from hmpc_cli.sweep.plan import Run, SweepPlan
 from hmpc_cli.sweep.pool import run_pool
 from hmpc_cli.sweep.table import (finished_runs, is_interrupted, made_otherwise, toml_value,
@@ -106,8 +106,9 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
 
             run_on_dask(client, pending, out, record, res.lost, prov)
         elif workers <= 1 or len(pending) <= 1:
-            for run in pending:
-                record(run, run_one(run.toml, str(out / "runs" / run.run_id), prov(run)))
+            with runs_in_this_process():
+                for run in pending:
+                    record(run, run_one(run.toml, str(out / "runs" / run.run_id), prov(run)))
         else:
             run_pool(min(workers, len(pending)), pending, out, record,
                      lambda run, signum: res.lost.append(_worker_died(run, out, signum)),
