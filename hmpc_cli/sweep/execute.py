@@ -101,18 +101,7 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
         return run_provenance(plan, run, command)
 
     try:
-        if client is not None:
-            from hmpc_cli.sweep.dask import run_on_dask
-
-            run_on_dask(client, pending, out, record, res.lost, prov)
-        elif workers <= 1 or len(pending) <= 1:
-            with runs_in_this_process():
-                for run in pending:
-                    record(run, run_one(run.toml, str(out / "runs" / run.run_id), prov(run)))
-        else:
-            run_pool(min(workers, len(pending)), pending, out, record,
-                     lambda run, signum: res.lost.append(_worker_died(run, out, signum)),
-                     prov)
+        _dispatch(pending, out, workers, client, record, res.lost, prov)
     except KeyboardInterrupt as exc:
         res.interrupted = True
         res.signum = signals.as_interrupted(exc).signum
@@ -120,6 +109,26 @@ def execute_sweep(plan: SweepPlan, out: Path, workers: int = 1, client=None,
         tabled = set(write_results(plan, out))
         res.done = sum(r.run_id in tabled for r in selected)
     return res
+
+
+def _dispatch(pending: list[Run], out: Path, workers: int, client,
+              record: Callable[[Run, dict | None], None], lost: list[str],
+              prov: Callable) -> None:
+    """Runs ``pending`` on Dask ``client``, in this process, or in a pool of ``workers``.
+
+    ``record(run, summary)`` takes each result; ``lost`` gets the runs whose worker died.
+    """
+    if client is not None:
+        from hmpc_cli.sweep.dask import run_on_dask
+
+        run_on_dask(client, pending, out, record, lost, prov)
+    elif workers <= 1 or len(pending) <= 1:
+        with runs_in_this_process():
+            for run in pending:
+                record(run, run_one(run.toml, str(out / "runs" / run.run_id), prov(run)))
+    else:
+        run_pool(min(workers, len(pending)), pending, out, record,
+                 lambda run, signum: lost.append(_worker_died(run, out, signum)), prov)
 
 
 #: the files a run that killed its worker twice leaves in its directory
