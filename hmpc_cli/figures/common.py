@@ -178,13 +178,20 @@ def save_figure(fig: Any, out_dir: Path, stem: str, formats: Iterable[str],
     Raises:
         FigureInputError: a file cannot be written.
     """
+    from matplotlib.layout_engine import PlaceHolderLayoutEngine
+
     from hmpc_cli.core.paths import atomic_file
 
     formats = list(formats)  # read twice
     check_outputs(out_dir, (f"{stem}.{fmt}" for fmt in formats))
     paths = []
-    # each format drawn from the same layout: a draw moves fixed-aspect axes under a
-    # layout engine, so a PNG saved after the PDF differed from one saved alone
+    # the layout engine run once (each savefig ran it again), every format drawn with its
+    # layout and from the same axes' positions: a draw moves fixed-aspect axes, so a PNG
+    # saved after the PDF differed from one saved alone
+    engine = fig.get_layout_engine()
+    if engine is not None and not isinstance(engine, PlaceHolderLayoutEngine):
+        engine.execute(fig)
+        fig.set_layout_engine("none")
     start = [(ax, ax.get_position(original=True).frozen(), ax.get_position().frozen())
              for ax in fig.get_axes()]
     try:
@@ -199,6 +206,8 @@ def save_figure(fig: Any, out_dir: Path, stem: str, formats: Iterable[str],
     except OSError as exc:
         raise FigureInputError(f"{out_dir}: cannot write the figure ({exc})") from None
     finally:
+        if engine is not None:
+            fig.set_layout_engine(engine)
         if close and getattr(fig.canvas, "manager", None) is not None:
             import matplotlib.pyplot as plt  # only pyplot figures have a manager
 
