@@ -734,3 +734,24 @@ def test_an_nlpsol_option_of_sqp_hpipm_runs_beside_its_switching_nlps_ipopt(real
         "--set", "mpc.solver_options={tol_pr=1e-6}", "--set", "sim.duration=0.05"])
     assert res.exit_code == 0, res.output
     assert (real_prepare / "out" / "run.mcap").is_file()
+
+
+def test_a_linear_solver_probe_that_crashes_its_process_is_reported_and_the_rest_probed(
+        monkeypatch: pytest.MonkeyPatch):
+    """The linear solvers are probed in one child process; one that takes the process down
+    (an HSL stub may) is reported as such and those after it are probed in a new one."""
+    from hmpc_cli.mpc import solver
+
+    crashing = solver._CHILD.replace(
+        "for plugin, opts in json.loads(sys.argv[1]):\n",
+        "for plugin, opts in json.loads(sys.argv[1]):\n"
+        "    if opts.get('crash'):\n        import os; os._exit(7)\n")
+    assert crashing != solver._CHILD
+    monkeypatch.setattr(solver, "_CHILD", crashing)
+    good, bad = ("ipopt", {"ipopt": {"max_iter": 5}}), ("ipopt", {"crash": True})
+    unknown = ("ipopt", {"ipopt": {"max_iterr": 5}})
+    found = solver._probe_isolated([good, bad, unknown, bad, good])
+    assert found[0] is None and found[4] is None
+    assert found[1] == found[3] == "the solver process crashed (exit 7)"
+    assert found[2] == "Error calling IpoptInterface::finalize for 'probe': No such IPOPT " \
+        "option: max_iterr"

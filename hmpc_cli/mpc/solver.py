@@ -610,13 +610,14 @@ def _with_solver(opts: dict, solver: str) -> dict:
 _CHILD = """
 import json, sys
 from hmpc_cli.mpc.solver import _probe
-plugin, opts = json.loads(sys.argv[1])
-print(json.dumps(_probe(plugin, opts)))
+for plugin, opts in json.loads(sys.argv[1]):
+    print("probe:", json.dumps(_probe(plugin, opts)), flush=True)
 """
 
 
 def _probe_isolated(cases: list[tuple[str, dict]]) -> list[str | None]:
-    """:func:`_probe` of each case in its own child process (in parallel)."""
+    """:func:`_probe` of each case, in order, in a child process: one for them all, and a
+    new one for those after a case that crashes its process (some HSL stubs do)."""
     import json
     import os
     import subprocess
@@ -624,16 +625,16 @@ def _probe_isolated(cases: list[tuple[str, dict]]) -> list[str | None]:
 
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
         [str(Path(__file__).resolve().parents[2]), os.environ.get("PYTHONPATH", "")])}
-    procs = [subprocess.Popen([sys.executable, "-c", _CHILD, json.dumps(case)], env=env,
-                              stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-             for case in cases]
-    out = []
-    for proc in procs:
-        stdout, _ = proc.communicate()
-        if proc.returncode:
+    out: list[str | None] = []
+    while len(out) < len(cases):
+        proc = subprocess.run([sys.executable, "-c", _CHILD, json.dumps(cases[len(out):])],
+                              env=env, capture_output=True, text=True, check=False)
+        out += [json.loads(line.removeprefix("probe:")) for line in proc.stdout.splitlines()
+                if line.startswith("probe:")][: len(cases) - len(out)]
+        if len(out) < len(cases) and proc.returncode:  # the next case took the process down
             out.append(f"the solver process crashed (exit {proc.returncode})")
-        else:
-            out.append(json.loads(stdout.strip().splitlines()[-1]))
+        elif len(out) < len(cases):
+            raise RuntimeError(f"the solver probe process ended early: {proc.stderr[-500:]}")
     return out
 
 
