@@ -616,8 +616,11 @@ for plugin, opts in json.loads(sys.argv[1]):
 
 
 def _probe_isolated(cases: list[tuple[str, dict]]) -> list[str | None]:
-    """:func:`_probe` of each case, in order, in a child process: one for them all, and a
-    new one for those after a case that crashes its process (some HSL stubs do)."""
+    """:func:`_probe` of each case, in order, in child processes.
+
+    One child probes them all; a case that crashes its process (some HSL stubs do) is
+    reported so and the cases after it go to a new one.
+    """
     import json
     import os
     import subprocess
