@@ -146,6 +146,39 @@ def run_hmpc():
     return _run_hmpc
 
 
+def _invoke_hmpc(args: list[str], cwd: Path, timeout: float | None = None
+                 ) -> subprocess.CompletedProcess:
+    """Runs ``hmpc ARGS`` in this process from ``cwd`` (Typer's runner, the terminal of
+    :func:`cli_env`); its exit code and output as a CompletedProcess. An exception the
+    command does not turn into an exit code fails the test with its traceback."""
+    from typer.testing import CliRunner
+
+    from hmpc_cli.cli.app import app
+
+    del timeout  # the signature of run_hmpc's
+    here, argv = os.getcwd(), sys.argv
+    os.chdir(cwd)
+    sys.argv = [*hmpc_command()[-1:], *args]  # the command line the logs and pages record
+    try:
+        res = CliRunner().invoke(app, args, env={"COLUMNS": "200", "NO_COLOR": "1",
+                                                 "TERM": "dumb"})
+    finally:
+        os.chdir(here)
+        sys.argv = argv
+    if res.exception is not None and not isinstance(res.exception, SystemExit):
+        raise res.exception
+    return subprocess.CompletedProcess(args, res.exit_code, res.stdout, res.stderr)
+
+
+@pytest.fixture(scope="session")
+def invoke_hmpc():
+    """``invoke_hmpc(args, cwd)``: the command line in this process, for tests of what a
+    command writes and says, not of its process (exit by signal, a second process, the
+    console script): it costs no interpreter start and no import, and shares this
+    process's built NLPs."""
+    return _invoke_hmpc
+
+
 @pytest.fixture(scope="session")
 def start_hmpc():
     """``start_hmpc(args, cwd)``: like run_hmpc but returns the running Popen."""

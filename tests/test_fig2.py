@@ -21,10 +21,10 @@ TOL = 1e-6  # the solver's tolerance (1e-8) with room for the logged rounding
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory, run_hmpc):
+def run(tmp_path_factory, invoke_hmpc):
     """A short nominal ball run through the real command line (its directory)."""
     base = tmp_path_factory.mktemp("fig2_run")
-    proc = run_hmpc(["run", str(BALL), "--set", "sim.duration=0.3", "--out",
+    proc = invoke_hmpc(["run", str(BALL), "--set", "sim.duration=0.3", "--out",
                      str(base / "run"), "-q"], cwd=base)
     assert proc.returncode == 0, proc.stderr
     return base / "run"
@@ -42,14 +42,14 @@ def rewrite(src, dst, edit):
 
 
 @pytest.mark.slow
-def test_cli_writes_the_figure_deterministically(run, run_hmpc, tmp_path):
-    first = run_hmpc(["plot", "fig2", str(run), "--out", str(tmp_path / "a")], cwd=tmp_path)
+def test_cli_writes_the_figure_deterministically(run, invoke_hmpc, tmp_path):
+    first = invoke_hmpc(["plot", "fig2", str(run), "--out", str(tmp_path / "a")], cwd=tmp_path)
     assert first.returncode == 0, first.stderr
     assert "crosses guard" in first.stdout and "past the guard" in first.stdout
     for fmt in ("pdf", "svg", "png"):
         assert (tmp_path / "a" / f"fig2.{fmt}").stat().st_size > 5000
     assert (tmp_path / "a" / "fig2.pdf").read_bytes().startswith(b"%PDF")
-    again = run_hmpc(["plot", "fig2", str(run / "run.mcap"), "--out", str(tmp_path / "b")],
+    again = invoke_hmpc(["plot", "fig2", str(run / "run.mcap"), "--out", str(tmp_path / "b")],
                      cwd=tmp_path)
     assert again.returncode == 0, again.stderr
     for fmt in ("pdf", "svg", "png"):

@@ -22,13 +22,13 @@ NAMES = {"state": ("px", "py"), "input": ("u",), "disturbance": ("w",),
 
 
 @pytest.fixture(scope="module")
-def logs(tmp_path_factory, run_hmpc) -> dict[str, Path]:
+def logs(tmp_path_factory, invoke_hmpc) -> dict[str, Path]:
     """A short ball run and a short biped run (one contact each) through the CLI."""
     base = tmp_path_factory.mktemp("typed")
     out = {}
     for name, scenario, dur in (("ball", BALL, "0.6"),
                                 ("biped", SCENARIOS / "biped_stairs.toml", "0.35")):
-        proc = run_hmpc(["run", str(scenario), "-q", "--set", f"sim.duration={dur}",
+        proc = invoke_hmpc(["run", str(scenario), "-q", "--set", f"sim.duration={dur}",
                          "--out", str(base / name)], cwd=base)
         assert proc.returncode == 0, proc.stderr
         out[name] = base / name / "run.mcap"

@@ -31,7 +31,7 @@ def test_thinned_keeps_every_kth_node_the_last_and_both_sides_of_a_reset():
     assert thinned(tr, 1) is tr and len(thinned(_traj([]), 4).t) == 0
 
 
-def test_a_thinned_log_holds_the_full_logs_nodes_it_keeps(tmp_path, run_hmpc):
+def test_a_thinned_log_holds_the_full_logs_nodes_it_keeps(tmp_path, invoke_hmpc):
     from hmpc_cli.run.runner import run_scenario
     from hmpc_cli.run.scenario import load_scenario
 
@@ -61,7 +61,7 @@ def test_a_thinned_log_holds_the_full_logs_nodes_it_keeps(tmp_path, run_hmpc):
     assert (tmp_path / "3" / "run.mcap").stat().st_size < 0.7 * (
         tmp_path / "1" / "run.mcap").stat().st_size
     _readers_that_need_every_node(tmp_path / "1", tmp_path / "3")
-    proc = run_hmpc(["replay", str(tmp_path / "3" / "run.mcap"), "--topic", "/run/summary"],
+    proc = invoke_hmpc(["replay", str(tmp_path / "3" / "run.mcap"), "--topic", "/run/summary"],
                     tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "thinned: sim.log_plan_stride = 3 (one node in 3," in " ".join(proc.stdout.split())

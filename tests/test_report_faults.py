@@ -69,7 +69,7 @@ def _push_table_without_its_push_column(d: Path) -> Path:
 
 
 def test_a_report_that_fails_in_a_later_section_leaves_the_results_as_they_were(
-        tmp_path, run_hmpc):
+        tmp_path, invoke_hmpc):
     """The robustness section draws, then the push section's table lacks its column: exit
     2, the error names the option, and the results directory is byte for byte as before
     (the page and figures of the report before it; no report/ on a first report)."""
@@ -77,7 +77,7 @@ def test_a_report_that_fails_in_a_later_section_leaves_the_results_as_they_were(
     bad = _push_table_without_its_push_column(tmp_path / "push")
     res = tmp_path / "results"
     failing = [*_args(robustness=str(study), biped_push=str(bad)), "--results", str(res)]
-    first = run_hmpc(failing, tmp_path)
+    first = invoke_hmpc(failing, tmp_path)
     assert first.returncode == 2, first.stderr
     assert first.stderr == (
         f"error: --biped-push {bad}: {bad / 'results.csv'}: missing column(s) "
@@ -85,17 +85,17 @@ def test_a_report_that_fails_in_a_later_section_leaves_the_results_as_they_were(
         "of the sweep --biped-push draws; give that sweep's file or output directory (`hmpc "
         "report --help` names the default)\n")
     assert not res.exists()  # a first report: nothing made, not even --results
-    ok = run_hmpc([*_args(robustness=str(study)), "--results", str(res)], tmp_path)
+    ok = invoke_hmpc([*_args(robustness=str(study)), "--results", str(res)], tmp_path)
     assert ok.returncode == 0, ok.stderr
     (res / "report" / "mine.txt").write_text("kept\n")
     before = _tree(res)
     assert "report/study.png" in before and "README.md" in before
-    again = run_hmpc([*failing, "--replace"], tmp_path)
+    again = invoke_hmpc([*failing, "--replace"], tmp_path)
     assert again.returncode == 2 and again.stderr == first.stderr
     assert _tree(res) == before
 
 
-def test_figure_3_robustness_and_authors_errors_name_their_option(tmp_path, run_hmpc):
+def test_figure_3_robustness_and_authors_errors_name_their_option(tmp_path, invoke_hmpc):
     """Another section's table given to --fig3-extra or to --robustness, and an --authors
     directory without the authors' files: exit 2, one line naming the option and its
     value, nothing written. A study whose table is there but unusable is an error, not a
@@ -113,10 +113,10 @@ def test_figure_3_robustness_and_authors_errors_name_their_option(tmp_path, run_
         "replanning.policy column, and the scenario of run 'a' cannot be read (no run "
         "directory; pass the sweep file)"}
     for option, line in cases.items():
-        proc = run_hmpc([*_args(**{option: str(push)}), "--results", str(res)], tmp_path)
+        proc = invoke_hmpc([*_args(**{option: str(push)}), "--results", str(res)], tmp_path)
         assert (proc.returncode, proc.stderr) == (2, line + "\n"), proc.stderr
     fig3 = REPO / "results" / "sweeps" / "fig3_100hz"
-    proc = run_hmpc([*_args(fig3_extra=str(fig3)), "--authors", str(empty),
+    proc = invoke_hmpc([*_args(fig3_extra=str(fig3)), "--authors", str(empty),
                      "--results", str(res)], tmp_path)
     assert (proc.returncode, proc.stderr) == (2, (
         f"error: --authors {empty}: {empty}: none of the authors' Figure 3 files is there "
@@ -125,10 +125,10 @@ def test_figure_3_robustness_and_authors_errors_name_their_option(tmp_path, run_
     assert not res.exists()
 
 
-def test_an_extra_figure_3_panel_alone_is_drawn(tmp_path, run_hmpc):
+def test_an_extra_figure_3_panel_alone_is_drawn(tmp_path, invoke_hmpc):
     """--fig3-extra without --fig3 draws the 100 Hz panel (it was 'nothing to report')."""
     res = tmp_path / "results"
-    proc = run_hmpc([*_args(fig3_extra=str(REPO / "results" / "sweeps" / "fig3_100hz")),
+    proc = invoke_hmpc([*_args(fig3_extra=str(REPO / "results" / "sweeps" / "fig3_100hz")),
                      "--authors", str(REPO / "results" / "authors"), "--results", str(res)],
                     tmp_path)
     assert proc.returncode == 0, proc.stderr
@@ -141,7 +141,7 @@ def test_an_extra_figure_3_panel_alone_is_drawn(tmp_path, run_hmpc):
     assert not (res / "report" / "fig3.png").exists()
 
 
-def test_a_directory_that_is_not_a_sweeps_output_is_refused_by_option(tmp_path, run_hmpc):
+def test_a_directory_that_is_not_a_sweeps_output_is_refused_by_option(tmp_path, invoke_hmpc):
     """An empty directory, or a folder of sweep files, for a sweep option: exit 2 naming
     the option and what to give; nothing written."""
     sweeps = tmp_path / "sweeps"
@@ -150,7 +150,7 @@ def test_a_directory_that_is_not_a_sweeps_output_is_refused_by_option(tmp_path, 
     empty = tmp_path / "empty"
     empty.mkdir()
     res = tmp_path / "results"
-    proc = run_hmpc([*_args(robustness=str(sweeps), biped_push=str(empty)),
+    proc = invoke_hmpc([*_args(robustness=str(sweeps), biped_push=str(empty)),
                      "--results", str(res)], tmp_path)
     assert proc.returncode == 2, proc.stderr
     why = ("not a sweep's output directory (no results.csv or sweep.toml); give a sweep "
@@ -161,14 +161,14 @@ def test_a_directory_that_is_not_a_sweeps_output_is_refused_by_option(tmp_path, 
 
 
 def test_an_empty_value_leaves_a_section_out_and_a_dot_is_the_current_directory(
-        tmp_path, run_hmpc):
+        tmp_path, invoke_hmpc):
     """``--robustness ''`` leaves the study out (nothing to report); ``--robustness .`` in a
     sweep's output directory reads it."""
     study = write_study(tmp_path / "study" / "results.csv").parent
     res = tmp_path / "results"
-    left_out = run_hmpc([*_args(robustness=""), "--results", str(res)], study)
+    left_out = invoke_hmpc([*_args(robustness=""), "--results", str(res)], study)
     assert left_out.returncode == 2 and "nothing to report" in left_out.stderr
-    here = run_hmpc([*_args(robustness="."), "--results", str(res)], study)
+    here = invoke_hmpc([*_args(robustness="."), "--results", str(res)], study)
     assert here.returncode == 0, here.stderr
     page = (res / "README.md").read_text()
     assert "## Robustness study" in page and "![study](report/study.png)" in page
@@ -322,14 +322,14 @@ def _tabled_study(tmp_path: Path) -> tuple[Path, Path, Path]:
     return sweep, scenario, out
 
 
-def test_a_sweep_files_stale_table_is_refused_and_its_directory_draws_it(tmp_path, run_hmpc):
+def test_a_sweep_files_stale_table_is_refused_and_its_directory_draws_it(tmp_path, invoke_hmpc):
     """After its sweep file or its base scenario changed, a sweep's table is no table of the
     file's runs: ``hmpc report`` without ``--run`` refuses it (exit 2, why, what to do,
     nothing written) instead of drawing it as the file's results; the directory given
     instead draws it as it is."""
     sweep, scenario, out = _tabled_study(tmp_path)
     res = tmp_path / "results"
-    ok = run_hmpc([*_args(robustness=str(sweep)), "--results", str(res)], tmp_path)
+    ok = invoke_hmpc([*_args(robustness=str(sweep)), "--results", str(res)], tmp_path)
     assert ok.returncode == 0, ok.stderr
     assert "4 finished runs, 2 seeds" in (res / "README.md").read_text()
     before = _tree(res)
@@ -345,7 +345,7 @@ def test_a_sweep_files_stale_table_is_refused_and_its_directory_draws_it(tmp_pat
     assert len(foreign) == 2
 
     def refused(why: str) -> None:  # exit 2, the one line, nothing written
-        proc = run_hmpc([*_args(robustness=str(sweep)), "--results", str(res), "--replace"],
+        proc = invoke_hmpc([*_args(robustness=str(sweep)), "--results", str(res), "--replace"],
                         tmp_path)
         assert proc.returncode == 2, proc.stderr
         assert proc.stderr.splitlines() == [
@@ -358,13 +358,13 @@ def test_a_sweep_files_stale_table_is_refused_and_its_directory_draws_it(tmp_pat
     scenario.write_text(scenario.read_text().replace("duration = 3.0", "duration = 2.5", 1))
     refused(f"it was written for another base scenario: {scenario} changed since (the one "
             f"it ran: {out / 'base_scenario.toml'})")
-    as_is = run_hmpc([*_args(robustness=str(out)), "--results", str(res), "--replace"],
+    as_is = invoke_hmpc([*_args(robustness=str(out)), "--results", str(res), "--replace"],
                      tmp_path)
     assert as_is.returncode == 0, as_is.stderr
     assert "4 finished runs, 2 seeds" in (res / "README.md").read_text()
 
 
-def test_two_sweep_files_of_one_name_are_refused_naming_both(tmp_path, run_hmpc):
+def test_two_sweep_files_of_one_name_are_refused_naming_both(tmp_path, invoke_hmpc):
     """Two sweep files of one ``name`` would share ``<results>/sweeps/<name>`` (the first
     section showing the second's runs): exit 2 naming both files and the name, nothing
     written."""
@@ -375,7 +375,7 @@ def test_two_sweep_files_of_one_name_are_refused_naming_both(tmp_path, run_hmpc)
     res = tmp_path / "results"
     args = ["report", *(x for kv in (NONE | {"--robustness": str(a)}).items() for x in kv),
             "--robustness", str(b), "--results", str(res), "--run", "--workers", "1"]
-    proc = run_hmpc(args, tmp_path)
+    proc = invoke_hmpc(args, tmp_path)
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.splitlines() == [
         f"error: --robustness {a} and --robustness {b}: both sweep files are named 'study' "
@@ -383,20 +383,20 @@ def test_two_sweep_files_of_one_name_are_refused_naming_both(tmp_path, run_hmpc)
     assert not res.exists()
 
 
-def test_report_run_refuses_a_sweep_directory_that_is_not_its_sweeps(tmp_path, run_hmpc):
+def test_report_run_refuses_a_sweep_directory_that_is_not_its_sweeps(tmp_path, invoke_hmpc):
     """``report --run`` checks each sweep's directory as ``hmpc sweep`` checks ``--out``:
     one that is no sweep's, or another sweep's, is refused (exit 2, nothing run, no
     page); it wrote its runs among the files there."""
     sweep, res, out = _study_and_its_directory(tmp_path)
     (out / "notes.txt").write_text("mine\n")
     args = [*_args(robustness=str(sweep)), "--run", "--results", str(res), "--workers", "1"]
-    proc = run_hmpc(args, tmp_path)
+    proc = invoke_hmpc(args, tmp_path)
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.splitlines() == [
         f"error: --robustness {sweep}: {out}: is not a sweep's directory (no sweep.toml; it "
         f"holds notes.txt): choose a new or empty --results"]
     (out / "sweep.toml").write_text('name = "other"\n')
-    proc = run_hmpc(args, tmp_path)
+    proc = invoke_hmpc(args, tmp_path)
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.splitlines() == [
         f"error: --robustness {sweep}: {out}: belongs to sweep 'other' (its sweep.toml), not "
@@ -405,7 +405,7 @@ def test_report_run_refuses_a_sweep_directory_that_is_not_its_sweeps(tmp_path, r
     assert not (res / "README.md").exists()
 
 
-def _swept_study(tmp_path: Path, run_hmpc) -> tuple[Path, Path, Path]:
+def _swept_study(tmp_path: Path, invoke_hmpc) -> tuple[Path, Path, Path]:
     """A sweep file over a copy of the ball scenario, swept (2 runs) into the results'
     sweeps directory: (the sweep file, the scenario copy, the sweep's output directory)."""
     scenario = tmp_path / "ball.toml"
@@ -414,20 +414,20 @@ def _swept_study(tmp_path: Path, run_hmpc) -> tuple[Path, Path, Path]:
     sweep.write_text('name = "study"\nscenario = "ball.toml"\nseeds = 1\n[set]\n'
                      '"sim.duration" = 0.2\n[grid]\n"mpc.rate_hz" = [10, 20]\n')
     out = tmp_path / "results" / "sweeps" / "study"
-    proc = run_hmpc(["sweep", str(sweep), "--out", str(out), "--workers", "1", "-q"], tmp_path)
+    proc = invoke_hmpc(["sweep", str(sweep), "--out", str(out), "--workers", "1", "-q"], tmp_path)
     assert proc.returncode == 0, proc.stderr
     return sweep, scenario, out
 
 
-def test_a_table_behind_its_finished_runs_is_refused(tmp_path, run_hmpc):
+def test_a_table_behind_its_finished_runs_is_refused(tmp_path, invoke_hmpc):
     """A sweep stopped (SIGKILL) before it rewrote results.csv: its finished run
     directories hold more runs than the table. ``hmpc report`` drew the table as it stood
     ('1 finished runs'); it now refuses (exit 2, why, what rewrites it, nothing written)."""
-    sweep, _, out = _swept_study(tmp_path, run_hmpc)
+    sweep, _, out = _swept_study(tmp_path, invoke_hmpc)
     table = out / "results.csv"
     table.write_text("".join(table.read_text().splitlines(keepends=True)[:2]))  # one row
     res = tmp_path / "results"
-    proc = run_hmpc([*_args(robustness=str(sweep)), "--results", str(res)], tmp_path)
+    proc = invoke_hmpc([*_args(robustness=str(sweep)), "--results", str(res)], tmp_path)
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.splitlines() == [
         f"error: --robustness {sweep}: {table} is not this sweep file's table: it is behind "
@@ -439,15 +439,15 @@ def test_a_table_behind_its_finished_runs_is_refused(tmp_path, run_hmpc):
 
 
 def test_a_base_scenario_changed_in_keys_every_run_overrides_is_no_stale_table(
-        tmp_path, run_hmpc):
+        tmp_path, invoke_hmpc):
     """The base scenario changed only in a key every run overrides: every row is vouched
     for by a finished run directory (its effective scenario is the planned one), so the
     table is drawn (it was refused as written for another base scenario)."""
-    sweep, scenario, _ = _swept_study(tmp_path, run_hmpc)
+    sweep, scenario, _ = _swept_study(tmp_path, invoke_hmpc)
     scenario.write_text(scenario.read_text().replace("duration = 3.0", "duration = 2.5", 1))
     assert scenario.read_text() != BALL.read_text()
     res = tmp_path / "results"
-    proc = run_hmpc([*_args(robustness=str(sweep)), "--results", str(res)], tmp_path)
+    proc = invoke_hmpc([*_args(robustness=str(sweep)), "--results", str(res)], tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "2 finished runs, 1 seeds" in (res / "README.md").read_text()
 

@@ -137,11 +137,11 @@ def test_ball_task_follows_the_circle_unless_the_scenario_sets_goal_and_radius()
 
 
 @pytest.mark.slow
-def test_a_planner_that_never_finds_a_schedule_says_so(tmp_path, run_hmpc):
+def test_a_planner_that_never_finds_a_schedule_says_so(tmp_path, invoke_hmpc):
     from conftest import BALL
 
     out = tmp_path / "run"
-    proc = run_hmpc(["run", str(BALL), "--out", str(out), "--set", "planner.horizon=0.2",
+    proc = invoke_hmpc(["run", str(BALL), "--out", str(out), "--set", "planner.horizon=0.2",
                      "--set", "sim.duration=0.5"], tmp_path)
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((out / "summary.json").read_text())

@@ -85,9 +85,9 @@ def test_a_run_is_bit_for_bit_reproducible(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_fall_ends_the_run_cleanly_as_failed(tmp_path, run_hmpc):
+def test_a_fall_ends_the_run_cleanly_as_failed(tmp_path, invoke_hmpc):
     out = tmp_path / "fall"
-    proc = run_hmpc(["run", str(STAIRS), "--out", str(out), "-q", "--set",
+    proc = invoke_hmpc(["run", str(STAIRS), "--out", str(out), "-q", "--set",
                      "disturbance.magnitude=5000", "--set", "sim.duration=1.2"], tmp_path,
                     timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -195,14 +195,14 @@ def test_fig4_draws_the_terrain_past_the_end_at_the_tops_height(short_walk):
 
 @pytest.mark.slow
 def test_plot_fig4_command_writes_the_gif_and_rejects_a_ball_log(short_walk, tmp_path,
-                                                                  run_hmpc, full_run):
-    proc = run_hmpc(["plot", "fig4", str(short_walk), "--out", str(tmp_path / "f"),
+                                                                  invoke_hmpc, full_run):
+    proc = invoke_hmpc(["plot", "fig4", str(short_walk), "--out", str(tmp_path / "f"),
                      "--formats", "png"], tmp_path, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "contact t = 0.3" in proc.stdout
     gif = (tmp_path / "f" / "walk.gif").read_bytes()
     assert gif[:6] in (b"GIF89a", b"GIF87a") and len(gif) > 10_000
-    bad = run_hmpc(["plot", "fig4", str(full_run.out), "--out", str(tmp_path / "g")], tmp_path)
+    bad = invoke_hmpc(["plot", "fig4", str(full_run.out), "--out", str(tmp_path / "g")], tmp_path)
     assert bad.returncode == 2 and "not a walking run to draw" in bad.stderr
     assert "Traceback" not in bad.stderr
     with pytest.raises(FigureInputError, match="no such log"):
@@ -219,8 +219,8 @@ def test_plot_fig4_command_writes_the_gif_and_rejects_a_ball_log(short_walk, tmp
      "system.stairs[1].length"),
     ("system.stance_foot0=[0.0, 0.2]", "system.stance_foot0"),
 ])
-def test_bad_biped_scenarios_give_one_keyed_line(tmp_path, run_hmpc, override, key):
-    proc = run_hmpc(["run", str(STAIRS), "--out", str(tmp_path / "r"), "--set", override],
+def test_bad_biped_scenarios_give_one_keyed_line(tmp_path, invoke_hmpc, override, key):
+    proc = invoke_hmpc(["run", str(STAIRS), "--out", str(tmp_path / "r"), "--set", override],
                     tmp_path)
     assert proc.returncode == 2
     lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
