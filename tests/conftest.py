@@ -146,7 +146,7 @@ def run_hmpc():
     return _run_hmpc
 
 
-def _invoke_hmpc(args: list[str], cwd: Path, timeout: float | None = None
+def hmpc_in_process(args: list[str], cwd: Path, timeout: float | None = None
                  ) -> subprocess.CompletedProcess:
     """Runs ``hmpc ARGS`` in this process from ``cwd`` (Typer's runner, the terminal of
     :func:`cli_env`); its exit code and output as a CompletedProcess. An exception the
@@ -176,7 +176,7 @@ def invoke_hmpc():
     command writes and says, not of its process (exit by signal, a second process, the
     console script): it costs no interpreter start and no import, and shares this
     process's built NLPs."""
-    return _invoke_hmpc
+    return hmpc_in_process
 
 
 @pytest.fixture(scope="session")

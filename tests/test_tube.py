@@ -12,7 +12,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from conftest import BALL, REPO, SCENARIOS, cli_env, hmpc_command
+from conftest import BALL, REPO, SCENARIOS, cli_env, hmpc_command, hmpc_in_process
 from hmpc_cli.core.hybrid import Guard, HybridSystem, Mode
 from hmpc_cli.tube import (
     Margins, Region, TubeError, a_bound, analyse, eiss_constants, eta_bound,
@@ -372,8 +372,11 @@ def test_infeasible_initial_state_is_a_warning():
 
 # ------------------------------------------------------------------ command line
 def hmpc(args: list[str], cwd: Path, env: dict | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([*hmpc_command(), *args], cwd=cwd, env=env or cli_env(),
-                          capture_output=True, text=True, timeout=300)
+    """``hmpc ARGS`` in this process; in a fresh one with its own environment ``env``."""
+    if env is None:
+        return hmpc_in_process(args, cwd)
+    return subprocess.run([*hmpc_command(), *args], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=300)
 
 
 @pytest.mark.slow

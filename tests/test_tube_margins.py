@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 import hmpc_cli.tube as tube_pkg
-from conftest import cli_env, hmpc_command
+from conftest import cli_env, hmpc_command, hmpc_in_process
 from hmpc_cli.core.registry import build_system
 from hmpc_cli.run.scenario import load_scenario
 from hmpc_cli.run.setup_checks import margins_of
@@ -26,9 +26,8 @@ def _margins(rate: int):
 def test_each_rate_gets_the_margins_hmpc_tube_writes_for_it(tmp_path, monkeypatch):
     monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path / "cache"))
     file = tmp_path / "margins.toml"
-    proc = subprocess.run([*hmpc_command(), "tube", str(DISTURBED), "--write", str(file),
-                           "--out", str(tmp_path / "tube"), "-q"], env=cli_env(),
-                          capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    proc = hmpc_in_process(["tube", str(DISTURBED), "--write", str(file), "--out",
+                            str(tmp_path / "tube"), "-q"], tmp_path)
     assert proc.returncode == 0, proc.stderr
     written = tomllib.loads(file.read_text())["rates"]
     avoid = {}
@@ -83,12 +82,10 @@ def test_a_cached_tube_is_read_not_recomputed(tmp_path, monkeypatch):
     assert again == first
 
 
-def test_margins_that_do_not_fit_are_refused_with_the_tubes_reason(tmp_path):
-    proc = subprocess.run([*hmpc_command(), "run", str(DISTURBED), "--set",
-                           'mpc.margins="tube"', "--set", "mpc.rate_hz=2", "--out",
-                           str(tmp_path / "r"), "-q"],
-                          env={**cli_env(), "HMPC_CACHE_DIR": str(tmp_path / "cache")},
-                          capture_output=True, text=True, timeout=600, cwd=tmp_path)
+def test_margins_that_do_not_fit_are_refused_with_the_tubes_reason(tmp_path, monkeypatch):
+    monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path / "cache"))
+    proc = hmpc_in_process(["run", str(DISTURBED), "--set", 'mpc.margins="tube"', "--set",
+                            "mpc.rate_hz=2", "--out", str(tmp_path / "r"), "-q"], tmp_path)
     assert proc.returncode == 2, proc.stderr
     (line,) = proc.stderr.strip().splitlines()
     assert "mpc.margins: the tube's margins at 2 Hz do not fit" in line
@@ -115,9 +112,7 @@ def test_the_committed_fig3_margins_file_is_what_its_documented_command_writes(t
     for byte (the file names no path)."""
     monkeypatch.setenv("HMPC_CACHE_DIR", str(tmp_path / "cache"))
     file = tmp_path / "ball_fig3.toml"
-    proc = subprocess.run([*hmpc_command(), "tube", str(DISTURBED), "--write", str(file)],
-                          env=cli_env(), capture_output=True, text=True, timeout=600,
-                          cwd=tmp_path)
+    proc = hmpc_in_process(["tube", str(DISTURBED), "--write", str(file)], tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.splitlines()[-1] == \
         f"wrote margins file {file} (rates 5, 10, 20, 50, 100 Hz)"
