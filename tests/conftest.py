@@ -146,8 +146,8 @@ def run_hmpc():
     return _run_hmpc
 
 
-def hmpc_in_process(args: list[str], cwd: Path, timeout: float | None = None
-                 ) -> subprocess.CompletedProcess:
+def hmpc_in_process(args: list[str], cwd: Path,
+                    timeout: float | None = None) -> subprocess.CompletedProcess:
     """Runs ``hmpc ARGS`` in this process from ``cwd`` (Typer's runner, the terminal of
     :func:`cli_env`); its exit code and output as a CompletedProcess. An exception the
     command does not turn into an exit code fails the test with its traceback."""
