@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import atexit
 import csv
 import os
 import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,27 +21,25 @@ import typer.testing
 import hmpc_cli  # noqa: F401
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def _private_dir(variable: str, prefix: str) -> None:
+    """Sets ``$variable`` to a new directory of this test session, removed at exit."""
+    os.environ[variable] = tempfile.mkdtemp(prefix=prefix)
+    atexit.register(shutil.rmtree, os.environ[variable], ignore_errors=True)
+
+
 # compiled rollout kernels of this test session go to a private cache (inherited by the
 # ``hmpc`` subprocesses), never to the user's ~/.cache/hmpc
 if "HMPC_CACHE_DIR" not in os.environ:
-    import tempfile
-
-    import atexit
-
-    os.environ["HMPC_CACHE_DIR"] = tempfile.mkdtemp(prefix="hmpc-test-cache-")
-    atexit.register(shutil.rmtree, os.environ["HMPC_CACHE_DIR"], ignore_errors=True)
+    _private_dir("HMPC_CACHE_DIR", "hmpc-test-cache-")
 # PYTHONDONTWRITEBYTECODE set (as on CI machines): the hundreds of processes the tests
 # start would each compile every hmpc_cli module they import from source again (a fresh
 # clone holds no bytecode: 0.35 s of a 2.9 s ball run). Their bytecode goes to a private
 # cache of the session instead, removed at exit, never into the tree.
 if os.environ.get("PYTHONDONTWRITEBYTECODE") and "PYTHONPYCACHEPREFIX" not in os.environ:
-    import tempfile
-
-    import atexit
-
     del os.environ["PYTHONDONTWRITEBYTECODE"]
-    os.environ["PYTHONPYCACHEPREFIX"] = tempfile.mkdtemp(prefix="hmpc-test-bytecode-")
-    atexit.register(shutil.rmtree, os.environ["PYTHONPYCACHEPREFIX"], ignore_errors=True)
+    _private_dir("PYTHONPYCACHEPREFIX", "hmpc-test-bytecode-")
 # the build cache's default mode, in that private cache (in $HMPC_CACHE_DIR if the caller
 # set it): every build transcribes its NLP, nothing is stored or compiled (minutes of CPU
 # per structure: tests/test_build_cache.py compiles where it tests it)

@@ -25,7 +25,7 @@ def run(tmp_path_factory, invoke_hmpc):
     """A short nominal ball run through the real command line (its directory)."""
     base = tmp_path_factory.mktemp("fig2_run")
     proc = invoke_hmpc(["run", str(BALL), "--set", "sim.duration=0.3", "--out",
-                     str(base / "run"), "-q"], cwd=base)
+                        str(base / "run"), "-q"], cwd=base)
     assert proc.returncode == 0, proc.stderr
     return base / "run"
 
@@ -50,7 +50,7 @@ def test_cli_writes_the_figure_deterministically(run, invoke_hmpc, tmp_path):
         assert (tmp_path / "a" / f"fig2.{fmt}").stat().st_size > 5000
     assert (tmp_path / "a" / "fig2.pdf").read_bytes().startswith(b"%PDF")
     again = invoke_hmpc(["plot", "fig2", str(run / "run.mcap"), "--out", str(tmp_path / "b")],
-                     cwd=tmp_path)
+                        cwd=tmp_path)
     assert again.returncode == 0, again.stderr
     for fmt in ("pdf", "svg", "png"):
         name = f"fig2.{fmt}"

@@ -29,7 +29,7 @@ def logs(tmp_path_factory, invoke_hmpc) -> dict[str, Path]:
     for name, scenario, dur in (("ball", BALL, "0.6"),
                                 ("biped", SCENARIOS / "biped_stairs.toml", "0.35")):
         proc = invoke_hmpc(["run", str(scenario), "-q", "--set", f"sim.duration={dur}",
-                         "--out", str(base / name)], cwd=base)
+                            "--out", str(base / name)], cwd=base)
         assert proc.returncode == 0, proc.stderr
         out[name] = base / name / "run.mcap"
     return out

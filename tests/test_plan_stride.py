@@ -62,7 +62,7 @@ def test_a_thinned_log_holds_the_full_logs_nodes_it_keeps(tmp_path, invoke_hmpc)
         tmp_path / "1" / "run.mcap").stat().st_size
     _readers_that_need_every_node(tmp_path / "1", tmp_path / "3")
     proc = invoke_hmpc(["replay", str(tmp_path / "3" / "run.mcap"), "--topic", "/run/summary"],
-                    tmp_path)
+                       tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "thinned: sim.log_plan_stride = 3 (one node in 3," in " ".join(proc.stdout.split())
 

@@ -241,9 +241,9 @@ def test_report_run_checks_the_runs_it_would_run_before_any(tmp_path, invoke_hmp
                      '[grid]\n"mpc.input_margin" = [0.0, 60.0]\n"mpc.rate_hz" = [10, 20]\n')
     res = tmp_path / "results"
     proc = invoke_hmpc(["report", "--run", "--results", str(res), "--fig3", "", "--fig3-extra", "",
-                     "--fig3-reference", "", "--fig3-reference-extra", "", "--fig3-schedule",
-                     "", "--biped", "", "--biped-push", "", "--fig3-trials", "", "--realtime",
-                     "", "--robustness", str(sweep), "--workers", "1"], tmp_path)
+                        "--fig3-reference", "", "--fig3-reference-extra", "", "--fig3-schedule",
+                        "", "--biped", "", "--biped-push", "", "--fig3-trials", "", "--realtime",
+                        "", "--robustness", str(sweep), "--workers", "1"], tmp_path)
     assert proc.returncode == 2, proc.stderr[-2000:]
     lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error: ")]
     assert lines == [f"error: {sweep}: cell mpc.input_margin=60.0, mpc.rate_hz={f}: "
@@ -308,10 +308,10 @@ seeds = 2
 
 def test_report_without_results_is_a_clear_error(tmp_path, invoke_hmpc):
     proc = invoke_hmpc(["report", "--no-run", "--results", str(tmp_path / "r"),
-                     "--fig3", str(REPO / "sweeps" / "fig3.toml"), "--fig3-extra", "",
-                     "--fig3-reference", "", "--fig3-reference-extra", "",
-                     "--fig3-schedule", "", "--robustness", "", "--biped", "",
-                     "--biped-push", "", "--fig3-trials", "", "--realtime", ""], tmp_path)
+                        "--fig3", str(REPO / "sweeps" / "fig3.toml"), "--fig3-extra", "",
+                        "--fig3-reference", "", "--fig3-reference-extra", "",
+                        "--fig3-schedule", "", "--robustness", "", "--biped", "",
+                        "--biped-push", "", "--fig3-trials", "", "--realtime", ""], tmp_path)
     assert "no such table" in proc.stderr
     assert proc.returncode == 2
     assert "error:" in proc.stderr and "Traceback" not in proc.stderr
@@ -530,11 +530,11 @@ def test_a_modelled_latency_study_pairs_with_the_paused_study_of_its_own_scenari
 def test_report_with_a_missing_authors_directory_is_a_clear_error(tmp_path, invoke_hmpc):
     fig3 = write_study(tmp_path / "fig3" / "results.csv").parent  # a sweep's output
     proc = invoke_hmpc(["report", "--no-run", "--results", str(tmp_path / "r"),
-                     "--fig3", str(fig3), "--fig3-extra", "", "--fig3-reference", "",
-                     "--fig3-reference-extra", "", "--fig3-schedule", "", "--robustness", "",
-                     "--biped", "", "--biped-push", "", "--fig3-trials", "", "--realtime", "",
-                     "--authors",
-                     str(tmp_path / "nowhere")], tmp_path)
+                        "--fig3", str(fig3), "--fig3-extra", "", "--fig3-reference", "",
+                        "--fig3-reference-extra", "", "--fig3-schedule", "", "--robustness", "",
+                        "--biped", "", "--biped-push", "", "--fig3-trials", "", "--realtime", "",
+                        "--authors",
+                        str(tmp_path / "nowhere")], tmp_path)
     assert proc.returncode == 2
     assert proc.stderr.strip() == f"error: --authors: {tmp_path / 'nowhere'}: no such directory"
 
@@ -1012,7 +1012,7 @@ def test_report_never_replaces_a_page_made_with_other_sections(tmp_path, invoke_
         assert (results / "README.md").read_text() == text
         assert not (results / "report").exists()
     proc = invoke_hmpc(["report", "--results", str(results), *sections, "--replace"],
-                    cwd=tmp_path)
+                       cwd=tmp_path)
     assert proc.returncode == 2 and "nothing to report" in proc.stderr  # past the guard
 
 

@@ -117,7 +117,7 @@ def test_figure_3_robustness_and_authors_errors_name_their_option(tmp_path, invo
         assert (proc.returncode, proc.stderr) == (2, line + "\n"), proc.stderr
     fig3 = REPO / "results" / "sweeps" / "fig3_100hz"
     proc = invoke_hmpc([*_args(fig3_extra=str(fig3)), "--authors", str(empty),
-                     "--results", str(res)], tmp_path)
+                        "--results", str(res)], tmp_path)
     assert (proc.returncode, proc.stderr) == (2, (
         f"error: --authors {empty}: {empty}: none of the authors' Figure 3 files is there "
         "(fig3_left_10hz_fixed.csv, fig3_middle_20hz_fixed.csv, fig3_right_10hz_hybrid.csv, "
@@ -129,8 +129,8 @@ def test_an_extra_figure_3_panel_alone_is_drawn(tmp_path, invoke_hmpc):
     """--fig3-extra without --fig3 draws the 100 Hz panel (it was 'nothing to report')."""
     res = tmp_path / "results"
     proc = invoke_hmpc([*_args(fig3_extra=str(REPO / "results" / "sweeps" / "fig3_100hz")),
-                     "--authors", str(REPO / "results" / "authors"), "--results", str(res)],
-                    tmp_path)
+                        "--authors", str(REPO / "results" / "authors"), "--results", str(res)],
+                       tmp_path)
     assert proc.returncode == 0, proc.stderr
     page = (res / "README.md").read_text()
     assert "run by hmpc in 1 mode:\n" in page
@@ -151,7 +151,7 @@ def test_a_directory_that_is_not_a_sweeps_output_is_refused_by_option(tmp_path, 
     empty.mkdir()
     res = tmp_path / "results"
     proc = invoke_hmpc([*_args(robustness=str(sweeps), biped_push=str(empty)),
-                     "--results", str(res)], tmp_path)
+                        "--results", str(res)], tmp_path)
     assert proc.returncode == 2, proc.stderr
     why = ("not a sweep's output directory (no results.csv or sweep.toml); give a sweep "
            "file to run it, or the directory `hmpc sweep --out` wrote")
@@ -346,7 +346,7 @@ def test_a_sweep_files_stale_table_is_refused_and_its_directory_draws_it(tmp_pat
 
     def refused(why: str) -> None:  # exit 2, the one line, nothing written
         proc = invoke_hmpc([*_args(robustness=str(sweep)), "--results", str(res), "--replace"],
-                        tmp_path)
+                           tmp_path)
         assert proc.returncode == 2, proc.stderr
         assert proc.stderr.splitlines() == [
             f"error: --robustness {sweep}: {table} is not this sweep file's table: {why}{how}"]
@@ -359,7 +359,7 @@ def test_a_sweep_files_stale_table_is_refused_and_its_directory_draws_it(tmp_pat
     refused(f"it was written for another base scenario: {scenario} changed since (the one "
             f"it ran: {out / 'base_scenario.toml'})")
     as_is = invoke_hmpc([*_args(robustness=str(out)), "--results", str(res), "--replace"],
-                     tmp_path)
+                        tmp_path)
     assert as_is.returncode == 0, as_is.stderr
     assert "4 finished runs, 2 seeds" in (res / "README.md").read_text()
 

@@ -142,7 +142,7 @@ def test_a_planner_that_never_finds_a_schedule_says_so(tmp_path, invoke_hmpc):
 
     out = tmp_path / "run"
     proc = invoke_hmpc(["run", str(BALL), "--out", str(out), "--set", "planner.horizon=0.2",
-                     "--set", "sim.duration=0.5"], tmp_path)
+                        "--set", "sim.duration=0.5"], tmp_path)
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((out / "summary.json").read_text())
     assert not summary["success"] and summary["planner_calls"] == summary["planner_rejected"]

@@ -88,8 +88,8 @@ def test_a_run_is_bit_for_bit_reproducible(tmp_path):
 def test_a_fall_ends_the_run_cleanly_as_failed(tmp_path, invoke_hmpc):
     out = tmp_path / "fall"
     proc = invoke_hmpc(["run", str(STAIRS), "--out", str(out), "-q", "--set",
-                     "disturbance.magnitude=5000", "--set", "sim.duration=1.2"], tmp_path,
-                    timeout=300)
+                        "disturbance.magnitude=5000", "--set", "sim.duration=1.2"], tmp_path,
+                       timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     summary = json.loads((out / "summary.json").read_text())
     assert not summary["success"] and summary["reason"].startswith("fall:")
@@ -197,7 +197,7 @@ def test_fig4_draws_the_terrain_past_the_end_at_the_tops_height(short_walk):
 def test_plot_fig4_command_writes_the_gif_and_rejects_a_ball_log(short_walk, tmp_path,
                                                                   invoke_hmpc, full_run):
     proc = invoke_hmpc(["plot", "fig4", str(short_walk), "--out", str(tmp_path / "f"),
-                     "--formats", "png"], tmp_path, timeout=300)
+                        "--formats", "png"], tmp_path, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "contact t = 0.3" in proc.stdout
     gif = (tmp_path / "f" / "walk.gif").read_bytes()
@@ -221,7 +221,7 @@ def test_plot_fig4_command_writes_the_gif_and_rejects_a_ball_log(short_walk, tmp
 ])
 def test_bad_biped_scenarios_give_one_keyed_line(tmp_path, invoke_hmpc, override, key):
     proc = invoke_hmpc(["run", str(STAIRS), "--out", str(tmp_path / "r"), "--set", override],
-                    tmp_path)
+                       tmp_path)
     assert proc.returncode == 2
     lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
     assert len(lines) == 1 and f"--set {override}: {key}:" in lines[0], proc.stderr
