@@ -42,7 +42,9 @@ from hmpc_cli.core.cbuild import (
 )
 from hmpc_cli.core.hybrid import HybridSystem, rk4_expr
 
-CFLAGS = ("-O2", "-shared", "-fPIC", "-ffp-contract=off", "-fvisibility=hidden")
+#: -O1: compiles in about 60 % of -O2's time with plans as fast (docs/performance.md);
+#: no flag here changes a number (no contraction, no fast-math)
+CFLAGS = ("-O1", "-shared", "-fPIC", "-ffp-contract=off", "-fvisibility=hidden")
 ABI = 4  # must equal HM_ABI of rollout_kernel.c
 COMPILES = 0  # compilations done by this process (the cache makes repeats free)
 _LIBS: dict[str, ctypes.CDLL] = {}  # loaded libraries by path
