@@ -366,9 +366,12 @@ settings that contradict each other, an initial state `system.x0` past a guard o
 initial mode) prints one `source: key.path: reason` line per problem, all problems at
 once (field and cross-field problems together), and exits with code 2 before anything is
 written. An unknown key names the closest known key of its level: `mpc.rate: unknown key
-(did you mean 'rate_hz'?)`. The source is the scenario file, `--set key=value` for a
-problem the override made (its key, a key inside it, or a key its reason names), `--seed
-N` for the seed given on the command line, or the sweep file and its entry
+(did you mean 'rate_hz'?)`; with none close, it lists that level's keys (past 16 of them,
+their number: `hmpc schema` lists them). A section written as another value (`sim = 5`,
+`[[sim]]`) is told how to write it as a table, and a `--set` whose key path runs through
+a value (`sim.duration.x`) names that value. The source is the scenario file, `--set
+key=value` for a problem the override made (its key, a key inside it, or a key its reason
+names), `--seed N` for the seed given on the command line, or the sweep file and its entry
 (`sweep.toml: grid.axis[i]: key: ...`).
 
 Columns below: *unit* is taken from the description's brackets, *bounds* from the model's

@@ -138,7 +138,8 @@ BLAME = [
     ("directory", _directory, ["error: adir.toml: is a directory, not a scenario file"]),
     ("unreadable", _unreadable, ["error: locked.toml: cannot read it: Permission denied"]),
     ("through a value", ["run", "ball.toml", "--set", "mpc.rate_hz.x=1"],
-     ["error: --set 'mpc.rate_hz.x=1': rate_hz is not a table"]),
+     ["error: --set 'mpc.rate_hz.x=1': mpc.rate_hz is a value (10), not a table, so "
+      "mpc.rate_hz.x names no key: set mpc.rate_hz itself"]),
     ("a horizon shorter than the period", ["run", "ball.toml", "--set", "mpc.horizon=0.05",
                                            "--set", "mpc.rate_hz=5"],
      ["error: --set mpc.horizon=0.05: mpc.horizon: 0.05 s is shorter than the MPC period "

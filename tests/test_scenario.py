@@ -34,6 +34,16 @@ def work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     return tmp_path
 
 
+#: what an unknown top-level key's line adds (no key close to it: the keys there)
+TOP_KEYS = (" (the keys here: description, disturbance, lowlevel, mpc, name, planner, plant, "
+            "replanning, seed, sim, system)")
+
+
+def far(n: int) -> str:
+    """What an unknown key's line adds when none of a section's ``n`` keys is close."""
+    return f" (none of the {n} keys here is close: `hmpc schema` lists them)"
+
+
 def _tree(root: Path) -> set[str]:
     return {str(p.relative_to(root)) for p in root.rglob("*")}
 
@@ -165,7 +175,8 @@ def test_wrong_type_unquoted_string(work: Path) -> None:
 
 
 @pytest.mark.parametrize("key,hint", [
-    ("foo", ""), ("mpc.foo", ""), ("system.spin", ""), ("sim.rate", " (did you mean 'rate_hz'?)"),
+    ("foo", TOP_KEYS), ("mpc.foo", far(22)), ("system.spin", far(18)),
+    ("sim.rate", " (did you mean 'rate_hz'?)"),
     ("mpc.rate", " (did you mean 'rate_hz'?)"), ("simm", " (did you mean 'sim'?)"),
     ("planner.samles", " (did you mean 'samples'?)"), ("seeed", " (did you mean 'seed'?)"),
     ("system.circle_radiu", " (did you mean 'circle_radius'?)"),
@@ -179,7 +190,8 @@ def test_unknown_key_suggests_a_key_of_the_selected_kind(work: Path) -> None:
     # the biped's MPC and planner are other union members than the ball's: their keys
     biped = Path(__file__).parent.parent / "scenarios" / "biped_stairs.toml"
     lines = cli_bad(work, [str(biped), "--set", "system.circle_radiu=1"])
-    assert lines == ["error: --set system.circle_radiu=1: system.circle_radiu: unknown key"]
+    assert lines == ["error: --set system.circle_radiu=1: system.circle_radiu: unknown key"
+                     + far(30)]
     lines = cli_bad(work, ["ball.toml", "--set", "system.circle_radiu=1"])
     assert lines == ["error: --set system.circle_radiu=1: system.circle_radiu: unknown key "
                      "(did you mean 'circle_radius'?)"]
@@ -209,14 +221,17 @@ def test_unknown_key_in_a_file_suggests_at_every_level(work: Path) -> None:
 
 def test_unknown_key_in_file(work: Path) -> None:
     _with_lines(work / "ball.toml", work / "bad.toml", _top="colour = 3")
-    assert one_keyed(cli_bad(work, ["bad.toml"]), "bad.toml", "colour") == "unknown key"
+    assert one_keyed(cli_bad(work, ["bad.toml"]), "bad.toml", "colour") == \
+        "unknown key" + TOP_KEYS
     _with_lines(work / "ball.toml", work / "bad2.toml", mpc="foo = 1")
-    assert one_keyed(cli_bad(work, ["bad2.toml"]), "bad2.toml", "mpc.foo") == "unknown key"
+    assert one_keyed(cli_bad(work, ["bad2.toml"]), "bad2.toml", "mpc.foo") == \
+        "unknown key" + far(22)
 
 
 def test_unknown_section(work: Path) -> None:
     _write(work / "bad.toml", (work / "ball.toml").read_text() + "\n[rocket]\nthrust = 1\n")
-    assert one_keyed(cli_bad(work, ["bad.toml"]), "bad.toml", "rocket") == "unknown key"
+    assert one_keyed(cli_bad(work, ["bad.toml"]), "bad.toml", "rocket") == \
+        "unknown key" + TOP_KEYS
 
 
 def test_unknown_system(work: Path) -> None:
@@ -279,7 +294,31 @@ def test_set_bad_syntax(work: Path, item: str) -> None:
 
 def test_set_through_a_scalar(work: Path) -> None:
     lines = cli_bad(work, ["ball.toml", "--set", "mpc.rate_hz.x=1"])
-    assert lines == ["error: --set 'mpc.rate_hz.x=1': rate_hz is not a table"]
+    assert lines == ["error: --set 'mpc.rate_hz.x=1': mpc.rate_hz is a value (10), not a "
+                     "table, so mpc.rate_hz.x names no key: set mpc.rate_hz itself"]
+
+
+@pytest.mark.parametrize("text,reason", [
+    ("sim = 5", "must be a table of settings, not 5: write [sim] with its keys below it, or "
+                "sim = {key = value, ...}"),
+    ("[[sim]]\nduration = 0.3", "an array of tables ([[sim]]), not one table: write [sim] "
+                                "once, its keys below it"),
+    ('sim = "fast"', 'must be a table of settings, not "fast": write [sim] with its keys below '
+                     "it, or sim = {key = value, ...}")])
+def test_a_section_written_as_another_value_says_how_to_write_a_table(work: Path, text: str,
+                                                                      reason: str) -> None:
+    """A section given as a number, text or an array of tables: the message named pydantic's
+    class ("a valid dictionary or instance of SimSettings") and said nothing of TOML."""
+    _write(work / "bad.toml", f'name = "ball"\n{text}\n[system]\nname = "ball"\n')
+    assert cli_bad(work, ["bad.toml"]) == [f"error: bad.toml: sim: {reason}"]
+
+
+def test_an_empty_margins_value_is_said_empty(work: Path) -> None:
+    """``mpc.margins = ""`` was read as the scenario's directory ("a directory, not a margins
+    file")."""
+    assert cli_bad(work, ["ball.toml", "--set", 'mpc.margins=""']) == [
+        'error: --set mpc.margins="": mpc.margins: empty: give "hand", "tube" or a margins '
+        "file's path"]
 
 
 def test_two_problems_two_lines(work: Path) -> None:
@@ -287,7 +326,7 @@ def test_two_problems_two_lines(work: Path) -> None:
     assert len(lines) == 2, lines
     found = {KEYED.match(line)["key"]: KEYED.match(line)["reason"] for line in lines}
     assert found.keys() == {"mpc.foo", "sim.rate_hz"}
-    assert found["mpc.foo"] == "unknown key"
+    assert found["mpc.foo"] == "unknown key" + far(22)
 
 
 def test_two_rate_problems_two_lines(work: Path) -> None:
@@ -337,7 +376,7 @@ def test_bad_input_in_a_real_process(tmp_path: Path, run_hmpc) -> None:
     assert "Traceback" not in proc.stderr
     assert sorted(proc.stderr.splitlines()) == [
         "error: --set sim.rate_hz=0: sim.rate_hz: Input should be greater than 0 (got 0)",
-        "error: bad.toml: mpc.foo: unknown key"]
+        "error: bad.toml: mpc.foo: unknown key" + far(22)]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml"]
 
 
@@ -389,7 +428,7 @@ def test_load_errors_directly(tmp_path: Path) -> None:
     lines = load_error(path)
     assert lines == [f"{path}: sim.rate_hz: Input should be greater than 0 (got -1)"]
     lines = load_error(path, ["sim.rate_hz=600", "mpc.bar=2"])
-    assert lines == ["--set mpc.bar=2: mpc.bar: unknown key",  # and the rate problem too
+    assert lines == ["--set mpc.bar=2: mpc.bar: unknown key" + far(22),  # and the rate one
                      f"{path}: mpc.rate_hz: 7 must divide mpc.nodes_per_second = 60 and "
                      "sim.rate_hz = 600 (the MPC period must be a whole number of node steps "
                      "and of simulator steps)"]

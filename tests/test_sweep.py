@@ -382,6 +382,25 @@ BAD = {
                                "sweep.toml: scenario: sweep.toml is a sweep file (this sweep "
                                "file itself), not a scenario: name the scenario file its runs "
                                "start from (one with system and mpc sections)"),
+    "itself as its scenario, nothing else": ('scenario = "sweep.toml"\n',
+                                             "sweep.toml: scenario: sweep.toml is a sweep file "
+                                             "(this sweep file itself), not a scenario: name "
+                                             "the scenario file its runs start from (one with "
+                                             "system and mpc sections)"),
+    "a directory as its scenario": ('scenario = "."\n',
+                                    "sweep.toml: scenario: . is a directory, not a scenario "
+                                    "file"),
+    "a key path through a value, an axis": (
+        '[grid]\n"sim.duration.x" = [1, 2]\n',
+        "sweep.toml: grid.sim.duration.x: sim.duration.x: sim.duration is a value (3.0), not a "
+        "table, so sim.duration.x names no key: set sim.duration itself"),
+    "a key path through a value, [set]": (
+        '[set]\n"sim.duration.x" = 1\n',
+        "sweep.toml: [set]: sim.duration.x: sim.duration is a value (3.0), not a table, so "
+        "sim.duration.x names no key: set sim.duration itself"),
+    "a section given as a number": ('set = 5\n',
+                                    "sweep.toml: set: must be a table of settings, not 5: write "
+                                    "[set] with its keys below it, or set = {key = value, ...}"),
     "unknown key in a table entry": (
         '[grid]\nc = [{ label = "a", "mpc.rate_hz" = 10 }, { label = "b", '
         '"replaning.policy" = "once" }]\n',

@@ -419,7 +419,8 @@ def test_plant_problems_are_reported_with_the_others(work: Path):
     ball = _scenario(work, "ball", {"plant": {"mass": -1.0, "spin": 2}, "sim": {"rate_hz": 0}})
     assert sorted(bad_run(work, ["run", ball.name])) == [
         "error: ball.toml: plant.mass: Input should be greater than 0 (got -1.0)",
-        "error: ball.toml: plant.spin: unknown key",
+        "error: ball.toml: plant.spin: unknown key (none of the 18 keys here is close: "
+        "`hmpc schema` lists them)",
         "error: ball.toml: sim.rate_hz: Input should be greater than 0 (got 0)"]
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, field_validator
 
 __all__ = ["KindSettings", "MPCKindSettings", "MarginsSettings", "PlannerSettings"]
 
@@ -95,6 +95,14 @@ class MarginsSettings(MPCKindSettings):
 
     The kind declares the field (its default and description are its own).
     """
+
+    @field_validator("margins", check_fields=False)
+    @classmethod
+    def _named(cls, value: Any) -> Any:
+        """An empty ``margins``: no file (it would name the scenario's directory)."""
+        if isinstance(value, str) and not value.strip():
+            raise ValueError('empty: give "hand", "tube" or a margins file\'s path')
+        return value
 
     def margins_source(self) -> str:
         """``mpc.margins``: "hand", "tube" or a margins file."""

@@ -357,29 +357,31 @@ def apply_overrides(data: dict, overrides: list[str], source: str) -> dict:
             value = tomllib.loads(f"v = {raw}")["v"]
         except tomllib.TOMLDecodeError as exc:
             if raw.strip()[:1] in ("[", "{", '"', "'"):  # TOML syntax, not a bare word
-                errors.append(f"--set {_shown(item)}: the value is not valid TOML ({exc}); "
+                errors.append(f"--set {shown_item(item)}: the value is not valid TOML ({exc}); "
                               "a text value needs no quotes, an array [a, b], a table "
                               "{k = v}")
                 continue
             value = raw
         except RecursionError:
-            errors.append(f"--set {_shown(item)}: the value is nested too deeply (more "
+            errors.append(f"--set {shown_item(item)}: the value is nested too deeply (more "
                           f"than {MAX_DEPTH} levels)")
             continue
         if nesting(value) > MAX_DEPTH:
-            errors.append(f"--set {_shown(item)}: the value is nested too deeply (more "
+            errors.append(f"--set {shown_item(item)}: the value is nested too deeply (more "
                           f"than {MAX_DEPTH} levels)")
             continue
         node = data
         parts = [p.strip() for p in key.strip().split(".")]  # TOML: "sim . duration" too
         if not all(parts):  # "sim..duration", ".sim", "sim."
-            errors.append(f"--set {_shown(item)}: {key.strip()!r} has an empty part: "
+            errors.append(f"--set {shown_item(item)}: {key.strip()!r} has an empty part: "
                           "the key is dotted names, e.g. sim.duration")
             continue
-        for part in parts[:-1]:
+        for i, part in enumerate(parts[:-1]):
             nxt = node.setdefault(part, {})
             if not isinstance(nxt, dict):
-                errors.append(f"--set {item!r}: {part} is not a table")
+                at, text = ".".join(parts[:i + 1]), _cut(_toml_value(nxt))
+                errors.append(f"--set {shown_item(item)}: {at} is a value ({text}), not a "
+                              f"table, so {'.'.join(parts)} names no key: set {at} itself")
                 break
             node = nxt
         else:
@@ -390,7 +392,7 @@ def apply_overrides(data: dict, overrides: list[str], source: str) -> dict:
     return data
 
 
-def _shown(item: str, width: int = 60) -> str:
+def shown_item(item: str, width: int = 60) -> str:
     """A ``--set`` item for a message: quoted, a long one cut to ``width`` characters."""
     return repr(item) if len(item) <= width else repr(item[:width]) + "..."
 
@@ -427,9 +429,39 @@ def nesting(value: Any) -> int:
     return deepest
 
 
+#: most keys :func:`unknown_key` lists when none is close to the unknown one
+LISTED_KEYS = 16
+
+
 def unknown_key(key: Any, allowed: list[str]) -> str:
-    """``unknown key``, with ``(did you mean 'x'?)`` when an allowed key is close to it."""
-    return "unknown key" + did_you_mean(key, allowed)
+    """``unknown key``, with ``(did you mean 'x'?)`` when an allowed key is close to it.
+
+    With none close, the allowed keys (up to :data:`LISTED_KEYS` of them; beyond, their
+    number and where they are listed).
+    """
+    hint = did_you_mean(key, allowed)
+    if hint or not allowed:
+        return "unknown key" + hint
+    if len(allowed) > LISTED_KEYS:
+        return (f"unknown key (none of the {len(allowed)} keys here is close: `hmpc schema` "
+                "lists them)")
+    return f"unknown key (the keys here: {', '.join(allowed)})"
+
+
+def _not_a_table(kind: str, loc: str, given: Any, msg: str) -> str:
+    """A section or table given as another kind of value: how to write it as a table.
+
+    ``msg`` unchanged for other errors (``kind``: pydantic's error type).
+    """
+    if kind not in ("model_type", "dict_type"):
+        return msg
+    if isinstance(given, list) and given and all(isinstance(g, dict) for g in given):
+        return (f"an array of tables ([[{loc}]]), not one table: write [{loc}] once, "
+                "its keys below it")
+    text = _cut(_toml_value(given)) if isinstance(given, bool | int | float | str | list) \
+        else type(given).__name__
+    return (f"must be a table of settings, not {text}: write [{loc}] with its keys below "
+            f"it, or {loc} = {{key = value, ...}}")
 
 
 def _field_names(models: list[type[BaseModel]]) -> list[str]:
@@ -522,6 +554,7 @@ def format_errors(exc: ValidationError, source: str, model: Any = None) -> list[
             raw = [p for p in err["loc"] if p not in ("function-after",)]
             allowed = _field_names(models_at(model, raw[:-1])) if model is not None else []
             msg = unknown_key(raw[-1], allowed)
+        msg = _not_a_table(err["type"], loc, given, msg)
         if not err["loc"] and err["type"] == "value_error":  # Scenario._rates: own key paths
             lines += [f"{source}: {m}" for m in msg.split("\n")]
             continue
@@ -534,7 +567,8 @@ def _plant_error(err: dict, params: Any) -> str:
     msg = err["msg"].removeprefix("Value error, ") + _given_value(err["type"], err.get("input"))
     if err["type"] == "extra_forbidden":
         msg = unknown_key(err["loc"][-1], _field_names([params]))
-    return f"{key_path(['plant', *err['loc']])}: {msg}"
+    loc = key_path(['plant', *err['loc']])
+    return f"{loc}: {_not_a_table(err['type'], loc, err.get('input'), msg)}"
 
 
 def _tuple_lengths(errors: list[dict], model: Any) -> list[dict]:
@@ -601,8 +635,12 @@ def _given_value(kind: str, given: Any) -> str:
     if kind not in _VALUE_NOT_SHOWN or isinstance(given, bool) \
             or not isinstance(given, int | float | str):
         return ""
-    text = _toml_value(given)
-    return f" (got {text if len(text) <= 40 else text[:37] + '...'})"
+    return f" (got {_cut(_toml_value(given))})"
+
+
+def _cut(text: str, width: int = 40) -> str:
+    """``text`` for a message: one longer than ``width`` characters cut, with "..."."""
+    return text if len(text) <= width else text[:width - 3] + "..."
 
 
 def _unquoted_hint(kind: str, given: Any) -> str:

@@ -29,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from hmpc_cli.run.scenario import (
     ScenarioError, format_errors, load_scenario, other_kind_of_file, read_toml_file,
-    scenario_model, seeded_toml)
+    scenario_model, seeded_toml, shown_item)
 from hmpc_cli.core.settings_types import MAX_INT
 from hmpc_cli.sweep.table import METRICS, REAL_TIME, cell_text, toml_value
 
@@ -275,8 +275,16 @@ def _rewrite(line: str, scenario: Path, src: str, run: Run) -> str:
     """Attributes a scenario error on an overridden key to the sweep file and its entry.
 
     ``sweep.toml: grid.axis[i]: key.path: reason (value v)`` (or ``[set]``); an element
-    of an overridden list (``system.x0[3]``) counts as the list's key.
+    of an overridden list (``system.x0[3]``) counts as the list's key. An override that
+    cannot be applied at all (its key path runs through a value) is said once per axis.
     """
+    for k, v in run.overrides.items():
+        prefix = f"--set {shown_item(f'{k}={toml_value(v)}')}: "
+        if line.startswith(prefix):
+            where = run.origin[k]
+            axis = _INDEX.sub("", where)
+            return (f"{src}: {axis if axis == f'grid.{k}' else where}: {k}: "
+                    f"{line.removeprefix(prefix)}")
     rest = line.removeprefix(f"{scenario}: ")
     key, sep, reason = rest.partition(": ")
     unknown = reason.startswith("unknown key")  # an unknown section an override made
@@ -316,11 +324,15 @@ def plan_sweep(path: str | Path) -> SweepPlan:
     text, spec = _read_spec(path, src)
     errors: list[str] = []
     scenario = path.parent / spec.scenario
-    if not scenario.is_file():
+    itself = scenario.resolve() == path.resolve()
+    if scenario.is_dir():
+        errors.append(f"{src}: scenario: {scenario} is a directory, not a scenario file"
+                      + _relative_hint(spec.scenario, path.parent))
+    elif not scenario.is_file():
         errors.append(f"{src}: scenario: file not found: {scenario}"
                       + _relative_hint(spec.scenario, path.parent))
-    elif _is_a_sweep_file(scenario):  # its runs would say "run it with hmpc sweep"
-        this = " (this sweep file itself)" if scenario.resolve() == path.resolve() else ""
+    elif itself or _is_a_sweep_file(scenario):  # its runs would say "run it with hmpc sweep"
+        this = " (this sweep file itself)" if itself else ""
         raise ScenarioError([f"{src}: scenario: {scenario} is a sweep file{this}, not a "
                              "scenario: name the scenario file its runs start from (one "
                              "with system and mpc sections)"])
