@@ -368,8 +368,9 @@ once (field and cross-field problems together), and exits with code 2 before any
 written. An unknown key names the closest known key of its level: `mpc.rate: unknown key
 (did you mean 'rate_hz'?)`; with none close, it lists that level's keys (past 16 of them,
 their number: `hmpc schema` lists them). A section written as another value (`sim = 5`,
-`[[sim]]`) is told how to write it as a table, and a `--set` whose key path runs through
-a value (`sim.duration.x`) names that value. The source is the scenario file, `--set
+`[[sim]]`) is told how to write it as a table, a table or an array where one value belongs
+says so, and a `--set` whose key path runs through a value (`sim.duration.x`) names that
+value. The source is the scenario file, `--set
 key=value` for a problem the override made (its key, a key inside it, or a key its reason
 names), `--seed N` for the seed given on the command line, or the sweep file and its entry
 (`sweep.toml: grid.axis[i]: key: ...`).

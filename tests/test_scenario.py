@@ -313,6 +313,23 @@ def test_a_section_written_as_another_value_says_how_to_write_a_table(work: Path
     assert cli_bad(work, ["bad.toml"]) == [f"error: bad.toml: sim: {reason}"]
 
 
+@pytest.mark.parametrize("item,reason", [
+    ("sim.rate_hz={x=1}", "Input should be a valid integer (got a table: this key takes one "
+                          "value)"),
+    ("sim.rate_hz=[1,2]", "Input should be a valid integer (got an array: this key takes one "
+                          "value)"),
+    ("sim.delay_compensation={}", "Input should be a valid boolean (got a table: this key "
+                                  "takes one value)"),
+    ("system.x0={a=1}", "Input should be a valid tuple (got a table: write an array, "
+                        "[a, b, ...])")])
+def test_a_table_or_array_where_one_value_belongs_says_so(work: Path, item: str,
+                                                          reason: str) -> None:
+    """pydantic's "Input should be a valid integer" did not say a table was given."""
+    key = item.partition("=")[0]
+    assert cli_bad(work, ["ball.toml", "--set", item]) == [
+        f"error: --set {item}: {key}: {reason}"]
+
+
 def test_an_empty_margins_value_is_said_empty(work: Path) -> None:
     """``mpc.margins = ""`` was read as the scenario's directory ("a directory, not a margins
     file")."""

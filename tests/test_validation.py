@@ -250,7 +250,8 @@ def test_a_problem_made_on_the_command_line_names_the_option_not_the_file(work: 
     assert bad_run(work, ["run", ball, "--seed", "-1"]) == [
         "error: --seed -1: seed: Input should be greater than or equal to 0 (got -1)"]
     assert bad_run(work, ["run", ball, "--set", "system.x0.0=1"]) == [
-        "error: --set system.x0.0=1: system.x0: Input should be a valid tuple"]
+        "error: --set system.x0.0=1: system.x0: Input should be a valid tuple (got a table: "
+        "write an array, [a, b, ...])"]
 
 
 @pytest.mark.parametrize("system,item,message", [

@@ -546,7 +546,8 @@ def format_errors(exc: ValidationError, source: str, model: Any = None) -> list[
         if err["type"] == "string_type" and isinstance(given, int | float) \
                 and not isinstance(given, bool):
             msg += f' (a number here; text is quoted in TOML: "{given}")'
-        msg += _unquoted_hint(err["type"], given) + _given_value(err["type"], given)
+        msg += (_unquoted_hint(err["type"], given) + _given_value(err["type"], given)
+                + _container_hint(err["type"], given))
         if err["type"] in ("literal_error", "enum") and isinstance(given, str):
             msg += did_you_mean(given, re.findall(r"'([^']*)'", str(
                 (err.get("ctx") or {}).get("expected", ""))))
@@ -641,6 +642,23 @@ def _given_value(kind: str, given: Any) -> str:
 def _cut(text: str, width: int = 40) -> str:
     """``text`` for a message: one longer than ``width`` characters cut, with "..."."""
     return text if len(text) <= width else text[:width - 3] + "..."
+
+
+def _container_hint(kind: str, given: Any) -> str:
+    """`` (got a table: this key takes one value)`` for a container where a value is wanted.
+
+    A table or an array where a number, a boolean or text is wanted; a table where an
+    array is (`` (got a table: write an array, ...)``); '' else.
+    """
+    what = "a table" if isinstance(given, dict) else "an array" if isinstance(given, list) \
+        else None
+    if what is None:
+        return ""
+    if kind in ("tuple_type", "list_type"):
+        return " (got a table: write an array, [a, b, ...])" if what == "a table" else ""
+    if kind in _WANTED or kind == "string_type":
+        return f" (got {what}: this key takes one value)"
+    return ""
 
 
 def _unquoted_hint(kind: str, given: Any) -> str:
