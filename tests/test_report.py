@@ -135,6 +135,30 @@ def test_plot_robustness_panels_follow_the_size_set_for_the_whole_sweep_or_are_o
                 (int(x), p, 10.0)])) for p in ("once", "on_contact") for x in ("5", "50")]
 
 
+def test_plot_robustness_axes_follow_the_values_a_table_axis_gives(tmp_path):
+    """A table whose rate and policy a table axis's entries set (``set.`` columns, as
+    sweeps/fig3.toml's controllers do): the default command drew nothing ("missing
+    column(s) mpc.rate_hz"); it draws them as the x axis and the series."""
+    from test_plot import make_app
+
+    table = write_study(tmp_path / "study" / "results.csv")
+    header, rest = table.read_text().split("\n", 1)
+    header = ",".join({"mpc.rate_hz": "set.mpc.rate_hz", "replanning.policy":
+                       "set.replanning.policy"}.get(c, c) for c in header.split(","))
+    table.write_text(header + "\n" + rest)
+    res = CliRunner().invoke(make_app(), ["plot", "robustness", str(table), "--out",
+                                          str(tmp_path / "fig"), "--formats", "svg"])
+    assert res.exit_code == 0, res.output
+    with open(tmp_path / "fig" / "robustness_table.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["disturbance.magnitude"], r["set.replanning.policy"], r["set.mpc.rate_hz"],
+             r["successes"]) for r in rows] == [
+        (str(m), p, x, str(TRUTH[(int(x), p, m)])) for m in (10.0, 30.0)
+        for p in ("once", "on_contact") for x in ("5", "50")]
+    svg = (tmp_path / "fig" / "robustness.svg").read_text()
+    assert "MPC rate [Hz]" in svg and "set.mpc" not in svg  # labelled as the grid axis is
+
+
 def test_report_page_tables_the_study(tmp_path):
     write_study(tmp_path / "results" / "sweeps" / "robustness" / "results.csv")
     page = write_report(tmp_path / "results",

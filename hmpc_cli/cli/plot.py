@@ -175,13 +175,17 @@ def _robustness(table: Path, out: Path | None, formats: str, options: dict) -> N
 
     from hmpc_cli.analysis.tables import FigureInputError, resolve_table
     from hmpc_cli.figures.common import parse_formats
-    from hmpc_cli.figures.robustness import default_panel_axis, robustness
+    from hmpc_cli.figures.robustness import (SERIES_AXES, X_AXES, default_axis,
+                                             default_panel_axis, robustness)
 
     out_dir = out if out is not None else checked_output(resolve_table(table).parent,
                                                          "output directory")
     try:
         if options["panel_axis"] is None:
             options = {**options, "panel_axis": default_panel_axis(table)}
+        for key, columns in (("x_axis", X_AXES), ("series_axis", SERIES_AXES)):
+            if options[key] is None:
+                options = {**options, key: default_axis(table, columns)}
         data = robustness(table, out_dir, formats, **options)
     except FigureInputError as exc:
         _fail(str(exc))
@@ -218,11 +222,12 @@ def plot_command(
         "--panel-axis", help="table column with one panel per value (fig3: controller, "
         "robustness: disturbance.magnitude, else set.disturbance.magnitude, else one "
         "panel)")] = None,
-    x_axis: Annotated[str, typer.Option(
-        "--x-axis", help="robustness: numeric column on the x axis")] = "mpc.rate_hz",
-    series_axis: Annotated[str, typer.Option(
-        "--series-axis", help="robustness: column with one line per value")
-    ] = "replanning.policy",
+    x_axis: Annotated[str | None, typer.Option(
+        "--x-axis", help="robustness: numeric column on the x axis (mpc.rate_hz, else "
+        "set.mpc.rate_hz)")] = None,
+    series_axis: Annotated[str | None, typer.Option(
+        "--series-axis", help="robustness: column with one line per value "
+        "(replanning.policy, else set.replanning.policy)")] = None,
     trace_axis: Annotated[str, typer.Option(
         "--trace-axis", help="fig3: column naming a panel's trajectories")] = "disturbance",
     nominal: Annotated[str, typer.Option(

@@ -121,11 +121,26 @@ ONE_PANEL = "all runs"
 PANEL_AXES = ("disturbance.magnitude", "set.disturbance.magnitude")
 
 
+#: the x axis's and the series' default columns, in order of preference: a grid axis, else
+#: the value a table axis's entries (or ``[set]``) give (``set.`` columns)
+X_AXES = ("mpc.rate_hz", "set.mpc.rate_hz")
+SERIES_AXES = ("replanning.policy", "set.replanning.policy")
+
+
 def default_panel_axis(table: str | Path) -> str | None:
     """The first of :data:`PANEL_AXES` the table has; None: one panel (:data:`ONE_PANEL`)."""
-    path = resolve_table(table)
-    columns = read_table(path, ["success"])[0].keys()
-    return next((a for a in PANEL_AXES if a in columns), None)
+    return _first_column(table, PANEL_AXES)
+
+
+def default_axis(table: str | Path, columns: Sequence[str]) -> str:
+    """The first of ``columns`` the table has; else the first (its error names it)."""
+    return _first_column(table, columns) or columns[0]
+
+
+def _first_column(table: str | Path, columns: Sequence[str]) -> str | None:
+    """The first of ``columns`` the table at ``table`` has (None: none of them)."""
+    present = read_table(resolve_table(table), ["success"])[0].keys()
+    return next((c for c in columns if c in present), None)
 
 
 def cells(table: str | Path, x_axis: str, series_axis: str, panel_axis: str | None,
@@ -174,6 +189,7 @@ AXIS_LABELS = {"mpc.rate_hz": "MPC rate [Hz]", "replanning.policy": "replanning"
 
 
 def _axis_label(axis: str) -> str:
+    axis = axis.removeprefix("set.")  # a value the sweep's table entries or [set] give
     return AXIS_LABELS.get(axis, axis.rsplit(".", 1)[-1].replace("_", " "))
 
 
