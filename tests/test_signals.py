@@ -478,6 +478,58 @@ def test_a_stop_after_the_runs_last_check_says_the_run_finished(tmp_path, monkey
     assert read_log(out / "run.mcap").complete
 
 
+def test_a_stop_signal_the_process_ignores_stays_ignored_and_the_others_are_handled():
+    """The stop handlers took SIGHUP from ``nohup`` and SIGINT from a background job: such
+    a run or sweep stopped when its terminal closed. Both stay ignored, in a command and in
+    a sweep's worker; the handlers take the others and give them back."""
+    from hmpc_cli.core import signals
+
+    code = ("import signal\n"
+            "signal.signal(signal.SIGHUP, signal.SIG_IGN)\n"
+            "signal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+            "from hmpc_cli.core import signals\n"
+            "names = lambda: [signal.getsignal(s) is signal.SIG_IGN for s in "
+            "signals.STOP_SIGNALS]\n"
+            "with signals.handle_signals():\n"
+            "    print(names(), signals.stoppable())\n"
+            "print(names(), signal.getsignal(signal.SIGTERM) is signal.SIG_DFL)\n"
+            "signals.install_deferred()\n"
+            "print(names(), signal.getsignal(signal.SIGTERM) is signals._handler)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=60, env=cli_env())
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.splitlines() == [
+        "[True, False, True] (<Signals.SIGTERM: 15>,)", "[True, False, True] True",
+        "[True, False, True] True"]
+    assert signals.STOP_SIGNALS == (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+@pytest.mark.slow
+def test_a_run_under_nohup_in_the_background_survives_its_terminal_closing(tmp_path):
+    """``nohup hmpc run ... &``: SIGHUP (the terminal closing) and SIGINT (Ctrl-C in the
+    terminal) reach a process that ignores them; the run went on to its end."""
+    import os
+
+    out = tmp_path / "run"
+
+    def ignore() -> None:
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    cmd = [sys.executable, "-m", "hmpc_cli", "run", str(BALL), "--out", str(out), "-q",
+           "--set", "sim.duration=1.0"]
+    proc = subprocess.Popen(cmd, cwd=tmp_path, env=cli_env(), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, preexec_fn=ignore)
+    _wait_for_log(proc, out / "run.mcap")
+    _wait_for_cpu(proc, 0.3)
+    for sig in (signal.SIGHUP, signal.SIGINT):
+        os.kill(proc.pid, sig)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err
+    summary = json.loads((out / "summary.json").read_text())
+    assert (summary["reason"], summary["t_end"]) == ("success", 1.0)
+
+
 @pytest.mark.parametrize("ignored", [False, True], ids=["handled", "ignored"])
 def test_a_stop_while_the_process_exits_is_one_line_not_a_traceback(ignored):
     """Ctrl-C while the atexit handlers run (the command's handlers already taken off)

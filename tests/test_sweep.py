@@ -439,6 +439,30 @@ def test_bad_sweep_exits_2_and_creates_nothing(tmp_path, case):
     assert not (tmp_path / "results").exists()
 
 
+@pytest.mark.parametrize("where", ["after the table", "while printing the cells"])
+def test_a_stop_after_the_sweeps_runs_ended_says_they_are_all_done(tmp_path, monkeypatch,
+                                                                     invoke_hmpc, where):
+    """A SIGTERM after the last run's row was written said only "interrupted (SIGTERM)":
+    nothing told the user the table was complete (a resume ran nothing)."""
+    import hmpc_cli.cli.sweep as cli_sweep
+
+    write_sweep(tmp_path, 'name = "one"\nscenario = "{scenario}"\nseeds = 1\n' + TINY_SET)
+    stage = "_locked_execute" if where == "after the table" else "_print_cells"
+    real = getattr(cli_sweep, stage)
+
+    def then_stopped(*args, **kwargs):
+        real(*args, **kwargs)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli_sweep, stage, then_stopped)
+    proc = invoke_hmpc(["sweep", "sweep.toml", "--out", "out"], tmp_path)
+    when = "" if where == "after the table" else " after the sweep's runs ended"
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr.splitlines() == [
+        f"interrupted (SIGINT){when}: all 1 run done; the table: out/results.csv"]
+    assert len(table(Path(tmp_path / "out"))) == 1
+
+
 def test_a_scenario_path_relative_to_the_wrong_directory_says_how_to_name_it(tmp_path):
     """A sweep file elsewhere naming a scenario relative to the current directory: the
     error said only 'file not found: sweeps/ball.toml' (read from the sweep's directory)."""
@@ -555,7 +579,7 @@ def test_cli_sweep_imports_stay_light():
     names = {a.name for n in top for a in n.names} | {n.module for n in top
                                                        if isinstance(n, ast.ImportFrom)}
     assert names <= {"__future__", "annotations", "pathlib", "Path", "typing", "Annotated",
-                     "Optional", "typer"}
+                     "NoReturn", "Optional", "typer"}
     assert not any("click" in ast.unparse(n) for n in ast.walk(tree)
                    if isinstance(n, (ast.Import, ast.ImportFrom)))
     code = ("import sys; import hmpc_cli.cli.sweep; print(sorted(m for m in ('casadi', 'numpy', "

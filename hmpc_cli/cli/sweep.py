@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, NoReturn
 
 import typer
 
@@ -62,22 +62,84 @@ def sweep_command(
     client = _dask_client(dask, dask_timeout, workers)
     try:
         outcome = _locked_execute(plan, out, workers or os.cpu_count() or 1, client)
+    except KeyboardInterrupt as exc:  # a stop as the runs start or end: what is done
+        _stopped_at_an_edge(plan, out, exc)
     finally:
         if client is not None:
             client.close()
-    if is_quiet():  # errors and the table's path only
-        typer.echo(str(out / "results.csv"))
-    else:
-        _print_cells(plan, out)
-        typer.echo(f"results: {out / 'results.csv'}")
+    _report_outcome(plan, out, outcome, is_quiet())
+
+
+def _stopped_at_an_edge(plan, out: Path, exc: KeyboardInterrupt) -> NoReturn:
+    """Says how many runs are done, as a resume counts them, then stops.
+
+    For a stop the sweep's executor did not see: before its first run, after its table.
+    """
+    from hmpc_cli.core.signals import as_interrupted
+    from hmpc_cli.sweep.execute import Outcome
+    from hmpc_cli.sweep.table import finished_runs
+
+    stop = as_interrupted(exc)
+    if getattr(exc, "reported", False):
+        raise stop from None
+    try:
+        done = sum(s is not None for s in finished_runs(plan, out).values())
+    except OSError:
+        done = 0
+    outcome = Outcome(total=len(plan.selected), done=done)
+    table = f"; the table: {out / 'results.csv'}" if (out / "results.csv").is_file() else ""
+    typer.echo(f"interrupted ({stop.name}): {_done_text(outcome)}{_resume_text(outcome)}"
+               f"{table}", err=True)
+    stop.reported = True
+    raise stop from None
+
+
+def _report_outcome(plan, out: Path, outcome, quiet: bool) -> None:
+    """Prints the sweep's cells and table, its lost runs; exits for a stop or lost work.
+
+    A stop signal while this prints (the runs have ended) says how many runs are done
+    and where their table is, then stops.
+    """
+    from hmpc_cli.core.signals import check
+
+    try:
+        if not outcome.interrupted:  # its stop is said below
+            check()
+        if quiet:  # errors and the table's path only
+            typer.echo(str(out / "results.csv"))
+        else:
+            _print_cells(plan, out)
+            typer.echo(f"results: {out / 'results.csv'}")
+    except KeyboardInterrupt as exc:
+        from hmpc_cli.core.signals import as_interrupted
+
+        stop = as_interrupted(exc)
+        when = " while the sweep stopped" if outcome.interrupted else \
+            " after the sweep's runs ended"
+        typer.echo(f"interrupted ({stop.name}){when}: {_done_text(outcome)}"
+                   f"{_resume_text(outcome)}; the table: {out / 'results.csv'}", err=True)
+        stop.reported = True
+        raise stop from None
     if outcome.lost:
         _err([f"run not recorded (rerun to retry): {x}" for x in outcome.lost])
     if outcome.interrupted:
-        typer.echo(f"interrupted: {outcome.done} of {outcome.total} runs done; run the same "
-                   "command again to resume", err=True)
+        typer.echo(f"interrupted: {_done_text(outcome)}{_resume_text(outcome)}", err=True)
         raise typer.Exit(128 + outcome.signum)
     if outcome.lost:
         raise typer.Exit(EXIT_FAILED)
+
+
+def _resume_text(outcome) -> str:
+    """``; run the same command again to resume`` while runs are left ('' else)."""
+    return "" if outcome.done >= outcome.total else "; run the same command again to resume"
+
+
+def _done_text(outcome) -> str:
+    """``K of N runs done``, or ``all N runs done`` (nothing left to run)."""
+    runs = "run" if outcome.total == 1 else "runs"
+    if outcome.done >= outcome.total:
+        return f"all {outcome.total} {runs} done"
+    return f"{outcome.done} of {outcome.total} {runs} done"
 
 
 def _dask_client(address: str | None, timeout: float, workers: int | None):

@@ -9,6 +9,9 @@ calls :func:`check` at safe points (after every step, after every solve). CasADi
 exceptions raised in IPOPT's callbacks and returns ``NonIpopt_Exception_Thrown``; the
 solver session turns that status back into :class:`Interrupted` (:func:`check` after the
 solve), and CasADi's warning about it is left out of stderr. Nothing happens at import.
+
+A stop signal the process was started ignoring stays ignored (``nohup``'s SIGHUP, a
+background job's SIGINT): :func:`stoppable`.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import time
 from collections.abc import Iterator
 
 __all__ = ["EXIT_CODES", "Interrupted", "abortable", "as_interrupted", "check", "deferred",
-           "handle_signals", "install_deferred", "pending", "reset"]
+           "handle_signals", "install_deferred", "pending", "reset", "stoppable"]
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 EXIT_CODES = {int(s): 128 + int(s) for s in STOP_SIGNALS}  # 130, 143, 129
@@ -244,13 +247,22 @@ def _raise_again(generation: int, signum: int) -> None:
         _thread.interrupt_main(signum)
 
 
+def stoppable() -> tuple[int, ...]:
+    """The stop signals this process does not ignore, those its handlers take.
+
+    One it ignores stays ignored: ``nohup hmpc sweep ... &`` keeps running when its
+    terminal closes (SIGHUP), a background job ignores the terminal's Ctrl-C (SIGINT).
+    """
+    return tuple(s for s in STOP_SIGNALS if signal.getsignal(s) is not signal.SIG_IGN)
+
+
 def install_deferred() -> None:
     """Installs the stop handlers for good, recording only (a sweep's worker process).
 
     The work stops at the next :func:`check`; only :func:`abortable` sections (IPOPT
-    solves) are cut at once.
+    solves) are cut at once. Signals the process ignores stay ignored (:func:`stoppable`).
     """
-    for s in STOP_SIGNALS:
+    for s in stoppable():
         signal.signal(s, _handler)
     sys.unraisablehook = _unraisable(sys.unraisablehook)
     _STATE.installed, _STATE.raise_now = True, False
@@ -260,6 +272,8 @@ def install_deferred() -> None:
 def handle_signals() -> Iterator[None]:
     """Installs the stop handlers for SIGINT, SIGTERM and SIGHUP; restores them on exit.
 
+    Signals the process ignores stay ignored (:func:`stoppable`).
+
     Only in the main thread, and only the outermost (elsewhere, or nested: does nothing).
     The received signal is forgotten on entry. A stop whose raise Python dropped
     (:func:`_unraisable`) is raised on exit if the body ends first.
@@ -268,7 +282,7 @@ def handle_signals() -> Iterator[None]:
         yield  # another thread's, or inside another handle_signals (or a worker's)
         return
     reset()
-    previous = {s: signal.signal(s, _handler) for s in STOP_SIGNALS}
+    previous = {s: signal.signal(s, _handler) for s in stoppable()}
     hook, sys.unraisablehook = sys.unraisablehook, _unraisable(sys.unraisablehook)
     _STATE.installed, _STATE.raise_now = True, True
     _STATE.generation += 1
