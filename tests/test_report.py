@@ -159,6 +159,29 @@ def test_plot_robustness_axes_follow_the_values_a_table_axis_gives(tmp_path):
     assert "MPC rate [Hz]" in svg and "set.mpc" not in svg  # labelled as the grid axis is
 
 
+@pytest.mark.parametrize("kept", [80, 40])
+def test_plot_robustness_warns_when_the_table_holds_fewer_runs_than_its_sweep_plans(
+        tmp_path, kept):
+    """An interrupted sweep's table was drawn without a word: its missing cells simply
+    vanished from the figure."""
+    from test_plot import make_app
+
+    table = write_study(tmp_path / "study" / "results.csv")
+    lines = table.read_text().splitlines()
+    table.write_text("\n".join(lines[:1 + kept]) + "\n")
+    (table.parent / "sweep.toml").write_text(
+        'name = "s"\nscenario = "x.toml"\nseeds = 10\n[grid]\n"mpc.rate_hz" = [5, 50]\n'
+        '"replanning.policy" = ["once", "on_contact"]\n'
+        '"disturbance.magnitude" = [10.0, 30.0]\n')
+    res = CliRunner().invoke(make_app(), ["plot", "robustness", str(table.parent), "--out",
+                                          str(tmp_path / "fig"), "--formats", "png"])
+    assert res.exit_code == 0, res.output
+    warning = (f"warning: {table} holds {kept} of the 80 runs its sweep plans "
+               f"({table.parent / 'sweep.toml'}): the figure shows those; `hmpc sweep` on "
+               "the sweep file resumes the rest")
+    assert res.stderr.splitlines() == ([] if kept == 80 else [warning])
+
+
 def test_report_page_tables_the_study(tmp_path):
     write_study(tmp_path / "results" / "sweeps" / "robustness" / "results.csv")
     page = write_report(tmp_path / "results",

@@ -75,6 +75,7 @@ def _fig3(table: Path, out: Path | None, formats: str, options: dict) -> None:
         _fail(str(exc))
     for note in (n for c in counts.values() for n in c.notes):
         typer.echo(f"warning: {note}", err=True)
+    _warn_unfinished(table)
     if not is_quiet():
         _print_counts(counts, REFERENCE_COUNTS)
     names = [f"fig3.{f}" for f in parse_formats(formats)] + ["fig3_counts.csv"]
@@ -189,6 +190,7 @@ def _robustness(table: Path, out: Path | None, formats: str, options: dict) -> N
         data = robustness(table, out_dir, formats, **options)
     except FigureInputError as exc:
         _fail(str(exc))
+    _warn_unfinished(table)
     names = [f"robustness.{f}" for f in parse_formats(formats)] + ["robustness_table.csv"]
     if is_quiet():
         return _wrote(names, out_dir)
@@ -203,6 +205,21 @@ def _robustness(table: Path, out: Path | None, formats: str, options: dict) -> N
                   f"{100 * c.rate:.0f} %", f"{100 * lo:.0f}-{100 * hi:.0f} %")
     Console().print(t)
     _wrote(names, out_dir)
+
+
+def _warn_unfinished(table: Path) -> None:
+    """Warns when the table holds fewer runs than its sweep (its ``sweep.toml``) plans."""
+    from hmpc_cli.analysis.tables import read_table, resolve_table
+    from hmpc_cli.sweep.plan import planned_runs
+
+    path = resolve_table(table)
+    stored = path.parent / "sweep.toml"
+    planned = planned_runs(stored) if stored.is_file() else None
+    held = len({row.get("run_id") for row in read_table(path, ["success"])})
+    if planned is not None and held < planned:
+        typer.echo(f"warning: {path} holds {held} of the {planned} runs its sweep plans "
+                   f"({stored}): the figure shows those; `hmpc sweep` on the sweep "
+                   "file resumes the rest", err=True)
 
 
 def plot_command(

@@ -375,6 +375,21 @@ def plan_sweep(path: str | Path) -> SweepPlan:
     return SweepPlan(path, text, spec, scenario, axes, runs, keys, base_toml=base)
 
 
+def planned_runs(path: str | Path) -> int | None:
+    """How many runs the sweep file at ``path`` plans: its seeds x its grid's cells.
+
+    None when it cannot tell (the file unreadable or not a valid sweep, an axis broken);
+    the scenario is not read.
+    """
+    try:
+        _, spec = _read_spec(Path(path), str(path))
+    except ScenarioError:
+        return None
+    errors: list[str] = []
+    axes = _axes(spec, str(path), errors)
+    return None if errors else len(spec.seeds) * math.prod(len(a.labels) for a in axes)
+
+
 def _is_a_sweep_file(path: Path) -> bool:
     """Whether ``path`` reads as a sweep file (unreadable: left to the scenario's loader)."""
     try:
