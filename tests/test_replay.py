@@ -666,9 +666,18 @@ def test_bad_files(ball, tmp_path) -> None:
     sweep = tmp_path / "sweep"  # a sweep's output directory: where its runs are
     (sweep / "runs").mkdir(parents=True)
     (sweep / "results.csv").write_text("run_id\n")
+    said = (f"a sweep's output directory, not a run's: its runs are in {sweep / 'runs'}/"
+            "<run id>")
     assert _error_line(replay(sweep)) == (
-        f"error: {sweep}: a directory without run.mcap (or trace.mcap): a sweep's output "
-        f"directory, its runs are in {sweep / 'runs'}/<run id>")
+        f"error: {sweep}: a directory without run.mcap (or trace.mcap): {said}")
+    stopped = tmp_path / "stopped"  # a sweep stopped before its table: its sweep file
+    (stopped / "runs").mkdir(parents=True)
+    (stopped / "sweep.toml").write_text('name = "s"\n')
+    assert _error_line(replay(stopped)).endswith(said.replace(str(sweep), str(stopped)))
+    from test_plot import make_app  # the figures of a run, given a sweep's directory
+    for figure in ("timing", "fig2", "fig4"):
+        res = CliRunner().invoke(make_app(), ["plot", figure, str(sweep)])
+        assert res.exit_code == 2 and f"{sweep}: {said}" in res.output, (figure, res.output)
 
 
 def test_a_log_without_json_messages_is_told_apart(ball, tmp_path) -> None:

@@ -138,15 +138,14 @@ def resolve_log_path(path: Path) -> Path:
     Raises:
         ReplayError: missing, a directory without either log, or an empty file.
     """
+    from hmpc_cli.log.rundata import sweep_text
     from hmpc_cli.log.trace import TRACE_NAME
 
     if path.is_dir():
         found = [path / name for name in ("run.mcap", TRACE_NAME) if (path / name).is_file()]
         if not found:
-            sweep = (path / "results.csv").is_file() and (path / "runs").is_dir()
-            raise ReplayError(f"a directory without run.mcap (or {TRACE_NAME})" + (
-                f": a sweep's output directory, its runs are in {path / 'runs'}/<run id>"
-                if sweep else ""))
+            raise ReplayError(f"a directory without run.mcap (or {TRACE_NAME})"
+                              + sweep_text(path))
         path = found[0]
     if not path.exists():
         raise ReplayError("no such file")

@@ -77,11 +77,11 @@ def load_walk(path: str | Path) -> WalkLog:
             body points ``hip`` and ``swing_foot`` (not a walking run, or written by an
             hmpc before log version 3; the message names what is missing).
     """
-    from hmpc_cli.log.rundata import read_run
+    from hmpc_cli.log.rundata import read_run, sweep_text
 
     path = Path(path)
     if not path.is_file():
-        raise FigureInputError(f"{path}: no such log")
+        raise FigureInputError(f"{path}{(path.is_dir() and sweep_text(path)) or ': no such log'}")
     try:
         run = read_run(path, with_plans=False)
     except ValueError as exc:

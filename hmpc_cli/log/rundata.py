@@ -27,7 +27,8 @@ from hmpc_cli.log.trace import TRACE_NAME, TRACE_TOPICS
 from hmpc_cli.log.topics import (
     MpcSolve, PlanArrays, PlannerCall, RolloutArrays, RunInfo, Summary)
 
-__all__ = ["DamagedLogError", "Event", "RunData", "TRAJECTORY_TOPICS", "read_run", "resolve_log"]
+__all__ = ["DamagedLogError", "Event", "RunData", "TRAJECTORY_TOPICS", "read_run", "resolve_log",
+           "sweep_text"]
 
 
 def resolve_log(path: Path) -> Path:
@@ -38,12 +39,26 @@ def resolve_log(path: Path) -> Path:
     """
     path = Path(path)
     if path.is_dir():
+        if sweep_text(path) and not (path / "run.mcap").is_file():
+            raise ValueError(f"{path}{sweep_text(path)}")
         path = path / "run.mcap"
     if not path.is_file() and path.name == "run.mcap" and (path.parent / TRACE_NAME).is_file():
         path = path.parent / TRACE_NAME
     if not path.is_file():
         raise ValueError(f"{path}: no such run log")
     return path
+
+
+def sweep_text(directory: Path) -> str:
+    """``: a sweep's output directory, ...`` for one; '' for any other directory.
+
+    A sweep's: its ``runs/`` beside its table or its ``sweep.toml`` (stopped before its
+    table).
+    """
+    sweep = (directory / "runs").is_dir() and any(
+        (directory / name).is_file() for name in ("results.csv", "sweep.toml"))
+    return (f": a sweep's output directory, not a run's: its runs are in "
+            f"{directory / 'runs'}/<run id>") if sweep else ""
 
 
 @dataclass(frozen=True)
