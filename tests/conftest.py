@@ -40,6 +40,13 @@ if "HMPC_CACHE_DIR" not in os.environ:
 if os.environ.get("PYTHONDONTWRITEBYTECODE") and "PYTHONPYCACHEPREFIX" not in os.environ:
     del os.environ["PYTHONDONTWRITEBYTECODE"]
     _private_dir("PYTHONPYCACHEPREFIX", "hmpc-test-bytecode-")
+# a stop signal this session was started ignoring (pytest under nohup, or in a background
+# job: SIGHUP, SIGINT) would stay ignored in the processes the tests start and signal, as
+# hmpc keeps it (hmpc_cli.core.signals.stoppable): the tests start them as a terminal does
+for _sig, _default in ((signal.SIGHUP, signal.SIG_DFL),
+                       (signal.SIGINT, signal.default_int_handler)):
+    if signal.getsignal(_sig) is signal.SIG_IGN:
+        signal.signal(_sig, _default)
 # the build cache's default mode, in that private cache (in $HMPC_CACHE_DIR if the caller
 # set it): every build transcribes its NLP, nothing is stored or compiled (minutes of CPU
 # per structure: tests/test_build_cache.py compiles where it tests it)
