@@ -176,17 +176,15 @@ def _robustness(table: Path, out: Path | None, formats: str, options: dict) -> N
 
     from hmpc_cli.analysis.tables import FigureInputError, resolve_table
     from hmpc_cli.figures.common import parse_formats
-    from hmpc_cli.figures.robustness import (SERIES_AXES, X_AXES, default_axis,
-                                             default_panel_axis, robustness)
+    from hmpc_cli.figures.robustness import default_axes, robustness
 
     out_dir = out if out is not None else checked_output(resolve_table(table).parent,
                                                          "output directory")
     try:
-        if options["panel_axis"] is None:
-            options = {**options, "panel_axis": default_panel_axis(table)}
-        for key, columns in (("x_axis", X_AXES), ("series_axis", SERIES_AXES)):
-            if options[key] is None:
-                options = {**options, key: default_axis(table, columns)}
+        axes = default_axes(table, options["panel_axis"], options["x_axis"],
+                            options["series_axis"])
+        options = {**options, **dict(zip(("panel_axis", "x_axis", "series_axis"), axes,
+                                         strict=True))}
         data = robustness(table, out_dir, formats, **options)
     except FigureInputError as exc:
         _fail(str(exc))

@@ -76,7 +76,6 @@ def _stopped_at_an_edge(plan, out: Path, exc: KeyboardInterrupt) -> NoReturn:
     For a stop the sweep's executor did not see: before its first run, after its table.
     """
     from hmpc_cli.core.signals import as_interrupted
-    from hmpc_cli.sweep.execute import Outcome
     from hmpc_cli.sweep.table import finished_runs
 
     stop = as_interrupted(exc)
@@ -86,10 +85,9 @@ def _stopped_at_an_edge(plan, out: Path, exc: KeyboardInterrupt) -> NoReturn:
         done = sum(s is not None for s in finished_runs(plan, out).values())
     except OSError:
         done = 0
-    outcome = Outcome(total=len(plan.selected), done=done)
     table = f"; the table: {out / 'results.csv'}" if (out / "results.csv").is_file() else ""
-    typer.echo(f"interrupted ({stop.name}): {_done_text(outcome)}{_resume_text(outcome)}"
-               f"{table}", err=True)
+    typer.echo(f"interrupted ({stop.name}): {_progress_text(done, len(plan.selected))}{table}",
+               err=True)
     stop.reported = True
     raise stop from None
 
@@ -116,30 +114,26 @@ def _report_outcome(plan, out: Path, outcome, quiet: bool) -> None:
         stop = as_interrupted(exc)
         when = " while the sweep stopped" if outcome.interrupted else \
             " after the sweep's runs ended"
-        typer.echo(f"interrupted ({stop.name}){when}: {_done_text(outcome)}"
-                   f"{_resume_text(outcome)}; the table: {out / 'results.csv'}", err=True)
+        typer.echo(f"interrupted ({stop.name}){when}: "
+                   f"{_progress_text(outcome.done, outcome.total)}; the table: "
+                   f"{out / 'results.csv'}", err=True)
         stop.reported = True
         raise stop from None
     if outcome.lost:
         _err([f"run not recorded (rerun to retry): {x}" for x in outcome.lost])
     if outcome.interrupted:
-        typer.echo(f"interrupted: {_done_text(outcome)}{_resume_text(outcome)}", err=True)
+        typer.echo(f"interrupted: {_progress_text(outcome.done, outcome.total)}", err=True)
         raise typer.Exit(128 + outcome.signum)
     if outcome.lost:
         raise typer.Exit(EXIT_FAILED)
 
 
-def _resume_text(outcome) -> str:
-    """``; run the same command again to resume`` while runs are left ('' else)."""
-    return "" if outcome.done >= outcome.total else "; run the same command again to resume"
-
-
-def _done_text(outcome) -> str:
-    """``K of N runs done``, or ``all N runs done`` (nothing left to run)."""
-    runs = "run" if outcome.total == 1 else "runs"
-    if outcome.done >= outcome.total:
-        return f"all {outcome.total} {runs} done"
-    return f"{outcome.done} of {outcome.total} {runs} done"
+def _progress_text(done: int, total: int) -> str:
+    """``K of N runs done; run the same command again to resume``, or ``all N runs done``."""
+    runs = "run" if total == 1 else "runs"
+    if done >= total:
+        return f"all {total} {runs} done"
+    return f"{done} of {total} {runs} done; run the same command again to resume"
 
 
 def _dask_client(address: str | None, timeout: float, workers: int | None):

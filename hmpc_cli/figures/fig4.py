@@ -81,7 +81,8 @@ def load_walk(path: str | Path) -> WalkLog:
 
     path = Path(path)
     if not path.is_file():
-        raise FigureInputError(f"{path}{(path.is_dir() and sweep_text(path)) or ': no such log'}")
+        sweep = sweep_text(path) if path.is_dir() else ""
+        raise FigureInputError(f"{path}{sweep or ': no such log'}")
     try:
         run = read_run(path, with_plans=False)
     except ValueError as exc:

@@ -114,7 +114,7 @@ def _order(values: list[str], listed: Sequence[str] = ()) -> list[str]:
         return sorted(values, key=lambda v: rank.get(v, len(rank)))
 
 
-#: the panel of every run when the table has no panel column (:func:`default_panel_axis`)
+#: the panel of every run when the table has no panel column (:func:`default_axes`)
 ONE_PANEL = "all runs"
 #: the column a robustness figure's panels follow by default, in order of preference: the
 #: disturbance size as a grid axis, else as a fixed setting of the sweep (``[set]``)
@@ -127,20 +127,22 @@ X_AXES = ("mpc.rate_hz", "set.mpc.rate_hz")
 SERIES_AXES = ("replanning.policy", "set.replanning.policy")
 
 
-def default_panel_axis(table: str | Path) -> str | None:
-    """The first of :data:`PANEL_AXES` the table has; None: one panel (:data:`ONE_PANEL`)."""
-    return _first_column(table, PANEL_AXES)
+def default_axes(table: str | Path, panel: str | None = None, x: str | None = None,
+                 series: str | None = None) -> tuple[str | None, str, str]:
+    """The (panel, x, series) axes: those given, else the table's defaults (one read).
 
-
-def default_axis(table: str | Path, columns: Sequence[str]) -> str:
-    """The first of ``columns`` the table has; else the first (its error names it)."""
-    return _first_column(table, columns) or columns[0]
-
-
-def _first_column(table: str | Path, columns: Sequence[str]) -> str | None:
-    """The first of ``columns`` the table at ``table`` has (None: none of them)."""
+    A default is the first of :data:`PANEL_AXES`, :data:`X_AXES` and :data:`SERIES_AXES`
+    the table has. No panel column: None (one panel, :data:`ONE_PANEL`); no x or series column: the
+    first name (the error names it).
+    """
     present = read_table(resolve_table(table), ["success"])[0].keys()
-    return next((c for c in columns if c in present), None)
+
+    def first(columns: Sequence[str]) -> str | None:
+        return next((c for c in columns if c in present), None)
+
+    return (panel if panel is not None else first(PANEL_AXES),
+            x if x is not None else first(X_AXES) or X_AXES[0],
+            series if series is not None else first(SERIES_AXES) or SERIES_AXES[0])
 
 
 def cells(table: str | Path, x_axis: str, series_axis: str, panel_axis: str | None,
@@ -225,7 +227,7 @@ def robustness(table: str | Path, out_dir: str | Path | None = None,
     """Draws success rate vs ``x_axis`` (log scale) with Wilson 95 % intervals.
 
     One panel per ``panel_axis`` value (None: one panel, :data:`ONE_PANEL`; see
-    :func:`default_panel_axis`), one line per ``series_axis`` value; a cell none of
+    :func:`default_axes`), one line per ``series_axis`` value; a cell none of
     whose runs was set up (``not_set_up``, see :func:`cells`) is a cross at 0, off the
     line. With ``diameters`` (panel value -> bound name -> [(x, diam T(1/x))]) a second
     row draws the tube diameters on the same x axis (log y). Writes ``<name>.<fmt>`` and

@@ -39,8 +39,9 @@ def resolve_log(path: Path) -> Path:
     """
     path = Path(path)
     if path.is_dir():
-        if sweep_text(path) and not (path / "run.mcap").is_file():
-            raise ValueError(f"{path}{sweep_text(path)}")
+        sweep = sweep_text(path)
+        if sweep and not (path / "run.mcap").is_file():
+            raise ValueError(f"{path}{sweep}")
         path = path / "run.mcap"
     if not path.is_file() and path.name == "run.mcap" and (path.parent / TRACE_NAME).is_file():
         path = path.parent / TRACE_NAME

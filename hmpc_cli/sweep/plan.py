@@ -343,7 +343,7 @@ def plan_sweep(path: str | Path) -> SweepPlan:
         (k, v, f"grid.{a.name}") for a in axes for ov in a.overrides for k, v in ov.items()])
     if bad_keys:
         raise ScenarioError(list(dict.fromkeys(errors + bad_keys)))
-    total = len(spec.seeds) * math.prod(len(a.labels) for a in axes)
+    total = _run_count(spec, axes)
     if total > MAX_RUNS:
         cells = " x ".join(str(len(a.labels)) for a in axes) or "1"
         raise ScenarioError([*errors, f"{src}: seeds: {cells} grid cells x {len(spec.seeds)} "
@@ -387,7 +387,12 @@ def planned_runs(path: str | Path) -> int | None:
         return None
     errors: list[str] = []
     axes = _axes(spec, str(path), errors)
-    return None if errors else len(spec.seeds) * math.prod(len(a.labels) for a in axes)
+    return None if errors else _run_count(spec, axes)
+
+
+def _run_count(spec: SweepSpec, axes: list[Axis]) -> int:
+    """The runs a sweep plans: its seeds x its grid's cells."""
+    return len(spec.seeds) * math.prod(len(a.labels) for a in axes)
 
 
 def _is_a_sweep_file(path: Path) -> bool:
